@@ -1,0 +1,105 @@
+"""Starting and stopping the application: Qt + qasync event loop, the manager, the window, and the
+safety nets (FES stop on crash, signals and exit)."""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import signal
+import sys
+import threading
+from collections.abc import Callable
+from types import TracebackType
+
+from PySide6.QtCore import QCoreApplication, QSettings, QTimer
+from PySide6.QtWidgets import QApplication
+
+from app.config import AppConfig
+from app.manager import LinarmppManager
+from app.paths import data_dir
+
+log = logging.getLogger(__name__)
+
+
+def configure_qt_identity() -> None:
+    """QSettings in the app's data folder (LINARMPP_HOME moves it for tests)."""
+    QCoreApplication.setOrganizationName("LINarmPP")
+    QCoreApplication.setApplicationName("LINarm++ Manager")
+    QSettings.setDefaultFormat(QSettings.Format.IniFormat)
+    QSettings.setPath(QSettings.Format.IniFormat, QSettings.Scope.UserScope, str(data_dir() / "settings"))
+
+
+def install_safety_nets(manager: LinarmppManager) -> Callable[[], None]:
+    """An uncaught exception anywhere, or SIGTERM/SIGINT, brings devices to a safe state first.
+    Returns a function that removes the nets again."""
+    previous_hook = sys.excepthook
+    previous_thread_hook = threading.excepthook
+
+    def hook(exc_type: type[BaseException], exc: BaseException, tb: TracebackType | None) -> None:
+        log.critical("uncaught exception: stopping stimulation and robot", exc_info=(exc_type, exc, tb))
+        try:
+            manager.supervisor.bring_to_safe_state(f"uncaught {exc_type.__name__}")
+        finally:
+            previous_hook(exc_type, exc, tb)
+
+    def thread_hook(args: threading.ExceptHookArgs) -> None:
+        hook(args.exc_type, args.exc_value or Exception(), args.exc_traceback)
+
+    sys.excepthook = hook
+    threading.excepthook = thread_hook
+    previous_signals = {}
+    if threading.current_thread() is threading.main_thread():
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            def on_signal(signum: int, _frame: object) -> None:
+                log.warning("signal %s: closing safely", signum)
+                manager.supervisor.bring_to_safe_state(f"signal {signum}")
+                app = QApplication.instance()
+                if app is not None:
+                    app.quit()
+            previous_signals[sig] = signal.signal(sig, on_signal)
+
+    def remove() -> None:
+        sys.excepthook = previous_hook
+        threading.excepthook = previous_thread_hook
+        for sig, handler in previous_signals.items():
+            signal.signal(sig, handler)
+
+    return remove
+
+
+def run_gui(config: AppConfig, screenshot: str | None = None, quit_after_s: float | None = None) -> int:
+    import qasync
+
+    from app.ui.main_window import MainWindow
+
+    app = QApplication.instance() or QApplication(sys.argv)
+    configure_qt_identity()
+    manager = LinarmppManager(config)
+    remove_nets = install_safety_nets(manager)
+    manager.start()
+    window = MainWindow(manager)
+    window.show()
+    # Python signal handlers only run when the interpreter gets control: wake it regularly.
+    heartbeat = QTimer()
+    heartbeat.start(200)
+    heartbeat.timeout.connect(lambda: None)
+    if screenshot:
+        def shoot() -> None:
+            if manager.all_connected():
+                window.grab().save(screenshot)
+                log.info("screenshot saved to %s", screenshot)
+                app.quit()
+            else:
+                QTimer.singleShot(200, shoot)
+        QTimer.singleShot(1500, shoot)
+    if quit_after_s is not None:
+        QTimer.singleShot(int(quit_after_s * 1000), app.quit)
+    loop = qasync.QEventLoop(app)
+    asyncio.set_event_loop(loop)
+    try:
+        with loop:
+            loop.run_forever()
+    finally:
+        manager.shutdown()
+        remove_nets()
+    return 0

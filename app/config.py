@@ -1,0 +1,213 @@
+"""Application configuration: devices (simulated or real), safety limits, assistance gains.
+
+The defaults here are the single source; ``resources/config.default.yaml`` is a commented copy
+that a test keeps identical to them. A user file (``--config FILE``) overrides any subset and is
+validated whole before anything starts: unknown keys and bad values are refused with the file,
+key and line named (see app.yamlschema).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+from app.yamlschema import ConfigError, load_file, rng, to_plain
+
+RESOURCES = Path(__file__).resolve().parent.parent / "resources"
+DEFAULT_CONFIG_FILE = RESOURCES / "config.default.yaml"
+
+DeviceMode = Literal["simulated", "serial", "off"]
+
+
+@dataclass(frozen=True)
+class SerialDevice:
+    """A serial device: `simulated` starts a simulator on a pty (or localhost socket) and connects
+    the real driver to it; `serial` opens ``port`` (a name such as /dev/ttyACM0 or COM3, or any
+    pyserial URL such as socket://host:port)."""
+
+    mode: DeviceMode = "simulated"
+    port: str = ""
+    baudrate: int = field(default=115200, metadata=rng(1200, 4_000_000, "Bd"))
+
+    def validate(self) -> None:
+        if self.mode == "serial" and not self.port:
+            raise ValueError("mode is 'serial' but no port is given (e.g. port: /dev/ttyACM0 or COM3)")
+
+
+@dataclass(frozen=True)
+class LinarmDevice(SerialDevice):
+    baudrate: int = field(default=460800, metadata=rng(1200, 4_000_000, "Bd"))
+    state_rate_hz: float = field(default=200.0, metadata=rng(1, 1000, "Hz"))
+    command_timeout_s: float = field(default=1.0, metadata=rng(0.05, 30, "s"))
+    heartbeat_period_s: float = field(default=0.1, metadata=rng(0.02, 0.2, "s"))
+
+
+@dataclass(frozen=True)
+class PhysioCalibration:
+    """Raw 12-bit counts → physical units: value = gain · counts + offset."""
+
+    heart_rate_gain: float = 0.05
+    heart_rate_offset: float = 0.0
+    skin_conductance_gain: float = 0.01
+    skin_conductance_offset: float = 0.0
+    temperature_gain: float = 0.01
+    temperature_offset: float = 20.0
+    force_gain: float = 0.025
+    force_offset: float = 0.0
+
+
+@dataclass(frozen=True)
+class PhysioDevice(SerialDevice):
+    rate_hz: float = field(default=100.0, metadata=rng(1, 5000, "Hz"))
+    calibration: PhysioCalibration = field(default_factory=PhysioCalibration)
+
+
+@dataclass(frozen=True)
+class FesDevice(SerialDevice):
+    protocol: Literal["sm1", "sm2"] = "sm1"
+    ack_timeout_s: float = field(default=0.5, metadata=rng(0.01, 10, "s"))
+
+    def validate(self) -> None:
+        super().validate()
+
+
+@dataclass(frozen=True)
+class UdpEndpoint:
+    """A UDP peer. `embedded`/`standin` run our own implementation as a separate process on the
+    same UDP link; `external` talks to a model or renderer started elsewhere (Matlab, Unity)."""
+
+    mode: Literal["embedded", "standin", "external", "off"] = "embedded"
+    bind_host: str = "127.0.0.1"
+    listen_port: int = field(default=0, metadata=rng(0, 65535))
+    peer_host: str = "127.0.0.1"
+    peer_port: int = field(default=0, metadata=rng(0, 65535))
+    rate_hz: float = field(default=100.0, metadata=rng(1, 2000, "Hz"))
+
+    def validate(self) -> None:
+        if self.mode == "external" and not self.peer_port:
+            raise ValueError("mode is 'external' but peer_port is not set")
+
+
+@dataclass(frozen=True)
+class Devices:
+    linarm: LinarmDevice = field(default_factory=LinarmDevice)
+    physio: PhysioDevice = field(default_factory=PhysioDevice)
+    fes: FesDevice = field(default_factory=FesDevice)
+    patient_model: UdpEndpoint = field(default_factory=UdpEndpoint)
+    vr: UdpEndpoint = field(default_factory=lambda: UdpEndpoint(mode="standin", rate_hz=50.0))
+
+
+@dataclass(frozen=True)
+class RobotLimits:
+    position_min_m: float = field(default=0.02, metadata=rng(0.0, 0.5, "m"))
+    position_max_m: float = field(default=0.48, metadata=rng(0.0, 0.5, "m"))
+    max_velocity_m_s: float = field(default=0.30, metadata=rng(0.0, 1.0, "m/s"))
+    max_acceleration_m_s2: float = field(default=1.0, metadata=rng(0.0, 10.0, "m/s²"))
+    max_interaction_force_n: float = field(default=60.0, metadata=rng(0.0, 200.0, "N"))
+    max_stiffness_n_m: float = field(default=2000.0, metadata=rng(0.0, 10000.0, "N/m"))
+    max_delta_m: float = field(default=0.05, metadata=rng(0.0, 0.1, "m"))
+    # Endstroke switches stop the carriage at the rail's ends; only a bench setup without a patient
+    # may turn them off.
+    allow_disable_endstrokes: bool = False
+
+    def validate(self) -> None:
+        if self.position_min_m >= self.position_max_m:
+            raise ValueError(
+                f"position_min_m ({self.position_min_m}) must be below position_max_m ({self.position_max_m})")
+
+
+@dataclass(frozen=True)
+class FesChannelCaps:
+    max_current_ma: float = field(default=40.0, metadata=rng(0, 126, "mA"))
+    max_pulse_width_us: float = field(default=300.0, metadata=rng(0, 500, "µs"))
+
+
+@dataclass(frozen=True)
+class FesSafety:
+    max_current_ma: float = field(default=40.0, metadata=rng(0, 126, "mA"))
+    max_pulse_width_us: float = field(default=300.0, metadata=rng(0, 500, "µs"))
+    max_current_rise_ma_s: float = field(default=40.0, metadata=rng(0.1, 1000, "mA/s"))
+    max_pulse_width_rise_us_s: float = field(default=500.0, metadata=rng(1, 10000, "µs/s"))
+    max_rms_current_ma: float = field(default=10.0, metadata=rng(0, 50, "mA"))
+    start_ramp_s: float = field(default=1.0, metadata=rng(0, 10, "s"))
+    frequency_hz: float = field(default=40.0, metadata=rng(1, 100, "Hz"))
+    channels: dict[int, FesChannelCaps] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class SafetyConfig:
+    robot: RobotLimits = field(default_factory=RobotLimits)
+    fes: FesSafety = field(default_factory=FesSafety)
+    # A streaming device that is silent for this many of its sample periods raises an alarm.
+    silence_periods: int = field(default=3, metadata=rng(2, 100))
+    # What the robot does when a script stops or the app leaves a session: IDLE (motors off) or hold.
+    robot_safe_state: Literal["idle", "hold"] = "idle"
+
+
+@dataclass(frozen=True)
+class AssistanceMap:
+    """Maps a_r (or a_f) in [0, 1] linearly onto [at_zero, at_one]."""
+
+    at_zero: float = 0.0
+    at_one: float = 1.0
+
+
+@dataclass(frozen=True)
+class AssistanceConfig:
+    k_r: float = field(default=0.5, metadata=rng(0, 1))
+    k_f: float = field(default=0.5, metadata=rng(0, 1))
+    k_m_stiffness_n_m: AssistanceMap = field(default_factory=lambda: AssistanceMap(200.0, 1200.0))
+    k_a_admittance_m_s_n: AssistanceMap = field(default_factory=lambda: AssistanceMap(0.002, 0.01))
+    k_t_assistive_n_m: AssistanceMap = field(default_factory=lambda: AssistanceMap(0.0, 150.0))
+    fes_pulse_width_us: AssistanceMap = field(default_factory=lambda: AssistanceMap(100.0, 300.0))
+    max_update_rate_hz: float = field(default=10.0, metadata=rng(0.1, 100, "Hz"))
+
+
+@dataclass(frozen=True)
+class RecordingConfig:
+    folder: str = ""  # empty: the user's data folder (shown in Help → About)
+    lsl: bool = False
+    flush_interval_s: float = field(default=0.5, metadata=rng(0.05, 1.0, "s"))
+
+
+@dataclass(frozen=True)
+class UiConfig:
+    refresh_hz: float = field(default=30.0, metadata=rng(1, 120, "Hz"))
+    history_s: float = field(default=30.0, metadata=rng(1, 600, "s"))
+    palette: Literal["light", "dark"] = "light"
+    emergency_stop_shortcut: str = "F12"
+
+
+@dataclass(frozen=True)
+class AppConfig:
+    version: int = field(default=1, metadata=rng(1, 1))
+    devices: Devices = field(default_factory=Devices)
+    safety: SafetyConfig = field(default_factory=SafetyConfig)
+    assistance: AssistanceConfig = field(default_factory=AssistanceConfig)
+    recording: RecordingConfig = field(default_factory=RecordingConfig)
+    ui: UiConfig = field(default_factory=UiConfig)
+    source: str = field(default="(defaults)", compare=False)
+
+
+def load_config(path: str | Path | None = None) -> AppConfig:
+    """The defaults, overridden by ``path`` when given. Raises ConfigError naming file, key, line."""
+    if path is None:
+        return AppConfig()
+    cfg = load_file(AppConfig, path, base=AppConfig())
+    return _with_source(cfg, str(path))
+
+
+def _with_source(cfg: AppConfig, source: str) -> AppConfig:
+    from dataclasses import replace
+
+    return replace(cfg, source=source)
+
+
+def config_as_dict(cfg: AppConfig) -> dict:
+    data = to_plain(cfg)
+    data.pop("source", None)
+    return data
+
+
+__all__ = ["AppConfig", "ConfigError", "config_as_dict", "load_config"]

@@ -1,0 +1,313 @@
+"""The device-driver base: one QThread per device owning its transport.
+
+A driver reads bytes, decodes them with its (pure) codec into typed, timestamped samples and
+publishes them three ways, each suited to its consumer:
+
+* ``samples`` Qt signal — column batches at display rate (~30 Hz) for the GUI, never one signal
+  per sample;
+* listeners — plain callables run on the driver thread for each sample (recorder queue, safety
+  watchdogs, script callbacks' queue); they must be quick and must not block;
+* ``latest(stream)`` plus the shared :class:`UpdateNotifier` — so a script's ``waitCondition``
+  wakes within a millisecond of the frame that satisfies it instead of polling.
+
+The loop reconnects with back-off when the transport drops, and stops within one read timeout.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from PySide6.QtCore import QThread, Signal
+
+from app.devices.transport import Transport, TransportError
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class Channel:
+    """One scalar signal of a stream: attribute name on the sample, unit, human label."""
+
+    name: str
+    unit: str
+    label: str
+
+
+@dataclass(frozen=True)
+class StreamSpec:
+    name: str  # "<device>.<stream>", e.g. "linarm.vsa"
+    channels: tuple[Channel, ...]
+    nominal_rate_hz: float
+
+
+@dataclass
+class SampleBatch:
+    """Samples of one stream since the last batch: ``t`` in monotonic seconds, one array per channel."""
+
+    stream: StreamSpec
+    t: np.ndarray
+    data: dict[str, np.ndarray]
+
+    def __len__(self) -> int:
+        return len(self.t)
+
+
+class UpdateNotifier:
+    """A generation counter + condition shared by all drivers: 'some device published something'."""
+
+    def __init__(self) -> None:
+        self._cond = threading.Condition()
+        self.generation = 0
+
+    def notify(self) -> None:
+        with self._cond:
+            self.generation += 1
+            self._cond.notify_all()
+
+    def wait_after(self, generation: int, timeout: float) -> int:
+        """Block until the generation moves past ``generation`` (or timeout); return the new one."""
+        with self._cond:
+            if self.generation == generation:
+                self._cond.wait(timeout)
+            return self.generation
+
+
+@dataclass
+class _Accumulator:
+    spec: StreamSpec
+    t: list[float] = field(default_factory=list)
+    cols: dict[str, list[float]] = field(default_factory=dict)
+    count_window: int = 0
+    total: int = 0
+    last_t: float = 0.0
+
+    def __post_init__(self) -> None:
+        self.cols = {c.name: [] for c in self.spec.channels}
+
+
+SampleListener = Callable[[str, float, Any], None]
+EventListener = Callable[[str, str], None]
+
+
+class DeviceDriver(QThread):
+    """Base class. Subclasses set ``streams`` and implement ``on_bytes`` (and optionally
+    ``on_connect``, ``on_tick``, ``on_disconnect``)."""
+
+    connection_changed = Signal(bool, str)
+    samples = Signal(object)  # dict[str, SampleBatch]
+    error = Signal(str)
+    silence_changed = Signal(bool)  # True: connected but no sample for `silence_timeout_s`
+
+    streams: tuple[StreamSpec, ...] = ()
+
+    def __init__(
+        self,
+        name: str,
+        transport: Transport,
+        *,
+        notifier: UpdateNotifier | None = None,
+        batch_hz: float = 30.0,
+        read_timeout_s: float = 0.01,
+        silence_timeout_s: float | None = None,
+    ) -> None:
+        super().__init__()
+        self.setObjectName(f"driver:{name}")
+        self.name = name
+        self.transport = transport
+        self.notifier = notifier or UpdateNotifier()
+        self.read_timeout_s = read_timeout_s
+        self.batch_period_s = 1.0 / batch_hz
+        self.silence_timeout_s = silence_timeout_s
+        self._stop = threading.Event()
+        self._connected = False
+        self._silent = False
+        self._last_reason = ""
+        self._latest: dict[str, Any] = {}
+        self._acc = {s.name: _Accumulator(s) for s in self.streams}
+        self._acc_lock = threading.Lock()
+        self._listeners: list[SampleListener] = []
+        self._event_listeners: list[EventListener] = []
+        self._last_sample_mono = 0.0
+        self._rates: dict[str, float] = {s.name: 0.0 for s in self.streams}
+        self._rate_window_start = time.monotonic()
+        self.reconnect_backoff_s = (0.1, 2.0)
+        self.connected_since: float | None = None
+
+    # ------------------------------------------------------------------ public, any thread
+    @property
+    def connected(self) -> bool:
+        return self._connected
+
+    @property
+    def silent(self) -> bool:
+        return self._silent
+
+    def latest(self, stream: str) -> Any:
+        return self._latest.get(stream)
+
+    def rates(self) -> dict[str, float]:
+        return dict(self._rates)
+
+    def add_listener(self, fn: SampleListener) -> None:
+        """``fn(stream_name, t_monotonic_s, sample)`` on the driver thread, for every sample."""
+        self._listeners = [*self._listeners, fn]
+
+    def remove_listener(self, fn: SampleListener) -> None:
+        self._listeners = [f for f in self._listeners if f is not fn]
+
+    def add_event_listener(self, fn: EventListener) -> None:
+        """``fn(event, detail)`` on the driver thread: 'connected', 'disconnected', 'silent', 'alive'."""
+        self._event_listeners = [*self._event_listeners, fn]
+
+    def send(self, data: bytes) -> None:
+        """Write bytes now, from any thread (the transport serialises writers)."""
+        if not self._connected:
+            raise TransportError(f"{self.name} is not connected")
+        self.transport.write(data)
+
+    def stop(self, timeout_s: float = 1.0) -> bool:
+        """Ask the loop to end and wait for it; True when the thread has finished."""
+        self._stop.set()
+        if self.isRunning():
+            return self.wait(int(timeout_s * 1000))
+        return True
+
+    # ------------------------------------------------------------------ subclass hooks (driver thread)
+    def on_connect(self) -> None:
+        """Handshake after the transport opened; raise TransportError to retry later."""
+
+    def on_bytes(self, data: bytes, t_ns: int) -> None:
+        raise NotImplementedError
+
+    def on_tick(self, now_s: float) -> None:
+        """Called every loop pass (at least every read timeout): heartbeats, timeouts."""
+
+    def on_disconnect(self) -> None:
+        """Transport is about to close: fail pending requests."""
+
+    def publish(self, stream: str, t_s: float, sample: Any) -> None:
+        """Hand one decoded sample to every consumer. ``sample`` exposes the stream's channels
+        as attributes; ``t_s`` is time.monotonic() at decode."""
+        self._latest[stream] = sample
+        acc = self._acc[stream]
+        with self._acc_lock:
+            acc.t.append(t_s)
+            for ch in acc.spec.channels:
+                acc.cols[ch.name].append(getattr(sample, ch.name))
+            acc.count_window += 1
+            acc.total += 1
+            acc.last_t = t_s
+        self._last_sample_mono = time.monotonic()
+        for fn in self._listeners:
+            try:
+                fn(stream, t_s, sample)
+            except Exception:  # a consumer's bug must not stop the device
+                log.exception("%s: sample listener failed", self.name)
+        self.notifier.notify()
+
+    def total_samples(self, stream: str) -> int:
+        return self._acc[stream].total
+
+    # ------------------------------------------------------------------ the loop
+    def run(self) -> None:
+        lo, hi = self.reconnect_backoff_s
+        backoff = lo
+        while not self._stop.is_set():
+            try:
+                self.transport.open()
+            except TransportError as exc:
+                self._set_connected(False, str(exc))
+                self._stop.wait(backoff)
+                backoff = min(backoff * 2, hi)
+                continue
+            reason = "disconnected"
+            try:
+                self.on_connect()
+                self._set_connected(True, f"connected ({self.transport.description})")
+                backoff = lo
+                self._io_loop()
+                reason = "stopped"
+            except TransportError as exc:
+                reason = str(exc)
+            except Exception as exc:  # a decoder bug must never take the thread down silently
+                log.exception("%s: driver failure", self.name)
+                reason = f"driver failure: {exc!r}"
+                self.error.emit(f"{self.name}: {reason}")
+            finally:
+                try:
+                    self.on_disconnect()
+                except Exception:
+                    log.exception("%s: on_disconnect failed", self.name)
+                self.transport.close()
+            self._set_connected(False, reason)
+            self._emit_batches(force=True)
+            if not self._stop.is_set():
+                self._stop.wait(backoff)
+        self._emit_batches(force=True)
+
+    def _io_loop(self) -> None:
+        next_batch = time.monotonic() + self.batch_period_s
+        self._last_sample_mono = time.monotonic()
+        while not self._stop.is_set():
+            data = self.transport.read(self.read_timeout_s)
+            if data:
+                self.on_bytes(data, time.monotonic_ns())
+            now = time.monotonic()
+            self.on_tick(now)
+            if self.silence_timeout_s is not None:
+                silent = now - self._last_sample_mono > self.silence_timeout_s
+                if silent != self._silent:
+                    self._silent = silent
+                    self.silence_changed.emit(silent)
+                    self._fire_event("silent" if silent else "alive", "")
+            if now >= next_batch:
+                self._emit_batches()
+                next_batch = now + self.batch_period_s
+
+    def _emit_batches(self, force: bool = False) -> None:
+        out: dict[str, SampleBatch] = {}
+        now = time.monotonic()
+        window = now - self._rate_window_start
+        with self._acc_lock:
+            for name, acc in self._acc.items():
+                if acc.t:
+                    out[name] = SampleBatch(
+                        acc.spec, np.asarray(acc.t, dtype=np.float64),
+                        {k: np.asarray(v, dtype=np.float64) for k, v in acc.cols.items()},
+                    )
+                    acc.t = []
+                    acc.cols = {k: [] for k in acc.cols}
+            if window >= 1.0 or force:
+                for name, acc in self._acc.items():
+                    self._rates[name] = acc.count_window / window if window > 0 else 0.0
+                    acc.count_window = 0
+                self._rate_window_start = now
+        if out:
+            self.samples.emit(out)
+
+    def _set_connected(self, connected: bool, reason: str) -> None:
+        changed = connected != self._connected or (not connected and reason != self._last_reason)
+        self._connected = connected
+        self._last_reason = reason
+        if connected:
+            self.connected_since = time.monotonic()
+            self._silent = False
+        if changed:
+            level = logging.INFO if connected else logging.WARNING
+            log.log(level, "%s: %s", self.name, reason)
+            self.connection_changed.emit(connected, reason)
+            self._fire_event("connected" if connected else "disconnected", reason)
+            self.notifier.notify()
+
+    def _fire_event(self, event: str, detail: str) -> None:
+        for fn in self._event_listeners:
+            try:
+                fn(event, detail)
+            except Exception:
+                log.exception("%s: event listener failed", self.name)

@@ -1,0 +1,116 @@
+"""The thread that runs a device simulator on the far side of a real serial link.
+
+A simulator core is pure (bytes in → bytes out, plus time-driven output); this thread gives it a
+link (pty or localhost socket) and a clock. ``kill()`` closes the link like pulling the cable;
+``restart()`` brings the device back on a new link behind the same stable path.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Protocol
+
+from app.devices.transport import SimLink, make_sim_link
+
+log = logging.getLogger(__name__)
+
+
+class SimCore(Protocol):
+    """What a device simulator core offers to the link thread."""
+
+    def handle_host_bytes(self, data: bytes, t: float) -> bytes:
+        """Bytes from the host arrived at monotonic time ``t``; return the reply bytes."""
+        ...
+
+    def poll(self, t: float) -> bytes:
+        """Advance the device to time ``t``; return whatever it transmits by then."""
+        ...
+
+
+class SerialSimulator:
+    """Runs ``core`` on a link in its own daemon thread, polling it every ``tick_s``."""
+
+    def __init__(self, name: str, core_factory: Callable[[], SimCore], link_path: Path | None,
+                 tick_s: float = 0.001) -> None:
+        self.name = name
+        self.core_factory = core_factory
+        self.link_path = link_path
+        self.tick_s = tick_s
+        self.core: SimCore = core_factory()
+        self.link: SimLink = make_sim_link(link_path)
+        self.host_bytes_log: list[tuple[float, bytes]] = []  # what the driver sent, for tests
+        self.keep_host_log = False
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._lock = threading.Lock()  # guards `core` against test/GUI threads poking it
+
+    @property
+    def url(self) -> str:
+        return self.link.url
+
+    @property
+    def running(self) -> bool:
+        return self._thread is not None and self._thread.is_alive()
+
+    def start(self) -> None:
+        self._stop.clear()
+        self._thread = threading.Thread(target=self._run, name=f"sim:{self.name}", daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=2.0)
+        self.link.close()
+
+    def kill(self) -> None:
+        """The device vanishes mid-stream (cable pulled, board reset)."""
+        self.stop()
+
+    def restart(self, fresh_state: bool = True) -> None:
+        """The device comes back, on a new link behind the same path."""
+        self.stop()
+        if fresh_state:
+            self.core = self.core_factory()
+        self.link = make_sim_link(self.link_path)
+        self.start()
+
+    def with_core(self, fn: Callable[[SimCore], object]) -> object:
+        """Run ``fn(core)`` under the simulator's lock (tests, the simulation panel)."""
+        with self._lock:
+            return fn(self.core)
+
+    def _run(self) -> None:
+        link = self.link
+        next_tick = time.monotonic()
+        try:
+            while not self._stop.is_set():
+                timeout = max(0.0, next_tick - time.monotonic())
+                if link.wait_readable(timeout):
+                    data = link.read()
+                    if data:
+                        now = time.monotonic()
+                        if self.keep_host_log:
+                            self.host_bytes_log.append((now, data))
+                        with self._lock:
+                            reply = self.core.handle_host_bytes(data, now)
+                        if reply:
+                            link.write(reply)
+                now = time.monotonic()
+                if now >= next_tick:
+                    with self._lock:
+                        out = self.core.poll(now)
+                    if out:
+                        link.write(out)
+                    next_tick += self.tick_s
+                    if next_tick < now - 0.1:  # fell far behind (debugger, suspended VM): do not burst
+                        next_tick = now + self.tick_s
+        except OSError as exc:
+            if not self._stop.is_set():
+                log.warning("simulator %s: link failed: %s", self.name, exc)
+        except Exception:
+            log.exception("simulator %s crashed", self.name)

@@ -1,0 +1,334 @@
+"""Byte transports: serial (pyserial, any URL) and UDP, plus the far-side links simulators sit on.
+
+Drivers own one transport each; nothing else opens ports. Reads take a timeout so a driver's loop
+notices a stop request promptly; writes are serialised by a lock so any thread may send (the
+emergency stop must not wait behind a queue).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import errno
+import os
+import select
+import socket
+import threading
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Protocol
+
+import serial
+
+
+class TransportError(OSError):
+    """The link is gone or cannot be opened; the message says why in plain words."""
+
+
+class Transport(Protocol):
+    description: str
+
+    def open(self) -> None: ...
+    def close(self) -> None: ...
+    def read(self, timeout: float) -> bytes: ...
+    def write(self, data: bytes) -> None: ...
+    @property
+    def is_open(self) -> bool: ...
+
+
+@dataclass(frozen=True)
+class SerialSettings:
+    baudrate: int = 115200
+    bytesize: int = serial.EIGHTBITS
+    parity: str = serial.PARITY_NONE
+    stopbits: float = serial.STOPBITS_ONE
+    rtscts: bool = False
+
+
+class SerialTransport:
+    """A pyserial port opened by URL: /dev/ttyACM0, COM3, a pty slave path, socket://host:port."""
+
+    def __init__(self, url: str, settings: SerialSettings | None = None) -> None:
+        self.url = url
+        self.settings = settings or SerialSettings()
+        self.description = f"serial {url} @ {self.settings.baudrate} Bd"
+        self._port: serial.SerialBase | None = None
+        self._write_lock = threading.Lock()
+
+    @property
+    def is_open(self) -> bool:
+        return self._port is not None and self._port.is_open
+
+    def open(self) -> None:
+        s = self.settings
+        try:
+            port = serial.serial_for_url(
+                self.url, do_not_open=True, baudrate=s.baudrate, bytesize=s.bytesize,
+                parity=s.parity, stopbits=s.stopbits, rtscts=s.rtscts, timeout=0.02, write_timeout=1.0,
+            )
+            port.open()
+        except (serial.SerialException, OSError, ValueError) as exc:
+            raise TransportError(f"cannot open {self.url}: {exc}") from exc
+        with contextlib.suppress(serial.SerialException, OSError):
+            port.reset_input_buffer()  # stale bytes from before we connected are not trustworthy
+        self._port = port
+
+    def close(self) -> None:
+        port, self._port = self._port, None
+        if port is not None:
+            with contextlib.suppress(Exception):
+                port.close()
+
+    def read(self, timeout: float) -> bytes:
+        port = self._port
+        if port is None:
+            raise TransportError(f"{self.url} is not open")
+        try:
+            if port.timeout != timeout:
+                port.timeout = timeout
+            waiting = port.in_waiting
+            if waiting:
+                return port.read(waiting)
+            data = port.read(1)  # blocks up to `timeout` for the first byte
+            if data and (more := port.in_waiting):
+                data += port.read(more)
+            return data
+        except (serial.SerialException, OSError, TypeError, AttributeError) as exc:
+            # TypeError/AttributeError: pyserial's internals after a concurrent close().
+            raise TransportError(f"{self.url}: the link was lost ({exc})") from exc
+
+    def write(self, data: bytes) -> None:
+        port = self._port
+        if port is None:
+            raise TransportError(f"{self.url} is not open")
+        with self._write_lock:
+            try:
+                port.write(data)
+            except (serial.SerialException, OSError, TypeError, AttributeError) as exc:
+                raise TransportError(f"{self.url}: write failed ({exc})") from exc
+
+
+class UdpTransport:
+    """A UDP socket bound locally and aimed at one peer. Datagrams from any other sender are
+    dropped and counted: on a clinical network a stray packet must not steer the robot."""
+
+    def __init__(self, bind: tuple[str, int], peer: tuple[str, int] | None, accept_any_port: bool = False) -> None:
+        self.bind_addr = bind
+        self.peer = peer
+        self.accept_any_port = accept_any_port
+        self.description = f"udp {bind[0]}:{bind[1]} → {peer[0]}:{peer[1]}" if peer else f"udp {bind[0]}:{bind[1]}"
+        self.dropped_foreign = 0
+        self._sock: socket.socket | None = None
+        self._lock = threading.Lock()
+
+    @property
+    def is_open(self) -> bool:
+        return self._sock is not None
+
+    @property
+    def local_address(self) -> tuple[str, int]:
+        if self._sock is None:
+            raise TransportError("UDP socket is not open")
+        return self._sock.getsockname()[:2]
+
+    def open(self) -> None:
+        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        try:
+            sock.bind(self.bind_addr)
+        except OSError as exc:
+            sock.close()
+            raise TransportError(f"cannot bind UDP {self.bind_addr[0]}:{self.bind_addr[1]}: {exc.strerror}") from exc
+        self._sock = sock
+        host, port = sock.getsockname()[:2]
+        self.description = f"udp {host}:{port}" + (f" → {self.peer[0]}:{self.peer[1]}" if self.peer else "")
+
+    def close(self) -> None:
+        sock, self._sock = self._sock, None
+        if sock is not None:
+            sock.close()
+
+    def set_peer(self, peer: tuple[str, int]) -> None:
+        self.peer = peer
+
+    def read(self, timeout: float) -> bytes:
+        """One datagram from the peer, or b"" on timeout."""
+        sock = self._sock
+        if sock is None:
+            raise TransportError("UDP socket is not open")
+        try:
+            sock.settimeout(timeout)
+            data, sender = sock.recvfrom(65535)
+        except TimeoutError:
+            return b""
+        except OSError as exc:
+            if exc.errno in (errno.ECONNREFUSED, errno.ECONNRESET):
+                return b""  # ICMP port unreachable from a peer that is not up yet
+            raise TransportError(f"UDP receive failed: {exc}") from exc
+        if self.peer is not None:
+            host_ok = sender[0] == socket.gethostbyname(self.peer[0]) if self.peer[0] else True
+            port_ok = self.accept_any_port or sender[1] == self.peer[1]
+            if not (host_ok and port_ok):
+                self.dropped_foreign += 1
+                return b""
+        return data
+
+    def write(self, data: bytes) -> None:
+        sock, peer = self._sock, self.peer
+        if sock is None or peer is None:
+            raise TransportError("UDP socket is not open or has no peer")
+        with self._lock:
+            try:
+                sock.sendto(data, peer)
+            except OSError as exc:
+                if exc.errno in (errno.ECONNREFUSED, errno.ECONNRESET):
+                    return
+                raise TransportError(f"UDP send failed: {exc}") from exc
+
+
+# --------------------------------------------------------------------------- far-side links
+class SimLink(Protocol):
+    """The device end of a serial link, on which a simulator reads and writes."""
+
+    url: str  # what the driver opens
+
+    def wait_readable(self, timeout: float) -> bool: ...
+    def read(self) -> bytes: ...
+    def write(self, data: bytes) -> None: ...
+    def close(self) -> None: ...
+
+
+class PtyLink:
+    """A pty pair: the simulator holds the master, the driver opens the slave like a real port.
+
+    ``link_path`` (optional) is a stable symlink to the slave, so a driver can reconnect after the
+    simulator is restarted with a new pty, as it would to a replugged device.
+    """
+
+    def __init__(self, link_path: Path | None = None) -> None:
+        import tty
+
+        self.master, slave = os.openpty()
+        tty.setraw(slave)  # no echo, no line discipline: bytes pass untouched
+        self.slave_name = os.ttyname(slave)
+        self._slave_fd = slave  # kept open so writes before the driver connects do not fail with EIO
+        os.set_blocking(self.master, False)
+        self.link_path = link_path
+        if link_path is not None:
+            tmp = link_path.with_name(link_path.name + ".tmp")
+            with contextlib.suppress(FileNotFoundError):
+                tmp.unlink()
+            os.symlink(self.slave_name, tmp)
+            os.replace(tmp, link_path)
+        self.url = str(link_path) if link_path is not None else self.slave_name
+        self._closed = False
+
+    def wait_readable(self, timeout: float) -> bool:
+        if self._closed:
+            return False
+        r, _, _ = select.select([self.master], [], [], max(0.0, timeout))
+        return bool(r)
+
+    def read(self) -> bytes:
+        try:
+            return os.read(self.master, 65536)
+        except BlockingIOError:
+            return b""
+        except OSError as exc:
+            if exc.errno == errno.EIO:  # no one has the slave open right now
+                return b""
+            raise
+
+    def write(self, data: bytes) -> None:
+        view = memoryview(data)
+        while view and not self._closed:
+            try:
+                n = os.write(self.master, view)
+                view = view[n:]
+            except BlockingIOError:
+                # The driver is not reading (or not connected): a real UART would drop bytes too.
+                select.select([], [self.master], [], 0.01)
+                if not select.select([], [self.master], [], 0)[1]:
+                    return
+            except OSError as exc:
+                if exc.errno == errno.EIO:
+                    return
+                raise
+
+    def close(self) -> None:
+        """Like pulling the USB cable: the driver's next read fails."""
+        if self._closed:
+            return
+        self._closed = True
+        if self.link_path is not None:
+            with contextlib.suppress(OSError):
+                if os.readlink(self.link_path) == self.slave_name:
+                    self.link_path.unlink()
+        for fd in (self.master, self._slave_fd):
+            with contextlib.suppress(OSError):
+                os.close(fd)
+
+
+class SocketLink:
+    """A localhost TCP server standing in for a serial device (pyserial ``socket://``), for
+    platforms without ptys. One client (the driver) at a time."""
+
+    def __init__(self, port: int = 0) -> None:
+        self._server = socket.create_server(("127.0.0.1", port))
+        self._server.setblocking(False)
+        self.url = f"socket://127.0.0.1:{self._server.getsockname()[1]}"
+        self._client: socket.socket | None = None
+        self._closed = False
+
+    def _accept(self) -> None:
+        with contextlib.suppress(BlockingIOError):
+            client, _ = self._server.accept()
+            client.setblocking(False)
+            if self._client is not None:
+                self._client.close()
+            self._client = client
+
+    def wait_readable(self, timeout: float) -> bool:
+        if self._closed:
+            return False
+        socks = [self._server] + ([self._client] if self._client else [])
+        r, _, _ = select.select(socks, [], [], max(0.0, timeout))
+        if self._server in r:
+            self._accept()
+        return self._client is not None and self._client in r
+
+    def read(self) -> bytes:
+        if self._client is None:
+            return b""
+        try:
+            data = self._client.recv(65536)
+        except BlockingIOError:
+            return b""
+        except OSError:
+            data = b""
+        if not data:
+            self._client.close()
+            self._client = None
+        return data
+
+    def write(self, data: bytes) -> None:
+        if self._client is None:
+            self._accept()
+        if self._client is None:
+            return
+        try:
+            self._client.sendall(data)
+        except OSError:
+            self._client.close()
+            self._client = None
+
+    def close(self) -> None:
+        self._closed = True
+        if self._client is not None:
+            self._client.close()
+        self._server.close()
+
+
+def make_sim_link(link_path: Path | None = None) -> PtyLink | SocketLink:
+    """A pty where the OS has them (the driver opens it exactly like a real port), else a socket."""
+    if hasattr(os, "openpty"):
+        return PtyLink(link_path)
+    return SocketLink()

@@ -1,0 +1,35 @@
+"""Python logging to the console and to a rotating file in the user's data folder."""
+
+from __future__ import annotations
+
+import logging
+import logging.handlers
+from pathlib import Path
+
+from app.paths import log_dir
+
+LOG_FORMAT = "%(asctime)s %(levelname)-7s %(threadName)s %(name)s: %(message)s"
+_configured: Path | None = None
+
+
+def setup_logging(level: int = logging.INFO, console: bool = True) -> Path:
+    """Configure the root logger once; return the log file's path (shown in Help → About)."""
+    global _configured
+    if _configured is not None:
+        return _configured
+    path = log_dir() / "linarmpp.log"
+    root = logging.getLogger()
+    root.setLevel(level)
+    file_handler = logging.handlers.RotatingFileHandler(path, maxBytes=5_000_000, backupCount=5, encoding="utf-8")
+    file_handler.setFormatter(logging.Formatter(LOG_FORMAT))
+    root.addHandler(file_handler)
+    if console:
+        stream = logging.StreamHandler()
+        stream.setFormatter(logging.Formatter(LOG_FORMAT))
+        root.addHandler(stream)
+    _configured = path
+    return path
+
+
+def log_file() -> Path | None:
+    return _configured

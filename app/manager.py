@@ -1,0 +1,132 @@
+"""LinarmppManager: owns the devices (drivers and, when simulated, their simulators), the safety
+supervisor, and the shared update notifier. The GUI, the script runner and the headless runner
+all work through one manager; none of them touches a port.
+"""
+
+from __future__ import annotations
+
+import logging
+import shutil
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from PySide6.QtCore import QObject, Signal
+
+from app.config import AppConfig
+from app.devices.driver import DeviceDriver, UpdateNotifier
+from app.devices.sim.base import SerialSimulator
+from app.paths import runtime_dir
+from app.safety import SafetySupervisor
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class DeviceHandle:
+    """One device as the manager holds it: its driver, and its simulator when simulated."""
+
+    name: str
+    driver: DeviceDriver
+    simulator: SerialSimulator | None = None
+    extras: dict[str, Any] = field(default_factory=dict)  # e.g. helper processes
+
+    @property
+    def simulated(self) -> bool:
+        return self.simulator is not None or bool(self.extras.get("simulated"))
+
+
+DeviceFactory = Callable[["LinarmppManager"], DeviceHandle | None]
+
+
+class LinarmppManager(QObject):
+    device_connection_changed = Signal(str, bool, str)  # device, connected, reason
+
+    def __init__(self, config: AppConfig, factories: dict[str, DeviceFactory] | None = None) -> None:
+        super().__init__()
+        self.config = config
+        self.notifier = UpdateNotifier()
+        self.supervisor = SafetySupervisor(config.safety)
+        self.runtime_dir: Path = runtime_dir()
+        self.devices: dict[str, DeviceHandle] = {}
+        self.patient: Any = None  # the simulated patient shared by the simulators, when any
+        if factories is None:
+            from app.devices.registry import default_factories
+
+            factories = default_factories(config)
+        self._factories = factories
+        self._started = False
+        self._shutdown_hooks: list[Callable[[], None]] = []
+
+    # ------------------------------------------------------------------ lifecycle
+    def start(self) -> None:
+        """Start every configured device (simulators first, so drivers find them)."""
+        if self._started:
+            return
+        self._started = True
+        for name, factory in self._factories.items():
+            try:
+                handle = factory(self)
+            except Exception as exc:
+                log.exception("device %s could not be created", name)
+                self.supervisor.event("device_error", device=name, error=str(exc))
+                continue
+            if handle is None:
+                continue
+            self.devices[name] = handle
+            handle.driver.connection_changed.connect(
+                lambda ok, why, n=name: self.device_connection_changed.emit(n, ok, why))
+            if handle.simulator is not None:
+                handle.simulator.start()
+            handle.driver.start()
+        log.info("devices started: %s", ", ".join(self.devices) or "none")
+
+    def add_shutdown_hook(self, fn: Callable[[], None]) -> None:
+        self._shutdown_hooks.append(fn)
+
+    def shutdown(self, timeout_s: float = 1.0) -> None:
+        """Bring every device to a safe state, then stop all threads and helper processes."""
+        if not self._started:
+            return
+        self._started = False
+        t0 = time.monotonic()
+        self.supervisor.bring_to_safe_state("application closing")
+        for fn in reversed(self._shutdown_hooks):
+            try:
+                fn()
+            except Exception:
+                log.exception("shutdown hook failed")
+        for handle in self.devices.values():
+            handle.driver._stop.set()  # all at once, then wait: total time = the slowest, not the sum
+        for handle in self.devices.values():
+            remaining = max(0.05, timeout_s - (time.monotonic() - t0))
+            if not handle.driver.stop(remaining):
+                log.error("driver %s did not stop within %.2f s", handle.name, timeout_s)
+        for handle in self.devices.values():
+            if handle.simulator is not None:
+                handle.simulator.stop()
+            for proc in handle.extras.get("processes", []):
+                _stop_process(proc)
+        shutil.rmtree(self.runtime_dir, ignore_errors=True)
+        log.info("manager shut down in %.3f s", time.monotonic() - t0)
+
+    # ------------------------------------------------------------------ queries
+    def driver(self, name: str) -> DeviceDriver | None:
+        handle = self.devices.get(name)
+        return handle.driver if handle else None
+
+    def all_connected(self) -> bool:
+        return bool(self.devices) and all(h.driver.connected for h in self.devices.values())
+
+
+def _stop_process(proc: Any) -> None:
+    try:
+        proc.terminate()
+        proc.wait(timeout=1.0)
+    except Exception:
+        try:
+            proc.kill()
+        except Exception:
+            log.exception("could not stop helper process")

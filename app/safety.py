@@ -1,0 +1,311 @@
+"""The safety supervisor: the one place where limits, alarms and the emergency stop live.
+
+Every command that can move the robot or put current through a muscle passes through here,
+whoever sends it (GUI, script, patient model, assistance split): the drivers call
+:meth:`SafetySupervisor.check_robot_command` / :meth:`check_fes_update` from their single
+command-encoding path, so there is no way around it. A command outside limits is refused with a
+plain reason (:class:`SafetyError`), logged and recorded as an event; nothing is silently changed,
+except the patient model's outputs, which are clamped and the clamp logged.
+
+The emergency stop runs registered stop actions (FES Stop, robot IDLE) directly in the calling
+thread — no queue in between — then latches until an operator resets it.
+"""
+
+from __future__ import annotations
+
+import enum
+import logging
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+from PySide6.QtCore import QObject, Signal
+
+from app.config import RobotLimits, SafetyConfig
+
+log = logging.getLogger(__name__)
+
+
+class SafetyError(RuntimeError):
+    """A command was refused. ``reason`` is a sentence a clinician can read."""
+
+    def __init__(self, reason: str, source: str = "") -> None:
+        self.reason = reason
+        self.source = source
+        super().__init__(reason)
+
+
+class EmergencyStopLatched(SafetyError):
+    pass
+
+
+class AlarmLevel(enum.IntEnum):
+    """Graded after IEC 60601-1-8 / Project MARCH: information < warning < stop < fatal."""
+
+    INFO = 0
+    WARNING = 1
+    STOP = 2
+    FATAL = 3
+
+
+@dataclass
+class Alarm:
+    level: AlarmLevel
+    source: str
+    text: str
+    t_wall: float = field(default_factory=time.time)
+    acknowledged: bool = False
+    ident: int = 0
+
+
+EventSink = Callable[[str, dict[str, Any]], None]
+
+# Commands that only read, stop or make things safer: allowed even while the e-stop is latched.
+_ALWAYS_ALLOWED = {
+    "identify", "heartbeat", "getPidTunings", "getAdmittanceParameter", "getAssistanceParameter",
+    "getAssistanceTargetPos", "getIsInitialized", "stopDataStream", "startDataStream", "resetError",
+}
+
+
+class SafetySupervisor(QObject):
+    alarm_raised = Signal(object)  # Alarm
+    alarms_changed = Signal()
+    estop_changed = Signal(bool, str)  # latched, reason
+    command_refused = Signal(str, str)  # source, reason
+
+    def __init__(self, config: SafetyConfig, event_sink: EventSink | None = None) -> None:
+        super().__init__()
+        self.config = config
+        self.robot: RobotLimits = config.robot
+        self._event_sink = event_sink
+        self._estop_actions: list[tuple[str, Callable[[str], None]]] = []
+        self._estop_lock = threading.RLock()
+        self._estop_latched = False
+        self._estop_reason = ""
+        self._alarms: list[Alarm] = []
+        self._alarm_seq = 0
+        self._lock = threading.Lock()
+        self.fes_limiter: Any = None  # set by the FES device (app.fes_limits.FesLimiter)
+        self.latest_centre_m: Callable[[], float | None] = lambda: None
+
+    # ------------------------------------------------------------------ events
+    def set_event_sink(self, sink: EventSink | None) -> None:
+        self._event_sink = sink
+
+    def event(self, kind: str, **data: Any) -> None:
+        log.info("event %s %s", kind, data)
+        if self._event_sink is not None:
+            try:
+                self._event_sink(kind, data)
+            except Exception:
+                log.exception("event sink failed")
+
+    def refuse(self, source: str, reason: str) -> SafetyError:
+        self.event("command_refused", source=source, reason=reason)
+        self.command_refused.emit(source, reason)
+        return SafetyError(reason, source)
+
+    # ------------------------------------------------------------------ robot
+    def check_robot_command(self, name: str, args: dict[str, Any], source: str = "") -> None:
+        """Raise SafetyError if the LINarm command ``name`` (seed API name) with ``args`` is unsafe."""
+        if self._estop_latched and name not in _ALWAYS_ALLOWED:
+            if not (name == "setCtrlState" and int(args.get("controlState", args.get("state", -1))) == 0):
+                raise self.refuse(source, f"{name} refused: the emergency stop is latched; reset it first")
+        lim = self.robot
+        problem = _robot_problem(name, args, lim, self.latest_centre_m())
+        if problem:
+            raise self.refuse(source, f"{name} refused: {problem}")
+
+    # ------------------------------------------------------------------ FES
+    def check_fes_update(self, channels: dict[int, tuple[float, float]], now: float, source: str = "") -> None:
+        """Raise SafetyError unless every channel's (current mA, pulse width µs) is within limits."""
+        if self._estop_latched and any(c > 0 and pw > 0 for c, pw in channels.values()):
+            raise self.refuse(source, "stimulation refused: the emergency stop is latched; reset it first")
+        if self.fes_limiter is None:
+            raise self.refuse(source, "stimulation refused: no FES limits are configured")
+        try:
+            self.fes_limiter.check(channels, now)
+        except ValueError as exc:
+            raise self.refuse(source, f"stimulation refused: {exc}") from exc
+
+    def clamp_assistance(self, name: str, value: float, lo: float, hi: float, source: str = "patient model") -> float:
+        """Patient-model outputs are clamped, not refused (the loop must keep running); log the clamp."""
+        clamped = min(max(value, lo), hi)
+        if clamped != value:
+            self.event("clamped", source=source, quantity=name, requested=value, applied=clamped)
+        return clamped
+
+    # ------------------------------------------------------------------ emergency stop
+    def register_estop_action(self, name: str, action: Callable[[str], None]) -> None:
+        """``action(reason)`` runs in the caller's thread on every emergency stop; it must be quick."""
+        self._estop_actions.append((name, action))
+
+    @property
+    def estop_latched(self) -> bool:
+        return self._estop_latched
+
+    def emergency_stop(self, source: str, reason: str = "emergency stop pressed") -> None:
+        with self._estop_lock:
+            first = not self._estop_latched
+            self._estop_latched = True
+            self._estop_reason = f"{reason} ({source})"
+            # Stop actions run even when already latched: pressing again must re-send the stops.
+            for name, action in self._estop_actions:
+                try:
+                    action(self._estop_reason)
+                    self.event("estop_action", action=name, ok=True)
+                except Exception as exc:
+                    log.exception("emergency-stop action %s failed", name)
+                    self.event("estop_action", action=name, ok=False, error=str(exc))
+        self.event("emergency_stop", source=source, reason=reason)
+        if first:
+            self.raise_alarm(AlarmLevel.STOP, source, f"Emergency stop: {reason}")
+            self.estop_changed.emit(True, self._estop_reason)
+
+    def bring_to_safe_state(self, reason: str) -> None:
+        """Run the stop actions without latching: script end, app close, device loss."""
+        for name, action in self._estop_actions:
+            try:
+                action(reason)
+                self.event("safe_state_action", action=name, reason=reason, ok=True)
+            except Exception as exc:
+                log.warning("safe-state action %s failed: %s", name, exc)
+                self.event("safe_state_action", action=name, reason=reason, ok=False, error=str(exc))
+
+    def reset_emergency_stop(self, operator: str) -> None:
+        with self._estop_lock:
+            if not self._estop_latched:
+                return
+            self._estop_latched = False
+        self.event("emergency_stop_reset", operator=operator)
+        self.raise_alarm(AlarmLevel.INFO, operator or "operator", "Emergency stop reset")
+        self.estop_changed.emit(False, "")
+
+    # ------------------------------------------------------------------ alarms
+    def raise_alarm(self, level: AlarmLevel, source: str, text: str) -> Alarm:
+        with self._lock:
+            self._alarm_seq += 1
+            alarm = Alarm(level, source, text, ident=self._alarm_seq)
+            self._alarms.append(alarm)
+        log.log(logging.WARNING if level >= AlarmLevel.WARNING else logging.INFO, "alarm %s %s: %s",
+                level.name, source, text)
+        self.event("alarm", level=level.name, source=source, text=text, ident=alarm.ident)
+        self.alarm_raised.emit(alarm)
+        self.alarms_changed.emit()
+        return alarm
+
+    def acknowledge(self, ident: int, operator: str = "") -> None:
+        with self._lock:
+            for alarm in self._alarms:
+                if alarm.ident == ident and not alarm.acknowledged:
+                    alarm.acknowledged = True
+                    self.event("alarm_acknowledged", ident=ident, operator=operator)
+        self.alarms_changed.emit()
+
+    def alarms(self) -> list[Alarm]:
+        with self._lock:
+            return list(self._alarms)
+
+
+def _f(args: dict[str, Any], *names: str) -> float | None:
+    for n in names:
+        if n in args and args[n] is not None:
+            return float(args[n])
+    return None
+
+
+def _robot_problem(name: str, args: dict[str, Any], lim: RobotLimits, centre: float | None) -> str:
+    """The reason ``name(args)`` would exceed a robot limit, or '' when it is within all of them."""
+    import math
+
+    for key, value in args.items():
+        if isinstance(value, float) and not math.isfinite(value):
+            return f"{key} must be a finite number, got {value}"
+    pos_lo, pos_hi = lim.position_min_m, lim.position_max_m
+
+    def position(key: str, value: float | None) -> str:
+        if value is not None and not (pos_lo <= value <= pos_hi):
+            return f"{key} {value:.3f} m is outside the allowed range {pos_lo:.3f} .. {pos_hi:.3f} m"
+        return ""
+
+    def speed(key: str, value: float | None, allow_zero: bool = True) -> str:
+        if value is None:
+            return ""
+        if value < 0 or (value == 0 and not allow_zero):
+            return f"{key} must be positive, got {value}"
+        if value > lim.max_velocity_m_s:
+            return f"{key} {value:.3f} m/s exceeds the velocity limit {lim.max_velocity_m_s:.3f} m/s"
+        return ""
+
+    def accel(key: str, value: float | None) -> str:
+        if value is None:
+            return ""
+        if value <= 0:
+            return f"{key} must be positive, got {value}"
+        if value > lim.max_acceleration_m_s2:
+            return f"{key} {value:.3f} m/s² exceeds the acceleration limit {lim.max_acceleration_m_s2:.3f} m/s²"
+        return ""
+
+    if name in ("moveCentreTo", "moveDeltaTo", "setStiffness"):
+        target = _f(args, "targetPos", "targetDeltaPos", "stiffness")
+        v, a, t_exec = _f(args, "maxVel"), _f(args, "maxAcc"), _f(args, "execTime") or 0.0
+        if name == "moveCentreTo":
+            if p := position("targetPos", target):
+                return p
+        elif name == "moveDeltaTo":
+            if target is None or not (0.0 <= target <= lim.max_delta_m):
+                return f"delta {target} m is outside 0 .. {lim.max_delta_m} m"
+        elif target is None or not (0.0 <= target <= lim.max_stiffness_n_m):
+            return f"stiffness {target} N/m is outside 0 .. {lim.max_stiffness_n_m} N/m"
+        if t_exec < 0:
+            return f"execTime must not be negative, got {t_exec}"
+        if t_exec == 0:
+            return speed("maxVel", v, allow_zero=False) or accel("maxAcc", a)
+        if name == "moveCentreTo" and centre is not None and target is not None:
+            # A timed move's peak speed is at most twice its mean (cycloidal); check that bound.
+            peak = 2.0 * abs(target - centre) / t_exec
+            if peak > lim.max_velocity_m_s:
+                return (f"moving {abs(target - centre):.3f} m in {t_exec:.2f} s needs up to {peak:.3f} m/s, "
+                        f"above the velocity limit {lim.max_velocity_m_s:.3f} m/s")
+        return ""
+    if name in ("setCentreVelocity", "setDeltaVelocity"):
+        v = _f(args, "centreVelocity", "deltaVelocity", "velocity")
+        return speed(name, abs(v) if v is not None else None)
+    if name == "setAssistanceTargetPos":
+        return position("Apos", _f(args, "Apos", "targetPos"))
+    if name == "setAdmittanceParameter":
+        ka = _f(args, "Ka")
+        if ka is None or ka < 0:
+            return f"Ka must be ≥ 0, got {ka}"
+        if ka * lim.max_interaction_force_n > lim.max_velocity_m_s:
+            return (f"Ka {ka} m/(N·s) would reach {ka * lim.max_interaction_force_n:.3f} m/s at the force limit, "
+                    f"above the velocity limit {lim.max_velocity_m_s} m/s")
+        return ""
+    if name == "setAssistanceParameter":
+        kt = _f(args, "Kt", "Kf", "Ka")
+        if kt is None or not (0.0 <= kt <= lim.max_stiffness_n_m):
+            return f"assistance gain {kt} N/m is outside 0 .. {lim.max_stiffness_n_m} N/m"
+        return ""
+    if name == "setPosLimit":
+        lo, hi = _f(args, "minPos", "min"), _f(args, "maxPos", "max")
+        if lo is None or hi is None or lo >= hi:
+            return "setPosLimit needs min < max"
+        return position("min", lo) or position("max", hi)
+    if name == "setMaxVelocity":
+        return speed("maxVel", _f(args, "maxVel", "value"), allow_zero=False)
+    if name == "setMaxAcceleration":
+        return accel("maxAcc", _f(args, "maxAcc", "value"))
+    if name == "setMaxForce":
+        f = _f(args, "maxForce", "value")
+        if f is None or not (0 < f <= lim.max_interaction_force_n):
+            return f"force limit {f} N is outside 0 .. {lim.max_interaction_force_n} N"
+        return ""
+    if name == "disableEndstrokes" and not lim.allow_disable_endstrokes:
+        return "endstroke switches protect the patient at the ends of the rail; disabling them is not allowed"
+    if name == "setVirtualVsaSpringDisplacement":
+        d = _f(args, "disp")
+        if d is None or abs(d) > lim.max_delta_m:
+            return f"displacement {d} m is outside ±{lim.max_delta_m} m"
+    return ""

@@ -1,0 +1,275 @@
+"""The clinician's main window: the seed's four frames as rearrangeable docks, an always-visible
+emergency stop, a status bar with each device's connection and rate, and menus.
+
+The window is a view: it reads the manager's drivers (signals, rates) and sends commands through
+the manager; it never parses bytes or opens ports.
+"""
+
+from __future__ import annotations
+
+import importlib
+import logging
+from collections.abc import Callable
+
+from PySide6.QtCore import QEvent, QObject, QSettings, Qt, QTimer, Signal
+from PySide6.QtGui import QAction, QKeySequence
+from PySide6.QtWidgets import (
+    QApplication,
+    QDockWidget,
+    QHBoxLayout,
+    QLabel,
+    QMainWindow,
+    QMessageBox,
+    QPushButton,
+    QSizePolicy,
+    QToolBar,
+    QWidget,
+)
+
+from app.logging_setup import log_file
+from app.manager import LinarmppManager
+from app.paths import data_dir, sessions_dir
+
+log = logging.getLogger(__name__)
+
+ESTOP_STYLE = (
+    "QPushButton { background: #c62828; color: white; font-size: 20px; font-weight: bold;"
+    " border: 3px solid #7f0000; border-radius: 8px; padding: 8px 28px; }"
+    "QPushButton:pressed { background: #8e0000; }"
+)
+
+# (dock title, module, class) — the frames of the seed's GUI (D2.1 "LINarm++").
+FRAMES: list[tuple[str, str, str, Qt.DockWidgetArea]] = [
+    ("1 · Values", "app.ui.values_frame", "ValuesFrame", Qt.DockWidgetArea.LeftDockWidgetArea),
+    ("2 · Graphs", "app.ui.plots_frame", "PlotsFrame", Qt.DockWidgetArea.RightDockWidgetArea),
+    ("3 · Device view", "app.ui.device_view", "DeviceView", Qt.DockWidgetArea.LeftDockWidgetArea),
+    ("4 · Commands", "app.ui.commands_frame", "CommandsFrame", Qt.DockWidgetArea.RightDockWidgetArea),
+]
+
+
+class EmergencyStopKeyFilter(QObject):
+    """Application-wide key filter: the e-stop key works whatever has focus, modal dialogs included
+    (a QShortcut is blocked by a modal dialog; an application event filter is not)."""
+
+    triggered = Signal()
+
+    def __init__(self, key: QKeySequence) -> None:
+        super().__init__()
+        self.key = key
+
+    def eventFilter(self, obj: QObject, event: QEvent) -> bool:
+        if event.type() in (QEvent.Type.KeyPress, QEvent.Type.ShortcutOverride):
+            combo = QKeySequence(event.keyCombination())
+            if combo.matches(self.key) == QKeySequence.SequenceMatch.ExactMatch:
+                if event.type() == QEvent.Type.KeyPress and not event.isAutoRepeat():
+                    self.triggered.emit()
+                event.accept()
+                return True
+        return False
+
+
+class DeviceStatus(QLabel):
+    def __init__(self, name: str) -> None:
+        super().__init__()
+        self.name = name
+        self.connected = False
+        self.reason = "starting"
+        self.setTextFormat(Qt.TextFormat.RichText)
+        self.refresh({})
+
+    def set_connection(self, connected: bool, reason: str) -> None:
+        self.connected = connected
+        self.reason = reason
+        self.setToolTip(reason)
+
+    def refresh(self, rates: dict[str, float], silent: bool = False) -> None:
+        if self.connected and not silent:
+            colour, state = "#2e7d32", "connected"
+        elif self.connected:
+            colour, state = "#ef6c00", "silent"
+        else:
+            colour, state = "#c62828", "disconnected"
+        rate = max(rates.values()) if rates else 0.0
+        rate_txt = f" {rate:.0f} Hz" if self.connected else ""
+        self.setText(f"<span style='color:{colour}'>●</span> <b>{self.name}</b> {state}{rate_txt}")
+        self.setAccessibleName(f"{self.name} {state}")
+
+
+class MainWindow(QMainWindow):
+    def __init__(self, manager: LinarmppManager) -> None:
+        super().__init__()
+        self.manager = manager
+        self.setWindowTitle("LINarm++ Manager")
+        self.setObjectName("MainWindow")
+        self.setDockNestingEnabled(True)
+        self.frames: dict[str, QWidget] = {}
+        self.docks: dict[str, QDockWidget] = {}
+        self._build_toolbar()
+        self._build_frames()
+        self._build_menus()
+        self._build_status_bar()
+        self._estop_filter = EmergencyStopKeyFilter(QKeySequence(manager.config.ui.emergency_stop_shortcut))
+        self._estop_filter.triggered.connect(lambda: self.emergency_stop("keyboard"))
+        app = QApplication.instance()
+        if app is not None:
+            app.installEventFilter(self._estop_filter)
+        manager.supervisor.estop_changed.connect(self._on_estop_changed)
+        self._restore_settings()
+
+    # ------------------------------------------------------------------ building
+    def _build_toolbar(self) -> None:
+        bar = QToolBar("Safety", self)
+        bar.setObjectName("SafetyToolbar")
+        bar.setMovable(False)
+        bar.setFloatable(False)
+        bar.toggleViewAction().setEnabled(False)  # the e-stop can never be hidden
+        self.addToolBar(Qt.ToolBarArea.TopToolBarArea, bar)
+        holder = QWidget()
+        row = QHBoxLayout(holder)
+        row.setContentsMargins(4, 2, 4, 2)
+        key = self.manager.config.ui.emergency_stop_shortcut
+        self.estop_button = QPushButton(f"EMERGENCY STOP  ({key})")
+        self.estop_button.setObjectName("EmergencyStop")
+        self.estop_button.setStyleSheet(ESTOP_STYLE)
+        self.estop_button.setMinimumHeight(52)
+        self.estop_button.setToolTip(f"Stops stimulation and the robot at once ({key} works from every window)")
+        self.estop_button.clicked.connect(lambda: self.emergency_stop("button"))
+        row.addWidget(self.estop_button)
+        self.estop_reset = QPushButton("Reset e-stop…")
+        self.estop_reset.setEnabled(False)
+        self.estop_reset.clicked.connect(self._reset_estop)
+        row.addWidget(self.estop_reset)
+        self.estop_label = QLabel("")
+        self.estop_label.setStyleSheet("color: #c62828; font-weight: bold; font-size: 16px;")
+        row.addWidget(self.estop_label)
+        spacer = QWidget()
+        spacer.setSizePolicy(QSizePolicy.Policy.Expanding, QSizePolicy.Policy.Preferred)
+        row.addWidget(spacer)
+        bar.addWidget(holder)
+
+    def _build_frames(self) -> None:
+        for title, module_name, class_name, area in FRAMES:
+            widget = self._make_frame(module_name, class_name, title)
+            dock = QDockWidget(title, self)
+            dock.setObjectName(f"dock:{class_name}")
+            dock.setWidget(widget)
+            dock.setFeatures(QDockWidget.DockWidgetFeature.DockWidgetMovable
+                             | QDockWidget.DockWidgetFeature.DockWidgetFloatable)
+            self.addDockWidget(area, dock)
+            self.frames[class_name] = widget
+            self.docks[class_name] = dock
+
+    def _make_frame(self, module_name: str, class_name: str, title: str) -> QWidget:
+        try:
+            module = importlib.import_module(module_name)
+        except ModuleNotFoundError as exc:
+            if exc.name != module_name:
+                raise
+            placeholder = QLabel(f"{title}\n(not available in this build)")
+            placeholder.setAlignment(Qt.AlignmentFlag.AlignCenter)
+            return placeholder
+        factory: Callable[..., QWidget] = getattr(module, class_name)
+        return factory(self.manager)
+
+    def _build_menus(self) -> None:
+        file_menu = self.menuBar().addMenu("&File")
+        quit_action = QAction("&Quit", self)
+        quit_action.setShortcut(QKeySequence.StandardKey.Quit)
+        quit_action.triggered.connect(self.close)
+        file_menu.addAction(quit_action)
+        view_menu = self.menuBar().addMenu("&View")
+        for dock in self.docks.values():
+            view_menu.addAction(dock.toggleViewAction())
+        reset_layout = QAction("Reset &layout", self)
+        reset_layout.triggered.connect(self._reset_layout)
+        view_menu.addAction(reset_layout)
+        help_menu = self.menuBar().addMenu("&Help")
+        about = QAction("&About", self)
+        about.triggered.connect(self.show_about)
+        help_menu.addAction(about)
+
+    def _build_status_bar(self) -> None:
+        self.device_status: dict[str, DeviceStatus] = {}
+        for name, handle in self.manager.devices.items():
+            label = DeviceStatus(name)
+            label.set_connection(handle.driver.connected, "starting")
+            self.statusBar().addPermanentWidget(label)
+            self.device_status[name] = label
+        self.manager.device_connection_changed.connect(self._on_device_connection)
+        self._status_timer = QTimer(self)
+        self._status_timer.setInterval(500)
+        self._status_timer.timeout.connect(self._refresh_status)
+        self._status_timer.start()
+        self._refresh_status()
+
+    # ------------------------------------------------------------------ behaviour
+    def emergency_stop(self, source: str) -> None:
+        self.manager.supervisor.emergency_stop(source)
+
+    def _on_estop_changed(self, latched: bool, reason: str) -> None:
+        self.estop_reset.setEnabled(latched)
+        self.estop_label.setText(f"STOPPED — {reason}" if latched else "")
+
+    def _reset_estop(self) -> None:
+        answer = QMessageBox.question(
+            self, "Reset emergency stop",
+            "Reset the emergency stop? Devices stay idle until you start them again.",
+        )
+        if answer == QMessageBox.StandardButton.Yes:
+            self.manager.supervisor.reset_emergency_stop("operator")
+
+    def _on_device_connection(self, name: str, connected: bool, reason: str) -> None:
+        label = self.device_status.get(name)
+        if label is not None:
+            label.set_connection(connected, reason)
+            label.refresh(self.manager.devices[name].driver.rates())
+        self.statusBar().showMessage(f"{name}: {reason}", 5000)
+
+    def _refresh_status(self) -> None:
+        for name, label in self.device_status.items():
+            driver = self.manager.devices[name].driver
+            label.connected = driver.connected
+            label.refresh(driver.rates(), driver.silent)
+
+    def show_about(self) -> None:
+        QMessageBox.about(
+            self, "About LINarm++ Manager",
+            "<b>LINarm++ Manager</b><br>Upper-limb rehabilitation with LINarm2, physiological sensors and FES."
+            f"<br><br>Configuration: {self.manager.config.source}"
+            f"<br>Log file: {log_file() or '(console only)'}"
+            f"<br>Sessions: {sessions_dir()}<br>Data folder: {data_dir()}",
+        )
+
+    # ------------------------------------------------------------------ persistence
+    def _restore_settings(self) -> None:
+        settings = QSettings()
+        geometry = settings.value("main/geometry")
+        state = settings.value("main/state")
+        if geometry is not None:
+            self.restoreGeometry(geometry)
+        else:
+            self.resize(1366, 768)
+        if state is not None:
+            self.restoreState(state)
+        self._default_state = None
+
+    def _reset_layout(self) -> None:
+        for title, _m, class_name, area in FRAMES:
+            dock = self.docks[class_name]
+            dock.setFloating(False)
+            self.addDockWidget(area, dock)
+            dock.show()
+            del title
+
+    def closeEvent(self, event: QEvent) -> None:
+        settings = QSettings()
+        settings.setValue("main/geometry", self.saveGeometry())
+        settings.setValue("main/state", self.saveState())
+        for frame in self.frames.values():
+            save = getattr(frame, "save_settings", None)
+            if callable(save):
+                save(settings)
+        app = QApplication.instance()
+        if app is not None:
+            app.removeEventFilter(self._estop_filter)
+        super().closeEvent(event)

@@ -1,0 +1,85 @@
+#!/usr/bin/env python3
+"""The two set-up commands of the README, self-sufficient on a machine with only Python 3.11+.
+
+    python3 dev.py run  [main.py arguments...]   create .venv if needed, install, start the app
+    python3 dev.py test [pytest arguments...]    create .venv if needed, install, run the whole suite
+
+The virtual environment is (re)installed when pyproject.toml changes (a hash stamp in .venv).
+`test` runs under Xvfb (xvfb-run) when no display is present and xvfb-run exists, so the
+OpenGL tests run too; otherwise the suite falls back to Qt's offscreen platform by itself.
+Standard library only: this file runs before anything is installed.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import shutil
+import subprocess
+import sys
+import tomllib
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent
+VENV = ROOT / ".venv"
+STAMP = VENV / ".linarmpp-installed"
+
+
+def venv_python() -> Path:
+    if os.name == "nt":
+        return VENV / "Scripts" / "python.exe"
+    return VENV / "bin" / "python"
+
+
+def requirements(with_tests: bool) -> list[str]:
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text(encoding="utf-8"))["project"]
+    reqs = list(project["dependencies"])
+    if with_tests:
+        reqs += project["optional-dependencies"]["test"]
+    return reqs
+
+
+def ensure_venv(with_tests: bool) -> Path:
+    reqs = requirements(with_tests)
+    digest = hashlib.sha256("\n".join(reqs).encode()).hexdigest()
+    if not venv_python().exists():
+        print(f"[dev] creating virtual environment in {VENV}", flush=True)
+        subprocess.check_call([sys.executable, "-m", "venv", str(VENV)])
+    installed = STAMP.read_text(encoding="utf-8").split() if STAMP.exists() else []
+    if digest not in installed:
+        print(f"[dev] installing {len(reqs)} packages into {VENV} (first run only)", flush=True)
+        subprocess.check_call([str(venv_python()), "-m", "pip", "install", "-q", "--disable-pip-version-check", *reqs])
+        STAMP.write_text("\n".join([*installed, digest]), encoding="utf-8")
+    return venv_python()
+
+
+def run_app(args: list[str]) -> int:
+    py = ensure_venv(with_tests=False)
+    return subprocess.call([str(py), str(ROOT / "main.py"), *args], cwd=ROOT)
+
+
+def run_tests(args: list[str]) -> int:
+    py = ensure_venv(with_tests=True)
+    cmd = [str(py), "-m", "pytest", *args]
+    env = dict(os.environ)
+    if os.name != "nt" and not env.get("DISPLAY") and shutil.which("xvfb-run"):
+        # A real X server (Xvfb + Mesa) lets the OpenGL 3D-view tests run; offscreen Qt cannot do GL.
+        cmd = ["xvfb-run", "-a", "-s", "-screen 0 1920x1080x24", *cmd]
+        env["QT_QPA_PLATFORM"] = "xcb"
+    print("[dev] " + " ".join(cmd), flush=True)
+    code = subprocess.call(cmd, cwd=ROOT, env=env)
+    if code == 5:
+        print("[dev] pytest collected no tests: that is a failure here", flush=True)
+        return 1
+    return code
+
+
+def main(argv: list[str]) -> int:
+    if not argv or argv[0] not in {"run", "test"}:
+        print(__doc__)
+        return 2
+    return run_app(argv[1:]) if argv[0] == "run" else run_tests(argv[1:])
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))

@@ -1,0 +1,82 @@
+"""The main window with the manager: every device connects, the status bar says so, and closing
+leaves no thread behind."""
+
+from __future__ import annotations
+
+from PySide6.QtCore import QThread
+from PySide6.QtWidgets import QApplication, QMessageBox
+
+from app.config import AppConfig
+from app.manager import LinarmppManager
+from app.ui.main_window import MainWindow
+from tests.fakes import counter_factory
+
+
+def running_driver_threads() -> list[QThread]:
+    return [t for t in QApplication.instance().findChildren(QThread) if t.isRunning()]
+
+
+def make_window(qtbot, tmp_path, names=("alpha", "beta")):
+    manager = LinarmppManager(AppConfig(), factories={n: counter_factory(tmp_path, n) for n in names})
+    manager.start()
+    window = MainWindow(manager)
+    qtbot.addWidget(window)
+    window.show()
+    return manager, window
+
+
+def test_window_shows_devices_connected_and_closes_cleanly(qtbot, tmp_path) -> None:
+    manager, window = make_window(qtbot, tmp_path)
+    qtbot.waitUntil(manager.all_connected, timeout=5000)
+    qtbot.waitUntil(lambda: all("connected" in w.text() and "disconnected" not in w.text()
+                                for w in window.device_status.values()), timeout=3000)
+    assert set(window.device_status) == {"alpha", "beta"}
+    for name in ("1 · Values", "2 · Graphs", "3 · Device view", "4 · Commands"):
+        assert any(d.windowTitle() == name for d in window.docks.values())
+    drivers = [h.driver for h in manager.devices.values()]
+    window.close()
+    manager.shutdown(timeout_s=1.0)
+    assert not any(d.isRunning() for d in drivers)
+    assert all(not h.simulator.running for h in manager.devices.values())
+
+
+def test_emergency_stop_button_and_key_latch_and_reset(qtbot, tmp_path, monkeypatch) -> None:
+    manager, window = make_window(qtbot, tmp_path, names=("alpha",))
+    calls: list[str] = []
+    manager.supervisor.register_estop_action("record", calls.append)
+    window.estop_button.click()
+    assert manager.supervisor.estop_latched and len(calls) == 1
+    assert window.estop_reset.isEnabled() and "STOPPED" in window.estop_label.text()
+    # The key works whatever has focus, including inside a modal dialog.
+    box = QMessageBox(window)
+    box.setModal(True)
+    box.show()
+    qtbot.waitExposed(box)
+    from PySide6.QtCore import Qt
+    from PySide6.QtTest import QTest
+
+    QTest.keyClick(box, Qt.Key.Key_F12)
+    assert len(calls) == 2
+    box.close()
+    monkeypatch.setattr(QMessageBox, "question", lambda *a, **k: QMessageBox.StandardButton.Yes)
+    window.estop_reset.click()
+    assert not manager.supervisor.estop_latched
+    kinds = [a.text for a in manager.supervisor.alarms()]
+    assert "Emergency stop reset" in kinds[-1]
+    window.close()
+    manager.shutdown()
+
+
+def test_layout_persists_between_runs(qtbot, tmp_path) -> None:
+    manager, window = make_window(qtbot, tmp_path, names=("alpha",))
+    window.resize(700, 500)
+    window.docks["DeviceView"].setFloating(True)
+    window.close()
+    manager.shutdown()
+    (tmp_path / "2").mkdir()
+    manager2, window2 = make_window(qtbot, tmp_path / "2", names=("alpha",))
+    assert window2.size().width() == 700, window2.size()
+    assert window2.docks["DeviceView"].isFloating()
+    window2.docks["DeviceView"].setFloating(False)
+    window2.close()
+    manager2.shutdown()
