@@ -45,16 +45,15 @@ class LinarmDevice(SerialDevice):
 
 @dataclass(frozen=True)
 class PhysioCalibration:
-    """Raw 12-bit counts → physical units: value = gain · counts + offset."""
+    """Raw 12-bit counts → physical units: value = gain · counts + offset. Heart rate has none:
+    the board sends the raw pulse waveform and the app detects beats (docs/physio-and-udp-frames.md)."""
 
-    heart_rate_gain: float = 0.05
-    heart_rate_offset: float = 0.0
-    skin_conductance_gain: float = 0.01
-    skin_conductance_offset: float = 0.0
-    temperature_gain: float = 0.01
-    temperature_offset: float = 20.0
-    force_gain: float = 0.025
-    force_offset: float = 0.0
+    skin_conductance_gain: float = field(default=0.01, metadata=rng(1e-6, 10, "µS/count"))
+    skin_conductance_offset: float = field(default=0.0, metadata=rng(-100, 100, "µS"))
+    temperature_gain: float = field(default=0.01, metadata=rng(1e-6, 10, "°C/count"))
+    temperature_offset: float = field(default=10.0, metadata=rng(-50, 100, "°C"))
+    force_gain: float = field(default=0.025, metadata=rng(1e-6, 10, "N/count"))
+    force_offset: float = field(default=0.0, metadata=rng(-500, 500, "N"))
 
 
 @dataclass(frozen=True)
@@ -141,6 +140,8 @@ class SafetyConfig:
     fes: FesSafety = field(default_factory=FesSafety)
     # A streaming device that is silent for this many of its sample periods raises an alarm.
     silence_periods: int = field(default=3, metadata=rng(2, 100))
+    # ...but never less than this: OS scheduling jitter on a loaded PC reaches tens of ms.
+    silence_min_s: float = field(default=0.05, metadata=rng(0.01, 5, "s"))
     # What the robot does when a script stops or the app leaves a session: IDLE (motors off) or hold.
     robot_safe_state: Literal["idle", "hold"] = "idle"
 

@@ -112,6 +112,14 @@ class LinarmppManager(QObject):
         shutil.rmtree(self.runtime_dir, ignore_errors=True)
         log.info("manager shut down in %.3f s", time.monotonic() - t0)
 
+    def sim_patient(self) -> Any:
+        """The one simulated patient shared by every simulator (grip and handle forces)."""
+        if self.patient is None:
+            from app.devices.sim.patient import SimulatedPatient
+
+            self.patient = SimulatedPatient(seed=7)
+        return self.patient
+
     # ------------------------------------------------------------------ queries
     def driver(self, name: str) -> DeviceDriver | None:
         handle = self.devices.get(name)

@@ -1,0 +1,97 @@
+"""Physiological sensors: the driver (20-byte frames → PhysioSample) and its simulated board.
+
+The frame layout, CRC, sequence counter and beat detector live in app.devices.physio_codec; this
+module only connects them to a transport and to the manager.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import TYPE_CHECKING
+
+from app.config import PhysioCalibration, PhysioDevice
+from app.devices.driver import Channel, DeviceDriver, StreamSpec, UpdateNotifier
+from app.devices.physio_codec import Calibration, ChannelCalibration, PhysioSample, PhysioStreamDecoder
+from app.devices.sim.base import SerialSimulator
+from app.devices.sim.physio_signals import PhysioSimSource
+from app.devices.transport import SerialSettings, SerialTransport
+
+if TYPE_CHECKING:
+    from app.devices.sim.patient import SimulatedPatient
+    from app.manager import DeviceHandle, LinarmppManager
+
+PHYSIO_STREAM = StreamSpec("physio.main", (
+    Channel("heartRate", "bpm", "Heart rate"),
+    Channel("skinConductance", "µS", "Skin conductance"),
+    Channel("temperature", "°C", "Skin temperature"),
+    Channel("force", "N", "Grip force"),
+), 100.0)
+
+
+def calibration_from_config(cal: PhysioCalibration) -> Calibration:
+    return Calibration(
+        skinConductance=ChannelCalibration(cal.skin_conductance_gain, cal.skin_conductance_offset),
+        temperature=ChannelCalibration(cal.temperature_gain, cal.temperature_offset),
+        force=ChannelCalibration(cal.force_gain, cal.force_offset),
+    )
+
+
+class PhysioDriver(DeviceDriver):
+    streams = (PHYSIO_STREAM,)
+
+    def __init__(self, url: str, baudrate: int, calibration: Calibration, *,
+                 notifier: UpdateNotifier | None = None, silence_timeout_s: float | None = None) -> None:
+        super().__init__("physio", SerialTransport(url, SerialSettings(baudrate=baudrate)),
+                         notifier=notifier, silence_timeout_s=silence_timeout_s)
+        self.calibration = calibration
+        self.decoder = PhysioStreamDecoder(calibration)
+
+    def on_connect(self) -> None:
+        self.decoder.reset()  # a new connection starts a new sequence; old gaps are not losses
+
+    def on_bytes(self, data: bytes, t_ns: int) -> None:
+        t = t_ns / 1e9
+        for sample in self.decoder.feed(data, t):
+            self.publish("physio.main", t, sample)
+
+    @property
+    def frames_lost(self) -> int:
+        return self.decoder.framesLost
+
+    @property
+    def bad_frames(self) -> int:
+        return self.decoder.badFrames
+
+
+class PhysioSimCore:
+    """The simulated acquisition board: streams frames at its rate; ignores what the host sends."""
+
+    def __init__(self, patient: SimulatedPatient, rate_hz: float, calibration: Calibration, seed: int = 1) -> None:
+        self.source = PhysioSimSource(patient, seed=seed, rate_hz=rate_hz, calibration=calibration,
+                                      start_time=time.monotonic())
+
+    def handle_host_bytes(self, data: bytes, t: float) -> bytes:
+        return b""
+
+    def poll(self, t: float) -> bytes:
+        return self.source.frames_until(t)
+
+
+def create(manager: LinarmppManager) -> DeviceHandle | None:
+    from app.manager import DeviceHandle
+
+    cfg: PhysioDevice = manager.config.devices.physio
+    if cfg.mode == "off":
+        return None
+    calibration = calibration_from_config(cfg.calibration)
+    simulator = None
+    url = cfg.port
+    if cfg.mode == "simulated":
+        patient = manager.sim_patient()
+        simulator = SerialSimulator("physio", lambda: PhysioSimCore(patient, cfg.rate_hz, calibration),
+                                    manager.runtime_dir / "physio.tty", tick_s=min(0.005, 0.5 / cfg.rate_hz))
+        url = simulator.url
+    safety = manager.config.safety
+    silence = max(safety.silence_periods / cfg.rate_hz, safety.silence_min_s)
+    driver = PhysioDriver(url, cfg.baudrate, calibration, notifier=manager.notifier, silence_timeout_s=silence)
+    return DeviceHandle("physio", driver, simulator)

@@ -1,0 +1,417 @@
+"""UDP frame codecs: manager <-> patient model, manager <-> VR renderer.  One place for the layouts.
+
+The seed (D2.1, "Connections") fixes only sizes: manager -> patient model 40 bytes at 100 Hz,
+manager -> VR renderer 32 bytes at 50 Hz.  Decided here (tables below, rendered into
+docs/physio-and-udp-frames.md):
+
+* little-endian; a 2-byte ASCII header per direction (``LP`` manager->patient model, ``PL`` its
+  reply, ``LV`` manager->VR, ``VL`` VR events); a 16-bit sequence number; a CRC-16/CCITT-FALSE of
+  every byte before it in the last two bytes (UDP's own checksum is optional on IPv4);
+* 4-byte fields are float32 in SI units; 2-byte physical fields are fixed-point: ``value = raw *
+  scale``, saturating at the range limits; the most negative int16 (-32768) / the largest uint16
+  (65535) means "not available" and decodes to NaN;
+* "task data" (8 bytes, same in both frames): sub-task index, task state, task flags, time in the
+  sub-task, game score; "additional data": sequence number, clinical score / assistance level,
+  system flags, CRC.
+
+Decoders raise ``FrameError`` (a ``ValueError``) with a reason on a wrong size, header, CRC or an
+out-of-range value, and raise nothing else on any input.  Encoders raise ``ValueError`` on values
+that have no encoding (alpha outside [-1, 1], an index outside [0, 1]).
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+import struct
+from dataclasses import dataclass, field
+from typing import Any, Final
+
+from app.devices.physio_codec import Field, Layout, crc16_ccitt
+
+PATIENT_MODEL_RATE_HZ: Final = 100.0
+VR_RATE_HZ: Final = 50.0
+
+FORCE_SCALE: Final = 0.01          # N per count, int16: ±327.67 N
+CONDUCTANCE_SCALE: Final = 0.01    # µS per count, uint16: 0..655.34 µS
+TEMPERATURE_SCALE: Final = 0.01    # °C per count, int16: ±327.67 °C
+POSITION_SCALE: Final = 2e-5       # m per count, int16: ±0.65534 m in 20 µm steps
+SUBTASK_TIME_SCALE: Final = 0.01   # s per count, uint16: 0..655.34 s
+Q15: Final = 1.0 / 32767.0         # int16 fraction: ±1
+LEVEL_SCALE: Final = 1.0 / 255.0   # uint8 fraction: 0..1
+
+INT16_NA: Final = -32768
+UINT16_NA: Final = 0xFFFF
+CLINICAL_SCORE_NA: Final = 0xFF
+
+
+class FrameError(ValueError):
+    """A datagram that is not a valid frame; ``reason`` says why."""
+
+    def __init__(self, reason: str) -> None:
+        super().__init__(reason)
+        self.reason = reason
+
+
+class TaskState(enum.IntEnum):
+    IDLE = 0
+    MOVING = 1      # a sub-task (reach a target) is running
+    HOLDING = 2     # in the target, holding
+    REACHED = 3     # sub-task completed
+    FAILED = 4      # sub-task timed out / given up
+    REST = 5
+
+
+class TaskFlag(enum.IntFlag):
+    GRIP_TRIGGERED = 0x01  # grip force above the exercise threshold
+    IN_TARGET = 0x02       # handle within the target tolerance
+
+
+class SystemFlag(enum.IntFlag):
+    PHYSIO_VALID = 0x01    # physiological stream fresh and fault-free
+    ROBOT_ON = 0x02
+    FES_ON = 0x04
+    EMERGENCY_STOP = 0x08
+
+
+class ReplyFlag(enum.IntFlag):
+    VALID = 0x01      # the model had enough data for every index
+    FALLBACK = 0x02   # some index missing: its neutral value was used
+
+
+class VrEvent(enum.IntEnum):
+    HELLO = 1            # renderer (re)started
+    SUBTASK_STARTED = 2
+    TARGET_REACHED = 3
+    TARGET_MISSED = 4
+    SCORE = 5
+    PAUSED = 6
+    RESUMED = 7
+    QUIT = 8
+
+
+_TASK_FIELDS: Final = (
+    Field("subTask", "H", "", "task data: index of the current sub-task in the exercise"),
+    Field("taskState", "B", "", "task data: TaskState (0 idle, 1 moving, 2 holding, 3 reached, 4 failed,"
+          " 5 rest)"),
+    Field("taskFlags", "B", "", "task data: TaskFlag bits (0x01 grip triggered, 0x02 in target)"),
+    Field("subTaskTime", "H", "s", "task data: time since the sub-task started (65535 = n/a)",
+          SUBTASK_TIME_SCALE),
+    Field("score", "H", "", "task data: game score (saturates at 65535)"),
+)
+_SYSTEM_FLAGS_DOC: Final = "SystemFlag bits (0x01 physio valid, 0x02 robot on, 0x04 FES on, 0x08 e-stop)"
+
+PATIENT_MODEL_LAYOUT: Final = Layout(
+    title="Manager -> patient model (UDP, 100 Hz)",
+    header=b"LP", size=40,
+    fields=(
+        Field("header", "2s", "", "ASCII 'LP'"),
+        Field("heartRate", "f", "bpm", "float32, NaN = not available"),
+        Field("skinConductance", "H", "µS", "uint16 fixed-point", CONDUCTANCE_SCALE),
+        Field("temperature", "h", "°C", "int16 fixed-point, skin temperature", TEMPERATURE_SCALE),
+        Field("force", "h", "N", "int16 fixed-point, grip force", FORCE_SCALE),
+        Field("interactionForce", "h", "N", "int16 fixed-point, handle force, + toward +x", FORCE_SCALE),
+        Field("robotVelocity", "f", "m/s", "float32, handle velocity"),
+        Field("robotPosition", "h", "m", "int16 fixed-point, handle position", POSITION_SCALE),
+        Field("targetPosition", "f", "m", "float32, current target"),
+        *_TASK_FIELDS,
+        Field("seq", "H", "", "additional: sequence number, +1 per frame, wraps"),
+        Field("clinicalScore", "B", "", "additional: clinical score set by the therapist (255 = n/a)"),
+        Field("flags", "B", "", "additional: " + _SYSTEM_FLAGS_DOC),
+        Field("reserved", "2s", "", "additional: zero"),
+        Field("crc", "H", "", "additional: CRC-16/CCITT-FALSE of bytes 0..37"),
+    ),
+)
+
+PATIENT_MODEL_REPLY_LAYOUT: Final = Layout(
+    title="Patient model -> manager (UDP, one per received frame or slower)",
+    header=b"PL", size=32,
+    fields=(
+        Field("header", "2s", "", "ASCII 'PL'"),
+        Field("seq", "H", "", "reply sequence number, wraps"),
+        Field("ackSeq", "H", "", "seq of the latest manager frame used"),
+        Field("alpha", "f", "", "float32 assistance level: +1 full assistance .. -1 full resistance"),
+        Field("tpi", "f", "", "float32 Task Performance Index 0..1"),
+        Field("mpi", "f", "", "float32 Motor Performance Index 0..1"),
+        Field("pti", "f", "", "float32 Physiological Trend Index 0..1"),
+        Field("alphaMin", "h", "", "int16 Q15, lower end of the final alpha range", Q15),
+        Field("alphaMax", "h", "", "int16 Q15, upper end of the final alpha range", Q15),
+        Field("path", "B", "", "decision path code (see decision_tree.path_code)"),
+        Field("level", "B", "", "layer-5 support level inside the range, 0..1", LEVEL_SCALE),
+        Field("flags", "B", "", "ReplyFlag bits (0x01 valid, 0x02 fallback)"),
+        Field("reserved", "1s", "", "zero"),
+        Field("crc", "H", "", "CRC-16/CCITT-FALSE of bytes 0..29"),
+    ),
+)
+
+VR_LAYOUT: Final = Layout(
+    title="Manager -> VR renderer (UDP, 50 Hz)",
+    header=b"LV", size=32,
+    fields=(
+        Field("header", "2s", "", "ASCII 'LV'"),
+        Field("force", "h", "N", "int16 fixed-point, grip force", FORCE_SCALE),
+        Field("interactionForce", "h", "N", "int16 fixed-point, handle force, + toward +x", FORCE_SCALE),
+        Field("robotVelocity", "f", "m/s", "float32, handle velocity"),
+        Field("robotPosition", "h", "m", "int16 fixed-point, handle position", POSITION_SCALE),
+        Field("targetPosition", "f", "m", "float32, current target"),
+        *_TASK_FIELDS,
+        Field("seq", "H", "", "additional: sequence number, +1 per frame, wraps"),
+        Field("alpha", "h", "", "additional: int16 Q15 assistance level being applied", Q15),
+        Field("flags", "B", "", "additional: " + _SYSTEM_FLAGS_DOC),
+        Field("reserved", "1s", "", "additional: zero"),
+        Field("crc", "H", "", "additional: CRC-16/CCITT-FALSE of bytes 0..29"),
+    ),
+)
+
+VR_EVENT_LAYOUT: Final = Layout(
+    title="VR renderer -> manager (UDP, on events)",
+    header=b"VL", size=16,
+    fields=(
+        Field("header", "2s", "", "ASCII 'VL'"),
+        Field("seq", "H", "", "event sequence number, wraps"),
+        Field("event", "B", "", "VrEvent (1 hello, 2 sub-task started, 3 target reached, 4 target missed,"
+              " 5 score, 6 paused, 7 resumed, 8 quit)"),
+        Field("reserved", "1s", "", "zero"),
+        Field("subTask", "H", "", "sub-task index the event refers to"),
+        Field("score", "I", "", "game score after the event"),
+        Field("timeToTarget", "H", "s", "uint16 fixed-point, sub-task duration (65535 = n/a)", 0.001),
+        Field("crc", "H", "", "CRC-16/CCITT-FALSE of bytes 0..13"),
+    ),
+)
+
+ALL_UDP_LAYOUTS: Final = (PATIENT_MODEL_LAYOUT, PATIENT_MODEL_REPLY_LAYOUT, VR_LAYOUT, VR_EVENT_LAYOUT)
+
+# ---------------------------------------------------------------------------------------------
+# Table-driven packing
+
+_INT_LIMITS: Final = {"h": (-32767, 32767, INT16_NA), "H": (0, 65534, UINT16_NA),
+                      "B": (0, 255, None), "I": (0, 0xFFFFFFFF, None)}
+
+
+def _to_raw(f: Field, value: Any) -> Any:
+    if f.fmt.endswith("s"):
+        return bytes(value) if value is not None else b""
+    if f.fmt == "f":
+        return float(value)
+    lo, hi, na = _INT_LIMITS[f.fmt]
+    if f.scale is None:  # plain integers use the whole range: no "not available" code
+        lo, hi = (-32768, 32767) if f.fmt == "h" else (0, 65535) if f.fmt == "H" else (lo, hi)
+        return int(min(hi, max(lo, int(value))))
+    v = float(value)
+    if math.isnan(v):
+        if na is None:
+            raise ValueError(f"{f.name}: NaN has no encoding")
+        return na
+    return int(min(hi, max(lo, round(v / f.scale))))
+
+
+def _from_raw(f: Field, raw: Any) -> Any:
+    if f.scale is None or f.fmt == "f":
+        return raw
+    na = _INT_LIMITS[f.fmt][2]
+    return math.nan if na is not None and raw == na else raw * f.scale
+
+
+def _pack(layout: Layout, values: dict[str, Any]) -> bytes:
+    raws = []
+    for f in layout.fields:
+        if f.name == "header":
+            raws.append(layout.header)
+        elif f.name == "crc":
+            raws.append(0)
+        elif f.name == "reserved":
+            raws.append(b"")
+        else:
+            raws.append(_to_raw(f, values[f.name]))
+    body = struct.pack(layout.struct_format, *raws)[:-2]
+    return body + struct.pack("<H", crc16_ccitt(body))
+
+
+def _unpack(layout: Layout, data: Any) -> dict[str, Any]:
+    if not isinstance(data, bytes | bytearray | memoryview):
+        raise FrameError(f"not bytes: {type(data).__name__}")
+    raw = bytes(data)
+    if len(raw) != layout.size:
+        raise FrameError(f"wrong size: {len(raw)} bytes, expected {layout.size}")
+    if raw[:2] != layout.header:
+        raise FrameError(f"wrong header: {raw[:2].hex()}, expected {layout.header.hex()}")
+    stored = int.from_bytes(raw[-2:], "little")
+    computed = crc16_ccitt(raw[:-2])
+    if stored != computed:
+        raise FrameError(f"bad CRC: {stored:04x}, computed {computed:04x}")
+    values = struct.unpack(layout.struct_format, raw)
+    return {f.name: _from_raw(f, v) for f, v in zip(layout.fields, values, strict=True)
+            if f.name not in ("header", "crc", "reserved")}
+
+
+def _check_unit(name: str, value: float, lo: float, hi: float, exc: type[ValueError]) -> None:
+    if not lo <= value <= hi:  # also rejects NaN
+        raise exc(f"{name} out of range: {value!r}, expected {lo}..{hi}")
+
+
+# ---------------------------------------------------------------------------------------------
+# Frames
+
+
+@dataclass(frozen=True)
+class TaskData:
+    subTask: int = 0
+    taskState: TaskState = TaskState.IDLE
+    taskFlags: int = 0
+    subTaskTime: float = math.nan  # s
+    score: int = 0
+
+    def _values(self) -> dict[str, Any]:
+        return {"subTask": self.subTask, "taskState": int(self.taskState), "taskFlags": self.taskFlags,
+                "subTaskTime": self.subTaskTime, "score": self.score}
+
+    @staticmethod
+    def _from(values: dict[str, Any]) -> TaskData:
+        try:
+            state = TaskState(values["taskState"])
+        except ValueError as exc:
+            raise FrameError(f"unknown task state {values['taskState']}") from exc
+        return TaskData(values["subTask"], state, values["taskFlags"], values["subTaskTime"], values["score"])
+
+
+@dataclass(frozen=True)
+class PatientModelFrame:
+    """Manager -> patient model, 100 Hz."""
+
+    seq: int
+    heartRate: float          # bpm (NaN = n/a)
+    skinConductance: float    # µS
+    temperature: float        # °C
+    force: float              # grip, N
+    interactionForce: float   # N, + toward +x
+    robotVelocity: float      # m/s
+    robotPosition: float      # m
+    targetPosition: float     # m
+    task: TaskData = field(default_factory=TaskData)
+    clinicalScore: int | None = None
+    flags: int = 0
+
+
+def encode_patient_model_frame(frame: PatientModelFrame) -> bytes:
+    score = CLINICAL_SCORE_NA if frame.clinicalScore is None else frame.clinicalScore
+    if not 0 <= score <= 254 and score != CLINICAL_SCORE_NA:
+        raise ValueError(f"clinicalScore out of range: {score}, expected 0..254")
+    values = {"seq": frame.seq & 0xFFFF, "heartRate": frame.heartRate,
+              "skinConductance": frame.skinConductance, "temperature": frame.temperature,
+              "force": frame.force, "interactionForce": frame.interactionForce,
+              "robotVelocity": frame.robotVelocity, "robotPosition": frame.robotPosition,
+              "targetPosition": frame.targetPosition, "clinicalScore": score, "flags": frame.flags & 0xFF,
+              **frame.task._values()}
+    return _pack(PATIENT_MODEL_LAYOUT, values)
+
+
+def decode_patient_model_frame(data: bytes) -> PatientModelFrame:
+    v = _unpack(PATIENT_MODEL_LAYOUT, data)
+    score = v["clinicalScore"]
+    return PatientModelFrame(
+        seq=v["seq"], heartRate=v["heartRate"], skinConductance=v["skinConductance"],
+        temperature=v["temperature"], force=v["force"], interactionForce=v["interactionForce"],
+        robotVelocity=v["robotVelocity"], robotPosition=v["robotPosition"],
+        targetPosition=v["targetPosition"], task=TaskData._from(v),
+        clinicalScore=None if score == CLINICAL_SCORE_NA else score, flags=v["flags"])
+
+
+@dataclass(frozen=True)
+class PatientModelReply:
+    """Patient model -> manager: the assistance level and how it was reached."""
+
+    seq: int
+    ackSeq: int
+    alpha: float
+    tpi: float
+    mpi: float
+    pti: float
+    alphaMin: float
+    alphaMax: float
+    path: int = 0
+    level: float = 0.0
+    flags: int = ReplyFlag.VALID
+
+
+def encode_patient_model_reply(reply: PatientModelReply) -> bytes:
+    for name in ("alpha", "alphaMin", "alphaMax"):
+        _check_unit(name, getattr(reply, name), -1.0, 1.0, ValueError)
+    for name in ("tpi", "mpi", "pti", "level"):
+        _check_unit(name, getattr(reply, name), 0.0, 1.0, ValueError)
+    if reply.alphaMin > reply.alphaMax:
+        raise ValueError(f"alpha range inverted: {reply.alphaMin} > {reply.alphaMax}")
+    values = {"seq": reply.seq & 0xFFFF, "ackSeq": reply.ackSeq & 0xFFFF, "alpha": reply.alpha,
+              "tpi": reply.tpi, "mpi": reply.mpi, "pti": reply.pti, "alphaMin": reply.alphaMin,
+              "alphaMax": reply.alphaMax, "path": reply.path & 0xFF, "level": reply.level,
+              "flags": int(reply.flags) & 0xFF}
+    return _pack(PATIENT_MODEL_REPLY_LAYOUT, values)
+
+
+def decode_patient_model_reply(data: bytes) -> PatientModelReply:
+    v = _unpack(PATIENT_MODEL_REPLY_LAYOUT, data)
+    for name in ("alpha", "alphaMin", "alphaMax"):
+        _check_unit(name, v[name], -1.0, 1.0, FrameError)
+    for name in ("tpi", "mpi", "pti"):
+        _check_unit(name, v[name], 0.0, 1.0, FrameError)
+    if v["alphaMin"] > v["alphaMax"]:
+        raise FrameError(f"alpha range inverted: {v['alphaMin']:.4f} > {v['alphaMax']:.4f}")
+    return PatientModelReply(v["seq"], v["ackSeq"], v["alpha"], v["tpi"], v["mpi"], v["pti"],
+                             v["alphaMin"], v["alphaMax"], v["path"], v["level"], v["flags"])
+
+
+@dataclass(frozen=True)
+class VrFrame:
+    """Manager -> VR renderer, 50 Hz."""
+
+    seq: int
+    force: float              # grip, N
+    interactionForce: float   # N
+    robotVelocity: float      # m/s
+    robotPosition: float      # m
+    targetPosition: float     # m
+    task: TaskData = field(default_factory=TaskData)
+    alpha: float = 0.0
+    flags: int = 0
+
+
+def encode_vr_frame(frame: VrFrame) -> bytes:
+    _check_unit("alpha", frame.alpha, -1.0, 1.0, ValueError)
+    values = {"seq": frame.seq & 0xFFFF, "force": frame.force, "interactionForce": frame.interactionForce,
+              "robotVelocity": frame.robotVelocity, "robotPosition": frame.robotPosition,
+              "targetPosition": frame.targetPosition, "alpha": frame.alpha, "flags": frame.flags & 0xFF,
+              **frame.task._values()}
+    return _pack(VR_LAYOUT, values)
+
+
+def decode_vr_frame(data: bytes) -> VrFrame:
+    v = _unpack(VR_LAYOUT, data)
+    if math.isnan(v["alpha"]):
+        raise FrameError("alpha not available")
+    return VrFrame(v["seq"], v["force"], v["interactionForce"], v["robotVelocity"], v["robotPosition"],
+                   v["targetPosition"], TaskData._from(v), v["alpha"], v["flags"])
+
+
+@dataclass(frozen=True)
+class VrEventFrame:
+    """VR renderer -> manager."""
+
+    seq: int
+    event: VrEvent
+    subTask: int = 0
+    score: int = 0
+    timeToTarget: float = math.nan  # s (NaN = n/a)
+
+
+def encode_vr_event(ev: VrEventFrame) -> bytes:
+    values = {"seq": ev.seq & 0xFFFF, "event": int(ev.event), "subTask": ev.subTask & 0xFFFF,
+              "score": ev.score, "timeToTarget": ev.timeToTarget}
+    return _pack(VR_EVENT_LAYOUT, values)
+
+
+def decode_vr_event(data: bytes) -> VrEventFrame:
+    v = _unpack(VR_EVENT_LAYOUT, data)
+    try:
+        event = VrEvent(v["event"])
+    except ValueError as exc:
+        raise FrameError(f"unknown VR event {v['event']}") from exc
+    return VrEventFrame(v["seq"], event, v["subTask"], v["score"], v["timeToTarget"])
