@@ -25,7 +25,7 @@ def start_pair(tmp_path, rate_hz: float):
 
 @pytest.mark.parametrize(("rate_hz", "seconds"), [(100.0, 10.0), (1000.0, 5.0)])
 def test_frames_arrive_complete_at_rate(tmp_path, qtbot, rate_hz: float, seconds: float) -> None:
-    patient, sim, driver = start_pair(tmp_path, rate_hz)
+    _patient, sim, driver = start_pair(tmp_path, rate_hz)
     try:
         qtbot.waitUntil(lambda: driver.connected, timeout=3000)
         sim.start()

@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING
 
 from app.config import PhysioCalibration, PhysioDevice
 from app.devices.driver import Channel, DeviceDriver, StreamSpec, UpdateNotifier
-from app.devices.physio_codec import Calibration, ChannelCalibration, PhysioSample, PhysioStreamDecoder
+from app.devices.physio_codec import Calibration, ChannelCalibration, PhysioStreamDecoder
 from app.devices.sim.base import SerialSimulator
 from app.devices.sim.physio_signals import PhysioSimSource
 from app.devices.transport import SerialSettings, SerialTransport
