@@ -105,7 +105,7 @@ class RobotLimits:
     max_acceleration_m_s2: float = field(default=1.0, metadata=rng(0.0, 10.0, "m/s²"))
     max_interaction_force_n: float = field(default=60.0, metadata=rng(0.0, 200.0, "N"))
     max_stiffness_n_m: float = field(default=2000.0, metadata=rng(0.0, 10000.0, "N/m"))
-    max_delta_m: float = field(default=0.05, metadata=rng(0.0, 0.1, "m"))
+    max_delta_m: float = field(default=0.06, metadata=rng(0.0, 0.1, "m"))
     # Endstroke switches stop the carriage at the rail's ends; only a bench setup without a patient
     # may turn them off.
     allow_disable_endstrokes: bool = False

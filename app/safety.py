@@ -302,7 +302,7 @@ def _robot_problem(name: str, args: dict[str, Any], lim: RobotLimits, centre: fl
         if f is None or not (0 < f <= lim.max_interaction_force_n):
             return f"force limit {f} N is outside 0 .. {lim.max_interaction_force_n} N"
         return ""
-    if name == "disableEndstrokes" and not lim.allow_disable_endstrokes:
+    if name == "disableEndstrokes" and args.get("disable") and not lim.allow_disable_endstrokes:
         return "endstroke switches protect the patient at the ends of the rail; disabling them is not allowed"
     if name == "setVirtualVsaSpringDisplacement":
         d = _f(args, "disp")

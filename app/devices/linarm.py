@@ -1,0 +1,341 @@
+"""LINarm2 driver: CmdMessenger frames ⇄ typed state samples and acknowledged commands.
+
+Every command goes through :meth:`LinarmDriver.command`, the one place that encodes host frames,
+and that place asks the safety supervisor first. Commands block until the controller's ACK (or
+ERROR, raised as :class:`LinarmCommandError` with the controller's code) or a timeout; one is in
+flight at a time, except the emergency stop's IDLE, which is written at once.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+from PySide6.QtCore import Signal
+
+from app.config import LinarmDevice
+from app.devices import linarm_protocol as proto
+from app.devices.cmdmessenger import CmdMessengerDecoder
+from app.devices.driver import Channel, DeviceDriver, StreamSpec, UpdateNotifier
+from app.devices.linarm_protocol import ControlState, ReplyError
+from app.devices.sim.base import SerialSimulator
+from app.devices.transport import SerialSettings, SerialTransport, TransportError
+
+if TYPE_CHECKING:
+    from app.manager import DeviceHandle, LinarmppManager
+    from app.safety import SafetySupervisor
+
+log = logging.getLogger(__name__)
+
+
+# ---------------------------------------------------------------------------------------------- samples
+# Field names are the seed script API's (linarm.linarmVsaState.equilibriumPos, ...); units SI.
+@dataclass(frozen=True, slots=True)
+class LinarmStateSample:
+    controlState: int
+    controlMode: int
+    homeState: int
+    errorState: int
+    triggerMode: int
+    initialized: bool
+    trajectoryType: int
+    demo: bool
+    virtualVsa: bool
+    endstrokesDisabled: bool
+    controllerTime: float  # s, controller clock
+
+
+@dataclass(frozen=True, slots=True)
+class MotorSample:
+    index: int
+    position: float
+    velocity: float
+    current: float
+    target: float
+    controllerTime: float
+
+
+@dataclass(frozen=True, slots=True)
+class VsaSample:
+    equilibriumPos: float  # the centre
+    delta: float
+    stiffness: float
+    handlePos: float
+    handleVel: float
+    interactionForce: float
+    controllerTime: float
+
+    @property
+    def centre(self) -> float:
+        return self.equilibriumPos
+
+
+STATE_STREAM = StreamSpec("linarm.state", (
+    Channel("controlState", "", "Control state"), Channel("controlMode", "", "Control mode"),
+    Channel("homeState", "", "Home state"), Channel("errorState", "", "Error state"),
+    Channel("triggerMode", "", "Trigger mode"), Channel("initialized", "", "Initialised"),
+), 20.0)
+VSA_STREAM = StreamSpec("linarm.vsa", (
+    Channel("equilibriumPos", "m", "Centre (equilibrium)"), Channel("delta", "m", "Delta"),
+    Channel("stiffness", "N/m", "Stiffness"), Channel("handlePos", "m", "Handle position"),
+    Channel("handleVel", "m/s", "Handle velocity"), Channel("interactionForce", "N", "Interaction force"),
+), 200.0)
+
+
+def _motor_stream(i: int) -> StreamSpec:
+    return StreamSpec(f"linarm.motor{i}", (
+        Channel("position", "m", f"Motor {i} position"), Channel("velocity", "m/s", f"Motor {i} velocity"),
+        Channel("current", "A", f"Motor {i} current"), Channel("target", "m", f"Motor {i} target"),
+    ), 200.0)
+
+
+class LinarmCommandError(RuntimeError):
+    """The controller refused a command; ``code`` is its ReplyError."""
+
+    def __init__(self, command: str, code: ReplyError, message: str = "") -> None:
+        self.command = command
+        self.code = code
+        self.message = message
+        detail = f": {message}" if message else ""
+        super().__init__(f"LINarm refused {command}: {code.name}{detail}")
+
+
+class LinarmTimeout(TimeoutError):
+    pass
+
+
+@dataclass
+class _Pending:
+    seq: int
+    name: str
+    future: Future
+
+
+# ---------------------------------------------------------------------------------------------- driver
+class LinarmDriver(DeviceDriver):
+    streams = (STATE_STREAM, VSA_STREAM, _motor_stream(0), _motor_stream(1))
+    controller_error = Signal(str)  # an ERROR_EVENT from the controller, as a sentence
+    identified = Signal(str)  # firmware version
+
+    def __init__(self, url: str, supervisor: SafetySupervisor, *, baudrate: int = 460800,
+                 stream_period_s: float = proto.DEFAULT_STREAM_PERIOD, command_timeout_s: float = 1.0,
+                 heartbeat_period_s: float = proto.HEARTBEAT_PERIOD, notifier: UpdateNotifier | None = None,
+                 silence_timeout_s: float | None = None) -> None:
+        super().__init__("linarm", SerialTransport(url, SerialSettings(baudrate=baudrate)),
+                         notifier=notifier, silence_timeout_s=silence_timeout_s)
+        self.supervisor = supervisor
+        self.stream_period_s = stream_period_s
+        self.command_timeout_s = command_timeout_s
+        self.heartbeat_period_s = heartbeat_period_s
+        self.decoder = CmdMessengerDecoder()
+        self.firmware_version = ""
+        self.protocol_errors = 0
+        self._seq = 0
+        self._seq_lock = threading.Lock()
+        self._command_lock = threading.Lock()  # one command in flight (the controller's rx buffer is small)
+        self._pending: dict[int, _Pending] = {}
+        self._identify_seq: int | None = None
+        self._identified = threading.Event()
+        self._last_heartbeat = 0.0
+        self._async = ThreadPoolExecutor(max_workers=1, thread_name_prefix="linarm-cmd")
+
+    # ------------------------------------------------------------------ commands (any thread)
+    def command(self, name: str, *args: Any, source: str = "", timeout_s: float | None = None) -> dict[str, Any]:
+        """Send ``name(*args)`` (seed API names and argument order), wait for the ACK and return its values.
+        Raises SafetyError (refused by the supervisor, nothing sent), LinarmCommandError, LinarmTimeout,
+        TransportError."""
+        spec = proto.COMMANDS_BY_NAME.get(name)
+        if spec is None:
+            raise ValueError(f"unknown LINarm command {name!r}")
+        if len(args) != len(spec.args):
+            names = ", ".join(a.name for a in spec.args)
+            raise TypeError(f"{name} takes {len(spec.args)} argument(s) ({names}), got {len(args)}")
+        named = {a.name: v for a, v in zip(spec.args, args, strict=True)}
+        self.supervisor.check_robot_command(name, named, source)
+        if not self.connected:
+            raise TransportError("the LINarm is not connected")
+        timeout = self.command_timeout_s if timeout_s is None else timeout_s
+        with self._command_lock:
+            seq = self._next_seq()
+            frame = proto.encode_command(name, seq, *args)  # raises on values the wire cannot carry
+            pending = _Pending(seq, name, Future())
+            self._pending[seq] = pending
+            try:
+                self.transport.write(frame)
+                reply = pending.future.result(timeout)
+            except TimeoutError as exc:
+                # Resync the controller's parser (a lone ';' flushes its buffer) before the next command.
+                try:
+                    self.transport.write(b";")
+                except TransportError:
+                    pass
+                raise LinarmTimeout(f"LINarm did not acknowledge {name} within {timeout:.2f} s") from exc
+            finally:
+                self._pending.pop(seq, None)
+        self.supervisor.event("robot_command", source=source, command=name, args=named, ok=True)
+        return reply
+
+    def command_async(self, name: str, *args: Any, source: str = "") -> Future:
+        """The same, off the caller's thread (GUI buttons): the Future holds the ACK values or the error."""
+        return self._async.submit(self.command, name, *args, source=source)
+
+    def emergency_idle(self, reason: str = "") -> None:
+        """Motors off now: written straight to the wire, not queued behind a command in flight."""
+        if not self.connected:
+            return
+        seq = self._next_seq()
+        self.transport.write(b";" + proto.encode_command("setCtrlState", seq, int(ControlState.IDLE_CTRL_STATE)))
+
+    # ------------------------------------------------------------------ driver thread
+    def on_connect(self) -> None:
+        self.decoder.reset()
+        self._identified.clear()
+        self.firmware_version = ""
+        # Flush the controller's parser, then identify (command 0 is harmless by design).
+        self._identify_seq = self._next_seq()
+        self.transport.write(b";" + proto.encode_command("identify", self._identify_seq))
+        deadline = time.monotonic() + 2.0
+        while not self._identified.is_set():
+            if time.monotonic() > deadline:
+                raise TransportError("the LINarm controller did not identify itself within 2 s")
+            data = self.transport.read(0.02)
+            if data:
+                self._handle_frames(data, time.monotonic_ns(), during_connect=True)
+        seq = self._next_seq()
+        self.transport.write(proto.encode_command("startDataStream", seq, float(self.stream_period_s)))
+        self._last_heartbeat = time.monotonic()
+
+    def on_bytes(self, data: bytes, t_ns: int) -> None:
+        self._handle_frames(data, t_ns)
+
+    def on_tick(self, now_s: float) -> None:
+        if now_s - self._last_heartbeat >= self.heartbeat_period_s:
+            self._last_heartbeat = now_s
+            self.transport.write(proto.encode_command("heartbeat", self._next_seq()))
+
+    def on_disconnect(self) -> None:
+        for pending in list(self._pending.values()):
+            if not pending.future.done():
+                pending.future.set_exception(TransportError("the LINarm link was lost"))
+
+    def stop(self, timeout_s: float = 1.0) -> bool:
+        done = super().stop(timeout_s)
+        self._async.shutdown(wait=False, cancel_futures=True)
+        return done
+
+    # ------------------------------------------------------------------ decoding
+    def _handle_frames(self, data: bytes, t_ns: int, during_connect: bool = False) -> None:
+        t = t_ns / 1e9
+        for frame in self.decoder.feed(data):
+            try:
+                msg = proto.decode_controller_frame(frame)
+            except proto.ProtocolError as exc:
+                self.protocol_errors += 1
+                log.debug("linarm: bad frame %r: %s", frame, exc)
+                continue
+            self._dispatch(msg, t)
+
+    def _dispatch(self, msg: Any, t: float) -> None:
+        if isinstance(msg, proto.VsaState):
+            self.publish("linarm.vsa", t, VsaSample(msg.equilibrium_pos, msg.delta, msg.stiffness, msg.handle_pos,
+                                                    msg.handle_vel, msg.force, msg.t_us / 1e6))
+        elif isinstance(msg, proto.MotorState):
+            self.publish(f"linarm.motor{msg.index}", t, MotorSample(msg.index, msg.position, msg.velocity,
+                                                                    msg.current, msg.target, msg.t_us / 1e6))
+        elif isinstance(msg, proto.LinarmState):
+            self.publish("linarm.state", t, LinarmStateSample(
+                int(msg.control_state), int(msg.control_mode), int(msg.home_state), int(msg.error_state),
+                int(msg.trigger_mode), bool(msg.initialized), int(msg.trajectory_type), bool(msg.demo),
+                bool(msg.virtual_vsa), bool(msg.endstrokes_disabled), msg.t_us / 1e6))
+        elif isinstance(msg, proto.Ack):
+            pending = self._pending.get(msg.seq)
+            if pending is not None and not pending.future.done():
+                pending.future.set_result(dict(msg.values))
+        elif isinstance(msg, proto.ErrorReply):
+            pending = self._pending.get(msg.seq)
+            if pending is not None and not pending.future.done():
+                pending.future.set_exception(LinarmCommandError(pending.name, msg.code, msg.message))
+            elif msg.seq not in self._pending:
+                log.info("linarm: unsolicited error reply %s", msg)
+        elif isinstance(msg, proto.Identify):
+            if msg.protocol_version != proto.PROTOCOL_VERSION:
+                raise TransportError(f"the controller speaks protocol {msg.protocol_version}, "
+                                     f"this application {proto.PROTOCOL_VERSION}")
+            self.firmware_version = msg.firmware_version
+            if not self._identified.is_set():
+                self._identified.set()
+                self.identified.emit(msg.firmware_version)
+        elif isinstance(msg, proto.ErrorEvent):
+            detail = f" ({msg.message})" if msg.message else ""
+            text = f"LINarm error: {proto.ErrorState(msg.error_state).name}{detail}"
+            log.warning(text)
+            self.controller_error.emit(text)
+            self._fire_event("controller_error", text)
+
+    def _next_seq(self) -> int:
+        with self._seq_lock:
+            self._seq = proto.next_seq(self._seq)
+            return self._seq
+
+
+# ---------------------------------------------------------------------------------------------- simulator
+class _PatientOnCoreClock:
+    """The shared simulated patient lives on the monotonic clock; the LINarm core counts from 0."""
+
+    def __init__(self, patient: Any, t0: float) -> None:
+        self.patient = patient
+        self.t0 = t0
+
+    def handle_force(self, t: float, handle_pos: float, handle_vel: float) -> float:
+        t_abs = t + self.t0
+        self.patient.update_handle(t_abs, handle_pos, handle_vel)
+        return float(self.patient.handle_force(t_abs, handle_pos, handle_vel))
+
+
+class LinarmSimAdapter:
+    """LinarmSimCore on the simulator thread's monotonic clock."""
+
+    def __init__(self, patient: Any | None, **core_kwargs: Any) -> None:
+        from app.devices.sim.linarm_model import LinarmSimCore
+
+        self.t0 = time.monotonic()
+        self.core = LinarmSimCore(patient=_PatientOnCoreClock(patient, self.t0) if patient is not None else None,
+                                  **core_kwargs)
+
+    def handle_host_bytes(self, data: bytes, t: float) -> bytes:
+        return self.core.handle_host_bytes(data, t - self.t0)
+
+    def poll(self, t: float) -> bytes:
+        return self.core.stream_bytes(t - self.t0)
+
+
+def create(manager: LinarmppManager) -> DeviceHandle | None:
+    from app.manager import DeviceHandle
+
+    cfg: LinarmDevice = manager.config.devices.linarm
+    if cfg.mode == "off":
+        return None
+    simulator = None
+    url = cfg.port
+    if cfg.mode == "simulated":
+        patient = manager.sim_patient()
+        simulator = SerialSimulator("linarm", lambda: LinarmSimAdapter(patient), manager.runtime_dir / "linarm.tty",
+                                    tick_s=0.001)
+        url = simulator.url
+    safety = manager.config.safety
+    silence = max(safety.silence_periods / cfg.state_rate_hz, safety.silence_min_s)
+    driver = LinarmDriver(url, manager.supervisor, baudrate=cfg.baudrate, stream_period_s=1.0 / cfg.state_rate_hz,
+                          command_timeout_s=cfg.command_timeout_s, heartbeat_period_s=cfg.heartbeat_period_s,
+                          notifier=manager.notifier, silence_timeout_s=silence)
+
+    def centre() -> float | None:
+        vsa = driver.latest("linarm.vsa")
+        return vsa.equilibriumPos if vsa is not None else None
+
+    manager.supervisor.latest_centre_m = centre
+    manager.supervisor.register_estop_action("robot IDLE", driver.emergency_idle)
+    return DeviceHandle("linarm", driver, simulator)
