@@ -1,0 +1,191 @@
+"""Frame 4 — commands. On top the main commands: one connect/disconnect toggle per device. Below,
+tabs with the panels of the other parts of the application (robot states and modes, FES,
+assistance, scripts, simulation, alarms), each loaded only when its module is present.
+
+The manager has no per-device start/stop yet, so :func:`set_device_running` does it here with the
+driver's own ``start()``/``stop()``.
+"""
+
+from __future__ import annotations
+
+import importlib
+import logging
+from collections.abc import Callable
+
+from PySide6.QtCore import Qt, QTimer
+from PySide6.QtWidgets import (
+    QGridLayout,
+    QGroupBox,
+    QLabel,
+    QMessageBox,
+    QPushButton,
+    QSizePolicy,
+    QTabWidget,
+    QVBoxLayout,
+    QWidget,
+)
+
+from app.manager import LinarmppManager
+from app.ui.theme import colours
+
+log = logging.getLogger(__name__)
+
+# (tab title, module, class, only when a device is simulated)
+PANELS: list[tuple[str, str, str, bool]] = [
+    ("Robot", "app.ui.linarm_panel", "LinarmPanel", False),
+    ("FES", "app.ui.fes_panel", "FesPanel", False),
+    ("Assistance", "app.ui.assistance_panel", "AssistancePanel", False),
+    ("Script", "app.ui.script_console", "ScriptConsole", False),
+    ("Simulation", "app.ui.simulation_panel", "SimulationPanel", True),
+    ("Alarms", "app.ui.alarms_panel", "AlarmsPanel", False),
+]
+
+
+def set_device_running(manager: LinarmppManager, name: str, running: bool, timeout_s: float = 1.0) -> bool:
+    """Start or stop one device's driver (the simulator, if any, keeps running so a later connect
+    finds it). Returns True when the driver is in the requested state.
+
+    Stopping goes through the driver's ``on_disconnect`` (which fails pending requests); a device
+    that needs a safe state first (robot idle, stimulation off) must get it from its driver or the
+    safety supervisor — the caller asks the operator before disconnecting a device in use.
+    """
+    handle = manager.devices.get(name)
+    if handle is None:
+        return False
+    driver = handle.driver
+    if not running:
+        return driver.stop(timeout_s)
+    if driver.isRunning():
+        return True
+    driver._stop.clear()  # stop() leaves the event set; a QThread may be started again after it ends
+    driver.start()
+    return True
+
+
+class DeviceToggle(QPushButton):
+    """A checkable button: checked = the device's driver is running (connected or reconnecting)."""
+
+    def __init__(self, name: str, simulated: bool) -> None:
+        super().__init__()
+        self.name = name
+        self.simulated = simulated
+        self.setCheckable(True)
+        self.setMinimumHeight(30)
+        self.setMinimumWidth(120)
+        # The toggles share the row: they may shrink below their text when the window is very narrow.
+        self.setSizePolicy(QSizePolicy.Policy.Ignored, QSizePolicy.Policy.Fixed)
+
+    def show_state(self, running: bool, connected: bool) -> None:
+        c = colours()
+        if connected:
+            colour, state = c.ok, "connected"
+        elif running:
+            colour, state = c.warn, "connecting…"
+        else:
+            colour, state = c.bad, "disconnected"
+        sim = " (sim)" if self.simulated else ""
+        action = "Disconnect" if running else "Connect"
+        self.blockSignals(True)
+        self.setChecked(running)
+        self.blockSignals(False)
+        self.setText(f"● {self.name}{sim}: {state}")
+        self.setStyleSheet(f"QPushButton {{ text-align: left; padding-left: 8px; }} QPushButton {{ color: {colour}; }}")
+        self.setToolTip(f"{action} {self.name}")
+        self.setAccessibleName(f"{self.name} {state}; press to {action.lower()}")
+
+
+class CommandsFrame(QWidget):
+    def __init__(self, manager: LinarmppManager) -> None:
+        super().__init__()
+        self.manager = manager
+        self.toggles: dict[str, DeviceToggle] = {}
+        self.panels: dict[str, QWidget] = {}
+        # Confirmation before disconnecting a device; tests replace it.
+        self.confirm: Callable[[str], bool] = self._ask_confirmation
+
+        lay = QVBoxLayout(self)
+        lay.setContentsMargins(2, 2, 2, 2)
+        lay.setSpacing(4)
+        self.devices_box = QGroupBox("Devices")
+        self.devices_grid = QGridLayout(self.devices_box)
+        self.devices_grid.setContentsMargins(4, 4, 4, 4)
+        self.devices_grid.setSpacing(4)
+        self.no_devices = QLabel("no device configured")
+        self.devices_grid.addWidget(self.no_devices, 0, 0)
+        lay.addWidget(self.devices_box)
+
+        self.tabs = QTabWidget()
+        self.tabs.setDocumentMode(True)
+        self.tabs.setUsesScrollButtons(True)
+        lay.addWidget(self.tabs, 1)
+        self._load_panels()
+        if self.tabs.count() == 0:
+            empty = QLabel("No command panel is available in this build.")
+            empty.setAlignment(Qt.AlignmentFlag.AlignCenter)
+            self.tabs.addTab(empty, "Panels")
+
+        self._sync_devices()
+        manager.device_connection_changed.connect(lambda *_a: self.refresh())
+        self.timer = QTimer(self)
+        self.timer.setInterval(500)
+        self.timer.timeout.connect(self.refresh)
+        self.timer.start()
+        self.refresh()
+
+    def _load_panels(self) -> None:
+        any_simulated = any(h.simulated for h in self.manager.devices.values())
+        for title, module_name, class_name, needs_sim in PANELS:
+            if needs_sim and not any_simulated:
+                continue
+            try:
+                module = importlib.import_module(module_name)
+            except ModuleNotFoundError as exc:
+                if exc.name != module_name:
+                    raise  # the panel exists but one of its imports is missing: a real bug
+                continue
+            panel = getattr(module, class_name)(self.manager)
+            self.panels[class_name] = panel
+            self.tabs.addTab(panel, title)
+
+    def _sync_devices(self) -> None:
+        for name, handle in self.manager.devices.items():
+            if name in self.toggles:
+                continue
+            toggle = DeviceToggle(name, handle.simulated)
+            toggle.toggled.connect(lambda on, n=name: self.set_running(n, on))
+            n = len(self.toggles)
+            self.devices_grid.addWidget(toggle, n // 3, n % 3)
+            self.toggles[name] = toggle
+        self.no_devices.setVisible(not self.toggles)
+
+    def refresh(self) -> None:
+        self._sync_devices()
+        for name, toggle in self.toggles.items():
+            handle = self.manager.devices.get(name)
+            if handle is None:
+                toggle.setEnabled(False)
+                continue
+            toggle.show_state(handle.driver.isRunning(), handle.driver.connected)
+
+    def set_running(self, name: str, running: bool) -> bool:
+        """Connect (start) or disconnect (stop) one device, asking first before disconnecting one
+        that is connected."""
+        handle = self.manager.devices.get(name)
+        if handle is None:
+            return False
+        if not running and handle.driver.connected and not self.confirm(name):
+            self.refresh()
+            return False
+        ok = set_device_running(self.manager, name, running)
+        if not ok:
+            log.error("%s: could not %s", name, "start" if running else "stop")
+        self.manager.supervisor.event("device_toggled", device=name, running=running, ok=ok)
+        self.refresh()
+        return ok
+
+    def _ask_confirmation(self, name: str) -> bool:
+        answer = QMessageBox.question(
+            self, f"Disconnect {name}",
+            f"Disconnect {name}? Its data stops until you connect it again.",
+        )
+        return answer == QMessageBox.StandardButton.Yes

@@ -1,0 +1,376 @@
+"""Frame 3 — a simplified picture of LINarm2 moving with the live state: the rail, the two motor
+carriages, the springs from each carriage to the handle (zig-zag lines), the handle, and the
+current exercise target.
+
+On a real X server (Qt platform ``xcb``) this is a ``pyqtgraph.opengl`` 3D scene with mouse
+camera control. Anywhere else (``offscreen``, Wayland without GLX, ...) it is a 2D QPainter
+side view of the same scene: a GL widget must never even be constructed there, because offscreen
+GL crashes the process uncatchably (qt-stack.md §2).
+
+Positions come from ``driver.latest()`` at the UI refresh rate: motors from ``linarm.motor0`` and
+``linarm.motor1``, the handle from ``linarm.vsa``; the target from ``set_target()`` when set,
+otherwise from the VR renderer's ``vr.main`` targetPos.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from PySide6.QtCore import QPointF, QRectF, Qt, QTimer
+from PySide6.QtGui import QColor, QFont, QGuiApplication, QPainter, QPainterPath, QPen
+from PySide6.QtWidgets import QLabel, QSizePolicy, QVBoxLayout, QWidget
+
+from app.manager import LinarmppManager
+from app.ui.theme import colours
+
+log = logging.getLogger(__name__)
+
+CARRIAGE_LEN_M = 0.04
+HANDLE_RADIUS_M = 0.012
+SPRING_COILS = 8
+RAIL_MARGIN_M = 0.03
+
+
+@dataclass
+class SceneState:
+    """What the picture shows; None = unknown (drawn greyed at a default place)."""
+
+    motor0: float | None = None
+    motor1: float | None = None
+    handle: float | None = None
+    target: float | None = None
+    connected: bool = False
+
+
+def _attr(sample: Any, name: str) -> float | None:
+    value = getattr(sample, name, None)
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        return None
+    return v if math.isfinite(v) else None
+
+
+def spring_points(x0: float, x1: float, amplitude: float, coils: int = SPRING_COILS,
+                  lead: float = 0.15) -> np.ndarray:
+    """A zig-zag from x0 to x1 as (n, 2) points (x, offset): straight leads at both ends, then
+    ``coils`` teeth of ±amplitude; compresses and stretches with the distance."""
+    length = x1 - x0
+    a = x0 + length * lead
+    b = x1 - length * lead
+    teeth = 2 * coils
+    xs = [x0, a]
+    ys = [0.0, 0.0]
+    for i in range(teeth):
+        xs.append(a + (b - a) * (i + 0.5) / teeth)
+        ys.append(amplitude if i % 2 == 0 else -amplitude)
+    xs += [b, x1]
+    ys += [0.0, 0.0]
+    return np.column_stack((xs, ys))
+
+
+class DeviceView(QWidget):
+    def __init__(self, manager: LinarmppManager) -> None:
+        super().__init__()
+        self.manager = manager
+        limits = manager.config.safety.robot
+        self.rail = (min(0.0, limits.position_min_m - RAIL_MARGIN_M), limits.position_max_m + RAIL_MARGIN_M)
+        self.state = SceneState()
+        self._api_target: float | None = None
+        self._api_target_set = False
+        self.gl_view: Any = None
+        self.canvas: RobotCanvas | None = None
+
+        lay = QVBoxLayout(self)
+        lay.setContentsMargins(0, 0, 0, 0)
+        lay.setSpacing(2)
+        if QGuiApplication.platformName() == "xcb":
+            try:
+                self._gl = GlScene(self.rail)
+                self.gl_view = self._gl.view
+                lay.addWidget(self.gl_view, 1)
+            except Exception:  # PyOpenGL missing or GL failing to initialise: the 2D view still works
+                log.exception("3D view unavailable; using the 2D drawing")
+                self.gl_view = None
+        if self.gl_view is None:
+            self.canvas = RobotCanvas(self.rail)
+            lay.addWidget(self.canvas, 1)
+        self.caption = QLabel()
+        self.caption.setAlignment(Qt.AlignmentFlag.AlignCenter)
+        lay.addWidget(self.caption)
+
+        self.timer = QTimer(self)
+        self.timer.setInterval(int(1000 / max(1.0, manager.config.ui.refresh_hz)))
+        self.timer.timeout.connect(self.refresh)
+        self.timer.start()
+        self.refresh()
+
+    # ------------------------------------------------------------------ API
+    def set_target(self, pos_m: float | None) -> None:
+        """Show an exercise target at ``pos_m`` (m); None returns to the VR renderer's target."""
+        self._api_target = pos_m
+        self._api_target_set = pos_m is not None
+        self.refresh()
+
+    # ------------------------------------------------------------------ live state
+    def _latest(self, stream: str) -> Any:
+        handle = self.manager.devices.get(stream.split(".", 1)[0])
+        if handle is None or not handle.driver.connected:
+            return None
+        return handle.driver.latest(stream)
+
+    def read_state(self) -> SceneState:
+        vsa = self._latest("linarm.vsa")
+        m0 = _attr(self._latest("linarm.motor0"), "position")
+        m1 = _attr(self._latest("linarm.motor1"), "position")
+        handle = _attr(vsa, "handlePos")
+        if vsa is not None and (m0 is None or m1 is None):
+            centre, delta = _attr(vsa, "equilibriumPos"), _attr(vsa, "delta")
+            if centre is not None and delta is not None:  # motors not streamed: place them from the VSA
+                m0 = centre - abs(delta) - 0.05 if m0 is None else m0
+                m1 = centre + abs(delta) + 0.05 if m1 is None else m1
+        target = self._api_target if self._api_target_set else _attr(self._latest("vr.main"), "targetPos")
+        linarm = self.manager.devices.get("linarm")
+        connected = bool(linarm and linarm.driver.connected)
+        return SceneState(m0, m1, handle, target, connected)
+
+    def refresh(self) -> None:
+        state = self.read_state()
+        self.state = state
+        if self.canvas is not None:
+            self.canvas.set_state(state)
+        elif self.gl_view is not None:
+            self._gl.set_state(state)
+        parts = []
+        if state.handle is not None:
+            parts.append(f"handle {state.handle:.3f} m")
+        if state.target is not None:
+            parts.append(f"target {state.target:.3f} m")
+        if not state.connected:
+            parts.insert(0, "robot not connected")
+        text = "  ·  ".join(parts) or "no robot data"
+        if text != self.caption.text():
+            self.caption.setText(text)
+
+    def render_image(self) -> Any:
+        """The current picture as a QImage (the GL framebuffer, or the 2D drawing)."""
+        if self.gl_view is not None:
+            return self.gl_view.grabFramebuffer()
+        assert self.canvas is not None
+        return self.canvas.grab().toImage()
+
+
+def _defaults(state: SceneState, rail: tuple[float, float]) -> tuple[float, float, float, bool]:
+    """Positions to draw (unknown ones at rest around the rail's middle) and whether they are live."""
+    mid = (rail[0] + rail[1]) / 2
+    live = state.motor0 is not None and state.motor1 is not None and state.handle is not None
+    m0 = state.motor0 if state.motor0 is not None else mid - 0.12
+    m1 = state.motor1 if state.motor1 is not None else mid + 0.12
+    h = state.handle if state.handle is not None else (m0 + m1) / 2
+    return m0, m1, h, live
+
+
+class RobotCanvas(QWidget):
+    """The 2D side view: rail with a scale, carriages, zig-zag springs, handle and target."""
+
+    def __init__(self, rail: tuple[float, float]) -> None:
+        super().__init__()
+        self.rail = rail
+        self.state = SceneState()
+        self.setMinimumSize(240, 120)
+        self.setSizePolicy(QSizePolicy.Policy.Expanding, QSizePolicy.Policy.Expanding)
+        self.setAccessibleName("LINarm picture")
+
+    def set_state(self, state: SceneState) -> None:
+        if state != self.state:
+            self.state = state
+            self.update()
+
+    def paintEvent(self, _event: Any) -> None:
+        c = colours()
+        dark = c.name == "dark"
+        p = QPainter(self)
+        p.setRenderHint(QPainter.RenderHint.Antialiasing)
+        w, h = self.width(), self.height()
+        p.fillRect(self.rect(), QColor("#20242a" if dark else "#f4f6f8"))
+        margin = 24.0
+        lo, hi = self.rail
+        scale = (w - 2 * margin) / (hi - lo)
+
+        def X(m: float) -> float:
+            return margin + (m - lo) * scale
+
+        y_rail = h * 0.62
+        unit = max(6.0, min(h * 0.09, 0.02 * scale))  # drawing size of ~2 cm, bounded by the height
+        m0, m1, hx, live = _defaults(self.state, self.rail)
+        ink = QColor(c.text if dark else "#37474f")
+        faded = 255 if live else 90
+
+        # Rail and scale (every 5 cm, labelled every 10 cm).
+        p.setPen(Qt.PenStyle.NoPen)
+        p.setBrush(QColor("#78909c"))
+        p.drawRoundedRect(QRectF(X(lo), y_rail, X(hi) - X(lo), unit * 0.6), 3, 3)
+        p.setPen(QPen(ink, 1))
+        font = QFont(self.font())
+        font.setPointSize(8)
+        p.setFont(font)
+        tick = math.ceil(lo / 0.05) * 0.05
+        while tick <= hi + 1e-9:
+            x = X(tick)
+            major = abs(round(tick / 0.1) * 0.1 - tick) < 1e-6
+            p.drawLine(QPointF(x, y_rail + unit * 0.6), QPointF(x, y_rail + unit * (1.2 if major else 0.9)))
+            if major:
+                p.drawText(QRectF(x - 20, y_rail + unit * 1.2, 40, 14), Qt.AlignmentFlag.AlignCenter, f"{tick:.1f} m")
+            tick += 0.05
+
+        # Target: a dashed vertical line with a flag.
+        if self.state.target is not None:
+            tx = X(self.state.target)
+            green = QColor(c.ok)
+            pen = QPen(green, 2, Qt.PenStyle.DashLine)
+            p.setPen(pen)
+            p.drawLine(QPointF(tx, y_rail - unit * 5.5), QPointF(tx, y_rail + unit * 0.6))
+            flag = QPainterPath(QPointF(tx, y_rail - unit * 5.5))
+            flag.lineTo(tx + unit * 1.6, y_rail - unit * 4.9)
+            flag.lineTo(tx, y_rail - unit * 4.3)
+            flag.closeSubpath()
+            p.fillPath(flag, green)
+            p.drawText(QRectF(tx - 40, y_rail - unit * 7.2, 80, unit * 1.5), Qt.AlignmentFlag.AlignCenter, "target")
+
+        # Springs between carriages and handle.
+        y_spring = y_rail - unit * 1.2
+        spring_pen = QPen(QColor(120, 120, 120, faded) if not dark else QColor(200, 200, 200, faded), 1.6)
+        p.setPen(spring_pen)
+        half_c = CARRIAGE_LEN_M / 2 * scale
+        r_handle = max(unit * 0.9, HANDLE_RADIUS_M * scale)
+        for x0, x1 in ((X(m0) + half_c, X(hx) - r_handle), (X(hx) + r_handle, X(m1) - half_c)):
+            if x1 - x0 < 2:
+                continue
+            pts = spring_points(x0, x1, unit * 0.6)
+            path = QPainterPath(QPointF(pts[0, 0], y_spring + pts[0, 1]))
+            for px, py in pts[1:]:
+                path.lineTo(px, y_spring + py)
+            p.drawPath(path)
+
+        # Motor carriages.
+        blue = QColor("#1565c0")
+        blue.setAlpha(faded)
+        for name, mx in (("M0", m0), ("M1", m1)):
+            rect = QRectF(X(mx) - half_c, y_rail - unit * 2.4, 2 * half_c, unit * 2.4)
+            p.setPen(QPen(QColor("#0d47a1"), 1))
+            p.setBrush(blue)
+            p.drawRoundedRect(rect, 3, 3)
+            p.setPen(QColor("white"))
+            p.drawText(rect, Qt.AlignmentFlag.AlignCenter, name)
+
+        # Handle: a carriage with an upright grip.
+        orange = QColor("#ef6c00")
+        orange.setAlpha(faded)
+        p.setPen(QPen(QColor("#8d3b00"), 1))
+        p.setBrush(orange)
+        p.drawRoundedRect(QRectF(X(hx) - r_handle, y_rail - unit * 1.9, 2 * r_handle, unit * 1.9), 3, 3)
+        p.drawRoundedRect(QRectF(X(hx) - r_handle * 0.45, y_rail - unit * 4.4, r_handle * 0.9, unit * 2.6),
+                          r_handle * 0.4, r_handle * 0.4)
+
+        if not live:
+            p.setPen(ink)
+            font.setPointSize(11)
+            p.setFont(font)
+            p.drawText(QRectF(0, 4, w, 20), Qt.AlignmentFlag.AlignCenter, "no robot data")
+        p.end()
+
+
+class GlScene:
+    """The 3D scene (built only on xcb): meshes moved by translation every refresh."""
+
+    def __init__(self, rail: tuple[float, float]) -> None:
+        import pyqtgraph.opengl as gl
+        from pyqtgraph import Vector
+
+        self.gl = gl
+        self.rail = rail
+        self._alpha = 1.0
+        lo, hi = rail
+        mid = (lo + hi) / 2
+        view = gl.GLViewWidget()
+        view.setMinimumSize(240, 160)
+        view.setBackgroundColor(QColor("#20242a") if colours().name == "dark" else QColor("#e9edf1"))
+        view.setCameraPosition(pos=Vector(mid, 0, 0.02), distance=0.6, elevation=28, azimuth=-65)
+        self.view = view
+
+        grid = gl.GLGridItem()
+        grid.setSize(x=hi - lo + 0.2, y=0.3)
+        grid.setSpacing(x=0.05, y=0.05)
+        grid.translate(mid, 0, -0.02)
+        view.addItem(grid)
+
+        self.rail_item = self._box((hi - lo, 0.03, 0.02), (0.47, 0.56, 0.61, 1.0))
+        self.rail_item.translate(mid, 0, -0.01)
+        view.addItem(self.rail_item)
+        self.motor_items = [self._box((CARRIAGE_LEN_M, 0.06, 0.05), (0.08, 0.4, 0.75, 1.0)) for _ in range(2)]
+        self.handle_item = self._box((0.03, 0.05, 0.03), (0.94, 0.42, 0.0, 1.0))
+        grip = gl.MeshData.cylinder(rows=1, cols=16, radius=[0.012, 0.012], length=0.09)
+        self.grip_item = gl.GLMeshItem(meshdata=grip, smooth=True, color=(0.94, 0.42, 0.0, 1.0), shader="shaded")
+        self.target_item = self._box((0.006, 0.12, 0.16), (0.18, 0.49, 0.2, 0.55), translucent=True)
+        self.springs = [gl.GLLinePlotItem(width=2.0, color=(0.35, 0.35, 0.35, 1.0), antialias=True)
+                        for _ in range(2)]
+        for item in (*self.motor_items, self.handle_item, self.grip_item, self.target_item, *self.springs):
+            view.addItem(item)
+
+    def _box(self, size: tuple[float, float, float], colour: tuple[float, ...], translucent: bool = False) -> Any:
+        """A box with flat per-face shading (top brightest), which reads better than the 'shaded'
+        shader, whose fixed light leaves top faces dark."""
+        sx, sy, sz = (s / 2 for s in size)
+        verts = np.array([[x, y, z] for x in (-sx, sx) for y in (-sy, sy) for z in (-sz, sz)])
+        faces = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],
+                          [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]])
+        mesh = self.gl.MeshData(vertexes=verts, faces=faces)
+        item = self.gl.GLMeshItem(meshdata=mesh, smooth=False, shader=None, drawEdges=False,
+                                  glOptions="translucent" if translucent else "opaque")
+        item.base_colour = tuple(colour)
+        self._colour_box(item, colour[3] if len(colour) > 3 else 1.0)
+        return item
+
+    @staticmethod
+    def _colour_box(item: Any, alpha: float) -> None:
+        r, g, b = item.base_colour[:3]
+        # Face pairs in _box order: -x, +x, -y, +y, -z, +z.
+        shade = np.repeat([0.7, 0.7, 0.85, 0.6, 0.5, 1.0], 2)
+        colours_ = np.column_stack((np.clip(shade * r * 1.1, 0, 1), np.clip(shade * g * 1.1, 0, 1),
+                                    np.clip(shade * b * 1.1, 0, 1), np.full(12, alpha)))
+        item.opts["meshdata"].setFaceColors(colours_)
+        item.meshDataChanged()
+
+    @staticmethod
+    def _place(item: Any, x: float, y: float, z: float) -> None:
+        item.resetTransform()
+        item.translate(x, y, z)
+
+    def set_state(self, state: SceneState) -> None:
+        m0, m1, hx, live = _defaults(state, self.rail)
+        self._place(self.motor_items[0], m0, 0, 0.025)
+        self._place(self.motor_items[1], m1, 0, 0.025)
+        self._place(self.handle_item, hx, 0, 0.015)
+        self._place(self.grip_item, hx, 0, 0.03)
+        alpha = 1.0 if live else 0.35
+        if alpha != self._alpha:  # recolouring rebuilds the mesh buffers: only on change
+            self._alpha = alpha
+            for item in (*self.motor_items, self.handle_item):
+                self._colour_box(item, alpha)
+            self.grip_item.setColor((0.94, 0.42, 0.0, alpha))
+        for spring, (x0, x1) in zip(self.springs, ((m0 + CARRIAGE_LEN_M / 2, hx - 0.015),
+                                                   (hx + 0.015, m1 - CARRIAGE_LEN_M / 2)), strict=True):
+            pts = spring_points(x0, x1, 0.012) if x1 > x0 else np.array([[x0, 0.0], [x1, 0.0]])
+            pos = np.column_stack((pts[:, 0], np.zeros(len(pts)), 0.03 + pts[:, 1]))
+            spring.setData(pos=pos)
+        if state.target is not None:
+            self._place(self.target_item, state.target, 0, 0.08)
+            self.target_item.setVisible(True)
+        else:
+            self.target_item.setVisible(False)
+        self.view.update()
+

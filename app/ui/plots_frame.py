@@ -1,0 +1,579 @@
+"""Frame 2 — live graphs of any signal, chosen at run time, with a Save button in the lower part
+(seed D2.1).
+
+* A checkable tree lists every signal of every device (device → stream → channel) from the
+  :class:`~app.ui.signal_store.SignalStore`.
+* Selected signals are drawn in stacked plots, one per unit, sharing one time axis (seconds before
+  the newest sample; linked zoom and pan).
+* Drawing happens on a timer at ``ui.refresh_hz`` from the store's min/max envelope, never per sample.
+* Pause freezes a copy of the buffers (so what is on screen can still be zoomed, read and saved
+  while the devices keep streaming); zooming or panning the time axis while live pauses too.
+* A crosshair shows the time and every selected signal's value under the mouse.
+* **Save** writes the selected signals over the visible range or the whole buffer to CSV;
+  **Export PNG** saves the plots as a picture.
+
+Keys (when the frame has focus): Space or P pause/resume, A autoscale and follow, Home follow live,
++/- history length, Ctrl+S save, Ctrl+E export PNG.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from collections.abc import Iterable, Sequence
+from pathlib import Path
+from typing import Any
+
+import pyqtgraph as pg
+from PySide6.QtCore import QEvent, QObject, QSettings, Qt, QTimer
+from PySide6.QtGui import QKeyEvent
+from PySide6.QtWidgets import (
+    QCheckBox,
+    QComboBox,
+    QFileDialog,
+    QHBoxLayout,
+    QLabel,
+    QPushButton,
+    QSizePolicy,
+    QSplitter,
+    QTreeWidget,
+    QTreeWidgetItem,
+    QVBoxLayout,
+    QWidget,
+)
+
+from app.manager import LinarmppManager
+from app.paths import sessions_dir
+from app.ui.signal_store import SignalStore, shared_store
+from app.ui.theme import colours, curve_colour
+
+log = logging.getLogger(__name__)
+
+KEY_ROLE = Qt.ItemDataRole.UserRole
+HISTORY_CHOICES_S = (5.0, 10.0, 20.0, 30.0, 60.0, 120.0, 300.0, 600.0)
+DEFAULT_SIGNALS = ("linarm.vsa.handlePos", "linarm.vsa.equilibriumPos", "linarm.vsa.interactionForce",
+                   "physio.main.heartRate")
+SCOPE_VISIBLE, SCOPE_ALL = "visible", "all"
+NO_UNIT = "(no unit)"
+
+
+class PlotsFrame(QWidget):
+    def __init__(self, manager: LinarmppManager | None, store: SignalStore | None = None) -> None:
+        super().__init__()
+        self.manager = manager
+        if store is None:
+            assert manager is not None
+            store = shared_store(manager)
+        self.store = store
+        refresh_hz = manager.config.ui.refresh_hz if manager is not None else 30.0
+        self.selected: list[str] = []
+        self._wanted: list[str] = []  # selection from settings, kept until its device appears
+        self.paused = False
+        self._frozen: SignalStore | None = None
+        self.t_ref: float | None = None  # time of x = 0
+        self.history_s = min(30.0, store.history_s)
+        self.plots: dict[str, pg.PlotItem] = {}  # unit → plot
+        self.curves: dict[str, pg.PlotCurveItem] = {}
+        self.vlines: list[pg.InfiniteLine] = []
+        self._dirty = True
+        self._building_tree = False
+        self._follow_x = True
+        self.cursor_x: float | None = None
+        self.frame_times: list[float] = []
+
+        self._build_ui()
+        self._restore_settings()
+        self._rebuild_tree()
+        self.store.signals_changed.connect(self._rebuild_tree)
+        self.store.updated.connect(self._mark_dirty)
+
+        self.timer = QTimer(self)
+        self.timer.setInterval(int(1000 / max(1.0, refresh_hz)))
+        self.timer.timeout.connect(self.redraw)
+        self.timer.start()
+
+    # ------------------------------------------------------------------ building
+    def _build_ui(self) -> None:
+        pg.setConfigOptions(antialias=False)
+        outer = QVBoxLayout(self)
+        outer.setContentsMargins(2, 2, 2, 2)
+        outer.setSpacing(2)
+        self.splitter = QSplitter(Qt.Orientation.Horizontal)
+        outer.addWidget(self.splitter, 1)
+
+        self.tree = QTreeWidget()
+        self.tree.setHeaderLabels(["Signal", "Unit"])
+        self.tree.setColumnWidth(0, 160)
+        self.tree.setMinimumWidth(110)
+        self.tree.setAccessibleName("Signals to plot")
+        self.tree.itemChanged.connect(self._on_item_changed)
+        self.splitter.addWidget(self.tree)
+
+        right = QWidget()
+        rlay = QVBoxLayout(right)
+        rlay.setContentsMargins(0, 0, 0, 0)
+        rlay.setSpacing(2)
+        top = QHBoxLayout()
+        self.pause_button = QPushButton("Pause")
+        self.pause_button.setCheckable(True)
+        self.pause_button.setToolTip("Freeze the graphs (Space or P); zoom, read and save what you see")
+        self.pause_button.toggled.connect(self.set_paused)
+        top.addWidget(self.pause_button)
+        self.history_box = QComboBox()
+        self.history_box.setAccessibleName("History length")
+        self.history_box.setToolTip("History shown (+ / - keys)")
+        for h in HISTORY_CHOICES_S:
+            if h <= self.store.history_s + 1e-9:
+                self.history_box.addItem(f"{h:g} s", h)
+        if self.history_box.findData(self.store.history_s) < 0:
+            self.history_box.addItem(f"{self.store.history_s:g} s", self.store.history_s)
+        self.history_box.currentIndexChanged.connect(
+            lambda _i: self.set_history(float(self.history_box.currentData())))
+        top.addWidget(self.history_box)
+        self.autoscale_box = QCheckBox("Auto &Y")
+        self.autoscale_box.setChecked(True)
+        self.autoscale_box.setToolTip("Fit the vertical axes to the visible data")
+        self.autoscale_box.toggled.connect(self.set_autoscale)
+        top.addWidget(self.autoscale_box)
+        self.fit_button = QPushButton("&Fit")
+        self.fit_button.setToolTip("Autoscale every axis and follow the live data (A)")
+        self.fit_button.clicked.connect(self.fit)
+        top.addWidget(self.fit_button)
+        top.addStretch(1)
+        rlay.addLayout(top)
+
+        self.graphics = pg.GraphicsLayoutWidget()
+        c = colours()
+        self.graphics.setBackground(c.plot_background)
+        self.graphics.setFocusPolicy(Qt.FocusPolicy.StrongFocus)
+        self.graphics.setAccessibleName("Graphs")
+        self.graphics.setMinimumSize(160, 120)
+        self.graphics.installEventFilter(self)
+        self.graphics.scene().sigMouseMoved.connect(self._on_mouse_moved)
+        rlay.addWidget(self.graphics, 1)
+
+        self.readout = QLabel(" ")
+        self.readout.setWordWrap(True)
+        self.readout.setTextInteractionFlags(Qt.TextInteractionFlag.TextSelectableByMouse)
+        self.readout.setSizePolicy(QSizePolicy.Policy.Ignored, QSizePolicy.Policy.Preferred)
+        rlay.addWidget(self.readout)
+
+        bottom = QHBoxLayout()
+        self.save_button = QPushButton("&Save…")
+        self.save_button.setToolTip("Save the selected signals to CSV (Ctrl+S)")
+        self.save_button.clicked.connect(self._ask_save)
+        bottom.addWidget(self.save_button)
+        self.scope_box = QComboBox()
+        self.scope_box.setAccessibleName("What to save")
+        self.scope_box.addItem("visible", SCOPE_VISIBLE)
+        self.scope_box.addItem("whole buffer", SCOPE_ALL)
+        self.scope_box.setToolTip("Save the visible time range or everything buffered")
+        bottom.addWidget(self.scope_box)
+        self.png_button = QPushButton("&PNG…")
+        self.png_button.setToolTip("Save the graphs as a picture (Ctrl+E)")
+        self.png_button.clicked.connect(self._ask_png)
+        bottom.addWidget(self.png_button)
+        self.status = QLabel("")
+        self.status.setSizePolicy(QSizePolicy.Policy.Ignored, QSizePolicy.Policy.Preferred)
+        bottom.addWidget(self.status, 1)
+        rlay.addLayout(bottom)
+
+        self.splitter.addWidget(right)
+        self.splitter.setStretchFactor(0, 0)
+        self.splitter.setStretchFactor(1, 1)
+        self.splitter.setSizes([230, 560])
+
+    def _rebuild_tree(self) -> None:
+        """(Re)list every signal of the store: device → stream → channel, checked when selected."""
+        self._building_tree = True
+        try:
+            self.tree.clear()
+            devices: dict[str, QTreeWidgetItem] = {}
+            streams: dict[str, QTreeWidgetItem] = {}
+            wanted = set(self.selected) | set(self._wanted)
+            flags_parent = (Qt.ItemFlag.ItemIsEnabled | Qt.ItemFlag.ItemIsUserCheckable
+                            | Qt.ItemFlag.ItemIsAutoTristate | Qt.ItemFlag.ItemIsSelectable)
+            for info in self.store.signals():
+                dev = devices.get(info.device)
+                if dev is None:
+                    dev = QTreeWidgetItem(self.tree, [info.device, ""])
+                    dev.setFlags(flags_parent)
+                    dev.setCheckState(0, Qt.CheckState.Unchecked)
+                    devices[info.device] = dev
+                parent = dev
+                stream_label = info.stream.split(".", 1)[1] if "." in info.stream else info.stream
+                if stream_label not in ("main",):
+                    parent = streams.get(info.stream)
+                    if parent is None:
+                        parent = QTreeWidgetItem(dev, [stream_label, ""])
+                        parent.setFlags(flags_parent)
+                        parent.setCheckState(0, Qt.CheckState.Unchecked)
+                        streams[info.stream] = parent
+                item = QTreeWidgetItem(parent, [info.label or info.channel, info.unit])
+                item.setData(0, KEY_ROLE, info.key)
+                item.setToolTip(0, info.key)
+                item.setFlags(Qt.ItemFlag.ItemIsEnabled | Qt.ItemFlag.ItemIsUserCheckable
+                              | Qt.ItemFlag.ItemIsSelectable)
+                item.setCheckState(0, Qt.CheckState.Checked if info.key in wanted else Qt.CheckState.Unchecked)
+            self.tree.expandAll()
+        finally:
+            self._building_tree = False
+        self._collect_selection()
+
+    def _leaf_items(self) -> Iterable[QTreeWidgetItem]:
+        stack = [self.tree.topLevelItem(i) for i in range(self.tree.topLevelItemCount())]
+        while stack:
+            item = stack.pop(0)
+            key = item.data(0, KEY_ROLE)
+            if key:
+                yield item
+            stack[0:0] = [item.child(i) for i in range(item.childCount())]
+
+    def _on_item_changed(self, _item: QTreeWidgetItem, _col: int) -> None:
+        if not self._building_tree:
+            self._collect_selection()
+
+    def _collect_selection(self) -> None:
+        selected = [it.data(0, KEY_ROLE) for it in self._leaf_items() if it.checkState(0) == Qt.CheckState.Checked]
+        available = {i.key for i in self.store.signals()}
+        # Keep wanted signals of devices not (yet) present; forget those the user unticked.
+        self._wanted = [k for k in self._wanted if k not in available]
+        if selected != self.selected or (not self.plots and selected):
+            self.selected = selected
+            self._rebuild_plots()
+
+    def _rebuild_plots(self) -> None:
+        self.graphics.clear()
+        self.plots.clear()
+        self.curves.clear()
+        self.vlines.clear()
+        c = colours()
+        by_unit: dict[str, list[str]] = {}
+        for key in self.selected:
+            unit = self.store.info(key).unit or NO_UNIT
+            by_unit.setdefault(unit, []).append(key)
+        first: pg.PlotItem | None = None
+        for row, (unit, keys) in enumerate(by_unit.items()):
+            plot = self.graphics.addPlot(row=row, col=0)
+            plot.setMenuEnabled(False)
+            plot.showGrid(x=True, y=True, alpha=c.grid_alpha)
+            for axis in ("left", "bottom"):
+                # Grid lines at major ticks only: the minor grid cost ~8 ms a frame (blended lines).
+                plot.getAxis(axis).setStyle(maxTickLevel=0)
+            if unit == NO_UNIT:
+                plot.setLabel("left", unit)
+            else:
+                plot.setLabel("left", units=unit)  # pyqtgraph adds SI prefixes (mm, kN/m)
+            plot.getAxis("left").setWidth(54)  # aligned time axes in every plot
+            plot.setMinimumHeight(60)
+            plot.vb.setAutoVisible(y=True)
+            plot.enableAutoRange(axis="y", enable=self.autoscale_box.isChecked())
+            plot.enableAutoRange(axis="x", enable=False)
+            plot.vb.sigRangeChangedManually.connect(self._on_manual_range)
+            plot.vb.sigXRangeChanged.connect(self._mark_dirty)
+            if first is None:
+                first = plot
+            else:
+                plot.setXLink(first)
+            if row < len(by_unit) - 1:
+                plot.getAxis("bottom").setStyle(showValues=False)
+            legend = plot.addLegend(offset=(4, 2), labelTextSize="8pt")
+            legend.setBrush(pg.mkBrush(c.plot_background + "c0"))
+            for key in keys:
+                info = self.store.info(key)
+                colour = curve_colour(self.selected.index(key))
+                curve = pg.PlotCurveItem(pen=pg.mkPen(colour, width=1), name=f"{info.device}: {info.label}")
+                plot.addItem(curve)
+                self.curves[key] = curve
+            vline = pg.InfiniteLine(angle=90, movable=False, pen=pg.mkPen(c.plot_foreground, width=1,
+                                                                           style=Qt.PenStyle.DashLine))
+            vline.setVisible(False)
+            plot.addItem(vline, ignoreBounds=True)
+            self.vlines.append(vline)
+            self.plots[unit] = plot
+        if first is not None:
+            list(self.plots.values())[-1].setLabel("bottom", "time", "s")
+            self._apply_x_range()
+        self._dirty = True
+        self.redraw()
+
+    # ------------------------------------------------------------------ behaviour
+    def _draw_store(self) -> SignalStore:
+        return self._frozen if self.paused and self._frozen is not None else self.store
+
+    def _mark_dirty(self, *_args: Any) -> None:
+        self._dirty = True
+
+    def _first_plot(self) -> pg.PlotItem | None:
+        return next(iter(self.plots.values()), None)
+
+    def _apply_x_range(self) -> None:
+        plot = self._first_plot()
+        if plot is not None:
+            plot.setXRange(-self.history_s, 0, padding=0)
+
+    def visible_range(self) -> tuple[float, float] | None:
+        """Absolute (monotonic) time range on screen, or None before any data."""
+        plot = self._first_plot()
+        if plot is None or self.t_ref is None:
+            return None
+        x0, x1 = plot.vb.viewRange()[0]
+        return self.t_ref + x0, self.t_ref + x1
+
+    def redraw(self) -> None:
+        """Draw the selected signals from the buffers (the timer calls this)."""
+        if not self.curves:
+            return
+        store = self._draw_store()
+        if not self.paused:
+            now = self.store.last_time()
+            if now is None:
+                return
+            self.t_ref = now
+        elif not self._dirty:
+            return
+        if self.t_ref is None:
+            return
+        if self._follow_x and not self.paused:
+            self._apply_x_range()
+        rng = self.visible_range()
+        if rng is None:
+            return
+        span = rng[1] - rng[0]
+        t0, t1 = rng[0] - 0.02 * span, rng[1] + 0.02 * span  # a little beyond the edges: no gaps when panning
+        for plot in self.plots.values():
+            width_px = max(100, int(plot.vb.width()))
+            for key, curve in self.curves.items():
+                if curve.getViewBox() is not plot.vb:
+                    continue
+                if key not in store:
+                    curve.setData([], [])
+                    continue
+                t, y = store.envelope(key, t0, t1, max_points=2 * width_px)
+                curve.setData(t - self.t_ref, y)
+        self._dirty = False
+        if self.cursor_x is not None:
+            self._update_readout(self.cursor_x)
+
+    def set_paused(self, paused: bool) -> None:
+        if paused == self.paused:
+            return
+        self.paused = paused
+        if paused:
+            self._frozen = self.store.frozen_copy(self.selected) if self.selected else None
+        else:
+            self._frozen = None
+            self._follow_x = True
+        self.pause_button.blockSignals(True)
+        self.pause_button.setChecked(paused)
+        self.pause_button.blockSignals(False)
+        self.pause_button.setText("Resume" if paused else "Pause")
+        self.status.setText("paused" if paused else "")
+        self._dirty = True
+        self.redraw()
+
+    def toggle_pause(self) -> None:
+        self.set_paused(not self.paused)
+
+    def set_history(self, seconds: float) -> None:
+        self.history_s = min(float(seconds), self.store.history_s)
+        idx = self.history_box.findData(self.history_s)
+        if idx >= 0 and idx != self.history_box.currentIndex():
+            self.history_box.blockSignals(True)
+            self.history_box.setCurrentIndex(idx)
+            self.history_box.blockSignals(False)
+        self._follow_x = True
+        self._apply_x_range()
+        self._dirty = True
+        self.redraw()
+
+    def step_history(self, direction: int) -> None:
+        idx = max(0, min(self.history_box.count() - 1, self.history_box.currentIndex() + direction))
+        self.history_box.setCurrentIndex(idx)
+
+    def set_autoscale(self, on: bool) -> None:
+        if self.autoscale_box.isChecked() != on:
+            self.autoscale_box.setChecked(on)  # comes back here through `toggled`
+            return
+        for plot in self.plots.values():
+            plot.enableAutoRange(axis="y", enable=on)
+
+    def fit(self) -> None:
+        """Autoscale the values and follow the live data again."""
+        self.set_autoscale(True)
+        for plot in self.plots.values():
+            plot.enableAutoRange(axis="y", enable=True)
+        self._follow_x = True
+        self._apply_x_range()
+        self._dirty = True
+        self.redraw()
+
+    def _on_manual_range(self, mask: Any) -> None:
+        """Mouse zoom/pan on the time axis while live freezes the view there."""
+        x_changed = bool(mask[0]) if isinstance(mask, list | tuple) and mask else True
+        if x_changed:
+            self._follow_x = False
+            if not self.paused:
+                self.set_paused(True)
+        self._dirty = True
+
+    def set_selected(self, keys: Sequence[str]) -> None:
+        """Tick exactly ``keys`` in the tree (unknown ones are kept for when their device appears)."""
+        available = {i.key for i in self.store.signals()}
+        self._wanted = [k for k in keys if k not in available]
+        wanted = set(keys)
+        self._building_tree = True
+        try:
+            for item in self._leaf_items():
+                state = Qt.CheckState.Checked if item.data(0, KEY_ROLE) in wanted else Qt.CheckState.Unchecked
+                item.setCheckState(0, state)
+        finally:
+            self._building_tree = False
+        self._collect_selection()
+
+    # ------------------------------------------------------------------ cursor
+    def _on_mouse_moved(self, pos: Any) -> None:
+        for plot in self.plots.values():
+            if plot.vb.sceneBoundingRect().contains(pos):
+                self.set_cursor(plot.vb.mapSceneToView(pos).x())
+                return
+
+    def set_cursor(self, x: float | None) -> None:
+        """Show the crosshair at ``x`` seconds (relative to the newest sample) and the values there."""
+        self.cursor_x = x
+        for line in self.vlines:
+            line.setVisible(x is not None)
+            if x is not None:
+                line.setPos(x)
+        if x is None:
+            self.readout.setText(" ")
+        else:
+            self._update_readout(x)
+
+    def _update_readout(self, x: float) -> None:
+        if self.t_ref is None:
+            return
+        store = self._draw_store()
+        parts = [f"<b>t = {x:+.3f} s</b>"]
+        for key in self.selected:
+            if key not in store:
+                continue
+            info = store.info(key)
+            hit = store.value_at(key, self.t_ref + x)
+            value = "—" if hit is None else f"{hit[1]:.4g}"
+            colour = curve_colour(self.selected.index(key))
+            parts.append(f"<span style='color:{colour}'>■</span> {info.label}: {value} {info.unit}".rstrip())
+        self.readout.setText("  ".join(parts))
+
+    def readout_text(self) -> str:
+        return self.readout.text()
+
+    # ------------------------------------------------------------------ keys
+    def eventFilter(self, obj: QObject, event: QEvent) -> bool:
+        if obj is self.graphics and event.type() == QEvent.Type.KeyPress:
+            return self.handle_key(event)  # type: ignore[arg-type]
+        return super().eventFilter(obj, event)
+
+    def keyPressEvent(self, event: QKeyEvent) -> None:
+        if not self.handle_key(event):
+            super().keyPressEvent(event)
+
+    def handle_key(self, event: QKeyEvent) -> bool:
+        key = event.key()
+        mods = event.modifiers() & ~Qt.KeyboardModifier.KeypadModifier
+        K = Qt.Key
+        ctrl = mods == Qt.KeyboardModifier.ControlModifier
+        plain = mods in (Qt.KeyboardModifier.NoModifier, Qt.KeyboardModifier.ShiftModifier)
+        if plain and key in (K.Key_Space, K.Key_P):
+            self.toggle_pause()
+        elif plain and key == K.Key_A:
+            self.fit()
+        elif plain and key == K.Key_Home:
+            self.set_paused(False)
+            self.fit()
+        elif plain and key in (K.Key_Plus, K.Key_Equal):
+            self.step_history(+1)
+        elif plain and key == K.Key_Minus:
+            self.step_history(-1)
+        elif ctrl and key == K.Key_S:
+            self._ask_save()
+        elif ctrl and key == K.Key_E:
+            self._ask_png()
+        else:
+            return False
+        event.accept()
+        return True
+
+    # ------------------------------------------------------------------ saving
+    def save_csv(self, path: str | Path, scope: str | None = None) -> int:
+        """Write the selected signals to ``path``: ``scope`` "visible" (the time range on screen) or
+        "all" (everything buffered); default: the scope chosen in the frame. Returns the row count."""
+        scope = scope or self.scope_box.currentData()
+        if not self.selected:
+            raise ValueError("no signal selected")
+        store = self._draw_store()
+        t_from = t_to = None
+        if scope == SCOPE_VISIBLE:
+            rng = self.visible_range()
+            if rng is not None:
+                t_from, t_to = rng
+        rows = store.export_csv(path, [k for k in self.selected if k in store], t_from, t_to)
+        self.status.setText(f"saved {rows} rows to {Path(path).name}")
+        log.info("plots: saved %d rows of %d signals to %s", rows, len(self.selected), path)
+        return rows
+
+    def export_png(self, path: str | Path) -> bool:
+        ok = self.graphics.grab().save(str(path))
+        self.status.setText(f"exported {Path(path).name}" if ok else "export failed")
+        return ok
+
+    def _ask_save(self) -> None:
+        if not self.selected:
+            self.status.setText("tick at least one signal to save")
+            return
+        path, _ = QFileDialog.getSaveFileName(self, "Save signals", str(sessions_dir() / "signals.csv"),
+                                              "CSV files (*.csv)")
+        if path:
+            try:
+                self.save_csv(path)
+            except OSError as exc:
+                self.status.setText(f"could not save: {exc.strerror or exc}")
+
+    def _ask_png(self) -> None:
+        path, _ = QFileDialog.getSaveFileName(self, "Export graphs", str(sessions_dir() / "graphs.png"),
+                                              "PNG images (*.png)")
+        if path:
+            self.export_png(path)
+
+    # ------------------------------------------------------------------ settings
+    def save_settings(self, settings: QSettings) -> None:
+        settings.setValue("plots/selected", json.dumps(self.selected + self._wanted))
+        settings.setValue("plots/history_s", self.history_s)
+        settings.setValue("plots/autoscale", "1" if self.autoscale_box.isChecked() else "0")
+        settings.setValue("plots/save_scope", self.scope_box.currentData())
+        settings.setValue("plots/splitter", self.splitter.saveState())
+
+    def _restore_settings(self) -> None:
+        settings = QSettings()
+        raw = settings.value("plots/selected")
+        try:
+            selected = json.loads(raw) if isinstance(raw, str) else None
+        except ValueError:
+            selected = None
+        self._wanted = [str(k) for k in selected] if isinstance(selected, list) else list(DEFAULT_SIGNALS)
+        try:
+            history = float(settings.value("plots/history_s", self.history_s))
+        except (TypeError, ValueError):
+            history = self.history_s
+        self.history_s = min(history, self.store.history_s)
+        idx = self.history_box.findData(self.history_s)
+        self.history_box.blockSignals(True)
+        self.history_box.setCurrentIndex(idx if idx >= 0 else self.history_box.count() - 1)
+        self.history_box.blockSignals(False)
+        self.history_s = float(self.history_box.currentData())
+        self.autoscale_box.setChecked(str(settings.value("plots/autoscale", "1")) != "0")
+        scope_idx = self.scope_box.findData(settings.value("plots/save_scope", SCOPE_VISIBLE))
+        self.scope_box.setCurrentIndex(max(0, scope_idx))
+        state = settings.value("plots/splitter")
+        if state is not None:
+            self.splitter.restoreState(state)

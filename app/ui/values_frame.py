@@ -1,0 +1,382 @@
+"""Frame 1 — every live quantity as a large number with its unit, readable from 2 m; in the lower
+part the robot's control state, mode and error state (colour-coded) and each device's connection
+and sample rate.
+
+The frame polls ``driver.latest(stream)`` on a ~10 Hz timer: a number changing 30 times a second
+cannot be read anyway, and polling costs nothing when devices are absent. Absent devices or
+values show "—".
+"""
+
+from __future__ import annotations
+
+import importlib
+import math
+from dataclasses import dataclass
+from typing import Any
+
+from PySide6.QtCore import QEvent, QObject, Qt, QTimer
+from PySide6.QtGui import QFont
+from PySide6.QtWidgets import (
+    QFrame,
+    QGridLayout,
+    QGroupBox,
+    QHBoxLayout,
+    QLabel,
+    QScrollArea,
+    QSizePolicy,
+    QVBoxLayout,
+    QWidget,
+)
+
+from app.manager import LinarmppManager
+from app.ui.theme import colours
+
+DASH = "—"
+FES_CHANNELS = 8
+REFRESH_HZ = 10.0
+VALUE_PT_STEPS = (22, 20, 18, 16, 14)  # 14 pt bold still reads from 2 m
+
+
+@dataclass(frozen=True)
+class Quantity:
+    """One tile: where the value comes from and how it is printed (unit from the StreamSpec)."""
+
+    title: str
+    stream: str
+    channel: str
+    decimals: int
+    unit: str  # shown before the device has published its StreamSpec
+
+
+# The display order of the seed's quantities; units are the streams' own (SI except FES).
+GROUPS: list[tuple[str, list[Quantity]]] = [
+    ("Robot", [
+        Quantity("Handle position", "linarm.vsa", "handlePos", 3, "m"),
+        Quantity("Handle velocity", "linarm.vsa", "handleVel", 3, "m/s"),
+        Quantity("Interaction force", "linarm.vsa", "interactionForce", 1, "N"),
+        Quantity("Stiffness", "linarm.vsa", "stiffness", 0, "N/m"),
+        Quantity("Centre", "linarm.vsa", "equilibriumPos", 3, "m"),
+        Quantity("Delta", "linarm.vsa", "delta", 4, "m"),
+    ]),
+    ("Physiology", [
+        Quantity("Grip force", "physio.main", "force", 1, "N"),
+        Quantity("Heart rate", "physio.main", "heartRate", 0, "bpm"),
+        Quantity("Skin conductance", "physio.main", "skinConductance", 2, "µS"),
+        Quantity("Temperature", "physio.main", "temperature", 1, "°C"),
+    ]),
+    ("Patient model", [
+        Quantity("α", "patient_model.main", "alpha", 2, ""),
+        Quantity("a_r", "patient_model.main", "a_r", 2, ""),
+        Quantity("a_f", "patient_model.main", "a_f", 2, ""),
+    ]),
+]
+
+STATE_STREAM = "linarm.state"
+FES_STREAM = "fes.channels"
+# (title, channel, enum name in app.devices.linarm_protocol)
+STATE_FIELDS: list[tuple[str, str, str]] = [
+    ("Control state", "controlState", "CONTROL_STATES"),
+    ("Control mode", "controlMode", "CONTROL_MODES"),
+    ("Error", "errorState", "ERROR_STATES"),
+]
+
+
+def format_value(value: Any, decimals: int) -> str:
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        return DASH
+    if not math.isfinite(v):
+        return DASH
+    text = f"{v:.{decimals}f}"
+    return "0" + text[2:] if text.startswith("-0") and float(text) == 0 else text
+
+
+def enum_name(enum_attr: str, value: Any) -> str:
+    """The name of ``value`` in linarm_protocol's enum, or the number when it is unknown."""
+    try:
+        number = int(value)
+    except (TypeError, ValueError):
+        return DASH
+    try:
+        protocol = importlib.import_module("app.devices.linarm_protocol")
+        enum_cls = getattr(protocol, enum_attr)
+        name = enum_cls(number).name
+    except (ImportError, AttributeError, ValueError, TypeError):
+        return str(number)
+    for suffix in ("_CTRL_STATE", "_STATE", "_MODE"):
+        if name.endswith(suffix) and len(name) > len(suffix):
+            name = name[: -len(suffix)]
+    return name.replace("POS_REF_BY_", "").replace("_", " ").lower().capitalize() + f" ({number})"
+
+
+def state_colour(channel: str, value: Any) -> str:
+    c = colours()
+    try:
+        number = int(value)
+    except (TypeError, ValueError):
+        return c.idle
+    if channel == "errorState":
+        return c.ok if number == 0 else c.bad
+    if channel == "controlState":
+        return {0: c.idle, 1: c.warn}.get(number, c.ok)  # idle, homing, on
+    return c.ok
+
+
+class ValueTile(QFrame):
+    """A small title over a large value and its unit."""
+
+    def __init__(self, title: str, unit: str, value_pt: int = 22) -> None:
+        super().__init__()
+        self.setFrameShape(QFrame.Shape.StyledPanel)
+        self.unit = unit
+        lay = QVBoxLayout(self)
+        lay.setContentsMargins(6, 3, 6, 3)
+        lay.setSpacing(0)
+        self.title = QLabel(title)
+        self.value = QLabel(DASH)
+        self.value_pt = 0
+        self.set_value_pt(value_pt)
+        self.value.setAlignment(Qt.AlignmentFlag.AlignRight | Qt.AlignmentFlag.AlignVCenter)
+        self.value.setTextInteractionFlags(Qt.TextInteractionFlag.TextSelectableByMouse)
+        lay.addWidget(self.title)
+        lay.addWidget(self.value)
+        self.setSizePolicy(QSizePolicy.Policy.Preferred, QSizePolicy.Policy.Fixed)
+        self.set_text(DASH)
+
+    def set_value_pt(self, value_pt: int) -> None:
+        if value_pt == self.value_pt:
+            return
+        self.value_pt = value_pt
+        small = QFont(self.title.font())
+        small.setPointSize(max(8, value_pt // 2 - 1))
+        self.title.setFont(small)
+        big = QFont(self.value.font())
+        big.setPointSize(value_pt)
+        big.setBold(True)
+        self.value.setFont(big)
+
+    def set_text(self, text: str, colour: str | None = None) -> None:
+        shown = text if text == DASH or not self.unit else f"{text} {self.unit}"
+        if shown != self.value.text():
+            self.value.setText(shown)
+        style = f"color: {colour};" if colour else ""
+        if style != self.value.styleSheet():
+            self.value.setStyleSheet(style)
+        self.setAccessibleName(f"{self.title.text()}: {shown}")
+
+
+class ValuesFrame(QWidget):
+    def __init__(self, manager: LinarmppManager) -> None:
+        super().__init__()
+        self.manager = manager
+        self.tiles: dict[tuple[str, str], ValueTile] = {}
+        self.state_tiles: dict[str, ValueTile] = {}
+        self.fes_labels: list[QLabel] = []
+        self.device_labels: dict[str, QLabel] = {}
+        self._grids: list[tuple[QGridLayout, list[ValueTile]]] = []
+
+        outer = QVBoxLayout(self)
+        outer.setContentsMargins(2, 2, 2, 2)
+        scroll = QScrollArea()  # never clip: on a small screen the tiles scroll instead
+        scroll.setWidgetResizable(True)
+        scroll.setFrameShape(QFrame.Shape.NoFrame)
+        outer.addWidget(scroll)
+        body = QWidget()
+        scroll.setWidget(body)
+        lay = QVBoxLayout(body)
+        lay.setContentsMargins(2, 2, 2, 2)
+        lay.setSpacing(4)
+
+        for title, quantities in GROUPS:
+            box = QGroupBox(title)
+            grid = QGridLayout(box)
+            grid.setContentsMargins(4, 4, 4, 4)
+            grid.setSpacing(4)
+            group_tiles = []
+            for q in quantities:
+                tile = ValueTile(q.title, q.unit)
+                self.tiles[(q.stream, q.channel)] = tile
+                group_tiles.append(tile)
+            self._grids.append((grid, group_tiles))
+            lay.addWidget(box)
+        self._columns = 0
+        self._set_columns(3)
+
+        fes_box = QGroupBox("FES (active channels)")
+        self.fes_grid = QGridLayout(fes_box)
+        self.fes_grid.setContentsMargins(4, 4, 4, 4)
+        self.fes_none = QLabel("no channel active")
+        self.fes_grid.addWidget(self.fes_none, 0, 0, 1, 2)
+        for ch in range(1, FES_CHANNELS + 1):
+            label = QLabel("")
+            f = QFont(label.font())
+            f.setPointSize(16)
+            f.setBold(True)
+            label.setFont(f)
+            label.hide()
+            self.fes_grid.addWidget(label, 1 + (ch - 1) // 2, (ch - 1) % 2)
+            self.fes_labels.append(label)
+        lay.addWidget(fes_box)
+        lay.addStretch(1)
+        self.scroll = scroll
+        self.body = body
+        self._fitting = False
+        scroll.viewport().installEventFilter(self)
+
+        # Lower part (seed): states and errors, then devices.
+        state_box = QGroupBox("Robot state")
+        srow = QHBoxLayout(state_box)
+        srow.setContentsMargins(4, 4, 4, 4)
+        for title, channel, _enum in STATE_FIELDS:
+            tile = ValueTile(title, "", value_pt=16)
+            self.state_tiles[channel] = tile
+            srow.addWidget(tile)
+        outer.addWidget(state_box)  # pinned below the values: always visible, never scrolled away
+
+        dev_box = QGroupBox("Devices")
+        self.dev_row = QGridLayout(dev_box)
+        self.dev_row.setContentsMargins(4, 4, 4, 4)
+        outer.addWidget(dev_box)
+        self._sync_devices()
+
+        self.timer = QTimer(self)
+        self.timer.setInterval(int(1000 / REFRESH_HZ))
+        self.timer.timeout.connect(self.refresh)
+        self.timer.start()
+        self.refresh()
+
+    # ------------------------------------------------------------------ sizing
+    def eventFilter(self, obj: QObject, event: QEvent) -> bool:
+        # The viewport's own resize: the frame's resizeEvent comes before its layout has moved it.
+        if obj is self.scroll.viewport() and event.type() == QEvent.Type.Resize and not self._fitting:
+            self._fitting = True
+            try:
+                self.fit_fonts()
+            finally:
+                self._fitting = False
+        return super().eventFilter(obj, event)
+
+    def _set_columns(self, columns: int) -> None:
+        if columns == self._columns:
+            return
+        self._columns = columns
+        for grid, tiles in self._grids:
+            for tile in tiles:
+                grid.removeWidget(tile)
+            for i, tile in enumerate(tiles):
+                grid.addWidget(tile, i // columns, i % columns)
+            for col in range(6):
+                grid.setColumnStretch(col, 1 if col < columns else 0)
+
+    def fit_fonts(self) -> None:
+        """The largest value font (22 pt down to 14 pt), with 3, 4 or 6 tiles a row, at which every
+        tile fits without scrolling; wide frames use more columns so the numbers can stay large."""
+        available = self.scroll.viewport().height()
+        width = self.scroll.viewport().width()
+        tiles = list(self.tiles.values())
+        for pt in VALUE_PT_STEPS:
+            for tile in tiles:
+                tile.set_value_pt(pt)
+            fes_font = QFont(self.fes_none.font())
+            fes_font.setPointSize(max(11, pt - 6))
+            fes_font.setBold(True)
+            for label in self.fes_labels:
+                label.setFont(fes_font)
+            for columns in (3, 4, 6):
+                self._set_columns(columns)
+                self.body.layout().activate()
+                if self.body.minimumSizeHint().width() > width:
+                    break
+                if self.body.sizeHint().height() <= available:
+                    return
+        self._set_columns(3)
+
+    # ------------------------------------------------------------------ reading
+    def _latest(self, stream: str) -> Any:
+        handle = self.manager.devices.get(stream.split(".", 1)[0])
+        if handle is None or not handle.driver.connected:
+            return None
+        return handle.driver.latest(stream)
+
+    def _unit(self, stream: str, channel: str) -> str | None:
+        handle = self.manager.devices.get(stream.split(".", 1)[0])
+        if handle is None:
+            return None
+        for spec in handle.driver.streams:
+            if spec.name == stream:
+                for ch in spec.channels:
+                    if ch.name == channel:
+                        return ch.unit
+        return None
+
+    def _sync_devices(self) -> None:
+        for name in self.manager.devices:
+            if name in self.device_labels:
+                continue
+            label = QLabel()
+            label.setTextFormat(Qt.TextFormat.RichText)
+            n = len(self.device_labels)
+            self.dev_row.addWidget(label, n // 2, n % 2)
+            self.device_labels[name] = label
+
+    def refresh(self) -> None:
+        self._sync_devices()
+        groups = [q for _t, qs in GROUPS for q in qs]
+        samples: dict[str, Any] = {}
+        for q in groups:
+            if q.stream not in samples:
+                samples[q.stream] = self._latest(q.stream)
+            tile = self.tiles[(q.stream, q.channel)]
+            unit = self._unit(q.stream, q.channel)
+            if unit is not None:
+                tile.unit = unit
+            sample = samples[q.stream]
+            tile.set_text(format_value(getattr(sample, q.channel, None), q.decimals))
+
+        state = self._latest(STATE_STREAM)
+        for _title, channel, enum_attr in STATE_FIELDS:
+            value = getattr(state, channel, None)
+            self.state_tiles[channel].set_text(enum_name(enum_attr, value) if value is not None else DASH,
+                                               state_colour(channel, value) if value is not None else None)
+
+        fes = self._latest(FES_STREAM)
+        active = 0
+        for ch, label in enumerate(self.fes_labels, start=1):
+            current = getattr(fes, f"current{ch}", None)
+            width = getattr(fes, f"pulseWidth{ch}", None)
+            on = current is not None and width is not None and float(current) > 0 and float(width) > 0
+            if on:
+                active += 1
+                label.setText(f"Ch {ch}:  {float(current):.1f} mA · {float(width):.0f} µs")
+            label.setVisible(on)
+        self.fes_none.setText(DASH if fes is None else "no channel active")
+        self.fes_none.setVisible(active == 0)
+
+        c = colours()
+        for name, label in self.device_labels.items():
+            handle = self.manager.devices.get(name)
+            if handle is None:
+                label.setText(f"<span style='color:{c.idle}'>●</span> {name} {DASH}")
+                continue
+            driver = handle.driver
+            rate = max(driver.rates().values(), default=0.0)
+            if driver.connected and not driver.silent:
+                colour, state = c.ok, f"{rate:.0f} Hz"
+            elif driver.connected:
+                colour, state = c.warn, "silent"
+            else:
+                colour, state = c.bad, "disconnected"
+            sim = " (sim)" if handle.simulated else ""
+            label.setText(f"<span style='color:{colour}'>●</span> <b>{name}</b>{sim} {state}")
+            label.setAccessibleName(f"{name} {state}")
+
+    # ------------------------------------------------------------------ test/inspection helpers
+    def text_of(self, stream: str, channel: str) -> str:
+        return self.tiles[(stream, channel)].value.text()
+
+    def state_text(self, channel: str) -> str:
+        return self.state_tiles[channel].value.text()
+
+    def active_fes_texts(self) -> list[str]:
+        return [lb.text() for lb in self.fes_labels if not lb.isHidden()]

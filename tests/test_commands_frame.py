@@ -1,0 +1,61 @@
+"""Frame 4: a connect/disconnect toggle per device that really stops and restarts its driver (over
+a pty), confirmation before disconnecting, and the panels loaded as tabs when present."""
+
+from __future__ import annotations
+
+import sys
+import types
+
+from PySide6.QtWidgets import QLabel
+
+from app.config import AppConfig
+from app.manager import LinarmppManager
+from app.ui import commands_frame
+from app.ui.commands_frame import CommandsFrame
+from tests.fakes import counter_factory
+
+
+def test_toggle_disconnects_and_reconnects_a_device(qtbot, tmp_path) -> None:
+    manager = LinarmppManager(AppConfig(), factories={"alpha": counter_factory(tmp_path)})
+    manager.start()
+    try:
+        frame = CommandsFrame(manager)
+        qtbot.addWidget(frame)
+        driver = manager.devices["alpha"].driver
+        qtbot.waitUntil(lambda: driver.connected, timeout=5000)
+        frame.refresh()
+        toggle = frame.toggles["alpha"]
+        assert toggle.isChecked() and "connected" in toggle.text()
+        asked: list[str] = []
+        frame.confirm = lambda name: asked.append(name) or False  # operator says no
+        toggle.click()
+        assert asked == ["alpha"] and driver.isRunning() and toggle.isChecked()
+        frame.confirm = lambda name: True
+        toggle.click()
+        assert not driver.isRunning() and not toggle.isChecked() and "disconnected" in toggle.text()
+        count = driver.total_samples("counter.main")
+        toggle.click()  # connect again
+        qtbot.waitUntil(lambda: driver.connected and driver.total_samples("counter.main") > count + 50,
+                        timeout=5000)
+        assert toggle.isChecked()
+    finally:
+        manager.shutdown()
+
+
+def test_panels_load_when_present_and_simulation_only_when_simulated(qtbot, monkeypatch) -> None:
+    class FakePanel(QLabel):
+        def __init__(self, manager) -> None:
+            super().__init__("panel")
+            self.manager = manager
+
+    for mod, cls in (("app.ui.fes_panel", "FesPanel"), ("app.ui.simulation_panel", "SimulationPanel")):
+        module = types.ModuleType(mod)
+        setattr(module, cls, FakePanel)
+        monkeypatch.setitem(sys.modules, mod, module)
+    manager = LinarmppManager(AppConfig(), factories={})  # no device: nothing is simulated
+    frame = CommandsFrame(manager)
+    qtbot.addWidget(frame)
+    titles = [frame.tabs.tabText(i) for i in range(frame.tabs.count())]
+    assert "FES" in titles and "Simulation" not in titles
+    assert isinstance(frame.panels["FesPanel"], FakePanel) and frame.no_devices.isVisibleTo(frame)
+    assert commands_frame.set_device_running(manager, "nope", True) is False

@@ -1,0 +1,75 @@
+"""Frame 3: the picture follows the live state and the target; offscreen it is the 2D drawing
+(never a GL widget); under Xvfb (xcb) the 3D scene renders."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from PySide6.QtGui import QGuiApplication, QImage
+
+from app.ui.device_view import DeviceView, spring_points
+from tests.test_values_frame import make_stub_manager, publish_scene
+
+
+def pixels(image: QImage, step: int = 4) -> np.ndarray:
+    return np.array([image.pixel(x, y) for x in range(0, image.width(), step) for y in range(0, image.height(), step)])
+
+
+def test_spring_zigzag_spans_the_gap() -> None:
+    pts = spring_points(0.1, 0.3, 0.01, coils=5)
+    assert pts[0, 0] == 0.1 and pts[-1, 0] == 0.3
+    assert np.all(np.diff(pts[:, 0]) >= 0) and np.abs(pts[:, 1]).max() == 0.01
+    assert np.count_nonzero(pts[:, 1]) == 10
+
+
+def test_scene_follows_state_and_target(qtbot) -> None:
+    manager, drivers = make_stub_manager()
+    view = DeviceView(manager)
+    qtbot.addWidget(view)
+    assert view.state.handle is None and "no robot data" in view.caption.text()
+    publish_scene(drivers)
+    view.refresh()
+    s = view.state
+    assert (s.motor0, s.motor1, s.handle, s.target) == (0.16, 0.34, 0.231, 0.3)
+    assert "handle 0.231 m" in view.caption.text() and "target 0.300 m" in view.caption.text()
+    view.set_target(0.12)  # the API overrides the VR renderer's target ...
+    assert view.state.target == 0.12
+    view.set_target(None)  # ... until cleared
+    assert view.state.target == 0.3
+
+
+@pytest.mark.skipif("QGuiApplication.platformName() == 'xcb'")
+def test_offscreen_fallback_is_a_2d_drawing_that_moves(qtbot) -> None:
+    manager, drivers = make_stub_manager()
+    view = DeviceView(manager)
+    qtbot.addWidget(view)
+    assert view.gl_view is None and view.canvas is not None  # no GL widget was ever built
+    view.resize(600, 300)
+    view.show()
+    qtbot.waitExposed(view)
+    publish_scene(drivers)
+    view.refresh()
+    first = view.render_image()
+    assert len(np.unique(pixels(first))) > 20
+    drivers["linarm"].put("linarm.vsa", 2.0, handlePos=0.4, equilibriumPos=0.4, delta=0.01)
+    view.refresh()
+    second = view.render_image()
+    assert not np.array_equal(pixels(first, 2), pixels(second, 2))
+
+
+@pytest.mark.gl
+def test_gl_scene_renders(require_gl, qtbot) -> None:
+    assert QGuiApplication.platformName() == "xcb"
+    manager, drivers = make_stub_manager()
+    publish_scene(drivers)
+    view = DeviceView(manager)
+    qtbot.addWidget(view)
+    assert view.gl_view is not None and view.canvas is None
+    view.resize(600, 400)
+    view.show()
+    qtbot.waitExposed(view)
+    view.refresh()
+    image = view.render_image()
+    assert image.width() > 0 and len(np.unique(pixels(image))) > 20
+    array = view.gl_view.renderToArray((300, 200))
+    assert sorted(array.shape[:2]) == [200, 300] and len(np.unique(array.reshape(-1, array.shape[-1]), axis=0)) > 20

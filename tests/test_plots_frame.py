@@ -1,0 +1,215 @@
+"""Frame 2 driven like a user: tick signals, see one plot per unit, pause, read the cursor, Save to
+CSV (names, units, values equal to what was fed), export PNG, keys, settings that persist."""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+import numpy as np
+from PySide6.QtCore import QSettings, Qt
+from PySide6.QtGui import QImage
+from PySide6.QtTest import QTest
+from PySide6.QtWidgets import QFileDialog
+
+from app.config import AppConfig
+from app.devices.driver import Channel, SampleBatch, StreamSpec
+from app.manager import LinarmppManager
+from app.ui.plots_frame import PlotsFrame
+from app.ui.signal_store import SignalStore, shared_store
+from tests.fakes import counter_factory
+
+VSA = StreamSpec("linarm.vsa", (Channel("handlePos", "m", "Handle position"),
+                                Channel("interactionForce", "N", "Interaction force"),
+                                Channel("equilibriumPos", "m", "Centre")), 200.0)
+PHYSIO = StreamSpec("physio.main", (Channel("heartRate", "bpm", "Heart rate"),), 100.0)
+
+
+def synthetic_store(seconds: float = 4.0) -> tuple[SignalStore, dict[str, np.ndarray]]:
+    store = SignalStore(history_s=30.0)
+    store.add_stream(VSA, "linarm")
+    store.add_stream(PHYSIO, "physio")
+    t = np.arange(0, seconds, 1 / 200)
+    pos = 0.25 + 0.1 * np.sin(t)
+    force = 3.0 * np.cos(3 * t)
+    t_hr = np.arange(0, seconds, 1 / 100)
+    hr = 70 + np.sin(t_hr)
+    for i in range(0, len(t), 7):  # batches, as drivers deliver them
+        sl = slice(i, i + 7)
+        store.feed({"linarm.vsa": SampleBatch(VSA, t[sl], {"handlePos": pos[sl], "interactionForce": force[sl],
+                                                             "equilibriumPos": np.full(len(t[sl]), 0.25)})})
+    store.feed({"physio.main": SampleBatch(PHYSIO, t_hr, {"heartRate": hr})})
+    return store, {"t": t, "pos": pos, "force": force, "t_hr": t_hr, "hr": hr}
+
+
+def make_frame(qtbot, store: SignalStore) -> PlotsFrame:
+    QSettings().remove("plots")
+    frame = PlotsFrame(None, store=store)
+    qtbot.addWidget(frame)
+    frame.resize(900, 600)
+    frame.show()
+    qtbot.waitExposed(frame)
+    return frame
+
+
+def tick(frame: PlotsFrame, key: str) -> None:
+    item = next(it for it in frame._leaf_items() if it.data(0, Qt.ItemDataRole.UserRole) == key)
+    item.setCheckState(0, Qt.CheckState.Checked)
+
+
+def read_export(path: Path) -> tuple[list[str], list[str], list[list[str]]]:
+    rows = list(csv.reader(ln for ln in path.read_text(encoding="utf-8").splitlines() if not ln.startswith("#")))
+    return rows[0], rows[1], rows[2:]
+
+
+def test_tree_lists_every_signal_grouped_by_device(qtbot) -> None:
+    store, _ = synthetic_store()
+    frame = make_frame(qtbot, store)
+    frame.set_selected([])
+    top = [frame.tree.topLevelItem(i).text(0) for i in range(frame.tree.topLevelItemCount())]
+    assert top == ["linarm", "physio"]
+    keys = {it.data(0, Qt.ItemDataRole.UserRole) for it in frame._leaf_items()}
+    assert keys == {"linarm.vsa.handlePos", "linarm.vsa.interactionForce", "linarm.vsa.equilibriumPos",
+                    "physio.main.heartRate"}
+    assert frame.plots == {}
+
+
+def test_selecting_signals_makes_one_plot_per_unit_with_shared_time(qtbot) -> None:
+    store, data = synthetic_store()
+    frame = make_frame(qtbot, store)
+    frame.set_selected([])
+    tick(frame, "linarm.vsa.handlePos")
+    tick(frame, "linarm.vsa.equilibriumPos")
+    tick(frame, "linarm.vsa.interactionForce")
+    tick(frame, "physio.main.heartRate")
+    assert list(frame.plots) == ["m", "N", "bpm"]
+    qtbot.wait(50)  # let the new plots get their geometry
+    frame.redraw()
+    x, y = frame.curves["linarm.vsa.handlePos"].getData()
+    assert len(x) > 100 and x.max() <= 0 and np.isclose(y.max(), data["pos"].max())
+    ranges = {tuple(np.round(p.vb.viewRange()[0], 6)) for p in frame.plots.values()}
+    assert len(ranges) == 1  # linked time axes
+    image = frame.graphics.grab().toImage()
+    assert len({image.pixel(px, py) for px in range(0, image.width(), 5) for py in range(0, image.height(), 5)}) > 5
+
+
+def test_pause_freezes_and_save_writes_exact_values(qtbot, tmp_path: Path, monkeypatch) -> None:
+    store, data = synthetic_store()
+    frame = make_frame(qtbot, store)
+    frame.set_selected(["linarm.vsa.handlePos", "physio.main.heartRate"])
+    frame.redraw()
+    QTest.keyClick(frame.graphics, Qt.Key.Key_Space)
+    assert frame.paused and frame.pause_button.isChecked() and frame.pause_button.text() == "Resume"
+    # New data while paused does not move the frozen picture.
+    before = frame.curves["linarm.vsa.handlePos"].getData()[1].copy()
+    store.feed({"linarm.vsa": SampleBatch(VSA, np.array([10.0]), {"handlePos": np.array([9.9]),
+                                                                  "interactionForce": np.array([0.0]),
+                                                                  "equilibriumPos": np.array([0.25])})})
+    frame.redraw()
+    assert np.array_equal(frame.curves["linarm.vsa.handlePos"].getData()[1], before)
+
+    out = tmp_path / "signals.csv"
+    monkeypatch.setattr(QFileDialog, "getSaveFileName", lambda *a, **k: (str(out), "CSV files (*.csv)"))
+    frame.scope_box.setCurrentIndex(frame.scope_box.findData("all"))
+    frame.save_button.click()
+    names, units, rows = read_export(out)
+    assert names == ["time", "linarm.vsa.handlePos", "physio.main.heartRate"]
+    assert units == ["s", "m", "bpm"]
+    got_pos = [float(r[1]) for r in rows if r[1]]
+    got_hr = [float(r[2]) for r in rows if r[2]]
+    assert got_pos == data["pos"].tolist()  # the frozen buffer: without the sample fed after pausing
+    assert got_hr == data["hr"].tolist()
+    assert "saved" in frame.status.text()
+
+    # Visible range: zoom to the last second and save only that.
+    frame.plots["m"].setXRange(-1.0, 0.0, padding=0)
+    visible = tmp_path / "visible.csv"
+    frame.save_csv(visible, "visible")
+    _n, _u, rows = read_export(visible)
+    t_rows = [float(r[0]) for r in rows if r[1]]
+    lo, hi = frame.visible_range()
+    expected = data["t"][(data["t"] >= lo) & (data["t"] <= hi)]
+    assert t_rows == expected.tolist() and 150 <= len(t_rows) <= 250
+
+    QTest.keyClick(frame.graphics, Qt.Key.Key_P)
+    assert not frame.paused
+
+
+def test_cursor_readout_and_png_export(qtbot, tmp_path: Path, monkeypatch) -> None:
+    store, data = synthetic_store()
+    frame = make_frame(qtbot, store)
+    frame.set_selected(["linarm.vsa.handlePos"])
+    frame.redraw()
+    frame.set_cursor(-1.0)
+    t_end = data["t"][-1]
+    expected = data["pos"][np.argmin(np.abs(data["t"] - (t_end - 1.0)))]
+    text = frame.readout_text()
+    assert "t = -1.000 s" in text and f"{expected:.4g}" in text and "Handle position" in text
+    assert all(line.isVisible() and line.value() == -1.0 for line in frame.vlines)
+    png = tmp_path / "graphs.png"
+    monkeypatch.setattr(QFileDialog, "getSaveFileName", lambda *a, **k: (str(png), "PNG images (*.png)"))
+    frame.png_button.click()
+    image = QImage(str(png))
+    assert not image.isNull() and image.width() > 100
+    assert len({image.pixel(x, y) for x in range(0, image.width(), 9) for y in range(0, image.height(), 9)}) > 5
+
+
+def test_keys_history_and_autoscale(qtbot) -> None:
+    store, _ = synthetic_store()
+    frame = make_frame(qtbot, store)
+    frame.set_selected(["linarm.vsa.handlePos"])
+    frame.set_history(10.0)
+    frame.redraw()
+    x0, x1 = frame.plots["m"].vb.viewRange()[0]
+    assert np.isclose(x0, -10.0) and np.isclose(x1, 0.0)
+    QTest.keyClick(frame.graphics, Qt.Key.Key_Plus)
+    assert frame.history_s == 20.0
+    frame.autoscale_box.setChecked(False)
+    assert not frame.plots["m"].vb.autoRangeEnabled()[1]
+    QTest.keyClick(frame.graphics, Qt.Key.Key_A)
+    assert frame.autoscale_box.isChecked() and frame.plots["m"].vb.autoRangeEnabled()[1]
+
+
+def test_settings_persist_selection_and_plot_settings(qtbot) -> None:
+    store, _ = synthetic_store()
+    frame = make_frame(qtbot, store)
+    frame.set_selected(["physio.main.heartRate", "vr.main.score"])  # vr is absent: kept for later
+    frame.set_history(5.0)
+    frame.autoscale_box.setChecked(False)
+    frame.scope_box.setCurrentIndex(frame.scope_box.findData("all"))
+    settings = QSettings()
+    frame.save_settings(settings)
+    settings.sync()
+    again = PlotsFrame(None, store=store)
+    qtbot.addWidget(again)
+    assert again.selected == ["physio.main.heartRate"]
+    assert again._wanted == ["vr.main.score"]
+    assert again.history_s == 5.0 and not again.autoscale_box.isChecked()
+    assert again.scope_box.currentData() == "all"
+    QSettings().remove("plots")
+
+
+def test_live_frame_from_a_counter_device_over_a_pty(qtbot, tmp_path: Path) -> None:
+    QSettings().remove("plots")
+    manager = LinarmppManager(AppConfig(), factories={"counter": counter_factory(tmp_path)})
+    manager.start()
+    try:
+        frame = PlotsFrame(manager)
+        qtbot.addWidget(frame)
+        frame.resize(800, 500)
+        frame.show()
+        assert frame.store is shared_store(manager)  # one store per manager
+        frame.set_selected(["counter.main.count"])
+        qtbot.waitUntil(lambda: frame.store.count("counter.main.count") > 300, timeout=5000)
+        frame.redraw()
+        x, y = frame.curves["counter.main.count"].getData()
+        assert len(x) > 0 and y.max() > 200
+        QTest.keyClick(frame.graphics, Qt.Key.Key_Space)
+        out = tmp_path / "counter.csv"
+        frame.save_csv(out, "all")
+        names, units, rows = read_export(out)
+        counts = [float(r[1]) for r in rows]
+        assert names == ["time", "counter.main.count"] and units == ["s", ""]
+        assert counts == list(np.arange(counts[0], counts[0] + len(counts)))  # consecutive counter values
+    finally:
+        manager.shutdown()
