@@ -74,6 +74,9 @@ def run_gui(config: AppConfig, screenshot: str | None = None, quit_after_s: floa
 
     app = QApplication.instance() or QApplication(sys.argv)
     configure_qt_identity()
+    from app.ui.theme import apply_palette
+
+    apply_palette(app, config.ui.palette)
     manager = LinarmppManager(config)
     remove_nets = install_safety_nets(manager)
     manager.start()

@@ -76,6 +76,7 @@ class LinarmppManager(QObject):
             if handle is None:
                 continue
             self.devices[name] = handle
+            self._watch_device(handle)
             handle.driver.connection_changed.connect(
                 lambda ok, why, n=name: self.device_connection_changed.emit(n, ok, why))
             if handle.simulator is not None:
@@ -119,6 +120,45 @@ class LinarmppManager(QObject):
 
             self.patient = SimulatedPatient(seed=7)
         return self.patient
+
+    def set_device_running(self, name: str, running: bool, timeout_s: float = 1.0) -> bool:
+        """Connect or disconnect one device (its simulator, if any, keeps running). A device is put in
+        its safe state (robot IDLE, stimulation stopped) before its link is closed."""
+        handle = self.devices.get(name)
+        if handle is None:
+            return False
+        self.supervisor.event("device_toggled", device=name, running=running)
+        if running:
+            handle.driver.resume()
+            return True
+        safe_stop = handle.extras.get("safe_stop")
+        if callable(safe_stop):
+            try:
+                safe_stop(f"{name} disconnected by the operator")
+            except Exception:
+                log.exception("safe stop of %s failed", name)
+        return handle.driver.stop(timeout_s)
+
+    def _watch_device(self, handle: DeviceHandle) -> None:
+        """Connection loss and silence become alarms (and events in the session record)."""
+        from app.safety import AlarmLevel
+
+        name = handle.name
+        state = {"was_connected": False}
+
+        def on_event(event: str, detail: str) -> None:
+            if event == "connected":
+                if state["was_connected"]:
+                    self.supervisor.raise_alarm(AlarmLevel.INFO, name, f"{name} reconnected")
+                state["was_connected"] = True
+            elif event == "disconnected" and state["was_connected"] and self._started:
+                self.supervisor.raise_alarm(AlarmLevel.STOP, name, f"{name} connection lost: {detail}")
+            elif event == "silent" and self._started:
+                self.supervisor.raise_alarm(AlarmLevel.WARNING, name, f"{name} stopped sending data")
+            elif event == "controller_error":
+                self.supervisor.raise_alarm(AlarmLevel.STOP, name, detail)
+
+        handle.driver.add_event_listener(on_event)
 
     # ------------------------------------------------------------------ queries
     def driver(self, name: str) -> DeviceDriver | None:

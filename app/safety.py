@@ -91,6 +91,10 @@ class SafetySupervisor(QObject):
         self.latest_centre_m: Callable[[], float | None] = lambda: None
 
     # ------------------------------------------------------------------ events
+    @property
+    def event_sink(self) -> EventSink | None:
+        return self._event_sink
+
     def set_event_sink(self, sink: EventSink | None) -> None:
         self._event_sink = sink
 

@@ -49,6 +49,7 @@ def test_killed_simulator_is_reported_then_reconnected(counter, qtbot) -> None:
         qtbot.waitUntil(lambda: driver.connected, timeout=3000)
         sim.kill()
         qtbot.waitUntil(lambda: not driver.connected, timeout=3000)
+        qtbot.waitUntil(lambda: any(not ok for ok, _ in events), timeout=3000)  # the queued signal
         down = [why for ok, why in events if not ok]
         assert down and down[-1], "the disconnection carries a reason"
         assert "lost" in down[-1] or "cannot open" in down[-1]

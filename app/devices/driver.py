@@ -165,11 +165,21 @@ class DeviceDriver(QThread):
         """``fn(event, detail)`` on the driver thread: 'connected', 'disconnected', 'silent', 'alive'."""
         self._event_listeners = [*self._event_listeners, fn]
 
+    def remove_event_listener(self, fn: EventListener) -> None:
+        self._event_listeners = [f for f in self._event_listeners if f is not fn]
+
     def send(self, data: bytes) -> None:
         """Write bytes now, from any thread (the transport serialises writers)."""
         if not self._connected:
             raise TransportError(f"{self.name} is not connected")
         self.transport.write(data)
+
+    def resume(self) -> None:
+        """Start the loop again after :meth:`stop` (a QThread may be started again once it ended)."""
+        if self.isRunning():
+            return
+        self._stop.clear()
+        self.start()
 
     def stop(self, timeout_s: float = 1.0) -> bool:
         """Ask the loop to end and wait for it; True when the thread has finished."""

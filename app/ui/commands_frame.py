@@ -49,17 +49,7 @@ def set_device_running(manager: LinarmppManager, name: str, running: bool, timeo
     that needs a safe state first (robot idle, stimulation off) must get it from its driver or the
     safety supervisor — the caller asks the operator before disconnecting a device in use.
     """
-    handle = manager.devices.get(name)
-    if handle is None:
-        return False
-    driver = handle.driver
-    if not running:
-        return driver.stop(timeout_s)
-    if driver.isRunning():
-        return True
-    driver._stop.clear()  # stop() leaves the event set; a QThread may be started again after it ends
-    driver.start()
-    return True
+    return manager.set_device_running(name, running, timeout_s)
 
 
 class DeviceToggle(QPushButton):

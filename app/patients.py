@@ -1,0 +1,301 @@
+"""Patient profiles: one YAML file per patient in ``paths.patients_dir()``, named from its pseudonym.
+
+A profile holds what the clinician decides for one patient: an identifier or pseudonym, clinical
+scores, the assistance gains k_r and k_f, the FES profile and clinical caps, robot limits and notes.
+Files are read with app.yamlschema (unknown keys, wrong types and out-of-range values are refused with
+the file, the line and the key). A profile may only *narrow* the configured safety limits: a robot
+limit or FES cap looser than the configuration is refused by :func:`check_against`, naming the key,
+because the configuration is the site's safety envelope and a patient file must not widen it.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import os
+import re
+import tempfile
+from dataclasses import dataclass, field, fields, replace
+from pathlib import Path
+from typing import Literal
+
+import yaml
+from yaml.nodes import MappingNode, Node
+
+from app import paths
+from app.config import RobotLimits, SafetyConfig
+from app.yamlschema import ConfigError, load_dataclass, rng, to_plain
+
+PROFILE_VERSION = 1
+# Letters, digits, '-' and '_' only: the pseudonym is the file name and the sessions folder name, so it
+# must be portable (Windows, macOS, Linux) and must not carry a path.
+_SAFE_ID = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_-]{0,63}$")
+
+
+@dataclass(frozen=True)
+class ClinicalScores:
+    """Standard upper-limb scales; None = not assessed."""
+
+    fugl_meyer_ue: int | None = field(default=None, metadata=rng(0, 66, "points"))
+    modified_ashworth: float | None = field(default=None, metadata=rng(0, 4, "grade"))
+    action_research_arm_test: int | None = field(default=None, metadata=rng(0, 57, "points"))
+    box_and_block: int | None = field(default=None, metadata=rng(0, 150, "blocks/min"))
+    assessed_on: str = ""  # ISO date of the assessment
+    other: dict[str, float] = field(default_factory=dict)  # further scales by name
+
+
+@dataclass(frozen=True)
+class PatientAssistance:
+    """The patient's gains of the assistance split (robot share k_r, FES share k_f)."""
+
+    k_r: float = field(default=0.5, metadata=rng(0, 1))
+    k_f: float = field(default=0.5, metadata=rng(0, 1))
+
+
+@dataclass(frozen=True)
+class ClinicalChannelCap:
+    max_current_ma: float = field(default=40.0, metadata=rng(0, 126, "mA"))
+    max_pulse_width_us: float = field(default=300.0, metadata=rng(0, 500, "µs"))
+    max_rms_current_ma: float | None = field(default=None, metadata=rng(0, 126, "mA"))
+
+
+@dataclass(frozen=True)
+class PatientFes:
+    """``profile``: an FES profile file (name in resources/fes_profiles or a path); empty = none chosen.
+    ``caps``: clinical caps per stimulator channel 1..8."""
+
+    profile: str = ""
+    caps: dict[int, ClinicalChannelCap] = field(default_factory=dict)
+
+    def validate(self) -> None:
+        bad = [ch for ch in self.caps if not 1 <= ch <= 8]
+        if bad:
+            raise ValueError(f"caps: channel {bad[0]} does not exist; the stimulator has channels 1..8")
+
+
+@dataclass(frozen=True)
+class PatientRobotLimits:
+    """Per-patient robot limits; None = the configured limit. Each may only be tighter than the config."""
+
+    position_min_m: float | None = field(default=None, metadata=rng(0.0, 0.5, "m"))
+    position_max_m: float | None = field(default=None, metadata=rng(0.0, 0.5, "m"))
+    max_velocity_m_s: float | None = field(default=None, metadata=rng(0.0, 1.0, "m/s"))
+    max_acceleration_m_s2: float | None = field(default=None, metadata=rng(0.0, 10.0, "m/s²"))
+    max_interaction_force_n: float | None = field(default=None, metadata=rng(0.0, 200.0, "N"))
+    max_stiffness_n_m: float | None = field(default=None, metadata=rng(0.0, 10000.0, "N/m"))
+    max_delta_m: float | None = field(default=None, metadata=rng(0.0, 0.1, "m"))
+
+    def validate(self) -> None:
+        lo, hi = self.position_min_m, self.position_max_m
+        if lo is not None and hi is not None and lo >= hi:
+            raise ValueError(f"position_min_m ({lo}) must be below position_max_m ({hi})")
+
+
+@dataclass(frozen=True)
+class PatientProfile:
+    patient_id: str = ""  # identifier or pseudonym; also the file and sessions-folder name
+    version: int = field(default=PROFILE_VERSION, metadata=rng(PROFILE_VERSION, PROFILE_VERSION))
+    affected_side: Literal["left", "right", "both", "unknown"] = "unknown"
+    scores: ClinicalScores = field(default_factory=ClinicalScores)
+    assistance: PatientAssistance = field(default_factory=PatientAssistance)
+    fes: PatientFes = field(default_factory=PatientFes)
+    robot: PatientRobotLimits = field(default_factory=PatientRobotLimits)
+    notes: str = ""
+    created: str = ""  # ISO time with zone, set on first save
+    updated: str = ""
+
+    def validate(self) -> None:
+        if not self.patient_id:
+            raise ValueError("patient_id is required (an identifier or pseudonym)")
+        if not _SAFE_ID.match(self.patient_id):
+            raise ValueError(f"patient_id {self.patient_id!r} may hold only letters, digits, '-' and '_' "
+                             "(at most 64, starting with a letter or digit)")
+
+
+class PatientError(ConfigError):
+    """A patient file is invalid or does not fit the configured limits (file, line, key named)."""
+
+
+# ---------------------------------------------------------------------------------------------- limits
+_ROBOT_UPPER = ("max_velocity_m_s", "max_acceleration_m_s2", "max_interaction_force_n", "max_stiffness_n_m",
+                "max_delta_m")
+
+
+def limit_problems(profile: PatientProfile, safety: SafetyConfig) -> list[tuple[str, str]]:
+    """(key path, problem) for every profile limit that is looser than the configuration; empty when none."""
+    out: list[tuple[str, str]] = []
+    r, cfg = profile.robot, safety.robot
+    if r.position_min_m is not None and r.position_min_m < cfg.position_min_m:
+        out.append(("robot.position_min_m", f"{r.position_min_m} m is below the configured minimum "
+                                            f"{cfg.position_min_m} m; a patient may only narrow the range"))
+    if r.position_max_m is not None and r.position_max_m > cfg.position_max_m:
+        out.append(("robot.position_max_m", f"{r.position_max_m} m is above the configured maximum "
+                                            f"{cfg.position_max_m} m; a patient may only narrow the range"))
+    lo = r.position_min_m if r.position_min_m is not None else cfg.position_min_m
+    hi = r.position_max_m if r.position_max_m is not None else cfg.position_max_m
+    if lo >= hi and not out:
+        out.append(("robot.position_min_m", f"the range {lo} .. {hi} m is empty with the configured limits"))
+    for key in _ROBOT_UPPER:
+        value, limit = getattr(r, key), getattr(cfg, key)
+        if value is not None and value > limit:
+            out.append((f"robot.{key}", f"{value} exceeds the configured limit {limit}; a patient limit may only "
+                                        "be tighter"))
+    fes = safety.fes
+    for ch, cap in sorted(profile.fes.caps.items()):
+        site = fes.channels.get(ch)
+        max_current = min(fes.max_current_ma, site.max_current_ma) if site else fes.max_current_ma
+        max_width = min(fes.max_pulse_width_us, site.max_pulse_width_us) if site else fes.max_pulse_width_us
+        if cap.max_current_ma > max_current:
+            out.append((f"fes.caps.{ch}.max_current_ma", f"{cap.max_current_ma} mA exceeds the configured cap "
+                                                        f"{max_current} mA"))
+        if cap.max_pulse_width_us > max_width:
+            out.append((f"fes.caps.{ch}.max_pulse_width_us", f"{cap.max_pulse_width_us} µs exceeds the configured "
+                                                            f"cap {max_width} µs"))
+        if cap.max_rms_current_ma is not None and cap.max_rms_current_ma > fes.max_rms_current_ma:
+            out.append((f"fes.caps.{ch}.max_rms_current_ma", f"{cap.max_rms_current_ma} mA exceeds the configured "
+                                                            f"r.m.s. limit {fes.max_rms_current_ma} mA"))
+    return out
+
+
+def effective_robot_limits(profile: PatientProfile, robot: RobotLimits) -> RobotLimits:
+    """The configured robot limits narrowed by the patient's (never widened: min/max are taken anyway)."""
+    r = profile.robot
+    changes: dict[str, float] = {}
+    if r.position_min_m is not None:
+        changes["position_min_m"] = max(r.position_min_m, robot.position_min_m)
+    if r.position_max_m is not None:
+        changes["position_max_m"] = min(r.position_max_m, robot.position_max_m)
+    for key in _ROBOT_UPPER:
+        value = getattr(r, key)
+        if value is not None:
+            changes[key] = min(value, getattr(robot, key))
+    return replace(robot, **changes)
+
+
+def clinical_caps(profile: PatientProfile) -> dict:
+    """The FES clinical caps as app.fes_limits.ChannelCaps per channel (for FesLimits.from_config)."""
+    from app.fes_limits import ChannelCaps
+
+    return {ch: ChannelCaps(c.max_current_ma, c.max_pulse_width_us, c.max_rms_current_ma)
+            for ch, c in profile.fes.caps.items()}
+
+
+# ---------------------------------------------------------------------------------------------- files
+def patient_file(patient_id: str, folder: Path | None = None) -> Path:
+    if not _SAFE_ID.match(patient_id):
+        raise ValueError(f"{patient_id!r} is not a valid patient identifier (letters, digits, '-', '_')")
+    return (folder or paths.patients_dir()) / f"{patient_id}.yaml"
+
+
+def _line_of(text: str, key: str) -> int | None:
+    """The line of a dotted key path in YAML text (for messages), or None."""
+    try:
+        node: Node | None = yaml.compose(text, Loader=yaml.SafeLoader)
+    except yaml.YAMLError:
+        return None
+    line = None
+    for part in key.split("."):
+        if not isinstance(node, MappingNode):
+            break
+        for knode, vnode in node.value:
+            if str(knode.value) == part:
+                node, line = vnode, knode.start_mark.line + 1
+                break
+        else:
+            break
+    return line
+
+
+def parse_profile(text: str, filename: str, safety: SafetyConfig | None = None) -> PatientProfile:
+    """Validate YAML text into a profile; with ``safety``, also refuse limits looser than the config."""
+    try:
+        profile = load_dataclass(PatientProfile, text, filename)
+    except ConfigError as exc:
+        raise PatientError(exc.filename, exc.line, exc.key, exc.problem) from exc
+    if safety is not None:
+        problems = limit_problems(profile, safety)
+        if problems:
+            key, problem = problems[0]
+            raise PatientError(filename, _line_of(text, key), key, problem)
+    return profile
+
+
+def load_patient(patient_id: str, safety: SafetyConfig | None = None, folder: Path | None = None) -> PatientProfile:
+    path = patient_file(patient_id, folder)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise PatientError(str(path), None, "", f"cannot read the file: {exc.strerror or exc}") from exc
+    profile = parse_profile(text, str(path), safety)
+    if profile.patient_id != path.stem:
+        raise PatientError(str(path), _line_of(text, "patient_id"), "patient_id",
+                           f"{profile.patient_id!r} does not match the file name {path.name!r}")
+    return profile
+
+
+def profile_to_yaml(profile: PatientProfile) -> str:
+    header = ("# LINarm++ patient profile. Edit in the application (Patients menu) or by hand; it is validated\n"
+              "# on load. Robot limits and FES caps may only be tighter than the configuration.\n")
+    data = to_plain(profile)
+    # to_plain writes mapping keys as strings; channel numbers must stay integers to load back.
+    data["fes"]["caps"] = {int(ch): cap for ch, cap in data["fes"]["caps"].items()}
+    return header + yaml.safe_dump(data, sort_keys=False, allow_unicode=True)
+
+
+def now_iso() -> str:
+    return _dt.datetime.now().astimezone().isoformat(timespec="seconds")
+
+
+def save_patient(profile: PatientProfile, folder: Path | None = None, safety: SafetyConfig | None = None) -> Path:
+    """Validate and write atomically (a crash leaves the old file or the new one, never half of one)."""
+    stamp = now_iso()
+    profile = replace(profile, created=profile.created or stamp, updated=stamp)
+    path = patient_file(profile.patient_id, folder)
+    text = profile_to_yaml(profile)
+    parse_profile(text, str(path), safety)  # the file we write must load back
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}-", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as fh:
+            fh.write(text)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+@dataclass(frozen=True)
+class PatientEntry:
+    """One file in the patients folder: its profile, or the reason it cannot be loaded."""
+
+    patient_id: str
+    path: Path
+    profile: PatientProfile | None
+    error: str = ""
+
+
+def list_patients(folder: Path | None = None, safety: SafetyConfig | None = None) -> list[PatientEntry]:
+    folder = folder or paths.patients_dir()
+    out: list[PatientEntry] = []
+    for path in sorted(folder.glob("*.yaml"), key=lambda p: p.stem.lower()):
+        if not _SAFE_ID.match(path.stem):
+            out.append(PatientEntry(path.stem, path, None, f"{path.name}: the file name is not a valid identifier"))
+            continue
+        try:
+            out.append(PatientEntry(path.stem, path, load_patient(path.stem, safety, folder)))
+        except ConfigError as exc:
+            out.append(PatientEntry(path.stem, path, None, str(exc)))
+    return out
+
+
+def profile_field_names() -> list[str]:
+    return [f.name for f in fields(PatientProfile)]
+
+
+__all__ = [
+    "ClinicalChannelCap", "ClinicalScores", "PatientAssistance", "PatientEntry", "PatientError", "PatientFes",
+    "PatientProfile", "PatientRobotLimits", "clinical_caps", "effective_robot_limits", "limit_problems",
+    "list_patients", "load_patient", "parse_profile", "patient_file", "profile_to_yaml", "save_patient",
+]

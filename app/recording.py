@@ -1,0 +1,732 @@
+"""Session recording: one folder per session, every device stream, every event, a manifest.
+
+A session starts with :meth:`SessionRecorder.start` (not armed separately) and writes to
+``<sessions>/<patient>/<YYYYmmdd-HHMMSS[-n]>/``, a folder created with an exclusive ``mkdir`` so an
+earlier session is never overwritten::
+
+    manifest.json          patient, operator, app and device versions, config snapshot, stream specs,
+                           start (and, once stopped, end) with time zone, per-stream counts
+    events.jsonl           one JSON object per line: t_wall, t_mono, kind, who, origin, data
+    streams/<stream>.csv   header ``t_mono_s,<channel>,...`` then one line per sample
+
+Crash safety (docs/sessions.md): every file is append-only text written in whole lines, flushed to the
+OS and fsync'ed at least every ``recording.flush_interval_s`` (≤ 1 s), so after a SIGKILL or a power
+cut the files hold every line up to the last flush; at worst the last line is cut short, and
+:func:`load_session` drops it. The manifest is replaced atomically (temp file + rename), so it is the
+start version or the final one, never half of either.
+
+Threads: the drivers' sample listeners only append to a bounded deque (no lock, no I/O, no
+formatting); one writer thread formats and writes. If the deque is full (the disk stalled for
+minutes) samples are dropped, counted per device, and the drop is recorded as an event.
+"""
+
+from __future__ import annotations
+
+import collections
+import datetime as _dt
+import json
+import logging
+import os
+import re
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, TextIO
+
+import numpy as np
+
+from app import paths
+from app.devices.driver import Channel, StreamSpec
+
+if TYPE_CHECKING:
+    from app.config import AppConfig
+    from app.manager import LinarmppManager
+
+log = logging.getLogger(__name__)
+
+FORMAT_VERSION = 1
+MANIFEST_FILE = "manifest.json"
+EVENTS_FILE = "events.jsonl"
+STREAMS_DIR = "streams"
+TIME_COLUMN = "t_mono_s"
+_WRITER_PERIOD_S = 0.02  # how often the writer drains the queues (latency, not the flush interval)
+
+EventTap = Callable[[dict[str, Any]], None]
+
+
+# ---------------------------------------------------------------------------------------------- helpers
+def app_version() -> str:
+    """The application's version: the installed distribution's, else pyproject.toml's."""
+    try:
+        from importlib.metadata import PackageNotFoundError, version
+
+        try:
+            return version("linarmpp-manager")
+        except PackageNotFoundError:
+            pass
+        import tomllib
+
+        pyproject = Path(__file__).resolve().parent.parent / "pyproject.toml"
+        return str(tomllib.loads(pyproject.read_text(encoding="utf-8"))["project"]["version"])
+    except Exception:
+        return "unknown"
+
+
+def wall_iso(t_wall: float | None = None) -> str:
+    """ISO 8601 local time with the UTC offset, e.g. 2025-03-04T10:15:02.123456+01:00."""
+    moment = _dt.datetime.now() if t_wall is None else _dt.datetime.fromtimestamp(t_wall)
+    return moment.astimezone().isoformat(timespec="microseconds")
+
+
+def sessions_root(config: AppConfig | None = None) -> Path:
+    """``recording.folder`` when configured, else the user's data folder."""
+    folder = config.recording.folder if config is not None else ""
+    if folder:
+        path = Path(folder).expanduser()
+        path.mkdir(parents=True, exist_ok=True)
+        return path
+    return paths.sessions_dir()
+
+
+def safe_name(text: str) -> str:
+    """A portable file/folder name for a stream or patient identifier (no separators, no surprises)."""
+    cleaned = re.sub(r"[^A-Za-z0-9._-]", "_", text).strip(".")
+    return cleaned or "_"
+
+
+def stream_file_name(stream: str) -> str:
+    return f"{safe_name(stream)}.csv"
+
+
+def write_json_atomic(path: Path, data: Any) -> None:
+    """Write JSON so that ``path`` is always either the old or the new document (temp + fsync + rename)."""
+    tmp = path.with_name(f".{path.name}.tmp")
+    with open(tmp, "w", encoding="utf-8") as fh:
+        json.dump(data, fh, indent=2, ensure_ascii=False, default=str)
+        fh.flush()
+        os.fsync(fh.fileno())
+    os.replace(tmp, path)
+    _fsync_dir(path.parent)
+
+
+def _fsync_dir(folder: Path) -> None:
+    if os.name != "posix":
+        return  # Windows cannot open a directory; NTFS journals the rename itself
+    try:
+        fd = os.open(folder, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+def _make_session_folder(root: Path, patient_id: str, now: _dt.datetime) -> Path:
+    base = root / safe_name(patient_id)
+    base.mkdir(parents=True, exist_ok=True)
+    stamp = now.strftime("%Y%m%d-%H%M%S")
+    for n in range(1, 10_000):
+        folder = base / (stamp if n == 1 else f"{stamp}-{n}")
+        try:
+            folder.mkdir()  # exclusive: an existing session is never reused or overwritten
+        except FileExistsError:
+            continue
+        return folder
+    raise RuntimeError(f"cannot create a session folder under {base}")
+
+
+def _jsonable(value: Any) -> Any:
+    try:
+        json.dumps(value)
+        return value
+    except (TypeError, ValueError):
+        return str(value)
+
+
+def _device_versions(driver: Any) -> dict[str, Any]:
+    """Whatever version information a driver exposes (firmware after identify, protocol)."""
+    out: dict[str, Any] = {}
+    for attr in ("firmware_version", "protocol_version", "device_info", "hardware_version", "serial_number"):
+        value = getattr(driver, attr, None)
+        if value is not None and not callable(value):
+            out[attr] = _jsonable(value)
+    return out
+
+
+def _spec_dict(spec: StreamSpec, device: str) -> dict[str, Any]:
+    return {
+        "device": device,
+        "file": f"{STREAMS_DIR}/{stream_file_name(spec.name)}",
+        "nominal_rate_hz": spec.nominal_rate_hz,
+        "channels": [{"name": c.name, "unit": c.unit, "label": c.label} for c in spec.channels],
+    }
+
+
+# ---------------------------------------------------------------------------------------------- recorder
+@dataclass
+class _StreamOut:
+    spec: StreamSpec
+    fh: TextIO
+    count: int = 0
+    first_t: float | None = None
+    last_t: float | None = None
+
+
+class SessionRecorder:
+    """Records one session at a time. ``start`` → samples and events flow to disk → ``stop``.
+
+    ``event`` and the listeners may be called from any thread and never block.
+    """
+
+    def __init__(self, queue_limit: int = 500_000, fsync: bool = True) -> None:
+        self.queue_limit = queue_limit
+        self.fsync = fsync
+        self.folder: Path | None = None
+        self._samples: collections.deque[tuple[str, float, Any]] = collections.deque()
+        self._events: collections.deque[dict[str, Any]] = collections.deque()
+        self._drops: dict[str, list[int]] = {}
+        self._reported_drops: dict[str, int] = {}
+        self._outs: dict[str, _StreamOut] = {}
+        self._events_fh: TextIO | None = None
+        self._writer: threading.Thread | None = None
+        self._stop = threading.Event()
+        self._manager: LinarmppManager | None = None
+        self._attached: list[tuple[Any, Callable, Callable]] = []
+        self._previous_sink: Callable[[str, dict[str, Any]], None] | None = None
+        self._manifest: dict[str, Any] = {}
+        self._flush_interval_s = 0.5
+        self._taps: list[EventTap] = []
+        self._unknown_streams: set[str] = set()
+        self._lock = threading.Lock()  # start/stop only
+        self._hooked: set[int] = set()
+        self.event_count = 0
+
+    # ------------------------------------------------------------------ public
+    @property
+    def active(self) -> bool:
+        return self._writer is not None
+
+    def counts(self) -> dict[str, int]:
+        return {name: out.count for name, out in self._outs.items()}
+
+    @property
+    def dropped(self) -> int:
+        return sum(c[0] for c in self._drops.values())
+
+    def add_event_tap(self, fn: EventTap) -> None:
+        """``fn(record)`` on the writer thread for every event written (e.g. LSL markers)."""
+        self._taps.append(fn)
+
+    def start(self, manager: LinarmppManager, patient_id: str, operator: str, note: str = "",
+              root: Path | None = None, profile: Any = None) -> Path:
+        """Create the session folder, write the manifest, attach to every device; returns the folder."""
+        with self._lock:
+            if self._writer is not None:
+                raise RuntimeError(f"a session is already being recorded in {self.folder}")
+            if not patient_id:
+                raise ValueError("a session needs a patient")
+            if not operator:
+                raise ValueError("a session needs an operator")
+            config = manager.config
+            self._flush_interval_s = min(float(config.recording.flush_interval_s), 1.0)
+            t_wall, t_mono = time.time(), time.monotonic()
+            now = _dt.datetime.fromtimestamp(t_wall).astimezone()
+            folder = _make_session_folder(root or sessions_root(config), patient_id, now)
+            (folder / STREAMS_DIR).mkdir()
+            self.folder = folder
+            self._manager = manager
+            self._outs.clear()
+            self._samples.clear()
+            self._events.clear()
+            self._drops.clear()
+            self._reported_drops.clear()
+            self._unknown_streams.clear()
+            self.event_count = 0
+            streams: dict[str, Any] = {}
+            devices: dict[str, Any] = {}
+            for name, handle in manager.devices.items():
+                driver = handle.driver
+                devices[name] = {"simulated": handle.simulated, "connected": bool(driver.connected),
+                                 "streams": [s.name for s in driver.streams], **_device_versions(driver)}
+                for spec in driver.streams:
+                    streams[spec.name] = _spec_dict(spec, name)
+                    fh = open(folder / STREAMS_DIR / stream_file_name(spec.name), "a",
+                              encoding="utf-8", newline="\n", buffering=1 << 16)
+                    fh.write(",".join([TIME_COLUMN, *(c.name for c in spec.channels)]) + "\n")
+                    self._outs[spec.name] = _StreamOut(spec, fh)
+            self._events_fh = open(folder / EVENTS_FILE, "a", encoding="utf-8", newline="\n")
+            if profile is None:
+                profile = _try_load_profile(patient_id, config)
+            from app.config import config_as_dict
+            from app.yamlschema import to_plain
+
+            self._manifest = {
+                "format_version": FORMAT_VERSION,
+                "status": "recording",
+                "patient_id": patient_id,
+                "patient": to_plain(profile) if profile is not None and not isinstance(profile, str) else None,
+                "patient_error": profile if isinstance(profile, str) else "",
+                "operator": operator,
+                "note": note,
+                "app_version": app_version(),
+                "host": _host(),
+                "start": {"t_wall": wall_iso(t_wall), "t_wall_epoch_s": t_wall, "t_mono_s": t_mono,
+                          "time_zone": now.tzname() or "", "utc_offset": now.strftime("%z")},
+                "end": None,
+                "devices": devices,
+                "streams": streams,
+                "config": config_as_dict(config),
+                "config_source": getattr(config, "source", ""),
+                "flush_interval_s": self._flush_interval_s,
+                "counts": {},
+            }
+            write_json_atomic(folder / MANIFEST_FILE, self._manifest)
+            self._stop.clear()
+            self._writer = threading.Thread(target=self._run, name="session-recorder", daemon=True)
+            self._writer.start()
+            self.event("session_start", operator, patient_id=patient_id, note=note, folder=str(folder))
+            for name, handle in manager.devices.items():
+                self._attach(name, handle.driver)
+            sup = manager.supervisor
+            # SafetySupervisor has no getter; chain whatever sink was set before so nobody loses events.
+            self._previous_sink = sup.event_sink
+            sup.set_event_sink(self._on_safety_event)
+            add_hook = getattr(manager, "add_shutdown_hook", None)
+            if callable(add_hook) and id(manager) not in self._hooked:
+                self._hooked.add(id(manager))
+                # Runs after the manager's safe-state actions, so those are recorded too; stop is idempotent.
+                add_hook(lambda: self.stop("application closing"))
+            log.info("session recording in %s", folder)
+            return folder
+
+    def event(self, kind: str, who: str = "", **data: Any) -> None:
+        """Record an event from the GUI, a script or a driver (any thread; never blocks).
+
+        Conventions: ``script_start`` (name, text), ``script_stop`` (name, reason), ``parameter_change``
+        (name, old, new), ``command`` (device, name, args, source) and ``ack`` (device, name, ok, detail).
+        """
+        self._enqueue_event(kind, who, "app", data)
+
+    def stop(self, reason: str = "stopped") -> Path | None:
+        """Detach, write everything still queued, close the files and finalise the manifest."""
+        with self._lock:
+            writer = self._writer
+            if writer is None:
+                return None
+            manager = self._manager
+            for driver, on_sample, on_event in self._attached:
+                driver.remove_listener(on_sample)
+                remove = getattr(driver, "remove_event_listener", None)
+                if callable(remove):
+                    remove(on_event)
+                else:  # the base class has no remover yet: drop ours from its copy-on-write list
+                    driver.remove_event_listener(on_event)
+            self._attached.clear()
+            if manager is not None and manager.supervisor.event_sink == self._on_safety_event:
+                manager.supervisor.set_event_sink(self._previous_sink)
+            self.event("session_stop", "", reason=reason)
+            self._stop.set()
+            writer.join()
+            self._writer = None
+            t_wall, t_mono = time.time(), time.monotonic()
+            now = _dt.datetime.fromtimestamp(t_wall).astimezone()
+            folder = self.folder
+            assert folder is not None
+            self._manifest.update({
+                "status": "complete",
+                "end": {"t_wall": wall_iso(t_wall), "t_wall_epoch_s": t_wall, "t_mono_s": t_mono,
+                        "time_zone": now.tzname() or "", "utc_offset": now.strftime("%z"), "reason": reason},
+                "duration_s": t_mono - self._manifest["start"]["t_mono_s"],
+                "counts": self.counts(),
+                "first_t_mono_s": {n: o.first_t for n, o in self._outs.items()},
+                "last_t_mono_s": {n: o.last_t for n, o in self._outs.items()},
+                "dropped_samples": {d: c[0] for d, c in self._drops.items()},
+                "event_count": self.event_count,
+            })
+            write_json_atomic(folder / MANIFEST_FILE, self._manifest)
+            log.info("session recording stopped (%s): %s", reason, folder)
+            return folder
+
+    # ------------------------------------------------------------------ producers (any thread)
+    def _attach(self, device: str, driver: Any) -> None:
+        drops = self._drops.setdefault(device, [0])
+        queue, limit = self._samples, self.queue_limit
+
+        def on_sample(stream: str, t: float, sample: Any) -> None:
+            # Driver thread: two O(1) operations, no lock, no I/O. Only this driver's thread touches `drops`.
+            if len(queue) >= limit:
+                drops[0] += 1
+                return
+            queue.append((stream, t, sample))
+
+        in_gap = [not driver.connected]
+        if in_gap[0]:
+            self._enqueue_event("gap_start", device, "device", {
+                "device": device, "cause": "not connected", "detail": "", "streams": [s.name for s in driver.streams]})
+
+        def on_event(event: str, detail: str) -> None:
+            streams = [s.name for s in driver.streams]
+            if event in ("disconnected", "silent"):
+                kind = "device_disconnected" if in_gap[0] else "gap_start"
+                in_gap[0] = True
+            elif event in ("connected", "alive"):
+                kind = "gap_end" if in_gap[0] else f"device_{event}"
+                in_gap[0] = False
+            else:
+                kind = f"device_{event}"
+            self._enqueue_event(kind, device, "device", {"device": device, "cause": event, "detail": detail,
+                                                        "streams": streams})
+
+        driver.add_listener(on_sample)
+        driver.add_event_listener(on_event)
+        self._attached.append((driver, on_sample, on_event))
+
+    def _on_safety_event(self, kind: str, data: dict[str, Any]) -> None:
+        who = str(data.get("operator") or data.get("source") or "safety")
+        self._enqueue_event(kind, who, "safety", dict(data))
+        previous = self._previous_sink
+        if previous is not None:
+            try:
+                previous(kind, data)
+            except Exception:
+                log.exception("previous event sink failed")
+
+    def _enqueue_event(self, kind: str, who: str, origin: str, data: dict[str, Any]) -> None:
+        # Events are rare and must never be dropped: their queue is unbounded.
+        self._events.append({"t_wall_epoch_s": time.time(), "t_mono": time.monotonic(), "kind": kind,
+                             "who": who, "origin": origin, "data": data})
+
+    # ------------------------------------------------------------------ writer thread
+    def _run(self) -> None:
+        next_flush = time.monotonic() + self._flush_interval_s
+        try:
+            while True:
+                stopping = self._stop.wait(_WRITER_PERIOD_S)
+                self._drain()
+                now = time.monotonic()
+                if stopping or now >= next_flush:
+                    self._flush(sync=self.fsync)
+                    next_flush = now + self._flush_interval_s
+                if stopping:
+                    break
+        except Exception:
+            log.exception("session recorder failed; the session files stop here")
+        finally:
+            for out in self._outs.values():
+                _close_quietly(out.fh)
+            if self._events_fh is not None:
+                _close_quietly(self._events_fh)
+                self._events_fh = None
+
+    def _drain(self) -> None:
+        samples = self._samples
+        outs = self._outs
+        for _ in range(len(samples)):
+            stream, t, sample = samples.popleft()
+            out = outs.get(stream)
+            if out is None:
+                if stream not in self._unknown_streams:
+                    self._unknown_streams.add(stream)
+                    self._enqueue_event("unknown_stream", "recorder", "recorder", {"stream": stream})
+                continue
+            values = [repr(float(t))]
+            for ch in out.spec.channels:
+                try:
+                    values.append(repr(float(getattr(sample, ch.name))))
+                except (TypeError, ValueError, AttributeError):
+                    values.append("nan")
+            out.fh.write(",".join(values) + "\n")
+            out.count += 1
+            if out.first_t is None:
+                out.first_t = t
+            out.last_t = t
+        for device, counter in self._drops.items():
+            if counter[0] != self._reported_drops.get(device, 0):
+                self._enqueue_event("samples_dropped", "recorder", "recorder",
+                                    {"device": device, "dropped_total": counter[0],
+                                     "reason": "recorder queue full (disk too slow)"})
+                self._reported_drops[device] = counter[0]
+        events = self._events
+        fh = self._events_fh
+        wrote = False
+        for _ in range(len(events)):
+            ev = events.popleft()
+            record = {"t_wall": wall_iso(ev["t_wall_epoch_s"]), "t_mono": ev["t_mono"], "kind": ev["kind"],
+                      "who": ev["who"], "origin": ev["origin"], "data": ev["data"]}
+            if fh is not None:
+                fh.write(json.dumps(record, ensure_ascii=False, default=str) + "\n")
+                wrote = True
+            self.event_count += 1
+            for tap in self._taps:
+                try:
+                    tap(record)
+                except Exception:
+                    log.exception("event tap failed")
+        if wrote and fh is not None:
+            fh.flush()  # events (e-stop, alarms) reach the OS at once; fsync follows at the flush interval
+
+    def _flush(self, sync: bool) -> None:
+        files = [o.fh for o in self._outs.values()]
+        if self._events_fh is not None:
+            files.append(self._events_fh)
+        for fh in files:
+            fh.flush()
+            if sync:
+                try:
+                    os.fsync(fh.fileno())
+                except OSError:
+                    log.warning("fsync failed for %s", getattr(fh, "name", fh))
+
+
+def _close_quietly(fh: TextIO) -> None:
+    try:
+        fh.flush()
+        fh.close()
+    except OSError:
+        log.exception("closing %s failed", getattr(fh, "name", fh))
+
+
+def _host() -> dict[str, str]:
+    import platform
+
+    return {"node": platform.node(), "system": platform.system(), "release": platform.release(),
+            "python": platform.python_version()}
+
+
+def _try_load_profile(patient_id: str, config: AppConfig) -> Any:
+    """The patient's profile for the manifest; the error text when it cannot be loaded; None if absent."""
+    from app.patients import load_patient, patient_file
+
+    try:
+        if not patient_file(patient_id).exists():
+            return None
+        return load_patient(patient_id, config.safety)
+    except Exception as exc:
+        return str(exc)
+
+
+# ---------------------------------------------------------------------------------------------- reading
+@dataclass
+class RecordedStream:
+    name: str
+    channels: tuple[Channel, ...]
+    nominal_rate_hz: float
+    t: np.ndarray
+    data: dict[str, np.ndarray]
+    device: str = ""
+    dropped_lines: int = 0  # a cut-short last line (crash) or unreadable lines
+
+    @property
+    def spec(self) -> StreamSpec:
+        return StreamSpec(self.name, self.channels, self.nominal_rate_hz)
+
+    def __len__(self) -> int:
+        return len(self.t)
+
+
+@dataclass
+class RecordedSession:
+    folder: Path
+    manifest: dict[str, Any]
+    streams: dict[str, RecordedStream]
+    events: list[dict[str, Any]]
+    problems: list[str] = field(default_factory=list)
+
+    @property
+    def complete(self) -> bool:
+        """False when the session was not stopped normally (crash, kill, power cut)."""
+        return self.manifest.get("status") == "complete"
+
+    @property
+    def start_mono(self) -> float:
+        start = (self.manifest.get("start") or {}).get("t_mono_s")
+        if start is not None:
+            return float(start)
+        firsts = [s.t[0] for s in self.streams.values() if len(s.t)]
+        return float(min(firsts)) if firsts else 0.0
+
+    @property
+    def end_mono(self) -> float:
+        ends = [float(s.t[-1]) for s in self.streams.values() if len(s.t)]
+        ends += [float(e["t_mono"]) for e in self.events if isinstance(e.get("t_mono"), int | float)]
+        end = (self.manifest.get("end") or {}).get("t_mono_s")
+        if end is not None:
+            ends.append(float(end))
+        return max(ends) if ends else self.start_mono
+
+    @property
+    def duration_s(self) -> float:
+        return max(0.0, self.end_mono - self.start_mono)
+
+    def wall_time(self, t_mono: float) -> float:
+        """Epoch seconds of a monotonic time stamp, via the start anchor."""
+        start = self.manifest.get("start") or {}
+        return float(start.get("t_wall_epoch_s", 0.0)) + (t_mono - self.start_mono)
+
+
+def _read_text_lines(path: Path) -> tuple[list[str], int]:
+    """Complete lines of a file; a last line without its newline (cut by a crash) is dropped and counted."""
+    text = path.read_bytes().decode("utf-8", errors="replace")
+    lines = text.split("\n")
+    tail = lines.pop()  # "" when the file ends with a newline, else a partial line
+    return lines, (1 if tail else 0)
+
+
+def read_stream_csv(path: Path) -> tuple[list[str], np.ndarray, int]:
+    """(column names, values [n, columns] float64, dropped line count) of a stream file."""
+    lines, dropped = _read_text_lines(path)
+    if not lines:
+        return [], np.zeros((0, 0)), dropped
+    header = lines[0].split(",")
+    ncols = len(header)
+    good = [ln for ln in lines[1:] if ln and ln.count(",") == ncols - 1]
+    dropped += len(lines) - 1 - len(good)
+    if not good:
+        return header, np.zeros((0, ncols)), dropped
+    try:
+        values = np.array(",".join(good).split(","), dtype=np.float64).reshape(len(good), ncols)
+    except ValueError:  # a garbled line (should not happen): parse line by line, keep the good ones
+        rows = []
+        for ln in good:
+            try:
+                rows.append([float(x) for x in ln.split(",")])
+            except ValueError:
+                dropped += 1
+        values = np.array(rows, dtype=np.float64).reshape(len(rows), ncols)
+    return header, values, dropped
+
+
+def read_events(path: Path) -> tuple[list[dict[str, Any]], int]:
+    if not path.exists():
+        return [], 0
+    lines, dropped = _read_text_lines(path)
+    out = []
+    for ln in lines:
+        if not ln.strip():
+            continue
+        try:
+            out.append(json.loads(ln))
+        except json.JSONDecodeError:
+            dropped += 1
+    return out, dropped
+
+
+def load_session(folder: str | Path) -> RecordedSession:
+    """Read a session folder, tolerant of a crash: a missing end, a cut-short last line."""
+    folder = Path(folder)
+    problems: list[str] = []
+    try:
+        manifest = json.loads((folder / MANIFEST_FILE).read_text(encoding="utf-8"))
+    except (OSError, json.JSONDecodeError) as exc:
+        manifest = {}
+        problems.append(f"manifest unreadable: {exc}")
+    if manifest and manifest.get("status") != "complete":
+        problems.append("the session was not stopped normally (no end time); data end at the last flush")
+    specs: dict[str, dict[str, Any]] = dict(manifest.get("streams") or {})
+    known_files = {v.get("file") for v in specs.values()}
+    for path in sorted((folder / STREAMS_DIR).glob("*.csv")):
+        rel = f"{STREAMS_DIR}/{path.name}"
+        if rel not in known_files:  # no manifest entry: names from the header, no units
+            specs[path.stem] = {"file": rel, "device": "", "nominal_rate_hz": 0.0, "channels": None}
+    streams: dict[str, RecordedStream] = {}
+    for name, spec in specs.items():
+        path = folder / spec["file"]
+        if not path.exists():
+            problems.append(f"{name}: file {spec['file']} is missing")
+            continue
+        header, values, dropped = read_stream_csv(path)
+        if spec.get("channels") is None:
+            channels = tuple(Channel(h, "", h) for h in header[1:])
+        else:
+            channels = tuple(Channel(c["name"], c.get("unit", ""), c.get("label", c["name"]))
+                             for c in spec["channels"])
+        columns = header[1:] if header else [c.name for c in channels]
+        if header and [c.name for c in channels] != columns:
+            problems.append(f"{name}: file columns {columns} differ from the manifest; using the file's")
+            channels = tuple(Channel(h, "", h) for h in columns)
+        if values.size == 0:
+            values = np.zeros((0, len(channels) + 1))
+        t = values[:, 0].copy()
+        data = {c.name: values[:, i + 1].copy() for i, c in enumerate(channels)}
+        streams[name] = RecordedStream(name, channels, float(spec.get("nominal_rate_hz") or 0.0), t, data,
+                                       device=spec.get("device", ""), dropped_lines=dropped)
+        if dropped:
+            problems.append(f"{name}: {dropped} incomplete line(s) dropped")
+    events, dropped = read_events(folder / EVENTS_FILE)
+    if dropped:
+        problems.append(f"events: {dropped} incomplete line(s) dropped")
+    return RecordedSession(folder, manifest, streams, events, problems)
+
+
+# ---------------------------------------------------------------------------------------------- browsing
+@dataclass(frozen=True)
+class SessionSummary:
+    folder: Path
+    patient_id: str
+    operator: str
+    start: str  # ISO with time zone ('' when unknown)
+    duration_s: float
+    exercises: tuple[str, ...]  # scripts run, in order
+    alarms: int
+    complete: bool
+    note: str = ""
+
+
+def summarize_session(folder: Path) -> SessionSummary:
+    """Summary from the manifest and the events (streams are not read: listing stays fast)."""
+    try:
+        manifest = json.loads((folder / MANIFEST_FILE).read_text(encoding="utf-8"))
+    except (OSError, json.JSONDecodeError):
+        manifest = {}
+    events, _ = read_events(folder / EVENTS_FILE)
+    exercises = tuple(str(e.get("data", {}).get("name") or "script") for e in events if e.get("kind") == "script_start")
+    alarms = sum(1 for e in events if e.get("kind") == "alarm")
+    start = manifest.get("start") or {}
+    end = manifest.get("end") or {}
+    if "duration_s" in manifest:
+        duration = float(manifest["duration_s"])
+    else:  # crashed: the last thing written
+        monos = [float(e["t_mono"]) for e in events if isinstance(e.get("t_mono"), int | float)]
+        last = max(monos, default=start.get("t_mono_s", 0.0))
+        for info in (manifest.get("streams") or {}).values():
+            path = folder / info.get("file", "")
+            if path.exists():
+                last = max(last, _last_time(path))
+        duration = max(0.0, float(last) - float(start.get("t_mono_s", last)))
+    del end
+    return SessionSummary(folder, str(manifest.get("patient_id", folder.parent.name)),
+                          str(manifest.get("operator", "")), str(start.get("t_wall", "")), duration, exercises,
+                          alarms, manifest.get("status") == "complete", str(manifest.get("note", "")))
+
+
+def _last_time(path: Path) -> float:
+    """The time stamp of the last complete line (reads only the file's tail)."""
+    size = path.stat().st_size
+    with open(path, "rb") as fh:
+        fh.seek(max(0, size - 4096))
+        lines = fh.read().split(b"\n")[:-1]
+    for ln in reversed(lines):
+        try:
+            return float(ln.split(b",", 1)[0])
+        except ValueError:
+            continue
+    return 0.0
+
+
+def list_sessions(patient_id: str, root: Path | None = None) -> list[SessionSummary]:
+    """A patient's sessions, newest first."""
+    base = (root or paths.sessions_dir()) / safe_name(patient_id)
+    if not base.is_dir():
+        return []
+    out = [summarize_session(f) for f in base.iterdir() if f.is_dir() and (f / MANIFEST_FILE).exists()]
+    return sorted(out, key=lambda s: s.folder.name, reverse=True)
+
+
+def list_patients_with_sessions(root: Path | None = None) -> list[str]:
+    base = root or paths.sessions_dir()
+    return sorted(p.name for p in base.iterdir() if p.is_dir()) if base.is_dir() else []

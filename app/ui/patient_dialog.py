@@ -1,0 +1,325 @@
+"""Create or edit a patient profile, and choose patient + operator to start a session.
+
+The form is validated by the same code that loads profile files (app.patients.parse_profile →
+app.yamlschema): the form is turned into the YAML document it would save, and any problem is shown
+next to the field it names, in the same words as a bad file would get.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import yaml
+from PySide6.QtCore import QSettings, Qt
+from PySide6.QtWidgets import (
+    QComboBox,
+    QDialog,
+    QDialogButtonBox,
+    QFormLayout,
+    QGroupBox,
+    QHBoxLayout,
+    QLabel,
+    QLineEdit,
+    QPlainTextEdit,
+    QPushButton,
+    QTableWidget,
+    QTableWidgetItem,
+    QVBoxLayout,
+    QWidget,
+)
+
+from app.config import SafetyConfig
+from app.patients import PatientError, PatientProfile, list_patients, parse_profile, save_patient
+
+_SCORES = (("fugl_meyer_ue", "Fugl-Meyer UE (0–66)"), ("modified_ashworth", "Modified Ashworth (0–4)"),
+           ("action_research_arm_test", "ARAT (0–57)"), ("box_and_block", "Box and Block (blocks/min)"),
+           ("assessed_on", "Assessed on (YYYY-MM-DD)"))
+_ROBOT = (("position_min_m", "Position min [m]"), ("position_max_m", "Position max [m]"),
+          ("max_velocity_m_s", "Max velocity [m/s]"), ("max_acceleration_m_s2", "Max acceleration [m/s²]"),
+          ("max_interaction_force_n", "Max interaction force [N]"), ("max_stiffness_n_m", "Max stiffness [N/m]"),
+          ("max_delta_m", "Max delta [m]"))
+_CAP_COLUMNS = (("max_current_ma", "Max current [mA]"), ("max_pulse_width_us", "Max pulse width [µs]"),
+                ("max_rms_current_ma", "Max r.m.s. [mA]"))
+_ERROR_STYLE = "background: #ffd6d6;"
+
+
+def _value(text: str) -> Any:
+    """A field's text as YAML reads it (so '0.5' is a number and 'abc' stays text for the validator)."""
+    text = text.strip()
+    if not text:
+        return None
+    try:
+        return yaml.safe_load(text)
+    except yaml.YAMLError:
+        return text
+
+
+def _text(value: Any) -> str:
+    return "" if value is None else str(value)
+
+
+class PatientDialog(QDialog):
+    """Edit ``profile`` (None: a new patient). On OK the profile is validated and saved."""
+
+    def __init__(self, profile: PatientProfile | None = None, safety: SafetyConfig | None = None,
+                 folder: Path | None = None, parent: QWidget | None = None) -> None:
+        super().__init__(parent)
+        self.original = profile
+        self.safety = safety
+        self.folder = folder
+        self.profile: PatientProfile | None = None  # the saved profile after accept
+        self.saved_path: Path | None = None
+        self.setWindowTitle("New patient" if profile is None else f"Patient {profile.patient_id}")
+        p = profile or PatientProfile()
+        self.fields: dict[str, QWidget] = {}
+
+        form = QFormLayout()
+        self.id_edit = self._line("patient_id", p.patient_id, "Pseudonym or identifier: letters, digits, - and _")
+        self.id_edit.setReadOnly(profile is not None)  # the id names the file and the sessions folder
+        form.addRow("Patient ID", self.id_edit)
+        self.side_box = QComboBox()
+        for side in ("unknown", "left", "right", "both"):
+            self.side_box.addItem(side, side)
+        self.side_box.setCurrentIndex(self.side_box.findData(p.affected_side))
+        self.fields["affected_side"] = self.side_box
+        form.addRow("Affected side", self.side_box)
+        self.k_r = self._line("assistance.k_r", p.assistance.k_r, "Robot share of the assistance, 0–1")
+        self.k_f = self._line("assistance.k_f", p.assistance.k_f, "FES share of the assistance, 0–1")
+        form.addRow("Assistance gain k_r", self.k_r)
+        form.addRow("Assistance gain k_f", self.k_f)
+        self.fes_profile = self._line("fes.profile", p.fes.profile, "FES profile file (resources/fes_profiles)")
+        form.addRow("FES profile", self.fes_profile)
+
+        scores = QGroupBox("Clinical scores")
+        sform = QFormLayout(scores)
+        for key, label in _SCORES:
+            sform.addRow(label, self._line(f"scores.{key}", getattr(p.scores, key)))
+        robot = QGroupBox("Robot limits (empty: the configured limit; only tighter values are accepted)")
+        rform = QFormLayout(robot)
+        for key, label in _ROBOT:
+            rform.addRow(label, self._line(f"robot.{key}", getattr(p.robot, key)))
+
+        caps = QGroupBox("FES clinical caps per channel (empty row: no patient cap)")
+        clay = QVBoxLayout(caps)
+        self.caps_table = QTableWidget(8, len(_CAP_COLUMNS))
+        self.caps_table.setHorizontalHeaderLabels([label for _k, label in _CAP_COLUMNS])
+        self.caps_table.setVerticalHeaderLabels([f"Ch {ch}" for ch in range(1, 9)])
+        self.caps_table.setAccessibleName("FES clinical caps")
+        for ch, cap in p.fes.caps.items():
+            for col, (key, _label) in enumerate(_CAP_COLUMNS):
+                self.caps_table.setItem(ch - 1, col, QTableWidgetItem(_text(getattr(cap, key))))
+        clay.addWidget(self.caps_table)
+
+        self.notes = QPlainTextEdit(p.notes)
+        self.notes.setAccessibleName("Notes")
+        self.fields["notes"] = self.notes
+        self.error_label = QLabel("")
+        self.error_label.setWordWrap(True)
+        self.error_label.setStyleSheet("color: #b00020;")
+        self.error_label.setTextInteractionFlags(Qt.TextInteractionFlag.TextSelectableByMouse)
+
+        buttons = QDialogButtonBox(QDialogButtonBox.StandardButton.Save | QDialogButtonBox.StandardButton.Cancel)
+        buttons.accepted.connect(self.accept)
+        buttons.rejected.connect(self.reject)
+
+        left = QVBoxLayout()
+        left.addLayout(form)
+        left.addWidget(scores)
+        left.addWidget(QLabel("Notes"))
+        left.addWidget(self.notes, 1)
+        right = QVBoxLayout()
+        right.addWidget(robot)
+        right.addWidget(caps, 1)
+        cols = QHBoxLayout()
+        cols.addLayout(left, 1)
+        cols.addLayout(right, 1)
+        layout = QVBoxLayout(self)
+        layout.addLayout(cols, 1)
+        layout.addWidget(self.error_label)
+        layout.addWidget(buttons)
+
+    def _line(self, key: str, value: Any, tip: str = "") -> QLineEdit:
+        edit = QLineEdit(_text(value))
+        edit.setAccessibleName(key)
+        if tip:
+            edit.setToolTip(tip)
+        edit.textChanged.connect(lambda _t, e=edit: e.setStyleSheet(""))
+        self.fields[key] = edit
+        return edit
+
+    # ------------------------------------------------------------------ form → profile
+    def form_data(self) -> dict[str, Any]:
+        def group(prefix: str, keys: tuple[tuple[str, str], ...]) -> dict[str, Any]:
+            out = {}
+            for key, _label in keys:
+                value = _value(self.fields[f"{prefix}.{key}"].text())  # type: ignore[union-attr]
+                if value is not None:
+                    out[key] = str(value) if key == "assessed_on" else value
+            return out
+
+        caps: dict[int, dict[str, Any]] = {}
+        for row in range(8):
+            cells = {}
+            for col, (key, _label) in enumerate(_CAP_COLUMNS):
+                item = self.caps_table.item(row, col)
+                value = _value(item.text()) if item is not None else None
+                if value is not None:
+                    cells[key] = value
+            if cells:
+                caps[row + 1] = cells
+        original = self.original or PatientProfile()
+        scores = group("scores", _SCORES)
+        if original.scores.other:
+            scores["other"] = dict(original.scores.other)
+        data: dict[str, Any] = {
+            "patient_id": self.id_edit.text().strip(),
+            "affected_side": self.side_box.currentData(),
+            "scores": scores,
+            "assistance": {k: v for k, v in (("k_r", _value(self.k_r.text())), ("k_f", _value(self.k_f.text())))
+                           if v is not None},
+            "fes": {"profile": self.fes_profile.text().strip(), "caps": caps},
+            "robot": group("robot", _ROBOT),
+            "notes": self.notes.toPlainText(),
+        }
+        if original.created:
+            data["created"] = original.created
+        return data
+
+    def validate(self) -> PatientProfile | None:
+        """The form as a valid profile, or None with the problem shown at its field."""
+        for widget in self.fields.values():
+            widget.setStyleSheet("")
+        self.error_label.setText("")
+        text = yaml.safe_dump(self.form_data(), sort_keys=False, allow_unicode=True)
+        try:
+            return parse_profile(text, "patient form", self.safety)
+        except PatientError as exc:
+            self.show_error(exc.key, exc.problem)
+            return None
+
+    def show_error(self, key: str, problem: str) -> None:
+        self.error_label.setText(f"{key or 'profile'}: {problem}")
+        widget = self.fields.get(key)
+        if widget is None and key.startswith("fes.caps."):
+            parts = key.split(".")
+            try:
+                row = int(parts[2]) - 1
+                col = [k for k, _l in _CAP_COLUMNS].index(parts[3]) if len(parts) > 3 else 0
+                self.caps_table.setCurrentCell(row, col)
+            except (ValueError, IndexError):
+                pass
+            widget = self.caps_table
+        if widget is not None:
+            widget.setStyleSheet(_ERROR_STYLE)
+            widget.setFocus()
+
+    def accept(self) -> None:
+        profile = self.validate()
+        if profile is None:
+            return
+        if self.original is None and any(e.patient_id == profile.patient_id for e in list_patients(self.folder)):
+            self.show_error("patient_id", f"a patient {profile.patient_id!r} already exists")
+            return
+        try:
+            self.saved_path = save_patient(profile, self.folder, self.safety)
+        except (OSError, PatientError) as exc:
+            self.error_label.setText(f"could not save: {exc}")
+            return
+        self.profile = replace(profile)
+        super().accept()
+
+
+class StartSessionDialog(QDialog):
+    """Choose the patient and the operator of a new session (a session always has both)."""
+
+    def __init__(self, safety: SafetyConfig | None = None, folder: Path | None = None,
+                 parent: QWidget | None = None) -> None:
+        super().__init__(parent)
+        self.safety = safety
+        self.folder = folder
+        self.setWindowTitle("Start session")
+        self.patient_box = QComboBox()
+        self.patient_box.setAccessibleName("Patient")
+        self.patient_box.currentIndexChanged.connect(self._update)
+        new_button = QPushButton("&New patient…")
+        new_button.clicked.connect(self.new_patient)
+        self.edit_button = QPushButton("&Edit…")
+        self.edit_button.clicked.connect(self.edit_patient)
+        row = QHBoxLayout()
+        row.addWidget(self.patient_box, 1)
+        row.addWidget(self.edit_button)
+        row.addWidget(new_button)
+        self.operator_edit = QLineEdit(str(QSettings().value("session/operator", "")))
+        self.operator_edit.setAccessibleName("Operator")
+        self.operator_edit.setPlaceholderText("Your name or staff ID")
+        self.operator_edit.textChanged.connect(self._update)
+        self.note_edit = QLineEdit()
+        self.note_edit.setAccessibleName("Session note")
+        self.problem = QLabel("")
+        self.problem.setWordWrap(True)
+        self.problem.setStyleSheet("color: #b00020;")
+        form = QFormLayout()
+        form.addRow("Patient", row)
+        form.addRow("Operator", self.operator_edit)
+        form.addRow("Note", self.note_edit)
+        self.buttons = QDialogButtonBox(QDialogButtonBox.StandardButton.Ok | QDialogButtonBox.StandardButton.Cancel)
+        self.buttons.button(QDialogButtonBox.StandardButton.Ok).setText("Start session")
+        self.buttons.accepted.connect(self.accept)
+        self.buttons.rejected.connect(self.reject)
+        layout = QVBoxLayout(self)
+        layout.addLayout(form)
+        layout.addWidget(self.problem)
+        layout.addWidget(self.buttons)
+        self.reload()
+
+    def reload(self, select: str | None = None) -> None:
+        current = select or self.patient_box.currentData()
+        self.entries = {e.patient_id: e for e in list_patients(self.folder, self.safety)}
+        self.patient_box.blockSignals(True)
+        self.patient_box.clear()
+        for pid, entry in self.entries.items():
+            self.patient_box.addItem(pid if entry.profile else f"{pid} (invalid file)", pid)
+        idx = self.patient_box.findData(current) if current else 0
+        self.patient_box.setCurrentIndex(max(0, idx))
+        self.patient_box.blockSignals(False)
+        self._update()
+
+    def _update(self, *_args: Any) -> None:
+        entry = self.entries.get(self.patient_box.currentData())
+        problem = ""
+        if entry is None:
+            problem = "Create a patient first (New patient…)."
+        elif entry.profile is None:
+            problem = entry.error
+        elif not self.operator_edit.text().strip():
+            problem = "Enter the operator's name."
+        self.problem.setText(problem)
+        self.edit_button.setEnabled(entry is not None and entry.profile is not None)
+        self.buttons.button(QDialogButtonBox.StandardButton.Ok).setEnabled(not problem)
+
+    def new_patient(self) -> PatientDialog:
+        dialog = PatientDialog(None, self.safety, self.folder, self)
+        if dialog.exec() and dialog.profile is not None:
+            self.reload(dialog.profile.patient_id)
+        return dialog
+
+    def edit_patient(self) -> None:
+        entry = self.entries.get(self.patient_box.currentData())
+        if entry is None or entry.profile is None:
+            return
+        dialog = PatientDialog(entry.profile, self.safety, self.folder, self)
+        if dialog.exec():
+            self.reload(entry.patient_id)
+
+    def values(self) -> tuple[str, str, str]:
+        """(patient_id, operator, note) as chosen."""
+        return str(self.patient_box.currentData() or ""), self.operator_edit.text().strip(), self.note_edit.text()
+
+    def accept(self) -> None:
+        self._update()
+        if self.problem.text():
+            return
+        QSettings().setValue("session/operator", self.operator_edit.text().strip())
+        super().accept()

@@ -1,0 +1,174 @@
+"""A recorded session in the live graphs, with a time slider, play/pause, speed and the event list.
+
+The window owns a private :class:`~app.ui.signal_store.SignalStore` and a
+:class:`~app.ui.plots_frame.PlotsFrame` on it, and feeds the store from a
+:class:`~app.replay.ReplaySource` exactly as drivers feed the live store, so the graphs behave as
+if live. Seeking refills the store with the history before the new position.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+from PySide6.QtCore import Qt, QTimer
+from PySide6.QtGui import QCloseEvent
+from PySide6.QtWidgets import (
+    QComboBox,
+    QHBoxLayout,
+    QLabel,
+    QListWidget,
+    QListWidgetItem,
+    QPushButton,
+    QSlider,
+    QSplitter,
+    QVBoxLayout,
+    QWidget,
+)
+
+from app.recording import RecordedSession
+from app.replay import ReplaySource
+from app.ui.plots_frame import PlotsFrame
+from app.ui.signal_store import SignalStore, signal_key
+
+SPEEDS = (0.25, 0.5, 1.0, 2.0, 5.0, 10.0)
+_TICK_MS = 33
+_SLIDER_STEPS_PER_S = 100  # the slider moves in 10 ms steps
+_DEFAULT_PLOTTED = 6  # signals ticked when the window opens
+
+
+def _fmt(seconds: float) -> str:
+    m, s = divmod(max(0.0, seconds), 60.0)
+    return f"{int(m):02d}:{s:06.3f}"
+
+
+class ReplayWindow(QWidget):
+    def __init__(self, session: RecordedSession | str | Path, history_s: float = 30.0,
+                 parent: QWidget | None = None) -> None:
+        super().__init__(parent)
+        self.source = ReplaySource(session)
+        rec = self.source.session
+        m = rec.manifest
+        self.setWindowTitle(f"Replay — {m.get('patient_id', '?')} — {(m.get('start') or {}).get('t_wall', '')[:19]}")
+        self.store = SignalStore(history_s=max(history_s, 1.0))
+        for spec, device in self.source.specs().values():
+            self.store.add_stream(spec, device or None)
+        self.plots = PlotsFrame(None, self.store)
+        self.plots.timer.stop()  # redrawn when the replay moves, not on a free-running timer
+        keys = [signal_key(s.name, c.name) for s in rec.streams.values() for c in s.channels]
+        self.plots.set_selected(keys[:_DEFAULT_PLOTTED])
+        self.speed = 1.0
+        self._last_tick = 0.0
+
+        self.play_button = QPushButton("&Play")
+        self.play_button.setCheckable(True)
+        self.play_button.toggled.connect(self.set_playing)
+        self.slider = QSlider(Qt.Orientation.Horizontal)
+        self.slider.setAccessibleName("Replay position")
+        self.slider.setRange(0, max(1, round(self.source.duration * _SLIDER_STEPS_PER_S)))
+        self.slider.valueChanged.connect(self._on_slider)
+        self.time_label = QLabel()
+        self.speed_box = QComboBox()
+        self.speed_box.setAccessibleName("Replay speed")
+        for s in SPEEDS:
+            self.speed_box.addItem(f"{s:g}×", s)
+        self.speed_box.setCurrentIndex(SPEEDS.index(1.0))
+        self.speed_box.currentIndexChanged.connect(lambda _i: self._set_speed(float(self.speed_box.currentData())))
+
+        self.events = QListWidget()
+        self.events.setAccessibleName("Session events")
+        for e in rec.events:
+            if not isinstance(e.get("t_mono"), int | float):
+                continue
+            item = QListWidgetItem(f"{_fmt(e['t_mono'] - self.source.start)}  {e.get('kind', '')}  {e.get('who', '')}")
+            item.setData(Qt.ItemDataRole.UserRole, float(e["t_mono"]) - self.source.start)
+            item.setToolTip(str(e.get("data", "")))
+            self.events.addItem(item)
+        self.events.itemActivated.connect(lambda it: self.seek(float(it.data(Qt.ItemDataRole.UserRole))))
+
+        bar = QHBoxLayout()
+        bar.addWidget(self.play_button)
+        bar.addWidget(self.slider, 1)
+        bar.addWidget(self.time_label)
+        bar.addWidget(self.speed_box)
+        split = QSplitter(Qt.Orientation.Horizontal)
+        split.addWidget(self.plots)
+        split.addWidget(self.events)
+        split.setStretchFactor(0, 1)
+        split.setSizes([800, 220])
+        layout = QVBoxLayout(self)
+        layout.addWidget(split, 1)
+        layout.addLayout(bar)
+        if rec.problems:
+            note = QLabel("⚠ " + "; ".join(rec.problems))
+            note.setWordWrap(True)
+            layout.addWidget(note)
+
+        self.timer = QTimer(self)
+        self.timer.setInterval(_TICK_MS)
+        self.timer.timeout.connect(self._tick)
+        self.resize(1100, 650)
+        self.seek(min(self.source.duration, self.plots.history_s))  # open on a full first screen
+
+    # ------------------------------------------------------------------ control
+    def seek(self, elapsed_s: float) -> None:
+        """Show the session as it looked live at ``elapsed_s`` after its start."""
+        self.source.seek(elapsed_s)
+        self.store.clear()
+        self.store.feed(self.source.history(self.store.history_s))
+        self._sync_slider()
+        self._redraw()
+
+    def set_playing(self, playing: bool) -> None:
+        if playing and self.source.at_end:
+            self.seek(0.0)
+        self.play_button.blockSignals(True)
+        self.play_button.setChecked(playing)
+        self.play_button.blockSignals(False)
+        self.play_button.setText("&Pause" if playing else "&Play")
+        if playing:
+            self._last_tick = time.monotonic()
+            self.timer.start()
+        else:
+            self.timer.stop()
+
+    @property
+    def playing(self) -> bool:
+        return self.timer.isActive()
+
+    def step(self, dt_s: float) -> None:
+        """Play forward by ``dt_s`` of session time."""
+        batches = self.source.advance(dt_s)
+        if batches:
+            self.store.feed(batches)
+        self._sync_slider()
+        self._redraw()
+        if self.source.at_end:
+            self.set_playing(False)
+
+    def _tick(self) -> None:
+        now = time.monotonic()
+        dt, self._last_tick = (now - self._last_tick) * self.speed, now
+        self.step(dt)
+
+    def _set_speed(self, speed: float) -> None:
+        self.speed = speed
+
+    def _on_slider(self, value: int) -> None:
+        target = value / _SLIDER_STEPS_PER_S
+        if abs(target - self.source.elapsed) >= 1.0 / _SLIDER_STEPS_PER_S:
+            self.seek(target)
+
+    def _sync_slider(self) -> None:
+        self.slider.blockSignals(True)
+        self.slider.setValue(round(self.source.elapsed * _SLIDER_STEPS_PER_S))
+        self.slider.blockSignals(False)
+        self.time_label.setText(f"{_fmt(self.source.elapsed)} / {_fmt(self.source.duration)}")
+
+    def _redraw(self) -> None:
+        self.plots._dirty = True
+        self.plots.redraw()
+
+    def closeEvent(self, event: QCloseEvent) -> None:
+        self.timer.stop()
+        super().closeEvent(event)

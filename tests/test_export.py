@@ -1,0 +1,108 @@
+"""Export to HDF5 and CSV round-trips the recorded values exactly; the graphs' CSV writer."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from app.config import AppConfig
+from app.devices.driver import Channel, StreamSpec
+from app.export import ExportCancelled, export_csv, export_hdf5, load_csv_export, load_hdf5, write_signals_csv
+from app.recording import RecordedSession, SessionRecorder, load_session
+from app.safety import SafetySupervisor
+
+
+class _Driver:
+    streams = (StreamSpec("robot.state", (Channel("centre", "m", "Centre"), Channel("force", "N", "Force")), 200.0),
+               StreamSpec("physio.main", (Channel("heartRate", "bpm", "Heart rate"),), 100.0))
+
+    def __init__(self) -> None:
+        self.connected = True
+        self.listeners: list = []
+        self._event_listeners: list = []
+
+    def add_listener(self, fn) -> None:
+        self.listeners.append(fn)
+
+    def remove_listener(self, fn) -> None:
+        self.listeners.remove(fn)
+
+    def add_event_listener(self, fn) -> None:
+        self._event_listeners.append(fn)
+
+    def remove_event_listener(self, fn) -> None:
+        self._event_listeners.remove(fn)
+
+
+@pytest.fixture
+def session(tmp_path) -> RecordedSession:
+    driver = _Driver()
+    config = AppConfig()
+    manager = SimpleNamespace(config=config, supervisor=SafetySupervisor(config.safety),
+                              devices={"dev": SimpleNamespace(driver=driver, simulated=True)})
+    recorder = SessionRecorder()
+    folder = recorder.start(manager, "P010", "op", root=tmp_path / "sessions")
+    rng = np.random.default_rng(11)
+    t = 5000.0 + np.cumsum(rng.random(3000) * 0.005)
+    for i, ti in enumerate(t):
+        for fn in driver.listeners:
+            fn("robot.state", float(ti), SimpleNamespace(centre=float(rng.standard_normal() * 0.1),
+                                                         force=float(rng.standard_normal() * 1e3)))
+            if i % 2 == 0:
+                fn("physio.main", float(ti), SimpleNamespace(heartRate=float(60 + rng.random() * 1e-9)))
+    recorder.event("script_start", "op", name="reach.py", text="print('héllo, \"world\"')\n")
+    recorder.event("parameter_change", "op", name="k_r", old=0.1, new=1 / 3)
+    recorder.stop()
+    return load_session(folder)
+
+
+def assert_same(a: RecordedSession, b: RecordedSession) -> None:
+    assert set(a.streams) == set(b.streams)
+    for name, sa in a.streams.items():
+        sb = b.streams[name]
+        assert sa.channels == sb.channels and sa.nominal_rate_hz == sb.nominal_rate_hz
+        assert sa.t.dtype == sb.t.dtype == np.float64 and np.array_equal(sa.t, sb.t)
+        for ch in sa.channels:
+            assert np.array_equal(sa.data[ch.name], sb.data[ch.name]), (name, ch.name)
+    assert a.events == b.events
+    assert a.manifest == b.manifest
+
+
+def test_hdf5_round_trip_is_exact(session, tmp_path) -> None:
+    assert len(session.streams["robot.state"]) == 3000 and len(session.streams["physio.main"]) == 1500
+    seen: list[float] = []
+    path = export_hdf5(session, tmp_path / "s.h5", progress=lambda f: seen.append(f) or True)
+    assert seen[-1] == 1.0
+    assert_same(session, load_hdf5(path))
+
+
+def test_csv_round_trip_is_exact(session, tmp_path) -> None:
+    files = export_csv(session, tmp_path / "csv")
+    assert {f.name for f in files} == {"robot.state.csv", "physio.main.csv", "events.csv", "manifest.json"}
+    header = (tmp_path / "csv" / "robot.state.csv").read_text(encoding="utf-8").splitlines()[0]
+    assert header == "t_mono_s [s],centre [m],force [N]"
+    assert_same(session, load_csv_export(tmp_path / "csv"))
+
+
+def test_cancelled_export_leaves_nothing(session, tmp_path) -> None:
+    with pytest.raises(ExportCancelled):
+        export_hdf5(session, tmp_path / "s.h5", progress=lambda f: f < 0.3)
+    assert list(tmp_path.glob("*.h5*")) == [] and list(tmp_path.glob(".*")) == []
+    with pytest.raises(ExportCancelled):
+        export_csv(session, tmp_path / "csv", progress=lambda f: f < 0.5)
+    assert list((tmp_path / "csv").iterdir()) == []
+
+
+def test_signals_csv_groups_shared_time_columns(tmp_path) -> None:
+    t1, t2 = np.array([0.1, 0.2, 0.3]), np.array([0.15, 0.25])
+    path = write_signals_csv(tmp_path / "g.csv", [("centre", "m", t1, [1.0, 2.0, 1 / 3]), ("force", "N", t1, [4, 5, 6]),
+                                                  ("hr", "bpm", t2, [70.5, 71.0])])
+    lines = path.read_text(encoding="utf-8").splitlines()
+    assert lines[0] == "t centre [s],centre [m],force [N],t hr [s],hr [bpm]"
+    assert lines[1:] == ["0.1,1.0,4.0,0.15,70.5", "0.2,2.0,5.0,0.25,71.0", f"0.3,{1 / 3!r},6.0,,"]
+    single = write_signals_csv(tmp_path / "s.csv", [("centre", "m", t1, [1.0, 2.0, 3.0])])
+    assert single.read_text(encoding="utf-8").splitlines()[0] == "t [s],centre [m]"
+    with pytest.raises(ValueError, match="time stamps"):
+        write_signals_csv(tmp_path / "x.csv", [("a", "", [0.0], [1.0, 2.0])])

@@ -1,0 +1,88 @@
+"""LSL outlets: resolved with pylsl, samples read back with LSL-clock time stamps."""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from app import lsl
+from app.config import AppConfig, RecordingConfig
+from app.manager import LinarmppManager
+from tests.fakes import counter_factory
+
+AVAILABLE, STATUS = lsl.lsl_status()
+
+
+def lsl_config(on: bool = True) -> AppConfig:
+    return replace(AppConfig(), recording=RecordingConfig(lsl=on))
+
+
+def test_off_by_default_and_missing_library_is_reported(tmp_path, caplog, monkeypatch) -> None:
+    manager = LinarmppManager(lsl_config(False), factories={})
+    assert lsl.start_lsl(manager) is None
+    monkeypatch.setattr(lsl, "lsl_status", lambda: (False, "LSL unavailable: liblsl not found"))
+    with caplog.at_level(logging.WARNING, logger="app.lsl"):
+        assert lsl.start_lsl(LinarmppManager(lsl_config(True), factories={})) is None
+    assert "running without LSL" in caplog.text and "liblsl not found" in caplog.text
+
+
+def _resolve(pylsl, outlet) -> object:
+    """Our own outlet (by uid: another process on this host may publish the same source id)."""
+    uid = outlet.get_info().uid()
+    source_id = outlet.get_info().source_id()
+    deadline = time.monotonic() + 10
+    while time.monotonic() < deadline:
+        for info in pylsl.resolve_byprop("source_id", source_id, minimum=1, timeout=2.0):
+            if info.uid() == uid:
+                return info
+    raise AssertionError(f"outlet {source_id} not resolved")
+
+
+@pytest.mark.skipif(not AVAILABLE, reason=f"liblsl cannot be loaded on this platform: {STATUS}")
+def test_outlets_resolve_and_stream_in_lsl_time(tmp_path, qtbot) -> None:
+    import pylsl
+
+    manager = LinarmppManager(lsl_config(True), factories={"counter": counter_factory(tmp_path)})
+    manager.start()
+    bridge = None
+    try:
+        qtbot.waitUntil(manager.all_connected, timeout=5000)
+        bridge = lsl.start_lsl(manager)
+        assert bridge is not None and set(bridge.outlets) == {"counter.main"}
+        info = _resolve(pylsl, bridge.outlets["counter.main"])
+        assert (info.name(), info.type(), info.channel_count(), info.nominal_srate()) == ("counter.main", "counter",
+                                                                                          1, 1000.0)
+        inlet = pylsl.StreamInlet(info)
+        inlet.open_stream(timeout=5)
+        full = inlet.info(timeout=5)
+        channel = full.desc().child("channels").child("channel")
+        assert (channel.child_value("label"), channel.child_value("unit")) == ("count", "")
+        values: list[float] = []
+        stamps: list[float] = []
+        deadline = time.monotonic() + 10
+        while len(values) < 500 and time.monotonic() < deadline:
+            chunk, ts = inlet.pull_chunk(timeout=0.5)
+            values += [row[0] for row in chunk]
+            stamps += ts
+        assert len(values) >= 500
+        assert np.all(np.diff(values) == 1), "samples lost or repeated on the way through LSL"
+        assert np.all(np.diff(stamps) >= 0)
+        now = pylsl.local_clock()
+        assert now - 5.0 < stamps[-1] <= now + 0.01, "time stamps must be in LSL's clock"
+
+        events = _resolve(pylsl, bridge.events_outlet)
+        markers = pylsl.StreamInlet(events)
+        markers.open_stream(timeout=5)
+        bridge.marker({"kind": "script_start", "t_mono": time.monotonic(), "data": {"name": "reach.py"}})
+        sample, stamp = markers.pull_sample(timeout=5)
+        assert sample is not None and json.loads(sample[0])["data"]["name"] == "reach.py"
+        assert abs(stamp - pylsl.local_clock()) < 5.0
+    finally:
+        if bridge is not None:
+            bridge.stop()
+        manager.shutdown()

@@ -1,0 +1,177 @@
+"""Sessions browser, patient dialog and start-session dialog."""
+
+from __future__ import annotations
+
+import json
+import time
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+from PySide6.QtWidgets import QDialogButtonBox, QTableWidgetItem
+
+from app.config import AppConfig
+from app.devices.driver import Channel, StreamSpec
+from app.export import load_hdf5
+from app.patients import PatientProfile, load_patient, save_patient
+from app.recording import SessionRecorder, load_session
+from app.safety import AlarmLevel, SafetySupervisor
+
+
+class _Driver:
+    streams = (StreamSpec("fake.main", (Channel("x", "m", "Position"),), 50.0),)
+
+    def __init__(self) -> None:
+        self.connected = True
+        self.listeners: list = []
+        self._event_listeners: list = []
+
+    def add_listener(self, fn) -> None:
+        self.listeners.append(fn)
+
+    def remove_listener(self, fn) -> None:
+        self.listeners.remove(fn)
+
+    def add_event_listener(self, fn) -> None:
+        self._event_listeners.append(fn)
+
+    def remove_event_listener(self, fn) -> None:
+        self._event_listeners.remove(fn)
+
+
+def record(root, patient: str, script: str | None, alarm: bool, crashed: bool = False):
+    driver = _Driver()
+    config = AppConfig()
+    manager = SimpleNamespace(config=config, supervisor=SafetySupervisor(config.safety),
+                              devices={"fake": SimpleNamespace(driver=driver, simulated=True)})
+    recorder = SessionRecorder()
+    folder = recorder.start(manager, patient, "dr_bianchi", root=root)
+    t0 = time.monotonic()
+    for i in range(500):
+        driver.listeners[0]("fake.main", t0 + i / 50.0, SimpleNamespace(x=float(np.sin(i / 10))))
+    if script:
+        recorder.event("script_start", "dr_bianchi", name=script, text=f"# {script}\nlinarm.moveCentreTo(0.2)\n")
+    if alarm:
+        manager.supervisor.raise_alarm(AlarmLevel.WARNING, "physio", "sensor off")
+    recorder.stop()
+    if crashed:  # what a killed process leaves: the start manifest
+        manifest = json.loads((folder / "manifest.json").read_text(encoding="utf-8"))
+        manifest.update(status="recording", end=None)
+        manifest.pop("duration_s")
+        (folder / "manifest.json").write_text(json.dumps(manifest), encoding="utf-8")
+    return folder
+
+
+@pytest.fixture
+def home(tmp_path, monkeypatch):
+    monkeypatch.setenv("LINARMPP_HOME", str(tmp_path / "home"))
+    return tmp_path
+
+
+def test_browser_lists_opens_exports_and_replays(home, qtbot) -> None:
+    from app.ui.sessions_browser import SessionsBrowser
+
+    root = home / "sessions"
+    first = record(root, "P030", "reach.py", alarm=True)
+    second = record(root, "P030", None, alarm=False, crashed=True)
+    record(root, "P031", None, alarm=False)
+    browser = SessionsBrowser(root)
+    qtbot.addWidget(browser)
+    browser.set_patient("P030")
+    assert browser.table.rowCount() == 2
+    rows = {browser.table.item(r, 0).data(0x0100): [browser.table.item(r, c).text() for c in range(6)]
+            for r in range(2)}
+    assert rows[str(first)][2:4] == ["reach.py", "1"] and rows[str(first)][5] == "complete"
+    assert rows[str(second)][2:4] == ["—", "0"] and rows[str(second)][5] == "interrupted"
+    assert rows[str(first)][1] == "0:00", "duration from the manifest (start to stop)"
+    assert rows[str(second)][1] == "0:10", "interrupted: duration up to the last sample written"
+
+    browser.select_folder(first)
+    details = browser.open_details()
+    assert details is not None and details.events.rowCount() == len(load_session(first).events)
+    assert "linarm.moveCentreTo(0.2)" in details.script_text.toPlainText()
+
+    done: list[tuple[bool, str]] = []
+    job = browser.export(first, "hdf5", home / "out.h5", on_done=lambda ok, msg: done.append((ok, msg)))
+    qtbot.waitUntil(lambda: bool(done), timeout=10000)
+    assert done[0][0] and "exported" in browser.status.text()
+    assert job.fraction == 1.0
+    exported = load_hdf5(home / "out.h5").streams["fake.main"]
+    assert np.array_equal(exported.data["x"], load_session(first).streams["fake.main"].data["x"])
+
+    window = browser.replay()
+    assert window is not None and "fake.main.x" in window.plots.curves
+    assert len(window.plots.curves["fake.main.x"].getData()[1]) > 0
+
+
+def test_cancelled_export_reports_and_leaves_nothing(home, qtbot) -> None:
+    from app.ui.sessions_browser import ExportJob
+
+    folder = record(home / "sessions", "P032", None, alarm=False)
+    job = ExportJob(folder, "csv", home / "csv_out")
+    job.cancel()
+    job.start()
+    qtbot.waitUntil(lambda: job.done, timeout=10000)
+    assert not job.ok and job.message == "export cancelled"
+    assert not any((home / "csv_out").glob("*"))
+
+
+def test_patient_dialog_shows_validation_at_the_field(home, qtbot) -> None:
+    from app.ui.patient_dialog import PatientDialog
+
+    dialog = PatientDialog(None, AppConfig().safety)
+    qtbot.addWidget(dialog)
+    dialog.id_edit.setText("P040")
+    dialog.k_r.setText("1.5")
+    assert dialog.validate() is None
+    assert "assistance.k_r" in dialog.error_label.text() and "outside the allowed range" in dialog.error_label.text()
+    assert dialog.k_r.styleSheet() != ""
+    dialog.k_r.setText("0.7")
+    dialog.fields["robot.max_velocity_m_s"].setText("0.9")
+    dialog.accept()
+    assert dialog.result() == 0 and "robot.max_velocity_m_s" in dialog.error_label.text()
+    assert "configured limit" in dialog.error_label.text()
+    dialog.fields["robot.max_velocity_m_s"].setText("0.2")
+    dialog.caps_table.setItem(0, 0, QTableWidgetItem("45"))
+    assert dialog.validate() is None and "fes.caps.1.max_current_ma" in dialog.error_label.text()
+    dialog.caps_table.setItem(0, 0, QTableWidgetItem("25"))
+    dialog.fields["scores.fugl_meyer_ue"].setText("30")
+    dialog.notes.setPlainText("left-handed")
+    dialog.accept()
+    assert dialog.result() == 1, dialog.error_label.text()
+    saved = load_patient("P040", AppConfig().safety)
+    assert (saved.assistance.k_r, saved.robot.max_velocity_m_s, saved.scores.fugl_meyer_ue) == (0.7, 0.2, 30)
+    assert saved.fes.caps[1].max_current_ma == 25.0 and saved.notes == "left-handed"
+
+    again = PatientDialog(None, AppConfig().safety)
+    qtbot.addWidget(again)
+    again.id_edit.setText("P040")
+    again.accept()
+    assert again.result() == 0 and "already exists" in again.error_label.text()
+
+    edit = PatientDialog(saved, AppConfig().safety)
+    qtbot.addWidget(edit)
+    assert edit.id_edit.isReadOnly() and edit.k_r.text() == "0.7"
+    edit.k_f.setText("0.1")
+    edit.accept()
+    assert edit.result() == 1 and load_patient("P040").assistance.k_f == 0.1
+    assert load_patient("P040").created == saved.created
+
+
+def test_start_session_needs_patient_and_operator(home, qtbot) -> None:
+    from app.ui.patient_dialog import StartSessionDialog
+
+    dialog = StartSessionDialog(AppConfig().safety)
+    qtbot.addWidget(dialog)
+    ok = dialog.buttons.button(QDialogButtonBox.StandardButton.Ok)
+    assert not ok.isEnabled() and "Create a patient" in dialog.problem.text()
+    save_patient(PatientProfile(patient_id="P050"))
+    (home / "home" / "patients" / "P051.yaml").write_text("patient_id: P051\nassistance: {k_r: 7}\n", encoding="utf-8")
+    dialog.reload("P050")
+    dialog.operator_edit.setText("")
+    assert not ok.isEnabled() and "operator" in dialog.problem.text()
+    dialog.operator_edit.setText("dr_verdi")
+    assert ok.isEnabled()
+    assert dialog.values() == ("P050", "dr_verdi", "")
+    dialog.reload("P051")
+    assert not ok.isEnabled() and "assistance.k_r" in dialog.problem.text()
