@@ -95,6 +95,8 @@ def run_gui(config: AppConfig, screenshot: str | None = None, quit_after_s: floa
             else:
                 QTimer.singleShot(200, shoot)
         QTimer.singleShot(1500, shoot)
+    if not screenshot and config.ui.ask_session_on_start:
+        QTimer.singleShot(0, window.prompt_session)
     if quit_after_s is not None:
         QTimer.singleShot(int(quit_after_s * 1000), app.quit)
     loop = qasync.QEventLoop(app)

@@ -178,6 +178,7 @@ class UiConfig:
     history_s: float = field(default=30.0, metadata=rng(1, 600, "s"))
     palette: Literal["light", "dark"] = "light"
     emergency_stop_shortcut: str = "F12"
+    ask_session_on_start: bool = True  # open "Start session" (patient + operator) when the window opens
 
 
 @dataclass(frozen=True)

@@ -43,6 +43,7 @@ DeviceFactory = Callable[["LinarmppManager"], DeviceHandle | None]
 
 class LinarmppManager(QObject):
     device_connection_changed = Signal(str, bool, str)  # device, connected, reason
+    session_changed = Signal(object)  # the session folder (Path) or None when no session runs
 
     def __init__(self, config: AppConfig, factories: dict[str, DeviceFactory] | None = None) -> None:
         super().__init__()
@@ -59,6 +60,10 @@ class LinarmppManager(QObject):
         self._factories = factories
         self._started = False
         self._shutdown_hooks: list[Callable[[], None]] = []
+        self.recorder: Any = None  # app.recording.SessionRecorder while a session runs
+        self.patient_profile: Any = None
+        self.operator = ""
+        self._lsl: Any = None
 
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> None:
@@ -84,6 +89,60 @@ class LinarmppManager(QObject):
             handle.driver.start()
         log.info("devices started: %s", ", ".join(self.devices) or "none")
 
+    # ------------------------------------------------------------------ sessions
+    def start_session(self, patient_id: str, operator: str, note: str = "", root: Path | None = None) -> Path:
+        """A session = a patient + an operator + a recording that starts now. The patient's profile
+        narrows the safety limits for its duration. Raises ValueError/PatientError, nothing started."""
+        from app.patients import PatientError, effective_robot_limits, load_patient
+        from app.recording import SessionRecorder, sessions_root
+
+        if self.recorder is not None:
+            raise RuntimeError("a session is already running; end it first")
+        profile = None
+        try:
+            profile = load_patient(patient_id, self.config.safety)
+        except FileNotFoundError:
+            log.info("patient %s has no profile: configured limits apply", patient_id)
+        except PatientError:
+            raise
+        recorder = SessionRecorder()
+        folder = recorder.start(self, patient_id, operator, note, root=root or sessions_root(self.config),
+                                profile=profile)
+        self.recorder = recorder
+        self.patient_profile = profile
+        self.operator = operator
+        if profile is not None:
+            self.supervisor.robot = effective_robot_limits(profile, self.config.safety.robot)
+            self.supervisor.event("patient_limits_applied", patient=patient_id)
+            apply_profile = getattr(self, "apply_patient_profile", None)
+            if callable(apply_profile):
+                apply_profile(profile)
+        if self.config.recording.lsl and self._lsl is None:
+            from app.lsl import start_lsl
+
+            self._lsl = start_lsl(self)
+            if self._lsl is not None:
+                recorder.add_event_tap(self._lsl.marker)
+        self.session_changed.emit(folder)
+        return folder
+
+    def end_session(self, reason: str = "ended by the operator") -> None:
+        recorder, self.recorder = self.recorder, None
+        if recorder is None:
+            return
+        self.supervisor.bring_to_safe_state("session ended")
+        recorder.stop(reason)
+        self.supervisor.robot = self.config.safety.robot
+        self.patient_profile = None
+        self.session_changed.emit(None)
+
+    def record_event(self, kind: str, who: str = "", **data: Any) -> None:
+        """An event for the session record (script start/stop, parameter changes); logged without one."""
+        if self.recorder is not None:
+            self.recorder.event(kind, who or self.operator, **data)
+        else:
+            log.info("event %s by %s: %s", kind, who, data)
+
     def add_shutdown_hook(self, fn: Callable[[], None]) -> None:
         self._shutdown_hooks.append(fn)
 
@@ -94,6 +153,11 @@ class LinarmppManager(QObject):
         self._started = False
         t0 = time.monotonic()
         self.supervisor.bring_to_safe_state("application closing")
+        if self.recorder is not None:
+            self.end_session("application closing")
+        if self._lsl is not None:
+            self._lsl.stop()
+            self._lsl = None
         for fn in reversed(self._shutdown_hooks):
             try:
                 fn()

@@ -69,13 +69,13 @@ def test_emergency_stop_button_and_key_latch_and_reset(qtbot, tmp_path, monkeypa
 
 def test_layout_persists_between_runs(qtbot, tmp_path) -> None:
     manager, window = make_window(qtbot, tmp_path, names=("alpha",))
-    window.resize(700, 500)
+    window.resize(760, 520)
     window.docks["DeviceView"].setFloating(True)
     window.close()
     manager.shutdown()
     (tmp_path / "2").mkdir()
     manager2, window2 = make_window(qtbot, tmp_path / "2", names=("alpha",))
-    assert window2.size().width() == 700, window2.size()
+    assert window2.size().width() == 760, window2.size()
     assert window2.docks["DeviceView"].isFloating()
     window2.docks["DeviceView"].setFloating(False)
     window2.close()

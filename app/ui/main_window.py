@@ -145,7 +145,18 @@ class MainWindow(QMainWindow):
         spacer = QWidget()
         spacer.setSizePolicy(QSizePolicy.Policy.Expanding, QSizePolicy.Policy.Preferred)
         row.addWidget(spacer)
+        self.session_label = QLabel()
+        self.session_label.setObjectName("SessionLabel")
+        # Long patient/folder names must not widen the window's minimum size (1366×768 screens).
+        self.session_label.setSizePolicy(QSizePolicy.Policy.Ignored, QSizePolicy.Policy.Preferred)
+        self.session_label.setMinimumWidth(120)
+        row.addWidget(self.session_label)
+        self.session_button = QPushButton()
+        self.session_button.clicked.connect(self._session_button_clicked)
+        row.addWidget(self.session_button)
         bar.addWidget(holder)
+        self.manager.session_changed.connect(lambda _folder: self._show_session())
+        self._show_session()
 
     def _build_frames(self) -> None:
         for title, module_name, class_name, area in FRAMES:
@@ -177,6 +188,21 @@ class MainWindow(QMainWindow):
         quit_action.setShortcut(QKeySequence.StandardKey.Quit)
         quit_action.triggered.connect(self.close)
         file_menu.addAction(quit_action)
+        session_menu = self.menuBar().addMenu("&Session")
+        start = QAction("&Start session…", self)
+        start.setShortcut(QKeySequence("Ctrl+N"))
+        start.triggered.connect(self.prompt_session)
+        session_menu.addAction(start)
+        end = QAction("&End session", self)
+        end.triggered.connect(self.end_session)
+        session_menu.addAction(end)
+        session_menu.addSeparator()
+        patients = QAction("&Patients…", self)
+        patients.triggered.connect(self.show_patients)
+        session_menu.addAction(patients)
+        browser = QAction("Sessions &browser…", self)
+        browser.triggered.connect(self.show_sessions_browser)
+        session_menu.addAction(browser)
         view_menu = self.menuBar().addMenu("&View")
         for dock in self.docks.values():
             view_menu.addAction(dock.toggleViewAction())
@@ -205,6 +231,63 @@ class MainWindow(QMainWindow):
     # ------------------------------------------------------------------ behaviour
     def emergency_stop(self, source: str) -> None:
         self.manager.supervisor.emergency_stop(source)
+
+    # ------------------------------------------------------------------ sessions
+    def _show_session(self) -> None:
+        recorder = self.manager.recorder
+        if recorder is None:
+            self.session_label.setText("<b style='color:#ef6c00'>No session</b> — data is not being recorded")
+            self.session_button.setText("Start session…")
+        else:
+            folder = recorder.folder
+            self.session_label.setText(f"Session: <b>{folder.parent.name}</b> · {self.manager.operator}"
+                                       f" · recording to {folder.name}")
+            self.session_button.setText("End session")
+
+    def _session_button_clicked(self) -> None:
+        if self.manager.recorder is None:
+            self.prompt_session()
+        else:
+            self.end_session()
+
+    def prompt_session(self) -> None:
+        from app.ui.patient_dialog import StartSessionDialog
+
+        if self.manager.recorder is not None:
+            QMessageBox.information(self, "Session", "A session is already running. End it first.")
+            return
+        dialog = StartSessionDialog(self.manager.config.safety, parent=self)
+        self._session_dialog = dialog
+
+        def accepted() -> None:
+            patient_id, operator, note = dialog.values()
+            try:
+                self.manager.start_session(patient_id, operator, note)
+            except (ValueError, RuntimeError, OSError) as exc:
+                QMessageBox.warning(self, "Session not started", str(exc))
+
+        dialog.accepted.connect(accepted)
+        dialog.open()
+
+    def end_session(self) -> None:
+        if self.manager.recorder is None:
+            return
+        answer = QMessageBox.question(self, "End session",
+                                      "End the session? Stimulation stops and the robot goes idle.")
+        if answer == QMessageBox.StandardButton.Yes:
+            self.manager.end_session()
+
+    def show_patients(self) -> None:
+        from app.ui.patient_dialog import PatientDialog
+
+        PatientDialog(None, self.manager.config.safety, parent=self).open()
+
+    def show_sessions_browser(self) -> None:
+        from app.recording import sessions_root
+        from app.ui.sessions_browser import SessionsBrowser
+
+        self._browser = SessionsBrowser(sessions_root(self.manager.config), self.manager.config.ui.history_s)
+        self._browser.show()
 
     def _on_estop_changed(self, latched: bool, reason: str) -> None:
         self.estop_reset.setEnabled(latched)
