@@ -89,6 +89,8 @@ class SafetySupervisor(QObject):
         self._lock = threading.Lock()
         self.fes_limiter: Any = None  # set by the FES device (app.fes_limits.FesLimiter)
         self.latest_centre_m: Callable[[], float | None] = lambda: None
+        self.robot_homed: Callable[[], bool] = lambda: False
+        self._robot_excursion = False
 
     # ------------------------------------------------------------------ events
     @property
@@ -122,17 +124,47 @@ class SafetySupervisor(QObject):
         if problem:
             raise self.refuse(source, f"{name} refused: {problem}")
 
+    def check_robot_sample(self, vsa: Any) -> None:
+        """Per-cycle check of the measured robot state (after CORC): a handle faster than the velocity
+        limit (with 20 % margin for measurement noise), an interaction force above its limit, or a handle
+        more than 1 cm outside the allowed range stops the robot and raises a STOP alarm, once per excursion.
+        Runs on the LINarm driver thread for every state sample; it must stay cheap."""
+        lim = self.robot
+        problem = ""
+        if abs(vsa.handleVel) > 1.2 * lim.max_velocity_m_s:
+            problem = f"handle speed {abs(vsa.handleVel):.3f} m/s above the limit {lim.max_velocity_m_s:.3f} m/s"
+        elif abs(vsa.interactionForce) > lim.max_interaction_force_n:
+            problem = (f"interaction force {abs(vsa.interactionForce):.1f} N above the limit "
+                       f"{lim.max_interaction_force_n:.1f} N")
+        elif self.robot_homed() and not (lim.position_min_m - 0.01 <= vsa.handlePos <= lim.position_max_m + 0.01):
+            problem = f"handle at {vsa.handlePos:.3f} m, outside {lim.position_min_m:.3f} .. {lim.position_max_m:.3f} m"
+        if problem and not self._robot_excursion:
+            self._robot_excursion = True
+            for name, action in self._estop_actions:
+                if name == "robot IDLE":
+                    try:
+                        action(problem)
+                    except Exception:
+                        log.exception("robot stop failed")
+            self.raise_alarm(AlarmLevel.STOP, "robot monitor", f"Robot stopped: {problem}")
+        elif not problem:
+            self._robot_excursion = False
+
     # ------------------------------------------------------------------ FES
-    def check_fes_update(self, channels: dict[int, tuple[float, float]], now: float, source: str = "") -> None:
-        """Raise SafetyError unless every channel's (current mA, pulse width µs) is within limits."""
-        if self._estop_latched and any(c > 0 and pw > 0 for c, pw in channels.values()):
+    def check_fes_update(self, update: Any, now: float, source: str = "") -> None:
+        """Raise SafetyError unless ``update`` (app.fes_limits.FesUpdate: the channel list and every
+        channel's setting) is within the FES limits at monotonic time ``now``. An accepted update is
+        remembered by the limiter (rate of increase); a refused one changes nothing."""
+        from app.fes_limits import FesLimitError
+
+        if self._estop_latched and any(s.current_ma > 0 for s in update.settings.values()):
             raise self.refuse(source, "stimulation refused: the emergency stop is latched; reset it first")
         if self.fes_limiter is None:
             raise self.refuse(source, "stimulation refused: no FES limits are configured")
         try:
-            self.fes_limiter.check(channels, now)
-        except ValueError as exc:
-            raise self.refuse(source, f"stimulation refused: {exc}") from exc
+            self.fes_limiter.check(update, now)
+        except FesLimitError as exc:
+            raise self.refuse(source, f"stimulation refused: {exc.reason}") from exc
 
     def clamp_assistance(self, name: str, value: float, lo: float, hi: float, source: str = "patient model") -> float:
         """Patient-model outputs are clamped, not refused (the loop must keep running); log the clamp."""

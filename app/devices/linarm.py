@@ -336,6 +336,16 @@ def create(manager: LinarmppManager) -> DeviceHandle | None:
         vsa = driver.latest("linarm.vsa")
         return vsa.equilibriumPos if vsa is not None else None
 
+    def homed() -> bool:
+        state = driver.latest("linarm.state")
+        return bool(state is not None and state.initialized)
+
+    def monitor(stream: str, t: float, sample: Any) -> None:
+        if stream == "linarm.vsa":
+            manager.supervisor.check_robot_sample(sample)
+
     manager.supervisor.latest_centre_m = centre
+    manager.supervisor.robot_homed = homed
+    driver.add_listener(monitor)
     manager.supervisor.register_estop_action("robot IDLE", driver.emergency_idle)
     return DeviceHandle("linarm", driver, simulator)
