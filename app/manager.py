@@ -93,18 +93,16 @@ class LinarmppManager(QObject):
     def start_session(self, patient_id: str, operator: str, note: str = "", root: Path | None = None) -> Path:
         """A session = a patient + an operator + a recording that starts now. The patient's profile
         narrows the safety limits for its duration. Raises ValueError/PatientError, nothing started."""
-        from app.patients import PatientError, effective_robot_limits, load_patient
+        from app.patients import effective_robot_limits, load_patient, patient_file
         from app.recording import SessionRecorder, sessions_root
 
         if self.recorder is not None:
             raise RuntimeError("a session is already running; end it first")
         profile = None
-        try:
-            profile = load_patient(patient_id, self.config.safety)
-        except FileNotFoundError:
-            log.info("patient %s has no profile: configured limits apply", patient_id)
-        except PatientError:
-            raise
+        if patient_file(patient_id).exists():
+            profile = load_patient(patient_id, self.config.safety)  # a bad profile refuses the session
+        else:
+            log.info("patient %s has no profile: the configured limits apply", patient_id)
         recorder = SessionRecorder()
         folder = recorder.start(self, patient_id, operator, note, root=root or sessions_root(self.config),
                                 profile=profile)
