@@ -131,12 +131,15 @@ class SafetySupervisor(QObject):
         Runs on the LINarm driver thread for every state sample; it must stay cheap."""
         lim = self.robot
         problem = ""
+        # Before homing the encoders are not referenced: positions and the force read from the spring
+        # elongations mean nothing yet (the firmware's own limits cover homing). Speed is valid always.
+        homed = self.robot_homed()
         if abs(vsa.handleVel) > 1.2 * lim.max_velocity_m_s:
             problem = f"handle speed {abs(vsa.handleVel):.3f} m/s above the limit {lim.max_velocity_m_s:.3f} m/s"
-        elif abs(vsa.interactionForce) > lim.max_interaction_force_n:
+        elif homed and abs(vsa.interactionForce) > lim.max_interaction_force_n:
             problem = (f"interaction force {abs(vsa.interactionForce):.1f} N above the limit "
                        f"{lim.max_interaction_force_n:.1f} N")
-        elif self.robot_homed() and not (lim.position_min_m - 0.01 <= vsa.handlePos <= lim.position_max_m + 0.01):
+        elif homed and not (lim.position_min_m - 0.01 <= vsa.handlePos <= lim.position_max_m + 0.01):
             problem = f"handle at {vsa.handlePos:.3f} m, outside {lim.position_min_m:.3f} .. {lim.position_max_m:.3f} m"
         if problem and not self._robot_excursion:
             self._robot_excursion = True

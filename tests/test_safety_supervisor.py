@@ -61,6 +61,7 @@ def test_estop_latches_refuses_motion_but_allows_idle_and_reads() -> None:
 
 def test_measured_excursion_stops_the_robot_once_per_excursion() -> None:
     s = sup()
+    s.robot_homed = lambda: True
     stops = []
     s.register_estop_action("robot IDLE", stops.append)
     s.register_estop_action("FES stop", lambda reason: stops.append("fes"))

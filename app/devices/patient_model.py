@@ -1,0 +1,503 @@
+"""The patient-model link: 40-byte frames out at ``rate_hz`` (100 Hz), replies carrying α in.
+
+Modes (``devices.patient_model.mode`` in the config):
+
+* ``embedded`` (default): our own model (app.patient_model.process) runs as a separate process on
+  loopback ports chosen at start, so the real UDP link is exercised; the driver restarts it if it
+  exits.  The process ends by itself when the manager dies.
+* ``external``: a model started elsewhere (e.g. the Matlab model) at ``peer_host:peer_port``; the
+  manager listens on ``bind_host:listen_port``.
+* ``off``: no link.
+
+``connected`` means "valid replies arrived in the last ``alive_timeout_s`` (0.5 s)"; right after the
+socket is bound the driver reports "waiting for the patient model".  Datagrams from any other
+sender (``UdpTransport.dropped_foreign``) and datagrams that do not decode (wrong size, header, CRC
+or value; ``invalid_datagrams`` by reason) are dropped and counted.
+
+What goes into each frame (``ManagerFrameSource``): the latest ``physio.main`` sample (NaN and no
+PHYSIO_VALID flag when the physio link is down or silent), the latest ``linarm.vsa`` sample
+(handlePos, handleVel, interactionForce; NaN when absent), the task (target, sub-task index,
+state, time, score) from the VR link's ``task_snapshot()`` — or from ``driver.task_source`` when
+an exercise script sets one — and ``driver.clinical_score`` (set from the patient's profile or the
+assistance panel; None = not available).
+
+Each valid reply is published on "patient_model.main" as a ``PatientModelSample``: α, a_r, a_f
+(with the current k_r, k_f: from ``manager.assistance`` when the manager has one), TPI, MPI, PTI,
+the α range, the decision path (code and text), the layer-5 level and the reply flags.  The script
+API's ``patientModel.patientModelData`` is this sample.
+
+This module also holds the small UDP-peer machinery the VR link shares (``UdpPeerDriver``,
+``HelperProcess``, ``free_udp_port``).
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import math
+import os
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from app.devices.driver import Channel, DeviceDriver, StreamSpec, UpdateNotifier
+from app.devices.transport import TransportError, UdpTransport
+from app.devices.udp_frames import (
+    FrameError,
+    PatientModelFrame,
+    ReplyFlag,
+    SystemFlag,
+    TaskData,
+    decode_patient_model_reply,
+    encode_patient_model_frame,
+)
+from app.patient_model.decision_tree import DEFAULT_CONFIG_PATH, decode_path_code
+
+if TYPE_CHECKING:
+    from app.manager import DeviceHandle, LinarmppManager
+
+log = logging.getLogger(__name__)
+
+ROOT = Path(__file__).resolve().parents[2]
+NAN = math.nan
+
+PATIENT_MODEL_STREAM = StreamSpec("patient_model.main", (
+    Channel("alpha", "", "Assistance level α"),
+    Channel("a_r", "", "Robot assistance a_r"),
+    Channel("a_f", "", "FES assistance a_f"),
+    Channel("tpi", "", "Task Performance Index"),
+    Channel("mpi", "", "Motor Performance Index"),
+    Channel("pti", "", "Physiological Trend Index"),
+), 100.0)
+
+
+# ---------------------------------------------------------------------------------------------
+# Shared UDP-peer machinery
+
+
+def free_udp_port(host: str = "127.0.0.1") -> int:
+    """A UDP port free right now on ``host`` (the OS picks it; we release it for the real user)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind((host, 0))
+        return s.getsockname()[1]
+
+
+class HelperProcess:
+    """A Python module run as a child process (``python -m module args``), restartable.
+
+    Looks like a ``subprocess.Popen`` to the manager (``terminate``, ``wait``, ``kill``, ``poll``),
+    which stops everything in ``DeviceHandle.extras["processes"]`` at shutdown."""
+
+    def __init__(self, module: str, args: list[str]) -> None:
+        self.module = module
+        self.args = list(args)
+        self.proc: subprocess.Popen[bytes] | None = None
+        self.starts = 0
+
+    @property
+    def argv(self) -> list[str]:
+        return [sys.executable, "-m", self.module, *self.args, "--parent-pid", str(os.getpid())]
+
+    @property
+    def pid(self) -> int | None:
+        return self.proc.pid if self.proc else None
+
+    def start(self) -> None:
+        env = dict(os.environ)
+        env["PYTHONPATH"] = os.pathsep.join(p for p in (str(ROOT), env.get("PYTHONPATH", "")) if p)
+        self.proc = subprocess.Popen(self.argv, cwd=str(ROOT), env=env, stdin=subprocess.DEVNULL,
+                                     stdout=subprocess.DEVNULL)
+        self.starts += 1
+        log.info("started %s (pid %d)", self.module, self.proc.pid)
+
+    def poll(self) -> int | None:
+        return self.proc.poll() if self.proc else 0
+
+    def terminate(self) -> None:
+        if self.proc and self.proc.poll() is None:
+            self.proc.terminate()
+
+    def kill(self) -> None:
+        if self.proc and self.proc.poll() is None:
+            self.proc.kill()
+
+    def wait(self, timeout: float | None = None) -> int | None:
+        return self.proc.wait(timeout) if self.proc else 0
+
+    def stop(self, timeout_s: float = 2.0) -> None:
+        """terminate, wait, kill if needed (what tests call in teardown)."""
+        if self.proc is None:
+            return
+        self.terminate()
+        try:
+            self.proc.wait(timeout_s)
+        except subprocess.TimeoutExpired:
+            self.kill()
+            self.proc.wait(timeout_s)
+
+
+def _reason_kind(reason: str) -> str:
+    for prefix, kind in (("wrong size", "size"), ("wrong header", "header"), ("bad CRC", "crc"),
+                         ("not bytes", "size")):
+        if reason.startswith(prefix):
+            return kind
+    return "value"
+
+
+class UdpPeerDriver(DeviceDriver):
+    """A driver that sends one datagram per period to a UDP peer and decodes what comes back.
+
+    Subclasses implement ``build_datagram(now)`` and ``handle_datagram(data, t)`` (raising
+    ``FrameError`` on a bad datagram).  ``connected`` = a valid datagram within ``alive_timeout_s``.
+    A helper process, when given, is restarted (with back-off) if it exits."""
+
+    def __init__(self, name: str, bind: tuple[str, int], peer: tuple[str, int], rate_hz: float, *,
+                 alive_timeout_s: float, process: HelperProcess | None = None,
+                 notifier: UpdateNotifier | None = None) -> None:
+        super().__init__(name, UdpTransport(bind, peer), notifier=notifier, read_timeout_s=0.005)
+        self.udp: UdpTransport = self.transport  # type: ignore[assignment]
+        self.period_s = 1.0 / rate_hz
+        self.alive_timeout_s = alive_timeout_s
+        self.process = process
+        self.datagrams_sent = 0
+        self.datagrams_received = 0
+        self.invalid_datagrams: collections.Counter[str] = collections.Counter()
+        self.send_errors = 0
+        self._next_send = 0.0
+        self._last_valid = -math.inf
+        self._peer_alive = False
+        self._next_process_check = 0.0
+        self._process_backoff_s = 1.0
+        self._rate_t0 = time.monotonic()
+        self._rate_counts = [0, 0]
+        self.packet_rate_out = 0.0  # datagrams/s over the last second
+        self.packet_rate_in = 0.0
+
+    # ------------------------------------------------------------------ subclass API
+    def build_datagram(self, now: float) -> bytes | None:
+        raise NotImplementedError
+
+    def handle_datagram(self, data: bytes, t: float) -> None:
+        raise NotImplementedError
+
+    # ------------------------------------------------------------------ public
+    @property
+    def dropped_foreign(self) -> int:
+        return self.udp.dropped_foreign
+
+    @property
+    def dropped_total(self) -> int:
+        return self.udp.dropped_foreign + sum(self.invalid_datagrams.values())
+
+    @property
+    def peer_alive(self) -> bool:
+        return self._peer_alive
+
+    # ------------------------------------------------------------------ hooks
+    def _set_connected(self, connected: bool, reason: str) -> None:
+        # The base reports "connected" as soon as the socket is bound; for UDP that says nothing
+        # about the peer, so until a valid datagram arrives we report that we are waiting.
+        if connected and not self._peer_alive:
+            peer = self.udp.peer
+            where = f"{peer[0]}:{peer[1]}" if peer else "the peer"
+            connected, reason = False, f"waiting for {self.name} at {where} ({reason})"
+        super()._set_connected(connected, reason)
+
+    def on_connect(self) -> None:
+        self._next_send = time.monotonic()
+        self._peer_alive = False
+
+    def on_disconnect(self) -> None:
+        self._peer_alive = False
+
+    def on_bytes(self, data: bytes, t_ns: int) -> None:
+        t = t_ns / 1e9
+        try:
+            self.handle_datagram(data, t)
+        except FrameError as exc:
+            self.invalid_datagrams[_reason_kind(exc.reason)] += 1
+            return
+        self.datagrams_received += 1
+        self._rate_counts[1] += 1
+        self._last_valid = t
+        if not self._peer_alive:
+            self._peer_alive = True
+            super()._set_connected(True, f"receiving from {self.udp.description}")
+
+    def on_tick(self, now: float) -> None:
+        if now >= self._next_send:
+            self._send(now)
+            self._next_send += self.period_s
+            if self._next_send < now - 2 * self.period_s:  # fell behind (debugger, suspend): no burst
+                self._next_send = now + self.period_s
+        # Sleep in read() only until the next frame is due: keeps the rate without a busy loop.
+        self.read_timeout_s = min(0.01, max(0.0005, self._next_send - time.monotonic()))
+        if self._peer_alive and now - self._last_valid > self.alive_timeout_s:
+            self._peer_alive = False
+            super()._set_connected(False, f"no valid datagram from {self.name} for {self.alive_timeout_s:g} s")
+        if now - self._rate_t0 >= 1.0:
+            dt = now - self._rate_t0
+            self.packet_rate_out, self.packet_rate_in = (c / dt for c in self._rate_counts)
+            self._rate_counts = [0, 0]
+            self._rate_t0 = now
+        if self.process is not None and now >= self._next_process_check:
+            self._supervise_process(now)
+
+    def _send(self, now: float) -> None:
+        try:
+            data = self.build_datagram(now)
+        except Exception:
+            self.send_errors += 1
+            if self.send_errors == 1 or self.send_errors % 1000 == 0:
+                log.exception("%s: could not build a frame (%d so far)", self.name, self.send_errors)
+            return
+        if data is None:
+            return
+        try:
+            self.udp.write(data)
+        except TransportError as exc:
+            self.send_errors += 1
+            if self.send_errors == 1:
+                log.warning("%s: %s", self.name, exc)
+            return
+        self.datagrams_sent += 1
+        self._rate_counts[0] += 1
+
+    def _supervise_process(self, now: float) -> None:
+        assert self.process is not None
+        self._next_process_check = now + 0.5
+        code = self.process.poll()
+        if code is None:
+            if self._peer_alive:
+                self._process_backoff_s = 1.0
+            return
+        log.warning("%s: helper process exited with code %s; restarting", self.name, code)
+        self.error.emit(f"{self.name}: helper process exited (code {code}); restarting")
+        try:
+            self.process.start()
+        except OSError as exc:
+            log.error("%s: cannot restart helper process: %s", self.name, exc)
+        self._next_process_check = now + self._process_backoff_s
+        self._process_backoff_s = min(10.0, self._process_backoff_s * 2)
+
+
+# ---------------------------------------------------------------------------------------------
+# Patient model
+
+
+@dataclass(frozen=True)
+class PatientModelSample:
+    """One reply, as published on "patient_model.main" (and read by scripts as patientModelData)."""
+
+    alpha: float          # -1 full resistance .. +1 full assistance
+    a_r: float            # k_r · α
+    a_f: float            # k_f · α
+    tpi: float            # 0..1
+    mpi: float
+    pti: float
+    alphaMin: float       # the final α range of layers 1-4
+    alphaMax: float
+    pathCode: int         # decision_tree.Decision.path_code
+    path: str             # e.g. "assist/tpi_low/mpi_high/pti_low" ("" for an unknown code)
+    level: float          # layer-5 support level inside the range, 0..1
+    valid: bool           # the model had data for every index
+    fallback: bool        # some index (or the clinical score) used its neutral value
+    seq: int
+    ackSeq: int
+    roundTrip: float      # s from sending frame ackSeq to this reply (NaN if unknown)
+
+    @property
+    def alphaRange(self) -> tuple[float, float]:
+        return (self.alphaMin, self.alphaMax)
+
+    @property
+    def group(self) -> str:
+        return self.path.split("/", 1)[0] if self.path else ""
+
+
+def path_text(code: int) -> str:
+    decoded = decode_path_code(code)
+    if decoded is None:
+        return ""
+    group, tpi_high, mpi_high, pti_high = decoded
+    hl = ("low", "high")
+    return f"{group}/tpi_{hl[tpi_high]}/mpi_{hl[mpi_high]}/pti_{hl[pti_high]}"
+
+
+FrameSource = Callable[[int], PatientModelFrame]
+TaskSource = Callable[[], tuple[float, TaskData]]  # (target position m, task data)
+SplitSource = Callable[[float], tuple[float, float]]  # α -> (a_r, a_f)
+
+
+@dataclass(frozen=True)
+class DeviceInputs:
+    """What the UDP frames need from the other devices, read once per frame."""
+
+    physio: Any          # latest physio.main sample, None when the link is down or silent
+    vsa: Any             # latest linarm.vsa sample, None when the LINarm is not connected
+    flags: int           # SystemFlag bits
+
+
+def _device(manager: Any, name: str) -> Any:
+    try:
+        return manager.driver(name)
+    except Exception:
+        return None
+
+
+def read_inputs(manager: Any) -> DeviceInputs:
+    physio = _device(manager, "physio")
+    p = physio.latest("physio.main") if physio is not None else None
+    if not (bool(getattr(physio, "connected", False)) and not bool(getattr(physio, "silent", False))):
+        p = None  # a stale sample must not look current to the model
+    linarm = _device(manager, "linarm")
+    robot_on = linarm is not None and bool(getattr(linarm, "connected", False))
+    v = linarm.latest("linarm.vsa") if robot_on else None
+    flags = 0
+    if p is not None:
+        flags |= SystemFlag.PHYSIO_VALID
+    if robot_on:
+        flags |= SystemFlag.ROBOT_ON
+    fes = _device(manager, "fes")
+    if fes is not None and bool(getattr(fes, "stimulating", False)):
+        flags |= SystemFlag.FES_ON
+    supervisor = getattr(manager, "supervisor", None)
+    if supervisor is not None and bool(getattr(supervisor, "estop_latched", False)):
+        flags |= SystemFlag.EMERGENCY_STOP
+    return DeviceInputs(p, v, int(flags))
+
+
+class ManagerFrameSource:
+    """Builds each frame from the other devices' latest samples (see the module docstring)."""
+
+    def __init__(self, manager: Any, driver: PatientModelDriver) -> None:
+        self.manager = manager
+        self.driver = driver
+
+    def __call__(self, seq: int) -> PatientModelFrame:
+        inp = read_inputs(self.manager)
+        p, v = inp.physio, inp.vsa
+        target, task = self._task()
+        score = self.driver.clinical_score
+        return PatientModelFrame(
+            seq=seq, heartRate=_num(p, "heartRate"), skinConductance=_num(p, "skinConductance"),
+            temperature=_num(p, "temperature"), force=_num(p, "force"),
+            interactionForce=_num(v, "interactionForce"), robotVelocity=_num(v, "handleVel"),
+            robotPosition=_num(v, "handlePos"), targetPosition=target, task=task,
+            clinicalScore=score if score is not None and 0 <= score <= 254 else None, flags=inp.flags)
+
+    def _task(self) -> tuple[float, TaskData]:
+        source = self.driver.task_source
+        if source is None:
+            source = getattr(_device(self.manager, "vr"), "task_snapshot", None)
+        if source is None:
+            return NAN, TaskData()
+        return source()
+
+
+def _num(sample: Any, name: str) -> float:
+    """An attribute as float, NaN when the sample or the attribute is missing."""
+    if sample is None:
+        return NAN
+    try:
+        return float(getattr(sample, name, NAN))
+    except (TypeError, ValueError):
+        return NAN
+
+
+class PatientModelDriver(UdpPeerDriver):
+    streams = (PATIENT_MODEL_STREAM,)
+
+    def __init__(self, bind: tuple[str, int], peer: tuple[str, int], rate_hz: float = 100.0, *,
+                 frame_source: FrameSource | None = None, split: SplitSource | None = None,
+                 process: HelperProcess | None = None, notifier: UpdateNotifier | None = None,
+                 alive_timeout_s: float = 0.5) -> None:
+        super().__init__("patient_model", bind, peer, rate_hz, alive_timeout_s=alive_timeout_s,
+                         process=process, notifier=notifier)
+        self.frame_source = frame_source
+        self.split = split
+        self.clinical_score: int | None = None  # set from the patient's profile / the assistance panel
+        self.task_source: TaskSource | None = None  # overrides the VR link's task when set
+        self._seq = 0
+        self._sent_at: dict[int, float] = {}
+
+    def build_datagram(self, now: float) -> bytes | None:
+        if self.frame_source is None:
+            return None
+        seq = self._seq
+        self._seq = (self._seq + 1) & 0xFFFF
+        data = encode_patient_model_frame(self.frame_source(seq))
+        self._sent_at[seq] = now
+        if len(self._sent_at) > 256:
+            for old in list(self._sent_at)[:128]:
+                del self._sent_at[old]
+        return data
+
+    def handle_datagram(self, data: bytes, t: float) -> None:
+        r = decode_patient_model_reply(data)
+        a_r, a_f = self.split(r.alpha) if self.split is not None else (NAN, NAN)
+        sent = self._sent_at.get(r.ackSeq)
+        flags = int(r.flags)
+        self.publish("patient_model.main", t, PatientModelSample(
+            alpha=r.alpha, a_r=a_r, a_f=a_f, tpi=r.tpi, mpi=r.mpi, pti=r.pti, alphaMin=r.alphaMin,
+            alphaMax=r.alphaMax, pathCode=r.path, path=path_text(r.path), level=r.level,
+            valid=bool(flags & ReplyFlag.VALID), fallback=bool(flags & ReplyFlag.FALLBACK), seq=r.seq,
+            ackSeq=r.ackSeq, roundTrip=t - sent if sent is not None else NAN))
+
+
+def manager_split(manager: Any) -> SplitSource:
+    """α -> (a_r, a_f) with the gains in force: ``manager.assistance`` if any, else the config."""
+    from app.assistance import AssistanceSplit
+
+    fallback = AssistanceSplit(manager.config.assistance)
+
+    def split(alpha: float) -> tuple[float, float]:
+        controller = getattr(manager, "assistance", None)
+        if controller is not None:
+            t = controller.preview(alpha)
+        else:
+            c = fallback.config
+            t = fallback.compute(alpha, c.k_r, c.k_f)
+        return t.a_r, t.a_f
+
+    return split
+
+
+def embedded_process(host: str, model_port: int, manager_port: int, config_path: Path = DEFAULT_CONFIG_PATH,
+                     extra: list[str] | None = None) -> HelperProcess:
+    return HelperProcess("app.patient_model.process", [
+        "--listen", f"{host}:{model_port}", "--peer", f"{host}:{manager_port}", "--config", str(config_path),
+        *(extra or [])])
+
+
+def create(manager: LinarmppManager) -> DeviceHandle | None:
+    from app.manager import DeviceHandle
+
+    cfg = manager.config.devices.patient_model
+    if cfg.mode == "off":
+        return None
+    if cfg.mode not in ("embedded", "external"):
+        raise ValueError(f"patient_model mode must be embedded, external or off, got {cfg.mode!r}")
+    host = cfg.bind_host
+    extras: dict[str, Any] = {}
+    process = None
+    if cfg.mode == "embedded":
+        # The model is ours: both ends on the bind host (loopback by default), fresh ports each start.
+        listen_port = cfg.listen_port or free_udp_port(host)
+        peer = (host, cfg.peer_port or free_udp_port(host))
+        process = embedded_process(host, peer[1], listen_port)
+        extras.update(processes=[process], simulated=True)
+    else:
+        listen_port = cfg.listen_port
+        peer = (cfg.peer_host, cfg.peer_port)
+    driver = PatientModelDriver((host, listen_port), peer, cfg.rate_hz, split=manager_split(manager),
+                                process=process, notifier=manager.notifier)
+    driver.frame_source = ManagerFrameSource(manager, driver)
+    if process is not None:
+        process.start()
+    return DeviceHandle("patient_model", driver, None, extras)

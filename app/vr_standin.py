@@ -1,0 +1,275 @@
+"""A stand-in for the Unity VR renderer, so the whole loop runs without Unity.
+
+    python -m app.vr_standin --listen HOST:PORT --peer HOST:PORT [--window]
+           [--tolerance M] [--hold S] [--time-limit S] [--idle-exit S] [--parent-pid PID]
+
+It answers like the game (see app.devices.vr for who decides what): it shows the target the manager
+sends, says ``SUBTASK_STARTED`` when a new sub-task index appears, ``TARGET_REACHED`` when the handle
+has stayed within ``--tolerance`` of the target for ``--hold`` s (with the time to target and the new
+score), ``TARGET_MISSED`` when the sub-task has run ``--time-limit`` s, and sends the score once a
+second as the heartbeat.  Scoring: 100 points per target plus a speed bonus of up to 50 points
+(50 − 5 per second taken).
+
+Headless by default (the app starts it so); ``--window`` opens a small PySide6 window drawing the
+rail, the target zone and the handle.  It exits when its parent dies or when no frame has come for
+``--idle-exit`` s (default 10; 0 = never).
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import math
+import socket
+import sys
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+from app.devices.udp_frames import (
+    FrameError,
+    TaskState,
+    VrEvent,
+    VrEventFrame,
+    VrFrame,
+    decode_vr_frame,
+    encode_vr_event,
+)
+from app.patient_model.process import ParentWatch, parse_address
+
+log = logging.getLogger("vr_standin")
+
+ACTIVE = (TaskState.MOVING, TaskState.HOLDING)
+HEARTBEAT_S = 1.0
+
+
+@dataclass
+class StandinGame:
+    """The game's rules without the socket or the window (pure, testable)."""
+
+    tolerance_m: float = 0.01
+    hold_s: float = 0.3
+    time_limit_s: float = 12.0
+    score: int = 0
+    subTask: int | None = None
+    judged: set[int] = field(default_factory=set)
+    last_frame: VrFrame | None = None
+    reached: int = 0
+    missed: int = 0
+    _t0: float = 0.0
+    _hold_since: float | None = None
+    _seq: int = 0
+    _next_heartbeat: float = 0.0
+
+    def _event(self, kind: VrEvent, subtask: int, time_to_target: float = math.nan) -> VrEventFrame:
+        self._seq = (self._seq + 1) & 0xFFFF
+        return VrEventFrame(self._seq, kind, subtask & 0xFFFF, self.score, time_to_target)
+
+    def hello(self) -> VrEventFrame:
+        return self._event(VrEvent.HELLO, 0)
+
+    def on_frame(self, frame: VrFrame, t: float) -> list[VrEventFrame]:
+        self.last_frame = frame
+        task = frame.task
+        out: list[VrEventFrame] = []
+        if task.taskState in ACTIVE and task.subTask != self.subTask and task.subTask not in self.judged:
+            self.subTask, self._t0, self._hold_since = task.subTask, t, None
+            out.append(self._event(VrEvent.SUBTASK_STARTED, task.subTask))
+        if self.subTask is None or self.subTask in self.judged or task.subTask != self.subTask:
+            return out
+        elapsed = task.subTaskTime if math.isfinite(task.subTaskTime) else t - self._t0
+        pos, target = frame.robotPosition, frame.targetPosition
+        inside = math.isfinite(pos) and math.isfinite(target) and abs(pos - target) <= self.tolerance_m
+        if inside:
+            if self._hold_since is None:
+                self._hold_since = t
+            if t - self._hold_since >= self.hold_s:
+                self.score += 100 + max(0, round(50 - 5 * elapsed))
+                self.reached += 1
+                self.judged.add(self.subTask)
+                out.append(self._event(VrEvent.TARGET_REACHED, self.subTask, min(elapsed, 65.534)))
+                return out
+        else:
+            self._hold_since = None
+        if elapsed > self.time_limit_s:
+            self.missed += 1
+            self.judged.add(self.subTask)
+            out.append(self._event(VrEvent.TARGET_MISSED, self.subTask))
+        if len(self.judged) > 1000:  # indices wrap at 65536; keep only the recent ones
+            self.judged = {self.subTask}
+        return out
+
+    def tick(self, t: float) -> list[VrEventFrame]:
+        """The once-a-second score (the heartbeat)."""
+        if t < self._next_heartbeat:
+            return []
+        self._next_heartbeat = t + HEARTBEAT_S
+        return [self._event(VrEvent.SCORE, self.subTask or 0)]
+
+
+class StandinLink:
+    """The socket side: frames from the peer only, events back to it."""
+
+    def __init__(self, listen: tuple[str, int], peer: tuple[str, int], game: StandinGame) -> None:
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.bind(listen)
+        self.peer = peer
+        self.peer_ip = socket.gethostbyname(peer[0])
+        self.game = game
+        self.counts = {"frames": 0, "events": 0, "foreign": 0, "invalid": 0}
+        self.last_frame_t = time.monotonic()
+
+    def send(self, events: list[VrEventFrame]) -> None:
+        for ev in events:
+            try:
+                self.sock.sendto(encode_vr_event(ev), self.peer)
+                self.counts["events"] += 1
+            except OSError:
+                pass  # the manager is not listening yet
+
+    def receive(self, timeout: float) -> None:
+        """Handle at most one datagram (waiting up to ``timeout``), then the heartbeat."""
+        self.sock.settimeout(timeout)
+        try:
+            data, sender = self.sock.recvfrom(2048)
+        except (TimeoutError, BlockingIOError):
+            data = None
+        except OSError:
+            data = None
+        t = time.monotonic()
+        if data is not None:
+            if sender[0] != self.peer_ip or sender[1] != self.peer[1]:
+                self.counts["foreign"] += 1
+            else:
+                try:
+                    frame = decode_vr_frame(data)
+                except FrameError:
+                    self.counts["invalid"] += 1
+                else:
+                    self.counts["frames"] += 1
+                    self.last_frame_t = t
+                    self.send(self.game.on_frame(frame, t))
+        self.send(self.game.tick(t))
+
+    def close(self) -> None:
+        self.sock.close()
+
+
+def run_headless(link: StandinLink, idle_exit_s: float, watch: ParentWatch) -> None:
+    while not watch.parent_gone():
+        if idle_exit_s > 0 and time.monotonic() - link.last_frame_t > idle_exit_s:
+            log.info("no frame for %.1f s: exiting", idle_exit_s)
+            return
+        link.receive(0.1)
+
+
+def run_window(link: StandinLink, idle_exit_s: float, watch: ParentWatch) -> int:
+    from PySide6.QtCore import QTimer
+    from PySide6.QtWidgets import QApplication
+
+    app = QApplication.instance() or QApplication(sys.argv[:1])
+    win = make_window(link.game)
+    win.show()
+
+    def poll() -> None:
+        for _ in range(20):  # drain what is queued without blocking the event loop
+            link.receive(0.0)
+        win.update()
+        if watch.parent_gone() or (idle_exit_s > 0 and time.monotonic() - link.last_frame_t > idle_exit_s):
+            app.quit()
+
+    timer = QTimer()
+    timer.timeout.connect(poll)
+    timer.start(10)
+    return app.exec()
+
+
+def _window_class() -> type:
+    from PySide6.QtCore import QRectF, Qt
+    from PySide6.QtGui import QColor, QFont, QPainter, QPen
+    from PySide6.QtWidgets import QWidget
+
+    class _StandinWindow(QWidget):
+        """The rail seen from above: target zone (green when reached), handle (blue), score."""
+
+        RAIL_M = 0.5
+
+        def __init__(self, game: StandinGame) -> None:
+            super().__init__()
+            self.game = game
+            self.setWindowTitle("LINarm++ VR stand-in")
+            self.resize(520, 160)
+
+        def paintEvent(self, event: object) -> None:
+            g = self.game
+            p = QPainter(self)
+            p.setRenderHint(QPainter.RenderHint.Antialiasing)
+            p.fillRect(self.rect(), QColor("#1d2733"))
+            margin = 30.0
+            width = self.width() - 2 * margin
+            y = self.height() * 0.6
+
+            def x_of(pos: float) -> float:
+                return margin + width * min(1.0, max(0.0, pos / self.RAIL_M))
+
+            p.setPen(QPen(QColor("#8a9bb0"), 4))
+            p.drawLine(int(margin), int(y), int(margin + width), int(y))
+            f = g.last_frame
+            if f is not None and math.isfinite(f.targetPosition):
+                reached = f.task.taskState == TaskState.REACHED
+                colour = QColor("#3cb371" if reached else "#f0a030")
+                half = max(4.0, width * g.tolerance_m / self.RAIL_M)
+                xt = x_of(f.targetPosition)
+                p.fillRect(QRectF(xt - half, y - 25, 2 * half, 50), colour)
+            if f is not None and math.isfinite(f.robotPosition):
+                p.setBrush(QColor("#4aa3ff"))
+                p.setPen(Qt.PenStyle.NoPen)
+                p.drawEllipse(QRectF(x_of(f.robotPosition) - 10, y - 10, 20, 20))
+            p.setPen(QColor("white"))
+            p.setFont(QFont(p.font().family(), 12))
+            sub = "-" if g.subTask is None else str(g.subTask)
+            p.drawText(int(margin), 28, f"Score {g.score}    targets {g.reached} reached, {g.missed} missed"
+                                        f"    sub-task {sub}")
+            p.end()
+
+    return _StandinWindow
+
+
+def make_window(game: StandinGame) -> Any:
+    """The stand-in's window (a QWidget).  Qt is imported only here: the headless process never loads it."""
+    return _window_class()(game)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m app.vr_standin", description=__doc__.splitlines()[0])
+    ap.add_argument("--listen", type=parse_address, required=True, help="HOST:PORT to receive frames on")
+    ap.add_argument("--peer", type=parse_address, required=True, help="HOST:PORT of the manager")
+    ap.add_argument("--window", action="store_true", help="show the stand-in window")
+    ap.add_argument("--tolerance", type=float, default=0.01, help="m")
+    ap.add_argument("--hold", type=float, default=0.3, help="s in the target to reach it")
+    ap.add_argument("--time-limit", type=float, default=12.0, help="s before a target is missed")
+    ap.add_argument("--idle-exit", type=float, default=10.0, help="s without a frame before exiting (0 = never)")
+    ap.add_argument("--parent-pid", type=int, default=None, help="exit when this process is gone")
+    args = ap.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, stream=sys.stderr, format="vr stand-in: %(message)s")
+    game = StandinGame(tolerance_m=args.tolerance, hold_s=args.hold, time_limit_s=args.time_limit)
+    try:
+        link = StandinLink(args.listen, args.peer, game)
+    except OSError as exc:
+        log.error("cannot bind %s:%d: %s", args.listen[0], args.listen[1], exc.strerror)
+        return 3
+    watch = ParentWatch(args.parent_pid)
+    link.send([game.hello()])
+    try:
+        if args.window:
+            return run_window(link, args.idle_exit, watch)
+        run_headless(link, args.idle_exit, watch)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        link.close()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,269 @@
+"""The assistance split (D2.2 Fig. 2) and its live controller, with recording fakes."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from app.assistance import AssistanceController, AssistanceSplit
+from app.config import AssistanceConfig, AssistanceMap, SafetyConfig
+from app.safety import SafetySupervisor
+
+CFG = AssistanceConfig(
+    k_r=1.0, k_f=1.0,
+    k_m_stiffness_n_m=AssistanceMap(200.0, 1200.0),
+    k_a_admittance_m_s_n=AssistanceMap(0.002, 0.01),
+    k_t_assistive_n_m=AssistanceMap(0.0, 150.0),
+    fes_pulse_width_us=AssistanceMap(100.0, 300.0),
+    max_update_rate_hz=10.0,
+)
+
+
+class Clock:
+    def __init__(self) -> None:
+        self.t = 100.0
+
+    def __call__(self) -> float:
+        return self.t
+
+
+class Recorder:
+    def __init__(self) -> None:
+        self.robot: list[tuple[float, float, float]] = []
+        self.fes: list[float] = []
+
+    def apply_robot(self, k_m: float, k_a: float, k_t: float) -> None:
+        self.robot.append((k_m, k_a, k_t))
+
+    def apply_fes(self, pw: float) -> None:
+        self.fes.append(pw)
+
+
+def controller(config: AssistanceConfig = CFG, supervisor: SafetySupervisor | None = None):
+    rec, clock = Recorder(), Clock()
+    ctl = AssistanceController(config, rec.apply_robot, rec.apply_fes, supervisor, clock=clock)
+    return ctl, rec, clock
+
+
+# ------------------------------------------------------------------ the pure split
+
+
+def test_full_assistance_gives_the_top_of_every_map() -> None:
+    t = AssistanceSplit(CFG).compute(1.0, 1.0, 1.0)
+    assert (t.a_r, t.a_f) == (1.0, 1.0)
+    assert (t.k_m, t.k_a, t.k_t) == (1200.0, 0.01, 150.0)
+    assert t.pulse_width_us == 300.0
+
+
+def test_neutral_gives_the_bottom_of_every_map() -> None:
+    t = AssistanceSplit(CFG).compute(0.0, 1.0, 1.0)
+    assert (t.k_m, t.k_a, t.k_t, t.pulse_width_us) == (200.0, 0.002, 0.0, 100.0)
+
+
+def test_split_scales_alpha_by_the_gains() -> None:
+    t = AssistanceSplit(CFG).compute(0.8, 0.5, 0.25)
+    assert t.a_r == pytest.approx(0.4)
+    assert t.a_f == pytest.approx(0.2)
+    assert t.k_m == pytest.approx(200 + 0.4 * 1000)
+    assert t.k_t == pytest.approx(0.4 * 150)
+    assert t.pulse_width_us == pytest.approx(100 + 0.2 * 200)
+
+
+def test_resistance_stiffens_the_vsa_with_admittance_and_assistive_gain_at_their_floor() -> None:
+    t = AssistanceSplit(CFG).compute(-0.5, 1.0, 1.0)
+    assert t.a_r == -0.5
+    assert t.k_m == pytest.approx(700.0)
+    assert t.k_a == 0.002
+    assert t.k_t == 0.0
+    assert t.pulse_width_us == 100.0  # FES only assists
+
+
+def test_k_f_zero_keeps_the_pulse_width_at_its_floor_for_any_alpha() -> None:
+    split = AssistanceSplit(CFG)
+    assert {split.compute(a, 1.0, 0.0).pulse_width_us for a in (-1.0, -0.3, 0.0, 0.5, 1.0)} == {100.0}
+
+
+def test_nan_is_refused() -> None:
+    with pytest.raises(ValueError, match="NaN"):
+        AssistanceSplit(CFG).compute(math.nan, 1.0, 1.0)
+
+
+@settings(max_examples=200, deadline=None)
+@given(alpha=st.floats(-1, 1), k_r=st.floats(0, 1), k_f=st.floats(0, 1))
+def test_targets_stay_inside_the_therapist_maps(alpha: float, k_r: float, k_f: float) -> None:
+    t = AssistanceSplit(CFG).compute(alpha, k_r, k_f)
+    assert 200.0 <= t.k_m <= 1200.0
+    assert 0.002 <= t.k_a <= 0.01
+    assert 0.0 <= t.k_t <= 150.0
+    assert 100.0 <= t.pulse_width_us <= 300.0
+    assert abs(t.a_r) <= k_r + 1e-12 and abs(t.a_f) <= k_f + 1e-12
+
+
+@settings(max_examples=200, deadline=None)
+@given(a=st.floats(-1, 1), b=st.floats(-1, 1))
+def test_more_assistance_never_lowers_the_assistive_parameters(a: float, b: float) -> None:
+    lo, hi = sorted((a, b))
+    split = AssistanceSplit(CFG)
+    t_lo, t_hi = split.compute(lo, 1.0, 1.0), split.compute(hi, 1.0, 1.0)
+    assert t_hi.k_a >= t_lo.k_a and t_hi.k_t >= t_lo.k_t and t_hi.pulse_width_us >= t_lo.pulse_width_us
+
+
+# ------------------------------------------------------------------ the controller
+
+
+def test_alpha_one_with_k_r_one_applies_the_top_of_the_maps() -> None:
+    ctl, rec, _clock = controller()
+    ctl.update_alpha(1.0)
+    assert rec.robot == [(1200.0, 0.01, 150.0)]
+    assert rec.fes == [300.0]
+
+
+def test_k_r_zero_never_touches_the_robot() -> None:
+    ctl, rec, clock = controller()
+    ctl.set_gains(0.0, 1.0)
+    for i in range(50):
+        clock.t += 0.2
+        ctl.update_alpha(math.sin(i / 3.0))
+    assert rec.robot == []
+    assert len(rec.fes) > 5  # the FES side still follows α
+
+
+def test_k_f_zero_holds_the_pulse_width_at_its_floor() -> None:
+    ctl, rec, clock = controller()
+    ctl.set_gains(1.0, 0.0)
+    for a in (0.2, 0.9, -0.7, 1.0):
+        clock.t += 0.2
+        ctl.update_alpha(a)
+    assert rec.fes == [100.0]  # applied once, never moved
+    assert len(rec.robot) == 4
+
+
+def test_updates_are_rate_limited_and_the_last_one_is_not_lost() -> None:
+    ctl, rec, clock = controller()
+    for i in range(100):  # α at 100 Hz for 1 s
+        clock.t += 0.01
+        ctl.update_alpha(i / 100.0)
+    assert 9 <= len(rec.robot) <= 11  # max_update_rate_hz = 10
+    clock.t += 0.2
+    assert ctl.flush()
+    assert rec.robot[-1][2] == pytest.approx(0.99 * 150.0)
+
+
+def test_an_unchanged_alpha_is_not_sent_again() -> None:
+    ctl, rec, clock = controller()
+    for _ in range(20):
+        clock.t += 0.5
+        ctl.update_alpha(0.5)
+    assert len(rec.robot) == 1 and len(rec.fes) == 1
+
+
+def test_alpha_passes_through_the_supervisor_clamp() -> None:
+    events: list[tuple[str, dict]] = []
+    sup = SafetySupervisor(SafetyConfig(), event_sink=lambda kind, data: events.append((kind, data)))
+    ctl, rec, _clock = controller(supervisor=sup)
+    ctl.update_alpha(1.7)
+    assert ctl.alpha == 1.0
+    assert rec.robot == [(1200.0, 0.01, 150.0)]
+    assert any(kind == "clamped" for kind, _ in events)
+
+
+def test_nothing_is_applied_after_an_emergency_stop() -> None:
+    sup = SafetySupervisor(SafetyConfig())
+    ctl, rec, _clock = controller(supervisor=sup)
+    sup.emergency_stop("test")
+    ctl.update_alpha(0.8)
+    assert rec.robot == [] and rec.fes == []
+
+
+def test_a_refused_command_is_counted_and_the_loop_goes_on() -> None:
+    clock = Clock()
+
+    def refuse(*_args: float) -> None:
+        raise RuntimeError("stiffness above the limit")
+
+    fes: list[float] = []
+    ctl = AssistanceController(CFG, refuse, fes.append, clock=clock)
+    ctl.update_alpha(0.5)
+    assert ctl.errors == 1 and "stiffness" in ctl.last_error
+    assert fes == [200.0]
+
+
+def test_new_maps_take_effect() -> None:
+    ctl, rec, clock = controller()
+    ctl.update_alpha(1.0)
+    clock.t += 1.0
+    ctl.set_config(AssistanceConfig(k_r=1.0, k_f=1.0, k_m_stiffness_n_m=AssistanceMap(100.0, 800.0),
+                                    k_a_admittance_m_s_n=CFG.k_a_admittance_m_s_n,
+                                    k_t_assistive_n_m=CFG.k_t_assistive_n_m,
+                                    fes_pulse_width_us=AssistanceMap(100.0, 250.0)))
+    assert rec.robot[-1] == (800.0, 0.01, 150.0)
+    assert rec.fes[-1] == 250.0
+
+
+def test_gains_outside_zero_one_are_refused() -> None:
+    ctl, _rec, _clock = controller()
+    with pytest.raises(ValueError, match="k_r"):
+        ctl.set_gains(1.5, 0.5)
+
+
+# ------------------------------------------------------------------ the panel
+
+
+class _PmDriver:
+    clinical_score: int | None = None
+
+    def latest(self, stream: str) -> None:
+        return None
+
+
+class _Manager:
+    def __init__(self, controller: AssistanceController | None) -> None:
+        from app.config import AppConfig
+
+        self.config = AppConfig()
+        self.assistance = controller
+        self.pm = _PmDriver()
+
+    def driver(self, name: str) -> _PmDriver | None:
+        return self.pm if name == "patient_model" else None
+
+
+def test_panel_edits_reach_the_controller_and_the_model(qtbot) -> None:
+    from app.ui.assistance_panel import AssistancePanel
+
+    ctl, rec, clock = controller()
+    manager = _Manager(ctl)
+    panel = AssistancePanel(manager)
+    qtbot.addWidget(panel)
+    ctl.update_alpha(1.0)
+    assert rec.robot[-1] == (1200.0, 0.01, 150.0)
+
+    clock.t += 1.0
+    panel.k_r.spin.setValue(0.5)
+    assert ctl.k_r == 0.5
+    assert rec.robot[-1][0] == pytest.approx(700.0)
+
+    clock.t += 1.0
+    panel.map_spins["fes_pulse_width_us"][1].setValue(250.0)
+    assert rec.fes[-1] == 250.0  # k_f = 1, α = 1: the top of the edited map
+    panel.clinical_score.setValue(20)
+    assert manager.pm.clinical_score == 20
+    panel.clinical_score.setValue(-1)
+    assert manager.pm.clinical_score is None
+    panel.refresh()
+    assert panel.live["alpha"].text() == "+1.000"
+
+
+def test_panel_caps_the_maps_at_the_safety_limits(qtbot) -> None:
+    from app.ui.assistance_panel import AssistancePanel
+
+    manager = _Manager(None)
+    panel = AssistancePanel(manager)
+    qtbot.addWidget(panel)
+    spin = panel.map_spins["k_m_stiffness_n_m"][1]
+    spin.setValue(1e6)
+    assert spin.value() == manager.config.safety.robot.max_stiffness_n_m
+    assert "not active" in panel.live["status"].text()
