@@ -92,6 +92,11 @@ RobotApply = Callable[[float, float, float], None]  # (k_m N/m, k_a m/(s·N), k_
 FesApply = Callable[[float], None]                  # pulse width µs
 
 
+class AssistanceInactive(Exception):
+    """An apply callable's way to say "not now" (e.g. the robot is not in an assisted mode): not an
+    error, nothing counted; the targets are applied once the device takes them again."""
+
+
 class AssistanceController:
     """Applies the split live.  The manager holds one at ``manager.assistance``.
 
@@ -228,6 +233,8 @@ class AssistanceController:
     def _call(self, what: str, fn: Callable[..., None], *args: float) -> bool:
         try:
             fn(*args)
+        except AssistanceInactive:
+            return False
         except Exception as exc:  # refused by safety, link down: the loop keeps running
             self.errors += 1
             self.last_error = f"{what}: {exc}"

@@ -140,8 +140,9 @@ class SafetyConfig:
     fes: FesSafety = field(default_factory=FesSafety)
     # A streaming device that is silent for this many of its sample periods raises an alarm.
     silence_periods: int = field(default=3, metadata=rng(2, 100))
-    # ...but never less than this: OS scheduling jitter on a loaded PC reaches tens of ms.
-    silence_min_s: float = field(default=0.05, metadata=rng(0.01, 5, "s"))
+    # ...but never less than this: a Python driver thread can be starved of the GIL for tens of ms while
+    # the GUI draws (qt-stack.md §4); 0.25 s matches the controller watchdog and avoids false alarms.
+    silence_min_s: float = field(default=0.25, metadata=rng(0.01, 5, "s"))
     # What the robot does when a script stops or the app leaves a session: IDLE (motors off) or hold.
     robot_safe_state: Literal["idle", "hold"] = "idle"
 
@@ -158,7 +159,7 @@ class AssistanceMap:
 class AssistanceConfig:
     k_r: float = field(default=0.5, metadata=rng(0, 1))
     k_f: float = field(default=0.5, metadata=rng(0, 1))
-    k_m_stiffness_n_m: AssistanceMap = field(default_factory=lambda: AssistanceMap(200.0, 1200.0))
+    k_m_stiffness_n_m: AssistanceMap = field(default_factory=lambda: AssistanceMap(500.0, 1500.0))
     k_a_admittance_m_s_n: AssistanceMap = field(default_factory=lambda: AssistanceMap(0.002, 0.01))
     k_t_assistive_n_m: AssistanceMap = field(default_factory=lambda: AssistanceMap(0.0, 150.0))
     fes_pulse_width_us: AssistanceMap = field(default_factory=lambda: AssistanceMap(100.0, 300.0))

@@ -64,6 +64,7 @@ class LinarmppManager(QObject):
         self.patient_profile: Any = None
         self.operator = ""
         self._lsl: Any = None
+        self.assistance: Any = None  # app.assistance.AssistanceController, created in start()
 
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> None:
@@ -88,6 +89,92 @@ class LinarmppManager(QObject):
                 handle.simulator.start()
             handle.driver.start()
         log.info("devices started: %s", ", ".join(self.devices) or "none")
+        self._wire_assistance()
+
+    # ------------------------------------------------------------------ the therapy loop
+    def _wire_assistance(self) -> None:
+        """α from the patient model → split → robot (k_m, k_a, k_t) and FES (pulse width), and the VR
+        task's target → the robot's assistance target. Commands go through the drivers' checked paths
+        on a worker thread, so a slow ack never stalls the patient-model link."""
+        from concurrent.futures import ThreadPoolExecutor
+
+        from app.assistance import AssistanceController, AssistanceInactive
+
+        executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="assistance")
+        self.add_shutdown_hook(lambda: executor.shutdown(wait=False, cancel_futures=True))
+
+        def report(future: Any) -> None:
+            exc = future.exception()
+            if exc is not None:
+                log.warning("assistance not applied: %s", exc)
+
+        from app.devices.linarm_protocol import ControlMode, ControlState
+
+        assisted_modes = (int(ControlMode.POS_REF_BY_ADMITTANCE), int(ControlMode.POS_REF_BY_ASSISTANCE))
+
+        def apply_robot(k_m: float, k_a: float, k_t: float) -> None:
+            # The robot's share of α only acts in the interaction modes it parameterises (admittance,
+            # assistance) while ON: a position-controlled exercise or a script's moves are never altered.
+            robot = self.driver("linarm")
+            if robot is None or not robot.connected:
+                raise AssistanceInactive("the LINarm is not connected")
+            state = robot.latest("linarm.state")
+            if state is None or state.controlState != int(ControlState.ON_CTRL_STATE) \
+                    or state.controlMode not in assisted_modes:
+                raise AssistanceInactive("robot assistance applies only while ON in admittance or assistance mode")
+
+            def send() -> None:
+                robot.command("setAdmittanceParameter", k_a, source="assistance")
+                robot.command("setAssistanceParameter", k_t, source="assistance")
+                robot.command("setStiffness", k_m, 0.05, 0.2, 0.0, source="assistance")
+
+            executor.submit(send).add_done_callback(report)
+
+        def apply_fes_pulse_width(pulse_width_us: float) -> None:
+            fes = self.driver("fes")
+            if fes is None or not hasattr(fes, "set_pulse_width_override"):
+                raise AssistanceInactive("no FES device")
+            fes.set_pulse_width_override(pulse_width_us)
+
+        self.assistance = AssistanceController(self.config.assistance, apply_robot, apply_fes_pulse_width,
+                                               supervisor=self.supervisor)
+        model = self.driver("patient_model")
+        if model is not None:
+            model.add_listener(self.assistance.on_patient_model_sample)
+        vr = self.driver("vr")
+        robot = self.driver("linarm")
+        if vr is not None and robot is not None:
+            last = {"target": None}
+
+            def follow_target(stream: str, t: float, sample: Any) -> None:
+                target = getattr(sample, "targetPos", None)
+                if target is None or target != target or target == last["target"]:
+                    return
+                state = robot.latest("linarm.state")
+                if not robot.connected or state is None or not state.initialized:
+                    return
+                last["target"] = target
+                executor.submit(robot.command, "setAssistanceTargetPos", float(target),
+                                source="VR task").add_done_callback(report)
+
+            vr.add_listener(follow_target)
+
+    def apply_patient_profile(self, profile: Any) -> None:
+        """The patient's clinical score feeds the embedded model; their gains the assistance split."""
+        model = self.driver("patient_model")
+        score = profile.scores.fugl_meyer_ue
+        if model is not None and score is not None and hasattr(model, "clinical_score"):
+            model.clinical_score = int(score)
+        if self.assistance is not None:
+            self.assistance.set_gains(profile.assistance.k_r, profile.assistance.k_f)
+        fes = self.driver("fes")
+        set_caps = getattr(fes, "set_clinical_caps", None)
+        if callable(set_caps):
+            from app.patients import clinical_caps
+
+            set_caps(clinical_caps(profile))
+        self.supervisor.event("patient_profile_applied", patient=profile.patient_id,
+                              k_r=profile.assistance.k_r, k_f=profile.assistance.k_f, clinical_score=score)
 
     # ------------------------------------------------------------------ sessions
     def start_session(self, patient_id: str, operator: str, note: str = "", root: Path | None = None) -> Path:

@@ -14,11 +14,13 @@ from collections.abc import Callable
 
 from PySide6.QtCore import Qt, QTimer
 from PySide6.QtWidgets import (
+    QFrame,
     QGridLayout,
     QGroupBox,
     QLabel,
     QMessageBox,
     QPushButton,
+    QScrollArea,
     QSizePolicy,
     QTabWidget,
     QVBoxLayout,
@@ -135,7 +137,12 @@ class CommandsFrame(QWidget):
                 continue
             panel = getattr(module, class_name)(self.manager)
             self.panels[class_name] = panel
-            self.tabs.addTab(panel, title)
+            # A tall panel scrolls inside its tab instead of forcing the window taller than the screen.
+            scroll = QScrollArea()
+            scroll.setWidgetResizable(True)
+            scroll.setFrameShape(QFrame.Shape.NoFrame)
+            scroll.setWidget(panel)
+            self.tabs.addTab(scroll, title)
 
     def _sync_devices(self) -> None:
         for name, handle in self.manager.devices.items():

@@ -270,7 +270,7 @@ class ValuesFrame(QWidget):
                 grid.setColumnStretch(col, 1 if col < columns else 0)
 
     def fit_fonts(self) -> None:
-        """The largest value font (22 pt down to 14 pt), with 3, 4 or 6 tiles a row, at which every
+        """The largest value font (22 pt down to 14 pt), with 2, 3, 4 or 6 tiles a row, at which every
         tile fits without scrolling; wide frames use more columns so the numbers can stay large."""
         available = self.scroll.viewport().height()
         width = self.scroll.viewport().width()
@@ -283,14 +283,14 @@ class ValuesFrame(QWidget):
             fes_font.setBold(True)
             for label in self.fes_labels:
                 label.setFont(fes_font)
-            for columns in (3, 4, 6):
+            for columns in (2, 3, 4, 6):
                 self._set_columns(columns)
                 self.body.layout().activate()
                 if self.body.minimumSizeHint().width() > width:
                     break
                 if self.body.sizeHint().height() <= available:
                     return
-        self._set_columns(3)
+        self._set_columns(2)  # narrow and short: scroll vertically, never clip a number sideways
 
     # ------------------------------------------------------------------ reading
     def _latest(self, stream: str) -> Any:
