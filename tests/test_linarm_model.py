@@ -203,6 +203,7 @@ def test_homing_uses_the_endstrokes() -> None:
     assert host.drain()[0] == Identify(0, 1, "LINarm2", "sim-1.0")  # boot message
     assert core.vsa_state().equilibrium_pos == pytest.approx(0.0)  # encoders count from power-up
     host.ok("goToHome")
+    t0 = core.time
     assert core.ctrl_state is ControlState.HOME_CTRL_STATE
     seen: list[HomeState] = []
     for _ in range(3000):
@@ -213,11 +214,13 @@ def test_homing_uses_the_endstrokes() -> None:
             break
     assert seen == [HomeState.HOME_SEEK_MIN, HomeState.HOME_SEEK_MAX, HomeState.HOME_MOVE_TO_HOME,
                     HomeState.HOME_DONE]
+    assert core.time - t0 <= 5.0  # every exercise starts with a homing: keep it short
     assert core.endstroke_closures == [1, 1]  # each switch closed once
     assert core.error_state is ErrorState.NO_ERROR
     vsa = core.vsa_state()
     assert vsa.equilibrium_pos == pytest.approx(0.25, abs=0.002) == pytest.approx(centre(core), abs=0.001)
-    assert vsa.delta == pytest.approx(0.10, abs=0.002)
+    assert vsa.delta == pytest.approx(0.02, abs=0.002)  # pretension: carriages 0.10 m apart
+    assert core.x[1] - core.x[0] == pytest.approx(0.10, abs=0.002)
     assert vsa.handle_pos == pytest.approx(core.h, abs=0.001)
     assert host.ok("getIsInitialized").values == {"initialized": True}
     host.ok("setCtrlMode", int(ControlMode.POS_REF_BY_TARGET_POS))
@@ -326,7 +329,7 @@ def test_position_limit() -> None:
 def test_homing_failed_when_a_switch_never_closes() -> None:
     core = LinarmSimCore(LinarmParams(switch_min=-0.01), initial_centre=0.20)
     host = Host(core)
-    host.ok("setHomeParameter", 0.25, 0.10, 0.2)
+    host.ok("setHomeParameter", 0.25, 0.02, 0.2)
     host.ok("setMaxCurrent", 6.0)  # else the stalled carriage trips OVER_CURRENT first
     host.ok("goToHome")
     _trip(host, ErrorState.HOMING_FAILED, seconds=8.0)
@@ -348,7 +351,7 @@ def test_velocity_mode_integrates_and_clamps_at_limits() -> None:
     host.ok("setCentreVelocity", 0.0)
     host.ok("setDeltaVelocity", 0.02)
     host.run(1.0)
-    assert host.core.vsa_state().delta == pytest.approx(0.12, abs=0.003)
+    assert host.core.vsa_state().delta == pytest.approx(0.04, abs=0.003)
     assert host.send("setCentreVelocity", 2.0).code is ReplyError.OUT_OF_RANGE  # type: ignore[union-attr]
 
 
@@ -383,12 +386,28 @@ def test_stiffness_follows_delta() -> None:
     host.run(1.5)
     vsa = host.core.vsa_state()
     assert vsa.stiffness == pytest.approx(2000.0, rel=0.02) and vsa.stiffness > k0
-    assert vsa.delta > 0.10
+    assert vsa.delta > 0.02
     # the handle feels that stiffness: a 10 N push displaces it by about F/k
     host.core.patient = StepForce(10.0, start=host.core.time, ramp=0.3)
     host.run(1.0)
     assert host.core.h - centre(host.core) == pytest.approx(10.0 / 2000.0, rel=0.15)
     assert host.send("setStiffness", 99999.0, 0.05, 0.5, 0.0).code is ReplyError.OUT_OF_RANGE  # type: ignore[union-attr]
+
+
+def test_delta_is_the_spring_pretension() -> None:
+    """The seed's exercise (D2.2 Fig. 18) calls moveDeltaTo(0.010, 0.150, 0.150, 0, False) unmodified."""
+    host = ready_host(at=0.20)
+    core = host.core
+    assert core.vsa_state().delta == pytest.approx(0.02, abs=0.002)
+    host.ok("moveDeltaTo", 0.010, 0.150, 0.150, 0.0, False)
+    host.run(1.0)
+    vsa = core.vsa_state()
+    assert vsa.delta == pytest.approx(0.010, abs=0.001)
+    assert core.x[1] - core.x[0] == pytest.approx(0.010 + 2 * core.p.spring_free_length, abs=0.001)
+    assert vsa.stiffness == pytest.approx(450.0, rel=0.05)  # the softest setting
+    for bad in (0.005, 0.10):  # below the free length / a carriage distance, not a pretension
+        assert host.send("moveDeltaTo", bad, 0.1, 0.1, 0.0, False).code is ReplyError.OUT_OF_RANGE  # type: ignore[union-attr]
+    assert host.send("setHomeParameter", 0.25, 0.10, 0.2).code is ReplyError.OUT_OF_RANGE  # type: ignore[union-attr]
 
 
 def test_trigger_needs_a_trigger_mode_and_waits_for_it() -> None:

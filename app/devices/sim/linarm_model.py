@@ -12,10 +12,11 @@ Mechanics (SI units, x along the rail, + to the right):
 * The handle at h between them, tied to each carriage by a tension spring of free length L:
   elongations eL = (h - x0) - L and eR = (x1 - h) - L, tension f(e) = a*e + b*e**3 for e > 0
   (slack otherwise). The force on the handle is f(eR) - f(eL); at rest h = centre = (x0 + x1)/2.
-* delta = x1 - x0 (distance between the spring ends). Around the centre each spring is stretched by
-  e0 = delta/2 - L, so the VSA stiffness is k(delta) = 2*(a + 3*b*e0**2): it rises with delta
-  (pretension). With a = 150 N/m, b = 1e6 N/m^3, L = 0.04 m and delta in 0.09..0.14 m,
-  k spans 450..5700 N/m (900 N/m at the default 0.10 m).
+* delta (on the wire and in the state stream) is the springs' pretension displacement:
+  delta = (x1 - x0) - 2*L, the carriage distance minus both free lengths. Around the centre each
+  spring is stretched by e0 = delta/2, so the VSA stiffness is k(delta) = 2*(a + 3*b*(delta/2)**2):
+  it rises with the pretension. With a = 150 N/m, b = 1e6 N/m^3, L = 0.04 m and delta in
+  0.01..0.06 m (carriage distance 0.09..0.14 m), k spans 450..5700 N/m (900 N/m at the default 0.02 m).
 * Handle mass and viscous damping, rubber bumpers between handle and carriages, hard stops at the
   rail ends (0.0..0.50 m) and endstroke switches closing at 0.005 m (motor 0) and 0.495 m (motor 1).
 * An optional patient object adds ``handle_force(t, handle_pos, handle_vel)`` newtons on the handle.
@@ -63,6 +64,8 @@ FIRMWARE_VERSION = "sim-1.0"
 DT = 0.001  # s, the controller's loop period
 OUTBOX_LIMIT = 256 * 1024  # bytes kept for a host that does not read
 SEEK_LEAD = 0.005  # m, how far the homing reference may lead a carriage
+HOMING_VELOCITY = 0.2  # m/s, default endstroke seek speed
+HOME_SETTLE = 0.3  # s at rest after the move to home, before the handle encoder is referenced
 
 
 class PatientForce(Protocol):
@@ -90,8 +93,8 @@ class LinarmParams:
     spring_a: float = 150.0  # N/m
     spring_b: float = 1.0e6  # N/m^3
     spring_free_length: float = 0.04  # m
-    delta_min: float = 0.09  # m
-    delta_max: float = 0.14  # m
+    delta_min: float = 0.01  # m, pretension (carriage distance 0.09 m)
+    delta_max: float = 0.06  # m, pretension (carriage distance 0.14 m)
     bumper: float = 0.015  # m, closest handle-carriage distance before contact
     contact_stiffness: float = 5.0e4  # N/m
     contact_damping: float = 200.0  # N s/m
@@ -104,16 +107,24 @@ class LinarmParams:
             return 0.0
         return self.spring_a * elongation + self.spring_b * elongation**3
 
+    def span(self, delta: float) -> float:
+        """Carriage distance x1 - x0 for a pretension delta."""
+        return delta + 2.0 * self.spring_free_length
+
+    def delta_of(self, x0: float, x1: float) -> float:
+        """Pretension delta of carriages at x0 < x1."""
+        return (x1 - x0) - 2.0 * self.spring_free_length
+
     def stiffness(self, delta: float) -> float:
-        """k(delta) of the spring pair around the centre."""
-        e0 = delta / 2.0 - self.spring_free_length
+        """k(delta) of the spring pair around the centre; delta is the pretension displacement."""
+        e0 = delta / 2.0
         if e0 <= 0.0:
             return 0.0
         return 2.0 * (self.spring_a + 3.0 * self.spring_b * e0 * e0)
 
     def delta_for_stiffness(self, k: float) -> float:
         e0 = math.sqrt(max(0.0, (k / 2.0 - self.spring_a) / (3.0 * self.spring_b)))
-        return 2.0 * (self.spring_free_length + e0)
+        return 2.0 * e0
 
 
 # ---------------------------------------------------------------------------------------------
@@ -218,7 +229,7 @@ class LinarmSimCore:
     """LINarm2 + controller firmware. Time only moves with ``step``/``advance_to`` (1 kHz ticks)."""
 
     def __init__(self, params: LinarmParams | None = None, patient: PatientForce | None = None, *,
-                 initial_centre: float = 0.20, initial_delta: float = 0.10, start_homed: bool = False,
+                 initial_centre: float = 0.20, initial_delta: float = 0.02, start_homed: bool = False,
                  firmware_version: str = FIRMWARE_VERSION) -> None:
         self.p = params or LinarmParams()
         self.patient: PatientForce = patient or NoPatient()
@@ -228,7 +239,8 @@ class LinarmSimCore:
         self._clock = 0.0
         self._outbox = bytearray()
         # true mechanical state
-        self.x = [initial_centre - initial_delta / 2, initial_centre + initial_delta / 2]
+        span = self.p.span(initial_delta)
+        self.x = [initial_centre - span / 2, initial_centre + span / 2]
         self.v = [0.0, 0.0]
         self.h = initial_centre
         self.vh = 0.0
@@ -261,7 +273,8 @@ class LinarmSimCore:
         self.max_current = 5.0
         self.max_acc = 2.0
         self.max_vel = 0.5
-        self.home_centre, self.home_delta, self.homing_velocity = 0.25, 0.10, 0.05
+        # 0.2 m/s seek: a full homing takes ~4 s (every exercise starts with one)
+        self.home_centre, self.home_delta, self.homing_velocity = 0.25, 0.02, HOMING_VELOCITY
         self.ka = 0.005  # m/(N s)
         self.kt = 100.0  # N/m
         self.assist_target = 0.25
@@ -359,7 +372,7 @@ class LinarmSimCore:
     def vsa_state(self) -> VsaState:
         m = self._meas
         centre = (m["x"][0] + m["x"][1]) / 2
-        delta = m["x"][1] - m["x"][0]
+        delta = self.p.delta_of(m["x"][0], m["x"][1])
         return VsaState(self.t_us, centre, delta, self.p.stiffness(delta), m["h"], m["vh"], m["force"])
 
     def endstrokes_closed(self) -> tuple[bool, bool]:
@@ -381,7 +394,7 @@ class LinarmSimCore:
                  for i in (0, 1)]
             h = round((self.h - self._h_power) / res) * self.mobile_ratio + self.mobile_offset
         if self.demo:
-            force = self.f_ext if not self.virtual_vsa else p.stiffness(x[1] - x[0]) * self.virtual_disp
+            force = self.f_ext if not self.virtual_vsa else p.stiffness(p.delta_of(x[0], x[1])) * self.virtual_disp
         else:
             # the interaction force is read from the two spring elongations
             force = p.spring_tension(h - x[0] - p.spring_free_length) - p.spring_tension(
@@ -470,7 +483,7 @@ class LinarmSimCore:
         else:
             self.v = [0.0, 0.0]
         centre = (self.x[0] + self.x[1]) / 2
-        k = max(p.stiffness(self.x[1] - self.x[0]), 1.0)
+        k = max(p.stiffness(p.delta_of(self.x[0], self.x[1])), 1.0)
         old = self.h
         self.h = centre + (self.virtual_disp if self.virtual_vsa else self.f_ext / k)
         self.vh = (self.h - old) / DT
@@ -491,7 +504,8 @@ class LinarmSimCore:
     def _set_motor_refs(self, centre: float, delta: float, centre_vel: float, delta_vel: float) -> None:
         self.centre_ref, self.delta_ref = centre, delta
         self.centre_vel_ref, self.delta_vel_ref = centre_vel, delta_vel
-        self.motor_ref = [centre - delta / 2, centre + delta / 2]
+        half = self.p.span(delta) / 2
+        self.motor_ref = [centre - half, centre + half]
         self.motor_vel_ref = [centre_vel - delta_vel / 2, centre_vel + delta_vel / 2]
 
     def _ramp(self, current_vel: float, wanted: float) -> float:
@@ -573,7 +587,7 @@ class LinarmSimCore:
     def _start_move_home(self, m: dict[str, Any]) -> None:
         self.home_state = HomeState.HOME_MOVE_TO_HOME
         centre = (m["x"][0] + m["x"][1]) / 2
-        delta = m["x"][1] - m["x"][0]
+        delta = self.p.delta_of(m["x"][0], m["x"][1])
         self._set_motor_refs(centre, delta, 0.0, 0.0)
         vel = max(self.homing_velocity, 0.05)
         self.centre_traj = plan_trajectory(centre, self.home_centre, vel, self.max_acc, 0.0, self.trajectory_type)
@@ -609,7 +623,7 @@ class LinarmSimCore:
             if done_c and done_d:
                 self.centre_traj = self.delta_traj = None
                 if self._home_settle_until is None:
-                    self._home_settle_until = t + 0.3
+                    self._home_settle_until = t + HOME_SETTLE
                 elif t >= self._home_settle_until:
                     # no load on the handle at rest: it sits at the centre, which references it
                     mm = self._measure()
@@ -653,7 +667,7 @@ class LinarmSimCore:
         """Bumpless start: references at the measured positions, integrators cleared."""
         self._clear_motion()
         centre = (m["x"][0] + m["x"][1]) / 2
-        self._set_motor_refs(centre, m["x"][1] - m["x"][0], 0.0, 0.0)
+        self._set_motor_refs(centre, self.p.delta_of(m["x"][0], m["x"][1]), 0.0, 0.0)
         for pid in self.pid:
             pid.integral = 0.0
         self._over_current_since = None
