@@ -61,6 +61,7 @@ class Alarm:
 
 
 EventSink = Callable[[str, dict[str, Any]], None]
+ROBOT_MONITOR_GRACE_SAMPLES = 5
 
 # Commands that only read, stop or make things safer: allowed even while the e-stop is latched.
 _ALWAYS_ALLOWED = {
@@ -91,6 +92,7 @@ class SafetySupervisor(QObject):
         self.latest_centre_m: Callable[[], float | None] = lambda: None
         self.robot_homed: Callable[[], bool] = lambda: False
         self._robot_excursion = False
+        self._samples_homed = 0
 
     # ------------------------------------------------------------------ events
     @property
@@ -134,6 +136,9 @@ class SafetySupervisor(QObject):
         # Before homing the encoders are not referenced: positions and the force read from the spring
         # elongations mean nothing yet (the firmware's own limits cover homing). Speed is valid always.
         homed = self.robot_homed()
+        self._samples_homed = self._samples_homed + 1 if homed else 0
+        # The first samples after referencing may still carry the old reference: skip a few (25 ms at 200 Hz).
+        homed = self._samples_homed > ROBOT_MONITOR_GRACE_SAMPLES
         if abs(vsa.handleVel) > 1.2 * lim.max_velocity_m_s:
             problem = f"handle speed {abs(vsa.handleVel):.3f} m/s above the limit {lim.max_velocity_m_s:.3f} m/s"
         elif homed and abs(vsa.interactionForce) > lim.max_interaction_force_n:

@@ -67,7 +67,10 @@ def test_measured_excursion_stops_the_robot_once_per_excursion() -> None:
     s.register_estop_action("FES stop", lambda reason: stops.append("fes"))
     ok = SimpleNamespace(handleVel=0.1, interactionForce=5.0, handlePos=0.3)
     fast = SimpleNamespace(handleVel=0.9, interactionForce=5.0, handlePos=0.3)
-    s.check_robot_sample(ok)
+    # Right after homing a few samples may carry the old encoder reference: they are not judged on force.
+    s.check_robot_sample(SimpleNamespace(handleVel=0.0, interactionForce=9000.0, handlePos=0.0))
+    for _ in range(10):
+        s.check_robot_sample(ok)
     assert stops == []
     s.check_robot_sample(fast)
     s.check_robot_sample(fast)

@@ -35,8 +35,11 @@ log = logging.getLogger(__name__)
 # (tab title, module, class, only when a device is simulated)
 PANELS: list[tuple[str, str, str, bool]] = [
     ("Robot", "app.ui.linarm_panel", "LinarmPanel", False),
+    ("Robot view", "app.ui.linarm_viewer", "LinarmViewer", False),
     ("FES", "app.ui.fes_panel", "FesPanel", False),
     ("Assistance", "app.ui.assistance_panel", "AssistancePanel", False),
+    ("Patient model", "app.ui.patient_model_viewer", "PatientModelViewer", False),
+    ("VR", "app.ui.vr_viewer", "VrViewer", False),
     ("Script", "app.ui.script_console", "ScriptConsole", False),
     ("Simulation", "app.ui.simulation_panel", "SimulationPanel", True),
     ("Alarms", "app.ui.alarms_panel", "AlarmsPanel", False),

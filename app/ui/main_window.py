@@ -142,6 +142,13 @@ class MainWindow(QMainWindow):
         self.estop_label = QLabel("")
         self.estop_label.setStyleSheet("color: #c62828; font-weight: bold; font-size: 16px;")
         row.addWidget(self.estop_label)
+        from app.ui.alarms_panel import AlarmBanner
+
+        self.alarm_banner = AlarmBanner(self.manager)
+        self.alarm_banner.show_alarms_requested.connect(self.show_alarms)
+        self.alarm_banner.setSizePolicy(QSizePolicy.Policy.Ignored, QSizePolicy.Policy.Preferred)
+        self.alarm_banner.setMinimumWidth(160)
+        row.addWidget(self.alarm_banner, 2)
         self.session_label = QLabel()
         self.session_label.setObjectName("SessionLabel")
         # Long patient/folder names must not widen the window's minimum size (1366×768 screens).
@@ -286,6 +293,16 @@ class MainWindow(QMainWindow):
 
         self._browser = SessionsBrowser(sessions_root(self.manager.config), self.manager.config.ui.history_s)
         self._browser.show()
+
+    def show_alarms(self) -> None:
+        commands = self.frames.get("CommandsFrame")
+        tabs = getattr(commands, "tabs", None)
+        if tabs is None:
+            return
+        self.docks["CommandsFrame"].show()
+        for i in range(tabs.count()):
+            if tabs.tabText(i) == "Alarms":
+                tabs.setCurrentIndex(i)
 
     def _on_estop_changed(self, latched: bool, reason: str) -> None:
         self.estop_reset.setEnabled(latched)

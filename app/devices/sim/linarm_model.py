@@ -628,6 +628,7 @@ class LinarmSimCore:
                     # no load on the handle at rest: it sits at the centre, which references it
                     mm = self._measure()
                     self.mobile_offset += (mm["x"][0] + mm["x"][1]) / 2 - mm["h"]
+                    self._meas = self._measure()  # the state sent with `initialized` uses the new reference
                     self.initialized = True
                     self.home_state = HomeState.HOME_DONE
             return

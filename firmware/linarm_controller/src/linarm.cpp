@@ -299,7 +299,13 @@ void Linarm::homing() {
         settleUntil_ = ticks_ + cfg::HOME_SETTLE_TICKS;
       } else if (static_cast<int32_t>(ticks_ - settleUntil_) >= 0) {
         // at rest and without load the handle sits at the centre: that references its encoder
-        if (!demo_) mobileOffset_ += vsa::centreOf(meas_.x[0], meas_.x[1]) - meas_.h;
+        if (!demo_) {
+          const float shift = vsa::centreOf(meas_.x[0], meas_.x[1]) - meas_.h;
+          mobileOffset_ += shift;
+          // The state sent with `initialized` must already use the new handle reference.
+          meas_.h += shift;
+          meas_.force = vsa::interactionForce(meas_.x[0], meas_.x[1], meas_.h);
+        }
         initialized_ = true;
         homeState_ = proto::HOME_DONE;
       }

@@ -1,0 +1,309 @@
+"""Alarms: the safety supervisor's graded alarms (information, warning, stop, fatal) as a list with
+level colours, time, source, text and acknowledgement, plus a compact banner for the main window.
+
+The supervisor owns the alarms and records each one -- and each acknowledgement, with the
+operator's name -- as a session event; this module only shows them and asks it to acknowledge.
+STOP and FATAL alarms also sound: once when raised, then again every ``repeat_s`` seconds while
+any of them is unacknowledged (QtMultimedia is not in PySide6-Essentials, so the sound is
+``QApplication.beep()``; ``beep`` is an attribute so tests can count the calls).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from PySide6.QtCore import Qt, QTimer, Signal
+from PySide6.QtGui import QBrush, QColor, QFont
+from PySide6.QtWidgets import (
+    QAbstractItemView,
+    QApplication,
+    QCheckBox,
+    QFrame,
+    QHBoxLayout,
+    QHeaderView,
+    QLabel,
+    QLineEdit,
+    QPushButton,
+    QSizePolicy,
+    QTreeWidget,
+    QTreeWidgetItem,
+    QVBoxLayout,
+    QWidget,
+)
+
+from app.manager import LinarmppManager
+from app.safety import Alarm, AlarmLevel
+
+
+@dataclass(frozen=True)
+class LevelStyle:
+    name: str
+    background: str
+    foreground: str
+
+
+# One place for the alarm colours (IEC 60601-1-8 spirit: the higher the priority, the louder the colour).
+LEVEL_STYLES: dict[AlarmLevel, LevelStyle] = {
+    AlarmLevel.INFO: LevelStyle("Information", "#cfe3f5", "#0d3c61"),   # pale blue
+    AlarmLevel.WARNING: LevelStyle("Warning", "#ffb300", "#1a1a1a"),    # amber
+    AlarmLevel.STOP: LevelStyle("Stop", "#d32f2f", "#ffffff"),          # red
+    AlarmLevel.FATAL: LevelStyle("Fatal", "#6a0046", "#ffffff"),        # dark magenta
+}
+SOUNDING = AlarmLevel.STOP  # this level and above sound
+COLUMNS = ("Level", "Time", "Source", "Status", "Message")
+MESSAGE_COLUMN = COLUMNS.index("Message")
+
+
+def fixed_lines(label: QLabel, lines: int = 2) -> QLabel:
+    """A wrapping label of a fixed number of lines: it wraps, but gives its layout no height-for-width
+    (which would make an enclosing scroll area size the whole panel by its preferred height)."""
+    label.setWordWrap(True)
+    label.setSizePolicy(QSizePolicy.Policy.Ignored, QSizePolicy.Policy.Fixed)
+    label.setFixedHeight(lines * label.fontMetrics().lineSpacing() + 6)
+    return label
+
+
+def alarm_time(alarm: Alarm) -> str:
+    return time.strftime("%H:%M:%S", time.localtime(alarm.t_wall))
+
+
+def highest_unacknowledged(alarms: list[Alarm]) -> tuple[Alarm | None, int]:
+    """The most urgent unacknowledged alarm (newest among the highest level) and how many are open."""
+    open_ = [a for a in alarms if not a.acknowledged]
+    if not open_:
+        return None, 0
+    return max(open_, key=lambda a: (int(a.level), a.ident)), len(open_)
+
+
+class AlarmsPanel(QWidget):
+    """The alarm list with Acknowledge selected / all (operator's name required)."""
+
+    def __init__(self, manager: LinarmppManager, repeat_s: float = 15.0) -> None:
+        super().__init__()
+        self.manager = manager
+        self.supervisor = manager.supervisor
+        self.beep: Callable[[], None] = QApplication.beep
+        self.beeps = 0
+        self.acknowledged_by: dict[int, str] = {}  # ident -> operator (the supervisor keeps only the flag)
+
+        lay = QVBoxLayout(self)
+        lay.setContentsMargins(2, 2, 2, 2)
+        lay.setSpacing(4)
+        self.summary = QLabel()
+        self.summary.setObjectName("alarmSummary")
+        fixed_lines(self.summary)
+        lay.addWidget(self.summary)
+
+        self.tree = QTreeWidget()
+        self.tree.setObjectName("alarmList")
+        self.tree.setAccessibleName("Alarms")
+        self.tree.setColumnCount(len(COLUMNS))
+        self.tree.setHeaderLabels(list(COLUMNS))
+        self.tree.setRootIsDecorated(False)
+        self.tree.setUniformRowHeights(True)
+        self.tree.setAlternatingRowColors(False)
+        self.tree.setSelectionMode(QAbstractItemView.SelectionMode.ExtendedSelection)
+        header = self.tree.header()
+        header.setStretchLastSection(False)
+        for col in range(len(COLUMNS)):
+            header.setSectionResizeMode(col, QHeaderView.ResizeMode.ResizeToContents)
+        header.setSectionResizeMode(MESSAGE_COLUMN, QHeaderView.ResizeMode.Stretch)
+        # A long message is elided in the row; the selected alarm's full text is shown below the list.
+        self.tree.itemSelectionChanged.connect(self._show_details)
+        lay.addWidget(self.tree, 1)
+
+        row = QHBoxLayout()
+        op_label = QLabel("&Operator:")
+        self.operator = QLineEdit()
+        self.operator.setObjectName("operator")
+        self.operator.setPlaceholderText("name of who acknowledges")
+        self.operator.setMaximumWidth(200)
+        op_label.setBuddy(self.operator)
+        self.ack_selected = QPushButton("&Acknowledge selected")
+        self.ack_selected.clicked.connect(self.acknowledge_selected)
+        self.ack_all = QPushButton("Acknowledge a&ll")
+        self.ack_all.clicked.connect(self.acknowledge_all)
+        self.show_acknowledged = QCheckBox("Show ac&knowledged")
+        self.show_acknowledged.setChecked(True)
+        self.show_acknowledged.toggled.connect(lambda _on: self.refresh())
+        row.addWidget(op_label)
+        row.addWidget(self.operator)
+        row.addWidget(self.ack_selected)
+        row.addWidget(self.ack_all)
+        row.addStretch(1)
+        row.addWidget(self.show_acknowledged)
+        lay.addLayout(row)
+        self.message = QLabel("")
+        self.message.setObjectName("alarmMessage")
+        fixed_lines(self.message)
+        lay.addWidget(self.message)
+
+        self.repeat = QTimer(self)
+        self.repeat.setInterval(int(repeat_s * 1000))
+        self.repeat.timeout.connect(self._repeat_sound)
+        self.supervisor.alarm_raised.connect(self._on_alarm)
+        self.supervisor.alarms_changed.connect(self.refresh)
+        self.refresh()
+
+    # ------------------------------------------------------------------ sound
+    def _sound(self) -> None:
+        self.beeps += 1
+        try:
+            self.beep()
+        except Exception:  # a missing sound device must never take the alarm list down
+            pass
+
+    def _on_alarm(self, alarm: Alarm) -> None:
+        if alarm.level >= SOUNDING:
+            self._sound()
+        self.refresh()
+
+    def _repeat_sound(self) -> None:
+        if any(a.level >= SOUNDING and not a.acknowledged for a in self.supervisor.alarms()):
+            self._sound()
+
+    # ------------------------------------------------------------------ acknowledgement
+    def _operator(self) -> str | None:
+        name = self.operator.text().strip()
+        if not name:
+            self.message.setText("Type the operator's name before acknowledging: it goes into the session record.")
+            self.message.setStyleSheet("color: #c62828; font-weight: bold;")
+            self.operator.setFocus()
+            return None
+        return name
+
+    def acknowledge(self, idents: list[int]) -> int:
+        """Acknowledge these alarms in the operator's name; returns how many were acknowledged."""
+        operator = self._operator()
+        if operator is None:
+            return 0
+        open_ids = {a.ident for a in self.supervisor.alarms() if not a.acknowledged}
+        done = 0
+        for ident in idents:
+            if ident in open_ids:
+                self.acknowledged_by[ident] = operator
+                self.supervisor.acknowledge(ident, operator)
+                done += 1
+        self.message.setText(f"{done} alarm(s) acknowledged by {operator}." if done else "Nothing to acknowledge.")
+        self.message.setStyleSheet("")
+        self.refresh()
+        return done
+
+    def acknowledge_selected(self) -> int:
+        idents = [int(item.data(0, Qt.ItemDataRole.UserRole)) for item in self.tree.selectedItems()]
+        if not idents:
+            self.message.setText("Select the alarms to acknowledge first (or use Acknowledge all).")
+            self.message.setStyleSheet("")
+            return 0
+        return self.acknowledge(idents)
+
+    def acknowledge_all(self) -> int:
+        return self.acknowledge([a.ident for a in self.supervisor.alarms() if not a.acknowledged])
+
+    # ------------------------------------------------------------------ list
+    def refresh(self) -> None:
+        alarms = self.supervisor.alarms()
+        selected = {int(i.data(0, Qt.ItemDataRole.UserRole)) for i in self.tree.selectedItems()}
+        self.tree.clear()
+        shown = [a for a in reversed(alarms) if self.show_acknowledged.isChecked() or not a.acknowledged]
+        for alarm in shown[:1000]:
+            style = LEVEL_STYLES[alarm.level]
+            if alarm.acknowledged:
+                who = self.acknowledged_by.get(alarm.ident)
+                status = f"ack. {who}" if who else "ack."
+            else:
+                status = "ACTIVE"
+            item = QTreeWidgetItem([style.name.upper(), alarm_time(alarm), alarm.source, status, alarm.text])
+            item.setData(0, Qt.ItemDataRole.UserRole, alarm.ident)
+            item.setToolTip(MESSAGE_COLUMN, alarm.text)
+            bg, fg = QBrush(QColor(style.background)), QBrush(QColor(style.foreground))
+            font = QFont(self.tree.font())
+            font.setBold(not alarm.acknowledged)
+            for col in range(len(COLUMNS)):
+                item.setFont(col, font)
+                if col == 0 or not alarm.acknowledged:
+                    item.setBackground(col, bg)
+                    item.setForeground(col, fg)
+            self.tree.addTopLevelItem(item)
+            if alarm.ident in selected:
+                item.setSelected(True)
+        top, count = highest_unacknowledged(alarms)
+        if top is None:
+            self.summary.setText(f"No active alarms ({len(alarms)} in this session).")
+            self.summary.setStyleSheet("")
+            self.repeat.stop()
+        else:
+            style = LEVEL_STYLES[top.level]
+            self.summary.setText(f"{count} active alarm(s); most urgent: {style.name.upper()} — {top.text}")
+            self.summary.setStyleSheet(f"background: {style.background}; color: {style.foreground};"
+                                       " font-weight: bold; padding: 3px;")
+            if top.level >= SOUNDING and not self.repeat.isActive():
+                self.repeat.start()
+            elif top.level < SOUNDING:
+                self.repeat.stop()
+        self.ack_all.setEnabled(count > 0)
+
+    def _show_details(self) -> None:
+        items = self.tree.selectedItems()
+        if len(items) != 1:
+            return
+        ident = int(items[0].data(0, Qt.ItemDataRole.UserRole))
+        alarm = next((a for a in self.supervisor.alarms() if a.ident == ident), None)
+        if alarm is not None:
+            style = LEVEL_STYLES[alarm.level]
+            self.message.setText(f"{style.name.upper()} #{alarm.ident} at {alarm_time(alarm)} from {alarm.source}: "
+                                 f"{alarm.text}")
+            self.message.setStyleSheet("")
+
+    def level_colour_of_row(self, row: int) -> str:
+        """Background colour name of the level cell of ``row`` (tests)."""
+        item = self.tree.topLevelItem(row)
+        return item.background(0).color().name()
+
+
+class AlarmBanner(QFrame):
+    """One line for the main window (under the e-stop): the most urgent unacknowledged alarm in its
+    level's colour, and how many more are open. ``show_alarms_requested`` asks the window to show
+    the alarms panel."""
+
+    show_alarms_requested = Signal()
+
+    def __init__(self, manager: LinarmppManager) -> None:
+        super().__init__()
+        self.manager = manager
+        self.setObjectName("AlarmBanner")
+        self.setFrameShape(QFrame.Shape.StyledPanel)
+        row = QHBoxLayout(self)
+        row.setContentsMargins(6, 2, 6, 2)
+        self.label = QLabel()
+        self.label.setObjectName("alarmBannerText")
+        self.label.setSizePolicy(QSizePolicy.Policy.Ignored, QSizePolicy.Policy.Preferred)
+        row.addWidget(self.label, 1)
+        self.button = QPushButton("Alarms…")
+        self.button.setToolTip("Show the alarm list to acknowledge")
+        self.button.clicked.connect(self.show_alarms_requested.emit)
+        row.addWidget(self.button)
+        self.current: Alarm | None = None
+        manager.supervisor.alarms_changed.connect(self.refresh)
+        self.refresh()
+
+    def refresh(self) -> None:
+        top, count = highest_unacknowledged(self.manager.supervisor.alarms())
+        self.current = top
+        if top is None:
+            self.label.setText("No active alarms")
+            self.setStyleSheet("")
+            self.label.setStyleSheet("color: #757575;")
+            self.setAccessibleName("No active alarms")
+            return
+        style = LEVEL_STYLES[top.level]
+        # The count goes first: a long message is what gets clipped in a narrow window.
+        more = f" (+{count - 1} more)" if count > 1 else ""
+        text = f"{style.name.upper()}{more} · {alarm_time(top)} · {top.source}: {top.text}"
+        self.label.setText(text)
+        self.label.setToolTip(text)
+        self.setStyleSheet(f"#AlarmBanner {{ background: {style.background}; }}")
+        self.label.setStyleSheet(f"color: {style.foreground}; font-weight: bold;")
+        self.setAccessibleName(text)

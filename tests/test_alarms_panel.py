@@ -1,0 +1,120 @@
+"""Alarms panel and banner: level colours (distinct, one per grade), acknowledgement with the
+operator's name (recorded as a session event by the supervisor), the audible signal on STOP and
+FATAL only (repeated while unacknowledged), and alarms raised from another thread."""
+
+from __future__ import annotations
+
+import threading
+from typing import Any
+
+from PySide6.QtCore import Qt
+from PySide6.QtWidgets import QScrollArea
+
+from app.config import AppConfig
+from app.manager import LinarmppManager
+from app.safety import AlarmLevel
+from app.ui.alarms_panel import LEVEL_STYLES, AlarmBanner, AlarmsPanel, highest_unacknowledged
+
+
+def _setup(qtbot, repeat_s: float = 60.0) -> tuple[LinarmppManager, AlarmsPanel, list[tuple[str, dict[str, Any]]]]:
+    manager = LinarmppManager(AppConfig(), factories={})
+    events: list[tuple[str, dict[str, Any]]] = []
+    manager.supervisor.set_event_sink(lambda kind, data: events.append((kind, data)))
+    panel = AlarmsPanel(manager, repeat_s=repeat_s)
+    panel.beep = lambda: None  # counted in panel.beeps; no sound in tests
+    qtbot.addWidget(panel)
+    panel.resize(680, 380)
+    panel.show()
+    return manager, panel, events
+
+
+def test_levels_are_colour_coded_and_only_stop_and_fatal_beep(qtbot) -> None:
+    manager, panel, _events = _setup(qtbot)
+    sup = manager.supervisor
+    sup.raise_alarm(AlarmLevel.INFO, "linarm", "linarm reconnected")
+    sup.raise_alarm(AlarmLevel.WARNING, "physio", "physio stopped sending data")
+    assert panel.beeps == 0
+    sup.raise_alarm(AlarmLevel.STOP, "linarm", "LINarm error: TRACKING_ERROR")
+    assert panel.beeps == 1
+    sup.raise_alarm(AlarmLevel.FATAL, "fes", "stimulator lost")
+    assert panel.beeps == 2
+    # newest first: FATAL, STOP, WARNING, INFO
+    rows = [panel.tree.topLevelItem(i) for i in range(panel.tree.topLevelItemCount())]
+    assert [r.text(0) for r in rows] == ["FATAL", "STOP", "WARNING", "INFORMATION"]
+    colours = [panel.level_colour_of_row(i) for i in range(4)]
+    expected = [LEVEL_STYLES[lv].background for lv in (AlarmLevel.FATAL, AlarmLevel.STOP, AlarmLevel.WARNING,
+                                                       AlarmLevel.INFO)]
+    assert colours == expected and len(set(colours)) == 4
+    assert LEVEL_STYLES[AlarmLevel.STOP].background == "#d32f2f"  # red
+    assert LEVEL_STYLES[AlarmLevel.WARNING].background == "#ffb300"  # amber
+    assert "FATAL" in panel.summary.text() and "4 active" in panel.summary.text()
+    assert panel.repeat.isActive()
+
+
+def test_acknowledge_needs_an_operator_and_is_recorded(qtbot) -> None:
+    manager, panel, events = _setup(qtbot)
+    sup = manager.supervisor
+    stop = sup.raise_alarm(AlarmLevel.STOP, "robot monitor", "Robot stopped: handle speed")
+    warn = sup.raise_alarm(AlarmLevel.WARNING, "physio", "physio stopped sending data")
+    panel.tree.topLevelItem(1).setSelected(True)  # the STOP (newest first)
+    qtbot.mouseClick(panel.ack_selected, Qt.MouseButton.LeftButton)
+    assert "operator" in panel.message.text() and not any(a.acknowledged for a in sup.alarms())
+    qtbot.keyClicks(panel.operator, "Dr Rossi")
+    panel.tree.topLevelItem(1).setSelected(True)
+    qtbot.mouseClick(panel.ack_selected, Qt.MouseButton.LeftButton)
+    acked = {a.ident: a.acknowledged for a in sup.alarms()}
+    assert acked == {stop.ident: True, warn.ident: False}
+    assert ("alarm_acknowledged", {"ident": stop.ident, "operator": "Dr Rossi"}) in events
+    assert [kind for kind, _d in events].count("alarm") == 2  # each alarm is an event too
+    assert not panel.repeat.isActive()  # no unacknowledged STOP/FATAL left: the sound stops
+    row = next(panel.tree.topLevelItem(i) for i in range(2) if panel.tree.topLevelItem(i).text(0) == "STOP")
+    assert row.text(3) == "ack. Dr Rossi"
+    qtbot.mouseClick(panel.ack_all, Qt.MouseButton.LeftButton)
+    assert all(a.acknowledged for a in sup.alarms()) and not panel.ack_all.isEnabled()
+    assert "No active alarms" in panel.summary.text()
+    panel.show_acknowledged.setChecked(False)
+    assert panel.tree.topLevelItemCount() == 0
+
+
+def test_sound_repeats_while_a_stop_is_unacknowledged(qtbot) -> None:
+    manager, panel, _events = _setup(qtbot, repeat_s=0.05)
+    manager.supervisor.raise_alarm(AlarmLevel.STOP, "linarm", "connection lost")
+    qtbot.waitUntil(lambda: panel.beeps >= 3, timeout=2000)
+    panel.operator.setText("nurse")
+    assert panel.acknowledge_all() == 1
+    assert not panel.repeat.isActive()
+
+
+def test_banner_shows_the_most_urgent_open_alarm_and_follows_other_threads(qtbot) -> None:
+    manager, panel, _events = _setup(qtbot)
+    banner = AlarmBanner(manager)
+    qtbot.addWidget(banner)
+    assert banner.current is None and "No active alarms" in banner.label.text()
+    sup = manager.supervisor
+    worker = threading.Thread(target=lambda: sup.raise_alarm(AlarmLevel.WARNING, "physio", "silent"))
+    worker.start()
+    worker.join()
+    qtbot.waitUntil(lambda: banner.current is not None and panel.tree.topLevelItemCount() == 1, timeout=2000)
+    stop = sup.raise_alarm(AlarmLevel.STOP, "linarm", "LINarm error: OVER_FORCE")
+    sup.raise_alarm(AlarmLevel.INFO, "operator", "note")
+    assert banner.current is stop and banner.label.text().startswith("STOP (+2 more) · ")
+    assert LEVEL_STYLES[AlarmLevel.STOP].background in banner.styleSheet()
+    with qtbot.waitSignal(banner.show_alarms_requested, timeout=1000):
+        banner.button.click()
+    sup.acknowledge(stop.ident, "x")
+    assert banner.current is not None and banner.current.level is AlarmLevel.WARNING
+    assert highest_unacknowledged([]) == (None, 0)
+
+
+def test_fits_a_scroll_area_without_scrolling_as_a_whole(qtbot) -> None:
+    manager, panel, _events = _setup(qtbot)
+    manager.supervisor.raise_alarm(AlarmLevel.STOP, "linarm", "a long message " * 20)
+    outer = QScrollArea()
+    outer.setWidgetResizable(True)
+    panel.setParent(None)
+    outer.setWidget(panel)
+    qtbot.addWidget(outer)
+    outer.resize(680, 300)
+    outer.show()
+    qtbot.waitExposed(outer)
+    assert outer.verticalScrollBar().maximum() == 0
