@@ -1,0 +1,148 @@
+"""``python main.py --headless --script FILE [--duration S] [--record DIR]``: a script without a window.
+
+Starts the configured devices (simulated by default), waits for them, homes the LINarm when the
+controller says it is not homed (as the seed's scripts assume), runs the script, prints its output,
+records the session when asked (app.recording.SessionRecorder, into ``DIR/<patient>/<date-time>/``),
+brings the devices to a safe state and exits:
+
+* 0 — the script finished, or was stopped because ``--duration`` was reached (counted from the start of
+  the script's own code, after any homing);
+* 1 — the script raised an error (its traceback is printed), or could not be read or compiled;
+* 3 — a safety stop: a command refused by the safety supervisor, an emergency stop, or an alarm of
+  level STOP (e.g. the LINarm latched an error) during the run;
+* 130 — interrupted (Ctrl-C).
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from app.config import AppConfig
+
+log = logging.getLogger(__name__)
+
+EXIT_OK, EXIT_ERROR, EXIT_SAFETY, EXIT_INTERRUPTED = 0, 1, 3, 130
+CONNECT_TIMEOUT_S = 10.0
+HEADLESS_PATIENT = "headless"
+
+
+def run_headless(config: AppConfig, script_path: str, duration_s: float | None = None,
+                 record_dir: str | None = None, *, home_first: bool = True,
+                 prepare: Callable[[Any], None] | None = None,
+                 output: Callable[[str, str], None] | None = None) -> int:
+    """Run ``script_path`` against the devices of ``config``; returns the process exit code.
+
+    ``prepare(manager)`` runs once the devices are connected, before the script (tests use it to set the
+    simulated patient's behaviour); ``output(stream, text)`` replaces printing to stdout/stderr."""
+    from PySide6.QtCore import QCoreApplication
+
+    from app.manager import LinarmppManager
+    from app.safety import AlarmLevel
+    from app.scripting.runner import ScriptRunner
+
+    path = Path(script_path)
+    try:
+        source = path.read_text(encoding="utf-8")
+        compile(source, str(path), "exec")
+    except (OSError, SyntaxError, ValueError) as exc:
+        print(f"Cannot run {script_path}: {exc}", file=sys.stderr)
+        return EXIT_ERROR
+    app = QCoreApplication.instance() or QCoreApplication([sys.argv[0] if sys.argv else "linarmpp"])
+    manager = LinarmppManager(config)
+    recorder = None
+    code = EXIT_OK
+    try:
+        manager.start()
+        _wait_connected(manager, app)
+        if prepare is not None:
+            prepare(manager)
+        if record_dir:
+            from app.recording import SessionRecorder
+
+            recorder = SessionRecorder()
+            folder = recorder.start(manager, HEADLESS_PATIENT, "headless runner", note=f"script {path.name}",
+                                    root=Path(record_dir))
+            _emit(output, "info", f"Recording the session in {folder}\n")
+        alarms_before = {a.ident for a in manager.supervisor.alarms()}
+        runner = ScriptRunner(manager, output or _print_sink, home_first=home_first)
+        runner.start(source, str(path.resolve()))
+        safety_stop = ""
+        try:
+            while not runner.wait(0.02):
+                app.processEvents()
+                t0 = runner.body_started_at  # the duration is the script's own: homing first does not count
+                if (duration_s is not None and t0 is not None and time.monotonic() - t0 >= duration_s
+                        and not runner.stop_reason):
+                    runner.request_stop(f"the duration of {duration_s:g} s was reached")
+                if not safety_stop:
+                    safety_stop = _safety_stop(manager, alarms_before, AlarmLevel.STOP)
+                    if safety_stop:
+                        runner.request_stop(f"safety stop: {safety_stop}")
+        except KeyboardInterrupt:
+            runner.stop("interrupted (Ctrl-C)")
+            runner.wait(5.0)
+            return EXIT_INTERRUPTED
+        _let_the_record_show_the_safe_state(manager, app)
+        result = runner.result
+        safety_stop = safety_stop or _safety_stop(manager, alarms_before, AlarmLevel.STOP)
+        if result is None or result.status == "error":
+            code = EXIT_ERROR
+        elif result.status == "refused" or safety_stop:
+            code = EXIT_SAFETY
+            if safety_stop:
+                _emit(output, "stderr", f"Safety stop: {safety_stop}\n")
+    finally:
+        if recorder is not None:
+            recorder.stop("headless run ended")
+        manager.shutdown()
+        app.processEvents()
+    return code
+
+
+def _wait_connected(manager: Any, app: Any) -> None:
+    deadline = time.monotonic() + CONNECT_TIMEOUT_S
+    while not manager.all_connected() and time.monotonic() < deadline:
+        app.processEvents()
+        time.sleep(0.02)
+    missing = [name for name, h in manager.devices.items() if not h.driver.connected]
+    if missing:
+        log.warning("headless: not connected after %.0f s: %s (the script may fail on them)",
+                    CONNECT_TIMEOUT_S, ", ".join(missing))
+
+
+def _let_the_record_show_the_safe_state(manager: Any, app: Any, timeout_s: float = 0.5) -> None:
+    """The LINarm reports its state at 20 Hz: wait for a state sample taken after the safe state, so that a
+    recording ends with it (IDLE, or still ON when holding)."""
+    driver = manager.driver("linarm")
+    if driver is None or not driver.connected:
+        return
+    before = driver.total_samples("linarm.state")
+    deadline = time.monotonic() + timeout_s
+    while driver.total_samples("linarm.state") < before + 2 and time.monotonic() < deadline:
+        app.processEvents()
+        time.sleep(0.01)
+
+
+def _safety_stop(manager: Any, before: set[int], level: Any) -> str:
+    sup = manager.supervisor
+    if sup.estop_latched:
+        return "the emergency stop is latched"
+    for alarm in sup.alarms():
+        if alarm.ident not in before and alarm.level >= level:
+            return alarm.text
+    return ""
+
+
+def _emit(output: Callable[[str, str], None] | None, stream: str, text: str) -> None:
+    (output or _print_sink)(stream, text)
+
+
+def _print_sink(stream: str, text: str) -> None:
+    target = sys.stderr if stream == "stderr" else sys.stdout
+    target.write(text)
+    target.flush()
