@@ -33,6 +33,9 @@ from app.devices.sciencemode import (
 
 _EPS = 1e-9
 
+# Peaks or scales below this are treated as zero: dividing by a subnormal overflows (found by hypothesis).
+_NEGLIGIBLE = 1e-9
+
 
 class FesLimitError(Exception):
     """A commanded stimulation is outside the limits; ``reason`` is a sentence for the user."""
@@ -319,11 +322,11 @@ class FesLimiter:
                 2e-6 * config.channel_frequency_hz(ch) * PulseMode(mode).pulses
             )  # duty per µs of width
             if knob == "current":
-                if peak_current <= 0:
+                if peak_current <= _NEGLIGIBLE:
                     continue
                 candidates = [(cap_current / peak_current, f"channel {ch} current cap {cap_current:g} mA")]
                 width = other_scale * peak_width
-                if width > 0:
+                if width > _NEGLIGIBLE:
                     candidates.append(
                         (
                             cap_rms / (peak_current * math.sqrt(per_pulse * width)),
@@ -331,11 +334,11 @@ class FesLimiter:
                         )
                     )
             else:
-                if peak_width <= 0:
+                if peak_width <= _NEGLIGIBLE:
                     continue
                 candidates = [(cap_width / peak_width, f"channel {ch} pulse-width cap {cap_width:g} µs")]
                 current = other_scale * peak_current
-                if current > 0:
+                if current > _NEGLIGIBLE:
                     candidates.append(
                         (
                             (cap_rms / current) ** 2 / (per_pulse * peak_width),

@@ -19,6 +19,12 @@ from typing import Protocol
 
 import serial
 
+try:  # pyserial applies settings with termios; its error is not an OSError
+    from termios import error as termios_error
+except ImportError:  # Windows
+    class termios_error(Exception):  # noqa: N801 - stands in for termios.error
+        pass
+
 
 class TransportError(OSError):
     """The link is gone or cannot be opened; the message says why in plain words."""
@@ -66,7 +72,7 @@ class SerialTransport:
                 parity=s.parity, stopbits=s.stopbits, rtscts=s.rtscts, timeout=0.02, write_timeout=1.0,
             )
             port.open()
-        except (serial.SerialException, OSError, ValueError) as exc:
+        except (serial.SerialException, OSError, ValueError, termios_error) as exc:
             raise TransportError(f"cannot open {self.url}: {exc}") from exc
         with contextlib.suppress(serial.SerialException, OSError):
             port.reset_input_buffer()  # stale bytes from before we connected are not trustworthy

@@ -1,0 +1,312 @@
+"""The FES manager panel (seed Fig. 14): start/stop, the loaded profile, the two live scale knobs with
+the currents and pulse widths they amount to per channel, and each channel's status.
+
+Everything goes through the FES driver's thread-safe methods; refusals (limits, e-stop, device) and
+faults are shown in words in the message line, never swallowed.
+"""
+
+from __future__ import annotations
+
+import logging
+from html import escape
+from pathlib import Path
+
+from PySide6.QtCore import Qt, QTimer
+from PySide6.QtGui import QBrush, QColor
+from PySide6.QtWidgets import (
+    QAbstractItemView,
+    QDial,
+    QFileDialog,
+    QGridLayout,
+    QGroupBox,
+    QHBoxLayout,
+    QHeaderView,
+    QLabel,
+    QPushButton,
+    QTableWidget,
+    QTableWidgetItem,
+    QVBoxLayout,
+    QWidget,
+)
+
+from app.config import RESOURCES
+from app.devices.rehastim import FesDriver, FesError
+from app.fes_profile import MAX_SCALE, FesProfile, FesProfileError, load_profile
+from app.manager import LinarmppManager
+from app.safety import SafetyError
+from app.ui.theme import colours
+
+log = logging.getLogger(__name__)
+
+PROFILES_DIR = RESOURCES / "fes_profiles"
+DIAL_STEPS = 100  # dial units per 1.0 of scale (0.01 resolution)
+COLUMNS = ("Ch", "Muscle", "Peak mA", "Peak µs", "Now mA", "Now µs", "Cap mA / µs", "Status")
+
+
+class ScaleKnob(QWidget):
+    """A QDial for one scale factor (0 .. MAX_SCALE) with its value in words."""
+
+    def __init__(self, title: str, parent: QWidget | None = None) -> None:
+        super().__init__(parent)
+        self.title = QLabel(title)
+        self.title.setAlignment(Qt.AlignmentFlag.AlignHCenter)
+        self.dial = QDial()
+        self.dial.setRange(0, int(MAX_SCALE * DIAL_STEPS))
+        self.dial.setSingleStep(1)
+        self.dial.setPageStep(10)
+        self.dial.setNotchesVisible(True)
+        self.dial.setNotchTarget(10.0)
+        self.dial.setWrapping(False)
+        self.dial.setTracking(True)
+        self.dial.setFocusPolicy(Qt.FocusPolicy.StrongFocus)  # arrows / PgUp / PgDn / Home / End
+        self.dial.setAccessibleName(title)
+        self.dial.setMinimumSize(110, 110)
+        self.value_label = QLabel()
+        self.value_label.setAlignment(Qt.AlignmentFlag.AlignHCenter)
+        self.title.setBuddy(self.dial)
+        lay = QVBoxLayout(self)
+        lay.setContentsMargins(4, 4, 4, 4)
+        lay.addWidget(self.title)
+        lay.addWidget(self.dial, 1)
+        lay.addWidget(self.value_label)
+
+    def set_scale(self, scale: float) -> None:
+        self.dial.blockSignals(True)
+        self.dial.setValue(round(scale * DIAL_STEPS))
+        self.dial.blockSignals(False)
+
+    def scale(self) -> float:
+        return self.dial.value() / DIAL_STEPS
+
+
+class FesPanel(QWidget):
+    def __init__(self, manager: LinarmppManager, parent: QWidget | None = None) -> None:
+        super().__init__(parent)
+        self.manager = manager
+        driver = manager.driver("fes")
+        self.driver: FesDriver | None = driver if isinstance(driver, FesDriver) else None
+        self.editor: QWidget | None = None
+        self.last_dir = PROFILES_DIR
+
+        self.status_label = QLabel()
+        self.status_label.setTextFormat(Qt.TextFormat.RichText)
+        self.start_button = QPushButton("&Start stimulation")
+        self.stop_button = QPushButton("S&top stimulation")
+        self.stop_button.setStyleSheet("QPushButton { font-weight: bold; }")
+        self.load_button = QPushButton("&Load profile…")
+        self.edit_button = QPushButton("&Edit profile…")
+        for b, tip in ((self.start_button, "Initialise the channel list and run the loaded profile"),
+                       (self.stop_button, "Send Stop to the stimulator now"),
+                       (self.load_button, "Load a profile file (YAML)"),
+                       (self.edit_button, "Open the profile editor")):
+            b.setToolTip(tip)
+        self.profile_label = QLabel("No profile loaded")
+        self.profile_label.setWordWrap(True)
+
+        self.current_knob = ScaleKnob("Current scale")
+        self.width_knob = ScaleKnob("Pulse-width scale")
+        self.current_knob.dial.valueChanged.connect(lambda _v: self._knob_moved("current"))
+        self.width_knob.dial.valueChanged.connect(lambda _v: self._knob_moved("pulse_width"))
+
+        self.table = QTableWidget(0, len(COLUMNS))
+        self.table.setHorizontalHeaderLabels(list(COLUMNS))
+        self.table.verticalHeader().setVisible(False)
+        self.table.setEditTriggers(QAbstractItemView.EditTrigger.NoEditTriggers)
+        self.table.setSelectionMode(QAbstractItemView.SelectionMode.NoSelection)
+        self.table.setFocusPolicy(Qt.FocusPolicy.NoFocus)
+        header = self.table.horizontalHeader()
+        header.setSectionResizeMode(QHeaderView.ResizeMode.ResizeToContents)
+        header.setSectionResizeMode(1, QHeaderView.ResizeMode.Stretch)
+        header.setStretchLastSection(False)
+
+        self.message = QLabel()
+        self.message.setTextFormat(Qt.TextFormat.PlainText)  # reasons contain "<=" and file paths
+        self.message.setWordWrap(True)
+        self.message.setTextInteractionFlags(Qt.TextInteractionFlag.TextSelectableByMouse)
+
+        buttons = QHBoxLayout()
+        for b in (self.start_button, self.stop_button, self.load_button, self.edit_button):
+            buttons.addWidget(b)
+        buttons.addStretch(1)
+        knobs = QGroupBox("Live scale factors")
+        kl = QGridLayout(knobs)
+        kl.addWidget(self.current_knob, 0, 0)
+        kl.addWidget(self.width_knob, 0, 1)
+        top = QHBoxLayout()
+        left = QVBoxLayout()
+        left.addWidget(self.status_label)
+        left.addWidget(self.profile_label)
+        left.addStretch(1)
+        top.addLayout(left, 1)
+        top.addWidget(knobs)
+        channels = QGroupBox("Channels")
+        cl = QVBoxLayout(channels)
+        cl.addWidget(self.table)
+        lay = QVBoxLayout(self)
+        lay.addLayout(buttons)
+        lay.addLayout(top)
+        lay.addWidget(channels, 1)
+        lay.addWidget(self.message)
+
+        self.start_button.clicked.connect(self.start)
+        self.stop_button.clicked.connect(self.stop)
+        self.load_button.clicked.connect(self.choose_profile_file)
+        self.edit_button.clicked.connect(self.open_editor)
+        if self.driver is not None:
+            self.driver.fault.connect(lambda text: self.show_message(text, "bad"))
+            self.driver.scale_clamped.connect(lambda _k, _a, text: self.show_message(text, "warn"))
+            self.driver.stimulation_changed.connect(lambda _on: self.refresh())
+        self.timer = QTimer(self)
+        self.timer.setInterval(100)
+        self.timer.timeout.connect(self.refresh)
+        self.timer.start()
+        self._shown_profile: FesProfile | None = None
+        self.refresh()
+
+    # ------------------------------------------------------------------ actions
+    def start(self) -> None:
+        if self.driver is None:
+            return
+        try:
+            self.driver.start_stimulation("FES panel")
+        except (SafetyError, FesError) as exc:
+            self.show_message(f"Not started: {exc.reason}", "bad")
+        else:
+            self.show_message("Stimulating.", "ok")
+        self.refresh()
+
+    def stop(self) -> None:
+        if self.driver is not None:
+            self.driver.stop_stimulation("stop button", "FES panel")
+            self.show_message("Stopped.", "ok")
+        self.refresh()
+
+    def choose_profile_file(self) -> None:
+        path, _ = QFileDialog.getOpenFileName(self, "Load FES profile", str(self.last_dir),
+                                              "FES profiles (*.yaml *.yml);;All files (*)")
+        if path:
+            self.load_profile_file(path)
+
+    def load_profile_file(self, path: str | Path) -> bool:
+        """Read, validate and load a profile; on any problem say where and change nothing."""
+        try:
+            profile = load_profile(path)
+        except FesProfileError as exc:
+            self.show_message(f"Profile not loaded: {exc}", "bad")
+            return False
+        self.last_dir = Path(path).parent
+        return self.apply_profile(profile)
+
+    def apply_profile(self, profile: FesProfile) -> bool:
+        if self.driver is None:
+            self.show_message("FES is off in the configuration.", "bad")
+            return False
+        try:
+            self.driver.load_profile(profile)
+        except (SafetyError, FesError) as exc:
+            self.show_message(f"Profile not loaded: {exc.reason}", "bad")
+            return False
+        self.show_message(f"Profile {profile.name!r} loaded.", "ok")
+        self.refresh()
+        return True
+
+    def open_editor(self) -> None:
+        from app.ui.fes_editor import FesProfileEditor
+
+        editor = FesProfileEditor(self.driver.profile if self.driver else None, self)
+        editor.profile_applied.connect(self.apply_profile)
+        editor.setAttribute(Qt.WidgetAttribute.WA_DeleteOnClose)
+        editor.show()
+        self.editor = editor
+
+    def _knob_moved(self, knob: str) -> None:
+        if self.driver is None or self.driver.profile is None:
+            return
+        w = self.current_knob if knob == "current" else self.width_knob
+        requested = w.scale()
+        try:
+            if knob == "current":
+                applied = self.driver.set_current_scale(requested, "FES panel")
+            else:
+                applied = self.driver.set_pulse_width_scale(requested, "FES panel")
+        except (SafetyError, FesError) as exc:
+            self.show_message(exc.reason, "bad")
+            return
+        if round(applied * DIAL_STEPS) != w.dial.value():
+            w.set_scale(applied)  # the knob stops at the cap (the driver said why)
+        self.refresh()
+
+    def show_message(self, text: str, kind: str = "ok") -> None:
+        c = colours()
+        colour = {"ok": c.text, "warn": c.warn, "bad": c.bad}.get(kind, c.text)
+        self.message.setStyleSheet(f"color: {colour};")
+        self.message.setText(text)
+
+    # ------------------------------------------------------------------ view
+    def refresh(self) -> None:
+        c = colours()
+        d = self.driver
+        if d is None:
+            self.status_label.setText(f"<b style='color:{c.idle}'>FES is off in the configuration</b>")
+            for w in (self.start_button, self.stop_button, self.load_button, self.edit_button,
+                      self.current_knob, self.width_knob):
+                w.setEnabled(False)
+            return
+        protocol = {"sm1": "ScienceMode 1", "sm2": "ScienceMode 2"}[d.protocol]
+        if d.stimulating:
+            state, colour = "Stimulating", c.warn
+        elif d.device_ready:
+            state, colour = "Ready", c.ok
+        elif d.connected:
+            state, colour = "Waiting for the stimulator", c.warn
+        else:
+            state, colour = "Not connected", c.bad
+        latched = " — <b>emergency stop latched</b>" if self.manager.supervisor.estop_latched else ""
+        self.status_label.setText(f"<b style='color:{colour}'>● {state}</b> &nbsp; RehaStim, {protocol}{latched}")
+        profile = d.profile
+        self.start_button.setEnabled(profile is not None and d.device_ready and not d.stimulating)
+        self.stop_button.setEnabled(True)  # Stop is always allowed
+        self.load_button.setEnabled(not d.stimulating)
+        for knob in (self.current_knob, self.width_knob):
+            knob.setEnabled(profile is not None)
+        override = d.pulse_width_override
+        self.width_knob.dial.setEnabled(profile is not None and override is None)
+        if profile is None:
+            self.profile_label.setText("No profile loaded")
+            self.table.setRowCount(0)
+            return
+        if not self.current_knob.dial.isSliderDown():
+            self.current_knob.set_scale(profile.current_scale)
+        if not self.width_knob.dial.isSliderDown():
+            self.width_knob.set_scale(profile.pulse_width_scale)
+        self.current_knob.value_label.setText(f"{profile.current_scale:.2f} ×")
+        self.width_knob.value_label.setText(
+            f"{profile.pulse_width_scale:.2f} ×" if override is None else f"set to {override:.0f} µs by assistance")
+        axis = "movement phase" if profile.axis == "phase" else f"time, {profile.end:g} s"
+        ccl = d.channel_list
+        freq = f"{ccl.frequency_hz:.1f} Hz" if ccl else f"{profile.frequency_hz:g} Hz"
+        self.profile_label.setText(f"<b>{escape(profile.name)}</b><br>{axis} · {freq} · "
+                                   f"{len(profile.channels)} channel(s)"
+                                   + (f"<br><i>{escape(profile.description)}</i>" if profile.description else ""))
+        rows = d.channel_status()
+        self.table.setRowCount(len(rows))
+        for r, s in enumerate(rows):
+            values = (str(s.channel), s.muscle, f"{s.peak_current_ma:.1f}", f"{s.peak_pulse_width_us:.0f}",
+                      str(s.sent_current_ma), str(s.sent_pulse_width_us),
+                      f"{s.cap_current_ma:g} / {s.cap_pulse_width_us:g}", s.note)
+            for col, text in enumerate(values):
+                item = self.table.item(r, col)
+                if item is None:
+                    item = QTableWidgetItem()
+                    if col != 1:
+                        item.setTextAlignment(Qt.AlignmentFlag.AlignCenter)
+                    self.table.setItem(r, col, item)
+                if item.text() != text:
+                    item.setText(text)
+            status = self.table.item(r, len(COLUMNS) - 1)
+            note_colour = {"following": c.ok, "off": c.idle}.get(s.note, c.warn)
+            status.setForeground(_brush(note_colour))
+
+
+def _brush(colour: str) -> QBrush:
+    return QBrush(QColor(colour))

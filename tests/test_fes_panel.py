@@ -1,0 +1,146 @@
+"""The FES manager panel on a simulated RehaStim: start/stop, load (good and malformed files), the knobs
+and the per-channel numbers they give, channel status; plus its screenshot."""
+
+from __future__ import annotations
+
+import shutil
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+from PySide6.QtCore import Qt
+
+from app.config import AppConfig
+from app.devices import rehastim
+from app.fes_profile import load_profile
+from app.manager import LinarmppManager
+from app.ui.fes_panel import PROFILES_DIR, FesPanel
+from tests.conftest import ROOT
+
+FRONTAL = PROFILES_DIR / "frontal_reaching.yaml"
+WRIST = PROFILES_DIR / "wrist_extension_time.yaml"
+
+
+@pytest.fixture
+def panel(qtbot) -> Iterator[FesPanel]:
+    manager = LinarmppManager(AppConfig(), factories={"fes": rehastim.create})
+    manager.start()
+    try:
+        p = FesPanel(manager)
+        qtbot.addWidget(p)
+        p.resize(900, 560)
+        p.show()
+        qtbot.waitUntil(lambda: p.driver is not None and p.driver.device_ready, timeout=3000)
+        yield p
+    finally:
+        manager.shutdown()
+
+
+def column(p: FesPanel, col: int) -> list[str]:
+    return [p.table.item(r, col).text() for r in range(p.table.rowCount())]
+
+
+def test_load_start_knobs_stop(panel: FesPanel, qtbot) -> None:
+    assert not panel.start_button.isEnabled()  # nothing loaded
+    assert panel.load_profile_file(WRIST)
+    assert panel.start_button.isEnabled()
+    assert column(panel, 0) == ["3"] and column(panel, 1) == ["extensor carpi radialis"]
+    assert column(panel, 2) == ["20.0"] and column(panel, 3) == ["200"]  # peak mA / µs at scale 1
+    panel.current_knob.dial.setValue(50)  # 0.50 ×
+    assert panel.driver.current_scale == pytest.approx(0.5)
+    assert column(panel, 2) == ["10.0"] and panel.current_knob.value_label.text() == "0.50 ×"
+    panel.start_button.click()
+    assert panel.driver.stimulating and "Stimulating" in panel.status_label.text()
+    assert not panel.load_button.isEnabled()
+    qtbot.waitUntil(lambda: int(column(panel, 4)[0]) > 0, timeout=3000)  # "Now mA" is what was sent
+    panel.stop_button.click()
+    assert not panel.driver.stimulating
+    qtbot.waitUntil(lambda: column(panel, 7) == ["off"], timeout=1000)
+
+
+def test_knob_stops_at_the_cap_and_says_so(panel: FesPanel, qtbot) -> None:
+    assert panel.load_profile_file(FRONTAL)  # ch 1 peaks at 28 mA; the configured cap is 40 mA
+    panel.current_knob.dial.setValue(200)
+    applied = panel.driver.current_scale
+    assert applied == pytest.approx(40 / 28)
+    assert panel.current_knob.dial.value() == round(applied * 100)  # the dial jumped back to the cap
+    qtbot.waitUntil(lambda: "current cap 40 mA" in panel.message.text(), timeout=1000)
+    assert "stops at 1.43" in panel.message.text()
+    assert column(panel, 2)[0] == "40.0"
+
+
+def test_keyboard_turns_the_knob(panel: FesPanel, qtbot) -> None:
+    assert panel.load_profile_file(FRONTAL)
+    panel.width_knob.dial.setFocus()
+    qtbot.keyClick(panel.width_knob.dial, Qt.Key.Key_PageDown)
+    assert panel.driver.pulse_width_scale == pytest.approx(0.9)
+
+
+def test_malformed_profile_is_rejected_with_its_line_and_nothing_changes(panel: FesPanel, tmp_path: Path) -> None:
+    assert panel.load_profile_file(FRONTAL)
+    before = panel.driver.profile
+    bad = tmp_path / "bad.yaml"
+    text = FRONTAL.read_text(encoding="utf-8").replace("level: 28.0", "level: lots")
+    bad.write_text(text, encoding="utf-8")
+    line = next(i for i, ln in enumerate(text.splitlines(), 1) if "level: lots" in ln)
+    assert not panel.load_profile_file(bad)
+    assert f"bad.yaml:{line}:" in panel.message.text()
+    assert "channels.1.current_ma.level" in panel.message.text()
+    assert panel.driver.profile is before
+    broken = tmp_path / "broken.yaml"
+    broken.write_text("version: 1\nname: x\naxis: [phase\n", encoding="utf-8")
+    assert not panel.load_profile_file(broken)
+    assert "broken.yaml:" in panel.message.text() and "not valid YAML" in panel.message.text()
+    assert panel.driver.profile is before
+
+
+def test_refusals_are_shown(panel: FesPanel, tmp_path: Path) -> None:
+    hot = tmp_path / "hot.yaml"
+    hot.write_text(WRIST.read_text(encoding="utf-8").replace("level: 20.0", "level: 90.0"), encoding="utf-8")
+    assert load_profile(hot).channels[3].current_ma.level == 90.0  # a valid file...
+    assert not panel.load_profile_file(hot)  # ...above the configured cap
+    assert "above the cap of 40 mA" in panel.message.text()
+    panel.load_profile_file(WRIST)
+    panel.manager.supervisor.emergency_stop("test", "pressed")
+    panel.start()
+    assert "Not started" in panel.message.text() and "emergency stop is latched" in panel.message.text()
+    panel.refresh()
+    assert "emergency stop latched" in panel.status_label.text()
+
+
+def test_edit_profile_opens_the_editor_and_applies(panel: FesPanel, qtbot) -> None:
+    from app.ui.fes_editor import FesProfileEditor
+
+    panel.load_profile_file(FRONTAL)
+    panel.edit_button.click()
+    editor = panel.editor
+    assert isinstance(editor, FesProfileEditor)
+    qtbot.waitExposed(editor)
+    editor.set_cell("current", 0, 3, "20")  # ch 1 level 28 → 20 mA
+    editor.apply_button.click()
+    assert panel.driver.profile.channels[1].current_ma.level == 20.0
+    editor.close()
+
+
+def test_panel_without_fes(qtbot) -> None:
+    manager = LinarmppManager(AppConfig(), factories={})
+    p = FesPanel(manager)
+    qtbot.addWidget(p)
+    assert not p.start_button.isEnabled() and "off" in p.status_label.text()
+
+
+def test_screenshot_fes_manager(panel: FesPanel, qtbot) -> None:
+    panel.load_profile_file(FRONTAL)
+    panel.current_knob.dial.setValue(120)
+    panel.driver.set_phase(0.3)
+    panel.start_button.click()
+    qtbot.waitUntil(lambda: int(column(panel, 4)[0]) >= 20, timeout=4000)
+    panel.refresh()
+    out = ROOT / "docs" / "screenshots" / "fes-manager.png"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    image = panel.grab().toImage()
+    assert image.width() >= 800
+    tmp = out.with_suffix(".tmp.png")
+    assert image.save(str(tmp))
+    shutil.move(tmp, out)
+    panel.stop()
