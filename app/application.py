@@ -21,6 +21,16 @@ from app.paths import data_dir
 log = logging.getLogger(__name__)
 
 
+def share_gl_contexts() -> None:
+    """Before the QApplication exists: let every GL widget share one context group. pyqtgraph caches
+    compiled shader programs globally; without sharing, a second 3D view (a new window, a test) gets
+    'invalid value' from glUseProgram and draws nothing."""
+    from PySide6.QtCore import Qt
+
+    if QCoreApplication.instance() is None:
+        QCoreApplication.setAttribute(Qt.ApplicationAttribute.AA_ShareOpenGLContexts)
+
+
 def configure_qt_identity() -> None:
     """QSettings in the app's data folder (LINARMPP_HOME moves it for tests)."""
     QCoreApplication.setOrganizationName("LINarmPP")
@@ -72,6 +82,7 @@ def run_gui(config: AppConfig, screenshot: str | None = None, quit_after_s: floa
 
     from app.ui.main_window import MainWindow
 
+    share_gl_contexts()
     app = QApplication.instance() or QApplication(sys.argv)
     configure_qt_identity()
     from app.ui.theme import apply_palette

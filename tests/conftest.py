@@ -20,6 +20,10 @@ if not os.environ.get("DISPLAY") and not os.environ.get("WAYLAND_DISPLAY"):
 os.environ["LINARMPP_HOME"] = tempfile.mkdtemp(prefix="linarmpp-test-home-")
 os.environ.setdefault("PYDEVD_DISABLE_FILE_VALIDATION", "1")
 
+from app.application import share_gl_contexts  # noqa: E402 - must run before pytest-qt creates the app
+
+share_gl_contexts()
+
 
 def gl_available() -> bool:
     from PySide6.QtGui import QGuiApplication

@@ -101,6 +101,9 @@ def test_undo_redo_cells_and_rows(editor: FesProfileEditor) -> None:
 
 
 def test_keyboard_edit_and_undo_shortcut(editor: FesProfileEditor, qtbot) -> None:
+    # On a real X server keys and shortcuts reach only the active window (offscreen, every window is).
+    editor.activateWindow()
+    qtbot.waitActive(editor)
     table = editor.current_table
     table.setFocus()
     table.setCurrentCell(0, CUR_TRAP0 + LEVEL)

@@ -145,12 +145,15 @@ def test_jog_sends_the_speed_while_held_and_zero_on_release(qtbot, manager) -> N
 
     qtbot.waitUntil(lambda: len(jogs()) == 2, timeout=3000)
     assert jogs() == [pytest.approx(0.05), 0.0]
-    # Space works too, and losing focus while held stops the jog.
+    # Space works too, and losing focus while held stops the jog (focus moves only in the active window).
+    panel.activateWindow()
+    qtbot.waitActive(panel)
     minus.setFocus()
+    qtbot.waitUntil(minus.hasFocus, timeout=1000)
     qtbot.keyPress(minus, Qt.Key.Key_Space)
     assert minus.holding
     plus.setFocus()
-    assert not minus.holding
+    qtbot.waitUntil(lambda: not minus.holding, timeout=1000)
     qtbot.waitUntil(lambda: len(jogs()) == 4, timeout=3000)
     assert jogs()[2:] == [pytest.approx(-0.05), 0.0]
 
