@@ -580,6 +580,10 @@ class LinarmppManager:
     def __repr__(self) -> str:
         return "<linarmppManager: linarm, physiologicalSensors, fes, patientModel, VRUnity>"
 
+    def emergencyStop(self, reason: str = "emergency stop from a script") -> None:
+        """FES Stop and robot IDLE at once, latched until an operator resets it; the script is stopped."""
+        emergency_stop(self._ctx, reason)
+
     def setProgram(self, fileName: str) -> None:
         """Choose the script file that ``startProgram`` runs."""
         path = self._ctx.resolve_path(str(fileName))
@@ -602,6 +606,12 @@ class LinarmppManager:
 API_NAMES = ("linarm", "physiologicalSensors", "fes", "patientModel", "VRUnity", "linarmppManager")
 
 
+def emergency_stop(context: ScriptContext, reason: str = "emergency stop from a script") -> None:
+    """The script API's e-stop: the supervisor's, then this script ends (it must not go on moving)."""
+    context.manager.supervisor.emergency_stop(context.source, reason)
+    raise ScriptStopped(reason)
+
+
 def build_api(context: ScriptContext) -> dict[str, Any]:
     """The script-visible objects of one run, by their seed names (plus ``manager`` for linarmppManager)."""
     linarm = LinarmUser(context)
@@ -613,6 +623,7 @@ def build_api(context: ScriptContext) -> dict[str, Any]:
     return {
         "linarm": linarm, "physiologicalSensors": physio, "fes": fes, "patientModel": patient_model,
         "VRUnity": vr, "linarmppManager": mgr, "manager": mgr,
+        "emergencyStop": lambda reason="emergency stop from a script": emergency_stop(context, reason),
         "ScriptError": ScriptError, "CommandError": CommandError, "CommandRefused": CommandRefused,
         "DeviceUnavailable": DeviceUnavailable, "NotInitializedError": NotInitializedError,
     }
