@@ -241,8 +241,12 @@ class LinarmDriver(DeviceDriver):
 
     def _dispatch(self, msg: Any, t: float) -> None:
         if isinstance(msg, proto.VsaState):
+            # The interaction force is read from the spring elongations, which mean nothing until homing
+            # has referenced the encoders: show it as unknown rather than as a huge number.
+            state = self._latest.get("linarm.state")
+            force = msg.force if state is not None and state.initialized else float("nan")
             self.publish("linarm.vsa", t, VsaSample(msg.equilibrium_pos, msg.delta, msg.stiffness, msg.handle_pos,
-                                                    msg.handle_vel, msg.force, msg.t_us / 1e6))
+                                                    msg.handle_vel, force, msg.t_us / 1e6))
         elif isinstance(msg, proto.MotorState):
             self.publish(f"linarm.motor{msg.index}", t, MotorSample(msg.index, msg.position, msg.velocity,
                                                                     msg.current, msg.target, msg.t_us / 1e6))

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from PySide6.QtCore import QEvent, QObject, Qt, QTimer
-from PySide6.QtGui import QFont
+from PySide6.QtGui import QFont, QFontMetrics
 from PySide6.QtWidgets import (
     QFrame,
     QGridLayout,
@@ -155,6 +155,10 @@ class ValueTile(QFrame):
         big.setPointSize(value_pt)
         big.setBold(True)
         self.value.setFont(big)
+        # Pin the heights to the fonts: the tile's row must grow with its font, never clip the digits.
+        self.title.setMinimumHeight(QFontMetrics(small).height())
+        self.value.setMinimumHeight(QFontMetrics(big).height() + 6)
+        self.updateGeometry()
 
     def set_text(self, text: str, colour: str | None = None) -> None:
         shown = text if text == DASH or not self.unit else f"{text} {self.unit}"
