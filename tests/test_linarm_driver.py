@@ -1,0 +1,175 @@
+"""The LINarm driver against the simulated controller over a real pty: every command of the protocol
+round-trips with its ACK, a controller error surfaces as an exception carrying its code, and the
+seed's reaching motion has the profile asked for, asserted on the samples the driver published."""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Iterator
+from typing import Any
+
+import numpy as np
+import pytest
+
+from app.config import AppConfig, SafetyConfig
+from app.devices import linarm_protocol as proto
+from app.devices.linarm import LinarmCommandError, LinarmDriver, LinarmSimAdapter
+from app.devices.linarm_protocol import ControlMode, ControlState, ReplyError
+from app.devices.sim.base import SerialSimulator
+from app.safety import SafetySupervisor
+
+IDLE, ON = int(ControlState.IDLE_CTRL_STATE), int(ControlState.ON_CTRL_STATE)
+VEL, TARGET = int(ControlMode.POS_REF_BY_VEL), int(ControlMode.POS_REF_BY_TARGET_POS)
+
+
+@pytest.fixture
+def robot(tmp_path, qtbot) -> Iterator[LinarmDriver]:
+    safety = SafetyConfig()
+    # A bench set-up: the ack test also covers disableEndstrokes, which the default limits refuse.
+    safety = dataclasses.replace(safety, robot=dataclasses.replace(safety.robot, allow_disable_endstrokes=True))
+    sim = SerialSimulator("linarm", lambda: LinarmSimAdapter(None, start_homed=True, initial_centre=0.10),
+                          tmp_path / "linarm.tty")
+    driver = LinarmDriver(sim.url, SafetySupervisor(safety), command_timeout_s=2.0)
+    driver.start()
+    sim.start()
+    qtbot.waitUntil(lambda: driver.connected and driver.latest("linarm.state") is not None, timeout=5000)
+    yield driver
+    driver.stop()
+    sim.stop()
+
+
+def enter(driver: LinarmDriver, qtbot, state: str) -> None:
+    """Put the controller in the state a command needs: 'idle', 'on-vel' or 'on-target'."""
+    driver.command("setCtrlState", IDLE)
+    if state == "idle":
+        return
+    driver.command("setCtrlMode", VEL if state == "on-vel" else TARGET)
+    driver.command("setCtrlState", ON)
+    qtbot.waitUntil(lambda: driver.latest("linarm.state").controlState == ON, timeout=2000)
+
+
+# name → (arguments, the state it needs); every host command but the driver's own
+# (identify, heartbeat, startDataStream at connect) is covered, which the last test checks.
+CASES: dict[str, tuple[tuple[Any, ...], str]] = {
+    "setDemo": ((False,), "idle"),
+    "resetError": ((), "idle"),
+    "setCtrlState": ((IDLE,), "idle"),
+    "setCtrlMode": ((TARGET,), "idle"),
+    "setCentreVelocity": ((0.0,), "on-vel"),
+    "setDeltaVelocity": ((0.0,), "on-vel"),
+    "getPidTunings": ((1,), "idle"),
+    "moveCentreTo": ((0.25, 0.15, 0.15, 0.0, False), "on-target"),
+    "moveDeltaTo": ((0.02, 0.05, 0.2, 0.0, False), "on-target"),
+    "setStiffness": ((900.0, 0.05, 0.2, 0.0), "on-target"),
+    "goToHome": ((), "idle"),
+    "setTrajectoryType": ((1,), "idle"),
+    "setAdmittanceParameter": ((0.002,), "idle"),
+    "getAdmittanceParameter": ((), "idle"),
+    "setAssistanceParameter": ((50.0,), "idle"),
+    "getAssistanceParameter": ((), "idle"),
+    "setAssistanceTargetPos": ((0.3,), "idle"),
+    "getAssistanceTargetPos": ((), "idle"),
+    "enableVirtualVsa": ((False,), "idle"),
+    "setVirtualVsaSpringDisplacement": ((0.0,), "idle"),
+    "getIsInitialized": ((), "idle"),
+    "disableEndstrokes": ((False,), "idle"),
+    "setTriggerMode": ((0,), "idle"),
+    "setTriggerParameter": ((0.0,), "idle"),
+    "startDataStream": ((0.005,), "idle"),
+    "stopDataStream": ((), "idle"),
+    "setMotorOffset": ((0, 0.0), "idle"),
+    "setMobileOffset": ((0.0,), "idle"),
+    "setMotorRatio": ((0, 1e-5), "idle"),
+    "setMobileRatio": ((1e-5,), "idle"),
+    "setMaxTrackingError": ((0.02,), "idle"),
+    "setMaxForce": ((50.0,), "idle"),
+    "setMaxCurrent": ((2.0,), "idle"),
+    "setMaxAcceleration": ((0.5,), "idle"),
+    "setMaxVelocity": ((0.2,), "idle"),
+    "setHomeParameter": ((0.25, 0.02, 0.05), "idle"),
+    "setPosLimit": ((0.05, 0.45), "idle"),
+    "setPidTunings": (("read",), "idle"),
+    "getState": ((), "idle"),
+}
+
+
+@pytest.mark.parametrize("name", list(CASES))
+def test_every_command_round_trips_with_its_ack(robot: LinarmDriver, qtbot, name: str) -> None:
+    args, state = CASES[name]
+    enter(robot, qtbot, state)
+    if args == ("read",):  # write back the gains just read: a real ack without detuning the loop
+        read = robot.command("getPidTunings", 0)
+        args = (0, read["kp"], read["ki"], read["kd"])
+    values = robot.command(name, *args, source="test")
+    returns = [a.name for a in proto.COMMANDS_BY_NAME[name].returns]
+    assert sorted(values) == sorted(returns), f"{name} ACK carries {values}"
+    if name == "getIsInitialized":
+        assert values["initialized"] is True
+    if name == "getAdmittanceParameter":
+        assert values["Ka"] > 0
+
+
+def test_every_protocol_command_is_covered() -> None:
+    driver_own = {"identify", "heartbeat"}
+    assert set(proto.COMMANDS_BY_NAME) - driver_own == set(CASES)
+
+
+def test_a_controller_error_is_raised_with_its_code(robot: LinarmDriver, qtbot) -> None:
+    enter(robot, qtbot, "idle")
+    with pytest.raises(LinarmCommandError) as err:  # moves need ON
+        robot.command("moveCentreTo", 0.3, 0.1, 0.1, 0.0, False)
+    assert err.value.code == ReplyError.WRONG_STATE and "WRONG_STATE" in str(err.value)
+    enter(robot, qtbot, "on-vel")
+    with pytest.raises(LinarmCommandError) as err:
+        robot.command("moveCentreTo", 0.3, 0.1, 0.1, 0.0, False)
+    assert err.value.code == ReplyError.WRONG_MODE
+
+
+def record_centre(robot: LinarmDriver) -> tuple[list[tuple[float, float]], Any]:
+    samples: list[tuple[float, float]] = []
+
+    def listener(stream: str, t: float, sample: Any) -> None:
+        if stream == "linarm.vsa":
+            # The controller's own clock: arrival times on the PC are bunched by the serial reads.
+            samples.append((sample.controllerTime, sample.equilibriumPos))
+
+    robot.add_listener(listener)
+    return samples, listener
+
+
+@pytest.mark.parametrize("trajectory", [0, 1], ids=["trapezoidal", "cycloidal"])
+def test_reaching_motion_profile_on_the_recorded_samples(robot: LinarmDriver, qtbot, trajectory: int) -> None:
+    enter(robot, qtbot, "on-target")
+    robot.command("setTrajectoryType", trajectory)
+    samples, listener = record_centre(robot)
+    robot.command("moveCentreTo", 0.40, 0.15, 0.15, 0.0, False)
+    qtbot.waitUntil(lambda: bool(samples) and abs(samples[-1][1] - 0.40) < 0.002
+                    and abs(robot.latest("linarm.vsa").handleVel) < 0.01, timeout=8000)
+    robot.remove_listener(listener)
+    t = np.array([s[0] for s in samples])
+    x = np.array([s[1] for s in samples])
+    assert abs(x[-1] - 0.40) <= 0.005
+    # Speed from the samples, smoothed over 25 ms to keep encoder quantisation out of it.
+    v = np.convolve(np.gradient(x, t), np.ones(5) / 5, mode="same")
+    assert v.max() <= 0.15 * 1.05, f"peak speed {v.max():.4f} m/s"
+    moving = v > 0.005
+    span = t[moving][-1] - t[moving][0]
+    at_peak = np.mean(v[moving] > 0.95 * v.max())
+    if trajectory == 0:
+        # Trapezoid: 1 s ramps at 0.15 m/s² to 0.15 m/s, a cruise at the peak for about a third of the time.
+        assert at_peak > 0.25, f"only {at_peak:.0%} of the move near the peak speed"
+        assert v.max() >= 0.14
+    else:
+        # Cycloid: the speed is a sine bump, near its peak only briefly.
+        assert at_peak < 0.25, f"{at_peak:.0%} of the move near the peak: not cycloidal"
+    assert 2.0 < span < 4.5
+
+
+def test_commands_are_checked_by_the_supervisor_before_the_wire(robot: LinarmDriver, qtbot) -> None:
+    from app.safety import SafetyError
+
+    enter(robot, qtbot, "on-target")
+    limits = AppConfig().safety.robot
+    with pytest.raises(SafetyError, match="outside the allowed range"):
+        robot.command("moveCentreTo", limits.position_max_m + 0.01, 0.1, 0.1, 0.0, False)
+    assert robot.latest("linarm.state").controlState == ON  # nothing was sent, nothing changed
