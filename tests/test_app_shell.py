@@ -83,3 +83,22 @@ def test_layout_persists_between_runs(qtbot, tmp_path) -> None:
     window2.docks["DeviceView"].setFloating(False)
     window2.close()
     manager2.shutdown()
+
+
+def test_dark_palette_is_switchable_and_remembered(qtbot, tmp_path) -> None:
+    from PySide6.QtGui import QPalette
+
+    manager, window = make_window(qtbot, tmp_path, names=("alpha",))
+    light = QApplication.instance().palette().color(QPalette.ColorRole.Window).lightness()
+    window.dark_action.setChecked(True)
+    dark = QApplication.instance().palette().color(QPalette.ColorRole.Window).lightness()
+    assert dark < light
+    window.close()
+    manager.shutdown()
+    (tmp_path / "again").mkdir()
+    manager2, window2 = make_window(qtbot, tmp_path / "again", names=("alpha",))
+    assert window2.dark_action.isChecked()
+    window2.dark_action.setChecked(False)
+    assert QApplication.instance().palette().color(QPalette.ColorRole.Window).lightness() == light
+    window2.close()
+    manager2.shutdown()

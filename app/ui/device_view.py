@@ -74,7 +74,8 @@ def spring_points(x0: float, x1: float, amplitude: float, coils: int = SPRING_CO
 
 
 class DeviceView(QWidget):
-    def __init__(self, manager: LinarmppManager) -> None:
+    def __init__(self, manager: LinarmppManager, *, allow_gl: bool = True) -> None:
+        """``allow_gl=False`` draws the 2D scene even where OpenGL works (no GPU driver, tests)."""
         super().__init__()
         self.manager = manager
         limits = manager.config.safety.robot
@@ -88,7 +89,7 @@ class DeviceView(QWidget):
         lay = QVBoxLayout(self)
         lay.setContentsMargins(0, 0, 0, 0)
         lay.setSpacing(2)
-        if QGuiApplication.platformName() == "xcb":
+        if allow_gl and QGuiApplication.platformName() == "xcb":
             try:
                 self._gl = GlScene(self.rail)
                 self.gl_view = self._gl.view

@@ -211,6 +211,11 @@ class MainWindow(QMainWindow):
         view_menu = self.menuBar().addMenu("&View")
         for dock in self.docks.values():
             view_menu.addAction(dock.toggleViewAction())
+        self.dark_action = QAction("&Dark palette", self)
+        self.dark_action.setCheckable(True)
+        self.dark_action.setShortcut(QKeySequence("Ctrl+Shift+D"))
+        self.dark_action.toggled.connect(self.set_dark_palette)
+        view_menu.addAction(self.dark_action)
         reset_layout = QAction("Reset &layout", self)
         reset_layout.triggered.connect(self._reset_layout)
         view_menu.addAction(reset_layout)
@@ -338,9 +343,19 @@ class MainWindow(QMainWindow):
             f"<br>Sessions: {sessions_dir()}<br>Data folder: {data_dir()}",
         )
 
+    def set_dark_palette(self, dark: bool) -> None:
+        from app.ui.theme import apply_palette
+
+        app = QApplication.instance()
+        if app is not None:
+            apply_palette(app, "dark" if dark else "light")
+        QSettings().setValue("ui/palette", "dark" if dark else "light")
+
     # ------------------------------------------------------------------ persistence
     def _restore_settings(self) -> None:
         settings = QSettings()
+        palette = settings.value("ui/palette", self.manager.config.ui.palette)
+        self.dark_action.setChecked(palette == "dark")
         geometry = settings.value("main/geometry")
         state = settings.value("main/state")
         if geometry is not None:
