@@ -84,3 +84,30 @@ def counter_factory(tmp_path, name: str = "counter"):
         return DeviceHandle(name, driver, sim)
 
     return factory
+
+
+class ListenerDriver:
+    """Only the listener surface of a DeviceDriver (what the session recorder attaches to), driven by
+    the test: ``listeners`` get samples, ``event_listeners`` connection events."""
+
+    def __init__(self, *streams: StreamSpec) -> None:
+        self.streams = streams
+        self.connected = True
+        self.listeners: list = []
+        self.event_listeners: list = []
+
+    def add_listener(self, fn) -> None:
+        self.listeners.append(fn)
+
+    def remove_listener(self, fn) -> None:
+        self.listeners.remove(fn)
+
+    def add_event_listener(self, fn) -> None:
+        self.event_listeners.append(fn)
+
+    def remove_event_listener(self, fn) -> None:
+        self.event_listeners.remove(fn)
+
+    def fire(self, event: str, detail: str = "") -> None:
+        for fn in self.event_listeners:
+            fn(event, detail)

@@ -12,28 +12,14 @@ from app.devices.driver import Channel, StreamSpec
 from app.export import ExportCancelled, export_csv, export_hdf5, load_csv_export, load_hdf5, write_signals_csv
 from app.recording import RecordedSession, SessionRecorder, load_session
 from app.safety import SafetySupervisor
+from tests.fakes import ListenerDriver
 
 
-class _Driver:
-    streams = (StreamSpec("robot.state", (Channel("centre", "m", "Centre"), Channel("force", "N", "Force")), 200.0),
-               StreamSpec("physio.main", (Channel("heartRate", "bpm", "Heart rate"),), 100.0))
+def _Driver() -> ListenerDriver:
+    return ListenerDriver(
+        StreamSpec("robot.state", (Channel("centre", "m", "Centre"), Channel("force", "N", "Force")), 200.0),
+        StreamSpec("physio.main", (Channel("heartRate", "bpm", "Heart rate"),), 100.0))
 
-    def __init__(self) -> None:
-        self.connected = True
-        self.listeners: list = []
-        self._event_listeners: list = []
-
-    def add_listener(self, fn) -> None:
-        self.listeners.append(fn)
-
-    def remove_listener(self, fn) -> None:
-        self.listeners.remove(fn)
-
-    def add_event_listener(self, fn) -> None:
-        self._event_listeners.append(fn)
-
-    def remove_event_listener(self, fn) -> None:
-        self._event_listeners.remove(fn)
 
 
 @pytest.fixture

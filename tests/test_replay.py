@@ -13,30 +13,15 @@ from app.devices.driver import Channel, StreamSpec
 from app.recording import RecordedSession, SessionRecorder, load_session
 from app.replay import ReplaySource
 from app.safety import SafetySupervisor
+from tests.fakes import ListenerDriver
 
 RATE_HZ = 10.0
 SECONDS = 20.0
 
 
-class _Driver:
-    streams = (StreamSpec("fake.main", (Channel("x", "m", "Position"), Channel("f", "N", "Force")), RATE_HZ),)
+def _Driver() -> ListenerDriver:
+    return ListenerDriver(StreamSpec("fake.main", (Channel("x", "m", "Position"), Channel("f", "N", "Force")), RATE_HZ))
 
-    def __init__(self) -> None:
-        self.connected = True
-        self.listeners: list = []
-        self._event_listeners: list = []
-
-    def add_listener(self, fn) -> None:
-        self.listeners.append(fn)
-
-    def remove_listener(self, fn) -> None:
-        self.listeners.remove(fn)
-
-    def add_event_listener(self, fn) -> None:
-        self._event_listeners.append(fn)
-
-    def remove_event_listener(self, fn) -> None:
-        self._event_listeners.remove(fn)
 
 
 @pytest.fixture

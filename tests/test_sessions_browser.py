@@ -16,27 +16,12 @@ from app.export import load_hdf5
 from app.patients import PatientProfile, load_patient, save_patient
 from app.recording import SessionRecorder, load_session
 from app.safety import AlarmLevel, SafetySupervisor
+from tests.fakes import ListenerDriver
 
 
-class _Driver:
-    streams = (StreamSpec("fake.main", (Channel("x", "m", "Position"),), 50.0),)
+def _Driver() -> ListenerDriver:
+    return ListenerDriver(StreamSpec("fake.main", (Channel("x", "m", "Position"),), 50.0))
 
-    def __init__(self) -> None:
-        self.connected = True
-        self.listeners: list = []
-        self._event_listeners: list = []
-
-    def add_listener(self, fn) -> None:
-        self.listeners.append(fn)
-
-    def remove_listener(self, fn) -> None:
-        self.listeners.remove(fn)
-
-    def add_event_listener(self, fn) -> None:
-        self._event_listeners.append(fn)
-
-    def remove_event_listener(self, fn) -> None:
-        self._event_listeners.remove(fn)
 
 
 def record(root, patient: str, script: str | None, alarm: bool, crashed: bool = False):
