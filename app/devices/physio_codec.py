@@ -153,6 +153,15 @@ FLAG_TEMP_FAULT: Final = 0x04     # temperature probe open/short
 FLAG_FORCE_FAULT: Final = 0x08    # grip sensor disconnected / saturated
 FLAG_ADC_OVERRUN: Final = 0x10    # board missed an ADC deadline
 
+# The fault bits in words, with the channel each one invalidates (None: the whole frame's timing).
+FAULT_FLAGS: Final[tuple[tuple[int, str, str | None], ...]] = (
+    (FLAG_PPG_FAULT, "pulse probe off", "heartRate"),
+    (FLAG_EDA_FAULT, "skin-conductance electrodes off", "skinConductance"),
+    (FLAG_TEMP_FAULT, "temperature probe fault", "temperature"),
+    (FLAG_FORCE_FAULT, "grip sensor fault", "force"),
+    (FLAG_ADC_OVERRUN, "ADC overrun", None),
+)
+
 PHYSIO_LAYOUT: Final = Layout(
     title="Physiological board -> manager (serial, 100 Hz)",
     header=PHYSIO_HEADER,

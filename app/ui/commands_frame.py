@@ -37,6 +37,7 @@ PANELS: list[tuple[str, str, str, bool]] = [
     ("Robot", "app.ui.linarm_panel", "LinarmPanel", False),
     ("Robot view", "app.ui.linarm_viewer", "LinarmViewer", False),
     ("FES", "app.ui.fes_panel", "FesPanel", False),
+    ("Sensors view", "app.ui.physio_viewer", "PhysioViewer", False),
     ("Assistance", "app.ui.assistance_panel", "AssistancePanel", False),
     ("Patient model", "app.ui.patient_model_viewer", "PatientModelViewer", False),
     ("VR", "app.ui.vr_viewer", "VrViewer", False),

@@ -33,25 +33,12 @@ from PySide6.QtWidgets import (
     QWidget,
 )
 
-from app.devices.physio_codec import (
-    FLAG_ADC_OVERRUN,
-    FLAG_EDA_FAULT,
-    FLAG_FORCE_FAULT,
-    FLAG_PPG_FAULT,
-    FLAG_TEMP_FAULT,
-)
+from app.devices.physio_codec import FAULT_FLAGS
 from app.manager import LinarmppManager
 from app.ui.theme import colours
 
 log = logging.getLogger(__name__)
 
-FAULT_FLAGS: list[tuple[int, str]] = [
-    (FLAG_PPG_FAULT, "Pulse probe off"),
-    (FLAG_EDA_FAULT, "Skin-conductance electrodes off"),
-    (FLAG_TEMP_FAULT, "Temperature probe fault"),
-    (FLAG_FORCE_FAULT, "Grip sensor fault"),
-    (FLAG_ADC_OVERRUN, "ADC overrun"),
-]
 
 
 def fixed_lines(label: QLabel, lines: int = 2) -> QLabel:
@@ -239,8 +226,8 @@ class SimulationPanel(QWidget):
         g.addWidget(self.phasic_button, 0, 0)
         g.addWidget(self.phasic_amplitude, 0, 1)
         self.fault_checks: dict[int, QCheckBox] = {}
-        for r, (flag, text) in enumerate(FAULT_FLAGS, start=1):
-            check = QCheckBox(text)
+        for r, (flag, text, _channel) in enumerate(FAULT_FLAGS, start=1):
+            check = QCheckBox(text[0].upper() + text[1:])
             check.setObjectName(f"fault:{flag}")
             check.clicked.connect(lambda _on: self.apply_fault_flags())
             g.addWidget(check, r, 0, 1, 2)
