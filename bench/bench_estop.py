@@ -1,0 +1,184 @@
+"""E-stop latency: the operator's action → FES Stop and robot IDLE on the wire. Target p99 ≤ 20 ms.
+
+    .venv/bin/python bench/bench_estop.py [--trials N] [--refresh-hz HZ]
+
+Three sources, each with the GUI idle and with every signal in the graphs redrawn at ``--refresh-hz``:
+
+* button: a mouse press + release posted to the real MainWindow's ``estop_button`` from another thread (as the
+  window system delivers input: queued behind whatever the GUI thread is doing);
+* shortcut: the configured e-stop key (F12) posted the same way; the application-wide key filter catches it;
+* API: ``supervisor.emergency_stop("api")`` called from a non-GUI thread (a script, a remote caller).
+
+t0 is stamped (time.monotonic_ns) just before the event is posted or the call is made. The ends are the
+simulator threads receiving the bytes: the RehaStim core decodes a ScienceMode Stop, the LINarm core a
+``setCtrlState(IDLE)``. Before every trial the e-stop is reset and stimulation restarted (profile
+frontal_reaching.yaml), so Stop interrupts a running stimulation.
+"""
+
+from __future__ import annotations
+
+import argparse
+import random
+import sys
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import common
+
+
+class Watch:
+    """Stamps, on a simulator thread, every host message that ``match`` accepts."""
+
+    def __init__(self, decoder: Any, match: Callable[[Any], bool]) -> None:
+        self.decoder = decoder
+        self.match = match
+        self.times: list[int] = []
+
+    def __call__(self, t_ns: int, data: bytes) -> None:
+        for item in self.decoder.feed(data):
+            if self.match(item):
+                self.times.append(t_ns)
+
+    def after(self, t0: int) -> int | None:
+        return next((t for t in reversed(self.times) if t >= t0), None) if self.times and self.times[-1] >= t0 \
+            else None
+
+
+def idle_watch() -> Watch:
+    from app.devices import linarm_protocol as proto
+    from app.devices.cmdmessenger import CmdMessengerDecoder
+
+    set_state = proto.COMMANDS_BY_NAME["setCtrlState"].id
+    idle = str(int(proto.ControlState.IDLE_CTRL_STATE)).encode()
+    return Watch(CmdMessengerDecoder(), lambda f: f.cmd_id == set_state and f.fields[1:2] == (idle,))
+
+
+def fes_stop_watch(protocol: str) -> Watch:
+    from app.devices import sciencemode as sm
+
+    if protocol == "sm1":
+        return Watch(sm.Sm1CommandDecoder(), lambda m: isinstance(m, sm.Sm1Stop))
+    return Watch(sm.Sm2Decoder(), lambda m: type(m).__name__.startswith("Sm2StopChannelList"))
+
+
+def triggers(window: Any, manager: Any) -> dict[str, Callable[[], None]]:
+    """Each source as a callable run on a non-GUI thread right after t0."""
+    from PySide6.QtCore import QCoreApplication, QEvent, QPointF, Qt
+    from PySide6.QtGui import QKeyEvent, QKeySequence, QMouseEvent
+
+    button = window.estop_button
+    combo = QKeySequence(manager.config.ui.emergency_stop_shortcut)[0]
+    left, none = Qt.MouseButton.LeftButton, Qt.MouseButton.NoButton
+
+    def click() -> None:
+        centre = QPointF(button.width() / 2, button.height() / 2)
+        glob = QPointF(button.mapToGlobal(centre.toPoint()))
+        press = QMouseEvent(QEvent.Type.MouseButtonPress, centre, glob, left, left, Qt.KeyboardModifier.NoModifier)
+        release = QMouseEvent(QEvent.Type.MouseButtonRelease, centre, glob, left, none,
+                              Qt.KeyboardModifier.NoModifier)
+        QCoreApplication.postEvent(button, press)
+        QCoreApplication.postEvent(button, release)
+
+    def key() -> None:
+        target = QCoreApplication.instance().focusWidget() or window  # type: ignore[union-attr]
+        QCoreApplication.postEvent(target, QKeyEvent(QEvent.Type.KeyPress, combo.key(), combo.keyboardModifiers()))
+        QCoreApplication.postEvent(target, QKeyEvent(QEvent.Type.KeyRelease, combo.key(),
+                                                     combo.keyboardModifiers()))
+
+    def api() -> None:
+        manager.supervisor.emergency_stop("api", "benchmark")
+
+    return {"button": click, "shortcut (" + manager.config.ui.emergency_stop_shortcut + ")": key, "API": api}
+
+
+def start_stimulation(manager: Any) -> str:
+    """Reset the e-stop and (re)start stimulation; returns '' or why stimulation is not running."""
+    from app.config import RESOURCES
+    from app.fes_profile import load_profile
+
+    manager.supervisor.reset_emergency_stop("benchmark")
+    fes = manager.driver("fes")
+    if fes is None:
+        return "no FES device"
+    try:
+        if getattr(fes, "profile", None) is None:
+            fes.load_profile(load_profile(RESOURCES / "fes_profiles" / "frontal_reaching.yaml"))
+        fes.start_stimulation("benchmark")
+    except Exception as exc:  # the FES driver is still being finished: measure Stop without stimulation
+        return f"{type(exc).__name__}: {exc}"
+    return ""
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--trials", type=int, default=20, help="trials per source and GUI condition "
+                                                               "(README figures: 100)")
+    parser.add_argument("--refresh-hz", type=float, default=120.0)
+    parser.add_argument("--profile", action="store_true", help="py-spy the GUI-load phase into "
+                                                                "bench/profiles/estop_gui_load.{raw,txt}")
+    args = parser.parse_args()
+    common.print_machine("e-stop latency: button / shortcut / API → FES Stop and robot IDLE on the wire")
+    app = common.qt_app()
+    manager = common.start_manager(common.bench_config())
+    window = None
+    rng = random.Random(1)
+    try:
+        linarm_watch, fes_watch = idle_watch(), fes_stop_watch(manager.config.devices.fes.protocol)
+        common.tap(manager.devices["linarm"].simulator, on_host=linarm_watch, keep=False)
+        common.tap(manager.devices["fes"].simulator, on_host=fes_watch, keep=False)
+        window = common.open_window(manager, load=False)
+        sources = triggers(window, manager)
+        results: dict[str, list[float]] = {}
+        not_stimulating: dict[str, int] = {}
+        for load in (False, True):
+            drawn = common.set_gui_load(window, load, args.refresh_hz)
+            gui = f"GUI load ({drawn} signals, {args.refresh_hz:g} Hz)" if load else "GUI idle"
+            common.run_qt_until(lambda: False, 1.0)
+            spy = common.start_py_spy("estop_gui_load", 10.0) if load and args.profile else None
+            for _ in range(args.trials):
+                for name, fire in sources.items():
+                    why = start_stimulation(manager)
+                    if why:
+                        not_stimulating[why] = not_stimulating.get(why, 0) + 1
+                    common.run_qt_until(lambda: False, rng.uniform(0.05, 0.15))  # a random point in the GUI's rhythm
+                    t0 = [0]
+
+                    def go(fire: Callable[[], None] = fire, t0: list[int] = t0) -> None:
+                        t0[0] = time.monotonic_ns()
+                        fire()
+
+                    thread = threading.Thread(target=go, name="operator")
+                    thread.start()
+                    thread.join()
+                    def seen(t0: list[int] = t0) -> bool:
+                        return linarm_watch.after(t0[0]) is not None and fes_watch.after(t0[0]) is not None
+
+                    ok = common.run_qt_until(seen, 3.0)
+                    t_idle, t_fes = linarm_watch.after(t0[0]), fes_watch.after(t0[0])
+                    if not ok or t_idle is None or t_fes is None:
+                        print(f"  {gui}, {name}: no stop seen on the wire within 3 s "
+                              f"(robot IDLE {t_idle is not None}, FES Stop {t_fes is not None})")
+                        continue
+                    for what, t in (("FES Stop", t_fes), ("robot IDLE", t_idle), ("both", max(t_fes, t_idle))):
+                        results.setdefault(f"{gui}: {name} → {what}", []).append((t - t0[0]) / 1e6)
+            if spy is not None:
+                spy.wait()
+                print(f"  profile: {common.summarise_py_spy('estop_gui_load')}")
+        print()
+        for why, count in not_stimulating.items():
+            print(f"  (stimulation not running in {count} trials: {why})")
+        for key, values in results.items():
+            common.report(key, values, 20.0)
+    finally:
+        common.shutdown(manager, window)
+        app.processEvents()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
