@@ -25,6 +25,17 @@ from app.application import share_gl_contexts  # noqa: E402 - must run before py
 share_gl_contexts()
 
 
+def screenshot_path(name: str) -> Path:
+    """Where a test saves a screenshot: docs/screenshots when LINARMPP_SCREENSHOTS=1 (to refresh the
+    docs), else a temporary folder, so a test run never changes the working tree."""
+    if os.environ.get("LINARMPP_SCREENSHOTS") == "1":
+        folder = ROOT / "docs" / "screenshots"
+    else:
+        folder = Path(tempfile.gettempdir()) / "linarmpp-test-screenshots"
+    folder.mkdir(parents=True, exist_ok=True)
+    return folder / name
+
+
 def gl_available() -> bool:
     from PySide6.QtGui import QGuiApplication
 

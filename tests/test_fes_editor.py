@@ -12,7 +12,7 @@ from PySide6.QtCore import Qt
 from app.fes_profile import load_profile
 from app.ui.fes_editor import CUR_TRAP0, WID_TRAP0, FesProfileEditor
 from app.ui.fes_panel import PROFILES_DIR
-from tests.conftest import ROOT
+from tests.conftest import screenshot_path
 
 FRONTAL = PROFILES_DIR / "frontal_reaching.yaml"
 LEVEL, UP0, UP1, DOWN0, DOWN1, BASE = range(6)
@@ -156,7 +156,7 @@ def test_screenshot_fes_editor(editor: FesProfileEditor) -> None:
     editor.resize(1280, 720)
     editor.set_cell("current", 1, CUR_TRAP0 + UP1, "0.02")  # before the ramp start: shown as bad
     editor.current_table.setCurrentCell(1, CUR_TRAP0 + UP1)
-    out = ROOT / "docs" / "screenshots" / "fes-editor.png"
+    out = screenshot_path("fes-editor.png")
     out.parent.mkdir(parents=True, exist_ok=True)
     image = editor.grab().toImage()
     assert image.width() >= 1200

@@ -15,7 +15,7 @@ from app.devices import rehastim
 from app.fes_profile import load_profile
 from app.manager import LinarmppManager
 from app.ui.fes_panel import PROFILES_DIR, FesPanel
-from tests.conftest import ROOT
+from tests.conftest import screenshot_path
 
 FRONTAL = PROFILES_DIR / "frontal_reaching.yaml"
 WRIST = PROFILES_DIR / "wrist_extension_time.yaml"
@@ -136,7 +136,7 @@ def test_screenshot_fes_manager(panel: FesPanel, qtbot) -> None:
     panel.start_button.click()
     qtbot.waitUntil(lambda: int(column(panel, 4)[0]) >= 20, timeout=4000)
     panel.refresh()
-    out = ROOT / "docs" / "screenshots" / "fes-manager.png"
+    out = screenshot_path("fes-manager.png")
     out.parent.mkdir(parents=True, exist_ok=True)
     image = panel.grab().toImage()
     assert image.width() >= 800

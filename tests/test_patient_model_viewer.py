@@ -2,13 +2,12 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 from app.devices.patient_model import PatientModelSample
 from app.patient_model.decision_tree import DecisionTree
 from app.ui.patient_model_viewer import DecisionTreeView, PatientModelViewer
+from tests.conftest import screenshot_path
 
-SCREENSHOT = Path(__file__).resolve().parent.parent / "docs" / "screenshots" / "patient-model-viewer.png"
+SCREENSHOT = screenshot_path("patient-model-viewer.png")
 
 
 def sample_from_tree(tree: DecisionTree, score: float, tpi: float, mpi: float, pti: float) -> PatientModelSample:
