@@ -167,6 +167,13 @@ class AssistanceController:
             self._alpha = alpha
             self._recompute(now)
 
+    def invalidate(self) -> None:
+        """The patient model is lost: forget α, so no later gain or map change re-applies a stale one."""
+        with self._lock:
+            self._alpha = None
+            self._targets = None
+            self._pending = False
+
     def on_patient_model_sample(self, stream: str, t: float, sample: Any) -> None:
         """A driver listener: ``driver.add_listener(controller.on_patient_model_sample)``."""
         if stream == "patient_model.main":

@@ -109,6 +109,8 @@ class RobotLimits:
     # Endstroke switches stop the carriage at the rail's ends; only a bench setup without a patient
     # may turn them off.
     allow_disable_endstrokes: bool = False
+    # Encoder offsets and ratios move the position reference every limit is measured against: service only.
+    allow_calibration: bool = False
 
     def validate(self) -> None:
         if self.position_min_m >= self.position_max_m:
@@ -160,7 +162,7 @@ class AssistanceConfig:
     k_r: float = field(default=0.5, metadata=rng(0, 1))
     k_f: float = field(default=0.5, metadata=rng(0, 1))
     k_m_stiffness_n_m: AssistanceMap = field(default_factory=lambda: AssistanceMap(500.0, 1500.0))
-    k_a_admittance_m_s_n: AssistanceMap = field(default_factory=lambda: AssistanceMap(0.002, 0.01))
+    k_a_admittance_m_s_n: AssistanceMap = field(default_factory=lambda: AssistanceMap(0.001, 0.004))
     k_t_assistive_n_m: AssistanceMap = field(default_factory=lambda: AssistanceMap(0.0, 150.0))
     fes_pulse_width_us: AssistanceMap = field(default_factory=lambda: AssistanceMap(100.0, 300.0))
     max_update_rate_hz: float = field(default=10.0, metadata=rng(0.1, 100, "Hz"))

@@ -123,12 +123,10 @@ class LinarmppManager(QObject):
                     or state.controlMode not in assisted_modes:
                 raise AssistanceInactive("robot assistance applies only while ON in admittance or assistance mode")
 
-            def send() -> None:
-                robot.command("setAdmittanceParameter", k_a, source="assistance")
-                robot.command("setAssistanceParameter", k_t, source="assistance")
-                robot.command("setStiffness", k_m, 0.05, 0.2, 0.0, source="assistance")
-
-            executor.submit(send).add_done_callback(report)
+            # Each parameter on its own: a refused one must not hold back the others.
+            for args in (("setAdmittanceParameter", k_a), ("setAssistanceParameter", k_t),
+                         ("setStiffness", k_m, 0.05, 0.2, 0.0)):
+                executor.submit(robot.command, *args, source="assistance").add_done_callback(report)
 
         def apply_fes_pulse_width(pulse_width_us: float) -> None:
             fes = self.driver("fes")
@@ -141,6 +139,13 @@ class LinarmppManager(QObject):
         model = self.driver("patient_model")
         if model is not None:
             model.add_listener(self.assistance.on_patient_model_sample)
+            assistance = self.assistance
+
+            def model_lost(event: str, _detail: str) -> None:
+                if event in ("disconnected", "silent"):
+                    assistance.invalidate()  # no stale α is ever applied, whatever the GUI changes meanwhile
+
+            model.add_event_listener(model_lost)
         vr = self.driver("vr")
         robot = self.driver("linarm")
         if vr is not None and robot is not None:
@@ -199,6 +204,7 @@ class LinarmppManager(QObject):
         if profile is not None:
             self.supervisor.robot = effective_robot_limits(profile, self.config.safety.robot)
             self.supervisor.event("patient_limits_applied", patient=patient_id)
+            self._apply_robot_limits()
             apply_profile = getattr(self, "apply_patient_profile", None)
             if callable(apply_profile):
                 apply_profile(profile)
@@ -218,8 +224,14 @@ class LinarmppManager(QObject):
         self.supervisor.bring_to_safe_state("session ended")
         recorder.stop(reason)
         self.supervisor.robot = self.config.safety.robot
+        self._apply_robot_limits()
         self.patient_profile = None
         self.session_changed.emit(None)
+
+    def _apply_robot_limits(self) -> None:
+        robot = self.driver("linarm")
+        if robot is not None and robot.connected and hasattr(robot, "apply_limits"):
+            robot.apply_limits(self.supervisor.robot)
 
     def record_event(self, kind: str, who: str = "", **data: Any) -> None:
         """An event for the session record (script start/stop, parameter changes); logged without one."""

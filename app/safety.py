@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import enum
 import logging
+import math
 import threading
 import time
 from collections.abc import Callable
@@ -64,9 +65,14 @@ EventSink = Callable[[str, dict[str, Any]], None]
 ROBOT_MONITOR_GRACE_SAMPLES = 5
 
 # Commands that only read, stop or make things safer: allowed even while the e-stop is latched.
+# Commands that move the encoders' zero or scale: service only, never during therapy.
+CALIBRATION_COMMANDS = {"setMotorOffset", "setMobileOffset", "setMotorRatio", "setMobileRatio"}
+
 _ALWAYS_ALLOWED = {
     "identify", "heartbeat", "getPidTunings", "getAdmittanceParameter", "getAssistanceParameter",
     "getAssistanceTargetPos", "getIsInitialized", "stopDataStream", "startDataStream", "resetError",
+    # Aligning the controller's own limits with ours (still range-checked below).
+    "setMaxVelocity", "setMaxAcceleration", "setMaxForce", "setPosLimit",
 }
 
 
@@ -90,6 +96,7 @@ class SafetySupervisor(QObject):
         self._lock = threading.Lock()
         self.fes_limiter: Any = None  # set by the FES device (app.fes_limits.FesLimiter)
         self.latest_centre_m: Callable[[], float | None] = lambda: None
+        self.latest_delta_m: Callable[[], float | None] = lambda: None
         self.robot_homed: Callable[[], bool] = lambda: False
         self._robot_excursion = False
         self._samples_homed = 0
@@ -122,7 +129,10 @@ class SafetySupervisor(QObject):
             if not (name == "setCtrlState" and int(args.get("controlState", args.get("state", -1))) == 0):
                 raise self.refuse(source, f"{name} refused: the emergency stop is latched; reset it first")
         lim = self.robot
-        problem = _robot_problem(name, args, lim, self.latest_centre_m())
+        if name in CALIBRATION_COMMANDS and not lim.allow_calibration:
+            raise self.refuse(source, f"{name} refused: encoder calibration changes the position reference; "
+                                      "it is a service operation (safety.robot.allow_calibration)")
+        problem = _robot_problem(name, args, lim, self.latest_centre_m(), self.latest_delta_m())
         if problem:
             raise self.refuse(source, f"{name} refused: {problem}")
 
@@ -260,9 +270,9 @@ def _f(args: dict[str, Any], *names: str) -> float | None:
     return None
 
 
-def _robot_problem(name: str, args: dict[str, Any], lim: RobotLimits, centre: float | None) -> str:
+def _robot_problem(name: str, args: dict[str, Any], lim: RobotLimits, centre: float | None,
+                   delta: float | None = None) -> str:
     """The reason ``name(args)`` would exceed a robot limit, or '' when it is within all of them."""
-    import math
 
     for key, value in args.items():
         if isinstance(value, float) and not math.isfinite(value):
@@ -307,12 +317,29 @@ def _robot_problem(name: str, args: dict[str, Any], lim: RobotLimits, centre: fl
             return f"execTime must not be negative, got {t_exec}"
         if t_exec == 0:
             return speed("maxVel", v, allow_zero=False) or accel("maxAcc", a)
-        if name == "moveCentreTo" and centre is not None and target is not None:
-            # A timed move's peak speed is at most twice its mean (cycloidal); check that bound.
-            peak = 2.0 * abs(target - centre) / t_exec
-            if peak > lim.max_velocity_m_s:
-                return (f"moving {abs(target - centre):.3f} m in {t_exec:.2f} s needs up to {peak:.3f} m/s, "
-                        f"above the velocity limit {lim.max_velocity_m_s:.3f} m/s")
+        # A timed move: maxVel/maxAcc may be 0 (the controller's own limits, aligned to these at connect),
+        # but never above the limits; and the time itself must not ask for more. The distance is from the
+        # measured position when known, else the whole travel (conservative). Bounds of the steeper
+        # profile, the cycloid: peak speed 2D/T, peak acceleration 2πD/T².
+        if (v or 0.0) > 0 and (p := speed("maxVel", v)):
+            return p
+        if (a or 0.0) > 0 and (p := accel("maxAcc", a)):
+            return p
+        if name == "moveCentreTo":
+            start = centre if centre is not None else None
+            distance = abs(target - start) if start is not None and target is not None else pos_hi - pos_lo
+        elif name == "moveDeltaTo" and delta is not None and target is not None:
+            distance = abs(target - delta)
+        else:  # setStiffness: the delta it needs depends on the spring law; assume the whole delta range
+            distance = lim.max_delta_m
+        peak_v = 2.0 * distance / t_exec
+        peak_a = 2.0 * math.pi * distance / t_exec**2
+        if peak_v > lim.max_velocity_m_s:
+            return (f"moving {distance:.3f} m in {t_exec:.2f} s needs up to {peak_v:.3f} m/s, "
+                    f"above the velocity limit {lim.max_velocity_m_s:.3f} m/s")
+        if peak_a > lim.max_acceleration_m_s2:
+            return (f"moving {distance:.3f} m in {t_exec:.2f} s needs up to {peak_a:.3f} m/s², "
+                    f"above the acceleration limit {lim.max_acceleration_m_s2:.3f} m/s²")
         return ""
     if name in ("setCentreVelocity", "setDeltaVelocity"):
         v = _f(args, "centreVelocity", "deltaVelocity", "velocity")
@@ -348,6 +375,13 @@ def _robot_problem(name: str, args: dict[str, Any], lim: RobotLimits, centre: fl
         return ""
     if name == "disableEndstrokes" and args.get("disable") and not lim.allow_disable_endstrokes:
         return "endstroke switches protect the patient at the ends of the rail; disabling them is not allowed"
+    if name == "setHomeParameter":
+        home, home_delta, homing_v = _f(args, "homeCentre"), _f(args, "homeDelta"), _f(args, "homingVelocity")
+        if p := position("homeCentre", home):
+            return p
+        if home_delta is None or not (0.0 <= home_delta <= lim.max_delta_m):
+            return f"homeDelta {home_delta} m is outside 0 .. {lim.max_delta_m} m"
+        return speed("homingVelocity", homing_v, allow_zero=False)
     if name == "setVirtualVsaSpringDisplacement":
         d = _f(args, "disp")
         if d is None or abs(d) > lim.max_delta_m:

@@ -26,7 +26,8 @@ VEL, TARGET = int(ControlMode.POS_REF_BY_VEL), int(ControlMode.POS_REF_BY_TARGET
 def robot(tmp_path, qtbot) -> Iterator[LinarmDriver]:
     safety = SafetyConfig()
     # A bench set-up: the ack test also covers disableEndstrokes, which the default limits refuse.
-    safety = dataclasses.replace(safety, robot=dataclasses.replace(safety.robot, allow_disable_endstrokes=True))
+    safety = dataclasses.replace(safety, robot=dataclasses.replace(safety.robot, allow_disable_endstrokes=True,
+                                                                      allow_calibration=True))
     sim = SerialSimulator("linarm", lambda: LinarmSimAdapter(None, start_homed=True, initial_centre=0.10),
                           tmp_path / "linarm.tty")
     driver = LinarmDriver(sim.url, SafetySupervisor(safety), command_timeout_s=2.0)

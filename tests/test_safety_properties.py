@@ -9,9 +9,8 @@ received (as the firmware's CmdMessenger 4.2.0 receive path does) and re-applies
 below — it never asks the supervisor. A call whose values break a rule must have been refused by the
 supervisor with a reason (GUI: the panel's outcome; script: CommandRefused).
 
-The supervisor leaves two gaps (timed moves' maxVel/maxAcc and acceleration, setHomeParameter): those
-inputs are kept out of the main properties and drawn by ``test_known_gap_*`` (xfail, strict) so the suite
-stays green while they are fixed — fold them back into ``MAIN_COMMANDS`` then.
+Timed moves (maxVel/maxAcc and the acceleration a move time implies) and setHomeParameter are drawn by
+their own tests with a wider argument range (they were gaps in the supervisor, now closed).
 """
 
 from __future__ import annotations
@@ -578,36 +577,28 @@ def test_the_properties_are_not_vacuous(rig: Rig) -> None:
     ensure_on(rig, ControlMode.POS_REF_BY_TARGET_POS)  # the controller's limit back to the configured one
 
 
-# ── the known gaps (xfail until the supervisor closes them) ────────────────────────────────────────────
+# ── timed moves and homing parameters (once gaps, closed in app/safety.py) ────────────────────────────────────────────
 
 TIMED_MOVES = ["moveCentreTo", "moveDeltaTo", "setStiffness"]
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "app/safety.py _robot_problem: a timed move (execTime > 0) skips the maxVel/maxAcc checks "
-    "(`if t_exec == 0: return speed(...) or accel(...)`), never bounds the acceleration (2πD/T²), and checks no "
-    "speed at all for moveDeltaTo/setStiffness: linarm.moveCentreTo(0.25, 5.0, 50.0, 10.0, False) reaches the "
-    "wire with maxVel 5 m/s and maxAcc 50 m/s²"))
 @GAP_PROFILE
 @example(path="script", actions=[("moveCentreTo", (0.25, 5.0, 50.0, 10.0, False))])
 @example(path="gui", actions=[("moveDeltaTo", (0.03, 1.5, 8.0, 2.0, False))])
 @given(path=st.sampled_from(["gui", "script"]), actions=calls(TIMED_MOVES, GAP_ARGS, max_size=3))
-def test_known_gap_timed_moves(rig: Rig, path: str, actions: list[tuple[str, tuple]]) -> None:
+def test_timed_moves_are_bounded_in_speed_and_acceleration(rig: Rig, path: str,
+                                                            actions: list[tuple[str, tuple]]) -> None:
     ensure_on(rig, ControlMode.POS_REF_BY_TARGET_POS)
     wrong = run_gui(rig, actions) if path == "gui" else run_script(rig, actions)
     assert rig.wire_breaks() == []
     assert wrong == []
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "app/safety.py _robot_problem has no rule for setHomeParameter: homeCentre/homeDelta outside the allowed "
-    "range and a homingVelocity above max_velocity_m_s reach the wire, e.g. "
-    "linarm.setHomeParameter(0.25, 0.02, 0.9) (the controller accepts up to its own 0.5 m/s)"))
 @GAP_PROFILE
 @example(path="script", actions=[("setHomeParameter", (0.25, 0.02, 0.9))])
 @example(path="gui", actions=[("setHomeParameter", (0.25, 0.02, 0.45))])
 @given(path=st.sampled_from(["gui", "script"]), actions=calls(["setHomeParameter"], GAP_ARGS, max_size=2))
-def test_known_gap_home_parameters(rig: Rig, path: str, actions: list[tuple[str, tuple]]) -> None:
+def test_home_parameters_are_checked(rig: Rig, path: str, actions: list[tuple[str, tuple]]) -> None:
     ensure_on(rig, ControlMode.POS_REF_BY_TARGET_POS)
     wrong = run_gui(rig, actions) if path == "gui" else run_script(rig, actions)
     assert rig.wire_breaks() == []

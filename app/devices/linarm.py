@@ -142,6 +142,7 @@ class LinarmDriver(DeviceDriver):
         self._identified = threading.Event()
         self._last_heartbeat = 0.0
         self._async = ThreadPoolExecutor(max_workers=1, thread_name_prefix="linarm-cmd")
+        self._async_closed = False
 
     # ------------------------------------------------------------------ commands (any thread)
     def command(self, name: str, *args: Any, source: str = "", timeout_s: float | None = None) -> dict[str, Any]:
@@ -181,7 +182,19 @@ class LinarmDriver(DeviceDriver):
 
     def command_async(self, name: str, *args: Any, source: str = "") -> Future:
         """The same, off the caller's thread (GUI buttons): the Future holds the ACK values or the error."""
-        return self._async.submit(self.command, name, *args, source=source)
+        return self._executor().submit(self.command, name, *args, source=source)
+
+    def apply_limits(self, limits: Any) -> Future:
+        """Make the controller's own limits the configured ones (its defaults may be wider): speed and
+        acceleration of jog ramps and timed moves, the force limit, the allowed range. Runs off the caller's
+        thread; the Future fails with the first refusal."""
+        def send() -> None:
+            self.command("setMaxVelocity", float(limits.max_velocity_m_s), source="limits")
+            self.command("setMaxAcceleration", float(limits.max_acceleration_m_s2), source="limits")
+            self.command("setMaxForce", float(limits.max_interaction_force_n), source="limits")
+            self.command("setPosLimit", float(limits.position_min_m), float(limits.position_max_m), source="limits")
+
+        return self._executor().submit(send)
 
     def emergency_idle(self, reason: str = "") -> None:
         """Motors off now: written straight to the wire, not queued behind a command in flight."""
@@ -224,8 +237,15 @@ class LinarmDriver(DeviceDriver):
 
     def stop(self, timeout_s: float = 1.0) -> bool:
         done = super().stop(timeout_s)
+        self._async_closed = True
         self._async.shutdown(wait=False, cancel_futures=True)
         return done
+
+    def _executor(self) -> ThreadPoolExecutor:
+        if self._async_closed:  # reconnected after an operator's disconnect: a fresh worker
+            self._async = ThreadPoolExecutor(max_workers=1, thread_name_prefix="linarm-cmd")
+            self._async_closed = False
+        return self._async
 
     # ------------------------------------------------------------------ decoding
     def _handle_frames(self, data: bytes, t_ns: int, during_connect: bool = False) -> None:
@@ -348,7 +368,19 @@ def create(manager: LinarmppManager) -> DeviceHandle | None:
         if stream == "linarm.vsa":
             manager.supervisor.check_robot_sample(sample)
 
+    def delta() -> float | None:
+        vsa = driver.latest("linarm.vsa")
+        return vsa.delta if vsa is not None else None
+
+    def on_event(event: str, _detail: str) -> None:
+        if event == "connected":
+            future = driver.apply_limits(manager.supervisor.robot)
+            future.add_done_callback(lambda f: f.exception() and log.error(
+                "LINarm limits not applied: %s", f.exception()))
+
+    driver.add_event_listener(on_event)
     manager.supervisor.latest_centre_m = centre
+    manager.supervisor.latest_delta_m = delta
     manager.supervisor.robot_homed = homed
     driver.add_listener(monitor)
     manager.supervisor.register_estop_action("robot IDLE", driver.emergency_idle)

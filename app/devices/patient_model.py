@@ -230,11 +230,13 @@ class UdpPeerDriver(DeviceDriver):
             super()._set_connected(True, f"receiving from {self.udp.description}")
 
     def on_tick(self, now: float) -> None:
-        if now >= self._next_send:
+        sent = 0
+        while now >= self._next_send and sent < 4:  # catch up on a late pass, a few frames at most
             self._send(now)
+            sent += 1
             self._next_send += self.period_s
-            if self._next_send < now - 2 * self.period_s:  # fell behind (debugger, suspend): no burst
-                self._next_send = now + self.period_s
+        if self._next_send < now - 2 * self.period_s:  # fell far behind (debugger, suspend): no burst
+            self._next_send = now + self.period_s
         # Sleep in read() only until the next frame is due: keeps the rate without a busy loop.
         self.read_timeout_s = min(0.01, max(0.0005, self._next_send - time.monotonic()))
         if self._peer_alive and now - self._last_valid > self.alive_timeout_s:
@@ -278,6 +280,9 @@ class UdpPeerDriver(DeviceDriver):
             return
         log.warning("%s: helper process exited with code %s; restarting", self.name, code)
         self.error.emit(f"{self.name}: helper process exited (code {code}); restarting")
+        # The link is down even if the restart is quicker than the silence timeout: say so (alarm, gap).
+        self._peer_alive = False
+        super()._set_connected(False, f"the {self.name} process exited (code {code}); restarting it")
         try:
             self.process.start()
         except OSError as exc:
