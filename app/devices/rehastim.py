@@ -731,6 +731,8 @@ class FesDriver(DeviceDriver):
 
     def _send_stop(self) -> None:
         """Write Stop now; never raises (nothing to stop on a link that is gone)."""
+        if not self.transport.is_open and not self._stimulating:
+            return  # closed link, nothing running (e.g. the second Stop of a shutdown): nothing to say
         try:
             if self.protocol == "sm1":
                 self._write_acked(Sm1Ident.STOP, "stop", lambda _pn: encode_sm1_stop())
