@@ -343,8 +343,10 @@ class BeatDetector:
     with a peak envelope (decay tau 2 s), and mark a beat where the high-passed signal rises through
     40 % of the envelope (time interpolated between samples).  Crossings closer than 0.3 s to the
     previous beat are ignored (refractory: max 200 bpm).  Inter-beat intervals outside 0.3..2.0 s
-    are rejected; the heart rate is 60 / median of the last 5 accepted intervals, available after 2
-    intervals.  With no beat for 3 s the rate becomes NaN (probe off) and the history is cleared.
+    are rejected; the heart rate is 60 / median of the last 5 accepted intervals, available after 3
+    intervals.  No beat is marked during the first 1.5 s after a (re)start, while the baseline and the
+    envelope settle (a spurious early crossing gave a wrong first rate).  With no beat for 3 s the rate
+    becomes NaN (probe off) and the history is cleared.
     Timing uses the board clock, so lost frames do not distort intervals."""
 
     BASELINE_TAU: Final = 1.5
@@ -354,12 +356,15 @@ class BeatDetector:
     IBI_RANGE: Final = (0.3, 2.0)
     HISTORY: Final = 5
     TIMEOUT: Final = 3.0
+    WARM_UP: Final = 1.5
+    MIN_INTERVALS: Final = 3
 
     def __init__(self) -> None:
         self.reset()
 
     def reset(self) -> None:
         self._t: float | None = None
+        self._t_start = 0.0
         self._base = 0.0
         self._env = 0.0
         self._prev_hp = 0.0
@@ -372,6 +377,7 @@ class BeatDetector:
         """Feed one sample (board time in s, counts); returns the current heart rate (bpm or NaN)."""
         if self._t is None or t <= self._t or t - self._t > self.TIMEOUT:
             self._t = t
+            self._t_start = t
             self._base = ppg
             self._prev_hp = 0.0
             return self.heartRate
@@ -380,7 +386,7 @@ class BeatDetector:
         hp = ppg - self._base
         self._env = max(abs(hp), self._env * math.exp(-dt / self.ENVELOPE_TAU))
         thr = self.THRESHOLD * self._env
-        if self._prev_hp < thr <= hp and self._env > 0.0:
+        if self._prev_hp < thr <= hp and self._env > 0.0 and t - self._t_start >= self.WARM_UP:
             tc = self._t + dt * (thr - self._prev_hp) / (hp - self._prev_hp)
             if self._last_beat is None or tc - self._last_beat >= self.REFRACTORY:
                 if self._last_beat is not None:
@@ -389,7 +395,7 @@ class BeatDetector:
                         self._ibis.append(ibi)
                 self._last_beat = tc
                 self.beats += 1
-                if len(self._ibis) >= 2:
+                if len(self._ibis) >= self.MIN_INTERVALS:
                     self.heartRate = 60.0 / float(np.median(self._ibis))
         if self._last_beat is not None and t - self._last_beat > self.TIMEOUT:
             self._ibis.clear()
