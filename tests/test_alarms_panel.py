@@ -118,3 +118,60 @@ def test_fits_a_scroll_area_without_scrolling_as_a_whole(qtbot) -> None:
     outer.show()
     qtbot.waitExposed(outer)
     assert outer.verticalScrollBar().maximum() == 0
+
+
+def test_the_list_updates_row_by_row_and_stays_correct(qtbot) -> None:
+    manager, panel, _events = _setup(qtbot)
+    sup = manager.supervisor
+    first = [sup.raise_alarm(AlarmLevel.WARNING, "physio", f"w{i}") for i in range(5)]
+    rows_before = [panel.tree.topLevelItem(i) for i in range(5)]
+    stop = sup.raise_alarm(AlarmLevel.STOP, "linarm", "stop")
+    # A new alarm adds one row on top; the rows already there are the same objects (no rebuild).
+    assert panel.tree.topLevelItemCount() == 6
+    assert [panel.tree.topLevelItem(i) for i in range(1, 6)] == rows_before
+    assert panel.tree.topLevelItem(0).text(4) == "stop"
+    idents = [int(panel.tree.topLevelItem(i).data(0, Qt.ItemDataRole.UserRole)) for i in range(6)]
+    assert idents == sorted(idents, reverse=True)  # newest first
+    # Acknowledging one changes that row in place: status, plain colours past the level cell, not bold.
+    row = panel.tree.topLevelItem(5)
+    assert int(row.data(0, Qt.ItemDataRole.UserRole)) == first[0].ident
+    panel.tree.clearSelection()
+    panel.operator.setText("Dr Bianchi")
+    assert panel.acknowledge([first[0].ident]) == 1
+    assert panel.tree.topLevelItem(5) is row and row.text(3) == "ack. Dr Bianchi"
+    assert not row.font(1).bold() and row.background(1).style() == Qt.BrushStyle.NoBrush
+    assert row.background(0).color().name() == LEVEL_STYLES[AlarmLevel.WARNING].background
+    assert panel.tree.topLevelItem(0).text(3) == "ACTIVE" and panel.tree.topLevelItem(0).font(1).bold()
+    # An acknowledgement made elsewhere (the supervisor itself) shows too.
+    sup.acknowledge(stop.ident, "script")
+    assert panel.tree.topLevelItem(0).text(3) == "ack."
+    assert "4 active" in panel.summary.text() and not panel.repeat.isActive()
+    # The filter still hides acknowledged alarms, and selection survives it.
+    panel.tree.topLevelItem(1).setSelected(True)
+    selected = int(panel.tree.topLevelItem(1).data(0, Qt.ItemDataRole.UserRole))
+    panel.show_acknowledged.setChecked(False)
+    shown = {int(panel.tree.topLevelItem(i).data(0, Qt.ItemDataRole.UserRole))
+             for i in range(panel.tree.topLevelItemCount())}
+    assert shown == {a.ident for a in first[1:]}
+    assert [int(i.data(0, Qt.ItemDataRole.UserRole)) for i in panel.tree.selectedItems()] == [selected]
+    panel.acknowledge([first[1].ident])  # acknowledged while hidden from the list: its row goes
+    assert panel.tree.topLevelItemCount() == 3
+    panel.show_acknowledged.setChecked(True)
+    assert panel.tree.topLevelItemCount() == 6
+
+
+def test_a_long_session_keeps_open_alarms_in_a_bounded_list(qtbot, monkeypatch) -> None:
+    import app.ui.alarms_panel as alarms_panel
+
+    monkeypatch.setattr(alarms_panel, "ROW_LIMIT", 10)
+    manager, panel, _events = _setup(qtbot)
+    sup = manager.supervisor
+    stop = sup.raise_alarm(AlarmLevel.STOP, "linarm", "the first, still open")
+    panel.operator.setText("nurse")
+    for i in range(30):
+        info = sup.raise_alarm(AlarmLevel.INFO, "operator", f"note {i}")
+        panel.acknowledge([info.ident])
+    assert panel.tree.topLevelItemCount() == 10
+    idents = [int(panel.tree.topLevelItem(i).data(0, Qt.ItemDataRole.UserRole)) for i in range(10)]
+    assert stop.ident in idents  # the open STOP stays; the oldest acknowledged notes went
+    assert idents[:9] == sorted(idents[:9], reverse=True) and idents[-1] == stop.ident

@@ -58,6 +58,11 @@ def test_emergency_stop_button_and_key_latch_and_reset(qtbot, tmp_path, monkeypa
     QTest.keyClick(box, Qt.Key.Key_F12)
     assert len(calls) == 2
     box.close()
+    # The button acts on the press itself, not when it is let go.
+    QTest.mousePress(window.estop_button, Qt.MouseButton.LeftButton)
+    assert len(calls) == 3
+    QTest.mouseRelease(window.estop_button, Qt.MouseButton.LeftButton)
+    assert len(calls) == 3  # and only once per press
     monkeypatch.setattr(QMessageBox, "question", lambda *a, **k: QMessageBox.StandardButton.Yes)
     window.estop_reset.click()
     assert not manager.supervisor.estop_latched

@@ -73,3 +73,22 @@ def test_gl_scene_renders(require_gl, qtbot) -> None:
     assert image.width() > 0 and len(np.unique(pixels(image))) > 20
     array = view.gl_view.renderToArray((300, 200))
     assert sorted(array.shape[:2]) == [200, 300] and len(np.unique(array.reshape(-1, array.shape[-1]), axis=0)) > 20
+
+
+def test_the_picture_is_repainted_only_when_something_moves_by_half_a_pixel(qtbot) -> None:
+    from app.ui.device_view import RobotCanvas, SceneState
+
+    canvas = RobotCanvas((0.0, 0.6))
+    qtbot.addWidget(canvas)
+    canvas.resize(624, 200)  # 600 px of rail: 1 px per mm
+    repaints: list[int] = []
+    canvas.update = lambda: repaints.append(1)  # type: ignore[method-assign]
+    canvas.set_state(SceneState(0.1, 0.4, 0.25, None, True))
+    assert len(repaints) == 1
+    canvas.set_state(SceneState(0.1, 0.4, 0.2501, None, True))  # 0.1 mm: no pixel changes
+    assert len(repaints) == 1 and canvas.state.handle == 0.2501  # the state is kept for the next paint
+    canvas.set_state(SceneState(0.1, 0.4, 0.252, None, True))  # 2 mm: repainted
+    assert len(repaints) == 2
+    canvas.set_state(SceneState(0.1, 0.4, 0.252, None, False))  # connection lost: repainted
+    canvas.set_state(SceneState(0.1, 0.4, 0.252, 0.3, False))  # a target appears: repainted
+    assert len(repaints) == 4

@@ -63,3 +63,32 @@ def test_the_taken_leaf_is_drawn_in_the_highlight_colour(qtbot) -> None:
 
     assert rim(taken)[0] > 150 and rim(taken)[1] < 100  # red highlight
     assert rim(other)[0] < 150 or rim(other)[1] > 100
+
+
+def test_a_viewer_on_a_hidden_tab_does_no_refresh_work_and_catches_up_when_shown(qtbot) -> None:
+    from PySide6.QtWidgets import QLabel, QTabWidget
+
+    tabs = QTabWidget()
+    viewer = PatientModelViewer(refresh_hz=100.0)
+    tabs.addTab(QLabel("another panel"), "Robot")
+    tabs.addTab(viewer, "Patient model")
+    qtbot.addWidget(tabs)
+    tabs.resize(1200, 700)
+    tabs.show()
+    qtbot.waitExposed(tabs)
+    viewer.refresh()  # nothing fed yet: empty curves
+    tree = DecisionTree()
+    last = None
+    for i in range(50):
+        last = sample_from_tree(tree, 40, 0.5, 0.5, i / 50)
+        viewer.feed(i * 0.1, last)
+
+    def drawn() -> int:
+        x = viewer.curves["alpha"].getData()[0]
+        return 0 if x is None else len(x)
+
+    qtbot.wait(100)  # ten timer periods while hidden
+    viewer._tick()
+    assert drawn() == 0 and viewer.values["alpha"].text() == "–" and viewer.tree.path == ""
+    tabs.setCurrentWidget(viewer)  # shown: everything at once, without waiting for the timer
+    assert drawn() == 50 and viewer.values["alpha"].text() == f"{last.alpha:.3f}" and viewer.tree.path == last.path

@@ -213,3 +213,102 @@ def test_live_frame_from_a_counter_device_over_a_pty(qtbot, tmp_path: Path) -> N
         assert counts == list(np.arange(counts[0], counts[0] + len(counts)))  # consecutive counter values
     finally:
         manager.shutdown()
+
+
+def test_sticky_y_range_moves_only_when_the_data_leaves_it_or_shrinks_within_it() -> None:
+    from app.ui.plots_frame import Y_FILL_MIN, sticky_y_range
+
+    assert sticky_y_range((0.0, 10.0), 2.0, 8.0) is None  # inside, fills 60 %: kept
+    lo, hi = sticky_y_range((0.0, 10.0), 2.0, 12.0)  # leaves it: a new range with headroom
+    assert lo < 2.0 and hi > 12.0 and sticky_y_range((lo, hi), 2.0, 12.0) is None
+    lo, hi = sticky_y_range((0.0, 10.0), 4.0, 4.0 + 0.9 * Y_FILL_MIN * 10.0)  # too small a part of it
+    assert 0.0 < lo < 4.0 and hi < 10.0
+    lo, hi = sticky_y_range((0.0, 10.0), 2.0, 8.0, snap=True)  # Fit: close around the data
+    assert 1.5 < lo < 2.0 and 8.0 < hi < 8.5
+    lo, hi = sticky_y_range(None, 5.0, 5.0)  # a flat line: a band around it
+    assert lo < 5.0 < hi
+
+
+def feed_vsa(store: SignalStore, t: np.ndarray, pos: np.ndarray) -> None:
+    store.feed({"linarm.vsa": SampleBatch(VSA, t, {"handlePos": pos, "interactionForce": np.zeros(len(t)),
+                                                   "equilibriumPos": np.full(len(t), 0.25)})})
+
+
+def test_the_vertical_range_holds_still_for_small_changes_and_never_clips(qtbot) -> None:
+    store, data = synthetic_store()
+    frame = make_frame(qtbot, store)
+    frame.set_selected(["linarm.vsa.handlePos"])
+    vb = frame.plots["m"].vb
+
+    def frame_now() -> tuple[float, float]:
+        frame.redraw()
+        frame.graphics.grab()  # paints now (the autorange is applied when painting), exposed or not
+        return tuple(vb.viewRange()[1])
+
+    first = frame_now()
+    assert first[0] <= data["pos"].min() and data["pos"].max() <= first[1]
+    assert first[1] - first[0] < 0.5  # fitted to the data (0.15..0.35 m), not pyqtgraph's default 0..1
+    t = data["t"][-1]
+    for _ in range(20):  # new samples inside the range: the axis (and its grid) is not regenerated
+        t += 0.005
+        feed_vsa(store, np.array([t]), np.array([0.30]))
+        assert frame_now() == first
+    feed_vsa(store, np.array([t + 0.005]), np.array([0.60]))  # beyond the top: the range follows at once
+    lo, hi = frame_now()
+    assert hi >= 0.60 and lo <= data["pos"].min()
+    frame.autoscale_box.setChecked(False)  # autoscale off: the range stays whatever comes
+    feed_vsa(store, np.array([t + 0.01]), np.array([5.0]))
+    assert frame_now() == (lo, hi)
+
+
+def test_a_hidden_frame_draws_nothing_and_an_unchanged_one_is_not_redrawn(qtbot) -> None:
+    from PySide6.QtWidgets import QLabel, QTabWidget
+
+    QSettings().remove("plots")
+    store, data = synthetic_store()
+    tabs = QTabWidget()
+    frame = PlotsFrame(None, store=store)
+    tabs.addTab(QLabel("values"), "Values")
+    tabs.addTab(frame, "Graphs")
+    qtbot.addWidget(tabs)
+    tabs.resize(900, 600)
+    tabs.show()
+    qtbot.waitExposed(tabs)
+    frame.set_selected(["linarm.vsa.handlePos"])
+    drawn = len(frame.frame_times)
+    feed_vsa(store, np.array([data["t"][-1] + 0.01]), np.array([0.3]))
+    qtbot.wait(3 * frame.timer.interval())
+    frame._tick()
+    assert len(frame.frame_times) == drawn  # on a hidden tab: no frame
+    tabs.setCurrentWidget(frame)
+    qtbot.waitExposed(frame)
+    frame._tick()
+    assert len(frame.frame_times) == drawn + 1  # shown: the new data is drawn
+    frame._tick()
+    assert len(frame.frame_times) == drawn + 1  # no new sample: nothing to redraw
+    feed_vsa(store, np.array([data["t"][-1] + 0.02]), np.array([0.3]))
+    frame._tick()
+    assert len(frame.frame_times) == drawn + 2
+
+
+def test_costly_frames_slow_the_redraw_down_to_keep_the_gui_thread_free(qtbot) -> None:
+    from app.ui.plots_frame import GRAPH_DUTY, MAX_INTERVAL_MS
+
+    store, data = synthetic_store()
+    frame = make_frame(qtbot, store)
+    frame.set_selected(["linarm.vsa.handlePos"])
+    frame.set_history(5.0)
+    base = frame.timer.interval()
+    t = data["t"][-1]
+    for _ in range(30):  # frames that paint for 60 ms each
+        t += 0.005
+        feed_vsa(store, np.array([t]), np.array([0.3]))
+        frame._tick()
+        frame.graphics.last_paint_s = 0.060
+    assert frame.timer.interval() >= min(MAX_INTERVAL_MS, 0.9 * 60 / GRAPH_DUTY) > base
+    for _ in range(60):  # cheap again: back to the configured rate
+        t += 0.005
+        feed_vsa(store, np.array([t]), np.array([0.3]))
+        frame._tick()
+        frame.graphics.last_paint_s = 0.0
+    assert frame.timer.interval() <= max(base, 1000 * 5.0 / frame.plots["m"].vb.width()) + 3

@@ -156,3 +156,38 @@ def test_attach_feeds_from_a_real_driver_over_a_pty(qtbot, tmp_path: Path) -> No
     # The counter increments by one per frame: nothing lost, nothing duplicated.
     assert np.all(np.diff(counts) == 1)
     assert BLOCK > 1
+
+
+def test_on_screen_is_false_on_a_hidden_tab_a_minimised_window_or_scrolled_away(qtbot) -> None:
+    from PySide6.QtWidgets import QLabel, QScrollArea, QTabWidget, QVBoxLayout, QWidget
+
+    from app.ui.signal_store import on_screen
+
+    tabs = QTabWidget()
+    shown, hidden = QLabel("shown"), QLabel("hidden")
+    tabs.addTab(shown, "a")
+    tabs.addTab(hidden, "b")
+    qtbot.addWidget(tabs)
+    tabs.resize(300, 200)
+    assert not on_screen(shown)  # the window is not shown yet
+    tabs.show()
+    qtbot.waitExposed(tabs)
+    assert on_screen(shown) and not on_screen(hidden)
+    tabs.setCurrentWidget(hidden)
+    assert on_screen(hidden) and not on_screen(shown)
+    tabs.showMinimized()
+    assert not on_screen(hidden)
+
+    scroll = QScrollArea()
+    body = QWidget()
+    lay = QVBoxLayout(body)
+    top, bottom = QLabel("top"), QLabel("bottom")
+    lay.addWidget(top)
+    lay.addSpacing(2000)
+    lay.addWidget(bottom)
+    scroll.setWidget(body)
+    qtbot.addWidget(scroll)
+    scroll.resize(200, 150)
+    scroll.show()
+    qtbot.waitExposed(scroll)
+    assert on_screen(top) and not on_screen(bottom)

@@ -148,3 +148,29 @@ def test_values_frame_renders_readably(qtbot, tmp_path) -> None:
     assert len(np.unique(pixels)) > 10
     # Values are large: at least 20 px tall text for the main quantities.
     assert frame.tiles[("linarm.vsa", "handlePos")].value.fontMetrics().height() >= 20
+
+
+def test_the_values_follow_at_10_hz_when_shown_and_not_at_all_when_hidden(qtbot) -> None:
+    from PySide6.QtCore import Qt
+    from PySide6.QtWidgets import QDockWidget, QMainWindow
+
+    manager, drivers = make_stub_manager()
+    window = QMainWindow()
+    frame = ValuesFrame(manager)
+    dock = QDockWidget("Values")
+    dock.setWidget(frame)
+    window.addDockWidget(Qt.DockWidgetArea.LeftDockWidgetArea, dock)
+    qtbot.addWidget(window)
+    window.resize(900, 700)
+    window.show()
+    qtbot.waitExposed(window)
+    publish_scene(drivers)
+    qtbot.waitUntil(lambda: frame.text_of("linarm.vsa", "handlePos") == "0.231 m", timeout=1000)  # by its timer
+    dock.hide()  # a closed dock: its values are not refreshed
+    drivers["linarm"].put("linarm.vsa", 2.0, handlePos=0.3, handleVel=0.0, interactionForce=0.0, stiffness=0.0,
+                          equilibriumPos=0.3, delta=0.0)
+    qtbot.wait(3 * frame.timer.interval())
+    frame._tick()
+    assert frame.text_of("linarm.vsa", "handlePos") == "0.231 m"
+    dock.show()  # shown again: up to date at once
+    assert frame.text_of("linarm.vsa", "handlePos") == "0.300 m"

@@ -54,6 +54,8 @@ LEVEL_STYLES: dict[AlarmLevel, LevelStyle] = {
 SOUNDING = AlarmLevel.STOP  # this level and above sound
 COLUMNS = ("Level", "Time", "Source", "Status", "Message")
 MESSAGE_COLUMN = COLUMNS.index("Message")
+STATUS_COLUMN = COLUMNS.index("Status")
+ROW_LIMIT = 1000  # rows kept in the list; beyond it the oldest acknowledged rows go first
 
 
 def fixed_lines(label: QLabel, lines: int = 2) -> QLabel:
@@ -87,6 +89,11 @@ class AlarmsPanel(QWidget):
         self.beep: Callable[[], None] = QApplication.beep
         self.beeps = 0
         self.acknowledged_by: dict[int, str] = {}  # ident -> operator (the supervisor keeps only the flag)
+        # The list is kept up to date row by row, never rebuilt on an alarm: an e-stop raises one, and a
+        # rebuild (growing with the session's alarms) held up the GUI thread -- and the next e-stop.
+        self._rows: dict[int, QTreeWidgetItem] = {}  # ident -> its row (only the rows in the list)
+        self._known: dict[int, bool] = {}  # every alarm seen -> acknowledged, as shown
+        self._summary_shown: tuple[str, str] | None = None
 
         lay = QVBoxLayout(self)
         lay.setContentsMargins(2, 2, 2, 2)
@@ -127,7 +134,7 @@ class AlarmsPanel(QWidget):
         self.ack_all.clicked.connect(self.acknowledge_all)
         self.show_acknowledged = QCheckBox("Show ac&knowledged")
         self.show_acknowledged.setChecked(True)
-        self.show_acknowledged.toggled.connect(lambda _on: self.refresh())
+        self.show_acknowledged.toggled.connect(lambda _on: self.rebuild())
         row.addWidget(op_label)
         row.addWidget(self.operator)
         row.addWidget(self.ack_selected)
@@ -143,7 +150,14 @@ class AlarmsPanel(QWidget):
         self.repeat = QTimer(self)
         self.repeat.setInterval(int(repeat_s * 1000))
         self.repeat.timeout.connect(self._repeat_sound)
+        bold = QFont(self.tree.font())
+        bold.setBold(True)
+        self._fonts = {False: bold, True: QFont(self.tree.font())}  # acknowledged -> font
+        self._brushes = {level: (QBrush(QColor(style.background)), QBrush(QColor(style.foreground)))
+                         for level, style in LEVEL_STYLES.items()}
+        self._plain = (QBrush(), QBrush())  # the view's own colours (acknowledged rows, except the level)
         self.supervisor.alarm_raised.connect(self._on_alarm)
+        # The supervisor emits alarms_changed after every alarm_raised: the list follows that one only.
         self.supervisor.alarms_changed.connect(self.refresh)
         self.refresh()
 
@@ -158,7 +172,6 @@ class AlarmsPanel(QWidget):
     def _on_alarm(self, alarm: Alarm) -> None:
         if alarm.level >= SOUNDING:
             self._sound()
-        self.refresh()
 
     def _repeat_sound(self) -> None:
         if any(a.level >= SOUNDING and not a.acknowledged for a in self.supervisor.alarms()):
@@ -204,45 +217,114 @@ class AlarmsPanel(QWidget):
 
     # ------------------------------------------------------------------ list
     def refresh(self) -> None:
+        """Bring the list up to date: add rows for new alarms, restyle those whose acknowledgement
+        changed, drop rows of alarms the supervisor no longer has. Rows are never rebuilt here."""
         alarms = self.supervisor.alarms()
+        show_acked = self.show_acknowledged.isChecked()
+        new: list[Alarm] = []
+        for alarm in alarms:
+            known = self._known.get(alarm.ident)
+            if known is None:
+                self._known[alarm.ident] = alarm.acknowledged
+                if show_acked or not alarm.acknowledged:
+                    new.append(alarm)
+            elif known != alarm.acknowledged:
+                self._known[alarm.ident] = alarm.acknowledged
+                row = self._rows.get(alarm.ident)
+                if row is None:
+                    continue
+                if alarm.acknowledged and not show_acked:
+                    self._remove_row(alarm.ident)
+                else:
+                    self._style_row(row, alarm)
+        if len(self._known) != len(alarms):  # the supervisor forgot some alarms: forget their rows
+            present = {a.ident for a in alarms}
+            for ident in [i for i in self._known if i not in present]:
+                del self._known[ident]
+                if ident in self._rows:
+                    self._remove_row(ident)
+        for alarm in new:
+            self._insert_row(alarm)
+        if len(self._rows) > ROW_LIMIT:
+            self._trim_rows()
+        self._show_summary(alarms)
+
+    def rebuild(self) -> None:
+        """Drop every row and list the alarms again (the "show acknowledged" filter changed)."""
         selected = {int(i.data(0, Qt.ItemDataRole.UserRole)) for i in self.tree.selectedItems()}
         self.tree.clear()
-        shown = [a for a in reversed(alarms) if self.show_acknowledged.isChecked() or not a.acknowledged]
-        for alarm in shown[:1000]:
-            style = LEVEL_STYLES[alarm.level]
-            if alarm.acknowledged:
-                who = self.acknowledged_by.get(alarm.ident)
-                status = f"ack. {who}" if who else "ack."
-            else:
-                status = "ACTIVE"
-            item = QTreeWidgetItem([style.name.upper(), alarm_time(alarm), alarm.source, status, alarm.text])
-            item.setData(0, Qt.ItemDataRole.UserRole, alarm.ident)
-            item.setToolTip(MESSAGE_COLUMN, alarm.text)
-            bg, fg = QBrush(QColor(style.background)), QBrush(QColor(style.foreground))
-            font = QFont(self.tree.font())
-            font.setBold(not alarm.acknowledged)
-            for col in range(len(COLUMNS)):
-                item.setFont(col, font)
-                if col == 0 or not alarm.acknowledged:
-                    item.setBackground(col, bg)
-                    item.setForeground(col, fg)
-            self.tree.addTopLevelItem(item)
-            if alarm.ident in selected:
-                item.setSelected(True)
+        self._rows.clear()
+        self._known.clear()
+        self.refresh()
+        for ident in selected & self._rows.keys():
+            self._rows[ident].setSelected(True)
+
+    def _insert_row(self, alarm: Alarm) -> None:
+        style = LEVEL_STYLES[alarm.level]
+        item = QTreeWidgetItem([style.name.upper(), alarm_time(alarm), alarm.source, "", alarm.text])
+        item.setData(0, Qt.ItemDataRole.UserRole, alarm.ident)
+        item.setToolTip(MESSAGE_COLUMN, alarm.text)
+        self._style_row(item, alarm)
+        # Newest first. Alarms arrive in order, so this is row 0 but for a rare race between threads.
+        index = 0
+        count = self.tree.topLevelItemCount()
+        while index < count and int(self.tree.topLevelItem(index).data(0, Qt.ItemDataRole.UserRole)) > alarm.ident:
+            index += 1
+        self.tree.insertTopLevelItem(index, item)
+        self._rows[alarm.ident] = item
+
+    def _remove_row(self, ident: int) -> None:
+        item = self._rows.pop(ident)
+        self.tree.takeTopLevelItem(self.tree.indexOfTopLevelItem(item))
+
+    def _trim_rows(self) -> None:
+        """Keep ROW_LIMIT rows: the oldest acknowledged rows go first, open alarms only when no
+        acknowledged row is left."""
+        excess = len(self._rows) - ROW_LIMIT
+        for index in range(self.tree.topLevelItemCount() - 1, -1, -1):
+            if excess <= 0:
+                return
+            ident = int(self.tree.topLevelItem(index).data(0, Qt.ItemDataRole.UserRole))
+            if self._known.get(ident, True):
+                self._remove_row(ident)
+                excess -= 1
+        while excess > 0:
+            ident = int(self.tree.topLevelItem(self.tree.topLevelItemCount() - 1).data(0, Qt.ItemDataRole.UserRole))
+            self._remove_row(ident)
+            excess -= 1
+
+    def _style_row(self, item: QTreeWidgetItem, alarm: Alarm) -> None:
+        if alarm.acknowledged:
+            who = self.acknowledged_by.get(alarm.ident)
+            status = f"ack. {who}" if who else "ack."
+        else:
+            status = "ACTIVE"
+        item.setText(STATUS_COLUMN, status)
+        bg, fg = self._brushes[alarm.level]
+        font = self._fonts[alarm.acknowledged]
+        for col in range(len(COLUMNS)):
+            item.setFont(col, font)
+            coloured = col == 0 or not alarm.acknowledged
+            item.setBackground(col, bg if coloured else self._plain[0])
+            item.setForeground(col, fg if coloured else self._plain[1])
+
+    def _show_summary(self, alarms: list[Alarm]) -> None:
         top, count = highest_unacknowledged(alarms)
         if top is None:
-            self.summary.setText(f"No active alarms ({len(alarms)} in this session).")
-            self.summary.setStyleSheet("")
+            text, sheet = f"No active alarms ({len(alarms)} in this session).", ""
             self.repeat.stop()
         else:
             style = LEVEL_STYLES[top.level]
-            self.summary.setText(f"{count} active alarm(s); most urgent: {style.name.upper()} — {top.text}")
-            self.summary.setStyleSheet(f"background: {style.background}; color: {style.foreground};"
-                                       " font-weight: bold; padding: 3px;")
+            text = f"{count} active alarm(s); most urgent: {style.name.upper()} — {top.text}"
+            sheet = f"background: {style.background}; color: {style.foreground}; font-weight: bold; padding: 3px;"
             if top.level >= SOUNDING and not self.repeat.isActive():
                 self.repeat.start()
             elif top.level < SOUNDING:
                 self.repeat.stop()
+        if (text, sheet) != self._summary_shown:  # a style sheet re-polishes: only on a change
+            self._summary_shown = (text, sheet)
+            self.summary.setText(text)
+            self.summary.setStyleSheet(sheet)
         self.ack_all.setEnabled(count > 0)
 
     def _show_details(self) -> None:
@@ -286,6 +368,7 @@ class AlarmBanner(QFrame):
         self.button.clicked.connect(self.show_alarms_requested.emit)
         row.addWidget(self.button)
         self.current: Alarm | None = None
+        self._shown: tuple[str, str, str] | None = None
         manager.supervisor.alarms_changed.connect(self.refresh)
         self.refresh()
 
@@ -293,17 +376,24 @@ class AlarmBanner(QFrame):
         top, count = highest_unacknowledged(self.manager.supervisor.alarms())
         self.current = top
         if top is None:
-            self.label.setText("No active alarms")
-            self.setStyleSheet("")
-            self.label.setStyleSheet("color: #757575;")
-            self.setAccessibleName("No active alarms")
+            self._show("No active alarms", "", "color: #757575;")
             return
         style = LEVEL_STYLES[top.level]
         # The count goes first: a long message is what gets clipped in a narrow window.
         more = f" (+{count - 1} more)" if count > 1 else ""
         text = f"{style.name.upper()}{more} · {alarm_time(top)} · {top.source}: {top.text}"
-        self.label.setText(text)
-        self.label.setToolTip(text)
-        self.setStyleSheet(f"#AlarmBanner {{ background: {style.background}; }}")
-        self.label.setStyleSheet(f"color: {style.foreground}; font-weight: bold;")
-        self.setAccessibleName(text)
+        self._show(text, f"#AlarmBanner {{ background: {style.background}; }}",
+                   f"color: {style.foreground}; font-weight: bold;")
+
+    def _show(self, text: str, frame_sheet: str, label_sheet: str) -> None:
+        # Style sheets re-polish the banner and its children: set them only when the level changes.
+        shown = self._shown or ("", None, None)
+        if text != shown[0]:
+            self.label.setText(text)
+            self.label.setToolTip(text if frame_sheet else "")
+            self.setAccessibleName(text)
+        if frame_sheet != shown[1]:
+            self.setStyleSheet(frame_sheet)
+        if label_sheet != shown[2]:
+            self.label.setStyleSheet(label_sheet)
+        self._shown = (text, frame_sheet, label_sheet)

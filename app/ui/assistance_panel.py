@@ -36,6 +36,7 @@ from PySide6.QtWidgets import (
 )
 
 from app.config import AssistanceConfig, AssistanceMap
+from app.ui.signal_store import on_screen
 
 # (config field, label, unit, decimals, step)
 MAPS: tuple[tuple[str, str, str, int, float], ...] = (
@@ -158,7 +159,7 @@ class AssistancePanel(QWidget):
             layout.addWidget(box)
         layout.addStretch(1)
         self.timer = QTimer(self)
-        self.timer.timeout.connect(self.refresh)
+        self.timer.timeout.connect(self._tick)
         self.timer.start(int(1000 / refresh_hz))
         self.refresh()
 
@@ -200,6 +201,19 @@ class AssistancePanel(QWidget):
             pm.clinical_score = None if value == NOT_SET else value
 
     # ------------------------------------------------------------------ display
+    def _tick(self) -> None:
+        """The timer's slot: the held-back change always goes out; the display only while seen."""
+        if on_screen(self):
+            self.refresh()
+            return
+        controller = self.controller
+        if controller is not None:
+            controller.flush()  # a change held back by the rate limit goes out even if α stops
+
+    def showEvent(self, event: Any) -> None:
+        super().showEvent(event)
+        self.refresh()  # catch up at once on what was skipped while hidden
+
     def refresh(self) -> None:
         controller = self.controller
         if controller is not None:

@@ -70,9 +70,14 @@ class DeviceToggle(QPushButton):
         self.setMinimumWidth(120)
         # The toggles share the row: they may shrink below their text when the window is very narrow.
         self.setSizePolicy(QSizePolicy.Policy.Ignored, QSizePolicy.Policy.Fixed)
+        self._shown: tuple[bool, bool, str] | None = None
 
     def show_state(self, running: bool, connected: bool) -> None:
         c = colours()
+        # Twice a second for every device: a style sheet re-polishes the button, so only on a change.
+        if self._shown == (running, connected, c.name) and self.isChecked() == running:
+            return
+        self._shown = (running, connected, c.name)
         if connected:
             colour, state = c.ok, "connected"
         elif running:

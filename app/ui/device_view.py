@@ -25,6 +25,7 @@ from PySide6.QtGui import QColor, QFont, QGuiApplication, QPainter, QPainterPath
 from PySide6.QtWidgets import QLabel, QSizePolicy, QVBoxLayout, QWidget
 
 from app.manager import LinarmppManager
+from app.ui.signal_store import on_screen
 from app.ui.theme import colours
 
 log = logging.getLogger(__name__)
@@ -33,6 +34,7 @@ CARRIAGE_LEN_M = 0.04
 HANDLE_RADIUS_M = 0.012
 SPRING_COILS = 8
 RAIL_MARGIN_M = 0.03
+CANVAS_MARGIN_PX = 24.0
 
 
 @dataclass
@@ -106,7 +108,7 @@ class DeviceView(QWidget):
 
         self.timer = QTimer(self)
         self.timer.setInterval(int(1000 / max(1.0, manager.config.ui.refresh_hz)))
-        self.timer.timeout.connect(self.refresh)
+        self.timer.timeout.connect(self._tick)
         self.timer.start()
         self.refresh()
 
@@ -138,6 +140,15 @@ class DeviceView(QWidget):
         linarm = self.manager.devices.get("linarm")
         connected = bool(linarm and linarm.driver.connected)
         return SceneState(m0, m1, handle, target, connected)
+
+    def _tick(self) -> None:
+        """The timer's slot: no work while nobody can see the view (see ``on_screen``)."""
+        if on_screen(self):
+            self.refresh()
+
+    def showEvent(self, event: Any) -> None:
+        super().showEvent(event)
+        self.refresh()  # catch up at once on what was skipped while hidden
 
     def refresh(self) -> None:
         state = self.read_state()
@@ -182,14 +193,29 @@ class RobotCanvas(QWidget):
         super().__init__()
         self.rail = rail
         self.state = SceneState()
+        self._drawn: tuple[Any, ...] | None = None
         self.setMinimumSize(240, 120)
         self.setSizePolicy(QSizePolicy.Policy.Expanding, QSizePolicy.Policy.Expanding)
         self.setAccessibleName("LINarm picture")
 
     def set_state(self, state: SceneState) -> None:
-        if state != self.state:
-            self.state = state
+        self.state = state
+        # Repaint only when something moves by half a pixel or more: the handle creeps by fractions of
+        # a millimetre between refreshes, and a repaint that changes no pixel is pure GUI-thread time.
+        drawn = self._drawn_key(state)
+        if drawn != self._drawn:
+            self._drawn = drawn
             self.update()
+
+    def _drawn_key(self, state: SceneState) -> tuple[Any, ...]:
+        lo, hi = self.rail
+        px_per_m = max(1.0, self.width() - 2 * CANVAS_MARGIN_PX) / (hi - lo)
+
+        def px(v: float | None) -> int | None:
+            return None if v is None else round(2.0 * v * px_per_m)
+
+        return (px(state.motor0), px(state.motor1), px(state.handle), px(state.target), state.connected,
+                self.width(), self.height())
 
     def paintEvent(self, _event: Any) -> None:
         c = colours()
@@ -198,7 +224,7 @@ class RobotCanvas(QWidget):
         p.setRenderHint(QPainter.RenderHint.Antialiasing)
         w, h = self.width(), self.height()
         p.fillRect(self.rect(), QColor("#20242a" if dark else "#f4f6f8"))
-        margin = 24.0
+        margin = CANVAS_MARGIN_PX
         lo, hi = self.rail
         scale = (w - 2 * margin) / (hi - lo)
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 import logging
 from html import escape
 from pathlib import Path
+from typing import Any
 
 from PySide6.QtCore import Qt, QTimer
 from PySide6.QtGui import QBrush, QColor
@@ -34,6 +35,7 @@ from app.devices.rehastim import FesDriver, FesError
 from app.fes_profile import MAX_SCALE, FesProfile, FesProfileError, load_profile
 from app.manager import LinarmppManager
 from app.safety import SafetyError
+from app.ui.signal_store import on_screen
 from app.ui.theme import colours
 
 log = logging.getLogger(__name__)
@@ -158,7 +160,7 @@ class FesPanel(QWidget):
             self.driver.stimulation_changed.connect(lambda _on: self.refresh())
         self.timer = QTimer(self)
         self.timer.setInterval(100)
-        self.timer.timeout.connect(self.refresh)
+        self.timer.timeout.connect(self._tick)
         self.timer.start()
         self._shown_profile: FesProfile | None = None
         self.refresh()
@@ -243,6 +245,15 @@ class FesPanel(QWidget):
         self.message.setText(text)
 
     # ------------------------------------------------------------------ view
+    def _tick(self) -> None:
+        """The timer's slot: no work while nobody can see the view (see ``on_screen``)."""
+        if on_screen(self):
+            self.refresh()
+
+    def showEvent(self, event: Any) -> None:
+        super().showEvent(event)
+        self.refresh()  # catch up at once on what was skipped while hidden
+
     def refresh(self) -> None:
         c = colours()
         d = self.driver

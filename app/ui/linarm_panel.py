@@ -62,6 +62,7 @@ from app.devices.linarm_protocol import (
 from app.devices.transport import TransportError
 from app.manager import LinarmppManager
 from app.safety import SafetyError
+from app.ui.signal_store import on_screen
 from app.ui.theme import colours
 
 log = logging.getLogger(__name__)
@@ -495,7 +496,7 @@ class LinarmPanel(QWidget):
         self._poll.timeout.connect(self._collect)
         self._timer = QTimer(self)
         self._timer.setInterval(100)
-        self._timer.timeout.connect(self.refresh)
+        self._timer.timeout.connect(self._tick)
         self._timer.start()
         self.refresh()
 
@@ -821,6 +822,15 @@ class LinarmPanel(QWidget):
         self._show(Outcome("", "event", f"{text} — the motors are off; press Reset error."))
 
     # ------------------------------------------------------------------ state
+    def _tick(self) -> None:
+        """The timer's slot: no work while nobody can see the panel (see ``on_screen``)."""
+        if on_screen(self):
+            self.refresh()
+
+    def showEvent(self, event: Any) -> None:
+        super().showEvent(event)
+        self.refresh()  # catch up at once on what was skipped while hidden
+
     def refresh(self) -> None:
         driver = self.driver()
         c = colours()

@@ -19,6 +19,7 @@ from app.devices import linarm_protocol as proto
 from app.devices.linarm import STATE_STREAM, VSA_STREAM, LinarmDriver
 from app.devices.linarm_protocol import ControlState, ErrorState, HomeState
 from app.manager import LinarmppManager
+from app.ui.signal_store import on_screen
 from app.ui.theme import colours
 
 DASH = "—"
@@ -149,7 +150,7 @@ class LinarmViewer(QWidget):
         self.timer = QTimer(self)
         hz = min(20.0, max(1.0, float(manager.config.ui.refresh_hz)))
         self.timer.setInterval(int(1000 / hz))
-        self.timer.timeout.connect(self.refresh)
+        self.timer.timeout.connect(self._tick)
         self.timer.start()
         self.refresh()
 
@@ -186,6 +187,15 @@ class LinarmViewer(QWidget):
     def text_of(self, key: str) -> str:
         """The text shown for ``key`` (``state.controlState``, ``vsa.handlePos``, ``motor1.current``...)."""
         return self.values[key].text()
+
+    def _tick(self) -> None:
+        """The timer's slot: no work while nobody can see the view (see ``on_screen``)."""
+        if on_screen(self):
+            self.refresh()
+
+    def showEvent(self, event: Any) -> None:
+        super().showEvent(event)
+        self.refresh()  # catch up at once on what was skipped while hidden
 
     def refresh(self) -> None:
         c = colours()

@@ -68,6 +68,27 @@ class EmergencyStopKeyFilter(QObject):
         return False
 
 
+class EmergencyStopPressFilter(QObject):
+    """Fires on the e-stop button's mouse press before the button handles it: QAbstractButton repaints
+    itself synchronously before it emits ``pressed``, and that repaint flushes every pending paint of
+    the window (a graphs frame: tens of ms) ahead of the stop."""
+
+    triggered = Signal()
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.fired = False  # this press already stopped: ``pressed`` must not stop again
+
+    def eventFilter(self, obj: QObject, event: QEvent) -> bool:
+        if (event.type() in (QEvent.Type.MouseButtonPress, QEvent.Type.MouseButtonDblClick)
+                and event.button() == Qt.MouseButton.LeftButton):  # type: ignore[attr-defined]
+            self.fired = True
+            self.triggered.emit()
+        elif event.type() == QEvent.Type.MouseButtonRelease:
+            self.fired = False  # had the button not emitted ``pressed``, the next press must still stop
+        return False  # the button still shows itself pressed
+
+
 class DeviceStatus(QLabel):
     def __init__(self, name: str) -> None:
         super().__init__()
@@ -91,8 +112,10 @@ class DeviceStatus(QLabel):
             colour, state = "#c62828", "disconnected"
         rate = max(rates.values()) if rates else 0.0
         rate_txt = f" {rate:.0f} Hz" if self.connected else ""
-        self.setText(f"<span style='color:{colour}'>●</span> <b>{self.name}</b> {state}{rate_txt}")
-        self.setAccessibleName(f"{self.name} {state}")
+        text = f"<span style='color:{colour}'>●</span> <b>{self.name}</b> {state}{rate_txt}"
+        if text != self.text():  # a rich-text label re-lays itself out on every setText
+            self.setText(text)
+            self.setAccessibleName(f"{self.name} {state}")
 
 
 class MainWindow(QMainWindow):
@@ -133,7 +156,13 @@ class MainWindow(QMainWindow):
         self.estop_button.setStyleSheet(ESTOP_STYLE)
         self.estop_button.setMinimumHeight(52)
         self.estop_button.setToolTip(f"Stops stimulation and the robot at once ({key} works from every window)")
-        self.estop_button.clicked.connect(lambda: self.emergency_stop("button"))
+        # On press, not on release: an emergency stop acts when the hand comes down, it must not wait
+        # for the button to be let go (nor be cancelled by sliding off it before release). A mouse press
+        # is caught before the button repaints; ``pressed`` covers the rest (keyboard, click()).
+        self._estop_press = EmergencyStopPressFilter()
+        self._estop_press.triggered.connect(lambda: self.emergency_stop("button"))
+        self.estop_button.installEventFilter(self._estop_press)
+        self.estop_button.pressed.connect(self._estop_button_pressed)
         row.addWidget(self.estop_button)
         self.estop_reset = QPushButton("Reset e-stop…")
         self.estop_reset.setEnabled(False)
@@ -241,6 +270,12 @@ class MainWindow(QMainWindow):
     # ------------------------------------------------------------------ behaviour
     def emergency_stop(self, source: str) -> None:
         self.manager.supervisor.emergency_stop(source)
+
+    def _estop_button_pressed(self) -> None:
+        if self._estop_press.fired:  # the mouse press already stopped
+            self._estop_press.fired = False
+            return
+        self.emergency_stop("button")
 
     # ------------------------------------------------------------------ sessions
     def _show_session(self) -> None:

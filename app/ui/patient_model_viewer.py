@@ -29,6 +29,7 @@ from app.patient_model.decision_tree import (
     TreeConfig,
     load_tree_config,
 )
+from app.ui.signal_store import on_screen
 from app.ui.theme import colours, curve_colour
 
 ALPHA_CHANNELS = ("alpha", "a_r", "a_f")
@@ -270,7 +271,7 @@ class PatientModelViewer(QWidget):
         if self.driver is not None:
             self.driver.samples.connect(self._on_batches)
         self.timer = QTimer(self)
-        self.timer.timeout.connect(self.refresh)
+        self.timer.timeout.connect(self._tick)
         self.timer.start(int(1000 / refresh_hz))
 
     # ------------------------------------------------------------------ data in
@@ -303,6 +304,15 @@ class PatientModelViewer(QWidget):
                 col.popleft()
 
     # ------------------------------------------------------------------ display
+    def _tick(self) -> None:
+        """The timer's slot: no work while nobody can see the view (see ``on_screen``)."""
+        if on_screen(self):
+            self.refresh()
+
+    def showEvent(self, event: Any) -> None:
+        super().showEvent(event)
+        self.refresh()  # catch up at once on what was skipped while hidden
+
     def refresh(self) -> None:
         latest = self.driver.latest("patient_model.main") if self.driver is not None else self._latest
         if self.driver is not None:

@@ -26,7 +26,7 @@ from PySide6.QtWidgets import QFrame, QGridLayout, QGroupBox, QHBoxLayout, QLabe
 from app.devices.physio import PHYSIO_STREAM
 from app.devices.physio_codec import FAULT_FLAGS
 from app.manager import LinarmppManager
-from app.ui.signal_store import SignalStore, shared_store, signal_key
+from app.ui.signal_store import SignalStore, on_screen, shared_store, signal_key
 from app.ui.theme import colours, curve_colour
 
 DASH = "—"
@@ -218,7 +218,7 @@ class PhysioViewer(QWidget):
         self.timer = QTimer(self)
         hz = min(20.0, max(1.0, float(manager.config.ui.refresh_hz)))
         self.timer.setInterval(int(1000 / hz))
-        self.timer.timeout.connect(self.refresh)
+        self.timer.timeout.connect(self._tick)
         self.timer.start()
         self.refresh()
 
@@ -306,6 +306,19 @@ class PhysioViewer(QWidget):
             self._tap = PulseTap(self._tap_len)
             driver.add_listener(self._tap)
             self._attachment.update(driver=driver, tap=self._tap)
+
+    def _tick(self) -> None:
+        """The timer's slot: keep following the driver (the pulse tap must not miss beats), but draw
+        nothing while nobody can see the view (see ``on_screen``)."""
+        driver = self.manager.driver("physio")
+        if driver is not self._driver:
+            self._attach(driver)
+        if on_screen(self):
+            self.refresh()
+
+    def showEvent(self, event: Any) -> None:
+        super().showEvent(event)
+        self.refresh()  # catch up at once on what was skipped while hidden
 
     def refresh(self) -> None:
         c = colours()

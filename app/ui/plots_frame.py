@@ -20,10 +20,13 @@ from __future__ import annotations
 
 import json
 import logging
+import math
+import time
 from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pyqtgraph as pg
 from PySide6.QtCore import QEvent, QObject, QSettings, Qt, QTimer
 from PySide6.QtGui import QKeyEvent
@@ -31,6 +34,7 @@ from PySide6.QtWidgets import (
     QCheckBox,
     QComboBox,
     QFileDialog,
+    QGraphicsItem,
     QHBoxLayout,
     QLabel,
     QPushButton,
@@ -44,7 +48,7 @@ from PySide6.QtWidgets import (
 
 from app.manager import LinarmppManager
 from app.paths import sessions_dir
-from app.ui.signal_store import SignalStore, shared_store
+from app.ui.signal_store import SignalStore, on_screen, shared_store
 from app.ui.theme import colours, curve_colour
 
 log = logging.getLogger(__name__)
@@ -55,6 +59,77 @@ DEFAULT_SIGNALS = ("linarm.vsa.handlePos", "linarm.vsa.equilibriumPos", "linarm.
                    "physio.main.heartRate")
 SCOPE_VISIBLE, SCOPE_ALL = "visible", "all"
 NO_UNIT = "(no unit)"
+# Vertical autoscale with hysteresis: the range follows the data only when the data leaves it or fills
+# less than Y_FILL_MIN of it, and then with Y_HEADROOM of the data's span above and below. A range that
+# moved every frame re-generated the axis and its grid every frame (the largest part of a frame).
+Y_FILL_MIN = 0.4
+Y_HEADROOM = 0.15
+Y_PADDING = 0.05  # "Fit" (A key, Fit button): close around the data
+# The graphs take at most this share of the GUI thread: when a frame (drawing + painting) costs more
+# than GRAPH_DUTY of the interval, the interval grows, so the e-stop and the other views keep their turn.
+GRAPH_DUTY = 0.35
+MAX_INTERVAL_MS = 250  # never slower than 4 frames a second
+
+
+def sticky_y_range(current: tuple[float, float] | None, lo: float, hi: float,
+                   snap: bool = False) -> tuple[float, float] | None:
+    """The new vertical range for data spanning [lo, hi] shown in ``current``, or None to keep it.
+
+    Kept while it holds the data and the data fills at least Y_FILL_MIN of it; otherwise the data's
+    span plus Y_HEADROOM each side (``snap``: always a new range, Y_PADDING each side). The data is
+    never outside the range returned (or kept)."""
+    span = hi - lo
+    if span <= 0:
+        span = max(abs(hi) * 0.1, 1e-9)  # a flat line: a small band around it
+    if not snap and current is not None:
+        c_lo, c_hi = current
+        if c_lo <= lo and hi <= c_hi and span >= Y_FILL_MIN * (c_hi - c_lo):
+            return None
+    pad = span * (Y_PADDING if snap else Y_HEADROOM)
+    return lo - pad, hi + pad
+
+
+class LiveViewBox(pg.ViewBox):
+    """A ViewBox whose vertical autorange follows ``y_bounds`` (set by the frame from the data it
+    drew) through :func:`sticky_y_range`, instead of re-measuring every item and moving the range on
+    every frame. Autorange stays pyqtgraph's own switch: ``enableAutoRange``, mouse zoom turns it off."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.y_bounds: tuple[float, float] | None = None
+        self.snap_y = True
+
+    def enableAutoRange(self, axis: Any = None, enable: Any = True, x: Any = None, y: Any = None) -> None:
+        was_on = self.state["autoRange"][1] is not False
+        super().enableAutoRange(axis, enable, x, y)
+        if not was_on and self.state["autoRange"][1] is not False:
+            self.snap_y = True  # switched on again: fit the data closely once
+
+    def updateAutoRange(self) -> None:
+        if self.state["autoRange"][0] is not False:  # x autorange (pyqtgraph's own "A" button): its way
+            super().updateAutoRange()
+            return
+        self._autoRangeNeedsUpdate = False
+        if self.state["autoRange"][1] is False or self.y_bounds is None:
+            return
+        current = None if self.snap_y else tuple(self.viewRange()[1])
+        new = sticky_y_range(current, *self.y_bounds, snap=self.snap_y)  # type: ignore[arg-type]
+        self.snap_y = False
+        if new is not None:
+            self.setRange(yRange=new, padding=0.0, disableAutoRange=False)
+
+
+class _TimedGraphics(pg.GraphicsLayoutWidget):
+    """The graphs' view, timing its own paint (the larger part of a frame's cost)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.last_paint_s = 0.0
+
+    def paintEvent(self, event: Any) -> None:
+        t0 = time.perf_counter()
+        super().paintEvent(event)
+        self.last_paint_s = time.perf_counter() - t0
 
 
 class PlotsFrame(QWidget):
@@ -80,6 +155,10 @@ class PlotsFrame(QWidget):
         self._follow_x = True
         self.cursor_x: float | None = None
         self.frame_times: list[float] = []
+        self._drawn_t: float | None = None  # newest sample time of the last live frame
+        self._base_interval_ms = int(1000 / max(1.0, refresh_hz))
+        self._interval_set = self._base_interval_ms  # what _adapt_interval last put on the timer
+        self.frame_cost_s = 0.0  # smoothed cost of one frame (drawing + painting) on the GUI thread
 
         self._build_ui()
         self._restore_settings()
@@ -88,8 +167,8 @@ class PlotsFrame(QWidget):
         self.store.updated.connect(self._mark_dirty)
 
         self.timer = QTimer(self)
-        self.timer.setInterval(int(1000 / max(1.0, refresh_hz)))
-        self.timer.timeout.connect(self.redraw)
+        self.timer.setInterval(self._base_interval_ms)
+        self.timer.timeout.connect(self._tick)
         self.timer.start()
 
     # ------------------------------------------------------------------ building
@@ -142,7 +221,7 @@ class PlotsFrame(QWidget):
         top.addStretch(1)
         rlay.addLayout(top)
 
-        self.graphics = pg.GraphicsLayoutWidget()
+        self.graphics = _TimedGraphics()
         c = colours()
         self.graphics.setBackground(c.plot_background)
         self.graphics.setFocusPolicy(Qt.FocusPolicy.StrongFocus)
@@ -254,7 +333,7 @@ class PlotsFrame(QWidget):
             by_unit.setdefault(unit, []).append(key)
         first: pg.PlotItem | None = None
         for row, (unit, keys) in enumerate(by_unit.items()):
-            plot = self.graphics.addPlot(row=row, col=0)
+            plot = self.graphics.addPlot(row=row, col=0, viewBox=LiveViewBox())
             plot.setMenuEnabled(False)
             plot.showGrid(x=True, y=True, alpha=c.grid_alpha)
             for axis in ("left", "bottom"):
@@ -266,7 +345,6 @@ class PlotsFrame(QWidget):
                 plot.setLabel("left", units=unit)  # pyqtgraph adds SI prefixes (mm, kN/m)
             plot.getAxis("left").setWidth(54)  # aligned time axes in every plot
             plot.setMinimumHeight(60)
-            plot.vb.setAutoVisible(y=True)
             plot.enableAutoRange(axis="y", enable=self.autoscale_box.isChecked())
             plot.enableAutoRange(axis="x", enable=False)
             plot.vb.sigRangeChangedManually.connect(self._on_manual_range)
@@ -279,6 +357,11 @@ class PlotsFrame(QWidget):
                 plot.getAxis("bottom").setStyle(showValues=False)
             legend = plot.addLegend(offset=(4, 2), labelTextSize="8pt")
             legend.setBrush(pg.mkBrush(c.plot_background + "c0"))
+            # The axes (with their grid, which spans the plot) and the legend lie under the curves, so
+            # they were re-drawn, text and all, on every frame: drawn once into a pixmap instead, and
+            # again only when they change (a new range, a resize).
+            for item in (plot.getAxis("left"), plot.getAxis("bottom"), legend):
+                item.setCacheMode(QGraphicsItem.CacheMode.DeviceCoordinateCache)
             for key in keys:
                 info = self.store.info(key)
                 colour = curve_colour(self.selected.index(key))
@@ -320,10 +403,42 @@ class PlotsFrame(QWidget):
         x0, x1 = plot.vb.viewRange()[0]
         return self.t_ref + x0, self.t_ref + x1
 
+    def _tick(self) -> None:
+        """The timer's slot: a frame only when it can be seen and something new is there to draw;
+        then the interval adapts to the frame's cost (GRAPH_DUTY)."""
+        if not self.curves or not on_screen(self):
+            return
+        if not self.paused and not self._dirty and self.store.last_time() == self._drawn_t:
+            return  # no new sample, nothing moved: the picture on screen is current
+        self.redraw()
+        self._adapt_interval()
+
+    def _adapt_interval(self) -> None:
+        if self.timer.interval() != self._interval_set:  # set from outside: the new fastest rate
+            self._base_interval_ms = self._interval_set = self.timer.interval()
+        # The paint measured is the previous frame's (it follows the drawing, asynchronously).
+        cost = self.frame_times[-1] / 1000.0 + self.graphics.last_paint_s if self.frame_times else 0.0
+        self.frame_cost_s = cost if self.frame_cost_s == 0.0 else 0.8 * self.frame_cost_s + 0.2 * cost
+        wanted = int(1000.0 * self.frame_cost_s / GRAPH_DUTY)
+        # No faster than the time axis moves by one pixel: in between the picture could only shift by
+        # a fraction of a pixel (30 s over 800 px: 37 ms; 600 s: capped at MAX_INTERVAL_MS).
+        plot = self._first_plot()
+        if plot is not None and not self.paused:
+            wanted = max(wanted, int(1000.0 * self.history_s / max(1.0, plot.vb.width())))
+        interval = min(MAX_INTERVAL_MS, max(self._base_interval_ms, wanted))
+        if abs(interval - self.timer.interval()) > max(2, self.timer.interval() // 10):
+            self.timer.setInterval(interval)
+            self._interval_set = interval
+
+    def showEvent(self, event: Any) -> None:
+        super().showEvent(event)
+        self._dirty = True  # catch up at the next tick on what was skipped while hidden
+
     def redraw(self) -> None:
         """Draw the selected signals from the buffers (the timer calls this)."""
         if not self.curves:
             return
+        t_start = time.perf_counter()
         store = self._draw_store()
         if not self.paused:
             now = self.store.last_time()
@@ -343,6 +458,7 @@ class PlotsFrame(QWidget):
         t0, t1 = rng[0] - 0.02 * span, rng[1] + 0.02 * span  # a little beyond the edges: no gaps when panning
         for plot in self.plots.values():
             width_px = max(100, int(plot.vb.width()))
+            lo, hi = math.inf, -math.inf
             for key, curve in self.curves.items():
                 if curve.getViewBox() is not plot.vb:
                     continue
@@ -351,7 +467,15 @@ class PlotsFrame(QWidget):
                     continue
                 t, y = store.envelope(key, t0, t1, max_points=2 * width_px)
                 curve.setData(t - self.t_ref, y)
+                finite = y[np.isfinite(y)]
+                if finite.size:
+                    lo, hi = min(lo, float(finite.min())), max(hi, float(finite.max()))
+            if isinstance(plot.vb, LiveViewBox):
+                plot.vb.y_bounds = (lo, hi) if lo <= hi else None
         self._dirty = False
+        self._drawn_t = self.t_ref
+        self.frame_times.append(1000.0 * (time.perf_counter() - t_start))
+        del self.frame_times[:-100]
         if self.cursor_x is not None:
             self._update_readout(self.cursor_x)
 
@@ -403,6 +527,8 @@ class PlotsFrame(QWidget):
         self.set_autoscale(True)
         for plot in self.plots.values():
             plot.enableAutoRange(axis="y", enable=True)
+            if isinstance(plot.vb, LiveViewBox):
+                plot.vb.snap_y = True  # close around the data now, whatever the range was
         self._follow_x = True
         self._apply_x_range()
         self._dirty = True

@@ -29,6 +29,7 @@ from PySide6.QtWidgets import (
 )
 
 from app.manager import LinarmppManager
+from app.ui.signal_store import on_screen
 from app.ui.theme import colours
 
 DASH = "—"
@@ -246,7 +247,7 @@ class ValuesFrame(QWidget):
 
         self.timer = QTimer(self)
         self.timer.setInterval(int(1000 / REFRESH_HZ))
-        self.timer.timeout.connect(self.refresh)
+        self.timer.timeout.connect(self._tick)
         self.timer.start()
         self.refresh()
 
@@ -323,6 +324,15 @@ class ValuesFrame(QWidget):
             n = len(self.device_labels)
             self.dev_row.addWidget(label, n // 2, n % 2)
             self.device_labels[name] = label
+
+    def _tick(self) -> None:
+        """The timer's slot: no work while nobody can see the frame (see ``on_screen``)."""
+        if on_screen(self):
+            self.refresh()
+
+    def showEvent(self, event: Any) -> None:
+        super().showEvent(event)
+        self.refresh()  # catch up at once on what was skipped while hidden
 
     def refresh(self) -> None:
         self._sync_devices()

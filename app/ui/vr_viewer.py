@@ -14,6 +14,7 @@ from PySide6.QtGui import QColor, QPainter, QPaintEvent, QPen
 from PySide6.QtWidgets import QFormLayout, QLabel, QVBoxLayout, QWidget
 
 from app.devices.udp_frames import TaskState
+from app.ui.signal_store import on_screen
 from app.ui.theme import colours
 
 RAIL_M = 0.5
@@ -75,8 +76,17 @@ class VrViewer(QWidget):
         layout.addLayout(form)
         layout.addWidget(self.rail, 1)
         self.timer = QTimer(self)
-        self.timer.timeout.connect(self.refresh)
+        self.timer.timeout.connect(self._tick)
         self.timer.start(int(1000 / refresh_hz))
+
+    def _tick(self) -> None:
+        """The timer's slot: no work while nobody can see the view (see ``on_screen``)."""
+        if on_screen(self):
+            self.refresh()
+
+    def showEvent(self, event: Any) -> None:
+        super().showEvent(event)
+        self.refresh()  # catch up at once on what was skipped while hidden
 
     def refresh(self) -> None:
         d = self.driver
