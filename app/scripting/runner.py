@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import builtins
 import collections
+import contextlib
 import ctypes
 import enum
 import linecache
@@ -34,7 +35,7 @@ import threading
 import time
 import traceback
 import types
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -55,6 +56,32 @@ COOPERATIVE_GRACE_S = 0.03  # API waits notice the stop flag within 20 ms; only 
 ASYNC_RESEND_S = 0.05
 CALLBACK_QUEUE_LIMIT = 1000  # samples waiting for the callback thread before the oldest are dropped
 HOME_TIMEOUT_S = 60.0
+
+
+_gil_lock = threading.Lock()
+_gil_users = 0
+_gil_previous = 0.005
+SCRIPT_SWITCH_INTERVAL_S = 0.001
+
+
+@contextlib.contextmanager
+def _responsive_gil() -> Iterator[None]:
+    """While a script runs, hand the GIL over every 1 ms instead of 5: a busy-waiting script (the seed's
+    own ``waitCondition``) otherwise makes every GUI and driver slot wait up to 5 ms for the GIL, and with
+    a few dozen Python slots a second the window stalls for seconds."""
+    global _gil_users, _gil_previous
+    with _gil_lock:
+        if _gil_users == 0:
+            _gil_previous = sys.getswitchinterval()
+            sys.setswitchinterval(min(_gil_previous, SCRIPT_SWITCH_INTERVAL_S))
+        _gil_users += 1
+    try:
+        yield
+    finally:
+        with _gil_lock:
+            _gil_users -= 1
+            if _gil_users == 0:
+                sys.setswitchinterval(_gil_previous)
 
 
 @dataclass
@@ -309,6 +336,10 @@ class ScriptRunner:
 
     # ------------------------------------------------------------------ threads
     def _script_main(self, code: types.CodeType, filename: str, source: str) -> None:
+        with _responsive_gil():
+            self._script_body(code, filename, source)
+
+    def _script_body(self, code: types.CodeType, filename: str, source: str) -> None:
         t0 = time.monotonic()
         sup = getattr(self.manager, "supervisor", None)
         name = Path(filename).name
