@@ -33,7 +33,6 @@ from app.recording import RecordedSession, RecordedStream, safe_name, write_json
 FORMAT = "linarmpp-session"
 FORMAT_VERSION = 1
 Progress = Callable[[float], bool]
-_ROWS_PER_CHUNK = 20_000
 
 
 class ExportCancelled(Exception):
@@ -109,13 +108,8 @@ def load_hdf5(path: str | Path) -> RecordedSession:
 
 
 # ---------------------------------------------------------------------------------------------- CSV
-def _header(name: str, unit: str) -> str:
-    return f"{name} [{unit}]" if unit else name
 
 
-def _rows_text(block: np.ndarray) -> str:
-    # Python's repr of a float is the shortest text that reads back to the same double.
-    return "".join(",".join(map(repr, row)) + "\n" for row in block.tolist())
 
 
 def export_csv(session: RecordedSession, folder: str | Path, progress: Progress | None = None) -> list[Path]:
@@ -129,13 +123,9 @@ def export_csv(session: RecordedSession, folder: str | Path, progress: Progress 
         for name, stream in session.streams.items():
             path = folder / f"{safe_name(name)}.csv"
             written.append(path)
-            with open(path, "w", encoding="utf-8", newline="") as fh:
-                fh.write(",".join(["t_mono_s [s]", *(_header(c.name, c.unit) for c in stream.channels)]) + "\n")
-                table = np.column_stack([stream.t, *(stream.data[c.name] for c in stream.channels)]) \
-                    if len(stream) else np.zeros((0, 1 + len(stream.channels)))
-                for start in range(0, len(table), _ROWS_PER_CHUNK):
-                    _report(progress, (done + start) / total)
-                    fh.write(_rows_text(table[start:start + _ROWS_PER_CHUNK]))
+            _report(progress, done / total)
+            write_aligned_csv(path, [(stream.t, [(c.name, c.unit, stream.data[c.name]) for c in stream.channels])],
+                              [f"LINarm++ Manager session export: stream {name}", "time: monotonic seconds"])
             done += len(stream)
         path = folder / "events.csv"
         written.append(path)
@@ -157,11 +147,6 @@ def export_csv(session: RecordedSession, folder: str | Path, progress: Progress 
     return written
 
 
-def _split_header(text: str) -> tuple[str, str]:
-    if text.endswith("]") and " [" in text:
-        name, unit = text[:-1].rsplit(" [", 1)
-        return name, unit
-    return text, ""
 
 
 def load_csv_export(folder: str | Path) -> RecordedSession:
@@ -173,10 +158,8 @@ def load_csv_export(folder: str | Path) -> RecordedSession:
     for path in sorted(folder.glob("*.csv")):
         if path.name == "events.csv":
             continue
-        lines = path.read_text(encoding="utf-8").splitlines()
-        heads = [_split_header(h) for h in lines[0].split(",")]
-        values = np.array(",".join(lines[1:]).split(","), dtype=np.float64).reshape(len(lines) - 1, len(heads)) \
-            if len(lines) > 1 else np.zeros((0, len(heads)))
+        names, units, values = read_aligned_csv(path)
+        heads = list(zip(names, units, strict=True))
         name, info = by_file.get(path.stem, (path.stem, {}))
         labels = {c["name"]: c.get("label", c["name"]) for c in info.get("channels") or []}
         channels = tuple(Channel(n, u, labels.get(n, n)) for n, u in heads[1:])
@@ -191,42 +174,74 @@ def load_csv_export(folder: str | Path) -> RecordedSession:
     return RecordedSession(folder, manifest, streams, events)
 
 
-# ---------------------------------------------------------------------------------------------- graphs
-Column = tuple[str, str, Sequence[float] | np.ndarray, Sequence[float] | np.ndarray]  # name, unit, t, values
+# ---------------------------------------------------------------------------------------------- the table writer
+AlignedStream = tuple[Sequence[float] | np.ndarray, Sequence[tuple[str, str, Sequence[float] | np.ndarray]]]
 
 
-def write_signals_csv(path: str | Path, columns: list[Column]) -> Path:
-    """The graphs' Save: signals side by side. Columns sharing the same time stamps share one time
-    column; groups of different lengths are padded with empty cells."""
+def write_aligned_csv(path: str | Path, streams: Sequence[AlignedStream], comments: Sequence[str] = ()) -> int:
+    """The one CSV writer of the application: the graphs' Save and the session CSV export both use it.
+    ``streams``: per stream its time stamps and its columns (name, unit, values). Returns the data rows.
+
+    Layout: ``#`` comment lines, a row of names (``time`` then each column), a row of units (``s`` then
+    each unit), then the data. Streams of different rates share one time column and nothing is
+    interpolated, repeated or dropped: each row is one instant, a stream's cells are filled only in the
+    rows of its own samples (empty otherwise); streams sampled at the same instant share rows; several
+    samples of one stream with the same time stamp take consecutive rows. Values are written with
+    ``repr`` so they read back bit-exact. (pandas: ``read_csv(path, comment="#", header=[0, 1])``.)
+    """
+    times = [np.asarray(t, dtype=np.float64) for t, _cols in streams]
+    occurrences = [np.arange(len(t)) - np.searchsorted(t, t, "left") for t in times]  # repeats of one time
+    cat_t = np.concatenate(times) if times else np.zeros(0)
+    cat_k = np.concatenate(occurrences) if occurrences else np.zeros(0, dtype=np.int64)
+    order = np.lexsort((cat_k, cat_t))
+    st, sk = cat_t[order], cat_k[order]
+    new_row = np.ones(len(st), dtype=bool)
+    if len(st) > 1:
+        new_row[1:] = (st[1:] != st[:-1]) | (sk[1:] != sk[:-1])
+    row_of_sorted = np.cumsum(new_row) - 1
+    nrows = int(row_of_sorted[-1] + 1) if len(st) else 0
+    row_of = np.empty(len(st), dtype=np.int64)
+    row_of[order] = row_of_sorted
+    row_time = np.empty(nrows)
+    row_time[row_of_sorted] = st
+    names: list[str] = []
+    units: list[str] = []
+    ncols = sum(len(cols) for _t, cols in streams)
+    cells = [[""] * ncols for _ in range(nrows)]
+    offset = col = 0
+    for (_t, cols), t in zip(streams, times, strict=True):
+        rows = row_of[offset:offset + len(t)].tolist()
+        offset += len(t)
+        for name, unit, values in cols:
+            names.append(name)
+            units.append(unit)
+            for r, v in zip(rows, np.asarray(values, dtype=np.float64).tolist(), strict=True):
+                cells[r][col] = repr(v)
+            col += 1
     path = Path(path)
-    groups: list[tuple[np.ndarray, list[tuple[str, str, np.ndarray]]]] = []
-    for name, unit, t, values in columns:
-        t_arr, v_arr = np.asarray(t, dtype=np.float64), np.asarray(values, dtype=np.float64)
-        if len(t_arr) != len(v_arr):
-            raise ValueError(f"{name}: {len(t_arr)} time stamps but {len(v_arr)} values")
-        for gt, members in groups:
-            if len(gt) == len(t_arr) and np.array_equal(gt, t_arr):
-                members.append((name, unit, v_arr))
-                break
-        else:
-            groups.append((t_arr, [(name, unit, v_arr)]))
-    header: list[str] = []
-    for _gt, members in groups:
-        header.append("t [s]" if len(groups) == 1 else f"t {members[0][0]} [s]")
-        header += [_header(n, u) for n, u, _ in members]
-    rows = max((len(gt) for gt, _ in groups), default=0)
     tmp = path.with_name(f".{path.name}.part")
     with open(tmp, "w", encoding="utf-8", newline="") as fh:
-        fh.write(",".join(header) + "\n")
-        for i in range(rows):
-            cells: list[str] = []
-            for gt, members in groups:
-                if i < len(gt):
-                    cells.append(repr(float(gt[i])))
-                    cells += [repr(float(v[i])) for _, _, v in members]
-                else:
-                    cells += [""] * (1 + len(members))
-            fh.write(",".join(cells) + "\n")
+        for line in comments:
+            fh.write(f"# {line}\n")
+        fh.write(",".join(["time", *map(_csv_field, names)]) + "\n")
+        fh.write(",".join(["s", *map(_csv_field, units)]) + "\n")
+        for r in range(nrows):
+            fh.write(repr(float(row_time[r])) + "," + ",".join(cells[r]) + "\n")
     os.replace(tmp, path)
-    return path
+    return nrows
 
+
+def _csv_field(text: str) -> str:
+    if any(ch in text for ch in ',"\n'):
+        return '"' + text.replace('"', '""') + '"'
+    return text
+
+
+def read_aligned_csv(path: str | Path) -> tuple[list[str], list[str], np.ndarray]:
+    """Names, units and the value table (NaN in empty cells) of a file written by write_aligned_csv."""
+    with open(path, encoding="utf-8", newline="") as fh:
+        rows = [r for r in csv.reader(fh) if r and not r[0].startswith("#")]
+    names, units, data = rows[0], rows[1], rows[2:]
+    table = np.array([[float(c) if c else np.nan for c in r] for r in data], dtype=np.float64) \
+        if data else np.zeros((0, len(names)))
+    return names, units, table

@@ -9,7 +9,15 @@ import pytest
 
 from app.config import AppConfig
 from app.devices.driver import Channel, StreamSpec
-from app.export import ExportCancelled, export_csv, export_hdf5, load_csv_export, load_hdf5, write_signals_csv
+from app.export import (
+    ExportCancelled,
+    export_csv,
+    export_hdf5,
+    load_csv_export,
+    load_hdf5,
+    read_aligned_csv,
+    write_aligned_csv,
+)
 from app.recording import RecordedSession, SessionRecorder, load_session
 from app.safety import SafetySupervisor
 from tests.fakes import ListenerDriver
@@ -67,8 +75,9 @@ def test_hdf5_round_trip_is_exact(session, tmp_path) -> None:
 def test_csv_round_trip_is_exact(session, tmp_path) -> None:
     files = export_csv(session, tmp_path / "csv")
     assert {f.name for f in files} == {"robot.state.csv", "physio.main.csv", "events.csv", "manifest.json"}
-    header = (tmp_path / "csv" / "robot.state.csv").read_text(encoding="utf-8").splitlines()[0]
-    assert header == "t_mono_s [s],centre [m],force [N]"
+    lines = [line for line in (tmp_path / "csv" / "robot.state.csv").read_text(encoding="utf-8").splitlines()
+             if not line.startswith("#")]
+    assert lines[:2] == ["time,centre,force", "s,m,N"]
     assert_same(session, load_csv_export(tmp_path / "csv"))
 
 
@@ -81,14 +90,37 @@ def test_cancelled_export_leaves_nothing(session, tmp_path) -> None:
     assert list((tmp_path / "csv").iterdir()) == []
 
 
-def test_signals_csv_groups_shared_time_columns(tmp_path) -> None:
-    t1, t2 = np.array([0.1, 0.2, 0.3]), np.array([0.15, 0.25])
-    path = write_signals_csv(tmp_path / "g.csv", [("centre", "m", t1, [1.0, 2.0, 1 / 3]), ("force", "N", t1, [4, 5, 6]),
-                                                  ("hr", "bpm", t2, [70.5, 71.0])])
+def test_one_writer_aligns_streams_of_different_rates(tmp_path) -> None:
+    """write_aligned_csv is what both the graphs' Save and the session export write with."""
+    t1, t2 = np.array([0.1, 0.2, 0.3]), np.array([0.15, 0.2])
+    path = tmp_path / "g.csv"
+    rows = write_aligned_csv(path, [(t1, [("centre", "m", [1.0, 2.0, 1 / 3]), ("force", "N", [4, 5, 6])]),
+                                    (t2, [("hr", "bpm", [70.5, 71.0])])], ["a comment"])
     lines = path.read_text(encoding="utf-8").splitlines()
-    assert lines[0] == "t centre [s],centre [m],force [N],t hr [s],hr [bpm]"
-    assert lines[1:] == ["0.1,1.0,4.0,0.15,70.5", "0.2,2.0,5.0,0.25,71.0", f"0.3,{1 / 3!r},6.0,,"]
-    single = write_signals_csv(tmp_path / "s.csv", [("centre", "m", t1, [1.0, 2.0, 3.0])])
-    assert single.read_text(encoding="utf-8").splitlines()[0] == "t [s],centre [m]"
-    with pytest.raises(ValueError, match="time stamps"):
-        write_signals_csv(tmp_path / "x.csv", [("a", "", [0.0], [1.0, 2.0])])
+    assert lines[0] == "# a comment" and lines[1:3] == ["time,centre,force,hr", "s,m,N,bpm"]
+    # Nothing interpolated or repeated: a stream's cells are empty where it has no sample.
+    assert lines[3:] == ["0.1,1.0,4.0,", "0.15,,,70.5", "0.2,2.0,5.0,71.0", f"0.3,{1 / 3!r},6.0,"]
+    assert rows == 4
+    names, units, table = read_aligned_csv(path)
+    assert names == ["time", "centre", "force", "hr"] and units == ["s", "m", "N", "bpm"]
+    assert table[0, 1] == 1.0 and np.isnan(table[0, 3]) and table[3, 1] == 1 / 3
+
+
+def test_graphs_save_and_session_export_share_the_writer(monkeypatch, session, tmp_path) -> None:
+    import app.export
+
+    calls: list[str] = []
+    real = app.export.write_aligned_csv
+    monkeypatch.setattr(app.export, "write_aligned_csv", lambda path, *a, **k: calls.append(str(path)) or real(
+        path, *a, **k))
+    export_csv(session, tmp_path / "csv")
+    from app.ui.signal_store import SignalStore
+
+    store = SignalStore(10.0)
+    from app.devices.driver import Channel, SampleBatch, StreamSpec
+
+    spec = StreamSpec("dev.main", (Channel("x", "m", "X"),), 100.0)
+    store.add_stream(spec, "dev")
+    store.feed({"dev.main": SampleBatch(spec, np.array([1.0, 2.0]), {"x": np.array([0.5, 0.25])})})
+    store.export_csv(tmp_path / "graphs.csv", ["dev.main.x"])
+    assert str(tmp_path / "graphs.csv") in calls and any(c.endswith("robot.state.csv") for c in calls)

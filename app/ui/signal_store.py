@@ -413,6 +413,8 @@ class SignalStore(QObject):
         seconds, and the header gives the wall-clock time of t = 0 to anchor it.
         (pandas: ``read_csv(path, comment="#", header=[0, 1])``.)
         """
+        from app.export import write_aligned_csv
+
         keys = list(signals)
         for k in keys:
             if k not in self._info:
@@ -420,65 +422,19 @@ class SignalStore(QObject):
         by_stream: dict[str, list[str]] = {}
         for k in keys:
             by_stream.setdefault(self._info[k].stream, []).append(k)
-        # Rows: unique (time, occurrence-within-that-time) pairs across the streams.
-        pieces: list[tuple[str, np.ndarray, np.ndarray, int, int]] = []
-        all_t: list[np.ndarray] = []
-        all_k: list[np.ndarray] = []
-        for stream in by_stream:
+        streams = []
+        for stream, stream_keys in by_stream.items():
             ring = self._rings[stream]
-            n0, n1 = ring.sample_range(t_from, t_to)
-            i0, i1 = ring.index_range(n0, n1)
-            t = ring.t[i0:i1]
-            occ = np.arange(len(t)) - np.searchsorted(t, t, "left")
-            pieces.append((stream, t, occ, i0, i1))
-            all_t.append(t)
-            all_k.append(occ)
-        if all_t:
-            cat_t = np.concatenate(all_t)
-            cat_k = np.concatenate(all_k)
-        else:
-            cat_t = np.zeros(0)
-            cat_k = np.zeros(0, dtype=np.int64)
-        order = np.lexsort((cat_k, cat_t))
-        st, sk = cat_t[order], cat_k[order]
-        new_row = np.ones(len(st), dtype=bool)
-        if len(st) > 1:
-            new_row[1:] = (st[1:] != st[:-1]) | (sk[1:] != sk[:-1])
-        row_of_sorted = np.cumsum(new_row) - 1
-        nrows = int(row_of_sorted[-1] + 1) if len(st) else 0
-        row_of = np.empty(len(st), dtype=np.int64)
-        row_of[order] = row_of_sorted
-        row_time = np.empty(nrows)
-        row_time[row_of_sorted] = st
-        col_index = {k: i for i, k in enumerate(keys)}
-        cells: list[list[str]] = [[""] * len(keys) for _ in range(nrows)]
-        offset = 0
-        for stream, t, _occ, i0, i1 in pieces:
-            rows = row_of[offset:offset + len(t)]
-            offset += len(t)
-            ring = self._rings[stream]
-            for key in by_stream[stream]:
-                col = col_index[key]
-                values = ring.y[self._info[key].channel][i0:i1].tolist()
-                for r, v in zip(rows.tolist(), values, strict=True):
-                    cells[r][col] = repr(v)
+            i0, i1 = ring.index_range(*ring.sample_range(t_from, t_to))
+            streams.append((ring.t[i0:i1], [(k, self._info[k].unit, ring.y[self._info[k].channel][i0:i1])
+                                           for k in stream_keys]))
         anchor = time.time() - time.monotonic()
-        path = Path(path)
-        with path.open("w", encoding="utf-8", newline="") as f:
-            f.write("# LINarm++ Manager signal export\n")
-            f.write(f"# time: monotonic seconds; wall clock of time 0 = {anchor:.6f} s since the Unix epoch\n")
-            f.write("# each row is one sampling instant; empty cells: that stream has no sample at that instant\n")
-            f.write(",".join(["time", *(_csv_field(k) for k in keys)]) + "\n")
-            f.write(",".join(["s", *(_csv_field(self._info[k].unit) for k in keys)]) + "\n")
-            for r in range(nrows):
-                f.write(repr(float(row_time[r])) + "," + ",".join(cells[r]) + "\n")
-        return nrows
+        return write_aligned_csv(path, streams, [
+            "LINarm++ Manager signal export",
+            f"time: monotonic seconds; wall clock of time 0 = {anchor:.6f} s since the Unix epoch",
+            "each row is one sampling instant; empty cells: that stream has no sample at that instant",
+        ])
 
-
-def _csv_field(text: str) -> str:
-    if any(ch in text for ch in ',"\n'):
-        return '"' + text.replace('"', '""') + '"'
-    return text
 
 
 _shared: weakref.WeakKeyDictionary[Any, SignalStore] = weakref.WeakKeyDictionary()
