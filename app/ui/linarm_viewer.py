@@ -21,6 +21,7 @@ from app.devices.linarm_protocol import ControlState, ErrorState, HomeState
 from app.manager import LinarmppManager
 from app.ui.signal_store import on_screen
 from app.ui.theme import colours
+from app.ui.widgets import LabelBoard
 
 DASH = "—"
 
@@ -88,7 +89,7 @@ def state_colour(field: str, value: Any) -> str:
     return c.text
 
 
-class LinarmViewer(QWidget):
+class LinarmViewer(LabelBoard, QWidget):
     def __init__(self, manager: LinarmppManager) -> None:
         super().__init__()
         self.manager = manager
@@ -174,19 +175,6 @@ class LinarmViewer(QWidget):
         grid.addWidget(label, row, col)
         self.values[key] = label
 
-    def _set(self, key: str, text: str, colour: str) -> None:
-        # Only touch what changed: a style sheet re-polishes the widget, far too slow for 20 Hz x 40 labels.
-        if self._shown.get(key) == (text, colour):
-            return
-        self._shown[key] = (text, colour)
-        label = self.values[key]
-        label.setText(text)
-        label.setStyleSheet(f"color: {colour};")
-        label.setAccessibleName(text)
-
-    def text_of(self, key: str) -> str:
-        """The text shown for ``key`` (``state.controlState``, ``vsa.handlePos``, ``motor1.current``...)."""
-        return self.values[key].text()
 
     def _tick(self) -> None:
         """The timer's slot: no work while nobody can see the view (see ``on_screen``)."""

@@ -28,6 +28,7 @@ from app.devices.physio_codec import FAULT_FLAGS
 from app.manager import LinarmppManager
 from app.ui.signal_store import SignalStore, on_screen, shared_store, signal_key
 from app.ui.theme import colours, curve_colour
+from app.ui.widgets import LabelBoard
 
 DASH = "—"
 STREAM = PHYSIO_STREAM.name
@@ -131,7 +132,7 @@ def _trace(colour: str, height: int) -> tuple[pg.PlotWidget, pg.PlotDataItem]:
     return plot, curve
 
 
-class PhysioViewer(QWidget):
+class PhysioViewer(LabelBoard, QWidget):
     def __init__(self, manager: LinarmppManager) -> None:
         super().__init__()
         self.manager = manager
@@ -271,21 +272,6 @@ class PhysioViewer(QWidget):
         self.values[key] = label
 
     # ------------------------------------------------------------------ reading
-    def _set(self, key: str, text: str, colour: str) -> None:
-        # Only touch what changed: a style sheet re-polishes the widget, too slow at 20 Hz.
-        if self._shown.get(key) == (text, colour):
-            return
-        self._shown[key] = (text, colour)
-        label = self.values[key]
-        label.setText(text)
-        label.setStyleSheet(f"color: {colour};")
-        label.setAccessibleName(text)
-
-    def text_of(self, key: str) -> str:
-        """The text shown for ``key``: a channel (``force``, ``heartRate``...), a link counter
-        (``rate``, ``decoded``, ``lost``, ``bad``, ``discarded``, ``discontinuities``), ``faults``,
-        or a calibration entry (``cal.force.gain``, ``cal.temperature.offset``...)."""
-        return self.values[key].text()
 
     def unit_of(self, channel: str) -> str:
         return self.units[channel].text()
