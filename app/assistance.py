@@ -108,7 +108,7 @@ class AssistanceController:
 
     def __init__(self, config: AssistanceConfig, apply_robot: RobotApply | None,
                  apply_fes_pulse_width: FesApply | None, supervisor: SafetySupervisor | None = None,
-                 clock: Callable[[], float] = time.monotonic) -> None:
+                 clock: Callable[[], float] = time.monotonic, alpha_max_age_s: float = 0.4) -> None:
         self._lock = threading.RLock()
         self._split = AssistanceSplit(config)
         self._apply_robot = apply_robot
@@ -118,6 +118,10 @@ class AssistanceController:
         self._k_r = config.k_r
         self._k_f = config.k_f
         self._alpha: float | None = None
+        self._alpha_time = -math.inf
+        # α older than this is not applied, whatever triggers it (a gain change, a flush): at 100 Hz from
+        # the model, an old α means the model is gone — before the link is even declared lost (0.5 s).
+        self.alpha_max_age_s = alpha_max_age_s
         self._targets: AssistanceTargets | None = None
         self._pending = False
         self._last_apply = -math.inf
@@ -165,6 +169,7 @@ class AssistanceController:
             alpha = min(1.0, max(-1.0, alpha))
         with self._lock:
             self._alpha = alpha
+            self._alpha_time = self._clock() if now is None else now
             self._recompute(now)
 
     def invalidate(self) -> None:
@@ -211,6 +216,9 @@ class AssistanceController:
     def _apply_if_due(self, now: float) -> bool:
         tg = self._targets
         if not self._pending or tg is None:
+            return False
+        if now - self._alpha_time > self.alpha_max_age_s:
+            self._pending = False  # a stale α is never applied
             return False
         if now - self._last_apply < 1.0 / self.config.max_update_rate_hz:
             return False

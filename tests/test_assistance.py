@@ -194,13 +194,25 @@ def test_a_refused_command_is_counted_and_the_loop_goes_on() -> None:
 def test_new_maps_take_effect() -> None:
     ctl, rec, clock = controller()
     ctl.update_alpha(1.0)
-    clock.t += 1.0
+    clock.t += 0.2  # past the rate limit (10 Hz), α still fresh
     ctl.set_config(AssistanceConfig(k_r=1.0, k_f=1.0, k_m_stiffness_n_m=AssistanceMap(100.0, 800.0),
                                     k_a_admittance_m_s_n=CFG.k_a_admittance_m_s_n,
                                     k_t_assistive_n_m=CFG.k_t_assistive_n_m,
                                     fes_pulse_width_us=AssistanceMap(100.0, 250.0)))
     assert rec.robot[-1] == (800.0, 0.01, 150.0)
     assert rec.fes[-1] == 250.0
+
+
+def test_a_stale_alpha_is_never_applied() -> None:
+    ctl, rec, clock = controller()
+    ctl.update_alpha(0.2)
+    sent = len(rec.robot)
+    clock.t += 1.0  # the model went quiet
+    ctl.set_gains(1.0, 1.0)  # the therapist moves a gain meanwhile
+    assert not ctl.flush()
+    assert len(rec.robot) == sent
+    ctl.update_alpha(0.9)  # α flows again: applied at once
+    assert len(rec.robot) == sent + 1
 
 
 def test_gains_outside_zero_one_are_refused() -> None:
@@ -241,12 +253,12 @@ def test_panel_edits_reach_the_controller_and_the_model(qtbot) -> None:
     ctl.update_alpha(1.0)
     assert rec.robot[-1] == (1200.0, 0.01, 150.0)
 
-    clock.t += 1.0
+    clock.t += 0.15  # past the 10 Hz rate limit, with α still fresh
     panel.k_r.spin.setValue(0.5)
     assert ctl.k_r == 0.5
     assert rec.robot[-1][0] == pytest.approx(700.0)
 
-    clock.t += 1.0
+    clock.t += 0.15  # past the 10 Hz rate limit, with α still fresh
     panel.map_spins["fes_pulse_width_us"][1].setValue(250.0)
     assert rec.fes[-1] == 250.0  # k_f = 1, α = 1: the top of the edited map
     panel.clinical_score.setValue(20)
