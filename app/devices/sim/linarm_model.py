@@ -296,6 +296,7 @@ class LinarmSimCore:
         # host link
         self._host_seen = False
         self._last_host_time = 0.0
+        self._watchdog_fed_until = -1.0
         self.stream_enabled = False
         self.stream_period = DEFAULT_STREAM_PERIOD
         self._stream_start = 0
@@ -332,6 +333,11 @@ class LinarmSimCore:
         """Bytes from the host, arriving at core time t (the core first catches up to t).
         Returns the immediate replies; asynchronous frames come out of ``stream_bytes``."""
         if t is not None:
+            if data and self._host_seen:
+                # These bytes were already in the link while the simulator thread was not running (a
+                # starved thread catches up in one go): the real controller would have read them in
+                # time. Catch up with the watchdog fed, so a host that was talking is never "silent".
+                self._watchdog_fed_until = t
             self.advance_to(t)
         if data:
             self._host_seen = True
@@ -676,6 +682,8 @@ class LinarmSimCore:
     def _supervise(self, t: float, m: dict[str, Any]) -> None:
         if not self.motors_on:
             return
+        if t <= self._watchdog_fed_until:
+            self._last_host_time = t
         if self._host_seen and t - self._last_host_time > WATCHDOG_TIMEOUT:
             self._latch(ErrorState.WATCHDOG, f"no host bytes for {t - self._last_host_time:.3f} s")
             return
