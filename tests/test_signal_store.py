@@ -161,7 +161,7 @@ def test_attach_feeds_from_a_real_driver_over_a_pty(qtbot, tmp_path: Path) -> No
 def test_on_screen_is_false_on_a_hidden_tab_a_minimised_window_or_scrolled_away(qtbot) -> None:
     from PySide6.QtWidgets import QLabel, QScrollArea, QTabWidget, QVBoxLayout, QWidget
 
-    from app.ui.signal_store import on_screen
+    from app.ui.widgets import on_screen
 
     tabs = QTabWidget()
     shown, hidden = QLabel("shown"), QLabel("hidden")

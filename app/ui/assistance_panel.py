@@ -36,7 +36,7 @@ from PySide6.QtWidgets import (
 )
 
 from app.config import AssistanceConfig, AssistanceMap
-from app.ui.signal_store import on_screen
+from app.ui.widgets import on_screen
 
 # (config field, label, unit, decimals, step)
 MAPS: tuple[tuple[str, str, str, int, float], ...] = (

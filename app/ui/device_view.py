@@ -25,8 +25,8 @@ from PySide6.QtGui import QColor, QFont, QGuiApplication, QPainter, QPainterPath
 from PySide6.QtWidgets import QLabel, QSizePolicy, QVBoxLayout, QWidget
 
 from app.manager import LinarmppManager
-from app.ui.signal_store import on_screen
 from app.ui.theme import colours
+from app.ui.widgets import RefreshWhenVisible
 
 log = logging.getLogger(__name__)
 
@@ -75,7 +75,7 @@ def spring_points(x0: float, x1: float, amplitude: float, coils: int = SPRING_CO
     return np.column_stack((xs, ys))
 
 
-class DeviceView(QWidget):
+class DeviceView(RefreshWhenVisible, QWidget):
     def __init__(self, manager: LinarmppManager, *, allow_gl: bool = True) -> None:
         """``allow_gl=False`` draws the 2D scene even where OpenGL works (no GPU driver, tests)."""
         super().__init__()
@@ -141,14 +141,6 @@ class DeviceView(QWidget):
         connected = bool(linarm and linarm.driver.connected)
         return SceneState(m0, m1, handle, target, connected)
 
-    def _tick(self) -> None:
-        """The timer's slot: no work while nobody can see the view (see ``on_screen``)."""
-        if on_screen(self):
-            self.refresh()
-
-    def showEvent(self, event: Any) -> None:
-        super().showEvent(event)
-        self.refresh()  # catch up at once on what was skipped while hidden
 
     def refresh(self) -> None:
         state = self.read_state()

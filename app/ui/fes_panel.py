@@ -10,7 +10,6 @@ from __future__ import annotations
 import logging
 from html import escape
 from pathlib import Path
-from typing import Any
 
 from PySide6.QtCore import Qt, QTimer
 from PySide6.QtGui import QBrush, QColor
@@ -35,8 +34,8 @@ from app.devices.rehastim import FesDriver, FesError
 from app.fes_profile import MAX_SCALE, FesProfile, FesProfileError, load_profile
 from app.manager import LinarmppManager
 from app.safety import SafetyError
-from app.ui.signal_store import on_screen
 from app.ui.theme import colours
+from app.ui.widgets import RefreshWhenVisible
 
 log = logging.getLogger(__name__)
 
@@ -81,7 +80,7 @@ class ScaleKnob(QWidget):
         return self.dial.value() / DIAL_STEPS
 
 
-class FesPanel(QWidget):
+class FesPanel(RefreshWhenVisible, QWidget):
     def __init__(self, manager: LinarmppManager, parent: QWidget | None = None) -> None:
         super().__init__(parent)
         self.manager = manager
@@ -245,14 +244,6 @@ class FesPanel(QWidget):
         self.message.setText(text)
 
     # ------------------------------------------------------------------ view
-    def _tick(self) -> None:
-        """The timer's slot: no work while nobody can see the view (see ``on_screen``)."""
-        if on_screen(self):
-            self.refresh()
-
-    def showEvent(self, event: Any) -> None:
-        super().showEvent(event)
-        self.refresh()  # catch up at once on what was skipped while hidden
 
     def refresh(self) -> None:
         c = colours()

@@ -62,8 +62,8 @@ from app.devices.linarm_protocol import (
 from app.devices.transport import TransportError
 from app.manager import LinarmppManager
 from app.safety import SafetyError
-from app.ui.signal_store import on_screen
 from app.ui.theme import colours
+from app.ui.widgets import RefreshWhenVisible
 
 log = logging.getLogger(__name__)
 
@@ -443,7 +443,7 @@ def _scroll(content: QWidget) -> QScrollArea:
 # -------------------------------------------------------------------------------------------- panel
 
 
-class LinarmPanel(QWidget):
+class LinarmPanel(RefreshWhenVisible, QWidget):
     """Buttons and inputs for the LINarm: states, modes, homing, moves, jog, interaction parameters,
     limits. ``last_outcome`` / ``outcomes`` hold what the operator saw (tests read them)."""
 
@@ -822,14 +822,6 @@ class LinarmPanel(QWidget):
         self._show(Outcome("", "event", f"{text} — the motors are off; press Reset error."))
 
     # ------------------------------------------------------------------ state
-    def _tick(self) -> None:
-        """The timer's slot: no work while nobody can see the panel (see ``on_screen``)."""
-        if on_screen(self):
-            self.refresh()
-
-    def showEvent(self, event: Any) -> None:
-        super().showEvent(event)
-        self.refresh()  # catch up at once on what was skipped while hidden
 
     def refresh(self) -> None:
         driver = self.driver()

@@ -19,9 +19,8 @@ from app.devices import linarm_protocol as proto
 from app.devices.linarm import STATE_STREAM, VSA_STREAM, LinarmDriver
 from app.devices.linarm_protocol import ControlState, ErrorState, HomeState
 from app.manager import LinarmppManager
-from app.ui.signal_store import on_screen
 from app.ui.theme import colours
-from app.ui.widgets import LabelBoard
+from app.ui.widgets import LabelBoard, RefreshWhenVisible
 
 DASH = "—"
 
@@ -89,7 +88,7 @@ def state_colour(field: str, value: Any) -> str:
     return c.text
 
 
-class LinarmViewer(LabelBoard, QWidget):
+class LinarmViewer(RefreshWhenVisible, LabelBoard, QWidget):
     def __init__(self, manager: LinarmppManager) -> None:
         super().__init__()
         self.manager = manager
@@ -176,14 +175,6 @@ class LinarmViewer(LabelBoard, QWidget):
         self.values[key] = label
 
 
-    def _tick(self) -> None:
-        """The timer's slot: no work while nobody can see the view (see ``on_screen``)."""
-        if on_screen(self):
-            self.refresh()
-
-    def showEvent(self, event: Any) -> None:
-        super().showEvent(event)
-        self.refresh()  # catch up at once on what was skipped while hidden
 
     def refresh(self) -> None:
         c = colours()

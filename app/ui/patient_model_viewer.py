@@ -29,8 +29,8 @@ from app.patient_model.decision_tree import (
     TreeConfig,
     load_tree_config,
 )
-from app.ui.signal_store import on_screen
 from app.ui.theme import colours, curve_colour
+from app.ui.widgets import RefreshWhenVisible
 
 ALPHA_CHANNELS = ("alpha", "a_r", "a_f")
 INDEX_CHANNELS = ("tpi", "mpi", "pti")
@@ -207,7 +207,7 @@ def _fmt(x: float | None, digits: int = 2) -> str:
     return "–" if x is None or not math.isfinite(x) else f"{x:.{digits}f}"
 
 
-class PatientModelViewer(QWidget):
+class PatientModelViewer(RefreshWhenVisible, QWidget):
     def __init__(self, manager: Any = None, driver: Any = None, tree_config: TreeConfig | None = None,
                  history_s: float = 60.0, refresh_hz: float = 20.0, parent: QWidget | None = None) -> None:
         super().__init__(parent)
@@ -304,14 +304,6 @@ class PatientModelViewer(QWidget):
                 col.popleft()
 
     # ------------------------------------------------------------------ display
-    def _tick(self) -> None:
-        """The timer's slot: no work while nobody can see the view (see ``on_screen``)."""
-        if on_screen(self):
-            self.refresh()
-
-    def showEvent(self, event: Any) -> None:
-        super().showEvent(event)
-        self.refresh()  # catch up at once on what was skipped while hidden
 
     def refresh(self) -> None:
         latest = self.driver.latest("patient_model.main") if self.driver is not None else self._latest

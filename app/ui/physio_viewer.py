@@ -26,9 +26,9 @@ from PySide6.QtWidgets import QFrame, QGridLayout, QGroupBox, QHBoxLayout, QLabe
 from app.devices.physio import PHYSIO_STREAM
 from app.devices.physio_codec import FAULT_FLAGS
 from app.manager import LinarmppManager
-from app.ui.signal_store import SignalStore, on_screen, shared_store, signal_key
+from app.ui.signal_store import SignalStore, shared_store, signal_key
 from app.ui.theme import colours, curve_colour
-from app.ui.widgets import LabelBoard
+from app.ui.widgets import LabelBoard, on_screen
 
 DASH = "—"
 STREAM = PHYSIO_STREAM.name

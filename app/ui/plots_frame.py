@@ -48,8 +48,9 @@ from PySide6.QtWidgets import (
 
 from app.manager import LinarmppManager
 from app.paths import sessions_dir
-from app.ui.signal_store import SignalStore, on_screen, shared_store
+from app.ui.signal_store import SignalStore, shared_store
 from app.ui.theme import colours, curve_colour
+from app.ui.widgets import on_screen
 
 log = logging.getLogger(__name__)
 

@@ -29,7 +29,6 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from PySide6.QtCore import QObject, Signal
-from PySide6.QtWidgets import QWidget
 
 from app.devices.driver import DeviceDriver, SampleBatch, StreamSpec
 
@@ -57,14 +56,6 @@ def signal_key(stream: str, channel: str) -> str:
     return f"{stream}.{channel}"
 
 
-def on_screen(widget: QWidget) -> bool:
-    """True when some of ``widget`` can be seen: shown (not on a hidden tab, in a closed dock or a
-    closed window), its window not minimised, and not clipped away entirely (scrolled out, squeezed
-    to nothing). The live views' timers skip their drawing otherwise: the GUI thread must keep idle
-    time for the emergency stop, and a view nobody sees is not worth a paint. They catch up when shown."""
-    if not widget.isVisible() or widget.window().isMinimized():
-        return False
-    return not widget.visibleRegion().isEmpty()
 
 
 class _Ring:

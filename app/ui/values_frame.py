@@ -29,8 +29,8 @@ from PySide6.QtWidgets import (
 )
 
 from app.manager import LinarmppManager
-from app.ui.signal_store import on_screen
 from app.ui.theme import colours
+from app.ui.widgets import RefreshWhenVisible
 
 DASH = "—"
 FES_CHANNELS = 8
@@ -171,7 +171,7 @@ class ValueTile(QFrame):
         self.setAccessibleName(f"{self.title.text()}: {shown}")
 
 
-class ValuesFrame(QWidget):
+class ValuesFrame(RefreshWhenVisible, QWidget):
     def __init__(self, manager: LinarmppManager) -> None:
         super().__init__()
         self.manager = manager
@@ -325,14 +325,6 @@ class ValuesFrame(QWidget):
             self.dev_row.addWidget(label, n // 2, n % 2)
             self.device_labels[name] = label
 
-    def _tick(self) -> None:
-        """The timer's slot: no work while nobody can see the frame (see ``on_screen``)."""
-        if on_screen(self):
-            self.refresh()
-
-    def showEvent(self, event: Any) -> None:
-        super().showEvent(event)
-        self.refresh()  # catch up at once on what was skipped while hidden
 
     def refresh(self) -> None:
         self._sync_devices()

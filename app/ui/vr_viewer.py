@@ -14,8 +14,8 @@ from PySide6.QtGui import QColor, QPainter, QPaintEvent, QPen
 from PySide6.QtWidgets import QFormLayout, QLabel, QVBoxLayout, QWidget
 
 from app.devices.udp_frames import TaskState
-from app.ui.signal_store import on_screen
 from app.ui.theme import colours
+from app.ui.widgets import RefreshWhenVisible
 
 RAIL_M = 0.5
 
@@ -58,7 +58,7 @@ class RailView(QWidget):
         p.end()
 
 
-class VrViewer(QWidget):
+class VrViewer(RefreshWhenVisible, QWidget):
     def __init__(self, manager: Any = None, driver: Any = None, refresh_hz: float = 10.0,
                  parent: QWidget | None = None) -> None:
         super().__init__(parent)
@@ -79,14 +79,6 @@ class VrViewer(QWidget):
         self.timer.timeout.connect(self._tick)
         self.timer.start(int(1000 / refresh_hz))
 
-    def _tick(self) -> None:
-        """The timer's slot: no work while nobody can see the view (see ``on_screen``)."""
-        if on_screen(self):
-            self.refresh()
-
-    def showEvent(self, event: Any) -> None:
-        super().showEvent(event)
-        self.refresh()  # catch up at once on what was skipped while hidden
 
     def refresh(self) -> None:
         d = self.driver
