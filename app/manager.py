@@ -65,6 +65,9 @@ class LinarmppManager(QObject):
         self.operator = ""
         self._lsl: Any = None
         self.assistance: Any = None  # app.assistance.AssistanceController, created in start()
+        from app.progress import ExerciseProgress
+
+        self.progress = ExerciseProgress(self.supervisor.event)  # the running exercise's repetitions
 
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> None:

@@ -601,6 +601,20 @@ class LinarmppManager:
 
     internalExec = startProgram
 
+    # Progress marks (an addition to the Appendix): the window shows "repetition 3 of 8", and the
+    # marks are session events from which the per-repetition metrics find the repetitions.
+    def startRepetition(self, index: int, total: int | None = None) -> None:
+        """Mark the start of repetition ``index`` (from 1), optionally of ``total``."""
+        self._ctx.manager.progress.start_repetition(index, total)
+
+    def endRepetition(self, index: int | None = None, ok: bool = True) -> None:
+        """Mark the end of repetition ``index`` (the current one when omitted); ``ok=False`` if it failed."""
+        self._ctx.manager.progress.end_repetition(index, ok)
+
+    def reportProgress(self, text: str) -> None:
+        """A short message for the clinician (shown beside the repetition count, recorded as an event)."""
+        self._ctx.manager.progress.report(text)
+
 
 # ---------------------------------------------------------------------------------------------- namespace
 API_NAMES = ("linarm", "physiologicalSensors", "fes", "patientModel", "VRUnity", "linarmppManager")

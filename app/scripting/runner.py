@@ -198,8 +198,9 @@ class ScriptRunner:
     def running(self) -> bool:
         return not self._done.is_set()
 
-    def start(self, source: str, filename: str = "<script>") -> None:
-        """Run ``source`` (the script's text) on a new thread; ``filename`` names it in tracebacks."""
+    def start(self, source: str, filename: str = "<script>", params: dict[str, Any] | None = None) -> None:
+        """Run ``source`` (the script's text) on a new thread; ``filename`` names it in tracebacks.
+        ``params`` (plain data: an exercise form's values) is the script's global ``exerciseParams``."""
         with self._run_lock:
             if self.running:
                 raise RuntimeError("a script is already running: stop it first")
@@ -216,6 +217,7 @@ class ScriptRunner:
             base = Path(filename).resolve().parent if not filename.startswith("<") else None
             self.context.base_dir = base
             self._new_namespace(filename)
+            self.namespace["exerciseParams"] = dict(params or {})
             self._thread = threading.Thread(target=self._script_main, args=(code, filename, source),
                                             name="script", daemon=True)
             self._callback_thread = threading.Thread(target=self._callback_main, name="script-callbacks",
@@ -223,9 +225,9 @@ class ScriptRunner:
             self._callback_thread.start()
             self._thread.start()
 
-    def start_file(self, path: str | Path) -> None:
+    def start_file(self, path: str | Path, params: dict[str, Any] | None = None) -> None:
         path = Path(path)
-        self.start(path.read_text(encoding="utf-8"), str(path))
+        self.start(path.read_text(encoding="utf-8"), str(path), params)
 
     def request_stop(self, reason: str = "stopped by the operator") -> None:
         """Ask every script thread (main, callbacks, interactive) to stop; returns at once."""
@@ -345,6 +347,9 @@ class ScriptRunner:
         name = Path(filename).name
         if sup is not None:
             sup.event("script_start", name=name, text=source)
+        progress = getattr(self.manager, "progress", None)
+        if progress is not None:
+            progress.begin(name)
         result = ScriptResult("finished", filename=filename)
         self._users.enter()
         try:
@@ -371,6 +376,8 @@ class ScriptRunner:
         self._bring_to_safe_state(result)
         if sup is not None:
             sup.event("script_stop", name=name, reason=result.message or result.status, status=result.status)
+        if progress is not None:
+            progress.finish(result.status)
         self.result = result
         self._done.set()
         if self.on_finished is not None:
