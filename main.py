@@ -3,6 +3,9 @@
 
     python main.py [--config FILE]                 the clinician window
     python main.py --headless --script FILE [--duration S] [--record DIR]
+    python main.py --metrics SESSION_FOLDER          per-repetition metrics as JSON
+    python main.py --report SESSION_FOLDER --out FILE.pdf
+    python main.py --progress PATIENT_ID --out FILE.pdf
 """
 
 from __future__ import annotations
@@ -21,6 +24,10 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     parser.add_argument("--record", help="record the session into this folder")
     parser.add_argument("--screenshot", help="save the window to this PNG once every device is connected, then quit")
     parser.add_argument("--quit-after", type=float, help="close the window after this many seconds")
+    parser.add_argument("--metrics", metavar="SESSION_FOLDER", help="print the session's per-repetition metrics (JSON)")
+    parser.add_argument("--report", metavar="SESSION_FOLDER", help="write the session's PDF report to --out")
+    parser.add_argument("--progress", metavar="PATIENT_ID", help="write the patient's progress PDF to --out")
+    parser.add_argument("--out", metavar="FILE", help="output file of --report / --progress")
     parser.add_argument("--verbose", action="store_true")
     return parser.parse_args(argv)
 
@@ -40,6 +47,11 @@ def main(argv: list[str] | None = None) -> int:
     except ConfigError as exc:
         print(f"Configuration refused, nothing was started:\n  {exc}", file=sys.stderr)
         return 2
+    if args.metrics or args.report or args.progress:
+        from app.reports import run_report_command
+
+        return run_report_command(config, metrics=args.metrics, report=args.report, progress=args.progress,
+                                  out=args.out)
     if args.headless:
         if not args.script:
             print("--headless needs --script FILE", file=sys.stderr)

@@ -83,6 +83,7 @@ class SessionSignals:
     fes_frequency_hz: float | None = None
     marks: list[Mark] = field(default_factory=list)
     trigger_threshold_n: float | None = None
+    exclude: list[tuple[float, float]] = field(default_factory=list)  # not movements (homing), for segmentation
 
 
 @dataclass
@@ -102,6 +103,8 @@ class RepetitionMetrics:
     grip_at_start_n: float | None = None
     reaction_time_s: float | None = None
     movement_onset_s: float | None = None
+    movement_end_s: float | None = None
+    movement_time_s: float | None = None
     mean_alpha: float | None = None
     mean_a_r: float | None = None
     mean_a_f: float | None = None
@@ -118,6 +121,7 @@ class RepetitionMetrics:
 # Metrics averaged in the summary (name → unit, label), in the order reports show them.
 SUMMARY_METRICS: dict[str, tuple[str, str]] = {
     "duration_s": ("s", "Duration"),
+    "movement_time_s": ("s", "Movement time"),
     "range_m": ("m", "Range of motion"),
     "path_length_m": ("m", "Path length"),
     "peak_speed_m_s": ("m/s", "Peak speed"),
@@ -282,13 +286,14 @@ def segment_by_speed(t: np.ndarray, speed: np.ndarray, x: np.ndarray | None = No
     return out
 
 
-def movement_onset(t: np.ndarray, speed: np.ndarray) -> float | None:
-    """First time the speed exceeds max(5 % of its peak, 5 mm/s) — the movement's onset."""
+def movement_bounds(t: np.ndarray, speed: np.ndarray) -> tuple[int, int] | None:
+    """Indices of the first and last sample where the speed exceeds max(5 % of its peak, 5 mm/s): the
+    movement's onset and end."""
     v = np.asarray(speed, dtype=float)
     if len(v) == 0:
         return None
     above = np.nonzero(v > max(ONSET_FRACTION * float(v.max()), ONSET_MIN_SPEED_M_S))[0]
-    return float(t[above[0]]) if len(above) else None
+    return (int(above[0]), int(above[-1])) if len(above) else None
 
 
 def last_rising_crossing(series: Series, threshold: float, before: float, after: float) -> float | None:
@@ -346,15 +351,20 @@ def repetition_metrics(sig: SessionSignals, start: float, end: float, index: int
         range_m = float(np.ptp(x_in))
         path = float(np.sum(np.abs(np.diff(lowpass(xu, rate)[inside]))))
         peak = float(v_in.max())
-        mean = float(v_in.mean())
+        bounds = movement_bounds(t_in, v_in)
+        # mean speed over the movement itself, not the wait before it (a trigger) or the rest after it
+        a, b = bounds if bounds is not None else (0, len(v_in) - 1)
+        mean = float(v_in[a:b + 1].mean())
         sp = sparc(v_in, rate)
         peaks = speed_peaks(v_in)
-        onset = movement_onset(t_in, v_in)
+        onset = float(t_in[a]) if bounds is not None else None
+        offset = float(t_in[b]) if bounds is not None else None
     else:
         range_m = path = peak = mean = sp = math.nan
-        peaks, onset = 0, None
+        peaks, onset, offset = 0, None, None
     m = RepetitionMetrics(index, start, end, end - start, range_m, path, peak, mean, sp, peaks,
-                          completed=completed, source=source, movement_onset_s=onset)
+                          completed=completed, source=source, movement_onset_s=onset, movement_end_s=offset,
+                          movement_time_s=(offset - onset) if onset is not None and offset is not None else None)
     if sig.force is not None and len(sig.force):
         f = np.abs(sig.force.window(start, end))
         f = f[np.isfinite(f)]
@@ -388,12 +398,25 @@ def repetitions(sig: SessionSignals) -> list[RepetitionMetrics]:
     if sig.marks:
         return [repetition_metrics(sig, mk.start, mk.end, mk.index, completed=mk.ok, source="marks")
                 for mk in sig.marks]
-    if len(sig.position) < 3:
+    found: list[tuple[float, float]] = []
+    for t, x in _pieces(sig.position, sig.exclude):
+        if len(t) < 3:
+            continue
+        tu, xu = resample_uniform(t, x, sig.rate_hz)
+        found += segment_by_speed(tu, np.abs(velocity(xu, sig.rate_hz)), xu)
+    return [repetition_metrics(sig, a, b, k + 1, source="speed") for k, (a, b) in enumerate(found)]
+
+
+def _pieces(series: Series, exclude: Sequence[tuple[float, float]]) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The series cut where it is excluded (homing: the encoders are re-referenced, the position jumps)."""
+    keep = np.ones(len(series), dtype=bool)
+    for a, b in exclude:
+        keep &= ~((series.t >= a) & (series.t <= b))
+    if not keep.any():
         return []
-    tu, xu = resample_uniform(sig.position.t, sig.position.v, sig.rate_hz)
-    speed = np.abs(velocity(xu, sig.rate_hz))
-    return [repetition_metrics(sig, a, b, k + 1, source="speed")
-            for k, (a, b) in enumerate(segment_by_speed(tu, speed, xu))]
+    idx = np.nonzero(keep)[0]
+    splits = np.nonzero(np.diff(idx) > 1)[0] + 1
+    return [(series.t[part], series.v[part]) for part in np.split(idx, splits)]
 
 
 def summarize(reps: Sequence[RepetitionMetrics], *, duration_s: float | None = None,
@@ -403,7 +426,7 @@ def summarize(reps: Sequence[RepetitionMetrics], *, duration_s: float | None = N
         "repetitions": len(reps),
         "completed": sum(1 for r in reps if r.completed),
         "source": reps[0].source if reps else "none",
-        "duration_s": duration_s,
+        "session_duration_s": duration_s,
         "alarms": alarms,
     }
     for name in SUMMARY_METRICS:
@@ -507,9 +530,31 @@ def signals_from_session(session: Any) -> SessionSignals:
             sig.fes_frequency_hz = float(((session.manifest.get("config") or {}).get("fes") or {})
                                          .get("frequency_hz") or 0.0) or None
     sig.marks = marks_from_events(session.events, t0, t_end)
+    sig.exclude = homing_intervals(session)
     threshold = exercise_params(session.events).get("trigger_threshold_n")
     sig.trigger_threshold_n = float(threshold) if threshold is not None else None
     return sig
+
+
+HOMING_MARGIN_S = 0.2  # the position settles after the encoders are re-referenced
+
+
+def homing_intervals(session: Any) -> list[tuple[float, float]]:
+    """Where the robot was homing (s from the session's start), with a margin after each."""
+    from app.devices.linarm_protocol import ControlState
+
+    state = session.streams.get("linarm.state")
+    if state is None or not len(state.t) or "controlState" not in state.data:
+        return []
+    t = state.t - session.start_mono
+    homing = np.concatenate([[False], state.data["controlState"] == int(ControlState.HOME_CTRL_STATE), [False]])
+    edges = np.diff(homing.astype(int))
+    starts, ends = np.nonzero(edges == 1)[0], np.nonzero(edges == -1)[0]
+    out = []
+    for a, b in zip(starts, ends, strict=True):
+        end = float(t[b]) if b < len(t) else float(t[-1])
+        out.append((float(t[a]) - 0.05, end + HOMING_MARGIN_S))
+    return out
 
 
 def session_alarms(session: Any) -> list[dict[str, Any]]:
