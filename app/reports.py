@@ -394,7 +394,7 @@ def _nice_ticks(lo: float, hi: float, target: int = 5) -> tuple[list[float], int
     step = next(m * 10 ** exp for m in (1, 2, 5, 10) if m * 10 ** exp >= raw)
     first = math.ceil(lo / step) * step
     ticks = [first + k * step for k in range(int((hi - first) / step + 1e-9) + 1)]
-    return ticks, max(0, -int(math.floor(math.log10(step))))
+    return ticks, max(0, -math.floor(math.log10(step)))
 
 
 def _footer(what: str) -> str:
@@ -414,7 +414,7 @@ def _when(iso: str) -> str:
 def _duration(seconds: Any) -> str:
     if not isinstance(seconds, int | float):
         return "—"
-    m, s = divmod(int(round(seconds)), 60)
+    m, s = divmod(round(seconds), 60)
     return f"{m} min {s:02d} s"
 
 
@@ -447,8 +447,8 @@ def write_session_report(folder: str | Path, out: str | Path, data: SessionRepor
         pdf.text("— (not started from an exercise form: see the script in the session's events)", colour="#555555")
 
     pdf.heading("Summary")
-    pdf.fields([("Repetitions", f"{summary.get('repetitions', 0)} ({summary.get('completed', 0)} completed; "
-                                f"{'marked by the exercise' if summary.get('source') == 'marks' else 'segmented from the handle speed'})"),
+    how = "marked by the exercise" if summary.get("source") == "marks" else "segmented from the handle speed"
+    pdf.fields([("Repetitions", f"{summary.get('repetitions', 0)} ({summary.get('completed', 0)} completed; {how})"),
                 ("Alarms / stops", str(summary.get("alarms", 0)))])
     rows = []
     for key, (unit, label) in SUMMARY_METRICS.items():

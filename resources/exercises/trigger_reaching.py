@@ -1,3 +1,4 @@
+# ruff: noqa: F821, B023 -- the script API (linarm, waitCondition, exerciseParams, …) is the runner's namespace
 # Trigger reaching (the seed's trigger exercise, D2.2 §4 Fig. 18, as a form). A passive exercise: the robot
 # moves the patient's arm between START and END, MOVEMENTS single movements (out, back, out, ...), and each
 # movement starts only when the grip force exceeds the trigger threshold (0 N: no trigger, the next movement
