@@ -573,14 +573,27 @@ def session_alarms(session: Any) -> list[dict[str, Any]]:
     return out
 
 
-def metrics_of_session(session: Any) -> dict[str, Any]:
-    """``{"repetitions": [...], "summary": {...}, "alarms": [...]}`` of a loaded session."""
+def metrics_of_session(session: Any, since_mono: float | None = None,
+                       until_mono: float | None = None) -> dict[str, Any]:
+    """``{"repetitions": [...], "summary": {...}, "alarms": [...]}`` of a loaded session; with ``since_mono`` /
+    ``until_mono`` (monotonic times) only the repetitions starting and the alarms raised in between (one
+    exercise of the session)."""
     sig = signals_from_session(session)
-    reps = repetitions(sig)
-    alarms = session_alarms(session)
-    summary = summarize(reps, duration_s=session.duration_s,
+    lo = -math.inf if since_mono is None else since_mono - session.start_mono
+    hi = math.inf if until_mono is None else until_mono - session.start_mono
+    events = [e for e in session.events if lo <= float(e.get("t_mono", 0.0)) - session.start_mono <= hi]
+    if since_mono is not None or until_mono is not None:
+        sig.marks = [mk for mk in sig.marks if lo <= mk.start <= hi]
+        params = exercise_params(events)
+        threshold = params.get("trigger_threshold_n")
+        sig.trigger_threshold_n = float(threshold) if threshold is not None else None
+    reps = [r for r in repetitions(sig) if lo <= r.start_s <= hi]
+    alarms = [a for a in session_alarms(session) if lo <= a["t_s"] <= hi]
+    duration = session.duration_s if since_mono is None and until_mono is None else \
+        min(hi, session.duration_s) - max(lo, 0.0)
+    summary = summarize(reps, duration_s=duration,
                         alarms=sum(1 for a in alarms if a["kind"] in ("alarm", "emergency_stop")))
-    params = exercise_params(session.events)
+    params = exercise_params(events)
     if params:
         summary["exercise_params"] = _clean(params)
     return {"repetitions": [r.as_dict() for r in reps], "summary": summary, "alarms": alarms}
