@@ -211,12 +211,24 @@ class ExercisesPanel(QWidget):
         progress = getattr(manager, "progress", None)
         if progress is not None:
             progress.changed.connect(self._progress_changed)
+        recorder = getattr(manager, "recorder", None)
+        self._session_folder: Path | None = Path(recorder.folder) if getattr(recorder, "folder", None) else None
+        self._exercised_in_session = False  # an exercise was started from here during this session
         if hasattr(manager, "session_changed"):
-            manager.session_changed.connect(lambda _f: self.load_plan())
+            manager.session_changed.connect(self._session_changed)
         self.load_plan()
         if self.library and self.exercise is None:
             self.exercise_list.setCurrentRow(0)
         self._sync_buttons()
+
+    def _session_changed(self, folder: Path | None) -> None:
+        """At the end of a session in which exercises were run from this tab, its whole summary is shown."""
+        ended, exercised = self._session_folder, self._exercised_in_session
+        self._session_folder = Path(folder) if folder is not None else None
+        self._exercised_in_session = False
+        self.load_plan()
+        if folder is None and ended is not None and exercised:
+            QTimer.singleShot(0, self, lambda: self.show_summary(ended, None, None, f"Session {ended.name}"))
 
     # ------------------------------------------------------------------ the runner (one per window)
     @property
@@ -338,6 +350,7 @@ class ExercisesPanel(QWidget):
             return False
         self._started_mono = time.monotonic()
         self._was_running = True
+        self._exercised_in_session = getattr(self.manager, "recorder", None) is not None
         self._started_exercise = self.exercise
         recording = getattr(self.manager, "recorder", None) is not None
         self._say(f"{self.exercise.title} started." + ("" if recording else
@@ -409,7 +422,7 @@ class ExercisesPanel(QWidget):
         recorder = getattr(self.manager, "recorder", None)
         if recorder is not None and getattr(recorder, "folder", None) is not None:
             folder, since, until = Path(recorder.folder), self._started_mono, time.monotonic()
-            QTimer.singleShot(SUMMARY_DELAY_MS, lambda: self.show_summary(folder, since, until, name))
+            QTimer.singleShot(SUMMARY_DELAY_MS, self, lambda: self.show_summary(folder, since, until, name))
 
     def show_summary(self, folder: Path, since: float | None, until: float | None, title: str) -> QWidget | None:
         from app.ui.session_summary import SessionSummaryDialog
