@@ -148,11 +148,9 @@ def regular_times(t: np.ndarray, rate_hz: float) -> np.ndarray:
     t = np.asarray(t, dtype=float)
     if len(t) < 2 or rate_hz <= 0:
         return t.copy()
-    period = 1.0 / rate_hz
-    out = t.copy()
-    for i in range(len(t) - 2, -1, -1):
-        out[i] = min(t[i], out[i + 1] - period)
-    return out
+    # out[i] = min(t[i], out[i+1] − p); with w = out − i·p that is a reverse running minimum of t − i·p
+    steps = np.arange(len(t)) / rate_hz
+    return np.minimum.accumulate((t - steps)[::-1])[::-1] + steps
 
 
 def resample_uniform(t: np.ndarray, v: np.ndarray, rate_hz: float) -> tuple[np.ndarray, np.ndarray]:
