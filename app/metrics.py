@@ -564,7 +564,6 @@ def session_alarms(session: Any) -> list[dict[str, Any]]:
         if e.get("kind") not in kinds:
             continue
         data = dict(e.get("data") or {})
-        data.pop("text", None)  # a script's full text
         if e["kind"] == "script_stop" and data.get("status") in ("finished", None):
             continue
         out.append({"t_s": round(float(e.get("t_mono", t0)) - t0, 3), "kind": e["kind"], "data": _clean(data)})

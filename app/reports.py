@@ -311,7 +311,7 @@ class _Pdf:
             xmax = max(x for x, _ in pts)
             if xmax == xmin:
                 xmin, xmax = xmin - 1, xmax + 1
-            ymin, ymax = _y_range([y for _, y in pts])
+            ymin, ymax = y_range([y for _, y in pts])
 
             def to_px(x: float, y: float) -> QPointF:
                 return QPointF(box.left() + (x - xmin) / (xmax - xmin) * box.width(),
@@ -374,7 +374,7 @@ class _Pdf:
         return self.page
 
 
-def _y_range(values: Sequence[float]) -> tuple[float, float]:
+def y_range(values: Sequence[float]) -> tuple[float, float]:
     """The y axis: the data with a margin, and at least 10 % of the largest magnitude tall, so that
     differences at the level of noise do not fill the plot."""
     lo, hi = min(values), max(values)

@@ -26,7 +26,7 @@ from PySide6.QtWidgets import (
     QWidget,
 )
 
-from app.reports import SCORES, TREND_METRICS, ProgressRow, fmt, progress_rows
+from app.reports import SCORES, TREND_METRICS, ProgressRow, fmt, progress_rows, y_range
 
 log = logging.getLogger(__name__)
 
@@ -59,7 +59,7 @@ class ProgressView(QWidget):
         self.plots: dict[str, pg.PlotWidget] = {}
         grid = QGridLayout()
         n = list(range(1, len(rows) + 1))
-        dates = [(i, rows[i - 1].date[5:]) for i in n]
+        dates = [(i, f"#{i} {rows[i - 1].date[5:]}") for i in n]
         specs = [(key, label, unit, [r.value(key) for r in rows]) for key, label, unit in TREND_METRICS]
         specs += [(key, label, "", [_num(r.scores.get(key)) for r in rows]) for key, label in SCORES]
         for key, label, unit, values in specs:
@@ -73,6 +73,8 @@ class ProgressView(QWidget):
             plot.getAxis("bottom").setTicks([dates if len(dates) <= 10 else dates[::max(1, len(dates) // 10)]])
             plot.plot([a for a, _ in pts], [b for _, b in pts], pen=pg.mkPen("#1f77b4", width=2), symbol="o",
                       symbolSize=7, symbolBrush="#1f77b4")
+            plot.setYRange(*y_range([b for _, b in pts]), padding=0)  # noise-level changes do not fill the plot
+            plot.setXRange(0.7, len(rows) + 0.3, padding=0)
             self.plots[key] = plot
             k = len(self.plots) - 1
             grid.addWidget(plot, k // 3, k % 3)

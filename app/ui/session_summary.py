@@ -26,7 +26,7 @@ from PySide6.QtWidgets import (
 )
 
 from app.metrics import metrics_of_session
-from app.reports import REPETITION_COLUMNS, fmt
+from app.reports import REPETITION_COLUMNS, fmt, y_range
 
 log = logging.getLogger(__name__)
 
@@ -68,7 +68,7 @@ class SessionSummary(QWidget):
         self.table.setHorizontalHeaderLabels([h for _, h, _ in REPETITION_COLUMNS])
         self.table.setEditTriggers(QAbstractItemView.EditTrigger.NoEditTriggers)
         self.table.verticalHeader().setVisible(False)
-        self.table.horizontalHeader().setSectionResizeMode(QHeaderView.ResizeMode.ResizeToContents)
+        self.table.horizontalHeader().setSectionResizeMode(QHeaderView.ResizeMode.Stretch)
         self.table.setAccessibleName("Repetitions")
         for row, r in enumerate(reps):
             for col, (key, _, spec) in enumerate(REPETITION_COLUMNS):
@@ -89,13 +89,17 @@ class SessionSummary(QWidget):
             plot.setMinimumHeight(150)
             if len(keys) > 1:
                 plot.addLegend(offset=(-5, 5))
+            values: list[float] = []
             for j, (key, name) in enumerate(keys):
                 ys = [r.get(key) for r in reps]
                 pts = [(a, b) for a, b in zip(x, ys, strict=True) if b is not None]
                 if pts:
+                    values += [b for _, b in pts]
                     plot.plot([a for a, _ in pts], [b for _, b in pts], name=name,
                               pen=pg.mkPen(PLOT_PENS[j % 2], width=2), symbol="o", symbolSize=6,
                               symbolBrush=PLOT_PENS[j % 2])
+            if values:
+                plot.setYRange(*y_range(values), padding=0)
             self.plots[title_] = plot
             grid.addWidget(plot, k // 2, k % 2)
 
