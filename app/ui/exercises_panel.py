@@ -345,12 +345,13 @@ class ExercisesPanel(QWidget):
         if runner.running:
             self._say("Not started: a script is running. Stop it first.", error=True)
             return False
+        started = time.monotonic()  # before exercise_start is recorded: the summary's window includes it
         try:
             start_exercise(runner, self.manager, self.exercise, checked.params)
         except (RuntimeError, SyntaxError, OSError) as exc:
             self._say(f"Not started: {exc}", error=True)
             return False
-        self._started_mono = time.monotonic()
+        self._started_mono = started
         self._was_running = True
         self._exercised_in_session = getattr(self.manager, "recorder", None) is not None
         self._started_exercise = self.exercise
