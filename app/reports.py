@@ -147,6 +147,10 @@ def _ensure_gui_app() -> Any:
 
     app = QCoreApplication.instance()
     if app is None:
+        import os
+
+        if sys.platform.startswith("linux") and not os.environ.get("DISPLAY") and not os.environ.get("WAYLAND_DISPLAY"):
+            os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")  # a PDF needs fonts, not a screen
         app = QGuiApplication([sys.argv[0] if sys.argv else "linarmpp"])
     return app
 
@@ -503,8 +507,10 @@ def write_session_report(folder: str | Path, out: str | Path, data: SessionRepor
 
 
 def _details(data: dict[str, Any]) -> str:
-    keep = {k: v for k, v in data.items() if k not in ("text",)}
-    text = ", ".join(f"{k}: {v}" for k, v in keep.items())
+    """An alarm's own sentence first (its text or reason), then the rest."""
+    said = str(data.get("text") or data.get("reason") or "")
+    rest = ", ".join(f"{k}: {v}" for k, v in data.items() if k not in ("text", "reason", "ident"))
+    text = " — ".join(p for p in (said, rest) if p)
     return text if len(text) < 110 else text[:107] + "…"
 
 

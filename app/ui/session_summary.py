@@ -73,7 +73,7 @@ class SessionSummary(QWidget):
         for row, r in enumerate(reps):
             for col, (key, _, spec) in enumerate(REPETITION_COLUMNS):
                 item = QTableWidgetItem(fmt(r.get(key), spec))
-                item.setTextAlignment(int(Qt.AlignmentFlag.AlignRight | Qt.AlignmentFlag.AlignVCenter))
+                item.setTextAlignment(Qt.AlignmentFlag.AlignRight | Qt.AlignmentFlag.AlignVCenter)
                 if key == "completed" and not r.get("completed"):
                     item.setForeground(pg.mkColor("#c62828"))
                 self.table.setItem(row, col, item)
