@@ -221,9 +221,13 @@ def start_exercise(runner: Any, manager: Any, exercise: Exercise, values: Mappin
     if runner.running:
         raise RuntimeError("a script is running: stop it before starting an exercise")
     source = exercise.script.read_text(encoding="utf-8")
+    data = {"exercise": exercise.ident, "title": exercise.title, "script": exercise.script.name,
+            "params": dict(checked.params)}
+    record = getattr(manager, "record_event", None)
     sup = getattr(manager, "supervisor", None)
-    if sup is not None:
-        sup.event("exercise_start", exercise=exercise.ident, title=exercise.title, script=exercise.script.name,
-                  params=dict(checked.params))
+    if callable(record) and getattr(manager, "recorder", None) is not None:
+        record("exercise_start", "", **data)  # the session's own record of what the clinician chose
+    elif sup is not None:
+        sup.event("exercise_start", **data)
     runner.start(source, str(exercise.script), dict(checked.params))
     return checked

@@ -124,6 +124,12 @@ def test_exercise_runs_with_progress_and_its_summary_appears(qtbot, tmp_path: Pa
         assert summary.metrics["summary"]["exercise_params"]["movements"] == 2
         assert set(summary.plots) == {"Peak speed", "Smoothness (SPARC)", "Range of motion", "Interaction force"}
         panel.summary_dialog.close()
+        exercise_summary = panel.summary_dialog
+        manager.end_session()  # the whole session's summary follows
+        qtbot.waitUntil(lambda: panel.summary_dialog is not exercise_summary, timeout=10000)
+        assert panel.summary_dialog.summary.metrics["summary"]["repetitions"] == 2
+        assert panel.summary_dialog.windowTitle().startswith("Summary — PZ-UI")
+        panel.summary_dialog.close()
     finally:
         if runner is not None:
             runner.stop("test over", wait_s=2.0)

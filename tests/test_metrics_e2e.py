@@ -43,24 +43,22 @@ def config() -> AppConfig:
 
 def record_exercise(root: Path, qtbot: Any) -> Path:
     from app.manager import LinarmppManager
-    from app.recording import SessionRecorder
     from app.scripting.runner import ScriptRunner
 
     manager = LinarmppManager(config())
-    recorder = SessionRecorder()
     output: list[tuple[str, str]] = []
     try:
         manager.start()
         qtbot.waitUntil(manager.all_connected, timeout=10000)
         manager.sim_patient().squeeze_periodically(period=1.3, duty=0.23)
-        folder = recorder.start(manager, PATIENT, "dr_test", note="e2e", root=root)
+        folder = manager.start_session(PATIENT, "dr_test", note="e2e", root=root)
         runner = ScriptRunner(manager, lambda stream, text: output.append((stream, text)))
         checked = start_exercise(runner, manager, find_exercise("trigger_reaching"), PARAMS)
         assert checked.ok, checked.errors
         qtbot.waitUntil(lambda: runner.result is not None, timeout=90000)
         assert runner.result.status == "finished", (runner.result, "".join(t for _, t in output))
     finally:
-        recorder.stop("test finished")
+        manager.end_session("test finished")
         manager.shutdown()
     return folder
 
