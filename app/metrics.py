@@ -499,7 +499,9 @@ def signals_from_session(session: Any) -> SessionSignals:
         if s is None or channel not in s.data or not len(s.t):
             return None
         t = regular_times(s.t, s.nominal_rate_hz) if regular else s.t
-        return Series(t - t0, s.data[channel])
+        v = s.data[channel]
+        finite = np.isfinite(v)  # "unknown" samples (NaN: e.g. the force before homing) carry no value
+        return Series(t[finite] - t0, v[finite]) if finite.any() else None
 
     vsa = session.streams.get("linarm.vsa")
     rate = float(vsa.nominal_rate_hz) if vsa is not None and vsa.nominal_rate_hz else 200.0
