@@ -89,3 +89,14 @@ def test_a_malformed_exercise_is_refused(tmp_path: Path, text: str, fragment: st
         load_exercise(tmp_path / "x.yaml")
     library, problems = load_library(tmp_path)
     assert library == [] and len(problems) == 1
+
+
+def test_the_patient_dialog_keeps_a_therapy_plan(qtbot) -> None:
+    from app.patients import PatientProfile, PlannedExercise
+    from app.ui.patient_dialog import PatientDialog
+
+    plan = [PlannedExercise("trigger_reaching", {"movements": 6}, "start gently")]
+    dialog = PatientDialog(PatientProfile(patient_id="P9", therapy_plan=plan))
+    qtbot.addWidget(dialog)
+    profile = dialog.validate()
+    assert profile is not None and profile.therapy_plan == plan
