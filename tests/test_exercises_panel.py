@@ -135,3 +135,61 @@ def test_exercise_runs_with_progress_and_its_summary_appears(qtbot, tmp_path: Pa
             runner.stop("test over", wait_s=2.0)
         manager.end_session()
         manager.shutdown()
+
+
+class HoldingRunner(FakeRunner):
+    """A runner with contract 2's pause/resume (they hold the script and pause the progress)."""
+
+    def __init__(self, progress: ExerciseProgress) -> None:
+        super().__init__()
+        self.progress = progress
+        self.stop_reasons: list[str] = []
+
+    def start(self, source: str, filename: str, params: dict[str, Any]) -> None:
+        super().start(source, filename, params)
+        self.running = True
+        self.progress.begin("trigger_reaching.py", int(params["movements"]))
+
+    def pause(self) -> None:
+        self.progress.pause()
+
+    def resume(self) -> None:
+        self.progress.resume()
+
+    def request_stop(self, reason: str) -> None:
+        self.stop_reasons.append(reason)
+
+
+def test_progress_pause_resume_stop_and_the_end(qtbot) -> None:
+    manager = StubManager()
+    runner = HoldingRunner(manager.progress)
+    panel = ExercisesPanel(manager, runner=runner)
+    qtbot.addWidget(panel)
+    panel.select("trigger_reaching")
+    panel.set_value("movements", "8")
+    assert not panel.pause_button.isEnabled() and not panel.stop_button.isEnabled()
+    qtbot.mouseClick(panel.start_button, Qt.MouseButton.LeftButton)
+    assert "No session is being recorded" in panel.message.text()
+    assert panel.pause_button.isEnabled() and not panel.form_box.isEnabled()
+    for k in (1, 2):
+        manager.progress.start_repetition(k, 8)
+        manager.progress.end_repetition(k)
+    manager.progress.start_repetition(3)
+    manager.progress.report("squeeze the handle (20 N) to move")
+    assert panel.repetition_label.text() == "Repetition 3 of 8"
+    assert panel.progress_bar.maximum() == 8 and panel.progress_bar.value() == 2
+    assert panel.progress_text.text() == "squeeze the handle (20 N) to move"
+    assert panel.elapsed_label.text().startswith("elapsed 0:0")
+    qtbot.mouseClick(panel.pause_button, Qt.MouseButton.LeftButton)
+    assert manager.progress.state.paused_since is not None
+    assert panel.pause_button.text() == "&Resume" and "(paused)" in panel.elapsed_label.text()
+    qtbot.mouseClick(panel.pause_button, Qt.MouseButton.LeftButton)
+    assert manager.progress.state.paused_since is None and panel.pause_button.text() == "&Pause"
+    qtbot.mouseClick(panel.stop_button, Qt.MouseButton.LeftButton)
+    assert runner.stop_reasons == ["stopped by the operator (Exercises tab)"]
+    runner.result = type("R", (), {"status": "stopped", "message": "stopped by the operator"})()
+    runner.running = False
+    manager.progress.finish("stopped")
+    qtbot.waitUntil(lambda: panel.start_button.isEnabled(), timeout=2000)
+    assert panel.message.text().startswith("Trigger reaching") and "stopped" in panel.message.text()
+    assert panel.summary_dialog is None  # nothing was recorded: no summary to show
