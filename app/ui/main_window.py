@@ -26,6 +26,7 @@ from PySide6.QtWidgets import (
     QWidget,
 )
 
+from app import __version__
 from app.logging_setup import log_file
 from app.manager import LinarmppManager
 from app.paths import data_dir, sessions_dir
@@ -372,7 +373,8 @@ class MainWindow(QMainWindow):
     def show_about(self) -> None:
         QMessageBox.about(
             self, "About LINarm++ Manager",
-            "<b>LINarm++ Manager</b><br>Upper-limb rehabilitation with LINarm2, physiological sensors and FES."
+            f"<b>LINarm++ Manager</b> {__version__}"
+            "<br>Upper-limb rehabilitation with LINarm2, physiological sensors and FES."
             f"<br><br>Configuration: {self.manager.config.source}"
             f"<br>Log file: {log_file() or '(console only)'}"
             f"<br>Sessions: {sessions_dir()}<br>Data folder: {data_dir()}",

@@ -1,0 +1,105 @@
+"""The installable application (issue #21): the wheel holds the application and its resources and
+nothing else, and installed into a fresh virtual environment it runs from any folder.
+
+The wheel is built from a clean copy of the source tree (setuptools reuses a ``build/`` folder, which
+could smuggle in files deleted since). Dependencies come from the package index as for any user;
+pip's cache (filled when the suite's own venv was installed) keeps that quick.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+import tomllib
+import zipfile
+from pathlib import Path
+
+import pytest
+
+pytestmark = pytest.mark.slow
+
+ROOT = Path(__file__).resolve().parent.parent
+KEPT_OUT = ("tests/", "bench/", "firmware/", "tools/")
+NOT_COPIED = {".venv", ".git", "build", "dist", "__pycache__", ".pytest_cache", ".hypothesis", ".ruff_cache"}
+
+
+def _ignore(folder: str, names: list[str]) -> set[str]:
+    return {n for n in names if n in NOT_COPIED or n.endswith(".egg-info")}
+
+
+def _run(cmd: list[str], cwd: Path, env: dict[str, str] | None = None, timeout: float = 600) -> str:
+    result = subprocess.run(cmd, cwd=cwd, env=env, capture_output=True, text=True, timeout=timeout)
+    output = f"{result.stdout[-3000:]}\n{result.stderr[-3000:]}"
+    assert result.returncode == 0, f"{' '.join(cmd)} -> {result.returncode}\n{output}"
+    return result.stdout
+
+
+def _bin(venv: Path, name: str) -> Path:
+    return venv / ("Scripts" if os.name == "nt" else "bin") / (f"{name}.exe" if os.name == "nt" else name)
+
+
+@pytest.fixture(scope="module")
+def wheel(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    work = tmp_path_factory.mktemp("wheel")
+    source = work / "source"
+    shutil.copytree(ROOT, source, ignore=_ignore, symlinks=True)
+    _run([sys.executable, "-m", "pip", "wheel", str(source), "--no-deps", "-w", str(work / "dist"), "-q"], cwd=work)
+    wheels = list((work / "dist").glob("linarmpp_manager-*.whl"))
+    assert len(wheels) == 1, wheels
+    return wheels[0]
+
+
+def test_the_wheel_holds_the_application_and_its_resources_and_nothing_else(wheel: Path) -> None:
+    names = set(zipfile.ZipFile(wheel).namelist())
+    resources = {f"app/_resources/{p.relative_to(ROOT / 'resources').as_posix()}"
+                 for p in (ROOT / "resources").rglob("*") if p.is_file() and "__pycache__" not in p.parts}
+    code = {p.relative_to(ROOT).as_posix() for p in (ROOT / "app").rglob("*.py") if "__pycache__" not in p.parts}
+    assert {"app/_resources/config.default.yaml", "app/_resources/patient_model.yaml",
+            "app/_resources/linarmpp.desktop", "app/_resources/linarmpp.svg"} <= resources
+    assert any(n.startswith("app/_resources/scripts/") for n in resources)
+    assert any(n.startswith("app/_resources/fes_profiles/") for n in resources)
+    assert resources - names == set(), "resources missing from the wheel"
+    assert code - names == set(), "application modules missing from the wheel"
+    assert [n for n in names if n.startswith(KEPT_OUT)] == []
+    top = {n.split("/")[0] for n in names} - {"app"}
+    assert len(top) == 1 and top.pop().endswith(".dist-info"), "only the app package is installed"
+    meta = zipfile.ZipFile(wheel)
+    dist_info = next(n.split("/")[0] for n in names if n.endswith(".dist-info/entry_points.txt"))
+    entry_points = meta.read(f"{dist_info}/entry_points.txt").decode()
+    assert "linarmpp = app.cli:console_main" in entry_points
+    assert "[gui_scripts]" in entry_points and "linarmpp-gui = app.cli:gui_main" in entry_points
+    version = tomllib.loads((ROOT / "pyproject.toml").read_text(encoding="utf-8"))["project"]["version"]
+    assert f"\nVersion: {version}\n" in meta.read(f"{dist_info}/METADATA").decode()
+
+
+def test_the_installed_command_runs_an_example_headless_from_any_folder(wheel: Path, tmp_path: Path) -> None:
+    venv = tmp_path / "venv"
+    _run([sys.executable, "-m", "venv", str(venv)], cwd=tmp_path)
+    python = _bin(venv, "python")
+    # Already-downloaded wheels are reused through pip's cache; the dependencies resolve as for any user.
+    _run([str(python), "-m", "pip", "install", "-q", "--disable-pip-version-check", str(wheel)], cwd=tmp_path)
+
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "PYTHONHOME")}
+    env.update(LINARMPP_HOME=str(tmp_path / "home"), QT_QPA_PLATFORM="offscreen")
+    linarmpp = str(_bin(venv, "linarmpp"))
+    version = tomllib.loads((ROOT / "pyproject.toml").read_text(encoding="utf-8"))["project"]["version"]
+    assert _run([linarmpp, "--version"], cwd=elsewhere, env=env).strip() == f"LINarm++ Manager {version}"
+
+    # The example is the installed copy, found the way the application finds it: not the checkout's.
+    where = _run([str(python), "-c", "import app, app.resources as r; "
+                  "print(app.__file__); print(r.resource_path('scripts', 'trigger_exercise.py'))"],
+                 cwd=elsewhere, env=env).split()
+    package_file, example = Path(where[0]), Path(where[1])
+    assert venv in package_file.parents and venv in example.parents and example.is_file(), where
+
+    record = tmp_path / "rec"
+    _run([linarmpp, "--headless", "--script", str(example), "--duration", "10", "--record", str(record)],
+         cwd=elsewhere, env=env, timeout=120)
+    manifests = list(record.rglob("manifest.json"))
+    assert len(manifests) == 1, manifests
+    assert json.loads(manifests[0].read_text(encoding="utf-8"))["app_version"] == version

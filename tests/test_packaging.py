@@ -1,0 +1,103 @@
+"""Packaging facts that need no wheel build (issue #21): the resources are found through one module,
+the package list in pyproject.toml is complete, the version is the project's everywhere, the command
+line has one parser, and the desktop entry and icon are usable."""
+
+from __future__ import annotations
+
+import configparser
+import tomllib
+from pathlib import Path
+from types import SimpleNamespace
+
+import pytest
+
+import app
+from app import cli, resources
+
+ROOT = Path(__file__).resolve().parent.parent
+PYPROJECT = tomllib.loads((ROOT / "pyproject.toml").read_text(encoding="utf-8"))
+
+
+def test_resources_are_found_from_the_checkout() -> None:
+    assert resources.RESOURCES == ROOT / "resources"
+    for path in (resources.DEFAULT_CONFIG_FILE, resources.PATIENT_MODEL_FILE, resources.ICON_FILE,
+                 resources.DESKTOP_FILE, resources.resource_path("scripts", "trigger_exercise.py"),
+                 resources.resource_path("fes_profiles", "frontal_reaching.yaml")):
+        assert path.is_file(), path
+
+
+def test_the_lookups_of_other_modules_go_through_app_resources() -> None:
+    from app.config import DEFAULT_CONFIG_FILE, RESOURCES
+    from app.patient_model.decision_tree import DEFAULT_CONFIG_PATH
+
+    assert RESOURCES == resources.RESOURCES and DEFAULT_CONFIG_FILE == resources.DEFAULT_CONFIG_FILE
+    assert DEFAULT_CONFIG_PATH == resources.PATIENT_MODEL_FILE
+
+
+def test_every_package_of_the_application_is_in_the_wheel_list() -> None:
+    """pyproject.toml lists the packages explicitly (resources/ is mapped in): a new subpackage of app
+    that is not listed would be missing from the installed application."""
+    listed = set(PYPROJECT["tool"]["setuptools"]["packages"])
+    on_disk = {".".join(p.parent.relative_to(ROOT).parts) for p in (ROOT / "app").rglob("*.py")
+               if "__pycache__" not in p.parts}
+    assert on_disk - listed == set(), "add these to [tool.setuptools] packages in pyproject.toml"
+    mapped = PYPROJECT["tool"]["setuptools"]["package-dir"]
+    assert mapped == {f"app.{resources.INSTALLED_NAME}": "resources"}
+
+
+def test_the_version_is_the_projects_in_about_manifest_and_command_line(capsys, monkeypatch) -> None:
+    from app.recording import app_version
+
+    version = PYPROJECT["project"]["version"]
+    assert app.__version__ == version and app_version() == version
+    with pytest.raises(SystemExit) as stop:
+        cli.main(["--version"], prog="linarmpp")
+    assert stop.value.code == 0 and capsys.readouterr().out.strip() == f"LINarm++ Manager {version}"
+
+    from app.ui import main_window
+
+    shown: list[str] = []
+    monkeypatch.setattr(main_window.QMessageBox, "about", lambda _parent, _title, text: shown.append(text))
+    fake_window = SimpleNamespace(manager=SimpleNamespace(config=SimpleNamespace(source="defaults")))
+    main_window.MainWindow.show_about(fake_window)  # type: ignore[arg-type]
+    assert f"LINarm++ Manager</b> {version}" in shown[0]
+
+
+def test_main_py_and_the_installed_commands_share_one_parser() -> None:
+    import main
+
+    assert main.main is cli.main and main.build_parser is cli.build_parser
+    scripts = PYPROJECT["project"]["scripts"]
+    gui_scripts = PYPROJECT["project"]["gui-scripts"]
+    assert scripts == {"linarmpp": "app.cli:console_main"} and gui_scripts == {"linarmpp-gui": "app.cli:gui_main"}
+    options = {a.dest for a in cli.build_parser()._actions}
+    assert {"config", "headless", "script", "duration", "record", "version"} <= options
+
+
+def test_the_desktop_entry_starts_the_command_with_the_installed_icon(qapp) -> None:
+    from PySide6.QtGui import QIcon
+
+    from app.application import apply_desktop_identity
+
+    entry = configparser.ConfigParser(interpolation=None)
+    entry.optionxform = str  # type: ignore[assignment,method-assign]  # keys are case-sensitive
+    entry.read(resources.DESKTOP_FILE, encoding="utf-8")
+    desktop = entry["Desktop Entry"]
+    assert desktop["Type"] == "Application" and desktop["Name"] == "LINarm++ Manager"
+    assert desktop["Exec"] == "linarmpp" and desktop["Exec"] in PYPROJECT["project"]["scripts"]
+    assert desktop["Icon"] == resources.ICON_FILE.stem and desktop["Terminal"] == "false"
+    assert desktop["Categories"].endswith(";")
+
+    icon = QIcon(str(resources.ICON_FILE))
+    assert not icon.pixmap(64, 64).isNull(), "the SVG icon does not render (Qt's svg image plugin?)"
+    apply_desktop_identity(qapp)
+    assert not qapp.windowIcon().pixmap(32, 32).isNull()
+    assert qapp.desktopFileName() == resources.DESKTOP_FILE.stem
+
+
+def test_installed_example_scripts_are_the_users_code_in_tracebacks() -> None:
+    """Installed, the examples lie inside app/ (app/_resources/scripts): their frames must still show."""
+    from app.scripting import runner
+
+    assert not runner._is_app_file(str(resources.resource_path("scripts", "trigger_exercise.py")))
+    assert runner._is_app_file(runner.__file__)
