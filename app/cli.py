@@ -4,6 +4,7 @@ all run :func:`main`. With no arguments: the clinician window, every device simu
     linarmpp [--config FILE]                                the clinician window
     linarmpp --headless --script FILE [--duration S] [--record DIR]
     linarmpp --version
+    linarmpp --install-desktop-entry                       the application menu entry (Linux)
 
 The parser is built in one place, :func:`build_parser`: a new option is one ``add_argument`` line there.
 """
@@ -28,6 +29,8 @@ def build_parser(prog: str | None = None) -> argparse.ArgumentParser:
     parser.add_argument("--screenshot", help="save the window to this PNG once every device is connected, then quit")
     parser.add_argument("--quit-after", type=float, help="close the window after this many seconds")
     parser.add_argument("--verbose", action="store_true")
+    parser.add_argument("--install-desktop-entry", action="store_true",
+                        help="add LINarm++ Manager to this user's application menu (Linux), then exit")
     return parser
 
 
@@ -37,6 +40,8 @@ def parse_args(argv: list[str], prog: str | None = None) -> argparse.Namespace:
 
 def main(argv: list[str] | None = None, prog: str | None = None) -> int:
     args = parse_args(sys.argv[1:] if argv is None else argv, prog)
+    if args.install_desktop_entry:
+        return _install_desktop_entry()
     if not os.environ.get("DISPLAY") and not os.environ.get("WAYLAND_DISPLAY") and sys.platform.startswith("linux"):
         os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
     import logging
@@ -60,6 +65,18 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
     from app.application import run_gui
 
     return run_gui(config, screenshot=args.screenshot, quit_after_s=args.quit_after)
+
+
+def _install_desktop_entry() -> int:
+    from app.desktop_entry import install_desktop_entry
+
+    try:
+        written = install_desktop_entry()
+    except OSError as exc:
+        _report_error(f"The desktop entry was not installed: {exc}")
+        return 1
+    print("Installed (remove these files to undo):\n  " + "\n  ".join(str(p) for p in written))
+    return 0
 
 
 def console_main() -> int:

@@ -15,6 +15,7 @@ import subprocess
 import sys
 import tomllib
 import zipfile
+from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
@@ -23,6 +24,7 @@ pytestmark = pytest.mark.slow
 
 ROOT = Path(__file__).resolve().parent.parent
 KEPT_OUT = ("tests/", "bench/", "firmware/", "tools/")
+VERSION = tomllib.loads((ROOT / "pyproject.toml").read_text(encoding="utf-8"))["project"]["version"]
 NOT_COPIED = {".venv", ".git", "build", "dist", "__pycache__", ".pytest_cache", ".hypothesis", ".ruff_cache"}
 
 
@@ -71,35 +73,61 @@ def test_the_wheel_holds_the_application_and_its_resources_and_nothing_else(whee
     entry_points = meta.read(f"{dist_info}/entry_points.txt").decode()
     assert "linarmpp = app.cli:console_main" in entry_points
     assert "[gui_scripts]" in entry_points and "linarmpp-gui = app.cli:gui_main" in entry_points
-    version = tomllib.loads((ROOT / "pyproject.toml").read_text(encoding="utf-8"))["project"]["version"]
-    assert f"\nVersion: {version}\n" in meta.read(f"{dist_info}/METADATA").decode()
+    assert f"\nVersion: {VERSION}\n" in meta.read(f"{dist_info}/METADATA").decode()
 
 
-def test_the_installed_command_runs_an_example_headless_from_any_folder(wheel: Path, tmp_path: Path) -> None:
-    venv = tmp_path / "venv"
-    _run([sys.executable, "-m", "venv", str(venv)], cwd=tmp_path)
+@dataclass(frozen=True)
+class Installed:
+    venv: Path
+    python: Path
+    linarmpp: Path
+    elsewhere: Path  # a folder outside the checkout: the commands run there
+    env: dict[str, str]
+
+    def run(self, *args: str, **env: str) -> str:
+        return _run([str(self.linarmpp), *args], cwd=self.elsewhere, env={**self.env, **env}, timeout=120)
+
+
+@pytest.fixture(scope="module")
+def installed(wheel: Path, tmp_path_factory: pytest.TempPathFactory) -> Installed:
+    """The wheel in a fresh virtual environment (module scope: a rerun of a timing failure reuses it)."""
+    work = tmp_path_factory.mktemp("installed")
+    venv = work / "venv"
+    _run([sys.executable, "-m", "venv", str(venv)], cwd=work)
     python = _bin(venv, "python")
     # Already-downloaded wheels are reused through pip's cache; the dependencies resolve as for any user.
-    _run([str(python), "-m", "pip", "install", "-q", "--disable-pip-version-check", str(wheel)], cwd=tmp_path)
-
-    elsewhere = tmp_path / "elsewhere"
+    _run([str(python), "-m", "pip", "install", "-q", "--disable-pip-version-check", str(wheel)], cwd=work)
+    elsewhere = work / "elsewhere"
     elsewhere.mkdir()
     env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "PYTHONHOME")}
-    env.update(LINARMPP_HOME=str(tmp_path / "home"), QT_QPA_PLATFORM="offscreen")
-    linarmpp = str(_bin(venv, "linarmpp"))
-    version = tomllib.loads((ROOT / "pyproject.toml").read_text(encoding="utf-8"))["project"]["version"]
-    assert _run([linarmpp, "--version"], cwd=elsewhere, env=env).strip() == f"LINarm++ Manager {version}"
+    env.update(LINARMPP_HOME=str(work / "home"), QT_QPA_PLATFORM="offscreen")
+    return Installed(venv, python, _bin(venv, "linarmpp"), elsewhere, env)
 
+
+def test_the_installed_command_tells_its_version(installed: Installed) -> None:
+    assert installed.run("--version").strip() == f"LINarm++ Manager {VERSION}"
+
+
+def test_the_installed_command_runs_an_installed_example_headless_from_any_folder(installed: Installed) -> None:
     # The example is the installed copy, found the way the application finds it: not the checkout's.
-    where = _run([str(python), "-c", "import app, app.resources as r; "
+    where = _run([str(installed.python), "-c", "import app, app.resources as r; "
                   "print(app.__file__); print(r.resource_path('scripts', 'trigger_exercise.py'))"],
-                 cwd=elsewhere, env=env).split()
+                 cwd=installed.elsewhere, env=installed.env).split()
     package_file, example = Path(where[0]), Path(where[1])
-    assert venv in package_file.parents and venv in example.parents and example.is_file(), where
+    assert installed.venv in package_file.parents and installed.venv in example.parents, where
+    assert example.is_file()
 
-    record = tmp_path / "rec"
-    _run([linarmpp, "--headless", "--script", str(example), "--duration", "10", "--record", str(record)],
-         cwd=elsewhere, env=env, timeout=120)
+    record = installed.elsewhere / "rec"
+    shutil.rmtree(record, ignore_errors=True)  # a rerun starts clean
+    installed.run("--headless", "--script", str(example), "--duration", "10", "--record", str(record))
     manifests = list(record.rglob("manifest.json"))
     assert len(manifests) == 1, manifests
-    assert json.loads(manifests[0].read_text(encoding="utf-8"))["app_version"] == version
+    assert json.loads(manifests[0].read_text(encoding="utf-8"))["app_version"] == VERSION
+
+
+def test_the_installed_command_puts_itself_in_the_users_application_menu(installed: Installed) -> None:
+    share = installed.elsewhere / "share"
+    installed.run("--install-desktop-entry", XDG_DATA_HOME=str(share))
+    entry = (share / "applications" / "linarmpp.desktop").read_text(encoding="utf-8")
+    assert f"\nExec={installed.linarmpp}\n" in entry
+    assert (share / "icons" / "hicolor" / "scalable" / "apps" / "linarmpp.svg").is_file()

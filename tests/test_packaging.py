@@ -95,6 +95,24 @@ def test_the_desktop_entry_starts_the_command_with_the_installed_icon(qapp) -> N
     assert qapp.desktopFileName() == resources.DESKTOP_FILE.stem
 
 
+def test_the_desktop_entry_is_installed_into_the_users_menu_with_the_commands_full_path(
+        tmp_path: Path, monkeypatch, capsys) -> None:
+    from app import desktop_entry
+
+    command = tmp_path / "pipx venvs" / "bin" / "linarmpp"
+    entry, icon = desktop_entry.install_desktop_entry(tmp_path / "share", command)
+    assert entry == tmp_path / "share" / "applications" / "linarmpp.desktop"
+    assert icon.read_bytes() == resources.ICON_FILE.read_bytes() and icon.parent.name == "apps"
+    text = entry.read_text(encoding="utf-8")
+    assert f'\nExec="{command}"\n' in text and f"\nTryExec={command}\n" in text and "\nIcon=linarmpp\n" in text
+
+    monkeypatch.setenv("XDG_DATA_HOME", str(tmp_path / "xdg"))
+    monkeypatch.setattr(desktop_entry, "installed_command", lambda: Path("/usr/local/bin/linarmpp"))
+    assert cli.main(["--install-desktop-entry"]) == 0
+    assert "Exec=/usr/local/bin/linarmpp\n" in (tmp_path / "xdg" / "applications" / "linarmpp.desktop").read_text()
+    assert "remove these files to undo" in capsys.readouterr().out
+
+
 def test_installed_example_scripts_are_the_users_code_in_tracebacks() -> None:
     """Installed, the examples lie inside app/ (app/_resources/scripts): their frames must still show."""
     from app.scripting import runner
