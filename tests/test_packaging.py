@@ -60,7 +60,7 @@ def test_the_version_is_the_projects_in_about_manifest_and_command_line(capsys, 
     monkeypatch.setattr(main_window.QMessageBox, "about", lambda _parent, _title, text: shown.append(text))
     fake_window = SimpleNamespace(manager=SimpleNamespace(config=SimpleNamespace(source="defaults")))
     main_window.MainWindow.show_about(fake_window)  # type: ignore[arg-type]
-    assert f"LINarm++ Manager</b> {version}" in shown[0]
+    assert f"LINarm++ Manager</b> {version}" in shown[0] and f"Resources: {resources.RESOURCES}" in shown[0]
 
 
 def test_main_py_and_the_installed_commands_share_one_parser() -> None:
