@@ -5,6 +5,7 @@ line has one parser, and the desktop entry and icon are usable."""
 from __future__ import annotations
 
 import configparser
+import sys
 import tomllib
 from pathlib import Path
 from types import SimpleNamespace
@@ -72,6 +73,30 @@ def test_main_py_and_the_installed_commands_share_one_parser() -> None:
     assert scripts == {"linarmpp": "app.cli:console_main"} and gui_scripts == {"linarmpp-gui": "app.cli:gui_main"}
     options = {a.dest for a in cli.build_parser()._actions}
     assert {"config", "headless", "script", "duration", "record", "version"} <= options
+
+
+def test_the_windows_gui_command_without_a_console_shows_a_refused_configuration(
+        tmp_path: Path, monkeypatch, qapp) -> None:
+    from PySide6.QtWidgets import QMessageBox
+
+    bad = tmp_path / "site.yaml"
+    bad.write_text("ui:\n  palette: neon\n", encoding="utf-8")
+    shown: list[str] = []
+    monkeypatch.setattr(QMessageBox, "critical", lambda _parent, _title, text: shown.append(text))
+    monkeypatch.setattr(cli, "_no_console", False)
+    # Logging is not under test; its console handler would keep the stand-in stream closed below.
+    monkeypatch.setattr("app.logging_setup.setup_logging", lambda *_a, **_k: tmp_path / "log")
+    monkeypatch.setattr(sys, "argv", ["linarmpp-gui", "--config", str(bad)])
+    monkeypatch.setattr(sys, "stdout", None)  # pythonw: no console streams at all
+    monkeypatch.setattr(sys, "stderr", None)
+    try:
+        assert cli.gui_main() == 2
+        assert sys.stderr is not None and sys.stdout is not None  # printing no longer fails
+    finally:
+        for stream in (sys.stdout, sys.stderr):
+            if stream is not None:
+                stream.close()
+    assert len(shown) == 1 and "nothing was started" in shown[0] and "ui.palette" in shown[0]
 
 
 def test_the_desktop_entry_starts_the_command_with_the_installed_icon(qapp) -> None:
