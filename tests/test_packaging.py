@@ -5,6 +5,8 @@ line has one parser, and the desktop entry and icon are usable."""
 from __future__ import annotations
 
 import configparser
+import shutil
+import subprocess
 import sys
 import tomllib
 from pathlib import Path
@@ -136,6 +138,16 @@ def test_the_desktop_entry_is_installed_into_the_users_menu_with_the_commands_fu
     assert cli.main(["--install-desktop-entry"]) == 0
     assert "Exec=/usr/local/bin/linarmpp\n" in (tmp_path / "xdg" / "applications" / "linarmpp.desktop").read_text()
     assert "remove these files to undo" in capsys.readouterr().out
+
+
+@pytest.mark.skipif(shutil.which("desktop-file-validate") is None, reason="desktop-file-utils is not installed")
+def test_the_desktop_entries_pass_the_freedesktop_validator(tmp_path: Path) -> None:
+    from app.desktop_entry import install_desktop_entry
+
+    entry, _icon = install_desktop_entry(tmp_path, tmp_path / "with space" / "linarmpp")
+    for path in (resources.DESKTOP_FILE, entry):
+        result = subprocess.run(["desktop-file-validate", str(path)], capture_output=True, text=True, timeout=30)
+        assert result.returncode == 0 and not result.stdout.strip(), result.stdout + result.stderr
 
 
 def test_installed_example_scripts_are_the_users_code_in_tracebacks() -> None:
