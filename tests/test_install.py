@@ -131,3 +131,10 @@ def test_the_installed_command_puts_itself_in_the_users_application_menu(install
     entry = (share / "applications" / "linarmpp.desktop").read_text(encoding="utf-8")
     assert f"\nExec={installed.linarmpp}\n" in entry
     assert (share / "icons" / "hicolor" / "scalable" / "apps" / "linarmpp.svg").is_file()
+
+
+def test_the_installed_window_opens_on_simulated_devices(installed: Installed) -> None:
+    """The window loads its resources (icon, FES profiles, example scripts) from the installed copy."""
+    shot = installed.elsewhere / "window.png"
+    installed.run("--screenshot", str(shot))
+    assert shot.is_file() and shot.stat().st_size > 10_000
