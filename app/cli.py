@@ -70,6 +70,9 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
 def _install_desktop_entry() -> int:
     from app.desktop_entry import install_desktop_entry
 
+    if sys.platform in ("win32", "darwin"):
+        _report_error("--install-desktop-entry is for Linux desktops (freedesktop.org menus)")
+        return 2
     try:
         written = install_desktop_entry()
     except OSError as exc:
