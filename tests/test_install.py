@@ -28,8 +28,11 @@ VERSION = tomllib.loads((ROOT / "pyproject.toml").read_text(encoding="utf-8"))["
 NOT_COPIED = {".venv", ".git", "build", "dist", "__pycache__", ".pytest_cache", ".hypothesis", ".ruff_cache"}
 
 
+NOT_COPIED_SUFFIXES = (".egg-info", ".raw", ".h5", ".pyc")  # build metadata, bench captures, recordings
+
+
 def _ignore(folder: str, names: list[str]) -> set[str]:
-    return {n for n in names if n in NOT_COPIED or n.endswith(".egg-info")}
+    return {n for n in names if n in NOT_COPIED or n.endswith(NOT_COPIED_SUFFIXES)}
 
 
 def _run(cmd: list[str], cwd: Path, env: dict[str, str] | None = None, timeout: float = 600) -> str:
