@@ -21,7 +21,7 @@ from typing import Any
 
 import yaml
 
-from app.config import RESOURCES
+from app.resources import RESOURCES
 
 EXERCISES_DIR = RESOURCES / "exercises"
 PARAMETER_TYPES = ("int", "float", "bool", "choice")
