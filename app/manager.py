@@ -68,6 +68,9 @@ class LinarmppManager(QObject):
         from app.progress import ExerciseProgress
 
         self.progress = ExerciseProgress(self.supervisor.event)  # the running exercise's repetitions
+        from app.fault_policy import FaultPolicy
+
+        self.fault_policy = FaultPolicy(self)  # every STOP alarm -> safe state (window and headless alike)
 
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> None:
@@ -92,6 +95,7 @@ class LinarmppManager(QObject):
                 handle.simulator.start()
             handle.driver.start()
         log.info("devices started: %s", ", ".join(self.devices) or "none")
+        self.fault_policy.attach_devices()
         self._wire_assistance()
 
     # ------------------------------------------------------------------ the therapy loop
