@@ -58,14 +58,18 @@ class FaultPolicy:
     def attach_devices(self) -> None:
         """Listen to the devices' silence (idempotent; call after ``manager.start()`` created them)."""
         for name, handle in dict(getattr(self.manager, "devices", {})).items():
-            if name in self._attached or name not in STOP_ON_SILENCE:
+            if name in self._attached:
                 continue
             self._attached.add(name)
 
             def on_event(event: str, detail: str, device: str = name) -> None:
-                if event == "silent" and getattr(self.manager, "_started", True):
+                if not getattr(self.manager, "_started", True):
+                    return
+                if event == "silent" and device in STOP_ON_SILENCE:
                     self.supervisor.raise_alarm(AlarmLevel.STOP, device,
                                                 f"{device} stopped sending data: {detail or 'silent'}")
+                elif event == "helper_failed":
+                    self.process_failed(device, detail)
 
             handle.driver.add_event_listener(on_event)
 
