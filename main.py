@@ -25,8 +25,23 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     return parser.parse_args(argv)
 
 
+def _show_config_error(text: str) -> None:
+    """The window's form of exit 2: a dialog naming the file and line (nothing else starts)."""
+    try:
+        from PySide6.QtWidgets import QApplication, QMessageBox
+
+        app = QApplication.instance() or QApplication(sys.argv[:1])
+        QMessageBox.critical(None, "Configuration refused", f"Nothing was started.\n\n{text}")
+        del app
+    except Exception:
+        pass  # no display: the message is on stderr
+
+
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(sys.argv[1:] if argv is None else argv)
+    from app.paths import set_private_umask
+
+    set_private_umask()  # patient data: files 0600, folders 0700, whatever the login's umask
     if not os.environ.get("DISPLAY") and not os.environ.get("WAYLAND_DISPLAY") and sys.platform.startswith("linux"):
         os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
     import logging
@@ -39,6 +54,8 @@ def main(argv: list[str] | None = None) -> int:
         config = load_config(args.config)
     except ConfigError as exc:
         print(f"Configuration refused, nothing was started:\n  {exc}", file=sys.stderr)
+        if not args.headless and os.environ.get("QT_QPA_PLATFORM") != "offscreen":
+            _show_config_error(str(exc))
         return 2
     if args.headless:
         if not args.script:

@@ -220,6 +220,8 @@ class MainWindow(QMainWindow):
         file_menu = self.menuBar().addMenu("&File")
         quit_action = QAction("&Quit", self)
         quit_action.setShortcut(QKeySequence.StandardKey.Quit)
+        # From any window (Sessions, Replay, …): the shortcut is application-wide and Quit ends the app.
+        quit_action.setShortcutContext(Qt.ShortcutContext.ApplicationShortcut)
         quit_action.triggered.connect(self.close)
         file_menu.addAction(quit_action)
         session_menu = self.menuBar().addMenu("&Session")
@@ -354,7 +356,8 @@ class MainWindow(QMainWindow):
             "Reset the emergency stop? Devices stay idle until you start them again.",
         )
         if answer == QMessageBox.StandardButton.Yes:
-            self.manager.supervisor.reset_emergency_stop("operator")
+            # The session's operator (the record must say who), "operator" only when no session runs.
+            self.manager.supervisor.reset_emergency_stop(self.manager.operator or "operator")
 
     def _on_device_connection(self, name: str, connected: bool, reason: str) -> None:
         label = self.device_status.get(name)
@@ -417,7 +420,14 @@ class MainWindow(QMainWindow):
             save = getattr(frame, "save_settings", None)
             if callable(save):
                 save(settings)
+        super().closeEvent(event)
+        # The main window holds the e-stop: when it closes, the whole application ends (devices safe in
+        # run_gui's shutdown). No other window may keep the app — and the devices — running without it.
+        self.manager.supervisor.bring_to_safe_state("main window closed")
         app = QApplication.instance()
         if app is not None:
+            for widget in app.topLevelWidgets():
+                if widget is not self and widget.isVisible():
+                    widget.close()
             app.removeEventFilter(self._estop_filter)
-        super().closeEvent(event)
+            app.quit()
