@@ -111,7 +111,10 @@ def check_outcome(safe: Safe, t0: float, result: Any, words: str) -> dict[str, A
     fes = [t for t, _ in safe.calls["FES stop"] if t >= t0]
     robot = [t for t, _ in safe.calls["robot IDLE"] if t >= t0]
     assert fes and robot, safe.calls
-    return {"status": result.status, "fes_stop_s": fes[0] - t0, "robot_safe_s": robot[0] - t0}
+    outcome = {"status": result.status, "fes_stop_s": fes[0] - t0, "robot_safe_s": robot[0] - t0}
+    print(f"\nOUTCOME {words!r}: {result.status} / {result.message!r} / FES {outcome['fes_stop_s'] * 1e3:.1f} ms"
+          f" / robot {outcome['robot_safe_s'] * 1e3:.1f} ms")
+    return outcome
 
 
 @pytest.fixture
