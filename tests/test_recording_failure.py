@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import errno
 import json
+import os
 import time
 from dataclasses import replace
 
@@ -89,3 +90,44 @@ def test_config_holds_the_free_space_figures() -> None:
     rec = AppConfig().recording
     assert (rec.warn_free_mib, rec.min_free_mib) == (1024.0, 100.0)
     assert replace(rec, min_free_mib=5).min_free_mib == 5
+
+
+@pytest.fixture
+def small_tmpfs(tmp_path):
+    """A 48 KiB tmpfs (needs root and a kernel that lets us mount); skipped otherwise."""
+    import subprocess
+
+    mount = tmp_path / "tiny"
+    mount.mkdir()
+    if os.geteuid() != 0 or subprocess.run(["mount", "-t", "tmpfs", "-o", "size=48k", "tmpfs", str(mount)],
+                                           capture_output=True).returncode != 0:
+        pytest.skip("cannot mount a tmpfs here")
+    try:
+        yield mount
+    finally:
+        subprocess.run(["umount", "-l", str(mount)], capture_output=True)
+
+
+def test_a_really_full_disk(tmp_path, qtbot, small_tmpfs) -> None:
+    cfg = AppConfig()
+    cfg = replace(cfg, recording=replace(cfg.recording, warn_free_mib=0.0, min_free_mib=0.0))
+    m = LinarmppManager(cfg, factories={"physio": counter_factory(tmp_path, "physio")})  # 1 kHz, ~25 kB/s
+    m.start()
+    try:
+        qtbot.waitUntil(m.all_connected, timeout=10000)
+        folder = m.start_session("DISK03", "tester", root=small_tmpfs)
+        qtbot.waitUntil(lambda: any(a.level == AlarmLevel.STOP and "Recording failed" in a.text
+                                    for a in m.supervisor.alarms()), timeout=10000)
+        alarm = next(a for a in m.supervisor.alarms() if "Recording failed" in a.text)
+        assert str(folder) in alarm.text and "No space left" in alarm.text
+        m.record_event("while_full")
+        for csv in (folder / "streams").glob("*.csv"):
+            csv.write_text("", encoding="utf-8")  # the operator makes room
+        m.end_session()
+        manifest = json.loads((folder / "manifest.json").read_text(encoding="utf-8"))
+        assert manifest["status"] == "failed" and "No space left" in manifest["recording_failure"]["error"]
+        kinds = [json.loads(ln)["kind"] for ln in (folder / "events.jsonl").read_text(encoding="utf-8").splitlines()
+                 if ln.startswith("{")]
+        assert {"recording_failed", "while_full", "session_stop"} <= set(kinds)
+    finally:
+        m.shutdown()
