@@ -19,7 +19,7 @@ def test_sm2_accepts_a_third_party_default_t2_of_2_ms_with_two_channels() -> Non
 def test_losing_alpha_returns_fes_and_robot_assistance_to_their_non_alpha_values() -> None:
     from tests.test_assistance import controller
 
-    ctl, rec, clock = controller()
+    ctl, rec, _clock = controller()
     ctl.set_gains(1.0, 1.0)
     ctl.update_alpha(1.0)
     assert rec.fes[-1] == 300.0 and rec.robot[-1][2] == 150.0  # α drives both
