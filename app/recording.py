@@ -388,6 +388,9 @@ class SessionRecorder:
             if warning:
                 log.warning("%s", warning)
                 self.event("low_disk_space", "recorder", warning=warning)
+                from app.safety import AlarmLevel
+
+                manager.supervisor.raise_alarm(AlarmLevel.WARNING, "recording", warning[:1].upper() + warning[1:])
             for name, handle in manager.devices.items():
                 self._attach(name, handle.driver)
             sup = manager.supervisor

@@ -64,6 +64,15 @@ def test_free_space_thresholds(tmp_path, monkeypatch) -> None:
     assert info.value.errno == errno.ENOSPC and str(tmp_path) in info.value.strerror
 
 
+def test_low_disk_space_is_a_warning_alarm(tmp_path, qtbot, manager, monkeypatch) -> None:
+    from app import recording
+
+    monkeypatch.setattr(recording, "free_space_mib", lambda folder: 500.0)
+    manager.start_session("DISK04", "tester", root=tmp_path / "sessions")
+    assert [a for a in manager.supervisor.alarms() if a.level == AlarmLevel.WARNING and "500 MiB free" in a.text]
+    manager.end_session()
+
+
 def test_a_session_is_refused_when_the_disk_is_nearly_full(tmp_path, qtbot, manager, monkeypatch) -> None:
     from app import recording
 

@@ -311,7 +311,8 @@ class MainWindow(QMainWindow):
             try:
                 self.manager.start_session(patient_id, operator, note)
             except (ValueError, RuntimeError, OSError) as exc:
-                QMessageBox.warning(self, "Session not started", str(exc))
+                text = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
+                QMessageBox.warning(self, "Session not started", text)
 
         dialog.accepted.connect(accepted)
         dialog.open()
