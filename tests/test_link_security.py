@@ -165,9 +165,12 @@ def test_a_process_holding_the_models_port_is_never_reconnected(qtbot) -> None:
                 pass
             qtbot.wait(5)
         assert [a for a in manager.supervisor.alarms() if a.level == AlarmLevel.STOP and "cannot bind" in a.text]
-        assert not driver.connected
+        assert not driver.connected  # the thief's replies never counted
         assert not [a for a in manager.supervisor.alarms() if "reconnected" in a.text]
         assert driver.invalid_datagrams["mac"] > 0
+        # The next start listens on a fresh port of ours, with a new key: the real model is back.
+        qtbot.waitUntil(lambda: driver.connected, timeout=10000)
+        assert driver.udp.peer[1] != port and proc.starts >= 3
     finally:
         thief.close()
         manager.shutdown()

@@ -327,6 +327,21 @@ class UdpPeerDriver(DeviceDriver):
         self.datagrams_sent += 1
         self._rate_counts[0] += 1
 
+    def _move_helper_port(self) -> None:
+        assert self.process is not None
+        args = self.process.args
+        if "--listen" not in args or self.udp.peer is None:
+            return
+        i = args.index("--listen") + 1
+        host = args[i].rpartition(":")[0]
+        try:
+            port = free_udp_port(host)
+        except OSError:
+            return
+        args[i] = f"{host}:{port}"
+        self.udp.set_peer((self.udp.peer[0], port))
+        log.warning("%s: the helper will listen on port %d instead", self.name, port)
+
     def _supervise_process(self, now: float) -> None:
         assert self.process is not None
         self._next_process_check = now + 0.5
@@ -338,11 +353,13 @@ class UdpPeerDriver(DeviceDriver):
         log.warning("%s: helper process exited with code %s; restarting", self.name, code)
         self.error.emit(f"{self.name}: helper process exited (code {code}); restarting")
         if code == HelperProcess.BIND_FAILED:
-            # Someone else holds the helper's port: an alarm, and never "reconnected" through their socket.
+            # Someone else holds the helper's port: an alarm, never "reconnected" through their socket (its
+            # datagrams carry no valid MAC), and the next start listens on a fresh port of ours.
             self.helper_failures += 1
             port = self.udp.peer[1] if self.udp.peer else "?"
             self._fire_event("helper_failed",
                              f"the {self.name} process cannot bind its port {port} (taken by another program)")
+            self._move_helper_port()
         # The link is down even if the restart is quicker than the silence timeout: say so (alarm, gap).
         self._peer_alive = False
         super()._set_connected(False, f"the {self.name} process exited (code {code}); restarting it")
