@@ -62,3 +62,15 @@ def test_one_unreadable_patient_file_leaves_the_others_usable(tmp_path) -> None:
     assert entries["GOOD01"].profile is not None
     assert entries["BAD01"].profile is None and "not UTF-8" in entries["BAD01"].error
     assert entries["BAD02"].profile is None and "tag" in entries["BAD02"].error
+
+
+@pytest.mark.parametrize(("data", "words"), [(b"version: !!python/name:os.system 1\n", "tag"),
+                                             (b"version: 1\n\xff\n", "not UTF-8")])
+def test_hostile_decision_tree_file_is_refused_with_its_line(tmp_path, data: bytes, words: str) -> None:
+    from app.patient_model.decision_tree import PatientModelConfigError, load_tree_config
+
+    path = tmp_path / "tree.yaml"
+    path.write_bytes(data)
+    with pytest.raises(PatientModelConfigError) as info:
+        load_tree_config(path)
+    assert words in str(info.value) and info.value.line >= 1
