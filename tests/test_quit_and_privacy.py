@@ -57,7 +57,12 @@ def test_quit_from_the_sessions_window_ends_the_app_with_devices_safe(tmp_path, 
     quit_action = next(a for a in window.findChildren(type(window.menuBar().actions()[0]))
                        if a.text().replace("&", "") == "Quit")
     assert quit_action.shortcutContext() == Qt.ShortcutContext.ApplicationShortcut  # Ctrl+Q from any window
-    quit_action.trigger()
+    from PySide6.QtCore import QEventLoop, QTimer
+
+    loop = QEventLoop()  # as in the running app: Quit is triggered from inside the event loop
+    QTimer.singleShot(0, quit_action.trigger)
+    QTimer.singleShot(0, loop.quit)
+    loop.exec()
     assert not window.isVisible() and not browser.isVisible()
     assert quits and safe == ["main window closed"]
 

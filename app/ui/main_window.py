@@ -11,7 +11,7 @@ import importlib
 import logging
 from collections.abc import Callable
 
-from PySide6.QtCore import QEvent, QObject, QSettings, Qt, QTimer, Signal
+from PySide6.QtCore import QEvent, QObject, QSettings, Qt, QThread, QTimer, Signal
 from PySide6.QtGui import QAction, QKeySequence
 from PySide6.QtWidgets import (
     QApplication,
@@ -431,4 +431,5 @@ class MainWindow(QMainWindow):
                 if widget is not self and widget.isVisible():
                     widget.close()
             app.removeEventFilter(self._estop_filter)
-            app.quit()
+            if QThread.currentThread().loopLevel() > 0:  # the app's loop runs (not a test driving the window)
+                app.quit()
