@@ -181,6 +181,10 @@ class SafetyConfig:
     # ...but never less than this: a Python driver thread can be starved of the GIL for tens of ms while
     # the GUI draws (qt-stack.md §4); 0.25 s matches the controller watchdog and avoids false alarms.
     silence_min_s: float = field(default=0.25, metadata=rng(0.01, 5, "s"))
+    # A device that moves the patient or drives current (LINarm, FES) still silent this long after its
+    # silence alarm is a STOP (app/fault_policy.py): long enough that a host starved for a moment (the
+    # whole process silent at once, as on a loaded CI machine) does not stop a therapy.
+    silence_stop_s: float = field(default=1.0, metadata=rng(0, 10, "s"))
     # What the robot does when a script stops or the app leaves a session: IDLE (motors off) or hold.
     robot_safe_state: Literal["idle", "hold"] = "idle"
 

@@ -8,7 +8,8 @@ Which faults stop the therapy, and what stopping means, live here and nowhere el
   alarm: the registered stop actions stop FES, put the robot in its safe state and stop the running
   script (contract 3: the script ends "stopped" with ``cause`` as its message);
 * silence of a device that moves the patient or drives current (``STOP_ON_SILENCE``: the LINarm, the
-  FES) is a STOP alarm raised here (the manager reports silence of any device as a warning);
+  FES) that lasts ``safety.silence_stop_s`` (1 s) after the manager's silence warning is a STOP alarm
+  raised here (the LINarm's own watchdog has idled the motors after 0.25 s without host bytes anyway);
 * losing α (the patient-model link disconnected or silent) returns FES and robot assistance to their
   non-α values (``AssistanceController.invalidate``, wired by the manager);
 * a helper process that cannot bind its port is a device loss (``process_failed``), never "reconnected".
@@ -66,12 +67,26 @@ class FaultPolicy:
                 if not getattr(self.manager, "_started", True):
                     return
                 if event == "silent" and device in STOP_ON_SILENCE:
-                    self.supervisor.raise_alarm(AlarmLevel.STOP, device,
-                                                f"{device} stopped sending data: {detail or 'silent'}")
+                    self._silence_check(device, detail)
                 elif event == "helper_failed":
                     self.process_failed(device, detail)
 
             handle.driver.add_event_listener(on_event)
+
+    def _silence_check(self, device: str, detail: str) -> None:
+        delay = float(getattr(getattr(self.manager.config, "safety", None), "silence_stop_s", 1.0))
+
+        def check() -> None:
+            driver = self.manager.driver(device) if hasattr(self.manager, "driver") else None
+            if driver is None or not getattr(self.manager, "_started", True):
+                return
+            if getattr(driver, "silent", False) and getattr(driver, "connected", False):
+                self.supervisor.raise_alarm(AlarmLevel.STOP, device, f"{device} stopped sending data for "
+                                            f"{delay:g} s: {detail or 'silent'}")
+
+        timer = threading.Timer(delay, check)
+        timer.daemon = True
+        timer.start()
 
     def recording_failed(self, folder: str, error: str) -> None:
         """The recorder could not write (any thread)."""

@@ -101,7 +101,10 @@ def inject(manager: LinarmppManager, device: str, event: str, detail: str) -> fl
     if device == "recording":
         fill_the_disk(manager.recorder or manager._headless_recorder)
         return t0
-    manager.driver(device)._fire_event(event, detail)
+    driver = manager.driver(device)
+    if event == "silent":
+        driver._silent = True  # still silent when the policy looks again (silence_stop_s later)
+    driver._fire_event(event, detail)
     return t0
 
 
@@ -120,7 +123,8 @@ def check_outcome(safe: Safe, t0: float, result: Any, words: str) -> dict[str, A
 @pytest.fixture
 def fast_config() -> AppConfig:
     cfg = AppConfig()
-    return replace(cfg, ui=replace(cfg.ui, ask_session_on_start=False))
+    return replace(cfg, ui=replace(cfg.ui, ask_session_on_start=False),
+                   safety=replace(cfg.safety, silence_stop_s=0.2))
 
 
 @pytest.mark.parametrize(("device", "fault", "event", "detail", "words"), MATRIX,
@@ -205,3 +209,19 @@ def test_headless_fault(tmp_path, qtbot, monkeypatch, fast_config, device, fault
     assert code == headless.EXIT_SAFETY, "".join(out)
     outcome = check_outcome(safe, seen["t0"], results[-1], words)
     assert outcome["fes_stop_s"] < 1.0 and outcome["robot_safe_s"] < 1.0
+
+
+def test_a_moment_of_silence_that_ends_is_no_stop(tmp_path, qtbot, fast_config) -> None:
+    """A host starved for a moment (every device silent at once, then data again) must not stop a therapy."""
+    safe = Safe()
+    manager = LinarmppManager(fast_config, factories=fake_factories(tmp_path, safe))
+    manager.start()
+    try:
+        qtbot.waitUntil(manager.all_connected, timeout=10000)
+        driver = manager.driver("linarm")
+        driver._silent = False  # data came back before silence_stop_s
+        driver._fire_event("silent", "no sample for 0.25 s")
+        qtbot.wait(400)
+        assert not manager.fault_policy.faults and not safe.calls["robot IDLE"]
+    finally:
+        manager.shutdown()
