@@ -2,6 +2,9 @@
 
 Which faults stop the therapy, and what stopping means, live here and nowhere else:
 
+* a device's connection lost is a STOP (``loss_level``) — except the patient model and the VR link
+  while they drive nothing (no FES stimulation, the LINarm not ON): then a warning, so a model that
+  flaps while the robot homes or idles does not stop anything;
 * every alarm of level STOP or FATAL — a robot error latch (``controller_error``), a device's
   connection lost, the robot monitor's excursion, the patient model or VR link lost, a recording
   failure — calls ``supervisor.bring_to_safe_state(cause)`` at once, in the thread that raised the
@@ -34,6 +37,7 @@ from app.safety import Alarm, AlarmLevel
 log = logging.getLogger(__name__)
 
 STOP_ON_SILENCE: frozenset[str] = frozenset({"linarm", "fes"})
+DRIVING_LINKS: frozenset[str] = frozenset({"patient_model", "vr"})  # a loss matters only while they drive
 
 
 @dataclass(frozen=True)
@@ -98,6 +102,33 @@ class FaultPolicy:
         self.supervisor.raise_alarm(AlarmLevel.STOP, device, f"{device} helper failed: {detail}")
 
     # ------------------------------------------------------------------ the policy
+    def drives_something(self) -> bool:
+        """An actuator α or the VR task can influence is active: FES stimulating, or the LINarm ON."""
+        fes = self._driver("fes")
+        if fes is not None and bool(getattr(fes, "stimulating", False)):
+            return True
+        robot = self._driver("linarm")
+        latest = getattr(robot, "latest", None)
+        try:
+            state = latest("linarm.state") if callable(latest) else None
+        except Exception:
+            state = None
+        from app.devices.linarm_protocol import ControlState
+
+        return state is not None and getattr(state, "controlState", None) == int(ControlState.ON_CTRL_STATE)
+
+    def loss_level(self, device: str) -> AlarmLevel:
+        """The level of ``device``'s connection loss (the manager raises the alarm)."""
+        if device in DRIVING_LINKS and not self.drives_something():
+            return AlarmLevel.WARNING
+        return AlarmLevel.STOP
+
+    def _driver(self, name: str) -> Any:
+        try:
+            return self.manager.driver(name)
+        except Exception:
+            return None
+
     def _on_alarm(self, alarm: Alarm) -> None:
         if alarm.level < AlarmLevel.STOP:
             return

@@ -320,7 +320,8 @@ class LinarmppManager(QObject):
                     self.supervisor.raise_alarm(AlarmLevel.INFO, name, f"{name} reconnected")
                 state["was_connected"] = True
             elif event == "disconnected" and state["was_connected"] and self._started:
-                self.supervisor.raise_alarm(AlarmLevel.STOP, name, f"{name} connection lost: {detail}")
+                self.supervisor.raise_alarm(self.fault_policy.loss_level(name), name,  # STOP unless nothing needs it
+                                            f"{name} connection lost: {detail}")
             elif event == "silent" and self._started:
                 self.supervisor.raise_alarm(AlarmLevel.WARNING, name, f"{name} stopped sending data")
             elif event == "controller_error":

@@ -102,6 +102,8 @@ def inject(manager: LinarmppManager, device: str, event: str, detail: str) -> fl
         fill_the_disk(manager.recorder or manager._headless_recorder)
         return t0
     driver = manager.driver(device)
+    if device in ("patient_model", "vr"):
+        manager.driver("fes").stimulating = True  # α / the VR task drive something: the loss is a STOP
     if event == "silent":
         driver._silent = True  # still silent when the policy looks again (silence_stop_s later)
     driver._fire_event(event, detail)
@@ -223,5 +225,26 @@ def test_a_moment_of_silence_that_ends_is_no_stop(tmp_path, qtbot, fast_config) 
         driver._fire_event("silent", "no sample for 0.25 s")
         qtbot.wait(400)
         assert not manager.fault_policy.faults and not safe.calls["robot IDLE"]
+    finally:
+        manager.shutdown()
+
+
+def test_losing_the_model_or_vr_while_they_drive_nothing_is_a_warning(tmp_path, qtbot, fast_config) -> None:
+    safe = Safe()
+    manager = LinarmppManager(fast_config, factories=fake_factories(tmp_path, safe))
+    manager.start()
+    try:
+        qtbot.waitUntil(manager.all_connected, timeout=10000)
+        from app.safety import AlarmLevel
+
+        policy = manager.fault_policy
+        assert policy.loss_level("patient_model") == AlarmLevel.WARNING  # e.g. while the robot homes
+        assert policy.loss_level("vr") == AlarmLevel.WARNING
+        assert policy.loss_level("physio") == AlarmLevel.STOP
+        manager.driver("patient_model")._fire_event("disconnected", "no valid datagram for 0.5 s")
+        assert [a for a in manager.supervisor.alarms() if a.level == AlarmLevel.WARNING and "patient_model" in a.text]
+        assert not policy.faults and not safe.calls["FES stop"]
+        manager.driver("fes").stimulating = True
+        assert policy.loss_level("patient_model") == AlarmLevel.STOP
     finally:
         manager.shutdown()
