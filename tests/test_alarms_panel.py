@@ -85,7 +85,7 @@ def test_sound_repeats_while_a_stop_is_unacknowledged(qtbot) -> None:
     assert not panel.repeat.isActive()
 
 
-def test_banner_shows_the_most_urgent_open_alarm_and_follows_other_threads(qtbot) -> None:
+def test_banner_shows_the_newest_open_alarm_and_follows_other_threads(qtbot) -> None:
     manager, panel, _events = _setup(qtbot)
     banner = AlarmBanner(manager)
     qtbot.addWidget(banner)
@@ -97,12 +97,18 @@ def test_banner_shows_the_most_urgent_open_alarm_and_follows_other_threads(qtbot
     qtbot.waitUntil(lambda: banner.current is not None and panel.tree.topLevelItemCount() == 1, timeout=2000)
     stop = sup.raise_alarm(AlarmLevel.STOP, "linarm", "LINarm error: OVER_FORCE")
     sup.raise_alarm(AlarmLevel.INFO, "operator", "note")
-    assert banner.current is stop and banner.label.text().startswith("STOP (+2 more) · ")
-    assert LEVEL_STYLES[AlarmLevel.STOP].background in banner.styleSheet()
+    # The newest open alarm is shown (never a stale one); the count and a red list button say more are open.
+    assert banner.current is not stop and banner.current.text == "note"
+    assert banner.label.full_text().startswith("INFORMATION ") and banner.button.text() == "Alarms (3)…"
+    assert LEVEL_STYLES[AlarmLevel.STOP].background in banner.button.styleSheet()
+    assert not banner.recover_button.isHidden(), "an open STOP offers Recover"
     with qtbot.waitSignal(banner.show_alarms_requested, timeout=1000):
         banner.button.click()
+    sup.acknowledge(banner.current.ident, "x")
+    assert banner.current is stop and LEVEL_STYLES[AlarmLevel.STOP].background in banner.styleSheet()
     sup.acknowledge(stop.ident, "x")
     assert banner.current is not None and banner.current.level is AlarmLevel.WARNING
+    assert banner.recover_button.isHidden()
     assert highest_unacknowledged([]) == (None, 0)
 
 

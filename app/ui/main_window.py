@@ -29,6 +29,7 @@ from PySide6.QtWidgets import (
 from app.logging_setup import log_file
 from app.manager import LinarmppManager
 from app.paths import data_dir, sessions_dir
+from app.ui.recovery import Restartable
 
 log = logging.getLogger(__name__)
 
@@ -168,21 +169,24 @@ class MainWindow(QMainWindow):
         self.estop_reset.setEnabled(False)
         self.estop_reset.clicked.connect(self._reset_estop)
         row.addWidget(self.estop_reset)
+        # One word here; the reason is in the alarm banner beside it (and in this label's tooltip).
         self.estop_label = QLabel("")
         self.estop_label.setStyleSheet("color: #c62828; font-weight: bold; font-size: 16px;")
         row.addWidget(self.estop_label)
         from app.ui.alarms_panel import AlarmBanner
+        from app.ui.widgets import ElidedLabel
 
         self.alarm_banner = AlarmBanner(self.manager)
         self.alarm_banner.show_alarms_requested.connect(self.show_alarms)
+        self.alarm_banner.restart_provider = self._interrupted_exercise
         self.alarm_banner.setSizePolicy(QSizePolicy.Policy.Ignored, QSizePolicy.Policy.Preferred)
         self.alarm_banner.setMinimumWidth(160)
-        row.addWidget(self.alarm_banner, 2)
-        self.session_label = QLabel()
+        row.addWidget(self.alarm_banner, 3)
+        # Long patient/operator names must not widen the window's minimum size (1366×768 screens):
+        # elided, with the whole text (and the recording folder) in the tooltip.
+        self.session_label = ElidedLabel()
         self.session_label.setObjectName("SessionLabel")
-        # Long patient/folder names must not widen the window's minimum size (1366×768 screens).
-        self.session_label.setSizePolicy(QSizePolicy.Policy.Ignored, QSizePolicy.Policy.Preferred)
-        self.session_label.setMinimumWidth(120)
+        self.session_label.setMinimumWidth(90)
         self.session_label.setAlignment(Qt.AlignmentFlag.AlignRight | Qt.AlignmentFlag.AlignVCenter)
         row.addWidget(self.session_label, 1)
         self.session_button = QPushButton()
@@ -198,8 +202,10 @@ class MainWindow(QMainWindow):
             dock = QDockWidget(title, self)
             dock.setObjectName(f"dock:{class_name}")
             dock.setWidget(widget)
+            # Closable: the View menu's toggles are enabled only for docks that can be closed.
             dock.setFeatures(QDockWidget.DockWidgetFeature.DockWidgetMovable
-                             | QDockWidget.DockWidgetFeature.DockWidgetFloatable)
+                             | QDockWidget.DockWidgetFeature.DockWidgetFloatable
+                             | QDockWidget.DockWidgetFeature.DockWidgetClosable)
             self.addDockWidget(area, dock)
             self.frames[class_name] = widget
             self.docks[class_name] = dock
@@ -229,6 +235,8 @@ class MainWindow(QMainWindow):
         session_menu.addAction(start)
         end = QAction("&End session", self)
         end.triggered.connect(self.end_session)
+        end.setEnabled(self.manager.recorder is not None)
+        self.end_action = end
         session_menu.addAction(end)
         session_menu.addSeparator()
         patients = QAction("&Patients…", self)
@@ -281,13 +289,19 @@ class MainWindow(QMainWindow):
     def _show_session(self) -> None:
         recorder = self.manager.recorder
         if recorder is None:
-            self.session_label.setText("<b style='color:#ef6c00'>No session</b> — data is not being recorded")
+            self.session_label.set_full_text("No session: not recording", "Data is not being recorded")
+            self.session_label.setStyleSheet("color: #ef6c00; font-weight: bold;")
             self.session_button.setText("Start session…")
         else:
             folder = recorder.folder
-            self.session_label.setText(f"Session: <b>{folder.parent.name}</b> · {self.manager.operator}"
-                                       f" · recording to {folder.name}")
+            self.session_label.set_full_text(f"● {folder.parent.name} · {self.manager.operator}",
+                                             f"Session of {folder.parent.name}, operator {self.manager.operator},"
+                                             f" recording to {folder}")
+            self.session_label.setStyleSheet("")
             self.session_button.setText("End session")
+        end = getattr(self, "end_action", None)
+        if end is not None:
+            end.setEnabled(recorder is not None)
 
     def _session_button_clicked(self) -> None:
         if self.manager.recorder is None:
@@ -317,8 +331,12 @@ class MainWindow(QMainWindow):
     def end_session(self) -> None:
         if self.manager.recorder is None:
             return
+        open_ = [a for a in self.manager.supervisor.alarms() if not a.acknowledged]
+        warning = (f"<br><br><b>{len(open_)} alarm(s) are not acknowledged</b> — they stay unacknowledged in "
+                   "the session record. Acknowledge them first from the Alarms list if you want them signed."
+                   if open_ else "")
         answer = QMessageBox.question(self, "End session",
-                                      "End the session? Stimulation stops and the robot goes idle.")
+                                      f"End the session? Stimulation stops and the robot goes idle.{warning}")
         if answer == QMessageBox.StandardButton.Yes:
             self.manager.end_session()
 
@@ -344,9 +362,24 @@ class MainWindow(QMainWindow):
             if tabs.tabText(i) == "Alarms":
                 tabs.setCurrentIndex(i)
 
+    def _interrupted_exercise(self) -> Restartable | None:
+        """The exercise a STOP ended (the script console's last run), for the banner's Recover."""
+        from pathlib import Path
+
+        console = getattr(self.frames.get("CommandsFrame"), "panels", {}).get("ScriptConsole")
+        runner = getattr(console, "runner", None)
+        if runner is None or runner.running:
+            return None
+        result = runner.result
+        if result is None or result.status == "finished":  # stopped, error or refused (e.g. mid-homing)
+            return None
+        name = Path(result.filename).name if result.filename else "the script"
+        return Restartable(name, console.start_script)
+
     def _on_estop_changed(self, latched: bool, reason: str) -> None:
         self.estop_reset.setEnabled(latched)
-        self.estop_label.setText(f"STOPPED — {reason}" if latched else "")
+        self.estop_label.setText("STOPPED" if latched else "")
+        self.estop_label.setToolTip(reason if latched else "")
 
     def _reset_estop(self) -> None:
         answer = QMessageBox.question(
@@ -395,8 +428,9 @@ class MainWindow(QMainWindow):
         state = settings.value("main/state")
         if geometry is not None:
             self.restoreGeometry(geometry)
-        else:
+        else:  # first run: the whole screen (1366×768 laptops and 1920×1080 desks alike); then remembered
             self.resize(1366, 768)
+            self.setWindowState(self.windowState() | Qt.WindowState.WindowMaximized)
         if state is not None:
             self.restoreState(state)
         self._default_state = None

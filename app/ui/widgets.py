@@ -4,7 +4,8 @@ from __future__ import annotations
 
 from typing import Any
 
-from PySide6.QtWidgets import QLabel, QWidget
+from PySide6.QtCore import QEvent, QSize, Qt
+from PySide6.QtWidgets import QLabel, QSizePolicy, QWidget
 
 
 def on_screen(widget: QWidget) -> bool:
@@ -50,3 +51,55 @@ class LabelBoard:
     def text_of(self, key: str) -> str:
         """The text shown for ``key``."""
         return self.values[key].text()
+
+
+class ElidedLabel(QLabel):
+    """A one-line plain-text label that elides its end when narrower than its text, and then shows the
+    whole text as its tooltip (the only acceptable clipping: where the room truly cannot grow).
+    ``full_text()`` is the text it was given; the clipping test reads it."""
+
+    def __init__(self, text: str = "", parent: QWidget | None = None) -> None:
+        super().__init__(parent)
+        self._full = ""
+        self._tip = ""
+        self.setTextFormat(Qt.TextFormat.PlainText)
+        self.setSizePolicy(QSizePolicy.Policy.Ignored, QSizePolicy.Policy.Preferred)
+        self.setMinimumWidth(40)
+        self.set_full_text(text)
+
+    def set_full_text(self, text: str, tooltip: str = "") -> None:
+        """Show ``text`` (elided when needed); ``tooltip`` is shown always (else the text when elided)."""
+        if text == self._full and tooltip == self._tip:
+            return
+        self._full = text
+        self._tip = tooltip
+        self.setAccessibleName(text)
+        self._elide()
+
+    def full_text(self) -> str:
+        return self._full
+
+    def is_elided(self) -> bool:
+        return self.text() != self._full
+
+    def sizeHint(self) -> QSize:
+        hint = super().sizeHint()
+        return QSize(self.fontMetrics().horizontalAdvance(self._full) + 8, hint.height())
+
+    def resizeEvent(self, event: Any) -> None:
+        super().resizeEvent(event)
+        self._elide()
+
+    def changeEvent(self, event: Any) -> None:
+        super().changeEvent(event)
+        if event.type() in (QEvent.Type.FontChange, QEvent.Type.StyleChange):
+            self._elide()
+
+    def _elide(self) -> None:
+        width = self.contentsRect().width() - 2 * self.margin()
+        shown = self.fontMetrics().elidedText(self._full, Qt.TextElideMode.ElideRight, max(width, 0))
+        if shown != self.text():
+            super().setText(shown)
+        tip = self._tip or (self._full if shown != self._full else "")
+        if tip != self.toolTip():
+            self.setToolTip(tip)
