@@ -436,6 +436,7 @@ def _scroll(content: QWidget) -> QScrollArea:
     area = QScrollArea()
     area.setWidgetResizable(True)
     area.setFrameShape(QFrame.Shape.NoFrame)
+    area.setProperty("scrolls", True)  # a long form: its lower rows may scroll (primary controls are on top)
     area.setWidget(content)
     return area
 

@@ -433,6 +433,11 @@ class MainWindow(QMainWindow):
             self.setWindowState(self.windowState() | Qt.WindowState.WindowMaximized)
         if state is not None:
             self.restoreState(state)
+        else:  # first run: the Commands frame gets the larger share of the right column (issue #19)
+            self.resizeDocks([self.docks["PlotsFrame"], self.docks["CommandsFrame"]], [40, 60],
+                             Qt.Orientation.Vertical)
+            self.resizeDocks([self.docks["ValuesFrame"], self.docks["DeviceView"]], [65, 35],
+                             Qt.Orientation.Vertical)
         self._default_state = None
 
     def _reset_layout(self) -> None:

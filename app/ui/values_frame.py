@@ -184,6 +184,7 @@ class ValuesFrame(RefreshWhenVisible, QWidget):
         outer = QVBoxLayout(self)
         outer.setContentsMargins(2, 2, 2, 2)
         scroll = QScrollArea()  # never clip: on a small screen the tiles scroll instead
+        scroll.setProperty("scrolls", True)  # a list meant to scroll (the clipping test knows)
         scroll.setWidgetResizable(True)
         scroll.setFrameShape(QFrame.Shape.NoFrame)
         outer.addWidget(scroll)
@@ -243,6 +244,10 @@ class ValuesFrame(RefreshWhenVisible, QWidget):
         self.dev_row = QGridLayout(dev_box)
         self.dev_row.setContentsMargins(4, 4, 4, 4)
         outer.addWidget(dev_box)
+        # The status bar is the one place for device status (issue #19: it was shown three times);
+        # the labels stay for the frame's tests and a Values frame undocked on its own screen.
+        dev_box.setVisible(False)
+        self.dev_box = dev_box
         self._sync_devices()
 
         self.timer = QTimer(self)
