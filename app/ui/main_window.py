@@ -10,6 +10,7 @@ from __future__ import annotations
 import importlib
 import logging
 from collections.abc import Callable
+from pathlib import Path
 
 from PySide6.QtCore import QEvent, QObject, QSettings, Qt, QTimer, Signal
 from PySide6.QtGui import QAction, QKeySequence
@@ -117,6 +118,11 @@ class DeviceStatus(QLabel):
         if text != self.text():  # a rich-text label re-lays itself out on every setText
             self.setText(text)
             self.setAccessibleName(f"{self.name} {state}")
+
+
+def recorder_folder(manager: LinarmppManager) -> Path | None:
+    recorder = manager.recorder
+    return None if recorder is None else recorder.folder
 
 
 class MainWindow(QMainWindow):
@@ -349,7 +355,8 @@ class MainWindow(QMainWindow):
         from app.recording import sessions_root
         from app.ui.sessions_browser import SessionsBrowser
 
-        self._browser = SessionsBrowser(sessions_root(self.manager.config), self.manager.config.ui.history_s)
+        self._browser = SessionsBrowser(sessions_root(self.manager.config), self.manager.config.ui.history_s,
+                                        active=lambda: recorder_folder(self.manager))
         self._browser.show()
 
     def show_alarms(self) -> None:
@@ -364,8 +371,6 @@ class MainWindow(QMainWindow):
 
     def _interrupted_exercise(self) -> Restartable | None:
         """The exercise a STOP ended (the script console's last run), for the banner's Recover."""
-        from pathlib import Path
-
         console = getattr(self.frames.get("CommandsFrame"), "panels", {}).get("ScriptConsole")
         runner = getattr(console, "runner", None)
         if runner is None or runner.running:

@@ -1,0 +1,25 @@
+"""A fresh start raises no "stopped sending data" warning (issue #19: physio and linarm warned at
+every start): a device that has not sent its first sample yet has not *stopped* sending."""
+
+from __future__ import annotations
+
+from app.config import AppConfig
+from app.manager import LinarmppManager
+from app.ui.main_window import MainWindow
+
+
+def test_no_silence_warning_at_a_fresh_start(qtbot) -> None:
+    manager = LinarmppManager(AppConfig())
+    manager.start()
+    window = MainWindow(manager)
+    qtbot.addWidget(window)
+    window.show()
+    try:
+        qtbot.waitUntil(manager.all_connected, timeout=20000)
+        qtbot.wait(3000)  # the startup, plus ten silence timeouts
+        silent = [a.text for a in manager.supervisor.alarms() if "stopped sending" in a.text]
+        assert not silent, silent
+        assert window.alarm_banner.current is None or "stopped sending" not in window.alarm_banner.label.full_text()
+    finally:
+        window.close()
+        manager.shutdown()
