@@ -73,11 +73,14 @@ def test_replay_window_shows_the_recorded_values(session, qtbot) -> None:
 
     def shown(key: str) -> tuple[np.ndarray, np.ndarray]:
         x, y = window.plots.curves[key].getData()
-        return np.asarray(x) + window.plots.t_ref, np.asarray(y)
+        return np.asarray(x) + window.plots.x_origin, np.asarray(y)  # the x-axis is session time
 
     window.seek(12.0)
     pos = window.source.position
     assert window.slider.value() == 1200 and "00:12.000" in window.time_label.text()
+    x0, x1 = window.plots.plots[next(iter(window.plots.plots))].vb.viewRange()[0]
+    assert x1 == pytest.approx(12.0, abs=0.15) and x0 == pytest.approx(2.0, abs=0.15), \
+        "issue #19: the x-axis is session time (it ran -10..0)"
     t, x = shown("fake.main.x")
     assert window.plots.t_ref <= pos and t[-1] >= window.plots.t_ref - 1e-9
     assert t[0] <= window.plots.t_ref - 10.0 + 1 / RATE_HZ, "the graph shows the whole history before 'now'"

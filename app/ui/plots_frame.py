@@ -151,7 +151,10 @@ class PlotsFrame(QWidget):
         self._wanted: list[str] = []  # selection from settings, kept until its device appears
         self.paused = False
         self._frozen: SignalStore | None = None
-        self.t_ref: float | None = None  # time of x = 0
+        self.t_ref: float | None = None  # the newest sample's time (the right edge when following)
+        # Time of x = 0: None = the newest sample (live: the axis runs -history..0); a replay sets the
+        # session's start, so its axis is session time (issue #19: it ran -25..0).
+        self.x_origin: float | None = None
         self.history_s = min(30.0, store.history_s)
         self.plots: dict[str, pg.PlotItem] = {}  # unit → plot
         self.curves: dict[str, pg.PlotCurveItem] = {}
@@ -447,7 +450,7 @@ class PlotsFrame(QWidget):
             self.vlines.append(vline)
             self.plots[unit] = plot
         if first is not None:
-            list(self.plots.values())[-1].setLabel("bottom", "time", "s")
+            list(self.plots.values())[-1].setLabel("bottom", "time" if self.x_origin is None else "session time", "s")
             self._apply_x_range()
         self._dirty = True
         self.redraw()
@@ -465,7 +468,8 @@ class PlotsFrame(QWidget):
     def _apply_x_range(self) -> None:
         plot = self._first_plot()
         if plot is not None:
-            plot.setXRange(-self.history_s, 0, padding=0)
+            right = 0.0 if self.x_origin is None or self.t_ref is None else self.t_ref - self.x_origin
+            plot.setXRange(right - self.history_s, right, padding=0)
 
     def visible_range(self) -> tuple[float, float] | None:
         """Absolute (monotonic) time range on screen, or None before any data."""
@@ -473,7 +477,12 @@ class PlotsFrame(QWidget):
         if plot is None or self.t_ref is None:
             return None
         x0, x1 = plot.vb.viewRange()[0]
-        return self.t_ref + x0, self.t_ref + x1
+        return self._x0() + x0, self._x0() + x1
+
+    def _x0(self) -> float:
+        """The time of x = 0 (see ``x_origin``)."""
+        assert self.t_ref is not None
+        return self.t_ref if self.x_origin is None else self.x_origin
 
     def _tick(self) -> None:
         """The timer's slot: a frame only when it can be seen and something new is there to draw;
@@ -542,7 +551,7 @@ class PlotsFrame(QWidget):
                     curve.setData([], [])
                     continue
                 t, y = store.envelope(key, t0, t1, max_points=2 * width_px)
-                curve.setData(t - self.t_ref, y)
+                curve.setData(t - self._x0(), y)
                 finite = y[np.isfinite(y)]
                 if finite.size:
                     lo, hi = min(lo, float(finite.min())), max(hi, float(finite.max()))
@@ -661,7 +670,7 @@ class PlotsFrame(QWidget):
             if key not in store:
                 continue
             info = store.info(key)
-            hit = store.value_at(key, self.t_ref + x)
+            hit = store.value_at(key, self._x0() + x)
             value = "—" if hit is None else f"{hit[1]:.4g}"
             colour = curve_colour(self.selected.index(key))
             parts.append(f"<span style='color:{colour}'>■</span> {self.display_label(info)}: {value} {info.unit}"

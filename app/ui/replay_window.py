@@ -55,6 +55,7 @@ class ReplayWindow(QWidget):
             self.store.add_stream(spec, device or None)
         self.plots = PlotsFrame(None, self.store)
         self.plots.timer.stop()  # redrawn when the replay moves, not on a free-running timer
+        self.plots.x_origin = self.source.start  # the x-axis in session time, as the slider and events
         keys = [signal_key(s.name, c.name) for s in rec.streams.values() for c in s.channels]
         self.plots.set_selected(keys[:_DEFAULT_PLOTTED])
         self.speed = 1.0
@@ -80,9 +81,10 @@ class ReplayWindow(QWidget):
         for e in rec.events:
             if not isinstance(e.get("t_mono"), int | float):
                 continue
-            item = QListWidgetItem(f"{_fmt(e['t_mono'] - self.source.start)}  {e.get('kind', '')}  {e.get('who', '')}")
+            text = f"{_fmt(e['t_mono'] - self.source.start)}  {e.get('kind', '')}  {e.get('who', '')}"
+            item = QListWidgetItem(text)
             item.setData(Qt.ItemDataRole.UserRole, float(e["t_mono"]) - self.source.start)
-            item.setToolTip(str(e.get("data", "")))
+            item.setToolTip(f"{text}\n{e.get('data', '')}")  # the whole line, even when the list is narrow
             self.events.addItem(item)
         self.events.itemActivated.connect(lambda it: self.seek(float(it.data(Qt.ItemDataRole.UserRole))))
 
