@@ -205,3 +205,22 @@ def test_statuses_say_what_happened(home, qtbot) -> None:
         assert statuses[str(clean)] == "complete"
     finally:
         live.stop()
+
+
+def test_patient_dialog_browses_for_the_fes_profile(home, qtbot, monkeypatch) -> None:
+    """Issue #19: the FES profile was free text only."""
+    from PySide6.QtWidgets import QFileDialog
+
+    from app.ui.fes_panel import PROFILES_DIR
+    from app.ui.patient_dialog import PatientDialog
+
+    dialog = PatientDialog(None, AppConfig().safety)
+    qtbot.addWidget(dialog)
+    monkeypatch.setattr(QFileDialog, "getOpenFileName",
+                        lambda *a, **k: (str(PROFILES_DIR / "frontal_reaching.yaml"), ""))
+    dialog.fes_browse.click()
+    assert dialog.fes_profile.text() == "frontal_reaching.yaml"
+    elsewhere = home / "mine.yaml"
+    monkeypatch.setattr(QFileDialog, "getOpenFileName", lambda *a, **k: (str(elsewhere), ""))
+    dialog.fes_browse.click()
+    assert dialog.fes_profile.text() == str(elsewhere)
