@@ -148,7 +148,7 @@ def clipped_texts(root: QWidget, checked: list[int] | None = None) -> list[str]:
             avail = w.viewport().width()
             for i in range(min(w.count(), 200)):
                 text = w.item(i).text()
-                if fm.horizontalAdvance(text) + 8 > avail + SLACK and not w.item(i).toolTip():
+                if fm.horizontalAdvance(text) + 8 > avail + SLACK and text not in w.item(i).toolTip():
                     found.append(f"{_name(w)}: list item {text[:60]!r} clipped without tooltip")
     return found
 
@@ -192,7 +192,8 @@ def _view_items(view: QTreeView | QTableView) -> list[str]:
                 if model.data(index, Qt.ItemDataRole.DecorationRole) is not None:
                     need += view.iconSize().width() + 4 if view.iconSize().width() > 0 else 20
                 room = min(rect.right(), vp.right()) - max(rect.left(), vp.left())
-                if need > room + SLACK and not model.data(index, Qt.ItemDataRole.ToolTipRole):
+                tip = str(model.data(index, Qt.ItemDataRole.ToolTipRole) or "")
+                if need > room + SLACK and text not in tip:  # elided, and the tooltip does not say it
                     out.append(f"{_name(view)}: cell {text[:40]!r} needs {need} px, has {room}")
             if isinstance(view, QTreeView) and view.isExpanded(model.index(row, 0, parent)):
                 stack.append(model.index(row, 0, parent))

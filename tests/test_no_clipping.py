@@ -75,6 +75,7 @@ def test_no_text_is_clipped_in_the_main_window(running_window, qtbot, size) -> N
     _manager, window = running_window
     window.setWindowState(Qt.WindowState.WindowNoState)
     window.resize(*size)
+    window._reset_layout(short=size[1] < 900)  # the first-run layout of a screen of this size
     settle(qtbot, 400)
     assert (window.width(), window.height()) == size
     problems: dict[str, list[str]] = {}
@@ -99,6 +100,7 @@ def test_primary_controls_are_on_screen_without_scrolling(running_window, qtbot,
     _manager, window = running_window
     window.setWindowState(Qt.WindowState.WindowNoState)
     window.resize(*size)
+    window._reset_layout(short=size[1] < 900)
     settle(qtbot, 300)
     commands = window.frames["CommandsFrame"]
     robot, fes = commands.panels["LinarmPanel"], commands.panels["FesPanel"]

@@ -89,6 +89,7 @@ def main() -> int:
     script_tab = commands.tabs.currentIndex()
     for width, height, name in ((1366, 768, "main-window.png"), (1920, 1080, "main-window-1920.png")):
         window.resize(width, height)
+        window._reset_layout(short=height < 900)  # the first-run layout a screen of this size gets
         commands.tabs.setCurrentIndex(script_tab)
         pump(1.5)
         window.grab().save(str(out / name))

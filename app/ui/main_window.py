@@ -260,7 +260,7 @@ class MainWindow(QMainWindow):
         self.dark_action.toggled.connect(self.set_dark_palette)
         view_menu.addAction(self.dark_action)
         reset_layout = QAction("Reset &layout", self)
-        reset_layout.triggered.connect(self._reset_layout)
+        reset_layout.triggered.connect(lambda: self._reset_layout())
         view_menu.addAction(reset_layout)
         help_menu = self.menuBar().addMenu("&Help")
         about = QAction("&About", self)
@@ -438,20 +438,35 @@ class MainWindow(QMainWindow):
             self.setWindowState(self.windowState() | Qt.WindowState.WindowMaximized)
         if state is not None:
             self.restoreState(state)
-        else:  # first run: the Commands frame gets the larger share of the right column (issue #19)
-            self.resizeDocks([self.docks["PlotsFrame"], self.docks["CommandsFrame"]], [40, 60],
-                             Qt.Orientation.Vertical)
-            self.resizeDocks([self.docks["ValuesFrame"], self.docks["DeviceView"]], [65, 35],
-                             Qt.Orientation.Vertical)
+        else:
+            self._first_run_layout()
         self._default_state = None
 
-    def _reset_layout(self) -> None:
+    def _first_run_layout(self, short: bool | None = None) -> None:
+        """1366×768 first (issue #19): on a short screen the device view shares a tabbed dock with the
+        values, so every clinically used value is on screen; the Commands frame gets the larger share
+        of the right column. Taller screens keep the four frames side by side."""
+        if short is None:
+            screen = self.screen().availableGeometry() if self.screen() is not None else None
+            short = screen is None or screen.height() < 900
+        if short:
+            self.tabifyDockWidget(self.docks["ValuesFrame"], self.docks["DeviceView"])
+            self.docks["ValuesFrame"].raise_()
+        else:
+            self.resizeDocks([self.docks["ValuesFrame"], self.docks["DeviceView"]], [65, 35],
+                             Qt.Orientation.Vertical)
+        self.resizeDocks([self.docks["PlotsFrame"], self.docks["CommandsFrame"]], [45, 55],
+                         Qt.Orientation.Vertical)
+
+    def _reset_layout(self, short: bool | None = None) -> None:
+        """The first-run layout again (``short``: for a screen under 900 px high; None: this screen)."""
         for title, _m, class_name, area in FRAMES:
             dock = self.docks[class_name]
             dock.setFloating(False)
             self.addDockWidget(area, dock)
             dock.show()
             del title
+        self._first_run_layout(short)
 
     def closeEvent(self, event: QEvent) -> None:
         settings = QSettings()

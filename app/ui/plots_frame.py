@@ -452,6 +452,9 @@ class PlotsFrame(QWidget):
         if first is not None:
             list(self.plots.values())[-1].setLabel("bottom", "time" if self.x_origin is None else "session time", "s")
             self._apply_x_range()
+        # Each graph tall enough for its rotated unit label and a few ticks (issue #19: squeezed plots
+        # let the labels of neighbouring graphs run into each other).
+        self.graphics.setMinimumHeight(max(120, 46 * len(self.plots) + 34))
         self._dirty = True
         self.redraw()
 
