@@ -373,6 +373,8 @@ class AlarmBanner(QFrame):
         self.manager = manager
         self.restart_provider: Callable[[], Restartable | None] = lambda: None
         self.operator_provider: Callable[[], str] = lambda: manager.operator
+        self.script_running: Callable[[], bool] = lambda: False
+        self.stop_script: Callable[[], bool] = lambda: False
         self.dialog: RecoverDialog | None = None
         self.recovery: Recovery | None = None
         self.setObjectName("AlarmBanner")
@@ -433,7 +435,8 @@ class AlarmBanner(QFrame):
     def start_recovery(self) -> RecoverDialog:
         """Open the Recover dialog (non-blocking); its choice runs the recovery."""
         restart = self.restart_provider()
-        dialog = RecoverDialog(self.manager, self.operator_provider(), restart, self.window())
+        dialog = RecoverDialog(self.manager, self.operator_provider(), restart, self.window(),
+                               script_running=self.script_running())
         self.dialog = dialog
 
         def accepted() -> None:
@@ -444,7 +447,7 @@ class AlarmBanner(QFrame):
         return dialog
 
     def run_recovery(self, operator: str, restart: Restartable | None) -> Recovery:
-        recovery = Recovery(self.manager, operator, restart, self)
+        recovery = Recovery(self.manager, operator, restart, self, stop_script=self.stop_script)
         self.recovery = recovery
         self.recover_button.setVisible(False)
 

@@ -185,6 +185,8 @@ class MainWindow(QMainWindow):
         self.alarm_banner = AlarmBanner(self.manager)
         self.alarm_banner.show_alarms_requested.connect(self.show_alarms)
         self.alarm_banner.restart_provider = self._interrupted_exercise
+        self.alarm_banner.script_running = lambda: bool(getattr(self._script_runner(), "running", False))
+        self.alarm_banner.stop_script = self._stop_script_for_recovery
         self.alarm_banner.setSizePolicy(QSizePolicy.Policy.Ignored, QSizePolicy.Policy.Preferred)
         self.alarm_banner.setMinimumWidth(160)
         row.addWidget(self.alarm_banner, 3)
@@ -369,17 +371,35 @@ class MainWindow(QMainWindow):
             if tabs.tabText(i) == "Alarms":
                 tabs.setCurrentIndex(i)
 
+    def _script_console(self) -> QWidget | None:
+        return getattr(self.frames.get("CommandsFrame"), "panels", {}).get("ScriptConsole")
+
+    def _script_runner(self) -> object | None:
+        return getattr(self._script_console(), "runner", None)
+
     def _interrupted_exercise(self) -> Restartable | None:
-        """The exercise a STOP ended (the script console's last run), for the banner's Recover."""
-        console = getattr(self.frames.get("CommandsFrame"), "panels", {}).get("ScriptConsole")
+        """The exercise a STOP interrupted (the script console's last run, or the one still running:
+        Recover stops it first), for the banner's Recover."""
+        console = self._script_console()
         runner = getattr(console, "runner", None)
-        if runner is None or runner.running:
+        if runner is None:
             return None
+        if runner.running:
+            name = getattr(getattr(console, "path", None), "name", None) or "the script"
+            return Restartable(name, console.start_script)
         result = runner.result
         if result is None or result.status == "finished":  # stopped, error or refused (e.g. mid-homing)
             return None
         name = Path(result.filename).name if result.filename else "the script"
         return Restartable(name, console.start_script)
+
+    def _stop_script_for_recovery(self) -> bool:
+        """Recover never resets the e-stop under a running script: stop it first (True if it ran)."""
+        runner = self._script_runner()
+        if runner is None or not runner.running:
+            return False
+        runner.stop("stopped by Recover after an emergency stop", wait_s=2.0)
+        return True
 
     def _on_estop_changed(self, latched: bool, reason: str) -> None:
         self.estop_reset.setEnabled(latched)

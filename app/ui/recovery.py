@@ -65,10 +65,10 @@ def recovery_needed(manager: LinarmppManager) -> bool:
     return state is not None and int(state.errorState) != NO_ERROR
 
 
-def plan(manager: LinarmppManager, restart: Restartable | None) -> list[str]:
+def plan(manager: LinarmppManager, restart: Restartable | None, script_running: bool = False) -> list[str]:
     """What Recover will do, in words, in order (shown in the dialog before anything is done)."""
     sup = manager.supervisor
-    steps: list[str] = []
+    steps: list[str] = ["stop the script still running"] if script_running else []
     open_ = sum(1 for a in sup.alarms() if not a.acknowledged)
     if open_:
         steps.append(f"acknowledge {open_} open alarm(s)")
@@ -91,9 +91,12 @@ class Recovery(QObject):
     finished = Signal(bool, str)
 
     def __init__(self, manager: LinarmppManager, operator: str, restart: Restartable | None = None,
-                 parent: QObject | None = None) -> None:
+                 parent: QObject | None = None, stop_script: Callable[[], bool] | None = None) -> None:
         super().__init__(parent)
         self.manager = manager
+        # Stops a script still running across the stop (True when one was stopped): it must never
+        # carry on commanding the robot once the e-stop is reset.
+        self.stop_script = stop_script or (lambda: False)
         self.operator = operator
         self.restart = restart
         self.steps: list[str] = []
@@ -111,6 +114,8 @@ class Recovery(QObject):
     def run(self) -> None:
         sup = self.manager.supervisor
         self._log("start", restart=self.restart.name if self.restart else "")
+        if self.stop_script():
+            self._log("script_stopped")
         open_ = [a.ident for a in sup.alarms() if not a.acknowledged]
         for ident in open_:
             sup.acknowledge(ident, self.operator)
@@ -183,14 +188,14 @@ class RecoverDialog(QDialog):
     """Says what Recover will do and in whose name; one click does it."""
 
     def __init__(self, manager: LinarmppManager, operator: str, restart: Restartable | None,
-                 parent: QWidget | None = None) -> None:
+                 parent: QWidget | None = None, script_running: bool = False) -> None:
         super().__init__(parent)
         self.setWindowTitle("Recover after the stop")
         self.manager = manager
         self.restart = restart
         self.choice: str | None = None  # "restart" | "recover"
         lay = QVBoxLayout(self)
-        steps = plan(manager, restart)
+        steps = plan(manager, restart, script_running)
         self.steps_label = QLabel("Recover will:<ul>" + "".join(f"<li>{s}</li>" for s in steps) + "</ul>")
         lay.addWidget(self.steps_label)
         form = QFormLayout()
