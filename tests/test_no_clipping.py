@@ -148,4 +148,23 @@ def test_no_text_is_clipped_in_the_dialogs(running_window, qtbot) -> None:
             assert dialog.width() <= 1366 and dialog.height() <= 768, f"{name} is larger than a 1366×768 screen"
         dialog.close()
         dialog.deleteLater()
+    # The side windows of a recorded session: its details and its replay.
+    from app.ui.replay_window import ReplayWindow
+    from app.ui.sessions_browser import SessionDetails, SessionsBrowser
+
+    folder = manager.recorder.folder
+    manager.supervisor.raise_alarm(__import__("app.safety", fromlist=["AlarmLevel"]).AlarmLevel.WARNING,
+                                   "physio", "Skin-conductance electrodes off: check the electrodes")
+    qtbot.wait(600)
+    manager.end_session()
+    browser = SessionsBrowser(folder.parent.parent)
+    browser.set_patient(folder.parent.name)
+    for name, widget in (("Sessions browser with a session", browser), ("Session details", SessionDetails(folder)),
+                         ("Replay", ReplayWindow(folder))):
+        widget.show()
+        qtbot.waitExposed(widget)
+        settle(qtbot, 300)
+        problems += [f"[{name} {widget.width()}×{widget.height()}] {p}" for p in clipped_texts(widget)]
+        widget.close()
+        widget.deleteLater()
     assert not problems, "\n".join(problems)

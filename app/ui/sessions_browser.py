@@ -163,6 +163,7 @@ class SessionDetails(QDialog):
             lines.append("Problems: " + "; ".join(session.problems))
         header = QLabel("\n".join(lines))
         header.setTextInteractionFlags(Qt.TextInteractionFlag.TextSelectableByMouse)
+        header.setWordWrap(True)  # a long stream list wraps instead of widening the dialog past the screen
         self.events = QTableWidget(len(session.events), 4)
         self.events.setHorizontalHeaderLabels(["Time", "Event", "Who", "Details"])
         self.events.setEditTriggers(QAbstractItemView.EditTrigger.NoEditTriggers)
@@ -170,8 +171,14 @@ class SessionDetails(QDialog):
             cells = [str(e.get("t_wall", ""))[11:23], str(e.get("kind", "")), str(e.get("who", "")),
                      json.dumps(e.get("data", {}), ensure_ascii=False, default=str)]
             for col, text in enumerate(cells):
-                self.events.setItem(row, col, QTableWidgetItem(text))
-        self.events.horizontalHeader().setStretchLastSection(True)
+                item = QTableWidgetItem(text)
+                if col == 3:
+                    item.setToolTip(text)  # long details are elided in the cell
+                self.events.setItem(row, col, item)
+        events_header = self.events.horizontalHeader()
+        for col in range(3):
+            events_header.setSectionResizeMode(col, QHeaderView.ResizeMode.ResizeToContents)
+        events_header.setSectionResizeMode(3, QHeaderView.ResizeMode.Stretch)
         scripts = [e for e in session.events if e.get("kind") == "script_start"]
         self.script_text = QPlainTextEdit("\n\n".join(f"# --- {e['data'].get('name', 'script')}\n"
                                                       f"{e['data'].get('text', '')}" for e in scripts))
@@ -214,7 +221,9 @@ class SessionsBrowser(QWidget):
         self.table.setSelectionBehavior(QAbstractItemView.SelectionBehavior.SelectRows)
         self.table.setSelectionMode(QAbstractItemView.SelectionMode.SingleSelection)
         self.table.setEditTriggers(QAbstractItemView.EditTrigger.NoEditTriggers)
-        self.table.horizontalHeader().setSectionResizeMode(2, QHeaderView.ResizeMode.Stretch)
+        header = self.table.horizontalHeader()
+        header.setSectionResizeMode(QHeaderView.ResizeMode.ResizeToContents)
+        header.setSectionResizeMode(2, QHeaderView.ResizeMode.Stretch)  # the exercises: elided, whole in the tooltip
         self.table.setAccessibleName("Sessions")
         self.table.itemSelectionChanged.connect(self._update_buttons)
         self.table.itemDoubleClicked.connect(lambda _it: self.replay())
@@ -237,7 +246,7 @@ class SessionsBrowser(QWidget):
         layout.addLayout(top)
         layout.addWidget(self.table, 1)
         layout.addLayout(buttons)
-        self.resize(800, 400)
+        self.resize(980, 420)
         self.reload_patients()
 
     # ------------------------------------------------------------------ listing
@@ -270,7 +279,7 @@ class SessionsBrowser(QWidget):
                 item = QTableWidgetItem(text)
                 item.setData(FOLDER_ROLE, str(s.folder))
                 if col == 2 and s.exercises:
-                    item.setToolTip("\n".join(s.exercises))  # a long list is elided in its cell
+                    item.setToolTip(exercises)  # a long list is elided in its cell
                 if col == 5:
                     item.setToolTip(status.tooltip)
                     if not status.ok:
