@@ -454,7 +454,8 @@ class PlotsFrame(QWidget):
             self._apply_x_range()
         # Each graph tall enough for its rotated unit label and a few ticks (issue #19: squeezed plots
         # let the labels of neighbouring graphs run into each other).
-        self.graphics.setMinimumHeight(max(120, 46 * len(self.plots) + 34))
+        # At most three graphs' worth: more must never make the window taller than a 768 px screen.
+        self.graphics.setMinimumHeight(min(172, max(120, 46 * len(self.plots) + 34)))
         self._dirty = True
         self.redraw()
 
