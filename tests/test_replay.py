@@ -107,3 +107,20 @@ def test_replay_window_shows_the_recorded_values(session, qtbot) -> None:
     qtbot.waitUntil(lambda: window.source.elapsed > start + 0.2, timeout=3000)
     window.set_playing(False)
     assert not window.playing
+
+
+def test_a_click_on_the_replay_slider_seeks_there(session, qtbot) -> None:
+    """Issue #19: no page jumps on click; the replay's slider goes where it is clicked."""
+    from PySide6.QtCore import QPoint, Qt
+
+    from app.ui.replay_window import ReplayWindow
+
+    window = ReplayWindow(session, history_s=30.0)
+    qtbot.addWidget(window)
+    window.show()
+    qtbot.waitExposed(window)
+    slider = window.slider
+    qtbot.mouseClick(slider, Qt.MouseButton.LeftButton, pos=QPoint(slider.width() * 3 // 4, slider.height() // 2))
+    fraction = slider.value() / slider.maximum()
+    assert 0.6 < fraction < 0.9
+    assert window.source.elapsed == pytest.approx(slider.value() / 100, abs=0.02)

@@ -30,6 +30,7 @@ from app.recording import RecordedSession
 from app.replay import ReplaySource
 from app.ui.plots_frame import PlotsFrame
 from app.ui.signal_store import SignalStore, signal_key
+from app.ui.widgets import ClickToPositionStyle
 
 SPEEDS = (0.25, 0.5, 1.0, 2.0, 5.0, 10.0)
 _TICK_MS = 33
@@ -66,6 +67,8 @@ class ReplayWindow(QWidget):
         self.play_button.toggled.connect(self.set_playing)
         self.slider = QSlider(Qt.Orientation.Horizontal)
         self.slider.setAccessibleName("Replay position")
+        self._slider_style = ClickToPositionStyle()  # a click seeks there (no page jump); kept alive here
+        self.slider.setStyle(self._slider_style)
         self.slider.setRange(0, max(1, round(self.source.duration * _SLIDER_STEPS_PER_S)))
         self.slider.valueChanged.connect(self._on_slider)
         self.time_label = QLabel()

@@ -5,7 +5,7 @@ from __future__ import annotations
 from typing import Any
 
 from PySide6.QtCore import QEvent, QSize, Qt
-from PySide6.QtWidgets import QLabel, QSizePolicy, QSlider, QStyle, QStyleOptionSlider, QWidget
+from PySide6.QtWidgets import QLabel, QProxyStyle, QSizePolicy, QSlider, QStyle, QStyleOptionSlider, QWidget
 
 
 def on_screen(widget: QWidget) -> bool:
@@ -164,3 +164,13 @@ class StepSlider(QSlider):
             event.accept()
             return
         super().keyPressEvent(event)  # arrows: one single step
+
+
+class ClickToPositionStyle(QProxyStyle):
+    """For a slider that only shows where one is (a replay's position): a click puts the handle
+    where the click was, instead of a page jump towards it."""
+
+    def styleHint(self, hint: Any, option: Any = None, widget: Any = None, data: Any = None) -> int:
+        if hint == QStyle.StyleHint.SH_Slider_AbsoluteSetButtons:
+            return int(Qt.MouseButton.LeftButton.value)
+        return super().styleHint(hint, option, widget, data)
