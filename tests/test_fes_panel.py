@@ -178,3 +178,17 @@ def test_screenshot_fes_manager(panel: FesPanel, qtbot) -> None:
     assert image.save(str(tmp))
     shutil.move(tmp, out)
     panel.stop()
+
+
+def test_the_requested_rate_is_shown_and_the_delivered_one_explained(panel: FesPanel, qtbot) -> None:
+    """Issue #19: a 30 Hz profile was shown as "29.9 Hz" without a word."""
+    assert panel.load_profile_file(WRIST)
+    panel.start_button.click()
+    qtbot.waitUntil(lambda: panel.driver.channel_list is not None, timeout=3000)
+    panel.refresh()
+    text = panel.profile_label.text()
+    delivered = panel.driver.channel_list.frequency_hz
+    assert "30 Hz" in text
+    if abs(delivered - 30.0) >= 0.05:
+        assert f"delivered {delivered:.1f} Hz" in text and "time steps" in text
+    panel.stop_button.click()
