@@ -358,3 +358,16 @@ def test_fes_channels_named_by_number_and_muscle_and_exports_carry_the_session(q
         manager.end_session()
     finally:
         manager.shutdown()
+
+
+def test_the_left_axis_has_room_for_tick_labels_beside_the_unit(qtbot) -> None:
+    """Issue #19: "(mm)" was overlapped by tick labels such as 317.05 (on screen and in PNGs)."""
+    from PySide6.QtGui import QFontMetrics
+
+    store, _ = synthetic_store()
+    frame = make_frame(qtbot, store)
+    frame.set_selected(["linarm.vsa.handlePos"])
+    frame.redraw()
+    axis = frame.plots["m"].getAxis("left")
+    fm = QFontMetrics(frame.graphics.font())
+    assert axis.minimumWidth() >= fm.horizontalAdvance("-317.05") + fm.lineSpacing() + 8
