@@ -181,3 +181,27 @@ def test_a_long_session_keeps_open_alarms_in_a_bounded_list(qtbot, monkeypatch) 
     idents = [int(panel.tree.topLevelItem(i).data(0, Qt.ItemDataRole.UserRole)) for i in range(10)]
     assert stop.ident in idents  # the open STOP stays; the oldest acknowledged notes went
     assert idents[:9] == sorted(idents[:9], reverse=True) and idents[-1] == stop.ident
+
+
+def test_recover_without_a_session_asks_the_name_once(qtbot) -> None:
+    """No session gives the operator: Recover… , type the name, Recover -- three actions, all logged."""
+    manager, _panel, events = _setup(qtbot)
+    banner = AlarmBanner(manager)
+    qtbot.addWidget(banner)
+    banner.show()
+    sup = manager.supervisor
+    sup.emergency_stop("button")
+    sup.raise_alarm(AlarmLevel.WARNING, "physio", "sensor off")
+    assert not banner.recover_button.isHidden()
+    banner.recover_button.click()  # 1
+    dialog = banner.dialog
+    assert dialog is not None and dialog.restart_button is None and dialog.operator.text() == ""
+    dialog.recover_button.click()  # refused: no name yet
+    assert "operator" in dialog.error.text() and sup.estop_latched
+    qtbot.keyClicks(dialog.operator, "Dr Verdi")  # 2
+    dialog.recover_button.click()  # 3
+    assert not sup.estop_latched and not [a for a in sup.alarms() if not a.acknowledged]
+    steps = [d for k, d in events if k == "recovery"]
+    assert {d["operator"] for d in steps} == {"Dr Verdi"} and steps[-1]["step"] == "done"
+    assert ("emergency_stop_reset", {"operator": "Dr Verdi"}) in events
+    assert banner.recover_button.isHidden()
