@@ -126,7 +126,10 @@ class AlarmsPanel(QWidget):
         op_label = QLabel("&Operator:")
         self.operator = QLineEdit()
         self.operator.setObjectName("operator")
-        self.operator.setPlaceholderText("the session's operator, or type a name")
+        self.operator.setPlaceholderText("operator's name")
+        self.operator.setToolTip("Who acknowledges; filled in with the session's operator")
+        # The session's operator, so nobody retypes it (issue #19); a typed name is kept.
+        manager.session_changed.connect(self._on_session)
         self.operator.setMaximumWidth(200)
         op_label.setBuddy(self.operator)
         self.ack_selected = QPushButton("&Acknowledge selected")
@@ -161,6 +164,10 @@ class AlarmsPanel(QWidget):
         # The supervisor emits alarms_changed after every alarm_raised: the list follows that one only.
         self.supervisor.alarms_changed.connect(self.refresh)
         self.refresh()
+
+    def _on_session(self, _folder: object) -> None:
+        if self.manager.recorder is not None and not self.operator.text().strip():
+            self.operator.setText(self.manager.operator)
 
     # ------------------------------------------------------------------ sound
     def _sound(self) -> None:
