@@ -373,6 +373,8 @@ class ValuesFrame(RefreshWhenVisible, QWidget):
                                                state_colour(channel, value) if value is not None else None)
 
         fes = self._latest(FES_STREAM)
+        profile = getattr(self.manager.driver("fes"), "profile", None) if hasattr(self.manager, "driver") else None
+        muscles = getattr(profile, "channels", None) or {}
         active = 0
         for ch, label in enumerate(self.fes_labels, start=1):
             current = getattr(fes, f"current{ch}", None)
@@ -381,6 +383,10 @@ class ValuesFrame(RefreshWhenVisible, QWidget):
             if on:
                 active += 1
                 label.setText(f"Ch {ch}:  {float(current):.1f} mA · {float(width):.0f} µs")
+                muscle = getattr(muscles.get(ch), "muscle", "")
+                tip = f"Channel {ch}" + (f" — {muscle}" if muscle else "")
+                if label.toolTip() != tip:
+                    label.setToolTip(tip)
             label.setVisible(on)
         self.fes_none.setText(DASH if fes is None else "no channel active")
         self.fes_none.setVisible(active == 0)
