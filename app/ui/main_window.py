@@ -13,7 +13,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from PySide6.QtCore import QEvent, QObject, QSettings, Qt, QTimer, Signal
-from PySide6.QtGui import QAction, QKeySequence
+from PySide6.QtGui import QAction, QFont, QFontMetrics, QKeySequence
 from PySide6.QtWidgets import (
     QApplication,
     QDockWidget,
@@ -100,6 +100,14 @@ class DeviceStatus(QLabel):
         self.connected = False
         self.reason = "starting"
         self.setTextFormat(Qt.TextFormat.RichText)
+        # Room for the longest state and a four-digit rate, reserved: a rate gaining a digit must not
+        # clip the label before the status bar lays itself out again.
+        bold = QFont(self.font())
+        bold.setBold(True)
+        plain = QFontMetrics(self.font())
+        self.setMinimumWidth(QFontMetrics(bold).horizontalAdvance(name) + 8
+                             + max(plain.horizontalAdvance(f"● {t} 9999 Hz") for t in ("connected", "silent"))
+                             + plain.horizontalAdvance("  "))
         self.refresh({})
 
     def set_connection(self, connected: bool, reason: str) -> None:
