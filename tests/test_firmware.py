@@ -73,10 +73,13 @@ def firmware_build() -> Path:
 class FirmwareTarget:
     """The SIL executable in lockstep mode: host bytes and simulated time over a line protocol."""
 
-    def __init__(self, sil: Path, centre: float = 0.20, start_homed: bool = False) -> None:
-        args = [str(sil), "--lockstep", "--centre", repr(centre)]
+    def __init__(self, sil: Path | list[str], centre: float = 0.20, start_homed: bool = False,
+                 service: bool = False) -> None:
+        args = [*([str(sil)] if isinstance(sil, Path) else sil), "--lockstep", "--centre", repr(centre)]
         if start_homed:
             args.append("--start-homed")
+        if service:
+            args.append("--service")
         self.proc = subprocess.Popen(args, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, bufsize=1)
 
     def _ask(self, line: str) -> bytes:
@@ -93,6 +96,12 @@ class FirmwareTarget:
 
     def advance(self, seconds: float) -> bytes:
         return self._ask(f"A {round(seconds * 1000)}")
+
+    def push(self, newtons: float) -> bytes:
+        return self._ask(f"F {float(newtons)!r}")
+
+    def restart(self) -> bytes:
+        return self._ask("N")
 
     def close(self) -> None:
         if self.proc.poll() is None:
@@ -175,7 +184,8 @@ def test_a_drifted_id_fails_the_check(tmp_path: Path) -> None:
 @pytest.mark.parametrize("scenario", SCENARIOS, ids=[s.id for s in SCENARIOS])
 def test_scenario_against_the_firmware(firmware_build: Path, scenario: Scenario) -> None:
     setup = scenario.setup
-    target = FirmwareTarget(firmware_build / "linarm_sil", setup.get("centre", 0.20), setup.get("start_homed", False))
+    target = FirmwareTarget(firmware_build / "linarm_sil", setup.get("centre", 0.20), setup.get("start_homed", False),
+                            setup.get("service", False))
     run_scenario(target, scenario)
 
 
