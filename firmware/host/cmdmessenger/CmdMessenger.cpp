@@ -186,7 +186,9 @@ void CmdMessenger::sendCmdEscArg(char* arg) {
 
 bool CmdMessenger::sendCmdEnd(bool reqAc, byte, unsigned int) {
   if (reqAc) {
+#ifndef LINARM_BARE_METAL  // the Cortex-M3 size build keeps stdio out
     fprintf(stderr, "CmdMessenger (host): sendCmdEnd with reqAc would block the control loop\n");
+#endif
     abort();
   }
   if (startCommand_) {

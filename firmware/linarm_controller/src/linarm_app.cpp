@@ -67,7 +67,7 @@ void LinarmApp::handle() {
 
 void LinarmApp::execute(const wire::Command& cmd) {
   const wire::ArgValue* a = cmd.args;
-  wire::ArgValue ret[7];
+  wire::ArgValue ret[7] = {};
   int nret = 0;
   Result r = Result::ok();
   switch (cmd.id) {
