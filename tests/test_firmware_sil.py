@@ -7,6 +7,7 @@ The SIL runs in real time here (its 1 kHz loop on the wall clock), so this test 
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import subprocess
 import threading
@@ -16,8 +17,8 @@ from collections.abc import Iterator
 import pytest
 
 from app.config import SafetyConfig
-from app.devices.linarm import LinarmDriver
-from app.devices.linarm_protocol import ControlMode, ControlState, HomeState
+from app.devices.linarm import LinarmCommandError, LinarmDriver
+from app.devices.linarm_protocol import ControlMode, ControlState, HomeState, ReplyError
 from app.safety import SafetySupervisor
 from tests.test_firmware import build_firmware
 
@@ -77,13 +78,24 @@ def speeds(samples: list[tuple[float, float]], window: int = 4) -> list[tuple[fl
 
 
 def test_driver_runs_the_trigger_exercise_on_the_firmware(qtbot, sil_link: str) -> None:  # type: ignore[no-untyped-def]
-    driver = LinarmDriver(sil_link, SafetySupervisor(SafetyConfig()))
+    # A bench supervisor that lets a widening request through, so that the controller's own refusal shows.
+    bench = SafetyConfig()
+    bench = dataclasses.replace(bench, robot=dataclasses.replace(bench.robot, max_velocity_m_s=1.0))
+    driver = LinarmDriver(sil_link, SafetySupervisor(bench))
     recorder = CentreRecorder()
     driver.add_listener(recorder)
     driver.start()
     try:
         qtbot.waitUntil(lambda: driver.connected and driver.latest("linarm.vsa") is not None, timeout=5000)
         assert driver.firmware_version == "sil-1.0"
+        # what the app does at connect: its site limits, locked as the controller's envelope
+        limits = SafetyConfig().robot  # the site's limits (0.30 m/s), narrower than the bench supervisor's
+        envelope = driver.apply_limits(limits).result(5.0)
+        assert envelope["maxVel"] == pytest.approx(limits.max_velocity_m_s, rel=1e-6)
+        assert envelope["minPos"] == pytest.approx(limits.position_min_m, rel=1e-6)
+        with pytest.raises(LinarmCommandError) as refused:
+            driver.command("setMaxVelocity", 1.0)  # the supervisor would refuse it too; here the controller does
+        assert refused.value.code == ReplyError.LOCKED
 
         driver.command("goToHome")
         qtbot.waitUntil(lambda: driver.latest("linarm.state").homeState == HomeState.HOME_DONE, timeout=8000)

@@ -186,13 +186,18 @@ class LinarmDriver(DeviceDriver):
 
     def apply_limits(self, limits: Any) -> Future:
         """Make the controller's own limits the configured ones (its defaults may be wider): speed and
-        acceleration of jog ramps and timed moves, the force limit, the allowed range. Runs off the caller's
-        thread; the Future fails with the first refusal."""
-        def send() -> None:
+        acceleration of jog ramps and timed moves, the force limit, the allowed range; then lock them as the
+        controller's safety envelope, which nothing can widen until the controller restarts (narrowing for a
+        patient stays possible). Runs off the caller's thread; the Future fails with the first refusal, and
+        holds the locked envelope (the ACK's values) on success."""
+        def send() -> dict[str, Any]:
             self.command("setMaxVelocity", float(limits.max_velocity_m_s), source="limits")
             self.command("setMaxAcceleration", float(limits.max_acceleration_m_s2), source="limits")
             self.command("setMaxForce", float(limits.max_interaction_force_n), source="limits")
             self.command("setPosLimit", float(limits.position_min_m), float(limits.position_max_m), source="limits")
+            envelope = self.command("lockEnvelope", source="limits")
+            log.info("LINarm safety envelope locked: %s", envelope)
+            return envelope
 
         return self._executor().submit(send)
 
