@@ -193,3 +193,19 @@ def test_firmware_target_reports_a_wrong_expectation(firmware_build: Path) -> No
     bad = Scenario("bad", {}, [{"send": ["setCtrlState", 2]}], "inline")
     with pytest.raises(AssertionError, match="expected ACK"):
         run_scenario(FirmwareTarget(firmware_build / "linarm_sil"), bad)
+
+
+def test_service_mode_is_only_chosen_at_boot(firmware_build: Path) -> None:
+    """The service jumper is read once at boot: the IDENTIFY says so, and no command turns it on or off."""
+    from app.devices.cmdmessenger import CmdMessengerDecoder
+    from app.devices.linarm_protocol import Identify, decode_controller_frame, encode_command
+
+    for service, suffix in ((False, ""), (True, "+service")):
+        target = FirmwareTarget(firmware_build / "linarm_sil", service=service)
+        try:
+            decoder = CmdMessengerDecoder()
+            boot = [decode_controller_frame(f) for f in decoder.feed(target.advance(0.0))]
+            again = [decode_controller_frame(f) for f in decoder.feed(target.send(encode_command("identify", 3)))]
+            assert [m.firmware_version for m in boot + again if isinstance(m, Identify)] == [f"sil-1.0{suffix}"] * 2
+        finally:
+            target.close()

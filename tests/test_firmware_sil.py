@@ -78,10 +78,7 @@ def speeds(samples: list[tuple[float, float]], window: int = 4) -> list[tuple[fl
 
 
 def test_driver_runs_the_trigger_exercise_on_the_firmware(qtbot, sil_link: str) -> None:  # type: ignore[no-untyped-def]
-    # A bench supervisor that lets a widening request through, so that the controller's own refusal shows.
-    bench = SafetyConfig()
-    bench = dataclasses.replace(bench, robot=dataclasses.replace(bench.robot, max_velocity_m_s=1.0))
-    driver = LinarmDriver(sil_link, SafetySupervisor(bench))
+    driver = LinarmDriver(sil_link, SafetySupervisor(SafetyConfig()))
     recorder = CentreRecorder()
     driver.add_listener(recorder)
     driver.start()
@@ -89,13 +86,19 @@ def test_driver_runs_the_trigger_exercise_on_the_firmware(qtbot, sil_link: str) 
         qtbot.waitUntil(lambda: driver.connected and driver.latest("linarm.vsa") is not None, timeout=5000)
         assert driver.firmware_version == "sil-1.0"
         # what the app does at connect: its site limits, locked as the controller's envelope
-        limits = SafetyConfig().robot  # the site's limits (0.30 m/s), narrower than the bench supervisor's
-        envelope = driver.apply_limits(limits).result(5.0)
-        assert envelope["maxVel"] == pytest.approx(limits.max_velocity_m_s, rel=1e-6)
-        assert envelope["minPos"] == pytest.approx(limits.position_min_m, rel=1e-6)
+        site = driver.supervisor.robot
+        envelope = driver.apply_limits(site).result(5.0)
+        assert envelope["maxVel"] == pytest.approx(site.max_velocity_m_s, rel=1e-6)
+        assert envelope["minPos"] == pytest.approx(site.position_min_m, rel=1e-6)
+        # a host bug widens the supervisor's limits: the controller still refuses
+        driver.supervisor.robot = dataclasses.replace(site, max_velocity_m_s=1.0)
         with pytest.raises(LinarmCommandError) as refused:
-            driver.command("setMaxVelocity", 1.0)  # the supervisor would refuse it too; here the controller does
+            driver.command("setMaxVelocity", 1.0)
         assert refused.value.code == ReplyError.LOCKED
+        driver.supervisor.robot = site
+        # a session narrows to the patient's profile and goes back to the site's limits afterwards (app/manager.py)
+        driver.apply_limits(dataclasses.replace(site, max_velocity_m_s=0.1, position_max_m=0.40)).result(5.0)
+        driver.apply_limits(site).result(5.0)
 
         driver.command("goToHome")
         qtbot.waitUntil(lambda: driver.latest("linarm.state").homeState == HomeState.HOME_DONE, timeout=8000)
