@@ -608,14 +608,18 @@ class LinarmSimCore:
         self._home_deadline = self.time + self._seek_timeout()
 
     def _seek_timeout(self) -> float:
-        return 1.5 * (self.p.rail_max - self.p.rail_min) / self.homing_velocity + 1.0
+        return 1.5 * (self.p.rail_max - self.p.rail_min) / self._seek_velocity() + 1.0
+
+    def _seek_velocity(self) -> float:
+        # homingVelocity was checked against maxVelocity when set, but maxVelocity may have been narrowed since
+        return min(self.homing_velocity, self.max_vel)
 
     def _start_move_home(self, m: dict[str, Any]) -> None:
         self.home_state = HomeState.HOME_MOVE_TO_HOME
         centre = (m["x"][0] + m["x"][1]) / 2
         delta = self.p.delta_of(m["x"][0], m["x"][1])
         self._set_motor_refs(centre, delta, 0.0, 0.0)
-        vel = max(self.homing_velocity, K["HOME_MOVE_MIN_VELOCITY"])
+        vel = min(max(self.homing_velocity, K["HOME_MOVE_MIN_VELOCITY"]), self.max_vel)  # within maxVelocity
         self.centre_traj = plan_trajectory(centre, self.home_centre, vel, self.max_acc, 0.0, self.trajectory_type)
         self.delta_traj = plan_trajectory(delta, self.home_delta, vel, self.max_acc, 0.0, self.trajectory_type)
         self.centre_traj.t0 = self.delta_traj.t0 = self.time
@@ -628,7 +632,7 @@ class LinarmSimCore:
                 self._latch(ErrorState.HOMING_FAILED, f"endstroke not found in {self._seek_timeout():.0f} s")
                 return
             direction = -1.0 if hs is HomeState.HOME_SEEK_MIN else 1.0
-            vel = direction * self.homing_velocity
+            vel = direction * self._seek_velocity()
             self.motor_vel_ref = [vel, vel]
             # the reference may lead the carriage by 5 mm at most: a stalled carriage is not a
             # tracking error here, it runs into the homing timeout instead

@@ -17,7 +17,6 @@ bool inRange(float value, float lo, float hi) {
 float clampf(float v, float lo, float hi) { return v < lo ? lo : (v > hi ? hi : v); }
 
 const Result OUT_OF_RANGE_R = {proto::OUT_OF_RANGE, "value out of range"};
-const Result BEYOND_ENVELOPE_R = {proto::LOCKED, "beyond the locked safety envelope (restart to change it)"};
 const Result SERVICE_ONLY_R = {proto::LOCKED, "envelope locked: service mode only (jumper at boot)"};
 
 }  // namespace
@@ -219,8 +218,13 @@ void Linarm::checkTriggers() {
 }
 
 // ------------------------------------------------------------------------------------------ homing
+float Linarm::seekVelocity() const {
+  // homingVelocity was checked against maxVelocity when set, but maxVelocity may have been narrowed since
+  return homingVelocity_ < limits_.maxVelocity ? homingVelocity_ : limits_.maxVelocity;
+}
+
 uint32_t Linarm::seekTimeoutTicks() const {
-  return static_cast<uint32_t>((1.5f * (cfg::RAIL_MAX - cfg::RAIL_MIN) / homingVelocity_ + 1.0f) * 1000.0f);
+  return static_cast<uint32_t>((1.5f * (cfg::RAIL_MAX - cfg::RAIL_MIN) / seekVelocity() + 1.0f) * 1000.0f);
 }
 
 bool Linarm::homingBusy() const {
@@ -250,6 +254,7 @@ void Linarm::startMoveHome() {
   float delta = vsa::deltaOf(meas_.x[0], meas_.x[1]);
   setMotorRefs(centre, delta, 0.0f, 0.0f);
   float vel = homingVelocity_ > cfg::HOME_MOVE_MIN_VELOCITY ? homingVelocity_ : cfg::HOME_MOVE_MIN_VELOCITY;
+  if (vel > limits_.maxVelocity) vel = limits_.maxVelocity;  // homing too stays within maxVelocity
   centreTraj_.plan(centre, homeCentre_, vel, limits_.maxAcceleration, 0.0, trajectoryType_);
   deltaTraj_.plan(delta, homeDelta_, vel, limits_.maxAcceleration, 0.0, trajectoryType_);
   centreTraj_.startAt(ticks_);
@@ -273,7 +278,7 @@ void Linarm::homing() {
       latch(proto::HOMING_FAILED, "endstroke not found before the seek timeout");
       return;
     }
-    float vel = (hs == proto::HOME_SEEK_MIN ? -1.0f : 1.0f) * homingVelocity_;
+    float vel = (hs == proto::HOME_SEEK_MIN ? -1.0f : 1.0f) * seekVelocity();
     for (int i = 0; i < 2; ++i) {
       motorVelRef_[i] = vel;
       // the reference leads by SEEK_LEAD at most: a stalled carriage runs into the timeout instead
@@ -589,35 +594,40 @@ Result Linarm::setMobileRatio(float ratio) {
 
 Result Linarm::setMaxTrackingError(float v) {
   if (!inRange(v, cfg::MAX_TRACKING_ERROR_MIN, cfg::MAX_TRACKING_ERROR_MAX)) return OUT_OF_RANGE_R;
-  if (locked_ && v > envelope_.maxTrackingError) return BEYOND_ENVELOPE_R;
+  if (locked_ && v > envelope_.maxTrackingError)
+    return Result::refuse(proto::LOCKED, "maxTrackingError beyond the locked envelope (restart to change it)");
   limits_.maxTrackingError = v;
   return Result::ok();
 }
 
 Result Linarm::setMaxForce(float v) {
   if (!inRange(v, cfg::MAX_FORCE_MIN, cfg::MAX_FORCE_MAX)) return OUT_OF_RANGE_R;
-  if (locked_ && v > envelope_.maxForce) return BEYOND_ENVELOPE_R;
+  if (locked_ && v > envelope_.maxForce)
+    return Result::refuse(proto::LOCKED, "maxForce beyond the locked envelope (restart to change it)");
   limits_.maxForce = v;
   return Result::ok();
 }
 
 Result Linarm::setMaxCurrent(float v) {
   if (!inRange(v, cfg::MAX_CURRENT_MIN, cfg::CURRENT_HW_LIMIT)) return OUT_OF_RANGE_R;
-  if (locked_ && v > envelope_.maxCurrent) return BEYOND_ENVELOPE_R;
+  if (locked_ && v > envelope_.maxCurrent)
+    return Result::refuse(proto::LOCKED, "maxCurrent beyond the locked envelope (restart to change it)");
   limits_.maxCurrent = v;
   return Result::ok();
 }
 
 Result Linarm::setMaxAcceleration(float v) {
   if (!inRange(v, cfg::MAX_ACC_MIN, cfg::MAX_ACC_MAX)) return OUT_OF_RANGE_R;
-  if (locked_ && v > envelope_.maxAcceleration) return BEYOND_ENVELOPE_R;
+  if (locked_ && v > envelope_.maxAcceleration)
+    return Result::refuse(proto::LOCKED, "maxAcceleration beyond the locked envelope (restart to change it)");
   limits_.maxAcceleration = v;
   return Result::ok();
 }
 
 Result Linarm::setMaxVelocity(float v) {
   if (!inRange(v, cfg::MAX_VEL_MIN, cfg::MAX_VEL_MAX)) return OUT_OF_RANGE_R;
-  if (locked_ && v > envelope_.maxVelocity) return BEYOND_ENVELOPE_R;
+  if (locked_ && v > envelope_.maxVelocity)
+    return Result::refuse(proto::LOCKED, "maxVelocity beyond the locked envelope (restart to change it)");
   limits_.maxVelocity = v;
   return Result::ok();
 }
@@ -638,7 +648,8 @@ Result Linarm::setPosLimit(float minPos, float maxPos) {
   if (!inRange(minPos, cfg::RAIL_MIN, cfg::RAIL_MAX)) return Result::refuse(proto::OUT_OF_RANGE, "minPos");
   if (!inRange(maxPos, minPos + cfg::POS_LIMIT_MIN_SPAN, cfg::RAIL_MAX))
     return Result::refuse(proto::OUT_OF_RANGE, "maxPos");
-  if (locked_ && (minPos < envelope_.posMin || maxPos > envelope_.posMax)) return BEYOND_ENVELOPE_R;
+  if (locked_ && (minPos < envelope_.posMin || maxPos > envelope_.posMax))
+    return Result::refuse(proto::LOCKED, "position limits beyond the locked envelope (restart to change them)");
   limits_.posMin = minPos;
   limits_.posMax = maxPos;
   return Result::ok();
