@@ -40,7 +40,7 @@ from app.devices.linarm_protocol import (
 )
 from app.devices.sim.linarm_model import LinarmSimCore
 from tests.test_firmware import FIRMWARE, ROOT, FirmwareTarget, build_firmware
-from tests.test_protocol_scenarios import SCENARIOS, Scenario, run_scenario
+from tests.test_protocol_scenarios import SCENARIOS, run_scenario
 
 HOST_DIR = FIRMWARE / "host"
 ARM_BUILD = FIRMWARE / "build" / "pytest-arm"
@@ -141,11 +141,22 @@ def test_cpp_unit_tests_pass_under_qemu_arm(arm_build: Path, capsys: pytest.Capt
     assert "[  OK  ] abi_is_the_dues" in result.stdout  # the binary really is ILP32 with unsigned char
 
 
-@pytest.mark.parametrize("scenario", SCENARIOS, ids=[s.id for s in SCENARIOS])
-def test_scenario_under_qemu_arm(arm_build: Path, scenario: Scenario) -> None:
-    setup = scenario.setup
-    run_scenario(FirmwareTarget(qemu(arm_build, "linarm_sil"), setup.get("centre", 0.20),
-                                setup.get("start_homed", False), setup.get("service", False)), scenario)
+def test_shared_scenarios_pass_under_qemu_arm(arm_build: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Every shared scenario against the ARM build; one summary line for the CI log."""
+    failures: list[str] = []
+    for scenario in SCENARIOS:
+        setup = scenario.setup
+        target = FirmwareTarget(qemu(arm_build, "linarm_sil"), setup.get("centre", 0.20),
+                                setup.get("start_homed", False), setup.get("service", False))
+        try:
+            run_scenario(target, scenario)
+        except (AssertionError, RuntimeError) as exc:
+            failures.append(f"{scenario.id}: {exc}")
+    with capsys.disabled():
+        print(f"\nshared protocol scenarios under qemu-arm (ILP32, unsigned char): "
+              f"{len(SCENARIOS) - len(failures)} of {len(SCENARIOS)} passed")
+    assert not failures, "\n".join(failures)
+    assert len(SCENARIOS) >= 25
 
 
 # ---------------------------------------------------------------------------------------------
@@ -244,7 +255,7 @@ def simulator_replies(stream: bytes) -> bytes:
     return core.handle_host_bytes(stream) + core.stream_bytes()
 
 
-def test_fuzzed_streams_get_the_same_replies_everywhere(arm_build: Path) -> None:
+def test_fuzzed_streams_get_the_same_replies_everywhere(arm_build: Path, capsys: pytest.CaptureFixture[str]) -> None:
     host = Lockstep([str(build_firmware() / "linarm_sil")])
     arm = Lockstep(qemu(arm_build, "linarm_sil"))
     differences: list[str] = []
@@ -260,6 +271,9 @@ def test_fuzzed_streams_get_the_same_replies_everywhere(arm_build: Path) -> None
     finally:
         host.close()
         arm.close()
+    with capsys.disabled():
+        print(f"\n{FUZZ_STREAMS} fuzzed receive streams: ARM build, host build and simulator "
+              f"{'agree' if not differences else 'DIFFER'} ({replied} streams with replies)")
     assert not differences, "\n".join(differences)
     assert replied > FUZZ_STREAMS // 2  # the streams reach the command handlers, not only the void
 
