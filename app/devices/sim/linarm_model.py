@@ -70,6 +70,10 @@ SEEK_LEAD = K["SEEK_LEAD"]  # m, how far the homing reference may lead a carriag
 HOMING_VELOCITY = K["HOMING_VELOCITY"]  # m/s, default endstroke seek speed
 HOME_SETTLE = K["HOME_SETTLE_TICKS"] * DT  # s at rest after the move to home, before the handle encoder is referenced
 OVER_CURRENT_TIME = K["OVER_CURRENT_TICKS"] * DT  # s above maxCurrent before OVER_CURRENT
+POSITION_LIMIT_MARGIN = K["POSITION_LIMIT_MARGIN"]  # m outside [minPos, maxPos]: POSITION_LIMIT
+OVER_VELOCITY_FACTOR = K["OVER_VELOCITY_FACTOR"]  # x maxVelocity: OVER_VELOCITY
+ENVELOPE_VELOCITY_FACTOR = K["ENVELOPE_VELOCITY_FACTOR"]  # x the locked maxVelocity: ENVELOPE_BREACH
+ENVELOPE_POSITION_MARGIN = K["ENVELOPE_POSITION_MARGIN"]  # m outside the locked range: ENVELOPE_BREACH
 
 
 class PatientForce(Protocol):
@@ -714,8 +718,8 @@ class LinarmSimCore:
         on = self.ctrl_state is ControlState.ON_CTRL_STATE
         env = self.envelope
         if env is not None and on and not self.demo:  # the locked envelope first: the host's monitor, one layer down
-            margin = K["ENVELOPE_POSITION_MARGIN"]
-            if abs(m["vh"]) > K["ENVELOPE_VELOCITY_FACTOR"] * env.max_vel:
+            margin = ENVELOPE_POSITION_MARGIN
+            if abs(m["vh"]) > ENVELOPE_VELOCITY_FACTOR * env.max_vel:
                 self._latch(ErrorState.ENVELOPE_BREACH, f"handle at {abs(m['vh']):.3f} m/s, above 1.2 x the locked "
                                                         f"{env.max_vel:g} m/s")
                 return
@@ -726,7 +730,7 @@ class LinarmSimCore:
         if on and abs(m["force"]) > self.max_force:
             self._latch(ErrorState.OVER_FORCE, f"interaction force {m['force']:.1f} N")
             return
-        margin = K["POSITION_LIMIT_MARGIN"]
+        margin = POSITION_LIMIT_MARGIN
         if on and (m["h"] < self.pos_min - margin or m["h"] > self.pos_max + margin):
             self._latch(ErrorState.POSITION_LIMIT, f"handle at {m['h']:.3f} m")
             return
@@ -741,7 +745,7 @@ class LinarmSimCore:
                                                      self.x[1] >= self.p.switch_max):
             self._latch(ErrorState.ENDSTROKE_HIT, "endstroke switch closed")
             return
-        vmax = K["OVER_VELOCITY_FACTOR"] * self.max_vel
+        vmax = OVER_VELOCITY_FACTOR * self.max_vel
         if on and (abs(m["vh"]) > vmax or abs(m["v"][0]) > vmax or abs(m["v"][1]) > vmax):
             self._latch(ErrorState.OVER_VELOCITY, f"handle at {m['vh']:.2f} m/s")
             return
