@@ -615,15 +615,17 @@ class LinarmSimCore:
         return 1.5 * (self.p.rail_max - self.p.rail_min) / self._seek_velocity() + 1.0
 
     def _seek_velocity(self) -> float:
-        # homingVelocity was checked against maxVelocity when set, but maxVelocity may have been narrowed since
-        return min(self.homing_velocity, self.max_vel)
+        # The locked envelope holds during homing too (a patient's narrower limits do not slow homing down).
+        return min(self.homing_velocity, self.envelope.max_vel) if self.envelope else self.homing_velocity
 
     def _start_move_home(self, m: dict[str, Any]) -> None:
         self.home_state = HomeState.HOME_MOVE_TO_HOME
         centre = (m["x"][0] + m["x"][1]) / 2
         delta = self.p.delta_of(m["x"][0], m["x"][1])
         self._set_motor_refs(centre, delta, 0.0, 0.0)
-        vel = min(max(self.homing_velocity, K["HOME_MOVE_MIN_VELOCITY"]), self.max_vel)  # within maxVelocity
+        vel = max(self.homing_velocity, K["HOME_MOVE_MIN_VELOCITY"])
+        if self.envelope is not None:
+            vel = min(vel, self.envelope.max_vel)  # homing stays in the envelope
         self.centre_traj = plan_trajectory(centre, self.home_centre, vel, self.max_acc, 0.0, self.trajectory_type)
         self.delta_traj = plan_trajectory(delta, self.home_delta, vel, self.max_acc, 0.0, self.trajectory_type)
         self.centre_traj.t0 = self.delta_traj.t0 = self.time

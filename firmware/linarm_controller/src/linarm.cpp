@@ -219,8 +219,8 @@ void Linarm::checkTriggers() {
 
 // ------------------------------------------------------------------------------------------ homing
 float Linarm::seekVelocity() const {
-  // homingVelocity was checked against maxVelocity when set, but maxVelocity may have been narrowed since
-  return homingVelocity_ < limits_.maxVelocity ? homingVelocity_ : limits_.maxVelocity;
+  // The locked envelope holds during homing too (a patient's narrower limits do not slow homing down).
+  return locked_ && homingVelocity_ > envelope_.maxVelocity ? envelope_.maxVelocity : homingVelocity_;
 }
 
 uint32_t Linarm::seekTimeoutTicks() const {
@@ -254,7 +254,7 @@ void Linarm::startMoveHome() {
   float delta = vsa::deltaOf(meas_.x[0], meas_.x[1]);
   setMotorRefs(centre, delta, 0.0f, 0.0f);
   float vel = homingVelocity_ > cfg::HOME_MOVE_MIN_VELOCITY ? homingVelocity_ : cfg::HOME_MOVE_MIN_VELOCITY;
-  if (vel > limits_.maxVelocity) vel = limits_.maxVelocity;  // homing too stays within maxVelocity
+  if (locked_ && vel > envelope_.maxVelocity) vel = envelope_.maxVelocity;  // homing stays in the envelope
   centreTraj_.plan(centre, homeCentre_, vel, limits_.maxAcceleration, 0.0, trajectoryType_);
   deltaTraj_.plan(delta, homeDelta_, vel, limits_.maxAcceleration, 0.0, trajectoryType_);
   centreTraj_.startAt(ticks_);

@@ -134,7 +134,7 @@ class Linarm {
   void homing();
   void referenceMotor(int i, float position);
   uint32_t seekTimeoutTicks() const;
-  float seekVelocity() const;  // homingVelocity, never above maxVelocity
+  float seekVelocity() const;  // homingVelocity, never above the locked maxVelocity
   bool homingBusy() const;
   Result plan(Trajectory* out, float start, float target, float maxVel, float maxAcc, float execTime,
               bool trigger);
