@@ -108,6 +108,9 @@ class LinarmTimeout(TimeoutError):
     pass
 
 
+LIMITS_ATTEMPTS = 3  # apply_limits: tries of the whole (idempotent) sequence after a timeout
+
+
 @dataclass
 class _Pending:
     seq: int
@@ -196,6 +199,17 @@ class LinarmDriver(DeviceDriver):
         inside the envelope. Runs off the caller's thread; the Future fails with the first refusal and holds the
         locked envelope (the ACK's values) on success."""
         def send() -> dict[str, Any]:
+            # Every command here is idempotent: a timeout (a busy link at connect) is tried again.
+            for attempt in range(LIMITS_ATTEMPTS):
+                try:
+                    return align()
+                except LinarmTimeout:
+                    if attempt == LIMITS_ATTEMPTS - 1 or not self.connected:
+                        raise
+                    log.warning("LINarm limits: a command timed out; trying again")
+            raise AssertionError("unreachable")
+
+        def align() -> dict[str, Any]:
             if not self._envelope_locked:
                 site = getattr(getattr(self.supervisor, "config", None), "robot", None) or limits
                 self._send_limits(site)
