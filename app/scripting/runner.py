@@ -193,6 +193,9 @@ class ScriptRunner:
         self._run_lock = threading.Lock()
         self._stopper: threading.Thread | None = None
         self._new_namespace("<console>")
+        register = getattr(getattr(manager, "supervisor", None), "register_estop_action", None)
+        if callable(register):  # contract 3: a fault's safe state stops the running script, naming the cause
+            register("script", self._stop_on_fault)
 
     # ------------------------------------------------------------------ public
     @property
@@ -239,6 +242,11 @@ class ScriptRunner:
         if self._stopper is None or not self._stopper.is_alive():
             self._stopper = threading.Thread(target=self._escalate, name="script-stopper", daemon=True)
             self._stopper.start()
+
+    def _stop_on_fault(self, reason: str) -> None:
+        """The supervisor's "script" stop action: quick, never blocks, a no-op when no script runs."""
+        if self.running:
+            self.request_stop(reason)
 
     def stop(self, reason: str = "stopped by the operator", wait_s: float = 1.0) -> bool:
         """Stop and wait up to ``wait_s`` for user code to end (not for the safe state that follows)."""
@@ -367,7 +375,10 @@ class ScriptRunner:
             if exc.code not in (None, 0):
                 result = ScriptResult("error", f"exit({exc.code!r})", filename)
         except BaseException as exc:
-            result = self._describe(exc, filename, "refused" if _refused(exc) else "error")
+            if self.stop_reason:  # a command failed because of the stop (robot IDLE, FES off): the stop's cause
+                result = ScriptResult("stopped", self.stop_reason, filename)
+            else:
+                result = self._describe(exc, filename, "refused" if _refused(exc) else "error")
         result.duration_s = time.monotonic() - t0
         self.context.stop_event.set()  # callbacks and prompt statements end with the script
         self._callback_wake.set()
