@@ -16,7 +16,7 @@ import re
 import tempfile
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 import yaml
 from yaml.nodes import MappingNode, Node
@@ -91,6 +91,16 @@ class PatientRobotLimits:
 
 
 @dataclass(frozen=True)
+class PlannedExercise:
+    """One step of a therapy plan: an exercise of the library (``resources/exercises/<exercise>.yaml``) and
+    the values for its form (checked against the exercise's schema when it is offered, app/exercises.py)."""
+
+    exercise: str = ""
+    params: dict[str, Any] = field(default_factory=dict)
+    note: str = ""
+
+
+@dataclass(frozen=True)
 class PatientProfile:
     patient_id: str = ""  # identifier or pseudonym; also the file and sessions-folder name
     version: int = field(default=PROFILE_VERSION, metadata=rng(PROFILE_VERSION, PROFILE_VERSION))
@@ -100,6 +110,7 @@ class PatientProfile:
     fes: PatientFes = field(default_factory=PatientFes)
     robot: PatientRobotLimits = field(default_factory=PatientRobotLimits)
     notes: str = ""
+    therapy_plan: list[PlannedExercise] = field(default_factory=list)  # offered in order by the Exercises tab
     created: str = ""  # ISO time with zone, set on first save
     updated: str = ""
 

@@ -45,6 +45,7 @@ PANELS: list[tuple[str, str, str, bool]] = [
     ("Assistance", "app.ui.assistance_panel", "AssistancePanel", False),
     ("Model", "app.ui.patient_model_viewer", "PatientModelViewer", False),
     ("VR", "app.ui.vr_viewer", "VrViewer", False),
+    ("Exercises", "app.ui.exercises_panel", "ExercisesPanel", False),
     ("Script", "app.ui.script_console", "ScriptConsole", False),
     ("Simulation", "app.ui.simulation_panel", "SimulationPanel", True),
     ("Alarms", "app.ui.alarms_panel", "AlarmsPanel", False),

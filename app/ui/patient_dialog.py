@@ -7,7 +7,7 @@ next to the field it names, in the same words as a bad file would get.
 
 from __future__ import annotations
 
-from dataclasses import replace
+from dataclasses import asdict, replace
 from pathlib import Path
 from typing import Any
 
@@ -209,6 +209,8 @@ class PatientDialog(QDialog):
         }
         if original.created:
             data["created"] = original.created
+        if original.therapy_plan:  # not edited here (the profile's YAML): kept as it is
+            data["therapy_plan"] = [asdict(step) for step in original.therapy_plan]
         return data
 
     def validate(self) -> PatientProfile | None:

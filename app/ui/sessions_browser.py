@@ -236,9 +236,14 @@ class SessionsBrowser(QWidget):
         self.csv_button.clicked.connect(lambda: self.ask_export("csv"))
         self.replay_button = QPushButton("&Replay")
         self.replay_button.clicked.connect(self.replay)
+        self.summary_button = QPushButton("S&ummary…")  # metrics (app/ui/session_summary.py)
+        self.summary_button.clicked.connect(self.open_summary)
+        self.progress_button = QPushButton("Pro&gress…")  # the patient's trends (app/ui/progress_view.py)
+        self.progress_button.clicked.connect(self.open_progress)
         self.status = QLabel("")
         buttons = QHBoxLayout()
-        for b in (self.open_button, self.hdf5_button, self.csv_button, self.replay_button):
+        for b in (self.open_button, self.hdf5_button, self.csv_button, self.replay_button, self.summary_button,
+                  self.progress_button):
             buttons.addWidget(b)
         buttons.addWidget(self.status, 1)
 
@@ -303,8 +308,9 @@ class SessionsBrowser(QWidget):
 
     def _update_buttons(self) -> None:
         ok = self.selected_folder() is not None
-        for b in (self.open_button, self.hdf5_button, self.csv_button, self.replay_button):
+        for b in (self.open_button, self.hdf5_button, self.csv_button, self.replay_button, self.summary_button):
             b.setEnabled(ok)
+        self.progress_button.setEnabled(ok)
 
     # ------------------------------------------------------------------ actions
     def open_details(self) -> SessionDetails | None:
@@ -312,6 +318,28 @@ class SessionsBrowser(QWidget):
         if folder is None:
             return None
         dialog = SessionDetails(folder, self)
+        self.windows.append(dialog)
+        dialog.show()
+        return dialog
+
+    def open_summary(self) -> QWidget | None:
+        folder = self.selected_folder()
+        if folder is None:
+            return None
+        from app.ui.session_summary import SessionSummaryDialog
+
+        dialog = SessionSummaryDialog(folder, parent=self)
+        self.windows.append(dialog)
+        dialog.show()
+        return dialog
+
+    def open_progress(self) -> QWidget | None:
+        pid = self.patient_box.currentData()
+        if not pid:
+            return None
+        from app.ui.progress_view import ProgressDialog
+
+        dialog = ProgressDialog(pid, self.root, parent=self)
         self.windows.append(dialog)
         dialog.show()
         return dialog
