@@ -39,7 +39,7 @@ SELF_SCROLLING = {"LinarmPanel", "ScriptConsole", "AlarmsPanel", "FesPanel", "Li
 
 PANELS: list[tuple[str, str, str, bool]] = [
     ("Robot", "app.ui.linarm_panel", "LinarmPanel", False),
-    ("Robot view", "app.ui.linarm_viewer", "LinarmViewer", False),
+    ("Motors", "app.ui.linarm_viewer", "LinarmViewer", False),
     ("FES", "app.ui.fes_panel", "FesPanel", False),
     ("Sensors", "app.ui.physio_viewer", "PhysioViewer", False),
     ("Assistance", "app.ui.assistance_panel", "AssistancePanel", False),
@@ -123,6 +123,9 @@ class CommandsFrame(QWidget):
         self.tabs = QTabWidget()
         self.tabs.setDocumentMode(True)
         self.tabs.setUsesScrollButtons(True)
+        # Eleven tabs must fit the dock's ~690 px at 1366×768 without scroll arrows: tighter padding
+        # than the style's default (the text itself is never elided).
+        self.tabs.tabBar().setStyleSheet("QTabBar::tab { padding: 5px 8px; }")
         lay.addWidget(self.tabs, 1)
         self._load_panels()
         if self.tabs.count() == 0:

@@ -122,7 +122,7 @@ class ExercisesPanel(QWidget):
         self.exercise_list.setWordWrap(True)
         for e in self.library:
             item = QListWidgetItem(e.title)
-            item.setToolTip(e.description)
+            item.setToolTip(f"{e.title}\n\n{e.description}")  # the whole title too: the list may elide it
             self.exercise_list.addItem(item)
         self.exercise_list.currentRowChanged.connect(self._exercise_selected)
         library_box = QGroupBox("Exercises")
