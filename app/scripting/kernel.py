@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import ast
 import builtins
-import codeop
 import collections
 import ctypes
 import enum
@@ -39,7 +38,6 @@ import sys
 import threading
 import time
 import traceback
-import types
 from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
@@ -54,6 +52,7 @@ SWITCH_INTERVAL_S = 0.001  # this process only: the reader thread gets the GIL q
 MAX_LINE = 64 * 1024 * 1024
 
 _real_sleep = time.sleep
+_real_exit = os._exit
 _KERNEL_FILE = os.path.abspath(__file__)
 
 
@@ -227,7 +226,7 @@ class Kernel:
             try:
                 self.sock.sendall(data)
             except OSError:
-                os._exit(3)  # the application is gone: nothing left to serve
+                _real_exit(3)  # the application is gone: nothing left to serve
 
     def output(self, stream: str, text: str) -> None:
         self.send({"op": "out", "stream": stream, "text": text})
@@ -273,7 +272,7 @@ class Kernel:
         while True:
             line = rfile.readline(MAX_LINE)
             if not line:
-                os._exit(0)  # the application closed the link: it is gone or it retired this kernel
+                _real_exit(0)  # the application closed the link: it is gone or it retired this kernel
             try:
                 msg = json.loads(line)
                 self.dispatch(msg)
@@ -540,8 +539,10 @@ class Kernel:
             fatal = isinstance(exc, MemoryError)
         self.stop_event.set()  # callbacks and prompt statements end with the script
         self.callback_wake.set()
-        self.users.interrupt_all() if callbacks.is_alive() else None
-        callbacks.join(1.0)
+        callbacks.join(0.2)
+        if callbacks.is_alive():  # a callback in a pure-Python loop
+            self.users.interrupt_all()
+            callbacks.join(1.0)
         for st in self.streams.values():
             st.subscribed = False
         self.running = False
@@ -549,7 +550,7 @@ class Kernel:
                    "callbacks_dropped": self.callbacks_dropped,
                    "callback_errors": [[k[0], k[1], k[2], n] for k, n in self.callback_errors.items()]})
         if fatal:
-            os._exit(4)  # out of memory: give the memory back; the application starts a fresh kernel
+            _real_exit(4)  # out of memory: give the memory back; the application starts a fresh kernel
         self.stop_event.clear()
 
     def _callback_main(self) -> None:
@@ -580,7 +581,7 @@ class Kernel:
                         self._callback_error(fn, exc)
 
     def _callback_error(self, fn: Callable[..., Any], exc: BaseException) -> None:
-        message, line, text = _describe(exc)
+        _message, line, text = _describe(exc)
         key = (str(getattr(fn, "__name__", "?")), line or 0, type(exc).__name__)
         count = self.callback_errors.get(key, 0) + 1
         self.callback_errors[key] = count
@@ -808,12 +809,12 @@ def build_api(kernel: Kernel) -> dict[str, Any]:
         if target in linarm_extra:
             linarm_extra[alias] = linarm_extra[target]
 
-    def getConfigData(self: _ApiObject) -> Any:  # noqa: N802 - the seed's name
+    def getConfigData(self: _ApiObject) -> Any:
         """The robot's configuration and safety limits as the application holds them."""
         return self._k.call("linarm", "getConfigData")
 
     linarm_extra["getConfigData"] = getConfigData
-    LinarmUser = _api_class("linarm", "LinarmUser", shapes.get("linarm", {}), linarm_extra)  # noqa: N806
+    LinarmUser = _api_class("linarm", "LinarmUser", shapes.get("linarm", {}), linarm_extra)
 
     def fes_method(method: str, doc: str, wrap: Callable[[Any], Any] = lambda v: v) -> Callable[..., Any]:
         def fn(self: _ApiObject, *args: Any) -> Any:
@@ -826,7 +827,7 @@ def build_api(kernel: Kernel) -> dict[str, Any]:
     def fes_get(attr: str, wrap: Callable[[Any], Any] = lambda v: v) -> property:
         return property(lambda self: wrap(self._k.call("fes", attr)))
 
-    def write_file(self: _ApiObject, data: Any, fileName: str) -> None:  # noqa: N803 - the seed's name
+    def write_file(self: _ApiObject, data: Any, fileName: str) -> None:
         """Save a profile (what ``fes.loadFile`` returned, or ``fes.profile``) as YAML."""
         if not isinstance(data, FesProfileRef):
             raise TypeError(f"fes.writeFile expects a profile (e.g. fes.profile), got {type(data).__name__}")
@@ -843,17 +844,17 @@ def build_api(kernel: Kernel) -> dict[str, Any]:
         "getConfigData": fes_method("getConfigData", "Device, profile, scale factors and limits."),
         "profile": fes_get("profile", _profile), "stimulating": fes_get("stimulating"),
     }
-    FESUser = _api_class("fes", "FESUser", shapes.get("fes", {}), fes_extra)  # noqa: N806
-    Physio = _api_class("physiologicalSensors", "PhysiologicalSensorsUser",  # noqa: N806
+    FESUser = _api_class("fes", "FESUser", shapes.get("fes", {}), fes_extra)
+    Physio = _api_class("physiologicalSensors", "PhysiologicalSensorsUser",
                         shapes.get("physiologicalSensors", {}), {})
-    PatientModel = _api_class("patientModel", "PatientModelUser", shapes.get("patientModel", {}), {})  # noqa: N806
-    VR = _api_class("VRUnity", "VRUnityUser", shapes.get("VRUnity", {}), {})  # noqa: N806
+    PatientModel = _api_class("patientModel", "PatientModelUser", shapes.get("patientModel", {}), {})
+    VR = _api_class("VRUnity", "VRUnityUser", shapes.get("VRUnity", {}), {})
 
     linarm, physio, fes = LinarmUser(kernel), Physio(kernel), FESUser(kernel)
     patient_model, vr = PatientModel(kernel), VR(kernel)
     mgr = LinarmppManager(kernel, linarm, physio, fes, patient_model, vr)
 
-    def emergencyStop(reason: str = "emergency stop from a script") -> None:  # noqa: N802 - the seed's name
+    def emergencyStop(reason: str = "emergency stop from a script") -> None:
         """FES Stop and robot IDLE at once, latched until an operator resets it; the script is stopped."""
         mgr.emergencyStop(reason)
 
@@ -871,7 +872,7 @@ class LinarmppManager:
     classString = "LinarmppManager"
 
     def __init__(self, kernel: Kernel, linarm: Any, physiologicalSensors: Any, fes: Any, patientModel: Any,
-                 VRUnity: Any) -> None:  # noqa: N803 - the seed's names
+                 VRUnity: Any) -> None:
         self._k = kernel
         self.linarm = linarm
         self.physiologicalSensors = physiologicalSensors
@@ -883,19 +884,19 @@ class LinarmppManager:
     def __repr__(self) -> str:
         return "<linarmppManager: linarm, physiologicalSensors, fes, patientModel, VRUnity>"
 
-    def emergencyStop(self, reason: str = "emergency stop from a script") -> None:  # noqa: N802
+    def emergencyStop(self, reason: str = "emergency stop from a script") -> None:
         """FES Stop and robot IDLE at once, latched until an operator resets it; the script is stopped."""
         self._k.request("call", obj="linarmppManager", name="emergencyStop", args=[str(reason)])
         raise ScriptStopped(reason)
 
-    def setProgram(self, fileName: str) -> None:  # noqa: N802, N803
+    def setProgram(self, fileName: str) -> None:
         """Choose the script file that ``startProgram`` runs."""
         path = self._k.resolve_path(str(fileName))
         if not path.is_file():
             raise FileNotFoundError(f"no script file {path}")
         self.fileName = str(path)
 
-    def startProgram(self) -> None:  # noqa: N802
+    def startProgram(self) -> None:
         """Run the chosen script here, to its end (it shares this run's Stop button and devices)."""
         if self.fileName is None:
             raise ScriptError("call linarmppManager.setProgram(fileName) first")
@@ -903,15 +904,15 @@ class LinarmppManager:
 
     internalExec = startProgram
 
-    def startRepetition(self, index: int, total: int | None = None) -> None:  # noqa: N802
+    def startRepetition(self, index: int, total: int | None = None) -> None:
         """Mark the start of repetition ``index`` (from 1), optionally of ``total``."""
         self._k.call("linarmppManager", "startRepetition", index, total)
 
-    def endRepetition(self, index: int | None = None, ok: bool = True) -> None:  # noqa: N802
+    def endRepetition(self, index: int | None = None, ok: bool = True) -> None:
         """Mark the end of repetition ``index`` (the current one when omitted); ``ok=False`` if it failed."""
         self._k.call("linarmppManager", "endRepetition", index, ok)
 
-    def reportProgress(self, text: str) -> None:  # noqa: N802
+    def reportProgress(self, text: str) -> None:
         """A short message for the clinician (shown beside the repetition count, recorded as an event)."""
         self._k.call("linarmppManager", "reportProgress", str(text))
 
@@ -920,7 +921,7 @@ def make_wait_condition(kernel: Kernel, namespace: Mapping[str, Any]) -> Callabl
     """``waitCondition(condition, timeout=None)`` or the seed's ``waitCondition("expr", locals(), timeout)``:
     re-evaluated on every new device sample. True when met, False on timeout."""
 
-    def waitCondition(condition: Any, *args: Any, timeout: float | None = None) -> bool:  # noqa: N802
+    def waitCondition(condition: Any, *args: Any, timeout: float | None = None) -> bool:
         local_vars: Mapping[str, Any] | None = None
         rest = list(args)
         if rest and (isinstance(rest[0], Mapping) or rest[0] is None) and not isinstance(rest[0], int | float):
@@ -960,6 +961,17 @@ def main(argv: list[str]) -> int:
     sys.stdout = _Output(kernel, "stdout")  # type: ignore[assignment]
     sys.stderr = _Output(kernel, "stderr")  # type: ignore[assignment]
     time.sleep = kernel.sleep  # every ``time.sleep`` of the script ends when it is stopped
+
+    def _exit(code: int) -> None:
+        """``os._exit`` from a script: say where first (the process ends without a traceback)."""
+        frames = [f for f in traceback.extract_stack()[:-1] if f.filename != _KERNEL_FILE]
+        if frames:
+            text = "Traceback (most recent call last):\n" + "".join(traceback.format_list(frames))
+            kernel.send({"op": "exiting", "code": code, "line": frames[-1].lineno, "traceback": text
+                         + f"os._exit({code!r})\n"})
+        _real_exit(code)
+
+    os._exit = _exit
     threading.Thread(target=kernel.reader, name="kernel-reader", daemon=True).start()
     kernel.send({"op": "ready", "pid": os.getpid(), "startup_s": time.perf_counter() - t0})
     kernel.main()
@@ -967,4 +979,4 @@ def main(argv: list[str]) -> int:
 
 
 if __name__ == "__main__":
-    os._exit(main(sys.argv))
+    _real_exit(main(sys.argv))

@@ -125,6 +125,8 @@ class ScriptRunner:
         self._answers: dict[int, _Answer] = {}
         self._ids = iter(range(1, 1 << 62))
         self._safe_thread: threading.Thread | None = None
+        self._safe_lock = threading.Lock()
+        self._exit_report: dict[str, Any] | None = None
         self._closed = False
         self._kernels: list[KernelProcess] = []
         self._finalizer = weakref.finalize(self, _kill_all, self._kernels)
@@ -188,6 +190,12 @@ class ScriptRunner:
         for kernel in kernels:
             kernel.retire()
 
+    def ready(self, timeout: float | None = None) -> bool:
+        """True once the current kernel has started (it is started with the runner; Start then only hands
+        it the script)."""
+        kernel = self._kernel
+        return kernel is not None and kernel.ready.wait(timeout)
+
     @property
     def kernel_pid(self) -> int | None:
         return self._kernel.pid if self._kernel is not None else None
@@ -212,6 +220,7 @@ class ScriptRunner:
             self._stop_requested.clear()
             self._wake.clear()
             self._done_msg = None
+            self._exit_report = None
             self.result = None
             self.body_started_at = None
             self.stop_reason = ""
@@ -256,10 +265,12 @@ class ScriptRunner:
         if running:
             self._stop_requested.set()
             self._wake.set()
-            if self._safe_thread is None or not self._safe_thread.is_alive():
-                self._safe_thread = threading.Thread(target=self._safe_state_now, args=(reason,),
-                                                     name="script-safe-state", daemon=True)
-                self._safe_thread.start()
+            with self._safe_lock:
+                if self._safe_thread is None or not self._safe_thread.is_alive():
+                    thread = threading.Thread(target=self._safe_state_now, args=(reason,),
+                                              name="script-safe-state", daemon=True)
+                    thread.start()
+                    self._safe_thread = thread
 
     def stop(self, reason: str = "stopped by the operator", wait_s: float = 1.0) -> bool:
         """Stop and wait up to ``wait_s`` for user code to end (not for the safe state that follows)."""
@@ -366,6 +377,10 @@ class ScriptRunner:
                 self._user_ended.set()
                 self._wake.set()
                 return
+        elif op == "exiting":  # the script called os._exit: where, before the process is gone
+            if kernel is self._kernel and self.running:
+                self._exit_report = msg
+            return
         elif op == "exec_done":
             run = self._prompts.get(msg.get("id"))  # type: ignore[arg-type]
             if run is not None:
@@ -429,8 +444,10 @@ class ScriptRunner:
         self.gate.set("closed")
         bridge.unsubscribe_all()
         self._report(result)
-        if self._safe_thread is not None:
-            self._safe_thread.join(2.0)
+        with self._safe_lock:
+            safe_thread, self._safe_thread = self._safe_thread, None
+        if safe_thread is not None:
+            safe_thread.join(2.0)
         self._bring_to_safe_state(result)
         if sup is not None:
             sup.event("script_stop", name=name, reason=result.message or result.status, status=result.status)
@@ -509,6 +526,11 @@ class ScriptRunner:
         where = _last_script_line(kernel.stderr_tail, filename)
         result = ScriptResult("error", f"the script's process ended: {cause}", filename, where)
         result.traceback = _crash_summary(kernel.stderr_tail, filename)
+        report = self._exit_report
+        if report is not None:
+            line = report.get("line")
+            result.line = line if isinstance(line, int) else result.line
+            result.traceback = str(report.get("traceback") or "")[:100_000]
         return result
 
     # ------------------------------------------------------------------ homing and safe state
@@ -567,13 +589,14 @@ class ScriptRunner:
         linarm = self.manager.driver("linarm") if self.manager is not None else None
         if linarm is not None and linarm.connected:
             state = linarm.latest("linarm.state")
-            active = state is None or state.controlState != ControlState.IDLE_CTRL_STATE
+            # IDLE is sent even when the last state sample says IDLE: it is up to 50 ms old, and a command
+            # acknowledged since (setCtrlState ON from the script) may not be in it yet.
             try:
                 if self.safe_state == "hold" and state is not None and state.controlState == ControlState.ON_CTRL_STATE:
                     # a mode change clears any motion: the centre holds where it is
                     linarm.command("setCtrlMode", int(ControlMode.POS_REF_BY_TARGET_POS), source="script runner")
                     done.append("robot holding")
-                elif active:
+                else:
                     linarm.command("setCtrlState", int(ControlState.IDLE_CTRL_STATE), source="script runner")
                     done.append("robot IDLE")
             except Exception as exc:
