@@ -149,3 +149,19 @@ def test_a_script_error_exits_non_zero(tmp_path: Path) -> None:
     code = run_headless(config(), str(script), duration_s=20.0, home_first=False, output=out)
     assert code == EXIT_ERROR
     assert "NameError" in out.text("stderr") and 'line 2' in out.text("stderr")
+
+
+def test_a_crash_of_the_script_process_exits_1_with_the_session_record_complete(tmp_path: Path) -> None:
+    script = tmp_path / "crash.py"
+    script.write_text("linarm.setCtrlMode(linarm.CONTROL_MODES.POS_REF_BY_TARGET_POS)\n"
+                      "import ctypes\nctypes.string_at(0)\n")
+    out = Output()
+    code = run_headless(config(), str(script), duration_s=20.0, record_dir=str(tmp_path / "rec"), home_first=False,
+                        output=out)
+    assert code == EXIT_ERROR
+    assert "the script's process ended: a segmentation fault (SIGSEGV)" in out.text("info")
+    assert "line 3" in out.text()
+    sess = session(tmp_path / "rec")
+    assert sess.complete and not sess.problems
+    stops = [e["data"] for e in sess.events if e["kind"] == "script_stop"]
+    assert stops and stops[-1]["status"] == "error" and "segmentation fault" in stops[-1]["reason"]

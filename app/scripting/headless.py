@@ -7,7 +7,8 @@ brings the devices to a safe state and exits:
 
 * 0 — the script finished, or was stopped because ``--duration`` was reached (counted from the start of
   the script's own code, after any homing);
-* 1 — the script raised an error (its traceback is printed), or could not be read or compiled;
+* 1 — the script raised an error (its traceback is printed), could not be read or compiled, or its
+  process (the script kernel) ended by itself — a segfault, ``os._exit``, out of memory;
 * 3 — a safety stop: a command refused by the safety supervisor, an emergency stop, or an alarm of
   level STOP (e.g. the LINarm latched an error) during the run;
 * 130 — interrupted (Ctrl-C).
@@ -55,6 +56,7 @@ def run_headless(config: AppConfig, script_path: str, duration_s: float | None =
     app = QCoreApplication.instance() or QCoreApplication([sys.argv[0] if sys.argv else "linarmpp"])
     manager = LinarmppManager(config)
     recorder = None
+    runner = None
     code = EXIT_OK
     try:
         manager.start()
@@ -97,6 +99,8 @@ def run_headless(config: AppConfig, script_path: str, duration_s: float | None =
             if safety_stop:
                 _emit(output, "stderr", f"Safety stop: {safety_stop}\n")
     finally:
+        if runner is not None:
+            runner.close()
         if recorder is not None:
             recorder.stop("headless run ended")
         manager.shutdown()
