@@ -356,3 +356,59 @@ def test_fes_stop_and_robot_idle_are_on_the_wire_within_200_ms(rig: Any, case: s
     runner.start("print('next one runs')\n", "<next>")
     assert _pump(app, lambda: not runner.running, 3.0) and runner.result.status == "finished"
     runner.close()
+
+
+# ---------------------------------------------------------------------------------------------- contracts
+class Progress:
+    def __init__(self) -> None:
+        self.calls: list[tuple[Any, ...]] = []
+
+    def __getattr__(self, name: str) -> Any:
+        return lambda *args: self.calls.append((name, *args))
+
+
+def test_pause_holds_the_script_and_stops_the_fes_resume_lets_it_go_on(manager: FakeManager,
+                                                                         output: Output) -> None:
+    manager.progress = Progress()  # type: ignore[attr-defined]
+    runner = ScriptRunner(manager, output, home_first=False)
+    runner.start("print('started')\nwhile True:\n    linarm.setAssistanceTargetPos(0.2)\n    wait(0.005)\n", "<p>")
+    started(runner, output)
+    assert wait_for(lambda: len(manager.linarm.commands) > 5)
+    runner.pause()
+    assert manager.fes.fes_stops
+    time.sleep(0.1)  # a call in flight when paused completes
+    held = len(manager.linarm.commands)
+    time.sleep(0.3)
+    assert len(manager.linarm.commands) == held, "a paused script must not command the robot"
+    runner.resume()
+    assert wait_for(lambda: len(manager.linarm.commands) > held + 5)
+    assert [c[0] for c in manager.progress.calls if c[0] in ("pause", "resume")] == ["pause", "resume"]
+    assert runner.stop(wait_s=1.0)
+    assert runner.wait(2.0)
+
+
+def test_the_supervisor_stops_the_script_through_its_script_action(manager: FakeManager, output: Output) -> None:
+    manager.supervisor = SafetySupervisor(SafetyConfig())
+    runner = ScriptRunner(manager, output, home_first=False)
+    runner.start("print('started')\nwhile True:\n    pass\n", "<s>")
+    started(runner, output)
+    manager.supervisor.bring_to_safe_state("robot STOP: WATCHDOG (no host bytes for 0.25 s)")
+    assert runner.wait(2.0)
+    assert runner.result is not None and runner.result.status == "stopped"
+    assert runner.result.message == "robot STOP: WATCHDOG (no host bytes for 0.25 s)"
+    manager.supervisor.bring_to_safe_state("nothing runs")  # a no-op without a script
+
+
+def test_progress_marks_and_exercise_params_cross_as_data(manager: FakeManager, output: Output) -> None:
+    manager.progress = Progress()  # type: ignore[attr-defined]
+    runner = ScriptRunner(manager, output, home_first=False)
+    runner.start("for i in range(exerciseParams['repetitions']):\n"
+                 "    linarmppManager.startRepetition(i + 1, exerciseParams['repetitions'])\n"
+                 "    linarmppManager.endRepetition(ok=i != 1)\n"
+                 "linarmppManager.reportProgress('done ' + exerciseParams['name'])\n", "<e>",
+                 params={"repetitions": 2, "name": "reach"})
+    assert runner.wait(3.0)
+    assert runner.result is not None and runner.result.status == "finished", output.text()
+    marks = [c for c in manager.progress.calls if c[0] not in ("begin", "finish")]
+    assert marks == [("start_repetition", 1, 2), ("end_repetition", None, True), ("start_repetition", 2, 2),
+                     ("end_repetition", None, False), ("report", "done reach")]
