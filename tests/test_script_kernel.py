@@ -50,7 +50,8 @@ def test_the_script_runs_in_another_process_started_ahead(manager: FakeManager, 
     pid = int(output.text("stdout").split()[1])
     assert pid != os.getpid()
     assert "PySide6" not in output.text()
-    # the next Start gets a fresh kernel (its own namespace), as warm as the first
+    # the next Start gets a fresh kernel (its own namespace): the spare started at the first Start
+    assert runner.spare_ready(5.0)
     t0 = time.monotonic()
     runner.start("import os\nprint('started again', os.getpid())\nprint('target' in globals())\n", "<test>")
     started(runner, output, "started again")

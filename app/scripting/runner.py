@@ -1,11 +1,12 @@
 """Runs an exercise script in the script kernel — a child Python process (app/scripting/kernel.py) — and
 stops it on request, whatever it does.
 
-The runner keeps one kernel for the console's prompt and the next script, and a spare started ahead, so
-Start only hands the script to a warm process. A script runs in a fresh kernel (its own namespace); the
-prompt then works in that namespace until the next Start. The kernel reaches the devices only through
-:class:`app.scripting.bridge.ApiBridge`: the API's calls, answered on bridge threads by the in-app API
-objects (the safety supervisor on every command), and the samples of the streams it uses.
+The runner starts a kernel with itself (the console's prompt and the first script use it) and, from the
+first Start on, keeps a spare started ahead, so Start only hands the script to a warm process. A script
+runs in a fresh kernel (its own namespace); the prompt then works in that namespace until the next Start.
+The kernel reaches the devices only through :class:`app.scripting.bridge.ApiBridge`: the API's calls,
+answered on bridge threads by the in-app API objects (the safety supervisor on every command), and the
+samples of the streams it uses.
 
 Stop (:meth:`request_stop`): calls from the kernel are refused from then on, FES and robot go to the safe
 state at once (on a thread of their own), the kernel is asked to stop (every wait there notices within
@@ -131,7 +132,7 @@ class ScriptRunner:
         self._kernels: list[KernelProcess] = []
         self._finalizer = weakref.finalize(self, _kill_all, self._kernels)
         self._register_stop_action()
-        self._next_kernel()  # the console's prompt has a kernel from the start; a spare waits behind it
+        self._next_kernel()  # started with the runner: the prompt and the first Start find it warm
 
     # ------------------------------------------------------------------ kernels
     def _spawn(self) -> KernelProcess:
@@ -154,9 +155,12 @@ class ScriptRunner:
             old_bridge.close()
         if old is not None and old is not kernel:
             old.retire()
+        return kernel
+
+    def _ensure_spare(self) -> None:
+        """A spare kernel starting in the background (the next Start finds it warm)."""
         if not self._closed:
             threading.Thread(target=self._start_spare, name="script-kernel-spare", daemon=True).start()
-        return kernel
 
     def _start_spare(self) -> None:
         with self._kernel_lock:
@@ -196,6 +200,16 @@ class ScriptRunner:
         kernel = self._kernel
         return kernel is not None and kernel.ready.wait(timeout)
 
+    def spare_ready(self, timeout: float = 5.0) -> bool:
+        """True once the spare kernel (started at a Start, for the next one) has started."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            spare = self._spare
+            if spare is not None and spare.ready.wait(max(0.0, deadline - time.monotonic())):
+                return True
+            time.sleep(0.01)
+        return False
+
     @property
     def kernel_pid(self) -> int | None:
         return self._kernel.pid if self._kernel is not None else None
@@ -234,6 +248,7 @@ class ScriptRunner:
             if kernel is None or kernel.used or not kernel.alive:
                 kernel = self._next_kernel()
             kernel.used = True
+            self._ensure_spare()
             bridge = self._bridge
             assert bridge is not None
             base = Path(filename).resolve().parent if not filename.startswith("<") else None
@@ -455,6 +470,7 @@ class ScriptRunner:
             progress.finish(result.status)
         if not kernel.alive and kernel is self._kernel and not self._closed:
             self._next_kernel()  # a fresh kernel for the prompt and the next Start
+            self._ensure_spare()
         self.gate.set("open")
         self.paused = False
         self.result = result
