@@ -26,6 +26,8 @@ Both ends are stamped on the simulator threads with time.monotonic_ns(): the phy
 from __future__ import annotations
 
 import argparse
+import os
+import signal
 import subprocess
 import sys
 import time
@@ -190,6 +192,14 @@ def main() -> int:
     parser.add_argument("--wait-s", type=float, default=3.0, help="length of each wait-cost measurement")
     args = parser.parse_args()
     loads = [subprocess.Popen(["yes"], stdout=subprocess.DEVNULL) for _ in range(2)] if args.load else []
+
+    def end_loads(*_args: object) -> None:  # Ctrl-C / kill: never leave the load running
+        for proc in loads:
+            proc.kill()
+        os._exit(130)
+
+    signal.signal(signal.SIGINT, end_loads)
+    signal.signal(signal.SIGTERM, end_loads)
     try:
         return run(args)
     finally:
