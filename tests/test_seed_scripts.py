@@ -165,3 +165,21 @@ def test_a_crash_of_the_script_process_exits_1_with_the_session_record_complete(
     assert sess.complete and not sess.problems
     stops = [e["data"] for e in sess.events if e["kind"] == "script_stop"]
     assert stops and stops[-1]["status"] == "error" and "segmentation fault" in stops[-1]["reason"]
+
+
+@pytest.mark.parametrize("example", ["free_admittance.py", "assisted_reaching_fes.py"])
+def test_the_examples_run_through_the_kernel(tmp_path: Path, example: str) -> None:
+    out = Output()
+    duration = 10.0 if example == "assisted_reaching_fes.py" else 6.0  # into the FES part: start, setPhase
+    code = run_headless(config(), str(SCRIPTS / example), duration_s=duration, record_dir=str(tmp_path), output=out)
+    assert code == EXIT_OK, out.text()
+    assert "Traceback" not in out.text() and "Error" not in out.text("info"), out.text()
+    assert f"Script stopped: the duration of {duration:g} s was reached" in out.text("info")
+    printed = out.text("stdout")
+    if example == "free_admittance.py":
+        assert printed.count("position") >= 4  # one line a second
+    else:
+        assert "repetition 1: reached 0.35 m" in printed  # FES on, the phase fed from a 200 Hz callback
+    sess = session(tmp_path)
+    assert sess.complete and not sess.problems
+    assert sess.streams["linarm.state"].data["controlState"][-1] == 0  # IDLE at the end
