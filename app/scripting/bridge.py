@@ -3,13 +3,14 @@ the bridge that answers the kernel's requests with the in-app API (app/scripting
 
 * :class:`KernelProcess` starts ``python -I kernel.py`` with one end of an AF_UNIX socket pair, reads its
   messages, its stdout/stderr (a crash report from faulthandler lands there) and notices its end — all on
-  one reader thread per kernel, never the GUI thread. Writes never block the caller: what the socket
+  reader threads of its own (never the GUI thread). Writes never block the caller: what the socket
   does not take at once waits in a backlog a writer thread drains.
 * :class:`ApiBridge` serves one kernel: ``subscribe`` (every sample of the stream from then on, in
   order, pushed from the driver thread as it is published), ``peek`` (completion), and ``call`` — only
-  the API's own methods (:data:`ALLOWED_CALLS`), executed by the existing API objects on bridge worker
-  threads, so they pass through the drivers' single command path and the safety supervisor exactly as
-  before. Anything else is refused and recorded (supervisor event ``script_request_refused``).
+  the API's own methods (:data:`ALLOWED_CALLS`), executed by the existing API objects on the reader
+  thread that read the request (leader/follower: another reader takes over reading meanwhile), so they
+  pass through the drivers' single command path and the safety supervisor exactly as before. Anything
+  else is refused and recorded (supervisor event ``script_request_refused``).
 
 Kernel → application is JSON only: a hostile script controls those bytes, so they are never unpickled,
 and every field is checked before use.
@@ -17,6 +18,7 @@ and every field is checked before use.
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import itertools
 import json
@@ -51,6 +53,7 @@ KERNEL_FILE = Path(__file__).resolve().parent / "kernel.py"
 MEMORY_LIMIT_BYTES = 2 * 1024**3  # address space of a kernel: a runaway allocation fails as MemoryError there
 MAX_MESSAGE = 4 * 1024 * 1024  # a longer line from the kernel is a protocol violation
 BACKLOG_LIMIT = 16 * 1024 * 1024  # bytes waiting for a kernel that does not read: samples beyond are dropped
+READERS = 3  # leader/follower threads per kernel (calls run on the thread that read them)
 REFUSALS_RECORDED = 20  # per kernel; a flood of bad requests is counted, not recorded one by one
 
 # stream -> (device, label): the streams a script may subscribe to (one place: the kernel gets it in hello)
@@ -181,6 +184,16 @@ class SampleEncoder:
 
 
 # ---------------------------------------------------------------------------------------------- process
+def _parse(line: bytes) -> dict[str, Any]:
+    try:
+        msg = json.loads(line)
+    except (ValueError, UnicodeDecodeError):
+        return {"op": "__violation__", "reason": "a message that is not JSON"}
+    if not isinstance(msg, dict):
+        return {"op": "__violation__", "reason": "a message that is not a JSON object"}
+    return msg
+
+
 def _encode(msg: dict[str, Any]) -> bytes:
     return (json.dumps(msg, separators=(",", ":"), default=str) + "\n").encode()
 
@@ -208,7 +221,7 @@ class KernelProcess:
     ``on_output(stream, text)`` its raw stdout/stderr; ``on_exit(kernel)`` runs once when it has ended."""
 
     def __init__(self, memory_limit: int = MEMORY_LIMIT_BYTES) -> None:
-        self.handler: Callable[[dict[str, Any]], None] | None = None
+        self.handler: Callable[[dict[str, Any]], Callable[[], None] | None] | None = None
         self.on_output: Callable[[str, str], None] | None = None
         self.on_exit: Callable[[KernelProcess], None] | None = None
         self.used = False
@@ -240,10 +253,24 @@ class KernelProcess:
         self.sock = parent
         self.sock.setblocking(False)
         self.pid = self.proc.pid
-        self._reader = threading.Thread(target=self._read_main, name=f"kernel-{self.pid}-reader", daemon=True)
+        self._lead = threading.Lock()
+        self._busy_lock = threading.Lock()
+        self._busy = 0
+        self._inbox: collections.deque[dict[str, Any]] = collections.deque()
+        self._buf = bytearray()
+        self._sock_open = True
+        self._finished = False
+        self._overflow_pool: ThreadPoolExecutor | None = None
+        assert self.proc.stdout is not None and self.proc.stderr is not None
+        self._sel = selectors.DefaultSelector()
+        self._sel.register(self.sock, selectors.EVENT_READ, "sock")
+        for pipe, name in ((self.proc.stdout, "stdout"), (self.proc.stderr, "stderr")):
+            os.set_blocking(pipe.fileno(), False)
+            self._sel.register(pipe, selectors.EVENT_READ, name)
         self._writer = threading.Thread(target=self._write_main, name=f"kernel-{self.pid}-writer", daemon=True)
-        self._reader.start()
         self._writer.start()
+        for i in range(READERS):
+            threading.Thread(target=self._reader_main, name=f"kernel-{self.pid}-reader{i}", daemon=True).start()
         self.send(hello_message())
 
     # ------------------------------------------------------------------ state
@@ -254,13 +281,15 @@ class KernelProcess:
     def cause(self) -> str:
         return describe_end(self.returncode)
 
-    def bind(self, handler: Callable[[dict[str, Any]], None], on_output: Callable[[str, str], None],
-             on_exit: Callable[[KernelProcess], None]) -> None:
+    def bind(self, handler: Callable[[dict[str, Any]], Callable[[], None] | None],
+             on_output: Callable[[str, str], None], on_exit: Callable[[KernelProcess], None]) -> None:
         with self._wlock:
             self.handler, self.on_output, self.on_exit = handler, on_output, on_exit
             early, self._early = self._early, []
         for msg in early:
-            handler(msg)
+            job = handler(msg)
+            if job is not None:
+                self._overflow().submit(job)
         if self.ended.is_set():
             on_exit(self)
 
@@ -316,118 +345,138 @@ class KernelProcess:
                     sel.select(0.05)
         sel.close()
 
-    # ------------------------------------------------------------------ reading (reader thread)
-    def _read_main(self) -> None:
-        sel = selectors.DefaultSelector()
-        sel.register(self.sock, selectors.EVENT_READ, "sock")
-        assert self.proc.stdout is not None and self.proc.stderr is not None
-        os.set_blocking(self.proc.stdout.fileno(), False)
-        os.set_blocking(self.proc.stderr.fileno(), False)
-        sel.register(self.proc.stdout, selectors.EVENT_READ, "stdout")
-        sel.register(self.proc.stderr, selectors.EVENT_READ, "stderr")
-        buf = bytearray()
-        open_ends = 3
-        sock_open = True
-        while open_ends and sock_open:
-            for key, _ in sel.select(0.5):
-                if key.data == "sock":
-                    try:
-                        data = self.sock.recv(1 << 16)
-                    except BlockingIOError:
+    # ------------------------------------------------------------------ reading (leader/follower threads)
+    def _reader_main(self) -> None:
+        """One of READERS threads. The leader reads and delivers messages in order; a message whose handler
+        returns work (an API call) is run by the thread that read it, after it handed the lead to another
+        reader: a call goes from the socket to the driver without a thread hop (one GIL hand-over less on
+        the trigger path), and a call waiting for its ACK never holds up what the kernel sends next."""
+        while True:
+            job: Callable[[], None] | None = None
+            with self._lead:
+                while job is None:
+                    if self._finished:
+                        return
+                    if self._inbox:
+                        job = self._deliver(self._inbox.popleft())
                         continue
-                    except OSError:
-                        data = b""
-                    if not data:
-                        sel.unregister(self.sock)
-                        open_ends -= 1
-                        sock_open = False
-                        continue
-                    buf += data
-                    while True:
-                        end = buf.find(b"\n")
-                        if end < 0:
-                            break
-                        line = bytes(buf[:end])
-                        del buf[:end + 1]
-                        self._deliver_line(line)
-                    if len(buf) > MAX_MESSAGE:
-                        self._deliver({"op": "__violation__", "reason": "a message longer than 4 MB"})
-                        buf.clear()
-                        self.kill()
-                else:
-                    pipe = self.proc.stdout if key.data == "stdout" else self.proc.stderr
-                    try:
-                        data = os.read(pipe.fileno(), 1 << 16)
-                    except BlockingIOError:
-                        continue
-                    except OSError:
-                        data = b""
-                    if not data:
-                        sel.unregister(pipe)
-                        open_ends -= 1
-                        continue
-                    text = data.decode("utf-8", "replace")
-                    if key.data == "stderr":
-                        self.stderr_tail = (self.stderr_tail + text)[-4000:]
-                        self.crash_report = self.crash_report or "Fatal Python error" in self.stderr_tail
-                    out = self.on_output
-                    if out is not None and not self.crash_report:  # a crash report is summarised by the runner
-                        out(key.data, text)
-        # The socket closed: the kernel ended (or is about to). Collect what it wrote last and its code.
+                    if not self._sock_open:
+                        self._finish()
+                        return
+                    self._poll()
+                if self._busy >= READERS - 1:  # keep a reader free: the overflow pool runs this one
+                    self._overflow().submit(job)
+                    job = None
+                    continue
+                with self._busy_lock:
+                    self._busy += 1
+            try:
+                job()
+            except Exception:
+                log.exception("script kernel %s: a request failed", self.pid)
+            finally:
+                with self._busy_lock:
+                    self._busy -= 1
+
+    def _overflow(self) -> ThreadPoolExecutor:
+        if self._overflow_pool is None:
+            self._overflow_pool = ThreadPoolExecutor(max_workers=4, thread_name_prefix=f"kernel-{self.pid}-call")
+        return self._overflow_pool
+
+    def _poll(self) -> None:
+        """Wait (≤ 0.5 s) for the kernel's socket or pipes; parse what came into the inbox."""
+        for key, _ in self._sel.select(0.5):
+            if key.data == "sock":
+                try:
+                    data = self.sock.recv(1 << 16)
+                except BlockingIOError:
+                    continue
+                except OSError:
+                    data = b""
+                if not data:
+                    self._sel.unregister(self.sock)
+                    self._sock_open = False
+                    continue
+                buf = self._buf
+                buf += data
+                while True:
+                    end = buf.find(b"\n")
+                    if end < 0:
+                        break
+                    line = bytes(buf[:end])
+                    del buf[:end + 1]
+                    self._inbox.append(_parse(line))
+                if len(buf) > MAX_MESSAGE:
+                    self._inbox.append({"op": "__violation__", "reason": "a message longer than 4 MB"})
+                    buf.clear()
+                    self.kill()
+            else:
+                pipe = key.fileobj
+                try:
+                    data = os.read(pipe.fileno(), 1 << 16)  # type: ignore[union-attr]
+                except BlockingIOError:
+                    continue
+                except OSError:
+                    data = b""
+                if not data:
+                    self._sel.unregister(pipe)
+                    continue
+                self._raw(key.data, data)
+
+    def _raw(self, stream: str, data: bytes) -> None:
+        text = data.decode("utf-8", "replace")
+        if stream == "stderr":
+            self.stderr_tail = (self.stderr_tail + text)[-4000:]
+            self.crash_report = self.crash_report or "Fatal Python error" in self.stderr_tail
+        out = self.on_output
+        if out is not None and not self.crash_report:  # a crash report is summarised by the runner
+            out(stream, text)
+
+    def _finish(self) -> None:
+        """The socket closed: the kernel ended (or is about to). Collect what it wrote last and its code."""
+        self._finished = True
         try:
             self.returncode = self.proc.wait(0.5)
         except subprocess.TimeoutExpired:
             self.kill()
             self.returncode = self.proc.wait(1.0)
-        for key in list(sel.get_map().values()):
+        for key in list(self._sel.get_map().values()):
             if key.data in ("stdout", "stderr"):
                 try:
                     data = os.read(key.fileobj.fileno(), 1 << 16)  # type: ignore[union-attr]
                 except OSError:
                     data = b""
                 if data:
-                    text = data.decode("utf-8", "replace")
-                    if key.data == "stderr":
-                        self.stderr_tail = (self.stderr_tail + text)[-4000:]
-                        self.crash_report = self.crash_report or "Fatal Python error" in self.stderr_tail
-                    if self.on_output is not None and not self.crash_report:
-                        self.on_output(key.data, text)
-        sel.close()
+                    self._raw(key.data, data)
+        self._sel.close()
         with self._wlock:
             self._closed = True
         self.ended.set()
         self._wake.set()
         for f in (self.proc.stdout, self.proc.stderr):
             try:
-                f.close()
+                f.close()  # type: ignore[union-attr]
             except OSError:
                 pass
         self.sock.close()
+        if self._overflow_pool is not None:
+            self._overflow_pool.shutdown(wait=False)
         with self._wlock:
             on_exit = self.on_exit
         if on_exit is not None:
             on_exit(self)
 
-    def _deliver_line(self, line: bytes) -> None:
-        try:
-            msg = json.loads(line)
-        except (ValueError, UnicodeDecodeError):
-            msg = {"op": "__violation__", "reason": "a message that is not JSON"}
-        if not isinstance(msg, dict):
-            msg = {"op": "__violation__", "reason": "a message that is not a JSON object"}
-        self._deliver(msg)
-
-    def _deliver(self, msg: dict[str, Any]) -> None:
+    def _deliver(self, msg: dict[str, Any]) -> Callable[[], None] | None:
         if msg.get("op") == "ready" and not self.ready.is_set():
             self.startup_s = time.perf_counter() - self._t_spawn
             self.ready.set()
-            return
+            return None
         with self._wlock:
             handler = self.handler
             if handler is None:
                 self._early.append(msg)
-                return
-        handler(msg)
+                return None
+        return handler(msg)
 
     # ------------------------------------------------------------------ ending
     def terminate(self) -> None:
@@ -513,7 +562,6 @@ class ApiBridge:
         self.objects = api.build_api(self.context)
         self.encoder = SampleEncoder()
         self.refusals = 0
-        self._workers = ThreadPoolExecutor(max_workers=4, thread_name_prefix="script-bridge")
         self._sub_lock = threading.Lock()
         self._subscribed: set[str] = set()
         self._schema_sent: dict[str, type] = {}
@@ -523,16 +571,16 @@ class ApiBridge:
         self._closed = False
 
     # ------------------------------------------------------------------ requests (reader thread)
-    def handle(self, msg: dict[str, Any]) -> bool:
-        """Serve ``msg`` if it is a request; False if it is not one of the bridge's."""
+    def handle(self, msg: dict[str, Any]) -> bool | Callable[[], None]:
+        """Serve ``msg`` if it is a request (True, or for a call the work to run off the reading lead);
+        False if it is not one of the bridge's."""
         op = msg.get("op")
         if op == "call":
             rid = msg.get("id")
             if not isinstance(rid, int):
                 self.refuse(msg, "a call without an id")
                 return True
-            self._workers.submit(self._call, msg)
-            return True
+            return lambda: self._call(msg)
         if op in ("subscribe", "peek"):
             rid = msg.get("id")
             stream = msg.get("stream")
@@ -681,7 +729,6 @@ class ApiBridge:
         self.unsubscribe_all()
         with self._sub_lock:
             self._closed = True
-        self._workers.shutdown(wait=False, cancel_futures=True)
 
 
 def _is_plain_arg(value: Any) -> bool:

@@ -377,40 +377,45 @@ class ScriptRunner:
             self._answers.pop(rid, None)
 
     # ------------------------------------------------------------------ kernel messages (reader thread)
-    def _on_message(self, kernel: KernelProcess, bridge: ApiBridge, msg: dict[str, Any]) -> None:
-        if bridge.handle(msg):
-            return
+    def _on_message(self, kernel: KernelProcess, bridge: ApiBridge,
+                    msg: dict[str, Any]) -> Callable[[], None] | None:
+        served = bridge.handle(msg)
+        if callable(served):
+            return served  # an API call: run by the reader that read it, off the lead
+        if served:
+            return None
         op = msg.get("op")
         if op == "out":
             stream, text = msg.get("stream"), msg.get("text")
             if stream in ("stdout", "stderr", "info") and isinstance(text, str):
                 self.output(stream, text[:1_000_000])
-                return
+                return None
         elif op == "done":
             if kernel is self._kernel and self.running and self._done_msg is None:
                 self._done_msg = msg
                 self._user_ended.set()
                 self._wake.set()
-                return
+                return None
         elif op == "exiting":  # the script called os._exit: where, before the process is gone
             if kernel is self._kernel and self.running:
                 self._exit_report = msg
-            return
+            return None
         elif op == "exec_done":
             run = self._prompts.get(msg.get("id"))  # type: ignore[arg-type]
             if run is not None:
                 run._done.set()
-            return
+            return None
         elif op == "answer":
             answer = self._answers.get(msg.get("id"))  # type: ignore[arg-type]
             if answer is not None:
                 answer.value = msg.get("value")
                 answer.event.set()
-            return
+            return None
         elif op == "__violation__":
             bridge.refuse(msg, str(msg.get("reason")))
-            return
+            return None
         bridge.refuse(msg, f"an unknown request {str(op)[:40]!r}")
+        return None
 
     def _raw_output(self, stream: str, text: str) -> None:
         """What the kernel wrote to its own stdout/stderr (C extensions, a crash report)."""
