@@ -177,6 +177,9 @@ def wait_cost(runner: object, manager: object, window: object, seconds: float) -
     common.run_qt_until(lambda: False, seconds)
     share = (common.cpu_seconds(pid) - c0) / (time.monotonic() - t0)
     timer.stop()
+    if not runner.running or pid != runner.kernel_pid:  # type: ignore[attr-defined]
+        print(f"  (wait cost: the script ended during the measurement: {runner.result})")  # type: ignore[attr-defined]
+        share = float("nan")
     runner.stop("measured")  # type: ignore[attr-defined]
     common.run_qt_until(lambda: not runner.running, 5.0)  # type: ignore[attr-defined]
     return share, max(gaps[1:], default=0.0)
