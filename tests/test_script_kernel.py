@@ -300,7 +300,9 @@ def _pump(app: Any, predicate: Any, timeout: float) -> bool:
 
 WIRE_CASES = {
     "busy loop": ("while True:\n    pass", None),
+    "long sleep": ("time.sleep(1e6)", None),
     "blocked C call": ("import ctypes\nctypes.CDLL(None).sleep(1000)", None),
+    "deadlock": ("import threading\nlock = threading.Lock()\nlock.acquire()\nlock.acquire()", None),
     "segfault": ("import ctypes\nctypes.string_at(0)", "segmentation fault"),
     "os._exit(0)": ("import os\nos._exit(0)", "exited with code 0"),
     "MemoryError": ("x = bytearray(1 << 40)", "MemoryError"),
@@ -328,6 +330,14 @@ def test_fes_stop_and_robot_idle_are_on_the_wire_within_200_ms(rig: Any, case: s
             marks["go"] = time.monotonic()
         out(stream, text)
 
+    events: list[tuple[str, dict[str, Any]]] = []
+    record = manager.supervisor.event
+
+    def event(kind: str, **data: Any) -> None:
+        events.append((kind, data))
+        record(kind, **data)
+
+    manager.supervisor.event = event  # type: ignore[method-assign]
     runner = ScriptRunner(manager, sink, home_first=False)
     assert runner.ready(5.0)
     runner.start("linarm.resetError()\n"  # a watchdog trip of a loaded machine in an earlier case must not end this one
@@ -354,6 +364,9 @@ def test_fes_stop_and_robot_idle_are_on_the_wire_within_200_ms(rig: Any, case: s
         assert result.status == "stopped" and result.message == "operator stop"
     else:
         assert result.status == "error" and crash in result.message
+    stops = [data for kind, data in events if kind == "script_stop"]
+    assert stops and stops[-1]["reason"] == result.message  # recorded, with the cause
+    del manager.supervisor.event
     runner.start("print('next one runs')\n", "<next>")
     assert _pump(app, lambda: not runner.running, 3.0) and runner.result.status == "finished"
     runner.close()
