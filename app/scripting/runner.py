@@ -37,6 +37,7 @@ from pathlib import Path
 from typing import Any
 
 from app.devices.linarm_protocol import ControlMode, ControlState, HomeState
+from app.resources import RESOURCES
 from app.scripting.api import CommandRefused, ScriptContext, ScriptStopped
 from app.scripting.bridge import ApiBridge, Gate, KernelProcess
 
@@ -689,16 +690,25 @@ def _last_script_line(report: str, filename: str) -> int | None:
     return None
 
 
+_APP_DIR = str(Path(__file__).resolve().parent.parent)
+
+
+def _is_app_file(filename: str) -> bool:
+    """Frames of the application itself are hidden from script tracebacks (not the user's code)."""
+    if filename.startswith(str(RESOURCES)):  # installed, the example scripts lie inside app/ (app/_resources)
+        return False
+    return filename.startswith(_APP_DIR) or filename.startswith("<frozen") or "concurrent/futures" in filename
+
+
 def _crash_summary(report: str, filename: str) -> str:
     """faulthandler's report reduced to what a script's author needs: the error and the script's frames."""
     if "Fatal Python error" not in report:
         return report.strip()[-2000:] + "\n" if report.strip() else ""
     head = report[report.index("Fatal Python error"):].splitlines()
     out = [head[0]]
-    frames = [ln for ln in head[1:] if ln.strip().startswith("File ") and "kernel.py" not in ln
-              and "/lib/python" not in ln]
-    out += [f'  File "{m.group(1)}", line {m.group(2)}' for ln in frames
-            if (m := re.search(r'File "([^"]+)", line (\d+)', ln))]
+    frames = [m for ln in head[1:] if (m := re.search(r'File "([^"]+)", line (\d+)', ln))]
+    out += [f'  File "{m.group(1)}", line {m.group(2)}' for m in frames
+            if not _is_app_file(m.group(1)) and "/lib/python" not in m.group(1)]
     return "\n".join(out) + "\n"
 
 
