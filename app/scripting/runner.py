@@ -133,7 +133,10 @@ class ScriptRunner:
         self._kernels: list[KernelProcess] = []
         self._finalizer = weakref.finalize(self, _kill_all, self._kernels)
         self._register_stop_action()
-        self._next_kernel()  # started with the runner: the prompt and the first Start find it warm
+        try:
+            self._next_kernel()  # started with the runner: the prompt and the first Start find it warm
+        except OSError as exc:  # the window still opens; Start then says why scripts cannot run
+            log.error("the script kernel could not be started: %s", exc)
 
     # ------------------------------------------------------------------ kernels
     def _spawn(self) -> KernelProcess:
@@ -247,7 +250,12 @@ class ScriptRunner:
             self.gate.set("open")
             kernel = self._kernel
             if kernel is None or kernel.used or not kernel.alive:
-                kernel = self._next_kernel()
+                try:
+                    kernel = self._next_kernel()
+                except OSError as exc:
+                    self._done.set()
+                    self._user_ended.set()
+                    raise RuntimeError(f"the script kernel (a Python process) could not be started: {exc}") from exc
             kernel.used = True
             self._ensure_spare()
             bridge = self._bridge
