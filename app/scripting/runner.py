@@ -177,10 +177,14 @@ class ScriptRunner:
                 return
             self._spare = spare
 
-    def _prompt_kernel(self) -> KernelProcess:
+    def _prompt_kernel(self) -> KernelProcess | None:
         kernel = self._kernel
         if kernel is None or kernel.ended.is_set():
-            kernel = self._next_kernel()
+            try:
+                kernel = self._next_kernel()
+            except OSError as exc:
+                log.error("the script kernel could not be started: %s", exc)
+                return None
         return kernel
 
     def close(self) -> None:
@@ -349,11 +353,15 @@ class ScriptRunner:
         if codeop.compile_command(source, "<console>", symbol) is None:
             return None
         kernel = self._prompt_kernel()
+        run = PromptRun()
+        if kernel is None:
+            self.output("stderr", "The script kernel could not be started: see the log.\n")
+            run._done.set()
+            return run
         kernel.used = True
         if not self.running:
             self.context.stop_event.clear()
         rid = next(self._ids)
-        run = PromptRun()
         self._prompts = {k: p for k, p in self._prompts.items() if p.is_alive()}
         self._prompts[rid] = run
         if not kernel.send({"op": "exec", "id": rid, "source": source}):
@@ -365,14 +373,18 @@ class ScriptRunner:
         namespace. Device values are peeked (latest sample or nothing), never waited for."""
         if not re.fullmatch(r"[A-Za-z_][\w]*(\.[A-Za-z_]?[\w]*)*", text or ""):
             return []
-        value = self._ask(self._prompt_kernel(), {"op": "complete", "text": text})
+        kernel = self._prompt_kernel()
+        if kernel is None:
+            return []
+        value = self._ask(kernel, {"op": "complete", "text": text})
         if not isinstance(value, list):
             return []
         return [v for v in value[:2000] if isinstance(v, str) and v.startswith(text.rsplit(".", 1)[0])]
 
     def namespace_value(self, name: str, timeout: float = ANSWER_TIMEOUT_S) -> Any:
         """A variable of the kernel's namespace, as plain data (lists, dicts, numbers, text; others as repr)."""
-        return self._ask(self._prompt_kernel(), {"op": "get", "name": name}, timeout)
+        kernel = self._prompt_kernel()
+        return None if kernel is None else self._ask(kernel, {"op": "get", "name": name}, timeout)
 
     def _ask(self, kernel: KernelProcess, msg: dict[str, Any], timeout: float = ANSWER_TIMEOUT_S) -> Any:
         rid = next(self._ids)
