@@ -358,7 +358,10 @@ class KernelProcess:
                     if self._finished:
                         return
                     if self._inbox:
-                        job = self._deliver(self._inbox.popleft())
+                        try:
+                            job = self._deliver(self._inbox.popleft())
+                        except Exception:  # a handler's bug must not cost a reader thread
+                            log.exception("script kernel %s: a message could not be handled", self.pid)
                         continue
                     if not self._sock_open:
                         self._finish()
