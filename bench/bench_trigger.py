@@ -151,8 +151,10 @@ def wait_cost(runner: object, manager: object, window: object, seconds: float) -
 
     patient = manager.sim_patient()  # type: ignore[attr-defined]
     patient.idle()  # no squeeze: the script keeps waiting
-    source = seed_wait_condition() + (f"print('waiting')\nwaitCondition('physiologicalSensors.physiologicalSensors"
-                                      f"Data.force>{TRIGGER_N}', locals(), {seconds + 1.0})\n")
+    force = "physiologicalSensors.physiologicalSensorsData.force"
+    source = seed_wait_condition() + (f"waitCondition('{force}<{RELAX_N}', locals(), 10)\n"  # a squeeze may be on
+                                      f"print('waiting')\nwaitCondition('{force}>{TRIGGER_N}', locals(), "
+                                      f"{seconds + 1.0})\n")
     waiting: list[str] = []
     runner.output = lambda _s, text: waiting.append(text)  # type: ignore[attr-defined]
     runner.start(source, "<wait cost>")  # type: ignore[attr-defined]
