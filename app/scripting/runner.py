@@ -301,7 +301,8 @@ class ScriptRunner:
                     self._safe_thread = thread
 
     def stop(self, reason: str = "stopped by the operator", wait_s: float = 1.0) -> bool:
-        """Stop and wait up to ``wait_s`` for user code to end (not for the safe state that follows)."""
+        """Stop and wait up to ``wait_s`` for user code to end; True when it has. Then, within what is left
+        of ``wait_s``, wait for the run to finish its safe state too, so that a Start right after works."""
         self.request_stop(reason)
         deadline = time.monotonic() + wait_s
         if self.running and not self._user_ended.wait(wait_s):
@@ -310,6 +311,7 @@ class ScriptRunner:
             if time.monotonic() > deadline:
                 return False
             time.sleep(0.002)
+        self._done.wait(max(0.0, deadline - time.monotonic()))
         return True
 
     def wait(self, timeout: float | None = None) -> bool:
@@ -494,13 +496,16 @@ class ScriptRunner:
             sup.event("script_stop", name=name, reason=result.message or result.status, status=result.status)
         if progress is not None:
             progress.finish(result.status)
-        if not kernel.alive and kernel is self._kernel and not self._closed:
-            self._next_kernel()  # a fresh kernel for the prompt and the next Start
-            self._ensure_spare()
         self.gate.set("open")
         self.paused = False
         self.result = result
         self._done.set()
+        if not kernel.alive and kernel is self._kernel and not self._closed:
+            try:  # a fresh kernel for the prompt and the next Start (which would start one itself)
+                self._next_kernel()
+                self._ensure_spare()
+            except OSError as exc:
+                log.error("the script kernel could not be started: %s", exc)
         if self.on_finished is not None:
             try:
                 self.on_finished(result)
