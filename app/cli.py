@@ -40,6 +40,9 @@ def parse_args(argv: list[str], prog: str | None = None) -> argparse.Namespace:
 
 def main(argv: list[str] | None = None, prog: str | None = None) -> int:
     args = parse_args(sys.argv[1:] if argv is None else argv, prog)
+    from app.paths import set_private_umask
+
+    set_private_umask()  # patient data: files 0600, folders 0700, whatever the login's umask (issue #17)
     if args.install_desktop_entry:
         return _install_desktop_entry()
     if not os.environ.get("DISPLAY") and not os.environ.get("WAYLAND_DISPLAY") and sys.platform.startswith("linux"):
@@ -53,7 +56,9 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
     try:
         config = load_config(args.config)
     except ConfigError as exc:
-        _report_error(f"Configuration refused, nothing was started:\n  {exc}")
+        # Headless: exit 2 and the message; the window: also a dialog naming the file and line.
+        _report_error(f"Configuration refused, nothing was started:\n  {exc}",
+                      window=not args.headless and os.environ.get("QT_QPA_PLATFORM") != "offscreen")
         return 2
     if args.headless:
         if not args.script:
@@ -101,9 +106,9 @@ def gui_main() -> int:
 _no_console = False  # errors cannot be printed where anyone sees them: show them in a message box too
 
 
-def _report_error(text: str) -> None:
+def _report_error(text: str, window: bool = False) -> None:
     print(text, file=sys.stderr)
-    if _no_console:
+    if _no_console or window:
         from PySide6.QtWidgets import QApplication, QMessageBox
 
         _app = QApplication.instance() or QApplication(sys.argv)

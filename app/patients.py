@@ -23,7 +23,7 @@ from yaml.nodes import MappingNode, Node
 
 from app import paths
 from app.config import RobotLimits, SafetyConfig
-from app.yamlschema import ConfigError, load_dataclass, rng, to_plain
+from app.yamlschema import ConfigError, load_dataclass, read_text, rng, to_plain
 
 PROFILE_VERSION = 1
 # Letters, digits, '-' and '_' only: the pseudonym is the file name and the sessions folder name, so it
@@ -222,9 +222,9 @@ def parse_profile(text: str, filename: str, safety: SafetyConfig | None = None) 
 def load_patient(patient_id: str, safety: SafetyConfig | None = None, folder: Path | None = None) -> PatientProfile:
     path = patient_file(patient_id, folder)
     try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise PatientError(str(path), None, "", f"cannot read the file: {exc.strerror or exc}") from exc
+        text = read_text(path)
+    except ConfigError as exc:
+        raise PatientError(exc.filename, exc.line, exc.key, exc.problem) from exc
     profile = parse_profile(text, str(path), safety)
     if profile.patient_id != path.stem:
         raise PatientError(str(path), _line_of(text, "patient_id"), "patient_id",
@@ -287,6 +287,8 @@ def list_patients(folder: Path | None = None, safety: SafetyConfig | None = None
             out.append(PatientEntry(path.stem, path, load_patient(path.stem, safety, folder)))
         except ConfigError as exc:
             out.append(PatientEntry(path.stem, path, None, str(exc)))
+        except Exception as exc:  # one unreadable file must never hide the others
+            out.append(PatientEntry(path.stem, path, None, f"{path}: unreadable: {exc}"))
     return out
 
 

@@ -473,8 +473,11 @@ class ScriptRunner:
         except ScriptStopped:
             result = ScriptResult("stopped", self.stop_reason or "stopped", filename)
         except BaseException as exc:
-            status = "refused" if _refused(exc) else "error"
-            result = ScriptResult(status, f"{type(exc).__name__}: {exc}", filename)
+            if self._stop_requested.is_set() and self.stop_reason:  # homing ended by the stop
+                result = ScriptResult("stopped", self.stop_reason, filename)
+            else:
+                status = "refused" if _refused(exc) else "error"
+                result = ScriptResult(status, f"{type(exc).__name__}: {exc}", filename)
         if result is None and self._stop_requested.is_set():
             result = ScriptResult("stopped", self.stop_reason or "stopped", filename)
         if result is None:
@@ -558,6 +561,9 @@ class ScriptRunner:
         line = msg.get("line")
         result = ScriptResult(str(status), message, filename, line if isinstance(line, int) else None,
                               str(msg.get("traceback") or "")[:100_000])
+        if status in ("error", "refused") and self._stop_requested.is_set() and self.stop_reason:
+            # a command failed because of the stop (robot IDLE, FES off, calls refused): the stop's cause
+            result = ScriptResult("stopped", self.stop_reason, filename)
         try:
             self.callbacks_dropped = int(msg.get("callbacks_dropped") or 0)
             self.callback_errors = {(str(a), int(b), str(c)): int(n)

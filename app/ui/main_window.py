@@ -12,7 +12,7 @@ import logging
 from collections.abc import Callable
 from pathlib import Path
 
-from PySide6.QtCore import QEvent, QObject, QSettings, Qt, QTimer, Signal
+from PySide6.QtCore import QEvent, QObject, QSettings, Qt, QThread, QTimer, Signal
 from PySide6.QtGui import QAction, QFont, QFontMetrics, QKeySequence
 from PySide6.QtWidgets import (
     QApplication,
@@ -244,6 +244,8 @@ class MainWindow(QMainWindow):
         file_menu = self.menuBar().addMenu("&File")
         quit_action = QAction("&Quit", self)
         quit_action.setShortcut(QKeySequence.StandardKey.Quit)
+        # From any window (Sessions, Replay, …): the shortcut is application-wide and Quit ends the app.
+        quit_action.setShortcutContext(Qt.ShortcutContext.ApplicationShortcut)
         quit_action.triggered.connect(self.close)
         file_menu.addAction(quit_action)
         session_menu = self.menuBar().addMenu("&Session")
@@ -341,7 +343,8 @@ class MainWindow(QMainWindow):
             try:
                 self.manager.start_session(patient_id, operator, note)
             except (ValueError, RuntimeError, OSError) as exc:
-                QMessageBox.warning(self, "Session not started", str(exc))
+                text = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
+                QMessageBox.warning(self, "Session not started", text)
 
         dialog.accepted.connect(accepted)
         dialog.open()
@@ -422,7 +425,8 @@ class MainWindow(QMainWindow):
             "Reset the emergency stop? Devices stay idle until you start them again.",
         )
         if answer == QMessageBox.StandardButton.Yes:
-            self.manager.supervisor.reset_emergency_stop("operator")
+            # The session's operator (the record must say who), "operator" only when no session runs.
+            self.manager.supervisor.reset_emergency_stop(self.manager.operator or "operator")
 
     def _on_device_connection(self, name: str, connected: bool, reason: str) -> None:
         label = self.device_status.get(name)
@@ -507,7 +511,15 @@ class MainWindow(QMainWindow):
             save = getattr(frame, "save_settings", None)
             if callable(save):
                 save(settings)
+        super().closeEvent(event)
+        # The main window holds the e-stop: when it closes, the whole application ends (devices safe in
+        # run_gui's shutdown). No other window may keep the app — and the devices — running without it.
+        self.manager.supervisor.bring_to_safe_state("main window closed")
         app = QApplication.instance()
         if app is not None:
+            for widget in app.topLevelWidgets():
+                if widget is not self and widget.isVisible():
+                    widget.close()
             app.removeEventFilter(self._estop_filter)
-        super().closeEvent(event)
+            if QThread.currentThread().loopLevel() > 0:  # the app's loop runs (not a test driving the window)
+                app.quit()
