@@ -7,7 +7,8 @@ brings the devices to a safe state and exits:
 
 * 0 — the script finished, or was stopped because ``--duration`` was reached (counted from the start of
   the script's own code, after any homing);
-* 1 — the script raised an error (its traceback is printed), or could not be read or compiled;
+* 1 — the script raised an error (its traceback is printed), could not be read or compiled, or its
+  process (the script kernel) ended by itself — a segfault, ``os._exit``, out of memory;
 * 3 — a safety stop: a command refused by the safety supervisor, an emergency stop, or an alarm of
   level STOP (e.g. the LINarm latched an error, a device lost, the recording failed) during the run —
   the fault policy (app.fault_policy, the same as the window's) has already stopped FES, the robot and
@@ -65,6 +66,7 @@ def run_headless(config: AppConfig, script_path: str, duration_s: float | None =
     manager = LinarmppManager(config)
     recorder = None
     lsl = None
+    runner = None
     code = EXIT_OK
     try:
         manager.start()
@@ -118,6 +120,8 @@ def run_headless(config: AppConfig, script_path: str, duration_s: float | None =
             if safety_stop:
                 _emit(output, "stderr", f"Safety stop: {safety_stop}\n")
     finally:
+        if runner is not None:
+            runner.close()  # its kernel processes end with the run
         if recorder is not None:
             recorder.stop("headless run ended")  # never raises: a write failure is in the manifest and the log
         if lsl is not None:
