@@ -62,10 +62,16 @@ def test_cross_field_rules(tmp_path: Path) -> None:
         load_config(write(tmp_path, "safety:\n  robot:\n    position_min_m: 0.4\n    position_max_m: 0.3\n"))
 
 
-def test_main_refuses_a_malformed_config_and_starts_nothing(tmp_path: Path, capsys) -> None:
+def test_main_refuses_a_malformed_config_and_starts_nothing(tmp_path: Path, capsys, monkeypatch) -> None:
     import main
+    from PySide6.QtWidgets import QMessageBox
 
+    # With a display (Xvfb in CI) the window path also shows the refusal in a dialog: record it
+    # instead of blocking the test on a modal box.
+    shown: list[str] = []
+    monkeypatch.setattr(QMessageBox, "critical", staticmethod(lambda _parent, _title, text: shown.append(text)))
     code = main.main(["--config", str(write(tmp_path, "ui:\n  palette: neon\n"))])
     assert code == 2
+    assert all("ui.palette" in text for text in shown)
     err = capsys.readouterr().err
     assert "nothing was started" in err and "ui.palette" in err and ":2:" in err
