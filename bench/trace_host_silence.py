@@ -18,6 +18,8 @@ It prints the largest gaps of each, so a WATCHDOG trip can be attributed: the dr
 from __future__ import annotations
 
 import argparse
+import contextlib
+import itertools
 import os
 import subprocess
 import sys
@@ -26,7 +28,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-import common  # noqa: E402
+import common
 
 SCRIPT = common.BENCH / "scripts" / "reach_exercise.py"
 CLK = os.sysconf("SC_CLK_TCK")
@@ -48,7 +50,7 @@ def gaps(times: list[float], top: int = 5) -> list[tuple[float, float]]:
     if len(times) < 2:
         return []
     t0 = times[0]
-    pairs = sorted(((b - a, a - t0) for a, b in zip(times, times[1:], strict=False)), reverse=True)[:top]
+    pairs = sorted(((b - a, a - t0) for a, b in itertools.pairwise(times)), reverse=True)[:top]
     return [(g * 1000, s) for g, s in pairs]
 
 
@@ -116,7 +118,9 @@ def main(argv: list[str] | None = None) -> int:
         import collections
         import traceback
 
-        seen = collections.Counter()
+        seen: collections.Counter[str] = collections.Counter()
+        others: collections.Counter[str] = collections.Counter()
+        kernel: collections.Counter[str] = collections.Counter()
         while not stop_sampler.wait(0.02):
             for tid, cpu in thread_cpu().items():
                 cpu_seen[tid] = max(cpu_seen.get(tid, 0.0), cpu)
@@ -130,12 +134,34 @@ def main(argv: list[str] | None = None) -> int:
                         if any("driver.py" in fs.filename and fs.name == "_io_loop"
                                for fs in traceback.extract_stack(f)):
                             frame = f
+                if driver_tid is not None:  # the kernel's view: R = runnable (not given a CPU), S = sleeping
+                    with contextlib.suppress(OSError, IndexError):
+                        state = Path(f"/proc/self/task/{driver_tid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+                        wchan = Path(f"/proc/self/task/{driver_tid}/wchan").read_text().strip()
+                        kernel[f"{state} {wchan}"] += 1
                 if frame is not None:
                     where = " <- ".join(f"{Path(fs.filename).name}:{fs.lineno} {fs.name}"
                                         for fs in reversed(traceback.extract_stack(frame)[-4:]))
                     seen[where] += 1
+                for ident, other in frames.items():  # and the others: who else runs Python meanwhile
+                    if other is frame or ident == threading.get_ident():
+                        continue
+                    stack = traceback.extract_stack(other)[-3:]
+                    top = " <- ".join(f"{Path(fs.filename).name}:{fs.lineno} {fs.name}" for fs in reversed(stack))
+                    others[top] += 1
         stalls.extend(f"{n:4d} x {w}" for w, n in seen.most_common(8))
+        stalls.append("  the driver thread's kernel state (state wchan): " + ", ".join(
+            f"{k} x{n}" for k, n in kernel.most_common(5)))
+        stalls.append("  other threads meanwhile:")
+        stalls.extend(f"  {n:4d} x {w}" for w, n in others.most_common(12))
 
+    imports: list[tuple[float, str, str]] = []
+
+    def audit(event: str, args: tuple) -> None:  # which modules are imported while the driver stalls
+        if event == "import" and ticks:
+            imports.append((time.monotonic(), str(args[0]), threading.current_thread().name))
+
+    sys.addaudithook(audit)
     threading.Thread(target=sampler, daemon=True).start()
     loads = [subprocess.Popen(["yes"], stdout=subprocess.DEVNULL) for _ in range(args.load)]
     cpu0, t0 = thread_cpu(), time.monotonic()
@@ -164,6 +190,11 @@ def main(argv: list[str] | None = None) -> int:
         print("largest gaps between host bytes arriving at the simulator (ms, at s):",
               [(round(g), round(s, 1)) for g, s in gaps(sim_in)])
         print("largest gaps between simulator ticks (ms, at s):", [(round(g), round(s, 1)) for g, s in gaps(sim_poll)])
+    worst = sorted(itertools.pairwise(ticks), key=lambda p: p[0] - p[1])[:3]
+    for a, b in worst:
+        during = [f"{m} ({who})" for t, m, who in imports if a <= t <= b]
+        print(f"imports during the driver stall of {1000 * (b - a):.0f} ms at {a - ticks[0]:.1f} s: "
+              f"{len(during)}: {', '.join(during[:25])}")
     print("driver thread while its loop stalled > 100 ms (20 ms samples):")
     print("\n".join("  " + line for line in stalls) or "  (no stall)")
     print("per-thread CPU over the run (s, % of one core):")

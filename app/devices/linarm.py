@@ -26,7 +26,7 @@ from app.devices.sim.base import SerialSimulator
 from app.devices.transport import SerialSettings, SerialTransport, TransportError
 
 if TYPE_CHECKING:
-    from app.manager import DeviceHandle, LinarmppManager
+    from app.devices.registry import DeviceContext, DeviceHandle
     from app.safety import SafetySupervisor
 
 log = logging.getLogger(__name__)
@@ -118,6 +118,7 @@ class _Pending:
 # ---------------------------------------------------------------------------------------------- driver
 class LinarmDriver(DeviceDriver):
     streams = (STATE_STREAM, VSA_STREAM, _motor_stream(0), _motor_stream(1))
+    realtime_priority = 20  # the heartbeat feeds the controller's 250 ms host watchdog
     controller_error = Signal(str)  # an ERROR_EVENT from the controller, as a sentence
     identified = Signal(str)  # firmware version
 
@@ -337,28 +338,35 @@ class LinarmSimAdapter:
         return self.core.stream_bytes(t - self.t0)
 
 
-def create(manager: LinarmppManager) -> DeviceHandle | None:
-    from app.manager import DeviceHandle
+def create(ctx: DeviceContext) -> DeviceHandle | None:
+    """The LINarm from its context: driver on its serial link (or the simulator's), the supervisor's robot
+    probes and monitor, and the robot's stop action."""
+    from app.devices.registry import DeviceHandle
+    from app.safety import RobotProbes
 
-    cfg: LinarmDevice = manager.config.devices.linarm
+    cfg: LinarmDevice = ctx.config
     if cfg.mode == "off":
         return None
     simulator = None
     url = cfg.port
     if cfg.mode == "simulated":
-        patient = manager.sim_patient()
-        simulator = SerialSimulator("linarm", lambda: LinarmSimAdapter(patient), manager.runtime_dir / "linarm.tty",
-                                    tick_s=0.001)
+        link = ctx.runtime_dir / "linarm.tty"
+        simulator = ctx.simulators.serial(
+            "linarm", "linarm",
+            lambda patient: SerialSimulator("linarm", lambda: LinarmSimAdapter(patient), link, tick_s=0.001))
         url = simulator.url
-    safety = manager.config.safety
-    silence = max(safety.silence_periods / cfg.state_rate_hz, safety.silence_min_s)
-    driver = LinarmDriver(url, manager.supervisor, baudrate=cfg.baudrate, stream_period_s=1.0 / cfg.state_rate_hz,
+    supervisor = ctx.supervisor
+    driver = LinarmDriver(url, supervisor, baudrate=cfg.baudrate, stream_period_s=1.0 / cfg.state_rate_hz,
                           command_timeout_s=cfg.command_timeout_s, heartbeat_period_s=cfg.heartbeat_period_s,
-                          notifier=manager.notifier, silence_timeout_s=silence)
+                          notifier=ctx.notifier, silence_timeout_s=ctx.silence_timeout(cfg.state_rate_hz))
 
     def centre() -> float | None:
         vsa = driver.latest("linarm.vsa")
         return vsa.equilibriumPos if vsa is not None else None
+
+    def delta() -> float | None:
+        vsa = driver.latest("linarm.vsa")
+        return vsa.delta if vsa is not None else None
 
     def homed() -> bool:
         state = driver.latest("linarm.state")
@@ -366,22 +374,16 @@ def create(manager: LinarmppManager) -> DeviceHandle | None:
 
     def monitor(stream: str, t: float, sample: Any) -> None:
         if stream == "linarm.vsa":
-            manager.supervisor.check_robot_sample(sample)
-
-    def delta() -> float | None:
-        vsa = driver.latest("linarm.vsa")
-        return vsa.delta if vsa is not None else None
+            supervisor.check_robot_sample(sample)
 
     def on_event(event: str, _detail: str) -> None:
         if event == "connected":
-            future = driver.apply_limits(manager.supervisor.robot)
+            future = driver.apply_limits(supervisor.robot)
             future.add_done_callback(lambda f: f.exception() and log.error(
                 "LINarm limits not applied: %s", f.exception()))
 
     driver.add_event_listener(on_event)
-    manager.supervisor.latest_centre_m = centre
-    manager.supervisor.latest_delta_m = delta
-    manager.supervisor.robot_homed = homed
+    ctx.set_robot_probes(RobotProbes(centre, delta, homed))
     driver.add_listener(monitor)
-    manager.supervisor.register_estop_action("robot IDLE", driver.emergency_idle)
+    ctx.add_stop_action("robot IDLE", driver.emergency_idle, robot=True)
     return DeviceHandle("linarm", driver, simulator)

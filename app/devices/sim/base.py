@@ -35,13 +35,15 @@ class SerialSimulator:
     """Runs ``core`` on a link in its own daemon thread, polling it every ``tick_s``."""
 
     def __init__(self, name: str, core_factory: Callable[[], SimCore], link_path: Path | None,
-                 tick_s: float = 0.001) -> None:
+                 tick_s: float = 0.001, link_factory: Callable[[], SimLink] | None = None) -> None:
         self.name = name
         self.core_factory = core_factory
         self.link_path = link_path
         self.tick_s = tick_s
+        # The far side of the link: a pty behind ``link_path`` by default, or e.g. a loopback socket.
+        self.link_factory = link_factory or (lambda: make_sim_link(link_path))
         self.core: SimCore = core_factory()
-        self.link: SimLink = make_sim_link(link_path)
+        self.link: SimLink = self.link_factory()
         self.host_bytes_log: list[tuple[float, bytes]] = []  # what the driver sent, for tests
         self.keep_host_log = False
         self._stop = threading.Event()
@@ -76,13 +78,21 @@ class SerialSimulator:
         self.stop()
         if fresh_state:
             self.core = self.core_factory()
-        self.link = make_sim_link(self.link_path)
+        self.link = self.link_factory()
         self.start()
 
     def with_core(self, fn: Callable[[SimCore], object]) -> object:
         """Run ``fn(core)`` under the simulator's lock (tests, the simulation panel)."""
         with self._lock:
             return fn(self.core)
+
+    def control(self, name: str, *args: object) -> object:
+        """A named control of the core (app.devices.sim.host.DEVICE_CONTROLS), as the simulator process
+        offers it: the Simulation panel calls the same names however its simulators are hosted."""
+        from app.devices.sim.host import DEVICE_CONTROLS
+
+        fn = DEVICE_CONTROLS[name]
+        return self.with_core(lambda core: fn(core, *args))
 
     def _run(self) -> None:
         link = self.link
