@@ -130,9 +130,10 @@ class DeviceDriver(QThread):
     silence_changed = Signal(bool)  # True: connected but no sample for `silence_timeout_s`
 
     streams: tuple[StreamSpec, ...] = ()
-    # Round-robin real-time priority of the driver thread, for links with a device-side watchdog fed by
-    # this loop (LINarm heartbeat, FES keep-alive); None: normal scheduling.
-    realtime_priority: int | None = None
+    # Round-robin real-time priority of the driver thread (None: normal scheduling). Every link is I/O-bound
+    # and judged by silence timeouts of a few hundred ms, which a saturated machine's normal scheduling
+    # misses; links with a device-side watchdog fed by their loop (LINarm heartbeat, FES) rank higher.
+    realtime_priority: int | None = 15
 
     def __init__(
         self,

@@ -49,6 +49,9 @@ class SerialSimulator:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._lock = threading.Lock()  # guards `core` against test/GUI threads poking it
+        # In the simulator process the device stands in for a microcontroller: it is not the app's CPU
+        # load, and starving it would measure the rig, not the app (app.devices.sim.host sets this).
+        self.realtime_priority: int | None = None
 
     @property
     def url(self) -> str:
@@ -95,6 +98,10 @@ class SerialSimulator:
         return self.with_core(lambda core: fn(core, *args))
 
     def _run(self) -> None:
+        if self.realtime_priority is not None:
+            from app.devices.driver import request_realtime
+
+            request_realtime(self.realtime_priority)
         link = self.link
         next_tick = time.monotonic()
         try:

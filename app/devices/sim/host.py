@@ -39,6 +39,7 @@ log = logging.getLogger(__name__)
 ROOT = Path(__file__).resolve().parents[3]
 FIRMWARE_BUILD_DIRS = (ROOT / "firmware" / "build", ROOT / "firmware" / "build" / "pytest")
 HOST_ENV = "LINARMPP_SIM_HOST"
+SIMULATOR_RT_PRIORITY = 10  # below the app's device links (20, 19): the devices' own clocks, like an MCU
 PR_SET_PDEATHSIG = 1
 
 # What the Simulation panel and tests may ask of a device's simulator core, by name: one table for both
@@ -78,6 +79,14 @@ def die_with_parent() -> None:
         ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
 
 
+def firmware_child_setup() -> None:
+    """The SIL firmware: dies with the simulator process, and runs its 1 kHz loop real-time when allowed."""
+    die_with_parent()
+    if os.environ.get("LINARMPP_REALTIME") != "0":
+        with contextlib.suppress(Exception):
+            os.sched_setscheduler(0, os.SCHED_RR, os.sched_param(SIMULATOR_RT_PRIORITY))
+
+
 # ============================================================================================ the child process
 class SilCore:
     """The firmware's SIL executable as a simulator core: host bytes to its stdin, its stdout polled."""
@@ -85,7 +94,7 @@ class SilCore:
     def __init__(self, executable: Path, centre: float = 0.20) -> None:
         self.proc = subprocess.Popen([str(executable), "--centre", repr(centre)], stdin=subprocess.PIPE,
                                      stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, bufsize=0,
-                                     preexec_fn=die_with_parent)
+                                     preexec_fn=firmware_child_setup)
         assert self.proc.stdout is not None and self.proc.stdin is not None
         os.set_blocking(self.proc.stdout.fileno(), False)
 
@@ -249,6 +258,7 @@ def serve(spec: dict[str, Any], commands: Any, replies: Any) -> int:
     patient = SimulatedPatient(seed=int(spec.get("patient_seed", 7)))
     sims = build_simulators(spec, patient, emit)
     for sim in sims.values():
+        sim.realtime_priority = SIMULATOR_RT_PRIORITY
         sim.start()
     emit({"ready": {name: sim.url for name, sim in sims.items()}, "pid": os.getpid()})
     parent_gone = threading.Event()
