@@ -127,7 +127,8 @@ def phase(name: str, loads: int, headless: int, window: int) -> dict[str, int]:
                     totals[key] += int(r.get(key, 0))
                 totals["moves_missing"] += MOVES - int(r.get("moves", 0))
                 totals["not_finished"] += r.get("status") != "finished"
-                print(f"  {name:8} {mode:8} run {i + 1:2d}/{n}: {r.get('status'):9} moves {r.get('moves', 0):2d}/{MOVES}"
+                print(f"  {name:8} {mode:8} run {i + 1:2d}/{n}: {r.get('status'):9}"
+                      f" moves {r.get('moves', 0):2d}/{MOVES}"
                       f"  watchdog {r.get('watchdog', 0)}  silence {r.get('silence', 0)}"
                       f"  lost {r.get('connection_lost', 0)}  other STOP {r.get('other_stop', 0)}"
                       f"  gl {r.get('gl', '-')}  connected in {r.get('connected_s', '-')} s"
@@ -162,7 +163,7 @@ def main(argv: list[str] | None = None) -> int:
               f"  not finished {t['not_finished']}")
     loaded = results["loaded"]
     ok = not (loaded["watchdog"] or loaded["silence"] or loaded["moves_missing"] or loaded["not_finished"])
-    print(f"\nverdict (loaded): {'met' if ok else 'MISSED'}  — the machine is shared with other jobs; see its load above")
+    print(f"\nverdict (loaded): {'met' if ok else 'MISSED'}  (a shared machine: see its load on every line)")
     return 0 if ok else 1
 
 

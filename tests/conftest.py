@@ -74,11 +74,12 @@ REALTIME_MODULES = {
 
 
 def pytest_collection_modifyitems(config, items) -> None:  # type: ignore[no-untyped-def]
+    reruns = config.pluginmanager.hasplugin("rerunfailures")
     for item in items:
         module = item.module.__name__.rsplit(".", 1)[-1] if item.module is not None else ""
         if module in REALTIME_MODULES and item.get_closest_marker("realtime") is None:
             item.add_marker(pytest.mark.realtime)
-        if item.get_closest_marker("realtime") is not None and item.get_closest_marker("flaky") is None:
+        if reruns and item.get_closest_marker("realtime") is not None and item.get_closest_marker("flaky") is None:
             item.add_marker(pytest.mark.flaky(reruns=1, reruns_delay=1))
 
 

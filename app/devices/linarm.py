@@ -93,6 +93,11 @@ def _motor_stream(i: int) -> StreamSpec:
     ), 200.0)
 
 
+# How long the reading loop may go without a pass before the heartbeat thread stops beating. Longer than the
+# kernel stalls measured under load (#16), short enough that a wedged reader stops the robot within 0.75 s.
+HEARTBEAT_READER_GRACE_S = 0.5
+
+
 class LinarmCommandError(RuntimeError):
     """The controller refused a command; ``code`` is its ReplyError."""
 
@@ -142,6 +147,9 @@ class LinarmDriver(DeviceDriver):
         self._identify_seq: int | None = None
         self._identified = threading.Event()
         self._last_heartbeat = 0.0
+        self._reader_alive = 0.0
+        self._heartbeat: threading.Thread | None = None
+        self._heartbeat_stop = threading.Event()
         self._async = ThreadPoolExecutor(max_workers=1, thread_name_prefix="linarm-cmd")
         self._async_closed = False
 
@@ -221,17 +229,51 @@ class LinarmDriver(DeviceDriver):
                 self._handle_frames(data, time.monotonic_ns(), during_connect=True)
         seq = self._next_seq()
         self.transport.write(proto.encode_command("startDataStream", seq, float(self.stream_period_s)))
-        self._last_heartbeat = time.monotonic()
+        self._last_heartbeat = self._reader_alive = time.monotonic()
+        self._start_heartbeat()
 
     def on_bytes(self, data: bytes, t_ns: int) -> None:
         self._handle_frames(data, t_ns)
 
     def on_tick(self, now_s: float) -> None:
-        if now_s - self._last_heartbeat >= self.heartbeat_period_s:
-            self._last_heartbeat = now_s
-            self.transport.write(proto.encode_command("heartbeat", self._next_seq()))
+        self._reader_alive = now_s  # the heartbeat thread beats only while this loop runs
+
+    # ------------------------------------------------------------------ the heartbeat path
+    def _start_heartbeat(self) -> None:
+        """The heartbeat has a thread of its own that only writes: on a tty, the reading loop may wait in the
+        kernel for the receive worker (poll → tty_buffer_flush_work), and listeners run on it; neither may
+        delay the bytes that keep the controller's 250 ms watchdog fed (docs/decisions.md, #16)."""
+        self._heartbeat_stop = threading.Event()
+        self._heartbeat = threading.Thread(target=self._heartbeat_loop, args=(self._heartbeat_stop,),
+                                           name="linarm-heartbeat", daemon=True)
+        self._heartbeat.start()
+
+    def _stop_heartbeat(self) -> None:
+        thread, stop = getattr(self, "_heartbeat", None), getattr(self, "_heartbeat_stop", None)
+        if stop is not None:
+            stop.set()
+        if thread is not None and thread is not threading.current_thread():
+            thread.join(1.0)
+        self._heartbeat = None
+
+    def _heartbeat_loop(self, stop: threading.Event) -> None:
+        from app.devices.driver import request_realtime
+
+        if self.realtime_priority is not None:
+            request_realtime(self.realtime_priority + 1)
+        while not stop.wait(self.heartbeat_period_s):
+            # A wedged reading loop (the supervisor's robot monitor runs on it) must not be hidden from the
+            # controller: without a loop pass for HEARTBEAT_READER_GRACE_S the beats stop and its watchdog acts.
+            if time.monotonic() - self._reader_alive > HEARTBEAT_READER_GRACE_S:
+                continue
+            try:
+                self.transport.write(proto.encode_command("heartbeat", self._next_seq()))
+                self._last_heartbeat = time.monotonic()
+            except TransportError:
+                return
 
     def on_disconnect(self) -> None:
+        self._stop_heartbeat()
         for pending in list(self._pending.values()):
             if not pending.future.done():
                 pending.future.set_exception(TransportError("the LINarm link was lost"))

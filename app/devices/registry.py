@@ -85,7 +85,8 @@ class SimulatorHosting:
         return self._patient
 
     def _process_spec(self) -> dict[str, Any]:
-        return {"runtime_dir": str(self.runtime_dir), "devices": self._spec, "patient_seed": 7, "linger_s": 1.0}
+        return {"runtime_dir": str(self.runtime_dir), "devices": self._spec, "patient_seed": 7, "linger_s": 1.0,
+                "events_file": os.environ.get("LINARMPP_SIM_EVENTS", "")}
 
     def serial(self, name: str, kind: str, in_process: Callable[[Any], Any], **params: Any) -> Any:
         """The simulator of device ``name`` (its ``url`` is what the driver opens). ``in_process(patient)``

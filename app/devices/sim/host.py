@@ -39,6 +39,7 @@ log = logging.getLogger(__name__)
 ROOT = Path(__file__).resolve().parents[3]
 FIRMWARE_BUILD_DIRS = (ROOT / "firmware" / "build", ROOT / "firmware" / "build" / "pytest")
 HOST_ENV = "LINARMPP_SIM_HOST"
+EVENTS_ENV = "LINARMPP_SIM_EVENTS"  # a file the simulator process appends its device state events to
 SIMULATOR_RT_PRIORITY = 10  # below the app's device links (20, 19): the devices' own clocks, like an MCU
 PR_SET_PDEATHSIG = 1
 
@@ -246,9 +247,14 @@ def serve(spec: dict[str, Any], commands: Any, replies: Any) -> int:
     from app.devices.sim.patient import SimulatedPatient
 
     out_lock = threading.Lock()
+    # State events also go to a file when asked (LINARMPP_SIM_EVENTS): what the device did after the app died
+    events_file = open(spec["events_file"], "a", encoding="utf-8") if spec.get("events_file") else None
 
     def emit(message: dict[str, Any]) -> None:
         with out_lock:
+            if events_file is not None and "event" in message:
+                events_file.write(json.dumps(message) + "\n")
+                events_file.flush()
             try:
                 replies.write(json.dumps(message) + "\n")
                 replies.flush()
@@ -293,6 +299,8 @@ def serve(spec: dict[str, Any], commands: Any, replies: Any) -> int:
             time.sleep(0.02)
     for sim in sims.values():
         close_simulator(sim)
+    if events_file is not None:
+        events_file.close()
     return 0
 
 
