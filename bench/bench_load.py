@@ -147,6 +147,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--headless-runs", type=int, default=20)
     p.add_argument("--window-runs", type=int, default=5)
     p.add_argument("--no-control", action="store_true", help="skip the unloaded control phase")
+    p.add_argument("--control-runs", default="", help="headless,window runs of the control phase (default: same)")
     p.add_argument("--child", choices=("headless", "window"), help=argparse.SUPPRESS)
     args = p.parse_args(argv)
     if args.child:
@@ -154,7 +155,9 @@ def main(argv: list[str] | None = None) -> int:
     common.print_machine("bench_load: reach exercises under two CPU-bound processes (shared machine)")
     results = {"loaded": phase("loaded", 2, args.headless_runs, args.window_runs)}
     if not args.no_control:
-        results["control"] = phase("control", 0, args.headless_runs, args.window_runs)
+        h, w = (int(x) for x in args.control_runs.split(",")) if args.control_runs else (args.headless_runs,
+                                                                                       args.window_runs)
+        results["control"] = phase("control", 0, h, w)
     print("\nCounts (runs, watchdog trips, silence alarms, connection-loss alarms, other STOP alarms, "
           "moves missing, runs not finished):")
     for name, t in results.items():

@@ -130,10 +130,11 @@ class DeviceDriver(QThread):
     silence_changed = Signal(bool)  # True: connected but no sample for `silence_timeout_s`
 
     streams: tuple[StreamSpec, ...] = ()
-    # Round-robin real-time priority of the driver thread (None: normal scheduling). Every link is I/O-bound
-    # and judged by silence timeouts of a few hundred ms, which a saturated machine's normal scheduling
-    # misses; links with a device-side watchdog fed by their loop (LINarm heartbeat, FES) rank higher.
-    realtime_priority: int | None = 15
+    # Round-robin real-time priority of the driver thread (None: normal scheduling). Off by default: a
+    # real-time thread that wakes hundreds of times a second takes the interpreter lock from the GUI thread
+    # each time, and under CPU load the GUI then waits for the CPU again (measured: the window took 15-20 s
+    # instead of 3-5 s to build at load 15, #16). The LINarm heartbeat has its own real-time thread instead.
+    realtime_priority: int | None = None
 
     def __init__(
         self,

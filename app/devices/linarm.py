@@ -123,7 +123,7 @@ class _Pending:
 # ---------------------------------------------------------------------------------------------- driver
 class LinarmDriver(DeviceDriver):
     streams = (STATE_STREAM, VSA_STREAM, _motor_stream(0), _motor_stream(1))
-    realtime_priority = 20  # the heartbeat feeds the controller's 250 ms host watchdog
+    heartbeat_priority = 20  # the heartbeat thread's: it feeds the controller's 250 ms host watchdog
     controller_error = Signal(str)  # an ERROR_EVENT from the controller, as a sentence
     identified = Signal(str)  # firmware version
 
@@ -259,8 +259,7 @@ class LinarmDriver(DeviceDriver):
     def _heartbeat_loop(self, stop: threading.Event) -> None:
         from app.devices.driver import request_realtime
 
-        if self.realtime_priority is not None:
-            request_realtime(self.realtime_priority + 1)
+        request_realtime(self.heartbeat_priority)  # 10 wake-ups a second: no cost to the GUI thread
         while not stop.wait(self.heartbeat_period_s):
             # A wedged reading loop (the supervisor's robot monitor runs on it) must not be hidden from the
             # controller: without a loop pass for HEARTBEAT_READER_GRACE_S the beats stop and its watchdog acts.

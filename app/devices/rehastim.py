@@ -185,7 +185,6 @@ class FesDriver(DeviceDriver):
     """The RehaStim driver. Public methods are thread-safe."""
 
     streams = (FES_STREAM,)
-    realtime_priority = 19  # its updates keep the stimulator's own watchdog fed while stimulating
 
     fault = Signal(str)  # a fault stopped (or prevented) stimulation; shown to the user
     stimulation_changed = Signal(bool)

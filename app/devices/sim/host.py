@@ -264,7 +264,8 @@ def serve(spec: dict[str, Any], commands: Any, replies: Any) -> int:
     patient = SimulatedPatient(seed=int(spec.get("patient_seed", 7)))
     sims = build_simulators(spec, patient, emit)
     for sim in sims.values():
-        sim.realtime_priority = SIMULATOR_RT_PRIORITY
+        if os.environ.get("LINARMPP_SIM_REALTIME") != "0":
+            sim.realtime_priority = SIMULATOR_RT_PRIORITY
         sim.start()
     emit({"ready": {name: sim.url for name, sim in sims.items()}, "pid": os.getpid()})
     parent_gone = threading.Event()
