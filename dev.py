@@ -4,7 +4,8 @@
     python3 dev.py run  [main.py arguments...]   create .venv if needed, install, start the app
     python3 dev.py test [pytest arguments...]    create .venv if needed, install, run the whole suite
 
-The virtual environment is (re)installed when pyproject.toml changes (a hash stamp in .venv).
+The project is installed into .venv in editable mode with its dependencies (and the `linarmpp`
+command); that is redone when pyproject.toml's project or packaging tables change (a hash stamp in .venv).
 `test` runs under Xvfb (xvfb-run) when no display is present and xvfb-run exists, so the
 OpenGL tests run too; otherwise the suite falls back to Qt's offscreen platform by itself.
 Standard library only: this file runs before anything is installed.
@@ -13,6 +14,7 @@ Standard library only: this file runs before anything is installed.
 from __future__ import annotations
 
 import hashlib
+import json
 import os
 import shutil
 import subprocess
@@ -31,24 +33,27 @@ def venv_python() -> Path:
     return VENV / "bin" / "python"
 
 
-def requirements(with_tests: bool) -> list[str]:
-    project = tomllib.loads((ROOT / "pyproject.toml").read_text(encoding="utf-8"))["project"]
-    reqs = list(project["dependencies"])
-    if with_tests:
-        reqs += project["optional-dependencies"]["test"]
-    return reqs
+def install_spec() -> str:
+    """What goes into the venv, as one stamp: the project's metadata and packaging tables (a change to
+    dependencies, entry points or packages reinstalls; a change to lint or test settings does not)."""
+    pyproject = tomllib.loads((ROOT / "pyproject.toml").read_text(encoding="utf-8"))
+    relevant = {k: pyproject.get(k) for k in ("build-system", "project")}
+    relevant["setuptools"] = pyproject.get("tool", {}).get("setuptools")
+    return json.dumps(relevant, sort_keys=True)
 
 
 def ensure_venv(with_tests: bool) -> Path:
-    reqs = requirements(with_tests)
-    digest = hashlib.sha256("\n".join(reqs).encode()).hexdigest()
+    target = ".[test]" if with_tests else "."
+    digest = hashlib.sha256(f"{target}\n{install_spec()}".encode()).hexdigest()
     if not venv_python().exists():
         print(f"[dev] creating virtual environment in {VENV}", flush=True)
         subprocess.check_call([sys.executable, "-m", "venv", str(VENV)])
     installed = STAMP.read_text(encoding="utf-8").split() if STAMP.exists() else []
     if digest not in installed:
-        print(f"[dev] installing {len(reqs)} packages into {VENV} (first run only)", flush=True)
-        subprocess.check_call([str(venv_python()), "-m", "pip", "install", "-q", "--disable-pip-version-check", *reqs])
+        # Editable: the venv runs this checkout's code, and has the `linarmpp` command and metadata.
+        print(f"[dev] installing the project (editable) and its dependencies into {VENV}", flush=True)
+        subprocess.check_call([str(venv_python()), "-m", "pip", "install", "-q", "--disable-pip-version-check",
+                               "-e", target], cwd=ROOT)
         STAMP.write_text("\n".join([*installed, digest]), encoding="utf-8")
     return venv_python()
 

@@ -39,6 +39,17 @@ def configure_qt_identity() -> None:
     QSettings.setPath(QSettings.Format.IniFormat, QSettings.Scope.UserScope, str(data_dir() / "settings"))
 
 
+def apply_desktop_identity(app: QApplication) -> None:
+    """The window icon (resources/linarmpp.svg) and the desktop entry's name, so that a Linux desktop
+    (the Wayland app id) matches the window to linarmpp.desktop and its icon."""
+    from PySide6.QtGui import QGuiApplication, QIcon
+
+    from app.resources import ICON_FILE
+
+    app.setWindowIcon(QIcon(str(ICON_FILE)))
+    QGuiApplication.setDesktopFileName("linarmpp")
+
+
 def install_safety_nets(manager: LinarmppManager) -> Callable[[], None]:
     """An uncaught exception anywhere, or SIGTERM/SIGINT, brings devices to a safe state first.
     Returns a function that removes the nets again."""
@@ -85,6 +96,7 @@ def run_gui(config: AppConfig, screenshot: str | None = None, quit_after_s: floa
     share_gl_contexts()
     app = QApplication.instance() or QApplication(sys.argv)
     configure_qt_identity()
+    apply_desktop_identity(app)
     from app.ui.theme import apply_palette
 
     apply_palette(app, config.ui.palette)

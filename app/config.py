@@ -12,10 +12,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
+from app.resources import DEFAULT_CONFIG_FILE, RESOURCES  # noqa: F401 - RESOURCES re-exported for callers
 from app.yamlschema import ConfigError, load_file, rng, to_plain
-
-RESOURCES = Path(__file__).resolve().parent.parent / "resources"
-DEFAULT_CONFIG_FILE = RESOURCES / "config.default.yaml"
 
 DeviceMode = Literal["simulated", "serial", "off"]
 

@@ -58,20 +58,10 @@ EventTap = Callable[[dict[str, Any]], None]
 
 # ---------------------------------------------------------------------------------------------- helpers
 def app_version() -> str:
-    """The application's version: the installed distribution's, else pyproject.toml's."""
-    try:
-        from importlib.metadata import PackageNotFoundError, version
+    """The application's version (package metadata, or pyproject.toml in a checkout: app.__version__)."""
+    from app import __version__
 
-        try:
-            return version("linarmpp-manager")
-        except PackageNotFoundError:
-            pass
-        import tomllib
-
-        pyproject = Path(__file__).resolve().parent.parent / "pyproject.toml"
-        return str(tomllib.loads(pyproject.read_text(encoding="utf-8"))["project"]["version"])
-    except Exception:
-        return "unknown"
+    return __version__
 
 
 def wall_iso(t_wall: float | None = None) -> str:

@@ -92,8 +92,8 @@ CALIBRATION_COMMANDS = {"setMotorOffset", "setMobileOffset", "setMotorRatio", "s
 _ALWAYS_ALLOWED = {
     "identify", "heartbeat", "getPidTunings", "getAdmittanceParameter", "getAssistanceParameter",
     "getAssistanceTargetPos", "getIsInitialized", "stopDataStream", "startDataStream", "resetError",
-    # Aligning the controller's own limits with ours (still range-checked below).
-    "setMaxVelocity", "setMaxAcceleration", "setMaxForce", "setPosLimit",
+    # Aligning the controller's own limits with ours (still range-checked below), and locking them there.
+    "setMaxVelocity", "setMaxAcceleration", "setMaxForce", "setPosLimit", "lockEnvelope",
 }
 
 

@@ -73,10 +73,13 @@ def firmware_build() -> Path:
 class FirmwareTarget:
     """The SIL executable in lockstep mode: host bytes and simulated time over a line protocol."""
 
-    def __init__(self, sil: Path, centre: float = 0.20, start_homed: bool = False) -> None:
-        args = [str(sil), "--lockstep", "--centre", repr(centre)]
+    def __init__(self, sil: Path | list[str], centre: float = 0.20, start_homed: bool = False,
+                 service: bool = False) -> None:
+        args = [*([str(sil)] if isinstance(sil, Path) else sil), "--lockstep", "--centre", repr(centre)]
         if start_homed:
             args.append("--start-homed")
+        if service:
+            args.append("--service")
         self.proc = subprocess.Popen(args, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, bufsize=1)
 
     def _ask(self, line: str) -> bytes:
@@ -93,6 +96,12 @@ class FirmwareTarget:
 
     def advance(self, seconds: float) -> bytes:
         return self._ask(f"A {round(seconds * 1000)}")
+
+    def push(self, newtons: float) -> bytes:
+        return self._ask(f"F {float(newtons)!r}")
+
+    def restart(self) -> bytes:
+        return self._ask("N")
 
     def close(self) -> None:
         if self.proc.poll() is None:
@@ -175,7 +184,8 @@ def test_a_drifted_id_fails_the_check(tmp_path: Path) -> None:
 @pytest.mark.parametrize("scenario", SCENARIOS, ids=[s.id for s in SCENARIOS])
 def test_scenario_against_the_firmware(firmware_build: Path, scenario: Scenario) -> None:
     setup = scenario.setup
-    target = FirmwareTarget(firmware_build / "linarm_sil", setup.get("centre", 0.20), setup.get("start_homed", False))
+    target = FirmwareTarget(firmware_build / "linarm_sil", setup.get("centre", 0.20), setup.get("start_homed", False),
+                            setup.get("service", False))
     run_scenario(target, scenario)
 
 
@@ -183,3 +193,19 @@ def test_firmware_target_reports_a_wrong_expectation(firmware_build: Path) -> No
     bad = Scenario("bad", {}, [{"send": ["setCtrlState", 2]}], "inline")
     with pytest.raises(AssertionError, match="expected ACK"):
         run_scenario(FirmwareTarget(firmware_build / "linarm_sil"), bad)
+
+
+def test_service_mode_is_only_chosen_at_boot(firmware_build: Path) -> None:
+    """The service jumper is read once at boot: the IDENTIFY says so, and no command turns it on or off."""
+    from app.devices.cmdmessenger import CmdMessengerDecoder
+    from app.devices.linarm_protocol import Identify, decode_controller_frame, encode_command
+
+    for service, suffix in ((False, ""), (True, "+service")):
+        target = FirmwareTarget(firmware_build / "linarm_sil", service=service)
+        try:
+            decoder = CmdMessengerDecoder()
+            boot = [decode_controller_frame(f) for f in decoder.feed(target.advance(0.0))]
+            again = [decode_controller_frame(f) for f in decoder.feed(target.send(encode_command("identify", 3)))]
+            assert [m.firmware_version for m in boot + again if isinstance(m, Identify)] == [f"sil-1.0{suffix}"] * 2
+        finally:
+            target.close()

@@ -7,6 +7,7 @@ The SIL runs in real time here (its 1 kHz loop on the wall clock), so this test 
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import subprocess
 import threading
@@ -16,8 +17,8 @@ from collections.abc import Iterator
 import pytest
 
 from app.config import SafetyConfig
-from app.devices.linarm import LinarmDriver
-from app.devices.linarm_protocol import ControlMode, ControlState, HomeState
+from app.devices.linarm import LinarmCommandError, LinarmDriver
+from app.devices.linarm_protocol import ControlMode, ControlState, HomeState, ReplyError
 from app.safety import SafetySupervisor
 from tests.test_firmware import build_firmware
 
@@ -84,6 +85,20 @@ def test_driver_runs_the_trigger_exercise_on_the_firmware(qtbot, sil_link: str) 
     try:
         qtbot.waitUntil(lambda: driver.connected and driver.latest("linarm.vsa") is not None, timeout=5000)
         assert driver.firmware_version == "sil-1.0"
+        # what the app does at connect: its site limits, locked as the controller's envelope
+        site = driver.supervisor.robot
+        envelope = driver.apply_limits(site).result(5.0)
+        assert envelope["maxVel"] == pytest.approx(site.max_velocity_m_s, rel=1e-6)
+        assert envelope["minPos"] == pytest.approx(site.position_min_m, rel=1e-6)
+        # a host bug widens the supervisor's limits: the controller still refuses
+        driver.supervisor.robot = dataclasses.replace(site, max_velocity_m_s=1.0)
+        with pytest.raises(LinarmCommandError) as refused:
+            driver.command("setMaxVelocity", 1.0)
+        assert refused.value.code == ReplyError.LOCKED
+        driver.supervisor.robot = site
+        # a session narrows to the patient's profile and goes back to the site's limits afterwards (app/manager.py)
+        driver.apply_limits(dataclasses.replace(site, max_velocity_m_s=0.1, position_max_m=0.40)).result(5.0)
+        driver.apply_limits(site).result(5.0)
 
         driver.command("goToHome")
         qtbot.waitUntil(lambda: driver.latest("linarm.state").homeState == HomeState.HOME_DONE, timeout=8000)

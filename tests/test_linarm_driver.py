@@ -91,6 +91,7 @@ CASES: dict[str, tuple[tuple[Any, ...], str]] = {
     "setPosLimit": ((0.05, 0.45), "idle"),
     "setPidTunings": (("read",), "idle"),
     "getState": ((), "idle"),
+    "lockEnvelope": ((), "idle"),
 }
 
 

@@ -505,3 +505,22 @@ def test_runs_much_faster_than_real_time() -> None:
     host.run(2.0)
     elapsed = time.perf_counter() - start
     assert elapsed < 1.0, f"2 s of simulated time took {elapsed:.2f} s"
+
+
+def test_service_mode_is_only_chosen_at_boot() -> None:
+    from app.devices.linarm_protocol import ReplyError
+
+    for service in (False, True):
+        core = LinarmSimCore(start_homed=True, service_mode=service)
+        assert core.firmware_version.endswith("+service") is service
+        host = Host(core)
+        host.ok("lockEnvelope")
+        if service:
+            host.ok("setMotorOffset", 0, 0.0)
+            host.ok("disableEndstrokes", True)
+        else:
+            for name, args in (("setMotorOffset", (0, 0.0)), ("disableEndstrokes", (True,))):
+                reply = host.send(name, *args)
+                assert isinstance(reply, ErrorReply) and reply.code is ReplyError.LOCKED, reply
+        reply = host.send("setMaxVelocity", 0.9)  # the limits lock in both
+        assert isinstance(reply, ErrorReply) and reply.code is ReplyError.LOCKED, reply

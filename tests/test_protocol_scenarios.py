@@ -6,7 +6,8 @@ differ between the two implementations; protocol, FSM and limits may not.
 
 Scenario file format (a list under ``scenarios:``; each has ``name``, optional ``setup`` and ``steps``):
 
-* ``setup: {centre: 0.20, start_homed: true}`` - where the robot starts, encoders referenced or not.
+* ``setup: {centre: 0.20, start_homed: true, service: false}`` - where the robot starts, encoders referenced or
+  not, booted in service mode (the jumper) or not.
 * ``send: [command, *args]`` with ``expect: ack`` (default), ``{ack: {value: x | [x, tol]}}``,
   ``{error: CODE}``, ``identify`` or ``none``. Arguments are the table's, in order.
 * ``raw: "bytes"`` with ``replies: [{error: CODE, seq: n, cmd: n} | {identify: {seq: n}}]`` (exactly these).
@@ -18,6 +19,8 @@ Scenario file format (a list under ``scenarios:``; each has ``name``, optional `
 * ``sequence: {homeState: [..]}`` - successive distinct values of a LINARM_STATE field (stream and
   getState frames) since the last ``clear``.
 * ``clear: true`` - forget the frames and events received so far.
+* ``push: newtons`` - from now on a constant external force on the handle (a patient; + towards +x).
+* ``restart: true`` - the controller restarts (power cycle): a fresh controller and robot, the same setup.
 """
 
 from __future__ import annotations
@@ -57,12 +60,35 @@ class ScenarioTarget(Protocol):
 
     def send(self, data: bytes) -> bytes: ...  # host bytes arriving now -> everything written meanwhile
     def advance(self, seconds: float) -> bytes: ...  # run the 1 kHz loop -> everything written meanwhile
+    def push(self, newtons: float) -> bytes: ...  # a constant external force on the handle from now on
+    def restart(self) -> bytes: ...  # power cycle: a fresh controller (its boot IDENTIFY comes back)
     def close(self) -> None: ...
 
 
+class ConstantPush:
+    """A patient pushing the handle with a constant force."""
+
+    def __init__(self) -> None:
+        self.force = 0.0
+
+    def handle_force(self, t: float, handle_pos: float, handle_vel: float) -> float:
+        return self.force
+
+
 class PythonTarget:
-    def __init__(self, centre: float = 0.20, start_homed: bool = False) -> None:
-        self.core = LinarmSimCore(initial_centre=centre, start_homed=start_homed)
+    def __init__(self, centre: float = 0.20, start_homed: bool = False, service: bool = False) -> None:
+        self.setup = {"initial_centre": centre, "start_homed": start_homed, "service_mode": service}
+        self.patient = ConstantPush()
+        self.core = LinarmSimCore(patient=self.patient, **self.setup)  # type: ignore[arg-type]
+
+    def push(self, newtons: float) -> bytes:
+        self.patient.force = float(newtons)
+        return self.core.stream_bytes()
+
+    def restart(self) -> bytes:
+        self.patient = ConstantPush()
+        self.core = LinarmSimCore(patient=self.patient, **self.setup)  # type: ignore[arg-type]
+        return self.core.stream_bytes()
 
     def send(self, data: bytes) -> bytes:
         return self.core.handle_host_bytes(data) + self.core.stream_bytes()
@@ -150,8 +176,8 @@ class ScenarioRunner:
         self._decode(self.target.advance(0.0))  # the boot IDENTIFY
         for index, step in enumerate(scenario.steps):
             where = f"{scenario.id} step {index + 1} {step}"
-            kind = next(k for k in ("send", "raw", "run", "state", "events", "stream", "sequence", "clear")
-                        if k in step)
+            kind = next(k for k in ("send", "raw", "run", "state", "events", "stream", "sequence", "clear", "push",
+                                    "restart") if k in step)
             getattr(self, f"_step_{kind}")(step, where)
 
     def _step_send(self, step: dict[str, Any], where: str) -> None:
@@ -232,6 +258,14 @@ class ScenarioRunner:
         self.frames = []
         self.events = []
 
+    def _step_push(self, step: dict[str, Any], where: str) -> None:
+        self._decode(self.target.push(float(step["push"])))
+
+    def _step_restart(self, step: dict[str, Any], where: str) -> None:
+        msgs = self._decode(self.target.restart())
+        assert any(isinstance(m, Identify) and m.seq == 0 for m in msgs), f"{where}: no boot IDENTIFY after restart"
+        self.events = []
+
 
 def _snake(name: str) -> str:
     return "".join("_" + c.lower() if c.isupper() else c for c in name)
@@ -254,13 +288,14 @@ def test_scenario_files_are_present() -> None:
     assert len(SCENARIOS) >= 15 and len(names) == len(SCENARIOS)
     covered = {str(e) for s in SCENARIOS for step in s.steps if "events" in step for e in step["events"]}
     assert covered >= {"WATCHDOG", "TRACKING_ERROR", "ENDSTROKE_HIT", "OVER_CURRENT", "OVER_VELOCITY",
-                       "POSITION_LIMIT", "OVER_FORCE"}
+                       "POSITION_LIMIT", "OVER_FORCE", "ENVELOPE_BREACH"}
 
 
 @pytest.mark.parametrize("scenario", SCENARIOS, ids=[s.id for s in SCENARIOS])
 def test_scenario_against_the_simulator(scenario: Scenario) -> None:
     setup = scenario.setup
-    run_scenario(PythonTarget(setup.get("centre", 0.20), setup.get("start_homed", False)), scenario)
+    run_scenario(PythonTarget(setup.get("centre", 0.20), setup.get("start_homed", False),
+                              setup.get("service", False)), scenario)
 
 
 def test_a_wrong_expectation_fails() -> None:

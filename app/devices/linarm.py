@@ -113,6 +113,9 @@ class LinarmTimeout(TimeoutError):
     pass
 
 
+LIMITS_ATTEMPTS = 3  # apply_limits: tries of the whole (idempotent) sequence after a timeout
+
+
 @dataclass
 class _Pending:
     seq: int
@@ -155,6 +158,8 @@ class LinarmDriver(DeviceDriver):
         self._heartbeat_stop = threading.Event()
         self._async = ThreadPoolExecutor(max_workers=1, thread_name_prefix="linarm-cmd")
         self._async_closed = False
+        self._envelope_locked = False  # per connection: the controller may have restarted in between
+        self.envelope: dict[str, Any] = {}  # the controller's locked envelope, as its ACK reported it
 
     # ------------------------------------------------------------------ commands (any thread)
     def command(self, name: str, *args: Any, source: str = "", timeout_s: float | None = None) -> dict[str, Any]:
@@ -198,15 +203,43 @@ class LinarmDriver(DeviceDriver):
 
     def apply_limits(self, limits: Any) -> Future:
         """Make the controller's own limits the configured ones (its defaults may be wider): speed and
-        acceleration of jog ramps and timed moves, the force limit, the allowed range. Runs off the caller's
-        thread; the Future fails with the first refusal."""
-        def send() -> None:
-            self.command("setMaxVelocity", float(limits.max_velocity_m_s), source="limits")
-            self.command("setMaxAcceleration", float(limits.max_acceleration_m_s2), source="limits")
-            self.command("setMaxForce", float(limits.max_interaction_force_n), source="limits")
-            self.command("setPosLimit", float(limits.position_min_m), float(limits.position_max_m), source="limits")
+        acceleration of jog ramps and timed moves, the force limit, the allowed range.
+
+        The first call on a connection first sends the site's limits (the supervisor's configuration) and locks
+        them as the controller's safety envelope (``lockEnvelope``): until the controller restarts nothing can
+        widen them, whatever this host does later. ``limits`` (e.g. a patient's narrower profile) then follow,
+        inside the envelope. Runs off the caller's thread; the Future fails with the first refusal and holds the
+        locked envelope (the ACK's values) on success."""
+        def send() -> dict[str, Any]:
+            # Every command here is idempotent: a timeout (a busy link at connect) is tried again.
+            for attempt in range(LIMITS_ATTEMPTS):
+                try:
+                    return align()
+                except LinarmTimeout:
+                    if attempt == LIMITS_ATTEMPTS - 1 or not self.connected:
+                        raise
+                    log.warning("LINarm limits: a command timed out; trying again")
+            raise AssertionError("unreachable")
+
+        def align() -> dict[str, Any]:
+            if not self._envelope_locked:
+                site = getattr(getattr(self.supervisor, "config", None), "robot", None) or limits
+                self._send_limits(site)
+                self.envelope = self.command("lockEnvelope", source="limits")
+                self._envelope_locked = True
+                log.info("LINarm safety envelope locked: %s", self.envelope)
+                if limits == site:
+                    return self.envelope
+            self._send_limits(limits)
+            return self.envelope
 
         return self._executor().submit(send)
+
+    def _send_limits(self, limits: Any) -> None:
+        self.command("setMaxVelocity", float(limits.max_velocity_m_s), source="limits")
+        self.command("setMaxAcceleration", float(limits.max_acceleration_m_s2), source="limits")
+        self.command("setMaxForce", float(limits.max_interaction_force_n), source="limits")
+        self.command("setPosLimit", float(limits.position_min_m), float(limits.position_max_m), source="limits")
 
     def emergency_idle(self, reason: str = "") -> None:
         """Motors off now: written straight to the wire, not queued behind a command in flight."""
@@ -217,6 +250,7 @@ class LinarmDriver(DeviceDriver):
 
     # ------------------------------------------------------------------ driver thread
     def on_connect(self) -> None:
+        self._envelope_locked = False
         self.decoder.reset()
         self._identified.clear()
         self.firmware_version = ""

@@ -34,6 +34,7 @@ from app.devices.cmdmessenger import (
     read_field,
     to_float32,
 )
+from app.devices.linarm_constants import constants_table
 
 PROTOCOL_VERSION = 1
 SEQ_MIN, SEQ_MAX = 0, 65535
@@ -81,6 +82,7 @@ class ErrorState(IntEnum):
     WATCHDOG = 6  # no host bytes for WATCHDOG_TIMEOUT while the motors were on
     POSITION_LIMIT = 7  # handle more than 20 mm outside the position limits
     HOMING_FAILED = 8  # an endstroke was not found in time
+    ENVELOPE_BREACH = 9  # handle faster than 1.2 x the locked maxVelocity, or 10 mm outside the locked range
 
 
 class TriggerMode(IntEnum):
@@ -106,6 +108,7 @@ class ReplyError(IntEnum):
     IN_ERROR = 7  # an error state is latched: resetError first
     BUSY = 8  # homing in progress
     NOT_SUPPORTED = 9  # e.g. a trigger with TRIGGER_MODE NO_TRIGGER
+    LOCKED = 10  # beyond the locked safety envelope, or a service command after the lock: restart to change
 
 
 # The seed's attribute names
@@ -227,6 +230,12 @@ HOST_COMMANDS: tuple[Command, ...] = (
     Command(38, "setPosLimit", (_f("minPos", "m"), _f("maxPos", "m"))),
     Command(39, "setPidTunings", (INDEX, _f("kp", "N/m", 0.0), _f("ki", "N/(m s)", 0.0), _f("kd", "N s/m", 0.0))),
     Command(40, "getState", doc="ACK, then one LINARM_STATE, two MOTOR_STATE and one VSA_STATE frame."),
+    Command(41, "lockEnvelope", returns=(_f("maxVel", "m/s"), _f("maxAcc", "m/s^2"), _f("maxForce", "N"),
+                                         _f("maxCurrent", "A"), _f("maxTrackingError", "m"), _f("minPos", "m"),
+                                         _f("maxPos", "m")),
+            doc="The current limits become the safety envelope until the controller restarts: setters may "
+                "narrow within it, never widen beyond it; after it, PID gains, calibration and disabling the "
+                "endstrokes are refused (LOCKED) unless booted in service mode. ACK: the locked envelope."),
 )
 
 T_US = Arg("t_us", U32, "us")
@@ -356,7 +365,7 @@ class MotorState:
 class VsaState:
     t_us: int
     equilibrium_pos: float  # m, the centre: mean of the two carriages
-    delta: float  # m, distance between the two spring ends (carriages)
+    delta: float  # m, the springs' pretension: carriage distance - 2 x free length (0.01..0.06 m)
     stiffness: float  # N/m, k(delta) of the spring pair around the centre
     handle_pos: float  # m
     handle_vel: float  # m/s
@@ -695,4 +704,5 @@ def protocol_table() -> dict[str, Any]:
             {"id": m.id, "name": m.name, "fields": [_arg_dict(a) for a in m.fields], "doc": m.doc}
             for m in CONTROLLER_MESSAGES
         ],
+        "constants": constants_table(),
     }

@@ -26,11 +26,13 @@ from typing import Any, Final
 
 import yaml
 
+from app.resources import PATIENT_MODEL_FILE
+
 GROUPS: Final = ("assist", "in_between", "resist")
 INDEX_LAYERS: Final = ("tpi", "mpi", "pti")
 LESS_SUPPORT: Final = "less_support"
 MORE_SUPPORT: Final = "more_support"
-DEFAULT_CONFIG_PATH: Final = Path(__file__).resolve().parents[2] / "resources" / "patient_model.yaml"
+DEFAULT_CONFIG_PATH: Final = PATIENT_MODEL_FILE
 
 
 class PatientModelConfigError(ValueError):

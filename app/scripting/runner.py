@@ -41,6 +41,7 @@ from pathlib import Path
 from typing import Any
 
 from app.devices.linarm_protocol import ControlMode, ControlState, HomeState
+from app.resources import RESOURCES
 from app.scripting.api import (
     CommandRefused,
     ScriptContext,
@@ -592,6 +593,8 @@ _APP_DIR = str(Path(__file__).resolve().parent.parent)
 
 def _is_app_file(filename: str) -> bool:
     """Frames of the application itself are hidden from script tracebacks (not the user's code)."""
+    if filename.startswith(str(RESOURCES)):  # installed, the example scripts lie inside app/ (app/_resources)
+        return False
     return filename.startswith(_APP_DIR) or filename.startswith("<frozen") or "concurrent/futures" in filename
 
 

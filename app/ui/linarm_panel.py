@@ -50,6 +50,7 @@ from PySide6.QtWidgets import (
 from app.devices import linarm_protocol as proto
 from app.devices.cmdmessenger import Kind
 from app.devices.linarm import LinarmCommandError, LinarmTimeout
+from app.devices.linarm_constants import K
 from app.devices.linarm_protocol import (
     COMMANDS_BY_NAME,
     ENUMS,
@@ -88,15 +89,20 @@ UNIT_INPUT: dict[str, tuple[int, float, float]] = {
     "": (4, 0.01, 1000.0),
 }
 
-# Sensible starting values of the inputs (the controller's defaults; "Read" buttons fetch the real ones).
+# The inputs of the controller's own settings start at its defaults, read from the one constants table
+# (app/devices/linarm_constants.py, which the firmware and the simulator use too); "Read" buttons fetch the
+# live values. The move inputs start at modest values of the panel's own.
+CONTROLLER_DEFAULTS: dict[str, float] = {
+    "Ka": K["ADMITTANCE_KA"], "Kt": K["ASSISTANCE_KT"], "Apos": K["ASSISTANCE_TARGET"],
+    "minPos": K["POS_MIN"], "maxPos": K["POS_MAX"], "maxTrackingError": K["MAX_TRACKING_ERROR"],
+    "maxForce": K["MAX_FORCE"], "maxCurrent": K["MAX_CURRENT"],
+    "homeCentre": K["HOME_CENTRE"], "homeDelta": K["HOME_DELTA"], "homingVelocity": K["HOMING_VELOCITY"],
+}
 DEFAULTS: dict[str, Any] = {
-    "targetPos": 0.25, "targetDeltaPos": 0.02, "stiffness": 900.0,
+    "targetPos": K["HOME_CENTRE"], "targetDeltaPos": K["HOME_DELTA"], "stiffness": 900.0,
     "maxVel": 0.15, "maxAcc": 0.15, "execTime": 0.0, "trigger": False,
-    "centreVelocity": 0.05, "deltaVelocity": 0.01,
-    "Ka": 0.002, "Kt": 100.0, "Apos": 0.25, "disp": 0.0,
-    "minPos": 0.08, "maxPos": 0.42, "maxTrackingError": 0.02, "maxForce": 60.0, "maxCurrent": 5.0,
-    "homeCentre": 0.25, "homeDelta": 0.02, "homingVelocity": 0.2,
-    "param": 0.0,
+    "centreVelocity": 0.05, "deltaVelocity": 0.01, "disp": 0.0, "param": 0.0,
+    **CONTROLLER_DEFAULTS,
 }
 
 ARG_LABELS: dict[str, str] = {

@@ -26,9 +26,11 @@ from PySide6.QtWidgets import (
     QWidget,
 )
 
+from app import __version__
 from app.logging_setup import log_file
 from app.manager import LinarmppManager
 from app.paths import data_dir, sessions_dir
+from app.resources import RESOURCES
 
 log = logging.getLogger(__name__)
 
@@ -372,10 +374,11 @@ class MainWindow(QMainWindow):
     def show_about(self) -> None:
         QMessageBox.about(
             self, "About LINarm++ Manager",
-            "<b>LINarm++ Manager</b><br>Upper-limb rehabilitation with LINarm2, physiological sensors and FES."
+            f"<b>LINarm++ Manager</b> {__version__}"
+            "<br>Upper-limb rehabilitation with LINarm2, physiological sensors and FES."
             f"<br><br>Configuration: {self.manager.config.source}"
             f"<br>Log file: {log_file() or '(console only)'}"
-            f"<br>Sessions: {sessions_dir()}<br>Data folder: {data_dir()}",
+            f"<br>Sessions: {sessions_dir()}<br>Data folder: {data_dir()}<br>Resources: {RESOURCES}",
         )
 
     def set_dark_palette(self, dark: bool) -> None:

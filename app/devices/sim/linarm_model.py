@@ -33,6 +33,7 @@ from dataclasses import dataclass
 from typing import Any, Protocol
 
 from app.devices.cmdmessenger import ArduinoReceiver
+from app.devices.linarm_constants import K
 from app.devices.linarm_protocol import (
     DEFAULT_STREAM_PERIOD,
     LINARM_STATE_DIVIDER,
@@ -61,11 +62,18 @@ from app.devices.linarm_protocol import (
 )
 
 FIRMWARE_VERSION = "sim-1.0"
-DT = 0.001  # s, the controller's loop period
+SERVICE_SUFFIX = "+service"  # appended to the IDENTIFY's firmware version when booted in service mode
 OUTBOX_LIMIT = 256 * 1024  # bytes kept for a host that does not read
-SEEK_LEAD = 0.005  # m, how far the homing reference may lead a carriage
-HOMING_VELOCITY = 0.2  # m/s, default endstroke seek speed
-HOME_SETTLE = 0.3  # s at rest after the move to home, before the handle encoder is referenced
+# The controller's constants: one table (app/devices/linarm_constants.py) for this model, the firmware and the panel.
+DT = K["DT"]  # s, the controller's loop period
+SEEK_LEAD = K["SEEK_LEAD"]  # m, how far the homing reference may lead a carriage
+HOMING_VELOCITY = K["HOMING_VELOCITY"]  # m/s, default endstroke seek speed
+HOME_SETTLE = K["HOME_SETTLE_TICKS"] * DT  # s at rest after the move to home, before the handle encoder is referenced
+OVER_CURRENT_TIME = K["OVER_CURRENT_TICKS"] * DT  # s above maxCurrent before OVER_CURRENT
+POSITION_LIMIT_MARGIN = K["POSITION_LIMIT_MARGIN"]  # m outside [minPos, maxPos]: POSITION_LIMIT
+OVER_VELOCITY_FACTOR = K["OVER_VELOCITY_FACTOR"]  # x maxVelocity: OVER_VELOCITY
+ENVELOPE_VELOCITY_FACTOR = K["ENVELOPE_VELOCITY_FACTOR"]  # x the locked maxVelocity: ENVELOPE_BREACH
+ENVELOPE_POSITION_MARGIN = K["ENVELOPE_POSITION_MARGIN"]  # m outside the locked range: ENVELOPE_BREACH
 
 
 class PatientForce(Protocol):
@@ -81,26 +89,26 @@ class NoPatient:
 class LinarmParams:
     """Physical constants of the simulated LINarm2."""
 
-    rail_min: float = 0.0  # m
-    rail_max: float = 0.50  # m
-    switch_min: float = 0.005  # m, motor 0's endstroke closes at or below this
-    switch_max: float = 0.495  # m, motor 1's endstroke closes at or above this
-    carriage_mass: float = 1.0  # kg
-    carriage_viscous: float = 30.0  # N s/m
-    carriage_coulomb: float = 8.0  # N (lead screw: holds delta when the motors are off)
-    handle_mass: float = 0.5  # kg
-    handle_damping: float = 20.0  # N s/m
-    spring_a: float = 150.0  # N/m
-    spring_b: float = 1.0e6  # N/m^3
-    spring_free_length: float = 0.04  # m
-    delta_min: float = 0.01  # m, pretension (carriage distance 0.09 m)
-    delta_max: float = 0.06  # m, pretension (carriage distance 0.14 m)
-    bumper: float = 0.015  # m, closest handle-carriage distance before contact
-    contact_stiffness: float = 5.0e4  # N/m
-    contact_damping: float = 200.0  # N s/m
-    force_constant: float = 20.0  # N/A
-    current_hw_limit: float = 6.0  # A
-    encoder_resolution: float = 1.0e-5  # m/count
+    rail_min: float = K["RAIL_MIN"]  # m
+    rail_max: float = K["RAIL_MAX"]  # m
+    switch_min: float = K["SWITCH_MIN_POS"]  # m, motor 0's endstroke closes at or below this
+    switch_max: float = K["SWITCH_MAX_POS"]  # m, motor 1's endstroke closes at or above this
+    carriage_mass: float = K["CARRIAGE_MASS"]  # kg
+    carriage_viscous: float = K["CARRIAGE_VISCOUS"]  # N s/m
+    carriage_coulomb: float = K["CARRIAGE_COULOMB"]  # N (lead screw: holds delta when the motors are off)
+    handle_mass: float = K["HANDLE_MASS"]  # kg
+    handle_damping: float = K["HANDLE_DAMPING"]  # N s/m
+    spring_a: float = K["SPRING_A"]  # N/m
+    spring_b: float = K["SPRING_B"]  # N/m^3
+    spring_free_length: float = K["SPRING_FREE_LENGTH"]  # m
+    delta_min: float = K["DELTA_MIN"]  # m, pretension (carriage distance 0.09 m)
+    delta_max: float = K["DELTA_MAX"]  # m, pretension (carriage distance 0.14 m)
+    bumper: float = K["BUMPER"]  # m, closest handle-carriage distance before contact
+    contact_stiffness: float = K["CONTACT_STIFFNESS"]  # N/m
+    contact_damping: float = K["CONTACT_DAMPING"]  # N s/m
+    force_constant: float = K["FORCE_CONSTANT"]  # N/A
+    current_hw_limit: float = K["CURRENT_HW_LIMIT"]  # A
+    encoder_resolution: float = K["ENCODER_RESOLUTION"]  # m/count
 
     def spring_tension(self, elongation: float) -> float:
         if elongation <= 0.0:
@@ -219,10 +227,23 @@ class _Refuse(Exception):
 
 @dataclass
 class _Pid:
-    kp: float = 20000.0  # N/m
-    ki: float = 100000.0  # N/(m s)
-    kd: float = 200.0  # N s/m
+    kp: float = K["PID_KP"]  # N/m
+    ki: float = K["PID_KI"]  # N/(m s)
+    kd: float = K["PID_KD"]  # N s/m
     integral: float = 0.0
+
+
+@dataclass(frozen=True)
+class Envelope:
+    """The limits frozen by lockEnvelope: setters may narrow inside it until restart, never widen beyond it."""
+
+    max_vel: float
+    max_acc: float
+    max_force: float
+    max_current: float
+    max_tracking_error: float
+    pos_min: float
+    pos_max: float
 
 
 class LinarmSimCore:
@@ -230,10 +251,12 @@ class LinarmSimCore:
 
     def __init__(self, params: LinarmParams | None = None, patient: PatientForce | None = None, *,
                  initial_centre: float = 0.20, initial_delta: float = 0.02, start_homed: bool = False,
-                 firmware_version: str = FIRMWARE_VERSION) -> None:
+                 firmware_version: str = FIRMWARE_VERSION, service_mode: bool = False) -> None:
         self.p = params or LinarmParams()
         self.patient: PatientForce = patient or NoPatient()
-        self.firmware_version = firmware_version
+        # Booted with the service jumper fitted: calibration, endstrokes and PID gains stay open after the lock.
+        self.service_mode = service_mode
+        self.firmware_version = firmware_version + (SERVICE_SUFFIX if service_mode else "")
         self.receiver = ArduinoReceiver()
         self._ticks = 0
         self._clock = 0.0
@@ -267,18 +290,19 @@ class LinarmSimCore:
         self.virtual_disp = 0.0
         self.endstrokes_disabled = False
         # limits and parameters (setters in the protocol)
-        self.pos_min, self.pos_max = 0.08, 0.42
-        self.max_tracking_error = 0.02
-        self.max_force = 60.0
-        self.max_current = 5.0
-        self.max_acc = 2.0
-        self.max_vel = 0.5
+        self.pos_min, self.pos_max = K["POS_MIN"], K["POS_MAX"]
+        self.max_tracking_error = K["MAX_TRACKING_ERROR"]
+        self.max_force = K["MAX_FORCE"]
+        self.max_current = K["MAX_CURRENT"]
+        self.max_acc = K["MAX_ACCELERATION"]
+        self.max_vel = K["MAX_VELOCITY"]
         # 0.2 m/s seek: a full homing takes ~4 s (every exercise starts with one)
-        self.home_centre, self.home_delta, self.homing_velocity = 0.25, 0.02, HOMING_VELOCITY
-        self.ka = 0.005  # m/(N s)
-        self.kt = 100.0  # N/m
-        self.assist_target = 0.25
+        self.home_centre, self.home_delta, self.homing_velocity = K["HOME_CENTRE"], K["HOME_DELTA"], HOMING_VELOCITY
+        self.ka = K["ADMITTANCE_KA"]  # m/(N s)
+        self.kt = K["ASSISTANCE_KT"]  # N/m
+        self.assist_target = K["ASSISTANCE_TARGET"]
         self.pid = [_Pid(), _Pid()]
+        self.envelope: Envelope | None = None  # lockEnvelope: until restart
         # references
         self.centre_ref = initial_centre
         self.delta_ref = initial_delta
@@ -588,14 +612,20 @@ class LinarmSimCore:
         self._home_deadline = self.time + self._seek_timeout()
 
     def _seek_timeout(self) -> float:
-        return 1.5 * (self.p.rail_max - self.p.rail_min) / self.homing_velocity + 1.0
+        return 1.5 * (self.p.rail_max - self.p.rail_min) / self._seek_velocity() + 1.0
+
+    def _seek_velocity(self) -> float:
+        # The locked envelope holds during homing too (a patient's narrower limits do not slow homing down).
+        return min(self.homing_velocity, self.envelope.max_vel) if self.envelope else self.homing_velocity
 
     def _start_move_home(self, m: dict[str, Any]) -> None:
         self.home_state = HomeState.HOME_MOVE_TO_HOME
         centre = (m["x"][0] + m["x"][1]) / 2
         delta = self.p.delta_of(m["x"][0], m["x"][1])
         self._set_motor_refs(centre, delta, 0.0, 0.0)
-        vel = max(self.homing_velocity, 0.05)
+        vel = max(self.homing_velocity, K["HOME_MOVE_MIN_VELOCITY"])
+        if self.envelope is not None:
+            vel = min(vel, self.envelope.max_vel)  # homing stays in the envelope
         self.centre_traj = plan_trajectory(centre, self.home_centre, vel, self.max_acc, 0.0, self.trajectory_type)
         self.delta_traj = plan_trajectory(delta, self.home_delta, vel, self.max_acc, 0.0, self.trajectory_type)
         self.centre_traj.t0 = self.delta_traj.t0 = self.time
@@ -608,7 +638,7 @@ class LinarmSimCore:
                 self._latch(ErrorState.HOMING_FAILED, f"endstroke not found in {self._seek_timeout():.0f} s")
                 return
             direction = -1.0 if hs is HomeState.HOME_SEEK_MIN else 1.0
-            vel = direction * self.homing_velocity
+            vel = direction * self._seek_velocity()
             self.motor_vel_ref = [vel, vel]
             # the reference may lead the carriage by 5 mm at most: a stalled carriage is not a
             # tracking error here, it runs into the homing timeout instead
@@ -688,10 +718,22 @@ class LinarmSimCore:
             self._latch(ErrorState.WATCHDOG, f"no host bytes for {t - self._last_host_time:.3f} s")
             return
         on = self.ctrl_state is ControlState.ON_CTRL_STATE
+        env = self.envelope
+        if env is not None and on and not self.demo:  # the locked envelope first: the host's monitor, one layer down
+            margin = ENVELOPE_POSITION_MARGIN
+            if abs(m["vh"]) > ENVELOPE_VELOCITY_FACTOR * env.max_vel:
+                self._latch(ErrorState.ENVELOPE_BREACH, f"handle at {abs(m['vh']):.3f} m/s, above 1.2 x the locked "
+                                                        f"{env.max_vel:g} m/s")
+                return
+            if not env.pos_min - margin <= m["h"] <= env.pos_max + margin:
+                self._latch(ErrorState.ENVELOPE_BREACH, f"handle at {m['h']:.3f} m, outside the locked "
+                                                        f"{env.pos_min:g}..{env.pos_max:g} m")
+                return
         if on and abs(m["force"]) > self.max_force:
             self._latch(ErrorState.OVER_FORCE, f"interaction force {m['force']:.1f} N")
             return
-        if on and (m["h"] < self.pos_min - 0.02 or m["h"] > self.pos_max + 0.02):
+        margin = POSITION_LIMIT_MARGIN
+        if on and (m["h"] < self.pos_min - margin or m["h"] > self.pos_max + margin):
             self._latch(ErrorState.POSITION_LIMIT, f"handle at {m['h']:.3f} m")
             return
         if self.demo:
@@ -705,14 +747,14 @@ class LinarmSimCore:
                                                      self.x[1] >= self.p.switch_max):
             self._latch(ErrorState.ENDSTROKE_HIT, "endstroke switch closed")
             return
-        vmax = 1.5 * self.max_vel
+        vmax = OVER_VELOCITY_FACTOR * self.max_vel
         if on and (abs(m["vh"]) > vmax or abs(m["v"][0]) > vmax or abs(m["v"][1]) > vmax):
             self._latch(ErrorState.OVER_VELOCITY, f"handle at {m['vh']:.2f} m/s")
             return
         if max(abs(self.current[0]), abs(self.current[1])) > self.max_current:
             if self._over_current_since is None:
                 self._over_current_since = t
-            elif t - self._over_current_since >= 0.05:
+            elif t - self._over_current_since >= OVER_CURRENT_TIME:
                 self._latch(ErrorState.OVER_CURRENT, f"motor current above {self.max_current:g} A for 50 ms")
         else:
             self._over_current_since = None
@@ -785,8 +827,8 @@ class LinarmSimCore:
     def _plan(self, start: float, target: float, max_vel: float, max_acc: float, exec_time: float,
               trigger: bool) -> Trajectory:
         if exec_time == 0.0:
-            self._in_range("maxVel", max_vel, 1e-6, self.max_vel)
-            self._in_range("maxAcc", max_acc, 1e-6, self.max_acc)
+            self._in_range("maxVel", max_vel, K["MOVE_LIMIT_MIN"], self.max_vel)
+            self._in_range("maxAcc", max_acc, K["MOVE_LIMIT_MIN"], self.max_acc)
         vel = max_vel if max_vel > 0 else self.max_vel
         acc = max_acc if max_acc > 0 else self.max_acc
         traj = plan_trajectory(start, target, min(vel, self.max_vel), min(acc, self.max_acc), exec_time,
@@ -882,14 +924,14 @@ class LinarmSimCore:
         self.trajectory_type = type
 
     def _cmd_setAdmittanceParameter(self, Ka: float) -> None:
-        self._in_range("Ka", Ka, 0.0, 1.0)
+        self._in_range("Ka", Ka, 0.0, K["KA_MAX"])
         self.ka = Ka
 
     def _cmd_getAdmittanceParameter(self) -> tuple[float]:
         return (self.ka,)
 
     def _cmd_setAssistanceParameter(self, Kt: float) -> None:
-        self._in_range("Kt", Kt, 0.0, 5000.0)
+        self._in_range("Kt", Kt, 0.0, K["KT_MAX"])
         self.kt = Kt
 
     def _cmd_getAssistanceParameter(self) -> tuple[float]:
@@ -906,13 +948,15 @@ class LinarmSimCore:
         self.virtual_vsa = virtual
 
     def _cmd_setVirtualVsaSpringDisplacement(self, disp: float) -> None:
-        self._in_range("disp", disp, -0.05, 0.05)
+        self._in_range("disp", disp, -K["VIRTUAL_DISP_MAX"], K["VIRTUAL_DISP_MAX"])
         self.virtual_disp = disp
 
     def _cmd_getIsInitialized(self) -> tuple[bool]:
         return (self.initialized,)
 
     def _cmd_disableEndstrokes(self, disable: bool) -> None:
+        if disable:  # enabling them again is always allowed
+            self._need_service("disableEndstrokes")
         self.endstrokes_disabled = disable
 
     def _cmd_setTriggerMode(self, mode: TriggerMode) -> None:
@@ -931,41 +975,50 @@ class LinarmSimCore:
         self.stream_enabled = False
 
     def _cmd_setMotorOffset(self, index: int, offset: float) -> None:
+        self._need_service("setMotorOffset")
         self._need_state(ControlState.IDLE_CTRL_STATE)
         self.motor_offset[index] = offset
 
     def _cmd_setMobileOffset(self, offset: float) -> None:
+        self._need_service("setMobileOffset")
         self._need_state(ControlState.IDLE_CTRL_STATE)
         self.mobile_offset = offset
 
     def _cmd_setMotorRatio(self, index: int, ratio: float) -> None:
+        self._need_service("setMotorRatio")
         self._need_state(ControlState.IDLE_CTRL_STATE)
-        self._in_range("ratio", ratio, 1e-9, 1.0)
+        self._in_range("ratio", ratio, K["RATIO_MIN"], K["RATIO_MAX"])
         self.motor_ratio[index] = ratio
 
     def _cmd_setMobileRatio(self, ratio: float) -> None:
+        self._need_service("setMobileRatio")
         self._need_state(ControlState.IDLE_CTRL_STATE)
-        self._in_range("ratio", ratio, 1e-9, 1.0)
+        self._in_range("ratio", ratio, K["RATIO_MIN"], K["RATIO_MAX"])
         self.mobile_ratio = ratio
 
     def _cmd_setMaxTrackingError(self, maxTrackingError: float) -> None:
-        self._in_range("maxTrackingError", maxTrackingError, 1e-6, 0.1)
+        self._in_range("maxTrackingError", maxTrackingError, K["MAX_TRACKING_ERROR_MIN"], K["MAX_TRACKING_ERROR_MAX"])
+        self._within_envelope("maxTrackingError", maxTrackingError, "max_tracking_error")
         self.max_tracking_error = maxTrackingError
 
     def _cmd_setMaxForce(self, maxForce: float) -> None:
-        self._in_range("maxForce", maxForce, 0.1, 200.0)
+        self._in_range("maxForce", maxForce, K["MAX_FORCE_MIN"], K["MAX_FORCE_MAX"])
+        self._within_envelope("maxForce", maxForce, "max_force")
         self.max_force = maxForce
 
     def _cmd_setMaxCurrent(self, maxCurrent: float) -> None:
-        self._in_range("maxCurrent", maxCurrent, 0.01, self.p.current_hw_limit)
+        self._in_range("maxCurrent", maxCurrent, K["MAX_CURRENT_MIN"], self.p.current_hw_limit)
+        self._within_envelope("maxCurrent", maxCurrent, "max_current")
         self.max_current = maxCurrent
 
     def _cmd_setMaxAcceleration(self, maxAcc: float) -> None:
-        self._in_range("maxAcc", maxAcc, 1e-3, 10.0)
+        self._in_range("maxAcc", maxAcc, K["MAX_ACC_MIN"], K["MAX_ACC_MAX"])
+        self._within_envelope("maxAcc", maxAcc, "max_acc")
         self.max_acc = maxAcc
 
     def _cmd_setMaxVelocity(self, maxVel: float) -> None:
-        self._in_range("maxVel", maxVel, 1e-3, 1.0)
+        self._in_range("maxVel", maxVel, K["MAX_VEL_MIN"], K["MAX_VEL_MAX"])
+        self._within_envelope("maxVel", maxVel, "max_vel")
         self.max_vel = maxVel
 
     def _cmd_setHomeParameter(self, homeCentre: float, homeDelta: float, homingVelocity: float) -> None:
@@ -973,20 +1026,43 @@ class LinarmSimCore:
             raise _Refuse(ReplyError.BUSY, "homing in progress")
         self._in_range("homeCentre", homeCentre, self.pos_min, self.pos_max)
         self._in_range("homeDelta", homeDelta, self.p.delta_min, self.p.delta_max)
-        self._in_range("homingVelocity", homingVelocity, 1e-3, self.max_vel)
+        self._in_range("homingVelocity", homingVelocity, K["HOMING_VELOCITY_MIN"], self.max_vel)
         self.home_centre, self.home_delta, self.homing_velocity = homeCentre, homeDelta, homingVelocity
 
     def _cmd_setPosLimit(self, minPos: float, maxPos: float) -> None:
         self._in_range("minPos", minPos, self.p.rail_min, self.p.rail_max)
-        self._in_range("maxPos", maxPos, minPos + 1e-3, self.p.rail_max)
+        self._in_range("maxPos", maxPos, minPos + K["POS_LIMIT_MIN_SPAN"], self.p.rail_max)
+        env = self.envelope
+        if env is not None and (minPos < env.pos_min or maxPos > env.pos_max):
+            raise _Refuse(ReplyError.LOCKED, f"position limits {minPos:g}..{maxPos:g} m beyond the locked "
+                                             f"{env.pos_min:g}..{env.pos_max:g} m (restart to change them)")
         self.pos_min, self.pos_max = minPos, maxPos
 
     def _cmd_setPidTunings(self, index: int, kp: float, ki: float, kd: float) -> None:
-        self._in_range("kp", kp, 0.0, 1e6)
-        self._in_range("ki", ki, 0.0, 1e7)
-        self._in_range("kd", kd, 0.0, 1e4)
+        self._in_range("kp", kp, 0.0, K["KP_MAX"])
+        self._in_range("ki", ki, 0.0, K["KI_MAX"])
+        self._in_range("kd", kd, 0.0, K["KD_MAX"])
+        self._need_service("setPidTunings")
         pid = self.pid[index]
         pid.kp, pid.ki, pid.kd = kp, ki, kd
 
     def _cmd_getState(self) -> None:
         return None
+
+    def _cmd_lockEnvelope(self) -> tuple[float, ...]:
+        # Locking again can only narrow: the limits are inside the envelope already.
+        env = self.envelope = Envelope(self.max_vel, self.max_acc, self.max_force, self.max_current,
+                                       self.max_tracking_error, self.pos_min, self.pos_max)
+        return (env.max_vel, env.max_acc, env.max_force, env.max_current, env.max_tracking_error, env.pos_min,
+                env.pos_max)
+
+    # the envelope: after lockEnvelope, limits only inside it; service commands only in service mode
+    def _within_envelope(self, name: str, value: float, field: str) -> None:
+        if self.envelope is not None and value > getattr(self.envelope, field):
+            raise _Refuse(ReplyError.LOCKED, f"{name}={value:g} beyond the locked {getattr(self.envelope, field):g} "
+                                             "(restart to change it)")
+
+    def _need_service(self, name: str) -> None:
+        if self.envelope is not None and not self.service_mode:
+            raise _Refuse(ReplyError.LOCKED, f"{name} refused: the envelope is locked (service mode only, "
+                                             "entered at boot)")

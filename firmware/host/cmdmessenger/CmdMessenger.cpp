@@ -1,7 +1,34 @@
 // Host-side stand-in for CmdMessenger 4.2.0 (see CmdMessenger.h for what it models).
 #include "CmdMessenger.h"
 
+#include <limits.h>
 #include <stdio.h>
+
+namespace {
+
+// atol/atoi as on the DUE (newlib, ILP32): long is 32 bits and strtol saturates at LONG_MIN/LONG_MAX, so
+// "4294967299" reads as 2147483647 (id 255 after the library's casts), not as 3 as an LP64 atol would.
+// The host build must give the DUE's answer, whatever the PC's long is.
+int32_t dueAtol(const char* s) {
+  while (*s == ' ' || (*s >= '\t' && *s <= '\r')) ++s;
+  bool negative = false;
+  if (*s == '+' || *s == '-') negative = *s++ == '-';
+  const int64_t limit = negative ? -static_cast<int64_t>(INT32_MIN) : static_cast<int64_t>(INT32_MAX);
+  int64_t value = 0;
+  for (; *s >= '0' && *s <= '9'; ++s) {
+    value = value * 10 + (*s - '0');
+    if (value > limit) {
+      value = limit;  // saturated; the remaining digits change nothing
+      while (*s >= '0' && *s <= '9') ++s;
+      break;
+    }
+  }
+  return static_cast<int32_t>(negative ? -value : value);
+}
+
+int dueAtoi(const char* s) { return static_cast<int>(dueAtol(s)); }  // int is 32 bits on the DUE too
+
+}  // namespace
 
 CmdMessenger::CmdMessenger(Stream& comms, const char fld_separator, const char cmd_separator,
                            const char esc_character)
@@ -10,7 +37,8 @@ CmdMessenger::CmdMessenger(Stream& comms, const char fld_separator, const char c
       commandSeparator_(cmd_separator),
       escapeCharacter_(esc_character),
       printNewlines_(false),
-      startCommand_(false),
+      // startCommand_ is left alone, as 4.2.0's init() does: a static instance starts zeroed, any other
+      // must be built on zeroed memory (host/sim/rig.h, ZeroedMessenger).
       defaultCallback_(0),
       bufferIndex_(0),
       lastChar_(0),
@@ -101,7 +129,7 @@ char* CmdMessenger::next() {
 int16_t CmdMessenger::readInt16Arg() {
   if (next()) {
     argOk_ = true;
-    return static_cast<int16_t>(atoi(current_));
+    return static_cast<int16_t>(dueAtoi(current_));
   }
   argOk_ = false;
   return 0;
@@ -110,7 +138,7 @@ int16_t CmdMessenger::readInt16Arg() {
 int32_t CmdMessenger::readInt32Arg() {
   if (next()) {
     argOk_ = true;
-    return static_cast<int32_t>(atol(current_));
+    return static_cast<int32_t>(dueAtol(current_));
   }
   argOk_ = false;
   return 0;
@@ -158,7 +186,9 @@ void CmdMessenger::sendCmdEscArg(char* arg) {
 
 bool CmdMessenger::sendCmdEnd(bool reqAc, byte, unsigned int) {
   if (reqAc) {
+#ifndef LINARM_BARE_METAL  // the Cortex-M3 size build keeps stdio out
     fprintf(stderr, "CmdMessenger (host): sendCmdEnd with reqAc would block the control loop\n");
+#endif
     abort();
   }
   if (startCommand_) {

@@ -5,13 +5,15 @@
 //  * receive: bytes kept with their escapes in a 64-byte buffer; an unescaped ';' ends a message;
 //    after 63 stored bytes the buffer is emptied and reading goes on (the tail of an overlong message
 //    becomes a new message, usually command 0);
-//  * the command id is atoi() of the first field cast to uint8; ids < 50 with an attached callback
+//  * the command id is atoi() of the first field cast to int16 then uint8, with the DUE's atoi (32-bit long,
+//    saturating: "4294967299" is id 255, whatever the PC's long); ids < 50 with an attached callback
 //    reach it, everything else the default callback;
 //  * arguments: leading separators are skipped (empty fields vanish); readStringArg returns the raw,
 //    still escaped text; available() advances the cursor like next();
 //  * send: sendCmdStart prints the id, sendCmdArg prints text, sendCmdBinArg / sendCmdEscArg escape
 //    ',' ';' '/' and NUL, sendCmdEnd prints ';'. There is no length limit when sending.
 // sendCmdEnd(reqAc = true) aborts the host program: the firmware must never block waiting for an ack.
+// As in 4.2.0, the constructor does not set startCommand: build an instance on zeroed memory (README).
 #ifndef LINARM_HOST_CMDMESSENGER_H
 #define LINARM_HOST_CMDMESSENGER_H
 

@@ -3,7 +3,9 @@
 #define LINARM_RIG_H
 
 #include <CmdMessenger.h>
+#include <string.h>
 
+#include <new>
 #include <string>
 
 #include "buffer_stream.h"
@@ -12,10 +14,31 @@
 #include "sim_hal.h"
 #include "sim_plant.h"
 
+// CmdMessenger 4.2.0's init() never sets startCommand: an instance on uninitialised memory may send its
+// first frame without its id (",0;"). The sketch's instance is static, so zeroed before construction; a Rig
+// can live on the stack, so its messenger is built in storage zeroed here (the stand-in, like 4.2.0, leaves
+// startCommand to the memory it is given).
+class ZeroedMessenger {
+ public:
+  explicit ZeroedMessenger(Stream& comms) {
+    memset(storage_, 0, sizeof storage_);
+    messenger_ = new (storage_) CmdMessenger(comms);
+  }
+  ~ZeroedMessenger() { messenger_->~CmdMessenger(); }
+  CmdMessenger& get() { return *messenger_; }
+
+ private:
+  ZeroedMessenger(const ZeroedMessenger&);
+  ZeroedMessenger& operator=(const ZeroedMessenger&);
+  alignas(CmdMessenger) unsigned char storage_[sizeof(CmdMessenger)];
+  CmdMessenger* messenger_;
+};
+
 struct RigOptions {
   double centre = 0.20;  // m, where the plant starts
   double delta = 0.02;   // m, pretension
   bool startHomed = false;
+  bool serviceMode = false;  // as if booted with the service jumper fitted
   PlantParams params;
   const char* firmwareVersion = "sil-1.0";
 };
@@ -23,8 +46,8 @@ struct RigOptions {
 class Rig {
  public:
   explicit Rig(const RigOptions& o = RigOptions())
-      : plant(o.params, o.centre, o.delta), hal(plant), messenger(stream), linarm(hal),
-        app(messenger, stream, linarm, hal, o.firmwareVersion) {
+      : plant(o.params, o.centre, o.delta), hal(plant, o.serviceMode), messengerStorage(stream),
+        messenger(messengerStorage.get()), linarm(hal), app(messenger, stream, linarm, hal, o.firmwareVersion) {
     hal.begin();
     linarm.begin();
     if (o.startHomed) linarm.presetHomed(static_cast<float>(plant.x[0]), static_cast<float>(plant.x[1]),
@@ -51,7 +74,8 @@ class Rig {
   SimPlant plant;
   SimHal hal;
   BufferStream stream;
-  CmdMessenger messenger;
+  ZeroedMessenger messengerStorage;
+  CmdMessenger& messenger;
   Linarm linarm;
   LinarmApp app;
 };

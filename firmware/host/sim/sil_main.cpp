@@ -1,11 +1,14 @@
 // Software-in-the-loop LINarm controller: the firmware's logic on a simulated robot, speaking the wire
 // protocol on stdin/stdout (give it a pty master to look like a serial port).
 //
-//   linarm_sil [--centre M] [--delta M] [--start-homed]            real time, raw protocol bytes
+//   linarm_sil [--centre M] [--delta M] [--start-homed] [--service]   real time, raw protocol bytes
 //   linarm_sil --lockstep [...]                                    simulated time, driven line by line:
 //       "S <hex>"  host bytes arrive now      -> "R <hex>" (what the firmware wrote)
 //       "A <n>"    run n control ticks (1 ms) -> "R <hex>"
+//       "F <N>"    a constant push on the handle (N, + towards +x) -> "R <hex>"
+//       "N"        a fresh controller and robot, as after a restart (boot IDENTIFY) -> "R <hex>"
 //       "Q"        quit
+// --service: booted with the service jumper fitted (docs/linarm-protocol.md, "Safety envelope").
 #include <errno.h>
 #include <fcntl.h>
 #include <poll.h>
@@ -17,6 +20,7 @@
 #include <unistd.h>
 
 #include <iostream>
+#include <memory>
 #include <string>
 
 #include "rig.h"
@@ -58,15 +62,23 @@ bool writeAll(int fd, const std::string& data) {
   return true;
 }
 
-int lockstep(Rig& rig) {
+int lockstep(const RigOptions& options) {
+  std::unique_ptr<Rig> rig(new Rig(options));
   std::string line;
   while (std::getline(std::cin, line)) {
     if (line.empty()) continue;
     std::string out;
     if (line[0] == 'S') {
-      out = rig.send(fromHex(line.size() > 2 ? line.substr(2) : ""));
+      out = rig->send(fromHex(line.size() > 2 ? line.substr(2) : ""));
     } else if (line[0] == 'A') {
-      out = rig.advance(strtoul(line.c_str() + 1, 0, 10));
+      out = rig->advance(strtoul(line.c_str() + 1, 0, 10));
+    } else if (line[0] == 'F') {
+      rig->plant.externalForce = atof(line.c_str() + 1);
+      out = rig->stream.take();
+    } else if (line[0] == 'N') {
+      rig.reset();
+      rig.reset(new Rig(options));
+      out = rig->stream.take();
     } else if (line[0] == 'Q') {
       return 0;
     } else {
@@ -127,13 +139,15 @@ int main(int argc, char** argv) {
     std::string a = argv[i];
     if (a == "--lockstep") step = true;
     else if (a == "--start-homed") o.startHomed = true;
+    else if (a == "--service") o.serviceMode = true;
     else if (a == "--centre" && i + 1 < argc) o.centre = atof(argv[++i]);
     else if (a == "--delta" && i + 1 < argc) o.delta = atof(argv[++i]);
     else {
-      std::cerr << "usage: linarm_sil [--lockstep] [--centre M] [--delta M] [--start-homed]\n";
+      std::cerr << "usage: linarm_sil [--lockstep] [--centre M] [--delta M] [--start-homed] [--service]\n";
       return 2;
     }
   }
+  if (step) return lockstep(o);
   Rig rig(o);
-  return step ? lockstep(rig) : realtime(rig);
+  return realtime(rig);
 }

@@ -9,7 +9,8 @@
 
 class SimHal : public Hal {
  public:
-  explicit SimHal(SimPlant& plant) : plant_(plant), us_(0) {}
+  explicit SimHal(SimPlant& plant, bool serviceJumper = false)
+      : plant_(plant), us_(0), serviceJumper_(serviceJumper) {}
   void begin() override {}
   uint32_t micros() override { return us_; }
   void advanceMicros(uint32_t us) { us_ += us; }
@@ -31,10 +32,12 @@ class SimHal : public Hal {
     return plant_.enabled ? static_cast<float>(plant_.current[i & 1]) : 0.0f;
   }
   float handleForceSensor() override { return static_cast<float>(plant_.externalForce); }
+  bool serviceJumper() override { return serviceJumper_; }
 
  private:
   SimPlant& plant_;
   uint32_t us_;
+  bool serviceJumper_;
 };
 
 #endif  // LINARM_SIM_HAL_H

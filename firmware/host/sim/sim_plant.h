@@ -7,15 +7,19 @@
 
 #include <stdint.h>
 
+#include "linarm_config.h"
+
+// The constants of the generated table (app/devices/linarm_constants.py), as the Python simulator uses them.
 struct PlantParams {
-  double railMin = 0.0, railMax = 0.50;
-  double switchMin = 0.005, switchMax = 0.495;
-  double carriageMass = 1.0, carriageViscous = 30.0, carriageCoulomb = 8.0;
-  double handleMass = 0.5, handleDamping = 20.0;
-  double springA = 150.0, springB = 1.0e6, springFreeLength = 0.04;
-  double bumper = 0.015, contactStiffness = 5.0e4, contactDamping = 200.0;
-  double forceConstant = 20.0, currentHwLimit = 6.0;
-  double encoderResolution = 1.0e-5;
+  double railMin = cfg::RAIL_MIN, railMax = cfg::RAIL_MAX;
+  double switchMin = cfg::SWITCH_MIN_POS, switchMax = cfg::SWITCH_MAX_POS;
+  double carriageMass = cfg::CARRIAGE_MASS, carriageViscous = cfg::CARRIAGE_VISCOUS,
+         carriageCoulomb = cfg::CARRIAGE_COULOMB;
+  double handleMass = cfg::HANDLE_MASS, handleDamping = cfg::HANDLE_DAMPING;
+  double springA = cfg::SPRING_A, springB = cfg::SPRING_B, springFreeLength = cfg::SPRING_FREE_LENGTH;
+  double bumper = cfg::BUMPER, contactStiffness = cfg::CONTACT_STIFFNESS, contactDamping = cfg::CONTACT_DAMPING;
+  double forceConstant = cfg::FORCE_CONSTANT, currentHwLimit = cfg::CURRENT_HW_LIMIT;
+  double encoderResolution = cfg::ENCODER_RESOLUTION;
 };
 
 class SimPlant {

@@ -536,6 +536,47 @@ TEST(no_blocking_in_the_control_loop) {
   delete rig;
 }
 
+// ------------------------------------------------------------------------------------------ the DUE's ABI
+TEST(abi_is_the_dues) {
+  // plain char is unsigned on the DUE; the host build says so too (-funsigned-char), the ARM build natively
+  CHECK(static_cast<char>(-1) > 0);
+#if defined(__arm__)
+  CHECK(sizeof(int) == 4 && sizeof(long) == 4 && sizeof(void*) == 4);  // ILP32, as the Cortex-M3
+#endif
+  // An overlong frame whose tail starts with an integer above 2^31: the DUE's atol saturates (id 255,
+  // UNKNOWN_COMMAND); an LP64 atol would have read 3 (resetError) and ACKed it.
+  Rig rig;
+  Host host(rig);
+  Frame f = host.send(";27,1," + std::string(58, '9') + "4294967299,5;");
+  CHECK(f.id == proto::MSG_ERROR && f.num(0) == 5 && f.num(1) == 255 && f.num(2) == proto::UNKNOWN_COMMAND);
+}
+
+TEST(first_frame_carries_its_id) {
+  // CmdMessenger 4.2.0 leaves startCommand to the memory it is built on: the rig zeroes it (ZeroedMessenger).
+  Rig* rig = new Rig();
+  std::string boot = rig->stream.take();
+  CHECK(boot.compare(0, 4, "100,") == 0);
+  delete rig;
+}
+
+TEST(envelope_lock) {
+  Host* host;
+  Rig* rig = makeReady(RigOptions(), &host);
+  CHECK(host->cmd(Cmd(proto::CMD_SET_MAX_VELOCITY, host->next()).f(0.3f)) == 0);
+  Frame ack = host->send(Cmd(proto::CMD_LOCK_ENVELOPE, host->next()).str());
+  CHECK(ack.id == proto::MSG_ACK && ack.fields.size() == 9);
+  CHECK_NEAR(ack.flt(2), 0.3, 1e-7);
+  CHECK(host->cmd(Cmd(proto::CMD_SET_MAX_VELOCITY, host->next()).f(0.31f)) == proto::LOCKED);
+  CHECK(host->cmd(Cmd(proto::CMD_SET_MAX_VELOCITY, host->next()).f(0.2f)) == 0);
+  CHECK(host->cmd(Cmd(proto::CMD_SET_MAX_VELOCITY, host->next()).f(0.3f)) == 0);
+  CHECK(host->cmd(Cmd(proto::CMD_DISABLE_ENDSTROKES, host->next()).b(true)) == proto::LOCKED);
+  CHECK(host->cmd(Cmd(proto::CMD_SET_PID_TUNINGS, host->next()).i(0).f(1.0f).f(0.0f).f(0.0f)) == proto::LOCKED);
+  CHECK(rig->linarm.envelopeLocked() && !rig->linarm.serviceMode());
+  CHECK_NEAR(rig->linarm.pid(0).kp, cfg::PID_KP, 1e-3);
+  delete host;
+  delete rig;
+}
+
 int main(int argc, char** argv) {
   const char* filter = argc > 1 ? argv[1] : "";
   int run = 0;

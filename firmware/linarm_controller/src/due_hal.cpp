@@ -29,6 +29,9 @@ void isrEnc2() { decode(2); }
 }  // namespace
 
 void DueHal::begin() {
+  pinMode(pins::SERVICE_JUMPER, INPUT_PULLUP);
+  delay(2);  // let the pull-up charge the pin before it is read, once
+  serviceJumper_ = digitalRead(pins::SERVICE_JUMPER) == LOW;
   analogWriteResolution(12);
   analogReadResolution(12);
   for (int i = 0; i < 2; ++i) {

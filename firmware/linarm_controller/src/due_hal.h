@@ -21,10 +21,13 @@ const uint8_t ENC_MOBILE_B = 35;
 const uint8_t ENDSTROKE[2] = {40, 41};  // 0: min (motor 0), 1: max (motor 1)
 // Handle force sensor amplifier, 0..3.3 V = -FORCE_RANGE..+FORCE_RANGE.
 const uint8_t FORCE_SENSOR = A2;
+// Service jumper to GND (INPUT_PULLUP: LOW = fitted), read once in begin(): fitted at boot = service mode.
+const uint8_t SERVICE_JUMPER = 52;
 }  // namespace pins
 
 class DueHal : public Hal {
  public:
+  DueHal() : serviceJumper_(false) {}
   void begin() override;
   uint32_t micros() override;
   int32_t motorCount(uint8_t index) override;
@@ -34,6 +37,10 @@ class DueHal : public Hal {
   void setMotorCurrent(uint8_t index, float amps) override;
   float motorCurrent(uint8_t index) override;
   float handleForceSensor() override;
+  bool serviceJumper() override { return serviceJumper_; }
+
+ private:
+  bool serviceJumper_;  // as read at boot: pulling or fitting the jumper later changes nothing
 };
 
 #endif  // LINARM_DUE_HAL_H

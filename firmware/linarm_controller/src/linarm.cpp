@@ -17,6 +17,7 @@ bool inRange(float value, float lo, float hi) {
 float clampf(float v, float lo, float hi) { return v < lo ? lo : (v > hi ? hi : v); }
 
 const Result OUT_OF_RANGE_R = {proto::OUT_OF_RANGE, "value out of range"};
+const Result SERVICE_ONLY_R = {proto::LOCKED, "envelope locked: service mode only (jumper at boot)"};
 
 }  // namespace
 
@@ -24,7 +25,8 @@ Linarm::Linarm(Hal& hal)
     : hal_(hal), ticks_(0), ctrlState_(proto::IDLE_CTRL_STATE), ctrlMode_(proto::POS_REF_BY_VEL),
       homeState_(proto::HOME_NOT_DONE), errorState_(proto::NO_ERROR), triggerMode_(proto::NO_TRIGGER),
       trajectoryType_(proto::TRAPEZOIDAL), triggerParam_(0.0f), initialized_(false), demo_(false),
-      virtualVsa_(false), endstrokesDisabled_(false), virtualDisp_(0.0f), homeCentre_(cfg::HOME_CENTRE),
+      virtualVsa_(false), endstrokesDisabled_(false), virtualDisp_(0.0f), locked_(false), serviceMode_(false),
+      homeCentre_(cfg::HOME_CENTRE),
       homeDelta_(cfg::HOME_DELTA), homingVelocity_(cfg::HOMING_VELOCITY), ka_(cfg::ADMITTANCE_KA),
       kt_(cfg::ASSISTANCE_KT), assistTarget_(cfg::ASSISTANCE_TARGET), mobileRatio_(cfg::ENCODER_RESOLUTION),
       mobileOffset_(0.0f), centreRef_(0.0f), deltaRef_(0.0f), centreVelRef_(0.0f), deltaVelRef_(0.0f),
@@ -45,6 +47,7 @@ Linarm::Linarm(Hal& hal)
 }
 
 void Linarm::begin() {
+  serviceMode_ = hal_.serviceJumper();  // only here: service mode is entered at boot or not at all
   hal_.enableMotors(false);
   histFill_ = 0;
   measure();
@@ -215,8 +218,13 @@ void Linarm::checkTriggers() {
 }
 
 // ------------------------------------------------------------------------------------------ homing
+float Linarm::seekVelocity() const {
+  // The locked envelope holds during homing too (a patient's narrower limits do not slow homing down).
+  return locked_ && homingVelocity_ > envelope_.maxVelocity ? envelope_.maxVelocity : homingVelocity_;
+}
+
 uint32_t Linarm::seekTimeoutTicks() const {
-  return static_cast<uint32_t>((1.5f * (cfg::RAIL_MAX - cfg::RAIL_MIN) / homingVelocity_ + 1.0f) * 1000.0f);
+  return static_cast<uint32_t>((1.5f * (cfg::RAIL_MAX - cfg::RAIL_MIN) / seekVelocity() + 1.0f) * 1000.0f);
 }
 
 bool Linarm::homingBusy() const {
@@ -246,6 +254,7 @@ void Linarm::startMoveHome() {
   float delta = vsa::deltaOf(meas_.x[0], meas_.x[1]);
   setMotorRefs(centre, delta, 0.0f, 0.0f);
   float vel = homingVelocity_ > cfg::HOME_MOVE_MIN_VELOCITY ? homingVelocity_ : cfg::HOME_MOVE_MIN_VELOCITY;
+  if (locked_ && vel > envelope_.maxVelocity) vel = envelope_.maxVelocity;  // homing stays in the envelope
   centreTraj_.plan(centre, homeCentre_, vel, limits_.maxAcceleration, 0.0, trajectoryType_);
   deltaTraj_.plan(delta, homeDelta_, vel, limits_.maxAcceleration, 0.0, trajectoryType_);
   centreTraj_.startAt(ticks_);
@@ -269,7 +278,7 @@ void Linarm::homing() {
       latch(proto::HOMING_FAILED, "endstroke not found before the seek timeout");
       return;
     }
-    float vel = (hs == proto::HOME_SEEK_MIN ? -1.0f : 1.0f) * homingVelocity_;
+    float vel = (hs == proto::HOME_SEEK_MIN ? -1.0f : 1.0f) * seekVelocity();
     for (int i = 0; i < 2; ++i) {
       motorVelRef_[i] = vel;
       // the reference leads by SEEK_LEAD at most: a stalled carriage runs into the timeout instead
@@ -337,7 +346,8 @@ void Linarm::supervise() {
   in.handleVel = meas_.vh;
   in.force = meas_.force;
   const char* message = "";
-  proto::ErrorState e = checkLimits(limits_, in, overCurrent_, ticks_, &message);
+  proto::ErrorState e = locked_ ? checkEnvelope(envelope_, in, &message) : proto::NO_ERROR;
+  if (e == proto::NO_ERROR) e = checkLimits(limits_, in, overCurrent_, ticks_, &message);
   if (e != proto::NO_ERROR) latch(e, message);
 }
 
@@ -537,6 +547,7 @@ Result Linarm::setVirtualVsaSpringDisplacement(float disp) {
 }
 
 Result Linarm::disableEndstrokes(bool disable) {
+  if (disable && serviceLocked()) return SERVICE_ONLY_R;  // enabling them again is always allowed
   endstrokesDisabled_ = disable;
   return Result::ok();
 }
@@ -552,18 +563,21 @@ Result Linarm::setTriggerParameter(float param) {
 }
 
 Result Linarm::setMotorOffset(uint8_t index, float offset) {
+  if (serviceLocked()) return SERVICE_ONLY_R;  // calibration moves every limit's reference
   if (ctrlState_ != proto::IDLE_CTRL_STATE) return Result::refuse(proto::WRONG_STATE, "IDLE only");
   motorOffset_[index & 1] = offset;
   return Result::ok();
 }
 
 Result Linarm::setMobileOffset(float offset) {
+  if (serviceLocked()) return SERVICE_ONLY_R;  // calibration moves every limit's reference
   if (ctrlState_ != proto::IDLE_CTRL_STATE) return Result::refuse(proto::WRONG_STATE, "IDLE only");
   mobileOffset_ = offset;
   return Result::ok();
 }
 
 Result Linarm::setMotorRatio(uint8_t index, float ratio) {
+  if (serviceLocked()) return SERVICE_ONLY_R;  // calibration moves every limit's reference
   if (ctrlState_ != proto::IDLE_CTRL_STATE) return Result::refuse(proto::WRONG_STATE, "IDLE only");
   if (!inRange(ratio, cfg::RATIO_MIN, cfg::RATIO_MAX)) return OUT_OF_RANGE_R;
   motorRatio_[index & 1] = ratio;
@@ -571,6 +585,7 @@ Result Linarm::setMotorRatio(uint8_t index, float ratio) {
 }
 
 Result Linarm::setMobileRatio(float ratio) {
+  if (serviceLocked()) return SERVICE_ONLY_R;  // calibration moves every limit's reference
   if (ctrlState_ != proto::IDLE_CTRL_STATE) return Result::refuse(proto::WRONG_STATE, "IDLE only");
   if (!inRange(ratio, cfg::RATIO_MIN, cfg::RATIO_MAX)) return OUT_OF_RANGE_R;
   mobileRatio_ = ratio;
@@ -579,30 +594,40 @@ Result Linarm::setMobileRatio(float ratio) {
 
 Result Linarm::setMaxTrackingError(float v) {
   if (!inRange(v, cfg::MAX_TRACKING_ERROR_MIN, cfg::MAX_TRACKING_ERROR_MAX)) return OUT_OF_RANGE_R;
+  if (locked_ && v > envelope_.maxTrackingError)
+    return Result::refuse(proto::LOCKED, "maxTrackingError beyond the locked envelope (restart to change it)");
   limits_.maxTrackingError = v;
   return Result::ok();
 }
 
 Result Linarm::setMaxForce(float v) {
   if (!inRange(v, cfg::MAX_FORCE_MIN, cfg::MAX_FORCE_MAX)) return OUT_OF_RANGE_R;
+  if (locked_ && v > envelope_.maxForce)
+    return Result::refuse(proto::LOCKED, "maxForce beyond the locked envelope (restart to change it)");
   limits_.maxForce = v;
   return Result::ok();
 }
 
 Result Linarm::setMaxCurrent(float v) {
   if (!inRange(v, cfg::MAX_CURRENT_MIN, cfg::CURRENT_HW_LIMIT)) return OUT_OF_RANGE_R;
+  if (locked_ && v > envelope_.maxCurrent)
+    return Result::refuse(proto::LOCKED, "maxCurrent beyond the locked envelope (restart to change it)");
   limits_.maxCurrent = v;
   return Result::ok();
 }
 
 Result Linarm::setMaxAcceleration(float v) {
   if (!inRange(v, cfg::MAX_ACC_MIN, cfg::MAX_ACC_MAX)) return OUT_OF_RANGE_R;
+  if (locked_ && v > envelope_.maxAcceleration)
+    return Result::refuse(proto::LOCKED, "maxAcceleration beyond the locked envelope (restart to change it)");
   limits_.maxAcceleration = v;
   return Result::ok();
 }
 
 Result Linarm::setMaxVelocity(float v) {
   if (!inRange(v, cfg::MAX_VEL_MIN, cfg::MAX_VEL_MAX)) return OUT_OF_RANGE_R;
+  if (locked_ && v > envelope_.maxVelocity)
+    return Result::refuse(proto::LOCKED, "maxVelocity beyond the locked envelope (restart to change it)");
   limits_.maxVelocity = v;
   return Result::ok();
 }
@@ -623,6 +648,8 @@ Result Linarm::setPosLimit(float minPos, float maxPos) {
   if (!inRange(minPos, cfg::RAIL_MIN, cfg::RAIL_MAX)) return Result::refuse(proto::OUT_OF_RANGE, "minPos");
   if (!inRange(maxPos, minPos + cfg::POS_LIMIT_MIN_SPAN, cfg::RAIL_MAX))
     return Result::refuse(proto::OUT_OF_RANGE, "maxPos");
+  if (locked_ && (minPos < envelope_.posMin || maxPos > envelope_.posMax))
+    return Result::refuse(proto::LOCKED, "position limits beyond the locked envelope (restart to change them)");
   limits_.posMin = minPos;
   limits_.posMax = maxPos;
   return Result::ok();
@@ -631,9 +658,17 @@ Result Linarm::setPosLimit(float minPos, float maxPos) {
 Result Linarm::setPidTunings(uint8_t index, float kp, float ki, float kd) {
   if (!inRange(kp, 0.0f, cfg::KP_MAX) || !inRange(ki, 0.0f, cfg::KI_MAX) || !inRange(kd, 0.0f, cfg::KD_MAX))
     return OUT_OF_RANGE_R;
+  if (serviceLocked()) return SERVICE_ONLY_R;  // the loop gains are part of what was validated
   Pid& p = pid_[index & 1];
   p.kp = kp;
   p.ki = ki;
   p.kd = kd;
+  return Result::ok();
+}
+
+Result Linarm::lockEnvelope() {
+  // Locking again can only narrow: the limits are inside the envelope already.
+  envelope_ = limits_;
+  locked_ = true;
   return Result::ok();
 }

@@ -87,6 +87,7 @@ class Linarm {
   Result setHomeParameter(float centre, float delta, float velocity);
   Result setPosLimit(float minPos, float maxPos);
   Result setPidTunings(uint8_t index, float kp, float ki, float kd);
+  Result lockEnvelope();  // the current limits become the envelope until restart
 
   // State
   uint32_t ticks() const { return ticks_; }
@@ -107,6 +108,9 @@ class Linarm {
   float centreReference() const { return centreRef_; }
   float deltaReference() const { return deltaRef_; }
   const Limits& limits() const { return limits_; }
+  bool envelopeLocked() const { return locked_; }
+  const Limits& envelope() const { return envelope_; }
+  bool serviceMode() const { return serviceMode_; }
   const Pid& pid(int i) const { return pid_[i]; }
   float admittance() const { return ka_; }
   float assistance() const { return kt_; }
@@ -130,10 +134,12 @@ class Linarm {
   void homing();
   void referenceMotor(int i, float position);
   uint32_t seekTimeoutTicks() const;
+  float seekVelocity() const;  // homingVelocity, never above the locked maxVelocity
   bool homingBusy() const;
   Result plan(Trajectory* out, float start, float target, float maxVel, float maxAcc, float execTime,
               bool trigger);
   Result moveDelta(float target, float maxVel, float maxAcc, float execTime, bool trigger);
+  bool serviceLocked() const { return locked_ && !serviceMode_; }
 
   Hal& hal_;
   uint32_t ticks_;
@@ -147,6 +153,9 @@ class Linarm {
   bool initialized_, demo_, virtualVsa_, endstrokesDisabled_;
   float virtualDisp_;
   Limits limits_;
+  Limits envelope_;   // what lockEnvelope() froze; limits_ stays inside it
+  bool locked_;       // until restart: nothing clears it
+  bool serviceMode_;  // the service jumper, read at boot (begin)
   float homeCentre_, homeDelta_, homingVelocity_;
   float ka_, kt_, assistTarget_;
   Pid pid_[2];

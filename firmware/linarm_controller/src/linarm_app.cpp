@@ -67,7 +67,7 @@ void LinarmApp::handle() {
 
 void LinarmApp::execute(const wire::Command& cmd) {
   const wire::ArgValue* a = cmd.args;
-  wire::ArgValue ret[4];
+  wire::ArgValue ret[7] = {};
   int nret = 0;
   Result r = Result::ok();
   switch (cmd.id) {
@@ -130,6 +130,15 @@ void LinarmApp::execute(const wire::Command& cmd) {
     case proto::CMD_SET_PID_TUNINGS:
       r = linarm_.setPidTunings(static_cast<uint8_t>(a[0].i), a[1].f, a[2].f, a[3].f);
       break;
+    case proto::CMD_LOCK_ENVELOPE: {
+      r = linarm_.lockEnvelope();
+      const Limits& e = linarm_.envelope();
+      const float values[7] = {e.maxVelocity, e.maxAcceleration, e.maxForce, e.maxCurrent, e.maxTrackingError,
+                               e.posMin, e.posMax};
+      for (int k = 0; k < 7; ++k) ret[k].f = values[k];
+      nret = 7;  // sendAck stops at the table's returnCount
+      break;
+    }
     case proto::CMD_GET_STATE:
       sendAck(cmd, ret, 0);
       sendStateFrames(true);
@@ -186,7 +195,14 @@ void LinarmApp::sendIdentify(uint16_t seq) {
   messenger_.sendCmdArg(static_cast<unsigned long>(seq));
   messenger_.sendCmdArg(static_cast<unsigned int>(proto::PROTOCOL_VERSION));
   sendText(proto::DEVICE_NAME);
-  sendText(firmwareVersion_);
+  // "+service" tells the host (and the operator) that calibration stays possible after the lock.
+  char version[48];
+  size_t n = 0;
+  for (; firmwareVersion_[n] != 0 && n < sizeof version - 9; ++n) version[n] = firmwareVersion_[n];
+  const char* suffix = linarm_.serviceMode() ? "+service" : "";
+  for (size_t k = 0; suffix[k] != 0; ++k) version[n++] = suffix[k];
+  version[n] = 0;
+  sendText(version);
   messenger_.sendCmdEnd();
 }
 

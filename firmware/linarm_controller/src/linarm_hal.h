@@ -23,6 +23,9 @@ class Hal {
   // Handle force sensor (N, + pushes towards +x). The controller estimates the interaction force from the
   // spring elongations (as the simulator does); the sensor value is kept for diagnostics.
   virtual float handleForceSensor() = 0;
+  // The service jumper, read once at boot: calibration, endstroke and PID work stay possible after the
+  // envelope lock only when the controller booted with it fitted (docs/linarm-protocol.md, "Safety envelope").
+  virtual bool serviceJumper() = 0;
 };
 
 #endif  // LINARM_LINARM_HAL_H

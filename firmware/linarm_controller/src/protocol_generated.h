@@ -9,7 +9,7 @@
 
 namespace proto {
 
-static const char TABLE_HASH[] = "8cb077b89b475b7c";
+static const char TABLE_HASH[] = "4fec3ec322fa0660";
 static const uint8_t PROTOCOL_VERSION = 1;
 static const char DEVICE_NAME[] = "LINarm2";
 static const uint8_t ARDUINO_MAX_MESSAGE = 62;
@@ -63,9 +63,10 @@ enum ErrorState : uint8_t {
   WATCHDOG = 6,
   POSITION_LIMIT = 7,
   HOMING_FAILED = 8,
+  ENVELOPE_BREACH = 9,
 };
 static const uint8_t ERROR_STATES_MIN = 0;
-static const uint8_t ERROR_STATES_MAX = 8;
+static const uint8_t ERROR_STATES_MAX = 9;
 
 // TRIGGER_MODES
 enum TriggerMode : uint8_t {
@@ -95,9 +96,10 @@ enum ReplyError : uint8_t {
   IN_ERROR = 7,
   BUSY = 8,
   NOT_SUPPORTED = 9,
+  LOCKED = 10,
 };
 static const uint8_t REPLY_ERRORS_MIN = 1;
-static const uint8_t REPLY_ERRORS_MAX = 9;
+static const uint8_t REPLY_ERRORS_MAX = 10;
 
 // Host -> controller commands (ids 0..49 reach attached callbacks)
 enum CommandId : uint8_t {
@@ -142,9 +144,10 @@ enum CommandId : uint8_t {
   CMD_SET_POS_LIMIT = 38,
   CMD_SET_PID_TUNINGS = 39,
   CMD_GET_STATE = 40,
+  CMD_LOCK_ENVELOPE = 41,
 };
-static const uint8_t COMMAND_COUNT = 41;
-static const uint8_t COMMAND_ID_MAX = 40;
+static const uint8_t COMMAND_COUNT = 42;
+static const uint8_t COMMAND_ID_MAX = 41;
 
 // Controller -> host messages
 enum MessageId : uint8_t {
@@ -318,6 +321,15 @@ static const ArgSpec ARGS_SET_PID_TUNINGS[] = {
   {"ki", ARG_F32, true, false, 0.0f, 0.0f, 0, 0},
   {"kd", ARG_F32, true, false, 0.0f, 0.0f, 0, 0},
 };
+static const ArgSpec RETURNS_LOCK_ENVELOPE[] = {
+  {"maxVel", ARG_F32, false, false, 0.0f, 0.0f, 0, 0},
+  {"maxAcc", ARG_F32, false, false, 0.0f, 0.0f, 0, 0},
+  {"maxForce", ARG_F32, false, false, 0.0f, 0.0f, 0, 0},
+  {"maxCurrent", ARG_F32, false, false, 0.0f, 0.0f, 0, 0},
+  {"maxTrackingError", ARG_F32, false, false, 0.0f, 0.0f, 0, 0},
+  {"minPos", ARG_F32, false, false, 0.0f, 0.0f, 0, 0},
+  {"maxPos", ARG_F32, false, false, 0.0f, 0.0f, 0, 0},
+};
 
 // Indexed by command id.
 static const CommandSpec COMMANDS[] = {
@@ -362,6 +374,7 @@ static const CommandSpec COMMANDS[] = {
   {CMD_SET_POS_LIMIT, "setPosLimit", 2, ARGS_SET_POS_LIMIT, 0, 0, REPLY_ACK},
   {CMD_SET_PID_TUNINGS, "setPidTunings", 4, ARGS_SET_PID_TUNINGS, 0, 0, REPLY_ACK},
   {CMD_GET_STATE, "getState", 0, 0, 0, 0, REPLY_ACK},
+  {CMD_LOCK_ENVELOPE, "lockEnvelope", 0, 0, 7, RETURNS_LOCK_ENVELOPE, REPLY_ACK},
 };
 
 inline const CommandSpec* findCommand(uint8_t id) {

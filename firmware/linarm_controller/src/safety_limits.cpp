@@ -36,3 +36,17 @@ proto::ErrorState checkLimits(const Limits& lim, const SupervisionInput& in, Ove
   }
   return proto::NO_ERROR;
 }
+
+proto::ErrorState checkEnvelope(const Limits& env, const SupervisionInput& in, const char** message) {
+  if (!in.on || in.demo) return proto::NO_ERROR;
+  if (fabsf(in.handleVel) > cfg::ENVELOPE_VELOCITY_FACTOR * env.maxVelocity) {
+    *message = "handle speed above 1.2 x the locked maxVelocity";
+    return proto::ENVELOPE_BREACH;
+  }
+  if (in.handlePos < env.posMin - cfg::ENVELOPE_POSITION_MARGIN ||
+      in.handlePos > env.posMax + cfg::ENVELOPE_POSITION_MARGIN) {
+    *message = "handle outside the locked position range";
+    return proto::ENVELOPE_BREACH;
+  }
+  return proto::NO_ERROR;
+}

@@ -61,4 +61,9 @@ class OverCurrentTimer {
 proto::ErrorState checkLimits(const Limits& limits, const SupervisionInput& in, OverCurrentTimer& overCurrent,
                               uint32_t tick, const char** message);
 
+// The locked envelope, checked before the limits (in ON, not in demo): the handle faster than
+// ENVELOPE_VELOCITY_FACTOR x the locked maxVelocity, or more than ENVELOPE_POSITION_MARGIN outside the locked
+// range: ENVELOPE_BREACH. The same rule as the host's monitor (app/safety.py), one layer below it.
+proto::ErrorState checkEnvelope(const Limits& envelope, const SupervisionInput& in, const char** message);
+
 #endif  // LINARM_SAFETY_LIMITS_H

@@ -1,0 +1,110 @@
+"""The command line: ``linarmpp`` (installed), ``linarmpp-gui`` (Windows, no console) and ``python main.py``
+all run :func:`main`. With no arguments: the clinician window, every device simulated.
+
+    linarmpp [--config FILE]                                the clinician window
+    linarmpp --headless --script FILE [--duration S] [--record DIR]
+    linarmpp --version
+    linarmpp --install-desktop-entry                       the application menu entry (Linux)
+
+The parser is built in one place, :func:`build_parser`: a new option is one ``add_argument`` line there.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+
+from app import __version__
+
+
+def build_parser(prog: str | None = None) -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog=prog, description="LINarm++ Manager")
+    parser.add_argument("--version", action="version", version=f"LINarm++ Manager {__version__}")
+    parser.add_argument("--config", help="YAML configuration (defaults: every device simulated)")
+    parser.add_argument("--headless", action="store_true", help="no window: run --script and exit")
+    parser.add_argument("--script", help="exercise script to run (with --headless)")
+    parser.add_argument("--duration", type=float, help="stop the script after this many seconds")
+    parser.add_argument("--record", help="record the session into this folder")
+    parser.add_argument("--screenshot", help="save the window to this PNG once every device is connected, then quit")
+    parser.add_argument("--quit-after", type=float, help="close the window after this many seconds")
+    parser.add_argument("--verbose", action="store_true")
+    parser.add_argument("--install-desktop-entry", action="store_true",
+                        help="add LINarm++ Manager to this user's application menu (Linux), then exit")
+    return parser
+
+
+def parse_args(argv: list[str], prog: str | None = None) -> argparse.Namespace:
+    return build_parser(prog).parse_args(argv)
+
+
+def main(argv: list[str] | None = None, prog: str | None = None) -> int:
+    args = parse_args(sys.argv[1:] if argv is None else argv, prog)
+    if args.install_desktop_entry:
+        return _install_desktop_entry()
+    if not os.environ.get("DISPLAY") and not os.environ.get("WAYLAND_DISPLAY") and sys.platform.startswith("linux"):
+        os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
+    import logging
+
+    from app.config import ConfigError, load_config
+    from app.logging_setup import setup_logging
+
+    setup_logging(logging.DEBUG if args.verbose else logging.INFO)
+    try:
+        config = load_config(args.config)
+    except ConfigError as exc:
+        _report_error(f"Configuration refused, nothing was started:\n  {exc}")
+        return 2
+    if args.headless:
+        if not args.script:
+            _report_error("--headless needs --script FILE")
+            return 2
+        from app.scripting.headless import run_headless
+
+        return run_headless(config, args.script, duration_s=args.duration, record_dir=args.record)
+    from app.application import run_gui
+
+    return run_gui(config, screenshot=args.screenshot, quit_after_s=args.quit_after)
+
+
+def _install_desktop_entry() -> int:
+    from app.desktop_entry import install_desktop_entry
+
+    if sys.platform in ("win32", "darwin"):
+        _report_error("--install-desktop-entry is for Linux desktops (freedesktop.org menus)")
+        return 2
+    try:
+        written = install_desktop_entry()
+    except OSError as exc:
+        _report_error(f"The desktop entry was not installed: {exc}")
+        return 1
+    print("Installed (remove these files to undo):\n  " + "\n  ".join(str(p) for p in written))
+    return 0
+
+
+def console_main() -> int:
+    """``linarmpp``: the console script."""
+    return main(prog="linarmpp")
+
+
+def gui_main() -> int:
+    """``linarmpp-gui``: started without a console (Windows ``pythonw``), where there is no stdout or
+    stderr; output goes to the log file and a refused configuration is shown in a message box."""
+    global _no_console
+    for name in ("stdout", "stderr"):
+        if getattr(sys, name) is None:
+            setattr(sys, name, open(os.devnull, "w", encoding="utf-8"))  # open for the life of the process
+            _no_console = True
+    return main(prog="linarmpp-gui")
+
+
+_no_console = False  # errors cannot be printed where anyone sees them: show them in a message box too
+
+
+def _report_error(text: str) -> None:
+    print(text, file=sys.stderr)
+    if _no_console:
+        from PySide6.QtWidgets import QApplication, QMessageBox
+
+        _app = QApplication.instance() or QApplication(sys.argv)
+        QMessageBox.critical(None, "LINarm++ Manager", text)
