@@ -8,6 +8,7 @@ link (pty or localhost socket) and a clock. ``kill()`` closes the link like pull
 from __future__ import annotations
 
 import logging
+import os
 import threading
 import time
 from collections.abc import Callable
@@ -49,9 +50,9 @@ class SerialSimulator:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._lock = threading.Lock()  # guards `core` against test/GUI threads poking it
-        # In the simulator process the device stands in for a microcontroller: it is not the app's CPU
-        # load, and starving it would measure the rig, not the app (app.devices.sim.host sets this).
-        self.realtime_priority: int | None = None
+        # The device stands in for a microcontroller: it is not the app's CPU load, and starving it would
+        # measure the rig, not the app. Real-time (below the LINarm link's 20) when the OS allows.
+        self.realtime_priority: int | None = None if os.environ.get("LINARMPP_SIM_REALTIME") == "0" else 10
 
     @property
     def url(self) -> str:

@@ -40,7 +40,7 @@ ROOT = Path(__file__).resolve().parents[3]
 FIRMWARE_BUILD_DIRS = (ROOT / "firmware" / "build", ROOT / "firmware" / "build" / "pytest")
 HOST_ENV = "LINARMPP_SIM_HOST"
 EVENTS_ENV = "LINARMPP_SIM_EVENTS"  # a file the simulator process appends its device state events to
-SIMULATOR_RT_PRIORITY = 10  # below the app's device links (20, 19): the devices' own clocks, like an MCU
+SIMULATOR_RT_PRIORITY = 10  # the SIL firmware's, as SerialSimulator's: below the LINarm link (20, 21)
 PR_SET_PDEATHSIG = 1
 
 # What the Simulation panel and tests may ask of a device's simulator core, by name: one table for both
@@ -264,9 +264,7 @@ def serve(spec: dict[str, Any], commands: Any, replies: Any) -> int:
     patient = SimulatedPatient(seed=int(spec.get("patient_seed", 7)))
     sims = build_simulators(spec, patient, emit)
     for sim in sims.values():
-        if os.environ.get("LINARMPP_SIM_REALTIME") != "0":
-            sim.realtime_priority = SIMULATOR_RT_PRIORITY
-        sim.start()
+        sim.start()  # real-time device threads (SerialSimulator.realtime_priority)
     emit({"ready": {name: sim.url for name, sim in sims.items()}, "pid": os.getpid()})
     parent_gone = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_a: parent_gone.set())
