@@ -89,7 +89,7 @@ class AssistanceSplit:
 
 
 RobotApply = Callable[[float, float, float], None]  # (k_m N/m, k_a m/(s·N), k_t N/m)
-FesApply = Callable[[float], None]                  # pulse width µs
+FesApply = Callable[[float | None], None]           # pulse width µs; None = the profile's (α lost)
 
 
 class AssistanceInactive(Exception):
@@ -173,11 +173,21 @@ class AssistanceController:
             self._recompute(now)
 
     def invalidate(self) -> None:
-        """The patient model is lost: forget α, so no later gain or map change re-applies a stale one."""
+        """The patient model is lost: forget α, so no later gain or map change re-applies a stale one, and
+        return what α had set to its non-α value: the FES pulse width to the profile's (override None),
+        the robot's parameters to the split at α = 0 (assistive gain at its floor: no pull from a model
+        that is gone)."""
         with self._lock:
             self._alpha = None
             self._targets = None
             self._pending = False
+            if self.applied_pulse_width_us is not None and self._apply_fes is not None:
+                if self._call("FES", self._apply_fes, None):  # type: ignore[arg-type]
+                    self.applied_pulse_width_us = None
+            if self.applied_robot is not None and self._apply_robot is not None:
+                neutral = self._split.compute(0.0, self._k_r, self._k_f)
+                if self._call("robot", self._apply_robot, neutral.k_m, neutral.k_a, neutral.k_t):
+                    self.applied_robot = None
 
     def on_patient_model_sample(self, stream: str, t: float, sample: Any) -> None:
         """A driver listener: ``driver.add_listener(controller.on_patient_model_sample)``."""
@@ -245,7 +255,7 @@ class AssistanceController:
             self.apply_count += 1
         return applied
 
-    def _call(self, what: str, fn: Callable[..., None], *args: float) -> bool:
+    def _call(self, what: str, fn: Callable[..., None], *args: float | None) -> bool:
         try:
             fn(*args)
         except AssistanceInactive:

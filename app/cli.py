@@ -5,6 +5,9 @@ all run :func:`main`. With no arguments: the clinician window, every device simu
     linarmpp --headless --script FILE [--duration S] [--record DIR]
     linarmpp --version
     linarmpp --install-desktop-entry                       the application menu entry (Linux)
+    linarmpp --metrics SESSION_FOLDER                      per-repetition metrics as JSON (docs/metrics.md)
+    linarmpp --report SESSION_FOLDER --out FILE.pdf        the session's PDF report
+    linarmpp --progress PATIENT_ID --out FILE.pdf          the patient's progress PDF
 
 The parser is built in one place, :func:`build_parser`: a new option is one ``add_argument`` line there.
 """
@@ -28,6 +31,10 @@ def build_parser(prog: str | None = None) -> argparse.ArgumentParser:
     parser.add_argument("--record", help="record the session into this folder")
     parser.add_argument("--screenshot", help="save the window to this PNG once every device is connected, then quit")
     parser.add_argument("--quit-after", type=float, help="close the window after this many seconds")
+    parser.add_argument("--metrics", metavar="SESSION_FOLDER", help="print the session's per-repetition metrics (JSON)")
+    parser.add_argument("--report", metavar="SESSION_FOLDER", help="write the session's PDF report to --out")
+    parser.add_argument("--progress", metavar="PATIENT_ID", help="write the patient's progress PDF to --out")
+    parser.add_argument("--out", metavar="FILE", help="output file of --report / --progress")
     parser.add_argument("--verbose", action="store_true")
     parser.add_argument("--install-desktop-entry", action="store_true",
                         help="add LINarm++ Manager to this user's application menu (Linux), then exit")
@@ -40,6 +47,9 @@ def parse_args(argv: list[str], prog: str | None = None) -> argparse.Namespace:
 
 def main(argv: list[str] | None = None, prog: str | None = None) -> int:
     args = parse_args(sys.argv[1:] if argv is None else argv, prog)
+    from app.paths import set_private_umask
+
+    set_private_umask()  # patient data: files 0600, folders 0700, whatever the login's umask (issue #17)
     if args.install_desktop_entry:
         return _install_desktop_entry()
     if not os.environ.get("DISPLAY") and not os.environ.get("WAYLAND_DISPLAY") and sys.platform.startswith("linux"):
@@ -53,8 +63,15 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
     try:
         config = load_config(args.config)
     except ConfigError as exc:
-        _report_error(f"Configuration refused, nothing was started:\n  {exc}")
+        # Headless: exit 2 and the message; the window: also a dialog naming the file and line.
+        _report_error(f"Configuration refused, nothing was started:\n  {exc}",
+                      window=not args.headless and os.environ.get("QT_QPA_PLATFORM") != "offscreen")
         return 2
+    if args.metrics or args.report or args.progress:
+        from app.reports import run_report_command
+
+        return run_report_command(config, metrics=args.metrics, report=args.report, progress=args.progress,
+                                  out=args.out)
     if args.headless:
         if not args.script:
             _report_error("--headless needs --script FILE")
@@ -101,9 +118,9 @@ def gui_main() -> int:
 _no_console = False  # errors cannot be printed where anyone sees them: show them in a message box too
 
 
-def _report_error(text: str) -> None:
+def _report_error(text: str, window: bool = False) -> None:
     print(text, file=sys.stderr)
-    if _no_console:
+    if _no_console or window:
         from PySide6.QtWidgets import QApplication, QMessageBox
 
         _app = QApplication.instance() or QApplication(sys.argv)

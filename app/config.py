@@ -8,6 +8,7 @@ key and line named (see app.yamlschema).
 
 from __future__ import annotations
 
+import ipaddress
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
@@ -80,10 +81,42 @@ class UdpEndpoint:
     peer_host: str = "127.0.0.1"
     peer_port: int = field(default=0, metadata=rng(0, 65535))
     rate_hz: float = field(default=100.0, metadata=rng(1, 2000, "Hz"))
+    # Listening on anything but loopback exposes the link to the network: only when the site says so.
+    allow_remote: bool = False
+    # A per-session key and a MAC on every datagram (app.devices.udp_frames). null = on for our own
+    # embedded model / VR stand-in, off for an `external` peer (the seed's plain layout, Matlab/Unity).
+    authenticate: bool | None = None
+    key_file: str = ""  # `external` with authenticate: true: a file holding the shared key in hex
+
+    @property
+    def authenticated(self) -> bool:
+        return self.mode != "external" if self.authenticate is None else self.authenticate
 
     def validate(self) -> None:
         if self.mode == "external" and not self.peer_port:
             raise ValueError("mode is 'external' but peer_port is not set")
+        bind = _ip("bind_host", self.bind_host)
+        if not bind.is_loopback and not self.allow_remote:
+            raise ValueError(f"bind_host {self.bind_host} is not a loopback address: the link would be open to "
+                             "the network; set allow_remote: true to allow it")
+        if self.peer_host.replace(".", "").isdigit() or ":" in self.peer_host:
+            peer = _ip("peer_host", self.peer_host)
+            if self.mode == "external" and not peer.is_loopback and not self.allow_remote:
+                raise ValueError(f"peer_host {self.peer_host} is not a loopback address; set allow_remote: true "
+                                 "to talk to a peer on another machine")
+        elif not self.peer_host or len(self.peer_host) > 253:
+            raise ValueError(f"peer_host {self.peer_host!r} is not a host name or address")
+        if self.mode == "external" and self.authenticate and not self.key_file:
+            raise ValueError("authenticate is true for an external peer but key_file is not set")
+
+
+def _ip(key: str, text: str) -> ipaddress.IPv4Address | ipaddress.IPv6Address:
+    if text == "localhost":
+        return ipaddress.ip_address("127.0.0.1")
+    try:
+        return ipaddress.ip_address(text)
+    except ValueError:
+        raise ValueError(f"{key} {text!r} is not an IP address") from None
 
 
 @dataclass(frozen=True)
@@ -133,6 +166,11 @@ class FesSafety:
     frequency_hz: float = field(default=40.0, metadata=rng(1, 100, "Hz"))
     channels: dict[int, FesChannelCaps] = field(default_factory=dict)
 
+    def validate(self) -> None:
+        bad = [ch for ch in self.channels if not 1 <= ch <= 8]
+        if bad:
+            raise ValueError(f"channels: channel {bad[0]} does not exist; the stimulator has channels 1..8")
+
 
 @dataclass(frozen=True)
 class SafetyConfig:
@@ -143,6 +181,10 @@ class SafetyConfig:
     # ...but never less than this: a Python driver thread can be starved of the GIL for tens of ms while
     # the GUI draws (qt-stack.md §4); 0.25 s matches the controller watchdog and avoids false alarms.
     silence_min_s: float = field(default=0.25, metadata=rng(0.01, 5, "s"))
+    # A device that moves the patient or drives current (LINarm, FES) still silent this long after its
+    # silence alarm is a STOP (app/fault_policy.py): long enough that a host starved for a moment (the
+    # whole process silent at once, as on a loaded CI machine) does not stop a therapy.
+    silence_stop_s: float = field(default=1.0, metadata=rng(0, 10, "s"))
     # What the robot does when a script stops or the app leaves a session: IDLE (motors off) or hold.
     robot_safe_state: Literal["idle", "hold"] = "idle"
 
@@ -171,6 +213,9 @@ class RecordingConfig:
     folder: str = ""  # empty: the user's data folder (shown in Help → About)
     lsl: bool = False
     flush_interval_s: float = field(default=0.5, metadata=rng(0.05, 1.0, "s"))
+    # Free space in the sessions folder at session start: a warning below the first, refused below the second.
+    warn_free_mib: float = field(default=1024.0, metadata=rng(0, 1_000_000, "MiB"))
+    min_free_mib: float = field(default=100.0, metadata=rng(0, 1_000_000, "MiB"))
 
 
 @dataclass(frozen=True)

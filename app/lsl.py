@@ -87,7 +87,8 @@ class LslBridge:
 
     def _make_outlet(self, spec: Any, device: str) -> Any:
         pylsl = self._pylsl
-        info = pylsl.StreamInfo(spec.name, device, len(spec.channels), float(spec.nominal_rate_hz), "double64",
+        info = pylsl.StreamInfo(spec.name, device, len(spec.channels), lsl_rate_hz(self.manager.config, device, spec),
+                                "double64",
                                 f"{SOURCE_PREFIX}.{spec.name}")
         desc = info.desc()
         desc.append_child_value("manufacturer", "LINarm++ Manager")
@@ -177,6 +178,20 @@ def _num(value: Any) -> float:
         return float(value)
     except (TypeError, ValueError):
         return float("nan")
+
+
+# Streams published when something changes (FES: on each update the driver sends, ~10 Hz), not at a fixed
+# rate: declared irregular (0) so an LSL consumer does not expect the stimulation frequency.
+IRREGULAR_STREAMS: frozenset[str] = frozenset({"fes.channels"})
+
+
+def lsl_rate_hz(config: Any, device: str, spec: Any) -> float:
+    """The nominal rate declared to LSL: the configured rate, or 0 (irregular)."""
+    if spec.name in IRREGULAR_STREAMS:
+        return 0.0
+    from app.recording import configured_rate_hz
+
+    return float(configured_rate_hz(config, device, spec))
 
 
 def start_lsl(manager: LinarmppManager, force: bool = False) -> LslBridge | None:

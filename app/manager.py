@@ -52,6 +52,9 @@ class LinarmppManager(QObject):
         from app.progress import ExerciseProgress
 
         self.progress = ExerciseProgress(self.supervisor.event)  # the running exercise's repetitions
+        from app.fault_policy import FaultPolicy
+
+        self.fault_policy = FaultPolicy(self)  # every STOP alarm -> safe state (window and headless alike)
 
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> None:
@@ -77,6 +80,7 @@ class LinarmppManager(QObject):
                 handle.simulator.start()
             handle.driver.start()
         log.info("devices started: %s", ", ".join(self.devices) or "none")
+        self.fault_policy.attach_devices()
         self._wire_assistance()
 
     # ------------------------------------------------------------------ the therapy loop
@@ -304,7 +308,8 @@ class LinarmppManager(QObject):
                     self.supervisor.raise_alarm(AlarmLevel.INFO, name, f"{name} reconnected")
                 state["was_connected"] = True
             elif event == "disconnected" and state["was_connected"] and self._started:
-                self.supervisor.raise_alarm(AlarmLevel.STOP, name, f"{name} connection lost: {detail}")
+                self.supervisor.raise_alarm(self.fault_policy.loss_level(name), name,  # STOP unless nothing needs it
+                                            f"{name} connection lost: {detail}")
             elif event == "silent" and self._started:
                 self.supervisor.raise_alarm(AlarmLevel.WARNING, name, f"{name} stopped sending data")
             elif event == "controller_error":

@@ -16,14 +16,14 @@ import re
 import tempfile
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 import yaml
 from yaml.nodes import MappingNode, Node
 
 from app import paths
 from app.config import RobotLimits, SafetyConfig
-from app.yamlschema import ConfigError, load_dataclass, rng, to_plain
+from app.yamlschema import ConfigError, load_dataclass, read_text, rng, to_plain
 
 PROFILE_VERSION = 1
 # Letters, digits, '-' and '_' only: the pseudonym is the file name and the sessions folder name, so it
@@ -91,6 +91,16 @@ class PatientRobotLimits:
 
 
 @dataclass(frozen=True)
+class PlannedExercise:
+    """One step of a therapy plan: an exercise of the library (``resources/exercises/<exercise>.yaml``) and
+    the values for its form (checked against the exercise's schema when it is offered, app/exercises.py)."""
+
+    exercise: str = ""
+    params: dict[str, Any] = field(default_factory=dict)
+    note: str = ""
+
+
+@dataclass(frozen=True)
 class PatientProfile:
     patient_id: str = ""  # identifier or pseudonym; also the file and sessions-folder name
     version: int = field(default=PROFILE_VERSION, metadata=rng(PROFILE_VERSION, PROFILE_VERSION))
@@ -100,6 +110,7 @@ class PatientProfile:
     fes: PatientFes = field(default_factory=PatientFes)
     robot: PatientRobotLimits = field(default_factory=PatientRobotLimits)
     notes: str = ""
+    therapy_plan: list[PlannedExercise] = field(default_factory=list)  # offered in order by the Exercises tab
     created: str = ""  # ISO time with zone, set on first save
     updated: str = ""
 
@@ -222,9 +233,9 @@ def parse_profile(text: str, filename: str, safety: SafetyConfig | None = None) 
 def load_patient(patient_id: str, safety: SafetyConfig | None = None, folder: Path | None = None) -> PatientProfile:
     path = patient_file(patient_id, folder)
     try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise PatientError(str(path), None, "", f"cannot read the file: {exc.strerror or exc}") from exc
+        text = read_text(path)
+    except ConfigError as exc:
+        raise PatientError(exc.filename, exc.line, exc.key, exc.problem) from exc
     profile = parse_profile(text, str(path), safety)
     if profile.patient_id != path.stem:
         raise PatientError(str(path), _line_of(text, "patient_id"), "patient_id",
@@ -287,6 +298,8 @@ def list_patients(folder: Path | None = None, safety: SafetyConfig | None = None
             out.append(PatientEntry(path.stem, path, load_patient(path.stem, safety, folder)))
         except ConfigError as exc:
             out.append(PatientEntry(path.stem, path, None, str(exc)))
+        except Exception as exc:  # one unreadable file must never hide the others
+            out.append(PatientEntry(path.stem, path, None, f"{path}: unreadable: {exc}"))
     return out
 
 

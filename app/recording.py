@@ -18,12 +18,22 @@ start version or the final one, never half of either.
 Threads: the drivers' sample listeners only append to a bounded deque (no lock, no I/O, no
 formatting); one writer thread formats and writes. If the deque is full (the disk stalled for
 minutes) samples are dropped, counted per device, and the drop is recorded as an event.
+
+Write failures (docs/sessions.md, "When recording fails"): any error writing the session files (a full
+disk, a removed drive, a read-only folder) makes the writer call ``on_failure(folder, error)`` once —
+the manager's fault policy raises a STOP alarm naming the folder and the error, which brings the devices
+to their safe state — and from then on samples are dropped (counted) while events are kept in memory and
+appended to ``events.jsonl`` again as soon as a write succeeds (tried every second and at stop).  ``stop``
+never raises; the manifest says ``"status": "failed"`` with when and why (``recording_failure``) when it
+can be written.  ``check_free_space`` refuses to start a session below ``recording.min_free_mib`` and
+warns below ``recording.warn_free_mib``.
 """
 
 from __future__ import annotations
 
 import collections
 import datetime as _dt
+import errno
 import json
 import logging
 import os
@@ -52,6 +62,54 @@ EVENTS_FILE = "events.jsonl"
 STREAMS_DIR = "streams"
 TIME_COLUMN = "t_mono_s"
 _WRITER_PERIOD_S = 0.02  # how often the writer drains the queues (latency, not the flush interval)
+_RETRY_PERIOD_S = 1.0  # after a write error: how often the kept events are tried again
+FILE_MODE = 0o600  # session files hold health data: the user only (folders 0o700)
+DIR_MODE = 0o700
+
+
+class RecordingError(OSError):
+    """A session cannot be recorded (folder unwritable, disk full); the message names the folder."""
+
+
+def _private_dir(path: Path) -> None:
+    try:
+        os.chmod(path, DIR_MODE)
+    except OSError:
+        pass
+
+
+def _open_private(path: Path, **kw: Any) -> TextIO:
+    """Open for appending, created 0600 whatever the umask."""
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_APPEND, FILE_MODE)
+    try:
+        os.fchmod(fd, FILE_MODE) if hasattr(os, "fchmod") else None
+        return open(fd, "a", encoding="utf-8", newline="\n", **kw)
+    except BaseException:
+        os.close(fd)
+        raise
+
+
+def free_space_mib(folder: Path) -> float:
+    import shutil
+
+    probe = folder
+    while not probe.exists() and probe != probe.parent:
+        probe = probe.parent
+    return shutil.disk_usage(probe).free / (1 << 20)
+
+
+def check_free_space(folder: Path, warn_mib: float, min_mib: float) -> str:
+    """'' when there is room; a warning text below ``warn_mib``; raises RecordingError below ``min_mib``."""
+    try:
+        free = free_space_mib(folder)
+    except OSError as exc:
+        raise RecordingError(errno.EIO, f"cannot record in {folder}: {exc.strerror or exc}") from exc
+    if free < min_mib:
+        raise RecordingError(errno.ENOSPC, f"cannot record in {folder}: only {free:.0f} MiB free "
+                                           f"(at least {min_mib:g} MiB needed)")
+    if free < warn_mib:
+        return f"only {free:.0f} MiB free in {folder} (below {warn_mib:g} MiB): the session may not fit"
+    return ""
 
 EventTap = Callable[[dict[str, Any]], None]
 
@@ -75,7 +133,7 @@ def sessions_root(config: AppConfig | None = None) -> Path:
     folder = config.recording.folder if config is not None else ""
     if folder:
         path = Path(folder).expanduser()
-        path.mkdir(parents=True, exist_ok=True)
+        path.mkdir(parents=True, exist_ok=True, mode=DIR_MODE)
         return path
     return paths.sessions_dir()
 
@@ -93,7 +151,8 @@ def stream_file_name(stream: str) -> str:
 def write_json_atomic(path: Path, data: Any) -> None:
     """Write JSON so that ``path`` is always either the old or the new document (temp + fsync + rename)."""
     tmp = path.with_name(f".{path.name}.tmp")
-    with open(tmp, "w", encoding="utf-8") as fh:
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, FILE_MODE)
+    with open(fd, "w", encoding="utf-8") as fh:
         json.dump(data, fh, indent=2, ensure_ascii=False, default=str)
         fh.flush()
         os.fsync(fh.fileno())
@@ -118,14 +177,16 @@ def _fsync_dir(folder: Path) -> None:
 
 def _make_session_folder(root: Path, patient_id: str, now: _dt.datetime) -> Path:
     base = root / safe_name(patient_id)
-    base.mkdir(parents=True, exist_ok=True)
+    base.mkdir(parents=True, exist_ok=True, mode=DIR_MODE)
+    _private_dir(base)
     stamp = now.strftime("%Y%m%d-%H%M%S")
     for n in range(1, 10_000):
         folder = base / (stamp if n == 1 else f"{stamp}-{n}")
         try:
-            folder.mkdir()  # exclusive: an existing session is never reused or overwritten
+            folder.mkdir(mode=DIR_MODE)  # exclusive: an existing session is never reused or overwritten
         except FileExistsError:
             continue
+        _private_dir(folder)
         return folder
     raise RuntimeError(f"cannot create a session folder under {base}")
 
@@ -148,11 +209,24 @@ def _device_versions(driver: Any) -> dict[str, Any]:
     return out
 
 
-def _spec_dict(spec: StreamSpec, device: str) -> dict[str, Any]:
+def configured_rate_hz(config: Any, device: str, spec: StreamSpec) -> float:
+    """The rate a stream runs at with this configuration (the spec's figure is the default's)."""
+    devices = getattr(config, "devices", None)
+    cfg = getattr(devices, device, None)
+    if cfg is None:
+        return spec.nominal_rate_hz
+    if device == "linarm" and spec.name == "linarm.vsa":
+        return float(getattr(cfg, "state_rate_hz", spec.nominal_rate_hz))
+    if device in ("physio", "patient_model", "vr") and spec.name.endswith(".main"):
+        return float(getattr(cfg, "rate_hz", spec.nominal_rate_hz))
+    return spec.nominal_rate_hz
+
+
+def _spec_dict(spec: StreamSpec, device: str, rate_hz: float | None = None) -> dict[str, Any]:
     return {
         "device": device,
         "file": f"{STREAMS_DIR}/{stream_file_name(spec.name)}",
-        "nominal_rate_hz": spec.nominal_rate_hz,
+        "nominal_rate_hz": spec.nominal_rate_hz if rate_hz is None else rate_hz,
         "channels": [{"name": c.name, "unit": c.unit, "label": c.label} for c in spec.channels],
     }
 
@@ -195,6 +269,13 @@ class SessionRecorder:
         self._lock = threading.Lock()  # start/stop only
         self._hooked: set[int] = set()
         self.event_count = 0
+        self.on_failure: Callable[[str, str], None] | None = None  # (folder, error), once per failure
+        self.failure = ""  # the write error, '' while recording works
+        self.failure_t_wall: float | None = None
+        self.failed_samples = 0  # dropped because the files could not be written
+        self._kept_events: list[str] = []  # lines not yet known to be on disk after a failure
+        self._unflushed: list[str] = []  # event lines written since the last successful flush
+        self._next_retry = 0.0
 
     # ------------------------------------------------------------------ public
     @property
@@ -226,8 +307,17 @@ class SessionRecorder:
             self._flush_interval_s = min(float(config.recording.flush_interval_s), 1.0)
             t_wall, t_mono = time.time(), time.monotonic()
             now = _dt.datetime.fromtimestamp(t_wall).astimezone()
-            folder = _make_session_folder(root or sessions_root(config), patient_id, now)
-            (folder / STREAMS_DIR).mkdir()
+            rec = config.recording
+            root = root or sessions_root(config)
+            warning = check_free_space(root, float(getattr(rec, "warn_free_mib", 0)),
+                                       float(getattr(rec, "min_free_mib", 0)))
+            try:
+                folder = _make_session_folder(root, patient_id, now)
+                (folder / STREAMS_DIR).mkdir(mode=DIR_MODE)
+                _private_dir(folder / STREAMS_DIR)
+            except OSError as exc:
+                raise RecordingError(exc.errno or errno.EIO,
+                                     f"cannot record in {root}: {exc.strerror or exc}") from exc
             self.folder = folder
             self._manager = manager
             self._outs.clear()
@@ -237,6 +327,12 @@ class SessionRecorder:
             self._reported_drops.clear()
             self._unknown_streams.clear()
             self.event_count = 0
+            self.failure, self.failure_t_wall, self.failed_samples = "", None, 0
+            self._kept_events.clear()
+            self._unflushed = []
+            policy = getattr(manager, "fault_policy", None)
+            if self.on_failure is None and policy is not None:
+                self.on_failure = policy.recording_failed
             streams: dict[str, Any] = {}
             devices: dict[str, Any] = {}
             for name, handle in manager.devices.items():
@@ -244,12 +340,11 @@ class SessionRecorder:
                 devices[name] = {"simulated": handle.simulated, "connected": bool(driver.connected),
                                  "streams": [s.name for s in driver.streams], **_device_versions(driver)}
                 for spec in driver.streams:
-                    streams[spec.name] = _spec_dict(spec, name)
-                    fh = open(folder / STREAMS_DIR / stream_file_name(spec.name), "a",
-                              encoding="utf-8", newline="\n", buffering=1 << 16)
+                    streams[spec.name] = _spec_dict(spec, name, configured_rate_hz(config, name, spec))
+                    fh = _open_private(folder / STREAMS_DIR / stream_file_name(spec.name), buffering=1 << 16)
                     fh.write(",".join([TIME_COLUMN, *(c.name for c in spec.channels)]) + "\n")
                     self._outs[spec.name] = _StreamOut(spec, fh)
-            self._events_fh = open(folder / EVENTS_FILE, "a", encoding="utf-8", newline="\n")
+            self._events_fh = _open_private(folder / EVENTS_FILE)
             if profile is None:
                 profile = _try_load_profile(patient_id, config)
             from app.config import config_as_dict
@@ -280,6 +375,12 @@ class SessionRecorder:
             self._writer = threading.Thread(target=self._run, name="session-recorder", daemon=True)
             self._writer.start()
             self.event("session_start", operator, patient_id=patient_id, note=note, folder=str(folder))
+            if warning:
+                log.warning("%s", warning)
+                self.event("low_disk_space", "recorder", warning=warning)
+                from app.safety import AlarmLevel
+
+                manager.supervisor.raise_alarm(AlarmLevel.WARNING, "recording", warning[:1].upper() + warning[1:])
             for name, handle in manager.devices.items():
                 self._attach(name, handle.driver)
             sup = manager.supervisor
@@ -327,8 +428,13 @@ class SessionRecorder:
             now = _dt.datetime.fromtimestamp(t_wall).astimezone()
             folder = self.folder
             assert folder is not None
+            failure = None
+            if self.failure:
+                failure = {"t_wall": wall_iso(self.failure_t_wall), "error": self.failure,
+                           "samples_lost": self.failed_samples, "events_not_written": len(self._kept_events)}
             self._manifest.update({
-                "status": "complete",
+                "status": "failed" if self.failure else "complete",
+                "recording_failure": failure,
                 "end": {"t_wall": wall_iso(t_wall), "t_wall_epoch_s": t_wall, "t_mono_s": t_mono,
                         "time_zone": now.tzname() or "", "utc_offset": now.strftime("%z"), "reason": reason},
                 "duration_s": t_mono - self._manifest["start"]["t_mono_s"],
@@ -338,7 +444,12 @@ class SessionRecorder:
                 "dropped_samples": {d: c[0] for d, c in self._drops.items()},
                 "event_count": self.event_count,
             })
-            write_json_atomic(folder / MANIFEST_FILE, self._manifest)
+            try:
+                write_json_atomic(folder / MANIFEST_FILE, self._manifest)
+            except OSError as exc:
+                log.error("the manifest of %s could not be finalised: %s", folder, exc.strerror or exc)
+            if self._kept_events:
+                log.error("%d session events could not be written to %s", len(self._kept_events), folder)
             log.info("session recording stopped (%s): %s", reason, folder)
             return folder
 
@@ -397,21 +508,88 @@ class SessionRecorder:
         try:
             while True:
                 stopping = self._stop.wait(_WRITER_PERIOD_S)
-                self._drain()
                 now = time.monotonic()
-                if stopping or now >= next_flush:
-                    self._flush(sync=self.fsync)
-                    next_flush = now + self._flush_interval_s
+                try:
+                    if self.failure:
+                        self._drain_failed(now, force=stopping)
+                    else:
+                        self._drain()
+                        if stopping or now >= next_flush:
+                            self._flush(sync=self.fsync)
+                            next_flush = now + self._flush_interval_s
+                except Exception as exc:  # a write error: never silent, never fatal
+                    self._fail(exc)
                 if stopping:
                     break
-        except Exception:
-            log.exception("session recorder failed; the session files stop here")
         finally:
             for out in self._outs.values():
                 _close_quietly(out.fh)
             if self._events_fh is not None:
                 _close_quietly(self._events_fh)
                 self._events_fh = None
+
+    def _fail(self, exc: BaseException) -> None:
+        error = (f"{exc.strerror} (errno {exc.errno})" if isinstance(exc, OSError) and exc.strerror
+                 else f"{type(exc).__name__}: {exc}")
+        first = not self.failure
+        self.failure = self.failure or error
+        self.failure_t_wall = self.failure_t_wall or time.time()
+        self._next_retry = time.monotonic() + _RETRY_PERIOD_S
+        # What was written since the last successful flush may not be on disk: keep it to write again.
+        self._kept_events[:0] = self._unflushed
+        self._unflushed = []
+        if not first:
+            return
+        log.error("recording failed in %s: %s", self.folder, error)
+        self._enqueue_event("recording_failed", "recorder", "recorder", {"folder": str(self.folder), "error": error})
+        try:
+            self._manifest.update({"status": "failed", "recording_failure": {
+                "t_wall": wall_iso(self.failure_t_wall), "error": error}})
+            if self.folder is not None:
+                write_json_atomic(self.folder / MANIFEST_FILE, self._manifest)
+        except Exception:
+            pass  # the same disk: the stop tries again
+        if self.on_failure is not None:
+            try:
+                self.on_failure(str(self.folder), error)
+            except Exception:
+                log.exception("recording failure handler failed")
+
+    def _drain_failed(self, now: float, force: bool) -> None:
+        """After a write error: samples are dropped (counted); events are kept and tried again each second."""
+        n = len(self._samples)
+        for _ in range(n):
+            self._samples.popleft()
+        self.failed_samples += n
+        events = self._events
+        for _ in range(len(events)):
+            record = self._event_record(events.popleft())
+            self._kept_events.append(json.dumps(record, ensure_ascii=False, default=str) + "\n")
+            self.event_count += 1
+            self._tap(record)
+        if not (force or now >= self._next_retry) or self.folder is None:
+            return
+        self._next_retry = now + _RETRY_PERIOD_S
+        try:  # a fresh handle: the old one's buffer is in an unknown state
+            with _open_private(self.folder / EVENTS_FILE) as fh:
+                fh.write("".join(self._kept_events))
+                fh.flush()
+                os.fsync(fh.fileno())
+        except OSError:
+            return
+        log.info("recording: %d kept events written to %s", len(self._kept_events), self.folder)
+        self._kept_events.clear()
+
+    def _event_record(self, ev: dict[str, Any]) -> dict[str, Any]:
+        return {"t_wall": wall_iso(ev["t_wall_epoch_s"]), "t_mono": ev["t_mono"], "kind": ev["kind"],
+                "who": ev["who"], "origin": ev["origin"], "data": ev["data"]}
+
+    def _tap(self, record: dict[str, Any]) -> None:
+        for tap in self._taps:
+            try:
+                tap(record)
+            except Exception:
+                log.exception("event tap failed")
 
     def _drain(self) -> None:
         samples = self._samples
@@ -445,18 +623,15 @@ class SessionRecorder:
         fh = self._events_fh
         wrote = False
         for _ in range(len(events)):
-            ev = events.popleft()
-            record = {"t_wall": wall_iso(ev["t_wall_epoch_s"]), "t_mono": ev["t_mono"], "kind": ev["kind"],
-                      "who": ev["who"], "origin": ev["origin"], "data": ev["data"]}
+            record = self._event_record(events[0])
+            line = json.dumps(record, ensure_ascii=False, default=str) + "\n"
+            self._unflushed.append(line)  # before the write: a failing write keeps the event
+            events.popleft()
             if fh is not None:
-                fh.write(json.dumps(record, ensure_ascii=False, default=str) + "\n")
+                fh.write(line)
                 wrote = True
             self.event_count += 1
-            for tap in self._taps:
-                try:
-                    tap(record)
-                except Exception:
-                    log.exception("event tap failed")
+            self._tap(record)
         if wrote and fh is not None:
             fh.flush()  # events (e-stop, alarms) reach the OS at once; fsync follows at the flush interval
 
@@ -469,8 +644,12 @@ class SessionRecorder:
             if sync:
                 try:
                     os.fsync(fh.fileno())
-                except OSError:
-                    log.warning("fsync failed for %s", getattr(fh, "name", fh))
+                except OSError as exc:
+                    if exc.errno in (errno.EINVAL, errno.ENOTSUP, errno.EROFS) and not isinstance(exc, RecordingError):
+                        log.warning("fsync failed for %s", getattr(fh, "name", fh))  # the device cannot sync
+                    else:
+                        raise
+        self._unflushed = []
 
 
 def _close_quietly(fh: TextIO) -> None:

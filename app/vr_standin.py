@@ -28,14 +28,17 @@ from typing import Any
 
 from app.devices.udp_frames import (
     FrameError,
+    SequenceGuard,
     TaskState,
     VrEvent,
     VrEventFrame,
     VrFrame,
     decode_vr_frame,
     encode_vr_event,
+    seal,
+    unseal,
 )
-from app.patient_model.process import ParentWatch, parse_address
+from app.patient_model.process import ParentWatch, parse_address, take_link_key
 
 log = logging.getLogger("vr_standin")
 
@@ -110,19 +113,23 @@ class StandinGame:
 class StandinLink:
     """The socket side: frames from the peer only, events back to it."""
 
-    def __init__(self, listen: tuple[str, int], peer: tuple[str, int], game: StandinGame) -> None:
+    def __init__(self, listen: tuple[str, int], peer: tuple[str, int], game: StandinGame,
+                 key: bytes | None = None) -> None:
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.sock.bind(listen)
         self.peer = peer
         self.peer_ip = socket.gethostbyname(peer[0])
         self.game = game
-        self.counts = {"frames": 0, "events": 0, "foreign": 0, "invalid": 0}
+        self.counts = {"frames": 0, "events": 0, "foreign": 0, "invalid": 0, "replay": 0}
+        self.key = key  # with a key: MAC on every datagram both ways (app.devices.udp_frames)
+        self.guard = SequenceGuard()
         self.last_frame_t = time.monotonic()
 
     def send(self, events: list[VrEventFrame]) -> None:
         for ev in events:
             try:
-                self.sock.sendto(encode_vr_event(ev), self.peer)
+                out = encode_vr_event(ev)
+                self.sock.sendto(seal(self.key, out) if self.key is not None else out, self.peer)
                 self.counts["events"] += 1
             except OSError:
                 pass  # the manager is not listening yet
@@ -142,10 +149,14 @@ class StandinLink:
                 self.counts["foreign"] += 1
             else:
                 try:
-                    frame = decode_vr_frame(data)
+                    frame = decode_vr_frame(unseal(self.key, data) if self.key is not None else data)
                 except FrameError:
                     self.counts["invalid"] += 1
                 else:
+                    if not self.guard.accept(frame.seq):
+                        self.counts["replay"] += 1
+                        self.send(self.game.tick(t))
+                        return
                     self.counts["frames"] += 1
                     self.last_frame_t = t
                     self.send(self.game.on_frame(frame, t))
@@ -251,10 +262,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--idle-exit", type=float, default=10.0, help="s without a frame before exiting (0 = never)")
     ap.add_argument("--parent-pid", type=int, default=None, help="exit when this process is gone")
     args = ap.parse_args(argv)
+    key = take_link_key()
     logging.basicConfig(level=logging.INFO, stream=sys.stderr, format="vr stand-in: %(message)s")
     game = StandinGame(tolerance_m=args.tolerance, hold_s=args.hold, time_limit_s=args.time_limit)
     try:
-        link = StandinLink(args.listen, args.peer, game)
+        link = StandinLink(args.listen, args.peer, game, key)
     except OSError as exc:
         log.error("cannot bind %s:%d: %s", args.listen[0], args.listen[1], exc.strerror)
         return 3

@@ -5,6 +5,12 @@ so a typo is reported the same way everywhere and nothing is ever half-applied: 
 validated into new objects first, and only a complete, valid result is returned.
 
 Field constraints live in dataclass field metadata: ``field(default=..., metadata=rng(0, 1))``.
+
+Hostile or broken files are refused the same way, before anything is built (``check_yaml``): bytes that
+are not UTF-8, a file above ``MAX_FILE_BYTES``, more than ``MAX_NODES`` nodes, nesting deeper than
+``MAX_DEPTH``, a scalar longer than ``MAX_SCALAR_CHARS`` (a 5000-digit number), any tag other than
+YAML's plain ones (``!!python/...`` anywhere, on a scalar, a list or a mapping) and anchors/aliases.
+The walk is iterative (PyYAML's parser is a generator), so no input can exhaust the stack.
 """
 
 from __future__ import annotations
@@ -20,6 +26,13 @@ import yaml
 from yaml.nodes import MappingNode, Node, ScalarNode, SequenceNode
 
 T = TypeVar("T")
+
+MAX_FILE_BYTES = 1 << 20
+MAX_NODES = 50_000
+MAX_DEPTH = 32
+MAX_SCALAR_CHARS = 10_000
+MAX_NUMBER_CHARS = 64
+_PLAIN_TAGS = {f"tag:yaml.org,2002:{t}" for t in ("str", "int", "float", "bool", "null", "map", "seq")}
 
 
 class ConfigError(ValueError):
@@ -175,8 +188,46 @@ class _Loader:
         return obj
 
 
+def check_yaml(text: str, filename: str) -> None:
+    """Refuse what no user file of ours needs (module docstring); ConfigError naming file and line."""
+    if len(text) > MAX_FILE_BYTES:
+        raise ConfigError(filename, None, "", f"the file is larger than {MAX_FILE_BYTES // 1024} KiB")
+    depth = nodes = 0
+    try:
+        for ev in yaml.parse(text, Loader=yaml.SafeLoader):
+            line = ev.start_mark.line + 1 if ev.start_mark is not None else None
+            if isinstance(ev, yaml.AliasEvent) or getattr(ev, "anchor", None):
+                raise ConfigError(filename, line, "", "anchors and aliases (&, *) are not allowed")
+            tag = getattr(ev, "tag", None)
+            if tag is not None and tag != "!" and tag not in _PLAIN_TAGS:
+                raise ConfigError(filename, line, "", f"the tag {tag} is not allowed (plain values only)")
+            if isinstance(ev, yaml.CollectionStartEvent):
+                depth += 1
+                if depth > MAX_DEPTH:
+                    raise ConfigError(filename, line, "", f"nested deeper than {MAX_DEPTH} levels")
+            elif isinstance(ev, yaml.CollectionEndEvent):
+                depth -= 1
+            if isinstance(ev, yaml.NodeEvent):
+                nodes += 1
+                if nodes > MAX_NODES:
+                    raise ConfigError(filename, line, "", f"more than {MAX_NODES} values")
+            if isinstance(ev, yaml.ScalarEvent):
+                value = ev.value
+                if len(value) > MAX_SCALAR_CHARS:
+                    raise ConfigError(filename, line, "", f"a value longer than {MAX_SCALAR_CHARS} characters")
+                if ev.style is None and len(value) > MAX_NUMBER_CHARS and value.lstrip("+-")[:1].isdigit() \
+                        and value.replace("_", "").lstrip("+-").replace(".", "").replace("e", "").isdigit():
+                    raise ConfigError(filename, line, "", f"a number of {len(value)} digits")
+    except yaml.MarkedYAMLError as exc:
+        mark = exc.problem_mark
+        raise ConfigError(filename, mark.line + 1 if mark else None, "", f"not valid YAML: {exc.problem}") from exc
+    except yaml.YAMLError as exc:
+        raise ConfigError(filename, None, "", f"not valid YAML: {exc}") from exc
+
+
 def load_dataclass(cls: type[T], text: str, filename: str, base: T | None = None) -> T:
     """Parse YAML ``text`` into ``cls`` (over ``base`` when given). Raises ConfigError."""
+    check_yaml(text, filename)
     try:
         node = yaml.compose(text, Loader=yaml.SafeLoader)
     except yaml.MarkedYAMLError as exc:
@@ -187,16 +238,33 @@ def load_dataclass(cls: type[T], text: str, filename: str, base: T | None = None
     loader = _Loader(filename)
     if node is None:
         return base if base is not None else cls()
-    return loader.build_dataclass(cls, node, "", base)
+    try:
+        return loader.build_dataclass(cls, node, "", base)
+    except ConfigError:
+        raise
+    except (yaml.YAMLError, ValueError, TypeError, RecursionError) as exc:  # never a traceback for a user file
+        mark = getattr(exc, "problem_mark", None)
+        raise ConfigError(filename, mark.line + 1 if mark else None, "", f"cannot read a value: {exc}") from exc
+
+
+def read_text(path: Path) -> str:
+    """A user file's text; ConfigError when it cannot be read or is not UTF-8 (the line of the bad byte)."""
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise ConfigError(str(path), None, "", f"cannot read the file: {exc.strerror or exc}") from exc
+    if len(data) > MAX_FILE_BYTES:
+        raise ConfigError(str(path), None, "", f"the file is larger than {MAX_FILE_BYTES // 1024} KiB")
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        line = data[: exc.start].count(b"\n") + 1
+        raise ConfigError(str(path), line, "", f"not UTF-8 text (byte 0x{data[exc.start]:02x})") from None
 
 
 def load_file(cls: type[T], path: str | Path, base: T | None = None) -> T:
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise ConfigError(str(path), None, "", f"cannot read the file: {exc.strerror or exc}") from exc
-    return load_dataclass(cls, text, str(path), base)
+    return load_dataclass(cls, read_text(path), str(path), base)
 
 
 def to_plain(obj: Any) -> Any:

@@ -85,7 +85,7 @@ def test_sound_repeats_while_a_stop_is_unacknowledged(qtbot) -> None:
     assert not panel.repeat.isActive()
 
 
-def test_banner_shows_the_most_urgent_open_alarm_and_follows_other_threads(qtbot) -> None:
+def test_banner_shows_the_newest_open_alarm_and_follows_other_threads(qtbot) -> None:
     manager, panel, _events = _setup(qtbot)
     banner = AlarmBanner(manager)
     qtbot.addWidget(banner)
@@ -97,12 +97,18 @@ def test_banner_shows_the_most_urgent_open_alarm_and_follows_other_threads(qtbot
     qtbot.waitUntil(lambda: banner.current is not None and panel.tree.topLevelItemCount() == 1, timeout=2000)
     stop = sup.raise_alarm(AlarmLevel.STOP, "linarm", "LINarm error: OVER_FORCE")
     sup.raise_alarm(AlarmLevel.INFO, "operator", "note")
-    assert banner.current is stop and banner.label.text().startswith("STOP (+2 more) · ")
-    assert LEVEL_STYLES[AlarmLevel.STOP].background in banner.styleSheet()
+    # The newest open alarm is shown (never a stale one); the count and a red list button say more are open.
+    assert banner.current is not stop and banner.current.text == "note"
+    assert banner.label.full_text().startswith("INFORMATION ") and banner.button.text() == "Alarms (3)…"
+    assert LEVEL_STYLES[AlarmLevel.STOP].background in banner.button.styleSheet()
+    assert not banner.recover_button.isHidden(), "an open STOP offers Recover"
     with qtbot.waitSignal(banner.show_alarms_requested, timeout=1000):
         banner.button.click()
+    sup.acknowledge(banner.current.ident, "x")
+    assert banner.current is stop and LEVEL_STYLES[AlarmLevel.STOP].background in banner.styleSheet()
     sup.acknowledge(stop.ident, "x")
     assert banner.current is not None and banner.current.level is AlarmLevel.WARNING
+    assert banner.recover_button.isHidden()
     assert highest_unacknowledged([]) == (None, 0)
 
 
@@ -175,3 +181,27 @@ def test_a_long_session_keeps_open_alarms_in_a_bounded_list(qtbot, monkeypatch) 
     idents = [int(panel.tree.topLevelItem(i).data(0, Qt.ItemDataRole.UserRole)) for i in range(10)]
     assert stop.ident in idents  # the open STOP stays; the oldest acknowledged notes went
     assert idents[:9] == sorted(idents[:9], reverse=True) and idents[-1] == stop.ident
+
+
+def test_recover_without_a_session_asks_the_name_once(qtbot) -> None:
+    """No session gives the operator: Recover… , type the name, Recover -- three actions, all logged."""
+    manager, _panel, events = _setup(qtbot)
+    banner = AlarmBanner(manager)
+    qtbot.addWidget(banner)
+    banner.show()
+    sup = manager.supervisor
+    sup.emergency_stop("button")
+    sup.raise_alarm(AlarmLevel.WARNING, "physio", "sensor off")
+    assert not banner.recover_button.isHidden()
+    banner.recover_button.click()  # 1
+    dialog = banner.dialog
+    assert dialog is not None and dialog.restart_button is None and dialog.operator.text() == ""
+    dialog.recover_button.click()  # refused: no name yet
+    assert "operator" in dialog.error.text() and sup.estop_latched
+    qtbot.keyClicks(dialog.operator, "Dr Verdi")  # 2
+    dialog.recover_button.click()  # 3
+    assert not sup.estop_latched and not [a for a in sup.alarms() if not a.acknowledged]
+    steps = [d for k, d in events if k == "recovery"]
+    assert {d["operator"] for d in steps} == {"Dr Verdi"} and steps[-1]["step"] == "done"
+    assert ("emergency_stop_reset", {"operator": "Dr Verdi"}) in events
+    assert banner.recover_button.isHidden()

@@ -107,3 +107,32 @@ def test_dark_palette_is_switchable_and_remembered(qtbot, tmp_path) -> None:
     assert QApplication.instance().palette().color(QPalette.ColorRole.Window).lightness() == light
     window2.close()
     manager2.shutdown()
+
+
+def test_first_run_maximised_view_toggles_enabled_end_session_states(qtbot, tmp_path, monkeypatch) -> None:
+    """Issue #19: opened at 1280×720 in a corner; the View menu's frame toggles looked disabled;
+    "End session" was enabled with no session; its confirmation ignored unacknowledged alarms."""
+    from PySide6.QtCore import QSettings
+
+    from app.safety import AlarmLevel
+
+    settings = QSettings()
+    settings.remove("main/geometry")
+    settings.remove("main/state")
+    manager, window = make_window(qtbot, tmp_path, names=("alpha",))
+    assert window.isMaximized()
+    assert all(d.toggleViewAction().isEnabled() for d in window.docks.values())
+    assert not window.end_action.isEnabled()
+    manager.start_session("P001", "Dr Rossi", root=tmp_path / "sessions")
+    assert window.end_action.isEnabled()
+    manager.supervisor.raise_alarm(AlarmLevel.STOP, "alpha", "test stop")
+    asked: list[str] = []
+    monkeypatch.setattr(QMessageBox, "question",
+                        lambda _p, _t, text, *a, **k: (asked.append(text), QMessageBox.StandardButton.No)[1])
+    window.end_session()
+    open_ = sum(1 for a in manager.supervisor.alarms() if not a.acknowledged)
+    assert f"{open_} alarm(s) are not acknowledged" in asked[0] and manager.recorder is not None
+    manager.end_session()
+    assert not window.end_action.isEnabled()
+    window.close()
+    manager.shutdown()

@@ -279,3 +279,29 @@ def test_panel_caps_the_maps_at_the_safety_limits(qtbot) -> None:
     spin.setValue(1e6)
     assert spin.value() == manager.config.safety.robot.max_stiffness_n_m
     assert "not active" in panel.live["status"].text()
+
+
+def test_a_click_anywhere_on_a_gain_slider_changes_it_by_at_most_one_step(qtbot) -> None:
+    """Issue #19: the gains drive the robot and the stimulation live; a click on a slider's groove
+    page-jumped, a drag could go anywhere."""
+    from PySide6.QtCore import QPoint, Qt
+
+    from app.ui.assistance_panel import GAIN_MAX_STEP, AssistancePanel
+
+    manager = _Manager(None)
+    panel = AssistancePanel(manager)
+    qtbot.addWidget(panel)
+    panel.resize(600, 500)
+    panel.show()
+    qtbot.waitExposed(panel)
+    slider = panel.k_f.slider
+    for x in range(2, slider.width() - 2, max(1, slider.width() // 15)):
+        before = panel.k_f.value()
+        qtbot.mouseClick(slider, Qt.MouseButton.LeftButton, pos=QPoint(x, slider.height() // 2))
+        assert abs(panel.k_f.value() - before) <= 0.01 + 1e-9, f"click at x={x}: {before} -> {panel.k_f.value()}"
+    handle = slider._handle_rect().center()
+    before = slider.value()
+    qtbot.mousePress(slider, Qt.MouseButton.LeftButton, pos=handle)
+    qtbot.mouseMove(slider, QPoint(slider.width() - 1 if before < 50 else 1, handle.y()))  # a flick to the end
+    qtbot.mouseRelease(slider, Qt.MouseButton.LeftButton, pos=QPoint(slider.width() - 1, handle.y()))
+    assert 0 < abs(slider.value() - before) <= GAIN_MAX_STEP

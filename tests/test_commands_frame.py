@@ -25,14 +25,14 @@ def test_toggle_disconnects_and_reconnects_a_device(qtbot, tmp_path) -> None:
         qtbot.waitUntil(lambda: driver.connected, timeout=5000)
         frame.refresh()
         toggle = frame.toggles["alpha"]
-        assert toggle.isChecked() and "connected" in toggle.text()
+        assert toggle.isChecked() and "connected" in toggle.toolTip()
         asked: list[str] = []
         frame.confirm = lambda name: asked.append(name) or False  # operator says no
         toggle.click()
         assert asked == ["alpha"] and driver.isRunning() and toggle.isChecked()
         frame.confirm = lambda name: True
         toggle.click()
-        assert not driver.isRunning() and not toggle.isChecked() and "disconnected" in toggle.text()
+        assert not driver.isRunning() and not toggle.isChecked() and "disconnected" in toggle.toolTip()
         count = driver.total_samples("counter.main")
         toggle.click()  # connect again
         qtbot.waitUntil(lambda: driver.connected and driver.total_samples("counter.main") > count + 50,

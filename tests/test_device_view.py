@@ -36,6 +36,8 @@ def test_scene_follows_state_and_target(qtbot) -> None:
     assert view.state.target == 0.12
     view.set_target(None)  # ... until cleared
     assert view.state.target == 0.3
+    view.set_target(-0.0001)  # issue #19: "-0.000 m"
+    assert "target 0.000 m" in view.caption.text()
 
 
 def test_fallback_is_a_2d_drawing_that_moves(qtbot) -> None:

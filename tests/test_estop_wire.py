@@ -90,8 +90,10 @@ def test_script_api(running, qtbot) -> None:
 
     manager, _ = running
     runner = ScriptRunner(manager, home_first=False)
+    assert runner.ready(5.0)  # the kernel process starts with the runner (the window's is warm long before)
     t0 = time.monotonic()
     runner.start("emergencyStop('test from a script')\nwhile True:\n    pass\n", "estop.py")
     assert_both_on_the_wire(manager, qtbot, t0)
     assert runner.wait(2.0)
     assert runner.result.status == "stopped"
+    runner.close()

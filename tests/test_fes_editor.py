@@ -163,3 +163,17 @@ def test_screenshot_fes_editor(editor: FesProfileEditor) -> None:
     tmp = out.with_suffix(".tmp.png")
     assert image.save(str(tmp))
     shutil.move(tmp, out)
+
+
+def test_a_bad_cell_keeps_the_last_valid_preview(editor: FesProfileEditor) -> None:
+    """Issue #19: one invalid cell blanked both plots."""
+    editor.set_cell("current", 0, CUR_TRAP0 + LEVEL, "12")
+    editor.set_cell("current", 0, CUR_TRAP0 + LEVEL, "abc")
+    assert ("current", 0, CUR_TRAP0 + LEVEL) in editor.cell_problems
+    assert set(editor.curves) == {(k, ch) for k in ("current", "width") for ch in (1, 2, 5, 6)}
+    curve = editor.curves[("current", 1)]
+    _, y = curve.getData()
+    assert max(y) == pytest.approx(12.0), "the row's last valid values, not the bad cell"
+    assert curve.opts["pen"].style() == Qt.PenStyle.DashLine
+    editor.set_cell("current", 0, CUR_TRAP0 + LEVEL, "14")
+    assert editor.curves[("current", 1)].opts["pen"].style() == Qt.PenStyle.SolidLine

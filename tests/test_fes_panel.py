@@ -8,13 +8,13 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from PySide6.QtCore import Qt
+from PySide6.QtCore import QPoint, Qt
 
 from app.config import AppConfig
 from app.devices import rehastim
 from app.fes_profile import load_profile
 from app.manager import LinarmppManager
-from app.ui.fes_panel import PROFILES_DIR, FesPanel
+from app.ui.fes_panel import MAX_RISE_PER_ACTION, PROFILES_DIR, FesPanel
 from tests.conftest import screenshot_path
 
 FRONTAL = PROFILES_DIR / "frontal_reaching.yaml"
@@ -60,6 +60,8 @@ def test_load_start_knobs_stop(panel: FesPanel, qtbot) -> None:
 
 def test_knob_stops_at_the_cap_and_says_so(panel: FesPanel, qtbot) -> None:
     assert panel.load_profile_file(FRONTAL)  # ch 1 peaks at 28 mA; the configured cap is 40 mA
+    for _ in range(20):  # raised one step per action, up to the cap
+        panel.current_knob.dial.setValue(panel.current_knob.dial.value() + 5)
     panel.current_knob.dial.setValue(200)
     applied = panel.driver.current_scale
     assert applied == pytest.approx(40 / 28)
@@ -73,7 +75,39 @@ def test_keyboard_turns_the_knob(panel: FesPanel, qtbot) -> None:
     assert panel.load_profile_file(FRONTAL)
     panel.width_knob.dial.setFocus()
     qtbot.keyClick(panel.width_knob.dial, Qt.Key.Key_PageDown)
-    assert panel.driver.pulse_width_scale == pytest.approx(0.9)
+    assert panel.driver.pulse_width_scale == pytest.approx(0.95)
+    qtbot.keyClick(panel.width_knob.dial, Qt.Key.Key_End)  # never a jump to the top
+    assert panel.driver.pulse_width_scale == pytest.approx(1.0)
+
+
+@pytest.mark.parametrize("knob", ["current_knob", "width_knob"])
+def test_a_click_anywhere_on_a_knob_changes_the_scale_by_at_most_one_step(panel: FesPanel, qtbot, knob) -> None:
+    """Issue #19: one click set 1.00 -> 0.00×, another 0.05 -> 1.73× (QDial puts the value under the pointer)."""
+    assert panel.load_profile_file(WRIST)
+    dial = getattr(panel, knob).dial
+    read = (lambda: panel.driver.current_scale) if knob == "current_knob" else (lambda: panel.driver.pulse_width_scale)
+    panel.driver.set_current_scale(0.05, "test") if knob == "current_knob" else panel.driver.set_pulse_width_scale(
+        0.05, "test")
+    panel.refresh()
+    qtbot.waitExposed(panel)
+    rect = dial.rect()
+    for start in (0.05, 1.0):
+        for x in range(2, rect.width() - 2, max(1, rect.width() // 9)):
+            for y in range(2, rect.height() - 2, max(1, rect.height() // 9)):
+                before = read()
+                qtbot.mouseClick(dial, Qt.MouseButton.LeftButton, pos=QPoint(x, y))
+                assert abs(read() - before) <= 0.01 + 1e-9, f"click at {x},{y}: {before} -> {read()}"
+        if knob == "current_knob":
+            panel.driver.set_current_scale(start, "test")
+        else:
+            panel.driver.set_pulse_width_scale(start, "test")
+        panel.refresh()
+    # A drag changes it gradually, a wheel notch by one unit.
+    before = read()
+    qtbot.mousePress(dial, Qt.MouseButton.LeftButton, pos=rect.center())
+    qtbot.mouseMove(dial, rect.center() + QPoint(0, -rect.height()))  # a fast flick far up
+    qtbot.mouseRelease(dial, Qt.MouseButton.LeftButton, pos=rect.center() + QPoint(0, -rect.height()))
+    assert 0 < read() - before <= MAX_RISE_PER_ACTION + 1e-9
 
 
 def test_malformed_profile_is_rejected_with_its_line_and_nothing_changes(panel: FesPanel, tmp_path: Path) -> None:
@@ -144,3 +178,17 @@ def test_screenshot_fes_manager(panel: FesPanel, qtbot) -> None:
     assert image.save(str(tmp))
     shutil.move(tmp, out)
     panel.stop()
+
+
+def test_the_requested_rate_is_shown_and_the_delivered_one_explained(panel: FesPanel, qtbot) -> None:
+    """Issue #19: a 30 Hz profile was shown as "29.9 Hz" without a word."""
+    assert panel.load_profile_file(WRIST)
+    panel.start_button.click()
+    qtbot.waitUntil(lambda: panel.driver.channel_list is not None, timeout=3000)
+    panel.refresh()
+    text = panel.profile_label.text()
+    delivered = panel.driver.channel_list.frequency_hz
+    assert "30 Hz" in text
+    if abs(delivered - 30.0) >= 0.05:
+        assert f"delivered {delivered:.1f} Hz" in text and "time steps" in text
+    panel.stop_button.click()

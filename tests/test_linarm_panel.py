@@ -235,3 +235,14 @@ def test_fits_the_commands_frame_without_scrolling_as_a_whole(qtbot, manager) ->
     qtbot.waitUntil(lambda: panel.height() <= outer.viewport().height(), timeout=1000)
     assert outer.verticalScrollBar().maximum() == 0
     assert panel.outcome.geometry().bottom() <= panel.height()
+
+
+def test_the_control_mode_box_follows_the_robot(qtbot, manager) -> None:
+    """Issue #19: the box said "Velocity (0)" while the robot was in "Target position (1)"."""
+    panel = _panel(qtbot, manager)
+    box = panel.forms["setCtrlMode"].inputs["controlMode"].widget
+    driver = manager.driver("linarm")
+    wanted = 1 if driver.latest("linarm.state").controlMode != 1 else 0
+    driver.command("setCtrlMode", wanted, source="script")  # changed elsewhere (a script)
+    qtbot.waitUntil(lambda: driver.latest("linarm.state").controlMode == wanted, timeout=3000)
+    qtbot.waitUntil(lambda: box.currentData() == wanted, timeout=2000)

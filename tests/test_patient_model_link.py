@@ -248,7 +248,7 @@ def test_the_process_drops_foreign_and_malformed_frames_and_answers_valid_ones()
         assert path_text(reply.path).startswith("resist/")
         th.join(timeout=5.0)  # idle for 0.5 s: serve returns
         assert not th.is_alive()
-        assert result == {"frames": 1, "replies": 1, "foreign": 1, "invalid": 1}
+        assert result == {"frames": 1, "replies": 1, "foreign": 1, "invalid": 1, "replay": 0}
     finally:
         th.join(timeout=5.0)
         for s in (model_sock, manager, stray):

@@ -312,3 +312,62 @@ def test_costly_frames_slow_the_redraw_down_to_keep_the_gui_thread_free(qtbot) -
         frame._tick()
         frame.graphics.last_paint_s = 0.0
     assert frame.timer.interval() <= max(base, 1000 * 5.0 / frame.plots["m"].vb.width()) + 3
+
+
+def test_fes_channels_named_by_number_and_muscle_and_exports_carry_the_session(qtbot, tmp_path: Path) -> None:
+    """Issue #19: eight identical "Current c…" rows; Save CSV as "signals.csv" in raw monotonic
+    seconds; PNGs of ~640×260 without patient, date or units."""
+    from app.devices import rehastim
+    from app.fes_profile import load_profile
+    from app.ui.fes_panel import PROFILES_DIR
+
+    manager = LinarmppManager(AppConfig(), factories={"fes": rehastim.create})
+    manager.start()
+    try:
+        frame = PlotsFrame(manager)
+        qtbot.addWidget(frame)
+        frame.resize(700, 300)
+        frame.show()
+        fes = manager.driver("fes")
+        qtbot.waitUntil(lambda: fes.device_ready, timeout=3000)
+        fes.load_profile(load_profile(PROFILES_DIR / "wrist_extension_time.yaml"))
+        qtbot.waitUntil(lambda: any(frame.tree.findItems("3 current · extensor carpi radialis",
+                                                         Qt.MatchFlag.MatchExactly | Qt.MatchFlag.MatchRecursive)),
+                        timeout=3000)
+        names = [i.text(0) for i in frame._leaf_items() if str(i.data(0, Qt.ItemDataRole.UserRole)).startswith("fes.")]
+        assert len(set(names)) == len(names) == 16 and "5 pulse width" in names
+        manager.start_session("P077", "Dr Neri", root=tmp_path)
+        t0 = frame.session_t0
+        assert t0 is not None
+        csv_default = frame.default_file("csv")
+        assert csv_default.parent == manager.recorder.folder and csv_default.name.startswith("P077_")
+        frame.set_selected(["fes.channels.current3"])
+        qtbot.waitUntil(lambda: "fes.channels.current3" in frame.store
+                        and frame.store.last_time() is not None and frame.store.last_time() > t0 + 0.3, timeout=3000)
+        out = tmp_path / "x.csv"
+        frame.save_csv(out, "all")
+        text = out.read_text(encoding="utf-8")
+        assert "seconds from the start of session P077/" in text
+        _n, _u, rows = read_export(out)
+        assert -60.0 < float(rows[-1][0]) < 60.0, "time from the session start, not raw monotonic seconds"
+        png = tmp_path / "g.png"
+        assert frame.export_png(png)
+        image = QImage(str(png))
+        assert image.width() >= 1600 and image.height() >= 400
+        assert "P077/" in frame.export_title() and "mA: 3 current · extensor carpi radialis" in frame.export_title()
+        manager.end_session()
+    finally:
+        manager.shutdown()
+
+
+def test_the_left_axis_has_room_for_tick_labels_beside_the_unit(qtbot) -> None:
+    """Issue #19: "(mm)" was overlapped by tick labels such as 317.05 (on screen and in PNGs)."""
+    from PySide6.QtGui import QFontMetrics
+
+    store, _ = synthetic_store()
+    frame = make_frame(qtbot, store)
+    frame.set_selected(["linarm.vsa.handlePos"])
+    frame.redraw()
+    axis = frame.plots["m"].getAxis("left")
+    fm = QFontMetrics(frame.graphics.font())
+    assert axis.minimumWidth() >= fm.horizontalAdvance("-317.05") + fm.lineSpacing() + 8

@@ -73,11 +73,14 @@ def test_replay_window_shows_the_recorded_values(session, qtbot) -> None:
 
     def shown(key: str) -> tuple[np.ndarray, np.ndarray]:
         x, y = window.plots.curves[key].getData()
-        return np.asarray(x) + window.plots.t_ref, np.asarray(y)
+        return np.asarray(x) + window.plots.x_origin, np.asarray(y)  # the x-axis is session time
 
     window.seek(12.0)
     pos = window.source.position
     assert window.slider.value() == 1200 and "00:12.000" in window.time_label.text()
+    x0, x1 = window.plots.plots[next(iter(window.plots.plots))].vb.viewRange()[0]
+    assert x1 == pytest.approx(12.0, abs=0.15) and x0 == pytest.approx(2.0, abs=0.15), \
+        "issue #19: the x-axis is session time (it ran -10..0)"
     t, x = shown("fake.main.x")
     assert window.plots.t_ref <= pos and t[-1] >= window.plots.t_ref - 1e-9
     assert t[0] <= window.plots.t_ref - 10.0 + 1 / RATE_HZ, "the graph shows the whole history before 'now'"
@@ -104,3 +107,20 @@ def test_replay_window_shows_the_recorded_values(session, qtbot) -> None:
     qtbot.waitUntil(lambda: window.source.elapsed > start + 0.2, timeout=3000)
     window.set_playing(False)
     assert not window.playing
+
+
+def test_a_click_on_the_replay_slider_seeks_there(session, qtbot) -> None:
+    """Issue #19: no page jumps on click; the replay's slider goes where it is clicked."""
+    from PySide6.QtCore import QPoint, Qt
+
+    from app.ui.replay_window import ReplayWindow
+
+    window = ReplayWindow(session, history_s=30.0)
+    qtbot.addWidget(window)
+    window.show()
+    qtbot.waitExposed(window)
+    slider = window.slider
+    qtbot.mouseClick(slider, Qt.MouseButton.LeftButton, pos=QPoint(slider.width() * 3 // 4, slider.height() // 2))
+    fraction = slider.value() / slider.maximum()
+    assert 0.6 < fraction < 0.9
+    assert window.source.elapsed == pytest.approx(slider.value() / 100, abs=0.02)

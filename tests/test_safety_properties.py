@@ -453,7 +453,8 @@ def run_script(rig: Rig, actions: list[tuple[str, tuple]]) -> list[str]:
     runner.start(f"CALLS = [{listed}]\n" + SCRIPT, "<property>")
     wait_for(lambda: runner.wait(0), 10.0, "the script to end")
     assert runner.result is not None and runner.result.status == "finished", runner.result
-    results = runner.namespace["results"]
+    results = runner.namespace_value("results", timeout=5.0)  # the script runs in the kernel process
+    runner.close()
     assert len(results) == len(actions)
     wrong = []
     for (name, values), (kind, text) in zip(actions, results, strict=True):

@@ -70,6 +70,7 @@ def console(qtbot: Any) -> ScriptConsole:
     if widget.runner.running:
         widget.runner.stop(wait_s=1.0)
         widget.runner.wait(2.0)
+    widget.runner.close()  # its kernel processes end with the test
 
 
 def run(console: ScriptConsole, qtbot: Any, source: str, path: str = "<editor>") -> None:

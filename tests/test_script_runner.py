@@ -118,6 +118,22 @@ class Output:
             return "".join(t for s, t in self.items if stream is None or s == stream)
 
 
+@pytest.fixture(autouse=True)
+def close_runners(monkeypatch: pytest.MonkeyPatch) -> Any:
+    """Every runner a test makes ends its kernel processes when the test ends."""
+    made: list[ScriptRunner] = []
+    init = ScriptRunner.__init__
+
+    def tracking_init(self: ScriptRunner, *args: Any, **kwargs: Any) -> None:
+        init(self, *args, **kwargs)
+        made.append(self)
+
+    monkeypatch.setattr(ScriptRunner, "__init__", tracking_init)
+    yield made
+    for runner in made:
+        runner.close()
+
+
 @pytest.fixture
 def manager() -> FakeManager:
     return FakeManager()
@@ -251,7 +267,7 @@ def test_callbacks_run_on_the_callback_thread_and_errors_name_their_line(manager
     driver_thread.join()
     assert runner.wait(3.0)
     assert runner.result is not None and runner.result.status == "finished"
-    seen = runner.namespace["seen"]
+    seen = runner.namespace_value("seen")
     assert [f for f, _ in seen] == [10.0, 20.0, 30.0]
     assert {name for _, name in seen} == {"script-callbacks"}
     errors = output.text("stderr")
@@ -275,7 +291,7 @@ def test_wait_condition_is_event_driven_and_times_out(manager: FakeManager, outp
     t_publish = time.monotonic()
     manager.physio.publish("physio.main", ForceSample(25.0))
     assert runner.wait(3.0)
-    ns = runner.namespace
+    ns = {name: runner.namespace_value(name) for name in ("late", "t_late", "met", "t_met")}
     assert ns["late"] is False and 0.09 <= ns["t_late"] < 0.3
     assert ns["met"] is True
     assert ns["t_met"] - t_publish < 0.05  # woken by the sample, not by a poll period
@@ -320,7 +336,7 @@ def test_time_module_proxy_keeps_the_rest_of_time(manager: FakeManager, output: 
     runner.start("import time as t\nnow = t.time()\nmono = t.monotonic()\nt.sleep(0.01)\nimport os\n", "<test>")
     assert runner.wait(3.0)
     assert runner.result is not None and runner.result.status == "finished", output.text()
-    assert abs(runner.namespace["now"] - time.time()) < 5
+    assert abs(runner.namespace_value("now") - time.time()) < 5
 
 
 def test_only_one_script_at_a_time(manager: FakeManager, output: Output) -> None:

@@ -149,3 +149,37 @@ def test_a_script_error_exits_non_zero(tmp_path: Path) -> None:
     code = run_headless(config(), str(script), duration_s=20.0, home_first=False, output=out)
     assert code == EXIT_ERROR
     assert "NameError" in out.text("stderr") and 'line 2' in out.text("stderr")
+
+
+def test_a_crash_of_the_script_process_exits_1_with_the_session_record_complete(tmp_path: Path) -> None:
+    script = tmp_path / "crash.py"
+    script.write_text("linarm.setCtrlMode(linarm.CONTROL_MODES.POS_REF_BY_TARGET_POS)\n"
+                      "import ctypes\nctypes.string_at(0)\n")
+    out = Output()
+    code = run_headless(config(), str(script), duration_s=20.0, record_dir=str(tmp_path / "rec"), home_first=False,
+                        output=out)
+    assert code == EXIT_ERROR
+    assert "the script's process ended: a segmentation fault (SIGSEGV)" in out.text("info")
+    assert "line 3" in out.text()
+    sess = session(tmp_path / "rec")
+    assert sess.complete and not sess.problems
+    stops = [e["data"] for e in sess.events if e["kind"] == "script_stop"]
+    assert stops and stops[-1]["status"] == "error" and "segmentation fault" in stops[-1]["reason"]
+
+
+@pytest.mark.parametrize("example", ["free_admittance.py", "assisted_reaching_fes.py"])
+def test_the_examples_run_through_the_kernel(tmp_path: Path, example: str) -> None:
+    out = Output()
+    duration = 10.0 if example == "assisted_reaching_fes.py" else 6.0  # into the FES part: start, setPhase
+    code = run_headless(config(), str(SCRIPTS / example), duration_s=duration, record_dir=str(tmp_path), output=out)
+    assert code == EXIT_OK, out.text()
+    assert "Traceback" not in out.text() and "Error" not in out.text("info"), out.text()
+    assert f"Script stopped: the duration of {duration:g} s was reached" in out.text("info")
+    printed = out.text("stdout")
+    if example == "free_admittance.py":
+        assert printed.count("position") >= 4  # one line a second
+    else:
+        assert "repetition 1: reached 0.35 m" in printed  # FES on, the phase fed from a 200 Hz callback
+    sess = session(tmp_path)
+    assert sess.complete and not sess.problems
+    assert sess.streams["linarm.state"].data["controlState"][-1] == 0  # IDLE at the end

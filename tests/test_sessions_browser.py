@@ -8,6 +8,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from PySide6.QtCore import Qt
 from PySide6.QtWidgets import QDialogButtonBox, QTableWidgetItem
 
 from app.config import AppConfig
@@ -160,3 +161,66 @@ def test_start_session_needs_patient_and_operator(home, qtbot) -> None:
     assert dialog.values() == ("P050", "dr_verdi", "")
     dialog.reload("P051")
     assert not ok.isEnabled() and "assistance.k_r" in dialog.problem.text()
+
+
+def test_statuses_say_what_happened(home, qtbot) -> None:
+    """Issue #19: aborted exercises and stop alarms are not "complete"; the session being recorded
+    is "in progress", not "interrupted"."""
+    from app.recording import list_sessions
+    from app.ui.sessions_browser import SessionsBrowser, session_status
+
+    root = home / "sessions"
+    clean = record(root, "P040", "reach.py", alarm=False)
+    time.sleep(1.1)  # session folders are named by the second
+    driver = _Driver()
+    config = AppConfig()
+    sup = SafetySupervisor(config.safety)
+    manager = SimpleNamespace(config=config, supervisor=sup,
+                              devices={"fake": SimpleNamespace(driver=driver, simulated=True)})
+    recorder = SessionRecorder()
+    rough = recorder.start(manager, "P040", "dr_bianchi", root=root)
+    for i in range(5):
+        recorder.event("script_start", "dr_bianchi", name=f"ex{i}.py", text="pass")
+        recorder.event("script_stop", "dr_bianchi", name=f"ex{i}.py", status="stopped",
+                       reason="robot STOP: WATCHDOG")
+    sup.raise_alarm(AlarmLevel.STOP, "linarm", "LINarm error: WATCHDOG")
+    recorder.stop()
+    time.sleep(1.1)
+    live = SessionRecorder()
+    now = live.start(manager, "P040", "dr_bianchi", root=root)
+    try:
+        by_folder = {s.folder: s for s in list_sessions("P040", root)}
+        assert session_status(by_folder[clean]).text == "complete"
+        rough_status = session_status(by_folder[rough])
+        assert rough_status.text == "ended: 5 of 5 exercise(s) aborted, 1 stop alarm(s)" and not rough_status.ok
+        assert "WATCHDOG" in rough_status.tooltip
+        assert session_status(by_folder[now]).text == "interrupted"  # nobody says it is being recorded
+        browser = SessionsBrowser(root, active=lambda: now)
+        qtbot.addWidget(browser)
+        browser.set_patient("P040")
+        statuses = {browser.table.item(r, 0).data(Qt.ItemDataRole.UserRole): browser.table.item(r, 5).text()
+                    for r in range(browser.table.rowCount())}
+        assert statuses[str(now)] == "in progress"
+        assert statuses[str(rough)].startswith("ended: 5 of 5")
+        assert statuses[str(clean)] == "complete"
+    finally:
+        live.stop()
+
+
+def test_patient_dialog_browses_for_the_fes_profile(home, qtbot, monkeypatch) -> None:
+    """Issue #19: the FES profile was free text only."""
+    from PySide6.QtWidgets import QFileDialog
+
+    from app.ui.fes_panel import PROFILES_DIR
+    from app.ui.patient_dialog import PatientDialog
+
+    dialog = PatientDialog(None, AppConfig().safety)
+    qtbot.addWidget(dialog)
+    monkeypatch.setattr(QFileDialog, "getOpenFileName",
+                        lambda *a, **k: (str(PROFILES_DIR / "frontal_reaching.yaml"), ""))
+    dialog.fes_browse.click()
+    assert dialog.fes_profile.text() == "frontal_reaching.yaml"
+    elsewhere = home / "mine.yaml"
+    monkeypatch.setattr(QFileDialog, "getOpenFileName", lambda *a, **k: (str(elsewhere), ""))
+    dialog.fes_browse.click()
+    assert dialog.fes_profile.text() == str(elsewhere)

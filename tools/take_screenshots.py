@@ -3,8 +3,8 @@
     xvfb-run -a -s "-screen 0 1920x1080x24" .venv/bin/python tools/take_screenshots.py [--out docs/screenshots]
 
 Starts a session, the seed's trigger exercise (Fig. 18) with the simulated patient squeezing every few
-seconds, FES on the frontal-reaching profile, and saves the window at 1366×768 and 1920×1080 once the
-robot is moving.
+seconds, FES on the wrist-extension profile, and saves the window at 1366×768 and 1920×1080 once the
+robot is moving: main-window*.png with the Script tab, and tab-<name>-<width>.png for every Commands tab.
 """
 
 from __future__ import annotations
@@ -83,11 +83,26 @@ def main() -> int:
     except Exception as exc:  # the screenshot is still useful without stimulation
         print("FES not started:", exc)
     pump(2.5)
+    from PySide6.QtCore import Qt
+
+    window.setWindowState(Qt.WindowState.WindowNoState)
+    script_tab = commands.tabs.currentIndex()
     for width, height, name in ((1366, 768, "main-window.png"), (1920, 1080, "main-window-1920.png")):
         window.resize(width, height)
+        window._reset_layout(short=height < 900)  # the first-run layout a screen of this size gets
+        commands.tabs.setCurrentIndex(script_tab)
         pump(1.5)
         window.grab().save(str(out / name))
         print("saved", out / name, window.size().width(), "x", window.size().height())
+        # Every Commands tab at this size (issue #19: each tab's primary controls on screen).
+        for i in range(commands.tabs.count()):
+            commands.tabs.setCurrentIndex(i)
+            pump(0.8)
+            slug = commands.tabs.tabText(i).lower().replace(" ", "-").replace("&", "")
+            path = out / f"tab-{slug}-{width}.png"
+            window.grab().save(str(path))
+            print("saved", path)
+    commands.tabs.setCurrentIndex(script_tab)
     runner.stop("screenshots taken", wait_s=2.0)
     window.close()
     manager.shutdown()

@@ -28,6 +28,16 @@ API's ``patientModel.patientModelData`` is this sample.
 
 This module also holds the small UDP-peer machinery the VR link shares (``UdpPeerDriver``,
 ``HelperProcess``, ``free_udp_port``).
+
+Link security (issue #17; codec in app.devices.udp_frames): a helper process we start gets a fresh
+key at every start, through its environment (``LINK_KEY_ENV``), and every datagram both ways carries a
+MAC; datagrams without a valid MAC, with a sequence number that does not increase (a replay), or — for
+the patient model — acknowledging no frame sent in the last 0.5 s are dropped and counted
+(``invalid_datagrams["mac" | "replay" | "stale ack"]``).  A helper that exits because it cannot bind its
+port (exit code 3: another process holds it) is reported as ``helper_failed`` (a STOP alarm by the fault
+policy) and the link never counts as reconnected through someone else's socket.  An ``external`` peer
+speaks the plain seed layout unless ``authenticate: true`` with a ``key_file``; that the link is then not
+authenticated is shown as a warning alarm.
 """
 
 from __future__ import annotations
@@ -48,13 +58,19 @@ from typing import TYPE_CHECKING, Any
 from app.devices.driver import Channel, DeviceDriver, StreamSpec, UpdateNotifier
 from app.devices.transport import TransportError, UdpTransport
 from app.devices.udp_frames import (
+    ACK_WINDOW_S,
+    KEY_SIZE,
+    LINK_KEY_ENV,
     FrameError,
     PatientModelFrame,
     ReplyFlag,
+    SequenceGuard,
     SystemFlag,
     TaskData,
     decode_patient_model_reply,
     encode_patient_model_frame,
+    seal,
+    unseal,
 )
 from app.patient_model.decision_tree import DEFAULT_CONFIG_PATH, decode_path_code
 
@@ -93,11 +109,15 @@ class HelperProcess:
     Looks like a ``subprocess.Popen`` to the manager (``terminate``, ``wait``, ``kill``, ``poll``),
     which stops everything in ``DeviceHandle.extras["processes"]`` at shutdown."""
 
-    def __init__(self, module: str, args: list[str]) -> None:
+    BIND_FAILED = 3  # the helpers' exit code when their port is taken
+
+    def __init__(self, module: str, args: list[str], authenticate: bool = False) -> None:
         self.module = module
         self.args = list(args)
         self.proc: subprocess.Popen[bytes] | None = None
         self.starts = 0
+        self.authenticate = authenticate
+        self.key: bytes | None = None  # this start's link key (a new one at every start)
 
     @property
     def argv(self) -> list[str]:
@@ -110,6 +130,12 @@ class HelperProcess:
     def start(self) -> None:
         env = dict(os.environ)
         env["PYTHONPATH"] = os.pathsep.join(p for p in (str(ROOT), env.get("PYTHONPATH", "")) if p)
+        env.pop(LINK_KEY_ENV, None)
+        if self.authenticate:
+            import secrets
+
+            self.key = secrets.token_bytes(KEY_SIZE)
+            env[LINK_KEY_ENV] = self.key.hex()  # private to the child (not in its argv, not in ps)
         self.proc = subprocess.Popen(self.argv, cwd=str(ROOT), env=env, stdin=subprocess.DEVNULL,
                                      stdout=subprocess.DEVNULL)
         self.starts += 1
@@ -143,7 +169,7 @@ class HelperProcess:
 
 def _reason_kind(reason: str) -> str:
     for prefix, kind in (("wrong size", "size"), ("wrong header", "header"), ("bad CRC", "crc"),
-                         ("not bytes", "size")):
+                         ("not bytes", "size"), ("bad MAC", "mac"), ("replay", "replay"), ("stale ack", "stale ack")):
         if reason.startswith(prefix):
             return kind
     return "value"
@@ -158,8 +184,11 @@ class UdpPeerDriver(DeviceDriver):
 
     def __init__(self, name: str, bind: tuple[str, int], peer: tuple[str, int], rate_hz: float, *,
                  alive_timeout_s: float, process: HelperProcess | None = None,
-                 notifier: UpdateNotifier | None = None) -> None:
+                 notifier: UpdateNotifier | None = None, key: bytes | None = None) -> None:
         super().__init__(name, UdpTransport(bind, peer), notifier=notifier, read_timeout_s=0.005)
+        self.static_key = key  # an external peer's shared key (None: plain frames unless our helper has one)
+        self.seq_guard = SequenceGuard()
+        self.helper_failures = 0
         self.udp: UdpTransport = self.transport  # type: ignore[assignment]
         self.period_s = 1.0 / rate_hz
         self.alive_timeout_s = alive_timeout_s
@@ -198,6 +227,22 @@ class UdpPeerDriver(DeviceDriver):
     def peer_alive(self) -> bool:
         return self._peer_alive
 
+    @property
+    def key(self) -> bytes | None:
+        """The link key in force: our helper's current one, else the configured one, else None (plain)."""
+        if self.process is not None and self.process.authenticate:
+            return self.process.key
+        return self.static_key
+
+    @property
+    def authenticated(self) -> bool:
+        return self.key is not None or (self.process is not None and self.process.authenticate)
+
+    def check_seq(self, seq: int) -> None:
+        """Raise FrameError unless ``seq`` is newer than the last accepted one (a replay otherwise)."""
+        if not self.seq_guard.accept(seq):
+            raise FrameError(f"replayed or old sequence number {seq} (last {self.seq_guard.last})")
+
     # ------------------------------------------------------------------ hooks
     def _set_connected(self, connected: bool, reason: str) -> None:
         # The base reports "connected" as soon as the socket is bound; for UDP that says nothing
@@ -218,6 +263,11 @@ class UdpPeerDriver(DeviceDriver):
     def on_bytes(self, data: bytes, t_ns: int) -> None:
         t = t_ns / 1e9
         try:
+            if self.authenticated:
+                key = self.key
+                if key is None:
+                    raise FrameError("bad MAC: no key yet")
+                data = unseal(key, data)
             self.handle_datagram(data, t)
         except FrameError as exc:
             self.invalid_datagrams[_reason_kind(exc.reason)] += 1
@@ -241,6 +291,8 @@ class UdpPeerDriver(DeviceDriver):
         self.read_timeout_s = min(0.01, max(0.0005, self._next_send - time.monotonic()))
         if self._peer_alive and now - self._last_valid > self.alive_timeout_s:
             self._peer_alive = False
+            if not self.authenticated:
+                self.seq_guard.reset()  # a plain external peer may have restarted (authenticated: new key)
             super()._set_connected(False, f"no valid datagram from {self.name} for {self.alive_timeout_s:g} s")
         if now - self._rate_t0 >= 1.0:
             dt = now - self._rate_t0
@@ -260,6 +312,11 @@ class UdpPeerDriver(DeviceDriver):
             return
         if data is None:
             return
+        key = self.key
+        if key is not None:
+            data = seal(key, data)
+        elif self.authenticated:
+            return  # our helper has no key yet: nothing leaves unauthenticated
         try:
             self.udp.write(data)
         except TransportError as exc:
@@ -269,6 +326,21 @@ class UdpPeerDriver(DeviceDriver):
             return
         self.datagrams_sent += 1
         self._rate_counts[0] += 1
+
+    def _move_helper_port(self) -> None:
+        assert self.process is not None
+        args = self.process.args
+        if "--listen" not in args or self.udp.peer is None:
+            return
+        i = args.index("--listen") + 1
+        host = args[i].rpartition(":")[0]
+        try:
+            port = free_udp_port(host)
+        except OSError:
+            return
+        args[i] = f"{host}:{port}"
+        self.udp.set_peer((self.udp.peer[0], port))
+        log.warning("%s: the helper will listen on port %d instead", self.name, port)
 
     def _supervise_process(self, now: float) -> None:
         assert self.process is not None
@@ -280,11 +352,20 @@ class UdpPeerDriver(DeviceDriver):
             return
         log.warning("%s: helper process exited with code %s; restarting", self.name, code)
         self.error.emit(f"{self.name}: helper process exited (code {code}); restarting")
+        if code == HelperProcess.BIND_FAILED:
+            # Someone else holds the helper's port: an alarm, never "reconnected" through their socket (its
+            # datagrams carry no valid MAC), and the next start listens on a fresh port of ours.
+            self.helper_failures += 1
+            port = self.udp.peer[1] if self.udp.peer else "?"
+            self._fire_event("helper_failed",
+                             f"the {self.name} process cannot bind its port {port} (taken by another program)")
+            self._move_helper_port()
         # The link is down even if the restart is quicker than the silence timeout: say so (alarm, gap).
         self._peer_alive = False
         super()._set_connected(False, f"the {self.name} process exited (code {code}); restarting it")
         try:
             self.process.start()
+            self.seq_guard.reset()  # a new process, a new key: its sequence numbers start again
         except OSError as exc:
             log.error("%s: cannot restart helper process: %s", self.name, exc)
         self._next_process_check = now + self._process_backoff_s
@@ -421,9 +502,9 @@ class PatientModelDriver(UdpPeerDriver):
     def __init__(self, bind: tuple[str, int], peer: tuple[str, int], rate_hz: float = 100.0, *,
                  frame_source: FrameSource | None = None, split: SplitSource | None = None,
                  process: HelperProcess | None = None, notifier: UpdateNotifier | None = None,
-                 alive_timeout_s: float = 0.5) -> None:
+                 alive_timeout_s: float = 0.5, key: bytes | None = None) -> None:
         super().__init__("patient_model", bind, peer, rate_hz, alive_timeout_s=alive_timeout_s,
-                         process=process, notifier=notifier)
+                         process=process, notifier=notifier, key=key)
         self.frame_source = frame_source
         self.split = split
         self.clinical_score: int | None = None  # set from the patient's profile / the assistance panel
@@ -445,8 +526,11 @@ class PatientModelDriver(UdpPeerDriver):
 
     def handle_datagram(self, data: bytes, t: float) -> None:
         r = decode_patient_model_reply(data)
-        a_r, a_f = self.split(r.alpha) if self.split is not None else (NAN, NAN)
         sent = self._sent_at.get(r.ackSeq)
+        if sent is None or time.monotonic() - sent > ACK_WINDOW_S:
+            raise FrameError(f"stale ack: reply acknowledges frame {r.ackSeq}, not sent in the last {ACK_WINDOW_S:g} s")
+        self.check_seq(r.seq)
+        a_r, a_f = self.split(r.alpha) if self.split is not None else (NAN, NAN)
         flags = int(r.flags)
         self.publish("patient_model.main", t, PatientModelSample(
             alpha=r.alpha, a_r=a_r, a_f=a_f, tpi=r.tpi, mpi=r.mpi, pti=r.pti, alphaMin=r.alphaMin,
@@ -471,6 +555,28 @@ def manager_split(manager: Any) -> SplitSource:
         return t.a_r, t.a_f
 
     return split
+
+
+def link_key(cfg: Any) -> bytes | None:
+    """An external peer's shared key (``key_file``, hex) when ``authenticate: true``; None otherwise."""
+    if cfg.mode != "external" or not cfg.authenticated:
+        return None
+    try:
+        key = bytes.fromhex(Path(cfg.key_file).expanduser().read_text(encoding="ascii").strip())
+    except (OSError, ValueError) as exc:
+        raise ValueError(f"key_file {cfg.key_file}: not a readable hex key ({exc})") from exc
+    if len(key) < 16:
+        raise ValueError(f"key_file {cfg.key_file}: the key is shorter than 16 bytes")
+    return key
+
+
+def warn_if_plain(manager: Any, name: str, cfg: Any) -> None:
+    """An external peer on the plain seed layout: say so where the operator sees it (the alarms)."""
+    if cfg.mode == "external" and not cfg.authenticated:
+        from app.safety import AlarmLevel
+
+        manager.supervisor.raise_alarm(AlarmLevel.WARNING, name, f"the {name} link to {cfg.peer_host}:"
+                                       f"{cfg.peer_port} is not authenticated (plain frames, external peer)")
 
 
 def embedded_process(host: str, model_port: int, manager_port: int, config_path: Path = DEFAULT_CONFIG_PATH,
@@ -502,9 +608,12 @@ def create(ctx: DeviceContext) -> DeviceHandle | None:
     else:
         listen_port = cfg.listen_port
         peer = (cfg.peer_host, cfg.peer_port)
+    if process is not None:
+        process.authenticate = cfg.authenticated
     driver = PatientModelDriver((host, listen_port), peer, cfg.rate_hz, split=manager_split(manager),
-                                process=process, notifier=ctx.notifier)
+                                process=process, notifier=ctx.notifier, key=link_key(cfg))
     driver.frame_source = ManagerFrameSource(manager, driver)
+    warn_if_plain(manager, "patient_model", cfg)
     if process is not None:
         process.start()
     return DeviceHandle("patient_model", driver, None, extras)

@@ -163,7 +163,9 @@ def validate_pulse(channel: int, setting: PulseSetting, *, field: str = "") -> N
 
 
 def min_t2_ms(channels: Iterable[int]) -> float:
-    """Shortest t2 that fits one pass: 1.5 ms per channel on the busier module (§2.4)."""
+    """ScienceMode 1's shortest t2 that fits one pass: 1.5 ms per channel on the busier module (§2.4).
+    ScienceMode 2 has no such rule (see ``validate_channel_list``); the config builder still uses it as a
+    conservative default for both."""
     chans = set(channels)
     return CHANNEL_SLOT_MS * max(len(chans & set(MODULE_A)), len(chans & set(MODULE_B)))
 
@@ -207,7 +209,10 @@ def validate_channel_list(
     _check_int("low_frequency_factor", config.low_frequency_factor, 0, MAX_LOW_FREQUENCY_FACTOR)
     t2_code = _code_half_ms("t2_ms", config.t2_ms, 1.5, t2_lo, t2_hi)
     t1_code = _code_half_ms("t1_ms", config.t1_ms, 1.0, t1_lo, t1_hi)
-    need_t2 = min_t2_ms(config.channels)
+    # SM1 only: S1 §4 (reference/sciencemode.md §2.4) sets t2 >= 1.5 ms per channel on the busier module.
+    # ScienceMode 2 states no such rule: t2 is 1.5..129 ms (S4 §3.2, §4.3; reference §3.2 and the "group
+    # time t2" row of §4) and t1 >= npg*t2 (S4 §1.3); pysciencemode accepts t2 from 2 ms (reference §4).
+    need_t2 = min_t2_ms(config.channels) if protocol == "sm1" else t2_lo
     if config.t2_ms < need_t2:
         raise ScienceModeRangeError(
             "t2_ms",

@@ -15,13 +15,23 @@ docs/physio-and-udp-frames.md):
   system flags, CRC.
 
 Decoders raise ``FrameError`` (a ``ValueError``) with a reason on a wrong size, header, CRC or an
-out-of-range value, and raise nothing else on any input.  Encoders raise ``ValueError`` on values
+out-of-range value, and raise nothing else on any input.
+
+Authentication (our own embedded model and VR stand-in; optional for an ``external`` peer, whose
+datagrams keep the seed's plain layout): the frame is followed by ``MAC_SIZE`` bytes of
+HMAC-SHA256(key, frame), truncated (``seal`` / ``unseal``), with a per-session ``KEY_SIZE``-byte key the
+manager creates and hands to its helper process privately (environment, never the command line).
+Replays are refused by ``SequenceGuard`` (each direction's 16-bit sequence number must increase,
+modulo wrap-around) on both ends; the manager also refuses a reply acknowledging no frame it sent in
+the last ``ACK_WINDOW_S``.  Encoders raise ``ValueError`` on values
 that have no encoding (alpha outside [-1, 1], an index outside [0, 1]).
 """
 
 from __future__ import annotations
 
 import enum
+import hashlib
+import hmac
 import math
 import struct
 from dataclasses import dataclass, field
@@ -39,6 +49,11 @@ POSITION_SCALE: Final = 2e-5       # m per count, int16: ±0.65534 m in 20 µm s
 SUBTASK_TIME_SCALE: Final = 0.01   # s per count, uint16: 0..655.34 s
 Q15: Final = 1.0 / 32767.0         # int16 fraction: ±1
 LEVEL_SCALE: Final = 1.0 / 255.0   # uint8 fraction: 0..1
+
+MAC_SIZE: Final = 8          # bytes of HMAC-SHA256 kept (64 bits: forging one takes ~2^63 tries)
+KEY_SIZE: Final = 32         # bytes of per-session key
+ACK_WINDOW_S: Final = 0.5    # a reply must acknowledge a frame sent this recently
+LINK_KEY_ENV: Final = "LINARMPP_LINK_KEY"  # how the manager hands the key to its helper process (hex)
 
 INT16_NA: Final = -32768
 UINT16_NA: Final = 0xFFFF
@@ -415,3 +430,49 @@ def decode_vr_event(data: bytes) -> VrEventFrame:
     except ValueError as exc:
         raise FrameError(f"unknown VR event {v['event']}") from exc
     return VrEventFrame(v["seq"], event, v["subTask"], v["score"], v["timeToTarget"])
+
+
+# ---------------------------------------------------------------------------------------------
+# Authentication and replay protection (pure)
+
+
+def mac(key: bytes, frame: bytes) -> bytes:
+    return hmac.new(key, frame, hashlib.sha256).digest()[:MAC_SIZE]
+
+
+def seal(key: bytes, frame: bytes) -> bytes:
+    """``frame`` followed by its MAC."""
+    return bytes(frame) + mac(key, bytes(frame))
+
+
+def unseal(key: bytes, data: Any) -> bytes:
+    """The frame inside an authenticated datagram; FrameError("bad MAC") unless it carries a valid MAC."""
+    if not isinstance(data, bytes | bytearray | memoryview):
+        raise FrameError(f"not bytes: {type(data).__name__}")
+    raw = bytes(data)
+    if len(raw) <= MAC_SIZE:
+        raise FrameError(f"wrong size: {len(raw)} bytes, too short for a MAC")
+    frame, tag = raw[:-MAC_SIZE], raw[-MAC_SIZE:]
+    if not hmac.compare_digest(tag, mac(key, frame)):
+        raise FrameError("bad MAC: not from the session's peer")
+    return frame
+
+
+class SequenceGuard:
+    """Accepts a 16-bit sequence number only when it is newer than the last accepted one (wrap-aware:
+    newer = 1..32767 ahead).  ``reset`` forgets the last one (a new peer, a new key)."""
+
+    def __init__(self) -> None:
+        self.last: int | None = None
+        self.rejected = 0
+
+    def reset(self) -> None:
+        self.last = None
+
+    def accept(self, seq: int) -> bool:
+        seq &= 0xFFFF
+        if self.last is not None and not 0 < ((seq - self.last) & 0xFFFF) < 0x8000:
+            self.rejected += 1
+            return False
+        self.last = seq
+        return True

@@ -36,7 +36,14 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 from app.devices.driver import Channel, StreamSpec, UpdateNotifier
-from app.devices.patient_model import HelperProcess, UdpPeerDriver, free_udp_port, read_inputs
+from app.devices.patient_model import (
+    HelperProcess,
+    UdpPeerDriver,
+    free_udp_port,
+    link_key,
+    read_inputs,
+    warn_if_plain,
+)
 from app.devices.udp_frames import (
     TaskData,
     TaskFlag,
@@ -168,9 +175,10 @@ class VrDriver(UdpPeerDriver):
 
     def __init__(self, bind: tuple[str, int], peer: tuple[str, int], rate_hz: float = 50.0, *,
                  manager: Any = None, task: VrTask | None = None, process: HelperProcess | None = None,
-                 notifier: UpdateNotifier | None = None, alive_timeout_s: float = 2.5) -> None:
+                 notifier: UpdateNotifier | None = None, alive_timeout_s: float = 2.5,
+                 key: bytes | None = None) -> None:
         super().__init__("vr", bind, peer, rate_hz, alive_timeout_s=alive_timeout_s, process=process,
-                         notifier=notifier)
+                         notifier=notifier, key=key)
         self.manager = manager
         self.task = task or VrTask()
         self._seq = 0
@@ -216,6 +224,7 @@ class VrDriver(UdpPeerDriver):
 
     def handle_datagram(self, data: bytes, t: float) -> None:
         ev = decode_vr_event(data)
+        self.check_seq(ev.seq)
         self.events_received += 1
         self.task.on_event(ev, t)
 
@@ -256,8 +265,11 @@ def create(ctx: DeviceContext) -> DeviceHandle | None:
     else:
         listen_port = cfg.listen_port
         peer = (cfg.peer_host, cfg.peer_port)
+    if process is not None:
+        process.authenticate = cfg.authenticated
     driver = VrDriver((host, listen_port), peer, cfg.rate_hz, manager=manager, process=process,
-                      notifier=ctx.notifier)
+                      notifier=ctx.notifier, key=link_key(cfg))
+    warn_if_plain(manager, "vr", cfg)
     if process is not None:
         process.start()
     return DeviceHandle("vr", driver, None, extras)

@@ -168,6 +168,12 @@ class _Checker:
 
 def parse_tree_config(text: str, source: str = "patient_model.yaml") -> TreeConfig:
     """Parse and check the decision-tree YAML; errors name the line."""
+    from app.yamlschema import ConfigError, check_yaml
+
+    try:  # the same limits as every user file: tags, aliases, size, depth (issue #17)
+        check_yaml(text, source)
+    except ConfigError as exc:
+        raise PatientModelConfigError(source, exc.line or 0, exc.problem) from None
     try:
         doc = yaml.load(text, Loader=_Loader)  # a SafeLoader subclass: no arbitrary objects
     except PatientModelConfigError as exc:
@@ -247,10 +253,12 @@ def parse_tree_config(text: str, source: str = "patient_model.yaml") -> TreeConf
 
 def load_tree_config(path: str | Path = DEFAULT_CONFIG_PATH) -> TreeConfig:
     p = Path(path)
+    from app.yamlschema import ConfigError, read_text
+
     try:
-        text = p.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise PatientModelConfigError(str(p), 0, f"cannot read: {exc.strerror or exc}") from None
+        text = read_text(p)
+    except ConfigError as exc:
+        raise PatientModelConfigError(str(p), exc.line or 0, exc.problem) from None
     return parse_tree_config(text, str(p))
 
 

@@ -27,6 +27,11 @@ while they carry "not available" the ``--clinical-score`` value is used (default
 the in-between band), and the reply is flagged FALLBACK, as it is while any index still has no
 data (its neutral value is used).
 
+When the manager started it with a link key (environment variable ``LINARMPP_LINK_KEY``, hex; never
+on the command line), every frame must carry a valid MAC and a sequence number newer than the last
+(app.devices.udp_frames ``unseal`` / ``SequenceGuard``), and every reply is sealed; others are dropped and
+counted ("invalid", "replay").  Exit code 3: the ``--listen`` port cannot be bound.
+
 The process exits by itself when its parent (``--parent-pid``, default the parent at start) dies or when no frame has
 arrived for ``--idle-exit`` s (default 10; 0 = never), so a crashed manager leaves nothing behind.
 """
@@ -43,13 +48,17 @@ import time
 from dataclasses import dataclass
 
 from app.devices.udp_frames import (
+    LINK_KEY_ENV,
     FrameError,
     PatientModelFrame,
     PatientModelReply,
     ReplyFlag,
+    SequenceGuard,
     TaskState,
     decode_patient_model_frame,
     encode_patient_model_reply,
+    seal,
+    unseal,
 )
 from app.patient_model.decision_tree import DEFAULT_CONFIG_PATH, Decision, DecisionTree, load_tree_config
 from app.patient_model.indices import MotorPerformance, PhysiologicalTrend, TaskPerformance, TpiNorms
@@ -199,11 +208,22 @@ class ParentWatch:
         return os.getppid() != self.parent
 
 
+def take_link_key() -> bytes | None:
+    """The key the manager passed in our environment (removed from it: children never inherit it)."""
+    text = os.environ.pop(LINK_KEY_ENV, "")
+    try:
+        return bytes.fromhex(text) if text else None
+    except ValueError:
+        log.error("the link key in %s is not hex: refusing every frame", LINK_KEY_ENV)
+        return b"\x00" * 32  # a key nobody has: fail closed
+
+
 def serve(sock: socket.socket, peer: tuple[str, int], model: EmbeddedPatientModel,
-          idle_exit_s: float, watch: ParentWatch) -> dict[str, int]:
+          idle_exit_s: float, watch: ParentWatch, key: bytes | None = None) -> dict[str, int]:
     """Answer frames until the parent dies or the link is idle; returns the counters."""
     peer_ip = socket.gethostbyname(peer[0])
-    counts = {"frames": 0, "replies": 0, "foreign": 0, "invalid": 0}
+    counts = {"frames": 0, "replies": 0, "foreign": 0, "invalid": 0, "replay": 0}
+    guard = SequenceGuard()
     last_frame = time.monotonic()
     sock.settimeout(0.2)
     while True:
@@ -225,16 +245,20 @@ def serve(sock: socket.socket, peer: tuple[str, int], model: EmbeddedPatientMode
             counts["foreign"] += 1
             continue
         try:
-            frame = decode_patient_model_frame(data)
+            frame = decode_patient_model_frame(unseal(key, data) if key is not None else data)
         except FrameError as exc:
             counts["invalid"] += 1
             log.debug("dropped datagram: %s", exc.reason)
+            continue
+        if not guard.accept(frame.seq):
+            counts["replay"] += 1
             continue
         counts["frames"] += 1
         last_frame = t
         reply = model.on_frame(frame, t)
         try:
-            sock.sendto(encode_patient_model_reply(reply), peer)
+            out = encode_patient_model_reply(reply)
+            sock.sendto(seal(key, out) if key is not None else out, peer)
             counts["replies"] += 1
         except OSError:
             pass  # the manager is momentarily not listening; the next frame gets an answer
@@ -254,6 +278,7 @@ def main(argv: list[str] | None = None) -> int:
                     help="exit after this many s without a frame (0 = never)")
     ap.add_argument("--parent-pid", type=int, default=None, help="exit when this process is gone")
     args = ap.parse_args(argv)
+    key = take_link_key()
     logging.basicConfig(level=logging.INFO, stream=sys.stderr, format="patient model: %(message)s")
     try:
         tree = DecisionTree(load_tree_config(args.config))
@@ -268,7 +293,7 @@ def main(argv: list[str] | None = None) -> int:
         log.error("cannot bind %s:%d: %s", args.listen[0], args.listen[1], exc.strerror)
         return 3
     try:
-        counts = serve(sock, args.peer, model, args.idle_exit, ParentWatch(args.parent_pid))
+        counts = serve(sock, args.peer, model, args.idle_exit, ParentWatch(args.parent_pid), key)
     except KeyboardInterrupt:
         counts = {}
     finally:

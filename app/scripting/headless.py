@@ -7,9 +7,14 @@ brings the devices to a safe state and exits:
 
 * 0 — the script finished, or was stopped because ``--duration`` was reached (counted from the start of
   the script's own code, after any homing);
-* 1 — the script raised an error (its traceback is printed), or could not be read or compiled;
+* 1 — the script raised an error (its traceback is printed), could not be read or compiled, or its
+  process (the script kernel) ended by itself — a segfault, ``os._exit``, out of memory;
 * 3 — a safety stop: a command refused by the safety supervisor, an emergency stop, or an alarm of
-  level STOP (e.g. the LINarm latched an error) during the run;
+  level STOP (e.g. the LINarm latched an error, a device lost, the recording failed) during the run —
+  the fault policy (app.fault_policy, the same as the window's) has already stopped FES, the robot and
+  the script;
+* 4 — the session cannot be recorded (``--record`` folder unwritable, or too little free space): one line
+  on stderr, nothing was started;
 * 130 — interrupted (Ctrl-C).
 """
 
@@ -26,7 +31,7 @@ from app.config import AppConfig
 
 log = logging.getLogger(__name__)
 
-EXIT_OK, EXIT_ERROR, EXIT_SAFETY, EXIT_INTERRUPTED = 0, 1, 3, 130
+EXIT_OK, EXIT_ERROR, EXIT_SAFETY, EXIT_RECORDING, EXIT_INTERRUPTED = 0, 1, 3, 4, 130
 CONNECT_TIMEOUT_S = 10.0
 HEADLESS_PATIENT = "headless"
 
@@ -53,8 +58,15 @@ def run_headless(config: AppConfig, script_path: str, duration_s: float | None =
         print(f"Cannot run {script_path}: {exc}", file=sys.stderr)
         return EXIT_ERROR
     app = QCoreApplication.instance() or QCoreApplication([sys.argv[0] if sys.argv else "linarmpp"])
+    if record_dir:
+        problem = _record_dir_problem(Path(record_dir), config)
+        if problem:
+            print(f"Cannot record: {problem}", file=sys.stderr)
+            return EXIT_RECORDING
     manager = LinarmppManager(config)
     recorder = None
+    lsl = None
+    runner = None
     code = EXIT_OK
     try:
         manager.start()
@@ -62,12 +74,23 @@ def run_headless(config: AppConfig, script_path: str, duration_s: float | None =
         if prepare is not None:
             prepare(manager)
         if record_dir:
-            from app.recording import SessionRecorder
+            from app.recording import RecordingError, SessionRecorder
 
             recorder = SessionRecorder()
-            folder = recorder.start(manager, HEADLESS_PATIENT, "headless runner", note=f"script {path.name}",
-                                    root=Path(record_dir))
+            try:
+                folder = recorder.start(manager, HEADLESS_PATIENT, "headless runner", note=f"script {path.name}",
+                                        root=Path(record_dir))
+            except (RecordingError, OSError) as exc:
+                recorder = None
+                _emit(output, "stderr", f"Cannot record: {exc.strerror if isinstance(exc, RecordingError) else exc}\n")
+                return EXIT_RECORDING
             _emit(output, "info", f"Recording the session in {folder}\n")
+        if config.recording.lsl:  # as start_session does in the window
+            from app.lsl import start_lsl
+
+            lsl = start_lsl(manager)
+            if lsl is not None and recorder is not None:
+                recorder.add_event_tap(lsl.marker)
         alarms_before = {a.ident for a in manager.supervisor.alarms()}
         runner = ScriptRunner(manager, output or _print_sink, home_first=home_first)
         runner.start(source, str(path.resolve()))
@@ -97,11 +120,36 @@ def run_headless(config: AppConfig, script_path: str, duration_s: float | None =
             if safety_stop:
                 _emit(output, "stderr", f"Safety stop: {safety_stop}\n")
     finally:
+        if runner is not None:
+            runner.close()  # its kernel processes end with the run
         if recorder is not None:
-            recorder.stop("headless run ended")
+            recorder.stop("headless run ended")  # never raises: a write failure is in the manifest and the log
+        if lsl is not None:
+            lsl.stop()
         manager.shutdown()
         app.processEvents()
     return code
+
+
+def _record_dir_problem(root: Path, config: AppConfig) -> str:
+    """Why sessions cannot be recorded under ``root`` ('' when they can): checked before anything starts."""
+    import os
+
+    from app.recording import RecordingError, check_free_space
+
+    try:
+        root.mkdir(parents=True, exist_ok=True, mode=0o700)
+    except OSError as exc:
+        return f"cannot create {root}: {exc.strerror or exc}"
+    if not root.is_dir() or not os.access(root, os.W_OK | os.X_OK):
+        return f"{root} is not a writable folder"
+    try:
+        warning = check_free_space(root, config.recording.warn_free_mib, config.recording.min_free_mib)
+    except RecordingError as exc:
+        return str(exc.strerror)
+    if warning:
+        log.warning("%s", warning)
+    return ""
 
 
 def _wait_connected(manager: Any, app: Any) -> None:

@@ -1,20 +1,21 @@
-"""Runs an exercise script on its own thread, never the GUI thread, and stops it on request.
+"""Runs an exercise script in the script kernel — a child Python process (app/scripting/kernel.py) — and
+stops it on request, whatever it does.
 
-Stopping (qt-stack.md §6): the stop flag is set first; every API wait (``time.sleep``, ``wait``,
-``waitCondition``, a command waiting for its ACK, a device-value read) checks it at least every 20 ms
-and raises :class:`ScriptStopped`. A script that is in none of those — a pure-Python busy loop such as
-the seed's ``while eval(cond) == False: pass`` — gets ScriptStopped delivered asynchronously
-(``PyThreadState_SetAsyncExc``) after a short cooperative grace, re-sent while the script keeps running
-(a bare ``except:`` cannot keep it alive). Asynchronous exceptions are only ever sent to a thread while
-it runs user code, and a pending one is cleared when user code ends, so the runner's own clean-up is
-never hit by one.
+The runner starts a kernel with itself (the console's prompt and the first script use it) and, from the
+first Start on, keeps a spare started ahead, so Start only hands the script to a warm process. A script
+runs in a fresh kernel (its own namespace); the prompt then works in that namespace until the next Start.
+The kernel reaches the devices only through :class:`app.scripting.bridge.ApiBridge`: the API's calls,
+answered on bridge threads by the in-app API objects (the safety supervisor on every command), and the
+samples of the streams it uses.
 
-The script sees a ``time`` module whose ``sleep`` is interruptible (through its own ``__import__``, so
-``import time`` inside callbacks defined by the script gets it too), ``print`` captured to the output,
-``waitCondition`` / ``wait``, and the API objects of :mod:`app.scripting.api`.
-
-Callbacks registered by the script run on one callback thread per run, in arrival order; an exception in
-one is reported with its line and the others keep running. They stop with the script.
+Stop (:meth:`request_stop`): calls from the kernel are refused from then on, FES and robot go to the safe
+state at once (on a thread of their own), the kernel is asked to stop (every wait there notices within
+20 ms; a busy loop gets ScriptStopped asynchronously), and a kernel that has not ended its script within
+50 ms is terminated, then killed 40 ms later. A kernel that ends by itself while a script runs (a
+segfault, ``os._exit``, out of memory) ends the run as an error, "the script's process ended: <cause>".
+Either way the devices go to the safe state, the run is recorded, and a fresh kernel serves the next
+Start. The application's own interpreter is untouched: no switch-interval change, no asynchronous
+exceptions in its threads.
 
 At the end of every run (finished, stopped, failed) the devices go to a safe state: FES stopped, robot
 IDLE (or holding where it is, ``safety.robot_safe_state: hold``).
@@ -22,67 +23,31 @@ IDLE (or holding where it is, ``safety.robot_safe_state: hold``).
 
 from __future__ import annotations
 
-import builtins
-import collections
-import contextlib
-import ctypes
-import enum
+import json
 import linecache
 import logging
 import re
 import sys
 import threading
 import time
-import traceback
-import types
-from collections.abc import Callable, Iterator
+import weakref
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from app.devices.linarm_protocol import ControlMode, ControlState, HomeState
 from app.resources import RESOURCES
-from app.scripting.api import (
-    CommandRefused,
-    ScriptContext,
-    ScriptStopped,
-    build_api,
-    make_wait_condition,
-)
+from app.scripting.api import CommandRefused, ScriptContext, ScriptStopped
+from app.scripting.bridge import ApiBridge, Gate, KernelProcess
 
 log = logging.getLogger(__name__)
 
 OutputSink = Callable[[str, str], None]  # (stream: "stdout" | "stderr" | "info", text)
-COOPERATIVE_GRACE_S = 0.03  # API waits notice the stop flag within 20 ms; only then interrupt by force
-ASYNC_RESEND_S = 0.05
-CALLBACK_QUEUE_LIMIT = 1000  # samples waiting for the callback thread before the oldest are dropped
 HOME_TIMEOUT_S = 60.0
-
-
-_gil_lock = threading.Lock()
-_gil_users = 0
-_gil_previous = 0.005
-SCRIPT_SWITCH_INTERVAL_S = 0.001
-
-
-@contextlib.contextmanager
-def _responsive_gil() -> Iterator[None]:
-    """While a script runs, hand the GIL over every 1 ms instead of 5: a busy-waiting script (the seed's
-    own ``waitCondition``) otherwise makes every GUI and driver slot wait up to 5 ms for the GIL, and with
-    a few dozen Python slots a second the window stalls for seconds."""
-    global _gil_users, _gil_previous
-    with _gil_lock:
-        if _gil_users == 0:
-            _gil_previous = sys.getswitchinterval()
-            sys.setswitchinterval(min(_gil_previous, SCRIPT_SWITCH_INTERVAL_S))
-        _gil_users += 1
-    try:
-        yield
-    finally:
-        with _gil_lock:
-            _gil_users -= 1
-            if _gil_users == 0:
-                sys.setswitchinterval(_gil_previous)
+POLITE_STOP_S = 0.05  # the kernel's own stop (every wait notices within 20 ms) before SIGTERM
+TERMINATE_S = 0.04  # SIGTERM before SIGKILL
+ANSWER_TIMEOUT_S = 0.5  # completion and namespace reads from the GUI thread
 
 
 @dataclass
@@ -99,68 +64,32 @@ class ScriptResult:
         return self.status in ("finished", "stopped")
 
 
-# ---------------------------------------------------------------------------------------------- helpers
-def _async_raise(thread_id: int, exc_type: type[BaseException] | None) -> None:
-    """Deliver ``exc_type`` in ``thread_id`` at its next bytecode (None clears a pending one)."""
-    ctypes.pythonapi.PyThreadState_SetAsyncExc(ctypes.c_ulong(thread_id),
-                                               ctypes.py_object(exc_type) if exc_type is not None else None)
-
-
-class ScriptTime(types.ModuleType):
-    """The ``time`` module as scripts see it: the same, but ``sleep`` ends when the script is stopped."""
-
-    def __init__(self, context: ScriptContext) -> None:
-        super().__init__("time", time.__doc__)
-        for name in dir(time):
-            if not name.startswith("__"):
-                setattr(self, name, getattr(time, name))
-        self.sleep = context.sleep
-
-
-def _no_input(*_args: Any) -> str:
-    raise RuntimeError("input() is not available in exercise scripts: nobody types at the patient's side")
-
-
-class _UserThreads:
-    """Which threads run user code now (only those may receive an asynchronous ScriptStopped)."""
+class PromptRun:
+    """One prompt entry running in the kernel (what :meth:`ScriptRunner.execute` returns)."""
 
     def __init__(self) -> None:
-        self._lock = threading.Lock()
-        self._in_user: set[int] = set()
+        self._done = threading.Event()
 
-    def enter(self) -> None:
-        with self._lock:
-            self._in_user.add(threading.get_ident())
+    def join(self, timeout: float | None = None) -> None:
+        self._done.wait(timeout)
 
-    def leave(self) -> None:
-        tid = threading.get_ident()
-        while True:  # a ScriptStopped may still land while we get here: retry until clean
-            try:
-                with self._lock:
-                    self._in_user.discard(tid)
-                    _async_raise(tid, None)
-                return
-            except ScriptStopped:
-                continue
+    def is_alive(self) -> bool:
+        return not self._done.is_set()
 
-    def interrupt_all(self) -> int:
-        with self._lock:
-            for tid in self._in_user:
-                _async_raise(tid, ScriptStopped)
-            return len(self._in_user)
 
-    def busy(self) -> bool:
-        with self._lock:
-            return bool(self._in_user)
+class _Answer:
+    def __init__(self) -> None:
+        self.event = threading.Event()
+        self.value: Any = None
 
 
 # ---------------------------------------------------------------------------------------------- runner
 class ScriptRunner:
-    """One script at a time (plus interactive statements in the same namespace), each on its own thread.
+    """One script at a time (plus interactive statements in the same namespace), in a kernel process.
 
-    ``output(stream, text)`` is called from script threads: it must be quick and thread-safe (the console
-    appends to a deque it drains on a timer). ``on_finished(result)`` is called on the script thread after
-    the safe state."""
+    ``output(stream, text)`` is called from bridge threads: it must be quick and thread-safe (the console
+    appends to a deque it drains on a timer). ``on_finished(result)`` is called on the run's control thread
+    after the safe state."""
 
     def __init__(self, manager: Any, output: OutputSink | None = None, *, safe_state: str | None = None,
                  home_first: bool = True, home_timeout_s: float = HOME_TIMEOUT_S,
@@ -172,27 +101,126 @@ class ScriptRunner:
         self.home_first = home_first
         self.home_timeout_s = home_timeout_s
         self.on_finished = on_finished
-        self.context = ScriptContext(manager)
-        self.context.run_program = self._run_program
-        self.context.post_callback = self._post_callback
-        self.namespace: dict[str, Any] = {}
+        self.context = ScriptContext(manager, source="script runner")  # homing; its stop_event follows Stop
         self.filename = "<script>"
         self.result: ScriptResult | None = None
         self.stop_reason = ""
         self.body_started_at: float | None = None  # monotonic time the script's own code began (after homing)
         self.callback_errors: dict[tuple[str, int, str], int] = {}
         self.callbacks_dropped = 0
-        self._users = _UserThreads()
-        self._thread: threading.Thread | None = None
-        self._callback_thread: threading.Thread | None = None
-        self._interactive: list[threading.Thread] = []
-        self._callbacks: collections.deque[tuple[str, list[Callable[[Any], Any]], Any]] = collections.deque()
-        self._callback_wake = threading.Event()
+        self.kernel_start_s: float | None = None  # Start → the kernel has the script (the last run)
+        self.gate = Gate()
+        self.paused = False
         self._done = threading.Event()
         self._done.set()
+        self._user_ended = threading.Event()
+        self._user_ended.set()
+        self._wake = threading.Event()
+        self._stop_requested = threading.Event()
         self._run_lock = threading.Lock()
-        self._stopper: threading.Thread | None = None
-        self._new_namespace("<console>")
+        self._kernel_lock = threading.Lock()
+        self._kernel: KernelProcess | None = None
+        self._spare: KernelProcess | None = None
+        self._bridge: ApiBridge | None = None
+        self._done_msg: dict[str, Any] | None = None
+        self._prompts: dict[int, PromptRun] = {}
+        self._answers: dict[int, _Answer] = {}
+        self._ids = iter(range(1, 1 << 62))
+        self._safe_thread: threading.Thread | None = None
+        self._safe_lock = threading.Lock()
+        self._exit_report: dict[str, Any] | None = None
+        self._closed = False
+        self._kernels: list[KernelProcess] = []
+        self._finalizer = weakref.finalize(self, _kill_all, self._kernels)
+        self._register_stop_action()
+        try:
+            self._next_kernel()  # started with the runner: the prompt and the first Start find it warm
+        except OSError as exc:  # the window still opens; Start then says why scripts cannot run
+            log.error("the script kernel could not be started: %s", exc)
+
+    # ------------------------------------------------------------------ kernels
+    def _spawn(self) -> KernelProcess:
+        kernel = KernelProcess()
+        self._kernels[:] = [k for k in self._kernels if not k.ended.is_set()] + [kernel]
+        return kernel
+
+    def _next_kernel(self) -> KernelProcess:
+        """Make the spare the current kernel (retiring the old one) and start a new spare."""
+        with self._kernel_lock:
+            old = self._kernel
+            kernel = self._spare if self._spare is not None and self._spare.alive else self._spawn()
+            self._spare = None
+            self._kernel = kernel
+            bridge = ApiBridge(self.manager, kernel, self.gate)
+            old_bridge, self._bridge = self._bridge, bridge
+            kernel.bind(lambda msg, k=kernel, b=bridge: self._on_message(k, b, msg), self._raw_output,
+                        self._on_kernel_exit)
+        if old_bridge is not None:
+            old_bridge.close()
+        if old is not None and old is not kernel:
+            old.retire()
+        return kernel
+
+    def _ensure_spare(self) -> None:
+        """A spare kernel starting in the background (the next Start finds it warm)."""
+        if not self._closed:
+            threading.Thread(target=self._start_spare, name="script-kernel-spare", daemon=True).start()
+
+    def _start_spare(self) -> None:
+        with self._kernel_lock:
+            if self._closed or (self._spare is not None and self._spare.alive):
+                return
+        spare = self._spawn()
+        with self._kernel_lock:
+            if self._closed or (self._spare is not None and self._spare.alive):
+                spare.retire()
+                return
+            self._spare = spare
+
+    def _prompt_kernel(self) -> KernelProcess | None:
+        kernel = self._kernel
+        if kernel is None or kernel.ended.is_set():
+            try:
+                kernel = self._next_kernel()
+            except OSError as exc:
+                log.error("the script kernel could not be started: %s", exc)
+                return None
+        return kernel
+
+    def close(self) -> None:
+        """Stop what runs and end the kernels (the window closes)."""
+        if self.running:
+            self.stop("the application is closing", wait_s=0.5)
+            self.wait(2.0)
+        self._closed = True
+        with self._kernel_lock:
+            kernels = [k for k in (self._kernel, self._spare) if k is not None]
+            self._kernel = self._spare = None
+            bridge, self._bridge = self._bridge, None
+        if bridge is not None:
+            bridge.close()
+        for kernel in kernels:
+            kernel.retire()
+
+    def ready(self, timeout: float | None = None) -> bool:
+        """True once the current kernel has started (it is started with the runner; Start then only hands
+        it the script)."""
+        kernel = self._kernel
+        return kernel is not None and kernel.ready.wait(timeout)
+
+    def spare_ready(self, timeout: float = 5.0) -> bool:
+        """True once the spare kernel (started at a Start, for the next one) has started."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            spare = self._spare
+            if spare is not None and spare.ready.wait(max(0.0, deadline - time.monotonic())):
+                return True
+            time.sleep(0.01)
+        return False
+
+    @property
+    def kernel_pid(self) -> int | None:
+        return self._kernel.pid if self._kernel is not None else None
 
     # ------------------------------------------------------------------ public
     @property
@@ -200,282 +228,363 @@ class ScriptRunner:
         return not self._done.is_set()
 
     def start(self, source: str, filename: str = "<script>", params: dict[str, Any] | None = None) -> None:
-        """Run ``source`` (the script's text) on a new thread; ``filename`` names it in tracebacks.
+        """Run ``source`` (the script's text) in a fresh kernel; ``filename`` names it in tracebacks.
         ``params`` (plain data: an exercise form's values) is the script's global ``exerciseParams``."""
+        t0 = time.monotonic()
         with self._run_lock:
             if self.running:
                 raise RuntimeError("a script is already running: stop it first")
-            code = compile(source, filename, "exec")  # a SyntaxError reaches the caller before anything runs
+            compile(source, filename, "exec")  # a SyntaxError reaches the caller before anything runs
+            params = json.loads(json.dumps(dict(params or {})))  # plain data only
             _remember_source(filename, source)
             self._done.clear()
+            self._user_ended.clear()
+            self._stop_requested.clear()
+            self._wake.clear()
+            self._done_msg = None
+            self._exit_report = None
             self.result = None
             self.body_started_at = None
             self.stop_reason = ""
-            self.callback_errors.clear()
+            self.paused = False
+            self.callback_errors = {}
             self.callbacks_dropped = 0
-            self._callbacks.clear()
+            self.filename = filename
             self.context.stop_event.clear()
+            self.gate.set("open")
+            kernel = self._kernel
+            if kernel is None or kernel.used or not kernel.alive:
+                try:
+                    kernel = self._next_kernel()
+                except OSError as exc:
+                    self._done.set()
+                    self._user_ended.set()
+                    raise RuntimeError(f"the script kernel (a Python process) could not be started: {exc}") from exc
+            kernel.used = True
+            self._ensure_spare()
+            bridge = self._bridge
+            assert bridge is not None
             base = Path(filename).resolve().parent if not filename.startswith("<") else None
+            bridge.context.base_dir = base
             self.context.base_dir = base
-            self._new_namespace(filename)
-            self.namespace["exerciseParams"] = dict(params or {})
-            self._thread = threading.Thread(target=self._script_main, args=(code, filename, source),
-                                            name="script", daemon=True)
-            self._callback_thread = threading.Thread(target=self._callback_main, name="script-callbacks",
-                                                     daemon=True)
-            self._callback_thread.start()
-            self._thread.start()
+            thread = threading.Thread(target=self._control_main,
+                                      args=(kernel, bridge, source, filename, params, t0),
+                                      name="script-control", daemon=True)
+            thread.start()
 
     def start_file(self, path: str | Path, params: dict[str, Any] | None = None) -> None:
         path = Path(path)
         self.start(path.read_text(encoding="utf-8"), str(path), params)
 
     def request_stop(self, reason: str = "stopped by the operator") -> None:
-        """Ask every script thread (main, callbacks, interactive) to stop; returns at once."""
-        if not self.stop_reason:
+        """Stop the script (and prompt entries); returns at once, never blocks (the supervisor's "script"
+        stop action). FES and robot go to the safe state at once; the kernel ends within 200 ms."""
+        running = self.running
+        if not running and not any(p.is_alive() for p in list(self._prompts.values())):
+            return
+        if not self.stop_reason and running:
             self.stop_reason = reason
         self.context.stop_event.set()
-        self._callback_wake.set()
-        if self._stopper is None or not self._stopper.is_alive():
-            self._stopper = threading.Thread(target=self._escalate, name="script-stopper", daemon=True)
-            self._stopper.start()
+        kernel = self._kernel
+        if running:
+            self.gate.set("closed")
+        if kernel is not None:
+            kernel.send({"op": "stop", "reason": reason})
+        if running:
+            self._stop_requested.set()
+            self._wake.set()
+            with self._safe_lock:
+                if self._safe_thread is None or not self._safe_thread.is_alive():
+                    thread = threading.Thread(target=self._safe_state_now, args=(reason,),
+                                              name="script-safe-state", daemon=True)
+                    thread.start()
+                    self._safe_thread = thread
 
     def stop(self, reason: str = "stopped by the operator", wait_s: float = 1.0) -> bool:
-        """Stop and wait up to ``wait_s`` for user code to end (not for the safe state that follows)."""
+        """Stop and wait up to ``wait_s`` for user code to end; True when it has. Then, within what is left
+        of ``wait_s``, wait for the run to finish its safe state too, so that a Start right after works."""
         self.request_stop(reason)
         deadline = time.monotonic() + wait_s
-        while self._users.busy() or self._callbacks_alive() or self._interactive_alive():
+        if self.running and not self._user_ended.wait(wait_s):
+            return False
+        while any(p.is_alive() for p in list(self._prompts.values())):
             if time.monotonic() > deadline:
                 return False
             time.sleep(0.002)
+        self._done.wait(max(0.0, deadline - time.monotonic()))
         return True
 
     def wait(self, timeout: float | None = None) -> bool:
         """Wait until the run (including its safe state) has ended; True when it has."""
         return self._done.wait(timeout)
 
-    def execute(self, source: str, symbol: str = "single") -> threading.Thread | None:
-        """Run one interactive statement in the script's namespace on its own thread (the prompt).
-        Returns the thread, or None when ``source`` is incomplete (more lines needed). Raises SyntaxError."""
+    def pause(self) -> None:
+        """Hold the script: its calls wait (here and in the kernel), FES stops; :meth:`resume` lets it go on."""
+        if not self.running or self.paused:
+            return
+        self.paused = True
+        self.gate.set("paused")
+        kernel = self._kernel
+        if kernel is not None:
+            kernel.send({"op": "pause"})
+        self._stop_fes("script paused")
+        progress = getattr(self.manager, "progress", None)
+        if progress is not None:
+            progress.pause()
+        self.output("info", "Script paused (FES stopped).\n")
+
+    def resume(self) -> None:
+        if not self.running or not self.paused:
+            return
+        self.paused = False
+        if self.gate.state == "paused":
+            self.gate.set("open")
+        kernel = self._kernel
+        if kernel is not None:
+            kernel.send({"op": "resume"})
+        progress = getattr(self.manager, "progress", None)
+        if progress is not None:
+            progress.resume()
+        self.output("info", "Script resumed.\n")
+
+    def execute(self, source: str, symbol: str = "single") -> PromptRun | None:
+        """Run one interactive statement in the kernel's namespace (the prompt). Returns a handle with
+        ``join``/``is_alive``, or None when ``source`` is incomplete (more lines needed). Raises SyntaxError."""
         import codeop
 
         if codeop.compile_command(source, "<console>", symbol) is None:
             return None
+        kernel = self._prompt_kernel()
+        run = PromptRun()
+        if kernel is None:
+            self.output("stderr", "The script kernel could not be started: see the log.\n")
+            run._done.set()
+            return run
+        kernel.used = True
         if not self.running:
-            self.context.stop_event.clear()  # the prompt works between runs, too
-        thread = threading.Thread(target=self._interactive_main, args=(source,), name="script-console", daemon=True)
-        self._interactive = [t for t in self._interactive if t.is_alive()] + [thread]
-        thread.start()
-        return thread
+            self.context.stop_event.clear()
+        rid = next(self._ids)
+        self._prompts = {k: p for k, p in self._prompts.items() if p.is_alive()}
+        self._prompts[rid] = run
+        if not kernel.send({"op": "exec", "id": rid, "source": source}):
+            run._done.set()
+        return run
 
     def completions(self, text: str) -> list[str]:
-        """Names completing ``text`` (``linarm.mo`` → ``linarm.moveCentreTo``, …) in the script's namespace.
-        Walks attributes without calling anything: device values are peeked (latest sample or nothing)."""
-        import keyword
-
+        """Names completing ``text`` (``linarm.mo`` → ``linarm.moveCentreTo``, …) in the kernel's live
+        namespace. Device values are peeked (latest sample or nothing), never waited for."""
         if not re.fullmatch(r"[A-Za-z_][\w]*(\.[A-Za-z_]?[\w]*)*", text or ""):
             return []
-        if "." not in text:
-            names = set(self.namespace) | set(self.namespace["__builtins__"]) | set(keyword.kwlist)
-            return sorted(n for n in names if n.startswith(text) and (text.startswith("_") or not n.startswith("_")))
-        expr, prefix = text.rsplit(".", 1)
-        head, *rest = expr.split(".")
-        if head in self.namespace:
-            obj = self.namespace[head]
-        elif head in self.namespace["__builtins__"]:
-            obj = self.namespace["__builtins__"][head]
-        else:
+        kernel = self._prompt_kernel()
+        if kernel is None:
             return []
-        for name in rest:
-            try:
-                obj = self.context.peek(obj, name)
-            except BaseException:  # a device that is not there: nothing to offer
-                return []
-            if obj is None:
-                return []
-        names = set(dir(obj))
-        if isinstance(obj, type) and issubclass(obj, enum.Enum):
-            names |= set(obj.__members__)
-        return sorted(f"{expr}.{n}" for n in names
-                      if n.startswith(prefix) and (prefix.startswith("_") or not n.startswith("_")))
+        value = self._ask(kernel, {"op": "complete", "text": text})
+        if not isinstance(value, list):
+            return []
+        return [v for v in value[:2000] if isinstance(v, str) and v.startswith(text.rsplit(".", 1)[0])]
 
-    # ------------------------------------------------------------------ namespace
-    def _new_namespace(self, filename: str) -> None:
-        self.filename = filename
-        ctx = self.context
-        script_time = ScriptTime(ctx)
-        real_import = builtins.__import__
+    def namespace_value(self, name: str, timeout: float = ANSWER_TIMEOUT_S) -> Any:
+        """A variable of the kernel's namespace, as plain data (lists, dicts, numbers, text; others as repr)."""
+        kernel = self._prompt_kernel()
+        return None if kernel is None else self._ask(kernel, {"op": "get", "name": name}, timeout)
 
-        def script_import(name: str, globals_: Any = None, locals_: Any = None, fromlist: Any = (),
-                          level: int = 0) -> Any:
-            if name == "time" and level == 0:
-                return script_time
-            return real_import(name, globals_, locals_, fromlist, level)
+    def _ask(self, kernel: KernelProcess, msg: dict[str, Any], timeout: float = ANSWER_TIMEOUT_S) -> Any:
+        rid = next(self._ids)
+        answer = _Answer()
+        self._answers[rid] = answer
+        try:
+            if kernel.send({**msg, "id": rid}):
+                answer.event.wait(timeout)
+            return answer.value
+        finally:
+            self._answers.pop(rid, None)
 
-        def script_print(*args: Any, sep: str | None = " ", end: str | None = "\n", file: Any = None,
-                         flush: bool = False) -> None:
-            if file is not None and file not in (sys.stdout, sys.stderr):
-                builtins.print(*args, sep=sep, end=end, file=file, flush=flush)
-                return
-            text = (" " if sep is None else sep).join(str(a) for a in args) + ("\n" if end is None else end)
-            self.output("stderr" if file is sys.stderr else "stdout", text)
+    # ------------------------------------------------------------------ kernel messages (reader thread)
+    def _on_message(self, kernel: KernelProcess, bridge: ApiBridge,
+                    msg: dict[str, Any]) -> Callable[[], None] | None:
+        served = bridge.handle(msg)
+        if callable(served):
+            return served  # an API call: run by the reader that read it, off the lead
+        if served:
+            return None
+        op = msg.get("op")
+        if op == "out":
+            stream, text = msg.get("stream"), msg.get("text")
+            if stream in ("stdout", "stderr", "info") and isinstance(text, str):
+                self.output(stream, text[:1_000_000])
+                return None
+        elif op == "done":
+            if kernel is self._kernel and self.running and self._done_msg is None:
+                self._done_msg = msg
+                self._user_ended.set()
+                self._wake.set()
+                return None
+        elif op == "exiting":  # the script called os._exit: where, before the process is gone
+            if kernel is self._kernel and self.running:
+                self._exit_report = msg
+            return None
+        elif op == "exec_done":
+            run = self._prompts.get(msg.get("id"))  # type: ignore[arg-type]
+            if run is not None:
+                run._done.set()
+            return None
+        elif op == "answer":
+            answer = self._answers.get(msg.get("id"))  # type: ignore[arg-type]
+            if answer is not None:
+                answer.value = msg.get("value")
+                answer.event.set()
+            return None
+        elif op == "__violation__":
+            bridge.refuse(msg, str(msg.get("reason")))
+            return None
+        bridge.refuse(msg, f"an unknown request {str(op)[:40]!r}")
+        return None
 
-        script_builtins = dict(builtins.__dict__)
-        script_builtins.update(__import__=script_import, print=script_print, input=_no_input)
-        namespace: dict[str, Any] = {"__name__": "__main__", "__file__": filename, "__builtins__": script_builtins}
-        namespace.update(build_api(ctx))
-        namespace["waitCondition"] = make_wait_condition(ctx, namespace)
-        namespace["wait"] = ctx.sleep
-        namespace["time"] = script_time
-        self.namespace = namespace
+    def _raw_output(self, stream: str, text: str) -> None:
+        """What the kernel wrote to its own stdout/stderr (C extensions, a crash report)."""
+        self.output("stderr" if stream == "stderr" else "stdout", text)
 
-    def _run_program(self, path: str) -> None:
-        """LinarmppManager.startProgram: run another script file here, in a namespace of its own."""
-        source = Path(path).read_text(encoding="utf-8")
-        _remember_source(path, source)
-        namespace = dict(self.namespace)
-        namespace["__file__"] = path
-        exec(compile(source, path, "exec"), namespace)
+    def _on_kernel_exit(self, kernel: KernelProcess) -> None:
+        for run in list(self._prompts.values()):
+            run._done.set()
+        for answer in list(self._answers.values()):
+            answer.event.set()
+        if kernel is self._kernel:
+            self._wake.set()
+            if not self.running and kernel.used and not self._closed:
+                self.output("info", f"The script kernel ended ({kernel.cause()}); a fresh one is ready.\n")
+                threading.Thread(target=self._next_kernel, name="script-kernel-next", daemon=True).start()
 
-    # ------------------------------------------------------------------ threads
-    def _script_main(self, code: types.CodeType, filename: str, source: str) -> None:
-        with _responsive_gil():
-            self._script_body(code, filename, source)
-
-    def _script_body(self, code: types.CodeType, filename: str, source: str) -> None:
+    # ------------------------------------------------------------------ the run (control thread)
+    def _control_main(self, kernel: KernelProcess, bridge: ApiBridge, source: str, filename: str,
+                      params: dict[str, Any], t_start: float) -> None:
         t0 = time.monotonic()
         sup = getattr(self.manager, "supervisor", None)
         name = Path(filename).name
         if sup is not None:
-            sup.event("script_start", name=name, text=source)
+            sup.event("script_start", name=name, text=source, kernel_pid=kernel.pid)
         progress = getattr(self.manager, "progress", None)
         if progress is not None:
             progress.begin(name)
-        result = ScriptResult("finished", filename=filename)
-        self._users.enter()
+        result: ScriptResult | None = None
         try:
-            try:
-                if self.home_first:
-                    self._home_if_needed()
-                self.body_started_at = time.monotonic()
-                exec(code, self.namespace)
-            finally:
-                self._users.leave()
+            if self.home_first:
+                self._home_if_needed()
         except ScriptStopped:
             result = ScriptResult("stopped", self.stop_reason or "stopped", filename)
-        except SystemExit as exc:
-            if exc.code not in (None, 0):
-                result = ScriptResult("error", f"exit({exc.code!r})", filename)
         except BaseException as exc:
-            result = self._describe(exc, filename, "refused" if _refused(exc) else "error")
+            if self._stop_requested.is_set() and self.stop_reason:  # homing ended by the stop
+                result = ScriptResult("stopped", self.stop_reason, filename)
+            else:
+                status = "refused" if _refused(exc) else "error"
+                result = ScriptResult(status, f"{type(exc).__name__}: {exc}", filename)
+        if result is None and self._stop_requested.is_set():
+            result = ScriptResult("stopped", self.stop_reason or "stopped", filename)
+        if result is None:
+            self.body_started_at = time.monotonic()
+            kernel.send({"op": "run", "source": source, "filename": filename, "params": params})
+            self.kernel_start_s = time.monotonic() - t_start
+            result = self._supervise(kernel, filename)
+        self._user_ended.set()
         result.duration_s = time.monotonic() - t0
-        self.context.stop_event.set()  # callbacks and prompt statements end with the script
-        self._callback_wake.set()
-        self._join_helpers()
-        self.context.close()
+        self.gate.set("closed")
+        bridge.unsubscribe_all()
         self._report(result)
+        with self._safe_lock:
+            safe_thread, self._safe_thread = self._safe_thread, None
+        if safe_thread is not None:
+            safe_thread.join(2.0)
         self._bring_to_safe_state(result)
         if sup is not None:
             sup.event("script_stop", name=name, reason=result.message or result.status, status=result.status)
         if progress is not None:
             progress.finish(result.status)
+        self.gate.set("open")
+        self.paused = False
         self.result = result
         self._done.set()
+        if not kernel.alive and kernel is self._kernel and not self._closed:
+            try:  # a fresh kernel for the prompt and the next Start (which would start one itself)
+                self._next_kernel()
+                self._ensure_spare()
+            except OSError as exc:
+                log.error("the script kernel could not be started: %s", exc)
         if self.on_finished is not None:
             try:
                 self.on_finished(result)
             except Exception:
                 log.exception("on_finished failed")
 
-    def _callback_main(self) -> None:
-        ctx = self.context
-        while not ctx.stop_event.is_set():
-            try:
-                _stream, funs, sample = self._callbacks.popleft()
-            except IndexError:
-                self._callback_wake.wait(0.02)
-                self._callback_wake.clear()
-                continue
-            for fn in list(funs):
-                if ctx.stop_event.is_set():
-                    return
-                self._users.enter()
-                try:
-                    try:
-                        fn(sample)
-                    finally:
-                        self._users.leave()
-                except ScriptStopped:
-                    return
-                except SystemExit:
-                    self.request_stop("a callback called exit()")
-                    return
-                except BaseException as exc:
-                    self._report_callback_error(fn, exc, "refused" if _refused(exc) else "error")
+    def _supervise(self, kernel: KernelProcess, filename: str) -> ScriptResult:
+        """Wait for the kernel's end of the run, its death, or Stop (then escalate)."""
+        while True:
+            msg = self._done_msg
+            if msg is not None:
+                return self._result_from(msg, filename)
+            if kernel.ended.is_set():
+                return self._ended_result(kernel, filename)
+            if self._stop_requested.is_set():
+                t_stop = time.monotonic()
+                if self._wait_done(kernel, POLITE_STOP_S):
+                    continue
+                log.info("script kernel %s did not stop politely: terminating it", kernel.pid)
+                kernel.terminate()
+                if not self._wait_done(kernel, TERMINATE_S):
+                    kernel.kill()
+                    kernel.ended.wait(1.0)
+                self._user_ended.set()
+                msg = self._done_msg
+                if msg is not None:
+                    return self._result_from(msg, filename)
+                log.info("script kernel %s ended %.0f ms after Stop (%s)", kernel.pid,
+                         (time.monotonic() - t_stop) * 1000, kernel.cause())
+                return ScriptResult("stopped", self.stop_reason or "stopped", filename)
+            self._wake.wait(0.1)
+            self._wake.clear()
 
-    def _interactive_main(self, source: str) -> None:
-        self._users.enter()
+    def _wait_done(self, kernel: KernelProcess, timeout: float) -> bool:
+        deadline = time.monotonic() + timeout
+        while self._done_msg is None and not kernel.ended.is_set():
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                return False
+            kernel.ended.wait(min(remaining, 0.005))
+        return True
+
+    def _result_from(self, msg: dict[str, Any], filename: str) -> ScriptResult:
+        status = msg.get("status")
+        if status not in ("finished", "stopped", "error", "refused"):
+            status = "error"
+        message = str(msg.get("message") or "")[:2000]
+        if status == "stopped":
+            message = self.stop_reason or message or "stopped"
+        line = msg.get("line")
+        result = ScriptResult(str(status), message, filename, line if isinstance(line, int) else None,
+                              str(msg.get("traceback") or "")[:100_000])
+        if status in ("error", "refused") and self._stop_requested.is_set() and self.stop_reason:
+            # a command failed because of the stop (robot IDLE, FES off, calls refused): the stop's cause
+            result = ScriptResult("stopped", self.stop_reason, filename)
         try:
-            try:
-                self._exec_interactive(source)
-            finally:
-                self._users.leave()
-        except ScriptStopped:
-            self.output("info", "(interrupted)\n")
-        except SystemExit:
-            self.output("info", "exit() ignored at the prompt\n")
-        except BaseException as exc:
-            result = self._describe(exc, "<console>", "error")
-            self.output("stderr", result.traceback)
+            self.callbacks_dropped = int(msg.get("callbacks_dropped") or 0)
+            self.callback_errors = {(str(a), int(b), str(c)): int(n)
+                                    for a, b, c, n in msg.get("callback_errors") or []}
+        except (TypeError, ValueError):
+            pass
+        return result
 
-    def _exec_interactive(self, source: str) -> None:
-        """Run a prompt entry; a final expression's value is shown (as the Python prompt does) and kept in ``_``."""
-        import ast
-
-        _remember_source("<console>", source)
-        tree = ast.parse(source, "<console>", "exec")
-        last = tree.body[-1] if tree.body and isinstance(tree.body[-1], ast.Expr) else None
-        if last is not None:
-            tree.body.pop()
-        if tree.body:
-            exec(compile(tree, "<console>", "exec"), self.namespace)
-        if last is not None:
-            value = eval(compile(ast.Expression(last.value), "<console>", "eval"), self.namespace)
-            if value is not None:
-                self.namespace["_"] = value
-                self.output("stdout", repr(value) + "\n")
-
-    def _post_callback(self, stream: str, funs: list[Callable[[Any], Any]], sample: Any) -> None:
-        # driver thread: append (atomic) and wake; never user code here
-        if len(self._callbacks) >= CALLBACK_QUEUE_LIMIT:
-            try:
-                self._callbacks.popleft()
-                self.callbacks_dropped += 1
-            except IndexError:
-                pass
-        self._callbacks.append((stream, funs, sample))
-        self._callback_wake.set()
-
-    def _escalate(self) -> None:
-        """After the cooperative grace, interrupt whatever still runs user code, until it ends."""
-        time.sleep(COOPERATIVE_GRACE_S)
-        while self._users.interrupt_all():
-            time.sleep(ASYNC_RESEND_S)
-
-    def _join_helpers(self) -> None:
-        deadline = time.monotonic() + 1.0
-        for thread in [self._callback_thread, *self._interactive]:
-            if thread is not None and thread is not threading.current_thread():
-                thread.join(max(0.0, deadline - time.monotonic()))
-                if thread.is_alive():
-                    self._users.interrupt_all()
-                    thread.join(0.2)
-
-    def _callbacks_alive(self) -> bool:
-        return self._callback_thread is not None and self._callback_thread.is_alive() and self._users.busy()
-
-    def _interactive_alive(self) -> bool:
-        return any(t.is_alive() for t in self._interactive)
+    def _ended_result(self, kernel: KernelProcess, filename: str) -> ScriptResult:
+        if self._stop_requested.is_set():
+            return ScriptResult("stopped", self.stop_reason or "stopped", filename)
+        cause = kernel.cause()
+        where = _last_script_line(kernel.stderr_tail, filename)
+        result = ScriptResult("error", f"the script's process ended: {cause}", filename, where)
+        result.traceback = _crash_summary(kernel.stderr_tail, filename)
+        report = self._exit_report
+        if report is not None:
+            line = report.get("line")
+            result.line = line if isinstance(line, int) else result.line
+            result.traceback = str(report.get("traceback") or "")[:100_000]
+        return result
 
     # ------------------------------------------------------------------ homing and safe state
     def _home_if_needed(self) -> None:
@@ -501,32 +610,46 @@ class ScriptRunner:
             raise RuntimeError(f"the LINarm did not finish homing within {self.home_timeout_s:.0f} s")
         self.output("info", "LINarm homed.\n")
 
-    def _bring_to_safe_state(self, result: ScriptResult) -> None:
-        """FES stopped; robot IDLE (or holding). Direct driver calls: the script's context is closed."""
+    def _safe_state_now(self, reason: str) -> None:
+        """On Stop: FES and robot to the safe state at once, before the kernel has even ended."""
+        try:
+            self._bring_to_safe_state(ScriptResult("stopped", reason), quiet=True)
+        except Exception:
+            log.exception("immediate safe state failed")
+
+    def _stop_fes(self, reason: str) -> bool:
+        fes = self.manager.driver("fes") if self.manager is not None else None
+        if fes is None:
+            return False
+        try:
+            stop = getattr(fes, "stop_stimulation", None)
+            if stop is not None:
+                stop(reason, "script runner")
+            else:
+                fes.stop(reason, "script runner")  # the contract's stop(reason: str, source)
+            return True
+        except Exception as exc:
+            log.warning("script: FES stop failed: %s", exc)
+            self.output("stderr", f"Could not stop the FES: {exc}\n")
+            return False
+
+    def _bring_to_safe_state(self, result: ScriptResult, quiet: bool = False) -> None:
+        """FES stopped; robot IDLE (or holding). Direct driver calls, never through the kernel."""
         reason = f"script {result.status}"
         done: list[str] = []
-        fes = self.manager.driver("fes") if self.manager is not None else None
-        if fes is not None:
-            try:
-                stop = getattr(fes, "stop_stimulation", None)
-                if stop is not None:
-                    stop(reason, "script runner")
-                else:
-                    fes.stop(reason, "script runner")  # the contract's stop(reason: str, source)
-                done.append("FES stopped")
-            except Exception as exc:
-                log.warning("script end: FES stop failed: %s", exc)
-                self.output("stderr", f"Could not stop the FES: {exc}\n")
+        if self._stop_fes(reason):
+            done.append("FES stopped")
         linarm = self.manager.driver("linarm") if self.manager is not None else None
         if linarm is not None and linarm.connected:
             state = linarm.latest("linarm.state")
-            active = state is None or state.controlState != ControlState.IDLE_CTRL_STATE
+            # IDLE is sent even when the last state sample says IDLE: it is up to 50 ms old, and a command
+            # acknowledged since (setCtrlState ON from the script) may not be in it yet.
             try:
                 if self.safe_state == "hold" and state is not None and state.controlState == ControlState.ON_CTRL_STATE:
                     # a mode change clears any motion: the centre holds where it is
                     linarm.command("setCtrlMode", int(ControlMode.POS_REF_BY_TARGET_POS), source="script runner")
                     done.append("robot holding")
-                elif active:
+                else:
                     linarm.command("setCtrlState", int(ControlState.IDLE_CTRL_STATE), source="script runner")
                     done.append("robot IDLE")
             except Exception as exc:
@@ -539,8 +662,23 @@ class ScriptRunner:
         sup = getattr(self.manager, "supervisor", None)
         if sup is not None:
             sup.event("script_safe_state", reason=reason, actions=done)
-        if done:
+        if done and not quiet:
             self.output("info", f"Safe state: {', '.join(done)}.\n")
+
+    def _register_stop_action(self) -> None:
+        """Contract 3: the supervisor's e-stop and safe state stop the running script ("script")."""
+        sup = getattr(self.manager, "supervisor", None)
+        register = getattr(sup, "register_estop_action", None)
+        if not callable(register):
+            return
+        ref = weakref.ref(self)
+
+        def stop_script(reason: str) -> None:
+            runner = ref()
+            if runner is not None and runner.running:
+                runner.request_stop(reason)
+
+        register("script", stop_script)
 
     # ------------------------------------------------------------------ reporting
     def _report(self, result: ScriptResult) -> None:
@@ -549,32 +687,18 @@ class ScriptRunner:
         elif result.status == "stopped":
             self.output("info", f"Script stopped: {result.message} ({result.duration_s:.1f} s).\n")
         else:
-            self.output("stderr", result.traceback)
+            if result.traceback:
+                self.output("stderr", result.traceback)
             where = f" at line {result.line}" if result.line else ""
             self.output("info", f"Script ended by an error{where}: {result.message}\n")
         if self.callbacks_dropped:
             self.output("info", f"{self.callbacks_dropped} samples were skipped because the callbacks were "
                                 "slower than the data.\n")
 
-    def _report_callback_error(self, fn: Callable[..., Any], exc: BaseException, status: str) -> None:
-        described = self._describe(exc, self.filename, status)
-        key = (getattr(fn, "__name__", "?"), described.line or 0, type(exc).__name__)
-        count = self.callback_errors.get(key, 0) + 1
-        self.callback_errors[key] = count
-        if count == 1:  # a callback at 100 Hz would flood the console: report each error once
-            self.output("stderr", f"Error in callback {key[0]} (reported once; the callbacks keep running):\n"
-                                  + described.traceback)
 
-    def _describe(self, exc: BaseException, filename: str, status: str) -> ScriptResult:
-        frames = traceback.extract_tb(exc.__traceback__)
-        user = [f for f in frames if not _is_app_file(f.filename)]
-        line = user[-1].lineno if user else None
-        if isinstance(exc, SyntaxError) and exc.filename and not _is_app_file(exc.filename):
-            line = exc.lineno
-        lines = ["Traceback (most recent call last):\n", *traceback.format_list(user or frames)]
-        lines += traceback.format_exception_only(type(exc), exc)
-        message = f"{type(exc).__name__}: {exc}"
-        return ScriptResult(status, message, filename, line, "".join(lines))
+def _kill_all(kernels: list[KernelProcess]) -> None:
+    for kernel in kernels:
+        kernel.kill()
 
 
 def _refused(exc: BaseException) -> bool:
@@ -588,6 +712,15 @@ def _refused(exc: BaseException) -> bool:
     return False
 
 
+def _last_script_line(report: str, filename: str) -> int | None:
+    """The script's line in a faulthandler report ('File "x.py", line 3 in <module>')."""
+    lines = re.findall(r'File "([^"]+)", line (\d+)', report)
+    for name, line in lines:  # faulthandler lists the most recent call first
+        if name == filename:
+            return int(line)
+    return None
+
+
 _APP_DIR = str(Path(__file__).resolve().parent.parent)
 
 
@@ -596,6 +729,18 @@ def _is_app_file(filename: str) -> bool:
     if filename.startswith(str(RESOURCES)):  # installed, the example scripts lie inside app/ (app/_resources)
         return False
     return filename.startswith(_APP_DIR) or filename.startswith("<frozen") or "concurrent/futures" in filename
+
+
+def _crash_summary(report: str, filename: str) -> str:
+    """faulthandler's report reduced to what a script's author needs: the error and the script's frames."""
+    if "Fatal Python error" not in report:
+        return report.strip()[-2000:] + "\n" if report.strip() else ""
+    head = report[report.index("Fatal Python error"):].splitlines()
+    out = [head[0]]
+    frames = [m for ln in head[1:] if (m := re.search(r'File "([^"]+)", line (\d+)', ln))]
+    out += [f'  File "{m.group(1)}", line {m.group(2)}' for m in frames
+            if not _is_app_file(m.group(1)) and "/lib/python" not in m.group(1)]
+    return "\n".join(out) + "\n"
 
 
 def _remember_source(filename: str, source: str) -> None:

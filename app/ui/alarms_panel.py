@@ -35,6 +35,7 @@ from PySide6.QtWidgets import (
 
 from app.manager import LinarmppManager
 from app.safety import Alarm, AlarmLevel
+from app.ui.recovery import RecoverDialog, Recovery, Restartable, recovery_needed
 
 
 @dataclass(frozen=True)
@@ -125,7 +126,10 @@ class AlarmsPanel(QWidget):
         op_label = QLabel("&Operator:")
         self.operator = QLineEdit()
         self.operator.setObjectName("operator")
-        self.operator.setPlaceholderText("name of who acknowledges")
+        self.operator.setPlaceholderText("operator's name")
+        self.operator.setToolTip("Who acknowledges; filled in with the session's operator")
+        # The session's operator, so nobody retypes it (issue #19); a typed name is kept.
+        manager.session_changed.connect(self._on_session)
         self.operator.setMaximumWidth(200)
         op_label.setBuddy(self.operator)
         self.ack_selected = QPushButton("&Acknowledge selected")
@@ -161,6 +165,10 @@ class AlarmsPanel(QWidget):
         self.supervisor.alarms_changed.connect(self.refresh)
         self.refresh()
 
+    def _on_session(self, _folder: object) -> None:
+        if self.manager.recorder is not None and not self.operator.text().strip():
+            self.operator.setText(self.manager.operator)
+
     # ------------------------------------------------------------------ sound
     def _sound(self) -> None:
         self.beeps += 1
@@ -179,7 +187,9 @@ class AlarmsPanel(QWidget):
 
     # ------------------------------------------------------------------ acknowledgement
     def _operator(self) -> str | None:
-        name = self.operator.text().strip()
+        name = self.operator.text().strip() or self.manager.operator.strip()
+        if name and not self.operator.text().strip():
+            self.operator.setText(name)  # the session's operator: no retyping
         if not name:
             self.message.setText("Type the operator's name before acknowledging: it goes into the session record.")
             self.message.setStyleSheet("color: #c62828; font-weight: bold;")
@@ -345,52 +355,123 @@ class AlarmsPanel(QWidget):
         return item.background(0).color().name()
 
 
+def newest_unacknowledged(alarms: list[Alarm]) -> tuple[Alarm | None, int]:
+    """The newest unacknowledged alarm and how many are open: the banner shows what just happened,
+    never a stale alarm from before an e-stop reset."""
+    open_ = [a for a in alarms if not a.acknowledged]
+    if not open_:
+        return None, 0
+    return max(open_, key=lambda a: a.ident), len(open_)
+
+
 class AlarmBanner(QFrame):
-    """One line for the main window (under the e-stop): the most urgent unacknowledged alarm in its
-    level's colour, and how many more are open. ``show_alarms_requested`` asks the window to show
-    the alarms panel."""
+    """One line for the main window (beside the e-stop): the newest unacknowledged alarm in its
+    level's colour, how many are open, and the one place to recover after a STOP (``Recover…``).
+    ``show_alarms_requested`` asks the window to show the alarms panel. ``restart_provider`` (set by
+    the window) says which interrupted exercise Recover may start again."""
 
     show_alarms_requested = Signal()
+    recovered = Signal(bool, str)
 
     def __init__(self, manager: LinarmppManager) -> None:
         super().__init__()
+        from app.ui.widgets import ElidedLabel
+
         self.manager = manager
+        self.restart_provider: Callable[[], Restartable | None] = lambda: None
+        self.operator_provider: Callable[[], str] = lambda: manager.operator
+        self.script_running: Callable[[], bool] = lambda: False
+        self.stop_script: Callable[[], bool] = lambda: False
+        self.dialog: RecoverDialog | None = None
+        self.recovery: Recovery | None = None
         self.setObjectName("AlarmBanner")
         self.setFrameShape(QFrame.Shape.StyledPanel)
         row = QHBoxLayout(self)
         row.setContentsMargins(6, 2, 6, 2)
-        self.label = QLabel()
+        self.label = ElidedLabel()
         self.label.setObjectName("alarmBannerText")
-        self.label.setSizePolicy(QSizePolicy.Policy.Ignored, QSizePolicy.Policy.Preferred)
         row.addWidget(self.label, 1)
+        self.recover_button = QPushButton("&Recover…")
+        self.recover_button.setObjectName("recover")
+        self.recover_button.setToolTip("Acknowledge the alarms, reset the e-stop and the robot's error, "
+                                       "re-home and restart the interrupted exercise")
+        self.recover_button.setStyleSheet("QPushButton { font-weight: bold; }")
+        self.recover_button.clicked.connect(self.start_recovery)
+        self.recover_button.setVisible(False)
+        row.addWidget(self.recover_button)
         self.button = QPushButton("Alarms…")
-        self.button.setToolTip("Show the alarm list to acknowledge")
+        self.button.setToolTip("Show the alarm list")
         self.button.clicked.connect(self.show_alarms_requested.emit)
         row.addWidget(self.button)
         self.current: Alarm | None = None
         self._shown: tuple[str, str, str] | None = None
         manager.supervisor.alarms_changed.connect(self.refresh)
+        manager.supervisor.estop_changed.connect(lambda *_a: self.refresh())
+        # A robot error can outlast its acknowledged alarm: look again now and then.
+        self._timer = QTimer(self)
+        self._timer.setInterval(500)
+        self._timer.timeout.connect(self._refresh_recover)
+        self._timer.start()
         self.refresh()
 
     def refresh(self) -> None:
-        top, count = highest_unacknowledged(self.manager.supervisor.alarms())
+        top, count = newest_unacknowledged(self.manager.supervisor.alarms())
         self.current = top
+        self.button.setText(f"Alarms ({count})…" if count else "Alarms…")
+        # The newest alarm is the one shown; the list button stays red while any STOP is open.
+        worst, _n = highest_unacknowledged(self.manager.supervisor.alarms())
+        urgent = worst is not None and worst.level >= SOUNDING
+        sheet = (f"QPushButton {{ background: {LEVEL_STYLES[worst.level].background}; "
+                 f"color: {LEVEL_STYLES[worst.level].foreground}; font-weight: bold; }}") if urgent and worst else ""
+        if self.button.styleSheet() != sheet:
+            self.button.setStyleSheet(sheet)
+        self._refresh_recover()
         if top is None:
             self._show("No active alarms", "", "color: #757575;")
             return
         style = LEVEL_STYLES[top.level]
-        # The count goes first: a long message is what gets clipped in a narrow window.
-        more = f" (+{count - 1} more)" if count > 1 else ""
-        text = f"{style.name.upper()}{more} · {alarm_time(top)} · {top.source}: {top.text}"
+        text = f"{style.name.upper()} {alarm_time(top)} · {top.source}: {top.text}"
         self._show(text, f"#AlarmBanner {{ background: {style.background}; }}",
                    f"color: {style.foreground}; font-weight: bold;")
+
+    def _refresh_recover(self) -> None:
+        needed = recovery_needed(self.manager) and self.recovery is None
+        if needed == self.recover_button.isHidden():  # only on a change (no re-layout twice a second)
+            self.recover_button.setVisible(needed)
+
+    def start_recovery(self) -> RecoverDialog:
+        """Open the Recover dialog (non-blocking); its choice runs the recovery."""
+        restart = self.restart_provider()
+        dialog = RecoverDialog(self.manager, self.operator_provider(), restart, self.window(),
+                               script_running=self.script_running())
+        self.dialog = dialog
+
+        def accepted() -> None:
+            self.run_recovery(dialog.operator_name(), restart if dialog.choice == "restart" else None)
+
+        dialog.accepted.connect(accepted)
+        dialog.open()
+        return dialog
+
+    def run_recovery(self, operator: str, restart: Restartable | None) -> Recovery:
+        recovery = Recovery(self.manager, operator, restart, self, stop_script=self.stop_script)
+        self.recovery = recovery
+        self.recover_button.setVisible(False)
+
+        def done(ok: bool, text: str) -> None:
+            self.recovery = None
+            self.recovered.emit(ok, text)
+            self.refresh()
+
+        recovery.finished.connect(done)
+        recovery.run()
+        return recovery
 
     def _show(self, text: str, frame_sheet: str, label_sheet: str) -> None:
         # Style sheets re-polish the banner and its children: set them only when the level changes.
         shown = self._shown or ("", None, None)
         if text != shown[0]:
-            self.label.setText(text)
-            self.label.setToolTip(text if frame_sheet else "")
+            self.label.set_full_text(text)
             self.setAccessibleName(text)
         if frame_sheet != shown[1]:
             self.setStyleSheet(frame_sheet)

@@ -21,7 +21,7 @@ import math
 from dataclasses import replace
 from typing import Any
 
-from PySide6.QtCore import Qt, QTimer, Signal
+from PySide6.QtCore import QTimer, Signal
 from PySide6.QtWidgets import (
     QDoubleSpinBox,
     QFormLayout,
@@ -29,14 +29,13 @@ from PySide6.QtWidgets import (
     QGroupBox,
     QHBoxLayout,
     QLabel,
-    QSlider,
     QSpinBox,
     QVBoxLayout,
     QWidget,
 )
 
 from app.config import AssistanceConfig, AssistanceMap
-from app.ui.widgets import on_screen
+from app.ui.widgets import StepSlider, on_screen
 
 # (config field, label, unit, decimals, step)
 MAPS: tuple[tuple[str, str, str, int, float], ...] = (
@@ -46,6 +45,7 @@ MAPS: tuple[tuple[str, str, str, int, float], ...] = (
     ("fes_pulse_width_us", "FES pulse width", "µs", 0, 10.0),
 )
 NOT_SET = -1
+GAIN_MAX_STEP = 5  # slider units (0.01 each): the most one action moves a gain
 
 
 class _GainEditor(QWidget):
@@ -55,12 +55,15 @@ class _GainEditor(QWidget):
 
     def __init__(self, value: float) -> None:
         super().__init__()
-        self.slider = QSlider(Qt.Orientation.Horizontal)
+        # The gains drive the robot's assistance and the stimulation live: the slider never jumps (at
+        # most 0.05 per action); a far value is typed into the spin box and applies on Enter.
+        self.slider = StepSlider(GAIN_MAX_STEP)
         self.slider.setRange(0, 100)
         self.spin = QDoubleSpinBox()
         self.spin.setRange(0.0, 1.0)
         self.spin.setSingleStep(0.05)
         self.spin.setDecimals(2)
+        self.spin.setKeyboardTracking(False)
         lay = QHBoxLayout(self)
         lay.setContentsMargins(0, 0, 0, 0)
         lay.addWidget(self.slider, 1)
@@ -140,6 +143,7 @@ class AssistancePanel(QWidget):
                 spin.setRange(0.0, limits[key])
                 spin.setSuffix(f" {unit}")
                 spin.setValue(value)
+                spin.setKeyboardTracking(False)  # typed values apply on Enter, not digit by digit
                 spin.valueChanged.connect(lambda _v: self._apply())
                 grid.addWidget(spin, row, col)
                 pair.append(spin)

@@ -33,14 +33,19 @@ from app.ui.theme import colours
 log = logging.getLogger(__name__)
 
 # (tab title, module, class, only when a device is simulated)
+# Panels that lay out (and scroll) their own content: no scroll area around them -- a scroll area
+# inside a scroll area hid the primary controls below two folds (issue #19).
+SELF_SCROLLING = {"LinarmPanel", "ScriptConsole", "AlarmsPanel", "FesPanel", "LinarmViewer"}
+
 PANELS: list[tuple[str, str, str, bool]] = [
     ("Robot", "app.ui.linarm_panel", "LinarmPanel", False),
-    ("Robot view", "app.ui.linarm_viewer", "LinarmViewer", False),
+    ("Motors", "app.ui.linarm_viewer", "LinarmViewer", False),
     ("FES", "app.ui.fes_panel", "FesPanel", False),
-    ("Sensors view", "app.ui.physio_viewer", "PhysioViewer", False),
+    ("Sensors", "app.ui.physio_viewer", "PhysioViewer", False),
     ("Assistance", "app.ui.assistance_panel", "AssistancePanel", False),
-    ("Patient model", "app.ui.patient_model_viewer", "PatientModelViewer", False),
+    ("Model", "app.ui.patient_model_viewer", "PatientModelViewer", False),
     ("VR", "app.ui.vr_viewer", "VrViewer", False),
+    ("Exercises", "app.ui.exercises_panel", "ExercisesPanel", False),
     ("Script", "app.ui.script_console", "ScriptConsole", False),
     ("Simulation", "app.ui.simulation_panel", "SimulationPanel", True),
     ("Alarms", "app.ui.alarms_panel", "AlarmsPanel", False),
@@ -66,10 +71,10 @@ class DeviceToggle(QPushButton):
         self.name = name
         self.simulated = simulated
         self.setCheckable(True)
-        self.setMinimumHeight(30)
-        self.setMinimumWidth(120)
-        # The toggles share the row: they may shrink below their text when the window is very narrow.
-        self.setSizePolicy(QSizePolicy.Policy.Ignored, QSizePolicy.Policy.Fixed)
+        self.setMinimumHeight(26)
+        # One row of toggles; each shows the device's name, its state is its colour and tooltip (the
+        # status bar is the one place with the words and rates).
+        self.setSizePolicy(QSizePolicy.Policy.Preferred, QSizePolicy.Policy.Fixed)
         self._shown: tuple[bool, bool, str] | None = None
 
     def show_state(self, running: bool, connected: bool) -> None:
@@ -89,9 +94,9 @@ class DeviceToggle(QPushButton):
         self.blockSignals(True)
         self.setChecked(running)
         self.blockSignals(False)
-        self.setText(f"● {self.name}{sim}: {state}")
-        self.setStyleSheet(f"QPushButton {{ text-align: left; padding-left: 8px; }} QPushButton {{ color: {colour}; }}")
-        self.setToolTip(f"{action} {self.name}")
+        self.setText(f"● {self.name}{sim}")
+        self.setStyleSheet(f"QPushButton {{ text-align: left; padding: 2px 8px; }} QPushButton {{ color: {colour}; }}")
+        self.setToolTip(f"{self.name}{sim}: {state}. Press to {action.lower()}.")
         self.setAccessibleName(f"{self.name} {state}; press to {action.lower()}")
 
 
@@ -107,7 +112,7 @@ class CommandsFrame(QWidget):
         lay = QVBoxLayout(self)
         lay.setContentsMargins(2, 2, 2, 2)
         lay.setSpacing(4)
-        self.devices_box = QGroupBox("Devices")
+        self.devices_box = QGroupBox("Devices (press to connect or disconnect)")
         self.devices_grid = QGridLayout(self.devices_box)
         self.devices_grid.setContentsMargins(4, 4, 4, 4)
         self.devices_grid.setSpacing(4)
@@ -118,6 +123,9 @@ class CommandsFrame(QWidget):
         self.tabs = QTabWidget()
         self.tabs.setDocumentMode(True)
         self.tabs.setUsesScrollButtons(True)
+        # Eleven tabs must fit the dock's ~690 px at 1366×768 without scroll arrows: tighter padding
+        # than the style's default (the text itself is never elided).
+        self.tabs.tabBar().setStyleSheet("QTabBar::tab { padding: 5px 8px; }")
         lay.addWidget(self.tabs, 1)
         self._load_panels()
         if self.tabs.count() == 0:
@@ -146,8 +154,12 @@ class CommandsFrame(QWidget):
                 continue
             panel = getattr(module, class_name)(self.manager)
             self.panels[class_name] = panel
+            if class_name in SELF_SCROLLING:
+                self.tabs.addTab(panel, title)
+                continue
             # A tall panel scrolls inside its tab instead of forcing the window taller than the screen.
             scroll = QScrollArea()
+            scroll.setProperty("scrolls", True)
             scroll.setWidgetResizable(True)
             scroll.setFrameShape(QFrame.Shape.NoFrame)
             scroll.setWidget(panel)
@@ -160,7 +172,7 @@ class CommandsFrame(QWidget):
             toggle = DeviceToggle(name, handle.simulated)
             toggle.toggled.connect(lambda on, n=name: self.set_running(n, on))
             n = len(self.toggles)
-            self.devices_grid.addWidget(toggle, n // 3, n % 3)
+            self.devices_grid.addWidget(toggle, 0, n)
             self.toggles[name] = toggle
         self.no_devices.setVisible(not self.toggles)
 

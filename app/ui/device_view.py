@@ -26,6 +26,7 @@ from PySide6.QtWidgets import QLabel, QSizePolicy, QVBoxLayout, QWidget
 
 from app.manager import LinarmppManager
 from app.ui.theme import colours
+from app.ui.values_frame import format_value  # no "-0.000 m"
 from app.ui.widgets import RefreshWhenVisible
 
 log = logging.getLogger(__name__)
@@ -151,9 +152,9 @@ class DeviceView(RefreshWhenVisible, QWidget):
             self._gl.set_state(state)
         parts = []
         if state.handle is not None:
-            parts.append(f"handle {state.handle:.3f} m")
+            parts.append(f"handle {format_value(state.handle, 3)} m")
         if state.target is not None:
-            parts.append(f"target {state.target:.3f} m")
+            parts.append(f"target {format_value(state.target, 3)} m")
         if not state.connected:
             parts.insert(0, "robot not connected")
         text = "  ·  ".join(parts) or "no robot data"

@@ -386,6 +386,7 @@ class FesProfileEditor(QDialog):
     # ------------------------------------------------------------------ public
     def set_profile(self, profile: FesProfile) -> None:
         """Show ``profile`` (a fresh start: the undo history is cleared)."""
+        self._last_good = {}
         self._writing = True
         try:
             self.name_edit.setText(profile.name)
@@ -492,7 +493,11 @@ class FesProfileEditor(QDialog):
         general: list[str] = []
         axis = self.axis_box.currentText()
         channels: dict[int, ChannelProfile] = {}
+        stale: dict[int, tuple[int, ChannelProfile]] = {}  # row -> its last valid channel (being edited)
         seen: dict[int, int] = {}
+        if not hasattr(self, "_last_good"):
+            self._last_good: dict[int, tuple[int, ChannelProfile]] = {}
+        self._last_good = {r: v for r, v in self._last_good.items() if r < self.current_table.rowCount()}
         for r in range(self.current_table.rowCount()):
             ch_text = self._text(("current", r, 0)).strip()
             ch: int | None = int(ch_text) if ch_text.isdigit() else None
@@ -535,6 +540,9 @@ class FesProfileEditor(QDialog):
             if ch is not None and mode in MODES and traps[0] is not None and traps[1] is not None:
                 channels[ch] = ChannelProfile(traps[0], traps[1], self._text(("current", r, 1)).strip(),
                                               PulseMode[mode.upper()])
+                self._last_good[r] = (ch, channels[ch])
+            elif r in self._last_good:
+                stale[r] = self._last_good[r]  # a bad cell: the row's last valid preview stays, dashed
         profile: FesProfile | None = None
         if not problems:
             try:
@@ -546,7 +554,7 @@ class FesProfileEditor(QDialog):
         self.cell_problems = problems
         self.general_problems = general
         self._highlight()
-        self._plot(channels, axis)
+        self._plot(channels, axis, {ch: cp for ch, cp in stale.values() if ch not in channels})
         bad = colours().bad
         if problems:
             first = sorted(problems)[0]
@@ -582,7 +590,11 @@ class FesProfileEditor(QDialog):
         finally:
             self._writing = False
 
-    def _plot(self, channels: dict[int, ChannelProfile], axis: str) -> None:
+    def _plot(self, channels: dict[int, ChannelProfile], axis: str,
+              stale: dict[int, ChannelProfile] | None = None) -> None:
+        """Both previews; ``stale`` channels (a cell of theirs is invalid) are drawn dashed as they
+        last were valid, so one bad cell never blanks the plots (issue #19)."""
+        stale = stale or {}
         for p in (self.current_plot, self.width_plot):
             p.clear()
             if p.legend is not None:
@@ -592,11 +604,13 @@ class FesProfileEditor(QDialog):
             end = 1.0
         else:
             end = max((max(cp.current_ma.ramp_down[1], cp.pulse_width_us.ramp_down[1])
-                       for cp in channels.values()), default=1.0) * 1.1 or 1.0
+                       for cp in (*channels.values(), *stale.values())), default=1.0) * 1.1 or 1.0
         x = np.linspace(0.0, end, PREVIEW_POINTS)
-        for i, (ch, cp) in enumerate(sorted(channels.items())):
-            pen = pg.mkPen(curve_colour(i), width=2)
-            label = f"ch {ch}" + (f" {cp.muscle}" if cp.muscle else "")
+        shown = {**{ch: (cp, False) for ch, cp in channels.items()}, **{ch: (cp, True) for ch, cp in stale.items()}}
+        for i, (ch, (cp, old)) in enumerate(sorted(shown.items())):
+            pen = pg.mkPen(curve_colour(i), width=2,
+                           style=Qt.PenStyle.DashLine if old else Qt.PenStyle.SolidLine)
+            label = f"ch {ch}" + (f" {cp.muscle}" if cp.muscle else "") + (" (last valid)" if old else "")
             cur = np.array([cp.current_ma.value_at(v) for v in x])
             wid = np.array([cp.pulse_width_us.value_at(v) for v in x])
             self.curves[("current", ch)] = self.current_plot.plot(x, cur, pen=pen, name=label)

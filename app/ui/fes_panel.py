@@ -10,6 +10,7 @@ from __future__ import annotations
 import logging
 from html import escape
 from pathlib import Path
+from typing import Any
 
 from PySide6.QtCore import Qt, QTimer
 from PySide6.QtGui import QBrush, QColor
@@ -41,7 +42,76 @@ log = logging.getLogger(__name__)
 
 PROFILES_DIR = RESOURCES / "fes_profiles"
 DIAL_STEPS = 100  # dial units per 1.0 of scale (0.01 resolution)
+# The most one action (a key, a wheel notch, a drag event, a programmatic set) may RAISE a scale by:
+# an accidental click or twitch must never raise stimulation by more than this. Lowering is never capped.
+MAX_RISE_PER_ACTION = 0.05
+DRAG_PX_PER_STEP = 4  # a drag changes the dial by one unit per 4 px, relative to where it was pressed
 COLUMNS = ("Ch", "Muscle", "Peak mA", "Peak µs", "Now mA", "Now µs", "Cap mA / µs", "Status")
+
+
+class StepDial(QDial):
+    """A dial that never jumps: a click (anywhere on it) changes nothing, a drag moves it relative to
+    where it was pressed (up/right = more) one unit per ``DRAG_PX_PER_STEP`` px and at most
+    ``max_rise`` units up per mouse event, the wheel one unit per notch, PgUp/PgDn one page
+    (= ``max_rise``), End at most ``max_rise`` up. QDial's own mouse handling sets the value under the
+    pointer: one click went 0.05 -> 1.73× (issue #19)."""
+
+    def __init__(self, max_rise: int, parent: QWidget | None = None) -> None:
+        super().__init__(parent)
+        self.max_rise = max_rise
+        self._press: tuple[int, int] | None = None  # x + (-y) at the press, value at the press
+        self._moved = 0
+
+    def _step_to(self, target: int) -> None:
+        v = self.value()
+        if target > v:
+            target = min(target, v + self.max_rise)
+        self.setValue(max(self.minimum(), min(self.maximum(), target)))
+
+    def mousePressEvent(self, event: Any) -> None:
+        if event.button() != Qt.MouseButton.LeftButton:
+            event.ignore()
+            return
+        p = event.position()
+        self._press = (int(p.x() - p.y()), self.value())
+        self.setSliderDown(True)
+        self.setFocus(Qt.FocusReason.MouseFocusReason)
+        event.accept()
+
+    def mouseMoveEvent(self, event: Any) -> None:
+        if self._press is None:
+            event.ignore()
+            return
+        p = event.position()
+        origin, start = self._press
+        travelled = int(p.x() - p.y()) - origin
+        self._step_to(start + int(travelled / DRAG_PX_PER_STEP))
+        event.accept()
+
+    def mouseReleaseEvent(self, event: Any) -> None:
+        if self._press is not None:
+            self._press = None
+            self.setSliderDown(False)
+        event.accept()
+
+    def wheelEvent(self, event: Any) -> None:
+        notches = event.angleDelta().y() // 120 or (1 if event.angleDelta().y() > 0 else -1
+                                                     if event.angleDelta().y() < 0 else 0)
+        self._step_to(self.value() + notches * self.singleStep())
+        event.accept()
+
+    def keyPressEvent(self, event: Any) -> None:
+        key = event.key()
+        if key == Qt.Key.Key_End:
+            self._step_to(self.maximum())
+            event.accept()
+            return
+        if key in (Qt.Key.Key_PageUp, Qt.Key.Key_Up, Qt.Key.Key_Right):
+            step = self.pageStep() if key == Qt.Key.Key_PageUp else self.singleStep()
+            self._step_to(self.value() + step)
+            event.accept()
+            return
+        super().keyPressEvent(event)  # down, PgDn, Home: lowering is never capped
 
 
 class ScaleKnob(QWidget):
@@ -51,22 +121,24 @@ class ScaleKnob(QWidget):
         super().__init__(parent)
         self.title = QLabel(title)
         self.title.setAlignment(Qt.AlignmentFlag.AlignHCenter)
-        self.dial = QDial()
+        rise = round(MAX_RISE_PER_ACTION * DIAL_STEPS)
+        self.dial = StepDial(rise)
         self.dial.setRange(0, int(MAX_SCALE * DIAL_STEPS))
         self.dial.setSingleStep(1)
-        self.dial.setPageStep(10)
+        self.dial.setPageStep(rise)
         self.dial.setNotchesVisible(True)
         self.dial.setNotchTarget(10.0)
         self.dial.setWrapping(False)
         self.dial.setTracking(True)
         self.dial.setFocusPolicy(Qt.FocusPolicy.StrongFocus)  # arrows / PgUp / PgDn / Home / End
         self.dial.setAccessibleName(title)
-        self.dial.setMinimumSize(110, 110)
+        self.dial.setMinimumSize(84, 84)
         self.value_label = QLabel()
         self.value_label.setAlignment(Qt.AlignmentFlag.AlignHCenter)
         self.title.setBuddy(self.dial)
         lay = QVBoxLayout(self)
-        lay.setContentsMargins(4, 4, 4, 4)
+        lay.setContentsMargins(2, 2, 2, 2)
+        lay.setSpacing(2)
         lay.addWidget(self.title)
         lay.addWidget(self.dial, 1)
         lay.addWidget(self.value_label)
@@ -125,26 +197,33 @@ class FesPanel(RefreshWhenVisible, QWidget):
         self.message.setWordWrap(True)
         self.message.setTextInteractionFlags(Qt.TextInteractionFlag.TextSelectableByMouse)
 
-        buttons = QHBoxLayout()
-        for b in (self.start_button, self.stop_button, self.load_button, self.edit_button):
-            buttons.addWidget(b)
-        buttons.addStretch(1)
+        # 1366×768 first: Start/Stop, the knobs and the channel table on screen together (issue #19).
+        buttons = QGridLayout()
+        buttons.setSpacing(4)
+        for i, b in enumerate((self.start_button, self.stop_button, self.load_button, self.edit_button)):
+            buttons.addWidget(b, i // 2, i % 2)
+        left = QVBoxLayout()
+        left.setSpacing(4)
+        left.addWidget(self.status_label)
+        left.addLayout(buttons)
+        left.addWidget(self.profile_label)
+        left.addStretch(1)
         knobs = QGroupBox("Live scale factors")
         kl = QGridLayout(knobs)
+        kl.setContentsMargins(4, 4, 4, 4)
         kl.addWidget(self.current_knob, 0, 0)
         kl.addWidget(self.width_knob, 0, 1)
         top = QHBoxLayout()
-        left = QVBoxLayout()
-        left.addWidget(self.status_label)
-        left.addWidget(self.profile_label)
-        left.addStretch(1)
         top.addLayout(left, 1)
         top.addWidget(knobs)
         channels = QGroupBox("Channels")
         cl = QVBoxLayout(channels)
+        cl.setContentsMargins(4, 4, 4, 4)
+        self.table.setMinimumHeight(3 * self.table.fontMetrics().lineSpacing() + 12)
         cl.addWidget(self.table)
         lay = QVBoxLayout(self)
-        lay.addLayout(buttons)
+        lay.setContentsMargins(4, 4, 4, 4)
+        lay.setSpacing(4)
         lay.addLayout(top)
         lay.addWidget(channels, 1)
         lay.addWidget(self.message)
@@ -225,6 +304,12 @@ class FesPanel(RefreshWhenVisible, QWidget):
             return
         w = self.current_knob if knob == "current" else self.width_knob
         requested = w.scale()
+        profile = self.driver.profile
+        now = profile.current_scale if knob == "current" else profile.pulse_width_scale
+        if requested > now + MAX_RISE_PER_ACTION + 1e-9:  # whatever moved the dial: one step up at most
+            requested = now + MAX_RISE_PER_ACTION
+            self.show_message(f"Raised by {MAX_RISE_PER_ACTION:.2f}× at most per action; turn again to go further.",
+                              "warn")
         try:
             if knob == "current":
                 applied = self.driver.set_current_scale(requested, "FES panel")
@@ -282,11 +367,22 @@ class FesPanel(RefreshWhenVisible, QWidget):
         if not self.width_knob.dial.isSliderDown():
             self.width_knob.set_scale(profile.pulse_width_scale)
         self.current_knob.value_label.setText(f"{profile.current_scale:.2f} ×")
-        self.width_knob.value_label.setText(
-            f"{profile.pulse_width_scale:.2f} ×" if override is None else f"set to {override:.0f} µs by assistance")
+        if override is None:
+            self.width_knob.value_label.setText(f"{profile.pulse_width_scale:.2f} ×")
+            self.width_knob.value_label.setToolTip("")
+        else:
+            self.width_knob.value_label.setText(f"{override:.0f} µs (assistance)")
+            self.width_knob.value_label.setToolTip(
+                "The assistance controller sets the pulse width from the patient model's effort estimate "
+                f"(now {override:.0f} µs); this knob is locked until the assistance stops.")
         axis = "movement phase" if profile.axis == "phase" else f"time, {profile.end:g} s"
         ccl = d.channel_list
-        freq = f"{ccl.frequency_hz:.1f} Hz" if ccl else f"{profile.frequency_hz:g} Hz"
+        # The requested rate; the delivered one only when it differs (the stimulator's period has a
+        # fixed grain, so 30 Hz comes out as 29.9 Hz) -- said, not silently shown instead.
+        freq = f"{profile.frequency_hz:g} Hz"
+        if ccl and abs(ccl.frequency_hz - profile.frequency_hz) >= 0.05:
+            freq += (f" (delivered {ccl.frequency_hz:.1f} Hz: the stimulator's pulse period "
+                     "is a whole number of its time steps)")
         self.profile_label.setText(f"<b>{escape(profile.name)}</b><br>{axis} · {freq} · "
                                    f"{len(profile.channels)} channel(s)"
                                    + (f"<br><i>{escape(profile.description)}</i>" if profile.description else ""))

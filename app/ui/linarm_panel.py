@@ -442,6 +442,7 @@ def _scroll(content: QWidget) -> QScrollArea:
     area = QScrollArea()
     area.setWidgetResizable(True)
     area.setFrameShape(QFrame.Shape.NoFrame)
+    area.setProperty("scrolls", True)  # a long form: its lower rows may scroll (primary controls are on top)
     area.setWidget(content)
     return area
 
@@ -879,6 +880,20 @@ class LinarmPanel(RefreshWhenVisible, QWidget):
         _set_text(self.error_label, f"Error: <b style='color:{err_col}'>{pretty_enum(err)}</b>")
         self.reset_button.setEnabled(err is not ErrorState.NO_ERROR)
         busy = {name for name, _f, _cb in self._pending}
+        # The mode boxes follow the robot (a script or the controller may change the mode), unless the
+        # operator is choosing in one right now or its command is on its way (issue #19: the box said
+        # "Velocity (0)" while the robot was in "Target position (1)").
+        for form_name, arg_name, attr in (("setCtrlMode", "controlMode", "controlMode"),
+                                          ("setTrajectoryType", "type", "trajectoryType"),
+                                          ("setTriggerMode", "mode", "triggerMode")):
+            form = self.forms.get(form_name)
+            value = getattr(state, attr, None)
+            if form is None or value is None or form_name in busy:
+                continue
+            box = form.inputs[arg_name].widget
+            if isinstance(box, QComboBox) and not box.hasFocus() and not box.view().isVisible() \
+                    and box.currentData() != int(value):
+                box.setCurrentIndex(max(0, box.findData(int(value))))
         for check, value, name in ((self.demo_check, state.demo, "setDemo"),
                                    (self.virtual_check, state.virtualVsa, "enableVirtualVsa"),
                                    (self.endstrokes_check, state.endstrokesDisabled, "disableEndstrokes")):

@@ -10,9 +10,10 @@ from __future__ import annotations
 import importlib
 import logging
 from collections.abc import Callable
+from pathlib import Path
 
-from PySide6.QtCore import QEvent, QObject, QSettings, Qt, QTimer, Signal
-from PySide6.QtGui import QAction, QKeySequence
+from PySide6.QtCore import QEvent, QObject, QSettings, Qt, QThread, QTimer, Signal
+from PySide6.QtGui import QAction, QFont, QFontMetrics, QKeySequence
 from PySide6.QtWidgets import (
     QApplication,
     QDockWidget,
@@ -31,6 +32,7 @@ from app.logging_setup import log_file
 from app.manager import LinarmppManager
 from app.paths import data_dir, sessions_dir
 from app.resources import RESOURCES
+from app.ui.recovery import Restartable
 
 log = logging.getLogger(__name__)
 
@@ -98,6 +100,14 @@ class DeviceStatus(QLabel):
         self.connected = False
         self.reason = "starting"
         self.setTextFormat(Qt.TextFormat.RichText)
+        # Room for the longest state and a four-digit rate, reserved: a rate gaining a digit must not
+        # clip the label before the status bar lays itself out again.
+        bold = QFont(self.font())
+        bold.setBold(True)
+        plain = QFontMetrics(self.font())
+        self.setMinimumWidth(QFontMetrics(bold).horizontalAdvance(name) + 8
+                             + max(plain.horizontalAdvance(f"● {t} 9999 Hz") for t in ("connected", "silent"))
+                             + plain.horizontalAdvance("  "))
         self.refresh({})
 
     def set_connection(self, connected: bool, reason: str) -> None:
@@ -118,6 +128,11 @@ class DeviceStatus(QLabel):
         if text != self.text():  # a rich-text label re-lays itself out on every setText
             self.setText(text)
             self.setAccessibleName(f"{self.name} {state}")
+
+
+def recorder_folder(manager: LinarmppManager) -> Path | None:
+    recorder = manager.recorder
+    return None if recorder is None else recorder.folder
 
 
 class MainWindow(QMainWindow):
@@ -170,21 +185,26 @@ class MainWindow(QMainWindow):
         self.estop_reset.setEnabled(False)
         self.estop_reset.clicked.connect(self._reset_estop)
         row.addWidget(self.estop_reset)
+        # One word here; the reason is in the alarm banner beside it (and in this label's tooltip).
         self.estop_label = QLabel("")
         self.estop_label.setStyleSheet("color: #c62828; font-weight: bold; font-size: 16px;")
         row.addWidget(self.estop_label)
         from app.ui.alarms_panel import AlarmBanner
+        from app.ui.widgets import ElidedLabel
 
         self.alarm_banner = AlarmBanner(self.manager)
         self.alarm_banner.show_alarms_requested.connect(self.show_alarms)
+        self.alarm_banner.restart_provider = self._interrupted_exercise
+        self.alarm_banner.script_running = lambda: bool(getattr(self._script_runner(), "running", False))
+        self.alarm_banner.stop_script = self._stop_script_for_recovery
         self.alarm_banner.setSizePolicy(QSizePolicy.Policy.Ignored, QSizePolicy.Policy.Preferred)
         self.alarm_banner.setMinimumWidth(160)
-        row.addWidget(self.alarm_banner, 2)
-        self.session_label = QLabel()
+        row.addWidget(self.alarm_banner, 3)
+        # Long patient/operator names must not widen the window's minimum size (1366×768 screens):
+        # elided, with the whole text (and the recording folder) in the tooltip.
+        self.session_label = ElidedLabel()
         self.session_label.setObjectName("SessionLabel")
-        # Long patient/folder names must not widen the window's minimum size (1366×768 screens).
-        self.session_label.setSizePolicy(QSizePolicy.Policy.Ignored, QSizePolicy.Policy.Preferred)
-        self.session_label.setMinimumWidth(120)
+        self.session_label.setMinimumWidth(90)
         self.session_label.setAlignment(Qt.AlignmentFlag.AlignRight | Qt.AlignmentFlag.AlignVCenter)
         row.addWidget(self.session_label, 1)
         self.session_button = QPushButton()
@@ -200,8 +220,10 @@ class MainWindow(QMainWindow):
             dock = QDockWidget(title, self)
             dock.setObjectName(f"dock:{class_name}")
             dock.setWidget(widget)
+            # Closable: the View menu's toggles are enabled only for docks that can be closed.
             dock.setFeatures(QDockWidget.DockWidgetFeature.DockWidgetMovable
-                             | QDockWidget.DockWidgetFeature.DockWidgetFloatable)
+                             | QDockWidget.DockWidgetFeature.DockWidgetFloatable
+                             | QDockWidget.DockWidgetFeature.DockWidgetClosable)
             self.addDockWidget(area, dock)
             self.frames[class_name] = widget
             self.docks[class_name] = dock
@@ -222,6 +244,8 @@ class MainWindow(QMainWindow):
         file_menu = self.menuBar().addMenu("&File")
         quit_action = QAction("&Quit", self)
         quit_action.setShortcut(QKeySequence.StandardKey.Quit)
+        # From any window (Sessions, Replay, …): the shortcut is application-wide and Quit ends the app.
+        quit_action.setShortcutContext(Qt.ShortcutContext.ApplicationShortcut)
         quit_action.triggered.connect(self.close)
         file_menu.addAction(quit_action)
         session_menu = self.menuBar().addMenu("&Session")
@@ -231,6 +255,8 @@ class MainWindow(QMainWindow):
         session_menu.addAction(start)
         end = QAction("&End session", self)
         end.triggered.connect(self.end_session)
+        end.setEnabled(self.manager.recorder is not None)
+        self.end_action = end
         session_menu.addAction(end)
         session_menu.addSeparator()
         patients = QAction("&Patients…", self)
@@ -248,7 +274,7 @@ class MainWindow(QMainWindow):
         self.dark_action.toggled.connect(self.set_dark_palette)
         view_menu.addAction(self.dark_action)
         reset_layout = QAction("Reset &layout", self)
-        reset_layout.triggered.connect(self._reset_layout)
+        reset_layout.triggered.connect(lambda: self._reset_layout())
         view_menu.addAction(reset_layout)
         help_menu = self.menuBar().addMenu("&Help")
         about = QAction("&About", self)
@@ -283,13 +309,19 @@ class MainWindow(QMainWindow):
     def _show_session(self) -> None:
         recorder = self.manager.recorder
         if recorder is None:
-            self.session_label.setText("<b style='color:#ef6c00'>No session</b> — data is not being recorded")
+            self.session_label.set_full_text("No session: not recording", "Data is not being recorded")
+            self.session_label.setStyleSheet("color: #ef6c00; font-weight: bold;")
             self.session_button.setText("Start session…")
         else:
             folder = recorder.folder
-            self.session_label.setText(f"Session: <b>{folder.parent.name}</b> · {self.manager.operator}"
-                                       f" · recording to {folder.name}")
+            self.session_label.set_full_text(f"● {folder.parent.name} · {self.manager.operator}",
+                                             f"Session of {folder.parent.name}, operator {self.manager.operator},"
+                                             f" recording to {folder}")
+            self.session_label.setStyleSheet("")
             self.session_button.setText("End session")
+        end = getattr(self, "end_action", None)
+        if end is not None:
+            end.setEnabled(recorder is not None)
 
     def _session_button_clicked(self) -> None:
         if self.manager.recorder is None:
@@ -311,7 +343,8 @@ class MainWindow(QMainWindow):
             try:
                 self.manager.start_session(patient_id, operator, note)
             except (ValueError, RuntimeError, OSError) as exc:
-                QMessageBox.warning(self, "Session not started", str(exc))
+                text = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
+                QMessageBox.warning(self, "Session not started", text)
 
         dialog.accepted.connect(accepted)
         dialog.open()
@@ -319,8 +352,12 @@ class MainWindow(QMainWindow):
     def end_session(self) -> None:
         if self.manager.recorder is None:
             return
+        open_ = [a for a in self.manager.supervisor.alarms() if not a.acknowledged]
+        warning = (f"<br><br><b>{len(open_)} alarm(s) are not acknowledged</b> — they stay unacknowledged in "
+                   "the session record. Acknowledge them first from the Alarms list if you want them signed."
+                   if open_ else "")
         answer = QMessageBox.question(self, "End session",
-                                      "End the session? Stimulation stops and the robot goes idle.")
+                                      f"End the session? Stimulation stops and the robot goes idle.{warning}")
         if answer == QMessageBox.StandardButton.Yes:
             self.manager.end_session()
 
@@ -333,7 +370,8 @@ class MainWindow(QMainWindow):
         from app.recording import sessions_root
         from app.ui.sessions_browser import SessionsBrowser
 
-        self._browser = SessionsBrowser(sessions_root(self.manager.config), self.manager.config.ui.history_s)
+        self._browser = SessionsBrowser(sessions_root(self.manager.config), self.manager.config.ui.history_s,
+                                        active=lambda: recorder_folder(self.manager))
         self._browser.show()
 
     def show_alarms(self) -> None:
@@ -346,9 +384,40 @@ class MainWindow(QMainWindow):
             if tabs.tabText(i) == "Alarms":
                 tabs.setCurrentIndex(i)
 
+    def _script_console(self) -> QWidget | None:
+        return getattr(self.frames.get("CommandsFrame"), "panels", {}).get("ScriptConsole")
+
+    def _script_runner(self) -> object | None:
+        return getattr(self._script_console(), "runner", None)
+
+    def _interrupted_exercise(self) -> Restartable | None:
+        """The exercise a STOP interrupted (the script console's last run, or the one still running:
+        Recover stops it first), for the banner's Recover."""
+        console = self._script_console()
+        runner = getattr(console, "runner", None)
+        if runner is None:
+            return None
+        if runner.running:
+            name = getattr(getattr(console, "path", None), "name", None) or "the script"
+            return Restartable(name, console.start_script)
+        result = runner.result
+        if result is None or result.status == "finished":  # stopped, error or refused (e.g. mid-homing)
+            return None
+        name = Path(result.filename).name if result.filename else "the script"
+        return Restartable(name, console.start_script)
+
+    def _stop_script_for_recovery(self) -> bool:
+        """Recover never resets the e-stop under a running script: stop it first (True if it ran)."""
+        runner = self._script_runner()
+        if runner is None or not runner.running:
+            return False
+        runner.stop("stopped by Recover after an emergency stop", wait_s=2.0)
+        return True
+
     def _on_estop_changed(self, latched: bool, reason: str) -> None:
         self.estop_reset.setEnabled(latched)
-        self.estop_label.setText(f"STOPPED — {reason}" if latched else "")
+        self.estop_label.setText("STOPPED" if latched else "")
+        self.estop_label.setToolTip(reason if latched else "")
 
     def _reset_estop(self) -> None:
         answer = QMessageBox.question(
@@ -356,7 +425,8 @@ class MainWindow(QMainWindow):
             "Reset the emergency stop? Devices stay idle until you start them again.",
         )
         if answer == QMessageBox.StandardButton.Yes:
-            self.manager.supervisor.reset_emergency_stop("operator")
+            # The session's operator (the record must say who), "operator" only when no session runs.
+            self.manager.supervisor.reset_emergency_stop(self.manager.operator or "operator")
 
     def _on_device_connection(self, name: str, connected: bool, reason: str) -> None:
         label = self.device_status.get(name)
@@ -398,19 +468,40 @@ class MainWindow(QMainWindow):
         state = settings.value("main/state")
         if geometry is not None:
             self.restoreGeometry(geometry)
-        else:
+        else:  # first run: the whole screen (1366×768 laptops and 1920×1080 desks alike); then remembered
             self.resize(1366, 768)
+            self.setWindowState(self.windowState() | Qt.WindowState.WindowMaximized)
         if state is not None:
             self.restoreState(state)
+        else:
+            self._first_run_layout()
         self._default_state = None
 
-    def _reset_layout(self) -> None:
+    def _first_run_layout(self, short: bool | None = None) -> None:
+        """1366×768 first (issue #19): on a short screen the device view shares a tabbed dock with the
+        values, so every clinically used value is on screen; the Commands frame gets the larger share
+        of the right column. Taller screens keep the four frames side by side."""
+        if short is None:
+            screen = self.screen().availableGeometry() if self.screen() is not None else None
+            short = screen is None or screen.height() < 900
+        if short:
+            self.tabifyDockWidget(self.docks["ValuesFrame"], self.docks["DeviceView"])
+            self.docks["ValuesFrame"].raise_()
+        else:
+            self.resizeDocks([self.docks["ValuesFrame"], self.docks["DeviceView"]], [65, 35],
+                             Qt.Orientation.Vertical)
+        self.resizeDocks([self.docks["PlotsFrame"], self.docks["CommandsFrame"]], [45, 55],
+                         Qt.Orientation.Vertical)
+
+    def _reset_layout(self, short: bool | None = None) -> None:
+        """The first-run layout again (``short``: for a screen under 900 px high; None: this screen)."""
         for title, _m, class_name, area in FRAMES:
             dock = self.docks[class_name]
             dock.setFloating(False)
             self.addDockWidget(area, dock)
             dock.show()
             del title
+        self._first_run_layout(short)
 
     def closeEvent(self, event: QEvent) -> None:
         settings = QSettings()
@@ -420,7 +511,15 @@ class MainWindow(QMainWindow):
             save = getattr(frame, "save_settings", None)
             if callable(save):
                 save(settings)
+        super().closeEvent(event)
+        # The main window holds the e-stop: when it closes, the whole application ends (devices safe in
+        # run_gui's shutdown). No other window may keep the app — and the devices — running without it.
+        self.manager.supervisor.bring_to_safe_state("main window closed")
         app = QApplication.instance()
         if app is not None:
+            for widget in app.topLevelWidgets():
+                if widget is not self and widget.isVisible():
+                    widget.close()
             app.removeEventFilter(self._estop_filter)
-        super().closeEvent(event)
+            if QThread.currentThread().loopLevel() > 0:  # the app's loop runs (not a test driving the window)
+                app.quit()

@@ -7,7 +7,7 @@ next to the field it names, in the same words as a bad file would get.
 
 from __future__ import annotations
 
-from dataclasses import replace
+from dataclasses import asdict, replace
 from pathlib import Path
 from typing import Any
 
@@ -17,9 +17,11 @@ from PySide6.QtWidgets import (
     QComboBox,
     QDialog,
     QDialogButtonBox,
+    QFileDialog,
     QFormLayout,
     QGroupBox,
     QHBoxLayout,
+    QHeaderView,
     QLabel,
     QLineEdit,
     QPlainTextEdit,
@@ -90,7 +92,14 @@ class PatientDialog(QDialog):
         form.addRow("Assistance gain k_r", self.k_r)
         form.addRow("Assistance gain k_f", self.k_f)
         self.fes_profile = self._line("fes.profile", p.fes.profile, "FES profile file (resources/fes_profiles)")
-        form.addRow("FES profile", self.fes_profile)
+        self.fes_browse = QPushButton("&Browse…")
+        self.fes_browse.setToolTip("Choose the FES profile file")
+        self.fes_browse.clicked.connect(self.browse_fes_profile)
+        fes_row = QHBoxLayout()
+        fes_row.setContentsMargins(0, 0, 0, 0)
+        fes_row.addWidget(self.fes_profile, 1)
+        fes_row.addWidget(self.fes_browse)
+        form.addRow("FES profile", fes_row)
 
         scores = QGroupBox("Clinical scores")
         sform = QFormLayout(scores)
@@ -107,6 +116,8 @@ class PatientDialog(QDialog):
         self.caps_table.setHorizontalHeaderLabels([label for _k, label in _CAP_COLUMNS])
         self.caps_table.setVerticalHeaderLabels([f"Ch {ch}" for ch in range(1, 9)])
         self.caps_table.setAccessibleName("FES clinical caps")
+        # Headers whole (issue #19: "Max current [mA", "ax pulse width [µ"): columns fit their titles.
+        self.caps_table.horizontalHeader().setSectionResizeMode(QHeaderView.ResizeMode.ResizeToContents)
         for ch, cap in p.fes.caps.items():
             for col, (key, _label) in enumerate(_CAP_COLUMNS):
                 self.caps_table.setItem(ch - 1, col, QTableWidgetItem(_text(getattr(cap, key))))
@@ -139,6 +150,19 @@ class PatientDialog(QDialog):
         layout.addLayout(cols, 1)
         layout.addWidget(self.error_label)
         layout.addWidget(buttons)
+
+    def browse_fes_profile(self) -> None:
+        """A file dialog in the FES profiles folder; a file there is kept as its bare name (the
+        profile loader finds it there), any other as its full path."""
+        from app.ui.fes_panel import PROFILES_DIR
+
+        current = self.fes_profile.text().strip()
+        start = Path(current) if current and Path(current).is_absolute() else PROFILES_DIR / current
+        path, _ = QFileDialog.getOpenFileName(self, "FES profile", str(start if current else PROFILES_DIR),
+                                              "FES profiles (*.yaml *.yml);;All files (*)")
+        if path:
+            chosen = Path(path)
+            self.fes_profile.setText(chosen.name if chosen.parent.resolve() == PROFILES_DIR.resolve() else str(chosen))
 
     def _line(self, key: str, value: Any, tip: str = "") -> QLineEdit:
         edit = QLineEdit(_text(value))
@@ -185,6 +209,8 @@ class PatientDialog(QDialog):
         }
         if original.created:
             data["created"] = original.created
+        if original.therapy_plan:  # not edited here (the profile's YAML): kept as it is
+            data["therapy_plan"] = [asdict(step) for step in original.therapy_plan]
         return data
 
     def validate(self) -> PatientProfile | None:

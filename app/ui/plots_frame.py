@@ -21,6 +21,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+import re
 import time
 from collections.abc import Iterable, Sequence
 from pathlib import Path
@@ -28,18 +29,20 @@ from typing import Any
 
 import numpy as np
 import pyqtgraph as pg
-from PySide6.QtCore import QEvent, QObject, QSettings, Qt, QTimer
-from PySide6.QtGui import QKeyEvent
+from PySide6.QtCore import QEvent, QObject, QRectF, QSettings, Qt, QTimer
+from PySide6.QtGui import QColor, QFont, QFontMetrics, QImage, QKeyEvent, QPainter
 from PySide6.QtWidgets import (
     QCheckBox,
     QComboBox,
     QFileDialog,
     QGraphicsItem,
     QHBoxLayout,
+    QHeaderView,
     QLabel,
     QPushButton,
     QSizePolicy,
     QSplitter,
+    QStyle,
     QTreeWidget,
     QTreeWidgetItem,
     QVBoxLayout,
@@ -48,13 +51,15 @@ from PySide6.QtWidgets import (
 
 from app.manager import LinarmppManager
 from app.paths import sessions_dir
-from app.ui.signal_store import SignalStore, shared_store
+from app.ui.signal_store import SignalInfo, SignalStore, shared_store
 from app.ui.theme import colours, curve_colour
 from app.ui.widgets import on_screen
 
 log = logging.getLogger(__name__)
 
 KEY_ROLE = Qt.ItemDataRole.UserRole
+SI_BASE_UNITS = {"m", "N", "N/m", "m/s", "m/s^2", "A", "V", "s", "S", "Ω", "W", "Hz"}
+FES_CHANNEL = re.compile(r"(Current|Pulse width) ch (\d+)")  # the stimulator's channel labels
 HISTORY_CHOICES_S = (5.0, 10.0, 20.0, 30.0, 60.0, 120.0, 300.0, 600.0)
 DEFAULT_SIGNALS = ("linarm.vsa.handlePos", "linarm.vsa.equilibriumPos", "linarm.vsa.interactionForce",
                    "physio.main.heartRate")
@@ -146,7 +151,10 @@ class PlotsFrame(QWidget):
         self._wanted: list[str] = []  # selection from settings, kept until its device appears
         self.paused = False
         self._frozen: SignalStore | None = None
-        self.t_ref: float | None = None  # time of x = 0
+        self.t_ref: float | None = None  # the newest sample's time (the right edge when following)
+        # Time of x = 0: None = the newest sample (live: the axis runs -history..0); a replay sets the
+        # session's start, so its axis is session time (issue #19: it ran -25..0).
+        self.x_origin: float | None = None
         self.history_s = min(30.0, store.history_s)
         self.plots: dict[str, pg.PlotItem] = {}  # unit → plot
         self.curves: dict[str, pg.PlotCurveItem] = {}
@@ -161,6 +169,13 @@ class PlotsFrame(QWidget):
         self._interval_set = self._base_interval_ms  # what _adapt_interval last put on the timer
         self.frame_cost_s = 0.0  # smoothed cost of one frame (drawing + painting) on the GUI thread
 
+        self.session_t0: float | None = None  # monotonic time of the session's start: CSV time 0
+        self.session_name = ""  # "<patient>/<session folder>" while a session runs
+        if manager is not None:
+            manager.session_changed.connect(self._on_session)
+            if manager.recorder is not None:
+                self._on_session(manager.recorder.folder)
+
         self._build_ui()
         self._restore_settings()
         self._rebuild_tree()
@@ -171,6 +186,24 @@ class PlotsFrame(QWidget):
         self.timer.setInterval(self._base_interval_ms)
         self.timer.timeout.connect(self._tick)
         self.timer.start()
+
+    # ------------------------------------------------------------------ names
+    def _muscles(self) -> dict[int, str]:
+        """Channel -> muscle of the loaded FES profile (empty without one)."""
+        fes = self.manager.driver("fes") if self.manager is not None else None
+        profile = getattr(fes, "profile", None)
+        channels = getattr(profile, "channels", None) or {}
+        return {int(ch): str(cp.muscle) for ch, cp in channels.items() if getattr(cp, "muscle", "")}
+
+    def display_label(self, info: SignalInfo) -> str:
+        """The name shown in the tree, legends and readout. FES channels lead with their number, then
+        the quantity, then the muscle of the loaded profile (issue #19: eight identical "Current c…")."""
+        match = FES_CHANNEL.fullmatch(info.label)
+        if info.device != "fes" or match is None:
+            return info.label
+        kind, number = match.group(1).lower(), int(match.group(2))
+        muscle = self._muscles().get(number)
+        return f"{number} {kind}" + (f" · {muscle}" if muscle else "")
 
     # ------------------------------------------------------------------ building
     def _build_ui(self) -> None:
@@ -183,8 +216,12 @@ class PlotsFrame(QWidget):
 
         self.tree = QTreeWidget()
         self.tree.setHeaderLabels(["Signal", "Unit"])
-        self.tree.setColumnWidth(0, 160)
+        self.tree.setIndentation(14)
         self.tree.setMinimumWidth(110)
+        tree_header = self.tree.header()
+        tree_header.setStretchLastSection(False)
+        tree_header.setSectionResizeMode(0, QHeaderView.ResizeMode.Stretch)
+        tree_header.setSectionResizeMode(1, QHeaderView.ResizeMode.ResizeToContents)
         self.tree.setAccessibleName("Signals to plot")
         self.tree.itemChanged.connect(self._on_item_changed)
         self.splitter.addWidget(self.tree)
@@ -289,15 +326,42 @@ class PlotsFrame(QWidget):
                         parent.setFlags(flags_parent)
                         parent.setCheckState(0, Qt.CheckState.Unchecked)
                         streams[info.stream] = parent
-                item = QTreeWidgetItem(parent, [info.label or info.channel, info.unit])
+                label = self.display_label(info) or info.channel
+                item = QTreeWidgetItem(parent, [label, info.unit])
                 item.setData(0, KEY_ROLE, info.key)
-                item.setToolTip(0, info.key)
+                item.setToolTip(0, f"{label}\n{info.key}" if label != info.label else info.key)
                 item.setFlags(Qt.ItemFlag.ItemIsEnabled | Qt.ItemFlag.ItemIsUserCheckable
                               | Qt.ItemFlag.ItemIsSelectable)
                 item.setCheckState(0, Qt.CheckState.Checked if info.key in wanted else Qt.CheckState.Unchecked)
             self.tree.expandAll()
         finally:
             self._building_tree = False
+        self._muscles_shown = self._muscles()
+        self._fit_tree()
+
+    def _fit_tree(self) -> None:
+        """Give the signal list the width its names need (FES names, which carry a muscle, may be
+        elided: their tooltip has them whole), at most 40 % of the frame."""
+        fm = self.tree.fontMetrics()
+        check = self.tree.style().pixelMetric(QStyle.PixelMetric.PM_IndicatorWidth, None, self.tree) + 8
+        need = 0
+        for item in self._leaf_items():
+            depth = 0
+            p = item.parent()
+            while p is not None:
+                depth += 1
+                p = p.parent()
+            key = item.data(0, KEY_ROLE)
+            if key is not None and self.store.info(key).device == "fes":
+                continue
+            need = max(need, fm.horizontalAdvance(item.text(0)) + check + self.tree.indentation() * (depth + 1))
+        unit = max((fm.horizontalAdvance(i.text(1)) for i in self._leaf_items()), default=20) + 16
+        width = need + unit + self.tree.verticalScrollBar().sizeHint().width() + 8
+        sizes = self.splitter.sizes()
+        total = sum(sizes) or 790
+        width = min(width, int(total * 0.4))
+        if sizes and sizes[0] < width:
+            self.splitter.setSizes([width, max(total - width, 160)])
         self._collect_selection()
 
     def _leaf_items(self) -> Iterable[QTreeWidgetItem]:
@@ -322,6 +386,11 @@ class PlotsFrame(QWidget):
             self.selected = selected
             self._rebuild_plots()
 
+    @property
+    def _axis_width(self) -> int:
+        fm = QFontMetrics(self.graphics.font())
+        return fm.horizontalAdvance("-8888.88") + fm.lineSpacing() + 16
+
     def _rebuild_plots(self) -> None:
         self.graphics.clear()
         self.plots.clear()
@@ -342,9 +411,13 @@ class PlotsFrame(QWidget):
                 plot.getAxis(axis).setStyle(maxTickLevel=0)
             if unit == NO_UNIT:
                 plot.setLabel("left", unit)
-            else:
+            elif unit in SI_BASE_UNITS:
                 plot.setLabel("left", units=unit)  # pyqtgraph adds SI prefixes (mm, kN/m)
-            plot.getAxis("left").setWidth(54)  # aligned time axes in every plot
+            else:  # already prefixed (mA, µs) or not SI (bpm, %): as it is, never "pmA"
+                plot.setLabel("left", f"({unit})")
+            # Aligned time axes in every plot, wide enough for tick labels such as "-317.05" beside the
+            # rotated unit label (issue #19: "(mm)" was overlapped by the ticks, also in PNGs).
+            plot.getAxis("left").setWidth(self._axis_width)
             plot.setMinimumHeight(60)
             plot.enableAutoRange(axis="y", enable=self.autoscale_box.isChecked())
             plot.enableAutoRange(axis="x", enable=False)
@@ -366,7 +439,8 @@ class PlotsFrame(QWidget):
             for key in keys:
                 info = self.store.info(key)
                 colour = curve_colour(self.selected.index(key))
-                curve = pg.PlotCurveItem(pen=pg.mkPen(colour, width=1), name=f"{info.device}: {info.label}")
+                curve = pg.PlotCurveItem(pen=pg.mkPen(colour, width=1),
+                                         name=f"{info.device}: {self.display_label(info)}")
                 plot.addItem(curve)
                 self.curves[key] = curve
             vline = pg.InfiniteLine(angle=90, movable=False, pen=pg.mkPen(c.plot_foreground, width=1,
@@ -376,8 +450,12 @@ class PlotsFrame(QWidget):
             self.vlines.append(vline)
             self.plots[unit] = plot
         if first is not None:
-            list(self.plots.values())[-1].setLabel("bottom", "time", "s")
+            list(self.plots.values())[-1].setLabel("bottom", "time" if self.x_origin is None else "session time", "s")
             self._apply_x_range()
+        # Each graph tall enough for its rotated unit label and a few ticks (issue #19: squeezed plots
+        # let the labels of neighbouring graphs run into each other).
+        # At most three graphs' worth: more must never make the window taller than a 768 px screen.
+        self.graphics.setMinimumHeight(min(172, max(120, 46 * len(self.plots) + 34)))
         self._dirty = True
         self.redraw()
 
@@ -394,7 +472,8 @@ class PlotsFrame(QWidget):
     def _apply_x_range(self) -> None:
         plot = self._first_plot()
         if plot is not None:
-            plot.setXRange(-self.history_s, 0, padding=0)
+            right = 0.0 if self.x_origin is None or self.t_ref is None else self.t_ref - self.x_origin
+            plot.setXRange(right - self.history_s, right, padding=0)
 
     def visible_range(self) -> tuple[float, float] | None:
         """Absolute (monotonic) time range on screen, or None before any data."""
@@ -402,11 +481,20 @@ class PlotsFrame(QWidget):
         if plot is None or self.t_ref is None:
             return None
         x0, x1 = plot.vb.viewRange()[0]
-        return self.t_ref + x0, self.t_ref + x1
+        return self._x0() + x0, self._x0() + x1
+
+    def _x0(self) -> float:
+        """The time of x = 0 (see ``x_origin``)."""
+        assert self.t_ref is not None
+        return self.t_ref if self.x_origin is None else self.x_origin
 
     def _tick(self) -> None:
         """The timer's slot: a frame only when it can be seen and something new is there to draw;
         then the interval adapts to the frame's cost (GRAPH_DUTY)."""
+        if getattr(self, "_muscles_shown", None) is not None and self.manager is not None \
+                and self._muscles() != self._muscles_shown:
+            self._rebuild_tree()  # another FES profile: its muscles name the channels
+            self._rebuild_plots()
         if not self.curves or not on_screen(self):
             return
         if not self.paused and not self._dirty and self.store.last_time() == self._drawn_t:
@@ -467,7 +555,7 @@ class PlotsFrame(QWidget):
                     curve.setData([], [])
                     continue
                 t, y = store.envelope(key, t0, t1, max_points=2 * width_px)
-                curve.setData(t - self.t_ref, y)
+                curve.setData(t - self._x0(), y)
                 finite = y[np.isfinite(y)]
                 if finite.size:
                     lo, hi = min(lo, float(finite.min())), max(hi, float(finite.max()))
@@ -586,10 +674,11 @@ class PlotsFrame(QWidget):
             if key not in store:
                 continue
             info = store.info(key)
-            hit = store.value_at(key, self.t_ref + x)
+            hit = store.value_at(key, self._x0() + x)
             value = "—" if hit is None else f"{hit[1]:.4g}"
             colour = curve_colour(self.selected.index(key))
-            parts.append(f"<span style='color:{colour}'>■</span> {info.label}: {value} {info.unit}".rstrip())
+            parts.append(f"<span style='color:{colour}'>■</span> {self.display_label(info)}: {value} {info.unit}"
+                         .rstrip())
         self.readout.setText("  ".join(parts))
 
     def readout_text(self) -> str:
@@ -644,13 +733,72 @@ class PlotsFrame(QWidget):
             rng = self.visible_range()
             if rng is not None:
                 t_from, t_to = rng
-        rows = store.export_csv(path, [k for k in self.selected if k in store], t_from, t_to)
+        rows = store.export_csv(path, [k for k in self.selected if k in store], t_from, t_to,
+                                t_zero=self.session_t0,
+                                t_zero_text=f"the start of session {self.session_name}" if self.session_name else "")
         self.status.setText(f"saved {rows} rows to {Path(path).name}")
         log.info("plots: saved %d rows of %d signals to %s", rows, len(self.selected), path)
         return rows
 
-    def export_png(self, path: str | Path) -> bool:
-        ok = self.graphics.grab().save(str(path))
+    def _on_session(self, folder: Path | None) -> None:
+        if folder is None:
+            self.session_t0, self.session_name = None, ""
+        else:
+            self.session_t0 = time.monotonic()
+            self.session_name = f"{Path(folder).parent.name}/{Path(folder).name}"
+
+    def default_file(self, suffix: str) -> Path:
+        """``<patient>_<session>_<HHMMSS>.<suffix>`` in the session's folder, or ``signals_<date>_<time>``
+        in the sessions folder without a session (issue #19: always "signals.csv")."""
+        stamp = time.strftime("%H%M%S")
+        recorder = getattr(self.manager, "recorder", None)
+        if recorder is not None:
+            folder = Path(recorder.folder)
+            return folder / f"{folder.parent.name}_{folder.name}_{stamp}.{suffix}"
+        return sessions_dir() / f"signals_{time.strftime('%Y%m%d')}_{stamp}.{suffix}"
+
+    def export_title(self) -> str:
+        """The PNG's title: patient/session, date and time, and what each graph shows in which unit."""
+        who = self.session_name or "no session"
+        units = " · ".join(f"{unit}: " + ", ".join(self.display_label(self.store.info(k)) for k in keys)
+                           for unit, keys in self._keys_by_unit().items())
+        return f"{who} · {time.strftime('%Y-%m-%d %H:%M:%S')} · {units}"
+
+    def _keys_by_unit(self) -> dict[str, list[str]]:
+        out: dict[str, list[str]] = {}
+        for key in self.selected:
+            if key in self.store:
+                out.setdefault(self.store.info(key).unit or NO_UNIT, []).append(key)
+        return out
+
+    def export_png(self, path: str | Path, width: int = 1200, scale: float = 1.5) -> bool:
+        """The graphs laid out ``width`` logical pixels wide (each graph at least 220 high), drawn at
+        ``scale`` × (crisp text and lines; 1800 px wide by default) under a title line with the
+        patient/session, the date and the units -- not a grab of the small on-screen frame."""
+        view = self.graphics
+        old_size = view.size()
+        height = max(old_size.height(), 320, 220 * len(self.plots))
+        font = QFont(self.font())
+        title_h = int(QFontMetrics(font).lineSpacing() * 2)
+        image = QImage(int(width * scale), int((height + title_h) * scale), QImage.Format.Format_RGB32)
+        image.setDevicePixelRatio(scale)
+        image.fill(QColor(colours().plot_background))
+        painter = QPainter(image)
+        try:
+            view.resize(width, height)  # lays the scene out at the export size (no repaint in between)
+            painter.setRenderHint(QPainter.RenderHint.Antialiasing)
+            painter.setRenderHint(QPainter.RenderHint.TextAntialiasing)
+            painter.setFont(font)
+            painter.setPen(QColor(colours().plot_foreground))
+            text = QFontMetrics(font).elidedText(self.export_title(), Qt.TextElideMode.ElideRight, width - 20)
+            painter.drawText(QRectF(10, 0, width - 20, title_h),
+                             int(Qt.AlignmentFlag.AlignLeft | Qt.AlignmentFlag.AlignVCenter), text)
+            view.scene().render(painter, QRectF(0, title_h, width, height),
+                                view.mapToScene(view.viewport().rect()).boundingRect())
+        finally:
+            painter.end()
+            view.resize(old_size)
+        ok = image.save(str(path))
         self.status.setText(f"exported {Path(path).name}" if ok else "export failed")
         return ok
 
@@ -658,7 +806,7 @@ class PlotsFrame(QWidget):
         if not self.selected:
             self.status.setText("tick at least one signal to save")
             return
-        path, _ = QFileDialog.getSaveFileName(self, "Save signals", str(sessions_dir() / "signals.csv"),
+        path, _ = QFileDialog.getSaveFileName(self, "Save signals", str(self.default_file("csv")),
                                               "CSV files (*.csv)")
         if path:
             try:
@@ -667,7 +815,7 @@ class PlotsFrame(QWidget):
                 self.status.setText(f"could not save: {exc.strerror or exc}")
 
     def _ask_png(self) -> None:
-        path, _ = QFileDialog.getSaveFileName(self, "Export graphs", str(sessions_dir() / "graphs.png"),
+        path, _ = QFileDialog.getSaveFileName(self, "Export graphs", str(self.default_file("png")),
                                               "PNG images (*.png)")
         if path:
             self.export_png(path)

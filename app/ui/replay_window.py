@@ -30,6 +30,7 @@ from app.recording import RecordedSession
 from app.replay import ReplaySource
 from app.ui.plots_frame import PlotsFrame
 from app.ui.signal_store import SignalStore, signal_key
+from app.ui.widgets import ClickToPositionStyle
 
 SPEEDS = (0.25, 0.5, 1.0, 2.0, 5.0, 10.0)
 _TICK_MS = 33
@@ -55,6 +56,7 @@ class ReplayWindow(QWidget):
             self.store.add_stream(spec, device or None)
         self.plots = PlotsFrame(None, self.store)
         self.plots.timer.stop()  # redrawn when the replay moves, not on a free-running timer
+        self.plots.x_origin = self.source.start  # the x-axis in session time, as the slider and events
         keys = [signal_key(s.name, c.name) for s in rec.streams.values() for c in s.channels]
         self.plots.set_selected(keys[:_DEFAULT_PLOTTED])
         self.speed = 1.0
@@ -65,6 +67,8 @@ class ReplayWindow(QWidget):
         self.play_button.toggled.connect(self.set_playing)
         self.slider = QSlider(Qt.Orientation.Horizontal)
         self.slider.setAccessibleName("Replay position")
+        self._slider_style = ClickToPositionStyle()  # a click seeks there (no page jump); kept alive here
+        self.slider.setStyle(self._slider_style)
         self.slider.setRange(0, max(1, round(self.source.duration * _SLIDER_STEPS_PER_S)))
         self.slider.valueChanged.connect(self._on_slider)
         self.time_label = QLabel()
@@ -80,9 +84,10 @@ class ReplayWindow(QWidget):
         for e in rec.events:
             if not isinstance(e.get("t_mono"), int | float):
                 continue
-            item = QListWidgetItem(f"{_fmt(e['t_mono'] - self.source.start)}  {e.get('kind', '')}  {e.get('who', '')}")
+            text = f"{_fmt(e['t_mono'] - self.source.start)}  {e.get('kind', '')}  {e.get('who', '')}"
+            item = QListWidgetItem(text)
             item.setData(Qt.ItemDataRole.UserRole, float(e["t_mono"]) - self.source.start)
-            item.setToolTip(str(e.get("data", "")))
+            item.setToolTip(f"{text}\n{e.get('data', '')}")  # the whole line, even when the list is narrow
             self.events.addItem(item)
         self.events.itemActivated.connect(lambda it: self.seek(float(it.data(Qt.ItemDataRole.UserRole))))
 

@@ -3,8 +3,10 @@ grown up — an editor with Python highlighting and line numbers, open/save, Sta
 (print output, errors and tracebacks whose line numbers are links into the editor) and an interactive
 prompt that runs in the script's namespace, with completion of the API's names and a history.
 
-Scripts and prompt statements run on their own threads (app.scripting.runner); this widget only drains
-their output on a timer, so the window stays responsive even while a script busy-waits.
+Scripts and prompt statements run in the script kernel, a child Python process (app.scripting.runner,
+app/scripting/kernel.py); completion asks the kernel's live namespace. This widget only drains their output
+on a timer, so the window stays responsive whatever the script does — and a script that crashes its process
+ends as an error here while the window carries on.
 """
 
 from __future__ import annotations
@@ -316,7 +318,7 @@ class ScriptConsole(QWidget):
         self.home_first.setToolTip("Before the script starts, home the LINarm if the controller says it is not homed")
         self.status = QLabel("No script running")
         self.file_label = QLabel("(unsaved script)")
-        self.start_button.setToolTip("Run the script in the editor (on its own thread)")
+        self.start_button.setToolTip("Run the script in the editor (in the script kernel, a process of its own)")
         self.stop_button.setToolTip("Stop the script at once; the FES stops and the robot goes to its safe state")
         self.stop_button.setEnabled(False)
         self.start_button.setStyleSheet("QPushButton { font-weight: bold; }")
@@ -378,7 +380,7 @@ class ScriptConsole(QWidget):
         self.timer.start()
         add_hook = getattr(manager, "add_shutdown_hook", None)
         if callable(add_hook):  # closing the application stops a running script (and its callbacks) first
-            add_hook(lambda: self.runner.stop("the application is closing", wait_s=0.5))
+            add_hook(self.runner.close)
         example = EXAMPLES_DIR / "trigger_exercise.py"
         if example.is_file():
             self.load_file(example)
@@ -549,3 +551,7 @@ class ScriptConsole(QWidget):
         if self.runner.running:
             self.runner.stop("the console was closed", wait_s=0.5)
         super().closeEvent(event)
+
+    def shutdown(self) -> None:
+        """End the runner's kernel processes (the window is going away)."""
+        self.runner.close()

@@ -10,10 +10,12 @@ import json
 import logging
 import threading
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from PySide6.QtCore import Qt, QTimer
+from PySide6.QtGui import QColor
 from PySide6.QtWidgets import (
     QAbstractItemView,
     QComboBox,
@@ -34,7 +36,14 @@ from PySide6.QtWidgets import (
 from app import paths
 from app.export import ExportCancelled, export_csv, export_hdf5
 from app.patients import list_patients
-from app.recording import SessionSummary, list_patients_with_sessions, list_sessions, load_session
+from app.recording import (
+    EVENTS_FILE,
+    SessionSummary,
+    list_patients_with_sessions,
+    list_sessions,
+    load_session,
+    read_events,
+)
 
 log = logging.getLogger(__name__)
 
@@ -53,6 +62,44 @@ def _duration_text(seconds: float) -> str:
     m, s = divmod(round(seconds), 60)
     h, m = divmod(m, 60)
     return f"{h}:{m:02d}:{s:02d}" if h else f"{m}:{s:02d}"
+
+
+@dataclass(frozen=True)
+class SessionStatus:
+    """What the Status column says, and why (its tooltip)."""
+
+    text: str
+    tooltip: str
+    ok: bool
+
+
+STOP_LEVELS = ("STOP", "FATAL")
+
+
+def session_status(summary: SessionSummary, active: Path | None = None) -> SessionStatus:
+    """``in progress`` (the session being recorded now), ``interrupted`` (the app never ended it),
+    else ``complete`` only when every exercise finished and no STOP alarm was raised -- otherwise
+    what went wrong (issue #19: 5 aborted exercises and 12 alarms showed as "complete")."""
+    if active is not None and summary.folder.resolve() == active.resolve():
+        return SessionStatus("in progress", "This session is being recorded now.", True)
+    if not summary.complete:
+        return SessionStatus("interrupted", "The session was not stopped normally (crash or power loss); "
+                             "its data end at the last flush.", False)
+    events, _dropped = read_events(summary.folder / EVENTS_FILE)
+    ends = [e.get("data", {}) for e in events if e.get("kind") == "script_stop"]
+    aborted = [d for d in ends if str(d.get("status", "finished")) != "finished"]
+    stops = [e for e in events if e.get("kind") == "alarm" and e.get("data", {}).get("level") in STOP_LEVELS]
+    problems = []
+    if aborted:
+        problems.append(f"{len(aborted)} of {len(ends)} exercise(s) aborted")
+    if stops:
+        problems.append(f"{len(stops)} stop alarm(s)")
+    if not problems:
+        return SessionStatus("complete", "Ended normally; every exercise finished, no stop alarm.", True)
+    reasons = "; ".join(sorted({str(d.get("reason", d.get("status", ""))) for d in aborted})[:5])
+    return SessionStatus("ended: " + ", ".join(problems),
+                         "Ended normally, but " + " and ".join(problems) + (f". Causes: {reasons}" if reasons else ""),
+                         False)
 
 
 class ExportJob:
@@ -116,6 +163,7 @@ class SessionDetails(QDialog):
             lines.append("Problems: " + "; ".join(session.problems))
         header = QLabel("\n".join(lines))
         header.setTextInteractionFlags(Qt.TextInteractionFlag.TextSelectableByMouse)
+        header.setWordWrap(True)  # a long stream list wraps instead of widening the dialog past the screen
         self.events = QTableWidget(len(session.events), 4)
         self.events.setHorizontalHeaderLabels(["Time", "Event", "Who", "Details"])
         self.events.setEditTriggers(QAbstractItemView.EditTrigger.NoEditTriggers)
@@ -123,8 +171,14 @@ class SessionDetails(QDialog):
             cells = [str(e.get("t_wall", ""))[11:23], str(e.get("kind", "")), str(e.get("who", "")),
                      json.dumps(e.get("data", {}), ensure_ascii=False, default=str)]
             for col, text in enumerate(cells):
-                self.events.setItem(row, col, QTableWidgetItem(text))
-        self.events.horizontalHeader().setStretchLastSection(True)
+                item = QTableWidgetItem(text)
+                if col == 3:
+                    item.setToolTip(text)  # long details are elided in the cell
+                self.events.setItem(row, col, item)
+        events_header = self.events.horizontalHeader()
+        for col in range(3):
+            events_header.setSectionResizeMode(col, QHeaderView.ResizeMode.ResizeToContents)
+        events_header.setSectionResizeMode(3, QHeaderView.ResizeMode.Stretch)
         scripts = [e for e in session.events if e.get("kind") == "script_start"]
         self.script_text = QPlainTextEdit("\n\n".join(f"# --- {e['data'].get('name', 'script')}\n"
                                                       f"{e['data'].get('text', '')}" for e in scripts))
@@ -141,9 +195,11 @@ class SessionDetails(QDialog):
 class SessionsBrowser(QWidget):
     """List, open, export and replay the sessions of one patient."""
 
-    def __init__(self, root: Path | None = None, history_s: float = 30.0, parent: QWidget | None = None) -> None:
+    def __init__(self, root: Path | None = None, history_s: float = 30.0, parent: QWidget | None = None,
+                 active: Callable[[], Path | None] | None = None) -> None:
         super().__init__(parent)
         self.root = root or paths.sessions_dir()
+        self.active = active or (lambda: None)  # the folder being recorded now (shown "in progress")
         self.history_s = history_s
         self.setWindowTitle("Sessions")
         self.windows: list[QWidget] = []  # replay windows and dialogs kept alive
@@ -165,7 +221,9 @@ class SessionsBrowser(QWidget):
         self.table.setSelectionBehavior(QAbstractItemView.SelectionBehavior.SelectRows)
         self.table.setSelectionMode(QAbstractItemView.SelectionMode.SingleSelection)
         self.table.setEditTriggers(QAbstractItemView.EditTrigger.NoEditTriggers)
-        self.table.horizontalHeader().setSectionResizeMode(2, QHeaderView.ResizeMode.Stretch)
+        header = self.table.horizontalHeader()
+        header.setSectionResizeMode(QHeaderView.ResizeMode.ResizeToContents)
+        header.setSectionResizeMode(2, QHeaderView.ResizeMode.Stretch)  # the exercises: elided, whole in the tooltip
         self.table.setAccessibleName("Sessions")
         self.table.itemSelectionChanged.connect(self._update_buttons)
         self.table.itemDoubleClicked.connect(lambda _it: self.replay())
@@ -178,9 +236,14 @@ class SessionsBrowser(QWidget):
         self.csv_button.clicked.connect(lambda: self.ask_export("csv"))
         self.replay_button = QPushButton("&Replay")
         self.replay_button.clicked.connect(self.replay)
+        self.summary_button = QPushButton("S&ummary…")  # metrics (app/ui/session_summary.py)
+        self.summary_button.clicked.connect(self.open_summary)
+        self.progress_button = QPushButton("Pro&gress…")  # the patient's trends (app/ui/progress_view.py)
+        self.progress_button.clicked.connect(self.open_progress)
         self.status = QLabel("")
         buttons = QHBoxLayout()
-        for b in (self.open_button, self.hdf5_button, self.csv_button, self.replay_button):
+        for b in (self.open_button, self.hdf5_button, self.csv_button, self.replay_button, self.summary_button,
+                  self.progress_button):
             buttons.addWidget(b)
         buttons.addWidget(self.status, 1)
 
@@ -188,7 +251,7 @@ class SessionsBrowser(QWidget):
         layout.addLayout(top)
         layout.addWidget(self.table, 1)
         layout.addLayout(buttons)
-        self.resize(800, 400)
+        self.resize(980, 420)
         self.reload_patients()
 
     # ------------------------------------------------------------------ listing
@@ -214,14 +277,18 @@ class SessionsBrowser(QWidget):
         self.table.setRowCount(len(self.summaries))
         for row, s in enumerate(self.summaries):
             exercises = ", ".join(s.exercises) if s.exercises else "—"
+            status = session_status(s, self.active())
             cells = (_date_text(s.start), _duration_text(s.duration_s), exercises, str(s.alarms), s.operator,
-                     "complete" if s.complete else "interrupted")
+                     status.text)
             for col, text in enumerate(cells):
                 item = QTableWidgetItem(text)
                 item.setData(FOLDER_ROLE, str(s.folder))
-                if col == 5 and not s.complete:
-                    item.setToolTip("The session was not stopped normally (crash or power loss); "
-                                    "its data end at the last flush.")
+                if col == 2 and s.exercises:
+                    item.setToolTip(exercises)  # a long list is elided in its cell
+                if col == 5:
+                    item.setToolTip(status.tooltip)
+                    if not status.ok:
+                        item.setForeground(QColor("#c62828"))
                 self.table.setItem(row, col, item)
         if self.summaries:
             self.table.selectRow(0)
@@ -241,8 +308,9 @@ class SessionsBrowser(QWidget):
 
     def _update_buttons(self) -> None:
         ok = self.selected_folder() is not None
-        for b in (self.open_button, self.hdf5_button, self.csv_button, self.replay_button):
+        for b in (self.open_button, self.hdf5_button, self.csv_button, self.replay_button, self.summary_button):
             b.setEnabled(ok)
+        self.progress_button.setEnabled(ok)
 
     # ------------------------------------------------------------------ actions
     def open_details(self) -> SessionDetails | None:
@@ -250,6 +318,28 @@ class SessionsBrowser(QWidget):
         if folder is None:
             return None
         dialog = SessionDetails(folder, self)
+        self.windows.append(dialog)
+        dialog.show()
+        return dialog
+
+    def open_summary(self) -> QWidget | None:
+        folder = self.selected_folder()
+        if folder is None:
+            return None
+        from app.ui.session_summary import SessionSummaryDialog
+
+        dialog = SessionSummaryDialog(folder, parent=self)
+        self.windows.append(dialog)
+        dialog.show()
+        return dialog
+
+    def open_progress(self) -> QWidget | None:
+        pid = self.patient_box.currentData()
+        if not pid:
+            return None
+        from app.ui.progress_view import ProgressDialog
+
+        dialog = ProgressDialog(pid, self.root, parent=self)
         self.windows.append(dialog)
         dialog.show()
         return dialog

@@ -388,7 +388,7 @@ class SignalStore(QObject):
 
     # -------------------------------------------------------------- export
     def export_csv(self, path: str | Path, signals: Sequence[str], t_from: float | None = None,
-                   t_to: float | None = None) -> int:
+                   t_to: float | None = None, t_zero: float | None = None, t_zero_text: str = "") -> int:
         """Write ``signals`` over [t_from, t_to] (None = whole buffer) to a CSV file; returns the
         number of data rows.
 
@@ -420,9 +420,13 @@ class SignalStore(QObject):
             streams.append((ring.t[i0:i1], [(k, self._info[k].unit, ring.y[self._info[k].channel][i0:i1])
                                            for k in stream_keys]))
         anchor = time.time() - time.monotonic()
+        if t_zero is not None:  # time from a given instant (the session's start): ``t_zero_text`` says which
+            streams = [(t - t_zero, cols) for t, cols in streams]
+            anchor += t_zero
+        what = f"seconds from {t_zero_text or 'the reference instant'}" if t_zero is not None else "monotonic seconds"
         return write_aligned_csv(path, streams, [
             "LINarm++ Manager signal export",
-            f"time: monotonic seconds; wall clock of time 0 = {anchor:.6f} s since the Unix epoch",
+            f"time: {what}; wall clock of time 0 = {anchor:.6f} s since the Unix epoch",
             "each row is one sampling instant; empty cells: that stream has no sample at that instant",
         ])
 

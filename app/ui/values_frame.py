@@ -22,6 +22,7 @@ from PySide6.QtWidgets import (
     QGroupBox,
     QHBoxLayout,
     QLabel,
+    QLayout,
     QScrollArea,
     QSizePolicy,
     QVBoxLayout,
@@ -35,7 +36,7 @@ from app.ui.widgets import RefreshWhenVisible
 DASH = "—"
 FES_CHANNELS = 8
 REFRESH_HZ = 10.0
-VALUE_PT_STEPS = (22, 20, 18, 16, 14)  # 14 pt bold still reads from 2 m
+VALUE_PT_STEPS = (22, 20, 18, 16, 14, 13)  # 13 pt bold still reads from 2 m
 
 
 @dataclass(frozen=True)
@@ -184,6 +185,7 @@ class ValuesFrame(RefreshWhenVisible, QWidget):
         outer = QVBoxLayout(self)
         outer.setContentsMargins(2, 2, 2, 2)
         scroll = QScrollArea()  # never clip: on a small screen the tiles scroll instead
+        scroll.setProperty("scrolls", True)  # a list meant to scroll (the clipping test knows)
         scroll.setWidgetResizable(True)
         scroll.setFrameShape(QFrame.Shape.NoFrame)
         outer.addWidget(scroll)
@@ -243,6 +245,10 @@ class ValuesFrame(RefreshWhenVisible, QWidget):
         self.dev_row = QGridLayout(dev_box)
         self.dev_row.setContentsMargins(4, 4, 4, 4)
         outer.addWidget(dev_box)
+        # The status bar is the one place for device status (issue #19: it was shown three times);
+        # the labels stay for the frame's tests and a Values frame undocked on its own screen.
+        dev_box.setVisible(False)
+        self.dev_box = dev_box
         self._sync_devices()
 
         self.timer = QTimer(self)
@@ -274,12 +280,24 @@ class ValuesFrame(RefreshWhenVisible, QWidget):
             for col in range(6):
                 grid.setColumnStretch(col, 1 if col < columns else 0)
 
+    def _relayout(self) -> None:
+        """Recompute the size hints now: new fonts and columns only post a layout request, and a hint
+        read before it is handled is the old one (the fit then never changed anything)."""
+        for layout in self.body.findChildren(QLayout):
+            layout.invalidate()
+        for widget in (*self.body.findChildren(QWidget), self.body):
+            layout = widget.layout()
+            if layout is not None:
+                layout.invalidate()
+                layout.activate()
+
     def fit_fonts(self) -> None:
         """The largest value font (22 pt down to 14 pt), with 2, 3, 4 or 6 tiles a row, at which every
         tile fits without scrolling; wide frames use more columns so the numbers can stay large."""
         available = self.scroll.viewport().height()
         width = self.scroll.viewport().width()
         tiles = list(self.tiles.values())
+        best: tuple[int, int, int] | None = None  # (height, pt, columns) of the shortest arrangement
         for pt in VALUE_PT_STEPS:
             for tile in tiles:
                 tile.set_value_pt(pt)
@@ -290,12 +308,20 @@ class ValuesFrame(RefreshWhenVisible, QWidget):
                 label.setFont(fes_font)
             for columns in (2, 3, 4, 6):
                 self._set_columns(columns)
-                self.body.layout().activate()
+                self._relayout()
                 if self.body.minimumSizeHint().width() > width:
                     break
-                if self.body.sizeHint().height() <= available:
+                height = self.body.sizeHint().height()
+                if height <= available:
                     return
-        self._set_columns(2)  # narrow and short: scroll vertically, never clip a number sideways
+                if best is None or height < best[0]:
+                    best = (height, pt, columns)
+        # Nothing fits: the arrangement that scrolls least (issue #19: at 1366×768 the patient model's
+        # α/a_r/a_f and the active FES channels were below the fold); never clip a number sideways.
+        pt, columns = (best[1], best[2]) if best is not None else (VALUE_PT_STEPS[-1], 2)
+        for tile in tiles:
+            tile.set_value_pt(pt)
+        self._set_columns(columns)
 
     # ------------------------------------------------------------------ reading
     def _latest(self, stream: str) -> Any:
@@ -347,6 +373,8 @@ class ValuesFrame(RefreshWhenVisible, QWidget):
                                                state_colour(channel, value) if value is not None else None)
 
         fes = self._latest(FES_STREAM)
+        profile = getattr(self.manager.driver("fes"), "profile", None) if hasattr(self.manager, "driver") else None
+        muscles = getattr(profile, "channels", None) or {}
         active = 0
         for ch, label in enumerate(self.fes_labels, start=1):
             current = getattr(fes, f"current{ch}", None)
@@ -355,6 +383,10 @@ class ValuesFrame(RefreshWhenVisible, QWidget):
             if on:
                 active += 1
                 label.setText(f"Ch {ch}:  {float(current):.1f} mA · {float(width):.0f} µs")
+                muscle = getattr(muscles.get(ch), "muscle", "")
+                tip = f"Channel {ch}" + (f" — {muscle}" if muscle else "")
+                if label.toolTip() != tip:
+                    label.setToolTip(tip)
             label.setVisible(on)
         self.fes_none.setText(DASH if fes is None else "no channel active")
         self.fes_none.setVisible(active == 0)

@@ -1,0 +1,153 @@
+"""One fault policy for the window and the headless runner alike (contract 5).
+
+Which faults stop the therapy, and what stopping means, live here and nowhere else:
+
+* a device's connection lost is a STOP (``loss_level``) — except the patient model and the VR link
+  while they drive nothing (no FES stimulation, the LINarm not ON): then a warning, so a model that
+  flaps while the robot homes or idles does not stop anything;
+* every alarm of level STOP or FATAL — a robot error latch (``controller_error``), a device's
+  connection lost, the robot monitor's excursion, the patient model or VR link lost, a recording
+  failure — calls ``supervisor.bring_to_safe_state(cause)`` at once, in the thread that raised the
+  alarm: the registered stop actions stop FES, put the robot in its safe state and stop the running
+  script (contract 3: the script ends "stopped" with ``cause`` as its message);
+* silence of a device that moves the patient or drives current (``STOP_ON_SILENCE``: the LINarm, the
+  FES) that lasts ``safety.silence_stop_s`` (1 s) after the manager's silence warning is a STOP alarm
+  raised here (the LINarm's own watchdog has idled the motors after 0.25 s without host bytes anyway);
+* losing α (the patient-model link disconnected or silent) returns FES and robot assistance to their
+  non-α values (``AssistanceController.invalidate``, wired by the manager);
+* a helper process that cannot bind its port is a device loss (``process_failed``), never "reconnected".
+
+Each handled fault is recorded (``faults``; a ``fault`` event in the session record) with its cause,
+so the headless runner can exit with 3 and the window shows the same alarm: docs/fault-policy.md has
+the device × fault matrix that tests/test_fault_policy.py checks in both.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from dataclasses import dataclass
+from typing import Any
+
+from PySide6.QtCore import Qt
+
+from app.safety import Alarm, AlarmLevel
+
+log = logging.getLogger(__name__)
+
+STOP_ON_SILENCE: frozenset[str] = frozenset({"linarm", "fes"})
+DRIVING_LINKS: frozenset[str] = frozenset({"patient_model", "vr"})  # a loss matters only while they drive
+
+
+@dataclass(frozen=True)
+class Fault:
+    source: str
+    cause: str
+    t_mono: float
+
+
+class FaultPolicy:
+    """Created once by the manager (``manager.fault_policy``); ``attach_devices`` after they start."""
+
+    def __init__(self, manager: Any) -> None:
+        self.manager = manager
+        self.supervisor = manager.supervisor
+        self.faults: list[Fault] = []
+        self._lock = threading.Lock()
+        self._attached: set[str] = set()
+        # Direct: the safe state runs in the thread that raised the alarm, not when the GUI thread gets to it.
+        self.supervisor.alarm_raised.connect(self._on_alarm, Qt.ConnectionType.DirectConnection)
+
+    # ------------------------------------------------------------------ inputs
+    def attach_devices(self) -> None:
+        """Listen to the devices' silence (idempotent; call after ``manager.start()`` created them)."""
+        for name, handle in dict(getattr(self.manager, "devices", {})).items():
+            if name in self._attached:
+                continue
+            self._attached.add(name)
+
+            def on_event(event: str, detail: str, device: str = name) -> None:
+                if not getattr(self.manager, "_started", True):
+                    return
+                if event == "silent" and device in STOP_ON_SILENCE:
+                    self._silence_check(device, detail)
+                elif event == "helper_failed":
+                    self.process_failed(device, detail)
+
+            handle.driver.add_event_listener(on_event)
+
+    def _silence_check(self, device: str, detail: str) -> None:
+        delay = float(getattr(getattr(self.manager.config, "safety", None), "silence_stop_s", 1.0))
+
+        def check() -> None:
+            driver = self.manager.driver(device) if hasattr(self.manager, "driver") else None
+            if driver is None or not getattr(self.manager, "_started", True):
+                return
+            if getattr(driver, "silent", False) and getattr(driver, "connected", False):
+                self.supervisor.raise_alarm(AlarmLevel.STOP, device, f"{device} stopped sending data for "
+                                            f"{delay:g} s: {detail or 'silent'}")
+
+        timer = threading.Timer(delay, check)
+        timer.daemon = True
+        timer.start()
+
+    def recording_failed(self, folder: str, error: str) -> None:
+        """The recorder could not write (any thread)."""
+        self.supervisor.raise_alarm(AlarmLevel.STOP, "recording",
+                                    f"Recording failed in {folder}: {error}")
+
+    def process_failed(self, device: str, detail: str) -> None:
+        """A helper process (patient model, VR stand-in) cannot run, e.g. its port is taken."""
+        self.supervisor.raise_alarm(AlarmLevel.STOP, device, f"{device} helper failed: {detail}")
+
+    # ------------------------------------------------------------------ the policy
+    def drives_something(self) -> bool:
+        """An actuator α or the VR task can influence is active: FES stimulating, or the LINarm ON."""
+        fes = self._driver("fes")
+        if fes is not None and bool(getattr(fes, "stimulating", False)):
+            return True
+        robot = self._driver("linarm")
+        latest = getattr(robot, "latest", None)
+        try:
+            state = latest("linarm.state") if callable(latest) else None
+        except Exception:
+            state = None
+        from app.devices.linarm_protocol import ControlState
+
+        return state is not None and getattr(state, "controlState", None) == int(ControlState.ON_CTRL_STATE)
+
+    def loss_level(self, device: str) -> AlarmLevel:
+        """The level of ``device``'s connection loss (the manager raises the alarm)."""
+        if device in DRIVING_LINKS and not self.drives_something():
+            return AlarmLevel.WARNING
+        return AlarmLevel.STOP
+
+    def _driver(self, name: str) -> Any:
+        try:
+            return self.manager.driver(name)
+        except Exception:
+            return None
+
+    def _on_alarm(self, alarm: Alarm) -> None:
+        if alarm.level < AlarmLevel.STOP:
+            return
+        cause = f"{alarm.source}: {alarm.text}" if alarm.source and alarm.source not in alarm.text else alarm.text
+        with self._lock:
+            self.faults.append(Fault(alarm.source, cause, time.monotonic()))
+        self.supervisor.event("fault", source=alarm.source, cause=cause)
+        if self.supervisor.estop_latched and alarm.text.startswith("Emergency stop"):
+            return  # emergency_stop has just run every stop action itself
+        try:
+            self.supervisor.bring_to_safe_state(cause)
+        except Exception:
+            log.exception("safe state after %s failed", cause)
+
+    def faults_since(self, t_mono: float) -> list[Fault]:
+        with self._lock:
+            return [f for f in self.faults if f.t_mono >= t_mono]
+
+    @property
+    def last_cause(self) -> str:
+        with self._lock:
+            return self.faults[-1].cause if self.faults else ""

@@ -1,0 +1,740 @@
+"""The application's side of the script kernel (app/scripting/kernel.py): the child process, its link, and
+the bridge that answers the kernel's requests with the in-app API (app/scripting/api.py).
+
+* :class:`KernelProcess` starts ``python -I kernel.py`` with one end of an AF_UNIX socket pair, reads its
+  messages, its stdout/stderr (a crash report from faulthandler lands there) and notices its end — all on
+  reader threads of its own (never the GUI thread). Writes never block the caller: what the socket
+  does not take at once waits in a backlog a writer thread drains.
+* :class:`ApiBridge` serves one kernel: ``subscribe`` (every sample of the stream from then on, in
+  order, pushed from the driver thread as it is published), ``peek`` (completion), and ``call`` — only
+  the API's own methods (:data:`ALLOWED_CALLS`), executed by the existing API objects on the reader
+  thread that read the request (leader/follower: another reader takes over reading meanwhile), so they
+  pass through the drivers' single command path and the safety supervisor exactly as before. Anything
+  else is refused and recorded (supervisor event ``script_request_refused``).
+
+Kernel → application is JSON only: a hostile script controls those bytes, so they are never unpickled,
+and every field is checked before use.
+"""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+import itertools
+import json
+import logging
+import os
+import selectors
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+from typing import Any
+
+from app.devices import linarm_protocol as proto
+from app.scripting import api
+from app.scripting.api import (
+    CommandError,
+    CommandRefused,
+    DeviceUnavailable,
+    ScriptContext,
+    ScriptError,
+    ScriptStopped,
+)
+
+log = logging.getLogger(__name__)
+
+KERNEL_FILE = Path(__file__).resolve().parent / "kernel.py"
+MEMORY_LIMIT_BYTES = 2 * 1024**3  # address space of a kernel: a runaway allocation fails as MemoryError there
+MAX_MESSAGE = 4 * 1024 * 1024  # a longer line from the kernel is a protocol violation
+BACKLOG_LIMIT = 16 * 1024 * 1024  # bytes waiting for a kernel that does not read: samples beyond are dropped
+READERS = 3  # leader/follower threads per kernel (calls run on the thread that read them)
+REFUSALS_RECORDED = 20  # per kernel; a flood of bad requests is counted, not recorded one by one
+
+# stream -> (device, label): the streams a script may subscribe to (one place: the kernel gets it in hello)
+STREAMS: dict[str, tuple[str, str]] = {
+    "linarm.state": ("linarm", "the LINarm"),
+    "linarm.vsa": ("linarm", "the LINarm"),
+    "linarm.motor0": ("linarm", "the LINarm"),
+    "linarm.motor1": ("linarm", "the LINarm"),
+    "physio.main": ("physio", "the physiological sensors"),
+    "patient_model.main": ("patient_model", "the patient model"),
+    "vr.main": ("vr", "the VR renderer"),
+}
+
+# The proxies' shape: state properties (name -> stream, doc) and callback setters (name -> stream, list).
+OBJECT_SHAPES: dict[str, dict[str, Any]] = {
+    "linarm": {
+        "doc": "linarm: the LINarm2 robot. Commands block until the controller acknowledges them.",
+        "properties": {
+            "linarmState": ("linarm.state", "controlState, controlMode, homeState, errorState, triggerMode, "
+                                            "initialized, trajectoryType, …"),
+            "linarmVsaState": ("linarm.vsa", "equilibriumPos (m), delta (m), stiffness (N/m), handlePos (m), "
+                                             "handleVel (m/s), interactionForce (N)."),
+            "linarmMotor0State": ("linarm.motor0", "position (m), velocity (m/s), current (A), target (m)."),
+            "linarmMotor1State": ("linarm.motor1", "position (m), velocity (m/s), current (A), target (m)."),
+        },
+        "callbacks": {
+            "setLinarmDataCallbackFun": ("linarm.state", "linarmDataCallbackList"),
+            "setLinarmMotor0DataCallbackFun": ("linarm.motor0", "linarmMotor0DataCallbackList"),
+            "setLinarmMotor1DataCallbackFun": ("linarm.motor1", "linarmMotor1DataCallbackList"),
+            "setLinarmVsaDataCallbackFun": ("linarm.vsa", "linarmVsaDataCallbackList"),
+        },
+    },
+    "physiologicalSensors": {
+        "doc": "physiologicalSensors: grip force (N), skin temperature (°C), heart rate (bpm), skin conductance (µS).",
+        "properties": {"physiologicalSensorsData": ("physio.main", "force (N), temperature (°C), heartRate (bpm), "
+                                                                   "skinConductance (µS), boardTime (s), …")},
+        "callbacks": {"setPhysiologicalSensorsDataCallbackFun": ("physio.main", "physiologicalDataCallbackList")},
+    },
+    "patientModel": {
+        "doc": "patientModel: the patient model's latest output (alpha, a_r, a_f, tpi, mpi, pti).",
+        "properties": {"patientModelData": ("patient_model.main", "alpha, a_r, a_f, tpi, mpi, pti")},
+        "callbacks": {"setPatientModelDataCallbackFun": ("patient_model.main", "patientModelDataCallbackList")},
+    },
+    "VRUnity": {
+        "doc": "VRUnity: the VR renderer's latest frame (targetPos, score, targetsReached).",
+        "properties": {"VRUnityData": ("vr.main", "targetPos, score, targetsReached")},
+        "callbacks": {"setVRUnityDataCallbackFun": ("vr.main", "VRUnityDataCallbackList")},
+    },
+    "fes": {"doc": "fes: the RehaStim stimulator; every change passes the FES limiter of the safety supervisor."},
+}
+
+# What a kernel may call: object -> methods of the in-app API objects (and readable attributes).
+ALLOWED_CALLS: dict[str, frozenset[str]] = {
+    "linarm": frozenset({c.name for c in api.SCRIPT_COMMANDS} | {"getConfigData"}),
+    "fes": frozenset({"loadFile", "writeFile", "start", "stop", "setCurrentScaleFactor", "setPWScaleFactor",
+                      "setPhase", "getConfigData"}),
+    "linarmppManager": frozenset({"emergencyStop", "startRepetition", "endRepetition", "reportProgress"}),
+}
+ALLOWED_ATTRIBUTES: dict[str, frozenset[str]] = {"fes": frozenset({"profile", "stimulating"})}
+_ERROR_NAMES: tuple[tuple[type[BaseException], str], ...] = (
+    (ScriptStopped, "ScriptStopped"), (CommandRefused, "CommandRefused"), (DeviceUnavailable, "DeviceUnavailable"),
+    (CommandError, "CommandError"), (ScriptError, "ScriptError"), (TypeError, "TypeError"),
+    (FileNotFoundError, "FileNotFoundError"), (KeyError, "KeyError"), (ValueError, "ValueError"),
+    (OSError, "OSError"),
+)
+
+
+def hello_message() -> dict[str, Any]:
+    """The API's shape for a new kernel: the command table, the enums, the objects' streams (data only)."""
+    commands = [{"name": c.name, "args": [a.name for a in c.args], "doc": api._command_doc(c)}
+                for c in api.SCRIPT_COMMANDS]
+    enums = {name: {m.name: int(m.value) for m in getattr(proto, name)}
+             for name in ("CONTROL_STATES", "CONTROL_MODES", "HOME_STATES", "ERROR_STATES", "TRIGGER_MODES",
+                          "TRAJECTORY_TYPES")}
+    return {"op": "hello", "commands": commands, "aliases": {"moveDeltato": "moveDeltaTo"}, "enums": enums,
+            "objects": OBJECT_SHAPES, "labels": {s: label for s, (_d, label) in STREAMS.items()}}
+
+
+# ---------------------------------------------------------------------------------------------- samples
+def _plain(value: Any) -> Any:
+    if value is None or isinstance(value, bool | str):
+        return value
+    if isinstance(value, int):
+        return int(value)
+    if isinstance(value, float):
+        return float(value)
+    item = getattr(value, "item", None)  # numpy scalars
+    if callable(item):
+        try:
+            return _plain(item())
+        except (TypeError, ValueError):
+            pass
+    if isinstance(value, list | tuple):
+        return [_plain(v) for v in value]
+    return str(value)
+
+
+def _fields(sample: Any) -> tuple[str, ...]:
+    if dataclasses.is_dataclass(sample):
+        return tuple(f.name for f in dataclasses.fields(sample))
+    named = getattr(sample, "_fields", None)
+    if named is not None:
+        return tuple(named)
+    return tuple(k for k in vars(sample) if not k.startswith("_"))
+
+
+class SampleEncoder:
+    """Samples as ``schema`` (once per stream and type) + ``sample`` (values in field order) messages."""
+
+    def __init__(self) -> None:
+        self._fields: dict[type, tuple[str, ...]] = {}
+
+    def fields(self, sample: Any) -> tuple[str, ...]:
+        cls = type(sample)
+        fields = self._fields.get(cls)
+        if fields is None:
+            fields = self._fields[cls] = _fields(sample)
+        return fields
+
+    def values(self, sample: Any, fields: tuple[str, ...]) -> list[Any]:
+        return [_plain(getattr(sample, f, None)) for f in fields]
+
+    def snapshot(self, sample: Any) -> dict[str, Any] | None:
+        if sample is None:
+            return None
+        fields = self.fields(sample)
+        return {"type": type(sample).__name__, "fields": list(fields), "v": self.values(sample, fields)}
+
+
+# ---------------------------------------------------------------------------------------------- process
+def _parse(line: bytes) -> dict[str, Any]:
+    try:
+        msg = json.loads(line)
+    except (ValueError, UnicodeDecodeError):
+        return {"op": "__violation__", "reason": "a message that is not JSON"}
+    if not isinstance(msg, dict):
+        return {"op": "__violation__", "reason": "a message that is not a JSON object"}
+    return msg
+
+
+def _encode(msg: dict[str, Any]) -> bytes:
+    return (json.dumps(msg, separators=(",", ":"), default=str) + "\n").encode()
+
+
+def describe_end(returncode: int | None) -> str:
+    """How a kernel process ended, in words."""
+    if returncode is None:
+        return "it stopped answering"
+    if returncode < 0:
+        try:
+            name = signal.Signals(-returncode).name
+        except ValueError:
+            name = f"signal {-returncode}"
+        what = {"SIGSEGV": "a segmentation fault", "SIGABRT": "an abort", "SIGBUS": "a bus error",
+                "SIGFPE": "a floating-point exception", "SIGKILL": "killed", "SIGTERM": "terminated",
+                "SIGILL": "an illegal instruction"}.get(name, "killed by a signal")
+        return f"{what} ({name})"
+    if returncode == 4:
+        return "out of memory (MemoryError)"
+    return f"it exited with code {returncode}"
+
+
+class KernelProcess:
+    """One kernel process and its link. ``handler(msg)`` gets the kernel's messages (reader thread);
+    ``on_output(stream, text)`` its raw stdout/stderr; ``on_exit(kernel)`` runs once when it has ended."""
+
+    def __init__(self, memory_limit: int = MEMORY_LIMIT_BYTES) -> None:
+        self.handler: Callable[[dict[str, Any]], Callable[[], None] | None] | None = None
+        self.on_output: Callable[[str, str], None] | None = None
+        self.on_exit: Callable[[KernelProcess], None] | None = None
+        self.used = False
+        self.ready = threading.Event()
+        self.ended = threading.Event()
+        self.startup_s: float | None = None  # spawn → ready, measured here
+        self.returncode: int | None = None
+        self.stderr_tail = ""
+        self.crash_report = False
+        self._wlock = threading.Lock()
+        self._backlog = bytearray()
+        self._wake = threading.Event()
+        self._closed = False
+        self.samples_dropped = 0
+        self._early: list[dict[str, Any]] = []
+        t0 = time.perf_counter()
+        parent, child = socket.socketpair(socket.AF_UNIX, socket.SOCK_STREAM)
+        for s in (parent, child):
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, 1 << 20)
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 20)
+        try:
+            self.proc = subprocess.Popen(
+                [sys.executable, "-I", str(KERNEL_FILE), str(child.fileno()), str(int(memory_limit))],
+                pass_fds=(child.fileno(),), stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
+                stderr=subprocess.PIPE, start_new_session=True, cwd=os.getcwd())
+        finally:
+            child.close()
+        self._t_spawn = t0
+        self.sock = parent
+        self.sock.setblocking(False)
+        self.pid = self.proc.pid
+        self._lead = threading.Lock()
+        self._busy_lock = threading.Lock()
+        self._busy = 0
+        self._inbox: collections.deque[dict[str, Any]] = collections.deque()
+        self._buf = bytearray()
+        self._sock_open = True
+        self._finished = False
+        self._overflow_pool: ThreadPoolExecutor | None = None
+        assert self.proc.stdout is not None and self.proc.stderr is not None
+        self._sel = selectors.DefaultSelector()
+        self._sel.register(self.sock, selectors.EVENT_READ, "sock")
+        for pipe, name in ((self.proc.stdout, "stdout"), (self.proc.stderr, "stderr")):
+            os.set_blocking(pipe.fileno(), False)
+            self._sel.register(pipe, selectors.EVENT_READ, name)
+        self._writer = threading.Thread(target=self._write_main, name=f"kernel-{self.pid}-writer", daemon=True)
+        self._writer.start()
+        for i in range(READERS):
+            threading.Thread(target=self._reader_main, name=f"kernel-{self.pid}-reader{i}", daemon=True).start()
+        self.send(hello_message())
+
+    # ------------------------------------------------------------------ state
+    @property
+    def alive(self) -> bool:
+        return not self.ended.is_set() and self.proc.poll() is None
+
+    def cause(self) -> str:
+        return describe_end(self.returncode)
+
+    def bind(self, handler: Callable[[dict[str, Any]], Callable[[], None] | None],
+             on_output: Callable[[str, str], None], on_exit: Callable[[KernelProcess], None]) -> None:
+        with self._wlock:
+            self.handler, self.on_output, self.on_exit = handler, on_output, on_exit
+            early, self._early = self._early, []
+        for msg in early:
+            job = handler(msg)
+            if job is not None:
+                self._overflow().submit(job)
+        if self.ended.is_set():
+            on_exit(self)
+
+    # ------------------------------------------------------------------ writing (any thread, never blocks)
+    def send(self, msg: dict[str, Any], *, droppable: bool = False) -> bool:
+        return self.send_bytes(_encode(msg), droppable=droppable)
+
+    def send_bytes(self, data: bytes, *, droppable: bool = False) -> bool:
+        with self._wlock:
+            if self._closed:
+                return False
+            if self._backlog:
+                if droppable and len(self._backlog) > BACKLOG_LIMIT:
+                    self.samples_dropped += 1
+                    return False
+                self._backlog += data
+                self._wake.set()
+                return True
+            try:
+                n = self.sock.send(data)
+            except BlockingIOError:
+                n = 0
+            except OSError:
+                self._closed = True
+                return False
+            if n < len(data):
+                self._backlog += data[n:]
+                self._wake.set()
+        return True
+
+    def _write_main(self) -> None:
+        sel = selectors.DefaultSelector()
+        try:
+            sel.register(self.sock, selectors.EVENT_WRITE)
+        except (ValueError, OSError):
+            return
+        while not self.ended.is_set():
+            self._wake.wait(0.5)
+            while True:
+                with self._wlock:
+                    if self._closed or not self._backlog:
+                        self._wake.clear()
+                        break
+                    try:
+                        n = self.sock.send(self._backlog)
+                    except BlockingIOError:
+                        n = 0
+                    except OSError:
+                        self._closed = True
+                        break
+                    del self._backlog[:n]
+                if n == 0:
+                    sel.select(0.05)
+        sel.close()
+
+    # ------------------------------------------------------------------ reading (leader/follower threads)
+    def _reader_main(self) -> None:
+        """One of READERS threads. The leader reads and delivers messages in order; a message whose handler
+        returns work (an API call) is run by the thread that read it, after it handed the lead to another
+        reader: a call goes from the socket to the driver without a thread hop (one GIL hand-over less on
+        the trigger path), and a call waiting for its ACK never holds up what the kernel sends next."""
+        while True:
+            job: Callable[[], None] | None = None
+            with self._lead:
+                while job is None:
+                    if self._finished:
+                        return
+                    if self._inbox:
+                        try:
+                            job = self._deliver(self._inbox.popleft())
+                        except Exception:  # a handler's bug must not cost a reader thread
+                            log.exception("script kernel %s: a message could not be handled", self.pid)
+                        continue
+                    if not self._sock_open:
+                        self._finish()
+                        return
+                    self._poll()
+                if self._busy >= READERS - 1:  # keep a reader free: the overflow pool runs this one
+                    self._overflow().submit(job)
+                    job = None
+                    continue
+                with self._busy_lock:
+                    self._busy += 1
+            try:
+                job()
+            except Exception:
+                log.exception("script kernel %s: a request failed", self.pid)
+            finally:
+                with self._busy_lock:
+                    self._busy -= 1
+
+    def _overflow(self) -> ThreadPoolExecutor:
+        if self._overflow_pool is None:
+            self._overflow_pool = ThreadPoolExecutor(max_workers=4, thread_name_prefix=f"kernel-{self.pid}-call")
+        return self._overflow_pool
+
+    def _poll(self) -> None:
+        """Wait (≤ 0.5 s) for the kernel's socket or pipes; parse what came into the inbox."""
+        for key, _ in self._sel.select(0.5):
+            if key.data == "sock":
+                try:
+                    data = self.sock.recv(1 << 16)
+                except BlockingIOError:
+                    continue
+                except OSError:
+                    data = b""
+                if not data:
+                    self._sel.unregister(self.sock)
+                    self._sock_open = False
+                    continue
+                buf = self._buf
+                buf += data
+                while True:
+                    end = buf.find(b"\n")
+                    if end < 0:
+                        break
+                    line = bytes(buf[:end])
+                    del buf[:end + 1]
+                    self._inbox.append(_parse(line))
+                if len(buf) > MAX_MESSAGE:
+                    self._inbox.append({"op": "__violation__", "reason": "a message longer than 4 MB"})
+                    buf.clear()
+                    self.kill()
+            else:
+                pipe = key.fileobj
+                try:
+                    data = os.read(pipe.fileno(), 1 << 16)  # type: ignore[union-attr]
+                except BlockingIOError:
+                    continue
+                except OSError:
+                    data = b""
+                if not data:
+                    self._sel.unregister(pipe)
+                    continue
+                self._raw(key.data, data)
+
+    def _raw(self, stream: str, data: bytes) -> None:
+        text = data.decode("utf-8", "replace")
+        if stream == "stderr":
+            self.stderr_tail = (self.stderr_tail + text)[-4000:]
+            self.crash_report = self.crash_report or "Fatal Python error" in self.stderr_tail
+        out = self.on_output
+        if out is not None and not self.crash_report:  # a crash report is summarised by the runner
+            out(stream, text)
+
+    def _finish(self) -> None:
+        """The socket closed: the kernel ended (or is about to). Collect what it wrote last and its code."""
+        self._finished = True
+        try:
+            self.returncode = self.proc.wait(0.5)
+        except subprocess.TimeoutExpired:
+            self.kill()
+            self.returncode = self.proc.wait(1.0)
+        for key in list(self._sel.get_map().values()):
+            if key.data in ("stdout", "stderr"):
+                try:
+                    data = os.read(key.fileobj.fileno(), 1 << 16)  # type: ignore[union-attr]
+                except OSError:
+                    data = b""
+                if data:
+                    self._raw(key.data, data)
+        self._sel.close()
+        with self._wlock:
+            self._closed = True
+        self.ended.set()
+        self._wake.set()
+        for f in (self.proc.stdout, self.proc.stderr):
+            try:
+                f.close()  # type: ignore[union-attr]
+            except OSError:
+                pass
+        self.sock.close()
+        if self._overflow_pool is not None:
+            self._overflow_pool.shutdown(wait=False)
+        with self._wlock:
+            on_exit = self.on_exit
+        if on_exit is not None:
+            on_exit(self)
+
+    def _deliver(self, msg: dict[str, Any]) -> Callable[[], None] | None:
+        if msg.get("op") == "ready" and not self.ready.is_set():
+            self.startup_s = time.perf_counter() - self._t_spawn
+            self.ready.set()
+            return None
+        with self._wlock:
+            handler = self.handler
+            if handler is None:
+                self._early.append(msg)
+                return None
+        return handler(msg)
+
+    # ------------------------------------------------------------------ ending
+    def terminate(self) -> None:
+        if self.proc.poll() is None:
+            try:
+                self.proc.terminate()
+            except OSError:
+                pass
+
+    def kill(self) -> None:
+        if self.proc.poll() is None:
+            try:
+                self.proc.kill()
+            except OSError:
+                pass
+
+    def retire(self) -> None:
+        """End an idle kernel: ask, and kill it if it does not go (never blocks the caller for long)."""
+        self.send({"op": "exit"})
+        with self._wlock:
+            self._closed = True
+        try:
+            self.sock.shutdown(socket.SHUT_WR)  # the kernel's reader sees the end and exits
+        except OSError:
+            pass
+
+        def reap() -> None:
+            if not self.ended.wait(1.0):
+                self.kill()
+                self.ended.wait(1.0)
+
+        threading.Thread(target=reap, name=f"kernel-{self.pid}-reaper", daemon=True).start()
+
+    def end_now(self, polite_s: float, term_s: float) -> bool:
+        """TERM after ``polite_s`` without an end, KILL ``term_s`` later; True once it has ended."""
+        if self.ended.wait(polite_s):
+            return True
+        self.terminate()
+        if self.ended.wait(term_s):
+            return True
+        self.kill()
+        return self.ended.wait(1.0)
+
+
+# ---------------------------------------------------------------------------------------------- the gate
+class Gate:
+    """Whether the kernel's calls pass: open, held (paused: calls wait) or closed (stopping: refused)."""
+
+    def __init__(self) -> None:
+        self._cond = threading.Condition()
+        self.state = "open"
+
+    def set(self, state: str) -> None:
+        with self._cond:
+            self.state = state
+            self._cond.notify_all()
+
+    def enter(self) -> bool:
+        with self._cond:
+            while self.state == "paused":
+                self._cond.wait(0.05)
+            return self.state == "open"
+
+
+class _InlineContext(ScriptContext):
+    """The in-app API's context for a kernel's requests: the bridge worker already runs off every script
+    thread, so a command runs here directly (one thread hop less on the trigger path)."""
+
+    def call(self, what: str, fn: Callable[..., Any], *args: Any, timeout_s: float, **kwargs: Any) -> Any:
+        return fn(*args, **kwargs)
+
+
+# ---------------------------------------------------------------------------------------------- the bridge
+class ApiBridge:
+    """Answers one kernel's requests with the in-app API objects; streams the samples it subscribed to."""
+
+    def __init__(self, manager: Any, kernel: KernelProcess, gate: Gate, *, source: str = "script",
+                 base_dir: Path | None = None) -> None:
+        self.manager = manager
+        self.kernel = kernel
+        self.gate = gate
+        self.context = _InlineContext(manager, source=source, base_dir=base_dir)
+        self.objects = api.build_api(self.context)
+        self.encoder = SampleEncoder()
+        self.refusals = 0
+        self._sub_lock = threading.Lock()
+        self._subscribed: set[str] = set()
+        self._schema_sent: dict[str, type] = {}
+        self._listeners: dict[str, tuple[Any, Callable[..., None]]] = {}  # device -> (driver, listener)
+        self._profiles: dict[int, Any] = {}
+        self._profile_ids = itertools.count(1)
+        self._closed = False
+
+    # ------------------------------------------------------------------ requests (reader thread)
+    def handle(self, msg: dict[str, Any]) -> bool | Callable[[], None]:
+        """Serve ``msg`` if it is a request (True, or for a call the work to run off the reading lead);
+        False if it is not one of the bridge's."""
+        op = msg.get("op")
+        if op == "call":
+            rid = msg.get("id")
+            if not isinstance(rid, int):
+                self.refuse(msg, "a call without an id")
+                return True
+            return lambda: self._call(msg)
+        if op in ("subscribe", "peek"):
+            rid = msg.get("id")
+            stream = msg.get("stream")
+            if not isinstance(rid, int) or not isinstance(stream, str) or stream not in STREAMS:
+                self.refuse(msg, f"{op} of an unknown stream")
+                if isinstance(rid, int):
+                    self.reply(rid, error=ScriptError(f"no such data stream: {stream!r}"))
+                return True
+            try:
+                value = self._subscribe(stream) if op == "subscribe" else self._peek(stream)
+            except BaseException as exc:
+                self.reply(rid, error=exc)
+            else:
+                self.reply(rid, value=value)
+            return True
+        return False
+
+    def _call(self, msg: dict[str, Any]) -> None:
+        rid = msg["id"]
+        obj, name, args = msg.get("obj"), msg.get("name"), msg.get("args")
+        allowed = ALLOWED_CALLS.get(obj, frozenset()) if isinstance(obj, str) else frozenset()
+        attributes = ALLOWED_ATTRIBUTES.get(obj, frozenset()) if isinstance(obj, str) else frozenset()
+        if not isinstance(name, str) or (name not in allowed and name not in attributes) \
+                or not isinstance(args, list) or not all(_is_plain_arg(a) for a in args):
+            self.refuse(msg, f"{obj!s:.40}.{name!s:.60} is not a script API call")
+            self.reply(rid, error=ScriptError(f"{obj!s:.40}.{name!s:.60}: not a script API call (refused)"))
+            return
+        if not self.gate.enter():
+            self.reply(rid, error=ScriptStopped("the script is being stopped"))
+            return
+        try:
+            target = self.objects[obj]
+            if name in attributes:
+                value = getattr(target, name)
+            else:
+                value = getattr(target, name)(*[self._arg(a) for a in args])
+        except BaseException as exc:
+            self.reply(rid, error=exc)
+            return
+        self.reply(rid, value=self._result(value))
+
+    def _arg(self, value: Any) -> Any:
+        if isinstance(value, dict):  # {"profile": token}: a profile the application holds
+            profile = self._profiles.get(value.get("profile"))  # type: ignore[arg-type]
+            if profile is None:
+                raise TypeError("unknown FES profile")
+            return profile
+        return value
+
+    def _result(self, value: Any) -> Any:
+        from app.fes_profile import FesProfile
+
+        if isinstance(value, FesProfile):
+            token = next(self._profile_ids)
+            self._profiles[token] = value
+            return {"token": token, "name": getattr(value, "name", None), "axis": getattr(value, "axis", None),
+                    "channels": [str(c) for c in getattr(value, "channels", {})]}
+        if isinstance(value, dict):
+            return {str(k): self._result(v) for k, v in value.items()}
+        return _plain(value) if not isinstance(value, tuple) else value
+
+    def reply(self, rid: int, value: Any = None, error: BaseException | None = None) -> None:
+        msg: dict[str, Any] = {"op": "reply", "id": rid}
+        if error is not None:
+            kind = next((n for t, n in _ERROR_NAMES if isinstance(error, t)), "ScriptError")
+            text = str(error) if kind != "ScriptError" or isinstance(error, ScriptError) \
+                else f"{type(error).__name__}: {error}"
+            if isinstance(error, KeyError) and error.args:
+                text = str(error.args[0])
+            msg["error"] = {"type": kind, "message": text}
+        elif isinstance(value, tuple):
+            msg["value"] = [_plain(v) for v in value]
+            msg["tuple"] = True
+        else:
+            msg["value"] = value
+        self.kernel.send(msg)
+
+    def refuse(self, msg: dict[str, Any], reason: str) -> None:
+        """Record a request that is not an API call (once per kind, up to REFUSALS_RECORDED per kernel)."""
+        self.refusals += 1
+        log.warning("script kernel %s: refused %s", self.kernel.pid, reason)
+        if self.refusals <= REFUSALS_RECORDED:
+            sup = getattr(self.manager, "supervisor", None)
+            if sup is not None:
+                sup.event("script_request_refused", reason=reason, op=str(msg.get("op"))[:40],
+                          kernel_pid=self.kernel.pid)
+
+    # ------------------------------------------------------------------ samples
+    def _driver(self, stream: str) -> tuple[Any, str]:
+        device, label = STREAMS[stream]
+        driver = self.manager.driver(device) if self.manager is not None else None
+        if driver is None:
+            raise DeviceUnavailable(f"{label} is not available: it is switched off in the configuration "
+                                    "or its driver is missing from this build")
+        return driver, label
+
+    def _peek(self, stream: str) -> Any:
+        driver, _label = self._driver(stream)
+        return self.encoder.snapshot(driver.latest(stream))
+
+    def _subscribe(self, stream: str) -> dict[str, Any]:
+        driver, label = self._driver(stream)
+        device = STREAMS[stream][0]
+        with self._sub_lock:
+            if self._closed:
+                raise ScriptStopped("the script has ended")
+            self._subscribed.add(stream)
+            if device not in self._listeners:
+                listener = self._make_listener()
+                driver.add_listener(listener)
+                self._listeners[device] = (driver, listener)
+        return {"label": label, "connected": bool(getattr(driver, "connected", True)),
+                "sample": self.encoder.snapshot(driver.latest(stream))}
+
+    def _make_listener(self) -> Callable[[str, float, Any], None]:
+        subscribed = self._subscribed
+        schema_sent = self._schema_sent
+        encoder = self.encoder
+        kernel = self.kernel
+
+        def on_sample(stream: str, _t: float, sample: Any) -> None:  # driver thread: encode and write, no wait
+            if stream not in subscribed:
+                return
+            fields = encoder.fields(sample)
+            head = b""
+            if schema_sent.get(stream) is not type(sample):
+                schema_sent[stream] = type(sample)
+                head = _encode({"op": "schema", "s": stream, "type": type(sample).__name__, "fields": list(fields)})
+            kernel.send_bytes(head + _encode({"op": "sample", "s": stream, "v": encoder.values(sample, fields)}),
+                              droppable=not head)
+
+        return on_sample
+
+    def unsubscribe_all(self) -> None:
+        with self._sub_lock:
+            self._subscribed.clear()
+            self._schema_sent.clear()
+            for driver, listener in self._listeners.values():
+                try:
+                    driver.remove_listener(listener)
+                except Exception:
+                    log.exception("could not remove a script listener")
+            self._listeners.clear()
+
+    def close(self) -> None:
+        self.unsubscribe_all()
+        with self._sub_lock:
+            self._closed = True
+
+
+def _is_plain_arg(value: Any) -> bool:
+    if value is None or isinstance(value, bool | int | float | str):
+        return True
+    return isinstance(value, dict) and set(value) == {"profile"} and isinstance(value["profile"], int)

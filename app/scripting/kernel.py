@@ -1,0 +1,982 @@
+"""The script kernel: the child interpreter in which exercise scripts run (standard library only).
+
+Started by :mod:`app.scripting.bridge` as ``python -I kernel.py FD MEMORY_LIMIT`` with one end of a
+socket pair as ``FD``. It imports nothing of the application (``-I`` keeps the application's folder off
+``sys.path``): the API's shape (command table, enums, streams) arrives as data in the first message,
+and the objects a script sees — ``linarm``, ``physiologicalSensors``, ``fes``, ``patientModel``,
+``VRUnity``, ``linarmppManager``, ``emergencyStop``, ``waitCondition``, ``wait`` — are proxies that send
+requests and read samples streamed by the application. Nothing here can reach a driver, a port, the
+safety supervisor or the manager: they live in another process.
+
+Wire format, both directions: one JSON object per line (data only; the application never unpickles
+what comes from here). Threads: the main thread runs the script; a reader thread dispatches what the
+application sends; a callback thread runs the script's callbacks in arrival order; each prompt entry
+and each completion runs on a thread of its own.
+
+Stop: the application sends ``stop``; every wait here (``time.sleep``, ``wait``, ``waitCondition``,
+a request, a repeated read) notices it within 20 ms, and a pure-Python busy loop gets ScriptStopped
+asynchronously. Whatever ignores that (C code, a deadlock, a crash) is terminated by the application.
+"""
+
+from __future__ import annotations
+
+import ast
+import builtins
+import collections
+import ctypes
+import enum
+import faulthandler
+import inspect
+import itertools
+import json
+import keyword
+import linecache
+import os
+import re
+import socket
+import sys
+import threading
+import time
+import traceback
+from collections.abc import Callable, Mapping
+from pathlib import Path
+from typing import Any
+
+WAIT_SLICE_S = 0.02  # longest uninterrupted wait of a script thread
+READ_WAIT_S = 0.1  # a read with no new sample since this thread's last read waits at most this long for one
+FIRST_SAMPLE_TIMEOUT_S = 2.0
+CALLBACK_QUEUE_LIMIT = 1000
+ASYNC_GRACE_S = 0.01
+ASYNC_RESEND_S = 0.02
+SWITCH_INTERVAL_S = 0.001  # this process only: the reader thread gets the GIL quickly from a busy script
+MAX_LINE = 64 * 1024 * 1024
+
+_real_sleep = time.sleep
+_real_exit = os._exit
+_KERNEL_FILE = os.path.abspath(__file__)
+
+
+# ---------------------------------------------------------------------------------------------- errors
+class ScriptStopped(BaseException):
+    """Raised inside a script when it is stopped (a BaseException: ``except Exception`` cannot swallow it)."""
+
+
+class ScriptError(RuntimeError):
+    """A script API call failed; the message is a sentence a therapist can read."""
+
+
+class DeviceUnavailable(ScriptError):
+    """The device is not configured, not connected, or has not sent anything yet."""
+
+
+NotInitializedError = DeviceUnavailable
+
+
+class CommandError(ScriptError):
+    """The device refused the command, reported an error, or did not answer in time."""
+
+
+class CommandRefused(CommandError):
+    """The safety supervisor refused the command (nothing was sent)."""
+
+
+_ERRORS: dict[str, type[BaseException]] = {
+    "ScriptStopped": ScriptStopped, "ScriptError": ScriptError, "DeviceUnavailable": DeviceUnavailable,
+    "CommandError": CommandError, "CommandRefused": CommandRefused, "TypeError": TypeError,
+    "ValueError": ValueError, "FileNotFoundError": FileNotFoundError, "OSError": OSError,
+    "KeyError": KeyError, "RuntimeError": RuntimeError,
+}
+
+
+# ---------------------------------------------------------------------------------------------- helpers
+def _async_raise(thread_id: int, exc_type: type[BaseException] | None) -> None:
+    ctypes.pythonapi.PyThreadState_SetAsyncExc(ctypes.c_ulong(thread_id),
+                                               ctypes.py_object(exc_type) if exc_type is not None else None)
+
+
+class _UserThreads:
+    """Which threads run user code now (only those may receive an asynchronous ScriptStopped)."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._in_user: set[int] = set()
+
+    def enter(self) -> None:
+        with self._lock:
+            self._in_user.add(threading.get_ident())
+
+    def leave(self) -> None:
+        tid = threading.get_ident()
+        while True:  # a ScriptStopped may still land while we get here: retry until clean
+            try:
+                with self._lock:
+                    self._in_user.discard(tid)
+                    _async_raise(tid, None)
+                return
+            except ScriptStopped:
+                continue
+
+    def interrupt_all(self) -> int:
+        with self._lock:
+            for tid in self._in_user:
+                _async_raise(tid, ScriptStopped)
+            return len(self._in_user)
+
+
+def plain(value: Any, depth: int = 0) -> Any:
+    """A JSON-able copy of ``value`` (what the prompt and ``get`` show the application)."""
+    if value is None or isinstance(value, bool | str):
+        return value
+    if isinstance(value, int | float):
+        return value if type(value) in (int, float) else (int(value) if isinstance(value, int) else float(value))
+    if depth < 6:
+        if isinstance(value, list | tuple):
+            return [plain(v, depth + 1) for v in value[:10000]]
+        if isinstance(value, dict):
+            return {str(k): plain(v, depth + 1) for k, v in list(value.items())[:10000]}
+    return repr(value)
+
+
+class _Output:
+    """``sys.stdout`` / ``sys.stderr`` of the kernel: text goes to the application's console."""
+
+    encoding = "utf-8"
+    errors = "replace"
+
+    def __init__(self, kernel: Kernel, stream: str) -> None:
+        self._kernel = kernel
+        self._stream = stream
+
+    def write(self, text: str) -> int:
+        if not isinstance(text, str):
+            raise TypeError(f"write() argument must be str, not {type(text).__name__}")
+        if text:
+            self._kernel.output(self._stream, text)
+        return len(text)
+
+    def writelines(self, lines: Any) -> None:
+        for line in lines:
+            self.write(line)
+
+    def flush(self) -> None:
+        pass
+
+    def isatty(self) -> bool:
+        return False
+
+    def writable(self) -> bool:
+        return True
+
+
+class _Stream:
+    def __init__(self, name: str, label: str) -> None:
+        self.name = name
+        self.label = label
+        self.sample: Any = None
+        self.seq = 0
+        self.subscribed = False
+        self.connected = True
+        self.cls: Any = None
+
+
+class _Slot:
+    __slots__ = ("event", "reply")
+
+    def __init__(self) -> None:
+        self.event = threading.Event()
+        self.reply: dict[str, Any] = {}
+
+
+# ---------------------------------------------------------------------------------------------- kernel
+class Kernel:
+    def __init__(self, sock: socket.socket) -> None:
+        self.sock = sock
+        self._send_lock = threading.Lock()
+        self._ids = itertools.count(1)
+        self._pending: dict[int, _Slot] = {}
+        self.stop_event = threading.Event()
+        self.stop_reason = ""
+        self.gate = threading.Event()  # cleared while paused
+        self.gate.set()
+        self.changed = threading.Condition()
+        self.generation = 0
+        self.streams: dict[str, _Stream] = {}
+        self.labels: dict[str, str] = {}
+        self.hello: dict[str, Any] = {}
+        self.callback_queue: collections.deque[tuple[str, Any]] = collections.deque()
+        self.callback_wake = threading.Event()
+        self.callback_lists: dict[str, list[list[Callable[[Any], Any]]]] = {}
+        self.callbacks_dropped = 0
+        self.callback_errors: dict[tuple[str, int, str], int] = {}
+        self.users = _UserThreads()
+        self.jobs: collections.deque[dict[str, Any]] = collections.deque()
+        self.jobs_wake = threading.Event()
+        self.running = False
+        self.filename = "<console>"
+        self.base_dir: Path | None = None
+        self.namespace: dict[str, Any] = {}
+        self._tls = threading.local()
+        self._escalator: threading.Thread | None = None
+        self._schemas: dict[tuple[str, tuple[str, ...]], Any] = {}
+
+    # ------------------------------------------------------------------ wire
+    def send(self, msg: dict[str, Any]) -> None:
+        data = (json.dumps(msg, separators=(",", ":"), default=repr) + "\n").encode()
+        with self._send_lock:
+            try:
+                self.sock.sendall(data)
+            except OSError:
+                _real_exit(3)  # the application is gone: nothing left to serve
+
+    def output(self, stream: str, text: str) -> None:
+        self.send({"op": "out", "stream": stream, "text": text})
+
+    def _print(self, *args: Any, sep: str | None = " ", end: str | None = "\n", file: Any = None,
+               flush: bool = False) -> None:
+        """``print`` in one piece (a console line is not split into its words)."""
+        if file is not None and file not in (sys.stdout, sys.stderr):
+            builtins.print(*args, sep=sep, end=end, file=file, flush=flush)
+            return
+        text = (" " if sep is None else sep).join(str(a) for a in args) + ("\n" if end is None else end)
+        if text:
+            self.output("stderr" if file is sys.stderr else "stdout", text)
+
+    def request(self, op: str, **fields: Any) -> Any:
+        """Send a request and wait for its answer in short, interruptible slices."""
+        self.check()
+        self.wait_gate()
+        rid = next(self._ids)
+        slot = _Slot()
+        self._pending[rid] = slot
+        try:
+            self.send({"op": op, "id": rid, **fields})
+            while not slot.event.wait(WAIT_SLICE_S):
+                self.check()
+        finally:
+            self._pending.pop(rid, None)
+        reply = slot.reply
+        error = reply.get("error")
+        if error is not None:
+            kind = _ERRORS.get(str(error.get("type")), ScriptError)
+            raise kind(str(error.get("message", "")))
+        value = reply.get("value")
+        if reply.get("tuple") and isinstance(value, list):
+            return tuple(value)
+        return value
+
+    def call(self, obj: str, name: str, *args: Any) -> Any:
+        return self.request("call", obj=obj, name=name, args=[_wire_arg(obj, name, a) for a in args])
+
+    def reader(self) -> None:
+        rfile = self.sock.makefile("rb")
+        while True:
+            line = rfile.readline(MAX_LINE)
+            if not line:
+                _real_exit(0)  # the application closed the link: it is gone or it retired this kernel
+            try:
+                msg = json.loads(line)
+                self.dispatch(msg)
+            except Exception:  # a bug here must not leave the script waiting forever
+                traceback.print_exc(file=sys.__stderr__)
+
+    def dispatch(self, msg: dict[str, Any]) -> None:
+        op = msg.get("op")
+        if op == "sample":
+            self._on_sample(msg["s"], msg["v"])
+        elif op == "schema":
+            st = self._stream(msg["s"])
+            st.cls = self._schema(msg["type"], tuple(msg["fields"]))
+        elif op == "reply":
+            slot = self._pending.get(msg.get("id"))
+            if slot is not None:
+                slot.reply = msg
+                slot.event.set()
+        elif op == "hello":
+            self.hello = msg
+            self.labels = dict(msg.get("labels", {}))
+            self._new_namespace("<console>")
+        elif op in ("run", "exit"):
+            self.jobs.append(msg)
+            self.jobs_wake.set()
+        elif op == "exec":
+            if not self.running:
+                self.stop_event.clear()
+            threading.Thread(target=self._exec_main, args=(msg,), name="script-console", daemon=True).start()
+        elif op == "complete":
+            threading.Thread(target=self._complete_main, args=(msg,), name="script-complete", daemon=True).start()
+        elif op == "get":
+            self.send({"op": "answer", "id": msg.get("id"), "value": plain(self.namespace.get(str(msg.get("name"))))})
+        elif op == "stop":
+            self.stop(str(msg.get("reason") or "stopped"))
+        elif op == "pause":
+            self.gate.clear()
+        elif op == "resume":
+            self.gate.set()
+        elif op == "connected":
+            st = self._stream(msg["s"])
+            st.connected = bool(msg.get("connected"))
+
+    # ------------------------------------------------------------------ stop and pause
+    def stop(self, reason: str) -> None:
+        if not self.stop_reason:
+            self.stop_reason = reason
+        self.stop_event.set()
+        self.gate.set()
+        self.callback_wake.set()
+        with self.changed:
+            self.changed.notify_all()
+        if self._escalator is None or not self._escalator.is_alive():
+            self._escalator = threading.Thread(target=self._escalate, name="script-stopper", daemon=True)
+            self._escalator.start()
+
+    def _escalate(self) -> None:
+        _real_sleep(ASYNC_GRACE_S)
+        while self.stop_event.is_set() and self.users.interrupt_all():
+            _real_sleep(ASYNC_RESEND_S)
+
+    def check(self) -> None:
+        if self.stop_event.is_set():
+            raise ScriptStopped(self.stop_reason or "stopped")
+
+    def wait_gate(self) -> None:
+        while not self.gate.is_set():
+            self.check()
+            self.gate.wait(WAIT_SLICE_S)
+        self.check()
+
+    def sleep(self, seconds: float) -> None:
+        """``time.sleep`` for scripts: returns early (raising ScriptStopped) when the script is stopped."""
+        seconds = float(seconds)
+        if seconds < 0:
+            raise ValueError("sleep length must be non-negative")
+        deadline = time.monotonic() + seconds
+        while True:
+            self.check()
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                return
+            self.stop_event.wait(min(remaining, WAIT_SLICE_S))
+
+    # ------------------------------------------------------------------ samples
+    def _stream(self, name: str) -> _Stream:
+        st = self.streams.get(name)
+        if st is None:
+            st = self.streams[name] = _Stream(name, self.labels.get(name, name))
+        return st
+
+    def _schema(self, type_name: str, fields: tuple[str, ...]) -> Any:
+        key = (type_name, fields)
+        cls = self._schemas.get(key)
+        if cls is None:
+            safe = type_name if type_name.isidentifier() and not keyword.iskeyword(type_name) else "Sample"
+            cls = self._schemas[key] = collections.namedtuple(safe, fields, rename=True)  # type: ignore[misc]
+        return cls
+
+    def _on_sample(self, stream: str, values: list[Any]) -> None:
+        st = self.streams.get(stream)
+        if st is None or not st.subscribed or st.cls is None:
+            return
+        sample = st.cls(*values)
+        with self.changed:
+            st.sample = sample
+            st.seq += 1
+            self.generation += 1
+            self.changed.notify_all()
+        lists = self.callback_lists.get(stream)
+        if lists and any(lists) and self.running and not self.stop_event.is_set():
+            if len(self.callback_queue) >= CALLBACK_QUEUE_LIMIT:
+                try:
+                    self.callback_queue.popleft()
+                    self.callbacks_dropped += 1
+                except IndexError:
+                    pass
+            self.callback_queue.append((stream, sample))
+            self.callback_wake.set()
+
+    def subscribe(self, stream: str) -> _Stream:
+        st = self._stream(stream)
+        if st.subscribed:
+            return st
+        reply = self.request("subscribe", stream=stream)
+        with self.changed:
+            st.label = str(reply.get("label", st.label))
+            st.connected = bool(reply.get("connected", True))
+            snapshot = reply.get("sample")
+            if not st.subscribed:
+                st.subscribed = True
+                if snapshot is not None and st.sample is None:
+                    st.cls = self._schema(snapshot["type"], tuple(snapshot["fields"]))
+                    st.sample = st.cls(*snapshot["v"])
+                    st.seq += 1
+        return st
+
+    def latest(self, stream: str) -> Any:
+        """The stream's latest sample. A thread that already read the latest sample waits (up to
+        READ_WAIT_S) for the next one: a busy-wait on a device value then costs next to nothing."""
+        if getattr(self._tls, "peeking", False):
+            st = self.streams.get(stream)
+            if st is not None and st.sample is not None:
+                return st.sample
+            snapshot = self.request("peek", stream=stream)
+            if snapshot is None:
+                return None
+            return self._schema(snapshot["type"], tuple(snapshot["fields"]))(*snapshot["v"])
+        self.wait_gate()
+        st = self.subscribe(stream)
+        seen: dict[str, int] = self._tls.__dict__.setdefault("seen", {})
+        with self.changed:
+            if st.sample is None:
+                deadline = time.monotonic() + FIRST_SAMPLE_TIMEOUT_S
+                while st.sample is None and not self.stop_event.is_set():
+                    remaining = deadline - time.monotonic()
+                    if remaining <= 0:
+                        state = "connected" if st.connected else "not connected"
+                        raise DeviceUnavailable(f"{st.label}: no data received yet (the device is {state})")
+                    self.changed.wait(min(remaining, WAIT_SLICE_S))
+            elif seen.get(stream) == st.seq:
+                self.changed.wait_for(lambda: st.seq != seen.get(stream) or self.stop_event.is_set(), READ_WAIT_S)
+            sample, seq = st.sample, st.seq
+        self.check()
+        seen[stream] = seq
+        return sample
+
+    def wait_until(self, predicate: Callable[[], Any], timeout: float | None) -> bool:
+        """Evaluate ``predicate`` now and again on every new sample (at least every 20 ms) until it is true
+        (True) or ``timeout`` s pass (False)."""
+        deadline = None if timeout is None else time.monotonic() + float(timeout)
+        while True:
+            self.check()
+            generation = self.generation
+            if predicate():
+                return True
+            now = time.monotonic()
+            if deadline is not None and now >= deadline:
+                return False
+            slice_s = WAIT_SLICE_S if deadline is None else min(WAIT_SLICE_S, max(0.0, deadline - now))
+            with self.changed:
+                if self.generation == generation and not self.stop_event.is_set():
+                    self.changed.wait(slice_s)
+
+    def register_callbacks(self, stream: str, target: list[Callable[[Any], Any]]) -> None:
+        lists = self.callback_lists.setdefault(stream, [])
+        if not any(t is target for t in lists):
+            lists.append(target)
+        self.subscribe(stream)
+
+    # ------------------------------------------------------------------ namespace
+    def _new_namespace(self, filename: str) -> None:
+        self.filename = filename
+        self.callback_lists.clear()
+        api = build_api(self)
+        script_builtins = dict(builtins.__dict__)
+        script_builtins.update(input=_no_input, print=self._print)
+        namespace: dict[str, Any] = {"__name__": "__main__", "__file__": filename, "__builtins__": script_builtins}
+        namespace.update(api)
+        namespace["waitCondition"] = make_wait_condition(self, namespace)
+        namespace["wait"] = self.sleep
+        namespace["time"] = time
+        self.namespace = namespace
+
+    def run_program(self, path: str) -> None:
+        source = Path(path).read_text(encoding="utf-8")
+        _remember_source(path, source)
+        namespace = dict(self.namespace)
+        namespace["__file__"] = path
+        exec(compile(source, path, "exec"), namespace)
+
+    def resolve_path(self, file_name: str) -> Path:
+        path = Path(file_name).expanduser()
+        if path.is_absolute():
+            return path
+        for folder in (self.base_dir, Path.cwd()):
+            if folder is not None and (folder / path).exists():
+                return folder / path
+        return (self.base_dir or Path.cwd()) / path
+
+    # ------------------------------------------------------------------ the script (main thread)
+    def main(self) -> None:
+        while True:
+            self.jobs_wake.wait()
+            self.jobs_wake.clear()
+            while self.jobs:
+                job = self.jobs.popleft()
+                if job.get("op") == "exit":
+                    return
+                self.run_script(job)
+
+    def run_script(self, job: dict[str, Any]) -> None:
+        filename = str(job.get("filename") or "<script>")
+        source = str(job.get("source") or "")
+        self.stop_event.clear()
+        self.stop_reason = ""
+        self.callbacks_dropped = 0
+        self.callback_errors.clear()
+        self.callback_queue.clear()
+        self.base_dir = Path(filename).resolve().parent if not filename.startswith("<") else None
+        self._new_namespace(filename)
+        self.namespace["exerciseParams"] = dict(job.get("params") or {})
+        self.running = True
+        callbacks = threading.Thread(target=self._callback_main, name="script-callbacks", daemon=True)
+        callbacks.start()
+        status, message, line, text = "finished", "", None, ""
+        fatal = False
+        try:
+            self.users.enter()
+            try:
+                code = compile(source, filename, "exec")
+                _remember_source(filename, source)
+                exec(code, self.namespace)
+            finally:
+                self.users.leave()
+        except ScriptStopped as exc:
+            status, message = "stopped", self.stop_reason or str(exc) or "stopped"
+        except SystemExit as exc:
+            if exc.code not in (None, 0):
+                status, message = "error", f"exit({exc.code!r})"
+        except BaseException as exc:
+            status = "refused" if _refused(exc) else "error"
+            message, line, text = _describe(exc)
+            fatal = isinstance(exc, MemoryError)
+        self.stop_event.set()  # callbacks and prompt statements end with the script
+        self.callback_wake.set()
+        callbacks.join(0.2)
+        if callbacks.is_alive():  # a callback in a pure-Python loop
+            self.users.interrupt_all()
+            callbacks.join(1.0)
+        for st in self.streams.values():
+            st.subscribed = False
+        self.running = False
+        self.send({"op": "done", "status": status, "message": message, "line": line, "traceback": text,
+                   "callbacks_dropped": self.callbacks_dropped,
+                   "callback_errors": [[k[0], k[1], k[2], n] for k, n in self.callback_errors.items()]})
+        if fatal:
+            _real_exit(4)  # out of memory: give the memory back; the application starts a fresh kernel
+        self.stop_event.clear()
+
+    def _callback_main(self) -> None:
+        while not self.stop_event.is_set():
+            try:
+                stream, sample = self.callback_queue.popleft()
+            except IndexError:
+                self.callback_wake.wait(WAIT_SLICE_S)
+                self.callback_wake.clear()
+                continue
+            self.gate.wait()
+            for funs in list(self.callback_lists.get(stream, ())):
+                for fn in list(funs):
+                    if self.stop_event.is_set():
+                        return
+                    try:
+                        self.users.enter()
+                        try:
+                            fn(sample)
+                        finally:
+                            self.users.leave()
+                    except ScriptStopped:
+                        return
+                    except SystemExit:
+                        self.stop("a callback called exit()")
+                        return
+                    except BaseException as exc:
+                        self._callback_error(fn, exc)
+
+    def _callback_error(self, fn: Callable[..., Any], exc: BaseException) -> None:
+        _message, line, text = _describe(exc)
+        key = (str(getattr(fn, "__name__", "?")), line or 0, type(exc).__name__)
+        count = self.callback_errors.get(key, 0) + 1
+        self.callback_errors[key] = count
+        if count == 1:  # a callback at 100 Hz would flood the console: report each error once
+            self.output("stderr", f"Error in callback {key[0]} (reported once; the callbacks keep running):\n{text}")
+
+    # ------------------------------------------------------------------ the prompt
+    def _exec_main(self, msg: dict[str, Any]) -> None:
+        try:
+            self.users.enter()
+            try:
+                self._exec_interactive(str(msg.get("source", "")))
+            finally:
+                self.users.leave()
+        except ScriptStopped:
+            self.output("info", "(interrupted)\n")
+        except SystemExit:
+            self.output("info", "exit() ignored at the prompt\n")
+        except BaseException as exc:
+            self.output("stderr", _describe(exc)[2])
+        self.send({"op": "exec_done", "id": msg.get("id")})
+
+    def _exec_interactive(self, source: str) -> None:
+        _remember_source("<console>", source)
+        tree = ast.parse(source, "<console>", "exec")
+        last = tree.body[-1] if tree.body and isinstance(tree.body[-1], ast.Expr) else None
+        if last is not None:
+            tree.body.pop()
+        if tree.body:
+            exec(compile(tree, "<console>", "exec"), self.namespace)
+        if last is not None:
+            value = eval(compile(ast.Expression(last.value), "<console>", "eval"), self.namespace)
+            if value is not None:
+                self.namespace["_"] = value
+                self.output("stdout", repr(value) + "\n")
+
+    def _complete_main(self, msg: dict[str, Any]) -> None:
+        self._tls.peeking = True
+        try:
+            value = self.completions(str(msg.get("text", "")))
+        except BaseException:
+            value = []
+        self.send({"op": "answer", "id": msg.get("id"), "value": value})
+
+    def completions(self, text: str) -> list[str]:
+        """Names completing ``text`` in the live namespace; device values are peeked, never waited for."""
+        if not re.fullmatch(r"[A-Za-z_][\w]*(\.[A-Za-z_]?[\w]*)*", text or ""):
+            return []
+        names_ns = self.namespace
+        bi = names_ns.get("__builtins__", {})
+        if "." not in text:
+            names = set(names_ns) | set(bi) | set(keyword.kwlist)
+            return sorted(n for n in names if n.startswith(text) and (text.startswith("_") or not n.startswith("_")))
+        expr, prefix = text.rsplit(".", 1)
+        head, *rest = expr.split(".")
+        if head in names_ns:
+            obj = names_ns[head]
+        elif head in bi:
+            obj = bi[head]
+        else:
+            return []
+        for name in rest:
+            try:
+                obj = getattr(obj, name)
+            except BaseException:
+                return []
+            if obj is None:
+                return []
+        names = set(dir(obj))
+        if isinstance(obj, type) and issubclass(obj, enum.Enum):
+            names |= set(obj.__members__)
+        return sorted(f"{expr}.{n}" for n in names
+                      if n.startswith(prefix) and (prefix.startswith("_") or not n.startswith("_")))
+
+
+def _no_input(*_args: Any) -> str:
+    raise RuntimeError("input() is not available in exercise scripts: nobody types at the patient's side")
+
+
+def _wire_arg(obj: str, name: str, value: Any) -> Any:
+    if value is None or isinstance(value, bool | int | float | str):
+        return int(value) if isinstance(value, enum.IntEnum) else value
+    item = getattr(value, "item", None)  # a numpy scalar
+    if callable(item):
+        value = item()
+        if isinstance(value, bool | int | float):
+            return value
+    if isinstance(value, FesProfileRef):
+        return {"profile": value.token}
+    raise TypeError(f"{obj}.{name}: arguments are numbers, True/False or text, got {value!r}")
+
+
+def _refused(exc: BaseException) -> bool:
+    seen: BaseException | None = exc
+    while seen is not None:
+        if isinstance(seen, CommandRefused):
+            return True
+        seen = seen.__cause__
+    return False
+
+
+def _describe(exc: BaseException) -> tuple[str, int | None, str]:
+    """(message, the user's line, a traceback without the kernel's own frames)."""
+    frames = traceback.extract_tb(exc.__traceback__)
+    user = [f for f in frames if f.filename != _KERNEL_FILE]
+    line = user[-1].lineno if user else None
+    if isinstance(exc, SyntaxError) and exc.filename and exc.filename != _KERNEL_FILE:
+        line = exc.lineno
+    lines = ["Traceback (most recent call last):\n", *traceback.format_list(user or frames)]
+    lines += traceback.format_exception_only(type(exc), exc)
+    return f"{type(exc).__name__}: {exc}", line, "".join(lines)
+
+
+def _remember_source(filename: str, source: str) -> None:
+    linecache.cache[filename] = (len(source), None, source.splitlines(keepends=True), filename)
+
+
+# ---------------------------------------------------------------------------------------------- the API
+def _set_callbacks(target: list[Callable[[Any], Any]], fun: Any, what: str) -> None:
+    """The seed's ``set…CallbackFun``: a callable is added to the list; a list replaces it; None clears it."""
+    if fun is None:
+        target.clear()
+        return
+    funs = list(fun) if isinstance(fun, list | tuple) else [fun]
+    for f in funs:
+        if not callable(f):
+            raise TypeError(f"{what} expects a function taking one argument (the new data), got {f!r}")
+    if isinstance(fun, list | tuple):
+        target[:] = funs
+    else:
+        target.append(fun)
+
+
+class FesProfileRef:
+    """A stimulation profile held by the application (``fes.loadFile`` / ``fes.profile``)."""
+
+    def __init__(self, data: Mapping[str, Any]) -> None:
+        self.token = int(data.get("token", 0))
+        self.name = data.get("name")
+        self.axis = data.get("axis")
+        self.channels = tuple(data.get("channels") or ())
+
+    def __repr__(self) -> str:
+        return f"<FES profile {self.name!r} (axis {self.axis}, channels {', '.join(map(str, self.channels))})>"
+
+
+def _profile(value: Any) -> Any:
+    return FesProfileRef(value) if isinstance(value, dict) and "token" in value else value
+
+
+class _ApiObject:
+    """Base of the proxies: state properties and callback setters are made from the API's table."""
+
+    _name = ""
+    classString = ""
+
+    def __init__(self, kernel: Kernel) -> None:
+        self._k = kernel
+
+    def __repr__(self) -> str:
+        return f"<{self._name} ({self.classString})>"
+
+
+def _make_property(stream: str, doc: str) -> property:
+    def get(self: _ApiObject) -> Any:
+        return self._k.latest(stream)
+
+    get.__doc__ = doc
+    return property(get)
+
+
+def _make_setter(obj_name: str, method: str, stream: str, list_name: str) -> Callable[..., None]:
+    def setter(self: _ApiObject, fun: Any) -> None:
+        target = getattr(self, list_name)
+        _set_callbacks(target, fun, f"{obj_name}.{method}")
+        self._k.register_callbacks(stream, target)
+
+    setter.__name__ = setter.__qualname__ = method
+    setter.__doc__ = f"Call ``fun(sample)`` on every {stream} sample, on the script's callback thread."
+    return setter
+
+
+def _make_command(spec: Mapping[str, Any]) -> Callable[..., Any]:
+    name = str(spec["name"])
+
+    def command(self: _ApiObject, *args: Any) -> Any:
+        return self._k.call("linarm", name, *args)
+
+    command.__name__ = command.__qualname__ = name
+    command.__doc__ = str(spec.get("doc", ""))
+    params = [inspect.Parameter("self", inspect.Parameter.POSITIONAL_ONLY)]
+    params += [inspect.Parameter(str(a), inspect.Parameter.POSITIONAL_ONLY) for a in spec.get("args", [])]
+    command.__signature__ = inspect.Signature(params)  # type: ignore[attr-defined]
+    return command
+
+
+def _api_class(name: str, class_string: str, shape: Mapping[str, Any], extra: Mapping[str, Any]) -> type:
+    attrs: dict[str, Any] = {"_name": name, "classString": class_string, "__doc__": shape.get("doc", "")}
+    for prop, (stream, doc) in shape.get("properties", {}).items():
+        attrs[prop] = _make_property(stream, doc)
+    for method, (stream, list_name) in shape.get("callbacks", {}).items():
+        attrs[method] = _make_setter(name, method, stream, list_name)
+    attrs.update(extra)
+    cls = type(class_string, (_ApiObject,), attrs)
+    lists = [list_name for _stream, list_name in shape.get("callbacks", {}).values()]
+
+    def init(self: _ApiObject, kernel: Kernel) -> None:
+        _ApiObject.__init__(self, kernel)
+        for list_name in lists:
+            setattr(self, list_name, [])
+
+    cls.__init__ = init  # type: ignore[misc]
+    return cls
+
+
+def build_api(kernel: Kernel) -> dict[str, Any]:
+    hello = kernel.hello
+    shapes: Mapping[str, Any] = hello.get("objects", {})
+    enums = {name: enum.IntEnum(name, dict(members)) for name, members in hello.get("enums", {}).items()}
+
+    linarm_extra: dict[str, Any] = dict(enums)
+    for spec in hello.get("commands", []):
+        linarm_extra[str(spec["name"])] = _make_command(spec)
+    for alias, target in hello.get("aliases", {}).items():
+        if target in linarm_extra:
+            linarm_extra[alias] = linarm_extra[target]
+
+    def getConfigData(self: _ApiObject) -> Any:
+        """The robot's configuration and safety limits as the application holds them."""
+        return self._k.call("linarm", "getConfigData")
+
+    linarm_extra["getConfigData"] = getConfigData
+    LinarmUser = _api_class("linarm", "LinarmUser", shapes.get("linarm", {}), linarm_extra)
+
+    def fes_method(method: str, doc: str, wrap: Callable[[Any], Any] = lambda v: v) -> Callable[..., Any]:
+        def fn(self: _ApiObject, *args: Any) -> Any:
+            return wrap(self._k.call("fes", method, *args))
+
+        fn.__name__ = fn.__qualname__ = method
+        fn.__doc__ = doc
+        return fn
+
+    def fes_get(attr: str, wrap: Callable[[Any], Any] = lambda v: v) -> property:
+        return property(lambda self: wrap(self._k.call("fes", attr)))
+
+    def write_file(self: _ApiObject, data: Any, fileName: str) -> None:
+        """Save a profile (what ``fes.loadFile`` returned, or ``fes.profile``) as YAML."""
+        if not isinstance(data, FesProfileRef):
+            raise TypeError(f"fes.writeFile expects a profile (e.g. fes.profile), got {type(data).__name__}")
+        self._k.call("fes", "writeFile", data, str(fileName))
+
+    fes_extra = {
+        "loadFile": fes_method("loadFile", "Load a current + pulse-width profile (YAML); returns it.", _profile),
+        "writeFile": write_file, "saveFile": write_file,
+        "start": fes_method("start", "Start stimulating with the loaded profile."),
+        "stop": fes_method("stop", "Stop stimulating."),
+        "setCurrentScaleFactor": fes_method("setCurrentScaleFactor", "Scale the current (0..2); returns it."),
+        "setPWScaleFactor": fes_method("setPWScaleFactor", "Scale the pulse width (0..2); returns it."),
+        "setPhase": fes_method("setPhase", "The movement phase 0..1 a phase profile follows (None: at rest)."),
+        "getConfigData": fes_method("getConfigData", "Device, profile, scale factors and limits."),
+        "profile": fes_get("profile", _profile), "stimulating": fes_get("stimulating"),
+    }
+    FESUser = _api_class("fes", "FESUser", shapes.get("fes", {}), fes_extra)
+    Physio = _api_class("physiologicalSensors", "PhysiologicalSensorsUser",
+                        shapes.get("physiologicalSensors", {}), {})
+    PatientModel = _api_class("patientModel", "PatientModelUser", shapes.get("patientModel", {}), {})
+    VR = _api_class("VRUnity", "VRUnityUser", shapes.get("VRUnity", {}), {})
+
+    linarm, physio, fes = LinarmUser(kernel), Physio(kernel), FESUser(kernel)
+    patient_model, vr = PatientModel(kernel), VR(kernel)
+    mgr = LinarmppManager(kernel, linarm, physio, fes, patient_model, vr)
+
+    def emergencyStop(reason: str = "emergency stop from a script") -> None:
+        """FES Stop and robot IDLE at once, latched until an operator resets it; the script is stopped."""
+        mgr.emergencyStop(reason)
+
+    return {
+        "linarm": linarm, "physiologicalSensors": physio, "fes": fes, "patientModel": patient_model,
+        "VRUnity": vr, "linarmppManager": mgr, "manager": mgr, "emergencyStop": emergencyStop,
+        "ScriptError": ScriptError, "CommandError": CommandError, "CommandRefused": CommandRefused,
+        "DeviceUnavailable": DeviceUnavailable, "NotInitializedError": NotInitializedError,
+    }
+
+
+class LinarmppManager:
+    """``linarmppManager``: every module in one object, and a program (script file) to run."""
+
+    classString = "LinarmppManager"
+
+    def __init__(self, kernel: Kernel, linarm: Any, physiologicalSensors: Any, fes: Any, patientModel: Any,
+                 VRUnity: Any) -> None:
+        self._k = kernel
+        self.linarm = linarm
+        self.physiologicalSensors = physiologicalSensors
+        self.fes = fes
+        self.patientModel = patientModel
+        self.VRUnity = VRUnity
+        self.fileName: str | None = None
+
+    def __repr__(self) -> str:
+        return "<linarmppManager: linarm, physiologicalSensors, fes, patientModel, VRUnity>"
+
+    def emergencyStop(self, reason: str = "emergency stop from a script") -> None:
+        """FES Stop and robot IDLE at once, latched until an operator resets it; the script is stopped."""
+        self._k.request("call", obj="linarmppManager", name="emergencyStop", args=[str(reason)])
+        raise ScriptStopped(reason)
+
+    def setProgram(self, fileName: str) -> None:
+        """Choose the script file that ``startProgram`` runs."""
+        path = self._k.resolve_path(str(fileName))
+        if not path.is_file():
+            raise FileNotFoundError(f"no script file {path}")
+        self.fileName = str(path)
+
+    def startProgram(self) -> None:
+        """Run the chosen script here, to its end (it shares this run's Stop button and devices)."""
+        if self.fileName is None:
+            raise ScriptError("call linarmppManager.setProgram(fileName) first")
+        self._k.run_program(self.fileName)
+
+    internalExec = startProgram
+
+    def startRepetition(self, index: int, total: int | None = None) -> None:
+        """Mark the start of repetition ``index`` (from 1), optionally of ``total``."""
+        self._k.call("linarmppManager", "startRepetition", index, total)
+
+    def endRepetition(self, index: int | None = None, ok: bool = True) -> None:
+        """Mark the end of repetition ``index`` (the current one when omitted); ``ok=False`` if it failed."""
+        self._k.call("linarmppManager", "endRepetition", index, ok)
+
+    def reportProgress(self, text: str) -> None:
+        """A short message for the clinician (shown beside the repetition count, recorded as an event)."""
+        self._k.call("linarmppManager", "reportProgress", str(text))
+
+
+def make_wait_condition(kernel: Kernel, namespace: Mapping[str, Any]) -> Callable[..., bool]:
+    """``waitCondition(condition, timeout=None)`` or the seed's ``waitCondition("expr", locals(), timeout)``:
+    re-evaluated on every new device sample. True when met, False on timeout."""
+
+    def waitCondition(condition: Any, *args: Any, timeout: float | None = None) -> bool:
+        local_vars: Mapping[str, Any] | None = None
+        rest = list(args)
+        if rest and (isinstance(rest[0], Mapping) or rest[0] is None) and not isinstance(rest[0], int | float):
+            local_vars = rest.pop(0)
+        if rest:
+            timeout = rest.pop(0)
+        if rest:
+            raise TypeError("waitCondition(condition, timeout) or waitCondition(condition, locals(), timeout)")
+        if isinstance(condition, str):
+            code = compile(condition, "<waitCondition>", "eval")
+            globals_ = namespace if isinstance(namespace, dict) else dict(namespace)
+
+            def predicate() -> Any:
+                return eval(code, globals_, local_vars if local_vars is not None else globals_)
+        elif callable(condition):
+            predicate = condition
+        else:
+            raise TypeError(f"waitCondition needs a string expression or a function, got {condition!r}")
+        return kernel.wait_until(predicate, None if timeout is None else float(timeout))
+
+    return waitCondition
+
+
+# ---------------------------------------------------------------------------------------------- entry
+def main(argv: list[str]) -> int:
+    t0 = time.perf_counter()
+    fd = int(argv[1])
+    memory_limit = int(argv[2]) if len(argv) > 2 else 0
+    if memory_limit > 0:
+        import resource
+
+        resource.setrlimit(resource.RLIMIT_AS, (memory_limit, memory_limit))
+    faulthandler.enable(file=sys.__stderr__, all_threads=False)  # a crash names the script's line
+    sys.setswitchinterval(SWITCH_INTERVAL_S)
+    sock = socket.socket(fileno=fd)
+    kernel = Kernel(sock)
+    sys.stdout = _Output(kernel, "stdout")  # type: ignore[assignment]
+    sys.stderr = _Output(kernel, "stderr")  # type: ignore[assignment]
+    time.sleep = kernel.sleep  # every ``time.sleep`` of the script ends when it is stopped
+
+    def _exit(code: int) -> None:
+        """``os._exit`` from a script: say where first (the process ends without a traceback)."""
+        frames = [f for f in traceback.extract_stack()[:-1] if f.filename != _KERNEL_FILE]
+        if frames:
+            text = "Traceback (most recent call last):\n" + "".join(traceback.format_list(frames))
+            kernel.send({"op": "exiting", "code": code, "line": frames[-1].lineno, "traceback": text
+                         + f"os._exit({code!r})\n"})
+        _real_exit(code)
+
+    os._exit = _exit
+    threading.Thread(target=kernel.reader, name="kernel-reader", daemon=True).start()
+    kernel.send({"op": "ready", "pid": os.getpid(), "startup_s": time.perf_counter() - t0})
+    kernel.main()
+    return 0
+
+
+if __name__ == "__main__":
+    _real_exit(main(sys.argv))

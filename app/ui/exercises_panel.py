@@ -1,0 +1,454 @@
+"""The Exercises tab: therapy without code. The library (resources/exercises) with descriptions, a form per
+exercise drawn from its declared parameters, validation (a value out of range is refused with the reason and
+nothing starts), Start in one click on the window's script runner, "repetition 3 of 8" with the elapsed time,
+pause / resume / stop, and the exercise's summary when it ends. A patient's therapy plan, when the session's
+profile holds one, is offered first, in order.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from pathlib import Path
+from typing import Any
+
+from PySide6.QtCore import Qt, QTimer
+from PySide6.QtGui import QKeySequence, QShortcut
+from PySide6.QtWidgets import (
+    QCheckBox,
+    QComboBox,
+    QFormLayout,
+    QGroupBox,
+    QHBoxLayout,
+    QLabel,
+    QLineEdit,
+    QListWidget,
+    QListWidgetItem,
+    QProgressBar,
+    QPushButton,
+    QSplitter,
+    QVBoxLayout,
+    QWidget,
+)
+
+from app.exercises import Exercise, Parameter, Validation, load_library, start_exercise, validate
+from app.progress import ProgressState
+
+log = logging.getLogger(__name__)
+
+ERROR_STYLE = "color: #c62828;"
+SUMMARY_DELAY_MS = 1200  # the recorder writes the streams at least every second: wait for the last samples
+
+
+class ParameterField:
+    """One row of the form: the editor, its unit and range, and the reason when its value is refused."""
+
+    def __init__(self, param: Parameter) -> None:
+        self.param = param
+        self.error = QLabel("")
+        self.error.setStyleSheet(ERROR_STYLE)
+        self.error.setWordWrap(True)
+        self.error.hide()
+        self.widget: QWidget
+        if param.type == "bool":
+            self.widget = QCheckBox()
+        elif param.type == "choice":
+            box = QComboBox()
+            box.addItems(list(param.options))
+            self.widget = box
+        else:
+            edit = QLineEdit()
+            edit.setMaximumWidth(110)
+            edit.setAlignment(Qt.AlignmentFlag.AlignRight)
+            self.widget = edit
+        self.widget.setToolTip(param.help)
+        self.widget.setAccessibleName(param.label)
+        self.widget.setAccessibleDescription(f"{param.help} ({param.describe_range()})")
+        self.hint = QLabel(f"{param.unit}   <span style='color:#777'>{param.describe_range()}</span>"
+                           if param.type not in ("bool", "choice") else "")
+        self.row = QWidget()
+        lay = QHBoxLayout(self.row)
+        lay.setContentsMargins(0, 0, 0, 0)
+        lay.addWidget(self.widget)
+        lay.addWidget(self.hint, 1)
+        self.set(param.default)
+
+    def set(self, value: Any) -> None:
+        w = self.widget
+        if isinstance(w, QCheckBox):
+            w.setChecked(bool(value))
+        elif isinstance(w, QComboBox):
+            w.setCurrentText(str(value))
+        elif isinstance(w, QLineEdit):
+            w.setText(f"{value:g}" if isinstance(value, float) else str(value))
+
+    def value(self) -> Any:
+        w = self.widget
+        if isinstance(w, QCheckBox):
+            return w.isChecked()
+        if isinstance(w, QComboBox):
+            return w.currentText()
+        return w.text()  # type: ignore[union-attr]
+
+    def show_error(self, why: str) -> None:
+        self.error.setText(why)
+        self.error.setVisible(bool(why))
+        self.widget.setStyleSheet("QLineEdit { border: 2px solid #c62828; }" if why else "")
+
+
+class ExercisesPanel(QWidget):
+    def __init__(self, manager: Any, runner: Any = None) -> None:
+        super().__init__()
+        self.manager = manager
+        self._runner = runner
+        self.library, problems = load_library()
+        self.exercise: Exercise | None = None
+        self.fields: dict[str, ParameterField] = {}
+        self._plan_step: int | None = None  # the plan step the running exercise came from
+        self._started_mono: float | None = None
+        self._was_running = False
+        self.summary_dialog: QWidget | None = None
+        self.last_validation: Validation | None = None
+
+        # ---- left: the therapy plan and the library
+        self.plan_box = QGroupBox("Therapy plan")
+        self.plan_list = QListWidget()
+        self.plan_list.setAccessibleName("Therapy plan")
+        self.plan_list.setWordWrap(True)
+        self.plan_list.currentRowChanged.connect(self._plan_selected)
+        QVBoxLayout(self.plan_box).addWidget(self.plan_list)
+        self.exercise_list = QListWidget()
+        self.exercise_list.setAccessibleName("Exercises")
+        self.exercise_list.setWordWrap(True)
+        for e in self.library:
+            item = QListWidgetItem(e.title)
+            item.setToolTip(f"{e.title}\n\n{e.description}")  # the whole title too: the list may elide it
+            self.exercise_list.addItem(item)
+        self.exercise_list.currentRowChanged.connect(self._exercise_selected)
+        library_box = QGroupBox("Exercises")
+        lib_lay = QVBoxLayout(library_box)
+        lib_lay.addWidget(self.exercise_list)
+        if problems:
+            bad = QLabel("Not loaded:\n" + "\n".join(problems))
+            bad.setStyleSheet(ERROR_STYLE)
+            bad.setWordWrap(True)
+            lib_lay.addWidget(bad)
+        left = QWidget()
+        left_lay = QVBoxLayout(left)
+        left_lay.setContentsMargins(0, 0, 0, 0)
+        left_lay.addWidget(self.plan_box)
+        left_lay.addWidget(library_box, 1)
+
+        # ---- right: description, form, controls, progress
+        self.title = QLabel()
+        self.title.setTextFormat(Qt.TextFormat.RichText)
+        self.description = QLabel()
+        self.description.setWordWrap(True)
+        self.form_box = QGroupBox("Parameters")
+        self.form = QFormLayout(self.form_box)
+        self.form.setFieldGrowthPolicy(QFormLayout.FieldGrowthPolicy.AllNonFixedFieldsGrow)
+
+        self.start_button = QPushButton("▶ &Start exercise")
+        self.start_button.setDefault(True)
+        self.start_button.clicked.connect(self.start)
+        self.defaults_button = QPushButton("&Defaults")
+        self.defaults_button.clicked.connect(self.reset_defaults)
+        self.pause_button = QPushButton("&Pause")
+        self.pause_button.clicked.connect(self.toggle_pause)
+        self.stop_button = QPushButton("■ S&top")
+        self.stop_button.clicked.connect(self.stop)
+        controls = QHBoxLayout()
+        for b in (self.start_button, self.pause_button, self.stop_button, self.defaults_button):
+            controls.addWidget(b)
+        controls.addStretch(1)
+        QShortcut(QKeySequence("Ctrl+Return"), self, activated=self.start)
+
+        self.message = QLabel("")
+        self.message.setWordWrap(True)
+        self.repetition_label = QLabel("")
+        self.repetition_label.setAccessibleName("Repetition")
+        font = self.repetition_label.font()
+        font.setPointSizeF(font.pointSizeF() * 1.4)
+        font.setBold(True)
+        self.repetition_label.setFont(font)
+        self.elapsed_label = QLabel("")
+        self.progress_bar = QProgressBar()
+        self.progress_bar.setTextVisible(False)
+        self.progress_bar.setMaximumHeight(12)
+        self.progress_text = QLabel("")
+        self.progress_text.setWordWrap(True)
+        status_box = QGroupBox("Progress")
+        status = QVBoxLayout(status_box)
+        row = QHBoxLayout()
+        row.addWidget(self.repetition_label, 1)
+        row.addWidget(self.elapsed_label)
+        status.addLayout(row)
+        status.addWidget(self.progress_bar)
+        status.addWidget(self.progress_text)
+
+        right = QWidget()
+        right_lay = QVBoxLayout(right)
+        right_lay.setContentsMargins(4, 0, 0, 0)
+        right_lay.addWidget(self.title)
+        right_lay.addWidget(self.description)
+        right_lay.addWidget(self.form_box)
+        right_lay.addLayout(controls)
+        right_lay.addWidget(self.message)
+        right_lay.addWidget(status_box)
+        right_lay.addStretch(1)
+
+        split = QSplitter()
+        split.addWidget(left)
+        split.addWidget(right)
+        split.setStretchFactor(1, 2)
+        split.setSizes([250, 520])
+        lay = QVBoxLayout(self)
+        lay.setContentsMargins(2, 2, 2, 2)
+        lay.addWidget(split)
+
+        self.timer = QTimer(self)
+        self.timer.setInterval(250)
+        self.timer.timeout.connect(self._tick)
+        self.timer.start()
+        progress = getattr(manager, "progress", None)
+        if progress is not None:
+            progress.changed.connect(self._progress_changed)
+        recorder = getattr(manager, "recorder", None)
+        self._session_folder: Path | None = Path(recorder.folder) if getattr(recorder, "folder", None) else None
+        self._exercised_in_session = False  # an exercise was started from here during this session
+        if hasattr(manager, "session_changed"):
+            manager.session_changed.connect(self._session_changed)
+        self.load_plan()
+        if self.library and self.exercise is None:
+            self.exercise_list.setCurrentRow(0)
+        self._sync_buttons()
+
+    def _session_changed(self, folder: Path | None) -> None:
+        """At the end of a session in which exercises were run from this tab, its whole summary is shown."""
+        ended, exercised = self._session_folder, self._exercised_in_session
+        self._session_folder = Path(folder) if folder is not None else None
+        self._exercised_in_session = False
+        self.load_plan()
+        if folder is None and ended is not None and exercised:
+            QTimer.singleShot(0, self, lambda: self.show_summary(ended, None, None, f"Session {ended.name}"))
+
+    # ------------------------------------------------------------------ the runner (one per window)
+    @property
+    def runner(self) -> Any:
+        """The window's script runner (ScriptConsole.runner); a private one when there is no console."""
+        if self._runner is None:
+            from app.ui.script_console import ScriptConsole
+
+            console = self.window().findChild(ScriptConsole) if self.window() is not self else None
+            if console is not None:
+                self._runner = console.runner
+            else:
+                from app.scripting.runner import ScriptRunner
+
+                self._runner = ScriptRunner(self.manager)
+        return self._runner
+
+    # ------------------------------------------------------------------ plan and library
+    def plan(self) -> list[Any]:
+        profile = getattr(self.manager, "patient_profile", None)
+        return list(getattr(profile, "therapy_plan", None) or [])
+
+    def load_plan(self) -> None:
+        plan = self.plan()
+        self.plan_list.blockSignals(True)
+        self.plan_list.clear()
+        for k, step in enumerate(plan):
+            title = next((e.title for e in self.library if e.ident == step.exercise), f"{step.exercise} (unknown)")
+            values = ", ".join(f"{n}={v}" for n, v in step.params.items())
+            item = QListWidgetItem(f"{k + 1}. {title}")
+            item.setToolTip(values + (f"\n{step.note}" if step.note else ""))
+            self.plan_list.addItem(item)
+        self.plan_list.blockSignals(False)
+        self.plan_box.setVisible(bool(plan))
+        if plan:
+            self.plan_list.setCurrentRow(0)
+
+    def _plan_selected(self, row: int) -> None:
+        plan = self.plan()
+        if not 0 <= row < len(plan):
+            return
+        step = plan[row]
+        for k, e in enumerate(self.library):
+            if e.ident == step.exercise:
+                self.exercise_list.blockSignals(True)
+                self.exercise_list.setCurrentRow(k)
+                self.exercise_list.blockSignals(False)
+                self.show_exercise(e, step.params)
+                self._plan_step = row
+                return
+        self.message.setText(f"Plan step {row + 1}: no exercise '{step.exercise}' in the library.")
+        self.message.setStyleSheet(ERROR_STYLE)
+
+    def _exercise_selected(self, row: int) -> None:
+        if 0 <= row < len(self.library):
+            self._plan_step = None
+            self.plan_list.clearSelection()
+            self.show_exercise(self.library[row])
+
+    def select(self, ident: str) -> None:
+        for k, e in enumerate(self.library):
+            if e.ident == ident:
+                self.exercise_list.setCurrentRow(k)
+                return
+        raise KeyError(ident)
+
+    def show_exercise(self, exercise: Exercise, values: dict[str, Any] | None = None) -> None:
+        self.exercise = exercise
+        self.title.setText(f"<h3>{exercise.title}</h3>")
+        self.description.setText(exercise.description)
+        while self.form.rowCount():
+            self.form.removeRow(0)
+        self.fields = {}
+        for p in exercise.parameters:
+            f = ParameterField(p)
+            if values and p.name in values:
+                f.set(values[p.name])
+            label = QLabel(f"&{p.label}")
+            label.setBuddy(f.widget)
+            label.setToolTip(p.help)
+            self.form.addRow(label, f.row)
+            self.form.addRow("", f.error)
+            self.fields[p.name] = f
+        self.message.setText("")
+        self._sync_buttons()
+
+    def reset_defaults(self) -> None:
+        for f in self.fields.values():
+            f.set(f.param.default)
+            f.show_error("")
+        self.message.setText("")
+
+    def values(self) -> dict[str, Any]:
+        return {name: f.value() for name, f in self.fields.items()}
+
+    def set_value(self, name: str, value: Any) -> None:
+        self.fields[name].set(value)
+
+    # ------------------------------------------------------------------ start / pause / stop
+    def start(self) -> bool:
+        """Validate the form and start the exercise; False (with the reasons shown) when nothing started."""
+        if self.exercise is None:
+            return False
+        checked = validate(self.exercise, self.values())
+        self.last_validation = checked
+        for name, f in self.fields.items():
+            f.show_error(checked.errors.get(name, ""))
+        if not checked.ok:
+            self._say("Not started: " + checked.message(self.exercise), error=True)
+            return False
+        runner = self.runner
+        if runner.running:
+            self._say("Not started: a script is running. Stop it first.", error=True)
+            return False
+        started = time.monotonic()  # before exercise_start is recorded: the summary's window includes it
+        try:
+            start_exercise(runner, self.manager, self.exercise, checked.params)
+        except (RuntimeError, SyntaxError, OSError) as exc:
+            self._say(f"Not started: {exc}", error=True)
+            return False
+        self._started_mono = started
+        self._was_running = True
+        self._exercised_in_session = getattr(self.manager, "recorder", None) is not None
+        self._started_exercise = self.exercise
+        recording = getattr(self.manager, "recorder", None) is not None
+        self._say(f"{self.exercise.title} started." + ("" if recording else
+                  " No session is being recorded: start a session to keep its data and metrics."))
+        self._sync_buttons()
+        return True
+
+    def toggle_pause(self) -> None:
+        runner = self.runner
+        state = self.manager.progress.state
+        pause, resume = getattr(runner, "pause", None), getattr(runner, "resume", None)
+        if pause is None or resume is None:
+            self._say("Pause needs a script runner that can hold a script (not in this build).", error=True)
+            return
+        if state.paused_since is None:
+            pause()
+        else:
+            resume()
+        self._sync_buttons()
+
+    def stop(self) -> None:
+        if self.runner.running:
+            self.runner.request_stop("stopped by the operator (Exercises tab)")
+
+    def _say(self, text: str, error: bool = False) -> None:
+        self.message.setText(text)
+        self.message.setStyleSheet(ERROR_STYLE if error else "")
+
+    # ------------------------------------------------------------------ progress
+    def _progress_changed(self, state: ProgressState) -> None:
+        label = state.label()
+        self.repetition_label.setText(label[:1].upper() + label[1:] if label else "")
+        if state.total:
+            self.progress_bar.setRange(0, state.total)
+            done = state.repetition - (1 if state.in_repetition else 0)
+            self.progress_bar.setValue(max(0, done))
+        else:
+            self.progress_bar.setRange(0, 0 if state.running else 1)
+        self.progress_text.setText(state.text)
+        self._tick()
+        self._sync_buttons()
+
+    def _tick(self) -> None:
+        progress = getattr(self.manager, "progress", None)
+        if progress is None:
+            return
+        state = progress.state
+        if state.started_monotonic is not None:
+            m, s = divmod(int(state.elapsed_s()), 60)
+            paused = "  (paused)" if state.paused_since is not None else ""
+            self.elapsed_label.setText(f"elapsed {m}:{s:02d}{paused}")
+        if self._was_running and self._runner is not None and not self._runner.running:
+            self._was_running = False
+            self._finished()
+        self._sync_buttons()
+
+    def _finished(self) -> None:
+        result = self._runner.result
+        status = result.status if result is not None else "finished"
+        exercise = getattr(self, "_started_exercise", None)
+        name = exercise.title if exercise is not None else "The exercise"
+        text = f"{name}: {status}" + (f" — {result.message}" if result is not None and result.message else "")
+        self._say(text, error=status not in ("finished", "stopped"))
+        self.progress_bar.setRange(0, 1)
+        self.progress_bar.setValue(1 if status == "finished" else 0)
+        plan = self.plan()
+        if self._plan_step is not None and status == "finished" and self._plan_step + 1 < len(plan):
+            self.plan_list.setCurrentRow(self._plan_step + 1)  # the plan's next exercise is offered
+        recorder = getattr(self.manager, "recorder", None)
+        if recorder is not None and getattr(recorder, "folder", None) is not None:
+            folder, since, until = Path(recorder.folder), self._started_mono, time.monotonic()
+            QTimer.singleShot(SUMMARY_DELAY_MS, self, lambda: self.show_summary(folder, since, until, name))
+
+    def show_summary(self, folder: Path, since: float | None, until: float | None, title: str) -> QWidget | None:
+        from app.ui.session_summary import SessionSummaryDialog
+
+        try:
+            dialog = SessionSummaryDialog(folder, since, until, title=f"{title} — summary", parent=self)
+        except Exception:  # the summary must never take the exercise's end down with it
+            log.exception("session summary failed")
+            self._say(self.message.text() + " (the summary could not be computed: see the log)", error=True)
+            return None
+        self.summary_dialog = dialog
+        dialog.show()
+        return dialog
+
+    def _sync_buttons(self) -> None:
+        running = self._runner is not None and self._runner.running
+        progress = getattr(self.manager, "progress", None)
+        paused = progress is not None and progress.state.paused_since is not None
+        self.start_button.setEnabled(not running and self.exercise is not None)
+        self.defaults_button.setEnabled(not running)
+        self.form_box.setEnabled(not running)
+        self.exercise_list.setEnabled(not running)
+        self.plan_list.setEnabled(not running)
+        self.pause_button.setEnabled(running)
+        self.pause_button.setText("&Resume" if paused else "&Pause")
+        self.stop_button.setEnabled(running)

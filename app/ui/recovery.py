@@ -1,0 +1,235 @@
+"""Recover after a STOP from one place (the alarm banner): acknowledge the open alarms in the session
+operator's name, reset the emergency stop, reset the robot's latched error, re-home when needed and,
+if an exercise was interrupted, start it again. STOP -> running again is two actions: "Recover…" in
+the banner, then "Recover and restart" in the dialog (three when no session gives the operator's name).
+
+Every step goes into the session record as a ``recovery`` event with the operator's name. The robot
+steps go through the driver (and so the safety supervisor), never around it.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from concurrent.futures import Future
+from dataclasses import dataclass
+from typing import Any
+
+from PySide6.QtCore import QObject, QTimer, Signal
+from PySide6.QtWidgets import (
+    QDialog,
+    QDialogButtonBox,
+    QFormLayout,
+    QLabel,
+    QLineEdit,
+    QPushButton,
+    QVBoxLayout,
+    QWidget,
+)
+
+from app.devices.linarm_protocol import ErrorState, HomeState
+from app.manager import LinarmppManager
+from app.safety import AlarmLevel
+
+log = logging.getLogger(__name__)
+
+SOURCE = "recover"
+NO_ERROR = int(ErrorState.NO_ERROR)
+HOME_DONE = int(HomeState.HOME_DONE)
+ROBOT_REPLY_TIMEOUT_S = 3.0
+
+
+@dataclass(frozen=True)
+class Restartable:
+    """The exercise a STOP interrupted and how to start it again."""
+
+    name: str
+    start: Callable[[], bool]
+
+
+def robot_state(manager: LinarmppManager) -> Any:
+    driver = manager.driver("linarm")
+    if driver is None or not driver.connected:
+        return None
+    return driver.latest("linarm.state")
+
+
+def recovery_needed(manager: LinarmppManager) -> bool:
+    """A latched e-stop, an open STOP/FATAL alarm or a robot error: the banner offers Recover."""
+    sup = manager.supervisor
+    if sup.estop_latched:
+        return True
+    if any(a.level >= AlarmLevel.STOP and not a.acknowledged for a in sup.alarms()):
+        return True
+    state = robot_state(manager)
+    return state is not None and int(state.errorState) != NO_ERROR
+
+
+def plan(manager: LinarmppManager, restart: Restartable | None, script_running: bool = False) -> list[str]:
+    """What Recover will do, in words, in order (shown in the dialog before anything is done)."""
+    sup = manager.supervisor
+    steps: list[str] = ["stop the script still running"] if script_running else []
+    open_ = sum(1 for a in sup.alarms() if not a.acknowledged)
+    if open_:
+        steps.append(f"acknowledge {open_} open alarm(s)")
+    if sup.estop_latched:
+        steps.append("reset the emergency stop")
+    state = robot_state(manager)
+    if state is not None and int(state.errorState) != NO_ERROR:
+        steps.append("reset the robot's error (the motors stay off)")
+    if state is not None and int(state.homeState) != HOME_DONE:
+        steps.append("home the robot (it moves to its endstrokes)" if restart is None
+                     else "home the robot before the exercise (it moves to its endstrokes)")
+    return steps or ["nothing to recover"]
+
+
+class Recovery(QObject):
+    """Runs the steps one after the other on the GUI thread (the robot's replies are polled, never
+    waited for). ``finished(ok, text)`` once done."""
+
+    step_done = Signal(str)
+    finished = Signal(bool, str)
+
+    def __init__(self, manager: LinarmppManager, operator: str, restart: Restartable | None = None,
+                 parent: QObject | None = None, stop_script: Callable[[], bool] | None = None) -> None:
+        super().__init__(parent)
+        self.manager = manager
+        # Stops a script still running across the stop (True when one was stopped): it must never
+        # carry on commanding the robot once the e-stop is reset.
+        self.stop_script = stop_script or (lambda: False)
+        self.operator = operator
+        self.restart = restart
+        self.steps: list[str] = []
+        self._future: Future | None = None
+        self._waited = 0.0
+        self._poll = QTimer(self)
+        self._poll.setInterval(30)
+        self._poll.timeout.connect(self._check_robot)
+
+    def _log(self, step: str, **data: Any) -> None:
+        self.steps.append(step)
+        self.manager.supervisor.event("recovery", step=step, operator=self.operator, **data)
+        self.step_done.emit(step)
+
+    def run(self) -> None:
+        sup = self.manager.supervisor
+        self._log("start", restart=self.restart.name if self.restart else "")
+        if self.stop_script():
+            self._log("script_stopped")
+        open_ = [a.ident for a in sup.alarms() if not a.acknowledged]
+        for ident in open_:
+            sup.acknowledge(ident, self.operator)
+        if open_:
+            self._log("acknowledged", count=len(open_))
+        if sup.estop_latched:
+            sup.reset_emergency_stop(self.operator)
+            self._log("estop_reset")
+            # The reset's own information alarm is part of this recovery: acknowledged with it.
+            for alarm in sup.alarms():
+                if not alarm.acknowledged and alarm.level < AlarmLevel.WARNING:
+                    sup.acknowledge(alarm.ident, self.operator)
+        state = robot_state(self.manager)
+        if state is not None and int(state.errorState) != NO_ERROR:
+            driver = self.manager.driver("linarm")
+            try:
+                self._future = driver.command_async("resetError", source=SOURCE)
+            except Exception as exc:  # a refusal or a closed driver: say so, do nothing more
+                self._finish(False, f"robot error not reset: {exc}")
+                return
+            self._waited = 0.0
+            self._poll.start()
+            return
+        self._after_robot_reset()
+
+    def _check_robot(self) -> None:
+        self._waited += self._poll.interval() / 1000.0
+        future = self._future
+        if future is None:
+            self._poll.stop()
+            return
+        if not future.done():
+            if self._waited > ROBOT_REPLY_TIMEOUT_S:
+                self._poll.stop()
+                self._finish(False, "the robot did not answer Reset error")
+            return
+        self._poll.stop()
+        self._future = None
+        exc = future.exception()
+        if exc is not None:
+            self._finish(False, f"robot error not reset: {getattr(exc, 'reason', exc)}")
+            return
+        self._log("robot_error_reset")
+        self._after_robot_reset()
+
+    def _after_robot_reset(self) -> None:
+        if self.restart is not None:
+            # The script runner homes the robot first when needed (it waits for the homing to finish).
+            ok = self.restart.start()
+            self._log("exercise_restarted" if ok else "exercise_not_restarted", exercise=self.restart.name)
+            self._finish(ok, f"{self.restart.name} started again" if ok else f"{self.restart.name} did not start")
+            return
+        state = robot_state(self.manager)
+        if state is not None and int(state.homeState) != HOME_DONE:
+            driver = self.manager.driver("linarm")
+            try:
+                driver.command_async("goToHome", source=SOURCE)
+            except Exception as exc:
+                self._finish(False, f"homing not started: {exc}")
+                return
+            self._log("homing_started")
+        self._finish(True, "recovered")
+
+    def _finish(self, ok: bool, text: str) -> None:
+        self._log("done" if ok else "failed", text=text)
+        self.finished.emit(ok, text)
+
+
+class RecoverDialog(QDialog):
+    """Says what Recover will do and in whose name; one click does it."""
+
+    def __init__(self, manager: LinarmppManager, operator: str, restart: Restartable | None,
+                 parent: QWidget | None = None, script_running: bool = False) -> None:
+        super().__init__(parent)
+        self.setWindowTitle("Recover after the stop")
+        self.manager = manager
+        self.restart = restart
+        self.choice: str | None = None  # "restart" | "recover"
+        lay = QVBoxLayout(self)
+        steps = plan(manager, restart, script_running)
+        self.steps_label = QLabel("Recover will:<ul>" + "".join(f"<li>{s}</li>" for s in steps) + "</ul>")
+        lay.addWidget(self.steps_label)
+        form = QFormLayout()
+        self.operator = QLineEdit(operator)
+        self.operator.setObjectName("recoverOperator")
+        self.operator.setPlaceholderText("who recovers (goes into the session record)")
+        form.addRow("&Operator:", self.operator)
+        lay.addLayout(form)
+        self.error = QLabel("")
+        self.error.setStyleSheet("color: #c62828;")
+        lay.addWidget(self.error)
+        buttons = QDialogButtonBox()
+        self.restart_button: QPushButton | None = None
+        if restart is not None:
+            self.restart_button = buttons.addButton(f"Recover and &restart {restart.name}",
+                                                    QDialogButtonBox.ButtonRole.AcceptRole)
+            self.restart_button.clicked.connect(lambda: self._choose("restart"))
+        self.recover_button = buttons.addButton("Recover &only" if restart else "&Recover",
+                                                QDialogButtonBox.ButtonRole.AcceptRole)
+        self.recover_button.clicked.connect(lambda: self._choose("recover"))
+        cancel = buttons.addButton(QDialogButtonBox.StandardButton.Cancel)
+        cancel.clicked.connect(self.reject)
+        (self.restart_button or self.recover_button).setDefault(True)
+        lay.addWidget(buttons)
+        if not operator:
+            self.operator.setFocus()
+
+    def _choose(self, choice: str) -> None:
+        if not self.operator.text().strip():
+            self.error.setText("Type the operator's name: every step is recorded in it.")
+            self.operator.setFocus()
+            return
+        self.choice = choice
+        self.accept()
+
+    def operator_name(self) -> str:
+        return self.operator.text().strip()

@@ -1,0 +1,170 @@
+"""No clipped text anywhere (issue #19): the real window with every device simulated and a session
+running is walked at 1366×768 and 1920×1080 -- every Commands tab (and the Robot panel's own tabs),
+the dialogs and the side windows -- and every label, button, check box, group title, tab, header and
+item-view cell must have the room its text needs (an elided label only with its whole text in the
+tooltip). Runs offscreen and under Xvfb alike."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+from PySide6.QtCore import Qt
+from PySide6.QtWidgets import QApplication, QMessageBox, QTabWidget, QWidget
+
+from app.config import AppConfig
+from app.fes_profile import load_profile
+from app.manager import LinarmppManager
+from app.ui.main_window import MainWindow
+from tests.clipping import clipped_texts
+
+ROOT = Path(__file__).resolve().parent.parent
+SIZES = ((1366, 768), (1920, 1080))
+
+
+def settle(qtbot, ms: int = 150) -> None:
+    qtbot.wait(ms)
+    QApplication.processEvents()
+
+
+@pytest.fixture(scope="module")
+def running_window(qapp) -> Iterator[tuple[LinarmppManager, MainWindow]]:
+    import time
+
+    manager = LinarmppManager(AppConfig())
+    manager.start()
+    window = MainWindow(manager)
+    window.setWindowState(Qt.WindowState.WindowNoState)
+    window.show()
+    deadline = time.monotonic() + 20
+    while not manager.all_connected() and time.monotonic() < deadline:
+        QApplication.processEvents()
+        time.sleep(0.02)
+    import tempfile
+
+    manager.start_session("P001", "Dr Francesca Bianchi", root=Path(tempfile.mkdtemp()))
+    manager.driver("fes").load_profile(load_profile(ROOT / "resources" / "fes_profiles" / "frontal_reaching.yaml"))
+    manager.supervisor.raise_alarm(
+        __import__("app.safety", fromlist=["AlarmLevel"]).AlarmLevel.STOP, "linarm",
+        "LINarm error: WATCHDOG (no host bytes for 0.25 s) — the motors are off")
+    yield manager, window
+    QMessageBox.question = lambda *a, **k: QMessageBox.StandardButton.Yes  # type: ignore[method-assign]
+    window.close()
+    manager.shutdown()
+
+
+def tab_walk(window: MainWindow) -> Iterator[str]:
+    """Shows each Commands tab (and each inner tab of a tabbed panel) in turn; yields its name."""
+    tabs: QTabWidget = window.frames["CommandsFrame"].tabs
+    for i in range(tabs.count()):
+        tabs.setCurrentIndex(i)
+        name = tabs.tabText(i)
+        inner = tabs.widget(i).findChildren(QTabWidget)
+        if inner:
+            for sub in inner:
+                for j in range(sub.count()):
+                    sub.setCurrentIndex(j)
+                    yield f"{name} › {sub.tabText(j)}"
+        else:
+            yield name
+
+
+@pytest.mark.parametrize("size", SIZES, ids=lambda s: f"{s[0]}x{s[1]}")
+def test_no_text_is_clipped_in_the_main_window(running_window, qtbot, size) -> None:
+    _manager, window = running_window
+    window.setWindowState(Qt.WindowState.WindowNoState)
+    window.resize(*size)
+    window._reset_layout(short=size[1] < 900)  # the first-run layout of a screen of this size
+    settle(qtbot, 400)
+    assert (window.width(), window.height()) == size
+    problems: dict[str, list[str]] = {}
+    for where in tab_walk(window):
+        settle(qtbot)
+        checked = [0]
+        found = clipped_texts(window, checked)
+        assert checked[0] > 40, f"{where}: only {checked[0]} widgets seen"
+        if found:
+            problems[where] = found
+    report = "\n".join(f"[{where}] {p}" for where, ps in problems.items() for p in ps)
+    assert not problems, f"clipped at {size}:\n{report}"
+
+
+def fully_shown(w: QWidget) -> bool:
+    return w.isVisible() and w.visibleRegion().boundingRect().size() == w.size()
+
+
+@pytest.mark.parametrize("size", SIZES, ids=lambda s: f"{s[0]}x{s[1]}")
+def test_primary_controls_are_on_screen_without_scrolling(running_window, qtbot, size) -> None:
+    """Each Commands tab's primary controls are whole on screen in the first-run layout."""
+    _manager, window = running_window
+    window.setWindowState(Qt.WindowState.WindowNoState)
+    window.resize(*size)
+    window._reset_layout(short=size[1] < 900)
+    settle(qtbot, 300)
+    commands = window.frames["CommandsFrame"]
+    robot, fes = commands.panels["LinarmPanel"], commands.panels["FesPanel"]
+    console = commands.panels["ScriptConsole"]
+    primary = {
+        "Robot": [robot.home_button, robot.reset_button, *robot.state_buttons.values()],
+        "FES": [fes.start_button, fes.stop_button, fes.current_knob.dial, fes.width_knob.dial, fes.table],
+        "Script": [console.editor],
+    }
+    tabs = commands.tabs
+    missing = []
+    for title, widgets in primary.items():
+        tabs.setCurrentIndex(next(i for i in range(tabs.count()) if tabs.tabText(i) == title))
+        robot.tabs.setCurrentIndex(0)
+        settle(qtbot)
+        missing += [f"{title}: {type(w).__name__} {getattr(w, 'text', lambda: '')()!r}"
+                    for w in widgets if not fully_shown(w)]
+    assert not missing, f"not whole on screen at {size}: {missing}"
+
+
+def _dialogs(manager: LinarmppManager, window: MainWindow) -> Iterator[tuple[str, QWidget]]:
+    from app.recording import sessions_root
+    from app.ui.fes_editor import FesProfileEditor
+    from app.ui.patient_dialog import PatientDialog, StartSessionDialog
+    from app.ui.recovery import RecoverDialog, Restartable
+    from app.ui.sessions_browser import SessionsBrowser
+
+    yield "Start session", StartSessionDialog(manager.config.safety, parent=window)
+    yield "Patient", PatientDialog(None, manager.config.safety, parent=window)
+    yield "Sessions browser", SessionsBrowser(sessions_root(manager.config), manager.config.ui.history_s)
+    yield "FES profile editor", FesProfileEditor(manager.driver("fes").profile, window)
+    yield "Recover", RecoverDialog(manager, manager.operator, Restartable("trigger_exercise.py", lambda: True), window)
+
+
+def test_no_text_is_clipped_in_the_dialogs(running_window, qtbot) -> None:
+    manager, window = running_window
+    problems: list[str] = []
+    for name, dialog in _dialogs(manager, window):
+        dialog.show()
+        qtbot.waitExposed(dialog)
+        settle(qtbot, 200)
+        problems += [f"[{name} {dialog.width()}×{dialog.height()}] {p}" for p in clipped_texts(dialog)]
+        screen = dialog.screen().availableGeometry() if dialog.screen() else None
+        if screen is not None and screen.width() >= 1366:
+            assert dialog.width() <= 1366 and dialog.height() <= 768, f"{name} is larger than a 1366×768 screen"
+        dialog.close()
+        dialog.deleteLater()
+    # The side windows of a recorded session: its details and its replay.
+    from app.ui.replay_window import ReplayWindow
+    from app.ui.sessions_browser import SessionDetails, SessionsBrowser
+
+    folder = manager.recorder.folder
+    manager.supervisor.raise_alarm(__import__("app.safety", fromlist=["AlarmLevel"]).AlarmLevel.WARNING,
+                                   "physio", "Skin-conductance electrodes off: check the electrodes")
+    qtbot.wait(600)
+    manager.end_session()
+    browser = SessionsBrowser(folder.parent.parent)
+    browser.set_patient(folder.parent.name)
+    for name, widget in (("Sessions browser with a session", browser), ("Session details", SessionDetails(folder)),
+                         ("Replay", ReplayWindow(folder))):
+        widget.show()
+        qtbot.waitExposed(widget)
+        settle(qtbot, 300)
+        problems += [f"[{name} {widget.width()}×{widget.height()}] {p}" for p in clipped_texts(widget)]
+        widget.close()
+        widget.deleteLater()
+    assert not problems, "\n".join(problems)
