@@ -228,6 +228,19 @@ class UiConfig:
 
 
 @dataclass(frozen=True)
+class SimulationConfig:
+    """How simulated serial devices are hosted (app.devices.sim.host): ``process`` runs them in a process
+    of their own, so the app's process is what it is with real hardware; ``thread`` runs them in the
+    app's process (tests that reach into a simulator). ``linarm: firmware`` simulates the LINarm with the
+    firmware's software-in-the-loop executable (built from firmware/host with CMake) instead of the
+    Python model."""
+
+    host: Literal["process", "thread"] = "process"
+    linarm: Literal["python", "firmware"] = "python"
+    link: Literal["pty", "socket"] = "socket"
+
+
+@dataclass(frozen=True)
 class AppConfig:
     version: int = field(default=1, metadata=rng(1, 1))
     devices: Devices = field(default_factory=Devices)
@@ -235,6 +248,7 @@ class AppConfig:
     assistance: AssistanceConfig = field(default_factory=AssistanceConfig)
     recording: RecordingConfig = field(default_factory=RecordingConfig)
     ui: UiConfig = field(default_factory=UiConfig)
+    simulation: SimulationConfig = field(default_factory=SimulationConfig)
     source: str = field(default="(defaults)", compare=False)
 
 

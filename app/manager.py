@@ -9,7 +9,6 @@ import logging
 import shutil
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -17,28 +16,13 @@ from PySide6.QtCore import QObject, Signal
 
 from app.config import AppConfig
 from app.devices.driver import DeviceDriver, UpdateNotifier
-from app.devices.sim.base import SerialSimulator
+from app.devices.registry import DeviceFactory, DeviceHandle, SimulatorHosting, build_devices
 from app.paths import runtime_dir
 from app.safety import SafetySupervisor
 
 log = logging.getLogger(__name__)
 
-
-@dataclass
-class DeviceHandle:
-    """One device as the manager holds it: its driver, and its simulator when simulated."""
-
-    name: str
-    driver: DeviceDriver
-    simulator: SerialSimulator | None = None
-    extras: dict[str, Any] = field(default_factory=dict)  # e.g. helper processes
-
-    @property
-    def simulated(self) -> bool:
-        return self.simulator is not None or bool(self.extras.get("simulated"))
-
-
-DeviceFactory = Callable[["LinarmppManager"], DeviceHandle | None]
+__all__ = ["DeviceFactory", "DeviceHandle", "LinarmppManager"]
 
 
 class LinarmppManager(QObject):
@@ -52,7 +36,7 @@ class LinarmppManager(QObject):
         self.supervisor = SafetySupervisor(config.safety)
         self.runtime_dir: Path = runtime_dir()
         self.devices: dict[str, DeviceHandle] = {}
-        self.patient: Any = None  # the simulated patient shared by the simulators, when any
+        self.simulators = SimulatorHosting(config, self.runtime_dir)
         if factories is None:
             from app.devices.registry import default_factories
 
@@ -74,20 +58,21 @@ class LinarmppManager(QObject):
 
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> None:
-        """Start every configured device (simulators first, so drivers find them)."""
+        """Build every configured device (app.devices.registry), start the simulators (their own
+        process, or threads here), then the drivers."""
         if self._started:
             return
         self._started = True
-        for name, factory in self._factories.items():
-            try:
-                handle = factory(self)
-            except Exception as exc:
-                log.exception("device %s could not be created", name)
-                self.supervisor.event("device_error", device=name, error=str(exc))
-                continue
-            if handle is None:
-                continue
-            self.devices[name] = handle
+        self.devices = build_devices(
+            self._factories, self.config, notifier=self.notifier, supervisor=self.supervisor,
+            runtime_dir=self.runtime_dir, simulators=self.simulators, app=self,
+            on_error=lambda name, exc: self.supervisor.event("device_error", device=name, error=str(exc)))
+        try:
+            self.simulators.start()
+        except Exception as exc:
+            log.exception("the simulated devices could not be started")
+            self.supervisor.event("device_error", device="simulators", error=str(exc))
+        for name, handle in self.devices.items():
             self._watch_device(handle)
             handle.driver.connection_changed.connect(
                 lambda ok, why, n=name: self.device_connection_changed.emit(n, ok, why))
@@ -278,16 +263,19 @@ class LinarmppManager(QObject):
                 handle.simulator.stop()
             for proc in handle.extras.get("processes", []):
                 _stop_process(proc)
+        self.simulators.stop()
         shutil.rmtree(self.runtime_dir, ignore_errors=True)
         log.info("manager shut down in %.3f s", time.monotonic() - t0)
 
     def sim_patient(self) -> Any:
-        """The one simulated patient shared by every simulator (grip and handle forces)."""
-        if self.patient is None:
-            from app.devices.sim.patient import SimulatedPatient
+        """The one simulated patient shared by every simulator (grip and handle forces); in the simulator
+        process, a proxy with the same behaviours."""
+        return self.simulators.patient()
 
-            self.patient = SimulatedPatient(seed=7)
-        return self.patient
+    @property
+    def patient(self) -> Any:
+        """The simulated patient when a device is simulated on a serial link, else None."""
+        return self.simulators._patient
 
     def set_device_running(self, name: str, running: bool, timeout_s: float = 1.0) -> bool:
         """Connect or disconnect one device (its simulator, if any, keeps running). A device is put in

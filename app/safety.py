@@ -62,6 +62,27 @@ class Alarm:
 
 
 EventSink = Callable[[str, dict[str, Any]], None]
+
+
+@dataclass(frozen=True)
+class StopAction:
+    """Something that makes a device safe, run on every emergency stop and safe-state request.
+    ``run(reason)`` must be quick, thread-safe and never block. ``robot``: the robot monitor runs only
+    these (an excursion of the handle stops the robot, not the stimulation)."""
+
+    name: str
+    run: Callable[[str], None]
+    robot: bool = False
+
+
+@dataclass(frozen=True)
+class RobotProbes:
+    """The measured robot state the command checks need: centre and delta (m, None when unknown) and
+    whether the encoders are referenced. Given by the LINarm device when it is built."""
+
+    centre_m: Callable[[], float | None]
+    delta_m: Callable[[], float | None]
+    homed: Callable[[], bool]
 ROBOT_MONITOR_GRACE_SAMPLES = 5
 
 # Commands that only read, stop or make things safer: allowed even while the e-stop is latched.
@@ -86,8 +107,9 @@ class SafetySupervisor(QObject):
         super().__init__()
         self.config = config
         self.robot: RobotLimits = config.robot
-        self._event_sink = event_sink
-        self._estop_actions: list[tuple[str, Callable[[str], None]]] = []
+        self._event_sink = event_sink  # the one-slot form (set_event_sink), kept for compatibility
+        self._subscribers: list[EventSink] = []  # the recorder, LSL, the GUI: each adds itself
+        self._stop_actions: list[StopAction] = []
         self._estop_lock = threading.RLock()
         self._estop_latched = False
         self._estop_reason = ""
@@ -107,15 +129,29 @@ class SafetySupervisor(QObject):
         return self._event_sink
 
     def set_event_sink(self, sink: EventSink | None) -> None:
+        """Compatibility: one replaceable sink beside the subscribers (prefer add_event_subscriber)."""
         self._event_sink = sink
+
+    def add_event_subscriber(self, fn: EventSink) -> None:
+        """``fn(kind, data)`` for every event, on the thread that raised it; it must be quick."""
+        self._subscribers = [*self._subscribers, fn]
+
+    def remove_event_subscriber(self, fn: EventSink) -> None:
+        self._subscribers = [f for f in self._subscribers if f is not fn]
 
     def event(self, kind: str, **data: Any) -> None:
         log.info("event %s %s", kind, data)
-        if self._event_sink is not None:
+        sink = self._event_sink
+        for fn in (*self._subscribers, *((sink,) if sink is not None else ())):
             try:
-                self._event_sink(kind, data)
+                fn(kind, data)
             except Exception:
-                log.exception("event sink failed")
+                log.exception("event subscriber failed")
+
+    def set_robot_probes(self, probes: RobotProbes) -> None:
+        self.latest_centre_m = probes.centre_m
+        self.latest_delta_m = probes.delta_m
+        self.robot_homed = probes.homed
 
     def refuse(self, source: str, reason: str) -> SafetyError:
         self.event("command_refused", source=source, reason=reason)
@@ -158,10 +194,10 @@ class SafetySupervisor(QObject):
             problem = f"handle at {vsa.handlePos:.3f} m, outside {lim.position_min_m:.3f} .. {lim.position_max_m:.3f} m"
         if problem and not self._robot_excursion:
             self._robot_excursion = True
-            for name, action in self._estop_actions:
-                if name == "robot IDLE":
+            for action in self._stop_actions:
+                if action.robot:
                     try:
-                        action(problem)
+                        action.run(problem)
                     except Exception:
                         log.exception("robot stop failed")
             self.raise_alarm(AlarmLevel.STOP, "robot monitor", f"Robot stopped: {problem}")
@@ -192,9 +228,21 @@ class SafetySupervisor(QObject):
         return clamped
 
     # ------------------------------------------------------------------ emergency stop
+    def add_stop_action(self, action: StopAction) -> None:
+        """``action.run(reason)`` runs in the caller's thread on every emergency stop and safe-state
+        request, in the order added."""
+        self._stop_actions = [*self._stop_actions, action]
+
     def register_estop_action(self, name: str, action: Callable[[str], None]) -> None:
-        """``action(reason)`` runs in the caller's thread on every emergency stop; it must be quick."""
-        self._estop_actions.append((name, action))
+        """The named form of :meth:`add_stop_action` (contract 3: the script runner's "script")."""
+        self.add_stop_action(StopAction(name, action, robot=name == "robot IDLE"))
+
+    def stop_actions(self) -> list[StopAction]:
+        return list(self._stop_actions)
+
+    @property
+    def _estop_actions(self) -> list[tuple[str, Callable[[str], None]]]:  # the old (name, fn) form
+        return [(a.name, a.run) for a in self._stop_actions]
 
     @property
     def estop_latched(self) -> bool:
@@ -206,13 +254,13 @@ class SafetySupervisor(QObject):
             self._estop_latched = True
             self._estop_reason = f"{reason} ({source})"
             # Stop actions run even when already latched: pressing again must re-send the stops.
-            for name, action in self._estop_actions:
+            for action in self._stop_actions:
                 try:
-                    action(self._estop_reason)
-                    self.event("estop_action", action=name, ok=True)
+                    action.run(self._estop_reason)
+                    self.event("estop_action", action=action.name, ok=True)
                 except Exception as exc:
-                    log.exception("emergency-stop action %s failed", name)
-                    self.event("estop_action", action=name, ok=False, error=str(exc))
+                    log.exception("emergency-stop action %s failed", action.name)
+                    self.event("estop_action", action=action.name, ok=False, error=str(exc))
         self.event("emergency_stop", source=source, reason=reason)
         if first:
             self.raise_alarm(AlarmLevel.STOP, source, f"Emergency stop: {reason}")
@@ -220,13 +268,13 @@ class SafetySupervisor(QObject):
 
     def bring_to_safe_state(self, reason: str) -> None:
         """Run the stop actions without latching: script end, app close, device loss."""
-        for name, action in self._estop_actions:
+        for action in self._stop_actions:
             try:
-                action(reason)
-                self.event("safe_state_action", action=name, reason=reason, ok=True)
+                action.run(reason)
+                self.event("safe_state_action", action=action.name, reason=reason, ok=True)
             except Exception as exc:
-                log.warning("safe-state action %s failed: %s", name, exc)
-                self.event("safe_state_action", action=name, reason=reason, ok=False, error=str(exc))
+                log.warning("safe-state action %s failed: %s", action.name, exc)
+                self.event("safe_state_action", action=action.name, reason=reason, ok=False, error=str(exc))
 
     def reset_emergency_stop(self, operator: str) -> None:
         with self._estop_lock:

@@ -6,6 +6,8 @@ from __future__ import annotations
 import os
 import sys
 import tempfile
+import threading
+import time
 from pathlib import Path
 
 import pytest
@@ -19,6 +21,9 @@ if not os.environ.get("DISPLAY") and not os.environ.get("WAYLAND_DISPLAY"):
 # Never write into the developer's real data folder or QSettings.
 os.environ["LINARMPP_HOME"] = tempfile.mkdtemp(prefix="linarmpp-test-home-")
 os.environ.setdefault("PYDEVD_DISABLE_FILE_VALIDATION", "1")
+# Tests reach into simulator cores (faults, counters): host them in this process unless a test asks
+# for the simulator process (app.devices.sim.host) itself.
+os.environ.setdefault("LINARMPP_SIM_HOST", "thread")
 
 from app.application import share_gl_contexts  # noqa: E402 - must run before pytest-qt creates the app
 
@@ -55,3 +60,79 @@ def _qt_identity(qapp):
 
     configure_qt_identity()
     yield
+
+
+# ------------------------------------------------------------------------------ reruns: realtime tests only
+# Modules whose tests run simulated devices on the wall clock (their timing depends on the machine's load).
+# Only these, and tests marked ``realtime``, get one rerun; a logic test that fails once fails.
+REALTIME_MODULES = {
+    "test_app_real_devices", "test_device_loss", "test_device_loss_more", "test_driver_base", "test_estop_wire",
+    "test_fes_exit_paths", "test_firmware_sil", "test_linarm_driver", "test_patient_model_link",
+    "test_physio_driver", "test_rehastim_driver", "test_safety_properties", "test_seed_scripts",
+    "test_sim_host",
+}
+
+
+def pytest_collection_modifyitems(config, items) -> None:  # type: ignore[no-untyped-def]
+    reruns = config.pluginmanager.hasplugin("rerunfailures")
+    for item in items:
+        module = item.module.__name__.rsplit(".", 1)[-1] if item.module is not None else ""
+        if module in REALTIME_MODULES and item.get_closest_marker("realtime") is None:
+            item.add_marker(pytest.mark.realtime)
+        if reruns and item.get_closest_marker("realtime") is not None and item.get_closest_marker("flaky") is None:
+            item.add_marker(pytest.mark.flaky(reruns=1, reruns_delay=1))
+
+
+# ------------------------------------------------------------------------------ nothing left running
+LEFTOVER_GRACE_S = 3.0
+
+
+def _children() -> dict[int, str]:
+    """Live (non-zombie) child processes of this process: pid → command."""
+    me, out = os.getpid(), {}
+    for entry in os.listdir("/proc") if os.path.isdir("/proc") else ():
+        if not entry.isdigit():
+            continue
+        try:
+            stat = Path(f"/proc/{entry}/stat").read_text()
+            fields = stat.rsplit(")", 1)[1].split()
+            if int(fields[1]) == me and fields[0] != "Z":
+                out[int(entry)] = stat[stat.index("(") + 1:stat.rindex(")")]
+        except (OSError, ValueError, IndexError):
+            continue
+    return out
+
+
+def _os_threads() -> dict[int, str]:
+    """This process's OS threads: tid → name (a QThread carries its objectName, e.g. driver:linarm)."""
+    out = {}
+    for tid in os.listdir("/proc/self/task") if os.path.isdir("/proc/self/task") else ():
+        try:
+            out[int(tid)] = Path(f"/proc/self/task/{tid}/comm").read_text().strip()
+        except OSError:
+            continue
+    return out
+
+
+def _python_threads() -> dict[int, str]:
+    return {t.ident or 0: t.name for t in threading.enumerate()
+            if t.is_alive() and not isinstance(t, threading._DummyThread)}  # type: ignore[attr-defined]
+
+
+@pytest.fixture(autouse=True)
+def _nothing_left_running(request):  # type: ignore[no-untyped-def]
+    """Fail a test that leaves a thread, a QThread (driver) or a child process running after it ends."""
+    threads0, os_threads0, children0 = _python_threads(), _os_threads(), _children()
+    yield
+    deadline = time.monotonic() + LEFTOVER_GRACE_S
+    while True:
+        threads = {k: v for k, v in _python_threads().items() if k not in threads0}
+        drivers = {k: v for k, v in _os_threads().items() if k not in os_threads0 and v.startswith("driver:")}
+        children = {k: v for k, v in _children().items() if k not in children0}
+        if not (threads or drivers or children) or time.monotonic() > deadline:
+            break
+        time.sleep(0.05)
+    left = [f"thread {n!r}" for n in threads.values()] + [f"QThread {n!r}" for n in drivers.values()] + \
+        [f"process {pid} ({cmd})" for pid, cmd in children.items()]
+    if left:
+        pytest.fail(f"{request.node.nodeid} left running after it ended: {', '.join(left)}", pytrace=False)

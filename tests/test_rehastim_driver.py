@@ -119,9 +119,14 @@ def test_create_uses_the_protocols_settings_on_a_real_port(protocol: str) -> Non
     fes = replace(config.devices.fes, mode="serial", port="/dev/ttyUSB-not-there", protocol=protocol)
     config = replace(config, devices=replace(config.devices, fes=fes))
     supervisor = SafetySupervisor(config.safety)
-    manager = SimpleNamespace(config=config, supervisor=supervisor, notifier=None, runtime_dir=None,
-                              driver=lambda name: None)
-    handle = create(manager)  # type: ignore[arg-type]
+    from pathlib import Path
+
+    from app.devices.driver import UpdateNotifier
+    from app.devices.registry import DeviceContext, SimulatorHosting
+
+    ctx = DeviceContext("fes", config.devices.fes, config.safety, UpdateNotifier(), supervisor, Path("/nonexistent"),
+                        SimulatorHosting(config, Path("/nonexistent")), {})
+    handle = create(ctx)
     assert handle is not None and handle.simulator is None
     assert handle.driver.transport.settings == SERIAL_SETTINGS[protocol]  # type: ignore[attr-defined]
     assert isinstance(supervisor.fes_limiter, FesLimiter)

@@ -16,6 +16,7 @@ The loop reconnects with back-off when the transport drops, and stops within one
 from __future__ import annotations
 
 import logging
+import os
 import threading
 import time
 from collections.abc import Callable
@@ -91,6 +92,30 @@ class _Accumulator:
         self.cols = {c.name: [] for c in self.spec.channels}
 
 
+REALTIME_ENV = "LINARMPP_REALTIME"  # "0": never ask for real-time scheduling
+_realtime_refused_logged = False
+
+
+def request_realtime(priority: int) -> bool:
+    """Ask the OS to run the calling thread round-robin real-time at ``priority`` (Linux: needs root,
+    CAP_SYS_NICE or an RLIMIT_RTPRIO, e.g. ``@linarmpp - rtprio 20`` in /etc/security/limits.d). True when
+    granted. Measured on a saturated 2-core machine: a normal thread waiting in select() for 10 ms was
+    scheduled up to 170 ms late; a SCHED_RR one at most 13 ms late (docs/decisions.md, #16)."""
+    global _realtime_refused_logged
+    if os.environ.get(REALTIME_ENV) == "0" or not hasattr(os, "sched_setscheduler"):
+        return False
+    try:
+        # 0: this thread (Linux); RESET_ON_FORK: threads it starts (executors) run at normal priority
+        os.sched_setscheduler(0, os.SCHED_RR | getattr(os, "SCHED_RESET_ON_FORK", 0), os.sched_param(priority))
+        return True
+    except (OSError, ValueError) as exc:
+        if not _realtime_refused_logged:
+            _realtime_refused_logged = True
+            log.warning("real-time scheduling refused (%s): device links run at normal priority; grant "
+                        "rtprio to the user for timing under load", exc)
+        return False
+
+
 SampleListener = Callable[[str, float, Any], None]
 EventListener = Callable[[str, str], None]
 
@@ -105,6 +130,11 @@ class DeviceDriver(QThread):
     silence_changed = Signal(bool)  # True: connected but no sample for `silence_timeout_s`
 
     streams: tuple[StreamSpec, ...] = ()
+    # Round-robin real-time priority of the driver thread (None: normal scheduling). Off by default: a
+    # real-time thread that wakes hundreds of times a second takes the interpreter lock from the GUI thread
+    # each time, and under CPU load the GUI then waits for the CPU again (measured: the window took 15-20 s
+    # instead of 3-5 s to build at load 15, #16). The LINarm heartbeat has its own real-time thread instead.
+    realtime_priority: int | None = None
 
     def __init__(
         self,
@@ -138,6 +168,7 @@ class DeviceDriver(QThread):
         self._rate_window_start = time.monotonic()
         self.reconnect_backoff_s = (0.1, 2.0)
         self.connected_since: float | None = None
+        self.realtime = False  # whether the OS granted realtime_priority to the loop
 
     # ------------------------------------------------------------------ public, any thread
     @property
@@ -226,6 +257,8 @@ class DeviceDriver(QThread):
 
     # ------------------------------------------------------------------ the loop
     def run(self) -> None:
+        if self.realtime_priority is not None:
+            self.realtime = request_realtime(self.realtime_priority)
         lo, hi = self.reconnect_backoff_s
         backoff = lo
         while not self._stop.is_set():

@@ -26,7 +26,7 @@ from app.devices.sim.base import SerialSimulator
 from app.devices.transport import SerialSettings, SerialTransport, TransportError
 
 if TYPE_CHECKING:
-    from app.manager import DeviceHandle, LinarmppManager
+    from app.devices.registry import DeviceContext, DeviceHandle
     from app.safety import SafetySupervisor
 
 log = logging.getLogger(__name__)
@@ -93,6 +93,11 @@ def _motor_stream(i: int) -> StreamSpec:
     ), 200.0)
 
 
+# How long the reading loop may go without a pass before the heartbeat thread stops beating. Longer than the
+# kernel stalls measured under load (#16), short enough that a wedged reader stops the robot within 0.75 s.
+HEARTBEAT_READER_GRACE_S = 0.5
+
+
 class LinarmCommandError(RuntimeError):
     """The controller refused a command; ``code`` is its ReplyError."""
 
@@ -121,6 +126,10 @@ class _Pending:
 # ---------------------------------------------------------------------------------------------- driver
 class LinarmDriver(DeviceDriver):
     streams = (STATE_STREAM, VSA_STREAM, _motor_stream(0), _motor_stream(1))
+    # The reading loop runs real-time too: the heartbeat beats only while it passes (0.5 s), and at normal
+    # priority it was measured stalling 0.5-0.6 s under load (#16). The other drivers stay at normal priority.
+    realtime_priority = 20
+    heartbeat_priority = 21  # the heartbeat thread's: it feeds the controller's 250 ms host watchdog
     controller_error = Signal(str)  # an ERROR_EVENT from the controller, as a sentence
     identified = Signal(str)  # firmware version
 
@@ -144,6 +153,9 @@ class LinarmDriver(DeviceDriver):
         self._identify_seq: int | None = None
         self._identified = threading.Event()
         self._last_heartbeat = 0.0
+        self._reader_alive = 0.0
+        self._heartbeat: threading.Thread | None = None
+        self._heartbeat_stop = threading.Event()
         self._async = ThreadPoolExecutor(max_workers=1, thread_name_prefix="linarm-cmd")
         self._async_closed = False
         self._envelope_locked = False  # per connection: the controller may have restarted in between
@@ -254,17 +266,50 @@ class LinarmDriver(DeviceDriver):
                 self._handle_frames(data, time.monotonic_ns(), during_connect=True)
         seq = self._next_seq()
         self.transport.write(proto.encode_command("startDataStream", seq, float(self.stream_period_s)))
-        self._last_heartbeat = time.monotonic()
+        self._last_heartbeat = self._reader_alive = time.monotonic()
+        self._start_heartbeat()
 
     def on_bytes(self, data: bytes, t_ns: int) -> None:
         self._handle_frames(data, t_ns)
 
     def on_tick(self, now_s: float) -> None:
-        if now_s - self._last_heartbeat >= self.heartbeat_period_s:
-            self._last_heartbeat = now_s
-            self.transport.write(proto.encode_command("heartbeat", self._next_seq()))
+        self._reader_alive = now_s  # the heartbeat thread beats only while this loop runs
+
+    # ------------------------------------------------------------------ the heartbeat path
+    def _start_heartbeat(self) -> None:
+        """The heartbeat has a thread of its own that only writes: on a tty, the reading loop may wait in the
+        kernel for the receive worker (poll → tty_buffer_flush_work), and listeners run on it; neither may
+        delay the bytes that keep the controller's 250 ms watchdog fed (docs/decisions.md, #16)."""
+        self._heartbeat_stop = threading.Event()
+        self._heartbeat = threading.Thread(target=self._heartbeat_loop, args=(self._heartbeat_stop,),
+                                           name="linarm-heartbeat", daemon=True)
+        self._heartbeat.start()
+
+    def _stop_heartbeat(self) -> None:
+        thread, stop = getattr(self, "_heartbeat", None), getattr(self, "_heartbeat_stop", None)
+        if stop is not None:
+            stop.set()
+        if thread is not None and thread is not threading.current_thread():
+            thread.join(1.0)
+        self._heartbeat = None
+
+    def _heartbeat_loop(self, stop: threading.Event) -> None:
+        from app.devices.driver import request_realtime
+
+        request_realtime(self.heartbeat_priority)  # 10 wake-ups a second: no cost to the GUI thread
+        while not stop.wait(self.heartbeat_period_s):
+            # A wedged reading loop (the supervisor's robot monitor runs on it) must not be hidden from the
+            # controller: without a loop pass for HEARTBEAT_READER_GRACE_S the beats stop and its watchdog acts.
+            if time.monotonic() - self._reader_alive > HEARTBEAT_READER_GRACE_S:
+                continue
+            try:
+                self.transport.write(proto.encode_command("heartbeat", self._next_seq()))
+                self._last_heartbeat = time.monotonic()
+            except TransportError:
+                return
 
     def on_disconnect(self) -> None:
+        self._stop_heartbeat()
         for pending in list(self._pending.values()):
             if not pending.future.done():
                 pending.future.set_exception(TransportError("the LINarm link was lost"))
@@ -371,28 +416,35 @@ class LinarmSimAdapter:
         return self.core.stream_bytes(t - self.t0)
 
 
-def create(manager: LinarmppManager) -> DeviceHandle | None:
-    from app.manager import DeviceHandle
+def create(ctx: DeviceContext) -> DeviceHandle | None:
+    """The LINarm from its context: driver on its serial link (or the simulator's), the supervisor's robot
+    probes and monitor, and the robot's stop action."""
+    from app.devices.registry import DeviceHandle
+    from app.safety import RobotProbes
 
-    cfg: LinarmDevice = manager.config.devices.linarm
+    cfg: LinarmDevice = ctx.config
     if cfg.mode == "off":
         return None
     simulator = None
     url = cfg.port
     if cfg.mode == "simulated":
-        patient = manager.sim_patient()
-        simulator = SerialSimulator("linarm", lambda: LinarmSimAdapter(patient), manager.runtime_dir / "linarm.tty",
-                                    tick_s=0.001)
+        link = ctx.runtime_dir / "linarm.tty"
+        simulator = ctx.simulators.serial(
+            "linarm", "linarm",
+            lambda patient: SerialSimulator("linarm", lambda: LinarmSimAdapter(patient), link, tick_s=0.001))
         url = simulator.url
-    safety = manager.config.safety
-    silence = max(safety.silence_periods / cfg.state_rate_hz, safety.silence_min_s)
-    driver = LinarmDriver(url, manager.supervisor, baudrate=cfg.baudrate, stream_period_s=1.0 / cfg.state_rate_hz,
+    supervisor = ctx.supervisor
+    driver = LinarmDriver(url, supervisor, baudrate=cfg.baudrate, stream_period_s=1.0 / cfg.state_rate_hz,
                           command_timeout_s=cfg.command_timeout_s, heartbeat_period_s=cfg.heartbeat_period_s,
-                          notifier=manager.notifier, silence_timeout_s=silence)
+                          notifier=ctx.notifier, silence_timeout_s=ctx.silence_timeout(cfg.state_rate_hz))
 
     def centre() -> float | None:
         vsa = driver.latest("linarm.vsa")
         return vsa.equilibriumPos if vsa is not None else None
+
+    def delta() -> float | None:
+        vsa = driver.latest("linarm.vsa")
+        return vsa.delta if vsa is not None else None
 
     def homed() -> bool:
         state = driver.latest("linarm.state")
@@ -400,22 +452,16 @@ def create(manager: LinarmppManager) -> DeviceHandle | None:
 
     def monitor(stream: str, t: float, sample: Any) -> None:
         if stream == "linarm.vsa":
-            manager.supervisor.check_robot_sample(sample)
-
-    def delta() -> float | None:
-        vsa = driver.latest("linarm.vsa")
-        return vsa.delta if vsa is not None else None
+            supervisor.check_robot_sample(sample)
 
     def on_event(event: str, _detail: str) -> None:
         if event == "connected":
-            future = driver.apply_limits(manager.supervisor.robot)
+            future = driver.apply_limits(supervisor.robot)
             future.add_done_callback(lambda f: f.exception() and log.error(
                 "LINarm limits not applied: %s", f.exception()))
 
     driver.add_event_listener(on_event)
-    manager.supervisor.latest_centre_m = centre
-    manager.supervisor.latest_delta_m = delta
-    manager.supervisor.robot_homed = homed
+    ctx.set_robot_probes(RobotProbes(centre, delta, homed))
     driver.add_listener(monitor)
-    manager.supervisor.register_estop_action("robot IDLE", driver.emergency_idle)
+    ctx.add_stop_action("robot IDLE", driver.emergency_idle, robot=True)
     return DeviceHandle("linarm", driver, simulator)

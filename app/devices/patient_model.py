@@ -75,7 +75,7 @@ from app.devices.udp_frames import (
 from app.patient_model.decision_tree import DEFAULT_CONFIG_PATH, decode_path_code
 
 if TYPE_CHECKING:
-    from app.manager import DeviceHandle, LinarmppManager
+    from app.devices.registry import DeviceContext, DeviceHandle
 
 log = logging.getLogger(__name__)
 
@@ -586,10 +586,12 @@ def embedded_process(host: str, model_port: int, manager_port: int, config_path:
         *(extra or [])])
 
 
-def create(manager: LinarmppManager) -> DeviceHandle | None:
-    from app.manager import DeviceHandle
+def create(ctx: DeviceContext) -> DeviceHandle | None:
+    from app.devices.registry import DeviceHandle
 
-    cfg = manager.config.devices.patient_model
+    manager = ctx.app  # the frame sources read the other devices and the assistance through it
+
+    cfg = ctx.config
     if cfg.mode == "off":
         return None
     if cfg.mode not in ("embedded", "external"):
@@ -609,7 +611,7 @@ def create(manager: LinarmppManager) -> DeviceHandle | None:
     if process is not None:
         process.authenticate = cfg.authenticated
     driver = PatientModelDriver((host, listen_port), peer, cfg.rate_hz, split=manager_split(manager),
-                                process=process, notifier=manager.notifier, key=link_key(cfg))
+                                process=process, notifier=ctx.notifier, key=link_key(cfg))
     driver.frame_source = ManagerFrameSource(manager, driver)
     warn_if_plain(manager, "patient_model", cfg)
     if process is not None:

@@ -17,8 +17,8 @@ from app.devices.sim.physio_signals import PhysioSimSource
 from app.devices.transport import SerialSettings, SerialTransport
 
 if TYPE_CHECKING:
+    from app.devices.registry import DeviceContext, DeviceHandle
     from app.devices.sim.patient import SimulatedPatient
-    from app.manager import DeviceHandle, LinarmppManager
 
 PHYSIO_STREAM = StreamSpec("physio.main", (
     Channel("heartRate", "bpm", "Heart rate"),
@@ -77,21 +77,25 @@ class PhysioSimCore:
         return self.source.frames_until(t)
 
 
-def create(manager: LinarmppManager) -> DeviceHandle | None:
-    from app.manager import DeviceHandle
+def create(ctx: DeviceContext) -> DeviceHandle | None:
+    from app.devices.registry import DeviceHandle
 
-    cfg: PhysioDevice = manager.config.devices.physio
+    cfg: PhysioDevice = ctx.config
     if cfg.mode == "off":
         return None
     calibration = calibration_from_config(cfg.calibration)
     simulator = None
     url = cfg.port
     if cfg.mode == "simulated":
-        patient = manager.sim_patient()
-        simulator = SerialSimulator("physio", lambda: PhysioSimCore(patient, cfg.rate_hz, calibration),
-                                    manager.runtime_dir / "physio.tty", tick_s=min(0.005, 0.5 / cfg.rate_hz))
+        link, rate = ctx.runtime_dir / "physio.tty", cfg.rate_hz
+        simulator = ctx.simulators.serial(
+            "physio", "physio",
+            lambda patient: SerialSimulator("physio", lambda: PhysioSimCore(patient, rate, calibration), link,
+                                            tick_s=min(0.005, 0.5 / rate)),
+            rate_hz=rate, calibration={k: [c.gain, c.offset] for k, c in (
+                ("skinConductance", calibration.skinConductance), ("temperature", calibration.temperature),
+                ("force", calibration.force))})
         url = simulator.url
-    safety = manager.config.safety
-    silence = max(safety.silence_periods / cfg.rate_hz, safety.silence_min_s)
-    driver = PhysioDriver(url, cfg.baudrate, calibration, notifier=manager.notifier, silence_timeout_s=silence)
+    driver = PhysioDriver(url, cfg.baudrate, calibration, notifier=ctx.notifier,
+                          silence_timeout_s=ctx.silence_timeout(cfg.rate_hz))
     return DeviceHandle("physio", driver, simulator)

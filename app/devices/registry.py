@@ -1,21 +1,32 @@
-"""Which devices the manager creates, in start order. Each device module offers
-``create(manager) -> DeviceHandle | None`` (None when its config says `off`)."""
+"""The composition root: which devices exist, and the one place that assembles them.
+
+Each device module offers ``create(ctx: DeviceContext) -> DeviceHandle | None`` (None when its config says
+``off``). A device gets everything it needs from its context — its config section, the shared update
+notifier, the supervisor's registration API (typed stop actions, robot probes, FES limits), the link to
+its simulator when simulated, and the drivers built before it — and never imports the manager.
+
+Simulated serial devices are hosted by :class:`SimulatorHosting`: in a process of their own by default
+(app.devices.sim.host), or in the app's process (``simulation.host: thread``).
+"""
 
 from __future__ import annotations
 
 import importlib
 import importlib.util
 import logging
-from typing import TYPE_CHECKING
+import os
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
 
-from app.config import AppConfig
-
-if TYPE_CHECKING:
-    from app.manager import DeviceFactory
+from app.config import AppConfig, SafetyConfig
+from app.devices.driver import DeviceDriver, UpdateNotifier
+from app.safety import RobotProbes, SafetySupervisor, StopAction
 
 log = logging.getLogger(__name__)
 
-# name → module; the order is the start order (the patient model needs the others' streams).
+# name → module; the order is the build order (the patient model needs the others' streams).
 DEVICE_MODULES: dict[str, str] = {
     "linarm": "app.devices.linarm",
     "physio": "app.devices.physio",
@@ -23,6 +34,120 @@ DEVICE_MODULES: dict[str, str] = {
     "patient_model": "app.devices.patient_model",
     "vr": "app.devices.vr",
 }
+
+
+@dataclass
+class DeviceHandle:
+    """One device as the manager holds it: its driver, and its simulator when simulated."""
+
+    name: str
+    driver: DeviceDriver
+    simulator: Any = None  # SerialSimulator (in-process) or RemoteSimulator (simulator process)
+    extras: dict[str, Any] = field(default_factory=dict)  # e.g. helper processes, "safe_stop"
+
+    @property
+    def simulated(self) -> bool:
+        return self.simulator is not None or bool(self.extras.get("simulated"))
+
+
+class SimulatorHosting:
+    """Gives simulated serial devices their far-side link, in- or out-of-process, and the simulated patient
+    they share. Out of process, devices are collected while the root builds them and the simulator
+    process starts once, before any driver (the links' paths are known in advance)."""
+
+    def __init__(self, config: AppConfig, runtime_dir: Path) -> None:
+        self.mode = os.environ.get("LINARMPP_SIM_HOST") or config.simulation.host
+        if self.mode not in ("process", "thread"):
+            raise ValueError(f"simulation host must be 'process' or 'thread', got {self.mode!r}")
+        self.linarm_kind = config.simulation.linarm
+        self.link = os.environ.get("LINARMPP_SIM_LINK") or config.simulation.link
+        self.runtime_dir = runtime_dir
+        self.process: Any = None  # app.devices.sim.host.SimulatorProcess
+        self._spec: dict[str, dict[str, Any]] = {}
+        self._patient: Any = None
+
+    @property
+    def out_of_process(self) -> bool:
+        return self.mode == "process"
+
+    def patient(self) -> Any:
+        """The one simulated patient (grip and handle forces) shared by the simulators."""
+        if self._patient is None:
+            if self.out_of_process:
+                from app.devices.sim.host import RemotePatient, SimulatorProcess
+
+                self.process = self.process or SimulatorProcess(self._process_spec())
+                self._patient = RemotePatient(self.process)
+            else:
+                from app.devices.sim.patient import SimulatedPatient
+
+                self._patient = SimulatedPatient(seed=7)
+        return self._patient
+
+    def _process_spec(self) -> dict[str, Any]:
+        return {"runtime_dir": str(self.runtime_dir), "devices": self._spec, "patient_seed": 7, "linger_s": 1.0,
+                "events_file": os.environ.get("LINARMPP_SIM_EVENTS", "")}
+
+    def serial(self, name: str, kind: str, in_process: Callable[[Any], Any], **params: Any) -> Any:
+        """The simulator of device ``name`` (its ``url`` is what the driver opens). ``in_process(patient)``
+        builds the in-process SerialSimulator; ``kind`` and ``params`` describe it to the simulator process."""
+        if not self.out_of_process:
+            return in_process(self.patient())
+        from app.devices.sim.host import RemoteSimulator, SimulatorProcess, find_firmware_sil, free_tcp_port
+
+        if kind == "linarm" and self.linarm_kind == "firmware":
+            sil = find_firmware_sil()
+            if sil is None:
+                raise RuntimeError("simulation.linarm is 'firmware' but the firmware's SIL executable is not "
+                                   "built (cmake -S firmware/host -B firmware/build && cmake --build firmware/build)")
+            kind, params = "linarm_firmware", {**params, "executable": str(sil)}
+        tcp_port = free_tcp_port() if self.link == "socket" else None
+        self._spec[name] = {"kind": kind, **params, **({"tcp_port": tcp_port} if tcp_port else {})}
+        self.patient()
+        self.process = self.process or SimulatorProcess(self._process_spec())
+        return RemoteSimulator(name, self.process, self.runtime_dir / f"{name}.tty", tcp_port)
+
+    def start(self) -> None:
+        """Start the simulator process (when any device asked for one); raises when it does not come up."""
+        if self.process is not None and self._spec and not self.process.alive:
+            self.process.spec = self._process_spec()
+            self.process.start()
+
+    def stop(self) -> None:
+        if self.process is not None:
+            self.process.stop()
+
+
+@dataclass
+class DeviceContext:
+    """What a device's ``create`` may use: nothing else of the application."""
+
+    name: str
+    config: Any  # the device's own config section (e.g. app.config.LinarmDevice)
+    safety: SafetyConfig
+    notifier: UpdateNotifier
+    supervisor: SafetySupervisor  # the drivers' checked command paths call it
+    runtime_dir: Path
+    simulators: SimulatorHosting
+    peers: Mapping[str, DeviceDriver]  # drivers built before this one, by name
+    app: Any = None  # the manager, for the UDP peers' frame sources only (patient model, VR)
+
+    # ---------------------------------------------------------------- the supervisor's registration API
+    def add_stop_action(self, name: str, run: Callable[[str], None], *, robot: bool = False) -> None:
+        self.supervisor.add_stop_action(StopAction(name, run, robot=robot))
+
+    def set_robot_probes(self, probes: RobotProbes) -> None:
+        self.supervisor.set_robot_probes(probes)
+
+    def silence_timeout(self, rate_hz: float) -> float:
+        """How long a stream at ``rate_hz`` may be quiet before it is called silent (one rule for all)."""
+        return max(self.safety.silence_periods / rate_hz, self.safety.silence_min_s)
+
+    def sim_patient(self) -> Any:
+        return self.simulators.patient()
+
+
+DeviceFactory = Callable[[DeviceContext], DeviceHandle | None]
 
 
 def default_factories(config: AppConfig) -> dict[str, DeviceFactory]:
@@ -36,3 +161,25 @@ def default_factories(config: AppConfig) -> dict[str, DeviceFactory]:
         module = importlib.import_module(module_name)
         factories[name] = module.create
     return factories
+
+
+def build_devices(factories: Mapping[str, DeviceFactory], config: AppConfig, *, notifier: UpdateNotifier,
+                  supervisor: SafetySupervisor, runtime_dir: Path, simulators: SimulatorHosting, app: Any = None,
+                  on_error: Callable[[str, Exception], None] | None = None) -> dict[str, DeviceHandle]:
+    """Every device of ``factories``, in order, each from its typed context; a device that fails to build
+    is reported through ``on_error`` and left out."""
+    handles: dict[str, DeviceHandle] = {}
+    for name, factory in factories.items():
+        section = getattr(config.devices, name, None)
+        ctx = DeviceContext(name, section, config.safety, notifier, supervisor, runtime_dir, simulators,
+                            {n: h.driver for n, h in handles.items()}, app)
+        try:
+            handle = factory(ctx)
+        except Exception as exc:
+            log.exception("device %s could not be created", name)
+            if on_error is not None:
+                on_error(name, exc)
+            continue
+        if handle is not None:
+            handles[name] = handle
+    return handles

@@ -71,7 +71,7 @@ from app.fes_profile import MAX_SCALE, FesProfile
 from app.safety import AlarmLevel, SafetyError
 
 if TYPE_CHECKING:
-    from app.manager import DeviceHandle, LinarmppManager
+    from app.devices.registry import DeviceContext, DeviceHandle
     from app.safety import SafetySupervisor
 
 log = logging.getLogger(__name__)
@@ -869,10 +869,10 @@ def watch_link(source: Any, fes: FesDriver, label: str) -> None:
     source.add_event_listener(on_event)
 
 
-def create(manager: LinarmppManager) -> DeviceHandle | None:
-    from app.manager import DeviceHandle
+def create(ctx: DeviceContext) -> DeviceHandle | None:
+    from app.devices.registry import DeviceHandle
 
-    cfg: FesDevice = manager.config.devices.fes
+    cfg: FesDevice = ctx.config
     if cfg.mode == "off":
         return None
     protocol: Protocol = cfg.protocol
@@ -884,18 +884,21 @@ def create(manager: LinarmppManager) -> DeviceHandle | None:
     url = cfg.port
     settings = SERIAL_SETTINGS[protocol]
     if cfg.mode == "simulated":
-        simulator = SerialSimulator("fes", lambda: RehaStimSimAdapter(protocol), manager.runtime_dir / "fes.tty",
-                                    tick_s=0.002)
+        link = ctx.runtime_dir / "fes.tty"
+        simulator = ctx.simulators.serial(
+            "fes", "fes", lambda _patient: SerialSimulator("fes", lambda: RehaStimSimAdapter(protocol), link,
+                                                           tick_s=0.002),
+            protocol=protocol)
         url = simulator.url
         settings = simulated_link_settings(protocol)
-    supervisor = manager.supervisor
+    supervisor = ctx.supervisor
     if supervisor.fes_limiter is None:
-        supervisor.fes_limiter = FesLimiter(FesLimits.from_config(manager.config.safety.fes))
+        supervisor.fes_limiter = FesLimiter(FesLimits.from_config(ctx.safety.fes))
     driver = FesDriver(url, supervisor, protocol=protocol, ack_timeout_s=cfg.ack_timeout_s,
-                       serial_settings=settings, notifier=manager.notifier)
-    supervisor.register_estop_action("FES stop", lambda reason: driver.stop_stimulation(reason, "safety supervisor"))
+                       serial_settings=settings, notifier=ctx.notifier)
+    ctx.add_stop_action("FES stop", lambda reason: driver.stop_stimulation(reason, "safety supervisor"))
     for name, label in (("linarm", "LINarm"), ("physio", "physiological sensors")):
-        other = manager.driver(name)
+        other = ctx.peers.get(name)
         if other is not None:
             watch_link(other, driver, label)
     return DeviceHandle("fes", driver, simulator, {"safe_stop": lambda reason: driver.stop_stimulation(reason)})

@@ -56,7 +56,7 @@ from app.devices.udp_frames import (
 )
 
 if TYPE_CHECKING:
-    from app.manager import DeviceHandle, LinarmppManager
+    from app.devices.registry import DeviceContext, DeviceHandle
 
 NAN = math.nan
 
@@ -246,10 +246,12 @@ def standin_process(host: str, standin_port: int, manager_port: int, window: boo
     return HelperProcess("app.vr_standin", args)
 
 
-def create(manager: LinarmppManager) -> DeviceHandle | None:
-    from app.manager import DeviceHandle
+def create(ctx: DeviceContext) -> DeviceHandle | None:
+    from app.devices.registry import DeviceHandle
 
-    cfg = manager.config.devices.vr
+    manager = ctx.app  # the frame sources read the other devices and the assistance through it
+
+    cfg = ctx.config
     if cfg.mode == "off":
         return None
     host = cfg.bind_host
@@ -266,7 +268,7 @@ def create(manager: LinarmppManager) -> DeviceHandle | None:
     if process is not None:
         process.authenticate = cfg.authenticated
     driver = VrDriver((host, listen_port), peer, cfg.rate_hz, manager=manager, process=process,
-                      notifier=manager.notifier, key=link_key(cfg))
+                      notifier=ctx.notifier, key=link_key(cfg))
     warn_if_plain(manager, "vr", cfg)
     if process is not None:
         process.start()

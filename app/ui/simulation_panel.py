@@ -13,7 +13,6 @@ Inputs are checked before anything is applied: a bad value is reported and nothi
 from __future__ import annotations
 
 import logging
-import time
 from typing import Any
 
 from PySide6.QtCore import Qt, QTimer
@@ -276,7 +275,7 @@ class SimulationPanel(QWidget):
             return False
         try:
             fn(self.patient)
-        except ValueError as exc:
+        except (ValueError, RuntimeError) as exc:  # RuntimeError: the simulator process did not answer
             self._say(f"Not applied: {exc}", ok=False)
             return False
         self._say(f"Simulated patient: {what}.")
@@ -327,7 +326,8 @@ class SimulationPanel(QWidget):
             return False
         amp = self.phasic_amplitude.value()
         amplitude = None if amp <= self.phasic_amplitude.minimum() else amp
-        sim.with_core(lambda core: core.source.phasic_event(time.monotonic(), amplitude))
+        if not self._control(sim, "phasic_event", amplitude):
+            return False
         self._say("Skin-conductance response triggered" + (f" ({amp:.2f} µS)." if amplitude else "."))
         self.manager.supervisor.event("simulation", action="phasic event", amplitude=amplitude)
         return True
@@ -344,16 +344,30 @@ class SimulationPanel(QWidget):
         if sim is None:
             return False
         flags = self.fault_flags()
-        sim.with_core(lambda core: core.source.set_fault_flags(flags))
+        if not self._control(sim, "set_fault_flags", flags):
+            return False
         self._say(f"Physiological board fault flags: 0x{flags:02X}.")
         self.manager.supervisor.event("simulation", action="fault flags", flags=flags)
+        return True
+
+    def _control(self, sim: Any, name: str, *args: Any) -> bool:
+        """A control of a simulator, in this process or the simulator process; False (said) when it failed."""
+        try:
+            sim.control(name, *args)
+        except Exception as exc:  # the simulator process may be gone or slow: say so, change nothing
+            self._say(f"Not applied: {exc}", ok=False)
+            return False
         return True
 
     def kill(self, name: str) -> None:
         handle = self.manager.devices.get(name)
         if handle is None or handle.simulator is None:
             return
-        handle.simulator.kill()
+        try:
+            handle.simulator.kill()
+        except Exception as exc:
+            self._say(f"Not applied: {exc}", ok=False)
+            return
         self._say(f"Simulated {name}: cable pulled.")
         self.manager.supervisor.event("simulation", action="kill", device=name)
         self.refresh()
@@ -362,7 +376,11 @@ class SimulationPanel(QWidget):
         handle = self.manager.devices.get(name)
         if handle is None or handle.simulator is None:
             return
-        handle.simulator.restart()
+        try:
+            handle.simulator.restart()
+        except Exception as exc:
+            self._say(f"Not applied: {exc}", ok=False)
+            return
         if name == "physio":  # a freshly powered board has no fault flags
             for check in self.fault_checks.values():
                 check.setChecked(False)

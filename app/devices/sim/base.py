@@ -8,6 +8,7 @@ link (pty or localhost socket) and a clock. ``kill()`` closes the link like pull
 from __future__ import annotations
 
 import logging
+import os
 import threading
 import time
 from collections.abc import Callable
@@ -35,18 +36,23 @@ class SerialSimulator:
     """Runs ``core`` on a link in its own daemon thread, polling it every ``tick_s``."""
 
     def __init__(self, name: str, core_factory: Callable[[], SimCore], link_path: Path | None,
-                 tick_s: float = 0.001) -> None:
+                 tick_s: float = 0.001, link_factory: Callable[[], SimLink] | None = None) -> None:
         self.name = name
         self.core_factory = core_factory
         self.link_path = link_path
         self.tick_s = tick_s
+        # The far side of the link: a pty behind ``link_path`` by default, or e.g. a loopback socket.
+        self.link_factory = link_factory or (lambda: make_sim_link(link_path))
         self.core: SimCore = core_factory()
-        self.link: SimLink = make_sim_link(link_path)
+        self.link: SimLink = self.link_factory()
         self.host_bytes_log: list[tuple[float, bytes]] = []  # what the driver sent, for tests
         self.keep_host_log = False
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._lock = threading.Lock()  # guards `core` against test/GUI threads poking it
+        # The device stands in for a microcontroller: it is not the app's CPU load, and starving it would
+        # measure the rig, not the app. Real-time (below the LINarm link's 20) when the OS allows.
+        self.realtime_priority: int | None = None if os.environ.get("LINARMPP_SIM_REALTIME") == "0" else 10
 
     @property
     def url(self) -> str:
@@ -76,7 +82,7 @@ class SerialSimulator:
         self.stop()
         if fresh_state:
             self.core = self.core_factory()
-        self.link = make_sim_link(self.link_path)
+        self.link = self.link_factory()
         self.start()
 
     def with_core(self, fn: Callable[[SimCore], object]) -> object:
@@ -84,7 +90,19 @@ class SerialSimulator:
         with self._lock:
             return fn(self.core)
 
+    def control(self, name: str, *args: object) -> object:
+        """A named control of the core (app.devices.sim.host.DEVICE_CONTROLS), as the simulator process
+        offers it: the Simulation panel calls the same names however its simulators are hosted."""
+        from app.devices.sim.host import DEVICE_CONTROLS
+
+        fn = DEVICE_CONTROLS[name]
+        return self.with_core(lambda core: fn(core, *args))
+
     def _run(self) -> None:
+        if self.realtime_priority is not None:
+            from app.devices.driver import request_realtime
+
+            request_realtime(self.realtime_priority)
         link = self.link
         next_tick = time.monotonic()
         try:
