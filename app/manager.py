@@ -235,9 +235,19 @@ class LinarmppManager(QObject):
     def add_shutdown_hook(self, fn: Callable[[], None]) -> None:
         self._shutdown_hooks.append(fn)
 
+    def _run_shutdown_hooks(self) -> None:
+        """Each hook once, the newest first."""
+        hooks, self._shutdown_hooks = self._shutdown_hooks, []
+        for fn in reversed(hooks):
+            try:
+                fn()
+            except Exception:
+                log.exception("shutdown hook failed")
+
     def shutdown(self, timeout_s: float = 1.0) -> None:
         """Bring every device to a safe state, then stop all threads and helper processes."""
         if not self._started:
+            self._run_shutdown_hooks()  # e.g. a script console's kernel, made before any device started
             return
         self._started = False
         t0 = time.monotonic()
@@ -247,11 +257,7 @@ class LinarmppManager(QObject):
         if self._lsl is not None:
             self._lsl.stop()
             self._lsl = None
-        for fn in reversed(self._shutdown_hooks):
-            try:
-                fn()
-            except Exception:
-                log.exception("shutdown hook failed")
+        self._run_shutdown_hooks()
         for handle in self.devices.values():
             handle.driver._stop.set()  # all at once, then wait: total time = the slowest, not the sum
         for handle in self.devices.values():

@@ -135,4 +135,9 @@ def _nothing_left_running(request):  # type: ignore[no-untyped-def]
     left = [f"thread {n!r}" for n in threads.values()] + [f"QThread {n!r}" for n in drivers.values()] + \
         [f"process {pid} ({cmd})" for pid, cmd in children.items()]
     if left:
-        pytest.fail(f"{request.node.nodeid} left running after it ended: {', '.join(left)}", pytrace=False)
+        import traceback
+
+        frames = sys._current_frames()
+        where = "".join(f"\n--- {name}:\n" + "".join(traceback.format_stack(frames[ident])[-4:])
+                        for ident, name in threads.items() if ident in frames)
+        pytest.fail(f"{request.node.nodeid} left running after it ended: {', '.join(left)}{where}", pytrace=False)

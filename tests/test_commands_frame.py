@@ -59,3 +59,4 @@ def test_panels_load_when_present_and_simulation_only_when_simulated(qtbot, monk
     assert "FES" in titles and "Simulation" not in titles
     assert isinstance(frame.panels["FesPanel"], FakePanel) and frame.no_devices.isVisibleTo(frame)
     assert commands_frame.set_device_running(manager, "nope", True) is False
+    manager.shutdown()  # ends the script console's kernel

@@ -63,8 +63,9 @@ def test_cross_field_rules(tmp_path: Path) -> None:
 
 
 def test_main_refuses_a_malformed_config_and_starts_nothing(tmp_path: Path, capsys, monkeypatch) -> None:
-    import main
     from PySide6.QtWidgets import QMessageBox
+
+    import main
 
     # With a display (Xvfb in CI) the window path also shows the refusal in a dialog: record it
     # instead of blocking the test on a modal box.

@@ -110,6 +110,9 @@ class ScriptRunner:
         self.callbacks_dropped = 0
         self.kernel_start_s: float | None = None  # Start → the kernel has the script (the last run)
         self.gate = Gate()
+        add_hook = getattr(manager, "add_shutdown_hook", None)
+        if callable(add_hook):  # no kernel outlives the devices it was driving
+            add_hook(self.close)
         self.paused = False
         self._done = threading.Event()
         self._done.set()
@@ -201,6 +204,7 @@ class ScriptRunner:
             bridge.close()
         for kernel in kernels:
             kernel.retire()
+        self.context.close()
 
     def ready(self, timeout: float | None = None) -> bool:
         """True once the current kernel has started (it is started with the runner; Start then only hands
@@ -495,6 +499,7 @@ class ScriptRunner:
         if safe_thread is not None:
             safe_thread.join(2.0)
         self._bring_to_safe_state(result)
+        self.context.close()  # the homing helper's thread and listeners end with the run
         if sup is not None:
             sup.event("script_stop", name=name, reason=result.message or result.status, status=result.status)
         if progress is not None:
