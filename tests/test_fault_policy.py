@@ -242,7 +242,8 @@ def test_losing_the_model_or_vr_while_they_drive_nothing_is_a_warning(tmp_path, 
         assert policy.loss_level("vr") == AlarmLevel.WARNING
         assert policy.loss_level("physio") == AlarmLevel.STOP
         manager.driver("patient_model")._fire_event("disconnected", "no valid datagram for 0.5 s")
-        assert [a for a in manager.supervisor.alarms() if a.level == AlarmLevel.WARNING and "patient_model" in a.text]
+        qtbot.waitUntil(lambda: any(a.level == AlarmLevel.WARNING and "patient_model" in a.text
+                                    for a in manager.supervisor.alarms()), timeout=3000)
         assert not policy.faults and not safe.calls["FES stop"]
         manager.driver("fes").stimulating = True
         assert policy.loss_level("patient_model") == AlarmLevel.STOP

@@ -946,6 +946,23 @@ def make_wait_condition(kernel: Kernel, namespace: Mapping[str, Any]) -> Callabl
 
 
 # ---------------------------------------------------------------------------------------------- entry
+_APP_PACKAGES = ("app", "PySide6", "shiboken6", "serial")
+
+
+class _NoApplicationModules:
+    """``-I`` keeps the checkout off ``sys.path``, but an installed (or editable) application sits in
+    site-packages beside the packages scripts may use (numpy, ...). A script that imports the application's
+    modules would only get fresh, unconnected copies, never the application's live objects; refusing them
+    makes that plain and keeps a script from opening a device behind the supervisor's back by accident. A
+    barrier, not a sandbox (decisions.md, "Script kernel": a process is not a sandbox)."""
+
+    def find_spec(self, name: str, path: object = None, target: object = None) -> None:
+        if name.split(".")[0] in _APP_PACKAGES:
+            raise ImportError(f"{name} is not available to scripts: devices are reached through the script API "
+                              "(linarm, physiologicalSensors, fes, patientModel, VRUnity, linarmppManager)")
+        return None
+
+
 def main(argv: list[str]) -> int:
     t0 = time.perf_counter()
     fd = int(argv[1])
@@ -954,6 +971,7 @@ def main(argv: list[str]) -> int:
         import resource
 
         resource.setrlimit(resource.RLIMIT_AS, (memory_limit, memory_limit))
+    sys.meta_path.insert(0, _NoApplicationModules())
     faulthandler.enable(file=sys.__stderr__, all_threads=False)  # a crash names the script's line
     sys.setswitchinterval(SWITCH_INTERVAL_S)
     sock = socket.socket(fileno=fd)
