@@ -18,6 +18,7 @@ frontal_reaching.yaml), so Stop interrupts a running stimulation.
 from __future__ import annotations
 
 import argparse
+import os
 import random
 import sys
 import threading
@@ -27,6 +28,9 @@ from pathlib import Path
 from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+# Both ends are stamped on the simulator threads (common.WireTap wraps the simulator cores), so the
+# simulators run as threads of this process here, as in the suite; the app itself hosts them in a process.
+os.environ.setdefault("LINARMPP_SIM_HOST", "thread")
 
 import common
 

@@ -34,6 +34,9 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+# Both ends are stamped on the simulator threads (common.WireTap wraps the simulator cores), so the
+# simulators run as threads of this process here, as in the suite; the app itself hosts them in a process.
+os.environ.setdefault("LINARMPP_SIM_HOST", "thread")
 
 import common
 
