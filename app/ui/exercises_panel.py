@@ -190,11 +190,13 @@ class ExercisesPanel(QWidget):
         right_lay = QVBoxLayout(right)
         right_lay.setContentsMargins(4, 0, 0, 0)
         right_lay.addWidget(self.title)
-        right_lay.addWidget(self.description)
-        right_lay.addWidget(self.form_box)
+        # Start / Pause / Stop and the progress first: at 1366×768 they stay on screen while the
+        # description and the form below them scroll (issue #19: primary controls without scrolling).
         right_lay.addLayout(controls)
         right_lay.addWidget(self.message)
         right_lay.addWidget(status_box)
+        right_lay.addWidget(self.description)
+        right_lay.addWidget(self.form_box)
         right_lay.addStretch(1)
 
         split = QSplitter()

@@ -311,7 +311,7 @@ def _answer(request: dict[str, Any], sims: dict[str, Any], patient: Any) -> dict
             method = request["method"]
             if method not in PATIENT_METHODS:
                 raise ValueError(f"no patient behaviour {method!r}")
-            getattr(patient, method)(*request.get("args", []))
+            getattr(patient, method)(*request.get("args", []), **request.get("kwargs", {}))
             result = patient_settings_dict(patient.settings())
         elif op == "patient_settings":
             result = patient_settings_dict(patient.settings())
@@ -530,8 +530,9 @@ class RemotePatient:
         if method not in PATIENT_METHODS:
             raise AttributeError(method)
 
-        def call(*args: Any) -> None:
-            self._settings = patient_settings_from(self.process.call("patient", method=method, args=list(args)))
+        def call(*args: Any, **kwargs: Any) -> None:  # as the in-process patient's methods take them
+            self._settings = patient_settings_from(self.process.call("patient", method=method, args=list(args),
+                                                                     kwargs=dict(kwargs)))
 
         return call
 
