@@ -241,9 +241,13 @@ def test_losing_the_model_or_vr_while_they_drive_nothing_is_a_warning(tmp_path, 
         assert policy.loss_level("patient_model") == AlarmLevel.WARNING  # e.g. while the robot homes
         assert policy.loss_level("vr") == AlarmLevel.WARNING
         assert policy.loss_level("physio") == AlarmLevel.STOP
-        manager.driver("patient_model")._fire_event("disconnected", "no valid datagram for 0.5 s")
-        qtbot.waitUntil(lambda: any(a.level == AlarmLevel.WARNING and "patient_model" in a.text
-                                    for a in manager.supervisor.alarms()), timeout=3000)
+        # The manager's watch counts a loss only after it has seen the "connected" event, which the driver
+        # thread delivers just after `connected` turns true: inject until the watch has taken one.
+        def lost() -> bool:
+            manager.driver("patient_model")._fire_event("disconnected", "no valid datagram for 0.5 s")
+            return any(a.level == AlarmLevel.WARNING and "patient_model" in a.text for a in manager.supervisor.alarms())
+
+        qtbot.waitUntil(lost, timeout=3000)
         assert not policy.faults and not safe.calls["FES stop"]
         manager.driver("fes").stimulating = True
         assert policy.loss_level("patient_model") == AlarmLevel.STOP
