@@ -2,7 +2,8 @@
 nominal rates (100 Hz physio, 200 Hz LINarm state, 100 Hz / 50 Hz UDP) with the window open.
 Targets: ≥ 10× nominal lossless; ≤ 10 % of one core at nominal.
 
-    .venv/bin/python bench/bench_headroom.py [--seconds S] [--steps 1,5,10,20] [--profile]
+    .venv/bin/python bench/bench_headroom.py [--seconds S] [--steps 1,5,10,20] [--profile] [--only physio,linarm]
+        [--runs 3] [--no-window]
 
 Every step runs all the streams at once at ``step × nominal`` for ``--seconds`` (README figures: 60 s), in the
 real application (manager + MainWindow offscreen, the graphs showing their default signals at the configured
@@ -69,9 +70,13 @@ class ClockGaps:
         self.seen += 1
 
 
-def config_at(step: float) -> Any:
+DEVICES = ("physio", "linarm", "fes", "patient_model", "vr")
+
+
+def config_at(step: float, only: tuple[str, ...] = DEVICES) -> Any:
     cfg = common.bench_config()
     d = cfg.devices
+    d = replace(d, **{n: replace(getattr(d, n), mode="off") for n in DEVICES if n not in only})
     linarm_hz = min(LINARM_MAX_HZ, NOMINAL["linarm"] * step)
     return replace(cfg, devices=replace(
         d,
@@ -95,8 +100,9 @@ def helper_pids(manager: Any) -> dict[str, int]:
     return out
 
 
-def run_step(step: float, seconds: float, profile: str = "", headless: bool = False) -> dict[str, Any]:
-    config = config_at(step)
+def run_step(step: float, seconds: float, profile: str = "", headless: bool = False,
+             only: tuple[str, ...] = DEVICES) -> dict[str, Any]:
+    config = config_at(step, only)
     manager = common.start_manager(config)
     window = None
     try:
@@ -125,11 +131,12 @@ def run_step(step: float, seconds: float, profile: str = "", headless: bool = Fa
 
         common.run_qt_until(lambda: False, 2.0)  # settle: connections, first stream periods
         physio = manager.driver("physio")
-        physio_sim = manager.devices["physio"].simulator
-        lost0, bad0 = physio.frames_lost, physio.bad_frames
-        sent0 = physio_sim.control("frames_sent")
-        got0 = physio.total_samples("physio.main")
-        manager.driver("linarm").add_listener(on_linarm)
+        physio_sim = manager.devices["physio"].simulator if physio is not None else None
+        lost0, bad0 = (physio.frames_lost, physio.bad_frames) if physio is not None else (0, 0)
+        sent0 = physio_sim.control("frames_sent") if physio_sim is not None else 0
+        got0 = physio.total_samples("physio.main") if physio is not None else 0
+        if manager.driver("linarm") is not None:
+            manager.driver("linarm").add_listener(on_linarm)
         if manager.driver("patient_model") is not None:
             manager.driver("patient_model").add_listener(on_model)
         if manager.driver("vr") is not None:
@@ -141,23 +148,26 @@ def run_step(step: float, seconds: float, profile: str = "", headless: bool = Fa
         sim0 = sum(common.thread_cpu_seconds(t) for t in sims)
         t_start = time.monotonic()
         meter = common.CpuMeter([None, *helpers.values()])
+        threads0 = common.thread_cpu_table()
         spy = common.start_py_spy(profile, min(seconds, 20.0)) if profile else None
         common.run_qt_until(lambda: False, seconds)
         cpu = meter.percent()
+        threads = common.thread_cpu_percent(threads0, common.thread_cpu_table(), time.monotonic() - t_start)
         sim_cpu = 100.0 * (sum(common.thread_cpu_seconds(t) for t in sims) - sim0) / (time.monotonic() - t_start)
         udp1 = {n: (d.datagrams_sent, d.datagrams_received) for n, d in udp.items()}
         elapsed = time.monotonic() - t_start
-        sent1 = physio_sim.control("frames_sent")
-        # frames in flight (emitted, not yet decoded) arrive; anything still missing after 1 s is lost
-        common.run_qt_until(lambda: physio.total_samples("physio.main") - got0 >= sent1 - sent0, 1.0)
-        got1 = physio.total_samples("physio.main")
+        sent1 = physio_sim.control("frames_sent") if physio_sim is not None else 0
+        if physio is not None:  # frames in flight (emitted, not yet decoded) arrive; still missing after 1 s: lost
+            common.run_qt_until(lambda: physio.total_samples("physio.main") - got0 >= sent1 - sent0, 1.0)
+        got1 = physio.total_samples("physio.main") if physio is not None else 0
         if spy is not None:
             spy.wait()
             print(f"  profile: {common.summarise_py_spy(profile)}")
         rates = {name: h.driver.rates() for name, h in manager.devices.items()}
         return {
             "step": step, "config": config.devices,
-            "physio": {"lost": physio.frames_lost - lost0, "bad": physio.bad_frames - bad0,
+            "physio": {"lost": (physio.frames_lost if physio is not None else 0) - lost0,
+                       "bad": (physio.bad_frames if physio is not None else 0) - bad0,
                        "sent": sent1 - sent0, "decoded": got1 - got0},
             "linarm": {"seen": linarm_gaps.seen, "missing": linarm_gaps.missing},
             "patient_model": {"seen": model_seq.seen, "missing": model_seq.missing,
@@ -165,7 +175,7 @@ def run_step(step: float, seconds: float, profile: str = "", headless: bool = Fa
             "vr": {"seen": vr_seq.seen, "missing": vr_seq.missing},
             "udp": {n: ((udp1[n][0] - udp0[n][0]) / elapsed, (udp1[n][1] - udp0[n][1]) / elapsed) for n in udp},
             "cpu_process": cpu[0], "cpu_sims": sim_cpu, "cpu_app": cpu[0] - sim_cpu,
-            "cpu_helpers": dict(zip(helpers, cpu[1:], strict=True)), "rates": rates,
+            "cpu_helpers": dict(zip(helpers, cpu[1:], strict=True)), "rates": rates, "threads": threads,
             "seconds": seconds,
         }
     finally:
@@ -180,10 +190,14 @@ def describe(r: dict[str, Any]) -> tuple[str, bool]:
     def sustained(name: str, hz: float) -> bool:  # the UDP drivers skip a send when they fall behind
         return name in udp and udp[name][0] >= 0.95 * hz
 
-    physio_ok = p["lost"] == 0 and p["bad"] == 0 and p["decoded"] >= p["sent"]
-    linarm_ok = lin["missing"] == 0 and lin["seen"] >= 0.95 * d.linarm.state_rate_hz * r["seconds"]
-    model_ok = pm["missing"] == 0 and pm["missing_out"] == 0 and sustained("patient_model", d.patient_model.rate_hz)
-    vr_ok = vr["missing"] == 0 and sustained("vr", d.vr.rate_hz)
+    def off(name: str) -> bool:
+        return getattr(d, name).mode == "off"
+
+    physio_ok = off("physio") or (p["lost"] == 0 and p["bad"] == 0 and p["decoded"] >= p["sent"])
+    linarm_ok = off("linarm") or (lin["missing"] == 0 and lin["seen"] >= 0.95 * d.linarm.state_rate_hz * r["seconds"])
+    model_ok = off("patient_model") or (pm["missing"] == 0 and pm["missing_out"] == 0
+                                        and sustained("patient_model", d.patient_model.rate_hz))
+    vr_ok = off("vr") or (vr["missing"] == 0 and sustained("vr", d.vr.rate_hz))
     lines = [
         f"  step {r['step']:g}× for {r['seconds']:g} s: app CPU {r['cpu_app']:.1f} % of one core (process "
         f"{r['cpu_process']:.1f} % minus the in-process device simulators {r['cpu_sims']:.1f} %); helper processes "
@@ -197,6 +211,7 @@ def describe(r: dict[str, Any]) -> tuple[str, bool]:
         f"unanswered frames {pm['missing_out']} → {'lossless' if model_ok else 'LOSSES or rate not sustained'}",
         f"    VR {d.vr.rate_hz:g} Hz: sent {udp.get('vr', (0, 0))[0]:.0f}/s, received {udp.get('vr', (0, 0))[1]:.0f}/s"
         f" → {'sustained' if vr_ok else 'rate not sustained'}",
+        "    threads (% of one core): " + ", ".join(f"{n} {v:.1f}" for n, v in r["threads"] if v >= 0.05),
         "    measured rates (Hz): " + "; ".join(
             f"{dev} " + ", ".join(f"{s.split('.', 1)[-1]} {v:.0f}" for s, v in rates.items())
             for dev, rates in r["rates"].items()),
@@ -211,13 +226,16 @@ def main() -> int:
     parser.add_argument("--profile", action="store_true", help="py-spy the nominal step into "
                                                                 "bench/profiles/headroom_nominal.{raw,txt}")
     parser.add_argument("--runs", type=int, default=3, help="nominal-rate CPU runs (window, headless): the median")
+    parser.add_argument("--only", default=",".join(DEVICES), help="devices to run (the others off), e.g. physio")
+    parser.add_argument("--no-window", action="store_true", help="skip the window-open CPU runs")
     args = parser.parse_args()
+    only = tuple(n for n in args.only.split(",") if n)
     common.print_machine("headroom: stream rates without loss, and CPU at nominal rates, window open")
     app = common.qt_app()
     steps = [float(s) for s in args.steps.split(",")]
     summary = []
     for step in steps:
-        r = run_step(step, args.seconds, "headroom_nominal" if args.profile and step == 1.0 else "")
+        r = run_step(step, args.seconds, "headroom_nominal" if args.profile and step == 1.0 else "", only=only)
         text, ok = describe(r)
         print(text, flush=True)
         summary.append((step, ok, r))
@@ -226,13 +244,18 @@ def main() -> int:
     import statistics
 
     for label, headless, target in (("window open", False, 10.0), ("headless", True, 5.0)):
-        runs = [run_step(1.0, args.seconds, headless=headless) for _ in range(max(1, args.runs))]
+        if args.no_window and not headless:
+            continue
+        runs = [run_step(1.0, args.seconds, headless=headless, only=only) for _ in range(max(1, args.runs))]
         app_cpu = statistics.median(r["cpu_app"] for r in runs)
         sims = {k: statistics.median(r["cpu_helpers"].get(k, 0.0) for r in runs) for k in runs[0]["cpu_helpers"]}
         print(f"  CPU at nominal rates, {label}: app {app_cpu:.1f} % of one core (median of {len(runs)}: "
               + ", ".join(f"{r['cpu_app']:.1f}" for r in runs) + "), simulators and helpers excluded ("
               + ", ".join(f"{k} {v:.1f} %" for k, v in sims.items())
               + f") | target ≤ {target:g} %: {common.verdict(app_cpu, target)}", flush=True)
+        mid = sorted(runs, key=lambda r: r["cpu_app"])[len(runs) // 2]
+        print("    threads of the median run (% of one core): "
+              + ", ".join(f"{n} {v:.1f}" for n, v in mid["threads"] if v >= 0.05), flush=True)
     lossless = [s for s, ok, _r in summary if ok]
     best = max(lossless) if lossless else 0.0
     print(f"  highest lossless step (all streams at once, LINarm capped at {LINARM_MAX_HZ:g} Hz): {best:g}× "

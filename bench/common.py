@@ -157,6 +157,29 @@ def thread_cpu_seconds(native_id: int) -> float:
     return (int(fields[11]) + int(fields[12])) / _CLK_TCK if len(fields) >= 13 else 0.0
 
 
+def thread_cpu_table() -> dict[int, tuple[str, float]]:
+    """Every thread of this process: native id -> (OS thread name, user + system CPU seconds)."""
+    out: dict[int, tuple[str, float]] = {}
+    for tid in os.listdir("/proc/self/task"):
+        try:
+            name = _read(f"/proc/self/task/{tid}/comm").strip()
+        except OSError:
+            continue  # the thread ended meanwhile
+        out[int(tid)] = (name, thread_cpu_seconds(int(tid)))
+    return out
+
+
+def thread_cpu_percent(before: dict[int, tuple[str, float]], after: dict[int, tuple[str, float]],
+                       seconds: float) -> list[tuple[str, float]]:
+    """CPU (% of one core) of each thread between two :func:`thread_cpu_table` snapshots, grouped by thread
+    name (the drivers' QThreads are named ``driver:<device>``, truncated to 15 characters by Linux)."""
+    by_name: dict[str, float] = {}
+    for tid, (name, cpu) in after.items():
+        used = cpu - before.get(tid, (name, 0.0))[1]
+        by_name[name] = by_name.get(name, 0.0) + 100.0 * used / max(1e-9, seconds)
+    return sorted(by_name.items(), key=lambda kv: -kv[1])
+
+
 def simulator_threads() -> list[int]:
     """Native ids of the device simulators' threads (in the app's process only because simulated)."""
     return [t.native_id for t in threading.enumerate() if t.name.startswith("sim:") and t.native_id is not None]
