@@ -93,6 +93,7 @@ class LinarmppManager(QObject):
         from app.assistance import AssistanceController, AssistanceInactive
 
         executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="assistance")
+        executor.submit(lambda: None)  # its thread exists from start-up, not from the first α (ends at shutdown)
         self.add_shutdown_hook(lambda: executor.shutdown(wait=False, cancel_futures=True))
 
         def report(future: Any) -> None:

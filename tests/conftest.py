@@ -27,10 +27,7 @@ os.environ.setdefault("PYDEVD_DISABLE_FILE_VALIDATION", "1")
 # fault injected into its core) host them as threads: modules in SIM_IN_THREAD_MODULES, tests marked
 # ``sim_in_thread``.
 os.environ.setdefault("LINARMPP_SIM_HOST", "process")
-SIM_IN_THREAD_MODULES = {
-    "test_device_loss", "test_device_loss_more", "test_estop_wire", "test_fes_exit_paths", "test_linarm_heartbeat",
-    "test_linarm_panel", "test_physio_viewer", "test_safety_properties",
-}
+SIM_IN_THREAD_MODULES = {"test_device_loss", "test_device_loss_more", "test_fes_exit_paths", "test_physio_viewer"}
 
 from app.application import share_gl_contexts  # noqa: E402 - must run before pytest-qt creates the app
 

@@ -326,6 +326,11 @@ def _answer(request: dict[str, Any], sims: dict[str, Any], patient: Any) -> dict
             if hasattr(old, "close"):
                 old.close()
             sim.restart()
+        elif op == "host_log":  # tests: the bytes the driver sent, as this end of the link received them
+            sim = sims[request["device"]]
+            if "keep" in request:
+                sim.keep_host_log = bool(request["keep"])
+            result = [[t, data.hex()] for t, data in list(sim.host_bytes_log)]
         elif op == "control":
             sim = sims[request["device"]]
             fn = DEVICE_CONTROLS[request["name"]]
@@ -478,6 +483,7 @@ class RemoteSimulator:
         self.link_path = link_path  # the stable path the simulator process puts its pty behind
         self.tcp_port = tcp_port  # or the loopback port it listens on
         self._running = True
+        self._keep_host_log = False
 
     @property
     def url(self) -> str:
@@ -503,6 +509,22 @@ class RemoteSimulator:
 
     def control(self, name: str, *args: Any) -> Any:
         return self.process.call("control", device=self.name, name=name, args=list(args))
+
+    # For tests that look at the far end of the link, as with the in-process simulator.
+    @property
+    def keep_host_log(self) -> bool:
+        return self._keep_host_log
+
+    @keep_host_log.setter
+    def keep_host_log(self, keep: bool) -> None:
+        self.process.call("host_log", device=self.name, keep=bool(keep))
+        self._keep_host_log = bool(keep)
+
+    @property
+    def host_bytes_log(self) -> list[tuple[float, bytes]]:
+        """(monotonic time, bytes) of every read the simulator made while keep_host_log was on; a copy."""
+        rows = self.process.call("host_log", device=self.name, timeout_s=10.0)
+        return [(float(t), bytes.fromhex(h)) for t, h in rows]
 
 
 class ThreadHostedControls:
