@@ -69,6 +69,12 @@ class AssistanceSplit:
     def __init__(self, config: AssistanceConfig | None = None) -> None:
         self.config = config or AssistanceConfig()
 
+    @staticmethod
+    def levels(alpha: float, k_r: float, k_f: float) -> tuple[float, float]:
+        """(a_r, a_f) alone: what a patient-model sample carries, at its rate, without the maps."""
+        alpha = min(1.0, max(-1.0, alpha))
+        return min(1.0, max(0.0, k_r)) * alpha, min(1.0, max(0.0, k_f)) * alpha
+
     def compute(self, alpha: float, k_r: float, k_f: float) -> AssistanceTargets:
         if any(math.isnan(x) for x in (alpha, k_r, k_f)):
             raise ValueError(f"NaN in the assistance split: alpha={alpha}, k_r={k_r}, k_f={k_f}")
@@ -152,11 +158,19 @@ class AssistanceController:
 
     @property
     def targets(self) -> AssistanceTargets | None:
-        return self._targets
+        """The targets of the current α and gains (None without an α); computed when first needed."""
+        with self._lock:
+            if self._targets is None and self._alpha is not None:
+                self._targets = self._split.compute(self._alpha, self._k_r, self._k_f)
+            return self._targets
 
     def preview(self, alpha: float) -> AssistanceTargets:
         """What ``alpha`` would give with the current gains and maps (nothing is applied)."""
         return self._split.compute(alpha, self._k_r, self._k_f)
+
+    def levels(self, alpha: float) -> tuple[float, float]:
+        """(a_r, a_f) that ``alpha`` gives with the current gains: ``preview`` without the maps."""
+        return AssistanceSplit.levels(alpha, self._k_r, self._k_f)
 
     # ------------------------------------------------------------------ inputs
     def update_alpha(self, alpha: float, now: float | None = None) -> None:
@@ -219,13 +233,12 @@ class AssistanceController:
     def _recompute(self, now: float | None) -> None:
         if self._alpha is None:
             return
-        self._targets = self._split.compute(self._alpha, self._k_r, self._k_f)
+        self._targets = None  # the maps run when the targets are due to be applied (or read), not per α
         self._pending = True
         self._apply_if_due(self._clock() if now is None else now)
 
     def _apply_if_due(self, now: float) -> bool:
-        tg = self._targets
-        if not self._pending or tg is None:
+        if not self._pending or self._alpha is None:
             return False
         if now - self._alpha_time > self.alpha_max_age_s:
             self._pending = False  # a stale α is never applied
@@ -235,6 +248,8 @@ class AssistanceController:
         self._pending = False
         if self._supervisor is not None and self._supervisor.estop_latched:
             return False  # after an emergency stop nothing is re-energised from here
+        tg = self.targets
+        assert tg is not None
         c = self.config
         applied = False
         robot = (tg.k_m, tg.k_a, tg.k_t)
