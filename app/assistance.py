@@ -251,22 +251,27 @@ class AssistanceController:
         tg = self.targets
         assert tg is not None
         c = self.config
-        applied = False
+        applied = attempted = False
         robot = (tg.k_m, tg.k_a, tg.k_t)
         if self._k_r > 0.0 and self._apply_robot is not None and _moved(
                 self.applied_robot, robot,
                 (c.k_m_stiffness_n_m, c.k_a_admittance_m_s_n, c.k_t_assistive_n_m)):
+            attempted = True
             if self._call("robot", self._apply_robot, *robot):
                 self.applied_robot = robot
                 applied = True
         if self._apply_fes is not None and _moved(
                 None if self.applied_pulse_width_us is None else (self.applied_pulse_width_us,),
                 (tg.pulse_width_us,), (c.fes_pulse_width_us,)):
+            attempted = True
             if self._call("FES", self._apply_fes, tg.pulse_width_us):
                 self.applied_pulse_width_us = tg.pulse_width_us
                 applied = True
-        if applied:
+        if attempted:
+            # Refused ("not now": robot not in an assisted mode, no FES) counts too: it is retried at the
+            # update rate, not at every α (100 Hz of maps and exceptions for nothing).
             self._last_apply = now
+        if applied:
             self.apply_count += 1
         return applied
 

@@ -187,22 +187,24 @@ class UdpPeerDriver(DeviceDriver):
     a frame is due every period; a pass that comes late sends every frame it owes, up to
     ``CATCH_UP_S`` worth (a scheduling hiccup of the thread costs no frame); only a longer stall
     (debugger, suspend) restarts the schedule without a burst, and the frames skipped are counted
-    (``skipped_sends``).  Every pass reads all the datagrams already waiting, so replies never queue
-    behind the sends."""
+    (``skipped_sends``).  The loop makes one pass per period (``_pace``), which reads every datagram
+    that arrived since the last, so replies never queue behind the sends."""
 
     CATCH_UP_S = 0.1   # a late pass sends the frames owed for up to this long
     MAX_READS_PER_PASS = 256  # a flood cannot keep the loop from sending
+    MAX_SLEEP_S = 0.05
 
     def __init__(self, name: str, transport: DatagramTransport, rate_hz: float, *,
                  alive_timeout_s: float, process: HelperProcess | None = None,
                  notifier: UpdateNotifier | None = None, key: bytes | None = None) -> None:
-        super().__init__(name, transport, notifier=notifier, read_timeout_s=0.005)
+        super().__init__(name, transport, notifier=notifier, read_timeout_s=0.0)  # paced by _pace
         self.static_key = key  # an external peer's shared key (None: plain frames unless our helper has one)
         self.seq_guard = SequenceGuard()
         self.helper_failures = 0
         self.udp: DatagramTransport = transport
         self.period_s = 1.0 / rate_hz
         self.skipped_sends = 0
+        self._more_waiting = False
         self.alive_timeout_s = alive_timeout_s
         self.process = process
         self.datagrams_sent = 0
@@ -273,6 +275,7 @@ class UdpPeerDriver(DeviceDriver):
         self._peer_alive = False
 
     def on_bytes(self, data: bytes, t_ns: int) -> None:
+        self._more_waiting = True  # where one datagram was, more may wait: this pass drains them
         t = t_ns / 1e9
         try:
             if self.authenticated:
@@ -292,7 +295,8 @@ class UdpPeerDriver(DeviceDriver):
             super()._set_connected(True, f"receiving from {self.udp.description}")
 
     def on_tick(self, now: float) -> None:
-        self._drain()
+        if self._more_waiting:
+            self._drain()
         late = now - self._next_send
         if late >= 0.0:
             owed = int(late / self.period_s) + 1
@@ -302,8 +306,6 @@ class UdpPeerDriver(DeviceDriver):
             for _ in range(owed):
                 self._send(now)
             self._next_send += owed * self.period_s
-        # Sleep in read() only until the next frame is due: keeps the rate without a busy loop.
-        self.read_timeout_s = min(0.01, max(0.0005, self._next_send - time.monotonic()))
         if self._peer_alive and now - self._last_valid > self.alive_timeout_s:
             self._peer_alive = False
             if not self.authenticated:
@@ -316,6 +318,16 @@ class UdpPeerDriver(DeviceDriver):
             self._rate_t0 = now
         if self.process is not None and now >= self._next_process_check:
             self._supervise_process(now)
+        self._pace()
+
+    def _pace(self) -> None:
+        """Sleep until the next frame is due: one loop pass per period, whose read (``read_timeout_s`` 0)
+        and drain take the replies that came in meanwhile.  Waking for each reply as well doubled the
+        passes, and a pass costs more than its datagram (#16); a reply waits at most one period (10 ms at
+        100 Hz; α is applied at 10 Hz).  At most ``MAX_SLEEP_S`` so a stop request is seen promptly."""
+        wait = self._next_send - time.monotonic()
+        if wait > 0.0:
+            time.sleep(min(wait, self.MAX_SLEEP_S))
 
     def _drain(self) -> None:
         """Handle every datagram already waiting (the base loop reads one per pass)."""
@@ -323,8 +335,9 @@ class UdpPeerDriver(DeviceDriver):
         for _ in range(self.MAX_READS_PER_PASS):
             data = read(0.0)
             if not data:
-                return
+                break
             self.on_bytes(data, time.monotonic_ns())
+        self._more_waiting = False
 
     def _send(self, now: float) -> None:
         try:
@@ -556,12 +569,15 @@ class PatientModelDriver(UdpPeerDriver):
             raise FrameError(f"stale ack: reply acknowledges frame {r.ackSeq}, not sent in the last {ACK_WINDOW_S:g} s")
         self.check_seq(r.seq)
         a_r, a_f = self.split(r.alpha) if self.split is not None else (NAN, NAN)
-        flags = r.flags
+        flags = int(r.flags)
         self.publish("patient_model.main", t, PatientModelSample(
             alpha=r.alpha, a_r=a_r, a_f=a_f, tpi=r.tpi, mpi=r.mpi, pti=r.pti, alphaMin=r.alphaMin,
             alphaMax=r.alphaMax, pathCode=r.path, path=path_text(r.path), level=r.level,
-            valid=bool(flags & ReplyFlag.VALID), fallback=bool(flags & ReplyFlag.FALLBACK), seq=r.seq,
+            valid=bool(flags & _VALID), fallback=bool(flags & _FALLBACK), seq=r.seq,
             ackSeq=r.ackSeq, roundTrip=t - sent))
+
+
+_VALID, _FALLBACK = int(ReplyFlag.VALID), int(ReplyFlag.FALLBACK)  # plain ints: IntFlag's & is slow per reply
 
 
 def manager_split(manager: Any) -> SplitSource:

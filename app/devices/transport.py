@@ -209,7 +209,7 @@ class UdpTransport:
         self._sock: socket.socket | None = None
         self._lock = threading.Lock()
         self._peer_ip: str | None = None  # the peer's host resolved once (not per datagram)
-        self._timeout: float | None = None
+        self._poller: select.poll | None = None
 
     @property
     def is_open(self) -> bool:
@@ -229,13 +229,17 @@ class UdpTransport:
         except OSError as exc:
             sock.close()
             raise TransportError(f"cannot bind UDP {self.bind_addr[0]}:{self.bind_addr[1]}: {exc.strerror}") from exc
-        self._sock = sock
-        self._timeout = None
+        # Non-blocking for good, waited on with poll(): a read costs poll + recvfrom, not a mode switch
+        # (settimeout is an ioctl) and an exception on every timeout, hundreds of times a second.
+        sock.setblocking(False)
+        poller = select.poll()
+        poller.register(sock, select.POLLIN)
+        self._sock, self._poller = sock, poller
         host, port = sock.getsockname()[:2]
         self.description = f"udp {host}:{port}" + (f" → {self.peer[0]}:{self.peer[1]}" if self.peer else "")
 
     def close(self) -> None:
-        sock, self._sock = self._sock, None
+        sock, self._sock, self._poller = self._sock, None, None
         if sock is not None:
             sock.close()
 
@@ -254,16 +258,14 @@ class UdpTransport:
 
     def read(self, timeout: float) -> bytes:
         """One datagram from the peer, or b"" on timeout (``timeout`` ≤ 0: only what is already there)."""
-        sock = self._sock
-        if sock is None:
+        sock, poller = self._sock, self._poller
+        if sock is None or poller is None:
             raise TransportError("UDP socket is not open")
-        timeout = max(0.0, timeout)
+        if not poller.poll(max(0.0, timeout) * 1000.0):
+            return b""
         try:
-            if timeout != self._timeout:
-                sock.settimeout(timeout)
-                self._timeout = timeout
             data, sender = sock.recvfrom(65535)
-        except (TimeoutError, BlockingIOError):
+        except BlockingIOError:
             return b""
         except OSError as exc:
             if exc.errno in (errno.ECONNREFUSED, errno.ECONNRESET):

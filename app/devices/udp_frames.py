@@ -207,27 +207,8 @@ _INT_LIMITS: Final = {"h": (-32767, 32767, INT16_NA), "H": (0, 65534, UINT16_NA)
 _FIXED: Final = ("header", "crc", "reserved")  # not carried in the values: constants of the layout
 
 
-def _encoder(f: Field) -> Callable[[Any], Any]:
-    """value -> the raw struct value of ``f`` (saturating; NaN -> the "not available" code)."""
-    if f.fmt == "f":
-        return float
-    lo, hi, na = _INT_LIMITS[f.fmt]
-    if f.scale is None:  # plain integers use the whole range: no "not available" code
-        lo, hi = (-32768, 32767) if f.fmt == "h" else (0, 65535) if f.fmt == "H" else (lo, hi)
-
-        def plain(value: Any) -> int:
-            return int(min(hi, max(lo, int(value))))
-        return plain
-    scale, name = f.scale, f.name
-
-    def fixed(value: Any) -> int:
-        v = float(value)
-        if v != v:  # NaN
-            if na is None:
-                raise ValueError(f"{name}: NaN has no encoding")
-            return na
-        return int(min(hi, max(lo, round(v / scale))))
-    return fixed
+def _nan_error(name: str) -> int:
+    raise ValueError(f"{name}: NaN has no encoding")
 
 
 def _decoder(f: Field) -> Callable[[Any], Any] | None:
@@ -247,26 +228,44 @@ def crc16(data: bytes) -> int:
 
 
 class _Codec:
-    """One layout's packer / unpacker: its struct, and one converter per carried field, made once."""
+    """One layout's packer / unpacker, made once from its table.  The packer is generated source (one
+    expression per field, as ``_encoder`` would convert it): a call per field was most of a frame's cost."""
 
     def __init__(self, layout: Layout) -> None:
         self.layout = layout
         self.header = layout.header
         self.frame = struct.Struct(layout.struct_format)
-        self.body = struct.Struct(layout.struct_format[:-1])  # every field but the trailing CRC ("H")
         self.size = layout.size
-        fields = layout.fields[:-1]
-        self.pack_plan = tuple((f.name, f.name == "header", _encoder(f) if f.name not in _FIXED else None)
-                               for f in fields)
+        self.pack: Callable[[dict[str, Any]], bytes] = self._make_packer(layout)
         self.unpack_plan = tuple((i, f.name, _decoder(f)) for i, f in enumerate(layout.fields)
                                  if f.name not in _FIXED)
 
-    def pack(self, values: dict[str, Any]) -> bytes:
-        header = self.header
-        raws = [header if is_header else b"" if enc is None else enc(values[name])
-                for name, is_header, enc in self.pack_plan]
-        body = self.body.pack(*raws)
-        return body + crc16(body).to_bytes(2, "little")
+    @staticmethod
+    def _make_packer(layout: Layout) -> Callable[[dict[str, Any]], bytes]:
+        env: dict[str, Any] = {"_body": struct.Struct(layout.struct_format[:-1]),  # all but the CRC ("H")
+                               "_crc": crc16, "_header": layout.header, "_nan_error": _nan_error}
+        args = []
+        for f in layout.fields[:-1]:
+            if f.name == "header":
+                args.append("_header")
+            elif f.name == "reserved":
+                args.append("b''")
+            elif f.fmt == "f":
+                args.append(f"float(v[{f.name!r}])")
+            else:
+                lo, hi, na = _INT_LIMITS[f.fmt]
+                if f.scale is None:  # plain integers use the whole range: no "not available" code
+                    lo, hi = (-32768, 32767) if f.fmt == "h" else (0, 65535) if f.fmt == "H" else (lo, hi)
+                    args.append(f"min({hi}, max({lo}, int(v[{f.name!r}])))")
+                else:
+                    on_nan = f"_nan_error({f.name!r})" if na is None else str(na)
+                    args.append(f"({on_nan} if (x := float(v[{f.name!r}])) != x "
+                                f"else min({hi}, max({lo}, round(x / {f.scale!r}))))")
+        source = ("def pack(v):\n"
+                  f"    body = _body.pack({', '.join(args)})\n"
+                  "    return body + _crc(body).to_bytes(2, 'little')\n")
+        exec(compile(source, f"<packer of {layout.title}>", "exec"), env)  # our own table, at import
+        return env["pack"]  # type: ignore[no-any-return]
 
     def unpack(self, data: Any) -> dict[str, Any]:
         if not isinstance(data, bytes | bytearray | memoryview):
