@@ -190,7 +190,7 @@ class UdpPeerDriver(DeviceDriver):
     (``skipped_sends``).  The loop makes one pass per period (``_pace``), which reads every datagram
     that arrived since the last, so replies never queue behind the sends."""
 
-    CATCH_UP_S = 0.1   # a late pass sends the frames owed for up to this long
+    CATCH_UP_S = 0.25  # a late pass sends the frames owed for up to this long (half the ack window: still fresh)
     MAX_READS_PER_PASS = 256  # a flood cannot keep the loop from sending
     MAX_SLEEP_S = 0.05
 
