@@ -69,6 +69,12 @@ class AssistanceSplit:
     def __init__(self, config: AssistanceConfig | None = None) -> None:
         self.config = config or AssistanceConfig()
 
+    @staticmethod
+    def levels(alpha: float, k_r: float, k_f: float) -> tuple[float, float]:
+        """(a_r, a_f) alone: what a patient-model sample carries, at its rate, without the maps."""
+        alpha = min(1.0, max(-1.0, alpha))
+        return min(1.0, max(0.0, k_r)) * alpha, min(1.0, max(0.0, k_f)) * alpha
+
     def compute(self, alpha: float, k_r: float, k_f: float) -> AssistanceTargets:
         if any(math.isnan(x) for x in (alpha, k_r, k_f)):
             raise ValueError(f"NaN in the assistance split: alpha={alpha}, k_r={k_r}, k_f={k_f}")
@@ -152,11 +158,19 @@ class AssistanceController:
 
     @property
     def targets(self) -> AssistanceTargets | None:
-        return self._targets
+        """The targets of the current α and gains (None without an α); computed when first needed."""
+        with self._lock:
+            if self._targets is None and self._alpha is not None:
+                self._targets = self._split.compute(self._alpha, self._k_r, self._k_f)
+            return self._targets
 
     def preview(self, alpha: float) -> AssistanceTargets:
         """What ``alpha`` would give with the current gains and maps (nothing is applied)."""
         return self._split.compute(alpha, self._k_r, self._k_f)
+
+    def levels(self, alpha: float) -> tuple[float, float]:
+        """(a_r, a_f) that ``alpha`` gives with the current gains: ``preview`` without the maps."""
+        return AssistanceSplit.levels(alpha, self._k_r, self._k_f)
 
     # ------------------------------------------------------------------ inputs
     def update_alpha(self, alpha: float, now: float | None = None) -> None:
@@ -219,13 +233,12 @@ class AssistanceController:
     def _recompute(self, now: float | None) -> None:
         if self._alpha is None:
             return
-        self._targets = self._split.compute(self._alpha, self._k_r, self._k_f)
+        self._targets = None  # the maps run when the targets are due to be applied (or read), not per α
         self._pending = True
         self._apply_if_due(self._clock() if now is None else now)
 
     def _apply_if_due(self, now: float) -> bool:
-        tg = self._targets
-        if not self._pending or tg is None:
+        if not self._pending or self._alpha is None:
             return False
         if now - self._alpha_time > self.alpha_max_age_s:
             self._pending = False  # a stale α is never applied
@@ -235,23 +248,30 @@ class AssistanceController:
         self._pending = False
         if self._supervisor is not None and self._supervisor.estop_latched:
             return False  # after an emergency stop nothing is re-energised from here
+        tg = self.targets
+        assert tg is not None
         c = self.config
-        applied = False
+        applied = attempted = False
         robot = (tg.k_m, tg.k_a, tg.k_t)
         if self._k_r > 0.0 and self._apply_robot is not None and _moved(
                 self.applied_robot, robot,
                 (c.k_m_stiffness_n_m, c.k_a_admittance_m_s_n, c.k_t_assistive_n_m)):
+            attempted = True
             if self._call("robot", self._apply_robot, *robot):
                 self.applied_robot = robot
                 applied = True
         if self._apply_fes is not None and _moved(
                 None if self.applied_pulse_width_us is None else (self.applied_pulse_width_us,),
                 (tg.pulse_width_us,), (c.fes_pulse_width_us,)):
+            attempted = True
             if self._call("FES", self._apply_fes, tg.pulse_width_us):
                 self.applied_pulse_width_us = tg.pulse_width_us
                 applied = True
-        if applied:
+        if attempted:
+            # Refused ("not now": robot not in an assisted mode, no FES) counts too: it is retried at the
+            # update rate, not at every α (100 Hz of maps and exceptions for nothing).
             self._last_apply = now
+        if applied:
             self.apply_count += 1
         return applied
 

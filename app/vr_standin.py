@@ -26,6 +26,7 @@ import time
 from dataclasses import dataclass, field
 from typing import Any
 
+from app.devices.transport import enlarge_receive_buffer
 from app.devices.udp_frames import (
     FrameError,
     SequenceGuard,
@@ -116,6 +117,7 @@ class StandinLink:
     def __init__(self, listen: tuple[str, int], peer: tuple[str, int], game: StandinGame,
                  key: bytes | None = None) -> None:
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        enlarge_receive_buffer(self.sock)
         self.sock.bind(listen)
         self.peer = peer
         self.peer_ip = socket.gethostbyname(peer[0])

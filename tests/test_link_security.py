@@ -16,6 +16,7 @@ from hypothesis import strategies as st
 from app.config import AppConfig, ConfigError, load_config
 from app.devices import patient_model, vr
 from app.devices.patient_model import PatientModelDriver, free_udp_port
+from app.devices.transport import UdpTransport
 from app.devices.udp_frames import (
     MAC_SIZE,
     FrameError,
@@ -85,7 +86,7 @@ def external_model(qtbot):
     model.bind((HOST, 0))
     model.settimeout(2.0)
     listen = free_udp_port(HOST)
-    driver = PatientModelDriver((HOST, listen), model.getsockname(), 100.0, key=KEY)
+    driver = PatientModelDriver(UdpTransport((HOST, listen), model.getsockname()), 100.0, key=KEY)
     driver.frame_source = lambda seq: PatientModelFrame(seq, 70, 5, 33, 2, 0, 0, 0.1, 0.4)
     driver.start()
     try:
@@ -122,7 +123,7 @@ def test_spoofed_vr_events_are_refused(qtbot) -> None:
     game = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     game.bind((HOST, 0))
     listen = free_udp_port(HOST)
-    driver = vr.VrDriver((HOST, listen), game.getsockname(), 50.0, key=KEY)
+    driver = vr.VrDriver(UdpTransport((HOST, listen), game.getsockname()), 50.0, key=KEY)
     driver.start()
     try:
         game.settimeout(2.0)

@@ -23,6 +23,7 @@ from app.devices.patient_model import (
     free_udp_port,
     path_text,
 )
+from app.devices.transport import UdpTransport
 from app.devices.udp_frames import (
     PatientModelFrame,
     PatientModelReply,
@@ -95,7 +96,7 @@ def link(qtbot):
     manager_port, model_port = free_udp_port(HOST), free_udp_port(HOST)
     proc = embedded_process(HOST, model_port, manager_port, extra=["--idle-exit", "5"])
     split = AssistanceSplit(AppConfig().assistance)
-    driver = PatientModelDriver((HOST, manager_port), (HOST, model_port), 100.0,
+    driver = PatientModelDriver(UdpTransport((HOST, manager_port), (HOST, model_port)), 100.0,
                                 split=lambda a: (lambda t: (t.a_r, t.a_f))(split.compute(a, 0.5, 0.5)))
     manager = FakeManager()
     driver.frame_source = ManagerFrameSource(manager, driver)
@@ -195,7 +196,7 @@ def test_foreign_and_malformed_datagrams_are_dropped_and_counted(qtbot) -> None:
     stray = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     model.bind((HOST, 0))
     stray.bind((HOST, 0))
-    driver = PatientModelDriver((HOST, manager_port), model.getsockname(), 100.0)
+    driver = PatientModelDriver(UdpTransport((HOST, manager_port), model.getsockname()), 100.0)
     driver.frame_source = lambda seq: PatientModelFrame(seq, 70, 5, 33, 2, 0, 0, 0.1, 0.4)
     driver.start()
     good = encode_patient_model_reply(PatientModelReply(1, 0, 0.3, 0.5, 0.5, 0.0, 0.2, 0.6, 12, 0.0))

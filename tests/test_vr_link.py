@@ -10,6 +10,7 @@ from dataclasses import dataclass
 import pytest
 
 from app.devices.patient_model import free_udp_port
+from app.devices.transport import UdpTransport
 from app.devices.udp_frames import (
     TaskData,
     TaskFlag,
@@ -133,7 +134,7 @@ def vr_link(qtbot):
     manager_port, standin_port = free_udp_port(HOST), free_udp_port(HOST)
     proc = standin_process(HOST, standin_port, manager_port, extra=["--hold", "0.1", "--time-limit", "30"])
     manager = FakeManager()
-    driver = VrDriver((HOST, manager_port), (HOST, standin_port), 50.0, manager=manager,
+    driver = VrDriver(UdpTransport((HOST, manager_port), (HOST, standin_port)), 50.0, manager=manager,
                       task=VrTask((0.10, 0.40), rest_s=0.2))
     proc.start()
     driver.start()

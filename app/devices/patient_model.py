@@ -43,6 +43,7 @@ authenticated is shown as a warning alarm.
 from __future__ import annotations
 
 import collections
+import functools
 import logging
 import math
 import os
@@ -56,7 +57,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from app.devices.driver import Channel, DeviceDriver, StreamSpec, UpdateNotifier
-from app.devices.transport import TransportError, UdpTransport
+from app.devices.transport import DatagramTransport, TransportError, UdpTransport
 from app.devices.udp_frames import (
     ACK_WINDOW_S,
     KEY_SIZE,
@@ -180,17 +181,30 @@ class UdpPeerDriver(DeviceDriver):
 
     Subclasses implement ``build_datagram(now)`` and ``handle_datagram(data, t)`` (raising
     ``FrameError`` on a bad datagram).  ``connected`` = a valid datagram within ``alive_timeout_s``.
-    A helper process, when given, is restarted (with back-off) if it exits."""
+    A helper process, when given, is restarted (with back-off) if it exits.
 
-    def __init__(self, name: str, bind: tuple[str, int], peer: tuple[str, int], rate_hz: float, *,
+    The link is handed in (``transport``: a ``UdpTransport``, or an in-memory fake in tests).  Timing:
+    a frame is due every period; a pass that comes late sends every frame it owes, up to
+    ``CATCH_UP_S`` worth (a scheduling hiccup of the thread costs no frame); only a longer stall
+    (debugger, suspend) restarts the schedule without a burst, and the frames skipped are counted
+    (``skipped_sends``).  The loop makes one pass per period (``_pace``), which reads every datagram
+    that arrived since the last, so replies never queue behind the sends."""
+
+    CATCH_UP_S = 0.25  # a late pass sends the frames owed for up to this long (half the ack window: still fresh)
+    MAX_READS_PER_PASS = 256  # a flood cannot keep the loop from sending
+    MAX_SLEEP_S = 0.05
+
+    def __init__(self, name: str, transport: DatagramTransport, rate_hz: float, *,
                  alive_timeout_s: float, process: HelperProcess | None = None,
                  notifier: UpdateNotifier | None = None, key: bytes | None = None) -> None:
-        super().__init__(name, UdpTransport(bind, peer), notifier=notifier, read_timeout_s=0.005)
+        super().__init__(name, transport, notifier=notifier, read_timeout_s=0.0)  # paced by _pace
         self.static_key = key  # an external peer's shared key (None: plain frames unless our helper has one)
         self.seq_guard = SequenceGuard()
         self.helper_failures = 0
-        self.udp: UdpTransport = self.transport  # type: ignore[assignment]
+        self.udp: DatagramTransport = transport
         self.period_s = 1.0 / rate_hz
+        self.skipped_sends = 0
+        self._more_waiting = False
         self.alive_timeout_s = alive_timeout_s
         self.process = process
         self.datagrams_sent = 0
@@ -261,6 +275,7 @@ class UdpPeerDriver(DeviceDriver):
         self._peer_alive = False
 
     def on_bytes(self, data: bytes, t_ns: int) -> None:
+        self._more_waiting = True  # where one datagram was, more may wait: this pass drains them
         t = t_ns / 1e9
         try:
             if self.authenticated:
@@ -280,15 +295,17 @@ class UdpPeerDriver(DeviceDriver):
             super()._set_connected(True, f"receiving from {self.udp.description}")
 
     def on_tick(self, now: float) -> None:
-        sent = 0
-        while now >= self._next_send and sent < 4:  # catch up on a late pass, a few frames at most
-            self._send(now)
-            sent += 1
-            self._next_send += self.period_s
-        if self._next_send < now - 2 * self.period_s:  # fell far behind (debugger, suspend): no burst
-            self._next_send = now + self.period_s
-        # Sleep in read() only until the next frame is due: keeps the rate without a busy loop.
-        self.read_timeout_s = min(0.01, max(0.0005, self._next_send - time.monotonic()))
+        if self._more_waiting:
+            self._drain()
+        late = now - self._next_send
+        if late >= 0.0:
+            owed = int(late / self.period_s) + 1
+            if late > max(self.CATCH_UP_S, 4 * self.period_s):  # a stall (debugger, suspend): no burst
+                self.skipped_sends += owed - 1
+                owed, self._next_send = 1, now
+            for _ in range(owed):
+                self._send(now)
+            self._next_send += owed * self.period_s
         if self._peer_alive and now - self._last_valid > self.alive_timeout_s:
             self._peer_alive = False
             if not self.authenticated:
@@ -301,6 +318,26 @@ class UdpPeerDriver(DeviceDriver):
             self._rate_t0 = now
         if self.process is not None and now >= self._next_process_check:
             self._supervise_process(now)
+        self._pace()
+
+    def _pace(self) -> None:
+        """Sleep until the next frame is due: one loop pass per period, whose read (``read_timeout_s`` 0)
+        and drain take the replies that came in meanwhile.  Waking for each reply as well doubled the
+        passes, and a pass costs more than its datagram (#16); a reply waits at most one period (10 ms at
+        100 Hz; α is applied at 10 Hz).  At most ``MAX_SLEEP_S`` so a stop request is seen promptly."""
+        wait = self._next_send - time.monotonic()
+        if wait > 0.0:
+            time.sleep(min(wait, self.MAX_SLEEP_S))
+
+    def _drain(self) -> None:
+        """Handle every datagram already waiting (the base loop reads one per pass)."""
+        read = self.udp.read
+        for _ in range(self.MAX_READS_PER_PASS):
+            data = read(0.0)
+            if not data:
+                break
+            self.on_bytes(data, time.monotonic_ns())
+        self._more_waiting = False
 
     def _send(self, now: float) -> None:
         try:
@@ -406,6 +443,7 @@ class PatientModelSample:
         return self.path.split("/", 1)[0] if self.path else ""
 
 
+@functools.lru_cache(maxsize=256)
 def path_text(code: int) -> str:
     decoded = decode_path_code(code)
     if decoded is None:
@@ -499,35 +537,35 @@ def _num(sample: Any, name: str) -> float:
 class PatientModelDriver(UdpPeerDriver):
     streams = (PATIENT_MODEL_STREAM,)
 
-    def __init__(self, bind: tuple[str, int], peer: tuple[str, int], rate_hz: float = 100.0, *,
+    def __init__(self, transport: DatagramTransport, rate_hz: float = 100.0, *,
                  frame_source: FrameSource | None = None, split: SplitSource | None = None,
                  process: HelperProcess | None = None, notifier: UpdateNotifier | None = None,
                  alive_timeout_s: float = 0.5, key: bytes | None = None) -> None:
-        super().__init__("patient_model", bind, peer, rate_hz, alive_timeout_s=alive_timeout_s,
+        super().__init__("patient_model", transport, rate_hz, alive_timeout_s=alive_timeout_s,
                          process=process, notifier=notifier, key=key)
         self.frame_source = frame_source
         self.split = split
         self.clinical_score: int | None = None  # set from the patient's profile / the assistance panel
         self.task_source: TaskSource | None = None  # overrides the VR link's task when set
         self._seq = 0
-        self._sent_at: dict[int, float] = {}
+        # When each sequence number was last sent, indexed by it: a reply is "fresh" when the frame it
+        # acknowledges went out within ACK_WINDOW_S, at any rate (at 10× that is 500 frames; a table of
+        # the last 256 sends refused legitimate replies that came back 0.13-0.26 s late, #16).
+        self._sent_at: list[float] = [-math.inf] * 0x10000
 
     def build_datagram(self, now: float) -> bytes | None:
         if self.frame_source is None:
             return None
         seq = self._seq
-        self._seq = (self._seq + 1) & 0xFFFF
+        self._seq = (seq + 1) & 0xFFFF
         data = encode_patient_model_frame(self.frame_source(seq))
         self._sent_at[seq] = now
-        if len(self._sent_at) > 256:
-            for old in list(self._sent_at)[:128]:
-                del self._sent_at[old]
         return data
 
     def handle_datagram(self, data: bytes, t: float) -> None:
         r = decode_patient_model_reply(data)
-        sent = self._sent_at.get(r.ackSeq)
-        if sent is None or time.monotonic() - sent > ACK_WINDOW_S:
+        sent = self._sent_at[r.ackSeq]
+        if not t - sent <= ACK_WINDOW_S:
             raise FrameError(f"stale ack: reply acknowledges frame {r.ackSeq}, not sent in the last {ACK_WINDOW_S:g} s")
         self.check_seq(r.seq)
         a_r, a_f = self.split(r.alpha) if self.split is not None else (NAN, NAN)
@@ -535,8 +573,11 @@ class PatientModelDriver(UdpPeerDriver):
         self.publish("patient_model.main", t, PatientModelSample(
             alpha=r.alpha, a_r=a_r, a_f=a_f, tpi=r.tpi, mpi=r.mpi, pti=r.pti, alphaMin=r.alphaMin,
             alphaMax=r.alphaMax, pathCode=r.path, path=path_text(r.path), level=r.level,
-            valid=bool(flags & ReplyFlag.VALID), fallback=bool(flags & ReplyFlag.FALLBACK), seq=r.seq,
-            ackSeq=r.ackSeq, roundTrip=t - sent if sent is not None else NAN))
+            valid=bool(flags & _VALID), fallback=bool(flags & _FALLBACK), seq=r.seq,
+            ackSeq=r.ackSeq, roundTrip=t - sent))
+
+
+_VALID, _FALLBACK = int(ReplyFlag.VALID), int(ReplyFlag.FALLBACK)  # plain ints: IntFlag's & is slow per reply
 
 
 def manager_split(manager: Any) -> SplitSource:
@@ -548,11 +589,9 @@ def manager_split(manager: Any) -> SplitSource:
     def split(alpha: float) -> tuple[float, float]:
         controller = getattr(manager, "assistance", None)
         if controller is not None:
-            t = controller.preview(alpha)
-        else:
-            c = fallback.config
-            t = fallback.compute(alpha, c.k_r, c.k_f)
-        return t.a_r, t.a_f
+            return controller.levels(alpha)
+        c = fallback.config
+        return fallback.levels(alpha, c.k_r, c.k_f)
 
     return split
 
@@ -610,7 +649,7 @@ def create(ctx: DeviceContext) -> DeviceHandle | None:
         peer = (cfg.peer_host, cfg.peer_port)
     if process is not None:
         process.authenticate = cfg.authenticated
-    driver = PatientModelDriver((host, listen_port), peer, cfg.rate_hz, split=manager_split(manager),
+    driver = PatientModelDriver(UdpTransport((host, listen_port), peer), cfg.rate_hz, split=manager_split(manager),
                                 process=process, notifier=ctx.notifier, key=link_key(cfg))
     driver.frame_source = ManagerFrameSource(manager, driver)
     warn_if_plain(manager, "patient_model", cfg)

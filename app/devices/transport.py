@@ -174,6 +174,28 @@ class _LoopbackPort:
         self._sock.close()
 
 
+UDP_RECEIVE_BUFFER_BYTES = 1 << 20
+"""Receive buffer asked for on every UDP link socket (ours and our helpers'): Linux's default (208 KiB) holds
+only ~250 small datagrams (each costs ~830 bytes of buffer), i.e. 0.25 s at 10× the patient model's rate; a
+process descheduled that long under CPU load lost datagrams in the kernel.  The kernel caps it at rmem_max."""
+
+
+def enlarge_receive_buffer(sock: socket.socket, size: int = UDP_RECEIVE_BUFFER_BYTES) -> None:
+    with contextlib.suppress(OSError):  # best effort: a smaller buffer still works
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, size)
+
+
+class DatagramTransport(Transport, Protocol):
+    """What a UDP peer driver needs of its link (``UdpTransport``, or a fake in tests): one datagram per
+    ``read`` (``read(0)`` does not wait), the peer it sends to (movable: a restarted helper may listen on
+    another port) and the count of datagrams dropped because another sender sent them."""
+
+    peer: tuple[str, int] | None
+    dropped_foreign: int
+
+    def set_peer(self, peer: tuple[str, int]) -> None: ...
+
+
 class UdpTransport:
     """A UDP socket bound locally and aimed at one peer. Datagrams from any other sender are
     dropped and counted: on a clinical network a stray packet must not steer the robot."""
@@ -186,6 +208,8 @@ class UdpTransport:
         self.dropped_foreign = 0
         self._sock: socket.socket | None = None
         self._lock = threading.Lock()
+        self._peer_ip: str | None = None  # the peer's host resolved once (not per datagram)
+        self._poller: select.poll | None = None
 
     @property
     def is_open(self) -> bool:
@@ -199,40 +223,58 @@ class UdpTransport:
 
     def open(self) -> None:
         sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        enlarge_receive_buffer(sock)
         try:
             sock.bind(self.bind_addr)
         except OSError as exc:
             sock.close()
             raise TransportError(f"cannot bind UDP {self.bind_addr[0]}:{self.bind_addr[1]}: {exc.strerror}") from exc
-        self._sock = sock
+        # Non-blocking for good, waited on with poll(): a read costs poll + recvfrom, not a mode switch
+        # (settimeout is an ioctl) and an exception on every timeout, hundreds of times a second.
+        sock.setblocking(False)
+        poller = select.poll()
+        poller.register(sock, select.POLLIN)
+        self._sock, self._poller = sock, poller
         host, port = sock.getsockname()[:2]
         self.description = f"udp {host}:{port}" + (f" → {self.peer[0]}:{self.peer[1]}" if self.peer else "")
 
     def close(self) -> None:
-        sock, self._sock = self._sock, None
+        sock, self._sock, self._poller = self._sock, None, None
         if sock is not None:
             sock.close()
 
     def set_peer(self, peer: tuple[str, int]) -> None:
         self.peer = peer
+        self._peer_ip = None
+
+    def _resolved_peer_ip(self, host: str) -> str:
+        ip = self._peer_ip
+        if ip is None:
+            try:
+                ip = self._peer_ip = socket.gethostbyname(host)
+            except OSError as exc:
+                raise TransportError(f"cannot resolve the UDP peer {host}: {exc}") from exc
+        return ip
 
     def read(self, timeout: float) -> bytes:
-        """One datagram from the peer, or b"" on timeout."""
-        sock = self._sock
-        if sock is None:
+        """One datagram from the peer, or b"" on timeout (``timeout`` ≤ 0: only what is already there)."""
+        sock, poller = self._sock, self._poller
+        if sock is None or poller is None:
             raise TransportError("UDP socket is not open")
+        if not poller.poll(max(0.0, timeout) * 1000.0):
+            return b""
         try:
-            sock.settimeout(timeout)
             data, sender = sock.recvfrom(65535)
-        except TimeoutError:
+        except BlockingIOError:
             return b""
         except OSError as exc:
             if exc.errno in (errno.ECONNREFUSED, errno.ECONNRESET):
                 return b""  # ICMP port unreachable from a peer that is not up yet
             raise TransportError(f"UDP receive failed: {exc}") from exc
-        if self.peer is not None:
-            host_ok = sender[0] == socket.gethostbyname(self.peer[0]) if self.peer[0] else True
-            port_ok = self.accept_any_port or sender[1] == self.peer[1]
+        peer = self.peer
+        if peer is not None:
+            host_ok = sender[0] == self._resolved_peer_ip(peer[0]) if peer[0] else True
+            port_ok = self.accept_any_port or sender[1] == peer[1]
             if not (host_ok and port_ok):
                 self.dropped_foreign += 1
                 return b""

@@ -44,6 +44,7 @@ from app.devices.patient_model import (
     read_inputs,
     warn_if_plain,
 )
+from app.devices.transport import DatagramTransport, UdpTransport
 from app.devices.udp_frames import (
     TaskData,
     TaskFlag,
@@ -173,11 +174,11 @@ class VrTask:
 class VrDriver(UdpPeerDriver):
     streams = (VR_STREAM,)
 
-    def __init__(self, bind: tuple[str, int], peer: tuple[str, int], rate_hz: float = 50.0, *,
+    def __init__(self, transport: DatagramTransport, rate_hz: float = 50.0, *,
                  manager: Any = None, task: VrTask | None = None, process: HelperProcess | None = None,
                  notifier: UpdateNotifier | None = None, alive_timeout_s: float = 2.5,
                  key: bytes | None = None) -> None:
-        super().__init__("vr", bind, peer, rate_hz, alive_timeout_s=alive_timeout_s, process=process,
+        super().__init__("vr", transport, rate_hz, alive_timeout_s=alive_timeout_s, process=process,
                          notifier=notifier, key=key)
         self.manager = manager
         self.task = task or VrTask()
@@ -267,7 +268,7 @@ def create(ctx: DeviceContext) -> DeviceHandle | None:
         peer = (cfg.peer_host, cfg.peer_port)
     if process is not None:
         process.authenticate = cfg.authenticated
-    driver = VrDriver((host, listen_port), peer, cfg.rate_hz, manager=manager, process=process,
+    driver = VrDriver(UdpTransport((host, listen_port), peer), cfg.rate_hz, manager=manager, process=process,
                       notifier=ctx.notifier, key=link_key(cfg))
     warn_if_plain(manager, "vr", cfg)
     if process is not None:

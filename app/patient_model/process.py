@@ -47,6 +47,7 @@ import sys
 import time
 from dataclasses import dataclass
 
+from app.devices.transport import enlarge_receive_buffer
 from app.devices.udp_frames import (
     LINK_KEY_ENV,
     FrameError,
@@ -287,6 +288,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     model = EmbeddedPatientModel(tree, args.clinical_score, args.time_limit, args.tolerance)
     sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    enlarge_receive_buffer(sock)  # a descheduled model must not lose frames in the kernel
     try:
         sock.bind(args.listen)
     except OSError as exc:
