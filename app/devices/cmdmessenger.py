@@ -18,7 +18,7 @@ from __future__ import annotations
 import math
 import re
 import struct
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from enum import StrEnum
 
@@ -230,20 +230,37 @@ def text_str(field: bytes) -> str:
     return field.decode("latin-1")
 
 
+def _binary_reader(kind: Kind) -> Callable[[bytes], int | float | bool]:
+    """readBinArg<T> on the PC side, for one kind: its struct compiled once (the decoders' hot path)."""
+    code = kind.value
+    size = struct.calcsize(code)
+    unpack = struct.Struct(code).unpack
+
+    if kind is Kind.BIN_BOOL:
+        def read_bool(field: bytes) -> bool:
+            if len(field) != size:
+                raise FieldError(f"binary {code} field has {len(field)} bytes, expected {size}")
+            if field not in (b"\x00", b"\x01"):
+                raise FieldError(f"binary bool is neither 0 nor 1: {field!r}")
+            return field == b"\x01"
+        return read_bool
+
+    def read(field: bytes) -> int | float:
+        if len(field) != size:
+            raise FieldError(f"binary {code} field has {len(field)} bytes, expected {size}")
+        return unpack(field)[0]  # type: ignore[no-any-return]
+    return read
+
+
+_BINARY_READERS: dict[Kind, Callable[[bytes], int | float | bool]] = {k: _binary_reader(k) for k in BINARY_KINDS}
+
+
 def bin_value(field: bytes, kind: Kind | str) -> int | float | bool:
     """A binary field of exactly sizeof(T) bytes (already unescaped by the decoder)."""
     k = Kind(kind)
     if k not in BINARY_KINDS:
         raise ValueError(f"{k} is not a binary kind")
-    size = struct.calcsize(k.value)
-    if len(field) != size:
-        raise FieldError(f"binary {k.value} field has {len(field)} bytes, expected {size}")
-    if k is Kind.BIN_BOOL:
-        if field not in (b"\x00", b"\x01"):
-            raise FieldError(f"binary bool is neither 0 nor 1: {field!r}")
-        return field == b"\x01"
-    (value,) = struct.unpack(k.value, field)
-    return value
+    return _BINARY_READERS[k](field)
 
 
 def bin_int16(field: bytes) -> int:
@@ -270,18 +287,15 @@ def bin_bool(field: bytes) -> bool:
     return bool(bin_value(field, Kind.BIN_BOOL))
 
 
+FIELD_READERS: dict[Kind, Callable[[bytes], int | float | bool | str]] = {
+    Kind.TEXT_INT: text_int, Kind.TEXT_FLOAT: text_float, Kind.TEXT_BOOL: text_bool, Kind.TEXT_STR: text_str,
+    **_BINARY_READERS,
+}
+
+
 def read_field(field: bytes, kind: Kind | str) -> int | float | bool | str:
-    """Strictly parse one field of the given kind."""
-    k = Kind(kind)
-    if k is Kind.TEXT_INT:
-        return text_int(field)
-    if k is Kind.TEXT_FLOAT:
-        return text_float(field)
-    if k is Kind.TEXT_BOOL:
-        return text_bool(field)
-    if k is Kind.TEXT_STR:
-        return text_str(field)
-    return bin_value(field, k)
+    """Strictly parse one field of the given kind (``FIELD_READERS[kind]`` for a kind known in advance)."""
+    return FIELD_READERS[Kind(kind)](field)
 
 
 # ---------------------------------------------------------------------------------------------
