@@ -16,6 +16,7 @@ header generator. Rules (see docs/linarm-protocol.md):
 from __future__ import annotations
 
 import math
+import operator
 import re
 import struct
 from collections.abc import Callable, Sequence
@@ -453,46 +454,72 @@ def encode_command(name: str, seq: int, *args: Any) -> bytes:
     return encode_frame(cmd.id, _fields_for((SEQ, *cmd.args), (seq, *args)))
 
 
+_Step = tuple[str, Callable[[bytes], Any], int | None, int | None, dict[int, IntEnum] | None, type[IntEnum] | None]
+_BULK_KINDS = frozenset((F32, U32))  # fixed-size binary fields without a check beyond their size
+
+
 @dataclass(frozen=True, slots=True)
 class _FieldsReader:
     """How to read one table row's fields, worked out once from its ``Arg``s: the reader of each kind, the
-    range of each integer, the members of each enum (a dict lookup, not an enum call, per field)."""
+    range of each integer, the members of each enum (a dict lookup, not an enum call, per field).
+
+    The stream's binary fields (float32, uint32) are read with one struct call when all of them have
+    their size; the other fields one by one, in order, so errors are the same as field by field."""
 
     what: str
     names: tuple[str, ...]
-    steps: tuple[tuple[str, Callable[[bytes], Any], int | None, int | None, dict[int, IntEnum] | None,
-                       type[IntEnum] | None], ...]
+    steps: tuple[_Step, ...]
     required: int
+    bulk: struct.Struct | None  # the binary fields' struct (None: fewer than two of them)
+    bulk_fields: Callable[[Sequence[bytes]], tuple[bytes, ...]]  # picks the binary fields
+    bulk_sizes: tuple[int, ...]
+    other_steps: tuple[tuple[int, _Step], ...]  # the other fields: (index, step)
+    order: Callable[[tuple[Any, ...]], tuple[Any, ...]]  # (binary values + other values) -> table order
 
     @classmethod
     def of(cls, args: Sequence[Arg], what: str) -> _FieldsReader:
-        steps = []
+        steps: list[_Step] = []
         for arg in args:
             ranged = arg.kind is INT and arg.min is not None
             enum = ENUMS[arg.enum] if arg.enum is not None else None
             steps.append((arg.name, FIELD_READERS[arg.kind], arg.min if ranged else None, arg.max if ranged else None,
                           {int(m): m for m in enum} if enum is not None else None, enum))
-        return cls(what, tuple(a.name for a in args), tuple(steps), len(args) - sum(1 for a in args if a.optional))
+        binary = [i for i, a in enumerate(args) if a.kind in _BULK_KINDS and not a.optional]
+        other = [i for i in range(len(args)) if i not in binary]
+        bulk = struct.Struct("<" + "".join(args[i].kind.value[1:] for i in binary)) if len(binary) >= 2 else None
+        position = {i: k for k, i in enumerate(binary + other)}
+        return cls(what, tuple(a.name for a in args), tuple(steps), len(args) - sum(1 for a in args if a.optional),
+                   bulk, operator.itemgetter(*binary) if bulk is not None else tuple,
+                   tuple(struct.calcsize(args[i].kind.value) for i in binary),
+                   tuple((i, steps[i]) for i in other),
+                   operator.itemgetter(*(position[i] for i in range(len(args)))) if len(args) >= 2 else tuple)
 
     def values(self, raw: Sequence[bytes]) -> list[Any]:
         """The fields' values in table order (a missing optional string is ''); ProtocolError if they do
         not match the table."""
         if not self.required <= len(raw) <= len(self.steps):
             raise ProtocolError(f"{self.what}: {len(raw)} fields, expected {len(self.steps)}")
-        out: list[Any] = []
-        for (name, read, lo, hi, members, enum), data in zip(self.steps, raw, strict=False):
-            try:
-                value = read(data)
-            except FieldError as exc:
-                raise ProtocolError(f"{self.what}.{name}: {exc}") from exc
-            if lo is not None and not lo <= value <= hi:  # type: ignore[operator]
-                raise ProtocolError(f"{self.what}.{name}={value} outside {lo}..{hi}")
-            if members is not None:
-                member = members.get(value)
-                value = enum(value) if member is None else member  # type: ignore[misc]
-            out.append(value)
+        if self.bulk is not None and len(raw) == len(self.steps):
+            fields = self.bulk_fields(raw)
+            if tuple(map(len, fields)) == self.bulk_sizes:  # else: field by field says which one is wrong
+                others = tuple(self._value(step, raw[i]) for i, step in self.other_steps)
+                return list(self.order(self.bulk.unpack(b"".join(fields)) + others))
+        out = [self._value(step, data) for step, data in zip(self.steps, raw, strict=False)]
         out += [""] * (len(self.steps) - len(raw))
         return out
+
+    def _value(self, step: _Step, data: bytes) -> Any:
+        name, read, lo, hi, members, enum = step
+        try:
+            value = read(data)
+        except FieldError as exc:
+            raise ProtocolError(f"{self.what}.{name}: {exc}") from exc
+        if lo is not None and not lo <= value <= hi:  # type: ignore[operator]
+            raise ProtocolError(f"{self.what}.{name}={value} outside {lo}..{hi}")
+        if members is not None:
+            member = members.get(value)
+            value = enum(value) if member is None else member  # type: ignore[misc]
+        return value
 
     def read(self, raw: Sequence[bytes]) -> dict[str, Any]:
         return dict(zip(self.names, self.values(raw), strict=True))
