@@ -171,3 +171,39 @@ def test_publish_outside_a_read_notifies_at_once() -> None:
     driver = _two_stream_driver([], notifier)
     driver.publish("pair.y", 1.0, type("S", (), {"a": 3.0})())
     assert notifier.calls == 1
+
+
+def test_notifier_wakes_every_waiter_promptly_and_counts_without_waiters() -> None:
+    import time
+
+    notifier = UpdateNotifier()
+    for _ in range(1000):  # nobody waiting: just the count
+        notifier.notify()
+    assert notifier.generation == 1000 and notifier._waiting == 0
+    rounds, woken = 200, []
+
+    def waiter() -> None:
+        g = notifier.generation
+        for _ in range(rounds):
+            if give_up.is_set():
+                return
+            t0 = time.monotonic()
+            g = notifier.wait_after(g, 2.0)
+            woken.append(time.monotonic() - t0)
+
+    give_up = threading.Event()
+    thread = threading.Thread(target=waiter)
+    thread.start()
+    try:
+        for i in range(rounds):
+            deadline = time.monotonic() + 5.0
+            # until the waiter took the previous notification and waits again
+            while (len(woken) < i or notifier._waiting == 0) and thread.is_alive() and time.monotonic() < deadline:
+                time.sleep(0)
+            notifier.notify()
+    finally:
+        give_up.set()
+        thread.join(5.0)
+    assert not thread.is_alive()
+    assert len(woken) == rounds and max(woken) < 1.5, "a notification was missed (the wait timed out)"
+    assert notifier.generation == 1000 + rounds

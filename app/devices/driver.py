@@ -61,22 +61,32 @@ class SampleBatch:
 
 
 class UpdateNotifier:
-    """A generation counter + condition shared by all drivers: 'some device published something'."""
+    """A generation counter + condition shared by all drivers: 'some device published something'.
+
+    ``notify`` runs once per read on every driver thread: with nobody waiting (no script in a wait) it is one
+    C-level lock and an increment, not Condition.notify_all's Python code."""
 
     def __init__(self) -> None:
-        self._cond = threading.Condition()
+        self._lock = threading.RLock()
+        self._cond = threading.Condition(self._lock)
+        self._waiting = 0  # threads in wait_after, counted under the lock
         self.generation = 0
 
     def notify(self) -> None:
-        with self._cond:
+        with self._lock:
             self.generation += 1
-            self._cond.notify_all()
+            if self._waiting:
+                self._cond.notify_all()
 
     def wait_after(self, generation: int, timeout: float) -> int:
         """Block until the generation moves past ``generation`` (or timeout); return the new one."""
-        with self._cond:
+        with self._lock:
             if self.generation == generation:
-                self._cond.wait(timeout)
+                self._waiting += 1
+                try:
+                    self._cond.wait(timeout)
+                finally:
+                    self._waiting -= 1
             return self.generation
 
 
