@@ -190,6 +190,8 @@ def test_notifier_wakes_every_waiter_promptly_and_counts_without_waiters() -> No
             t0 = time.monotonic()
             g = notifier.wait_after(g, 2.0)
             woken.append(time.monotonic() - t0)
+            if woken[-1] >= 1.5:
+                return  # missed: no point waiting for the rest
 
     give_up = threading.Event()
     thread = threading.Thread(target=waiter)
