@@ -637,7 +637,7 @@ def test_decoder_equals_the_bytewise_reference(data: bytes, chunks: list[int], l
 
 def test_decoder_equals_reference_at_the_limit_and_on_escapes_across_reads() -> None:
     cases = [b"1,abcdefgh;", b"1,abcdefg/;;", b"1,abcdef/,;2;", b"1,abcdefgh/", b"/;;3;", b"  \r\n;4,//,/;;",
-             b"1,ab//,c;", b"1,a/x/,,b;", b"300;1;", b"\n\n\n\n\n\n\n\n\n\n1;"]
+             b"1,ab//,c;", b"1,a/x/,,b;", b"300;1;", b"\n\n\n\n\n\n\n\n\n\n1;", b"007,a;0255;255;-1;+1;"]
     for limit in range(1, 14):
         for data in cases:
             for cut in range(len(data) + 1):

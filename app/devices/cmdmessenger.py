@@ -302,7 +302,8 @@ def read_field(field: bytes, kind: Kind | str) -> int | float | bool | str:
 # PC-side streaming decoder
 # ---------------------------------------------------------------------------------------------
 
-_CMD_ID_RE = re.compile(rb"[0-9]{1,3}")
+# Every id field the decoder accepts (1 to 3 decimal digits, 0..255, leading zeros allowed) -> the id
+_CMD_IDS: dict[bytes, int] = {f"{i:0{w}d}".encode(): i for w in (1, 2, 3) for i in range(min(256, 10**w))}
 _STOP_RE = re.compile(rb"[/;]")  # the bytes the decoder must look at one by one
 _LEADING_WHITESPACE_RE = re.compile(rb"[\r\n ]*")
 # A complete frame from here: leading whitespace, then runs of ordinary bytes or escape pairs (the body),
@@ -463,13 +464,14 @@ class CmdMessengerDecoder:
     def _frame(self, fields: list[bytes], length: int) -> Frame | None:
         """A complete frame of ``length`` raw bytes (before ';'), or None (counted) if its id is bad."""
         id_field = fields[0]
-        if not _CMD_ID_RE.fullmatch(id_field) or int(id_field) > 255:
+        cmd_id = _CMD_IDS.get(id_field)
+        if cmd_id is None:
             self.frames_bad += 1
             self.bytes_discarded += length + 1
             self.last_error = f"bad command id {id_field[:16]!r}"
             return None
         self.frames_ok += 1
-        return Frame(int(id_field), tuple(fields[1:]))
+        return Frame(cmd_id, tuple(fields[1:]))
 
 
 def _unescape_run(part: bytes) -> bytes:
