@@ -526,3 +526,122 @@ def test_arduino_model_reads_what_we_encode(fields: list[tuple[str, object]], cm
 def test_escape_unescape_inverse() -> None:
     data = bytes(range(256))
     assert unescape(escape(data)) == data
+
+
+# ---------------------------------------------------------------------------------------------
+# The decoder against a plain byte-by-byte reference: the same frames, counters and errors for
+# any input and any chunking (the fast decoder copies runs and whole frames at once).
+# ---------------------------------------------------------------------------------------------
+
+
+class ReferenceDecoder:
+    """The receiver as a straightforward state machine, one byte at a time (the decoder's spec)."""
+
+    def __init__(self, max_frame_length: int) -> None:
+        self.max_frame_length = max_frame_length
+        self.frames_ok = self.frames_bad = self.bytes_discarded = 0
+        self.last_error: str | None = None
+        self.fields: list[bytes] = []
+        self.current = bytearray()
+        self.length = 0  # raw bytes of the frame so far, escapes included, leading whitespace not
+        self.escaped = self.discarding = False
+
+    def feed(self, data: bytes) -> list[Frame]:
+        frames: list[Frame] = []
+        for b in data:
+            if self.discarding:
+                self.bytes_discarded += 1
+                if self.escaped:
+                    self.escaped = False
+                elif b == ord("/"):
+                    self.escaped = True
+                elif b == ord(";"):
+                    self.discarding = False
+                continue
+            if self.escaped:
+                self.escaped = False
+                self.current.append(b)
+            elif b == ord("/"):
+                self.escaped = True
+            elif b == ord(";"):
+                frame = self.finish()
+                if frame is not None:
+                    frames.append(frame)
+                continue
+            elif b == ord(","):
+                self.fields.append(bytes(self.current))
+                self.current = bytearray()
+            elif self.length == 0 and b in b"\r\n ":
+                continue
+            else:
+                self.current.append(b)
+            self.length += 1
+            if self.length > self.max_frame_length:
+                self.frames_bad += 1
+                self.bytes_discarded += self.length
+                self.last_error = f"frame longer than {self.max_frame_length} bytes without ';'"
+                self.fields, self.current, self.length = [], bytearray(), 0
+                self.discarding = True  # self.escaped stays: a '/' at the limit escapes the next byte
+        return frames
+
+    def finish(self) -> Frame | None:
+        fields = [*self.fields, bytes(self.current)]
+        length = self.length
+        self.fields, self.current, self.length = [], bytearray(), 0
+        if length == 0:
+            return None
+        if not (fields[0].isdigit() and len(fields[0]) <= 3) or int(fields[0]) > 255:
+            self.frames_bad += 1
+            self.bytes_discarded += length + 1
+            self.last_error = f"bad command id {fields[0][:16]!r}"
+            return None
+        self.frames_ok += 1
+        return Frame(int(fields[0]), tuple(fields[1:]))
+
+
+def _observable(dec: CmdMessengerDecoder | ReferenceDecoder) -> tuple:
+    if isinstance(dec, ReferenceDecoder):
+        return dec.frames_ok, dec.frames_bad, dec.bytes_discarded, dec.last_error, dec.length
+    return dec.frames_ok, dec.frames_bad, dec.bytes_discarded, dec.last_error, dec.pending
+
+
+# Pieces of a hostile stream: real frames (binary fields full of escapes), escape and separator soup,
+# whitespace, truncated frames, bad ids, long runs that pass the limit.
+_PIECE = st.one_of(
+    FRAME.map(lambda f: encode_frame(f[0], f[1], max_len=None)),
+    FRAME.map(lambda f: encode_frame(f[0], f[1], max_len=None)).flatmap(
+        lambda b: st.integers(0, len(b)).map(lambda k: b[:k])),
+    st.binary(max_size=40),
+    st.lists(st.sampled_from([b"/", b",", b";", b"\x00", b"\r", b"\n", b" ", b"7", b"//", b"/;", b"/,", b"256",
+                              b"12"]), max_size=30).map(b"".join),
+    st.integers(1, 120).map(lambda n: b"9," + b"x" * n),
+)
+
+
+@settings(max_examples=500, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(st.lists(_PIECE, max_size=12).map(b"".join), st.lists(st.integers(0, 80), max_size=12),
+       st.sampled_from([4, 8, 16, 33, 64, 1024]))
+def test_decoder_equals_the_bytewise_reference(data: bytes, chunks: list[int], limit: int) -> None:
+    fast, ref = CmdMessengerDecoder(max_frame_length=limit), ReferenceDecoder(limit)
+    pos = 0
+    for size in [*chunks, len(data)]:
+        piece = data[pos:pos + size]
+        pos += size
+        assert fast.feed(piece) == ref.feed(piece)
+        assert _observable(fast) == _observable(ref)
+    # the state carried between reads matches too: a valid frame after it decodes the same
+    tail = encode_frame(5, [("<I", 0), ("str", b"a,b;c/d")], max_len=None)
+    assert fast.feed(tail) == ref.feed(tail)
+    assert _observable(fast) == _observable(ref)
+
+
+def test_decoder_equals_reference_at_the_limit_and_on_escapes_across_reads() -> None:
+    cases = [b"1,abcdefgh;", b"1,abcdefg/;;", b"1,abcdef/,;2;", b"1,abcdefgh/", b"/;;3;", b"  \r\n;4,//,/;;",
+             b"1,ab//,c;", b"1,a/x/,,b;", b"300;1;", b"\n\n\n\n\n\n\n\n\n\n1;", b"007,a;0255;255;-1;+1;"]
+    for limit in range(1, 14):
+        for data in cases:
+            for cut in range(len(data) + 1):
+                fast, ref = CmdMessengerDecoder(max_frame_length=limit), ReferenceDecoder(limit)
+                got = fast.feed(data[:cut]) + fast.feed(data[cut:])
+                assert got == ref.feed(data), (limit, data, cut)
+                assert _observable(fast) == _observable(ref), (limit, data, cut)

@@ -5,9 +5,10 @@ from __future__ import annotations
 import itertools
 import threading
 
+import numpy as np
 import pytest
 
-from app.devices.driver import UpdateNotifier
+from app.devices.driver import Channel, DeviceDriver, StreamSpec, UpdateNotifier
 from app.devices.sim.base import SerialSimulator
 from tests.fakes import CounterCore, CounterDriver
 
@@ -78,3 +79,133 @@ def test_stop_is_prompt(counter) -> None:
     t0 = time.monotonic()
     assert driver.stop(1.0)
     assert time.monotonic() - t0 < 0.5
+
+
+# -- the per-sample path without a link: an in-memory transport ----------------------------------------
+
+class _ChunkTransport:
+    """Hands out the given reads, then nothing (a silent link)."""
+
+    description = "memory"
+
+    def __init__(self, reads: list[bytes]) -> None:
+        self._reads = list(reads)
+        self.is_open = False
+
+    def open(self) -> None:
+        self.is_open = True
+
+    def close(self) -> None:
+        self.is_open = False
+
+    def read(self, timeout: float) -> bytes:
+        if self._reads:
+            return self._reads.pop(0)
+        threading.Event().wait(timeout)
+        return b""
+
+    def write(self, data: bytes) -> None:
+        pass
+
+
+class _CountingNotifier(UpdateNotifier):
+    def __init__(self) -> None:
+        super().__init__()
+        self.calls = 0
+
+    def notify(self) -> None:
+        self.calls += 1
+        super().notify()
+
+
+def _two_stream_driver(reads: list[bytes], notifier: UpdateNotifier) -> DeviceDriver:
+    from dataclasses import dataclass
+
+    @dataclass(frozen=True)
+    class Pair:
+        a: float
+        ok: bool
+
+    class PairDriver(DeviceDriver):
+        streams = (StreamSpec("pair.x", (Channel("a", "", "A"), Channel("ok", "", "OK")), 100.0),
+                   StreamSpec("pair.y", (Channel("a", "", "A"),), 100.0))
+
+        def on_bytes(self, data: bytes, t_ns: int) -> None:
+            for b in data:  # one sample per byte: odd bytes to x, even to y
+                self.publish("pair.x" if b % 2 else "pair.y", t_ns / 1e9, Pair(float(b), b > 100))
+
+    return PairDriver("pair", _ChunkTransport(reads), notifier=notifier)
+
+
+def test_every_sample_reaches_listeners_latest_and_batches_with_one_wake_up_per_read(qtbot) -> None:
+    reads = [bytes(range(i, i + 7)) for i in range(0, 210, 7)]  # 30 reads, 210 samples
+    notifier = _CountingNotifier()
+    driver = _two_stream_driver(reads, notifier)
+    seen: list[tuple[str, float]] = []
+    driver.add_listener(lambda stream, _t, s: seen.append((stream, s.a)))
+    batches: list[dict] = []
+    driver.samples.connect(batches.append)
+    driver.start()
+    try:
+        qtbot.waitUntil(lambda: len(seen) == 210 and driver.total_samples("pair.y") == 105, timeout=5000)
+        qtbot.waitUntil(lambda: sum(len(b.get("pair.x", ())) for b in batches) == 105, timeout=5000)
+        qtbot.waitUntil(lambda: notifier.calls >= 31, timeout=5000)
+        notified = notifier.calls
+    finally:
+        driver.stop()
+    assert [a for _s, a in seen] == [float(b) for b in range(210)]
+    assert notified == 1 + 30  # connected, then once per read (not once per sample)
+    assert driver.latest("pair.x").a == 209.0 and driver.latest("pair.y").a == 208.0
+    x = [b["pair.x"] for b in batches if "pair.x" in b]
+    a = np.concatenate([b.data["a"] for b in x])
+    ok = np.concatenate([b.data["ok"] for b in x])
+    assert a.tolist() == [float(b) for b in range(1, 210, 2)]
+    assert ok.tolist() == [1.0 if b > 100 else 0.0 for b in range(1, 210, 2)]
+    assert all(b.data["a"].flags.c_contiguous and b.t.shape == b.data["a"].shape for b in x)
+    y = np.concatenate([b["pair.y"].data["a"] for b in batches if "pair.y" in b])
+    assert y.tolist() == [float(b) for b in range(0, 210, 2)]
+
+
+def test_publish_outside_a_read_notifies_at_once() -> None:
+    notifier = _CountingNotifier()
+    driver = _two_stream_driver([], notifier)
+    driver.publish("pair.y", 1.0, type("S", (), {"a": 3.0})())
+    assert notifier.calls == 1
+
+
+def test_notifier_wakes_every_waiter_promptly_and_counts_without_waiters() -> None:
+    import time
+
+    notifier = UpdateNotifier()
+    for _ in range(1000):  # nobody waiting: just the count
+        notifier.notify()
+    assert notifier.generation == 1000 and notifier._waiting == 0
+    rounds, woken = 200, []
+
+    def waiter() -> None:
+        g = notifier.generation
+        for _ in range(rounds):
+            if give_up.is_set():
+                return
+            t0 = time.monotonic()
+            g = notifier.wait_after(g, 2.0)
+            woken.append(time.monotonic() - t0)
+            if woken[-1] >= 1.5:
+                return  # missed: no point waiting for the rest
+
+    give_up = threading.Event()
+    thread = threading.Thread(target=waiter)
+    thread.start()
+    try:
+        for i in range(rounds):
+            deadline = time.monotonic() + 5.0
+            # until the waiter took the previous notification and waits again
+            while (len(woken) < i or notifier._waiting == 0) and thread.is_alive() and time.monotonic() < deadline:
+                time.sleep(0)
+            notifier.notify()
+    finally:
+        give_up.set()
+        thread.join(5.0)
+    assert not thread.is_alive()
+    assert len(woken) == rounds and max(woken) < 1.5, "a notification was missed (the wait timed out)"
+    assert notifier.generation == 1000 + rounds

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import struct
+from collections.abc import Callable
 
 import pytest
 from hypothesis import HealthCheck, given, settings
@@ -14,16 +15,21 @@ from app.devices.cmdmessenger import (
     MAX_CALLBACKS,
     ArduinoReceiver,
     CmdMessengerDecoder,
+    FieldError,
     Frame,
     Kind,
+    read_field,
     to_float32,
 )
 from app.devices.linarm_protocol import (
+    COMMANDS_BY_ID,
     CONTROL_MODES,
     CONTROL_STATES,
     CONTROLLER_MESSAGES,
+    ENUMS,
     ERROR_STATES,
     HOST_COMMANDS,
+    MESSAGES_BY_ID,
     SEQ,
     SEQ_MAX,
     TRAJECTORY_TYPES,
@@ -251,6 +257,105 @@ def test_garbage_never_crashes_the_host_side(garbage: bytes) -> None:
             decode_controller_frame(frame)
         except ProtocolError:
             pass
+
+
+# -- decode_controller_frame against the plain table-walking reference ------------------------------
+
+def _reference_read_fields(args: tuple, raw: tuple[bytes, ...], what: str) -> dict:
+    """The decoder's spec: walk the table's Args, read each field by its kind, check ranges, make enums."""
+    optional = sum(1 for a in args if a.optional)
+    if not len(args) - optional <= len(raw) <= len(args):
+        raise ProtocolError(f"{what}: {len(raw)} fields, expected {len(args)}")
+    out: dict = {}
+    for arg, data in zip(args, raw, strict=False):
+        try:
+            value = read_field(data, arg.kind)
+        except FieldError as exc:
+            raise ProtocolError(f"{what}.{arg.name}: {exc}") from exc
+        if arg.kind is Kind.TEXT_INT and not (arg.min is None or arg.min <= value <= arg.max):
+            raise ProtocolError(f"{what}.{arg.name}={value} outside {arg.min}..{arg.max}")
+        if arg.enum is not None:
+            value = ENUMS[arg.enum](value)
+        out[arg.name] = value
+    for arg in args[len(raw):]:
+        out[arg.name] = ""
+    return out
+
+
+def _reference_decode(frame: Frame) -> object:
+    msg = MESSAGES_BY_ID.get(frame.cmd_id)
+    if msg is None:
+        raise ProtocolError(f"unknown controller message id {frame.cmd_id}")
+    if msg.name == "ack":
+        if len(frame.fields) < 2:
+            raise ProtocolError("ack: needs seq and cmdId")
+        head = _reference_read_fields(msg.fields, frame.fields[:2], "ack")
+        cmd = COMMANDS_BY_ID.get(head["cmdId"])
+        if cmd is None:
+            raise ProtocolError(f"ack for unknown command id {head['cmdId']}")
+        return Ack(head["seq"], cmd.id, cmd.name, _reference_read_fields(cmd.returns, frame.fields[2:],
+                                                                         f"ack.{cmd.name}"))
+    v = _reference_read_fields(msg.fields, frame.fields, msg.name)
+    if msg.name == "identify":
+        return Identify(v["seq"], v["protocolVersion"], v["device"], v["firmwareVersion"])
+    if msg.name == "error":
+        cmd = COMMANDS_BY_ID.get(v["cmdId"])
+        return ErrorReply(v["seq"], v["cmdId"], cmd.name if cmd else None, v["code"], v["message"])
+    cls = {"linarmState": LinarmState, "motorState": MotorState, "vsaState": VsaState, "errorEvent": ErrorEvent}
+    return cls[msg.name](*v.values())
+
+
+def _outcome(decode: Callable[[Frame], object], frame: Frame) -> tuple[str, str]:
+    """Type and repr of the message (NaN equals NaN, enum members shown), or the error's type and text."""
+    try:
+        msg = decode(frame)
+    except Exception as exc:  # any difference in what is raised is a difference
+        return type(exc).__name__, str(exc)
+    return type(msg).__name__, repr(msg)
+
+
+def _field_for(arg: object) -> st.SearchStrategy[bytes]:
+    kind = arg.kind  # type: ignore[attr-defined]
+    if kind is Kind.TEXT_INT:
+        lo = -3 if arg.min is None else int(arg.min) - 2  # type: ignore[attr-defined]
+        hi = 300 if arg.max is None else int(arg.max) + 2  # type: ignore[attr-defined]
+        return st.integers(lo, hi).map(lambda v: str(v).encode())
+    if kind is Kind.TEXT_BOOL:
+        return st.sampled_from([b"0", b"1", b"2", b"", b"true"])
+    if kind is Kind.TEXT_STR:
+        return st.binary(max_size=12)
+    return st.binary(min_size=4, max_size=4)  # float32 / uint32 (NaN and inf included)
+
+
+@st.composite
+def _controller_frames(draw: st.DrawFn) -> Frame:
+    if draw(st.integers(0, 9)) == 0:  # anything at all
+        return Frame(draw(st.integers(0, 255)), tuple(draw(st.lists(st.binary(max_size=9), max_size=13))))
+    msg = draw(st.sampled_from(CONTROLLER_MESSAGES))
+    args = list(msg.fields)
+    if msg.name == "ack":
+        cmd = draw(st.sampled_from(HOST_COMMANDS))
+        fields = [draw(_field_for(args[0])), str(draw(st.sampled_from([cmd.id, cmd.id, 46, 99]))).encode()]
+        fields += [draw(_field_for(a)) for a in cmd.returns]
+    else:
+        fields = [draw(_field_for(a)) for a in args]
+    if draw(st.booleans()):  # damage: drop, add or replace a field
+        choice = draw(st.sampled_from(["drop", "add", "replace"]))
+        at = draw(st.integers(0, len(fields)))
+        junk = draw(st.binary(max_size=9))
+        if choice == "drop" and fields:
+            del fields[min(at, len(fields) - 1)]
+        elif choice == "add":
+            fields.insert(at, junk)
+        elif fields:
+            fields[min(at, len(fields) - 1)] = junk
+    return Frame(msg.id, tuple(fields))
+
+
+@settings(max_examples=1500, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(_controller_frames())
+def test_decoder_equals_the_table_walking_reference(frame: Frame) -> None:
+    assert _outcome(decode_controller_frame, frame) == _outcome(_reference_decode, frame)
 
 
 def test_protocol_table_is_json_and_complete() -> None:

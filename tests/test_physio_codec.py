@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import binascii
+import dataclasses
 import math
 import time
 
@@ -14,6 +15,7 @@ from hypothesis import strategies as st
 from app.devices.physio_codec import (
     FLAG_PPG_FAULT,
     PHYSIO_FRAME_SIZE,
+    PHYSIO_HEADER,
     PHYSIO_LAYOUT,
     Calibration,
     ChannelCalibration,
@@ -21,6 +23,7 @@ from app.devices.physio_codec import (
     PhysioStreamDecoder,
     count_lost,
     crc16_ccitt,
+    crc16_ccitt_py,
     crc16_ccitt_rows,
     decode_frames,
     encode_physio_frame,
@@ -80,6 +83,7 @@ def test_crc_matches_independent_implementation(rows: list[bytes]) -> None:
     arr = np.frombuffer(b"".join(rows), dtype=np.uint8).reshape(len(rows), 18)
     expected = [binascii.crc_hqx(r, 0xFFFF) for r in rows]
     assert [crc16_ccitt(r) for r in rows] == expected
+    assert [crc16_ccitt_py(r) for r in rows] == expected
     assert crc16_ccitt_rows(arr).tolist() == expected
 
 
@@ -244,6 +248,99 @@ def test_batch_decode_is_fast() -> None:
     elapsed = time.perf_counter() - t0
     assert len(batch) == n and batch.discardedBytes == 0
     assert n / elapsed > 100_000, f"{n / elapsed:.0f} frames/s"
+
+
+# -- the two feed() paths: plain Python for a few frames, numpy for many ---------------------------
+
+def _word() -> st.SearchStrategy[int]:
+    # 0x5AA5 puts a header inside a frame's payload; 0/1/0xFFFF exercise the wraps
+    return st.one_of(st.integers(0, 0xFFFF), st.sampled_from([0x5AA5, 0xA55A, 0, 1, 0xFFFF]))
+
+
+@st.composite
+def _damaged_stream(draw: st.DrawFn) -> bytes:
+    out = bytearray()
+    for _ in range(draw(st.integers(0, 25))):
+        kind = draw(st.sampled_from(["frame", "frame", "frame", "garbage", "flip", "cut", "header"]))
+        if kind == "garbage":
+            out += draw(st.binary(max_size=30))
+        elif kind == "header":
+            out += b"\xa5\x5a"
+        else:
+            raw = bytearray(encode_physio_frame(PhysioRawFrame(
+                seq=draw(_word()), tick=draw(_word()), ppg=draw(_word()), skinConductance=draw(_word()),
+                temperature=draw(_word()), force=draw(_word()), flags=draw(st.integers(0, 255)))))
+            if kind == "flip":
+                bit = draw(st.integers(0, 8 * PHYSIO_FRAME_SIZE - 1))
+                raw[bit // 8] ^= 1 << (bit % 8)
+            elif kind == "cut":
+                raw = raw[:draw(st.integers(0, PHYSIO_FRAME_SIZE - 1))]
+            out += raw
+    return bytes(out)
+
+
+def _bits(samples: list) -> list[tuple]:
+    """Samples as tuples with every float as its exact bits (NaN equals NaN here)."""
+    return [tuple(v.hex() if isinstance(v, float) else v for v in dataclasses.astuple(s)) for s in samples]
+
+
+def _state(dec: PhysioStreamDecoder) -> tuple:
+    return (dec.framesDecoded, dec.framesLost, dec.badFrames, dec.discardedBytes, dec.seqDiscontinuities,
+            dec._tail, dec._last_seq, dec._last_tick, dec._board_time.hex(), dec.beats.beats)
+
+
+def _paths() -> tuple[PhysioStreamDecoder, PhysioStreamDecoder]:
+    cal = Calibration(force=ChannelCalibration(0.05, -2.0), temperature=ChannelCalibration(0.013, 7.1))
+    numpy_path, python_path = PhysioStreamDecoder(cal), PhysioStreamDecoder(cal)
+    numpy_path.small_input_bytes = -1
+    python_path.small_input_bytes = 1 << 30
+    return numpy_path, python_path
+
+
+@settings(max_examples=400, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(_damaged_stream(), st.lists(st.integers(0, 70), max_size=30), st.floats(0, 1e6))
+def test_python_and_numpy_paths_agree_bit_for_bit(data: bytes, chunks: list[int], t: float) -> None:
+    numpy_path, python_path = _paths()
+    pos = 0
+    for size in [*chunks, len(data)]:
+        piece = data[pos:pos + size]
+        pos += size
+        assert _bits(python_path.feed(piece, t)) == _bits(numpy_path.feed(piece, t))
+        assert _state(python_path) == _state(numpy_path)
+
+
+def _overlapping_valid_frames() -> bytes:
+    """Frame A whose bytes 6..19 are the start of a valid frame B, A's CRC made valid too (2 free bytes)."""
+    b = frame(9, ppg=1234)
+    k = 6
+    for free in range(1 << 16):
+        a = PHYSIO_HEADER + free.to_bytes(2, "little") + b"\x00\x00" + b[:PHYSIO_FRAME_SIZE - k]
+        if crc16_ccitt(a[:18]) == int.from_bytes(a[18:20], "little"):
+            return a + b[PHYSIO_FRAME_SIZE - k:]
+    raise AssertionError("no free bytes make A valid")  # pragma: no cover
+
+
+
+def test_paths_agree_on_overlapping_valid_frames_and_headers_inside_frames() -> None:
+    data = _overlapping_valid_frames() + frame(10, ppg=0x5AA5, force=0xA55A) + frame(11)
+    numpy_path, python_path = _paths()
+    got = python_path.feed(data)
+    assert _bits(got) == _bits(numpy_path.feed(data))
+    assert _state(python_path) == _state(numpy_path)
+    assert len(got) == 3  # A (the earliest of the overlapping pair), 10, 11; B is inside A
+    assert python_path.badFrames == 0
+
+
+def test_a_read_at_the_nominal_rate_takes_the_python_path(monkeypatch: pytest.MonkeyPatch) -> None:
+    import app.devices.physio_codec as codec
+
+    def no_numpy(*_a: object) -> None:
+        raise AssertionError("numpy path used for one frame")
+
+    monkeypatch.setattr(codec, "_scan", no_numpy)
+    dec = PhysioStreamDecoder()
+    assert [s.seq for s in dec.feed(frame(1) + frame(2)[:7])] == [1]
+    assert [s.seq for s in dec.feed(frame(2)[7:])] == [2]
 
 
 # -- heart rate from the pulse --------------------------------------------------------------------

@@ -18,7 +18,7 @@ from __future__ import annotations
 import math
 import re
 import struct
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from enum import StrEnum
 
@@ -230,20 +230,37 @@ def text_str(field: bytes) -> str:
     return field.decode("latin-1")
 
 
+def _binary_reader(kind: Kind) -> Callable[[bytes], int | float | bool]:
+    """readBinArg<T> on the PC side, for one kind: its struct compiled once (the decoders' hot path)."""
+    code = kind.value
+    size = struct.calcsize(code)
+    unpack = struct.Struct(code).unpack
+
+    if kind is Kind.BIN_BOOL:
+        def read_bool(field: bytes) -> bool:
+            if len(field) != size:
+                raise FieldError(f"binary {code} field has {len(field)} bytes, expected {size}")
+            if field not in (b"\x00", b"\x01"):
+                raise FieldError(f"binary bool is neither 0 nor 1: {field!r}")
+            return field == b"\x01"
+        return read_bool
+
+    def read(field: bytes) -> int | float:
+        if len(field) != size:
+            raise FieldError(f"binary {code} field has {len(field)} bytes, expected {size}")
+        return unpack(field)[0]  # type: ignore[no-any-return]
+    return read
+
+
+_BINARY_READERS: dict[Kind, Callable[[bytes], int | float | bool]] = {k: _binary_reader(k) for k in BINARY_KINDS}
+
+
 def bin_value(field: bytes, kind: Kind | str) -> int | float | bool:
     """A binary field of exactly sizeof(T) bytes (already unescaped by the decoder)."""
     k = Kind(kind)
     if k not in BINARY_KINDS:
         raise ValueError(f"{k} is not a binary kind")
-    size = struct.calcsize(k.value)
-    if len(field) != size:
-        raise FieldError(f"binary {k.value} field has {len(field)} bytes, expected {size}")
-    if k is Kind.BIN_BOOL:
-        if field not in (b"\x00", b"\x01"):
-            raise FieldError(f"binary bool is neither 0 nor 1: {field!r}")
-        return field == b"\x01"
-    (value,) = struct.unpack(k.value, field)
-    return value
+    return _BINARY_READERS[k](field)
 
 
 def bin_int16(field: bytes) -> int:
@@ -270,25 +287,31 @@ def bin_bool(field: bytes) -> bool:
     return bool(bin_value(field, Kind.BIN_BOOL))
 
 
+FIELD_READERS: dict[Kind, Callable[[bytes], int | float | bool | str]] = {
+    Kind.TEXT_INT: text_int, Kind.TEXT_FLOAT: text_float, Kind.TEXT_BOOL: text_bool, Kind.TEXT_STR: text_str,
+    **_BINARY_READERS,
+}
+
+
 def read_field(field: bytes, kind: Kind | str) -> int | float | bool | str:
-    """Strictly parse one field of the given kind."""
-    k = Kind(kind)
-    if k is Kind.TEXT_INT:
-        return text_int(field)
-    if k is Kind.TEXT_FLOAT:
-        return text_float(field)
-    if k is Kind.TEXT_BOOL:
-        return text_bool(field)
-    if k is Kind.TEXT_STR:
-        return text_str(field)
-    return bin_value(field, k)
+    """Strictly parse one field of the given kind (``FIELD_READERS[kind]`` for a kind known in advance)."""
+    return FIELD_READERS[Kind(kind)](field)
 
 
 # ---------------------------------------------------------------------------------------------
 # PC-side streaming decoder
 # ---------------------------------------------------------------------------------------------
 
-_CMD_ID_RE = re.compile(rb"[0-9]{1,3}")
+# Every id field the decoder accepts (1 to 3 decimal digits, 0..255, leading zeros allowed) -> the id
+_CMD_IDS: dict[bytes, int] = {f"{i:0{w}d}".encode(): i for w in (1, 2, 3) for i in range(min(256, 10**w))}
+_STOP_RE = re.compile(rb"[/;]")  # the bytes the decoder must look at one by one
+_LEADING_WHITESPACE_RE = re.compile(rb"[\r\n ]*")
+# A complete frame from here: leading whitespace, then runs of ordinary bytes or escape pairs (the body),
+# then an unescaped ';'.
+_WHOLE_FRAME_RE = re.compile(rb"[\r\n ]*+([^/;]*+(?:/[\s\S][^/;]*+)*+);")
+_ESCAPE_PAIR_RE = re.compile(rb"/([\s\S])")
+FIELD_SEPARATOR_BYTE = b","
+ESCAPE_BYTE = b"/"
 
 
 class CmdMessengerDecoder:
@@ -326,48 +349,106 @@ class CmdMessengerDecoder:
         return self._length
 
     def feed(self, data: bytes) -> list[Frame]:
+        # Runs of ordinary bytes and ',' are handled a slice at a time (a regex finds the next '/' or ';');
+        # only escapes, ';' and the length limit are stepped through. Byte for byte the same frames,
+        # counters and errors as the plain state machine (tests/test_cmdmessenger.py keeps one as reference).
+        if not isinstance(data, bytes):
+            data = bytes(data)
         frames: list[Frame] = []
-        current = self._current
         limit = self.max_frame_length
-        for b in data:
+        search, whole = _STOP_RE.search, _WHOLE_FRAME_RE.finditer
+        n = len(data)
+        i = 0
+        while i < n:
             if self._discarding:
-                self.bytes_discarded += 1
-                if self._escaped:
+                if self._escaped:  # the byte after a '/' never ends the discarding
                     self._escaped = False
-                elif b == ESCAPE_CHARACTER:
+                    self.bytes_discarded += 1
+                    i += 1
+                    continue
+                m = search(data, i)
+                j = n if m is None else m.start()
+                if j == n:
+                    self.bytes_discarded += n - i
+                    break
+                self.bytes_discarded += j + 1 - i
+                i = j + 1
+                if data[j] == ESCAPE_CHARACTER:
                     self._escaped = True
-                elif b == COMMAND_SEPARATOR:
+                else:
                     self._discarding = False
                 continue
             if self._escaped:
                 self._escaped = False
-                current.append(b)
-            elif b == ESCAPE_CHARACTER:
-                self._escaped = True
-            elif b == COMMAND_SEPARATOR:
+                self._current.append(data[i])
+                i += 1
+                self._length += 1
+                if self._length > limit:
+                    self._overflow(limit, escaped=False)
+                continue
+            if self._length == 0:
+                # Whole frames ahead within the limit (the usual case): cut each in one go. A match
+                # that does not start where the previous ended is no frame of ours (e.g. after a
+                # dangling '/'): the byte-wise path below takes over from there.
+                for m in whole(data, i):
+                    if m.start() != i:
+                        break
+                    body = m.group(1)
+                    if len(body) > limit:
+                        break
+                    i = m.end()
+                    if body:  # ';' alone or after whitespace: an empty frame, dropped
+                        frame = self._frame(_split_fields(body), len(body))
+                        if frame is not None:
+                            frames.append(frame)
+                if i == n:
+                    break
+                if data[i] in _LEADING_WHITESPACE:
+                    i = _LEADING_WHITESPACE_RE.match(data, i).end()  # type: ignore[union-attr]
+                    if i == n:
+                        break
+            m = search(data, i)
+            j = n if m is None else m.start()
+            if j > i:
+                room = limit - self._length
+                if j - i > room:  # the limit is passed inside this run, at byte i + room
+                    self._length = limit + 1
+                    self._overflow(limit, escaped=False)
+                    i += room + 1
+                    continue
+                run = data[i:j]
+                self._length += j - i
+                if FIELD_SEPARATOR_BYTE in run:
+                    parts = run.split(FIELD_SEPARATOR_BYTE)
+                    self._current += parts[0]
+                    self._fields.append(bytes(self._current))
+                    self._fields.extend(parts[1:-1])
+                    self._current = bytearray(parts[-1])
+                else:
+                    self._current += run
+                if j == n:
+                    break
+            i = j + 1
+            if data[j] == COMMAND_SEPARATOR:
                 frame = self._finish()
-                current = self._current
                 if frame is not None:
                     frames.append(frame)
-                continue
-            elif b == FIELD_SEPARATOR:
-                self._fields.append(bytes(current))
-                current.clear()
-            elif self._length == 0 and b in _LEADING_WHITESPACE:
-                continue
-            else:
-                current.append(b)
-            self._length += 1
-            if self._length > limit:
-                self.frames_bad += 1
-                self.bytes_discarded += self._length
-                self.last_error = f"frame longer than {limit} bytes without ';'"
-                escaped = self._escaped
-                self.reset()
-                current = self._current
-                self._escaped = escaped
-                self._discarding = True
+            else:  # the escape character counts towards the limit too
+                self._length += 1
+                if self._length > limit:
+                    self._overflow(limit, escaped=True)
+                else:
+                    self._escaped = True
         return frames
+
+    def _overflow(self, limit: int, *, escaped: bool) -> None:
+        """The frame passed ``limit`` bytes: count it and discard up to the next unescaped ';'."""
+        self.frames_bad += 1
+        self.bytes_discarded += self._length
+        self.last_error = f"frame longer than {limit} bytes without ';'"
+        self.reset()
+        self._escaped = escaped
+        self._discarding = True
 
     def _finish(self) -> Frame | None:
         length = self._length
@@ -378,14 +459,49 @@ class CmdMessengerDecoder:
         self._length = 0
         if length == 0:
             return None  # ';;' or whitespace only
+        return self._frame(fields, length)
+
+    def _frame(self, fields: list[bytes], length: int) -> Frame | None:
+        """A complete frame of ``length`` raw bytes (before ';'), or None (counted) if its id is bad."""
         id_field = fields[0]
-        if not _CMD_ID_RE.fullmatch(id_field) or int(id_field) > 255:
+        cmd_id = _CMD_IDS.get(id_field)
+        if cmd_id is None:
             self.frames_bad += 1
             self.bytes_discarded += length + 1
             self.last_error = f"bad command id {id_field[:16]!r}"
             return None
         self.frames_ok += 1
-        return Frame(int(id_field), tuple(fields[1:]))
+        return Frame(cmd_id, tuple(fields[1:]))
+
+
+def _unescape_run(part: bytes) -> bytes:
+    """Unescape bytes in which every '/' has its byte after it (no dangling escape at the end)."""
+    if b"//" in part:
+        return _ESCAPE_PAIR_RE.sub(rb"\1", part)
+    return part.replace(ESCAPE_BYTE, b"")  # every '/' escapes a byte that is not '/'
+
+
+def _split_fields(body: bytes) -> list[bytes]:
+    """The unescaped fields of a complete frame body (no ';'; every '/' has its byte after it)."""
+    if ESCAPE_BYTE not in body:
+        return body.split(FIELD_SEPARATOR_BYTE)
+    if b"/," not in body and b"//" not in body:
+        # Every '/' escapes a byte that is neither ',' nor '/' (mostly NUL in binary fields): every ','
+        # separates, and unescaping is dropping the '/'.
+        return body.replace(ESCAPE_BYTE, b"").split(FIELD_SEPARATOR_BYTE)
+    parts = body.split(FIELD_SEPARATOR_BYTE)
+    fields: list[bytes] = []
+    carry = b""  # a field continued past an escaped ','
+    for part in parts:
+        if ESCAPE_BYTE in part:
+            # An odd run of '/' at the end leaves the last one escaping the ',' that split here: data.
+            if (len(part) - len(part.rstrip(ESCAPE_BYTE))) & 1:
+                carry += _unescape_run(part[:-1]) + FIELD_SEPARATOR_BYTE
+                continue
+            part = _unescape_run(part)
+        fields.append(carry + part if carry else part)
+        carry = b""
+    return fields
 
 
 # ---------------------------------------------------------------------------------------------

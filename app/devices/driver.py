@@ -16,6 +16,7 @@ The loop reconnects with back-off when the transport drops, and stops within one
 from __future__ import annotations
 
 import logging
+import operator
 import os
 import threading
 import time
@@ -60,36 +61,65 @@ class SampleBatch:
 
 
 class UpdateNotifier:
-    """A generation counter + condition shared by all drivers: 'some device published something'."""
+    """A generation counter + condition shared by all drivers: 'some device published something'.
+
+    ``notify`` runs once per read on every driver thread: with nobody waiting (no script in a wait) it is one
+    C-level lock and an increment, not Condition.notify_all's Python code."""
 
     def __init__(self) -> None:
-        self._cond = threading.Condition()
+        self._lock = threading.RLock()
+        self._cond = threading.Condition(self._lock)
+        self._waiting = 0  # threads in wait_after, counted under the lock
         self.generation = 0
 
     def notify(self) -> None:
-        with self._cond:
+        with self._lock:
             self.generation += 1
-            self._cond.notify_all()
+            if self._waiting:
+                self._cond.notify_all()
 
     def wait_after(self, generation: int, timeout: float) -> int:
         """Block until the generation moves past ``generation`` (or timeout); return the new one."""
-        with self._cond:
+        with self._lock:
             if self.generation == generation:
-                self._cond.wait(timeout)
+                self._waiting += 1
+                try:
+                    self._cond.wait(timeout)
+                finally:
+                    self._waiting -= 1
             return self.generation
 
 
 @dataclass
 class _Accumulator:
+    """One stream's samples since the last batch. The samples themselves are kept (one append per sample);
+    their channels are read into columns at batch time, one C call per sample (``attrgetter``)."""
+
     spec: StreamSpec
     t: list[float] = field(default_factory=list)
-    cols: dict[str, list[float]] = field(default_factory=dict)
+    samples: list[Any] = field(default_factory=list)
     count_window: int = 0
     total: int = 0
     last_t: float = 0.0
 
     def __post_init__(self) -> None:
-        self.cols = {c.name: [] for c in self.spec.channels}
+        names = [c.name for c in self.spec.channels]
+        self.names = names
+        self._row = operator.attrgetter(*names) if names else None
+
+    def take_batch(self) -> SampleBatch:
+        """The accumulated samples as columns (float64, one array per channel); starts a new batch."""
+        n = len(self.samples)
+        if self._row is None:
+            data: dict[str, np.ndarray] = {}
+        else:
+            rows = np.array([self._row(s) for s in self.samples], dtype=np.float64).reshape(n, len(self.names))
+            columns = rows.T.copy()  # each channel contiguous
+            data = {name: columns[k] for k, name in enumerate(self.names)}
+        batch = SampleBatch(self.spec, np.asarray(self.t, dtype=np.float64), data)
+        self.t = []
+        self.samples = []
+        return batch
 
 
 REALTIME_ENV = "LINARMPP_REALTIME"  # "0": never ask for real-time scheduling
@@ -164,6 +194,8 @@ class DeviceDriver(QThread):
         self._listeners: list[SampleListener] = []
         self._event_listeners: list[EventListener] = []
         self._last_sample_mono = 0.0
+        self._in_read = False  # on_bytes is running: publish leaves the notification to the loop
+        self._notify_pending = False
         self._rates: dict[str, float] = {s.name: 0.0 for s in self.streams}
         self._rate_window_start = time.monotonic()
         self.reconnect_backoff_s = (0.1, 2.0)
@@ -239,8 +271,7 @@ class DeviceDriver(QThread):
         acc = self._acc[stream]
         with self._acc_lock:
             acc.t.append(t_s)
-            for ch in acc.spec.channels:
-                acc.cols[ch.name].append(getattr(sample, ch.name))
+            acc.samples.append(sample)
             acc.count_window += 1
             acc.total += 1
             acc.last_t = t_s
@@ -250,7 +281,12 @@ class DeviceDriver(QThread):
                 fn(stream, t_s, sample)
             except Exception:  # a consumer's bug must not stop the device
                 log.exception("%s: sample listener failed", self.name)
-        self.notifier.notify()
+        if self._in_read:
+            # Within one read the samples arrive together: waiters are woken once, after the last of them
+            # (the loop notifies), instead of once per sample.
+            self._notify_pending = True
+        else:
+            self.notifier.notify()
 
     def total_samples(self, stream: str) -> int:
         return self._acc[stream].total
@@ -295,23 +331,34 @@ class DeviceDriver(QThread):
         self._emit_batches(force=True)
 
     def _io_loop(self) -> None:
-        next_batch = time.monotonic() + self.batch_period_s
-        self._last_sample_mono = time.monotonic()
-        while not self._stop.is_set():
-            data = self.transport.read(self.read_timeout_s)
+        # Runs once per read (hundreds of times a second): the lookups are done once, here.
+        read, on_bytes, on_tick = self.transport.read, self.on_bytes, self.on_tick
+        monotonic, monotonic_ns, stop = time.monotonic, time.monotonic_ns, self._stop
+        read_timeout, batch_period, silence_timeout = self.read_timeout_s, self.batch_period_s, self.silence_timeout_s
+        next_batch = monotonic() + batch_period
+        self._last_sample_mono = monotonic()
+        while not stop.is_set():
+            data = read(read_timeout)
             if data:
-                self.on_bytes(data, time.monotonic_ns())
-            now = time.monotonic()
-            self.on_tick(now)
-            if self.silence_timeout_s is not None:
-                silent = now - self._last_sample_mono > self.silence_timeout_s
+                self._in_read = True
+                try:
+                    on_bytes(data, monotonic_ns())
+                finally:
+                    self._in_read = False
+                    if self._notify_pending:
+                        self._notify_pending = False
+                        self.notifier.notify()
+            now = monotonic()
+            on_tick(now)
+            if silence_timeout is not None:
+                silent = now - self._last_sample_mono > silence_timeout
                 if silent != self._silent:
                     self._silent = silent
                     self.silence_changed.emit(silent)
                     self._fire_event("silent" if silent else "alive", "")
             if now >= next_batch:
                 self._emit_batches()
-                next_batch = now + self.batch_period_s
+                next_batch = now + batch_period
 
     def _emit_batches(self, force: bool = False) -> None:
         out: dict[str, SampleBatch] = {}
@@ -320,12 +367,7 @@ class DeviceDriver(QThread):
         with self._acc_lock:
             for name, acc in self._acc.items():
                 if acc.t:
-                    out[name] = SampleBatch(
-                        acc.spec, np.asarray(acc.t, dtype=np.float64),
-                        {k: np.asarray(v, dtype=np.float64) for k, v in acc.cols.items()},
-                    )
-                    acc.t = []
-                    acc.cols = {k: [] for k in acc.cols}
+                    out[name] = acc.take_batch()
             if window >= 1.0 or force:
                 for name, acc in self._acc.items():
                     self._rates[name] = acc.count_window / window if window > 0 else 0.0

@@ -16,22 +16,23 @@ header generator. Rules (see docs/linarm-protocol.md):
 from __future__ import annotations
 
 import math
+import operator
 import re
 import struct
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from enum import IntEnum
 from typing import Any
 
 from app.devices.cmdmessenger import (
     ARDUINO_MAX_MESSAGE,
+    FIELD_READERS,
     MAX_CALLBACKS,
     ArduinoMessage,
     FieldError,
     Frame,
     Kind,
     encode_frame,
-    read_field,
     to_float32,
 )
 from app.devices.linarm_constants import constants_table
@@ -453,49 +454,114 @@ def encode_command(name: str, seq: int, *args: Any) -> bytes:
     return encode_frame(cmd.id, _fields_for((SEQ, *cmd.args), (seq, *args)))
 
 
-def _read_fields(args: Sequence[Arg], raw: Sequence[bytes], what: str) -> dict[str, Any]:
-    optional = sum(1 for a in args if a.optional)
-    if not len(args) - optional <= len(raw) <= len(args):
-        raise ProtocolError(f"{what}: {len(raw)} fields, expected {len(args)}")
-    out: dict[str, Any] = {}
-    for arg, data in zip(args, raw, strict=False):
+_Step = tuple[str, Callable[[bytes], Any], int | None, int | None, dict[int, IntEnum] | None, type[IntEnum] | None]
+_BULK_KINDS = frozenset((F32, U32))  # fixed-size binary fields without a check beyond their size
+
+
+@dataclass(frozen=True, slots=True)
+class _FieldsReader:
+    """How to read one table row's fields, worked out once from its ``Arg``s: the reader of each kind, the
+    range of each integer, the members of each enum (a dict lookup, not an enum call, per field).
+
+    The stream's binary fields (float32, uint32) are read with one struct call when all of them have
+    their size; the other fields one by one, in order, so errors are the same as field by field."""
+
+    what: str
+    names: tuple[str, ...]
+    steps: tuple[_Step, ...]
+    required: int
+    bulk: struct.Struct | None  # the binary fields' struct (None: fewer than two of them)
+    bulk_fields: Callable[[Sequence[bytes]], tuple[bytes, ...]]  # picks the binary fields
+    bulk_sizes: tuple[int, ...]
+    other_steps: tuple[tuple[int, _Step], ...]  # the other fields: (index, step)
+    order: Callable[[tuple[Any, ...]], tuple[Any, ...]]  # (binary values + other values) -> table order
+
+    @classmethod
+    def of(cls, args: Sequence[Arg], what: str) -> _FieldsReader:
+        steps: list[_Step] = []
+        for arg in args:
+            ranged = arg.kind is INT and arg.min is not None
+            enum = ENUMS[arg.enum] if arg.enum is not None else None
+            steps.append((arg.name, FIELD_READERS[arg.kind], arg.min if ranged else None, arg.max if ranged else None,
+                          {int(m): m for m in enum} if enum is not None else None, enum))
+        binary = [i for i, a in enumerate(args) if a.kind in _BULK_KINDS and not a.optional]
+        other = [i for i in range(len(args)) if i not in binary]
+        bulk = struct.Struct("<" + "".join(args[i].kind.value[1:] for i in binary)) if len(binary) >= 2 else None
+        position = {i: k for k, i in enumerate(binary + other)}
+        return cls(what, tuple(a.name for a in args), tuple(steps), len(args) - sum(1 for a in args if a.optional),
+                   bulk, operator.itemgetter(*binary) if bulk is not None else tuple,
+                   tuple(struct.calcsize(args[i].kind.value) for i in binary),
+                   tuple((i, steps[i]) for i in other),
+                   operator.itemgetter(*(position[i] for i in range(len(args)))) if len(args) >= 2 else tuple)
+
+    def values(self, raw: Sequence[bytes]) -> list[Any]:
+        """The fields' values in table order (a missing optional string is ''); ProtocolError if they do
+        not match the table."""
+        if not self.required <= len(raw) <= len(self.steps):
+            raise ProtocolError(f"{self.what}: {len(raw)} fields, expected {len(self.steps)}")
+        if self.bulk is not None and len(raw) == len(self.steps):
+            fields = self.bulk_fields(raw)
+            if tuple(map(len, fields)) == self.bulk_sizes:  # else: field by field says which one is wrong
+                others = tuple(self._value(step, raw[i]) for i, step in self.other_steps)
+                return list(self.order(self.bulk.unpack(b"".join(fields)) + others))
+        out = [self._value(step, data) for step, data in zip(self.steps, raw, strict=False)]
+        out += [""] * (len(self.steps) - len(raw))
+        return out
+
+    def _value(self, step: _Step, data: bytes) -> Any:
+        name, read, lo, hi, members, enum = step
         try:
-            value = read_field(data, arg.kind)
+            value = read(data)
         except FieldError as exc:
-            raise ProtocolError(f"{what}.{arg.name}: {exc}") from exc
-        if arg.kind is INT and not (arg.min is None or arg.min <= value <= arg.max):  # type: ignore[operator]
-            raise ProtocolError(f"{what}.{arg.name}={value} outside {arg.min}..{arg.max}")
-        if arg.enum is not None:
-            value = ENUMS[arg.enum](value)
-        out[arg.name] = value
-    for arg in args[len(raw):]:
-        out[arg.name] = ""
-    return out
+            raise ProtocolError(f"{self.what}.{name}: {exc}") from exc
+        if lo is not None and not lo <= value <= hi:  # type: ignore[operator]
+            raise ProtocolError(f"{self.what}.{name}={value} outside {lo}..{hi}")
+        if members is not None:
+            member = members.get(value)
+            value = enum(value) if member is None else member  # type: ignore[misc]
+        return value
+
+    def read(self, raw: Sequence[bytes]) -> dict[str, Any]:
+        return dict(zip(self.names, self.values(raw), strict=True))
+
+
+_MESSAGE_READERS: dict[str, _FieldsReader] = {m.name: _FieldsReader.of(m.fields, m.name) for m in CONTROLLER_MESSAGES}
+_ACK_HEAD_READER = _FieldsReader.of(MESSAGES_BY_NAME["ack"].fields, "ack")
+_RETURNS_READERS: dict[int, _FieldsReader] = {c.id: _FieldsReader.of(c.returns, f"ack.{c.name}")
+                                              for c in HOST_COMMANDS}
+_STATE_CLASSES: dict[int, tuple[type, int]] = {MESSAGES_BY_NAME[name].id: (cls, len(names))
+                                               for name, (cls, names) in _STATE_FIELDS.items()}
+
+
+def _read_fields(args: Sequence[Arg], raw: Sequence[bytes], what: str) -> dict[str, Any]:
+    return _FieldsReader.of(args, what).read(raw)
 
 
 def decode_controller_frame(frame: Frame) -> ControllerMessage:
     """Controller -> host frame to a typed message; ProtocolError if it does not match the table."""
+    state = _STATE_CLASSES.get(frame.cmd_id)
+    if state is not None:  # the stream (and error events): most frames
+        cls, n = state
+        return cls(*_MESSAGE_READERS_BY_ID[frame.cmd_id].values(frame.fields)[:n])  # type: ignore[no-any-return]
     msg = MESSAGES_BY_ID.get(frame.cmd_id)
     if msg is None:
         raise ProtocolError(f"unknown controller message id {frame.cmd_id}")
     if msg.name == "ack":
         if len(frame.fields) < 2:
             raise ProtocolError("ack: needs seq and cmdId")
-        head = _read_fields(msg.fields, frame.fields[:2], "ack")
-        cmd = COMMANDS_BY_ID.get(head["cmdId"])
+        seq, cmd_id = _ACK_HEAD_READER.values(frame.fields[:2])
+        cmd = COMMANDS_BY_ID.get(cmd_id)
         if cmd is None:
-            raise ProtocolError(f"ack for unknown command id {head['cmdId']}")
-        values = _read_fields(cmd.returns, frame.fields[2:], f"ack.{cmd.name}")
-        return Ack(head["seq"], cmd.id, cmd.name, values)
-    values = _read_fields(msg.fields, frame.fields, msg.name)
+            raise ProtocolError(f"ack for unknown command id {cmd_id}")
+        return Ack(seq, cmd.id, cmd.name, _RETURNS_READERS[cmd.id].read(frame.fields[2:]))
+    values = _MESSAGE_READERS[msg.name].read(frame.fields)
     if msg.name == "identify":
         return Identify(values["seq"], values["protocolVersion"], values["device"], values["firmwareVersion"])
-    if msg.name == "error":
-        cmd = COMMANDS_BY_ID.get(values["cmdId"])
-        return ErrorReply(values["seq"], values["cmdId"], cmd.name if cmd else None, values["code"],
-                          values["message"])
-    cls, names = _STATE_FIELDS[msg.name]
-    return cls(*(values[a.name] for a in msg.fields[: len(names)]))
+    cmd = COMMANDS_BY_ID.get(values["cmdId"])  # "error"
+    return ErrorReply(values["seq"], values["cmdId"], cmd.name if cmd else None, values["code"], values["message"])
+
+
+_MESSAGE_READERS_BY_ID: dict[int, _FieldsReader] = {m.id: _MESSAGE_READERS[m.name] for m in CONTROLLER_MESSAGES}
 
 
 # ---------------------------------------------------------------------------------------------
