@@ -11,9 +11,10 @@ import importlib
 import logging
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 from PySide6.QtCore import QEvent, QObject, QSettings, Qt, QThread, QTimer, Signal
-from PySide6.QtGui import QAction, QFont, QFontMetrics, QKeySequence
+from PySide6.QtGui import QAction, QFont, QFontMetrics, QKeySequence, QPainter, QPixmap
 from PySide6.QtWidgets import (
     QApplication,
     QDockWidget,
@@ -502,6 +503,22 @@ class MainWindow(QMainWindow):
             dock.show()
             del title
         self._first_run_layout(short)
+
+    def grab(self, *args: Any) -> QPixmap:
+        """The window as a pixmap, with the content of native child windows (the 3D view renders in one
+        of its own, which QWidget.grab cannot see) painted in where they are shown."""
+        pixmap = super().grab(*args)
+        if args:  # a sub-rectangle: as Qt grabs it
+            return pixmap
+        painter = QPainter(pixmap)
+        try:
+            for frame in self.frames.values():
+                paint = getattr(frame, "paint_native_views", None)
+                if callable(paint):
+                    paint(painter, self)
+        finally:
+            painter.end()
+        return pixmap
 
     def closeEvent(self, event: QEvent) -> None:
         settings = QSettings()
