@@ -18,12 +18,14 @@ otherwise from the VR renderer's ``vr.main`` targetPos.
 
 from __future__ import annotations
 
+import atexit
 import logging
 import math
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+import shiboken6
 from PySide6.QtCore import QPoint, QPointF, QRectF, QSizeF, Qt, QTimer
 from PySide6.QtGui import QColor, QFont, QGuiApplication, QPainter, QPainterPath, QPen
 from PySide6.QtWidgets import QLabel, QSizePolicy, QVBoxLayout, QWidget
@@ -105,6 +107,7 @@ class DeviceView(RefreshWhenVisible, QWidget):
                 self.gl_container = QWidget.createWindowContainer(self.gl_view, self)
                 self.gl_container.setMinimumSize(240, 160)
                 self.gl_container.setAccessibleName("LINarm 3D view")
+                _GL_CONTAINERS[:] = [b for b in _GL_CONTAINERS if shiboken6.isValid(b)] + [self.gl_container]
                 lay.addWidget(self.gl_container, 1)
             except Exception:  # PyOpenGL missing or GL failing to initialise: the 2D view still works
                 log.exception("3D view unavailable; using the 2D drawing")
@@ -321,6 +324,21 @@ class RobotCanvas(QWidget):
 
 
 _GL_WINDOW_CLASS: Any = None
+_GL_CONTAINERS: list[QWidget] = []  # see _delete_gl_containers
+
+
+def _delete_gl_containers() -> None:
+    """At exit, before PySide's own clean-up: delete the windows that still hold a 3D view (Qt then
+    deletes each container and its GL window, in order). PySide does not know that a container owns its
+    window: its clean-up would delete the Python-created GL window first and leave a container of a
+    window still alive with a dangling pointer, a segfault when the application object goes."""
+    for box in _GL_CONTAINERS:
+        if shiboken6.isValid(box):
+            top = box.window()
+            shiboken6.delete(top if shiboken6.isValid(top) else box)
+
+
+atexit.register(_delete_gl_containers)  # registered after PySide's (imported above): runs before it
 
 
 def gl_window_class() -> Any:
