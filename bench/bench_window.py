@@ -47,13 +47,24 @@ def x_server_pid() -> int | None:
     return None
 
 
+def run_loop(seconds: float) -> None:
+    """Run the Qt event loop for ``seconds`` with no polling timer of the benchmark's own
+    (common.run_qt_until checks its predicate every 5 ms: 200 wake-ups a second of the GUI thread
+    that the application does not have)."""
+    from PySide6.QtCore import QEventLoop, QTimer
+
+    loop = QEventLoop()
+    QTimer.singleShot(int(seconds * 1000), loop.quit)
+    loop.exec()
+
+
 def window_share(threads: list[tuple[str, float]], gui_name: str) -> tuple[float, float, float]:
     gui = sum(v for n, v in threads if n == gui_name)
     gl = sum(v for n, v in threads if n.startswith("llvmpipe"))
     return gui, gl, gui + gl
 
 
-def one_run(seconds: float, moving: bool, screenshot: str) -> dict[str, Any]:
+def one_run(seconds: float, moving: bool, screenshot: str, profile: str = "") -> dict[str, Any]:
     from app.ui.plots_frame import DEFAULT_SIGNALS
 
     config = config_at(1.0)
@@ -83,9 +94,13 @@ def one_run(seconds: float, moving: bool, screenshot: str) -> dict[str, Any]:
         meter = common.CpuMeter([None, x_pid] if x_pid else [None])
         t0 = time.monotonic()
         before = common.thread_cpu_table()
-        common.run_qt_until(lambda: False, seconds)
+        spy = common.start_py_spy(profile, seconds) if profile else None
+        run_loop(seconds)
         threads = common.thread_cpu_percent(before, common.thread_cpu_table(), time.monotonic() - t0)
         cpu = meter.percent()
+        if spy is not None:
+            spy.wait()
+            print(f"  profile of the GUI thread: {common.summarise_py_spy(profile)}")
         if screenshot:
             window.grab().save(screenshot)
         gui, gl, share = window_share(threads, gui_name)
@@ -103,13 +118,15 @@ def main() -> int:
     parser.add_argument("--runs", type=int, default=3)
     parser.add_argument("--moving", action="store_true", help="run the reach exercise while measuring")
     parser.add_argument("--screenshot", default="", help="save the window of the last run as PNG")
+    parser.add_argument("--profile", action="store_true", help="py-spy the first run into bench/profiles/window*")
     args = parser.parse_args()
     app = common.qt_app()
     common.print_machine("bench_window: the window's CPU at nominal rates")
     print(f"  platform {app.platformName()}; robot {'moving (reach exercise)' if args.moving else 'idle'}")
     runs = []
     for i in range(max(1, args.runs)):
-        r = one_run(args.seconds, args.moving, args.screenshot if i == args.runs - 1 else "")
+        profile = ("window_moving" if args.moving else "window_idle") if args.profile and i == 0 else ""
+        r = one_run(args.seconds, args.moving, args.screenshot if i == args.runs - 1 else "", profile)
         runs.append(r)
         print(f"  run {i + 1}: window share {r['share']:.1f} % (GUI thread {r['gui']:.1f} + GL rasteriser "
               f"{r['gl']:.1f}); app process {r['process']:.1f} %"

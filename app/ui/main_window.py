@@ -106,9 +106,13 @@ class DeviceStatus(QLabel):
         bold = QFont(self.font())
         bold.setBold(True)
         plain = QFontMetrics(self.font())
-        self.setMinimumWidth(QFontMetrics(bold).horizontalAdvance(name) + 8
-                             + max(plain.horizontalAdvance(f"● {t} 9999 Hz") for t in ("connected", "silent"))
-                             + plain.horizontalAdvance("  "))
+        # Fixed, not just a minimum: a label whose size can change asks the status bar, and through it the
+        # whole main window, to lay itself out and repaint again on every new text.
+        self.setFixedWidth(QFontMetrics(bold).horizontalAdvance(name) + 8
+                           + max(plain.horizontalAdvance(f"● {t} 9999 Hz") for t in ("connected", "silent"))
+                           + plain.horizontalAdvance("  "))
+        self.setFixedHeight(max(QFontMetrics(bold).height(), plain.height()) + 2)
+        self.shown_rate = 0.0
         self.refresh({})
 
     def set_connection(self, connected: bool, reason: str) -> None:
@@ -124,7 +128,11 @@ class DeviceStatus(QLabel):
         else:
             colour, state = "#c62828", "disconnected"
         rate = max(rates.values()) if rates else 0.0
-        rate_txt = f" {rate:.0f} Hz" if self.connected else ""
+        # The measured rate wanders by a few Hz around the nominal one: a new figure only when it moved by
+        # more than 5 % (a stream that drops to half its rate still shows at once).
+        if abs(rate - self.shown_rate) > 0.05 * max(self.shown_rate, 1.0):
+            self.shown_rate = rate
+        rate_txt = f" {self.shown_rate:.0f} Hz" if self.connected else ""
         text = f"<span style='color:{colour}'>●</span> <b>{self.name}</b> {state}{rate_txt}"
         if text != self.text():  # a rich-text label re-lays itself out on every setText
             self.setText(text)
