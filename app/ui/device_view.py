@@ -7,7 +7,7 @@ camera control, drawn in a native child window of its own (a ``QOpenGLWindow`` i
 not a ``QOpenGLWidget``: a QOpenGLWidget makes Qt compose the whole top-level window through OpenGL on
 every repaint of any widget in it (the graphs at 30 Hz), which with software GL (Mesa llvmpipe) cost
 ~25 % of a core with the 3D scene unchanged. The scene is re-rendered only when something in it moves
-by a visible amount (``GL_STEP_M``) or the camera moves, at most at the UI refresh rate.
+by a visible amount (``GL_STEP_M``) or the camera moves, at most 20 times a second.
 Anywhere else (``offscreen``, Wayland without GLX, ...) it is a 2D QPainter side view of the same scene:
 a GL widget must never even be constructed there, because offscreen GL crashes the process uncatchably (qt-stack.md §2).
 
@@ -42,6 +42,7 @@ HANDLE_RADIUS_M = 0.012
 SPRING_COILS = 8
 RAIL_MARGIN_M = 0.03
 CANVAS_MARGIN_PX = 24.0
+MAX_REFRESH_HZ = 20.0  # the picture follows the arm's motion smoothly to the eye; each render costs CPU
 GL_STEP_M = 0.0005  # the 3D scene spans ~0.7 m over a few hundred pixels: 0.5 mm is about a pixel
 
 
@@ -120,7 +121,7 @@ class DeviceView(RefreshWhenVisible, QWidget):
         lay.addWidget(self.caption)
 
         self.timer = QTimer(self)
-        self.timer.setInterval(int(1000 / max(1.0, manager.config.ui.refresh_hz)))
+        self.timer.setInterval(int(1000 / max(1.0, min(MAX_REFRESH_HZ, manager.config.ui.refresh_hz))))
         self.timer.timeout.connect(self._tick)
         self.timer.start()
         self.refresh()

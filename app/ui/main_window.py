@@ -299,7 +299,8 @@ class MainWindow(QMainWindow):
             self.device_status[name] = label
         self.manager.device_connection_changed.connect(self._on_device_connection)
         self._status_timer = QTimer(self)
-        self._status_timer.setInterval(500)
+        # Rates and silence once a second; a connection or loss shows at once (_on_device_connection).
+        self._status_timer.setInterval(1000)
         self._status_timer.timeout.connect(self._refresh_status)
         self._status_timer.start()
         self._refresh_status()
