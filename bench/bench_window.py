@@ -58,8 +58,7 @@ def run_loop(seconds: float) -> None:
     loop.exec()
 
 
-def window_share(threads: list[tuple[str, float]], gui_name: str) -> tuple[float, float, float]:
-    gui = sum(v for n, v in threads if n == gui_name)
+def window_share(threads: list[tuple[str, float]], gui: float) -> tuple[float, float, float]:
     gl = sum(v for n, v in threads if n.startswith("llvmpipe"))
     return gui, gl, gui + gl
 
@@ -88,22 +87,24 @@ def one_run(seconds: float, moving: bool, screenshot: str, profile: str = "") ->
             if not common.run_qt_until(moving_now, 40.0):
                 print("  (the reach exercise did not reach its start point within 40 s)")
         common.run_qt_until(lambda: False, 2.0)  # settle
-        main_tid = threading.main_thread().native_id
-        gui_name = common.thread_cpu_table()[main_tid][0]
+        main_tid = threading.main_thread().native_id  # by id: Python threads are all named "python" too
         x_pid = x_server_pid()
         meter = common.CpuMeter([None, x_pid] if x_pid else [None])
         t0 = time.monotonic()
         before = common.thread_cpu_table()
         spy = common.start_py_spy(profile, seconds) if profile else None
         run_loop(seconds)
-        threads = common.thread_cpu_percent(before, common.thread_cpu_table(), time.monotonic() - t0)
+        after = common.thread_cpu_table()
+        elapsed = time.monotonic() - t0
+        threads = common.thread_cpu_percent(before, after, elapsed)
+        gui_cpu = 100.0 * (after[main_tid][1] - before[main_tid][1]) / elapsed
         cpu = meter.percent()
         if spy is not None:
             spy.wait()
             print(f"  profile of the GUI thread: {common.summarise_py_spy(profile)}")
         if screenshot:
             window.grab().save(screenshot)
-        gui, gl, share = window_share(threads, gui_name)
+        gui, gl, share = window_share(threads, gui_cpu)
         return {"process": cpu[0], "x": cpu[1] if x_pid else None, "gui": gui, "gl": gl, "share": share,
                 "threads": threads, "load": common._read("/proc/loadavg").split()[:3]}
     finally:
