@@ -21,9 +21,16 @@ if not os.environ.get("DISPLAY") and not os.environ.get("WAYLAND_DISPLAY"):
 # Never write into the developer's real data folder or QSettings.
 os.environ["LINARMPP_HOME"] = tempfile.mkdtemp(prefix="linarmpp-test-home-")
 os.environ.setdefault("PYDEVD_DISABLE_FILE_VALIDATION", "1")
-# Tests reach into simulator cores (faults, counters): host them in this process unless a test asks
-# for the simulator process (app.devices.sim.host) itself.
-os.environ.setdefault("LINARMPP_SIM_HOST", "thread")
+# The simulated devices run in a process of their own, as in the app: the test's process holds only the
+# drivers, as it would with real hardware (and a loaded machine does not slow the simulators through this
+# process's interpreter lock). Tests that look at the far end of a link (the bytes a simulator received, a
+# fault injected into its core) host them as threads: modules in SIM_IN_THREAD_MODULES, tests marked
+# ``sim_in_thread``.
+os.environ.setdefault("LINARMPP_SIM_HOST", "process")
+SIM_IN_THREAD_MODULES = {
+    "test_device_loss", "test_device_loss_more", "test_estop_wire", "test_fes_exit_paths", "test_linarm_heartbeat",
+    "test_linarm_panel", "test_physio_viewer", "test_safety_properties",
+}
 
 from app.application import share_gl_contexts  # noqa: E402 - must run before pytest-qt creates the app
 
@@ -81,6 +88,23 @@ def pytest_collection_modifyitems(config, items) -> None:  # type: ignore[no-unt
             item.add_marker(pytest.mark.realtime)
         if reruns and item.get_closest_marker("realtime") is not None and item.get_closest_marker("flaky") is None:
             item.add_marker(pytest.mark.flaky(reruns=1, reruns_delay=1))
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _simulators_in_thread_for_the_module(request):  # type: ignore[no-untyped-def]
+    """Module scope, so that module-scoped rigs are built with it too."""
+    module = request.module.__name__.rsplit(".", 1)[-1] if request.module is not None else ""
+    with pytest.MonkeyPatch.context() as patch:
+        if module in SIM_IN_THREAD_MODULES:
+            patch.setenv("LINARMPP_SIM_HOST", "thread")
+        yield
+
+
+@pytest.fixture(autouse=True)
+def _simulators_in_thread_for_the_test(request, monkeypatch):  # type: ignore[no-untyped-def]
+    if request.node.get_closest_marker("sim_in_thread") is not None:
+        monkeypatch.setenv("LINARMPP_SIM_HOST", "thread")
+    yield
 
 
 # ------------------------------------------------------------------------------ nothing left running

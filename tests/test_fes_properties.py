@@ -90,8 +90,7 @@ def session(protocol: str, limits: FesLimits) -> Session:
     supervisor = SafetySupervisor(AppConfig().safety)
     supervisor.fes_limiter = FesLimiter(limits)
     link = Loopback(RehaStimSimCore(protocol), clock)  # type: ignore[arg-type]
-    driver = FesDriver("loopback", supervisor, protocol=protocol, transport=link,  # type: ignore[arg-type]
-                       clock=lambda: clock[0])
+    driver = FesDriver(link, supervisor, protocol=protocol, clock=lambda: clock[0])  # type: ignore[arg-type]
     link.driver = driver
     supervisor.register_estop_action("FES stop", lambda reason: driver.stop_stimulation(reason, "e-stop"))
     driver._set_connected(True, "loopback")

@@ -19,6 +19,7 @@ import pytest
 from app.config import SafetyConfig
 from app.devices.linarm import LinarmCommandError, LinarmDriver
 from app.devices.linarm_protocol import ControlMode, ControlState, HomeState, ReplyError
+from app.devices.transport import SerialTransport
 from app.safety import SafetySupervisor
 from tests.test_firmware import build_firmware
 
@@ -78,7 +79,7 @@ def speeds(samples: list[tuple[float, float]], window: int = 4) -> list[tuple[fl
 
 
 def test_driver_runs_the_trigger_exercise_on_the_firmware(qtbot, sil_link: str) -> None:  # type: ignore[no-untyped-def]
-    driver = LinarmDriver(sil_link, SafetySupervisor(SafetyConfig()))
+    driver = LinarmDriver(SerialTransport(sil_link), SafetySupervisor(SafetyConfig()))
     recorder = CentreRecorder()
     driver.add_listener(recorder)
     driver.start()

@@ -16,6 +16,7 @@ from app.devices import linarm_protocol as proto
 from app.devices.linarm import LinarmCommandError, LinarmDriver, LinarmSimAdapter
 from app.devices.linarm_protocol import ControlMode, ControlState, ReplyError
 from app.devices.sim.base import SerialSimulator
+from app.devices.transport import SerialTransport
 from app.safety import SafetySupervisor
 
 IDLE, ON = int(ControlState.IDLE_CTRL_STATE), int(ControlState.ON_CTRL_STATE)
@@ -30,7 +31,7 @@ def robot(tmp_path, qtbot) -> Iterator[LinarmDriver]:
                                                                       allow_calibration=True))
     sim = SerialSimulator("linarm", lambda: LinarmSimAdapter(None, start_homed=True, initial_centre=0.10),
                           tmp_path / "linarm.tty")
-    driver = LinarmDriver(sim.url, SafetySupervisor(safety), command_timeout_s=2.0)
+    driver = LinarmDriver(SerialTransport(sim.url), SafetySupervisor(safety), command_timeout_s=2.0)
     driver.start()
     sim.start()
     qtbot.waitUntil(lambda: driver.connected and driver.latest("linarm.state") is not None, timeout=5000)

@@ -11,6 +11,7 @@ from app.devices.physio import PhysioDriver, PhysioSimCore
 from app.devices.physio_codec import Calibration
 from app.devices.sim.base import SerialSimulator
 from app.devices.sim.patient import SimulatedPatient
+from app.devices.transport import SerialTransport
 
 
 def start_pair(tmp_path, rate_hz: float):
@@ -18,7 +19,7 @@ def start_pair(tmp_path, rate_hz: float):
     cal = Calibration()
     sim = SerialSimulator("physio", lambda: PhysioSimCore(patient, rate_hz, cal), tmp_path / "physio.tty",
                           tick_s=min(0.005, 0.5 / rate_hz))
-    driver = PhysioDriver(sim.url, 115200, cal, silence_timeout_s=0.1)
+    driver = PhysioDriver(SerialTransport(sim.url), cal, silence_timeout_s=0.1)
     driver.start()  # open the port before the board streams (qt-stack.md §3)
     return patient, sim, driver
 

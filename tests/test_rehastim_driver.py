@@ -24,6 +24,7 @@ from app.devices.rehastim import (
 from app.devices.sciencemode import PulseMode, PulseSetting, Sm2Result
 from app.devices.sim.base import SerialSimulator
 from app.devices.sim.rehastim_core import StimulationLogEntry
+from app.devices.transport import SerialTransport
 from app.fes_limits import FesLimiter, FesLimits
 from app.fes_profile import ChannelProfile, FesProfile, Trapezoid
 from app.safety import SafetyError, SafetySupervisor
@@ -74,8 +75,8 @@ def make_rig(protocol: str, tmp_path, qtbot, limits: FesLimits = DEFAULT_LIMITS,
     sim = SerialSimulator("fes", lambda: RehaStimSimAdapter(protocol), tmp_path / "fes.tty", tick_s=0.002)
     sim.keep_host_log = True
     sim.start()
-    driver = FesDriver(sim.url, supervisor, protocol=protocol, ack_timeout_s=ack_timeout_s,  # type: ignore[arg-type]
-                       serial_settings=simulated_link_settings(protocol))  # type: ignore[arg-type]
+    driver = FesDriver(SerialTransport(sim.url, simulated_link_settings(protocol)),  # type: ignore[arg-type]
+                       supervisor, protocol=protocol, ack_timeout_s=ack_timeout_s)  # type: ignore[arg-type]
     faults: list[str] = []
     driver.fault.connect(faults.append)
     driver.start()

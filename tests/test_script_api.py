@@ -16,6 +16,7 @@ from app.config import RESOURCES, SafetyConfig
 from app.devices import linarm_protocol as proto
 from app.devices.driver import UpdateNotifier
 from app.devices.linarm import LinarmCommandError, LinarmDriver, LinarmTimeout
+from app.devices.transport import SerialTransport
 from app.safety import SafetySupervisor
 from app.scripting import api
 from app.scripting.api import (
@@ -222,7 +223,7 @@ def test_a_command_that_never_returns_times_out(manager: Manager, objects: dict[
 def test_the_safety_supervisor_checks_every_script_command() -> None:
     """The real driver path (not started): limits are checked before anything is sent."""
     supervisor = SafetySupervisor(SafetyConfig())
-    driver = LinarmDriver("socket://127.0.0.1:9", supervisor)
+    driver = LinarmDriver(SerialTransport("socket://127.0.0.1:9"), supervisor)
 
     class M(Manager):
         def driver(self, name: str) -> Any:

@@ -273,8 +273,10 @@ def rig() -> Any:
     from app.manager import LinarmppManager
 
     app = QCoreApplication.instance() or QCoreApplication([])
-    manager = LinarmppManager(AppConfig(), factories={"linarm": linarm.create, "physio": physio.create,
-                                                      "fes": rehastim.create})
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setenv("LINARMPP_SIM_HOST", "thread")  # the test reads the bytes the simulators received
+        manager = LinarmppManager(AppConfig(), factories={"linarm": linarm.create, "physio": physio.create,
+                                                          "fes": rehastim.create})
     manager.start()
     assert _pump(app, manager.all_connected, 10.0)
     runner = ScriptRunner(manager, lambda _s, _t: None, home_first=True)

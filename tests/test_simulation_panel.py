@@ -85,6 +85,7 @@ def test_bad_target_list_is_reported_and_nothing_changes(qtbot, manager) -> None
         parse_positions(" , ")
 
 
+@pytest.mark.sim_in_thread  # looks at the simulated board's core
 def test_fault_flag_reaches_the_simulated_board(qtbot, manager) -> None:
     panel = _panel(qtbot, manager)
     sim = manager.devices["physio"].simulator

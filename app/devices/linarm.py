@@ -23,7 +23,7 @@ from app.devices.cmdmessenger import CmdMessengerDecoder
 from app.devices.driver import Channel, DeviceDriver, StreamSpec, UpdateNotifier
 from app.devices.linarm_protocol import ControlState, ReplyError
 from app.devices.sim.base import SerialSimulator
-from app.devices.transport import SerialSettings, SerialTransport, TransportError
+from app.devices.transport import SerialSettings, SerialTransport, Transport, TransportError
 
 if TYPE_CHECKING:
     from app.devices.registry import DeviceContext, DeviceHandle
@@ -133,12 +133,11 @@ class LinarmDriver(DeviceDriver):
     controller_error = Signal(str)  # an ERROR_EVENT from the controller, as a sentence
     identified = Signal(str)  # firmware version
 
-    def __init__(self, url: str, supervisor: SafetySupervisor, *, baudrate: int = 460800,
+    def __init__(self, transport: Transport, supervisor: SafetySupervisor, *,
                  stream_period_s: float = proto.DEFAULT_STREAM_PERIOD, command_timeout_s: float = 1.0,
                  heartbeat_period_s: float = proto.HEARTBEAT_PERIOD, notifier: UpdateNotifier | None = None,
                  silence_timeout_s: float | None = None) -> None:
-        super().__init__("linarm", SerialTransport(url, SerialSettings(baudrate=baudrate)),
-                         notifier=notifier, silence_timeout_s=silence_timeout_s)
+        super().__init__("linarm", transport, notifier=notifier, silence_timeout_s=silence_timeout_s)
         self.supervisor = supervisor
         self.stream_period_s = stream_period_s
         self.command_timeout_s = command_timeout_s
@@ -434,7 +433,8 @@ def create(ctx: DeviceContext) -> DeviceHandle | None:
             lambda patient: SerialSimulator("linarm", lambda: LinarmSimAdapter(patient), link, tick_s=0.001))
         url = simulator.url
     supervisor = ctx.supervisor
-    driver = LinarmDriver(url, supervisor, baudrate=cfg.baudrate, stream_period_s=1.0 / cfg.state_rate_hz,
+    link = SerialTransport(url, SerialSettings(baudrate=cfg.baudrate))
+    driver = LinarmDriver(link, supervisor, stream_period_s=1.0 / cfg.state_rate_hz,
                           command_timeout_s=cfg.command_timeout_s, heartbeat_period_s=cfg.heartbeat_period_s,
                           notifier=ctx.notifier, silence_timeout_s=ctx.silence_timeout(cfg.state_rate_hz))
 

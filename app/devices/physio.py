@@ -14,7 +14,7 @@ from app.devices.driver import Channel, DeviceDriver, StreamSpec, UpdateNotifier
 from app.devices.physio_codec import Calibration, ChannelCalibration, PhysioStreamDecoder
 from app.devices.sim.base import SerialSimulator
 from app.devices.sim.physio_signals import PhysioSimSource
-from app.devices.transport import SerialSettings, SerialTransport
+from app.devices.transport import SerialSettings, SerialTransport, Transport
 
 if TYPE_CHECKING:
     from app.devices.registry import DeviceContext, DeviceHandle
@@ -39,10 +39,9 @@ def calibration_from_config(cal: PhysioCalibration) -> Calibration:
 class PhysioDriver(DeviceDriver):
     streams = (PHYSIO_STREAM,)
 
-    def __init__(self, url: str, baudrate: int, calibration: Calibration, *,
+    def __init__(self, transport: Transport, calibration: Calibration, *,
                  notifier: UpdateNotifier | None = None, silence_timeout_s: float | None = None) -> None:
-        super().__init__("physio", SerialTransport(url, SerialSettings(baudrate=baudrate)),
-                         notifier=notifier, silence_timeout_s=silence_timeout_s)
+        super().__init__("physio", transport, notifier=notifier, silence_timeout_s=silence_timeout_s)
         self.calibration = calibration
         self.decoder = PhysioStreamDecoder(calibration)
 
@@ -96,6 +95,7 @@ def create(ctx: DeviceContext) -> DeviceHandle | None:
                 ("skinConductance", calibration.skinConductance), ("temperature", calibration.temperature),
                 ("force", calibration.force))})
         url = simulator.url
-    driver = PhysioDriver(url, cfg.baudrate, calibration, notifier=ctx.notifier,
+    driver = PhysioDriver(SerialTransport(url, SerialSettings(baudrate=cfg.baudrate)), calibration,
+                          notifier=ctx.notifier,
                           silence_timeout_s=ctx.silence_timeout(cfg.rate_hz))
     return DeviceHandle("physio", driver, simulator)
