@@ -67,6 +67,27 @@ def test_the_3d_scene_renders_only_when_something_moves_visibly(require_gl, qtbo
 
 
 @pytest.mark.gl
+def test_a_second_3d_view_renders_as_the_first(require_gl, qtbot, capfd) -> None:
+    """pyqtgraph compiles its shaders once per process: a second view (a frame rebuilt, another window)
+    with a context outside the first one's share group fails every line item with 'invalid value'
+    (glUseProgram); seen in bench_window, whose QApplication does not set AA_ShareOpenGLContexts."""
+    manager, drivers = make_stub_manager()
+    publish_scene(drivers)
+    for _ in range(2):
+        view = DeviceView(manager)
+        qtbot.addWidget(view)
+        view.resize(500, 300)
+        view.show()
+        qtbot.waitUntil(view.gl_view.isExposed)
+        view.refresh()
+        qtbot.waitUntil(lambda v=view: v.gl_view.frames > 0)
+        view.close()
+        view.deleteLater()
+        qtbot.wait(50)
+    assert "Error while drawing item" not in capfd.readouterr().err
+
+
+@pytest.mark.gl
 def test_f12_stops_with_the_3d_view_focused(require_gl, qtbot, tmp_path) -> None:
     from PySide6.QtTest import QTest
 

@@ -342,6 +342,25 @@ def _delete_gl_containers() -> None:
 atexit.register(_delete_gl_containers)  # registered after PySide's (imported above): runs before it
 
 
+_GL_SHARE_CONTEXT: Any = None
+
+
+def _share_context() -> Any:
+    """The context every 3D view shares its GL objects with: Qt's global one when the application asked
+    for it (app.application.share_gl_contexts), else one of our own (never made current on a surface)."""
+    global _GL_SHARE_CONTEXT
+    from PySide6.QtGui import QOpenGLContext
+
+    if QOpenGLContext.globalShareContext() is not None:
+        return QOpenGLContext.globalShareContext()
+    if _GL_SHARE_CONTEXT is None:
+        context = QOpenGLContext()
+        if not context.create():
+            raise RuntimeError("cannot create an OpenGL context")
+        _GL_SHARE_CONTEXT = context
+    return _GL_SHARE_CONTEXT
+
+
 def gl_window_class() -> Any:
     """pyqtgraph's 3D view on a ``QOpenGLWindow`` (built once, on first use: importing pyqtgraph.opengl
     needs PyOpenGL, and only xcb gets here)."""
@@ -354,7 +373,10 @@ def gl_window_class() -> Any:
             """A native GL window rendering on its own: the widgets around it stay raster."""
 
             def __init__(self) -> None:
-                super().__init__()
+                # All the 3D views share one context group: pyqtgraph compiles its shader programs once
+                # per process and keeps their ids, which a second view's own context would not know
+                # (seen as 'invalid value' from glUseProgram in a second window of bench_window).
+                super().__init__(_share_context())
                 self.frames = 0  # scenes rendered (tests, benchmarks)
 
             def paintGL(self) -> None:
