@@ -12,6 +12,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 from PySide6.QtCore import Qt
 from PySide6.QtWidgets import QTabWidget
@@ -19,6 +20,7 @@ from PySide6.QtWidgets import QTabWidget
 from app.ui.device_view import GL_STEP_M, DeviceView
 from app.ui.main_window import DeviceStatus
 from app.ui.values_frame import ValuesFrame
+from tests.test_device_view import pixels
 from tests.test_values_frame import make_stub_manager, publish_scene
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -81,6 +83,7 @@ def test_a_second_3d_view_renders_as_the_first(require_gl, qtbot, capfd) -> None
         qtbot.waitUntil(view.gl_view.isExposed)
         view.refresh()
         qtbot.waitUntil(lambda v=view: v.gl_view.frames > 0)
+        assert len(np.unique(pixels(view.render_image()))) > 20  # the scene, not a blank clear colour
         view.close()
         view.deleteLater()
         qtbot.wait(50)
