@@ -70,6 +70,7 @@ def test_gl_scene_renders(require_gl, qtbot) -> None:
     view.resize(600, 400)
     view.show()
     qtbot.waitExposed(view)
+    qtbot.waitUntil(view.gl_view.isExposed)  # the 3D scene's own native window
     view.refresh()
     image = view.render_image()
     assert image.width() > 0 and len(np.unique(pixels(image))) > 20

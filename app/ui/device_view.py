@@ -3,9 +3,13 @@ carriages, the springs from each carriage to the handle (zig-zag lines), the han
 current exercise target.
 
 On a real X server (Qt platform ``xcb``) this is a ``pyqtgraph.opengl`` 3D scene with mouse
-camera control. Anywhere else (``offscreen``, Wayland without GLX, ...) it is a 2D QPainter
-side view of the same scene: a GL widget must never even be constructed there, because offscreen
-GL crashes the process uncatchably (qt-stack.md §2).
+camera control, drawn in a native child window of its own (a ``QOpenGLWindow`` in a window container),
+not a ``QOpenGLWidget``: a QOpenGLWidget makes Qt compose the whole top-level window through OpenGL on
+every repaint of any widget in it (the graphs at 30 Hz), which with software GL (Mesa llvmpipe) cost
+~25 % of a core with the 3D scene unchanged. The scene is re-rendered only when something in it moves
+by a visible amount (``GL_STEP_M``) or the camera moves, at most 20 times a second.
+Anywhere else (``offscreen``, Wayland without GLX, ...) it is a 2D QPainter side view of the same scene:
+a GL widget must never even be constructed there, because offscreen GL crashes the process uncatchably (qt-stack.md §2).
 
 Positions come from ``driver.latest()`` at the UI refresh rate: motors from ``linarm.motor0`` and
 ``linarm.motor1``, the handle from ``linarm.vsa``; the target from ``set_target()`` when set,
@@ -14,13 +18,15 @@ otherwise from the VR renderer's ``vr.main`` targetPos.
 
 from __future__ import annotations
 
+import atexit
 import logging
 import math
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from PySide6.QtCore import QPointF, QRectF, Qt, QTimer
+import shiboken6
+from PySide6.QtCore import QPoint, QPointF, QRectF, QSizeF, Qt, QTimer
 from PySide6.QtGui import QColor, QFont, QGuiApplication, QPainter, QPainterPath, QPen
 from PySide6.QtWidgets import QLabel, QSizePolicy, QVBoxLayout, QWidget
 
@@ -36,6 +42,8 @@ HANDLE_RADIUS_M = 0.012
 SPRING_COILS = 8
 RAIL_MARGIN_M = 0.03
 CANVAS_MARGIN_PX = 24.0
+MAX_REFRESH_HZ = 20.0  # the picture follows the arm's motion smoothly to the eye; each render costs CPU
+GL_STEP_M = 0.0005  # the 3D scene spans ~0.7 m over a few hundred pixels: 0.5 mm is about a pixel
 
 
 @dataclass
@@ -87,6 +95,7 @@ class DeviceView(RefreshWhenVisible, QWidget):
         self._api_target: float | None = None
         self._api_target_set = False
         self.gl_view: Any = None
+        self.gl_container: QWidget | None = None
         self.canvas: RobotCanvas | None = None
 
         lay = QVBoxLayout(self)
@@ -96,7 +105,11 @@ class DeviceView(RefreshWhenVisible, QWidget):
             try:
                 self._gl = GlScene(self.rail)
                 self.gl_view = self._gl.view
-                lay.addWidget(self.gl_view, 1)
+                self.gl_container = QWidget.createWindowContainer(self.gl_view, self)
+                self.gl_container.setMinimumSize(240, 160)
+                self.gl_container.setAccessibleName("LINarm 3D view")
+                _GL_CONTAINERS[:] = [b for b in _GL_CONTAINERS if shiboken6.isValid(b)] + [self.gl_container]
+                lay.addWidget(self.gl_container, 1)
             except Exception:  # PyOpenGL missing or GL failing to initialise: the 2D view still works
                 log.exception("3D view unavailable; using the 2D drawing")
                 self.gl_view = None
@@ -108,7 +121,7 @@ class DeviceView(RefreshWhenVisible, QWidget):
         lay.addWidget(self.caption)
 
         self.timer = QTimer(self)
-        self.timer.setInterval(int(1000 / max(1.0, manager.config.ui.refresh_hz)))
+        self.timer.setInterval(int(1000 / max(1.0, min(MAX_REFRESH_HZ, manager.config.ui.refresh_hz))))
         self.timer.timeout.connect(self._tick)
         self.timer.start()
         self.refresh()
@@ -161,10 +174,17 @@ class DeviceView(RefreshWhenVisible, QWidget):
         if text != self.caption.text():
             self.caption.setText(text)
 
+    def paint_native_views(self, painter: QPainter, top: QWidget) -> None:
+        """Paint the 3D scene where its native window shows in ``top`` (for ``top.grab()``)."""
+        box = self.gl_container
+        if box is None or not box.isVisible() or box.visibleRegion().isEmpty():
+            return
+        painter.drawImage(QRectF(box.mapTo(top, QPoint(0, 0)), QSizeF(box.size())), self.render_image())
+
     def render_image(self) -> Any:
         """The current picture as a QImage (the GL framebuffer, or the 2D drawing)."""
         if self.gl_view is not None:
-            return self.gl_view.grabFramebuffer()
+            return self._gl.grab()
         assert self.canvas is not None
         return self.canvas.grab().toImage()
 
@@ -304,6 +324,75 @@ class RobotCanvas(QWidget):
         p.end()
 
 
+_GL_WINDOW_CLASS: Any = None
+_GL_CONTAINERS: list[QWidget] = []  # see _delete_gl_containers
+
+
+def _delete_gl_containers() -> None:
+    """At exit, before PySide's own clean-up: delete the windows that still hold a 3D view (Qt then
+    deletes each container and its GL window, in order). PySide does not know that a container owns its
+    window: its clean-up would delete the Python-created GL window first and leave a container of a
+    window still alive with a dangling pointer, a segfault when the application object goes."""
+    for box in _GL_CONTAINERS:
+        if shiboken6.isValid(box):
+            top = box.window()
+            shiboken6.delete(top if shiboken6.isValid(top) else box)
+
+
+atexit.register(_delete_gl_containers)  # registered after PySide's (imported above): runs before it
+
+
+_GL_SHARE_CONTEXT: Any = None
+
+
+def _share_context() -> Any:
+    """The context every 3D view shares its GL objects with: Qt's global one when the application asked
+    for it (app.application.share_gl_contexts), else one of our own (never made current on a surface)."""
+    global _GL_SHARE_CONTEXT
+    from PySide6.QtGui import QOpenGLContext
+
+    if QOpenGLContext.globalShareContext() is not None:
+        return QOpenGLContext.globalShareContext()
+    if _GL_SHARE_CONTEXT is None:
+        context = QOpenGLContext()
+        if not context.create():
+            raise RuntimeError("cannot create an OpenGL context")
+        _GL_SHARE_CONTEXT = context
+    return _GL_SHARE_CONTEXT
+
+
+def gl_window_class() -> Any:
+    """pyqtgraph's 3D view on a ``QOpenGLWindow`` (built once, on first use: importing pyqtgraph.opengl
+    needs PyOpenGL, and only xcb gets here)."""
+    global _GL_WINDOW_CLASS
+    if _GL_WINDOW_CLASS is None:
+        from pyqtgraph.opengl.GLViewWidget import GLViewMixin
+        from PySide6.QtOpenGL import QOpenGLWindow
+
+        class GlWindow(GLViewMixin, QOpenGLWindow):  # type: ignore[misc]
+            """A native GL window rendering on its own: the widgets around it stay raster."""
+
+            def __init__(self) -> None:
+                # All the 3D views share one context group: pyqtgraph compiles its shader programs once
+                # per process and keeps their ids, which a second view's own context would not know
+                # (seen as 'invalid value' from glUseProgram in a second window of bench_window).
+                super().__init__(_share_context())
+                self.frames = 0  # scenes rendered (tests, benchmarks)
+
+            def paintGL(self) -> None:
+                self.frames += 1
+                super().paintGL()
+
+        _GL_WINDOW_CLASS = GlWindow
+    return _GL_WINDOW_CLASS
+
+
+def _moved(a: float | None, b: float | None) -> bool:
+    if a is None or b is None:
+        return (a is None) != (b is None)
+    return abs(a - b) >= GL_STEP_M
+
+
 class GlScene:
     """The 3D scene (built only on xcb): meshes moved by translation every refresh."""
 
@@ -316,8 +405,8 @@ class GlScene:
         self._alpha = 1.0
         lo, hi = rail
         mid = (lo + hi) / 2
-        view = gl.GLViewWidget()
-        view.setMinimumSize(240, 160)
+        self._drawn: SceneState | None = None
+        view = gl_window_class()()
         view.setBackgroundColor(QColor("#20242a") if colours().name == "dark" else QColor("#e9edf1"))
         view.setCameraPosition(pos=Vector(mid, 0, 0.02), distance=0.6, elevation=28, azimuth=-65)
         self.view = view
@@ -370,7 +459,18 @@ class GlScene:
         item.resetTransform()
         item.translate(x, y, z)
 
+    def grab(self) -> Any:
+        """The rendered scene as a QImage."""
+        return self.view.grabFramebuffer()
+
     def set_state(self, state: SceneState) -> None:
+        """Move the meshes and render, only when something moved by ``GL_STEP_M`` or more since the last
+        render (the state is noisy by micrometres; a render that changes no pixel is wasted CPU)."""
+        last = self._drawn
+        if last is not None and last.connected == state.connected and not any(
+                _moved(getattr(state, k), getattr(last, k)) for k in ("motor0", "motor1", "handle", "target")):
+            return
+        self._drawn = state
         m0, m1, hx, live = _defaults(state, self.rail)
         self._place(self.motor_items[0], m0, 0, 0.025)
         self._place(self.motor_items[1], m1, 0, 0.025)

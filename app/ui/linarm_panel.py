@@ -454,6 +454,8 @@ class LinarmPanel(RefreshWhenVisible, QWidget):
     """Buttons and inputs for the LINarm: states, modes, homing, moves, jog, interaction parameters,
     limits. ``last_outcome`` / ``outcomes`` hold what the operator saw (tests read them)."""
 
+    refresh_timer_attr = "_timer"
+
     outcome_shown = Signal(object)  # Outcome
 
     def __init__(self, manager: LinarmppManager) -> None:

@@ -11,9 +11,10 @@ import importlib
 import logging
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 from PySide6.QtCore import QEvent, QObject, QSettings, Qt, QThread, QTimer, Signal
-from PySide6.QtGui import QAction, QFont, QFontMetrics, QKeySequence
+from PySide6.QtGui import QAction, QFont, QFontMetrics, QKeySequence, QPainter, QPixmap
 from PySide6.QtWidgets import (
     QApplication,
     QDockWidget,
@@ -105,9 +106,13 @@ class DeviceStatus(QLabel):
         bold = QFont(self.font())
         bold.setBold(True)
         plain = QFontMetrics(self.font())
-        self.setMinimumWidth(QFontMetrics(bold).horizontalAdvance(name) + 8
-                             + max(plain.horizontalAdvance(f"● {t} 9999 Hz") for t in ("connected", "silent"))
-                             + plain.horizontalAdvance("  "))
+        # Fixed, not just a minimum: a label whose size can change asks the status bar, and through it the
+        # whole main window, to lay itself out and repaint again on every new text.
+        self.setFixedWidth(QFontMetrics(bold).horizontalAdvance(name) + 8
+                           + max(plain.horizontalAdvance(f"● {t} 9999 Hz") for t in ("connected", "silent"))
+                           + plain.horizontalAdvance("  "))
+        self.setFixedHeight(max(QFontMetrics(bold).height(), plain.height()) + 2)
+        self.shown_rate = 0.0
         self.refresh({})
 
     def set_connection(self, connected: bool, reason: str) -> None:
@@ -123,7 +128,11 @@ class DeviceStatus(QLabel):
         else:
             colour, state = "#c62828", "disconnected"
         rate = max(rates.values()) if rates else 0.0
-        rate_txt = f" {rate:.0f} Hz" if self.connected else ""
+        # The measured rate wanders by a few Hz around the nominal one: a new figure only when it moved by
+        # more than 5 % (a stream that drops to half its rate still shows at once).
+        if abs(rate - self.shown_rate) > 0.05 * max(self.shown_rate, 1.0):
+            self.shown_rate = rate
+        rate_txt = f" {self.shown_rate:.0f} Hz" if self.connected else ""
         text = f"<span style='color:{colour}'>●</span> <b>{self.name}</b> {state}{rate_txt}"
         if text != self.text():  # a rich-text label re-lays itself out on every setText
             self.setText(text)
@@ -290,7 +299,8 @@ class MainWindow(QMainWindow):
             self.device_status[name] = label
         self.manager.device_connection_changed.connect(self._on_device_connection)
         self._status_timer = QTimer(self)
-        self._status_timer.setInterval(500)
+        # Rates and silence once a second; a connection or loss shows at once (_on_device_connection).
+        self._status_timer.setInterval(1000)
         self._status_timer.timeout.connect(self._refresh_status)
         self._status_timer.start()
         self._refresh_status()
@@ -502,6 +512,22 @@ class MainWindow(QMainWindow):
             dock.show()
             del title
         self._first_run_layout(short)
+
+    def grab(self, *args: Any) -> QPixmap:
+        """The window as a pixmap, with the content of native child windows (the 3D view renders in one
+        of its own, which QWidget.grab cannot see) painted in where they are shown."""
+        pixmap = super().grab(*args)
+        if args:  # a sub-rectangle: as Qt grabs it
+            return pixmap
+        painter = QPainter(pixmap)
+        try:
+            for frame in self.frames.values():
+                paint = getattr(frame, "paint_native_views", None)
+                if callable(paint):
+                    paint(painter, self)
+        finally:
+            painter.end()
+        return pixmap
 
     def closeEvent(self, event: QEvent) -> None:
         settings = QSettings()

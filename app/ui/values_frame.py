@@ -2,8 +2,10 @@
 part the robot's control state, mode and error state (colour-coded) and each device's connection
 and sample rate.
 
-The frame polls ``driver.latest(stream)`` on a ~10 Hz timer: a number changing 30 times a second
-cannot be read anyway, and polling costs nothing when devices are absent. Absent devices or
+The frame polls ``driver.latest(stream)`` on a 5 Hz timer: a number changing faster cannot be read
+(a meter's display updates 2-5 times a second; the motion itself is in the graphs and the device view),
+and polling costs nothing when devices are absent. A value's text is set only when the shown (rounded)
+text changes, and its label paints its own background, so a new digit repaints that label alone. Absent devices or
 values show "—".
 """
 
@@ -35,7 +37,7 @@ from app.ui.widgets import RefreshWhenVisible
 
 DASH = "—"
 FES_CHANNELS = 8
-REFRESH_HZ = 10.0
+REFRESH_HZ = 5.0  # see the module's docstring
 VALUE_PT_STEPS = (22, 20, 18, 16, 14, 13)  # 13 pt bold still reads from 2 m
 
 
@@ -140,6 +142,8 @@ class ValueTile(QFrame):
         self.value_pt = 0
         self.set_value_pt(value_pt)
         self.value.setAlignment(Qt.AlignmentFlag.AlignRight | Qt.AlignmentFlag.AlignVCenter)
+        # Opaque: a new value repaints the label only, not the tile, group and frame beneath it.
+        self.value.setAutoFillBackground(True)
         self.value.setTextInteractionFlags(Qt.TextInteractionFlag.TextSelectableByMouse)
         lay.addWidget(self.title)
         lay.addWidget(self.value)
@@ -169,7 +173,9 @@ class ValueTile(QFrame):
         style = f"color: {colour};" if colour else ""
         if style != self.value.styleSheet():
             self.value.setStyleSheet(style)
-        self.setAccessibleName(f"{self.title.text()}: {shown}")
+        name = f"{self.title.text()}: {shown}"
+        if name != self.accessibleName():
+            self.setAccessibleName(name)
 
 
 class ValuesFrame(RefreshWhenVisible, QWidget):
@@ -406,8 +412,10 @@ class ValuesFrame(RefreshWhenVisible, QWidget):
             else:
                 colour, state = c.bad, "disconnected"
             sim = " (sim)" if handle.simulated else ""
-            label.setText(f"<span style='color:{colour}'>●</span> <b>{name}</b>{sim} {state}")
-            label.setAccessibleName(f"{name} {state}")
+            text = f"<span style='color:{colour}'>●</span> <b>{name}</b>{sim} {state}"
+            if text != label.text():  # a rich-text label parses its text again on every setText
+                label.setText(text)
+                label.setAccessibleName(f"{name} {state}")
 
     # ------------------------------------------------------------------ test/inspection helpers
     def text_of(self, stream: str, channel: str) -> str:

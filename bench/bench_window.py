@@ -1,0 +1,146 @@
+"""The window's own CPU (issue #16, acceptance 3): the GUI thread and the OpenGL rasteriser threads of the app
+at nominal stream rates with the main window open (default graphs, the 3D view visible), robot idle or moving.
+
+    xvfb-run -a -s "-screen 0 1920x1080x24" env QT_QPA_PLATFORM=xcb \\
+        .venv/bin/python bench/bench_window.py [--seconds 10] [--runs 3] [--moving] [--screenshot out.png]
+
+Under Xvfb the 3D view is drawn by Mesa llvmpipe, i.e. on the CPU by threads of the app's own process named
+``llvmpipe-N``; offscreen there is no 3D view (the 2D drawing replaces it), so run it under Xvfb for the real
+figure. "Window share" = the GUI thread + the llvmpipe threads; the X server's own CPU (it composes what the app
+puts on screen) is printed beside it. ``--moving`` runs bench/scripts/reach_exercise.py (0.10 <-> 0.40 m) during
+the measurement. The machine may be shared: the load average is printed with every run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import common
+from bench_headroom import config_at
+
+SCRIPT = common.BENCH / "scripts" / "reach_exercise.py"
+
+
+def x_server_pid() -> int | None:
+    """The Xvfb serving our DISPLAY (several may run on a shared machine)."""
+    display = os.environ.get("DISPLAY", "")
+    if not display:
+        return None
+    for pid in os.listdir("/proc"):
+        if not pid.isdigit():
+            continue
+        try:
+            argv = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
+        except OSError:
+            continue
+        if argv and argv[0].endswith(b"Xvfb") and display.encode() in argv:
+            return int(pid)
+    return None
+
+
+def run_loop(seconds: float) -> None:
+    """Run the Qt event loop for ``seconds`` with no polling timer of the benchmark's own
+    (common.run_qt_until checks its predicate every 5 ms: 200 wake-ups a second of the GUI thread
+    that the application does not have)."""
+    from PySide6.QtCore import QEventLoop, QTimer
+
+    loop = QEventLoop()
+    QTimer.singleShot(int(seconds * 1000), loop.quit)
+    loop.exec()
+
+
+def window_share(threads: list[tuple[str, float]], gui: float) -> tuple[float, float, float]:
+    gl = sum(v for n, v in threads if n.startswith("llvmpipe"))
+    return gui, gl, gui + gl
+
+
+def one_run(seconds: float, moving: bool, screenshot: str, profile: str = "") -> dict[str, Any]:
+    from app.ui.plots_frame import DEFAULT_SIGNALS
+
+    config = config_at(1.0)
+    manager = common.start_manager(config)
+    window = None
+    runner = None
+    try:
+        window = common.open_window(manager, load=False, refresh_hz=config.ui.refresh_hz)
+        plots = window.frames.get("PlotsFrame")
+        if plots is not None:
+            plots.set_selected(list(DEFAULT_SIGNALS))
+        if moving:
+            from app.scripting.runner import ScriptRunner
+
+            runner = ScriptRunner(manager, lambda _s, _t: None, home_first=True)
+            runner.start(SCRIPT.read_text(encoding="utf-8"), str(SCRIPT))
+
+            def moving_now() -> bool:
+                s = manager.driver("linarm").latest("linarm.vsa")
+                return s is not None and abs(float(s.equilibriumPos) - 0.10) < 0.01
+            if not common.run_qt_until(moving_now, 40.0):
+                print("  (the reach exercise did not reach its start point within 40 s)")
+        common.run_qt_until(lambda: False, 2.0)  # settle
+        main_tid = threading.main_thread().native_id  # by id: Python threads are all named "python" too
+        x_pid = x_server_pid()
+        meter = common.CpuMeter([None, x_pid] if x_pid else [None])
+        t0 = time.monotonic()
+        before = common.thread_cpu_table()
+        spy = common.start_py_spy(profile, seconds) if profile else None
+        run_loop(seconds)
+        after = common.thread_cpu_table()
+        elapsed = time.monotonic() - t0
+        threads = common.thread_cpu_percent(before, after, elapsed)
+        gui_cpu = 100.0 * (after[main_tid][1] - before[main_tid][1]) / elapsed
+        cpu = meter.percent()
+        if spy is not None:
+            spy.wait()
+            print(f"  profile of the GUI thread: {common.summarise_py_spy(profile)}")
+        if screenshot:
+            window.grab().save(screenshot)
+        gui, gl, share = window_share(threads, gui_cpu)
+        return {"process": cpu[0], "x": cpu[1] if x_pid else None, "gui": gui, "gl": gl, "share": share,
+                "threads": threads, "load": common._read("/proc/loadavg").split()[:3]}
+    finally:
+        if runner is not None:
+            runner.stop("bench done", 5.0)
+        common.shutdown(manager, window)
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--seconds", type=float, default=10.0)
+    parser.add_argument("--runs", type=int, default=3)
+    parser.add_argument("--moving", action="store_true", help="run the reach exercise while measuring")
+    parser.add_argument("--screenshot", default="", help="save the window of the last run as PNG")
+    parser.add_argument("--profile", action="store_true", help="py-spy the first run into bench/profiles/window*")
+    args = parser.parse_args()
+    app = common.qt_app()
+    common.print_machine("bench_window: the window's CPU at nominal rates")
+    print(f"  platform {app.platformName()}; robot {'moving (reach exercise)' if args.moving else 'idle'}")
+    runs = []
+    for i in range(max(1, args.runs)):
+        profile = ("window_moving" if args.moving else "window_idle") if args.profile and i == 0 else ""
+        r = one_run(args.seconds, args.moving, args.screenshot if i == args.runs - 1 else "", profile)
+        runs.append(r)
+        print(f"  run {i + 1}: window share {r['share']:.1f} % (GUI thread {r['gui']:.1f} + GL rasteriser "
+              f"{r['gl']:.1f}); app process {r['process']:.1f} %"
+              + (f"; X server {r['x']:.1f} %" if r["x"] is not None else "")
+              + f"; load average {' '.join(r['load'])}", flush=True)
+        print("    threads (% of one core): " + ", ".join(f"{n} {v:.1f}" for n, v in r["threads"] if v >= 0.05))
+        app.processEvents()
+    share = statistics.median(r["share"] for r in runs)
+    print(f"  window share, median of {len(runs)}: {share:.1f} % of one core "
+          f"(GUI {statistics.median(r['gui'] for r in runs):.1f}, GL {statistics.median(r['gl'] for r in runs):.1f})"
+          f" | target ≤ 5 %: {common.verdict(share, 5.0)}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
