@@ -129,7 +129,7 @@ def run_step(step: float, seconds: float, profile: str = "", headless: bool = Fa
             if seq is not None:
                 vr_seq.add(int(seq))
 
-        common.run_qt_until(lambda: False, 2.0)  # settle: connections, first stream periods
+        common.run_qt_for(2.0)  # settle: connections, first stream periods
         physio = manager.driver("physio")
         physio_sim = manager.devices["physio"].simulator if physio is not None else None
         lost0, bad0 = (physio.frames_lost, physio.bad_frames) if physio is not None else (0, 0)
@@ -150,7 +150,7 @@ def run_step(step: float, seconds: float, profile: str = "", headless: bool = Fa
         meter = common.CpuMeter([None, *helpers.values()])
         threads0 = common.thread_cpu_table()
         spy = common.start_py_spy(profile, min(seconds, 20.0)) if profile else None
-        common.run_qt_until(lambda: False, seconds)
+        common.run_qt_for(seconds)
         cpu = meter.percent()
         threads = common.thread_cpu_percent(threads0, common.thread_cpu_table(), time.monotonic() - t_start)
         sim_cpu = 100.0 * (sum(common.thread_cpu_seconds(t) for t in sims) - sim0) / (time.monotonic() - t_start)

@@ -274,11 +274,26 @@ def bench_config(**device_changes: Any) -> Any:
 def qt_app() -> Any:
     from PySide6.QtWidgets import QApplication
 
+    if QApplication.instance() is None:
+        from app.application import share_gl_contexts
+
+        share_gl_contexts()  # as the application does, before the QApplication exists
     app = QApplication.instance() or QApplication([sys.argv[0]])
     from app.application import configure_qt_identity
 
     configure_qt_identity()
     return app
+
+
+def run_qt_for(seconds: float) -> None:
+    """Run the Qt event loop for ``seconds`` with no timer of the benchmark's own: what the CPU figures
+    measure is then only the application (run_qt_until's 5 ms polling woke the GUI thread 200 times a
+    second, which the application does not do)."""
+    from PySide6.QtCore import QEventLoop, QTimer
+
+    loop = QEventLoop()
+    QTimer.singleShot(max(0, int(seconds * 1000)), loop.quit)
+    loop.exec()
 
 
 def run_qt_until(predicate: Callable[[], bool], timeout_s: float, poll_ms: int = 5) -> bool:
