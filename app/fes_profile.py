@@ -48,11 +48,14 @@ class Trapezoid:
         (u0, u1), (d0, d1) = self.ramp_up, self.ramp_down
         if x < u0 or x >= d1:
             return self.baseline
+        low, high = min(self.baseline, self.level), max(self.baseline, self.level)
+        # Clamped: rounding in the interpolation must never step outside baseline..level (a level of
+        # 5e-324 gave -5e-324 on the ramp down, i.e. below zero).
         if x < u1:
-            return self.baseline + (self.level - self.baseline) * (x - u0) / (u1 - u0)
+            return min(high, max(low, self.baseline + (self.level - self.baseline) * (x - u0) / (u1 - u0)))
         if x <= d0:
             return self.level
-        return self.level + (self.baseline - self.level) * (x - d0) / (d1 - d0)
+        return min(high, max(low, self.level + (self.baseline - self.level) * (x - d0) / (d1 - d0)))
 
     def problems(self, axis: Axis, maximum: float, unit: str) -> list[tuple[str, str]]:
         """(key, problem) pairs; empty when valid."""

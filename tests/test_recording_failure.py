@@ -36,12 +36,14 @@ def test_disk_full_is_a_stop_alarm_within_1_s_and_events_survive(tmp_path, qtbot
     folder = manager.start_session("DISK01", "tester", root=tmp_path / "sessions")
     t0 = time.monotonic()
     fill_the_disk(manager.recorder)
-    qtbot.waitUntil(lambda: any(a.level == AlarmLevel.STOP and "Recording failed" in a.text
-                                for a in manager.supervisor.alarms()), timeout=1000)
+    # The alarm is listed as it is raised; the policy's safe-state actions follow on the GUI thread's
+    # loop: both within the second (under two CPU-bound processes the second came a moment later).
+    qtbot.waitUntil(lambda: bool(safe) and any(a.level == AlarmLevel.STOP and "Recording failed" in a.text
+                                                for a in manager.supervisor.alarms()), timeout=1000)
     elapsed = time.monotonic() - t0
     alarm = next(a for a in manager.supervisor.alarms() if "Recording failed" in a.text)
     assert str(folder) in alarm.text and "No space left on device" in alarm.text
-    assert safe and "Recording failed" in safe[0]  # the fault policy's safe state
+    assert "Recording failed" in safe[0]  # the fault policy's safe state
     manager.record_event("after_the_failure", note="kept in memory")
     manager.end_session()  # no exception, no abort
     manifest = json.loads((folder / "manifest.json").read_text(encoding="utf-8"))
