@@ -11,6 +11,7 @@ import pytest
 from app.devices.driver import Channel, DeviceDriver, StreamSpec, UpdateNotifier
 from app.devices.sim.base import SerialSimulator
 from tests.fakes import CounterCore, CounterDriver
+from tests.memory_link import MemoryLink
 
 
 @pytest.fixture
@@ -83,31 +84,6 @@ def test_stop_is_prompt(counter) -> None:
 
 # -- the per-sample path without a link: an in-memory transport ----------------------------------------
 
-class _ChunkTransport:
-    """Hands out the given reads, then nothing (a silent link)."""
-
-    description = "memory"
-
-    def __init__(self, reads: list[bytes]) -> None:
-        self._reads = list(reads)
-        self.is_open = False
-
-    def open(self) -> None:
-        self.is_open = True
-
-    def close(self) -> None:
-        self.is_open = False
-
-    def read(self, timeout: float) -> bytes:
-        if self._reads:
-            return self._reads.pop(0)
-        threading.Event().wait(timeout)
-        return b""
-
-    def write(self, data: bytes) -> None:
-        pass
-
-
 class _CountingNotifier(UpdateNotifier):
     def __init__(self) -> None:
         super().__init__()
@@ -134,7 +110,10 @@ def _two_stream_driver(reads: list[bytes], notifier: UpdateNotifier) -> DeviceDr
             for b in data:  # one sample per byte: odd bytes to x, even to y
                 self.publish("pair.x" if b % 2 else "pair.y", t_ns / 1e9, Pair(float(b), b > 100))
 
-    return PairDriver("pair", _ChunkTransport(reads), notifier=notifier)
+    link = MemoryLink()
+    for data in reads:
+        link.push(data)
+    return PairDriver("pair", link, notifier=notifier)
 
 
 def test_every_sample_reaches_listeners_latest_and_batches_with_one_wake_up_per_read(qtbot) -> None:
