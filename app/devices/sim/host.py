@@ -266,18 +266,25 @@ def serve(spec: dict[str, Any], commands: Any, replies: Any) -> int:
     for sim in sims.values():
         sim.start()  # real-time device threads (SerialSimulator.realtime_priority)
     emit({"ready": {name: sim.url for name, sim in sims.items()}, "pid": os.getpid()})
-    parent_gone = threading.Event()
-    signal.signal(signal.SIGTERM, lambda *_a: parent_gone.set())
+    # Set from the SIGTERM handler, so a plain flag, never a lock: a handler that set a threading.Event was
+    # interrupted by the next SIGTERM, whose handler then waited for the Event's lock forever (a wedged
+    # simulator process, found left running after a test run, py-spy showing three nested Event.set calls).
+    parent_gone = [False]
+
+    def on_sigterm(*_args: Any) -> None:
+        parent_gone[0] = True
+
+    signal.signal(signal.SIGTERM, on_sigterm)
     fd = commands.fileno()
     buffer = b""
     quit_now = False
-    while not quit_now and not parent_gone.is_set():
+    while not quit_now and not parent_gone[0]:
         ready, _, _ = select.select([fd], [], [], 0.2)
         if not ready:
             continue
         chunk = os.read(fd, 65536)
         if not chunk:
-            parent_gone.set()
+            parent_gone[0] = True
             break
         buffer += chunk
         while b"\n" in buffer:
@@ -290,7 +297,7 @@ def serve(spec: dict[str, Any], commands: Any, replies: Any) -> int:
                 emit({"id": request.get("id"), "ok": True, "result": None})
                 break
             emit(_answer(request, sims, patient))
-    if parent_gone.is_set() and not quit_now:
+    if parent_gone[0] and not quit_now:
         # As a real device would: keep running a moment after the host vanished (its watchdog acts).
         linger = float(spec.get("linger_s", 1.0))
         deadline = time.monotonic() + linger
