@@ -337,7 +337,10 @@ def _answer(request: dict[str, Any], sims: dict[str, Any], patient: Any) -> dict
             sim = sims[request["device"]]
             if "keep" in request:
                 sim.keep_host_log = bool(request["keep"])
-            result = [[t, data.hex()] for t, data in list(sim.host_bytes_log)]
+            log_now = list(sim.host_bytes_log)
+            since = int(request.get("since", 0))
+            since = since if 0 <= since <= len(log_now) else 0  # a restarted simulator began a new log
+            result = {"from": since, "rows": [[t, data.hex()] for t, data in log_now[since:]]}
         elif op == "control":
             sim = sims[request["device"]]
             fn = DEVICE_CONTROLS[request["name"]]
@@ -491,6 +494,7 @@ class RemoteSimulator:
         self.tcp_port = tcp_port  # or the loopback port it listens on
         self._running = True
         self._keep_host_log = False
+        self._host_log: list[tuple[float, bytes]] = []  # what has been fetched so far (only new rows travel)
 
     @property
     def url(self) -> str:
@@ -530,8 +534,10 @@ class RemoteSimulator:
     @property
     def host_bytes_log(self) -> list[tuple[float, bytes]]:
         """(monotonic time, bytes) of every read the simulator made while keep_host_log was on; a copy."""
-        rows = self.process.call("host_log", device=self.name, timeout_s=10.0)
-        return [(float(t), bytes.fromhex(h)) for t, h in rows]
+        answer = self.process.call("host_log", device=self.name, since=len(self._host_log), timeout_s=10.0)
+        del self._host_log[int(answer["from"]):]
+        self._host_log.extend((float(t), bytes.fromhex(h)) for t, h in answer["rows"])
+        return list(self._host_log)
 
 
 class ThreadHostedControls:
