@@ -371,6 +371,7 @@ def test_fes_stop_and_robot_idle_are_on_the_wire_within_200_ms(rig: Any, case: s
     stops = [data for kind, data in events if kind == "script_stop"]
     assert stops and stops[-1]["reason"] == result.message  # recorded, with the cause
     del manager.supervisor.event
+    assert runner.ready(5.0), "a fresh kernel is ready"  # after a crash the next kernel is still starting
     runner.start("print('next one runs')\n", "<next>")
     assert _pump(app, lambda: not runner.running, 3.0) and runner.result.status == "finished"
     runner.close()
