@@ -334,11 +334,11 @@ class DeviceDriver(QThread):
         # Runs once per read (hundreds of times a second): the lookups are done once, here.
         read, on_bytes, on_tick = self.transport.read, self.on_bytes, self.on_tick
         monotonic, monotonic_ns, stop = time.monotonic, time.monotonic_ns, self._stop
-        read_timeout, batch_period, silence_timeout = self.read_timeout_s, self.batch_period_s, self.silence_timeout_s
+        batch_period, silence_timeout = self.batch_period_s, self.silence_timeout_s
         next_batch = monotonic() + batch_period
         self._last_sample_mono = monotonic()
         while not stop.is_set():
-            data = read(read_timeout)
+            data = read(self.read_timeout_s)  # read each pass: a driver may set it in on_tick (FES: its t1 grid)
             if data:
                 self._in_read = True
                 try:
