@@ -147,6 +147,34 @@ class FesLimits:
         return current, width, rms
 
 
+def profile_limit_problems(limits: FesLimits, peaks: Mapping[int, tuple[float, float]],
+                           patient: str = "") -> list[str]:
+    """Why a profile with these per-channel peaks (mA, µs; scaled) would be refused, each reason naming the
+    limit that refuses it: the stimulator's own range, the site's configuration (every channel, then the
+    channel's own cap) or the patient's clinical cap. Empty when every peak is within every layer. The FES
+    editor shows these before Apply (issue #30: a 60 mA profile read "valid", then Apply was refused)."""
+    who = f"patient {patient}" if patient else "the patient"
+    out: list[str] = []
+    for ch, (current, width) in sorted(peaks.items()):
+        layers: list[tuple[str, float, float]] = [
+            ("the stimulator's range", float(MAX_CURRENT_MA), float(MAX_PULSE_WIDTH_US)),
+            ("the site's limit (configuration, every channel)", limits.max_current_ma, limits.max_pulse_width_us),
+        ]
+        site = limits.channel_caps.get(ch)
+        if site is not None:
+            layers.append((f"the site's cap for channel {ch}", site.max_current_ma, site.max_pulse_width_us))
+        clinical = limits.clinical_caps.get(ch)
+        if clinical is not None:
+            layers.append((f"{who}'s clinical cap for channel {ch}", clinical.max_current_ma,
+                           clinical.max_pulse_width_us))
+        for what, value, index, unit in (("current", current, 1, "mA"), ("pulse width", width, 2, "µs")):
+            tightest = min(layers, key=lambda layer: layer[index])
+            if value > tightest[index] + 1e-9:
+                out.append(f"Channel {ch}: peak {what} {value:g} {unit} is above {tightest[0]} "
+                           f"of {tightest[index]:g} {unit}.")
+    return out
+
+
 @dataclass(frozen=True)
 class FesUpdate:
     """A commanded stimulation: the channel list in force and the setting of each of its channels."""

@@ -61,3 +61,8 @@ def patients_dir() -> Path:
 def runtime_dir() -> Path:
     """A fresh private folder for this run's simulator links (stable names for reconnection)."""
     return Path(tempfile.mkdtemp(prefix="linarmpp-"))
+
+
+def fes_profiles_dir() -> Path:
+    """The user's own FES profiles (the bundled examples under resources/ are offered read-only)."""
+    return private_dir(data_dir() / "fes_profiles")

@@ -198,3 +198,49 @@ def _view_items(view: QTreeView | QTableView) -> list[str]:
             if isinstance(view, QTreeView) and view.isExpanded(model.index(row, 0, parent)):
                 stack.append(model.index(row, 0, parent))
     return out
+
+
+# The smallest useful sizes of widgets that show data (issue #30: panes squashed so far they showed
+# nothing). A table or tree shows at least MIN_VIEW_ROWS rows (or all it has); a graph is as tall as the
+# plots frame's own pane minimum; any other plot at least MIN_PLOT_PX high and wide.
+MIN_VIEW_ROWS = 3
+MIN_PLOT_PX = 80
+
+
+def squashed_data_widgets(root: QWidget, checked: list[int] | None = None) -> list[str]:
+    """Every visible data view in ``root`` smaller than its minimum useful size, as readable lines."""
+    import pyqtgraph as pg
+
+    from app.ui.plots_frame import MIN_PANE_HEIGHT_PX, PlotsFrame
+
+    found: list[str] = []
+    seen = 0
+    for view in root.findChildren(QTableView) + root.findChildren(QTreeView):
+        if not _shown(view) or view.model() is None:
+            continue
+        rows = view.model().rowCount()
+        if rows == 0:
+            continue
+        seen += 1
+        need = min(rows, MIN_VIEW_ROWS)
+        row_h = view.rowHeight(0) if isinstance(view, QTableView) else view.rowHeight(view.model().index(0, 0))
+        visible = view.viewport().visibleRegion().boundingRect().height()
+        if row_h > 0 and visible + SLACK < need * row_h:
+            found.append(f"{_name(view)}: shows {visible // max(1, row_h)} of {rows} rows "
+                         f"({visible} px, needs {need * row_h})")
+    panes = {id(p) for f in root.findChildren(PlotsFrame) for p in f.plots.values()}
+    for widget in root.findChildren(pg.GraphicsView):
+        if not _shown(widget):
+            continue
+        for item in widget.scene().items():
+            if not isinstance(item, pg.PlotItem) or not item.isVisible():
+                continue
+            seen += 1
+            h, w = item.size().height(), item.size().width()
+            minimum = MIN_PANE_HEIGHT_PX if id(item) in panes else MIN_PLOT_PX
+            if h + SLACK < minimum or w + SLACK < MIN_PLOT_PX:
+                title = item.getAxis("left").labelText or item.titleLabel.text or "plot"
+                found.append(f"{_name(widget)}: plot {title!r} is {w:.0f}×{h:.0f} px (needs height {minimum})")
+    if checked is not None:
+        checked[0] += seen
+    return found

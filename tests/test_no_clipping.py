@@ -6,6 +6,7 @@ tooltip). Runs offscreen and under Xvfb alike."""
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -17,7 +18,7 @@ from app.config import AppConfig
 from app.fes_profile import load_profile
 from app.manager import LinarmppManager
 from app.ui.main_window import MainWindow
-from tests.clipping import clipped_texts
+from tests.clipping import clipped_texts, squashed_data_widgets
 
 ROOT = Path(__file__).resolve().parent.parent
 SIZES = ((1366, 768), (1920, 1080))
@@ -88,6 +89,83 @@ def test_no_text_is_clipped_in_the_main_window(running_window, qtbot, size) -> N
             problems[where] = found
     report = "\n".join(f"[{where}] {p}" for where, ps in problems.items() for p in ps)
     assert not problems, f"clipped at {size}:\n{report}"
+
+
+@pytest.mark.parametrize("size", SIZES, ids=lambda s: f"{s[0]}x{s[1]}")
+def test_no_data_widget_is_squashed(running_window, qtbot, size) -> None:
+    """Issue #30: every table, tree and graph on every tab shows at least its minimum useful size (three rows
+    or all it has; a graph pane MIN_PANE_HEIGHT_PX), and the FES table shows every channel of the profile."""
+    manager, window = running_window
+    window.setWindowState(Qt.WindowState.WindowNoState)
+    window.resize(*size)
+    window._reset_layout(short=size[1] < 900)
+    plots = window.frames["PlotsFrame"]
+    plots.set_selected(SIX_SIGNALS)
+    settle(qtbot, 400)
+    assert (window.width(), window.height()) == size
+    problems: dict[str, list[str]] = {}
+    checked = [0]
+    for where in tab_walk(window):
+        settle(qtbot)
+        found = squashed_data_widgets(window, checked)
+        if found:
+            problems[where] = found
+        if where == "FES":
+            fes = window.frames["CommandsFrame"].panels["FesPanel"]
+            channels = len(manager.driver("fes").profile.channels)
+            assert fes.table.rowCount() == channels == 4
+            shown = fes.table.viewport().visibleRegion().boundingRect().height()
+            need = sum(fes.table.rowHeight(r) for r in range(channels))
+            assert shown >= need, f"FES table shows {shown} px of the {need} px its {channels} channels need"
+    assert checked[0] > 12, f"only {checked[0]} data widgets seen"
+    report = "\n".join(f"[{where}] {p}" for where, ps in problems.items() for p in ps)
+    assert not problems, f"squashed at {size}:\n{report}"
+
+
+# Six signals of six units (m, N, bpm, mA, µs, none): each unit gets a pane of its own, readable (issue #30).
+SIX_SIGNALS = ["linarm.vsa.handlePos", "linarm.vsa.interactionForce", "physio.main.heartRate",
+               "fes.channels.current1", "fes.channels.pulseWidth1", "patient_model.main.alpha"]
+
+
+@pytest.mark.parametrize("size", SIZES, ids=lambda s: f"{s[0]}x{s[1]}")
+def test_each_ticked_signal_gets_a_readable_pane(running_window, qtbot, size) -> None:
+    """Ticking signal after signal in the tree: every pane keeps its minimum height (the area scrolls instead),
+    the unit labels of neighbouring panes never overlap, and α reads in its own unit (no "×0.001")."""
+    from app.ui.plots_frame import MIN_PANE_HEIGHT_PX
+
+    _manager, window = running_window
+    window.setWindowState(Qt.WindowState.WindowNoState)
+    window.resize(*size)
+    window._reset_layout(short=size[1] < 900)
+    plots = window.frames["PlotsFrame"]
+    plots.set_selected([])
+    settle(qtbot, 200)
+    leaves = {it.data(0, Qt.ItemDataRole.UserRole): it for it in plots._leaf_items()}
+    for n, key in enumerate(SIX_SIGNALS, 1):
+        assert key in leaves, f"{key} not in the signal tree"
+        leaves[key].setCheckState(0, Qt.CheckState.Checked)
+        settle(qtbot, 150)
+        assert key in plots.selected
+        heights = {unit: plot.size().height() for unit, plot in plots.plots.items()}
+        assert all(h >= MIN_PANE_HEIGHT_PX - 1 for h in heights.values()), f"after {n} signals: {heights}"
+        labels = [plot.getAxis("left").label.mapRectToScene(plot.getAxis("left").label.boundingRect())
+                  for plot in plots.plots.values()]
+        for a, b in itertools.pairwise(labels):
+            assert not a.intersects(b), f"after {n} signals the unit labels overlap: {a} {b}"
+    assert len(plots.plots) == 6
+    alpha_axis = next(p for u, p in plots.plots.items() if u == "(no unit)").getAxis("left")
+    assert "0.001" not in alpha_axis.labelString() and alpha_axis.autoSIPrefixScale == 1.0
+    # Scrolled to its end, the last pane is whole on screen.
+    bar = plots.graphs_scroll.verticalScrollBar()
+    bar.setValue(bar.maximum())
+    settle(qtbot)
+    last = list(plots.plots.values())[-1]
+    rect = last.mapRectToScene(last.boundingRect())
+    viewport = plots.graphs_scroll.viewport()
+    top = plots.graphics.mapTo(viewport, plots.graphics.mapFromScene(rect.topLeft()))
+    bottom = plots.graphics.mapTo(viewport, plots.graphics.mapFromScene(rect.bottomLeft()))
+    assert 0 <= top.y() and bottom.y() <= viewport.height() + 2, (top, bottom, viewport.height())
+    plots.set_selected([])
 
 
 def fully_shown(w: QWidget) -> bool:

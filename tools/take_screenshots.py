@@ -103,6 +103,16 @@ def main() -> int:
             window.grab().save(str(path))
             print("saved", path)
     commands.tabs.setCurrentIndex(script_tab)
+    # The graphs with six signals in six panes (issue #30: every ticked signal gets a readable pane; what
+    # does not fit scrolls), at both sizes.
+    plots.set_selected(["linarm.vsa.handlePos", "linarm.vsa.interactionForce", "physio.main.heartRate",
+                        "fes.channels.current3", "fes.channels.pulseWidth3", "patient_model.main.alpha"])
+    for width, height in ((1366, 768), (1920, 1080)):
+        window.resize(width, height)
+        window._reset_layout(short=height < 900)
+        pump(1.5)
+        window.grab().save(str(out / f"graphs-6-signals-{width}.png"))
+        print("saved", out / f"graphs-6-signals-{width}.png")
     runner.stop("screenshots taken", wait_s=2.0)
     window.close()
     manager.shutdown()

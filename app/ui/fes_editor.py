@@ -25,7 +25,6 @@ from PySide6.QtWidgets import (
     QComboBox,
     QDialog,
     QDoubleSpinBox,
-    QFileDialog,
     QFormLayout,
     QHBoxLayout,
     QHeaderView,
@@ -42,6 +41,7 @@ from PySide6.QtWidgets import (
 )
 
 from app.devices.sciencemode import CHANNELS, MAX_CURRENT_MA, MAX_PULSE_WIDTH_US, PulseMode
+from app.fes_limits import FesLimits, profile_limit_problems
 from app.fes_profile import (
     ChannelProfile,
     FesProfile,
@@ -50,7 +50,16 @@ from app.fes_profile import (
     load_profile,
     save_profile,
 )
+from app.paths import fes_profiles_dir
+from app.resources import RESOURCES
+from app.ui import file_dialogs
+from app.ui.file_dialogs import is_bundled
 from app.ui.theme import colours, curve_colour
+
+BUNDLED_PROFILES = RESOURCES / "fes_profiles"
+
+# () -> (the limits Apply will meet, the patient's id for the messages); (None, "") when not known.
+LimitsProvider = Callable[[], tuple[FesLimits | None, str]]
 
 log = logging.getLogger(__name__)
 
@@ -73,6 +82,14 @@ Cell = tuple[str, int, int]  # (table "current" | "width", row, column)
 
 def _fmt(v: float) -> str:
     return f"{v:g}"
+
+
+def safe_file_stem(name: str) -> str:
+    """A file name from a profile's name ("Wrist extension, 8 s" -> "Wrist_extension_8_s")."""
+    stem = "".join(c if c.isalnum() or c in "-_" else "_" for c in name.strip()).strip("_")
+    while "__" in stem:
+        stem = stem.replace("__", "_")
+    return stem or "profile"
 
 
 def default_profile() -> FesProfile:
@@ -142,8 +159,13 @@ class FesProfileEditor(QDialog):
     profile_applied = Signal(object)  # FesProfile: "Apply to stimulator"
     profile_saved = Signal(str)
 
-    def __init__(self, profile: FesProfile | None = None, parent: QWidget | None = None) -> None:
+    def __init__(self, profile: FesProfile | None = None, parent: QWidget | None = None,
+                 limits: LimitsProvider | None = None) -> None:
         super().__init__(parent)
+        # The limits that Apply will meet (site, patient, device), read on every validation: the editor
+        # says "valid" only for a profile the stimulator will accept (issue #30).
+        self.limits_provider = limits
+        self.limit_problems: list[str] = []
         self.setWindowTitle("FES profile editor")
         self.resize(1100, 720)
         self.path: Path | None = None
@@ -435,8 +457,9 @@ class FesProfileEditor(QDialog):
         self.undo_stack.push(_RowsEdit(self, f"remove channel {rows[row][0][0]}", rows, new))
 
     def choose_file(self) -> None:
-        path, _ = QFileDialog.getOpenFileName(self, "Open FES profile", str(self.path.parent if self.path else ""),
-                                              "FES profiles (*.yaml *.yml);;All files (*)")
+        start = self.path.parent if self.path is not None and not is_bundled(self.path) else fes_profiles_dir()
+        path = file_dialogs.ask_open_file(self, "Open FES profile", start,
+                                          "FES profiles (*.yaml *.yml);;All files (*)", places=(BUNDLED_PROFILES,))
         if path:
             self.load_file(path)
 
@@ -453,14 +476,24 @@ class FesProfileEditor(QDialog):
         return True
 
     def save(self) -> bool:
-        if self.path is None:
+        if self.path is None or is_bundled(self.path):  # a bundled example is read-only: saved as a copy
             return self.save_as()
         return self.save_file(self.path)
 
     def save_as(self) -> bool:
-        path, _ = QFileDialog.getSaveFileName(self, "Save FES profile", str(self.path or "profile.yaml"),
-                                              "FES profiles (*.yaml *.yml)")
-        return self.save_file(path) if path else False
+        return self.save_file(path) if (path := self.ask_save_path()) else False
+
+    def ask_save_path(self) -> str:
+        """Where to save: proposed in the user's profiles folder (a bundled example's name, or the profile's
+        name); a path inside the bundled folder is refused in words."""
+        name = self.path.name if self.path is not None else f"{safe_file_stem(self.name_edit.text())}.yaml"
+        start = self.path if self.path is not None and not is_bundled(self.path) else fes_profiles_dir() / name
+        path = file_dialogs.ask_save_file(self, "Save FES profile", start, "FES profiles (*.yaml *.yml)", "yaml")
+        if path and is_bundled(path):
+            self.problems_label.setText(f"<span style='color:{colours().bad}'>Not saved: the bundled example "
+                                        "profiles are read-only; save your copy in your own folder.</span>")
+            return ""
+        return path
 
     def save_file(self, path: str | Path) -> bool:
         profile = self._profile
@@ -486,6 +519,10 @@ class FesProfileEditor(QDialog):
                                         "first.</span>")
             return
         self.profile_applied.emit(self._profile)
+
+    def show_refusal(self, text: str) -> None:
+        """A refusal of Apply, in the editor where the therapist is looking (not behind it)."""
+        self.problems_label.setText(f"<span style='color:{colours().bad}'>{escape(text)}</span>")
 
     # ------------------------------------------------------------------ validation and preview
     def validate(self) -> None:
@@ -550,6 +587,11 @@ class FesProfileEditor(QDialog):
                                      self.frequency_box.value(), self.description_edit.text(), *self._scales)
             except FesProfileError as exc:
                 general.append(f"{exc.key}: {exc.problem}")
+        self.limit_problems = []
+        if profile is not None and self.limits_provider is not None:
+            limits, patient = self.limits_provider()
+            if limits is not None:
+                self.limit_problems = profile_limit_problems(limits, profile.peaks(scaled=True), patient)
         self._profile = profile
         self.cell_problems = problems
         self.general_problems = general
@@ -563,11 +605,15 @@ class FesProfileEditor(QDialog):
                 f"{escape(problems[first])}</span>")
         elif general:
             self.problems_label.setText(f"<span style='color:{bad}'>{escape('; '.join(general))}</span>")
+        elif self.limit_problems:
+            self.problems_label.setText(
+                f"<span style='color:{bad}'>Valid as a file, but the stimulator would refuse it now: "
+                f"{escape(' '.join(self.limit_problems))}</span>")
         else:
             self.problems_label.setText("Profile is valid." + ("" if self.undo_stack.isClean() else " (not saved)"))
         self.save_button.setEnabled(profile is not None)
         self.save_as_button.setEnabled(profile is not None)
-        self.apply_button.setEnabled(profile is not None)
+        self.apply_button.setEnabled(profile is not None and not self.limit_problems)
 
     def _highlight(self) -> None:
         self._writing = True

@@ -17,7 +17,6 @@ from PySide6.QtGui import QBrush, QColor
 from PySide6.QtWidgets import (
     QAbstractItemView,
     QDial,
-    QFileDialog,
     QGridLayout,
     QGroupBox,
     QHBoxLayout,
@@ -32,9 +31,12 @@ from PySide6.QtWidgets import (
 
 from app.config import RESOURCES
 from app.devices.rehastim import FesDriver, FesError
+from app.fes_limits import FesLimits
 from app.fes_profile import MAX_SCALE, FesProfile, FesProfileError, load_profile
 from app.manager import LinarmppManager
+from app.paths import fes_profiles_dir
 from app.safety import SafetyError
+from app.ui import file_dialogs
 from app.ui.theme import colours
 from app.ui.widgets import RefreshWhenVisible
 
@@ -159,7 +161,7 @@ class FesPanel(RefreshWhenVisible, QWidget):
         driver = manager.driver("fes")
         self.driver: FesDriver | None = driver if isinstance(driver, FesDriver) else None
         self.editor: QWidget | None = None
-        self.last_dir = PROFILES_DIR
+        self.last_dir = fes_profiles_dir()  # the user's profiles; the bundled examples are a side-bar place
 
         self.status_label = QLabel()
         self.status_label.setTextFormat(Qt.TextFormat.RichText)
@@ -187,6 +189,9 @@ class FesPanel(RefreshWhenVisible, QWidget):
         self.table.setEditTriggers(QAbstractItemView.EditTrigger.NoEditTriggers)
         self.table.setSelectionMode(QAbstractItemView.SelectionMode.NoSelection)
         self.table.setFocusPolicy(Qt.FocusPolicy.NoFocus)
+        # Compact rows: all eight channels must fit beside the controls on a 768 px screen (issue #30).
+        self.table.verticalHeader().setDefaultSectionSize(self.table.fontMetrics().lineSpacing() + 6)
+        self.table.setVerticalScrollBarPolicy(Qt.ScrollBarPolicy.ScrollBarAsNeeded)
         header = self.table.horizontalHeader()
         header.setSectionResizeMode(QHeaderView.ResizeMode.ResizeToContents)
         header.setSectionResizeMode(1, QHeaderView.ResizeMode.Stretch)
@@ -207,19 +212,26 @@ class FesPanel(RefreshWhenVisible, QWidget):
         left.addWidget(self.status_label)
         left.addLayout(buttons)
         left.addWidget(self.profile_label)
+        # Why the pulse-width knob does not turn, on screen and not only in a tooltip (issue #30).
+        self.width_lock_note = QLabel("Pulse width set by the assistance: its knob is locked until the "
+                                      "assistance stops.")
+        self.width_lock_note.setWordWrap(True)
+        self.width_lock_note.setVisible(False)
+        left.addWidget(self.width_lock_note)
         left.addStretch(1)
         knobs = QGroupBox("Live scale factors")
         kl = QGridLayout(knobs)
         kl.setContentsMargins(4, 4, 4, 4)
         kl.addWidget(self.current_knob, 0, 0)
         kl.addWidget(self.width_knob, 0, 1)
+        # Why the pulse-width knob does not turn, on screen and not only in a tooltip (issue #30).
         top = QHBoxLayout()
         top.addLayout(left, 1)
         top.addWidget(knobs)
         channels = QGroupBox("Channels")
         cl = QVBoxLayout(channels)
         cl.setContentsMargins(4, 4, 4, 4)
-        self.table.setMinimumHeight(3 * self.table.fontMetrics().lineSpacing() + 12)
+        self._fit_table_rows()
         cl.addWidget(self.table)
         lay = QVBoxLayout(self)
         lay.setContentsMargins(4, 4, 4, 4)
@@ -262,8 +274,8 @@ class FesPanel(RefreshWhenVisible, QWidget):
         self.refresh()
 
     def choose_profile_file(self) -> None:
-        path, _ = QFileDialog.getOpenFileName(self, "Load FES profile", str(self.last_dir),
-                                              "FES profiles (*.yaml *.yml);;All files (*)")
+        path = file_dialogs.ask_open_file(self, "Load FES profile", self.last_dir,
+                                          "FES profiles (*.yaml *.yml);;All files (*)", places=(PROFILES_DIR,))
         if path:
             self.load_profile_file(path)
 
@@ -290,11 +302,23 @@ class FesPanel(RefreshWhenVisible, QWidget):
         self.refresh()
         return True
 
+    def _limits_now(self) -> tuple[FesLimits | None, str]:
+        """The limits a profile will meet on Apply: the stimulator's limiter (site + the patient's caps)."""
+        lim = self.manager.supervisor.fes_limiter
+        profile = self.manager.patient_profile
+        return (lim.limits if lim is not None else None), (profile.patient_id if profile is not None else "")
+
+    def _apply_from_editor(self, editor: Any, profile: FesProfile) -> None:
+        if self.apply_profile(profile):
+            editor.problems_label.setText(f"Applied to the stimulator: {escape(profile.name)}.")
+        else:
+            editor.show_refusal(self.message.text())
+
     def open_editor(self) -> None:
         from app.ui.fes_editor import FesProfileEditor
 
-        editor = FesProfileEditor(self.driver.profile if self.driver else None, self)
-        editor.profile_applied.connect(self.apply_profile)
+        editor = FesProfileEditor(self.driver.profile if self.driver else None, self, limits=self._limits_now)
+        editor.profile_applied.connect(lambda profile: self._apply_from_editor(editor, profile))
         editor.setAttribute(Qt.WidgetAttribute.WA_DeleteOnClose)
         editor.show()
         self.editor = editor
@@ -330,6 +354,11 @@ class FesPanel(RefreshWhenVisible, QWidget):
 
     # ------------------------------------------------------------------ view
 
+    def _fit_table_rows(self) -> None:
+        """Every channel of the profile on screen at once (issue #30: 1 of 4 rows showed at 1366×768):
+        the table is as tall as its rows, at least three; the tab scrolls if the screen is shorter."""
+        self.table.setMinimumHeight(table_height_for_rows(self.table, max(3, self.table.rowCount())))
+
     def refresh(self) -> None:
         c = colours()
         d = self.driver
@@ -357,6 +386,7 @@ class FesPanel(RefreshWhenVisible, QWidget):
         for knob in (self.current_knob, self.width_knob):
             knob.setEnabled(profile is not None)
         override = d.pulse_width_override
+        self.width_lock_note.setVisible(profile is not None and override is not None)
         self.width_knob.dial.setEnabled(profile is not None and override is None)
         if profile is None:
             self.profile_label.setText("No profile loaded")
@@ -383,11 +413,15 @@ class FesPanel(RefreshWhenVisible, QWidget):
         if ccl and abs(ccl.frequency_hz - profile.frequency_hz) >= 0.05:
             freq += (f" (delivered {ccl.frequency_hz:.1f} Hz: the stimulator's pulse period "
                      "is a whole number of its time steps)")
+        # Name and what it does on two lines; the free-text description in the tooltip (it took four lines
+        # of a 768 px screen, above the channels the therapist needs to see).
         self.profile_label.setText(f"<b>{escape(profile.name)}</b><br>{axis} · {freq} · "
-                                   f"{len(profile.channels)} channel(s)"
-                                   + (f"<br><i>{escape(profile.description)}</i>" if profile.description else ""))
+                                   f"{len(profile.channels)} channel(s)")
+        self.profile_label.setToolTip(profile.description)
         rows = d.channel_status()
-        self.table.setRowCount(len(rows))
+        if self.table.rowCount() != len(rows):
+            self.table.setRowCount(len(rows))
+            self._fit_table_rows()
         for r, s in enumerate(rows):
             values = (str(s.channel), s.muscle, f"{s.peak_current_ma:.1f}", f"{s.peak_pulse_width_us:.0f}",
                       str(s.sent_current_ma), str(s.sent_pulse_width_us),
@@ -404,6 +438,12 @@ class FesPanel(RefreshWhenVisible, QWidget):
             status = self.table.item(r, len(COLUMNS) - 1)
             note_colour = {"following": c.ok, "off": c.idle}.get(s.note, c.warn)
             status.setForeground(_brush(note_colour))
+
+
+def table_height_for_rows(table: QTableWidget, rows: int) -> int:
+    """The height at which ``table`` shows ``rows`` rows and its header without scrolling."""
+    row_h = table.verticalHeader().defaultSectionSize()
+    return table.horizontalHeader().sizeHint().height() + rows * row_h + 2 * table.frameWidth() + 2
 
 
 def _brush(colour: str) -> QBrush:

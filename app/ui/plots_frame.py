@@ -35,11 +35,13 @@ from PySide6.QtWidgets import (
     QCheckBox,
     QComboBox,
     QFileDialog,
+    QFrame,
     QGraphicsItem,
     QHBoxLayout,
     QHeaderView,
     QLabel,
     QPushButton,
+    QScrollArea,
     QSizePolicy,
     QSplitter,
     QStyle,
@@ -65,6 +67,10 @@ DEFAULT_SIGNALS = ("linarm.vsa.handlePos", "linarm.vsa.equilibriumPos", "linarm.
                    "physio.main.heartRate")
 SCOPE_VISIBLE, SCOPE_ALL = "visible", "all"
 NO_UNIT = "(no unit)"
+# The smallest graph pane that still shows its curve, its rotated unit label and three tick labels
+# without touching a neighbour's (measured at the default 9 pt font: label ~70 px tall).
+MIN_PANE_HEIGHT_PX = 84
+BOTTOM_AXIS_PX = 40  # the shared time axis with its values and title
 # Vertical autoscale with hysteresis: the range follows the data only when the data leaves it or fills
 # less than Y_FILL_MIN of it, and then with Y_HEADROOM of the data's span above and below. A range that
 # moved every frame re-generated the axis and its grid every frame (the largest part of a frame).
@@ -267,7 +273,16 @@ class PlotsFrame(QWidget):
         self.graphics.setMinimumSize(160, 120)
         self.graphics.installEventFilter(self)
         self.graphics.scene().sigMouseMoved.connect(self._on_mouse_moved)
-        rlay.addWidget(self.graphics, 1)
+        # The panes scroll rather than shrink (issue #30: a 4th and 5th pane got no height at all and
+        # their axis labels ran into the others'): each pane keeps MIN_PANE_HEIGHT_PX, the area shows as
+        # many as fit and a scroll bar says there are more.
+        self.graphs_scroll = QScrollArea()
+        self.graphs_scroll.setWidgetResizable(True)
+        self.graphs_scroll.setFrameShape(QFrame.Shape.NoFrame)
+        self.graphs_scroll.setHorizontalScrollBarPolicy(Qt.ScrollBarPolicy.ScrollBarAlwaysOff)
+        self.graphs_scroll.setWidget(self.graphics)
+        self.graphs_scroll.setMinimumSize(160, 120)
+        rlay.addWidget(self.graphs_scroll, 1)
 
         self.readout = QLabel(" ")
         self.readout.setWordWrap(True)
@@ -386,6 +401,10 @@ class PlotsFrame(QWidget):
             self.selected = selected
             self._rebuild_plots()
 
+    def panes_min_height(self) -> int:
+        """The graphs' own minimum: every pane MIN_PANE_HEIGHT_PX, plus the time axis under the last."""
+        return max(120, MIN_PANE_HEIGHT_PX * len(self.plots) + BOTTOM_AXIS_PX)
+
     @property
     def _axis_width(self) -> int:
         fm = QFontMetrics(self.graphics.font())
@@ -418,7 +437,9 @@ class PlotsFrame(QWidget):
             # Aligned time axes in every plot, wide enough for tick labels such as "-317.05" beside the
             # rotated unit label (issue #19: "(mm)" was overlapped by the ticks, also in PNGs).
             plot.getAxis("left").setWidth(self._axis_width)
-            plot.setMinimumHeight(60)
+            # SI prefixes only where the unit is an SI base unit: α (no unit) read "551 (×0.001)".
+            plot.getAxis("left").enableAutoSIPrefix(unit in SI_BASE_UNITS)
+            plot.setMinimumHeight(MIN_PANE_HEIGHT_PX)
             plot.enableAutoRange(axis="y", enable=self.autoscale_box.isChecked())
             plot.enableAutoRange(axis="x", enable=False)
             plot.vb.sigRangeChangedManually.connect(self._on_manual_range)
@@ -452,10 +473,9 @@ class PlotsFrame(QWidget):
         if first is not None:
             list(self.plots.values())[-1].setLabel("bottom", "time" if self.x_origin is None else "session time", "s")
             self._apply_x_range()
-        # Each graph tall enough for its rotated unit label and a few ticks (issue #19: squeezed plots
-        # let the labels of neighbouring graphs run into each other).
-        # At most three graphs' worth: more must never make the window taller than a 768 px screen.
-        self.graphics.setMinimumHeight(min(172, max(120, 46 * len(self.plots) + 34)))
+        # Each pane at least MIN_PANE_HEIGHT_PX (its rotated unit label and three ticks readable); the
+        # scroll area around the panes, not the window, takes what does not fit (a 768 px screen).
+        self.graphics.setMinimumHeight(self.panes_min_height())
         self._dirty = True
         self.redraw()
 
