@@ -168,7 +168,9 @@ def profile_limit_problems(limits: FesLimits, peaks: Mapping[int, tuple[float, f
             layers.append((f"{who}'s clinical cap for channel {ch}", clinical.max_current_ma,
                            clinical.max_pulse_width_us))
         for what, value, index, unit in (("current", current, 1, "mA"), ("pulse width", width, 2, "µs")):
-            tightest = min(layers, key=lambda layer: layer[index])
+            # Ties go to the most specific layer (the patient's cap over the site's equal limit): that is
+            # the one a therapist can act on.
+            tightest = min(reversed(layers), key=lambda layer: layer[index])
             if value > tightest[index] + 1e-9:
                 out.append(f"Channel {ch}: peak {what} {value:g} {unit} is above {tightest[0]} "
                            f"of {tightest[index]:g} {unit}.")
