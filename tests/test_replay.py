@@ -124,3 +124,39 @@ def test_a_click_on_the_replay_slider_seeks_there(session, qtbot) -> None:
     fraction = slider.value() / slider.maximum()
     assert 0.6 < fraction < 0.9
     assert window.source.elapsed == pytest.approx(slider.value() / 100, abs=0.02)
+
+
+def test_replay_opens_on_measured_signals_and_closes_from_its_own_button(tmp_path, qtbot) -> None:
+    """Issue #30: Replay opened on the robot's flat-zero state codes with an axis scaled ×1e-12 and had no
+    Close button. Now: the live graphs' default signals it recorded, a flat line on a readable axis, Close."""
+    from app.devices.linarm import STATE_STREAM, VSA_STREAM
+    from app.ui.plots_frame import sticky_y_range
+    from app.ui.replay_window import ReplayWindow, default_replay_signals
+
+    state, vsa = ListenerDriver(STATE_STREAM), ListenerDriver(VSA_STREAM)
+    config = AppConfig()
+    manager = SimpleNamespace(config=config, supervisor=SafetySupervisor(config.safety),
+                              devices={"linarm": SimpleNamespace(driver=state, simulated=True),
+                                       "linarm2": SimpleNamespace(driver=vsa, simulated=True)})
+    recorder = SessionRecorder()
+    folder = recorder.start(manager, "P021", "op", root=tmp_path)
+    t0 = time.monotonic()
+    for i in range(40):
+        t = t0 + i * 0.05
+        for fn in state.listeners:
+            fn(STATE_STREAM.name, t, SimpleNamespace(**{c.name: 0.0 for c in STATE_STREAM.channels}))
+        for fn in vsa.listeners:
+            fn(VSA_STREAM.name, t, SimpleNamespace(**{c.name: 0.1 + 0.001 * i for c in VSA_STREAM.channels}))
+    recorder.stop()
+    rec = load_session(folder)
+    chosen = default_replay_signals(rec)
+    assert chosen and not any(k.startswith("linarm.state.") for k in chosen)
+    assert "linarm.vsa.handlePos" in chosen
+    lo, hi = sticky_y_range(None, 0.0, 0.0, snap=True)
+    assert hi - lo >= 1.0  # a flat zero: a band of a unit, not of 1e-9
+    window = ReplayWindow(rec)
+    qtbot.addWidget(window)
+    window.show()
+    assert sorted(window.plots.selected) == sorted(chosen)
+    window.close_button.click()
+    assert not window.isVisible()

@@ -92,7 +92,10 @@ def sticky_y_range(current: tuple[float, float] | None, lo: float, hi: float,
     never outside the range returned (or kept)."""
     span = hi - lo
     if span <= 0:
-        span = max(abs(hi) * 0.1, 1e-9)  # a flat line: a small band around it
+        # A flat line: a band around it of a tenth of its value, at least one unit -- a band of 1e-9 made
+        # a flat zero read "×1e-12" on the axis (issue #30, the Replay window's robot-state signals).
+        span = max(abs(hi) * 0.1, 1.0)
+        lo, hi = lo - span / 2, hi + span / 2
     if not snap and current is not None:
         c_lo, c_hi = current
         if c_lo <= lo and hi <= c_hi and span >= Y_FILL_MIN * (c_hi - c_lo):

@@ -12,7 +12,7 @@ import time
 from pathlib import Path
 
 from PySide6.QtCore import Qt, QTimer
-from PySide6.QtGui import QCloseEvent
+from PySide6.QtGui import QCloseEvent, QKeySequence, QShortcut
 from PySide6.QtWidgets import (
     QComboBox,
     QHBoxLayout,
@@ -28,7 +28,7 @@ from PySide6.QtWidgets import (
 
 from app.recording import RecordedSession
 from app.replay import ReplaySource
-from app.ui.plots_frame import PlotsFrame
+from app.ui.plots_frame import DEFAULT_SIGNALS, PlotsFrame
 from app.ui.signal_store import SignalStore, signal_key
 from app.ui.widgets import ClickToPositionStyle
 
@@ -41,6 +41,19 @@ _DEFAULT_PLOTTED = 6  # signals ticked when the window opens
 def _fmt(seconds: float) -> str:
     m, s = divmod(max(0.0, seconds), 60.0)
     return f"{int(m):02d}:{s:06.3f}"
+
+
+def default_replay_signals(rec: RecordedSession) -> list[str]:
+    """What the Replay window opens on: the live graphs' default signals that the session recorded, then other
+    measured channels -- never the robot's state codes first (issue #30: it opened on six flat zeros)."""
+    recorded = [signal_key(s.name, c.name) for s in rec.streams.values() for c in s.channels]
+    chosen = [k for k in DEFAULT_SIGNALS if k in recorded]
+    for key in recorded:
+        if len(chosen) >= _DEFAULT_PLOTTED:
+            break
+        if key not in chosen and not key.startswith("linarm.state."):
+            chosen.append(key)
+    return chosen[:_DEFAULT_PLOTTED]
 
 
 class ReplayWindow(QWidget):
@@ -57,8 +70,7 @@ class ReplayWindow(QWidget):
         self.plots = PlotsFrame(None, self.store)
         self.plots.timer.stop()  # redrawn when the replay moves, not on a free-running timer
         self.plots.x_origin = self.source.start  # the x-axis in session time, as the slider and events
-        keys = [signal_key(s.name, c.name) for s in rec.streams.values() for c in s.channels]
-        self.plots.set_selected(keys[:_DEFAULT_PLOTTED])
+        self.plots.set_selected(default_replay_signals(rec))
         self.speed = 1.0
         self._last_tick = 0.0
 
@@ -96,6 +108,11 @@ class ReplayWindow(QWidget):
         bar.addWidget(self.slider, 1)
         bar.addWidget(self.time_label)
         bar.addWidget(self.speed_box)
+        self.close_button = QPushButton("&Close")
+        self.close_button.setToolTip("Close the replay (Esc)")
+        self.close_button.clicked.connect(self.close)
+        bar.addWidget(self.close_button)
+        QShortcut(QKeySequence(Qt.Key.Key_Escape), self, activated=self.close)
         split = QSplitter(Qt.Orientation.Horizontal)
         split.addWidget(self.plots)
         split.addWidget(self.events)
