@@ -131,6 +131,17 @@ def test_pause_freezes_and_save_writes_exact_values(qtbot, tmp_path: Path, monke
     expected = data["t"][(data["t"] >= lo) & (data["t"] <= hi)]
     assert t_rows == expected.tolist() and 150 <= len(t_rows) <= 250
 
+    # Issue #30: two streams of different rates in one table are said to leave empty cells; "a file per
+    # stream" writes each dense at its own rate.
+    assert "empty cells" in frame.status.text()
+    frame.save_csv(tmp_path / "split.csv", "all", "per_stream")
+    _n, _u, pos_rows = read_export(tmp_path / "split-linarm.vsa.csv")
+    names, _u, hr_rows = read_export(tmp_path / "split-physio.main.csv")
+    assert names == ["time", "physio.main.heartRate"] and all(r[1] for r in hr_rows)
+    assert [float(r[1]) for r in pos_rows] == data["pos"].tolist()
+    assert [float(r[1]) for r in hr_rows] == data["hr"].tolist()
+    assert "2 files" in frame.status.text()
+
     QTest.keyClick(frame.graphics, Qt.Key.Key_P)
     assert not frame.paused
 

@@ -66,6 +66,7 @@ HISTORY_CHOICES_S = (5.0, 10.0, 20.0, 30.0, 60.0, 120.0, 300.0, 600.0)
 DEFAULT_SIGNALS = ("linarm.vsa.handlePos", "linarm.vsa.equilibriumPos", "linarm.vsa.interactionForce",
                    "physio.main.heartRate")
 SCOPE_VISIBLE, SCOPE_ALL = "visible", "all"
+LAYOUT_ONE_TABLE, LAYOUT_PER_STREAM = "one_table", "per_stream"
 NO_UNIT = "(no unit)"
 # The smallest graph pane that still shows its curve, its rotated unit label and three tick labels
 # without touching a neighbour's (measured at the default 9 pt font: label ~70 px tall).
@@ -304,6 +305,16 @@ class PlotsFrame(QWidget):
         self.scope_box.addItem("whole buffer", SCOPE_ALL)
         self.scope_box.setToolTip("Save the visible time range or everything buffered")
         bottom.addWidget(self.scope_box)
+        # Streams of different rates in one table leave empty cells (issue #30): the choice is said, and
+        # one file per stream (each dense, at its own rate) is offered.
+        self.layout_box = QComboBox()
+        self.layout_box.setAccessibleName("CSV layout")
+        self.layout_box.addItem("one table", LAYOUT_ONE_TABLE)
+        self.layout_box.addItem("a file per stream", LAYOUT_PER_STREAM)
+        self.layout_box.setToolTip("One table: one row per sampling instant of any stream, a stream's cells "
+                                   "empty between its own samples.\nA file per stream: each stream at its "
+                                   "own rate, no empty cells.")
+        bottom.addWidget(self.layout_box)
         self.png_button = QPushButton("&PNG…")
         self.png_button.setToolTip("Save the graphs as a picture (Ctrl+E)")
         self.png_button.clicked.connect(self._ask_png)
@@ -744,10 +755,12 @@ class PlotsFrame(QWidget):
         return True
 
     # ------------------------------------------------------------------ saving
-    def save_csv(self, path: str | Path, scope: str | None = None) -> int:
+    def save_csv(self, path: str | Path, scope: str | None = None, layout: str | None = None) -> int:
         """Write the selected signals to ``path``: ``scope`` "visible" (the time range on screen) or
-        "all" (everything buffered); default: the scope chosen in the frame. Returns the row count."""
+        "all" (everything buffered); default: the scope chosen in the frame. ``layout`` "per_stream" writes
+        one file per stream beside ``path`` (``<stem>-<stream>.csv``). Returns the row count (summed)."""
         scope = scope or self.scope_box.currentData()
+        layout = layout or self.layout_box.currentData()
         if not self.selected:
             raise ValueError("no signal selected")
         store = self._draw_store()
@@ -756,11 +769,25 @@ class PlotsFrame(QWidget):
             rng = self.visible_range()
             if rng is not None:
                 t_from, t_to = rng
-        rows = store.export_csv(path, [k for k in self.selected if k in store], t_from, t_to,
-                                t_zero=self.session_t0,
-                                t_zero_text=f"the start of session {self.session_name}" if self.session_name else "")
-        self.status.setText(f"saved {rows} rows to {Path(path).name}")
-        log.info("plots: saved %d rows of %d signals to %s", rows, len(self.selected), path)
+        keys = [k for k in self.selected if k in store]
+        zero_text = f"the start of session {self.session_name}" if self.session_name else ""
+        groups: dict[str, list[str]] = {}
+        for k in keys:
+            groups.setdefault(store.info(k).stream, []).append(k)
+        path = Path(path)
+        if layout == LAYOUT_PER_STREAM and len(groups) > 1:
+            rows, names = 0, []
+            for stream, stream_keys in groups.items():
+                target = path.with_name(f"{path.stem}-{stream}{path.suffix or '.csv'}")
+                rows += store.export_csv(target, stream_keys, t_from, t_to, t_zero=self.session_t0,
+                                         t_zero_text=zero_text)
+                names.append(target.name)
+            self.status.setText(f"saved {rows} rows in {len(names)} files ({', '.join(names)})")
+        else:
+            rows = store.export_csv(path, keys, t_from, t_to, t_zero=self.session_t0, t_zero_text=zero_text)
+            mixed = " (streams of different rates: empty cells between a stream's samples)" if len(groups) > 1 else ""
+            self.status.setText(f"saved {rows} rows to {path.name}{mixed}")
+        log.info("plots: saved %d rows of %d signals to %s (%s)", rows, len(keys), path, layout)
         return rows
 
     def _on_session(self, folder: Path | None) -> None:
@@ -849,6 +876,7 @@ class PlotsFrame(QWidget):
         settings.setValue("plots/history_s", self.history_s)
         settings.setValue("plots/autoscale", "1" if self.autoscale_box.isChecked() else "0")
         settings.setValue("plots/save_scope", self.scope_box.currentData())
+        settings.setValue("plots/save_layout", self.layout_box.currentData())
         settings.setValue("plots/splitter", self.splitter.saveState())
 
     def _restore_settings(self) -> None:
@@ -872,6 +900,8 @@ class PlotsFrame(QWidget):
         self.autoscale_box.setChecked(str(settings.value("plots/autoscale", "1")) != "0")
         scope_idx = self.scope_box.findData(settings.value("plots/save_scope", SCOPE_VISIBLE))
         self.scope_box.setCurrentIndex(max(0, scope_idx))
+        self.layout_box.setCurrentIndex(max(0, self.layout_box.findData(
+            settings.value("plots/save_layout", LAYOUT_ONE_TABLE))))
         state = settings.value("plots/splitter")
         if state is not None:
             self.splitter.restoreState(state)
