@@ -479,7 +479,14 @@ class MainWindow(QMainWindow):
         if geometry is not None:
             self.restoreGeometry(geometry)
         else:  # first run: the whole screen (1366×768 laptops and 1920×1080 desks alike); then remembered
-            self.resize(1366, 768)
+            # The screen's size as well as "maximised": a window manager maximises (checked under openbox:
+            # 1920×1061 below its title bar); without one (a kiosk X session) nothing would, and the window
+            # stayed 1366×768 in a corner of a 1920×1080 screen (issue #30).
+            screen = self.screen().availableGeometry() if self.screen() is not None else None
+            if screen is not None and screen.width() >= 1366 and screen.height() >= 768:
+                self.setGeometry(screen)
+            else:
+                self.resize(1366, 768)
             self.setWindowState(self.windowState() | Qt.WindowState.WindowMaximized)
         if state is not None:
             self.restoreState(state)
