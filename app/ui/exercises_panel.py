@@ -33,6 +33,7 @@ from PySide6.QtWidgets import (
 
 from app.exercises import Exercise, Parameter, Validation, load_library, start_exercise, validate
 from app.progress import ProgressState
+from app.ui.fes_conflict import fes_conflict_text, resolve_fes_conflict
 
 log = logging.getLogger(__name__)
 
@@ -346,6 +347,9 @@ class ExercisesPanel(QWidget):
         runner = self.runner
         if runner.running:
             self._say("Not started: a script is running. Stop it first.", error=True)
+            return False
+        if not resolve_fes_conflict(self, self.manager, self.exercise, checked.params):
+            self._say("Not started: " + fes_conflict_text(self.manager, self.exercise, checked.params), error=True)
             return False
         started = time.monotonic()  # before exercise_start is recorded: the summary's window includes it
         try:
