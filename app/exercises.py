@@ -3,7 +3,13 @@
 An exercise is ``resources/exercises/<id>.yaml`` (title, description, script, parameters) next to its script
 ``<id>.py``. Each parameter declares name, label, type (``int`` | ``float`` | ``bool`` | ``choice``), unit,
 range, default and help; the Exercises tab draws the form from it and :func:`validate` checks what was typed:
-a value out of its range is refused with the reason and nothing is started. The script reads its values as
+a value out of its range is refused with the reason and nothing is started.
+
+The files are read by the config's strict loader (app/yamlschema.py: file:line errors, unknown keys, size,
+depth, anchors, tags, UTF-8): the script is a ``.py`` file in the exercise's own folder (no path, no link out
+of it); a number parameter declares both ``min`` and ``max`` (within ±1e6), a duration (unit s/ms/min/h or a
+name ending ``_s``/``_ms``) never below 0, and its default within them. :func:`load_library` lists a file it
+cannot load (file:line and why) and loads the others. The script reads its values as
 the global ``exerciseParams`` (ScriptRunner.start's ``params``) and marks its repetitions with
 ``linarmppManager.startRepetition / endRepetition``.
 
