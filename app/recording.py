@@ -318,6 +318,7 @@ class _StreamOut:
     fh: TextIO
     path: Path | None = None
     count: int = 0
+    on_disk: int | None = None  # after a write failure: the samples the file holds (it is not written again)
     first_t: float | None = None
     last_t: float | None = None
 
@@ -400,21 +401,12 @@ class SessionRecorder:
                                      f"cannot record in {root}: {exc.strerror or exc}") from exc
             try:
                 self._begin(manager, folder, patient_id, operator, note, profile, t_wall, t_mono, now)
-            except OSError as exc:
-                # Nothing was recorded yet: leave no half-made session folder (and no open file) behind.
-                for out in self._outs.values():
-                    _discard_buffer(out.fh)
-                    _close_quietly(out.fh)
-                self._outs.clear()
-                if self._events_fh is not None:
-                    _close_quietly(self._events_fh)
-                    self._events_fh = None
-                self.folder = None
-                import shutil
-
-                shutil.rmtree(folder, ignore_errors=True)
-                raise RecordingError(exc.errno or errno.EIO,
-                                     f"cannot record in {root}: {exc.strerror or exc}") from exc
+            except BaseException as exc:
+                self._abandon(folder)
+                if isinstance(exc, OSError):
+                    raise RecordingError(exc.errno or errno.EIO,
+                                         f"cannot record in {root}: {exc.strerror or exc}") from exc
+                raise
             self._stop.clear()
             self._writer = threading.Thread(target=self._run, name="session-recorder", daemon=True)
             self._writer.start()
@@ -438,6 +430,21 @@ class SessionRecorder:
                 add_hook(lambda: self.stop("application closing"))
             log.info("session recording in %s", folder)
             return folder
+
+    def _abandon(self, folder: Path) -> None:
+        """A start that failed: nothing was recorded yet, so no half-made session folder (and no open file)
+        is left behind."""
+        for out in self._outs.values():
+            _discard_buffer(out.fh)
+            _close_quietly(out.fh)
+        self._outs.clear()
+        if self._events_fh is not None:
+            _close_quietly(self._events_fh)
+            self._events_fh = None
+        self.folder = None
+        import shutil
+
+        shutil.rmtree(folder, ignore_errors=True)
 
     def _begin(self, manager: LinarmppManager, folder: Path, patient_id: str, operator: str, note: str,
                profile: Any, t_wall: float, t_mono: float, now: _dt.datetime) -> None:
@@ -543,7 +550,7 @@ class SessionRecorder:
                 # What is in the files, not what was handed to them: a full disk refused the buffered lines.
                 lost_in_buffers = 0
                 for name, out in self._outs.items():
-                    on_disk = _lines_on_disk(out)
+                    on_disk = out.on_disk if out.on_disk is not None else _lines_on_disk(out)
                     lost_in_buffers += max(0, out.count - on_disk)
                     counts[name] = on_disk
                 failure = {"t_wall": wall_iso(self.failure_t_wall), "error": self.failure,
@@ -700,6 +707,7 @@ class SessionRecorder:
                     _cut_to_last_line(out.path)
                 except OSError:
                     pass
+            out.on_disk = _lines_on_disk(out)  # counted here, on the writer thread, not at stop on the GUI's
         if self._events_fh is not None:
             _discard_buffer(self._events_fh)
         self._release_reserve()
