@@ -1062,17 +1062,30 @@ def load_session(folder: str | Path) -> RecordedSession:
     manifest = _manifest_with_sidecar(folder, manifest)
     if manifest and (problem := _status_problem(manifest)):
         problems.append(problem)
-    specs: dict[str, dict[str, Any]] = dict(manifest.get("streams") or {})
-    known_files = {v.get("file") for v in specs.values()}
+    specs: dict[str, Any] = dict(manifest.get("streams") or {})
+    known_files = {v.get("file") for v in specs.values() if isinstance(v, dict)}
     for path in sorted((folder / STREAMS_DIR).glob("*.csv")):
         rel = f"{STREAMS_DIR}/{path.name}"
-        if rel not in known_files:  # no manifest entry: names from the header, no units
+        if rel not in known_files and path.stem not in specs:  # no manifest entry: names from the header, no units
             specs[path.stem] = {"file": rel, "device": "", "nominal_rate_hz": 0.0, "channels": None}
     streams: dict[str, RecordedStream] = {}
+    streams_dir = (folder / STREAMS_DIR).resolve()
     for name, spec in specs.items():
-        path = folder / spec["file"]
+        rel = spec.get("file") if isinstance(spec, dict) else None
+        if not isinstance(rel, str):
+            problems.append(f"{name}: the manifest names no file")
+            continue
+        path = folder / rel
+        # A session folder may come from elsewhere: read only regular files of its own streams folder
+        # (a manifest naming ../../dev/zero or a FIFO would read forever).
+        if path.resolve().parent != streams_dir or path.suffix != ".csv":
+            problems.append(f"{name}: file {rel!r} is not in the session's {STREAMS_DIR} folder; not read")
+            continue
         if not path.exists():
-            problems.append(f"{name}: file {spec['file']} is missing")
+            problems.append(f"{name}: file {rel} is missing")
+            continue
+        if not path.is_file():
+            problems.append(f"{name}: file {rel} is not a regular file; not read")
             continue
         header, values, dropped = read_stream_csv(path)
         if spec.get("channels") is None:

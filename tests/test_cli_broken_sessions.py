@@ -136,3 +136,14 @@ def test_report_into_a_missing_folder_is_a_plain_message(session: Path, tmp_path
     out = tmp_path / "no" / "such" / "report.pdf"
     done = cli("--report", str(session), "--out", str(out))
     assert done.returncode == 1 and "does not exist" in done.stderr and "Traceback" not in done.stderr
+
+
+def test_a_manifest_naming_a_file_outside_the_session_is_not_read(session: Path) -> None:
+    """A session folder may come from elsewhere: its manifest pointing a stream at /dev/zero read forever."""
+    manifest = manifest_of(session)
+    name = next(iter(manifest["streams"]))
+    manifest["streams"][name]["file"] = "../" * 12 + "dev/zero"
+    (session / "manifest.json").write_text(json.dumps(manifest), encoding="utf-8")
+    done = cli("--metrics", str(session))
+    assert done.returncode == 3 and "Traceback" not in done.stderr, done.stderr
+    assert f"{name}: file " in done.stderr and "not in the session's streams folder; not read" in done.stderr
