@@ -24,9 +24,12 @@ disk, a removed drive, a read-only folder) makes the writer call ``on_failure(fo
 the manager's fault policy raises a STOP alarm naming the folder and the error, which brings the devices
 to their safe state — and from then on samples are dropped (counted) while events are kept in memory and
 appended to ``events.jsonl`` again as soon as a write succeeds (tried every second and at stop).  ``stop``
-never raises; the manifest says ``"status": "failed"`` with when and why (``recording_failure``) when it
-can be written.  ``check_free_space`` refuses to start a session below ``recording.min_free_mib`` and
-warns below ``recording.warn_free_mib``.
+never raises; the manifest says ``"status": "failed"`` with when and why (``recording_failure``). A
+256 KiB space reserve (``.space-reserve``) allocated at start and released at the failure leaves room for
+that manifest and the kept events on a disk that stays full; when even so the manifest cannot be written,
+``recording-failed.txt`` says it and :func:`load_session` reads it. No temp file is left behind.
+``check_free_space`` refuses to start a session below ``recording.min_free_mib`` and warns below
+``recording.warn_free_mib``.
 """
 
 from __future__ import annotations
@@ -185,7 +188,7 @@ def _reserve_space(path: Path, nbytes: int) -> None:
             except OSError as exc:
                 if exc.errno not in (errno.EOPNOTSUPP, errno.EINVAL, errno.ENOSYS):
                     raise
-        chunk = b"\xff" * 65536  # not zeros: a compressing file system would store zeros in no space
+        chunk = os.urandom(65536)  # not a pattern: a compressing file system would store it in almost no space
         left = nbytes
         while left > 0:
             left -= os.write(fd, chunk[: min(left, len(chunk))])
@@ -450,12 +453,13 @@ class SessionRecorder:
                profile: Any, t_wall: float, t_mono: float, now: _dt.datetime) -> None:
         """The session's files: the reserve, one file per stream, the events, the first manifest."""
         config = manager.config
+        self._outs.clear()  # the last session's (closed) files: _abandon must see only this one's
+        self._events_fh = None
         (folder / STREAMS_DIR).mkdir(mode=DIR_MODE)
         _private_dir(folder / STREAMS_DIR)
         _reserve_space(folder / RESERVE_FILE, RESERVE_BYTES)
         self.folder = folder
         self._manager = manager
-        self._outs.clear()
         self._samples.clear()
         self._events.clear()
         self._drops.clear()
