@@ -131,7 +131,9 @@ def test_hostile_exercise_is_refused_quickly_with_file_and_line(tmp_path, name: 
     text = str(info.value)
     assert words in text, text
     assert text.startswith(f"{path}:{line}:"), text
-    assert elapsed < 1.0, f"{elapsed:.2f} s"  # the billion laughs took > 20 s
+    # The billion laughs took > 20 s: now refused at its first anchor (~15 ms). Deep flow nesting costs
+    # PyYAML's scanner ~0.15 s on an idle machine (its look-ahead over one long line), ~1 s under load.
+    assert elapsed < (1.0 if name == "billion laughs" else 5.0), f"{elapsed:.2f} s"
 
 
 def test_a_script_link_out_of_the_library_is_refused(tmp_path) -> None:
