@@ -71,6 +71,11 @@ def test_metrics_on_a_truncated_session_name_what_is_missing_and_exit_3(session:
     assert f"events: 2 of {manifest['event_count']} missing" in done.stderr, done.stderr
     assert "summary" in json.loads(done.stdout)  # what was recorded is still given
 
+    pdf = session.parent / "report.pdf"
+    done = cli("--report", str(session), "--out", str(pdf))
+    assert done.returncode == 3 and f"{name}: {missing} of" in done.stderr, done.stderr
+    assert pdf.read_bytes().startswith(b"%PDF")  # the report of what was recorded is still written
+
 
 def test_metrics_on_a_crashed_or_failed_recording_say_so(session: Path) -> None:
     manifest = manifest_of(session)
