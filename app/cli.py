@@ -8,6 +8,8 @@ all run :func:`main`. With no arguments: the clinician window, every device simu
     linarmpp --metrics SESSION_FOLDER                      per-repetition metrics as JSON (docs/metrics.md)
     linarmpp --report SESSION_FOLDER --out FILE.pdf        the session's PDF report
     linarmpp --progress PATIENT_ID --out FILE.pdf          the patient's progress PDF
+                      (exit 0 done, 1 nothing written: why on stderr, 2 wrong arguments,
+                       3 done from an incomplete session: what is missing on stderr)
 
 The parser is built in one place, :func:`build_parser`: a new option is one ``add_argument`` line there.
 """
@@ -68,10 +70,7 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
                       window=not args.headless and os.environ.get("QT_QPA_PLATFORM") != "offscreen")
         return 2
     if args.metrics or args.report or args.progress:
-        from app.reports import run_report_command
-
-        return run_report_command(config, metrics=args.metrics, report=args.report, progress=args.progress,
-                                  out=args.out)
+        return _report_command(config, args)
     if args.headless:
         if not args.script:
             _report_error("--headless needs --script FILE")
@@ -82,6 +81,74 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
     from app.application import run_gui
 
     return run_gui(config, screenshot=args.screenshot, quit_after_s=args.quit_after)
+
+
+EXIT_REPORT_OK, EXIT_REPORT_FAILED, EXIT_REPORT_USAGE, EXIT_REPORT_INCOMPLETE = 0, 1, 2, 3
+
+
+def _report_command(config: object, args: argparse.Namespace) -> int:
+    """``--metrics`` / ``--report`` / ``--progress``, with the answers a caller can act on (docs/sessions.md):
+    0 done; 1 nothing written (the output cannot be written, the session cannot be read) with one line
+    saying why; 2 wrong arguments; 3 done from what was recorded, but the session is incomplete, and
+    stderr lists what is missing (a failed or crashed recording, samples or events the files lack)."""
+    import logging
+    from pathlib import Path
+
+    from app.recording import MANIFEST_FILE, session_problems
+    from app.reports import run_report_command
+
+    if args.out and (args.report or args.progress):
+        problem = _unwritable(Path(args.out))
+        if problem:
+            print(f"Cannot write {args.out}: {problem}; nothing was written", file=sys.stderr)
+            return EXIT_REPORT_FAILED
+    incomplete = False
+    for folder in dict.fromkeys(f for f in (args.metrics, args.report) if f):
+        if not (Path(folder) / MANIFEST_FILE).is_file():
+            continue  # run_report_command says it is not a session folder (exit 2)
+        problems = session_problems(folder)
+        if problems:
+            incomplete = True
+            print(f"Incomplete session {folder}: the output covers only what was recorded.", file=sys.stderr)
+            for line in problems:
+                print(f"  - {line}", file=sys.stderr)
+    try:
+        code = run_report_command(config, metrics=args.metrics, report=args.report, progress=args.progress,
+                                  out=args.out)
+    except OSError as exc:
+        where = exc.filename or args.out or args.metrics or args.report
+        print(f"Cannot write {where}: {exc.strerror or exc}", file=sys.stderr)
+        return EXIT_REPORT_FAILED
+    except Exception as exc:  # a damaged session no reader expected: one line here, the traceback in the log
+        logging.getLogger(__name__).exception("the report command failed")
+        print(f"Cannot read the session {args.metrics or args.report or args.progress}: "
+              f"{type(exc).__name__}: {exc}", file=sys.stderr)
+        return EXIT_REPORT_FAILED
+    if code == EXIT_REPORT_OK and incomplete:
+        return EXIT_REPORT_INCOMPLETE
+    return code
+
+
+def _unwritable(out: object) -> str:
+    """Why a file cannot be created at ``out`` ('' when it can): tried with a real file in its folder,
+    since permission bits say nothing of a read-only mount or of root."""
+    import tempfile
+    from pathlib import Path
+
+    path = Path(str(out))
+    folder = path.parent if str(path.parent) else Path(".")
+    if path.is_dir():
+        return "it is a folder"
+    if not folder.is_dir():
+        return f"the folder {folder} does not exist"
+    try:
+        with tempfile.NamedTemporaryFile(dir=folder, prefix=".linarmpp-probe-"):
+            pass
+    except OSError as exc:
+        return f"the folder {folder} is not writable ({exc.strerror or exc})"
+    if path.exists() and not os.access(path, os.W_OK):
+        return "the file is read-only"
+    return ""
 
 
 def _install_desktop_entry() -> int:

@@ -3,7 +3,13 @@
 An exercise is ``resources/exercises/<id>.yaml`` (title, description, script, parameters) next to its script
 ``<id>.py``. Each parameter declares name, label, type (``int`` | ``float`` | ``bool`` | ``choice``), unit,
 range, default and help; the Exercises tab draws the form from it and :func:`validate` checks what was typed:
-a value out of its range is refused with the reason and nothing is started. The script reads its values as
+a value out of its range is refused with the reason and nothing is started.
+
+The files are read by the config's strict loader (app/yamlschema.py: file:line errors, unknown keys, size,
+depth, anchors, tags, UTF-8): the script is a ``.py`` file in the exercise's own folder (no path, no link out
+of it); a number parameter declares both ``min`` and ``max`` (within ±1e6), a duration (unit s/ms/min/h or a
+name ending ``_s``/``_ms``) never below 0, and its default within them. :func:`load_library` lists a file it
+cannot load (file:line and why) and loads the others. The script reads its values as
 the global ``exerciseParams`` (ScriptRunner.start's ``params``) and marks its repetitions with
 ``linarmppManager.startRepetition / endRepetition``.
 
@@ -14,19 +20,20 @@ metrics and the reports read the parameters from it) and starts the script on th
 from __future__ import annotations
 
 import math
+import typing
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import yaml
+from yaml.nodes import MappingNode, SequenceNode
 
 from app.resources import RESOURCES
+from app.yamlschema import ConfigError, load_dataclass, read_text, rng
 
 EXERCISES_DIR = RESOURCES / "exercises"
 PARAMETER_TYPES = ("int", "float", "bool", "choice")
-_PARAMETER_KEYS = {"name", "label", "type", "unit", "min", "max", "default", "help", "options"}
-_EXERCISE_KEYS = {"title", "description", "script", "parameters", "order"}
 
 
 class ExerciseError(ValueError):
@@ -140,65 +147,169 @@ def validate(exercise: Exercise, values: Mapping[str, Any]) -> Validation:
 
 
 # ------------------------------------------------------------------------------------------- loading
-def _parameter(raw: Any, where: str) -> Parameter:
-    if not isinstance(raw, dict):
-        raise ExerciseError(f"{where}: a parameter must be a mapping")
-    unknown = set(raw) - _PARAMETER_KEYS
-    if unknown:
-        raise ExerciseError(f"{where}: unknown key(s) {', '.join(sorted(unknown))}")
-    name = raw.get("name")
-    if not isinstance(name, str) or not name.isidentifier():
-        raise ExerciseError(f"{where}: 'name' must be an identifier, got {name!r}")
-    kind = raw.get("type", "float")
-    if kind not in PARAMETER_TYPES:
-        raise ExerciseError(f"{where} ({name}): type must be one of {', '.join(PARAMETER_TYPES)}")
-    options = tuple(str(o) for o in raw.get("options") or ())
-    if kind == "choice" and not options:
-        raise ExerciseError(f"{where} ({name}): a choice needs options")
-    for bound in ("min", "max"):
-        if raw.get(bound) is not None and not isinstance(raw[bound], int | float):
-            raise ExerciseError(f"{where} ({name}): {bound} must be a number")
-    if "default" not in raw:
-        raise ExerciseError(f"{where} ({name}): a default is required")
-    p = Parameter(name=name, label=str(raw.get("label") or name), type=kind, default=raw["default"],
-                  unit=str(raw.get("unit") or ""), min=raw.get("min"), max=raw.get("max"),
-                  help=str(raw.get("help") or ""), options=options)
-    value, why = p.check(p.default)
-    if why:
-        raise ExerciseError(f"{where} ({name}): the default is refused: {why}")
-    return Parameter(**{**p.__dict__, "default": value})
+# The file format as schema classes read by app.yamlschema, the config's strict loader: file:line errors,
+# unknown keys, types and ranges, and its limits on hostile files (size, depth, anchors, tags, encoding).
+_DURATION_UNITS = ("s", "ms", "min", "h")
+_MAX_BOUND = 1e6  # no parameter of a rehabilitation exercise needs more (positions in m, forces in N, s)
+
+
+@dataclass(frozen=True)
+class _ParameterFile:
+    name: str
+    default: Any = None
+    label: str = ""
+    type: str = "float"
+    unit: str = ""
+    min: float | None = field(default=None, metadata=rng(-_MAX_BOUND, _MAX_BOUND))
+    max: float | None = field(default=None, metadata=rng(-_MAX_BOUND, _MAX_BOUND))
+    help: str = ""
+    options: list[str] = field(default_factory=list)
+
+    def validate(self) -> None:
+        name = self.name
+        if not name.isidentifier():
+            raise ValueError(f"'name' must be an identifier, got {name!r}")
+        if self.type not in PARAMETER_TYPES:
+            raise ValueError(f"({name}): type must be one of {', '.join(PARAMETER_TYPES)}, got {self.type!r}")
+        if self.default is None:
+            raise ValueError(f"({name}): a default is required")
+        if len(self.label) > 100 or len(self.unit) > 20:
+            raise ValueError(f"({name}): the label (100) or the unit (20 characters) is too long")
+        if self.type == "choice":
+            if not self.options:
+                raise ValueError(f"({name}): a choice needs options")
+            if len(self.options) > 100:
+                raise ValueError(f"({name}): more than 100 options")
+        elif self.options:
+            raise ValueError(f"({name}): options are for a choice, not a {self.type}")
+        if self.type in ("int", "float"):
+            if self.min is None or self.max is None:
+                raise ValueError(f"({name}): a number needs both min and max (what the form may accept)")
+            if self.min > self.max:
+                raise ValueError(f"({name}): min {_num(self.min)} is above max {_num(self.max)}")
+            duration = self.unit in _DURATION_UNITS or name.endswith(("_s", "_ms"))
+            if duration and self.min < 0:
+                raise ValueError(f"({name}): a duration cannot be negative (min {_num(self.min)}"
+                                 f"{' ' + self.unit if self.unit else ''})")
+        elif self.min is not None or self.max is not None:
+            raise ValueError(f"({name}): min and max are for numbers, not a {self.type}")
+
+    def parameter(self) -> Parameter:
+        p = Parameter(name=self.name, label=self.label or self.name, type=self.type, default=self.default,
+                      unit=self.unit, min=self.min, max=self.max, help=self.help, options=tuple(self.options))
+        value, why = p.check(p.default)
+        if why:
+            raise ValueError(f"({self.name}): the default is refused: {why}")
+        return Parameter(**{**p.__dict__, "default": value})
+
+
+@dataclass(frozen=True)
+class _ExerciseFile:
+    title: str = ""
+    description: str = ""
+    script: str = ""
+    parameters: list[_ParameterFile] = field(default_factory=list)
+    order: int = field(default=100, metadata=rng(0, 10_000))
+
+    def validate(self) -> None:
+        if len(self.title) > 200:
+            raise ValueError("the title is longer than 200 characters")
+        if len(self.parameters) > 100:
+            raise ValueError("more than 100 parameters")
+        names = [p.name for p in self.parameters]
+        repeated = sorted({n for n in names if names.count(n) > 1})
+        if repeated:
+            raise ValueError(f"a parameter name is repeated: {', '.join(repeated)}")
+
+
+def _key_line(text: str, key: str) -> int | None:
+    """The line of a top-level key (the text already passed check_yaml: composing it is safe)."""
+    try:
+        root = yaml.compose(text, Loader=yaml.SafeLoader)
+    except yaml.YAMLError:
+        return None
+    if isinstance(root, MappingNode):
+        for knode, _ in root.value:
+            if knode.value == key:
+                return knode.start_mark.line + 1
+    return None
+
+
+def _script_path(path: Path, text: str, script: str) -> Path:
+    """The exercise's script: a ``.py`` file directly in the exercise's own folder (never ``../``, an
+    absolute path, or a link out of it: the library is what the clinic installed, nothing else runs)."""
+    name = script or f"{path.stem}.py"
+
+    def refuse(problem: str) -> typing.NoReturn:
+        line = _key_line(text, "script") if script else None
+        where = f"{path}:{line}" if line else str(path)
+        raise ExerciseError(f"{where}: script: {problem}")
+
+    if Path(name).name != name or name in (".", "..") or "\\" in name or Path(name).is_absolute():
+        refuse(f"{name!r} must be a file name in the exercise's folder {path.parent}, not a path")
+    if not name.endswith(".py"):
+        refuse(f"{name!r} is not a Python script (.py)")
+    candidate = path.parent / name
+    folder = path.parent.resolve()
+    try:
+        resolved = candidate.resolve()
+    except (OSError, RuntimeError) as exc:  # a link loop
+        refuse(f"{name!r} cannot be resolved: {exc}")
+    if resolved.parent != folder:
+        refuse(f"{name!r} leads out of the exercise's folder {path.parent} (to {resolved})")
+    if not resolved.is_file():
+        refuse(f"script {name} not found in {path.parent}")
+    return candidate
 
 
 def load_exercise(path: str | Path) -> Exercise:
+    """One exercise file through the config's strict loader. Raises ExerciseError naming the file and line."""
     path = Path(path)
     try:
-        raw = yaml.safe_load(path.read_text(encoding="utf-8"))
-    except (OSError, yaml.YAMLError) as exc:
-        raise ExerciseError(f"{path}: {exc}") from exc
-    if not isinstance(raw, dict):
-        raise ExerciseError(f"{path}: an exercise must be a mapping")
-    unknown = set(raw) - _EXERCISE_KEYS
-    if unknown:
-        raise ExerciseError(f"{path}: unknown key(s) {', '.join(sorted(unknown))}")
-    script = path.parent / str(raw.get("script") or f"{path.stem}.py")
-    if not script.is_file():
-        raise ExerciseError(f"{path}: script {script.name} not found")
-    params = tuple(_parameter(p, f"{path}: parameters[{k}]") for k, p in enumerate(raw.get("parameters") or []))
-    names = [p.name for p in params]
-    if len(set(names)) != len(names):
-        raise ExerciseError(f"{path}: a parameter name is repeated")
-    return Exercise(path.stem, str(raw.get("title") or path.stem), str(raw.get("description") or "").strip(),
-                    script, params, int(raw.get("order", 100)))
+        text = read_text(path)
+        raw = load_dataclass(_ExerciseFile, text, str(path))
+    except ConfigError as exc:
+        raise ExerciseError(str(exc)) from None
+    script = _script_path(path, text, raw.script)
+    params = []
+    for k, p in enumerate(raw.parameters):
+        try:
+            params.append(p.parameter())
+        except ValueError as exc:  # the default outside the declared range: the parameter's own line
+            line = _parameter_line(text, k)
+            raise ExerciseError(f"{path}:{line}: parameters[{k}]: {exc}" if line else f"{path}: {exc}") from None
+    return Exercise(path.stem, raw.title or path.stem, raw.description.strip(), script, tuple(params), raw.order)
 
 
-def load_library(folder: Path = EXERCISES_DIR) -> tuple[list[Exercise], list[str]]:
-    """(the exercises in their order, problems with files that could not be loaded)."""
+def _parameter_line(text: str, index: int) -> int | None:
+    try:
+        root = yaml.compose(text, Loader=yaml.SafeLoader)
+    except yaml.YAMLError:
+        return None
+    if isinstance(root, MappingNode):
+        for knode, vnode in root.value:
+            if knode.value == "parameters" and isinstance(vnode, SequenceNode) and index < len(vnode.value):
+                return vnode.value[index].start_mark.line + 1
+    return None
+
+
+def load_library(folder: Path | None = None) -> tuple[list[Exercise], list[str]]:
+    """(the exercises in their order, one line per file that could not be loaded: file:line and why).
+
+    One bad file never stops the others (nor the window): it is listed, the rest load."""
+    folder = EXERCISES_DIR if folder is None else folder
     out, problems = [], []
-    for path in sorted(folder.glob("*.yaml")):
+    try:
+        paths = sorted(folder.glob("*.yaml"))
+    except OSError as exc:
+        return [], [f"{folder}: cannot list the exercises: {exc.strerror or exc}"]
+    for path in paths:
         try:
             out.append(load_exercise(path))
         except ExerciseError as exc:
             problems.append(str(exc))
+        except Exception as exc:  # whatever else a file does, it is this file's problem
+            problems.append(f"{path}: cannot be loaded: {type(exc).__name__}: {exc}")
     out.sort(key=lambda e: (e.order, e.title))
     return out, problems
 

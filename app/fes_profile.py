@@ -24,7 +24,7 @@ import yaml
 from yaml.nodes import MappingNode, Node
 
 from app.devices.sciencemode import CHANNELS, MAX_CURRENT_MA, MAX_PULSE_WIDTH_US, PulseMode, PulseSetting
-from app.yamlschema import ConfigError, load_dataclass, rng
+from app.yamlschema import ConfigError, check_yaml, decode_text, load_dataclass, rng
 
 PROFILE_VERSION = 1
 MAX_SCALE = 2.0  # scale knobs run 0..2 × the designed profile (the limiter still caps the result)
@@ -251,8 +251,16 @@ def _trapezoid(t: _TrapezoidFile) -> Trapezoid:
     return Trapezoid(t.level, (t.ramp_up[0], t.ramp_up[1]), (t.ramp_down[0], t.ramp_down[1]), t.baseline)
 
 
-def parse_profile(text: str, filename: str = "<profile>") -> FesProfile:
-    """Parse and validate profile YAML text. Raises FesProfileError (file, line, key)."""
+def parse_profile(text: str | bytes, filename: str = "<profile>") -> FesProfile:
+    """Parse and validate a profile (its text, or the file's bytes). Raises FesProfileError (file, line, key).
+
+    First through the config loader's checks (app/yamlschema.py): UTF-8 (the line of a bad byte), size,
+    nesting depth (PyYAML's composer recurses: 10 000 ``[`` were a RecursionError), anchors, tags."""
+    try:
+        text = decode_text(text, filename)
+        check_yaml(text, filename)
+    except ConfigError as exc:
+        raise FesProfileError(exc.filename, exc.line, exc.key, exc.problem) from None
     try:
         root = yaml.compose(text, Loader=yaml.SafeLoader)
     except yaml.MarkedYAMLError as exc:
@@ -304,10 +312,10 @@ def parse_profile(text: str, filename: str = "<profile>") -> FesProfile:
 def load_profile(path: str | Path) -> FesProfile:
     path = Path(path)
     try:
-        text = path.read_text(encoding="utf-8")
+        data = path.read_bytes()
     except OSError as exc:
         raise FesProfileError(str(path), None, "", f"cannot read the file: {exc.strerror or exc}") from exc
-    return parse_profile(text, str(path))
+    return parse_profile(data, str(path))  # bytes: a non-UTF-8 file is refused with its line
 
 
 def _trapezoid_plain(t: Trapezoid) -> dict[str, object]:

@@ -24,9 +24,12 @@ disk, a removed drive, a read-only folder) makes the writer call ``on_failure(fo
 the manager's fault policy raises a STOP alarm naming the folder and the error, which brings the devices
 to their safe state — and from then on samples are dropped (counted) while events are kept in memory and
 appended to ``events.jsonl`` again as soon as a write succeeds (tried every second and at stop).  ``stop``
-never raises; the manifest says ``"status": "failed"`` with when and why (``recording_failure``) when it
-can be written.  ``check_free_space`` refuses to start a session below ``recording.min_free_mib`` and
-warns below ``recording.warn_free_mib``.
+never raises; the manifest says ``"status": "failed"`` with when and why (``recording_failure``). A
+256 KiB space reserve (``.space-reserve``) allocated at start and released at the failure leaves room for
+that manifest and the kept events on a disk that stays full; when even so the manifest cannot be written,
+``recording-failed.txt`` says it and :func:`load_session` reads it. No temp file is left behind.
+``check_free_space`` refuses to start a session below ``recording.min_free_mib`` and warns below
+``recording.warn_free_mib``.
 """
 
 from __future__ import annotations
@@ -65,6 +68,9 @@ _WRITER_PERIOD_S = 0.02  # how often the writer drains the queues (latency, not 
 _RETRY_PERIOD_S = 1.0  # after a write error: how often the kept events are tried again
 FILE_MODE = 0o600  # session files hold health data: the user only (folders 0o700)
 DIR_MODE = 0o700
+RESERVE_FILE = ".space-reserve"  # room held back for the failure path (docs/sessions.md); gone once stopped
+RESERVE_BYTES = 256 * 1024  # the final manifest (~10 KB) twice over (temp + old) and ~1000 kept events
+FAILED_FILE = "recording-failed.txt"  # the sidecar the loader reads when even the manifest could not be written
 
 
 class RecordingError(OSError):
@@ -149,15 +155,92 @@ def stream_file_name(stream: str) -> str:
 
 
 def write_json_atomic(path: Path, data: Any) -> None:
-    """Write JSON so that ``path`` is always either the old or the new document (temp + fsync + rename)."""
+    """Write JSON so that ``path`` is always either the old or the new document (temp + fsync + rename).
+
+    When the write fails (a full disk) the temp file is removed: nothing half-written is left behind."""
+    text = json.dumps(data, indent=2, ensure_ascii=False, default=str)  # before the file: no empty temp on a bad value
     tmp = path.with_name(f".{path.name}.tmp")
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, FILE_MODE)
-    with open(fd, "w", encoding="utf-8") as fh:
-        json.dump(data, fh, indent=2, ensure_ascii=False, default=str)
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, path)
+    try:
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, FILE_MODE)
+        with open(fd, "w", encoding="utf-8") as fh:
+            fh.write(text)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except OSError:
+            pass
+        raise
     _fsync_dir(path.parent)
+
+
+def _reserve_space(path: Path, nbytes: int) -> None:
+    """Allocate ``nbytes`` on the session's disk (released when the recording fails or stops, so the final
+    manifest and the kept events still fit on a disk that filled up meanwhile). Raises OSError (ENOSPC)."""
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, FILE_MODE)
+    try:
+        if hasattr(os, "posix_fallocate"):
+            try:
+                os.posix_fallocate(fd, 0, nbytes)  # real blocks, not a sparse hole
+                return
+            except OSError as exc:
+                if exc.errno not in (errno.EOPNOTSUPP, errno.EINVAL, errno.ENOSYS):
+                    raise
+        chunk = os.urandom(65536)  # not a pattern: a compressing file system would store it in almost no space
+        left = nbytes
+        while left > 0:
+            left -= os.write(fd, chunk[: min(left, len(chunk))])
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def _cut_to_last_line(path: Path) -> None:
+    """Truncate a text file after its last complete line (a write that failed half-way leaves a partial one)."""
+    with open(path, "rb+") as fh:
+        end = fh.seek(0, os.SEEK_END)
+        pos = end
+        while pos > 0:
+            start = max(0, pos - 4096)
+            fh.seek(start)
+            block = fh.read(pos - start)
+            nl = block.rfind(b"\n")
+            if nl >= 0:
+                pos = start + nl + 1
+                break
+            pos = start
+        if pos != end:
+            fh.truncate(pos)
+
+
+def _count_lines(path: Path) -> int:
+    """Complete lines of a file (its newlines), read in chunks."""
+    n = 0
+    with open(path, "rb") as fh:
+        while chunk := fh.read(1 << 20):
+            n += chunk.count(b"\n")
+    return n
+
+
+def _discard_buffer(fh: Any) -> None:
+    """Point a file object's descriptor at the null device: what its buffer still holds (lines a full disk
+    refused) is dropped when it is closed instead of being written over the room the failure path needs."""
+    try:
+        fd = fh.fileno()
+    except (OSError, ValueError, AttributeError):
+        return
+    try:
+        null = os.open(os.devnull, os.O_WRONLY)
+    except OSError:
+        return
+    try:
+        os.dup2(null, fd)
+    except OSError:
+        pass
+    finally:
+        os.close(null)
 
 
 def _fsync_dir(folder: Path) -> None:
@@ -236,7 +319,9 @@ def _spec_dict(spec: StreamSpec, device: str, rate_hz: float | None = None) -> d
 class _StreamOut:
     spec: StreamSpec
     fh: TextIO
+    path: Path | None = None
     count: int = 0
+    on_disk: int | None = None  # after a write failure: the samples the file holds (it is not written again)
     first_t: float | None = None
     last_t: float | None = None
 
@@ -275,6 +360,7 @@ class SessionRecorder:
         self.failed_samples = 0  # dropped because the files could not be written
         self._kept_events: list[str] = []  # lines not yet known to be on disk after a failure
         self._unflushed: list[str] = []  # event lines written since the last successful flush
+        self._events_synced = 0  # size of events.jsonl at the last successful flush (all of it on disk)
         self._next_retry = 0.0
 
     # ------------------------------------------------------------------ public
@@ -313,64 +399,17 @@ class SessionRecorder:
                                        float(getattr(rec, "min_free_mib", 0)))
             try:
                 folder = _make_session_folder(root, patient_id, now)
-                (folder / STREAMS_DIR).mkdir(mode=DIR_MODE)
-                _private_dir(folder / STREAMS_DIR)
             except OSError as exc:
                 raise RecordingError(exc.errno or errno.EIO,
                                      f"cannot record in {root}: {exc.strerror or exc}") from exc
-            self.folder = folder
-            self._manager = manager
-            self._outs.clear()
-            self._samples.clear()
-            self._events.clear()
-            self._drops.clear()
-            self._reported_drops.clear()
-            self._unknown_streams.clear()
-            self.event_count = 0
-            self.failure, self.failure_t_wall, self.failed_samples = "", None, 0
-            self._kept_events.clear()
-            self._unflushed = []
-            policy = getattr(manager, "fault_policy", None)
-            if self.on_failure is None and policy is not None:
-                self.on_failure = policy.recording_failed
-            streams: dict[str, Any] = {}
-            devices: dict[str, Any] = {}
-            for name, handle in manager.devices.items():
-                driver = handle.driver
-                devices[name] = {"simulated": handle.simulated, "connected": bool(driver.connected),
-                                 "streams": [s.name for s in driver.streams], **_device_versions(driver)}
-                for spec in driver.streams:
-                    streams[spec.name] = _spec_dict(spec, name, configured_rate_hz(config, name, spec))
-                    fh = _open_private(folder / STREAMS_DIR / stream_file_name(spec.name), buffering=1 << 16)
-                    fh.write(",".join([TIME_COLUMN, *(c.name for c in spec.channels)]) + "\n")
-                    self._outs[spec.name] = _StreamOut(spec, fh)
-            self._events_fh = _open_private(folder / EVENTS_FILE)
-            if profile is None:
-                profile = _try_load_profile(patient_id, config)
-            from app.config import config_as_dict
-            from app.yamlschema import to_plain
-
-            self._manifest = {
-                "format_version": FORMAT_VERSION,
-                "status": "recording",
-                "patient_id": patient_id,
-                "patient": to_plain(profile) if profile is not None and not isinstance(profile, str) else None,
-                "patient_error": profile if isinstance(profile, str) else "",
-                "operator": operator,
-                "note": note,
-                "app_version": app_version(),
-                "host": _host(),
-                "start": {"t_wall": wall_iso(t_wall), "t_wall_epoch_s": t_wall, "t_mono_s": t_mono,
-                          "time_zone": now.tzname() or "", "utc_offset": now.strftime("%z")},
-                "end": None,
-                "devices": devices,
-                "streams": streams,
-                "config": config_as_dict(config),
-                "config_source": getattr(config, "source", ""),
-                "flush_interval_s": self._flush_interval_s,
-                "counts": {},
-            }
-            write_json_atomic(folder / MANIFEST_FILE, self._manifest)
+            try:
+                self._begin(manager, folder, patient_id, operator, note, profile, t_wall, t_mono, now)
+            except BaseException as exc:
+                self._abandon(folder)
+                if isinstance(exc, OSError):
+                    raise RecordingError(exc.errno or errno.EIO,
+                                         f"cannot record in {root}: {exc.strerror or exc}") from exc
+                raise
             self._stop.clear()
             self._writer = threading.Thread(target=self._run, name="session-recorder", daemon=True)
             self._writer.start()
@@ -394,6 +433,86 @@ class SessionRecorder:
                 add_hook(lambda: self.stop("application closing"))
             log.info("session recording in %s", folder)
             return folder
+
+    def _abandon(self, folder: Path) -> None:
+        """A start that failed: nothing was recorded yet, so no half-made session folder (and no open file)
+        is left behind."""
+        for out in self._outs.values():
+            _discard_buffer(out.fh)
+            _close_quietly(out.fh)
+        self._outs.clear()
+        if self._events_fh is not None:
+            _close_quietly(self._events_fh)
+            self._events_fh = None
+        self.folder = None
+        import shutil
+
+        shutil.rmtree(folder, ignore_errors=True)
+
+    def _begin(self, manager: LinarmppManager, folder: Path, patient_id: str, operator: str, note: str,
+               profile: Any, t_wall: float, t_mono: float, now: _dt.datetime) -> None:
+        """The session's files: the reserve, one file per stream, the events, the first manifest."""
+        config = manager.config
+        self._outs.clear()  # the last session's (closed) files: _abandon must see only this one's
+        self._events_fh = None
+        (folder / STREAMS_DIR).mkdir(mode=DIR_MODE)
+        _private_dir(folder / STREAMS_DIR)
+        _reserve_space(folder / RESERVE_FILE, RESERVE_BYTES)
+        self.folder = folder
+        self._manager = manager
+        self._samples.clear()
+        self._events.clear()
+        self._drops.clear()
+        self._reported_drops.clear()
+        self._unknown_streams.clear()
+        self.event_count = 0
+        self.failure, self.failure_t_wall, self.failed_samples = "", None, 0
+        self._kept_events.clear()
+        self._unflushed = []
+        self._events_synced = 0
+        policy = getattr(manager, "fault_policy", None)
+        if self.on_failure is None and policy is not None:
+            self.on_failure = policy.recording_failed
+        streams: dict[str, Any] = {}
+        devices: dict[str, Any] = {}
+        for name, handle in manager.devices.items():
+            driver = handle.driver
+            devices[name] = {"simulated": handle.simulated, "connected": bool(driver.connected),
+                             "streams": [s.name for s in driver.streams], **_device_versions(driver)}
+            for spec in driver.streams:
+                streams[spec.name] = _spec_dict(spec, name, configured_rate_hz(config, name, spec))
+                path = folder / STREAMS_DIR / stream_file_name(spec.name)
+                fh = _open_private(path, buffering=1 << 16)
+                self._outs[spec.name] = _StreamOut(spec, fh, path)
+                fh.write(",".join([TIME_COLUMN, *(c.name for c in spec.channels)]) + "\n")
+                fh.flush()  # the header on disk now: a stream file is never without its columns
+        self._events_fh = _open_private(folder / EVENTS_FILE)
+        if profile is None:
+            profile = _try_load_profile(patient_id, config)
+        from app.config import config_as_dict
+        from app.yamlschema import to_plain
+
+        self._manifest = {
+            "format_version": FORMAT_VERSION,
+            "status": "recording",
+            "patient_id": patient_id,
+            "patient": to_plain(profile) if profile is not None and not isinstance(profile, str) else None,
+            "patient_error": profile if isinstance(profile, str) else "",
+            "operator": operator,
+            "note": note,
+            "app_version": app_version(),
+            "host": _host(),
+            "start": {"t_wall": wall_iso(t_wall), "t_wall_epoch_s": t_wall, "t_mono_s": t_mono,
+                      "time_zone": now.tzname() or "", "utc_offset": now.strftime("%z")},
+            "end": None,
+            "devices": devices,
+            "streams": streams,
+            "config": config_as_dict(config),
+            "config_source": getattr(config, "source", ""),
+            "flush_interval_s": self._flush_interval_s,
+            "counts": {},
+        }
+        write_json_atomic(folder / MANIFEST_FILE, self._manifest)
 
     def event(self, kind: str, who: str = "", **data: Any) -> None:
         """Record an event from the GUI, a script or a driver (any thread; never blocks).
@@ -428,30 +547,71 @@ class SessionRecorder:
             now = _dt.datetime.fromtimestamp(t_wall).astimezone()
             folder = self.folder
             assert folder is not None
+            self._release_reserve()  # room for the final manifest, however full the disk is now
+            counts = self.counts()
             failure = None
             if self.failure:
+                # What is in the files, not what was handed to them: a full disk refused the buffered lines.
+                lost_in_buffers = 0
+                for name, out in self._outs.items():
+                    on_disk = out.on_disk if out.on_disk is not None else _lines_on_disk(out)
+                    lost_in_buffers += max(0, out.count - on_disk)
+                    counts[name] = on_disk
                 failure = {"t_wall": wall_iso(self.failure_t_wall), "error": self.failure,
-                           "samples_lost": self.failed_samples, "events_not_written": len(self._kept_events)}
+                           "samples_lost": self.failed_samples + lost_in_buffers,
+                           "events_not_written": len(self._kept_events)}
             self._manifest.update({
                 "status": "failed" if self.failure else "complete",
                 "recording_failure": failure,
                 "end": {"t_wall": wall_iso(t_wall), "t_wall_epoch_s": t_wall, "t_mono_s": t_mono,
                         "time_zone": now.tzname() or "", "utc_offset": now.strftime("%z"), "reason": reason},
                 "duration_s": t_mono - self._manifest["start"]["t_mono_s"],
-                "counts": self.counts(),
+                "counts": counts,
                 "first_t_mono_s": {n: o.first_t for n, o in self._outs.items()},
                 "last_t_mono_s": {n: o.last_t for n, o in self._outs.items()},
                 "dropped_samples": {d: c[0] for d, c in self._drops.items()},
-                "event_count": self.event_count,
+                "event_count": self.event_count - len(self._kept_events),
             })
             try:
                 write_json_atomic(folder / MANIFEST_FILE, self._manifest)
             except OSError as exc:
                 log.error("the manifest of %s could not be finalised: %s", folder, exc.strerror or exc)
+                if self.failure:
+                    self._write_failure_sidecar(failure)
+            else:
+                try:
+                    (folder / FAILED_FILE).unlink(missing_ok=True)  # the manifest says it all now
+                except OSError:
+                    pass
             if self._kept_events:
                 log.error("%d session events could not be written to %s", len(self._kept_events), folder)
             log.info("session recording stopped (%s): %s", reason, folder)
             return folder
+
+    def _release_reserve(self) -> None:
+        if self.folder is None:
+            return
+        try:
+            (self.folder / RESERVE_FILE).unlink(missing_ok=True)
+        except OSError as exc:
+            log.warning("the space reserve of %s could not be removed: %s", self.folder, exc.strerror or exc)
+
+    def _write_failure_sidecar(self, failure: dict[str, Any] | None) -> None:
+        """The manifest could not say ``failed``: a small file next to it does (load_session reads it). Even
+        on a disk without one free block an empty file can usually be made; the reason follows if it fits."""
+        if self.folder is None:
+            return
+        try:
+            fd = os.open(self.folder / FAILED_FILE, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, FILE_MODE)
+        except OSError as exc:
+            log.error("not even %s could be written in %s: %s", FAILED_FILE, self.folder, exc.strerror or exc)
+            return
+        try:
+            os.write(fd, json.dumps(failure or {"error": self.failure}, default=str).encode("utf-8") + b"\n")
+        except OSError:
+            pass  # the name alone says it
+        finally:
+            os.close(fd)
 
     # ------------------------------------------------------------------ producers (any thread)
     def _attach(self, device: str, driver: Any) -> None:
@@ -541,14 +701,29 @@ class SessionRecorder:
         if not first:
             return
         log.error("recording failed in %s: %s", self.folder, error)
+        # The files' buffers hold lines the disk refused: drop them (they would be written over the room
+        # freed below at close) and cut each file after its last whole line. Samples are not written again
+        # (counted at stop); the event lines since the last flush are in _kept_events.
+        for out in self._outs.values():
+            _discard_buffer(out.fh)
+            if out.path is not None:
+                try:
+                    _cut_to_last_line(out.path)
+                except OSError:
+                    pass
+            out.on_disk = _lines_on_disk(out)  # counted here, on the writer thread, not at stop on the GUI's
+        if self._events_fh is not None:
+            _discard_buffer(self._events_fh)
+        self._release_reserve()
         self._enqueue_event("recording_failed", "recorder", "recorder", {"folder": str(self.folder), "error": error})
-        try:
-            self._manifest.update({"status": "failed", "recording_failure": {
-                "t_wall": wall_iso(self.failure_t_wall), "error": error}})
-            if self.folder is not None:
+        self._manifest.update({"status": "failed", "recording_failure": {
+            "t_wall": wall_iso(self.failure_t_wall), "error": error}})
+        if self.folder is not None:
+            try:
                 write_json_atomic(self.folder / MANIFEST_FILE, self._manifest)
-        except Exception:
-            pass  # the same disk: the stop tries again
+            except Exception:
+                self._write_failure_sidecar(self._manifest["recording_failure"])  # the stop tries again
+        self._next_retry = 0.0  # the kept events into the freed room at once
         if self.on_failure is not None:
             try:
                 self.on_failure(str(self.folder), error)
@@ -570,13 +745,33 @@ class SessionRecorder:
         if not (force or now >= self._next_retry) or self.folder is None:
             return
         self._next_retry = now + _RETRY_PERIOD_S
-        try:  # a fresh handle: the old one's buffer is in an unknown state
-            with _open_private(self.folder / EVENTS_FILE) as fh:
-                fh.write("".join(self._kept_events))
-                fh.flush()
-                os.fsync(fh.fileno())
+        if not self._kept_events:
+            return
+        # A fresh descriptor, cut back to what the last good flush left on disk: the kept lines include
+        # every line since then, so none is written twice and no half line stays in the file.
+        data = "".join(self._kept_events).encode("utf-8")
+        try:
+            fd = os.open(self.folder / EVENTS_FILE, os.O_WRONLY | os.O_CREAT, FILE_MODE)
         except OSError:
             return
+        synced = self._events_synced
+        try:
+            os.ftruncate(fd, synced)
+            os.lseek(fd, synced, os.SEEK_SET)
+            view = memoryview(data)
+            while view:
+                view = view[os.write(fd, view):]
+            if self.fsync:
+                os.fsync(fd)
+        except OSError:
+            try:
+                os.ftruncate(fd, synced)
+            except OSError:
+                pass
+            return
+        finally:
+            os.close(fd)
+        self._events_synced = synced + len(data)
         log.info("recording: %d kept events written to %s", len(self._kept_events), self.folder)
         self._kept_events.clear()
 
@@ -649,7 +844,19 @@ class SessionRecorder:
                         log.warning("fsync failed for %s", getattr(fh, "name", fh))  # the device cannot sync
                     else:
                         raise
+        if self._events_fh is not None:
+            self._events_synced = os.fstat(self._events_fh.fileno()).st_size
         self._unflushed = []
+
+
+def _lines_on_disk(out: _StreamOut) -> int:
+    """Samples a stream file holds (its complete lines but the header)."""
+    if out.path is None:
+        return out.count
+    try:
+        return max(0, _count_lines(out.path) - 1)
+    except OSError:
+        return 0
 
 
 def _close_quietly(fh: TextIO) -> None:
@@ -708,8 +915,13 @@ class RecordedSession:
 
     @property
     def complete(self) -> bool:
-        """False when the session was not stopped normally (crash, kill, power cut)."""
+        """False when the session was not stopped normally (crash, kill, power cut) or its recording failed."""
         return self.manifest.get("status") == "complete"
+
+    @property
+    def status(self) -> str:
+        """``complete``, ``failed`` (a write error: docs/sessions.md), ``recording`` (never stopped: a crash)."""
+        return str(self.manifest.get("status") or "unknown")
 
     @property
     def start_mono(self) -> float:
@@ -779,10 +991,64 @@ def read_events(path: Path) -> tuple[list[dict[str, Any]], int]:
         if not ln.strip():
             continue
         try:
-            out.append(json.loads(ln))
-        except json.JSONDecodeError:
+            record = json.loads(ln)
+        except (json.JSONDecodeError, RecursionError):
+            dropped += 1
+            continue
+        if isinstance(record, dict):
+            out.append(record)
+        else:  # not an event (a hand-edited or damaged file): counted like a cut line
             dropped += 1
     return out, dropped
+
+
+def read_failure_sidecar(folder: Path) -> dict[str, Any] | None:
+    """What ``recording-failed.txt`` says (the recorder wrote it when the manifest could not say
+    ``failed``); None when there is none."""
+    path = folder / FAILED_FILE
+    try:
+        text = path.read_bytes()[:65536].decode("utf-8", errors="replace")
+    except FileNotFoundError:
+        return None
+    except OSError as exc:
+        return {"error": f"(unreadable: {exc.strerror or exc})"}
+    try:
+        data = json.loads(text) if text.strip() else {}
+    except (json.JSONDecodeError, RecursionError):
+        data = {"error": text.strip()[:500]}
+    if not isinstance(data, dict):
+        data = {}
+    data.setdefault("error", "the reason could not be written")
+    return data
+
+
+def _manifest_with_sidecar(folder: Path, manifest: dict[str, Any]) -> dict[str, Any]:
+    failure = read_failure_sidecar(folder)
+    if failure is None or manifest.get("status") == "failed":
+        return manifest
+    return {**manifest, "status": "failed", "recording_failure": {**(manifest.get("recording_failure") or {}),
+                                                                 **failure}}
+
+
+def _status_problem(manifest: dict[str, Any]) -> str:
+    status = manifest.get("status")
+    if status == "complete":
+        return ""
+    if status == "failed":
+        f = manifest.get("recording_failure") or {}
+        at = f" at {f['t_wall']}" if f.get("t_wall") else ""
+        lost = []
+        if f.get("samples_lost"):
+            lost.append(f"{f['samples_lost']} samples")
+        if f.get("events_not_written"):
+            lost.append(f"{f['events_not_written']} events")
+        tail = f"; {' and '.join(lost)} could not be written" if lost else ""
+        ended = "" if manifest.get("end") else "; the session has no end time"
+        return f"the recording failed{at}: {f.get('error') or 'reason unknown'}{tail}{ended}; data end at the failure"
+    if status == "recording":
+        return ("the session was not stopped normally (crash, kill or power cut): no end time; "
+                "data end at the last flush")
+    return f"the manifest's status is {status!r}, not 'complete'"
 
 
 def load_session(folder: str | Path) -> RecordedSession:
@@ -791,22 +1057,39 @@ def load_session(folder: str | Path) -> RecordedSession:
     problems: list[str] = []
     try:
         manifest = json.loads((folder / MANIFEST_FILE).read_text(encoding="utf-8"))
-    except (OSError, json.JSONDecodeError) as exc:
+    except (OSError, ValueError, RecursionError) as exc:  # ValueError: not UTF-8 or not JSON
         manifest = {}
         problems.append(f"manifest unreadable: {exc}")
-    if manifest and manifest.get("status") != "complete":
-        problems.append("the session was not stopped normally (no end time); data end at the last flush")
-    specs: dict[str, dict[str, Any]] = dict(manifest.get("streams") or {})
-    known_files = {v.get("file") for v in specs.values()}
+    if not isinstance(manifest, dict):
+        manifest = {}
+        problems.append("manifest unreadable: not a JSON object")
+    manifest = _manifest_with_sidecar(folder, manifest)
+    if manifest and (problem := _status_problem(manifest)):
+        problems.append(problem)
+    specs: dict[str, Any] = dict(manifest.get("streams") or {})
+    known_files = {v.get("file") for v in specs.values() if isinstance(v, dict)}
     for path in sorted((folder / STREAMS_DIR).glob("*.csv")):
         rel = f"{STREAMS_DIR}/{path.name}"
-        if rel not in known_files:  # no manifest entry: names from the header, no units
+        if rel not in known_files and path.stem not in specs:  # no manifest entry: names from the header, no units
             specs[path.stem] = {"file": rel, "device": "", "nominal_rate_hz": 0.0, "channels": None}
     streams: dict[str, RecordedStream] = {}
+    streams_dir = (folder / STREAMS_DIR).resolve()
     for name, spec in specs.items():
-        path = folder / spec["file"]
+        rel = spec.get("file") if isinstance(spec, dict) else None
+        if not isinstance(rel, str):
+            problems.append(f"{name}: the manifest names no file")
+            continue
+        path = folder / rel
+        # A session folder may come from elsewhere: read only regular files of its own streams folder
+        # (a manifest naming ../../dev/zero or a FIFO would read forever).
+        if path.resolve().parent != streams_dir or path.suffix != ".csv":
+            problems.append(f"{name}: file {rel!r} is not in the session's {STREAMS_DIR} folder; not read")
+            continue
         if not path.exists():
-            problems.append(f"{name}: file {spec['file']} is missing")
+            problems.append(f"{name}: file {rel} is missing")
+            continue
+        if not path.is_file():
+            problems.append(f"{name}: file {rel} is not a regular file; not read")
             continue
         header, values, dropped = read_stream_csv(path)
         if spec.get("channels") is None:
@@ -827,9 +1110,47 @@ def load_session(folder: str | Path) -> RecordedSession:
         if dropped:
             problems.append(f"{name}: {dropped} incomplete line(s) dropped")
     events, dropped = read_events(folder / EVENTS_FILE)
+    if not (folder / EVENTS_FILE).exists():
+        problems.append(f"{EVENTS_FILE} is missing")
     if dropped:
         problems.append(f"events: {dropped} incomplete line(s) dropped")
+    problems += _count_problems(manifest, streams, events)
     return RecordedSession(folder, manifest, streams, events, problems)
+
+
+def _count_problems(manifest: dict[str, Any], streams: dict[str, RecordedStream],
+                    events: list[dict[str, Any]]) -> list[str]:
+    """What the stopped session's manifest counted and the files no longer hold (a truncated copy, a
+    file cut by hand), and the samples the recorder had to drop."""
+    out = []
+    counts = manifest.get("counts") or {}
+    specs = manifest.get("streams") or {}
+    for name, expected in counts.items():
+        if not isinstance(expected, int) or name not in streams:
+            continue
+        have = len(streams[name])
+        if have < expected:
+            file = (specs.get(name) or {}).get("file", name)
+            out.append(f"{name}: {expected - have} of {expected} samples missing from {file}")
+    expected_events = manifest.get("event_count")
+    if isinstance(expected_events, int) and len(events) < expected_events:
+        out.append(f"events: {expected_events - len(events)} of {expected_events} missing from {EVENTS_FILE}")
+    for device, n in (manifest.get("dropped_samples") or {}).items():
+        if isinstance(n, int) and n > 0:
+            out.append(f"{device}: {n} samples dropped while recording (the disk was too slow)")
+    return out
+
+
+def session_problems(folder: str | Path) -> list[str]:
+    """What is missing or wrong in a recorded session ([] for a complete one): the completeness check of
+    ``--metrics`` / ``--report``. Raises nothing; a folder without a manifest is one problem."""
+    folder = Path(folder)
+    if not (folder / MANIFEST_FILE).is_file():
+        return [f"{folder} is not a session folder (no {MANIFEST_FILE})"]
+    try:
+        return load_session(folder).problems
+    except Exception as exc:  # a file no reader expects: still an answer, not a traceback
+        return [f"the session cannot be read: {type(exc).__name__}: {exc}"]
 
 
 # ---------------------------------------------------------------------------------------------- browsing
@@ -844,6 +1165,7 @@ class SessionSummary:
     alarms: int
     complete: bool
     note: str = ""
+    status: str = ""  # complete, failed (a write error), recording (never stopped)
 
 
 def summarize_session(folder: Path) -> SessionSummary:
@@ -852,6 +1174,9 @@ def summarize_session(folder: Path) -> SessionSummary:
         manifest = json.loads((folder / MANIFEST_FILE).read_text(encoding="utf-8"))
     except (OSError, json.JSONDecodeError):
         manifest = {}
+    if not isinstance(manifest, dict):
+        manifest = {}
+    manifest = _manifest_with_sidecar(folder, manifest)
     events, _ = read_events(folder / EVENTS_FILE)
     exercises = tuple(str(e.get("data", {}).get("name") or "script") for e in events if e.get("kind") == "script_start")
     alarms = sum(1 for e in events if e.get("kind") == "alarm")
@@ -870,7 +1195,8 @@ def summarize_session(folder: Path) -> SessionSummary:
     del end
     return SessionSummary(folder, str(manifest.get("patient_id", folder.parent.name)),
                           str(manifest.get("operator", "")), str(start.get("t_wall", "")), duration, exercises,
-                          alarms, manifest.get("status") == "complete", str(manifest.get("note", "")))
+                          alarms, manifest.get("status") == "complete", str(manifest.get("note", "")),
+                          str(manifest.get("status") or ""))
 
 
 def _last_time(path: Path) -> float:

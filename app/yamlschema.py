@@ -116,7 +116,8 @@ class _Loader:
             self.fail(node, key, f"expected one of {', '.join(m.name for m in tp)}, got {value!r}")
         if not isinstance(node, ScalarNode):
             kind = "list" if isinstance(node, SequenceNode) else "mapping"
-            self.fail(node, key, f"expected a {getattr(tp, '__name__', tp)}, got a {kind}")
+            wanted = "single value" if tp is Any else getattr(tp, "__name__", tp)
+            self.fail(node, key, f"expected a {wanted}, got a {kind}")
         value = _scalar_value(node)
         return self.check_scalar(tp, value, node, key, meta or {})
 
@@ -248,18 +249,37 @@ def load_dataclass(cls: type[T], text: str, filename: str, base: T | None = None
 
 
 def read_text(path: Path) -> str:
-    """A user file's text; ConfigError when it cannot be read or is not UTF-8 (the line of the bad byte)."""
+    """A user file's text; ConfigError when it cannot be read, is not a regular file (a FIFO would block,
+    /dev/zero never ends), is above ``MAX_FILE_BYTES`` (never read whole) or is not UTF-8 (the bad byte's line)."""
+    import os
+    import stat
+
     try:
-        data = path.read_bytes()
+        # O_NONBLOCK: opening a FIFO must not wait for a writer; it is refused just below.
+        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_BINARY", 0))
     except OSError as exc:
         raise ConfigError(str(path), None, "", f"cannot read the file: {exc.strerror or exc}") from exc
+    with open(fd, "rb") as fh:
+        try:
+            if not stat.S_ISREG(os.fstat(fd).st_mode):
+                raise ConfigError(str(path), None, "", "not a regular file")
+            data = fh.read(MAX_FILE_BYTES + 1)
+        except OSError as exc:
+            raise ConfigError(str(path), None, "", f"cannot read the file: {exc.strerror or exc}") from exc
+    return decode_text(data, str(path))
+
+
+def decode_text(data: bytes | str, filename: str) -> str:
+    """A file's bytes as text: ConfigError above ``MAX_FILE_BYTES`` or when not UTF-8 (naming the line)."""
     if len(data) > MAX_FILE_BYTES:
-        raise ConfigError(str(path), None, "", f"the file is larger than {MAX_FILE_BYTES // 1024} KiB")
+        raise ConfigError(filename, None, "", f"the file is larger than {MAX_FILE_BYTES // 1024} KiB")
+    if isinstance(data, str):
+        return data
     try:
         return data.decode("utf-8")
     except UnicodeDecodeError as exc:
         line = data[: exc.start].count(b"\n") + 1
-        raise ConfigError(str(path), line, "", f"not UTF-8 text (byte 0x{data[exc.start]:02x})") from None
+        raise ConfigError(filename, line, "", f"not UTF-8 text (byte 0x{data[exc.start]:02x})") from None
 
 
 def load_file(cls: type[T], path: str | Path, base: T | None = None) -> T:

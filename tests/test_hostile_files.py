@@ -74,3 +74,152 @@ def test_hostile_decision_tree_file_is_refused_with_its_line(tmp_path, data: byt
     with pytest.raises(PatientModelConfigError) as info:
         load_tree_config(path)
     assert words in str(info.value) and info.value.line >= 1
+
+
+# ------------------------------------------------------------------------------------------------------------
+# Issue #25, "exercise YAML": exercise files and FES profiles through the config's strict loader.
+GOOD_EXERCISE = (b"title: Good\nscript: good.py\nparameters:\n"
+                 b"  - {name: rest_s, label: Rest, type: float, unit: s, min: 0, max: 30, default: 0.5}\n")
+
+BILLION_LAUGHS = b"".join([
+    b"title: laughs\n",
+    b"a: &a [\"lol\",\"lol\",\"lol\",\"lol\",\"lol\",\"lol\",\"lol\",\"lol\",\"lol\"]\n",
+    *[f"{chr(98 + i)}: &{chr(98 + i)} [*{chr(97 + i)},*{chr(97 + i)},*{chr(97 + i)},*{chr(97 + i)},*{chr(97 + i)},"
+      f"*{chr(97 + i)},*{chr(97 + i)},*{chr(97 + i)},*{chr(97 + i)}]\n".encode() for i in range(8)],
+    b"description: *i\n",
+])
+
+HOSTILE_EXERCISES: list[tuple[str, bytes, str, int | None]] = [
+    # (name, file, words in the message, the line named)
+    ("billion laughs", BILLION_LAUGHS, "anchors and aliases", 2),
+    ("non-utf8", b"title: ok\ndescription: caf\xe9\n", "not UTF-8", 2),
+    ("script ../..", b"title: x\nscript: ../../x.py\n", "not a path", 2),
+    ("script absolute", b"title: x\nscript: /bin/sh\n", "not a path", 2),
+    ("script not python", b"title: x\nscript: x.yaml\n", "not a Python script", 2),
+    ("negative rest", b"title: x\nparameters:\n  - {name: rest_s, type: float, unit: s, min: -5, max: 30, "
+                      b"default: -1}\n", "a duration cannot be negative", 3),
+    ("rest below its min", b"title: x\nparameters:\n  - {name: rest_s, type: float, unit: s, min: 0, max: 30, "
+                           b"default: -1}\n", "the default is refused", 3),
+    ("unbounded number", b"title: x\nparameters:\n  - {name: speed, type: float, default: 1}\n", "both min and max", 3),
+    ("huge max", b"title: x\nparameters:\n  - {name: speed, type: float, min: 0, max: 1.0e+300, default: 1}\n",
+     "outside the allowed range", 3),
+    ("infinite max", b"title: x\nparameters:\n  - {name: speed, type: float, min: 0, max: .inf, default: 1}\n",
+     "finite", 3),
+    ("min above max", b"title: x\nparameters:\n  - {name: n, type: int, min: 5, max: 1, default: 3}\n", "above max", 3),
+    ("order out of range", b"title: x\norder: -7\n", "outside the allowed range", 2),
+    ("5000-digit number", b"title: x\norder: " + b"9" * 5000 + b"\n", "digits", 2),
+    ("deep nesting", b"title: x\ndescription: " + b"[" * 5000 + b"]" * 5000 + b"\n", "nested deeper", 2),
+    ("python tag", b"title: !!python/name:os.system x\n", "tag", 1),
+    ("default a list", b"title: x\nparameters:\n  - {name: a, type: bool, default: [1]}\n", "single value", 3),
+]
+
+
+@pytest.mark.parametrize(("name", "data", "words", "line"), HOSTILE_EXERCISES, ids=[h[0] for h in HOSTILE_EXERCISES])
+def test_hostile_exercise_is_refused_quickly_with_file_and_line(tmp_path, name: str, data: bytes, words: str,
+                                                                  line: int | None) -> None:
+    import time
+
+    from app.exercises import ExerciseError, load_exercise
+
+    (tmp_path / "x.py").write_text("pass\n", encoding="utf-8")
+    path = tmp_path / "x.yaml"
+    path.write_bytes(data)
+    t0 = time.monotonic()
+    with pytest.raises(ExerciseError) as info:
+        load_exercise(path)
+    elapsed = time.monotonic() - t0
+    text = str(info.value)
+    assert words in text, text
+    assert text.startswith(f"{path}:{line}:"), text
+    # The billion laughs took > 20 s: now refused at its first anchor (~15 ms). Deep flow nesting costs
+    # PyYAML's scanner ~0.15 s on an idle machine (its look-ahead over one long line), ~1 s under load.
+    assert elapsed < (1.0 if name == "billion laughs" else 5.0), f"{elapsed:.2f} s"
+
+
+def test_a_script_link_out_of_the_library_is_refused(tmp_path) -> None:
+    from app.exercises import ExerciseError, load_exercise
+
+    outside = tmp_path / "outside.py"
+    outside.write_text("import os\n", encoding="utf-8")
+    lib = tmp_path / "lib"
+    lib.mkdir()
+    (lib / "x.py").symlink_to(outside)
+    (lib / "x.yaml").write_bytes(b"title: x\nscript: x.py\n")
+    with pytest.raises(ExerciseError, match=r"x.yaml:2: script: .*leads out of the exercise's folder"):
+        load_exercise(lib / "x.yaml")
+
+
+def test_a_fifo_in_the_library_is_listed_not_waited_for(tmp_path) -> None:
+    import os
+
+    from app.exercises import load_library
+
+    (tmp_path / "good.py").write_text("pass\n", encoding="utf-8")
+    (tmp_path / "good.yaml").write_bytes(GOOD_EXERCISE)
+    os.mkfifo(tmp_path / "pipe.yaml")
+    library, problems = load_library(tmp_path)
+    assert [e.ident for e in library] == ["good"]
+    assert problems == [f"{tmp_path / 'pipe.yaml'}: (top level): not a regular file"]
+
+
+@pytest.fixture
+def bad_library(tmp_path, monkeypatch):
+    """An exercise library with one good exercise and three bad files, as the window's default library."""
+    from app import exercises
+
+    (tmp_path / "good.py").write_text("pass\n", encoding="utf-8")
+    (tmp_path / "good.yaml").write_bytes(GOOD_EXERCISE)
+    (tmp_path / "latin1.yaml").write_bytes(b"title: Caf\xe9\n")
+    (tmp_path / "escape.yaml").write_bytes(b"title: x\nscript: ../../etc/x.py\n")
+    (tmp_path / "laughs.yaml").write_bytes(BILLION_LAUGHS)
+    monkeypatch.setattr(exercises, "EXERCISES_DIR", tmp_path)
+    monkeypatch.setattr(exercises.load_library, "__defaults__", (tmp_path,))  # the old signature bound it early
+    return tmp_path
+
+
+def test_one_bad_exercise_file_leaves_the_others_usable(bad_library) -> None:
+    from app.exercises import load_library
+
+    library, problems = load_library()
+    assert [e.ident for e in library] == ["good"]
+    assert len(problems) == 3
+    text = "\n".join(problems)
+    assert f"{bad_library / 'latin1.yaml'}:1:" in text and "not UTF-8" in text
+    assert f"{bad_library / 'escape.yaml'}:2:" in text and f"{bad_library / 'laughs.yaml'}:2:" in text
+
+
+def test_the_exercises_tab_starts_with_a_bad_file_and_lists_it(qtbot, bad_library) -> None:
+    from PySide6.QtWidgets import QLabel
+
+    from app.ui.exercises_panel import ExercisesPanel
+    from tests.test_exercises_panel import FakeRunner, StubManager
+
+    panel = ExercisesPanel(StubManager(), runner=FakeRunner())  # raised UnicodeDecodeError: the window died (134)
+    qtbot.addWidget(panel)
+    assert [e.ident for e in panel.library] == ["good"]
+    notes = [w.text() for w in panel.findChildren(QLabel) if w.text().startswith("Not loaded:")]
+    assert len(notes) == 1 and "latin1.yaml:1:" in notes[0] and "not UTF-8" in notes[0]
+
+
+HOSTILE_PROFILES: list[tuple[str, bytes, str, int]] = [
+    ("non-utf8", b"version: 1\nname: caf\xe9\naxis: time\nchannels: {}\n", "not UTF-8", 2),
+    ("deep nesting", b"version: 1\nname: x\naxis: time\nchannels: " + b"[" * 10000 + b"]" * 10000 + b"\n",
+     "nested deeper", 4),
+    ("alias bomb", b"version: 1\nname: &n x\naxis: time\nchannels: {}\ndescription: *n\n", "aliases", 2),
+]
+
+
+@pytest.mark.parametrize(("name", "data", "words", "line"), HOSTILE_PROFILES, ids=[h[0] for h in HOSTILE_PROFILES])
+def test_hostile_fes_profile_is_refused_with_file_and_line(tmp_path, name: str, data: bytes, words: str,
+                                                           line: int) -> None:
+    from app.fes_profile import FesProfileError, load_profile, parse_profile
+
+    path = tmp_path / "p.yaml"
+    path.write_bytes(data)
+    with pytest.raises(FesProfileError) as info:
+        load_profile(path)
+    text = str(info.value)
+    assert words in text and text.startswith(f"{path}:{line}:"), text
+    with pytest.raises(FesProfileError) as info:  # the parse step alone, from the bytes a safe read returns
+        parse_profile(data, "named.yaml")
+    assert str(info.value).startswith(f"named.yaml:{line}:") and words in str(info.value)

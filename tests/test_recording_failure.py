@@ -105,12 +105,13 @@ def test_config_holds_the_free_space_figures() -> None:
 
 @pytest.fixture
 def small_tmpfs(tmp_path):
-    """A 48 KiB tmpfs (needs root and a kernel that lets us mount); skipped otherwise."""
+    """A 1 MiB tmpfs (needs root and a kernel that lets us mount); skipped otherwise. The session's space
+    reserve (256 KiB) fits; :func:`fill` then takes the rest, as another program filling the disk would."""
     import subprocess
 
     mount = tmp_path / "tiny"
     mount.mkdir()
-    if os.geteuid() != 0 or subprocess.run(["mount", "-t", "tmpfs", "-o", "size=48k", "tmpfs", str(mount)],
+    if os.geteuid() != 0 or subprocess.run(["mount", "-t", "tmpfs", "-o", "size=1m", "tmpfs", str(mount)],
                                            capture_output=True).returncode != 0:
         pytest.skip("cannot mount a tmpfs here")
     try:
@@ -119,21 +120,37 @@ def small_tmpfs(tmp_path):
         subprocess.run(["umount", "-l", str(mount)], capture_output=True)
 
 
-def test_a_really_full_disk(tmp_path, qtbot, small_tmpfs) -> None:
+def fill(mount) -> None:
+    """Every free block of the tmpfs into one file (raw writes: nothing buffered that could still land)."""
+    fd = os.open(mount / "filler", os.O_WRONLY | os.O_CREAT, 0o600)
+    try:
+        while True:
+            os.write(fd, b"x" * 4096)
+    except OSError as exc:
+        assert exc.errno == errno.ENOSPC
+    finally:
+        os.close(fd)
+
+
+def full_disk_manager(tmp_path):
     cfg = AppConfig()
     cfg = replace(cfg, recording=replace(cfg.recording, warn_free_mib=0.0, min_free_mib=0.0))
-    m = LinarmppManager(cfg, factories={"physio": counter_factory(tmp_path, "physio")})  # 1 kHz, ~25 kB/s
+    return LinarmppManager(cfg, factories={"physio": counter_factory(tmp_path, "physio")})  # 1 kHz, ~25 kB/s
+
+
+def test_a_really_full_disk(tmp_path, qtbot, small_tmpfs) -> None:
+    m = full_disk_manager(tmp_path)
     m.start()
     try:
         qtbot.waitUntil(m.all_connected, timeout=10000)
         folder = m.start_session("DISK03", "tester", root=small_tmpfs)
+        fill(small_tmpfs)
         qtbot.waitUntil(lambda: any(a.level == AlarmLevel.STOP and "Recording failed" in a.text
                                     for a in m.supervisor.alarms()), timeout=10000)
         alarm = next(a for a in m.supervisor.alarms() if "Recording failed" in a.text)
         assert str(folder) in alarm.text and "No space left" in alarm.text
         m.record_event("while_full")
-        for csv in (folder / "streams").glob("*.csv"):
-            csv.write_text("", encoding="utf-8")  # the operator makes room
+        (small_tmpfs / "filler").unlink()  # the operator makes room
         m.end_session()
         manifest = json.loads((folder / "manifest.json").read_text(encoding="utf-8"))
         assert manifest["status"] == "failed" and "No space left" in manifest["recording_failure"]["error"]
@@ -142,3 +159,118 @@ def test_a_really_full_disk(tmp_path, qtbot, small_tmpfs) -> None:
         assert {"recording_failed", "while_full", "session_stop"} <= set(kinds)
     finally:
         m.shutdown()
+
+
+def test_a_disk_that_stays_full_says_failed_keeps_the_events_and_leaves_nothing_behind(
+        tmp_path, qtbot, small_tmpfs) -> None:
+    """Issue #25, "disk full mid-session": the manifest stayed ``recording``, 15 events were lost, an empty
+    ``.manifest.json.tmp`` was left. Now the space reserve released at the failure holds the manifest
+    (``failed``, with what was lost) and every event, with the disk still full at the stop."""
+    from app.recording import RESERVE_FILE, load_session
+
+    m = full_disk_manager(tmp_path)
+    m.start()
+    try:
+        qtbot.waitUntil(m.all_connected, timeout=10000)
+        folder = m.start_session("DISK05", "tester", root=small_tmpfs)
+        fill(small_tmpfs)
+        qtbot.waitUntil(lambda: bool(m.recorder.failure), timeout=10000)
+        for i in range(15):
+            m.record_event("while_full", i=i)
+        m.end_session()  # the filler stays: the disk is full until the end
+        manifest = json.loads((folder / "manifest.json").read_text(encoding="utf-8"))
+        assert manifest["status"] == "failed", manifest["status"]
+        failure = manifest["recording_failure"]
+        assert "No space left" in failure["error"] and failure["events_not_written"] == 0
+        assert manifest["end"] and manifest["end"]["reason"]
+        events = [json.loads(ln) for ln in (folder / "events.jsonl").read_text(encoding="utf-8").splitlines()]
+        assert [e["data"]["i"] for e in events if e["kind"] == "while_full"] == list(range(15))
+        assert {"session_start", "recording_failed", "session_stop"} <= {e["kind"] for e in events}
+        assert manifest["event_count"] == len(events)
+        leftovers = sorted(p.name for p in folder.rglob(".*"))
+        assert leftovers == [], leftovers  # no .manifest.json.tmp, no space reserve
+        assert not (folder / RESERVE_FILE).exists()
+        for info in manifest["streams"].values():  # every stream's file, each ending with a whole line
+            data = (folder / info["file"]).read_bytes()
+            assert data.endswith(b"\n") and data.startswith(b"t_mono_s,"), info["file"]
+        session = load_session(folder)
+        assert session.status == "failed" and not session.complete
+        assert any("recording failed" in p and "No space left" in p for p in session.problems), session.problems
+        for name, n in manifest["counts"].items():  # the counts are what the files hold
+            assert len(session.streams[name]) == n
+    finally:
+        m.shutdown()
+
+
+def test_the_start_on_a_full_disk_leaves_no_half_made_session(tmp_path, qtbot, small_tmpfs) -> None:
+    from app.recording import RecordingError
+
+    fill(small_tmpfs)
+    (small_tmpfs / "filler").write_bytes(b"")  # room for a folder and a manifest, not for the reserve
+    keep = os.open(small_tmpfs / "filler2", os.O_WRONLY | os.O_CREAT, 0o600)
+    try:
+        os.write(keep, b"x" * (1024 * 1024 - 128 * 1024))
+    except OSError:
+        pass
+    finally:
+        os.close(keep)
+    m = full_disk_manager(tmp_path)
+    m.start()
+    try:
+        qtbot.waitUntil(m.all_connected, timeout=10000)
+        with pytest.raises(RecordingError, match="No space left"):
+            m.start_session("DISK06", "tester", root=small_tmpfs)
+        assert list((small_tmpfs / "DISK06").iterdir()) == []  # no session folder, no open file
+        assert m.recorder is None
+    finally:
+        m.shutdown()
+
+
+def test_when_not_even_the_manifest_fits_a_sidecar_says_failed(tmp_path, qtbot, manager, monkeypatch) -> None:
+    """The disk stays full for every new block (the freed reserve taken by another program): the manifest
+    cannot be replaced, so ``recording-failed.txt`` says it, the loader and the session list read it, and the
+    temp file of the refused manifest is gone."""
+    from app.recording import FAILED_FILE, load_session, summarize_session
+
+    real_replace = os.replace
+
+    def no_room(src, dst, *a, **kw):
+        if str(src).endswith(".manifest.json.tmp"):
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real_replace(src, dst, *a, **kw)
+
+    folder = manager.start_session("DISK07", "tester", root=tmp_path / "sessions")
+    monkeypatch.setattr(os, "replace", no_room)
+    fill_the_disk(manager.recorder)
+    qtbot.waitUntil(lambda: bool(manager.recorder.failure), timeout=2000)
+    manager.end_session()
+    monkeypatch.undo()
+    assert not (folder / ".manifest.json.tmp").exists()
+    assert json.loads((folder / "manifest.json").read_text(encoding="utf-8"))["status"] == "recording"
+    side = json.loads((folder / FAILED_FILE).read_text(encoding="utf-8"))
+    assert "No space left" in side["error"]
+    session = load_session(folder)
+    assert session.status == "failed" and any("recording failed" in p for p in session.problems)
+    assert summarize_session(folder).status == "failed" and not summarize_session(folder).complete
+
+
+def test_events_flushed_before_the_failure_are_written_once(tmp_path, qtbot, manager) -> None:
+    """The events since the last fsync are written again after a failure: exactly once each (the file is cut
+    back to what the last good flush left), never twice, never glued to a half line."""
+    folder = manager.start_session("DISK08", "tester", root=tmp_path / "sessions")
+    rec = manager.recorder
+    for i in range(10):
+        manager.record_event("before_failure", i=i)
+    events_file = folder / "events.jsonl"
+    qtbot.waitUntil(lambda: events_file.read_text(encoding="utf-8").count("before_failure") == 10, timeout=2000)
+    for out in rec._outs.values():  # the stream files fail at the next flush; the events' own file does not
+        from tests.test_fault_policy import FailingFile
+
+        out.fh = FailingFile(out.fh)
+    qtbot.waitUntil(lambda: bool(rec.failure), timeout=3000)
+    manager.end_session()
+    lines = events_file.read_text(encoding="utf-8").splitlines()
+    records = [json.loads(ln) for ln in lines]  # every line whole
+    assert sorted(r["data"]["i"] for r in records if r["kind"] == "before_failure") == list(range(10))
+    stamps = [(r["kind"], r["t_mono"]) for r in records]
+    assert len(stamps) == len(set(stamps)), "an event was written twice"
