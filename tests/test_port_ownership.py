@@ -144,6 +144,41 @@ def test_the_apps_robot_tty_cannot_be_opened_a_second_time(qtbot) -> None:
         manager.shutdown()
 
 
+HOLD_PLAIN = textwrap.dedent("""
+    import os, sys
+    fd = os.open(sys.argv[1], os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
+    print("open", flush=True)
+    sys.stdin.readline()
+""")
+
+
+@pytest.mark.realtime
+def test_a_program_holding_the_robots_tty_at_connect_is_named_in_a_stop_alarm(qtbot) -> None:
+    """A program that asked for no lock and opened the tty first (or a privileged one, which TIOCEXCL does not
+    stop): the app connects, names it in a STOP alarm, and the robot is held IDLE until it is acknowledged."""
+    config = AppConfig(simulation=SimulationConfig(link="pty"))
+    manager = LinarmppManager(config, factories={"linarm": linarm.create})
+    manager.start()
+    holder = None
+    try:
+        driver = manager.driver("linarm")
+        driver.reconnect_backoff_s = (0.05, 0.2)
+        qtbot.waitUntil(lambda: driver.connected, timeout=10000)
+        manager.set_device_running("linarm", False)
+        holder = _python(HOLD_PLAIN, driver.transport.url, stdin=subprocess.PIPE, stdout=subprocess.PIPE)
+        assert holder.stdout is not None and holder.stdout.readline().strip() == "open"
+        manager.set_device_running("linarm", True)
+        qtbot.waitUntil(lambda: any(f"pid {holder.pid}" in a.text for a in manager.supervisor.alarms()),
+                        timeout=5000)
+        alarm = next(a for a in manager.supervisor.alarms() if f"pid {holder.pid}" in a.text)
+        assert alarm.text.startswith("Another program has the LINarm's port open") and "python" in alarm.text
+        assert manager.supervisor.robot_hold_reason()
+    finally:
+        if holder is not None:
+            holder.communicate("\n", timeout=10)
+        manager.shutdown()
+
+
 # ------------------------------------------------------------------------------------ the simulator's socket
 def _connect(url: str) -> socket.socket:
     host, _, port = url[len("socket://"):].partition(":")

@@ -164,6 +164,7 @@ class LinarmDriver(DeviceDriver):
         self.envelope: dict[str, Any] = {}  # the controller's locked envelope, as its ACK reported it
         self._garbage_recorded = (0, 0, 0)  # (bad frames, discarded bytes, undecodable frames) last recorded
         self._garbage_recorded_at = 0.0
+        self._last_error_logged = ("", 0.0)
 
     # ------------------------------------------------------------------ commands (any thread)
     def command(self, name: str, *args: Any, source: str = "", timeout_s: float | None = None) -> dict[str, Any]:
@@ -274,6 +275,14 @@ class LinarmDriver(DeviceDriver):
         # A (re)connect while the e-stop is latched or a STOP alarm is open: IDLE first, whatever the robot did
         # while the link was down (another controller may have switched it ON); its first state sample is
         # checked too (SafetySupervisor.check_robot_state).
+        shared = getattr(self.transport, "shared_with", None)
+        if shared:  # opened anyway (a privileged program passes the tty's exclusivity): a STOP alarm naming it
+            from app.safety import AlarmLevel
+
+            named = ", ".join(f"pid {pid} ({cmd})" for pid, cmd in shared[:4])
+            self.supervisor.raise_alarm(AlarmLevel.STOP, self.name, f"Another program has the LINarm's port open: "
+                                        f"{named}; it can command the robot. Close it.",
+                                        key=("port shared", self.name, tuple(pid for pid, _ in shared)))
         hold = getattr(self.supervisor, "robot_hold_reason", lambda: "")()
         if hold:
             self.emergency_idle(hold)
@@ -419,7 +428,10 @@ class LinarmDriver(DeviceDriver):
         elif isinstance(msg, proto.ErrorEvent):
             detail = f" ({msg.message})" if msg.message else ""
             text = f"LINarm error: {proto.ErrorState(msg.error_state).name}{detail}"
-            log.warning(text)
+            now = time.monotonic()
+            if text != self._last_error_logged[0] or now - self._last_error_logged[1] > 1.0:
+                log.warning(text)  # the alarm is one per cause; so is the log line (not one per repeated frame)
+            self._last_error_logged = (text, now)
             self.controller_error.emit(text)
             self._fire_event("controller_error", text)
 

@@ -76,6 +76,9 @@ class SerialTransport:
         self.description = f"serial {url} @ {self.settings.baudrate} Bd"
         self._port: serial.SerialBase | None = None
         self._write_lock = threading.Lock()
+        # Other processes found holding the tty at our open (Linux; a process with CAP_SYS_ADMIN passes TIOCEXCL
+        # and asks no lock): the driver raises it as an alarm naming them, it does not give the port up.
+        self.shared_with: list[tuple[int, str]] = []
 
     @property
     def is_open(self) -> bool:
@@ -100,6 +103,9 @@ class SerialTransport:
             raise TransportError(f"cannot open {self.url}: {exc}") from exc
         if device:
             _set_tty_exclusive(port, True)
+            self.shared_with = port_holders(self.url)
+            if self.shared_with:
+                log.warning("%s is also open in %s", self.url, ", ".join(f"pid {p} ({c})" for p, c in self.shared_with))
         with contextlib.suppress(serial.SerialException, OSError):
             port.reset_input_buffer()  # stale bytes from before we connected are not trustworthy
         self._port = port
@@ -191,7 +197,7 @@ def port_holders(path: str) -> list[tuple[int, str]]:
 def _command_line(pid: int) -> str:
     try:
         raw = Path(f"/proc/{pid}/cmdline").read_bytes()
-        text = raw.replace(b"\0", b" ").decode("utf-8", "replace").strip()
+        text = " ".join(raw.replace(b"\0", b" ").decode("utf-8", "replace").split())
         return (text[:77] + "...") if len(text) > 80 else text or Path(f"/proc/{pid}/comm").read_text().strip()
     except OSError:
         return "?"
