@@ -23,6 +23,7 @@ from app.devices import linarm, transport
 from app.devices import linarm_protocol as proto
 from app.devices.transport import PtyLink, SerialTransport, SocketLink, TransportError
 from app.manager import LinarmppManager
+from app.safety import AlarmLevel
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -145,17 +146,25 @@ def test_the_apps_robot_tty_cannot_be_opened_a_second_time(qtbot) -> None:
 
 
 HOLD_PLAIN = textwrap.dedent("""
-    import os, sys
+    import os, select, sys
     fd = os.open(sys.argv[1], os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
     print("open", flush=True)
-    sys.stdin.readline()
+    stolen = 0
+    while not select.select([sys.stdin], [], [], 0)[0]:  # reads what the controller sends, until told to stop
+        if select.select([fd], [], [], 0.02)[0]:
+            try:
+                stolen += len(os.read(fd, 4096))
+            except BlockingIOError:
+                pass
+    print("stolen", stolen, flush=True)
 """)
 
 
 @pytest.mark.realtime
 def test_a_program_holding_the_robots_tty_at_connect_is_named_in_a_stop_alarm(qtbot) -> None:
     """A program that asked for no lock and opened the tty first (or a privileged one, which TIOCEXCL does not
-    stop): the app connects, names it in a STOP alarm, and the robot is held IDLE until it is acknowledged."""
+    stop), and reads from it: the app connects, names it in a STOP alarm (one), the robot is held IDLE until it
+    is acknowledged, and the app stays connected (bytes the other reader took are not a lost link)."""
     config = AppConfig(simulation=SimulationConfig(link="pty"))
     manager = LinarmppManager(config, factories={"linarm": linarm.create})
     manager.start()
@@ -170,12 +179,20 @@ def test_a_program_holding_the_robots_tty_at_connect_is_named_in_a_stop_alarm(qt
         manager.set_device_running("linarm", True)
         qtbot.waitUntil(lambda: any(f"pid {holder.pid}" in a.text for a in manager.supervisor.alarms()),
                         timeout=5000)
-        alarm = next(a for a in manager.supervisor.alarms() if f"pid {holder.pid}" in a.text)
-        assert alarm.text.startswith("Another program has the LINarm's port open") and "python" in alarm.text
+        qtbot.waitUntil(lambda: driver.connected, timeout=5000)
+        connects: list[bool] = []
+        driver.connection_changed.connect(lambda up, _reason: connects.append(up))
+        before = driver.total_samples("linarm.vsa")
+        qtbot.waitUntil(lambda: driver.total_samples("linarm.vsa") > before + 100, timeout=5000)
+        named = [a for a in manager.supervisor.alarms() if f"pid {holder.pid}" in a.text]
+        assert len(named) == 1 and named[0].level == AlarmLevel.STOP, [a.text for a in named]
+        assert named[0].text.startswith("Another program has the LINarm's port open") and "python" in named[0].text
         assert manager.supervisor.robot_hold_reason()
+        assert connects == [] and driver.connected
     finally:
         if holder is not None:
-            holder.communicate("\n", timeout=10)
+            out, _ = holder.communicate("\n", timeout=10)
+            print(out.strip())
         manager.shutdown()
 
 

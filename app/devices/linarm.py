@@ -165,6 +165,7 @@ class LinarmDriver(DeviceDriver):
         self._garbage_recorded = (0, 0, 0)  # (bad frames, discarded bytes, undecodable frames) last recorded
         self._garbage_recorded_at = 0.0
         self._last_error_logged = ("", 0.0)
+        self._shared_seen: Any = None  # the transport's shared_with last alarmed about
 
     # ------------------------------------------------------------------ commands (any thread)
     def command(self, name: str, *args: Any, source: str = "", timeout_s: float | None = None) -> dict[str, Any]:
@@ -275,14 +276,7 @@ class LinarmDriver(DeviceDriver):
         # A (re)connect while the e-stop is latched or a STOP alarm is open: IDLE first, whatever the robot did
         # while the link was down (another controller may have switched it ON); its first state sample is
         # checked too (SafetySupervisor.check_robot_state).
-        shared = getattr(self.transport, "shared_with", None)
-        if shared:  # opened anyway (a privileged program passes the tty's exclusivity): a STOP alarm naming it
-            from app.safety import AlarmLevel
-
-            named = ", ".join(f"pid {pid} ({cmd})" for pid, cmd in shared[:4])
-            self.supervisor.raise_alarm(AlarmLevel.STOP, self.name, f"Another program has the LINarm's port open: "
-                                        f"{named}; it can command the robot. Close it.",
-                                        key=("port shared", self.name, tuple(pid for pid, _ in shared)))
+        self._check_port_shared()
         hold = getattr(self.supervisor, "robot_hold_reason", lambda: "")()
         if hold:
             self.emergency_idle(hold)
@@ -297,6 +291,22 @@ class LinarmDriver(DeviceDriver):
 
     def on_tick(self, now_s: float) -> None:
         self._reader_alive = now_s  # the heartbeat thread beats only while this loop runs
+        if getattr(self.transport, "shared_with", None) is not self._shared_seen:
+            self._check_port_shared()
+
+    def _check_port_shared(self) -> None:
+        """Another process holds the robot's tty (found at open, or when it read bytes meant for us): a STOP alarm
+        naming it, one per cause. It was let in anyway (a privileged program passes the tty's exclusivity, or it
+        opened first without asking for the lock); the STOP alarm holds the robot IDLE until acknowledged."""
+        shared = self._shared_seen = getattr(self.transport, "shared_with", None)
+        if not shared:
+            return
+        from app.safety import AlarmLevel
+
+        named = ", ".join(f"pid {pid} ({cmd})" for pid, cmd in shared[:4])
+        self.supervisor.raise_alarm(AlarmLevel.STOP, self.name, f"Another program has the LINarm's port open: "
+                                    f"{named}; it can command the robot. Close it.",
+                                    key=("port shared", self.name, tuple(pid for pid, _ in shared)))
 
     # ------------------------------------------------------------------ the heartbeat path
     def _start_heartbeat(self) -> None:

@@ -15,6 +15,7 @@ import select
 import socket
 import struct
 import threading
+import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Protocol
@@ -79,6 +80,7 @@ class SerialTransport:
         # Other processes found holding the tty at our open (Linux; a process with CAP_SYS_ADMIN passes TIOCEXCL
         # and asks no lock): the driver raises it as an alarm naming them, it does not give the port up.
         self.shared_with: list[tuple[int, str]] = []
+        self._holders_checked_at = 0.0
 
     @property
     def is_open(self) -> bool:
@@ -134,8 +136,22 @@ class SerialTransport:
                 data += port.read(more)
             return data
         except (serial.SerialException, OSError, TypeError, AttributeError) as exc:
+            if "readiness to read" in str(exc) and self._another_reader():
+                return b""  # another process read those bytes first: the link is there, shared (an alarm says so)
             # TypeError/AttributeError: pyserial's internals after a concurrent close().
             raise TransportError(f"{self.url}: the link was lost ({exc})") from exc
+
+    def _another_reader(self) -> bool:
+        """pyserial saw the tty readable and then read nothing: an unplugged device, or another process that read
+        the bytes first. Another process holding the tty (checked at most every 0.5 s) means the second; the driver
+        stays connected (it can still send IDLE) and names it in an alarm (``shared_with``)."""
+        now = time.monotonic()
+        if now - self._holders_checked_at >= 0.5:
+            self._holders_checked_at = now
+            holders = port_holders(self.url)
+            if holders != self.shared_with:
+                self.shared_with = holders
+        return bool(self.shared_with)
 
     def write(self, data: bytes) -> None:
         port = self._port
