@@ -16,6 +16,9 @@ Which faults stop the therapy, and what stopping means, live here and nowhere el
 * losing α (the patient-model link disconnected or silent) returns FES and robot assistance to their
   non-α values (``AssistanceController.invalidate``, wired by the manager);
 * a helper process that cannot bind its port is a device loss (``process_failed``), never "reconnected".
+* while the e-stop is latched or a STOP alarm is open, the robot is held IDLE: the supervisor idles a robot
+  found ON or homing at every state sample and at every (re)connect (``SafetySupervisor.check_robot_state``),
+  and refuses homing / ON; each cause is one alarm, its repeats counted on it (``raise_alarm``'s ``key``).
 
 Each handled fault is recorded (``faults``; a ``fault`` event in the session record) with its cause,
 so the headless runner can exit with 3 and the window shows the same alarm: docs/fault-policy.md has

@@ -59,6 +59,9 @@ class Alarm:
     t_wall: float = field(default_factory=time.time)
     acknowledged: bool = False
     ident: int = 0
+    key: Any = None  # the cause: a repeat of it while this alarm is open is counted here, not raised again
+    repeats: int = 0  # further occurrences of the same cause merged into this alarm
+    t_last_mono: float = field(default_factory=time.monotonic)  # the cause's latest occurrence
 
 
 EventSink = Callable[[str, dict[str, Any]], None]
@@ -84,6 +87,11 @@ class RobotProbes:
     delta_m: Callable[[], float | None]
     homed: Callable[[], bool]
 ROBOT_MONITOR_GRACE_SAMPLES = 5
+# One alarm per cause, not one per frame: an occurrence of a cause whose alarm is still unacknowledged and was
+# last seen less than this long ago is counted on that alarm (a forged or repeated frame raised the same STOP
+# alarm 12 times in 0.1 s, #25). Acknowledging the alarm (Recover) makes the next occurrence a new alarm.
+ALARM_REPEAT_HOLD_S = 2.0
+ALARM_REPEAT_RECORD_S = 1.0  # repeats reach the session record as a count at most this often per alarm
 
 # Commands that only read, stop or make things safer: allowed even while the e-stop is latched.
 # Commands that move the encoders' zero or scale: service only, never during therapy.
@@ -115,6 +123,9 @@ class SafetySupervisor(QObject):
         self._estop_reason = ""
         self._alarms: list[Alarm] = []
         self._alarm_seq = 0
+        self._alarm_by_key: dict[Any, Alarm] = {}  # each cause's latest alarm
+        self._open_stop: dict[int, Alarm] = {}  # unacknowledged STOP/FATAL alarms, by ident
+        self._repeat_recorded: dict[int, float] = {}  # alarm ident -> when its repeat count was last recorded
         self._lock = threading.Lock()
         self.fes_limiter: Any = None  # set by the FES device (app.fes_limits.FesLimiter)
         self.latest_centre_m: Callable[[], float | None] = lambda: None
@@ -164,6 +175,10 @@ class SafetySupervisor(QObject):
         if self._estop_latched and name not in _ALWAYS_ALLOWED:
             if not (name == "setCtrlState" and int(args.get("controlState", args.get("state", -1))) == 0):
                 raise self.refuse(source, f"{name} refused: the emergency stop is latched; reset it first")
+        if _starts_the_robot(name, args) and (open_stop := self.open_stop_alarm()) is not None:
+            # The state monitor would send IDLE at the next state sample anyway (check_robot_state): say why now.
+            raise self.refuse(source, f"{name} refused: a STOP alarm is open ({open_stop.source}: {open_stop.text}); "
+                                      "acknowledge it (Recover) first")
         lim = self.robot
         if name in CALIBRATION_COMMANDS and not lim.allow_calibration:
             raise self.refuse(source, f"{name} refused: encoder calibration changes the position reference; "
@@ -178,7 +193,7 @@ class SafetySupervisor(QObject):
         more than 1 cm outside the allowed range stops the robot and raises a STOP alarm, once per excursion.
         Runs on the LINarm driver thread for every state sample; it must stay cheap."""
         lim = self.robot
-        problem = ""
+        problem = kind = ""
         # Before homing the encoders are not referenced: positions and the force read from the spring
         # elongations mean nothing yet (the firmware's own limits cover homing). Speed is valid always.
         homed = self.robot_homed()
@@ -186,11 +201,14 @@ class SafetySupervisor(QObject):
         # The first samples after referencing may still carry the old reference: skip a few (25 ms at 200 Hz).
         homed = self._samples_homed > ROBOT_MONITOR_GRACE_SAMPLES
         if abs(vsa.handleVel) > 1.2 * lim.max_velocity_m_s:
+            kind = "speed"
             problem = f"handle speed {abs(vsa.handleVel):.3f} m/s above the limit {lim.max_velocity_m_s:.3f} m/s"
         elif homed and abs(vsa.interactionForce) > lim.max_interaction_force_n:
+            kind = "force"
             problem = (f"interaction force {abs(vsa.interactionForce):.1f} N above the limit "
                        f"{lim.max_interaction_force_n:.1f} N")
         elif homed and not (lim.position_min_m - 0.01 <= vsa.handlePos <= lim.position_max_m + 0.01):
+            kind = "range"
             problem = f"handle at {vsa.handlePos:.3f} m, outside {lim.position_min_m:.3f} .. {lim.position_max_m:.3f} m"
         if problem and not self._robot_excursion:
             self._robot_excursion = True
@@ -198,11 +216,55 @@ class SafetySupervisor(QObject):
                 if action.robot:
                     try:
                         action.run(problem)
-                    except Exception:
-                        log.exception("robot stop failed")
-            self.raise_alarm(AlarmLevel.STOP, "robot monitor", f"Robot stopped: {problem}")
+                    except Exception as exc:
+                        log.warning("robot stop failed: %s", exc)
+            # One alarm per cause: forged frames between genuine ones each start a new excursion (and are
+            # each stopped), but raise one alarm, whose repeats are counted.
+            self.raise_alarm(AlarmLevel.STOP, "robot monitor", f"Robot stopped: {problem}", key=("robot monitor", kind))
         elif not problem:
             self._robot_excursion = False
+
+    def robot_hold_reason(self) -> str:
+        """Why the robot must stay IDLE right now ('' when nothing holds it): a latched e-stop or an open
+        (unacknowledged) STOP/FATAL alarm."""
+        if self._estop_latched:
+            return "the emergency stop is latched"
+        alarm = self.open_stop_alarm()
+        return f"a STOP alarm is open ({alarm.source}: {alarm.text})" if alarm is not None else ""
+
+    def open_stop_alarm(self) -> Alarm | None:
+        """The oldest unacknowledged STOP/FATAL alarm, or None."""
+        if not self._open_stop:
+            return None
+        with self._lock:
+            return min(self._open_stop.values(), key=lambda a: a.ident, default=None)
+
+    def check_robot_state(self, state: Any, stop: Callable[[str], None]) -> bool:
+        """Every LINarm state sample (and so every (re)connect, whose first sample follows within one state
+        period): a robot found ON or homing while the e-stop is latched or a STOP alarm is open is sent IDLE
+        (``stop(reason)``, which raises when it cannot be sent) and raised as a STOP alarm, one per cause.
+        IDLE is sent on every such sample (a controller switched ON behind the app's back again is idled
+        again); the alarm is one per cause. True when the robot had to be stopped."""
+        control = int(getattr(state, "controlState", 0))
+        if control == 0:
+            return False
+        reason = self.robot_hold_reason()
+        if not reason:
+            return False
+        what = "ON" if control == 2 else "homing" if control == 1 else f"in control state {control}"
+        problem = f"robot found {what} while {reason}"
+        ok, error = True, ""
+        try:
+            stop(problem)
+        except Exception as exc:  # the link is gone: the controller's own watchdog is what remains
+            ok, error = False, str(exc)
+            log.warning("robot IDLE not sent: %s", exc)
+        held_by = "the emergency stop is latched" if self._estop_latched else "a STOP alarm is open"
+        text = f"Robot found {what} while {held_by}: " + ("sent IDLE" if ok else f"IDLE could not be sent ({error})")
+        alarm = self.raise_alarm(AlarmLevel.STOP, "robot monitor", text, key=("robot held", what, held_by))
+        if alarm.repeats == 0:
+            self.event("robot_held_idle", state=control, reason=reason, ok=ok, **({"error": error} if error else {}))
+        return True
 
     # ------------------------------------------------------------------ FES
     def check_fes_update(self, update: Any, now: float, source: str = "") -> None:
@@ -286,11 +348,38 @@ class SafetySupervisor(QObject):
         self.estop_changed.emit(False, "")
 
     # ------------------------------------------------------------------ alarms
-    def raise_alarm(self, level: AlarmLevel, source: str, text: str) -> Alarm:
+    def raise_alarm(self, level: AlarmLevel, source: str, text: str, key: Any = None) -> Alarm:
+        """Raise an alarm, or count a repeat: ``key`` names the cause (by default level, source and text); an
+        occurrence of a cause whose alarm is still unacknowledged and was seen within ALARM_REPEAT_HOLD_S is
+        counted on that alarm (``repeats``; an ``alarm_repeated`` event at most every ALARM_REPEAT_RECORD_S)
+        and returned, with no new alarm, no signal and no second safe-state run."""
+        cause = key if key is not None else (int(level), source, text)
+        now = time.monotonic()
+        record_repeat = False
         with self._lock:
-            self._alarm_seq += 1
-            alarm = Alarm(level, source, text, ident=self._alarm_seq)
-            self._alarms.append(alarm)
+            previous = self._alarm_by_key.get(cause)
+            if (previous is not None and not previous.acknowledged and previous.level == level
+                    and now - previous.t_last_mono < ALARM_REPEAT_HOLD_S):
+                previous.repeats += 1
+                previous.t_last_mono = now
+                if now - self._repeat_recorded.get(previous.ident, 0.0) >= ALARM_REPEAT_RECORD_S:
+                    self._repeat_recorded[previous.ident] = now
+                    record_repeat = True
+                alarm = None
+            else:
+                self._alarm_seq += 1
+                alarm = Alarm(level, source, text, ident=self._alarm_seq, key=cause, t_last_mono=now)
+                self._alarms.append(alarm)
+                self._alarm_by_key[cause] = alarm
+                if level >= AlarmLevel.STOP:
+                    self._open_stop = {**self._open_stop, alarm.ident: alarm}
+        if alarm is None:
+            assert previous is not None
+            log.debug("alarm repeated (%d) %s: %s", previous.repeats, source, text)
+            if record_repeat:
+                self.event("alarm_repeated", ident=previous.ident, level=level.name, source=source,
+                           text=previous.text, repeats=previous.repeats)
+            return previous
         log.log(logging.WARNING if level >= AlarmLevel.WARNING else logging.INFO, "alarm %s %s: %s",
                 level.name, source, text)
         self.event("alarm", level=level.name, source=source, text=text, ident=alarm.ident)
@@ -303,12 +392,24 @@ class SafetySupervisor(QObject):
             for alarm in self._alarms:
                 if alarm.ident == ident and not alarm.acknowledged:
                     alarm.acknowledged = True
-                    self.event("alarm_acknowledged", ident=ident, operator=operator)
+                    if ident in self._open_stop:
+                        self._open_stop = {i: a for i, a in self._open_stop.items() if i != ident}
+                    repeats = {"repeats": alarm.repeats} if alarm.repeats else {}
+                    self.event("alarm_acknowledged", ident=ident, operator=operator, **repeats)
         self.alarms_changed.emit()
 
     def alarms(self) -> list[Alarm]:
         with self._lock:
             return list(self._alarms)
+
+
+def _starts_the_robot(name: str, args: dict[str, Any]) -> bool:
+    """Commands that switch the motors on: homing, or a control state other than IDLE."""
+    if name == "goToHome":
+        return True
+    if name == "setCtrlState":
+        return int(args.get("controlState", args.get("state", 0))) != 0
+    return False
 
 
 def _f(args: dict[str, Any], *names: str) -> float | None:

@@ -237,6 +237,12 @@ def wait_for(predicate: Callable[[], Any], timeout: float = 3.0, what: str = "a 
 def ensure_on(rig: Rig, mode: ControlMode) -> None:
     """Back to a homed robot, ON, in ``mode``, whatever the last example left (error, IDLE, limits)."""
     d = rig.driver
+    # An open STOP alarm (e.g. the controller's watchdog on a loaded machine) holds the robot IDLE until it is
+    # acknowledged (#25): what Recover does first.
+    sup = rig.manager.supervisor
+    for alarm in sup.alarms():
+        if not alarm.acknowledged:
+            sup.acknowledge(alarm.ident, "test")
     state = d.latest("linarm.state")
     if state.errorState:
         d.command("resetError", source="test")

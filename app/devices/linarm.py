@@ -114,6 +114,9 @@ class LinarmTimeout(TimeoutError):
 
 
 LIMITS_ATTEMPTS = 3  # apply_limits: tries of the whole (idempotent) sequence after a timeout
+# Garbage on the link (bad frames, discarded bytes, undecodable frames) reaches the session record as counts,
+# at most this often while it lasts and once more when the link closes: never one line per frame (#25).
+GARBAGE_RECORD_PERIOD_S = 1.0
 
 
 @dataclass
@@ -159,6 +162,10 @@ class LinarmDriver(DeviceDriver):
         self._async_closed = False
         self._envelope_locked = False  # per connection: the controller may have restarted in between
         self.envelope: dict[str, Any] = {}  # the controller's locked envelope, as its ACK reported it
+        self._garbage_recorded = (0, 0, 0)  # (bad frames, discarded bytes, undecodable frames) last recorded
+        self._garbage_recorded_at = 0.0
+        self._last_error_logged = ("", 0.0)
+        self._shared_seen: Any = None  # the transport's shared_with last alarmed about
 
     # ------------------------------------------------------------------ commands (any thread)
     def command(self, name: str, *args: Any, source: str = "", timeout_s: float | None = None) -> dict[str, Any]:
@@ -241,9 +248,12 @@ class LinarmDriver(DeviceDriver):
         self.command("setPosLimit", float(limits.position_min_m), float(limits.position_max_m), source="limits")
 
     def emergency_idle(self, reason: str = "") -> None:
-        """Motors off now: written straight to the wire, not queued behind a command in flight."""
-        if not self.connected:
-            return
+        """Motors off now: written straight to the wire, not queued behind a command in flight. Raises
+        TransportError when it cannot be written (no link open, or the write failed), so the caller records
+        the action as not done (``ok: false``) instead of believing an IDLE nobody sent (#25)."""
+        if not self.transport.is_open:  # open, not `connected`: IDLE is also sent during the handshake
+            why = self._last_reason or "never connected"
+            raise TransportError(f"IDLE not sent: the LINarm link is not open ({why})")
         seq = self._next_seq()
         self.transport.write(b";" + proto.encode_command("setCtrlState", seq, int(ControlState.IDLE_CTRL_STATE)))
 
@@ -263,6 +273,14 @@ class LinarmDriver(DeviceDriver):
             data = self.transport.read(0.02)
             if data:
                 self._handle_frames(data, time.monotonic_ns(), during_connect=True)
+        # A (re)connect while the e-stop is latched or a STOP alarm is open: IDLE first, whatever the robot did
+        # while the link was down (another controller may have switched it ON); its first state sample is
+        # checked too (SafetySupervisor.check_robot_state).
+        self._check_port_shared()
+        hold = getattr(self.supervisor, "robot_hold_reason", lambda: "")()
+        if hold:
+            self.emergency_idle(hold)
+            self.supervisor.event("robot_idle_on_connect", reason=hold, ok=True)
         seq = self._next_seq()
         self.transport.write(proto.encode_command("startDataStream", seq, float(self.stream_period_s)))
         self._last_heartbeat = self._reader_alive = time.monotonic()
@@ -273,6 +291,22 @@ class LinarmDriver(DeviceDriver):
 
     def on_tick(self, now_s: float) -> None:
         self._reader_alive = now_s  # the heartbeat thread beats only while this loop runs
+        if getattr(self.transport, "shared_with", None) is not self._shared_seen:
+            self._check_port_shared()
+
+    def _check_port_shared(self) -> None:
+        """Another process holds the robot's tty (found at open, or when it read bytes meant for us): a STOP alarm
+        naming it, one per cause. It was let in anyway (a privileged program passes the tty's exclusivity, or it
+        opened first without asking for the lock); the STOP alarm holds the robot IDLE until acknowledged."""
+        shared = self._shared_seen = getattr(self.transport, "shared_with", None)
+        if not shared:
+            return
+        from app.safety import AlarmLevel
+
+        named = ", ".join(f"pid {pid} ({cmd})" for pid, cmd in shared[:4])
+        self.supervisor.raise_alarm(AlarmLevel.STOP, self.name, f"Another program has the LINarm's port open: "
+                                    f"{named}; it can command the robot. Close it.",
+                                    key=("port shared", self.name, tuple(pid for pid, _ in shared)))
 
     # ------------------------------------------------------------------ the heartbeat path
     def _start_heartbeat(self) -> None:
@@ -309,6 +343,7 @@ class LinarmDriver(DeviceDriver):
 
     def on_disconnect(self) -> None:
         self._stop_heartbeat()
+        self._record_garbage(force=True)
         for pending in list(self._pending.values()):
             if not pending.future.done():
                 pending.future.set_exception(TransportError("the LINarm link was lost"))
@@ -336,6 +371,35 @@ class LinarmDriver(DeviceDriver):
                 log.debug("linarm: bad frame %r: %s", frame, exc)
                 continue
             self._dispatch(msg, t)
+        decoder = self.decoder
+        if (decoder.frames_bad, decoder.bytes_discarded, self.protocol_errors) != self._garbage_recorded:
+            self._record_garbage()
+
+    @property
+    def garbage(self) -> dict[str, int]:
+        """What this link has dropped since the driver was made: frames the decoder refused (bad id, overlong),
+        the bytes it discarded with them, and frames with a valid id that did not decode."""
+        d = self.decoder
+        return {"bad_frames": d.frames_bad, "bytes_discarded": d.bytes_discarded,
+                "undecodable_frames": self.protocol_errors, "frames_ok": d.frames_ok}
+
+    def _record_garbage(self, force: bool = False) -> None:
+        """Counts of dropped garbage to the session record (supervisor event ``link_garbage``, cumulative), at
+        most every GARBAGE_RECORD_PERIOD_S while it arrives, and at disconnect if anything is unrecorded."""
+        d = self.decoder
+        now_counts = (d.frames_bad, d.bytes_discarded, self.protocol_errors)
+        if now_counts == self._garbage_recorded:
+            return
+        now = time.monotonic()
+        if not force and now - self._garbage_recorded_at < GARBAGE_RECORD_PERIOD_S:
+            return
+        first = self._garbage_recorded == (0, 0, 0)
+        new_frames = now_counts[0] - self._garbage_recorded[0] + now_counts[2] - self._garbage_recorded[2]
+        self._garbage_recorded, self._garbage_recorded_at = now_counts, now
+        if first:
+            log.warning("linarm: garbage on the link (%s); counted in the session record", d.last_error)
+        self.supervisor.event("link_garbage", device=self.name, new_frames=new_frames, **self.garbage,
+                              last_error=d.last_error or "")
 
     def _dispatch(self, msg: Any, t: float) -> None:
         if isinstance(msg, proto.VsaState):
@@ -374,7 +438,10 @@ class LinarmDriver(DeviceDriver):
         elif isinstance(msg, proto.ErrorEvent):
             detail = f" ({msg.message})" if msg.message else ""
             text = f"LINarm error: {proto.ErrorState(msg.error_state).name}{detail}"
-            log.warning(text)
+            now = time.monotonic()
+            if text != self._last_error_logged[0] or now - self._last_error_logged[1] > 1.0:
+                log.warning(text)  # the alarm is one per cause; so is the log line (not one per repeated frame)
+            self._last_error_logged = (text, now)
             self.controller_error.emit(text)
             self._fire_event("controller_error", text)
 
@@ -453,6 +520,10 @@ def create(ctx: DeviceContext) -> DeviceHandle | None:
     def monitor(stream: str, t: float, sample: Any) -> None:
         if stream == "linarm.vsa":
             supervisor.check_robot_sample(sample)
+        elif stream == "linarm.state":
+            # ON or homing while the e-stop is latched or a STOP alarm is open: IDLE within one state period,
+            # one alarm per cause (a second controller may have switched it ON behind the app's back).
+            supervisor.check_robot_state(sample, driver.emergency_idle)
 
     def on_event(event: str, _detail: str) -> None:
         if event == "connected":

@@ -9,21 +9,39 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import logging
 import os
 import select
 import socket
+import struct
 import threading
+import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Protocol
 
 import serial
 
+log = logging.getLogger(__name__)
+
 try:  # pyserial applies settings with termios; its error is not an OSError
+    import termios
     from termios import error as termios_error
 except ImportError:  # Windows
+    termios = None  # type: ignore[assignment]
+
     class termios_error(Exception):  # noqa: N801 - stands in for termios.error
         pass
+
+try:
+    import fcntl
+except ImportError:  # Windows: COM ports are exclusive by default
+    fcntl = None  # type: ignore[assignment]
+
+# A second open of the robot's port is refused (#25): pyserial's `exclusive` (flock: another LINarm++ or any
+# program that asks for the lock) plus TIOCEXCL (the kernel refuses any further open() of the tty with EBUSY,
+# except to a process with CAP_SYS_ADMIN). The errnos those refusals come back with:
+_PORT_BUSY_ERRNOS = frozenset({errno.EBUSY, errno.EAGAIN, errno.EWOULDBLOCK})
 
 
 class TransportError(OSError):
@@ -59,6 +77,10 @@ class SerialTransport:
         self.description = f"serial {url} @ {self.settings.baudrate} Bd"
         self._port: serial.SerialBase | None = None
         self._write_lock = threading.Lock()
+        # Other processes found holding the tty at our open (Linux; a process with CAP_SYS_ADMIN passes TIOCEXCL
+        # and asks no lock): the driver raises it as an alarm naming them, it does not give the port up.
+        self.shared_with: list[tuple[int, str]] = []
+        self._holders_checked_at = 0.0
 
     @property
     def is_open(self) -> bool:
@@ -69,14 +91,23 @@ class SerialTransport:
             self._port = _LoopbackPort.connect(self.url)
             return
         s = self.settings
+        device = "://" not in self.url and os.name == "posix"  # a tty path (not loop://, rfc2217://, ...)
         try:
             port = serial.serial_for_url(
                 self.url, do_not_open=True, baudrate=s.baudrate, bytesize=s.bytesize,
                 parity=s.parity, stopbits=s.stopbits, rtscts=s.rtscts, timeout=0.02, write_timeout=1.0,
+                **({"exclusive": True} if device else {}),
             )
             port.open()
         except (serial.SerialException, OSError, ValueError, termios_error) as exc:
+            if getattr(exc, "errno", None) in _PORT_BUSY_ERRNOS:
+                raise TransportError(f"cannot open {self.url}: {port_in_use_message(self.url)}") from exc
             raise TransportError(f"cannot open {self.url}: {exc}") from exc
+        if device:
+            _set_tty_exclusive(port, True)
+            self.shared_with = port_holders(self.url)
+            if self.shared_with:
+                log.warning("%s is also open in %s", self.url, ", ".join(f"pid {p} ({c})" for p, c in self.shared_with))
         with contextlib.suppress(serial.SerialException, OSError):
             port.reset_input_buffer()  # stale bytes from before we connected are not trustworthy
         self._port = port
@@ -84,6 +115,9 @@ class SerialTransport:
     def close(self) -> None:
         port, self._port = self._port, None
         if port is not None:
+            # The exclusive flag lives on the tty, not on our descriptor: a pty's stays set while its far end
+            # is open, and would refuse our own reopen (a non-root app) after this close.
+            _set_tty_exclusive(port, False)
             with contextlib.suppress(Exception):
                 port.close()
 
@@ -102,8 +136,22 @@ class SerialTransport:
                 data += port.read(more)
             return data
         except (serial.SerialException, OSError, TypeError, AttributeError) as exc:
+            if "readiness to read" in str(exc) and self._another_reader():
+                return b""  # another process read those bytes first: the link is there, shared (an alarm says so)
             # TypeError/AttributeError: pyserial's internals after a concurrent close().
             raise TransportError(f"{self.url}: the link was lost ({exc})") from exc
+
+    def _another_reader(self) -> bool:
+        """pyserial saw the tty readable and then read nothing: an unplugged device, or another process that read
+        the bytes first. Another process holding the tty (checked at most every 0.5 s) means the second; the driver
+        stays connected (it can still send IDLE) and names it in an alarm (``shared_with``)."""
+        now = time.monotonic()
+        if now - self._holders_checked_at >= 0.5:
+            self._holders_checked_at = now
+            holders = port_holders(self.url)
+            if holders != self.shared_with:
+                self.shared_with = holders
+        return bool(self.shared_with)
 
     def write(self, data: bytes) -> None:
         port = self._port
@@ -114,6 +162,71 @@ class SerialTransport:
                 port.write(data)
             except (serial.SerialException, OSError, TypeError, AttributeError) as exc:
                 raise TransportError(f"{self.url}: write failed ({exc})") from exc
+
+
+def _set_tty_exclusive(port: serial.SerialBase, exclusive: bool) -> None:
+    """TIOCEXCL / TIOCNXCL on an open pyserial port (POSIX ttys; a no-op elsewhere)."""
+    fd = getattr(port, "fd", None)
+    if fd is None or fcntl is None or termios is None:
+        return
+    with contextlib.suppress(OSError, AttributeError):
+        fcntl.ioctl(fd, termios.TIOCEXCL if exclusive else termios.TIOCNXCL)
+
+
+def port_holders(path: str) -> list[tuple[int, str]]:
+    """(pid, command line) of the other processes that have ``path`` (a tty) open, from Linux's /proc; [] where
+    the OS does not tell (other systems, or processes this user may not inspect). For a pty slave the process
+    holding its master (a simulator: the device's end of the link) is left out."""
+    proc = Path("/proc")
+    try:
+        target = os.path.realpath(path)
+        pts_index = int(target.rsplit("/", 1)[1]) if target.startswith("/dev/pts/") else None
+        entries = [e for e in os.scandir(proc) if e.name.isdigit()] if proc.is_dir() else []
+    except (OSError, ValueError):
+        return []
+    me = os.getpid()
+    holders: list[tuple[int, str]] = []
+    for entry in entries:
+        pid = int(entry.name)
+        if pid == me:
+            continue
+        holds = far_end = False
+        try:
+            with os.scandir(proc / entry.name / "fd") as fds:
+                for fd in fds:
+                    try:
+                        link = os.readlink(fd.path)
+                    except OSError:
+                        continue
+                    if link == target:
+                        holds = True
+                    elif link == "/dev/ptmx" and pts_index is not None:
+                        info = (proc / entry.name / "fdinfo" / fd.name).read_text()
+                        far_end = far_end or f"tty-index:\t{pts_index}\n" in info
+        except OSError:
+            continue
+        if holds and not far_end:
+            holders.append((pid, _command_line(pid)))
+    return holders
+
+
+def _command_line(pid: int) -> str:
+    try:
+        raw = Path(f"/proc/{pid}/cmdline").read_bytes()
+        text = " ".join(raw.replace(b"\0", b" ").decode("utf-8", "replace").split())
+        return (text[:77] + "...") if len(text) > 80 else text or Path(f"/proc/{pid}/comm").read_text().strip()
+    except OSError:
+        return "?"
+
+
+def port_in_use_message(path: str) -> str:
+    """A plain sentence for a port another program holds, naming it where the OS can tell."""
+    holders = port_holders(path)
+    if not holders:
+        return "it is in use by another program (the system does not say which); close it and try again"
+    named = ", ".join(f"pid {pid} ({cmd})" for pid, cmd in holders[:4])
+    more = f" and {len(holders) - 4} more" if len(holders) > 4 else ""
+    return f"it is in use by another program: {named}{more}; close it and try again"
 
 
 class _LoopbackPort:
@@ -378,7 +491,11 @@ class PtyLink:
 
 class SocketLink:
     """A localhost TCP server standing in for a serial device (pyserial ``socket://``), for
-    platforms without ptys. One client (the driver) at a time."""
+    platforms without ptys. One client (the driver) at a time: while it is connected, any other client is
+    refused (accepted and reset at once), as a serial port opened exclusively refuses a second open. A new
+    client used to replace the driver's connection, and a second program kicked the app 187 times in 20 s
+    (#25). Once the driver's connection has ended (it closed, or the link broke) the next client is accepted:
+    the driver's own reconnect."""
 
     def __init__(self, port: int = 0) -> None:
         self._server = socket.create_server(("127.0.0.1", port))
@@ -386,13 +503,39 @@ class SocketLink:
         self.url = f"socket://127.0.0.1:{self._server.getsockname()[1]}"
         self._client: socket.socket | None = None
         self._closed = False
+        self.clients_accepted = 0
+        self.clients_refused = 0
+
+    def _client_alive(self) -> bool:
+        """Whether the held client is still there (an EOF or error not yet read ends it now)."""
+        client = self._client
+        if client is None:
+            return False
+        try:
+            if client.recv(1, socket.MSG_PEEK):
+                return True  # data waiting: alive (its EOF, if any, is read after the data)
+        except BlockingIOError:
+            return True
+        except OSError:
+            pass
+        client.close()
+        self._client = None
+        return False
 
     def _accept(self) -> None:
         with contextlib.suppress(BlockingIOError):
-            client, _ = self._server.accept()
+            client, peer = self._server.accept()
+            if self._client_alive():
+                self.clients_refused += 1
+                if self.clients_refused in (1, 10, 100) or self.clients_refused % 1000 == 0:
+                    log.warning("%s: refused a second client from %s:%d (%d so far): the driver holds the link",
+                                self.url, peer[0], peer[1], self.clients_refused)
+                with contextlib.suppress(OSError):  # a reset, not a polite close: nothing it sent is read
+                    client.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
+                client.close()
+                return
             client.setblocking(False)
-            if self._client is not None:
-                self._client.close()
+            self.clients_accepted += 1
             self._client = client
 
     def wait_readable(self, timeout: float) -> bool:
