@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import os
 import sys
 import threading
 from collections.abc import Callable
@@ -147,4 +148,11 @@ def run_gui(config: AppConfig, screenshot: str | None = None, quit_after_s: floa
     finally:
         manager.shutdown()
         remove_nets()
-    return loop_exit.code or 0
+    if loop_exit.code is not None:
+        # Ended by a signal, with the devices safe and the session closed: end now. Qt's teardown of the window
+        # (the GL views) took 0.4-2 s on a loaded machine, and a process told to end must end (issue #25).
+        logging.shutdown()
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(loop_exit.code)
+    return 0

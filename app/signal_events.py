@@ -143,9 +143,9 @@ class SignalEvents:
                 continue
             except OSError:
                 return
-            signals = [b for b in data if b]
-            if self._closing.is_set() and not signals:
+            if self._closing.is_set():  # removed: whatever else arrived, the process is handling it
                 return
+            signals = [b for b in data if b]
             self.count += len(signals)
             if not signals or self.received is not None:
                 continue

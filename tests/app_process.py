@@ -242,12 +242,36 @@ class AppProcess:
             if self.proc.stdout is not None:
                 self.proc.stdout.close()
         self.sims_process.stop()
-        _end_stray_guardians(self.tmp)
+        if self.proc is not None:
+            left = wait_guardians_gone(self.proc.pid)
+            assert not left, f"the app's FES guardian outlived it: {left}"
 
 
-def _end_stray_guardians(tmp: Path) -> None:
-    """A guardian of a killed app ends by itself once it has sent Stop; wait for it (never left running)."""
-    del tmp
+def guardians_of(app_pid: int) -> list[int]:
+    """The FES guardian processes (app.devices.fes_guardian) started by the app ``app_pid``."""
+    found = []
+    for entry in os.listdir("/proc"):
+        if not entry.isdigit():
+            continue
+        try:
+            argv = Path(f"/proc/{entry}/cmdline").read_bytes().split(b"\0")
+            state = Path(f"/proc/{entry}/stat").read_text().rsplit(")", 1)[1].split()[0]
+        except OSError:
+            continue
+        if state != "Z" and any(a.endswith(b"fes_guardian.py") for a in argv) and str(app_pid).encode() in argv:
+            found.append(int(entry))
+    return found
+
+
+def wait_guardians_gone(app_pid: int, timeout_s: float = 3.0) -> list[int]:
+    """A guardian ends by itself when its app has gone; kill any left after ``timeout_s`` and return them."""
+    deadline = time.monotonic() + timeout_s
+    while (left := guardians_of(app_pid)) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    for pid in left:
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(pid, signal.SIGKILL)
+    return left
 
 
 def burst(pid: int, signum: int, count: int = 200, gap_s: float = 0.002) -> float:
