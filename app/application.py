@@ -5,13 +5,13 @@ from __future__ import annotations
 
 import asyncio
 import logging
-import signal
+import os
 import sys
 import threading
 from collections.abc import Callable
 from types import TracebackType
 
-from PySide6.QtCore import QCoreApplication, QSettings, QTimer
+from PySide6.QtCore import QCoreApplication, QObject, QSettings, QTimer, Signal
 from PySide6.QtWidgets import QApplication
 
 from app.config import AppConfig
@@ -50,9 +50,13 @@ def apply_desktop_identity(app: QApplication) -> None:
     QGuiApplication.setDesktopFileName("linarmpp")
 
 
-def install_safety_nets(manager: LinarmppManager) -> Callable[[], None]:
-    """An uncaught exception anywhere, or SIGTERM/SIGINT, brings devices to a safe state first.
-    Returns a function that removes the nets again."""
+def install_safety_nets(manager: LinarmppManager, on_signal: Callable[[int], None] | None = None
+                        ) -> Callable[[], None]:
+    """An uncaught exception anywhere brings devices to a safe state first; SIGTERM, SIGINT and SIGHUP are
+    events (app.signal_events): the first one brings the devices to a safe state once, on a thread of its
+    own, then ``on_signal(signum)`` (run_gui: ends the event loop). Returns a function that removes the nets."""
+    from app.signal_events import SignalEvents, signal_name
+
     previous_hook = sys.excepthook
     previous_thread_hook = threading.excepthook
 
@@ -66,26 +70,41 @@ def install_safety_nets(manager: LinarmppManager) -> Callable[[], None]:
     def thread_hook(args: threading.ExceptHookArgs) -> None:
         hook(args.exc_type, args.exc_value or Exception(), args.exc_traceback)
 
+    def safe_state(signum: int) -> None:
+        manager.supervisor.bring_to_safe_state(f"{signal_name(signum)} received")
+
+    def closing(signum: int) -> None:
+        safe_state(signum)
+        if on_signal is not None:
+            on_signal(signum)
+
     sys.excepthook = hook
     threading.excepthook = thread_hook
-    previous_signals = {}
-    if threading.current_thread() is threading.main_thread():
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            def on_signal(signum: int, _frame: object) -> None:
-                log.warning("signal %s: closing safely", signum)
-                manager.supervisor.bring_to_safe_state(f"signal {signum}")
-                app = QApplication.instance()
-                if app is not None:
-                    app.quit()
-            previous_signals[sig] = signal.signal(sig, on_signal)
+    signals = SignalEvents(closing, last_resort=safe_state).install()
 
     def remove() -> None:
         sys.excepthook = previous_hook
         threading.excepthook = previous_thread_hook
-        for sig, handler in previous_signals.items():
-            signal.signal(sig, handler)
+        signals.remove()
 
     return remove
+
+
+class _LoopExit(QObject):
+    """Ends the Qt event loop from the signal thread: a Qt signal emitted there is delivered in the main
+    thread (queued). ``exit`` rather than ``quit``: a window may refuse a quit (a dialog), never an exit."""
+
+    requested = Signal(int)
+
+    def __init__(self, app: QCoreApplication) -> None:
+        super().__init__()
+        self.code: int | None = None
+        self.requested.connect(self._exit)
+        self._app = app
+
+    def _exit(self, code: int) -> None:
+        self.code = code
+        self._app.exit(code)
 
 
 def run_gui(config: AppConfig, screenshot: str | None = None, quit_after_s: float | None = None) -> int:
@@ -101,14 +120,13 @@ def run_gui(config: AppConfig, screenshot: str | None = None, quit_after_s: floa
 
     apply_palette(app, config.ui.palette)
     manager = LinarmppManager(config)
-    remove_nets = install_safety_nets(manager)
+    from app.signal_events import exit_code_for
+
+    loop_exit = _LoopExit(app)
+    remove_nets = install_safety_nets(manager, lambda signum: loop_exit.requested.emit(exit_code_for(signum)))
     manager.start()
     window = MainWindow(manager)
     window.show()
-    # Python signal handlers only run when the interpreter gets control: wake it regularly.
-    heartbeat = QTimer()
-    heartbeat.start(200)
-    heartbeat.timeout.connect(lambda: None)
     if screenshot:
         def shoot() -> None:
             if manager.all_connected():
@@ -130,4 +148,11 @@ def run_gui(config: AppConfig, screenshot: str | None = None, quit_after_s: floa
     finally:
         manager.shutdown()
         remove_nets()
+    if loop_exit.code is not None:
+        # Ended by a signal, with the devices safe and the session closed: end now. Qt's teardown of the window
+        # (the GL views) took 0.4-2 s on a loaded machine, and a process told to end must end (issue #25).
+        logging.shutdown()
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(loop_exit.code)
     return 0

@@ -133,6 +133,8 @@ def test_create_uses_the_protocols_settings_on_a_real_port(protocol: str) -> Non
     assert isinstance(supervisor.fes_limiter, FesLimiter)
     assert supervisor.fes_limiter.limits == DEFAULT_LIMITS
     assert [name for name, _ in supervisor._estop_actions] == ["FES stop"]
+    for guardian in handle.extras["processes"]:  # the FES guardian, started with the driver (issue #25)
+        guardian.close()
 
 
 # ── acceptance 2: a profile runs for 5 s and the device delivers it ─────────────────────────────────

@@ -33,6 +33,7 @@ from PySide6.QtCore import QThread, Signal
 
 from app.config import FesDevice
 from app.devices.driver import Channel, DeviceDriver, StreamSpec, UpdateNotifier
+from app.devices.fes_guardian import FesGuardian, GuardianError
 from app.devices.sciencemode import (
     CHANNELS,
     SM2_KEEPALIVE_PERIOD_S,
@@ -90,6 +91,9 @@ MAX_WAKE_PERIOD_S = 0.01
 MIN_WAKE_PERIOD_S = 0.0005
 STOP_LOCK_WAIT_S = 0.02  # Stop waits at most this long for an update being written, then goes anyway
 STOP_RESENDS = 3  # a Stop that is not acknowledged is sent again this many times
+# The packet number of the SM2 Stop the guardian holds (app.devices.fes_guardian): it is only ever sent when the
+# app has stopped serving the device, so its ack is counted as unexpected, never credited to a command.
+GUARDIAN_SM2_PN = 255
 
 _E = 1e-9
 
@@ -236,6 +240,10 @@ class FesDriver(DeviceDriver):
         self._driver_thread: int | None = None
         self.last_fault = ""
         self.unexpected_acks = 0
+        # The dead man's switch (app.devices.fes_guardian): armed while stimulating, fed from this driver's
+        # thread. ``create`` starts one and requires it; a driver built bare (unit tests) runs without.
+        self.guardian: FesGuardian | None = None
+        self.require_guardian = False
 
     # ================================================================== public API (any thread)
     @property
@@ -309,6 +317,7 @@ class FesDriver(DeviceDriver):
         if not self.device_ready:
             raise FesError("the stimulator has not announced itself yet (no ScienceMode 2 Init received)")
         self._check_within_limits(profile, ccl, self._pw_override, source)
+        self._arm_guardian()  # before the first byte that could start stimulation
         generation = self._stop_generation
         limiter = self.limiter
         with self._lock:
@@ -326,6 +335,8 @@ class FesDriver(DeviceDriver):
         except (FesError, SafetyError) as exc:
             reason = exc.reason
             self._send_stop()
+            if self.guardian is not None:
+                self.guardian.disarm()
             with self._lock:
                 limiter.stop()
             self.supervisor.event("fes_start_failed", reason=reason, source=source)
@@ -333,6 +344,8 @@ class FesDriver(DeviceDriver):
         with self._lock:
             if generation != self._stop_generation:
                 self._send_stop()
+                if self.guardian is not None:
+                    self.guardian.disarm()
                 raise FesError("stimulation was stopped while it was starting")
             now = self.clock()
             self._sent = dict(zeros)
@@ -354,6 +367,8 @@ class FesDriver(DeviceDriver):
         got = self._lock.acquire(timeout=STOP_LOCK_WAIT_S)  # let an update being written finish first
         try:
             self._send_stop()
+            if self.guardian is not None:
+                self.guardian.disarm()  # after Stop went out: its duplicate of the link is closed at once
             if got:
                 try:
                     if self.supervisor.fes_limiter is not None:
@@ -485,6 +500,8 @@ class FesDriver(DeviceDriver):
         if self._stimulating:
             self.stop_stimulation("the FES link was lost", "fes driver")
             self._report_fault("The FES link was lost while stimulating; Stop was sent if the link allowed it")
+        if self.guardian is not None:
+            self.guardian.disarm()  # the link closes next: the guardian must not keep it open
         with self._lock:
             self._sm2_ready = False
             self._fail_pending("the link was lost")
@@ -506,6 +523,16 @@ class FesDriver(DeviceDriver):
 
     def on_tick(self, now_s: float) -> None:
         now = self.clock()
+        if self.guardian is not None:
+            self.guardian.heartbeat()  # this thread is alive and serving the stimulator
+            tripped = self.guardian.tripped()
+            if tripped:
+                text = (f"The application stopped serving the stimulator ({tripped}): the FES guardian sent Stop; "
+                        "stimulation must be started again")
+                if self._stimulating:
+                    self._fault(text)
+                else:
+                    self._report_fault(text)
         if self.protocol == "sm2" and self._sm2_ready and now - self._last_write >= SM2_KEEPALIVE_PERIOD_S:
             self._write_numbered(lambda pn: encode_sm2(Sm2Watchdog(pn)))
         self._check_ack_timeouts(now)
@@ -518,6 +545,22 @@ class FesDriver(DeviceDriver):
         self.read_timeout_s = min(MAX_WAKE_PERIOD_S, max(MIN_WAKE_PERIOD_S, due - self.clock()))
 
     # ================================================================== internals
+    def _arm_guardian(self) -> None:
+        """Hand the guardian this link's descriptor and this protocol's Stop; refuse to stimulate without it."""
+        guardian = self.guardian
+        if guardian is None:
+            if self.require_guardian:
+                raise FesError("the FES guardian (the dead man's switch) is not running; stimulation refused")
+            return
+        fd = link_descriptor(self.transport)
+        if fd is None:
+            raise FesError("the FES guardian cannot reach this link; stimulation refused")
+        stop = encode_sm1_stop() if self.protocol == "sm1" else encode_sm2(Sm2StopChannelListMode(GUARDIAN_SM2_PN))
+        try:
+            guardian.arm(fd, stop)
+        except GuardianError as exc:
+            raise FesError(f"{exc}; stimulation refused") from exc
+
     def _channel_list_for(self, profile: FesProfile) -> ChannelListConfig:
         largest = max(PulseMode(cp.mode).pulses for cp in profile.channels.values())
         try:
@@ -855,6 +898,21 @@ def simulated_link_settings(protocol: Protocol) -> SerialSettings:
     return replace(SERIAL_SETTINGS[protocol], parity=serial.PARITY_NONE)
 
 
+def link_descriptor(transport: Any) -> int | None:
+    """The OS descriptor under a transport's open link (a serial port, or a loopback socket), or None."""
+    port = getattr(transport, "_port", None)
+    if port is None:
+        return None
+    sock = getattr(port, "_sock", None)  # app.devices.transport._LoopbackPort
+    try:
+        if sock is not None:
+            return int(sock.fileno())
+        fileno = getattr(port, "fileno", None)  # pyserial's Serial (POSIX)
+        return int(fileno()) if callable(fileno) else None
+    except (OSError, ValueError, TypeError, AttributeError):
+        return None
+
+
 def watch_link(source: Any, fes: FesDriver, label: str) -> None:
     """Stop stimulation when ``source`` (a DeviceDriver) disconnects or goes silent."""
 
@@ -895,9 +953,18 @@ def create(ctx: DeviceContext) -> DeviceHandle | None:
         supervisor.fes_limiter = FesLimiter(FesLimits.from_config(ctx.safety.fes))
     driver = FesDriver(SerialTransport(url, settings), supervisor, protocol=protocol,
                        ack_timeout_s=cfg.ack_timeout_s, notifier=ctx.notifier)
+    driver.require_guardian = True
+    processes: list[Any] = []
+    try:  # started with the app, so that a stimulation never waits for it
+        driver.guardian = FesGuardian().start()
+        processes.append(driver.guardian)
+    except GuardianError as exc:
+        log.error("fes: %s; stimulation will be refused", exc)
+        supervisor.event("device_error", device="fes", error=str(exc))
     ctx.add_stop_action("FES stop", lambda reason: driver.stop_stimulation(reason, "safety supervisor"))
     for name, label in (("linarm", "LINarm"), ("physio", "physiological sensors")):
         other = ctx.peers.get(name)
         if other is not None:
             watch_link(other, driver, label)
-    return DeviceHandle("fes", driver, simulator, {"safe_stop": lambda reason: driver.stop_stimulation(reason)})
+    return DeviceHandle("fes", driver, simulator, {"safe_stop": lambda reason: driver.stop_stimulation(reason),
+                                                   "processes": processes})

@@ -15,7 +15,9 @@ brings the devices to a safe state and exits:
   the script;
 * 4 — the session cannot be recorded (``--record`` folder unwritable, or too little free space): one line
   on stderr, nothing was started;
-* 130 — interrupted (Ctrl-C).
+* 128 + the signal's number — ended by SIGINT (130, Ctrl-C), SIGTERM (143) or SIGHUP (129): the devices were
+  brought to a safe state at once (app.signal_events: on a thread of its own, once however many signals
+  arrive), then the script was stopped, the recording closed and the devices shut down as on any other end.
 """
 
 from __future__ import annotations
@@ -68,9 +70,17 @@ def run_headless(config: AppConfig, script_path: str, duration_s: float | None =
     lsl = None
     runner = None
     code = EXIT_OK
+    from app.signal_events import SignalEvents, exit_code_for, signal_name
+
+    def on_signal(signum: int) -> None:  # the signal thread, once: the run loops below see `signals.received`
+        manager.supervisor.bring_to_safe_state(f"{signal_name(signum)} received")
+
+    signals = SignalEvents(on_signal, last_resort=on_signal).install()
     try:
         manager.start()
-        _wait_connected(manager, app)
+        _wait_connected(manager, app, signals)
+        if signals.received is not None:
+            return exit_code_for(signals.received)
         if prepare is not None:
             prepare(manager)
         if record_dir:
@@ -98,6 +108,8 @@ def run_headless(config: AppConfig, script_path: str, duration_s: float | None =
         try:
             while not runner.wait(0.02):
                 app.processEvents()
+                if signals.received is not None and not runner.stop_reason:
+                    runner.request_stop(f"{signal_name(signals.received)} received")
                 t0 = runner.body_started_at  # the duration is the script's own: homing first does not count
                 if (duration_s is not None and t0 is not None and time.monotonic() - t0 >= duration_s
                         and not runner.stop_reason):
@@ -111,6 +123,9 @@ def run_headless(config: AppConfig, script_path: str, duration_s: float | None =
             runner.wait(5.0)
             return EXIT_INTERRUPTED
         _let_the_record_show_the_safe_state(manager, app)
+        if signals.received is not None:
+            signals.wait(2.0)  # the safe state it started
+            return exit_code_for(signals.received)
         result = runner.result
         safety_stop = safety_stop or _safety_stop(manager, alarms_before, AlarmLevel.STOP)
         if result is None or result.status == "error":
@@ -120,14 +135,17 @@ def run_headless(config: AppConfig, script_path: str, duration_s: float | None =
             if safety_stop:
                 _emit(output, "stderr", f"Safety stop: {safety_stop}\n")
     finally:
-        if runner is not None:
-            runner.close()  # its kernel processes end with the run
-        if recorder is not None:
-            recorder.stop("headless run ended")  # never raises: a write failure is in the manifest and the log
-        if lsl is not None:
-            lsl.stop()
-        manager.shutdown()
-        app.processEvents()
+        try:
+            if runner is not None:
+                runner.close()  # its kernel processes end with the run
+            if recorder is not None:
+                recorder.stop("headless run ended")  # never raises: a write failure is in the manifest and the log
+            if lsl is not None:
+                lsl.stop()
+            manager.shutdown()
+            app.processEvents()
+        finally:
+            signals.remove()
     return code
 
 
@@ -152,9 +170,11 @@ def _record_dir_problem(root: Path, config: AppConfig) -> str:
     return ""
 
 
-def _wait_connected(manager: Any, app: Any) -> None:
+def _wait_connected(manager: Any, app: Any, signals: Any = None) -> None:
     deadline = time.monotonic() + CONNECT_TIMEOUT_S
     while not manager.all_connected() and time.monotonic() < deadline:
+        if signals is not None and signals.received is not None:
+            return
         app.processEvents()
         time.sleep(0.02)
     missing = [name for name, h in manager.devices.items() if not h.driver.connected]

@@ -1,0 +1,72 @@
+"""Signals are events (issue #25): a SIGTERM, SIGINT or SIGHUP — one, or a burst of 200 two milliseconds
+apart — to the window or to the headless runner during an exercise with FES ends the app within 2 s, with
+FES Stop and robot IDLE on the devices' side of the wire and the session's manifest closed.
+
+The app runs as a subprocess (main.py), its devices in a simulator process this test owns
+(tests/app_process.py), so what reached the devices is read after the app has gone."""
+
+from __future__ import annotations
+
+import signal
+import time
+from pathlib import Path
+
+import pytest
+
+from tests.app_process import AppProcess, burst
+
+EXIT_WITHIN_S = 2.0
+
+
+def assert_ended_safely(app: AppProcess, t0: float, signum: int) -> None:
+    code = app.wait_exit(EXIT_WITHIN_S - (time.monotonic() - t0))
+    ended = time.monotonic() - t0
+    assert code is not None, f"the app was still running {ended:.2f} s after the signal:\n{app.text()[-3000:]}"
+    assert code == 128 + signum, f"exit code {code}:\n{app.text()[-3000:]}"
+    fes_stop = app.fes_stop_after(t0)
+    robot_idle = app.robot_idle_after(t0)
+    assert fes_stop is not None, f"no FES Stop on the wire after the signal:\n{app.text()[-3000:]}"
+    assert robot_idle is not None, f"no robot IDLE on the wire after the signal:\n{app.text()[-3000:]}"
+    assert not app.stimulating_on_the_device()
+    manifests = app.manifests()
+    assert manifests, "no session was recorded"
+    assert [m["status"] for m in manifests] == ["complete"], "the session's manifest was not closed"
+    print(f"exit {code} after {ended:.3f} s; FES Stop +{(fes_stop - t0) * 1000:.0f} ms, "
+          f"robot IDLE +{(robot_idle - t0) * 1000:.0f} ms")
+
+
+@pytest.fixture
+def app_process(tmp_path: Path):  # type: ignore[no-untyped-def]
+    app = AppProcess(tmp_path)
+    try:
+        yield app
+    finally:
+        app.close()
+
+
+@pytest.mark.realtime
+@pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGINT])
+def test_a_burst_of_signals_to_headless_ends_it_safely(app_process: AppProcess, signum: int) -> None:
+    app_process.start_headless()
+    app_process.wait_stimulating()
+    t0 = burst(app_process.pid, signum)
+    assert_ended_safely(app_process, t0, signum)
+
+
+@pytest.mark.realtime
+@pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGHUP])
+def test_one_signal_to_headless_ends_it_safely(app_process: AppProcess, signum: int) -> None:
+    app_process.start_headless()
+    app_process.wait_stimulating()
+    t0 = time.monotonic()
+    app_process.proc.send_signal(signum)  # type: ignore[union-attr]
+    assert_ended_safely(app_process, t0, signum)
+
+
+@pytest.mark.realtime
+@pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGINT])
+def test_a_burst_of_signals_to_the_window_ends_it_safely(app_process: AppProcess, signum: int) -> None:
+    app_process.start_window()
+    app_process.wait_stimulating()
+    t0 = burst(app_process.pid, signum)
+    assert_ended_safely(app_process, t0, signum)
