@@ -219,7 +219,9 @@ def test_force_grip_trigger_assistance_fes_and_physiology() -> None:
     # onset = where the speed passes 5 % of its peak: 30 τ²(1 − τ)² = 0.05 × 15/8, τ(1 − τ) = √0.003125
     tau = (1 - math.sqrt(1 - 4 * math.sqrt(0.003125))) / 2  # 0.0593 of the 1 s reach
     assert m.movement_onset_s == pytest.approx(1.3 + tau, abs=0.01)
-    assert m.reaction_time_s == pytest.approx(0.3 + tau, abs=0.01)
+    # no prompt recorded: no patient reaction time; the trigger (1.0 s) to the handle's onset is the robot's
+    assert m.reaction_time_s is None
+    assert m.robot_latency_s == pytest.approx(0.3 + tau, abs=0.01)
     assert (m.mean_alpha, m.mean_a_r, m.mean_a_f) == pytest.approx((0.4, 0.3, 0.1))
     assert m.fes_charge_uc == {"2": pytest.approx(20 * 200 * 40 * 1.0 / 1000, rel=0.01)}  # 1.0 s at 20 mA
     assert m.heart_rate_change_bpm == pytest.approx(5.0)
