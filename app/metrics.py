@@ -569,7 +569,7 @@ def repetition_metrics(sig: SessionSignals, start: float, end: float, index: int
             m.grip_at_start_n = float(np.interp(start, sig.grip.t, sig.grip.v))
         if threshold is not None:
             squeeze = None
-            if prompt is not None and prompt.cue != "move":
+            if prompt is not None and prompt.cue == "squeeze":
                 limit = onset if onset is not None else max(end, hi)
                 squeeze = squeeze_after(sig.grip, threshold, prompt.t, limit + 0.05)
                 if squeeze is not None:
