@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 
 # ------------------------------------------------------------------------------------------- parameters
-SPEED_CUTOFF_HZ = 10.0  # low-pass of the position before differentiating (−3 dB), human reaching < 10 Hz
+SPEED_CUTOFF_HZ = 6.0  # low-pass of the position before differentiating (−3 dB): docs/metrics.md, "Speed"
 SPARC_AMPLITUDE_THRESHOLD = 0.05  # Balasubramanian et al. 2015: adaptive cut-off where |V(f)| ≥ 5 % of its peak
 SPARC_MAX_CUTOFF_HZ = 10.0  # ... but never above 10 Hz
 SPARC_PADDING = 4  # zero padding: FFT length = 2^(ceil(log2 n) + 4)
