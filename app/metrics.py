@@ -495,8 +495,11 @@ def fes_charge_uc(current_ma: Series, pulse_width_us: Series, frequency_hz: floa
 
 
 # ------------------------------------------------------------------------------------------- per repetition
-def _kinematics(sig: SessionSignals, lo: float, hi: float) -> dict[str, Any]:
-    """The handle's movement within [lo, hi]: range, path, speeds, onset and end, smoothness."""
+def _kinematics(sig: SessionSignals, lo: float, hi: float,
+                span: tuple[float, float] | None = None) -> dict[str, Any]:
+    """The handle's movement within [lo, hi]: range, path, speeds, onset and end, smoothness. ``span``: the
+    segmented movement's own bounds (onset and end), where the window also holds a wait at rest (a trigger)
+    in which a tremor would otherwise pass the onset threshold."""
     rate = sig.rate_hz
     pos = sig.position
     out: dict[str, Any] = {"range_m": math.nan, "path_length_m": math.nan, "peak_speed_m_s": math.nan,
@@ -518,6 +521,11 @@ def _kinematics(sig: SessionSignals, lo: float, hi: float) -> dict[str, Any]:
     out["path_length_m"] = float(np.sum(np.abs(np.diff(xf[i0:i1 + 1]))))
     out["peak_speed_m_s"] = peak = float(v_in.max())
     bounds = movement_bounds(t_in, v_in)
+    if span is not None:
+        a_s = int(np.searchsorted(t_in, span[0] - 1e-9))
+        b_s = int(np.searchsorted(t_in, span[1] + 1e-9)) - 1
+        if 0 <= a_s < b_s < len(t_in):
+            bounds = (a_s, b_s)
     # mean speed over the movement itself, not the wait before it (a trigger) or the rest after it
     a, b = bounds if bounds is not None else (0, len(v_in) - 1)
     out["mean_speed_m_s"] = mean = float(v_in[a:b + 1].mean())
@@ -542,12 +550,12 @@ def _kinematics(sig: SessionSignals, lo: float, hi: float) -> dict[str, Any]:
 
 def repetition_metrics(sig: SessionSignals, start: float, end: float, index: int, *, completed: bool = True,
                        source: str = "marks", movement: tuple[float, float] | None = None,
-                       prompt: Prompt | None = None) -> RepetitionMetrics:
+                       prompt: Prompt | None = None, span: tuple[float, float] | None = None) -> RepetitionMetrics:
     """Every metric of the repetition [start, end] (s from the session's start). ``movement`` limits the
     kinematics to the handle's own movement (its onset to its end, which may run past a marked end);
     ``prompt`` is the exercise's cue the patient's reaction time is measured from."""
     lo, hi = movement if movement is not None else (start, end)
-    k = _kinematics(sig, lo, hi)
+    k = _kinematics(sig, lo, hi, span)
     onset, offset = k["onset"], k["end"]
     m = RepetitionMetrics(index, start, end, end - start, k["range_m"], k["path_length_m"], k["peak_speed_m_s"],
                           k["mean_speed_m_s"], k["sparc"], k["speed_peaks"], speed_ratio=k["speed_ratio"],
@@ -662,8 +670,9 @@ def analyse(sig: SessionSignals, lo: float = -math.inf, hi: float = math.inf) ->
             w1 = min([w1, *[a for a, _ in others if w0 < a < w1 and not (mine and a < mine[-1][1])]])
             nxt = marks[i + 1].start if i + 1 < len(marks) else math.inf
             prompt = _prompt_for(prompts, mk.start, min(mk.end, nxt), mk.index)
+            span = (mine[0][0], mine[-1][1]) if mine else None
             m = repetition_metrics(sig, mk.start, max(mk.end, w1), mk.index, completed=mk.ok, source="marks",
-                                   movement=(w0, w1), prompt=prompt)
+                                   movement=(w0, w1), prompt=prompt, span=span)
             m.completed = mk.ok and covered(m, sig.movement_distance_m) and bool(mine)
             reps.append(m)
         positioning += [_positioning_entry(sig, "outside_repetitions", a, b)
@@ -810,7 +819,7 @@ def signals_from_session(session: Any) -> SessionSignals:
     position = series("linarm.vsa", "handlePos", regular=True) or Series(np.zeros(0), np.zeros(0))
     sig = SessionSignals(position=position, rate_hz=rate,
                          force=series("linarm.vsa", "interactionForce", regular=True),
-                         grip=series("physio.main", "force"),
+                         grip=series("physio.main", "force", regular=True),
                          heart_rate=series("physio.main", "heartRate"),
                          skin_conductance=series("physio.main", "skinConductance"),
                          alpha=series("patient_model.main", "alpha"),

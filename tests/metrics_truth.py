@@ -81,10 +81,13 @@ def write_session(case: dict[str, Any], folder: Path, streams: dict[str, dict[st
 
 
 def truth_movements(case: dict[str, Any]) -> list[dict[str, float]]:
-    """The commanded movements, read off the noise-free commanded centre (equilibriumPos) after the
-    exercise's start prompt (passive and sway) or within the repetitions (trigger): split where the centre
-    turns, each one's range, peak speed and duration (where its speed exceeds 5 % of its peak: the metrics'
-    own onset rule, on the command instead of the handle)."""
+    """The commanded movements after the exercise's first prompt. Passive (the robot moves the arm): read off
+    the noise-free commanded centre (equilibriumPos), split where it turns: its range and duration (where its
+    speed exceeds 5 % of its peak: the metrics' own onset rule, on the command instead of the handle); the
+    peak speed is the clean handle's within that label (the handle runs 1-2 % over the command through the
+    spring between them). Sway (the patient moves the handle, the admittance centre follows behind): labelled
+    at the clean recorded handle's turns (one per push of the simulated patient the other way: a test checks
+    it); range, peak speed and duration are the clean handle's within each label."""
     from app.metrics import lowpass, regular_times, resample_uniform, turning_points
 
     s = streams_of(case)["linarm.vsa"]
@@ -101,8 +104,21 @@ def truth_movements(case: dict[str, Any]) -> list[dict[str, float]]:
     v = np.abs(np.gradient(lowpass(x, rate), 1.0 / rate))
     vh = np.abs(np.gradient(lowpass(h, rate), 1.0 / rate))
     bounds = [0, *turning_points(x, 0.002), len(x)]
+    sway = case["truth"]["kind"] == "sway"
+    if sway:  # the patient moved the handle (the centre follows it, behind): labelled where the clean handle
+        # turns, one turn after each push the other way (checked), from the first push to the end
+        first_push = int(np.searchsorted(t, case["truth"]["patient_commands"][0][0]))
+        turns = [i for i in turning_points(lowpass(h, rate), 0.002) if i > first_push]
+        bounds = [first_push, *turns, len(t)][:case["truth"]["count"] + 1]  # after the last: the arm at rest
     out = []
     for p, q in zip(bounds[:-1], bounds[1:], strict=True):
+        if sway:
+            x_, v_ = h[p:q], vh[p:q]
+            above = np.nonzero(v_ > 0.05 * v_.max())[0]
+            a, b = p + int(above[0]), p + int(above[-1])
+            out.append({"onset_s": float(t[a]), "end_s": float(t[b]), "duration_s": float(t[b] - t[a]),
+                        "range_m": float(np.ptp(x_)), "peak_speed_m_s": float(v_.max())})
+            continue
         vv = v[p:q]
         if not len(vv) or np.ptp(x[p:q]) < 0.01:
             continue
