@@ -5,6 +5,7 @@ table of issue #28."""
 from __future__ import annotations
 
 import gzip
+import itertools
 import json
 import math
 from pathlib import Path
@@ -111,7 +112,7 @@ def truth_movements(case: dict[str, Any]) -> list[dict[str, float]]:
         turns = [i for i in turning_points(lowpass(h, rate), 0.002) if i > first_push]
         bounds = [first_push, *turns, len(t)][:case["truth"]["count"] + 1]  # after the last: the arm at rest
     out = []
-    for p, q in zip(bounds[:-1], bounds[1:], strict=True):
+    for p, q in itertools.pairwise(bounds):
         if sway:
             x_, v_ = h[p:q], vh[p:q]
             above = np.nonzero(v_ > 0.05 * v_.max())[0]
