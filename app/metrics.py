@@ -203,13 +203,16 @@ def lowpass(x: np.ndarray, rate_hz: float, cutoff_hz: float = SPEED_CUTOFF_HZ) -
     if half < 1 or len(x) < 3:
         return x.copy()
     k = np.exp(-0.5 * (np.arange(-half, half + 1) / sigma) ** 2)
-    pad = min(half, len(x) - 1)
-    padded = np.concatenate([2 * x[0] - x[pad:0:-1], x, 2 * x[-1] - x[-2:-pad - 2:-1]])
-    # "full" then the centred slice: correct for any length (mode="same" returns the kernel's length when
-    # the kernel is the longer); dividing by the kernel's covered weight undoes the implicit zeros beyond
-    y = np.convolve(padded, k, mode="full")[half:half + len(padded)]
-    w = np.convolve(np.ones_like(padded), k, mode="full")[half:half + len(padded)]
-    return (y / w)[pad:pad + len(x)]
+    k /= k.sum()
+    # odd reflection about each end, repeated until the kernel is covered (an input shorter than the kernel:
+    # np.convolve's mode="same" returned the kernel's length and zeros beyond the ends pulled values down)
+    padded, offset = x, 0
+    while offset < half:
+        padded = np.concatenate([2 * padded[0] - padded[:0:-1], padded, 2 * padded[-1] - padded[-2::-1]])
+        offset = (len(padded) - len(x)) // 2
+    y = np.convolve(padded, k, mode="valid")  # len(padded) − 2·half samples, centred
+    start = offset - half
+    return y[start:start + len(x)]
 
 
 def velocity(x: np.ndarray, rate_hz: float, cutoff_hz: float = SPEED_CUTOFF_HZ) -> np.ndarray:
