@@ -304,22 +304,24 @@ def test_lowpass_keeps_a_constant_and_a_ramp_however_short(n: int) -> None:
     assert lowpass(ramp, FS) == pytest.approx(ramp, abs=1e-9)
 
 
-@pytest.mark.parametrize("speed_scale", [1.0, 2.0])
-def test_reaches_without_a_rest_are_split_at_each_turn(speed_scale: float) -> None:
-    """Out and back with no pause (the speed dips below the floor only for a moment at the turn): one
-    repetition per reach, never merged across the turn, however fast."""
-    duration = 2.0 / speed_scale
+@pytest.mark.parametrize("v_max, acc", [(0.15, 0.5), (0.30, 1.0)])
+def test_reaches_without_a_rest_are_split_at_each_turn(v_max: float, acc: float) -> None:
+    """Trapezoidal reaches out and back with no pause, as the robot moves (the speed dips below the floor
+    only for a moment at the turn): one repetition per reach, never merged across the turn, however fast."""
+    duration = 0.3 / v_max + v_max / acc
     t = np.arange(0.0, 1.0 + 6 * duration + 1.0, 1 / FS)
     x = np.full_like(t, 0.1)
     for k in range(6):
-        step = 0.3 * min_jerk((t - 1.0 - k * duration) / duration)
+        step = trapezoid(t - 1.0 - k * duration, 0.3, v_max, acc)[0]
+        step[t > 1.0 + (k + 1) * duration] = 0.3
         x += step if k % 2 == 0 else -step
     reps = repetitions(signals(t, x))
     assert len(reps) == 6
-    for k, m in enumerate(reps):
+    for m in reps:
         assert m.range_m == pytest.approx(0.3, abs=0.002)
         assert m.speed_peaks == 1
-        assert m.movement_time_s == pytest.approx((1 - 2 * 0.0593) * duration, abs=0.05)  # 5 % of the peak
+        assert m.peak_speed_m_s == pytest.approx(v_max, rel=0.03)
+        assert m.movement_time_s == pytest.approx(duration, abs=0.1)
 
 
 def test_short_dips_within_one_movement_still_join() -> None:
