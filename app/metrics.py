@@ -10,6 +10,7 @@ segmented from its speed (:func:`segment_by_speed`). Times are seconds from the 
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import asdict, dataclass, field
@@ -19,10 +20,11 @@ from typing import Any
 import numpy as np
 
 # ------------------------------------------------------------------------------------------- parameters
-SPEED_CUTOFF_HZ = 10.0  # low-pass of the position before differentiating (−3 dB), human reaching < 10 Hz
+SPEED_CUTOFF_HZ = 6.0  # low-pass of the position before differentiating (−3 dB): docs/metrics.md, "Speed"
 SPARC_AMPLITUDE_THRESHOLD = 0.05  # Balasubramanian et al. 2015: adaptive cut-off where |V(f)| ≥ 5 % of its peak
 SPARC_MAX_CUTOFF_HZ = 10.0  # ... but never above 10 Hz
 SPARC_PADDING = 4  # zero padding: FFT length = 2^(ceil(log2 n) + 4)
+SPARC_SPEED_CUTOFF_HZ: float | None = None  # SPARC's speed: not low-passed (the reference's input; docs/metrics.md)
 PEAK_PROMINENCE = 0.05  # a speed peak must rise and fall by 5 % of the repetition's peak speed
 ONSET_FRACTION = 0.05  # movement onset / offset: speed crosses 5 % of the peak speed ...
 ONSET_MIN_SPEED_M_S = 0.005  # ... and at least 5 mm/s (the encoder's noise floor stays below)
@@ -32,7 +34,13 @@ SEGMENT_MIN_DURATION_S = 0.2  # shorter bursts are not movements
 SEGMENT_MIN_RANGE_M = 0.01  # nor are movements of less than 1 cm
 SEGMENT_MERGE_GAP_S = 0.1  # two bursts less than 0.1 s apart are one movement
 PHYSIO_WINDOW_S = 1.0  # heart rate / skin conductance: mean over 1 s at the start and at the end
-GRIP_WINDOW_S = 0.1  # grip at start: mean over the 100 ms before the repetition starts
+GRIP_WINDOW_S = 0.1  # grip at start (no trigger): mean over the 100 ms before the repetition starts
+REVERSAL_M = 0.005  # a turn of the movement's direction: the handle goes back ≥ 5 mm from its furthest point
+SPARC_REST_SPEED_M_S = ONSET_MIN_SPEED_M_S  # SPARC's window: the movement from rest (< 5 mm/s) to rest
+GRIP_ONSET_MARGIN_N = 2.0  # a squeeze's onset: the grip rises ≥ 2 N above its resting baseline ...
+GRIP_ONSET_FRACTION = 0.10  # ... or 10 % of the way from the baseline to the trigger threshold, if more
+BASELINE_WINDOW_S = 0.5  # the resting grip: median of the 0.5 s before the prompt
+COVERED_FRACTION = 0.9  # completed: the handle covered ≥ 90 % of the commanded distance (docs/metrics.md)
 
 
 # ------------------------------------------------------------------------------------------- inputs
@@ -65,6 +73,16 @@ class Mark:
     ok: bool = True
 
 
+@dataclass(frozen=True)
+class Prompt:
+    """The exercise's cue to the patient (``prompt`` event): "squeeze" (a grip trigger) or "move"."""
+
+    t: float
+    index: int | None = None
+    cue: str = "squeeze"
+    threshold_n: float | None = None
+
+
 @dataclass
 class SessionSignals:
     """What the metrics read, all on one time axis (s from the session's start)."""
@@ -84,6 +102,8 @@ class SessionSignals:
     marks: list[Mark] = field(default_factory=list)
     trigger_threshold_n: float | None = None
     exclude: list[tuple[float, float]] = field(default_factory=list)  # not movements (homing), for segmentation
+    prompts: list[Prompt] = field(default_factory=list)
+    movement_distance_m: float | None = None  # what the exercise commands per movement (its parameters), if known
 
 
 @dataclass
@@ -97,11 +117,17 @@ class RepetitionMetrics:
     peak_speed_m_s: float
     mean_speed_m_s: float
     sparc: float
-    speed_peaks: int
+    speed_peaks: int  # the number of submovements (Rohrer et al. 2002)
+    speed_ratio: float | None = None  # mean / peak speed
+    dimensionless_jerk: float | None = None  # (T³ / v_peak²) ∫ jerk² dt
+    ldlj: float | None = None  # −ln(dimensionless jerk)
     peak_force_n: float | None = None
     mean_force_n: float | None = None
     grip_at_start_n: float | None = None
-    reaction_time_s: float | None = None
+    grip_at_trigger_n: float | None = None
+    reaction_time_s: float | None = None  # the patient's: the prompt to the grip's onset (or the movement's)
+    robot_latency_s: float | None = None  # the robot's: the trigger (grip through the threshold) to the handle's onset
+    prompt_s: float | None = None
     movement_onset_s: float | None = None
     movement_end_s: float | None = None
     movement_time_s: float | None = None
@@ -127,11 +153,14 @@ SUMMARY_METRICS: dict[str, tuple[str, str]] = {
     "peak_speed_m_s": ("m/s", "Peak speed"),
     "mean_speed_m_s": ("m/s", "Mean speed"),
     "sparc": ("", "SPARC"),
-    "speed_peaks": ("", "Speed peaks"),
+    "speed_peaks": ("", "Submovements (speed peaks)"),
+    "speed_ratio": ("", "Mean / peak speed"),
+    "ldlj": ("", "Log dimensionless jerk"),
     "peak_force_n": ("N", "Peak force"),
     "mean_force_n": ("N", "Mean force"),
-    "grip_at_start_n": ("N", "Grip at start"),
+    "grip_at_start_n": ("N", "Grip at trigger"),
     "reaction_time_s": ("s", "Reaction time"),
+    "robot_latency_s": ("s", "Robot latency"),
     "mean_alpha": ("", "Mean α"),
     "mean_a_r": ("", "Mean a_r"),
     "mean_a_f": ("", "Mean a_f"),
@@ -165,7 +194,9 @@ def resample_uniform(t: np.ndarray, v: np.ndarray, rate_hz: float) -> tuple[np.n
 
 def lowpass(x: np.ndarray, rate_hz: float, cutoff_hz: float = SPEED_CUTOFF_HZ) -> np.ndarray:
     """Zero-phase Gaussian low-pass, −3 dB at ``cutoff_hz`` (a Gaussian kernel does not ring, unlike a brick
-    wall; its response exp(−2π²σ²f²) is 1/√2 at σ = √(ln 2 / 4π²) / f_c ≈ 0.1325 / f_c). Ends are mirrored."""
+    wall; its response exp(−2π²σ²f²) is 1/√2 at σ = √(ln 2 / 4π²) / f_c ≈ 0.1325 / f_c). Ends are mirrored
+    (odd reflection, so a ramp stays a ramp); where the input is shorter than the kernel, each output is the
+    weighted mean of the samples the kernel covers (a constant stays that constant, however short)."""
     x = np.asarray(x, dtype=float)
     sigma = math.sqrt(math.log(2.0) / (4.0 * math.pi ** 2)) / cutoff_hz * rate_hz  # in samples
     half = math.ceil(4 * sigma)
@@ -173,10 +204,15 @@ def lowpass(x: np.ndarray, rate_hz: float, cutoff_hz: float = SPEED_CUTOFF_HZ) -
         return x.copy()
     k = np.exp(-0.5 * (np.arange(-half, half + 1) / sigma) ** 2)
     k /= k.sum()
-    pad = min(half, len(x) - 1)
-    padded = np.concatenate([2 * x[0] - x[pad:0:-1], x, 2 * x[-1] - x[-2:-pad - 2:-1]])
-    y = np.convolve(padded, k, mode="same")
-    return y[pad:pad + len(x)]
+    # odd reflection about each end, repeated until the kernel is covered (an input shorter than the kernel:
+    # np.convolve's mode="same" returned the kernel's length and zeros beyond the ends pulled values down)
+    padded, offset = x, 0
+    while offset < half:
+        padded = np.concatenate([2 * padded[0] - padded[:0:-1], padded, 2 * padded[-1] - padded[-2::-1]])
+        offset = (len(padded) - len(x)) // 2
+    y = np.convolve(padded, k, mode="valid")  # len(padded) − 2·half samples, centred
+    start = offset - half
+    return y[start:start + len(x)]
 
 
 def velocity(x: np.ndarray, rate_hz: float, cutoff_hz: float = SPEED_CUTOFF_HZ) -> np.ndarray:
@@ -241,46 +277,84 @@ def speed_peaks(speed: np.ndarray, prominence: float = PEAK_PROMINENCE) -> int:
     return count
 
 
+def turning_points(x: np.ndarray, hysteresis: float = REVERSAL_M) -> list[int]:
+    """Indices where the movement's direction turns: alternate extremes of ``x``, each confirmed only once the
+    signal has gone back by at least ``hysteresis`` from it (so noise and tremor smaller than that do not
+    turn it; a zig-zag with hysteresis)."""
+    x = np.asarray(x, dtype=float)
+    out: list[int] = []
+    if len(x) < 2:
+        return out
+    hi = lo = 0
+    direction = 0
+    for i in range(1, len(x)):
+        xi = x[i]
+        if direction >= 0 and xi > x[hi]:
+            hi = i
+        if direction <= 0 and xi < x[lo]:
+            lo = i
+        if direction >= 0 and x[hi] - xi >= hysteresis:
+            out.append(hi)
+            direction, lo = -1, i
+        elif direction <= 0 and xi - x[lo] >= hysteresis:
+            out.append(lo)
+            direction, hi = 1, i
+    return out
+
+
 def segment_by_speed(t: np.ndarray, speed: np.ndarray, x: np.ndarray | None = None, *,
                      fraction: float = SEGMENT_FRACTION, min_speed: float = SEGMENT_MIN_SPEED_M_S,
                      onset_fraction: float = ONSET_FRACTION, min_duration_s: float = SEGMENT_MIN_DURATION_S,
-                     min_range_m: float = SEGMENT_MIN_RANGE_M,
-                     merge_gap_s: float = SEGMENT_MERGE_GAP_S) -> list[tuple[float, float]]:
-    """Movements (start, end) where the speed exceeds max(``fraction`` × the 99th percentile speed,
-    ``min_speed``), each widened to where its speed falls below max(``onset_fraction`` × its own peak, 5 mm/s);
-    bursts closer than ``merge_gap_s`` are one movement; too short or too small ones are dropped."""
+                     min_range_m: float = SEGMENT_MIN_RANGE_M, merge_gap_s: float = SEGMENT_MERGE_GAP_S,
+                     reversal_m: float = REVERSAL_M) -> list[tuple[float, float]]:
+    """Movements (start, end) of a uniformly sampled handle: where the speed exceeds max(``fraction`` × the
+    99th percentile speed, ``min_speed``), each widened to where its speed falls below max(``onset_fraction``
+    × its own peak, 5 mm/s). Bursts closer than ``merge_gap_s`` are one movement only when the handle kept its
+    direction between them: the position (``x``, low-passed) is cut at every turn of direction first
+    (:func:`turning_points`, ``reversal_m`` of hysteresis), and nothing is widened or merged across a turn.
+    Too short or too small movements are dropped."""
     t = np.asarray(t, dtype=float)
-    v = np.asarray(speed, dtype=float)
+    v = np.abs(np.asarray(speed, dtype=float))
     if len(v) < 3:
         return []
     level = max(fraction * float(np.percentile(v, 99)), min_speed)
-    high = v > level
-    edges = np.diff(high.astype(int))
-    starts = list(np.nonzero(edges == 1)[0] + 1)
-    ends = list(np.nonzero(edges == -1)[0] + 1)
-    if high[0]:
-        starts.insert(0, 0)
-    if high[-1]:
-        ends.append(len(v))
-    segs: list[list[int]] = []
-    for a, b in zip(starts, ends, strict=True):
-        floor = max(onset_fraction * float(v[a:b].max()), ONSET_MIN_SPEED_M_S)
-        while a > 0 and v[a - 1] > floor:
-            a -= 1
-        while b < len(v) and v[b] > floor:
-            b += 1
-        if segs and t[a] - t[segs[-1][1] - 1] <= merge_gap_s:
-            segs[-1][1] = max(segs[-1][1], b)
-        else:
-            segs.append([a, b])
-    out = []
-    for a, b in segs:
-        b = min(b, len(v)) - 1
-        if t[b] - t[a] < min_duration_s:
+    bounds = [0, len(v)]
+    xs: np.ndarray | None = None
+    if x is not None:
+        xs = np.asarray(x, dtype=float)
+        dt = float(np.median(np.diff(t))) if len(t) > 1 else 0.0
+        smooth = lowpass(xs, 1.0 / dt) if dt > 0 else xs
+        bounds = [0, *[i for i in turning_points(smooth, reversal_m) if 0 < i < len(v)], len(v)]
+    out: list[tuple[float, float]] = []
+    for p, q in itertools.pairwise(bounds):
+        if q - p < 2:
             continue
-        if x is not None and float(np.ptp(np.asarray(x)[a:b + 1])) < min_range_m:
-            continue
-        out.append((float(t[a]), float(t[b])))
+        high = v[p:q] > level
+        edges = np.diff(high.astype(int))
+        starts = list(np.nonzero(edges == 1)[0] + 1 + p)
+        ends = list(np.nonzero(edges == -1)[0] + 1 + p)
+        if high[0]:
+            starts.insert(0, p)
+        if high[-1]:
+            ends.append(q)
+        segs: list[list[int]] = []
+        for a, b in zip(starts, ends, strict=True):
+            floor = max(onset_fraction * float(v[a:b].max()), ONSET_MIN_SPEED_M_S)
+            while a > p and v[a - 1] > floor:
+                a -= 1
+            while b < q and v[b] > floor:
+                b += 1
+            if segs and t[a] - t[segs[-1][1] - 1] <= merge_gap_s:
+                segs[-1][1] = max(segs[-1][1], b)
+            else:
+                segs.append([a, b])
+        for a, b in segs:
+            b = min(b, len(v)) - 1
+            if t[b] - t[a] < min_duration_s:
+                continue
+            if xs is not None and float(np.ptp(xs[a:b + 1])) < min_range_m:
+                continue
+            out.append((float(t[a]), float(t[b])))
     return out
 
 
@@ -294,6 +368,16 @@ def movement_bounds(t: np.ndarray, speed: np.ndarray) -> tuple[int, int] | None:
     return (int(above[0]), int(above[-1])) if len(above) else None
 
 
+def rest_to_rest(speed: np.ndarray, a: int, b: int, rest: float = SPARC_REST_SPEED_M_S) -> tuple[int, int]:
+    """Widen the movement [a, b] to the last sample at rest (speed ≤ ``rest``) on either side."""
+    v = np.asarray(speed, dtype=float)
+    while a > 0 and v[a - 1] > rest:
+        a -= 1
+    while b < len(v) - 1 and v[b + 1] > rest:
+        b += 1
+    return a, b
+
+
 def last_rising_crossing(series: Series, threshold: float, before: float, after: float) -> float | None:
     """The last time in (after, before] the signal rose through ``threshold`` (linear between samples)."""
     sel = (series.t > after - 1.0) & (series.t <= before)
@@ -305,6 +389,86 @@ def last_rising_crossing(series: Series, threshold: float, before: float, after:
     i = int(rises[-1])
     frac = (threshold - v[i]) / (v[i + 1] - v[i]) if v[i + 1] != v[i] else 1.0
     return float(t[i] + frac * (t[i + 1] - t[i]))
+
+
+def first_rising_crossing(series: Series, threshold: float, after: float, before: float) -> float | None:
+    """The first time in (after, before] the signal rose through ``threshold`` from below (linear)."""
+    sel = (series.t >= after) & (series.t <= before)
+    idx = np.nonzero(sel)[0]
+    if len(idx) < 1:
+        return None
+    i0 = max(int(idx[0]) - 1, 0)
+    t, v = series.t[i0:int(idx[-1]) + 1], series.v[i0:int(idx[-1]) + 1]
+    rises = np.nonzero((v[:-1] < threshold) & (v[1:] >= threshold))[0]
+    for i in rises:
+        frac = (threshold - v[i]) / (v[i + 1] - v[i]) if v[i + 1] != v[i] else 1.0
+        tc = float(t[i] + frac * (t[i + 1] - t[i]))
+        if tc > after:
+            return tc
+    return None
+
+
+@dataclass(frozen=True)
+class Squeeze:
+    """One squeeze of the grip after a prompt: its onset, where it crossed the threshold, its peak."""
+
+    onset: float
+    crossing: float
+    peak_n: float
+    baseline_n: float
+
+
+def squeeze_after(grip: Series, threshold: float, prompt: float, before: float) -> Squeeze | None:
+    """The first squeeze after ``prompt``: the grip rising through ``threshold`` (from below: a grip still
+    held at the prompt must be released first), traced back to its onset — where it was last within
+    max(2 N, 10 % of the way to the threshold) of its resting baseline (median of the 0.5 s before the
+    prompt, below the threshold) — and its peak until it falls back below the threshold."""
+    crossing = first_rising_crossing(grip, threshold, prompt, before)
+    if crossing is None:
+        return None
+    rest = grip.window(prompt - BASELINE_WINDOW_S, prompt)
+    rest = rest[np.isfinite(rest) & (rest < threshold)]
+    if not len(rest):
+        rest = grip.window(prompt, crossing)
+        rest = rest[np.isfinite(rest) & (rest < threshold)]
+    baseline = float(np.median(rest)) if len(rest) else 0.0
+    level = baseline + max(GRIP_ONSET_MARGIN_N, GRIP_ONSET_FRACTION * (threshold - baseline))
+    level = min(level, threshold)
+    sel = (grip.t >= prompt) & (grip.t <= crossing)
+    t, v = grip.t[sel], grip.v[sel]
+    onset = prompt
+    below = np.nonzero(v <= level)[0]
+    if len(below):
+        i = int(below[-1])
+        if i + 1 < len(v) and v[i + 1] != v[i]:
+            onset = float(t[i] + (level - v[i]) / (v[i + 1] - v[i]) * (t[i + 1] - t[i]))
+        else:
+            onset = float(t[i])
+    onset = min(max(onset, prompt), crossing)
+    after = (grip.t >= crossing)
+    ta, va = grip.t[after], grip.v[after]
+    fall = np.nonzero(va < threshold)[0]
+    peak_sel = va[:int(fall[0])] if len(fall) else va
+    peak = float(np.nanmax(peak_sel)) if len(peak_sel) else float(threshold)
+    del ta
+    return Squeeze(onset, crossing, peak, baseline)
+
+
+def dimensionless_jerk(x: np.ndarray, rate_hz: float) -> float:
+    """Dimensionless jerk of a movement's low-passed position (Hogan & Sternad 2009, J Mot Behav 41(6); the
+    peak-speed normalisation of Balasubramanian et al. 2012/2015): (T³ / v_peak²) ∫ (d³x/dt³)² dt, T the
+    movement's duration. 204.8 for a minimum-jerk reach (720 / 1.875²); larger is less smooth."""
+    x = np.asarray(x, dtype=float)
+    if len(x) < 8:
+        return math.nan
+    dt = 1.0 / rate_hz
+    v = np.gradient(x, dt)
+    jerk = np.gradient(np.gradient(v, dt), dt)
+    peak = float(np.max(np.abs(v)))
+    if peak <= 0:
+        return math.nan
+    duration = (len(x) - 1) * dt
+    return float(duration ** 3 / peak ** 2 * np.sum(jerk ** 2) * dt)
 
 
 def _mean(values: np.ndarray) -> float | None:
@@ -334,48 +498,106 @@ def fes_charge_uc(current_ma: Series, pulse_width_us: Series, frequency_hz: floa
 
 
 # ------------------------------------------------------------------------------------------- per repetition
-def repetition_metrics(sig: SessionSignals, start: float, end: float, index: int, *, completed: bool = True,
-                       source: str = "marks") -> RepetitionMetrics:
-    """Every metric of the repetition [start, end] (s from the session's start)."""
+def _kinematics(sig: SessionSignals, lo: float, hi: float,
+                span: tuple[float, float] | None = None) -> dict[str, Any]:
+    """The handle's movement within [lo, hi]: range, path, speeds, onset and end, smoothness. ``span``: the
+    segmented movement's own bounds (onset and end), where the window also holds a wait at rest (a trigger)
+    in which a tremor would otherwise pass the onset threshold."""
     rate = sig.rate_hz
     pos = sig.position
+    out: dict[str, Any] = {"range_m": math.nan, "path_length_m": math.nan, "peak_speed_m_s": math.nan,
+                           "mean_speed_m_s": math.nan, "sparc": math.nan, "speed_peaks": 0, "onset": None,
+                           "end": None, "speed_ratio": None, "dimensionless_jerk": None, "ldlj": None}
     # the movement's samples, with 0.5 s either side so the low-pass has context at the edges
-    sel = (pos.t >= start - 0.5) & (pos.t <= end + 0.5)
+    sel = (pos.t >= lo - 0.5) & (pos.t <= hi + 0.5)
     tu, xu = resample_uniform(pos.t[sel], pos.v[sel], rate)
-    v = np.abs(velocity(xu, rate)) if len(xu) else np.zeros(0)
-    inside = (tu >= start) & (tu <= end)
-    t_in, x_in, v_in = tu[inside], xu[inside], v[inside]
-    if len(x_in) >= 2:
-        range_m = float(np.ptp(x_in))
-        path = float(np.sum(np.abs(np.diff(lowpass(xu, rate)[inside]))))
-        peak = float(v_in.max())
-        bounds = movement_bounds(t_in, v_in)
-        # mean speed over the movement itself, not the wait before it (a trigger) or the rest after it
-        a, b = bounds if bounds is not None else (0, len(v_in) - 1)
-        mean = float(v_in[a:b + 1].mean())
-        sp = sparc(v_in, rate)
-        peaks = speed_peaks(v_in)
-        onset = float(t_in[a]) if bounds is not None else None
-        offset = float(t_in[b]) if bounds is not None else None
-    else:
-        range_m = path = peak = mean = sp = math.nan
-        peaks, onset, offset = 0, None, None
-    m = RepetitionMetrics(index, start, end, end - start, range_m, path, peak, mean, sp, peaks,
+    if len(xu) < 2:
+        return out
+    xf = lowpass(xu, rate)
+    v = np.abs(np.gradient(xf, 1.0 / rate))
+    inside = np.nonzero((tu >= lo) & (tu <= hi))[0]
+    if len(inside) < 2:
+        return out
+    i0, i1 = int(inside[0]), int(inside[-1])
+    t_in, x_in, v_in = tu[i0:i1 + 1], xu[i0:i1 + 1], v[i0:i1 + 1]
+    out["range_m"] = float(np.ptp(x_in))
+    out["path_length_m"] = float(np.sum(np.abs(np.diff(xf[i0:i1 + 1]))))
+    out["peak_speed_m_s"] = peak = float(v_in.max())
+    bounds = movement_bounds(t_in, v_in)
+    if span is not None:
+        a_s = int(np.searchsorted(t_in, span[0] - 1e-9))
+        b_s = int(np.searchsorted(t_in, span[1] + 1e-9)) - 1
+        if 0 <= a_s < b_s < len(t_in):
+            bounds = (a_s, b_s)
+    # mean speed over the movement itself, not the wait before it (a trigger) or the rest after it
+    a, b = bounds if bounds is not None else (0, len(v_in) - 1)
+    out["mean_speed_m_s"] = mean = float(v_in[a:b + 1].mean())
+    out["speed_peaks"] = speed_peaks(v_in)
+    if bounds is not None:
+        out["onset"], out["end"] = float(t_in[a]), float(t_in[b])
+        if peak > 0:
+            out["speed_ratio"] = mean / peak
+        dj = dimensionless_jerk(xf[i0 + a:i0 + b + 1], rate)
+        if math.isfinite(dj) and dj > 0:
+            out["dimensionless_jerk"], out["ldlj"] = dj, -math.log(dj)
+        # SPARC on the speed itself (no low-pass: the reference's input), from rest to rest: the movement
+        # widened to where the speed is at rest, and zeros beyond (its rests), so where the repetition's window
+        # was cut does not move it
+        raw = np.abs(np.gradient(xu, 1.0 / rate)) if SPARC_SPEED_CUTOFF_HZ is None else \
+            np.abs(velocity(xu, rate, SPARC_SPEED_CUTOFF_HZ))
+        ra, rb = rest_to_rest(v, i0 + a, i0 + b)
+        ra, rb = max(ra, i0), min(rb, i1)
+        out["sparc"] = sparc(raw[ra:rb + 1], rate)
+    return out
+
+
+def repetition_metrics(sig: SessionSignals, start: float, end: float, index: int, *, completed: bool = True,
+                       source: str = "marks", movement: tuple[float, float] | None = None,
+                       prompt: Prompt | None = None, span: tuple[float, float] | None = None) -> RepetitionMetrics:
+    """Every metric of the repetition [start, end] (s from the session's start). ``movement`` limits the
+    kinematics to the handle's own movement (its onset to its end, which may run past a marked end);
+    ``prompt`` is the exercise's cue the patient's reaction time is measured from."""
+    lo, hi = movement if movement is not None else (start, end)
+    k = _kinematics(sig, lo, hi, span)
+    onset, offset = k["onset"], k["end"]
+    m = RepetitionMetrics(index, start, end, end - start, k["range_m"], k["path_length_m"], k["peak_speed_m_s"],
+                          k["mean_speed_m_s"], k["sparc"], k["speed_peaks"], speed_ratio=k["speed_ratio"],
+                          dimensionless_jerk=k["dimensionless_jerk"], ldlj=k["ldlj"],
                           completed=completed, source=source, movement_onset_s=onset, movement_end_s=offset,
                           movement_time_s=(offset - onset) if onset is not None and offset is not None else None)
     if sig.force is not None and len(sig.force):
-        f = np.abs(sig.force.window(start, end))
+        f = np.abs(sig.force.window(start, max(end, hi)))
         f = f[np.isfinite(f)]
         if len(f):
             m.peak_force_n, m.mean_force_n = float(f.max()), float(f.mean())
+    threshold = prompt.threshold_n if prompt is not None and prompt.threshold_n is not None \
+        else sig.trigger_threshold_n
+    if prompt is not None:
+        m.prompt_s = prompt.t
     if sig.grip is not None and len(sig.grip):
         m.grip_at_start_n = _mean(sig.grip.window(start - GRIP_WINDOW_S, start))
         if m.grip_at_start_n is None:  # no sample in the window: the nearest one
             m.grip_at_start_n = float(np.interp(start, sig.grip.t, sig.grip.v))
-        if sig.trigger_threshold_n is not None and onset is not None:
-            crossing = last_rising_crossing(sig.grip, sig.trigger_threshold_n, onset, start - 1.0)
+        if threshold is not None:
+            squeeze = None
+            if prompt is not None and prompt.cue == "squeeze":
+                limit = onset if onset is not None else max(end, hi)
+                squeeze = squeeze_after(sig.grip, threshold, prompt.t, limit + 0.05)
+                if squeeze is not None:
+                    m.reaction_time_s = squeeze.onset - prompt.t
+            crossing = squeeze.crossing if squeeze is not None else None
+            if crossing is None and onset is not None:  # no prompt: the last crossing before the movement
+                crossing = last_rising_crossing(sig.grip, threshold, onset, start - 1.0)
             if crossing is not None:
-                m.reaction_time_s = max(0.0, onset - crossing)
+                if onset is not None and onset >= crossing - 0.05:
+                    m.robot_latency_s = max(0.0, onset - crossing)
+                if squeeze is None:
+                    squeeze = squeeze_after(sig.grip, threshold, crossing - 0.05, crossing + 0.05)
+                if squeeze is not None:
+                    m.grip_at_trigger_n = squeeze.peak_n
+                    m.grip_at_start_n = squeeze.peak_n  # the squeeze that triggered, not the resting grip
+    if prompt is not None and prompt.cue == "move" and onset is not None and onset >= prompt.t:
+        m.reaction_time_s = onset - prompt.t  # an active movement: the cue to the handle's own onset
     for name in ("alpha", "a_r", "a_f"):
         series = getattr(sig, name)
         if series is not None and len(series):
@@ -391,18 +613,110 @@ def repetition_metrics(sig: SessionSignals, start: float, end: float, index: int
     return m
 
 
-def repetitions(sig: SessionSignals) -> list[RepetitionMetrics]:
-    """The exercise's marked repetitions, or the movements segmented from the speed where it marked none."""
-    if sig.marks:
-        return [repetition_metrics(sig, mk.start, mk.end, mk.index, completed=mk.ok, source="marks")
-                for mk in sig.marks]
+def find_movements(sig: SessionSignals) -> list[tuple[float, float]]:
+    """Every movement of the handle (s), segmented from its speed and its turns (:func:`segment_by_speed`),
+    homing left out."""
     found: list[tuple[float, float]] = []
     for t, x in _pieces(sig.position, sig.exclude):
         if len(t) < 3:
             continue
         tu, xu = resample_uniform(t, x, sig.rate_hz)
         found += segment_by_speed(tu, np.abs(velocity(xu, sig.rate_hz)), xu)
-    return [repetition_metrics(sig, a, b, k + 1, source="speed") for k, (a, b) in enumerate(found)]
+    return found
+
+
+@dataclass
+class Analysis:
+    """The repetitions of a stretch of a session and the robot's positioning moves, apart."""
+
+    repetitions: list[RepetitionMetrics]
+    positioning: list[dict[str, Any]]
+
+
+def _positioning_entry(sig: SessionSignals, kind: str, a: float, b: float) -> dict[str, Any]:
+    k = _kinematics(sig, a, b) if kind != "homing" else {}
+    return _clean({"kind": kind, "start_s": a, "end_s": b, "duration_s": b - a,
+                   "range_m": k.get("range_m"), "peak_speed_m_s": k.get("peak_speed_m_s")})
+
+
+def _prompt_for(prompts: Sequence[Prompt], lo: float, hi: float, index: int | None = None) -> Prompt | None:
+    inside = [p for p in prompts if lo - 1e-6 <= p.t <= hi]
+    same = [p for p in inside if index is not None and p.index == index]
+    pick = same or inside
+    return pick[-1] if pick else None
+
+
+def analyse(sig: SessionSignals, lo: float = -math.inf, hi: float = math.inf) -> Analysis:
+    """The repetitions in [lo, hi] and the positioning moves. With marks, each marked repetition takes the
+    handle's movement whose onset falls within it (its end may run past the mark: the handle still moved);
+    movements outside every mark are positioning. Without marks, every movement is a repetition, but for
+    those before the exercise's first prompt (moving to the start point) — positioning too. Homing is always
+    positioning."""
+    movements = [(a, b) for a, b in find_movements(sig) if lo <= a <= hi]
+    marks = [mk for mk in sig.marks if lo <= mk.start <= hi]
+    prompts = [p for p in sig.prompts if lo <= p.t <= hi]
+    positioning = [_positioning_entry(sig, "homing", a, b) for a, b in sig.exclude
+                   if lo <= a <= hi or lo <= b <= hi]
+    reps: list[RepetitionMetrics] = []
+    if marks:
+        owner: list[int | None] = []
+        for a, b in movements:
+            onset = _onset_of(sig, a, b)
+            k = next((i for i, mk in enumerate(marks) if mk.start - 1e-6 <= onset <= mk.end), None)
+            owner.append(k)
+        for i, mk in enumerate(marks):
+            mine = [movements[j] for j, o in enumerate(owner) if o == i]
+            others = [movements[j] for j, o in enumerate(owner) if o != i]
+            # the window: the mark, less the tail of an earlier movement, plus this movement's own tail
+            w0 = max([mk.start, *[b for a, b in others if a < mk.start < b]])
+            w1 = max([mk.end, *[b for _, b in mine]])
+            w1 = min([w1, *[a for a, _ in others if w0 < a < w1 and not (mine and a < mine[-1][1])]])
+            nxt = marks[i + 1].start if i + 1 < len(marks) else math.inf
+            prompt = _prompt_for(prompts, mk.start, min(mk.end, nxt), mk.index)
+            span = (mine[0][0], mine[-1][1]) if mine else None
+            m = repetition_metrics(sig, mk.start, max(mk.end, w1), mk.index, completed=mk.ok, source="marks",
+                                   movement=(w0, w1), prompt=prompt, span=span)
+            m.completed = mk.ok and covered(m, sig.movement_distance_m) and bool(mine)
+            reps.append(m)
+        positioning += [_positioning_entry(sig, "outside_repetitions", a, b)
+                        for (a, b), o in zip(movements, owner, strict=True) if o is None]
+    else:
+        first_prompt = prompts[0].t if prompts else None
+        k = 0
+        prev_end = -math.inf
+        for a, b in movements:
+            if first_prompt is not None and b < first_prompt + 0.05 and a < first_prompt:
+                positioning.append(_positioning_entry(sig, "to_start", a, b))
+                continue
+            k += 1
+            prompt = _prompt_for(prompts, max(prev_end, lo), b)
+            m = repetition_metrics(sig, a, b, k, source="speed", prompt=prompt)
+            m.completed = covered(m, None)
+            reps.append(m)
+            prev_end = b
+    positioning.sort(key=lambda p: p["start_s"])
+    return Analysis(reps, positioning)
+
+
+def _onset_of(sig: SessionSignals, a: float, b: float) -> float:
+    k = _kinematics(sig, a, b)
+    return float(k["onset"]) if k["onset"] is not None else a
+
+
+def covered(m: RepetitionMetrics, distance_m: float | None) -> bool:
+    """Whether the handle really covered the movement (docs/metrics.md, "Completed"): its recorded range
+    within the repetition is at least 1 cm, and at least 90 % of the distance the exercise commands when its
+    parameters say it."""
+    r = m.range_m
+    if r is None or not math.isfinite(r) or r < SEGMENT_MIN_RANGE_M:
+        return False
+    return distance_m is None or r >= COVERED_FRACTION * distance_m
+
+
+def repetitions(sig: SessionSignals) -> list[RepetitionMetrics]:
+    """The exercise's marked repetitions, or the movements segmented from the speed where it marked none
+    (positioning moves left out: see :func:`analyse`)."""
+    return analyse(sig).repetitions
 
 
 def _pieces(series: Series, exclude: Sequence[tuple[float, float]]) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -508,7 +822,7 @@ def signals_from_session(session: Any) -> SessionSignals:
     position = series("linarm.vsa", "handlePos", regular=True) or Series(np.zeros(0), np.zeros(0))
     sig = SessionSignals(position=position, rate_hz=rate,
                          force=series("linarm.vsa", "interactionForce", regular=True),
-                         grip=series("physio.main", "force"),
+                         grip=series("physio.main", "force", regular=True),
                          heart_rate=series("physio.main", "heartRate"),
                          skin_conductance=series("physio.main", "skinConductance"),
                          alpha=series("patient_model.main", "alpha"),
@@ -530,17 +844,51 @@ def signals_from_session(session: Any) -> SessionSignals:
             sig.fes_frequency_hz = float(((session.manifest.get("config") or {}).get("fes") or {})
                                          .get("frequency_hz") or 0.0) or None
     sig.marks = marks_from_events(session.events, t0, t_end)
-    sig.exclude = homing_intervals(session)
-    threshold = exercise_params(session.events).get("trigger_threshold_n")
+    sig.prompts = prompts_from_events(session.events, t0)
+    sig.exclude = homing_intervals(session, position)
+    params = exercise_params(session.events)
+    threshold = params.get("trigger_threshold_n")
     sig.trigger_threshold_n = float(threshold) if threshold is not None else None
+    sig.movement_distance_m = movement_distance(params)
     return sig
 
 
-HOMING_MARGIN_S = 0.2  # the position settles after the encoders are re-referenced
+def prompts_from_events(events: Iterable[Mapping[str, Any]], t_zero: float,
+                        run_id: str | None = None) -> list[Prompt]:
+    """The exercise's cues (``prompt`` events: ``linarmppManager.prompt``), times from ``t_zero``."""
+    out = []
+    for e in events:
+        if e.get("kind") != "prompt":
+            continue
+        data = e.get("data") or {}
+        if run_id is not None and data.get("run_id") not in (None, run_id):
+            continue
+        threshold = data.get("threshold_n")
+        index = data.get("index")
+        out.append(Prompt(float(e.get("t_mono", t_zero)) - t_zero, int(index) if index is not None else None,
+                          str(data.get("cue") or "squeeze"), float(threshold) if threshold is not None else None))
+    return out
 
 
-def homing_intervals(session: Any) -> list[tuple[float, float]]:
-    """Where the robot was homing (s from the session's start), with a margin after each."""
+def movement_distance(params: Mapping[str, Any]) -> float | None:
+    """The distance one movement of the exercise covers, from its parameters (start and end or target), if
+    they say it."""
+    start = params.get("start_m")
+    end = params.get("end_m", params.get("target_m"))
+    try:
+        return abs(float(end) - float(start)) if start is not None and end is not None else None
+    except (TypeError, ValueError):
+        return None
+
+
+HOMING_MARGIN_S = 0.2  # the position may still jump (encoders re-referenced) this long after homing ends
+HOMING_JUMP_M = 0.005  # a jump: more than 5 mm from one sample to the next (1 m/s at 200 Hz, no arm moves so)
+
+
+def homing_intervals(session: Any, position: Series | None = None) -> list[tuple[float, float]]:
+    """Where the robot was homing (s from the session's start). After each, up to the position's last jump
+    within ``HOMING_MARGIN_S`` (re-referenced encoders) — not a fixed margin, which clipped the start of a
+    movement that followed homing at once."""
     from app.devices.linarm_protocol import ControlState
 
     state = session.streams.get("linarm.state")
@@ -553,7 +901,15 @@ def homing_intervals(session: Any) -> list[tuple[float, float]]:
     out = []
     for a, b in zip(starts, ends, strict=True):
         end = float(t[b]) if b < len(t) else float(t[-1])
-        out.append((float(t[a]) - 0.05, end + HOMING_MARGIN_S))
+        if position is not None and len(position):
+            sel = np.nonzero((position.t >= end - 0.05) & (position.t <= end + HOMING_MARGIN_S))[0]
+            if len(sel) > 1:
+                jumps = np.nonzero(np.abs(np.diff(position.v[sel])) > HOMING_JUMP_M)[0]
+                if len(jumps):
+                    end = max(end, float(position.t[sel[int(jumps[-1]) + 1]]))
+        else:
+            end += HOMING_MARGIN_S
+        out.append((float(t[a]) - 0.05, end))
     return out
 
 
@@ -574,28 +930,145 @@ def session_alarms(session: Any) -> list[dict[str, Any]]:
 
 def metrics_of_session(session: Any, since_mono: float | None = None,
                        until_mono: float | None = None) -> dict[str, Any]:
-    """``{"repetitions": [...], "summary": {...}, "alarms": [...]}`` of a loaded session; with ``since_mono`` /
-    ``until_mono`` (monotonic times) only the repetitions starting and the alarms raised in between (one
-    exercise of the session)."""
+    """``{"repetitions": [...], "summary": {...}, "alarms": [...], "positioning": [...], "runs": [...]}`` of a
+    loaded session; with ``since_mono`` / ``until_mono`` (monotonic times) only the repetitions starting and
+    the alarms raised in between (one exercise of the session). ``runs``: :func:`metrics_by_run`, as dicts."""
     sig = signals_from_session(session)
     lo = -math.inf if since_mono is None else since_mono - session.start_mono
     hi = math.inf if until_mono is None else until_mono - session.start_mono
     events = [e for e in session.events if lo <= float(e.get("t_mono", 0.0)) - session.start_mono <= hi]
+    params = exercise_params(events)
     if since_mono is not None or until_mono is not None:
-        sig.marks = [mk for mk in sig.marks if lo <= mk.start <= hi]
-        params = exercise_params(events)
         threshold = params.get("trigger_threshold_n")
         sig.trigger_threshold_n = float(threshold) if threshold is not None else None
-    reps = [r for r in repetitions(sig) if lo <= r.start_s <= hi]
+        sig.movement_distance_m = movement_distance(params)
+    by_run = metrics_by_run(session, sig)
+    by_run = [r for r in by_run if lo <= r.run.started_mono - session.start_mono <= hi
+              or (since_mono is None and until_mono is None)]
+    reps: list[dict[str, Any]] = []
+    positioning: list[dict[str, Any]] = []
+    objects: list[RepetitionMetrics] = []
+    for r in by_run:
+        for m, d in zip(r.objects, r.repetitions, strict=True):
+            if lo <= m.start_s <= hi:
+                reps.append(d)
+                objects.append(m)
+        positioning += [p for p in r.positioning if lo <= p["start_s"] <= hi]
     alarms = [a for a in session_alarms(session) if lo <= a["t_s"] <= hi]
     duration = session.duration_s if since_mono is None and until_mono is None else \
         min(hi, session.duration_s) - max(lo, 0.0)
-    summary = summarize(reps, duration_s=duration,
+    summary = summarize(objects, duration_s=duration,
                         alarms=sum(1 for a in alarms if a["kind"] in ("alarm", "emergency_stop")))
-    params = exercise_params(events)
+    summary["positioning_moves"] = sum(1 for p in positioning if p["kind"] != "homing")
     if params:
         summary["exercise_params"] = _clean(params)
-    return {"repetitions": [r.as_dict() for r in reps], "summary": summary, "alarms": alarms}
+    return {"repetitions": reps, "summary": summary, "alarms": alarms, "positioning": positioning,
+            "runs": [r.as_dict() for r in by_run]}
+
+
+# ------------------------------------------------------------------------------------------- per run
+@dataclass
+class RunMetrics:
+    """One exercise run's metrics (app.runs.RunMetricsRef's shape): its repetitions numbered within the run
+    from 1 (dicts of :class:`RepetitionMetrics`), its own summary, and the robot's positioning moves apart."""
+
+    run: Any  # app.runs.ExerciseRun
+    repetitions: list[dict[str, Any]] = field(default_factory=list)
+    summary: dict[str, Any] = field(default_factory=dict)
+    positioning: list[dict[str, Any]] = field(default_factory=list)
+    objects: list[RepetitionMetrics] = field(default_factory=list, repr=False)
+
+    def as_dict(self) -> dict[str, Any]:
+        run = self.run
+        return _clean({"run_id": run.run_id, "title": run.title, "program": run.program.ident,
+                       "source": run.source, "end_reason": run.end_reason, "end": run.end_text(),
+                       "parameters": {p.name: p.value for p in run.parameters},
+                       "repetitions": self.repetitions, "summary": self.summary, "positioning": self.positioning})
+
+
+def _runs_of(session: Any) -> list[Any]:
+    """The session's runs (app.runs); a recording made before runs were recorded gets one per script run
+    (``script_start`` / ``script_stop``), or one for the whole session."""
+    from dataclasses import replace as _replace
+
+    from app.runs import ExerciseRun, Program, runs_from_events, text_hash
+
+    runs = runs_from_events(session.events, t_end=session.end_mono)
+    if runs:
+        return runs
+    out: list[ExerciseRun] = []
+    for e in session.events:
+        data = e.get("data") or {}
+        t = float(e.get("t_mono", session.start_mono))
+        if e.get("kind") == "script_start":
+            name = str(data.get("name") or "script")
+            text = str(data.get("text") or "")
+            out.append(ExerciseRun(run_id=f"script-{len(out) + 1}",
+                                   program=Program("script_file", name, Path(name).stem, text_hash(text), path=name),
+                                   parameters=(), source="script_tab", operator=str(e.get("who") or ""),
+                                   started_mono=t, started_wall=0.0))
+        elif e.get("kind") == "script_stop" and out and out[-1].running:
+            status = str(data.get("status") or "finished")
+            reason = {"finished": "finished", "error": "script_error", "refused": "refused",
+                      "stopped": "stopped_by_operator"}.get(status, "stopped_by_operator")
+            out[-1] = _replace(out[-1], ended_mono=t, end_reason=reason, end_detail=str(data.get("reason") or ""),
+                               state="finished" if reason == "finished" else "stopped")
+    out = [r if not r.running else _replace(r, ended_mono=session.end_mono, end_reason="crashed", state="stopped")
+           for r in out]
+    if not out:
+        out = [ExerciseRun(run_id="session", program=Program("script_file", "", "session", ""), parameters=(),
+                           source="headless", operator="", started_mono=session.start_mono, started_wall=0.0,
+                           ended_mono=session.end_mono, end_reason="finished", state="finished")]
+    return out
+
+
+def metrics_by_run(session: Any, sig: SessionSignals | None = None) -> list[RunMetrics]:
+    """Per exercise run of a loaded session (app.runs.runs_from_events): its repetitions numbered within the
+    run, its own summary and its positioning moves. A run refused before its first movement is "not started":
+    no repetition, whatever the robot did while positioning."""
+    import copy
+
+    sig = signals_from_session(session) if sig is None else sig
+    t0 = session.start_mono
+    out: list[RunMetrics] = []
+    alarms = session_alarms(session)
+    for run in _runs_of(session):
+        lo = run.started_mono - t0
+        hi = (run.ended_mono if run.ended_mono is not None else session.end_mono) - t0
+        run_events = [e for e in session.events if lo - 1e-6 <= float(e.get("t_mono", t0)) - t0 <= hi + 1e-6]
+        mine = [e for e in run_events if (e.get("data") or {}).get("run_id") in (None, run.run_id)]
+        rs = copy.copy(sig)
+        rs.marks = [mk for mk in marks_from_events(mine, t0, hi) if lo - 1e-6 <= mk.start <= hi]
+        rs.prompts = prompts_from_events(mine, t0, run.run_id)
+        params = {**exercise_params(run_events), **run.params_dict()}
+        threshold = params.get("trigger_threshold_n")
+        if threshold is not None:
+            rs.trigger_threshold_n = float(threshold)
+        rs.movement_distance_m = movement_distance(params) if params else sig.movement_distance_m
+        result = analyse(rs, lo, hi)
+        reps = result.repetitions
+        positioning = result.positioning
+        not_started = run.end_reason == "refused" and not rs.marks
+        if not_started:  # refused before its first movement: what moved was the robot positioning
+            positioning = sorted(positioning + [_positioning_entry(rs, "before_refusal", m.start_s, m.end_s)
+                                                for m in reps], key=lambda p: p["start_s"])
+            reps = []
+        for k, m in enumerate(reps):
+            if m.source == "speed":
+                m.index = k + 1
+        run_alarms = [a for a in alarms if lo <= a["t_s"] <= hi]
+        summary = summarize(reps, duration_s=hi - lo,
+                            alarms=sum(1 for a in run_alarms if a["kind"] in ("alarm", "emergency_stop")))
+        summary.update(_clean({"run_id": run.run_id, "title": run.title, "end_reason": run.end_reason,
+                               "not_started": not_started,
+                               "positioning_moves": sum(1 for p in positioning if p["kind"] != "homing")}))
+        dicts = []
+        for m in reps:
+            d = m.as_dict()
+            d["run_id"] = run.run_id
+            dicts.append(d)
+        out.append(RunMetrics(run, dicts, summary, positioning, reps))
+    return out
 
 
 def session_metrics(folder: str | Path) -> dict[str, Any]:

@@ -109,6 +109,17 @@ class ExerciseProgress(QObject):
         self._event("repetition_end", index=index, ok=bool(ok))
         self._set(replace(state, in_repetition=False))
 
+    def prompt(self, index: int | None = None, cue: str = "squeeze", threshold_n: float | None = None) -> None:
+        """The exercise cues the patient now ("squeeze": the grip trigger, ``threshold_n`` its threshold;
+        "move": an active movement): the ``prompt`` event the patient's reaction time is measured from."""
+        with self._lock:
+            state = self._state
+        index = state.repetition if index is None else int(index)
+        data: dict[str, Any] = {"index": index, "cue": str(cue)[:40]}
+        if threshold_n is not None:
+            data["threshold_n"] = float(threshold_n)
+        self._event("prompt", **data)
+
     def report(self, text: str) -> None:
         text = str(text)[:200]
         self._event("progress", text=text)

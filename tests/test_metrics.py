@@ -219,7 +219,9 @@ def test_force_grip_trigger_assistance_fes_and_physiology() -> None:
     # onset = where the speed passes 5 % of its peak: 30 τ²(1 − τ)² = 0.05 × 15/8, τ(1 − τ) = √0.003125
     tau = (1 - math.sqrt(1 - 4 * math.sqrt(0.003125))) / 2  # 0.0593 of the 1 s reach
     assert m.movement_onset_s == pytest.approx(1.3 + tau, abs=0.01)
-    assert m.reaction_time_s == pytest.approx(0.3 + tau, abs=0.01)
+    # no prompt recorded: no patient reaction time; the trigger (1.0 s) to the handle's onset is the robot's
+    assert m.reaction_time_s is None
+    assert m.robot_latency_s == pytest.approx(0.3 + tau, abs=0.01)
     assert (m.mean_alpha, m.mean_a_r, m.mean_a_f) == pytest.approx((0.4, 0.3, 0.1))
     assert m.fes_charge_uc == {"2": pytest.approx(20 * 200 * 40 * 1.0 / 1000, rel=0.01)}  # 1.0 s at 20 mA
     assert m.heart_rate_change_bpm == pytest.approx(5.0)
@@ -258,3 +260,147 @@ def test_summary_means_and_json_safety() -> None:
     assert "peak_force_n" not in s  # no force recorded: no entry, never NaN
     d = reps[0].as_dict()
     assert d["peak_force_n"] is None and not any(isinstance(v, float) and math.isnan(v) for v in d.values())
+
+
+# ------------------------------------------------------------------------------------------- issue #28
+@pytest.mark.parametrize("profile", ["min_jerk", "trapezoid", "short_min_jerk"])
+@pytest.mark.parametrize("noisy", [False, True])
+def test_sparc_does_not_move_when_the_window_takes_more_rest(profile: str, noisy: bool) -> None:
+    """Property (#28 acceptance 2): widening a repetition's window by up to 0.5 s of rest on either side moves
+    SPARC by at most 0.01 (it is taken from rest to rest, whatever the cut)."""
+    t = np.arange(0.0, 4.0, 1 / FS)
+    if profile == "trapezoid":
+        x = 0.1 + trapezoid(t - 1.5, 0.3, 0.15, 0.5)[0]
+        start, end = 1.45, 1.5 + 2.3 + 0.05
+    else:
+        duration, distance = (1.0, 0.3) if profile == "min_jerk" else (0.5, 0.05)
+        x = 0.1 + distance * min_jerk((t - 1.5) / duration)
+        start, end = 1.45, 1.5 + duration + 0.05
+    if noisy:  # the encoder's 10 µm steps and a little noise at rest
+        x = np.round((x + np.random.default_rng(5).normal(0.0, 5e-6, len(x))) / 1e-5) * 1e-5
+    base = repetitions(signals(t, x, [Mark(start, end, 1)]))[0].sparc
+    assert math.isfinite(base)
+    for before in (0.0, 0.1, 0.25, 0.5):
+        for after in (0.0, 0.1, 0.25, 0.5):
+            (m,) = repetitions(signals(t, x, [Mark(start - before, min(end + after, 3.99), 1)]))
+            assert abs(m.sparc - base) <= 0.01, (before, after, m.sparc, base)
+
+
+def test_sparc_of_mirror_image_reaches_is_the_same() -> None:
+    """A 5 cm reach out and its mirror image back: the same smoothness (the cut was −1.405 vs −1.598)."""
+    t = np.arange(0.0, 5.0, 1 / FS)
+    x = 0.1 + 0.05 * min_jerk((t - 1.0) / 0.6) - 0.05 * min_jerk((t - 2.6) / 0.6)
+    out, back = repetitions(signals(t, x, [Mark(0.95, 1.65, 1), Mark(2.5, 3.3, 2)]))
+    assert out.sparc == pytest.approx(back.sparc, abs=0.01)
+    assert out.sparc == pytest.approx(sparc_reference(min_jerk_speed, 1.0), abs=0.05)
+
+
+@pytest.mark.parametrize("n", range(1, 13))
+def test_lowpass_keeps_a_constant_and_a_ramp_however_short(n: int) -> None:
+    from app.metrics import lowpass
+
+    assert lowpass(np.full(n, 3.0), FS) == pytest.approx(np.full(n, 3.0))
+    ramp = 0.1 + 0.001 * np.arange(n)
+    assert lowpass(ramp, FS) == pytest.approx(ramp, abs=1e-9)
+
+
+@pytest.mark.parametrize("v_max, acc", [(0.15, 0.5), (0.30, 1.0)])
+def test_reaches_without_a_rest_are_split_at_each_turn(v_max: float, acc: float) -> None:
+    """Trapezoidal reaches out and back with no pause, as the robot moves (the speed dips below the floor
+    only for a moment at the turn): one repetition per reach, never merged across the turn, however fast."""
+    duration = 0.3 / v_max + v_max / acc
+    t = np.arange(0.0, 1.0 + 6 * duration + 1.0, 1 / FS)
+    x = np.full_like(t, 0.1)
+    for k in range(6):
+        step = trapezoid(t - 1.0 - k * duration, 0.3, v_max, acc)[0]
+        step[t > 1.0 + (k + 1) * duration] = 0.3
+        x += step if k % 2 == 0 else -step
+    reps = repetitions(signals(t, x))
+    assert len(reps) == 6
+    for m in reps:
+        assert m.range_m == pytest.approx(0.3, abs=0.002)
+        assert m.speed_peaks == 1
+        assert m.peak_speed_m_s == pytest.approx(v_max, rel=0.03)
+        assert m.movement_time_s == pytest.approx(duration, abs=0.1)
+
+
+def test_short_dips_within_one_movement_still_join() -> None:
+    """A reach whose speed dips below the onset level for under 0.1 s without turning back is one movement."""
+    t = np.arange(0.0, 4.0, 1 / FS)
+    x = 0.1 + 0.1 * min_jerk((t - 1.0) / 0.8) + 0.1 * min_jerk((t - 1.8) / 0.8)
+    reps = repetitions(signals(t, x))
+    assert len(reps) == 1 and reps[0].range_m == pytest.approx(0.2, abs=0.002)
+    assert reps[0].speed_peaks == 2  # two submovements, one repetition
+
+
+def test_a_tremor_at_rest_is_not_a_movement_and_does_not_join_reaches() -> None:
+    t = np.arange(0.0, 9.0, 1 / FS)
+    x = 0.1 + 0.25 * min_jerk((t - 1.0) / 1.0) - 0.25 * min_jerk((t - 3.0) / 1.0) + 0.25 * min_jerk((t - 5.0) / 1.0)
+    x = x + 0.0015 * np.sin(2 * math.pi * 5.0 * t)  # ±1.5 mm at 5 Hz, everywhere
+    reps = repetitions(signals(t, x))
+    assert len(reps) == 3
+    for m in reps:
+        assert m.range_m == pytest.approx(0.25, abs=0.006)  # the tremor's own 3 mm peak to peak at the ends
+
+
+def test_speed_ratio_and_dimensionless_jerk_of_a_minimum_jerk_reach() -> None:
+    t, x = reach(1.0, 1.0, 0.3, 3.0)
+    (m,) = repetitions(signals(t, x, [Mark(0.9, 2.1, 1)]))
+    # mean over the movement (onset to end at 5 % of the peak) / peak: 1/1.875 of the whole, a little more
+    assert m.speed_ratio == pytest.approx(0.60, abs=0.02)
+    # (T³/v_peak²)∫jerk²: 720/1.875² = 204.8 for the whole reach; the 5 % onset trims T, the 6 Hz low-pass jerk
+    assert 120 < m.dimensionless_jerk < 220 and m.ldlj == pytest.approx(-math.log(m.dimensionless_jerk))
+    two = repetitions(signals(*reach(1.0, 1.0, 0.3, 3.0), [Mark(0.9, 2.1, 1)]))[0]
+    assert two.dimensionless_jerk == pytest.approx(m.dimensionless_jerk)
+
+
+def test_patient_reaction_time_from_the_prompt_to_the_grips_onset() -> None:
+    from app.metrics import Prompt
+
+    t, x = reach(2.0, 1.0, 0.2, 4.0)
+    # the prompt at 1.0 s; the grip starts rising at 1.5 s (τ 0.1 s towards 38 N), crosses 20 N at ~1.575 s
+    grip = np.where(t < 1.5, 1.0, 38.0 - 37.0 * np.exp(-(t - 1.5) / 0.1))
+    grip = np.where(t > 2.4, 1.0, grip)
+    sig = signals(t, x, [Mark(1.0, 3.2, 1)], grip=Series(t, grip), trigger_threshold_n=20.0,
+                  prompts=[Prompt(1.0, 1, "squeeze", 20.0)])
+    (m,) = repetitions(sig)
+    assert m.reaction_time_s == pytest.approx(0.5, abs=0.01)  # the patient's, not the robot's start-up
+    crossing = 1.5 + 0.1 * math.log(37.0 / 18.0)
+    assert m.robot_latency_s == pytest.approx(m.movement_onset_s - crossing, abs=0.01)
+    assert m.grip_at_trigger_n == pytest.approx(38.0 - 37.0 * math.exp(-0.9 / 0.1), abs=0.1)  # the squeeze's peak
+    assert m.grip_at_start_n == m.grip_at_trigger_n  # not the resting 1 N before the mark
+
+
+def test_a_skipped_marked_repetition_is_not_completed() -> None:
+    """No movement of the handle within the mark (the trigger never came): not completed, whatever the
+    exercise said; a movement that covers less than 90 % of the commanded distance neither."""
+    t = np.arange(0.0, 8.0, 1 / FS)
+    x = 0.1 + 0.2 * min_jerk((t - 4.5) / 1.0)  # only the second repetition moves
+    sig = signals(t, x, [Mark(0.5, 3.5, 1, ok=True), Mark(4.0, 6.0, 2, ok=True)], movement_distance_m=0.2)
+    skipped, done = repetitions(sig)
+    assert not skipped.completed and done.completed
+    sig.movement_distance_m = 0.3  # commanded 0.3 m, the handle covered 0.2
+    assert not repetitions(sig)[1].completed
+
+
+def test_homing_then_an_immediate_movement_is_not_clipped() -> None:
+    """The first movement right after homing keeps its start (a fixed 0.2 s margin cut it)."""
+    from types import SimpleNamespace
+
+    from app.devices.linarm_protocol import ControlState
+    from app.metrics import homing_intervals
+
+    t = np.arange(0.0, 6.0, 1 / FS)
+    x = np.where(t < 1.8, 0.0, 0.25) + 0.2 * min_jerk((t - 2.0) / 1.0)  # re-referenced at 1.8 s; moves at 2.0 s
+    state_t = np.array([0.0, 1.0, 2.0, 2.01, 6.0])
+    states = np.array([0, int(ControlState.HOME_CTRL_STATE), int(ControlState.HOME_CTRL_STATE), 2, 2])
+    session = SimpleNamespace(start_mono=0.0, streams={"linarm.state": SimpleNamespace(
+        t=np.repeat(state_t, 1), data={"controlState": np.where(state_t < 1.0, 0, states)})})
+    session.streams["linarm.state"].data["controlState"] = np.array([0, 3, 3, 2, 2])
+    session.streams["linarm.state"].data["controlState"][1:3] = int(ControlState.HOME_CTRL_STATE)
+    exclude = homing_intervals(session, Series(t, x))
+    assert exclude[0][1] == pytest.approx(2.01, abs=0.01)  # the homing's end: the jump was inside it
+    sig = signals(t, x, exclude=exclude)
+    (m,) = repetitions(sig)
+    assert m.range_m == pytest.approx(0.2, abs=0.002)
+    assert m.start_s < 2.1

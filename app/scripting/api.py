@@ -615,6 +615,11 @@ class LinarmppManager:
         """A short message for the clinician (shown beside the repetition count, recorded as an event)."""
         self._ctx.manager.progress.report(text)
 
+    def prompt(self, index: int | None = None, cue: str = "squeeze", threshold: float | None = None) -> None:
+        """Mark the cue to the patient, now ("squeeze" the handle, ``threshold`` N; or "move"): the patient's
+        reaction time is measured from it (docs/metrics.md)."""
+        self._ctx.manager.progress.prompt(index, cue, threshold)
+
 
 # ---------------------------------------------------------------------------------------------- namespace
 API_NAMES = ("linarm", "physiologicalSensors", "fes", "patientModel", "VRUnity", "linarmppManager")

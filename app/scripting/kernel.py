@@ -916,6 +916,11 @@ class LinarmppManager:
         """A short message for the clinician (shown beside the repetition count, recorded as an event)."""
         self._k.call("linarmppManager", "reportProgress", str(text))
 
+    def prompt(self, index: int | None = None, cue: str = "squeeze", threshold: float | None = None) -> None:
+        """Mark the cue to the patient, now ("squeeze" the handle, ``threshold`` N; or "move"): the patient's
+        reaction time is measured from it (docs/metrics.md)."""
+        self._k.call("linarmppManager", "prompt", index, str(cue), threshold)
+
 
 def make_wait_condition(kernel: Kernel, namespace: Mapping[str, Any]) -> Callable[..., bool]:
     """``waitCondition(condition, timeout=None)`` or the seed's ``waitCondition("expr", locals(), timeout)``:

@@ -42,6 +42,7 @@ if USE_FES:
 try:
     for rep in range(REPETITIONS):
         linarmppManager.startRepetition(rep + 1, REPETITIONS)
+        linarmppManager.prompt(rep + 1, "move")  # reach now: the reaction time runs to the handle's onset
         going_out = True
         linarm.setAssistanceTargetPos(TARGET)
         reached = waitCondition(lambda: abs(linarm.linarmVsaState.handlePos - TARGET) < REACHED_M, TIMEOUT_S)

@@ -12,6 +12,9 @@ initial = physiologicalSensors.physiologicalSensorsData.temperature
 linarm.setCtrlState(linarm.CONTROL_STATES.IDLE_CTRL_STATE)
 linarm.setCtrlMode(linarm.CONTROL_MODES.POS_REF_BY_TARGET_POS)
 linarm.setCtrlState(linarm.CONTROL_STATES.ON_CTRL_STATE)
+linarm.moveCentreTo(BASE_M, SPEED, SPEED, 0, False)  # positioning at the base: not one of the movements
+waitCondition(lambda: abs(linarm.linarmVsaState.equilibriumPos - BASE_M) < 0.005, 10)
+linarmppManager.prompt(None, "start")  # the exercise proper starts here (the metrics: what moved before is positioning)
 elapsed = 0.0
 try:
     while elapsed < DURATION_S:

@@ -4,6 +4,8 @@
 # movement starts only when the grip force exceeds the trigger threshold (0 N: no trigger, the next movement
 # starts after the rest). Each movement is one repetition; a movement whose trigger did not come within the
 # timeout is skipped (marked as not completed). Parameters come from the Exercises form as exerciseParams.
+import time
+
 P = exerciseParams
 MOVEMENTS = int(P.get("movements", 8))
 START = float(P.get("start_m", 0.10))
@@ -13,33 +15,54 @@ ACCELERATION = float(P.get("acceleration_m_s2", 0.15))
 THRESHOLD = float(P.get("trigger_threshold_n", 20.0))
 TRIGGER_TIMEOUT_S = float(P.get("trigger_timeout_s", 10.0))
 REST_S = float(P.get("rest_s", 0.5))
-ARRIVED_M = 0.005       # the seed's arrival criterion: within 5 mm of the target
+ARRIVED_M = 0.005       # the seed's arrival criterion: the commanded centre within 5 mm of the target
+HANDLE_REACHED_M = 0.01  # completed: the handle itself (not the centre) came within 1 cm of the target ...
+COVERED = 0.9            # ... having covered at least 90 % of the movement (docs/metrics.md, "Completed")
+SETTLE_TIMEOUT_S = 2.0   # how long the handle may lag the centre at the end of a movement
 MOVE_TIMEOUT_S = 30.0
+
+
+def grip():
+    return physiologicalSensors.physiologicalSensorsData.force
+
+
+def wait_for_squeeze(timeout_s):
+    """One squeeze = one trigger: a grip still held from the last trigger must be released first (re-armed
+    only below the threshold), then squeezed through it again."""
+    started = time.monotonic()
+    if not waitCondition(lambda: grip() < THRESHOLD, timeout_s):
+        return False
+    left = timeout_s - (time.monotonic() - started)
+    return left > 0 and waitCondition(lambda: grip() > THRESHOLD, left)
+
 
 linarm.setCtrlState(linarm.CONTROL_STATES.IDLE_CTRL_STATE)
 linarm.setCtrlMode(linarm.CONTROL_MODES.POS_REF_BY_TARGET_POS)
 linarm.setCtrlState(linarm.CONTROL_STATES.ON_CTRL_STATE)
-linarm.moveCentreTo(START, SPEED, ACCELERATION, 0, False)
+linarm.moveCentreTo(START, SPEED, ACCELERATION, 0, False)  # positioning: not a repetition
 waitCondition(lambda: abs(linarm.linarmVsaState.equilibriumPos - START) < ARRIVED_M, MOVE_TIMEOUT_S)
 wait(REST_S)
 
 try:
     for k in range(MOVEMENTS):
-        target = END if k % 2 == 0 else START
+        # the target is the far end from where the handle is (after a skipped movement it has not moved)
+        here = linarm.linarmVsaState.handlePos
+        target = END if abs(here - START) <= abs(here - END) else START
         linarmppManager.startRepetition(k + 1, MOVEMENTS)
         if THRESHOLD > 0:
             linarmppManager.reportProgress(f"squeeze the handle ({THRESHOLD:g} N) to move")
-            gripped = waitCondition(lambda: physiologicalSensors.physiologicalSensorsData.force > THRESHOLD,
-                                    TRIGGER_TIMEOUT_S)
-            if not gripped:
+            linarmppManager.prompt(k + 1, "squeeze", THRESHOLD)
+            if not wait_for_squeeze(TRIGGER_TIMEOUT_S):
                 linarmppManager.endRepetition(k + 1, ok=False)
                 linarmppManager.reportProgress("no grip: movement skipped")
                 continue
         linarmppManager.reportProgress(f"moving to {target:.2f} m")
         linarm.moveCentreTo(target, SPEED, ACCELERATION, 0, False)
-        arrived = waitCondition(lambda: abs(linarm.linarmVsaState.equilibriumPos - target) < ARRIVED_M,
-                                MOVE_TIMEOUT_S)
+        waitCondition(lambda: abs(linarm.linarmVsaState.equilibriumPos - target) < ARRIVED_M, MOVE_TIMEOUT_S)
+        reached = waitCondition(lambda: abs(linarm.linarmVsaState.handlePos - target) < HANDLE_REACHED_M,
+                                SETTLE_TIMEOUT_S)
+        covered = abs(linarm.linarmVsaState.handlePos - here) >= COVERED * abs(target - here)
         wait(REST_S)  # the handle settles: the repetition ends at rest
-        linarmppManager.endRepetition(k + 1, ok=arrived)
+        linarmppManager.endRepetition(k + 1, ok=bool(reached and covered))
 finally:
     linarm.setCtrlState(linarm.CONTROL_STATES.IDLE_CTRL_STATE)

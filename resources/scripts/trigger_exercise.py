@@ -5,7 +5,10 @@
 # Objects used: linarm and physiologicalSensors. The robot must be homed (the runner homes it first).
 # The code below is Fig. 18 as printed, but for its scanning artefacts: a stray "..." in waitCondition
 # and the indentation of Fig. 18's lines 27-31, which belong to the script, not to the function.
-# Fig. 18's line N is line N + 8 here (its waitCondition calls of lines 34 and 37 are lines 42 and 45).
+# Two additions, marked "# added": one squeeze is one trigger (the grip must fall back below the threshold
+# before the next movement can be triggered: Fig. 18 as printed starts both movements of a cycle on one held
+# squeeze), and each "squeeze now" is marked with linarmppManager.prompt, from which the patient's reaction
+# time is measured (docs/metrics.md). Fig. 18's line N is line N + 8 here up to line 33.
 # ruff: noqa: I001, F401, F811 -- kept as the seed printed it
 #####
 # Parameter
@@ -39,9 +42,13 @@ linarm.setCtrlState(linarm.CONTROL_STATES.ON_CTRL_STATE)
 linarm.moveDeltaTo(DeltaPos1,maxVelTrap,maxAccTrap,0, False)
 
 for i in range(0,numCicli):
+    linarmppManager.prompt(2 * i + 1, "squeeze", 20)  # added
+    waitCondition("physiologicalSensors.physiologicalSensorsData.force<20", locals(), 10)  # added: re-arm
     waitCondition("physiologicalSensors.physiologicalSensorsData.force>20", locals(), 10)
     linarm.moveCentreTo(endPoint,maxVelTrap,maxAccTrap,0, False)
     waitCondition("abs(endPoint-linarm.linarmVsaState.equilibriumPos)<5e-3", locals(), 10)
+    linarmppManager.prompt(2 * i + 2, "squeeze", 20)  # added
+    waitCondition("physiologicalSensors.physiologicalSensorsData.force<20", locals(), 10)  # added: re-arm
     waitCondition("physiologicalSensors.physiologicalSensorsData.force>20", locals(), 10)
     linarm.moveCentreTo(startPoint,maxVelTrap,maxAccTrap,0, False)
     waitCondition("abs(startPoint-linarm.linarmVsaState.equilibriumPos)<5e-3", locals(), 10)
