@@ -43,7 +43,9 @@ def _rep_numbers(section: str) -> list[int]:
 
 
 def test_the_session_pdf_lists_every_run_and_its_end(tmp_path: Path) -> None:
-    folder = write_run_session(tmp_path / "sessions" / "PZ-017" / "20260301-100000", clinic_day_runs())
+    folder = write_run_session(tmp_path / "sessions" / "PZ-017" / "20260301-100000", clinic_day_runs(),
+                               profile={"patient_id": "PZ-017", "affected_side": "left", "full_name": "Anna Rossi",
+                                        "birth_date": "1956-04-23", "record_number": "MRN-4471"})
     pdf = tmp_path / "session.pdf"
     pages = write_session_report(folder, pdf)
     text = pdf_text(pdf)
@@ -66,7 +68,8 @@ def test_the_session_pdf_lists_every_run_and_its_end(tmp_path: Path) -> None:
     # the alarm in full, not cut at the right margin; identification, definitions, sign-off
     flat = re.sub(r"\s+", " ", text)
     assert "electrode-check-needed" in flat and LONG_ALARM[:60] in flat
-    for needle in ("Patient ID PZ-017", "Definitions", "SPARC", "Reaction time", "Clinician (name)", "Signature"):
+    for needle in ("Patient ID PZ-017 Name Anna Rossi Date of birth 1956-04-23 Medical record no. MRN-4471",
+                   "Definitions", "SPARC", "Reaction time", "Clinician (name)", "Signature"):
         assert needle in flat, needle
     assert "e+0" not in text
     assert overlaps(pdf) == []
