@@ -349,7 +349,7 @@ def plan_problems(plan: list[PlannedExercise], library: list[Any] | None = None)
         result = validate(exercise, step.params)
         for name, why in result.errors.items():
             label = next((p.label for p in exercise.parameters if p.name == name), name)
-            out.append(PlanProblem(k, name, f"Step {k} ({exercise.title}), {label}: {why}"))
+            out.append(PlanProblem(k, name, f"Step {k}, {exercise.title} — {label}: {why}"))
     return out
 
 

@@ -213,6 +213,22 @@ def session_runs(session: Any) -> list[ExerciseRun]:
             for r in runs]
 
 
+END_GRACE_S = 0.5  # what the record writes just after a run's end (the script's stop) still belongs to it
+
+
+def run_at(runs: Sequence[ExerciseRun], t_mono: float) -> ExerciseRun | None:
+    """The run an event at ``t_mono`` belongs to: the one running then (start < t ≤ end; an event at a
+    restart's very start is the previous run's end), else the one that ended just before (0.5 s)."""
+    for r in runs:
+        end = r.ended_mono if r.ended_mono is not None else math.inf
+        if r.started_mono < t_mono <= end:
+            return r
+    for r in runs:
+        if r.ended_mono is not None and r.ended_mono < t_mono <= r.ended_mono + END_GRACE_S:
+            return r
+    return None
+
+
 @dataclass
 class RunReport:
     """One run with its metrics, as the reports and the on-screen summary show it."""
@@ -258,9 +274,7 @@ def run_reports(session: Any, runs: Sequence[ExerciseRun] | None = None) -> list
     t0 = session.start_mono
 
     def alarms_of(run: ExerciseRun) -> list[dict[str, Any]]:
-        lo = run.started_mono - t0
-        hi = (run.ended_mono if run.ended_mono is not None else session.end_mono) - t0
-        return [a for a in all_alarms if lo <= a["t_s"] <= hi + 0.5]
+        return [a for a in all_alarms if run_at(runs, a["t_s"] + t0) is run]
 
     out: list[RunReport] = []
     if by_run is not None and any(e.get("kind") == "run_start" for e in session.events):
@@ -620,7 +634,7 @@ class _Pdf:
             self.painter.setPen(self._colour("#000000"))
             x = float(self.MARGIN)
             for k, (cell, w) in enumerate(zip(cells, widths, strict=False)):
-                right = k in align_right and not bold
+                right = k in align_right  # headers over their numbers
                 horizontal = Qt.AlignmentFlag.AlignRight if right else Qt.AlignmentFlag.AlignLeft
                 self.painter.drawText(QRectF(x + pad, self.y + 2.5, w - 2 * pad, h - 2.5),
                                       int(horizontal | Qt.AlignmentFlag.AlignTop) | _WRAP, cell)
@@ -992,13 +1006,13 @@ def write_session_report(folder: str | Path, out: str | Path, data: SessionRepor
     pdf.heading("Alarms and interruptions (whole session)")
     alarms = m["alarms"]
     if alarms:
-        def run_at(t_s: float) -> str:
-            for r in runs:
-                if r.run.started_mono - start_mono <= t_s <= (r.run.ended_mono or math.inf) - start_mono + 0.5:
-                    return str(r.number)
-            return "—"
+        number_of = {r.run.run_id: str(r.number) for r in runs}
+
+        def run_number(t_s: float) -> str:
+            run = run_at([r.run for r in runs], t_s + start_mono)
+            return number_of.get(run.run_id, "—") if run is not None else "—"
         pdf.table(["Time s", "Run", "Event", "Details"],
-                  [[f"{a['t_s']:.1f}", run_at(a["t_s"]), a["kind"].replace("_", " "), alarm_text(a["data"])]
+                  [[f"{a['t_s']:.1f}", run_number(a["t_s"]), a["kind"].replace("_", " "), alarm_text(a["data"])]
                    for a in alarms], [0.8, 0.5, 1.4, 6])
     else:
         pdf.text("None.")
@@ -1059,16 +1073,17 @@ def write_progress_report(patient_id: str, out: str | Path, rows: Sequence[Progr
     first = rows[0].date if rows else "—"
     last = rows[-1].date if rows else "—"
     interrupted = [k + 1 for k, r in enumerate(rows) if r.interrupted]
-    pdf.fields([
+    pairs = [
         *identification(patient_id, profile, {}),
         ("Sessions", f"{len(rows)}   ({first} … {last})"
                      + (f"; interrupted: #{', #'.join(map(str, interrupted))}" if interrupted else "")),
         ("Repetitions", str(sum(int(r.summary.get("repetitions") or 0) for r in rows))),
-    ], label_width=190)
+    ]
     if profile is not None:
         scores = profile.scores
-        pdf.fields([(label, fmt(getattr(scores, key, None), "{}")) for key, label in SCORES]
-                   + [("Assessed on", scores.assessed_on or "—")], label_width=190)
+        pairs += [(label, fmt(getattr(scores, key, None), "{}")) for key, label in SCORES]
+        pairs.append(("Assessed on", scores.assessed_on or "—"))
+    pdf.fields(pairs, label_width=190)
 
     pdf.heading("Sessions")
     pdf.table(["#", "Date and time", "Exercises", "Reps (done)", "Peak m/s", "SPARC", "Range m", "α", "Alarms",

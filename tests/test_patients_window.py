@@ -92,7 +92,7 @@ def test_the_therapy_plan_is_edited_with_the_exercises_ranges(qtbot, folder: Pat
     speed = plan.editors["speed_m_s"]
     assert isinstance(speed, QLineEdit)
     speed.setText("0.5")  # the exercise allows 0.02 … 0.3 m/s
-    assert "Step 1 (Trigger reaching" in plan.error_label.text()
+    assert "Step 1, Trigger reaching" in plan.error_label.text()
     assert "Speed: 0.5 m/s is above the maximum 0.3 m/s" in plan.error_label.text() and speed.styleSheet()
     plan.accept()
     assert plan.result() == 0 and "The plan is not saved" in plan.error_label.text()

@@ -30,7 +30,7 @@ pytestmark = pytest.mark.skipif(shutil.which("pdftotext") is None, reason="poppl
 TRIGGER = "Trigger reaching (grip-triggered passive movements)"
 
 
-def _section(text: str, start: str, end_pattern: str = r"\n(Run \d+ — |The whole session)") -> str:
+def _section(text: str, start: str, end_pattern: str = r"\n\f?(Run \d+ — |The whole session)") -> str:
     i = text.index(start)
     m = re.search(end_pattern, text[i + len(start):])
     return text[i: i + len(start) + (m.start() if m else len(text))]
@@ -51,7 +51,7 @@ def test_the_session_pdf_lists_every_run_and_its_end(tmp_path: Path) -> None:
     text = pdf_text(pdf)
     assert pages >= 2
     # the overview: every run with its title, where it came from and how it ended
-    overview = re.sub(r"\s+", " ", _section(text, "Session overview", r"\nRun 1 — "))
+    overview = re.sub(r"\s+", " ", _section(text, "Session overview", r"\n\f?Run 1 — "))
     for needle in ("emergency stop: F12 pressed by the operator", "restarted as run 2", "restart of run 1",
                    "Recover (restart)", "Script tab", "trigger_exercise.py", "not started",
                    "refused before it started: FES current 45 mA is above the patient's cap of 40 mA"):

@@ -212,11 +212,14 @@ class PlanDialog(QDialog):
             return
         self.step_box.setTitle(f"Step {row + 1}: {exercise.title}")
         self.description.setText(exercise.description)
+        hint_width = max((self.fontMetrics().horizontalAdvance(p.describe_range()) for p in exercise.parameters),
+                         default=0) + 8
         for p in exercise.parameters:
             editor = self._editor(p, step["values"].get(p.name, p.default))
             self.editors[p.name] = editor
             hint = QLabel(p.describe_range())
             hint.setStyleSheet("color: #555;")
+            hint.setMinimumWidth(hint_width)  # the fields line up whatever their ranges say
             row_w = QHBoxLayout()
             row_w.addWidget(editor, 1)
             row_w.addWidget(hint)
@@ -263,7 +266,7 @@ class PlanDialog(QDialog):
         editor = self.editors.get(name)
         if editor is not None:
             editor.setStyleSheet(_ERROR_STYLE if why else "")
-        self.error_label.setText(f"Step {self._current + 1} ({exercise.title}), {p.label}: {why}" if why else "")
+        self.error_label.setText(f"Step {self._current + 1}, {exercise.title} — {p.label}: {why}" if why else "")
         item = self.step_list.item(self._current)
         if item is not None and not why:
             item.setText(step_text(self._planned(step), exercise, self._current + 1))

@@ -104,9 +104,9 @@ class RunSummary(QWidget):
             plot.setBackground("w")
             plot.showGrid(x=True, y=True, alpha=0.3)
             plot.setLabel("bottom", f"repetition of run {report.number}")
-            plot.setMinimumHeight(130)
+            plot.setMinimumHeight(110)
             if len(keys) > 1:
-                plot.addLegend(offset=(-5, 5))
+                plot.addLegend(offset=(-5, 5), colCount=len(keys))
             values: list[float] = []
             for j, (key, name) in enumerate(keys):
                 pts = [(a, b) for a, b in zip(x, [r.get(key) for r in reps], strict=True) if b is not None]
@@ -123,12 +123,31 @@ class RunSummary(QWidget):
             grid.addWidget(plot, k // 2, k % 2)
 
         self.alarms = _alarm_table(report.alarms, f"Alarms and interruptions of run {report.number}")
+        # up to six repetitions visible without scrolling; the plots take the rest
+        row_h = self.table.verticalHeader().defaultSectionSize()
+        self.table.setMinimumHeight(self.table.horizontalHeader().sizeHint().height() + row_h * min(6, len(reps))
+                                    + 6)
         lay = QVBoxLayout(self)
         lay.addWidget(self.header)
-        lay.addWidget(self.table, 2)
-        lay.addLayout(grid, 3)
+        if reps:
+            lay.addWidget(self.table, 2)
+            lay.addLayout(grid, 3)
+        else:  # nothing to tabulate or plot: say so instead of empty axes
+            self.table.hide()
+            for plot in self.plots.values():
+                plot.hide()
+            none = QLabel("No repetition in this run" + (": it ended before its first movement."
+                                                          if report.interrupted else "."))
+            none.setWordWrap(True)
+            lay.addWidget(none)
+            lay.addStretch(1)
         lay.addWidget(QLabel(f"<b>Alarms and interruptions of this run</b>: {len(report.alarms) or 'none'}"))
         lay.addWidget(self.alarms)
+
+
+    def showEvent(self, event: Any) -> None:
+        super().showEvent(event)
+        self.alarms.resizeRowsToContents()  # the columns have their final widths now: wrap the sentences in full
 
 
 def _alarm_table(alarms: Sequence[dict[str, Any]], name: str) -> QTableWidget:
@@ -142,6 +161,8 @@ def _alarm_table(alarms: Sequence[dict[str, Any]], name: str) -> QTableWidget:
             item.setToolTip(text)  # the whole sentence, however narrow the column
             table.setItem(row, col, item)
     table.resizeRowsToContents()
+    # wrapped sentences need the row height of the column's final width
+    table.horizontalHeader().sectionResized.connect(lambda *_a: table.resizeRowsToContents())
     table.setMaximumHeight(60 + 24 * min(len(alarms), 4))
     return table
 
@@ -168,8 +189,14 @@ class SessionSummary(QWidget):
             self.overview.setRowCount(len(self.runs))
             self.overview.horizontalHeader().setSectionResizeMode(1, QHeaderView.ResizeMode.Stretch)
             self.overview.horizontalHeader().setSectionResizeMode(3, QHeaderView.ResizeMode.Stretch)
+            numbers = {r.run.run_id: r.number for r in self.runs}
+            restarted_as = {r.run.restart_of: r.number for r in self.runs if r.run.restart_of}
             for row, r in enumerate(self.runs):
-                ended = r.run.end_text() + (" (a restart)" if r.run.restart_of else "")
+                ended = r.run.end_text()
+                if r.run.restart_of:
+                    ended += f"; restart of run {numbers.get(r.run.restart_of, '?')}"
+                if r.run.run_id in restarted_as:
+                    ended += f"; restarted as run {restarted_as[r.run.run_id]}"
                 for col, text in enumerate((str(r.number), r.title, r.reps_text(), ended)):
                     item = QTableWidgetItem(text)
                     item.setToolTip(text)
@@ -182,8 +209,7 @@ class SessionSummary(QWidget):
             self.run_views[r.run.run_id] = view
             self.tabs.addTab(view, f"{r.number}. {_short(r.title)}")
             self.tabs.setTabToolTip(self.tabs.count() - 1, f"Run {r.number}: {r.title} — {r.run.end_text()}")
-        if len(self.runs) > 1:
-            self.tabs.setCurrentIndex(self.tabs.count() - 1)  # the last run: the one that just ended
+        self.tabs.setCurrentIndex(0)  # several runs: their overview first
         self.tabs.tabBar().setVisible(len(self.runs) > 1)
 
         self.pdf_button = QPushButton("Save PDF &report…")
