@@ -229,6 +229,16 @@ def run_at(runs: Sequence[ExerciseRun], t_mono: float) -> ExerciseRun | None:
     return None
 
 
+def run_titles(folder: Path) -> tuple[str, ...]:
+    """The titles of a session's runs in order, from its events alone (no streams: the sessions list stays
+    fast); empty for a recording made before the run record."""
+    from app.recording import EVENTS_FILE, read_events
+
+    events, _ = read_events(Path(folder) / EVENTS_FILE)
+    return tuple(str(((e.get("data") or {}).get("program") or {}).get("title") or "program")
+                 for e in events if e.get("kind") == "run_start")
+
+
 @dataclass
 class RunReport:
     """One run with its metrics, as the reports and the on-screen summary show it."""

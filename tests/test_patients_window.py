@@ -148,3 +148,31 @@ def test_the_operator_is_chosen_at_each_session_start(qtbot, folder: Path) -> No
             settings.remove("session/operator")
         else:
             settings.setValue("session/operator", before)
+
+
+def test_session_patients_opens_the_list_from_the_window(qtbot, tmp_path: Path, monkeypatch) -> None:
+    """Session → Patients… opens the list of patients (not an empty "New patient" form)."""
+    from PySide6.QtGui import QAction
+
+    from app.manager import LinarmppManager
+    from app.ui.main_window import MainWindow
+    from app.ui.patients_window import PatientsDialog
+    from tests.fakes import counter_factory
+
+    monkeypatch.setenv("LINARMPP_HOME", str(tmp_path / "home"))
+    save_patient(PatientProfile(patient_id="PZ-100", full_name="Carla Neri"))
+    manager = LinarmppManager(AppConfig(), factories={"alpha": counter_factory(tmp_path, "alpha")})
+    manager.start()
+    try:
+        window = MainWindow(manager)
+        qtbot.addWidget(window)
+        window.show()
+        action = next(a for a in window.findChildren(QAction) if a.text() == "&Patients…")
+        action.trigger()
+        dialog = window._patients_window
+        assert isinstance(dialog, PatientsDialog) and dialog.isVisible()
+        assert _ids(dialog) == ["PZ-100"] and "Carla Neri" in dialog.details.text()
+        dialog.close()
+        window.close()
+    finally:
+        manager.shutdown(timeout_s=1.0)

@@ -148,3 +148,15 @@ def test_the_progress_pdf_of_many_sessions_stays_readable(tmp_path: Path) -> Non
     pdf = tmp_path / "progress.pdf"
     write_progress_report("P3", pdf, rows)
     assert overlaps(pdf) == []
+
+
+def test_the_sessions_browser_lists_run_titles(qtbot, tmp_path: Path) -> None:
+    from app.ui.sessions_browser import SessionsBrowser
+
+    root = tmp_path / "sessions"
+    write_run_session(root / "PZ-017" / "20260301-100000", clinic_day_runs())
+    browser = SessionsBrowser(root=root)
+    qtbot.addWidget(browser)
+    browser.set_patient("PZ-017")
+    cell = browser.table.item(0, 2).toolTip()
+    assert cell.startswith(f"{TRIGGER}, {TRIGGER}, trigger_exercise.py, Assisted reaching with FES")
