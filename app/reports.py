@@ -59,6 +59,7 @@ REPETITION_COLUMNS: tuple[tuple[str, str, str], ...] = (
 SOURCE_TEXT: dict[str, str] = {
     "exercises_tab": "Exercises tab", "script_tab": "Script tab", "console": "script console",
     "headless": "headless (command line)", "recover": "Recover (restart)", "plan": "therapy plan",
+    "recording": "the recording (no program was run)",
 }
 # Short definitions printed at the end of the session report (docs/metrics.md has the full ones).
 DEFINITIONS: tuple[tuple[str, str], ...] = (
@@ -200,6 +201,10 @@ def session_runs(session: Any) -> list[ExerciseRun]:
         runs = runs_from_events(events, t_end=session.end_mono)
     else:
         runs = legacy_runs(events, session.end_mono)
+    if not runs:  # a recording with no program at all: its movements (segmented from the speed) as one block
+        runs = [ExerciseRun("session", Program("console", "", "Movements without an exercise run", ""), (),
+                            "recording", "", session.start_mono, 0.0, ended_mono=session.end_mono,  # type: ignore[arg-type]
+                            end_reason="session_ended", state="stopped")]
     start = (session.manifest.get("start") or {})
     epoch = start.get("t_wall_epoch_s")
     wall0 = None
@@ -859,6 +864,8 @@ def program_text(run: ExerciseRun) -> str:
         version = f", version {prog.version[:10]}" if prog.version else ""
         return f"library exercise “{prog.ident}”{version}"
     if prog.kind == "console":
+        if not prog.ident:
+            return "none (the handle's movements, found from its speed)"
         return "code typed in the script console"
     return f"script file {prog.path or prog.ident}"
 

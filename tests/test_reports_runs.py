@@ -160,3 +160,17 @@ def test_the_sessions_browser_lists_run_titles(qtbot, tmp_path: Path) -> None:
     browser.set_patient("PZ-017")
     cell = browser.table.item(0, 2).toolTip()
     assert cell.startswith(f"{TRIGGER}, {TRIGGER}, trigger_exercise.py, Assisted reaching with FES")
+
+
+def test_a_recording_without_any_program_still_reports_its_movements(tmp_path: Path) -> None:
+    """Movements recorded with no exercise run (free use of the robot) are reported as one block."""
+    folder = write_run_session(tmp_path / "P9" / "20260301-100000", [RunSpec("x", "x", reps=3)])
+    events = [ln for ln in (folder / "events.jsonl").read_text().splitlines()
+              if not any(k in ln for k in ('"run_start"', '"run_end"', '"script_start"', '"script_stop"',
+                                           '"exercise_start"', '"repetition_'))]
+    (folder / "events.jsonl").write_text("\n".join(events) + "\n")
+    pdf = tmp_path / "s.pdf"
+    write_session_report(folder, pdf)
+    flat = re.sub(r"\s+", " ", pdf_text(pdf))
+    assert "Run 1 — Movements without an exercise run" in flat and "3 (3 completed; segmented" in flat
+    assert overlaps(pdf) == []
