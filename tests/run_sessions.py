@@ -101,6 +101,14 @@ def write_run_session(folder: Path, runs: list[RunSpec], *, start_iso: str = "20
     physio = np.column_stack([t + T0, 70 + 0 * t, 2 + 0 * t, 33 + 0 * t, grip])[::2]
     streams_meta = {}
     stream_data = [(VSA_STREAM, vsa), (PHYSIO_STREAM, physio)]
+    if fes_charge:  # channel 1 at 40 mA, 300 µs, 40 Hz all along: 480 µC per second
+        from app.devices.rehastim import FES_STREAM
+
+        tf = np.arange(0.0, total, 1 / 40.0)
+        cols = [tf + T0] + [np.full_like(tf, 40.0 if c.name == "current1" else 300.0 if c.name == "pulseWidth1"
+                                          else 0.0) for c in FES_STREAM.channels]
+        stream_data.append((FES_STREAM, np.column_stack(cols)))
+        events.insert(1, {"kind": "fes_profile_loaded", "t_mono": T0 + 0.1, "data": {"frequency_hz": 40.0}})
     for spec, data in stream_data:
         name = spec.name
         lines = ["t_mono_s," + ",".join(c.name for c in spec.channels)]

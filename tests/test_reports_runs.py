@@ -75,6 +75,17 @@ def test_the_session_pdf_lists_every_run_and_its_end(tmp_path: Path) -> None:
     assert overlaps(pdf) == []
 
 
+def test_fes_charge_is_printed_in_mc(tmp_path: Path) -> None:
+    folder = write_run_session(tmp_path / "P5" / "20260301-100000",
+                               [RunSpec(TRIGGER, "trigger_reaching", reps=8)], fes_charge=True)
+    pdf = tmp_path / "s.pdf"
+    write_session_report(folder, pdf)
+    flat = re.sub(r"\s+", " ", pdf_text(pdf))
+    charge = re.search(r"FES charge, channel 1 ([0-9.]+) (mC|µC)", flat)
+    assert charge is not None and charge.group(2) == "mC" and 4.0 < float(charge.group(1)) < 6.0, flat[:3000]
+    assert "e+0" not in flat
+
+
 def test_the_session_pdf_shows_the_reaction_times_the_screen_shows(qtbot, tmp_path: Path) -> None:
     """The on-screen summary of each run and the PDF's table of that run show the same RT cells."""
     from app.recording import load_session
