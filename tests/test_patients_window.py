@@ -89,6 +89,9 @@ def test_the_therapy_plan_is_edited_with_the_exercises_ranges(qtbot, folder: Pat
     plan = dialog.edit_plan()
     assert plan is not None and plan.step_list.count() == 0
     plan.add_step("trigger_reaching")
+    qtbot.waitExposed(plan)
+    qtbot.waitUntil(lambda: clipped_texts(plan) == [], timeout=3000)  # once the layout has settled
+    assert plan.width() <= 1366 and plan.height() <= 768
     speed = plan.editors["speed_m_s"]
     assert isinstance(speed, QLineEdit)
     speed.setText("0.5")  # the exercise allows 0.02 … 0.3 m/s

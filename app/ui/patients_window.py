@@ -120,12 +120,17 @@ class PlanDialog(QDialog):
         left.addWidget(QLabel("Add an exercise of the library:"))
         left.addLayout(add_row)
 
-        self.step_box = QGroupBox("Step")
+        self.step_title = QLabel("")
+        self.step_title.setWordWrap(True)
+        self.step_title.setTextFormat(Qt.TextFormat.PlainText)
+        self.step_title.setStyleSheet("font-weight: bold;")
+        self.step_box = QGroupBox("Values")
         self.step_form = QFormLayout(self.step_box)
         self.description = QLabel("")
         self.description.setWordWrap(True)
         self.description.setStyleSheet("color: #444;")
         right = QVBoxLayout()
+        right.addWidget(self.step_title)
         right.addWidget(self.step_box)
         right.addWidget(self.description)
         right.addStretch(1)
@@ -159,7 +164,9 @@ class PlanDialog(QDialog):
         self.step_list.blockSignals(True)
         self.step_list.clear()
         for k, step in enumerate(self.steps):
-            self.step_list.addItem(step_text(self._planned(step), self.exercises.get(step["exercise"]), k + 1))
+            text = step_text(self._planned(step), self.exercises.get(step["exercise"]), k + 1)
+            self.step_list.addItem(text)
+            self.step_list.item(k).setToolTip(text)  # whole, however narrow the list
         self.step_list.blockSignals(False)
         self._current = None
         if select is not None and self.steps:
@@ -201,16 +208,16 @@ class PlanDialog(QDialog):
         self._current = row if 0 <= row < len(self.steps) else None
         self._sync_buttons()
         if self._current is None:
-            self.step_box.setTitle("No step selected")
+            self.step_title.setText("No step selected")
             self.description.setText("Add an exercise of the library to the plan.")
             return
         step = self.steps[row]
         exercise = self.exercises.get(step["exercise"])
         if exercise is None:
-            self.step_box.setTitle(f"Step {row + 1}: {step['exercise']}")
+            self.step_title.setText(f"Step {row + 1}: {step['exercise']}")
             self.description.setText("This exercise is not in the library any more: remove the step.")
             return
-        self.step_box.setTitle(f"Step {row + 1}: {exercise.title}")
+        self.step_title.setText(f"Step {row + 1}: {exercise.title}")
         self.description.setText(exercise.description)
         hint_width = max((self.fontMetrics().horizontalAdvance(p.describe_range()) for p in exercise.parameters),
                          default=0) + 8
@@ -270,6 +277,7 @@ class PlanDialog(QDialog):
         item = self.step_list.item(self._current)
         if item is not None and not why:
             item.setText(step_text(self._planned(step), exercise, self._current + 1))
+            item.setToolTip(item.text())
 
     # ------------------------------------------------------------------ saving
     def _planned(self, step: dict[str, Any]) -> PlannedExercise:
