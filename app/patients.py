@@ -104,6 +104,11 @@ class PlannedExercise:
 class PatientProfile:
     patient_id: str = ""  # identifier or pseudonym; also the file and sessions-folder name
     version: int = field(default=PROFILE_VERSION, metadata=rng(PROFILE_VERSION, PROFILE_VERSION))
+    # Identification for the printed record (session report); all optional: a pseudonymous profile leaves them
+    # empty and the clinic's own key links the pseudonym to the person.
+    full_name: str = ""
+    birth_date: str = ""  # ISO date YYYY-MM-DD
+    record_number: str = ""  # the clinic's medical record number
     affected_side: Literal["left", "right", "both", "unknown"] = "unknown"
     scores: ClinicalScores = field(default_factory=ClinicalScores)
     assistance: PatientAssistance = field(default_factory=PatientAssistance)
@@ -120,6 +125,12 @@ class PatientProfile:
         if not _SAFE_ID.match(self.patient_id):
             raise ValueError(f"patient_id {self.patient_id!r} may hold only letters, digits, '-' and '_' "
                              "(at most 64, starting with a letter or digit)")
+        if self.birth_date:
+            try:
+                _dt.date.fromisoformat(self.birth_date)
+            except ValueError:
+                raise ValueError(f"birth_date {self.birth_date!r} is not a date: write it as YYYY-MM-DD, "
+                                 "e.g. 1956-04-23") from None
 
 
 class PatientError(ConfigError):
@@ -303,12 +314,52 @@ def list_patients(folder: Path | None = None, safety: SafetyConfig | None = None
     return out
 
 
+def matches(entry: PatientEntry, text: str) -> bool:
+    """Whether a search ``text`` finds this patient: in the id, the name, the record number or the notes
+    (case-insensitive; every word of the search must be found)."""
+    p = entry.profile
+    haystack = " ".join([entry.patient_id] + ([p.full_name, p.record_number, p.notes] if p is not None else []))
+    haystack = haystack.lower()
+    return all(word in haystack for word in text.lower().split())
+
+
+# ---------------------------------------------------------------------------------------------- therapy plans
+@dataclass(frozen=True)
+class PlanProblem:
+    step: int  # from 1, in the plan's order
+    parameter: str  # "" for the step itself (an exercise that is not in the library)
+    text: str  # in plain words, naming the step, the exercise and the parameter's label
+
+    def __str__(self) -> str:
+        return self.text
+
+
+def plan_problems(plan: list[PlannedExercise], library: list[Any] | None = None) -> list[PlanProblem]:
+    """Every step checked against its exercise's own parameter ranges (app.exercises.validate): what is out of
+    range, not a number, unknown or not in the library, said in words. Empty when the plan can be saved."""
+    from app.exercises import load_library, validate
+
+    exercises = {e.ident: e for e in (library if library is not None else load_library()[0])}
+    out: list[PlanProblem] = []
+    for k, step in enumerate(plan, start=1):
+        exercise = exercises.get(step.exercise)
+        if exercise is None:
+            out.append(PlanProblem(k, "", f"Step {k}: there is no exercise '{step.exercise}' in the library"))
+            continue
+        result = validate(exercise, step.params)
+        for name, why in result.errors.items():
+            label = next((p.label for p in exercise.parameters if p.name == name), name)
+            out.append(PlanProblem(k, name, f"Step {k}, {exercise.title} — {label}: {why}"))
+    return out
+
+
 def profile_field_names() -> list[str]:
     return [f.name for f in fields(PatientProfile)]
 
 
 __all__ = [
     "ClinicalChannelCap", "ClinicalScores", "PatientAssistance", "PatientEntry", "PatientError", "PatientFes",
-    "PatientProfile", "PatientRobotLimits", "clinical_caps", "effective_robot_limits", "limit_problems",
-    "list_patients", "load_patient", "parse_profile", "patient_file", "profile_to_yaml", "save_patient",
+    "PatientProfile", "PatientRobotLimits", "PlanProblem", "PlannedExercise", "clinical_caps",
+    "effective_robot_limits", "limit_problems", "list_patients", "load_patient", "matches", "parse_profile",
+    "patient_file", "plan_problems", "profile_to_yaml", "save_patient",
 ]

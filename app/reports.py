@@ -1,8 +1,12 @@
 """Printable reports for the medical record: a PDF per session and a progress PDF per patient.
 
-Drawn with Qt's own PDF writer (QPdfWriter + QPainter: no new dependency): patient, operator, date, the
-exercise and its parameters, the per-repetition metrics (app/metrics.py) as tables and plots, the alarms and
-interruptions. Also the command line's ``--metrics`` / ``--report`` / ``--progress``.
+Drawn with Qt's own PDF writer (QPdfWriter + QPainter: no new dependency). The session's unit is the
+exercise run (app/runs.py): the session report lists every run (interrupted and restarted ones with their
+causes), then per run its title, its parameters in words with units, its repetitions numbered within the run
+and its own summary, with the values the on-screen summary shows (app/ui/session_summary.py reads the same
+:func:`run_reports`). The progress report trends each exercise across sessions; a session whose runs of
+that exercise were all interrupted is marked, not drawn as a decline. Also the command line's ``--metrics`` /
+``--report`` / ``--progress``.
 """
 
 from __future__ import annotations
@@ -11,12 +15,13 @@ import datetime as _dt
 import json
 import math
 import sys
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
 from app.metrics import SUMMARY_METRICS, metrics_of_session
+from app.runs import ExerciseRun, Program, RunParameter, runs_from_events
 
 # Session metrics shown as trends across sessions (key in the summary → label, unit)
 TREND_METRICS: tuple[tuple[str, str, str], ...] = (
@@ -24,6 +29,7 @@ TREND_METRICS: tuple[tuple[str, str, str], ...] = (
     ("sparc", "Smoothness (SPARC)", ""),
     ("range_m", "Range of motion", "m"),
     ("movement_time_s", "Movement time", "s"),
+    ("reaction_time_s", "Reaction time", "s"),
     ("speed_peaks", "Speed peaks", ""),
     ("mean_force_n", "Mean interaction force", "N"),
     ("mean_alpha", "Assistance α", ""),
@@ -35,7 +41,7 @@ SCORES: tuple[tuple[str, str], ...] = (
     ("box_and_block", "Box and Block (blocks/min)"),
     ("modified_ashworth", "Modified Ashworth (0–4)"),
 )
-# Repetition table of the session report: (key, header, format)
+# Repetition table of the session report and of the on-screen summary: (key, header, format)
 REPETITION_COLUMNS: tuple[tuple[str, str, str], ...] = (
     ("index", "#", "{:d}"),
     ("start_s", "Start s", "{:.1f}"),
@@ -50,28 +56,265 @@ REPETITION_COLUMNS: tuple[tuple[str, str, str], ...] = (
     ("reaction_time_s", "RT s", "{:.2f}"),
     ("completed", "Done", "{}"),
 )
+SOURCE_TEXT: dict[str, str] = {
+    "exercises_tab": "Exercises tab", "script_tab": "Script tab", "console": "script console",
+    "headless": "headless (command line)", "recover": "Recover (restart)", "plan": "therapy plan",
+    "recording": "the recording (no program was run)",
+}
+# Short definitions printed at the end of the session report (docs/metrics.md has the full ones).
+DEFINITIONS: tuple[tuple[str, str], ...] = (
+    ("Repetition", "One movement the exercise marked (start → end). \"Done\" = completed: the handle covered "
+                   "the movement (criterion in docs/metrics.md), not only the command."),
+    ("Move s", "Movement time: from the handle's onset to its end (speed above 5 % of the repetition's peak "
+               "speed and at least 5 mm/s)."),
+    ("Range m", "Range of motion: the distance between the handle's extreme positions within the repetition."),
+    ("Peak / Mean m/s", "The handle's highest speed, and its mean speed over the movement itself."),
+    ("SPARC", "Spectral arc length of the speed profile: smoothness, always negative; closer to 0 is smoother "
+              "(a minimum-jerk reach ≈ −1.4)."),
+    ("Peaks", "Number of speed peaks within the movement: 1 for a smooth reach; more = sub-movements."),
+    ("Force N", "Peak interaction force between the patient and the handle."),
+    ("Grip N", "Grip force measured in the 100 ms before the repetition started."),
+    ("RT s", "Reaction time: how long the patient took to respond to the exercise's cue (exact definition: "
+             "docs/metrics.md, reaction_time_s)."),
+    ("α, a_r", "α: the patient model's assistance level (0 = none … 1 = full); a_r: the robot's share of "
+               "the assistance."),
+    ("FES charge", "Charge delivered per stimulator channel over the repetitions (current × pulse width × "
+                   "pulses), in mC."),
+)
 
 
-def fmt(value: Any, spec: str = "{:.3g}") -> str:
+def fmt(value: Any, spec: str | None = None) -> str:
+    """A value as the reports and the on-screen summary show it: "—" when unknown, never an exponent."""
     if value is None or (isinstance(value, float) and not math.isfinite(value)):
         return "—"
     if isinstance(value, bool):
         return "yes" if value else "no"
+    if spec is None:
+        return number_text(value)
     try:
         return spec.format(value)
     except (ValueError, TypeError):
         return str(value)
 
 
-# ------------------------------------------------------------------------------------------- data
+def number_text(value: Any, digits: int = 3) -> str:
+    """``digits`` significant digits in plain notation (0.000123 → "0.000123", 9240.4 → "9240")."""
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        return str(value)
+    if isinstance(value, int):
+        return str(value)
+    if not math.isfinite(value):
+        return "—"
+    if abs(value) < 1e-9:  # a spread of rounding noise (identical repetitions) is no spread
+        return "0"
+    decimals = min(6, max(0, digits - 1 - math.floor(math.log10(abs(value)))))
+    text = f"{value:.{decimals}f}"
+    return "0" if float(text) == 0 else text
+
+
+def charge_text(microcoulomb: float) -> str:
+    """FES charge in the unit that reads best: µC below 1 mC, mC above (never "9.24e+03 µC")."""
+    if microcoulomb is None or not math.isfinite(float(microcoulomb)):
+        return "—"
+    if abs(microcoulomb) >= 1000.0:
+        return f"{number_text(microcoulomb / 1000.0)} mC"
+    return f"{number_text(float(microcoulomb))} µC"
+
+
+# ------------------------------------------------------------------------------------------- runs
+def legacy_runs(events: Sequence[Mapping[str, Any]], t_end: float) -> list[ExerciseRun]:
+    """Runs of a recording made before the run record existed (no ``run_start``): each ``script_start`` opens
+    one (its ``exercise_start`` just before gives the title and parameters), ``script_stop`` closes it."""
+    runs: list[ExerciseRun] = []
+    pending_exercise: dict[str, Any] | None = None
+    current: ExerciseRun | None = None
+
+    def close(run: ExerciseRun, t: float, status: str, detail: str) -> ExerciseRun:
+        reason = {"finished": "finished", "stopped": "stopped_by_operator", "error": "script_error",
+                  "emergency_stop": "emergency_stop"}.get(status, "crashed" if status == "crashed" else "finished")
+        return replace(run, ended_mono=t, end_reason=reason, end_detail=detail,
+                       state="finished" if reason == "finished" else "stopped")
+
+    for e in events:
+        kind = e.get("kind")
+        data = e.get("data") or {}
+        t = float(e.get("t_mono", 0.0))
+        if kind == "exercise_start":
+            pending_exercise = {**data, "_t": t}
+        elif kind == "script_start":
+            if current is not None:
+                runs.append(close(current, t, "crashed", ""))
+            name = str(data.get("name") or "script")
+            if pending_exercise is not None:
+                ident = str(pending_exercise.get("exercise") or name)
+                title = str(pending_exercise.get("title") or "") or _library_title(ident) or ident
+                program = Program("exercise", ident, title, "", path=str(pending_exercise.get("script") or ""))
+                params = _parameters_in_words(ident, pending_exercise.get("params") or {})
+                source = "exercises_tab"
+            else:
+                program = Program("script_file", name, name, "", path=name)
+                params, source = (), "script_tab"
+            # the run starts with its form's exercise_start (its parameters belong to it), else its script
+            began = float(pending_exercise["_t"]) if pending_exercise is not None else t
+            current = ExerciseRun(f"run-{len(runs) + 1}", program, params, source, str(e.get("who") or ""),  # type: ignore[arg-type]
+                                  began, 0.0)
+            pending_exercise = None
+        elif kind == "script_stop" and current is not None:
+            runs.append(close(current, t, str(data.get("status") or "finished"),
+                              str(data.get("message") or data.get("reason") or "")))
+            current = None
+    if current is not None:
+        runs.append(close(current, t_end, "crashed", ""))
+    return runs
+
+
+def _library_title(ident: str) -> str:
+    try:
+        from app.exercises import find_exercise
+
+        return find_exercise(ident).title
+    except Exception:  # an exercise since removed from the library: its id is its name
+        return ""
+
+
+def _parameters_in_words(ident: str, params: Mapping[str, Any]) -> tuple[RunParameter, ...]:
+    """Raw ``{name: value}`` with the library's labels and units where the exercise is still known."""
+    try:
+        from app.exercises import find_exercise
+
+        exercise = find_exercise(ident)
+        known = {p.name: p for p in exercise.parameters}
+    except Exception:
+        known = {}
+    out = []
+    for name, value in params.items():
+        p = known.get(name)
+        out.append(RunParameter(name, p.label if p else name.replace("_", " "), value, p.unit if p else ""))
+    return tuple(out)
+
+
+def session_runs(session: Any) -> list[ExerciseRun]:
+    """The session's runs: from the run record, or rebuilt from an older recording's script events. Each run's
+    wall-clock start is filled from the manifest (the record keeps monotonic times)."""
+    events = list(session.events)
+    if any(e.get("kind") == "run_start" for e in events):
+        runs = runs_from_events(events, t_end=session.end_mono)
+    else:
+        runs = legacy_runs(events, session.end_mono)
+    if not runs:  # a recording with no program at all: its movements (segmented from the speed) as one block
+        runs = [ExerciseRun("session", Program("console", "", "Movements without an exercise run", ""), (),
+                            "recording", "", session.start_mono, 0.0, ended_mono=session.end_mono,  # type: ignore[arg-type]
+                            end_reason="session_ended", state="stopped")]
+    start = (session.manifest.get("start") or {})
+    epoch = start.get("t_wall_epoch_s")
+    wall0 = None
+    try:
+        wall0 = _dt.datetime.fromisoformat(str(start.get("t_wall"))).timestamp()
+    except ValueError:
+        wall0 = float(epoch) if isinstance(epoch, int | float) and epoch else None
+    if wall0 is None:
+        return runs
+    return [replace(r, started_wall=wall0 + (r.started_mono - session.start_mono)) if not r.started_wall else r
+            for r in runs]
+
+
+END_GRACE_S = 0.5  # what the record writes just after a run's end (the script's stop) still belongs to it
+
+
+def run_at(runs: Sequence[ExerciseRun], t_mono: float) -> ExerciseRun | None:
+    """The run an event at ``t_mono`` belongs to: the one running then (start < t ≤ end; an event at a
+    restart's very start is the previous run's end), else the one that ended just before (0.5 s)."""
+    for r in runs:
+        end = r.ended_mono if r.ended_mono is not None else math.inf
+        if r.started_mono < t_mono <= end:
+            return r
+    for r in runs:
+        if r.ended_mono is not None and r.ended_mono < t_mono <= r.ended_mono + END_GRACE_S:
+            return r
+    return None
+
+
+def run_titles(folder: Path) -> tuple[str, ...]:
+    """The titles of a session's runs in order, from its events alone (no streams: the sessions list stays
+    fast); empty for a recording made before the run record."""
+    from app.recording import EVENTS_FILE, read_events
+
+    events, _ = read_events(Path(folder) / EVENTS_FILE)
+    return tuple(str(((e.get("data") or {}).get("program") or {}).get("title") or "program")
+                 for e in events if e.get("kind") == "run_start")
+
+
+@dataclass
+class RunReport:
+    """One run with its metrics, as the reports and the on-screen summary show it."""
+
+    run: ExerciseRun
+    number: int  # the run's number in the session, from 1
+    repetitions: list[dict[str, Any]]  # numbered within the run, from 1
+    summary: dict[str, Any]
+    positioning: list[dict[str, Any]] = field(default_factory=list)  # robot positioning moves, not repetitions
+    alarms: list[dict[str, Any]] = field(default_factory=list)
+
+    @property
+    def title(self) -> str:
+        return self.run.title or self.run.program.ident or "program"
+
+    @property
+    def completed(self) -> int:
+        return sum(1 for r in self.repetitions if r.get("completed"))
+
+    @property
+    def interrupted(self) -> bool:
+        return self.run.end_reason not in ("finished", None)
+
+    def reps_text(self) -> str:
+        if not self.repetitions:
+            return "not started" if self.run.end_reason not in ("finished", None) else "none"
+        return f"{self.completed} of {len(self.repetitions)} completed"
+
+
+def run_reports(session: Any, runs: Sequence[ExerciseRun] | None = None) -> list[RunReport]:
+    """Per run: its repetitions (numbered within it), its own summary, its alarms.
+
+    The one adapter to the metrics: :func:`app.metrics.metrics_by_run` where it exists (the run-aware metrics:
+    repetitions decided from the handle, positioning moves apart), otherwise today's
+    :func:`app.metrics.metrics_of_session` sliced to each run's [start, end]. After the metrics branch is merged
+    the fallback can go."""
+    from app import metrics
+
+    runs = list(runs) if runs is not None else session_runs(session)
+    by_run = getattr(metrics, "metrics_by_run", None)
+    numbers = {r.run_id: k + 1 for k, r in enumerate(runs)}
+    all_alarms = alarms_of_session(session)
+    t0 = session.start_mono
+
+    def alarms_of(run: ExerciseRun) -> list[dict[str, Any]]:
+        return [a for a in all_alarms if run_at(runs, a["t_s"] + t0) is run]
+
+    out: list[RunReport] = []
+    if by_run is not None and any(e.get("kind") == "run_start" for e in session.events):
+        for ref in by_run(session):
+            run = next((r for r in runs if r.run_id == ref.run.run_id), ref.run)
+            out.append(RunReport(run, numbers.get(run.run_id, len(out) + 1), list(ref.repetitions),
+                                 dict(ref.summary), list(getattr(ref, "positioning", []) or []), alarms_of(run)))
+        return out
+    for run in runs:
+        end = run.ended_mono if run.ended_mono is not None else session.end_mono
+        m = metrics_of_session(session, run.started_mono, end)
+        reps = [dict(r, index=k + 1) for k, r in enumerate(m["repetitions"])]
+        out.append(RunReport(run, numbers[run.run_id], reps, m["summary"], [], alarms_of(run)))
+    return out
+
+
 @dataclass
 class SessionReportData:
     folder: Path
     manifest: dict[str, Any]
-    metrics: dict[str, Any]
-    exercises: list[str]
+    metrics: dict[str, Any]  # the whole session's (alarms, the handle's position)
+    runs: list[RunReport]
     position: tuple[list[float], list[float]]  # (t s from the start, handle position m), decimated
     problems: list[str]
+    profile: Any = None  # the patient's profile (app.patients) as it is now, when it can be read
 
     @property
     def patient_id(self) -> str:
@@ -81,14 +324,17 @@ class SessionReportData:
     def started(self) -> str:
         return str((self.manifest.get("start") or {}).get("t_wall", ""))
 
+    @property
+    def exercises(self) -> list[str]:
+        return [r.title for r in self.runs]
 
-def session_report_data(folder: str | Path) -> SessionReportData:
+
+def session_report_data(folder: str | Path, profile: Any = None) -> SessionReportData:
     from app.recording import load_session
 
     session = load_session(folder)
     metrics = metrics_of_session(session)
-    exercises = [str((e.get("data") or {}).get("name") or "script") for e in session.events
-                 if e.get("kind") == "script_start"]
+    runs = run_reports(session)
     t: list[float] = []
     x: list[float] = []
     vsa = session.streams.get("linarm.vsa")
@@ -96,7 +342,29 @@ def session_report_data(folder: str | Path) -> SessionReportData:
         step = max(1, len(vsa.t) // 2000)
         t = [float(v) - session.start_mono for v in vsa.t[::step]]
         x = [float(v) for v in vsa.data["handlePos"][::step]]
-    return SessionReportData(Path(folder), session.manifest, metrics, exercises, (t, x), list(session.problems))
+    if profile is None:
+        profile = _profile_of(session.manifest.get("patient_id") or Path(folder).parent.name)
+    return SessionReportData(Path(folder), session.manifest, metrics, runs, (t, x), list(session.problems), profile)
+
+
+def _profile_of(patient_id: str) -> Any:
+    from app.patients import load_patient
+
+    try:
+        return load_patient(str(patient_id))
+    except Exception:  # no profile (a pseudonymous recording moved elsewhere): the manifest's copy is used
+        return None
+
+
+@dataclass
+class ExerciseTrend:
+    """One exercise within one session: its runs pooled (same exercise, same measures)."""
+
+    title: str
+    repetitions: int
+    completed: int
+    values: dict[str, float]  # trend metric → mean over the exercise's repetitions
+    interrupted: bool  # none of the exercise's runs in that session finished
 
 
 @dataclass
@@ -109,6 +377,7 @@ class ProgressRow:
     summary: dict[str, Any]
     scores: dict[str, Any]  # the clinical scores in the profile at that session
     complete: bool
+    per_exercise: dict[str, ExerciseTrend] = field(default_factory=dict)
 
     def value(self, key: str) -> float | None:
         entry = self.summary.get(key)
@@ -118,7 +387,35 @@ class ProgressRow:
 
     @property
     def date(self) -> str:
-        return self.started[:10] or self.folder.name[:8]
+        """Date and time (two sessions on one day stay apart)."""
+        try:
+            return _dt.datetime.fromisoformat(self.started).strftime("%Y-%m-%d %H:%M")
+        except ValueError:
+            name = self.folder.name  # YYYYMMDD-HHMMSS
+            return f"{name[:4]}-{name[4:6]}-{name[6:8]} {name[9:11]}:{name[11:13]}" if len(name) >= 13 else name
+
+    @property
+    def interrupted(self) -> bool:
+        return not self.complete or (bool(self.per_exercise)
+                                     and all(e.interrupted for e in self.per_exercise.values()))
+
+
+def exercise_trends(reports: Iterable[RunReport]) -> dict[str, ExerciseTrend]:
+    groups: dict[str, list[RunReport]] = {}
+    for r in reports:
+        groups.setdefault(r.title, []).append(r)
+    out = {}
+    for title, group in groups.items():
+        reps = [rep for r in group for rep in r.repetitions]
+        values = {}
+        for key, _label, _unit in TREND_METRICS:
+            xs = [float(v) for rep in reps if isinstance(v := rep.get(key), int | float) and not isinstance(v, bool)
+                  and math.isfinite(float(v))]
+            if xs:
+                values[key] = sum(xs) / len(xs)
+        out[title] = ExerciseTrend(title, len(reps), sum(1 for rep in reps if rep.get("completed")), values,
+                                   all(r.interrupted for r in group))
+    return out
 
 
 def progress_rows(patient_id: str, root: Path | None = None,
@@ -133,11 +430,30 @@ def progress_rows(patient_id: str, root: Path | None = None,
             progress(k / max(1, len(sessions)))
         session = load_session(s.folder)
         m = metrics_of_session(session)
+        reports = run_reports(session)
         scores = dict(((session.manifest.get("patient") or {}).get("scores")) or {})
-        rows.append(ProgressRow(s.folder, s.start, s.exercises, m["summary"], scores, s.complete))
+        titles = tuple(dict.fromkeys(r.title for r in reports)) or s.exercises
+        rows.append(ProgressRow(s.folder, s.start, titles, m["summary"], scores, s.complete,
+                                exercise_trends(reports)))
     if progress is not None:
         progress(1.0)
     return rows
+
+
+
+def alarms_of_session(session: Any) -> list[dict[str, Any]]:
+    """Alarms and interruptions of a session, times from its start (as app.metrics lists them)."""
+    t0 = session.start_mono
+    kinds = {"alarm", "emergency_stop", "script_stop", "exercise_paused", "exercise_resumed", "gap_start"}
+    out = []
+    for e in session.events:
+        if e.get("kind") not in kinds:
+            continue
+        data = dict(e.get("data") or {})
+        if e["kind"] == "script_stop" and data.get("status") in ("finished", None):
+            continue
+        out.append({"t_s": round(float(e.get("t_mono", t0)) - t0, 3), "kind": e["kind"], "data": data})
+    return out
 
 
 # ------------------------------------------------------------------------------------------- drawing
@@ -156,10 +472,13 @@ def _ensure_gui_app() -> Any:
 
 
 PLOT_COLOURS = ("#1f77b4", "#d62728", "#2ca02c", "#ff7f0e", "#9467bd", "#8c564b")
+_WRAP = 0x1000  # Qt.TextFlag.TextWordWrap
+_ZWSP = "\u200b"  # a break opportunity that prints nothing
 
 
 class _Pdf:
-    """A4 pages drawn top to bottom with a cursor; a new page when the next block does not fit."""
+    """A4 pages drawn top to bottom with a cursor; a new page when the next block does not fit. Every text is
+    measured before it is drawn and wrapped in its own box, so no text runs into another or off the page."""
 
     DPI = 96
     MARGIN = 48
@@ -187,6 +506,10 @@ class _Pdf:
     def inner_width(self) -> float:
         return self.width - 2 * self.MARGIN
 
+    @property
+    def bottom(self) -> float:
+        return self.height - self.MARGIN - 20
+
     def font(self, size: float, bold: bool = False) -> None:
         from PySide6.QtGui import QFont
 
@@ -195,22 +518,53 @@ class _Pdf:
         f.setBold(bold)
         self.painter.setFont(f)
 
+    def measure(self, text: str, width: float) -> float:
+        """The height ``text`` takes wrapped in ``width`` with the current font."""
+        rect = self.painter.fontMetrics().boundingRect(0, 0, max(1, int(width)), 100000, _WRAP, text)
+        return float(rect.height())
+
+    def breakable(self, text: str, width: float) -> str:
+        """``text`` with break opportunities inside the words wider than ``width`` (a path, an id): Qt wraps at
+        spaces only and would let such a word run past its box. Words that fit are left whole."""
+        metrics = self.painter.fontMetrics()
+        out = []
+        for word in text.split(" "):
+            if metrics.horizontalAdvance(word) <= width:
+                out.append(word)
+                continue
+            pieces, piece = [], ""
+            for ch in word:
+                if piece and metrics.horizontalAdvance(piece + ch) > width - 2:
+                    pieces.append(piece)
+                    piece = ""
+                piece += ch
+            out.append(_ZWSP.join([*pieces, piece]))
+        return " ".join(out)
+
+    def text_width(self, text: str) -> float:
+        return float(self.painter.fontMetrics().horizontalAdvance(text))
+
     def ensure(self, h: float) -> None:
-        if self.y + h > self.height - self.MARGIN - 20:
-            self._draw_footer()
-            self.writer.newPage()
-            self.page += 1
-            self.y = float(self.MARGIN)
+        if self.y + h > self.bottom:
+            self.new_page()
+
+    def new_page(self) -> None:
+        self._draw_footer()
+        self.writer.newPage()
+        self.page += 1
+        self.y = float(self.MARGIN)
 
     def _draw_footer(self) -> None:
         from PySide6.QtCore import QRectF, Qt
 
         self.font(7)
         self.painter.setPen(self._colour("#555555"))
-        self.painter.drawText(QRectF(self.MARGIN, self.height - self.MARGIN, self.inner_width, 16),
-                              int(Qt.AlignmentFlag.AlignLeft), self.footer)
-        self.painter.drawText(QRectF(self.MARGIN, self.height - self.MARGIN, self.inner_width, 16),
-                              int(Qt.AlignmentFlag.AlignRight), f"page {self.page}")
+        number = f"page {self.page}"
+        w = self.text_width(number) + 8
+        self.painter.drawText(QRectF(self.MARGIN, self.height - self.MARGIN, self.inner_width - w - 10, 16),
+                              int(Qt.AlignmentFlag.AlignLeft) | _WRAP, self.footer)
+        self.painter.drawText(QRectF(self.MARGIN + self.inner_width - w, self.height - self.MARGIN, w, 16),
+                              int(Qt.AlignmentFlag.AlignRight), number)
 
     @staticmethod
     def _colour(name: str) -> Any:
@@ -218,79 +572,124 @@ class _Pdf:
 
         return QColor(name)
 
-    def text(self, text: str, size: float = 9, bold: bool = False, colour: str = "#000000", gap: float = 4) -> None:
-        from PySide6.QtCore import QRectF, Qt
+    def text(self, text: str, size: float = 9, bold: bool = False, colour: str = "#000000", gap: float = 4,
+             indent: float = 0.0) -> None:
+        from PySide6.QtCore import QRectF
 
         self.font(size, bold)
-        metrics = self.painter.fontMetrics()
-        rect = metrics.boundingRect(0, 0, int(self.inner_width), 10000, int(Qt.TextFlag.TextWordWrap), text)
-        self.ensure(rect.height() + gap)
+        width = self.inner_width - indent
+        text = self.breakable(text, width)
+        h = self.measure(text, width)
+        self.ensure(h + gap)
         self.painter.setPen(self._colour(colour))
-        self.painter.drawText(QRectF(self.MARGIN, self.y, self.inner_width, rect.height() + 2),
-                              int(Qt.TextFlag.TextWordWrap), text)
-        self.y += rect.height() + gap
+        self.painter.drawText(QRectF(self.MARGIN + indent, self.y, width, h + 2), _WRAP, text)
+        self.y += h + gap
 
-    def heading(self, text: str) -> None:
-        self.ensure(60)
+    def heading(self, text: str, size: float = 12, keep: float = 60) -> None:
+        self.ensure(keep)
         self.y += 6
-        self.text(text, 12, True, "#1a3d6d", gap=6)
+        self.text(text, size, True, "#1a3d6d", gap=6)
+
+    def subheading(self, text: str, keep: float = 70) -> None:
+        """A block's title, kept on one page with the first ``keep`` px of what follows it."""
+        self.ensure(keep)
+        self.text(text, 9.5, True, "#1a3d6d", gap=3)
 
     def fields(self, pairs: Sequence[tuple[str, str]], label_width: float = 150) -> None:
-        from PySide6.QtCore import QRectF, Qt
+        """Label / value rows; both wrap in their own column (a long label never runs into its value)."""
+        from PySide6.QtCore import QRectF
 
+        self.font(9, True)
+        widest = max((self.text_width(label) for label, _ in pairs), default=0.0) + 12
+        label_width = max(label_width, min(widest, 0.4 * self.inner_width))  # a label on one line if it can
+        value_width = self.inner_width - label_width
         for label, value in pairs:
+            self.font(9, True)
+            label = self.breakable(label, label_width - 8)
+            lh = self.measure(label, label_width - 8)
             self.font(9)
-            h = self.painter.fontMetrics().boundingRect(0, 0, int(self.inner_width - label_width), 10000,
-                                                        int(Qt.TextFlag.TextWordWrap), value).height()
+            value = self.breakable(value, value_width)
+            vh = self.measure(value, value_width)
+            h = max(lh, vh)
             self.ensure(h + 3)
             self.font(9, True)
             self.painter.setPen(self._colour("#333333"))
-            self.painter.drawText(QRectF(self.MARGIN, self.y, label_width, h + 2), 0, label)
+            self.painter.drawText(QRectF(self.MARGIN, self.y, label_width - 8, h + 2), _WRAP, label)
             self.font(9)
             self.painter.setPen(self._colour("#000000"))
-            self.painter.drawText(QRectF(self.MARGIN + label_width, self.y, self.inner_width - label_width, h + 2),
-                                  int(Qt.TextFlag.TextWordWrap), value)
+            self.painter.drawText(QRectF(self.MARGIN + label_width, self.y, value_width, h + 2),
+                                  _WRAP, value)
             self.y += h + 3
 
     def table(self, headers: Sequence[str], rows: Sequence[Sequence[str]], widths: Sequence[float] | None = None,
-              size: float = 7.5) -> None:
+              size: float = 7.5, align_right: Sequence[int] = ()) -> None:
+        """A table whose cells wrap: each row is as tall as its tallest cell; headers repeat on a new page."""
         from PySide6.QtCore import QRectF, Qt
 
         widths = list(widths or [1.0] * len(headers))
         scale = self.inner_width / sum(widths)
         widths = [w * scale for w in widths]
-        self.font(size)
-        row_h = self.painter.fontMetrics().height() + 5
+        pad = 3.0
 
-        def draw_row(cells: Sequence[str], bold: bool, shade: bool) -> None:
-            self.ensure(row_h)
+        def breakable(cells: Sequence[str], bold: bool) -> list[str]:
+            self.font(size, bold)
+            return [self.breakable(c, w - 2 * pad) for c, w in zip(cells, widths, strict=False)]
+
+        def height_of(cells: Sequence[str], bold: bool) -> float:
+            self.font(size, bold)
+            return max(self.measure(c, w - 2 * pad) for c, w in zip(cells, widths, strict=False)) + 5
+
+        headers = breakable(headers, True)
+        rows = [breakable(row, False) for row in rows]
+
+        def draw_row(cells: Sequence[str], bold: bool, shade: bool, h: float) -> None:
             if shade:
-                self.painter.fillRect(QRectF(self.MARGIN, self.y, self.inner_width, row_h), self._colour("#eef2f7"))
+                self.painter.fillRect(QRectF(self.MARGIN, self.y, self.inner_width, h), self._colour("#eef2f7"))
             self.font(size, bold)
             self.painter.setPen(self._colour("#000000"))
             x = float(self.MARGIN)
-            for cell, w in zip(cells, widths, strict=False):
-                self.painter.drawText(QRectF(x + 3, self.y, w - 6, row_h),
-                                      int(Qt.AlignmentFlag.AlignVCenter | Qt.AlignmentFlag.AlignLeft), cell)
+            for k, (cell, w) in enumerate(zip(cells, widths, strict=False)):
+                right = k in align_right  # headers over their numbers
+                horizontal = Qt.AlignmentFlag.AlignRight if right else Qt.AlignmentFlag.AlignLeft
+                self.painter.drawText(QRectF(x + pad, self.y + 2.5, w - 2 * pad, h - 2.5),
+                                      int(horizontal | Qt.AlignmentFlag.AlignTop) | _WRAP, cell)
                 x += w
-            self.y += row_h
+            self.y += h
 
-        self.ensure(row_h * 2)
-        draw_row(headers, True, True)
-        self.painter.setPen(self._colour("#1a3d6d"))
-        self.painter.drawLine(int(self.MARGIN), int(self.y), int(self.MARGIN + self.inner_width), int(self.y))
+        def header() -> None:
+            h = height_of(headers, True)
+            draw_row(headers, True, True, h)
+            self.painter.setPen(self._colour("#1a3d6d"))
+            self.painter.drawLine(int(self.MARGIN), int(self.y), int(self.MARGIN + self.inner_width), int(self.y))
+
+        first_h = height_of(rows[0], False) if rows else 0.0
+        self.ensure(height_of(headers, True) + first_h)
+        header()
         for k, row in enumerate(rows):
-            if self.y + row_h > self.height - self.MARGIN - 20:
-                self.ensure(row_h * 2)
-                draw_row(headers, True, True)
-            draw_row(row, False, k % 2 == 1)
+            h = height_of(row, False)
+            if self.y + h > self.bottom:
+                self.new_page()
+                header()
+            draw_row(row, False, k % 2 == 1, h)
         self.y += 6
+
+    def rule_line(self, label: str, width: float, left: float) -> None:
+        """A line to write on, its label under it (the sign-off block)."""
+        from PySide6.QtCore import QPointF, QRectF
+
+        self.painter.setPen(self._colour("#000000"))
+        self.painter.drawLine(QPointF(left, self.y + 26), QPointF(left + width, self.y + 26))
+        self.font(7.5)
+        self.painter.setPen(self._colour("#444444"))
+        self.painter.drawText(QRectF(left, self.y + 29, width, 12), 0, label)
 
     def plot(self, title: str, series: Sequence[tuple[str, Sequence[float], Sequence[float | None]]],
              unit: str = "", x_label: str = "", width: float | None = None, height: float = 150,
              x_ticks: Sequence[tuple[float, str]] | None = None, shade: Sequence[tuple[float, float]] = (),
-             markers: bool = True, left: float | None = None, advance: bool = True) -> None:
-        """A line plot: ``series`` = [(name, x, y)] (None values skipped)."""
+             markers: bool = True, left: float | None = None, advance: bool = True,
+             hollow: Sequence[tuple[float, float]] = (), connect: bool = True) -> None:
+        """A line plot: ``series`` = [(name, x, y)] (None values skipped); ``hollow`` points are drawn as open
+        circles outside the lines (interrupted sessions)."""
         from PySide6.QtCore import QPointF, QRectF, Qt
         from PySide6.QtGui import QPen, QPolygonF
 
@@ -301,20 +700,25 @@ class _Pdf:
         x0 = self.MARGIN if left is None else left
         self.font(8.5, True)
         p.setPen(self._colour("#1a3d6d"))
-        p.drawText(QRectF(x0, self.y, width, 14), 0, title + (f" [{unit}]" if unit else ""))
-        box = QRectF(x0 + 46, self.y + 18, width - 56, height - 38)
+        full_title = title + (f" [{unit}]" if unit else "")
+        p.drawText(QRectF(x0, self.y, width, 14), 0, self._elide(full_title, width))
+        box = QRectF(x0 + 46, self.y + 18, width - 56, height - 42)
         p.setPen(self._colour("#888888"))
         p.drawRect(box)
         pts = [(float(x), float(y)) for _, xs, ys in series for x, y in zip(xs, ys, strict=False)
-               if y is not None and math.isfinite(float(y))]
+               if y is not None and math.isfinite(float(y))] + [(float(x), float(y)) for x, y in hollow]
         if not pts:
             self.font(8)
             p.drawText(box, int(Qt.AlignmentFlag.AlignCenter), "no data")
         else:
             xmin = min(x for x, _ in pts)
             xmax = max(x for x, _ in pts)
+            if x_ticks:
+                xmin, xmax = min(xmin, min(x for x, _ in x_ticks)), max(xmax, max(x for x, _ in x_ticks))
             if xmax == xmin:
                 xmin, xmax = xmin - 1, xmax + 1
+            span = xmax - xmin
+            xmin, xmax = xmin - 0.04 * span, xmax + 0.04 * span  # end markers and labels stay inside
             ymin, ymax = y_range([y for _, y in pts])
 
             def to_px(x: float, y: float) -> QPointF:
@@ -328,48 +732,75 @@ class _Pdf:
                            self._colour("#dde9cf" if k % 2 == 0 else "#eef4e6"))
             self.font(7)
             yticks, ydec = _nice_ticks(ymin, ymax)
+            row_h = p.fontMetrics().height()
+            if len(yticks) > 1 and (to_px(xmin, yticks[0]).y() - to_px(xmin, yticks[1]).y()) < row_h + 1:
+                yticks = yticks[::2]  # labels closer than their height would touch
             for y in yticks:
                 py = to_px(xmin, y).y()
                 p.setPen(self._colour("#e0e0e0"))
                 p.drawLine(QPointF(box.left(), py), QPointF(box.right(), py))
                 p.setPen(self._colour("#444444"))
-                p.drawText(QRectF(x0, py - 6, 42, 12), int(Qt.AlignmentFlag.AlignRight), f"{y:.{ydec}f}")
+                p.drawText(QRectF(x0, py - row_h / 2, 42, row_h), int(Qt.AlignmentFlag.AlignRight), f"{y:.{ydec}f}")
             if x_ticks is None:
                 xt, xdec = _nice_ticks(xmin, xmax)
                 x_ticks = [(x, f"{x:.{xdec}f}") for x in xt]
-            for x, label in x_ticks:
+            widest = max((self.text_width(label) for _, label in x_ticks), default=0.0) + 6
+            stride = 1
+            while len(x_ticks) > 1 and stride < len(x_ticks) and \
+                    (to_px(x_ticks[stride][0], ymin).x() - to_px(x_ticks[0][0], ymin).x()) < widest:
+                stride += 1
+            for x, label in list(x_ticks)[::stride]:
                 px = to_px(x, ymin).x()
-                p.drawText(QRectF(px - 30, box.bottom() + 2, 60, 12), int(Qt.AlignmentFlag.AlignHCenter), label)
+                p.drawText(QRectF(px - widest / 2, box.bottom() + 2, widest, row_h), int(Qt.AlignmentFlag.AlignHCenter),
+                           label)
             if x_label:
-                p.drawText(QRectF(box.left(), box.bottom() + 12, box.width(), 12),
+                p.drawText(QRectF(box.left(), box.bottom() + 4 + row_h, box.width(), row_h),
                            int(Qt.AlignmentFlag.AlignHCenter), x_label)
-            for k, (name, xs, ys) in enumerate(series):
+            for k, (_name, xs, ys) in enumerate(series):
                 colour = self._colour(PLOT_COLOURS[k % len(PLOT_COLOURS)])
                 pen = QPen(colour)
                 pen.setWidthF(1.4)
                 p.setPen(pen)
                 line = [to_px(float(x), float(y)) for x, y in zip(xs, ys, strict=False)
                         if y is not None and math.isfinite(float(y))]
-                if len(line) > 1:
+                if connect and len(line) > 1:
                     p.drawPolyline(QPolygonF(line))
                 if markers and len(line) < 200:
                     p.setBrush(colour)
                     for q in line:
                         p.drawEllipse(q, 2.2, 2.2)
                     p.setBrush(Qt.BrushStyle.NoBrush)
-                if len(series) > 1:  # the legend, in the title row
-                    self.font(7.5, True)
-                    p.drawText(QRectF(box.right() - 60 * (len(series) - k), box.top() - 17, 58, 12),
+            if hollow:
+                pen = QPen(self._colour("#c62828"))
+                pen.setWidthF(1.2)
+                p.setPen(pen)
+                p.setBrush(Qt.BrushStyle.NoBrush)
+                for x, y in hollow:
+                    p.drawEllipse(to_px(x, y), 3.5, 3.5)
+            if len(series) > 1:  # the legend, inside the plot's top right corner, one name a line
+                self.font(7, True)
+                names = [name for name, _, _ in series]
+                w = max(self.text_width(n) for n in names) + 8
+                h = p.fontMetrics().height()
+                p.fillRect(QRectF(box.right() - w - 2, box.top() + 2, w, h * len(names) + 2), self._colour("#ffffff"))
+                for k, name in enumerate(names):
+                    p.setPen(self._colour(PLOT_COLOURS[k % len(PLOT_COLOURS)]))
+                    p.drawText(QRectF(box.right() - w, box.top() + 2 + k * h, w - 4, h),
                                int(Qt.AlignmentFlag.AlignRight), name)
         if advance:
             self.y += height + 6
+
+    def _elide(self, text: str, width: float) -> str:
+        from PySide6.QtCore import Qt
+
+        return self.painter.fontMetrics().elidedText(text, Qt.TextElideMode.ElideRight, int(width))
 
     def plot_grid(self, plots: Sequence[dict[str, Any]], columns: int = 2, height: float = 150) -> None:
         w = self.inner_width / columns
         for k in range(0, len(plots), columns):
             self.ensure(height + 10)
             for j, spec in enumerate(plots[k:k + columns]):
-                self.plot(**spec, width=w - 6, height=height, left=self.MARGIN + j * w, advance=False)
+                self.plot(**{"height": height, **spec}, width=w - 6, left=self.MARGIN + j * w, advance=False)
             self.y += height + 6
 
     def finish(self) -> int:
@@ -415,6 +846,10 @@ def _when(iso: str) -> str:
         return iso or "unknown"
 
 
+def _clock(epoch: float) -> str:
+    return _dt.datetime.fromtimestamp(epoch).astimezone().strftime("%H:%M:%S") if epoch else "—"
+
+
 def _duration(seconds: Any) -> str:
     if not isinstance(seconds, int | float):
         return "—"
@@ -423,95 +858,226 @@ def _duration(seconds: Any) -> str:
 
 
 # ------------------------------------------------------------------------------------------- session PDF
-def write_session_report(folder: str | Path, out: str | Path, data: SessionReportData | None = None) -> int:
-    """Write the session's report; returns the number of pages."""
-    _ensure_gui_app()
-    data = data or session_report_data(folder)
-    m, summary = data.metrics, data.metrics["summary"]
-    reps = m["repetitions"]
-    manifest = data.manifest
-    patient = manifest.get("patient") or {}
-    pdf = _Pdf(Path(out), f"Session {data.patient_id} {data.started}", _footer(f"session {data.folder.name}"))
-    pdf.text("Therapy session report", 17, True, "#1a3d6d", gap=8)
-    status = "complete" if manifest.get("status") == "complete" else "INTERRUPTED (not stopped normally)"
-    pdf.fields([
-        ("Patient", f"{data.patient_id}   (affected side: {patient.get('affected_side', 'unknown')})"),
-        ("Operator", str(manifest.get("operator") or "—")),
-        ("Date", _when(data.started)),
-        ("Duration", f"{_duration(manifest.get('duration_s', summary.get('session_duration_s')))}   ({status})"),
-        ("Exercises", ", ".join(data.exercises) or "—"),
-        ("Note", str(manifest.get("note") or "—")),
-        ("Session folder", str(data.folder)),
-    ])
-    pdf.heading("Exercise parameters")
-    params = summary.get("exercise_params") or {}
-    if params:
-        pdf.fields([(str(k), fmt(v, "{}")) for k, v in params.items()], label_width=190)
-    else:
-        pdf.text("— (not started from an exercise form: see the script in the session's events)", colour="#555555")
+def program_text(run: ExerciseRun) -> str:
+    prog = run.program
+    if prog.kind == "exercise":
+        version = f", version {prog.version[:10]}" if prog.version else ""
+        return f"library exercise “{prog.ident}”{version}"
+    if prog.kind == "console":
+        if not prog.ident:
+            return "none (the handle's movements, found from its speed)"
+        return "code typed in the script console"
+    return f"script file {prog.path or prog.ident}"
 
-    pdf.heading("Summary")
-    how = "marked by the exercise" if summary.get("source") == "marks" else "segmented from the handle speed"
-    pdf.fields([("Repetitions", f"{summary.get('repetitions', 0)} ({summary.get('completed', 0)} completed; {how})"),
-                ("Alarms / stops", str(summary.get("alarms", 0)))])
+
+def parameters_text(run: ExerciseRun) -> list[tuple[str, str]]:
+    """The parameters in words with their units: (label, "value unit")."""
+    out = []
+    for p in run.parameters:
+        number = isinstance(p.value, int | float) and not isinstance(p.value, bool)
+        value = fmt(p.value) if number else fmt(p.value, "{}")
+        out.append((p.label or p.name, value + (f" {p.unit}" if p.unit else "")))
+    return out
+
+
+def summary_rows(summary: Mapping[str, Any]) -> list[list[str]]:
     rows = []
     for key, (unit, label) in SUMMARY_METRICS.items():
         entry = summary.get(key)
         if isinstance(entry, dict):
-            rows.append([label + (f" [{unit}]" if unit else ""), fmt(entry["mean"]), fmt(entry["sd"]),
-                         fmt(entry["first"]), fmt(entry["last"]), str(entry["n"])])
-    if summary.get("fes_charge_uc"):
-        for ch, q in summary["fes_charge_uc"].items():
-            rows.append([f"FES charge ch {ch} [µC]", fmt(q), "", "", "", "total"])
-    if rows:
-        pdf.table(["Metric", "Mean", "SD", "First", "Last", "n"], rows, [3.2, 1, 1, 1, 1, 0.6])
+            rows.append([label + (f" [{unit}]" if unit else ""), fmt(entry.get("mean")), fmt(entry.get("sd")),
+                         fmt(entry.get("first")), fmt(entry.get("last")), str(entry.get("n", ""))])
+    for ch, q in (summary.get("fes_charge_uc") or {}).items():
+        rows.append([f"FES charge, channel {ch}", charge_text(q), "", "", "", "total"])
+    return rows
 
-    pdf.heading("Repetitions")
-    if reps:
-        pdf.table([h for _, h, _ in REPETITION_COLUMNS],
-                  [[fmt(r.get(k), f) for k, _, f in REPETITION_COLUMNS] for r in reps],
-                  [0.5, 0.8, 0.8, 0.9, 0.9, 0.9, 0.8, 0.6, 0.8, 0.8, 0.7, 0.6])
-    else:
-        pdf.text("No repetition: the exercise marked none and no movement was found in the handle's speed.")
 
-    pdf.heading("Plots")
-    t, x = data.position
-    pdf.plot("Handle position over the session (repetitions shaded)", [("position", t, x)], "m", "s from start",
-             shade=[(r["start_s"], r["end_s"]) for r in reps], markers=False, height=170)
-    idx = [r["index"] for r in reps]
-    ticks = [(float(i), str(i)) for i in idx] if len(idx) <= 20 else None
-    pdf.plot_grid([
-        {"title": "Peak speed", "series": [("peak", idx, [r["peak_speed_m_s"] for r in reps]),
-                                           ("mean", idx, [r["mean_speed_m_s"] for r in reps])],
-         "unit": "m/s", "x_label": "repetition", "x_ticks": ticks},
-        {"title": "Smoothness (SPARC, closer to 0 is smoother)", "series": [("SPARC", idx, [r["sparc"] for r in reps])],
-         "x_label": "repetition", "x_ticks": ticks},
-        {"title": "Range of motion", "series": [("range", idx, [r["range_m"] for r in reps])], "unit": "m",
-         "x_label": "repetition", "x_ticks": ticks},
-        {"title": "Interaction force", "series": [("peak", idx, [r["peak_force_n"] for r in reps]),
-                                                  ("mean", idx, [r["mean_force_n"] for r in reps])],
-         "unit": "N", "x_label": "repetition", "x_ticks": ticks},
+def repetition_row(r: Mapping[str, Any]) -> list[str]:
+    return [fmt(r.get(k), f) for k, _, f in REPETITION_COLUMNS]
+
+
+def alarm_text(data: Mapping[str, Any]) -> str:
+    """An alarm's own sentence first (its text or reason), then the rest, in full."""
+    said = str(data.get("text") or data.get("reason") or data.get("message") or "")
+    rest = ", ".join(f"{k}: {v}" for k, v in data.items() if k not in ("text", "reason", "message", "ident"))
+    return " — ".join(p for p in (said, rest) if p)
+
+
+def write_session_report(folder: str | Path, out: str | Path, data: SessionReportData | None = None) -> int:
+    """Write the session's report; returns the number of pages."""
+    _ensure_gui_app()
+    data = data or session_report_data(folder)
+    m = data.metrics
+    manifest = data.manifest
+    patient = manifest.get("patient") or {}
+    profile = data.profile
+    start = manifest.get("start") or {}
+    start_mono = float(start.get("t_mono_s") or 0.0)
+    try:
+        start_dt: _dt.datetime | None = _dt.datetime.fromisoformat(str(start.get("t_wall")))
+    except ValueError:
+        start_dt = None
+
+    def clock(t_mono: float | None) -> str:
+        if t_mono is None:
+            return "—"
+        if start_dt is None:
+            return f"{t_mono - start_mono:.0f} s"
+        return (start_dt + _dt.timedelta(seconds=t_mono - start_mono)).strftime("%H:%M:%S")
+
+    pdf = _Pdf(Path(out), f"Session {data.patient_id} {data.started}", _footer(f"session {data.folder.name}"))
+    pdf.text("Therapy session report", 17, True, "#1a3d6d", gap=8)
+    status = "complete" if manifest.get("status") == "complete" else "INTERRUPTED (the application did not end it)"
+    ident = identification(data.patient_id, profile, patient)
+    runs = data.runs
+    duration = manifest.get("duration_s")
+    if duration is None:
+        duration = m["summary"].get("session_duration_s")
+    pdf.fields([
+        *ident,
+        ("Operator", str(manifest.get("operator") or "—")),
+        ("Date", _when(data.started)),
+        ("Duration", f"{_duration(duration)}   ({status})"),
+        ("Exercise runs", f"{len(runs)}: " + "; ".join(f"{r.number}. {r.title}" for r in runs) if runs else "none"),
+        ("Note", str(manifest.get("note") or "—")),
+        ("Session folder", str(data.folder)),
     ])
 
-    pdf.heading("Alarms and interruptions")
-    if m["alarms"]:
-        pdf.table(["Time s", "Event", "Details"],
-                  [[f"{a['t_s']:.1f}", a["kind"], _details(a["data"])] for a in m["alarms"]], [0.8, 1.4, 6])
+    numbers = {r.run.run_id: r.number for r in runs}
+    restarts = {r.run.restart_of: r.number for r in runs if r.run.restart_of}
+    pdf.heading("Session overview")
+    if runs:
+        rows = []
+        for r in runs:
+            end = r.run.end_text()
+            notes = []
+            if r.run.restart_of:
+                notes.append(f"restart of run {numbers.get(r.run.restart_of, r.run.restart_of)}")
+            if r.run.run_id in restarts:
+                notes.append(f"restarted as run {restarts[r.run.run_id]}")
+            rows.append([str(r.number), r.title, SOURCE_TEXT.get(r.run.source, r.run.source) + (
+                f", {r.run.operator}" if r.run.operator else ""), clock(r.run.started_mono),
+                _duration(r.run.elapsed_s()), r.reps_text(), "; ".join([end, *notes])])
+        pdf.table(["Run", "Exercise", "Started from, by", "Start", "Duration", "Repetitions", "Ended"], rows,
+                  [0.4, 2.2, 1.5, 0.8, 0.9, 1.2, 2.3])
+    else:
+        pdf.text("No exercise was run in this session.", colour="#555555")
+
+    for r in runs:
+        run = r.run
+        pdf.heading(f"Run {r.number} — {r.title}", 11.5, keep=140)
+        info = [("Program", program_text(run)),
+                ("Started", f"{clock(run.started_mono)} from the {SOURCE_TEXT.get(run.source, run.source)}"
+                            + (f" by {run.operator}" if run.operator else "")),
+                ("Ended", f"{clock(run.ended_mono)} — {run.end_text()}")]
+        if run.restart_of:
+            info.append(("Restart of", f"run {numbers.get(run.restart_of, run.restart_of)}"))
+        if run.run_id in restarts:
+            info.append(("Restarted as", f"run {restarts[run.run_id]}"))
+        pdf.fields(info, label_width=110)
+        params = parameters_text(run)
+        pdf.subheading("Parameters")
+        if params:
+            pdf.fields(params, label_width=190)
+        else:
+            pdf.text("none (a script's own values; see its text in the session's events)", colour="#555555")
+        summary = r.summary
+        how = "marked by the exercise" if summary.get("source") == "marks" else "segmented from the handle speed"
+        pdf.subheading("Summary of this run")
+        counted = (f"{len(r.repetitions)} ({r.completed} completed; {how})" if r.repetitions
+                   else r.reps_text())
+        summary_fields = [("Repetitions", counted), ("Alarms / stops", str(summary.get("alarms", 0)))]
+        if r.positioning:
+            summary_fields.append(("Positioning moves", f"{len(r.positioning)} (the robot placing the handle; not "
+                                                        "repetitions)"))
+        pdf.fields(summary_fields, label_width=110)
+        rows = summary_rows(summary)
+        if rows and r.repetitions:
+            pdf.table(["Measure", "Mean", "SD", "First", "Last", "n"], rows, [3.2, 1, 1, 1, 1, 0.6],
+                      align_right=(1, 2, 3, 4, 5))
+        if r.repetitions:
+            pdf.subheading(f"Repetitions of run {r.number} (numbered within the run)")
+            pdf.table([h for _, h, _ in REPETITION_COLUMNS], [repetition_row(rep) for rep in r.repetitions],
+                      [0.5, 0.8, 0.8, 0.9, 0.9, 0.9, 0.8, 0.6, 0.8, 0.8, 0.7, 0.6],
+                      align_right=tuple(range(len(REPETITION_COLUMNS))))
+            idx = [rep["index"] for rep in r.repetitions]
+            ticks = [(float(i), str(i)) for i in idx] if len(idx) <= 30 else None
+            pdf.plot_grid([
+                {"title": f"Run {r.number}: peak and mean speed", "unit": "m/s", "x_label": "repetition",
+                 "x_ticks": ticks, "series": [("peak", idx, [rep.get("peak_speed_m_s") for rep in r.repetitions]),
+                                              ("mean", idx, [rep.get("mean_speed_m_s") for rep in r.repetitions])]},
+                {"title": f"Run {r.number}: range of motion", "unit": "m", "x_label": "repetition",
+                 "x_ticks": ticks, "series": [("range", idx, [rep.get("range_m") for rep in r.repetitions])]},
+            ], height=130)
+        if r.alarms:
+            pdf.subheading(f"Alarms and interruptions during run {r.number}")
+            pdf.table(["Time s", "Event", "Details"],
+                      [[f"{a['t_s']:.1f}", a["kind"].replace("_", " "), alarm_text(a["data"])] for a in r.alarms],
+                      [0.8, 1.4, 6])
+
+    pdf.heading("The whole session", keep=200)
+    t, x = data.position
+    pdf.plot("Handle position over the session (runs shaded)", [("position", t, x)], "m", "s from the start",
+             shade=[(r.run.started_mono - start_mono, (r.run.ended_mono or start_mono) - start_mono) for r in runs],
+             markers=False, height=170)
+    pdf.heading("Alarms and interruptions (whole session)")
+    alarms = m["alarms"]
+    if alarms:
+        number_of = {r.run.run_id: str(r.number) for r in runs}
+
+        def run_number(t_s: float) -> str:
+            run = run_at([r.run for r in runs], t_s + start_mono)
+            return number_of.get(run.run_id, "—") if run is not None else "—"
+        pdf.table(["Time s", "Run", "Event", "Details"],
+                  [[f"{a['t_s']:.1f}", run_number(a["t_s"]), a["kind"].replace("_", " "), alarm_text(a["data"])]
+                   for a in alarms], [0.8, 0.5, 1.4, 6])
     else:
         pdf.text("None.")
     if data.problems:
         pdf.heading("Recording problems")
         for p in data.problems:
             pdf.text("• " + p)
+
+    pdf.heading("Definitions", keep=120)
+    pdf.fields(list(DEFINITIONS), label_width=110)
+    pdf.text("Full definitions and sources: docs/metrics.md of LINarm++ Manager.", 8, colour="#555555")
+
+    sign_off(pdf, str(manifest.get("operator") or ""))
     return pdf.finish()
 
 
-def _details(data: dict[str, Any]) -> str:
-    """An alarm's own sentence first (its text or reason), then the rest."""
-    said = str(data.get("text") or data.get("reason") or "")
-    rest = ", ".join(f"{k}: {v}" for k, v in data.items() if k not in ("text", "reason", "ident"))
-    text = " — ".join(p for p in (said, rest) if p)
-    return text if len(text) < 110 else text[:107] + "…"
+def identification(patient_id: str, profile: Any, snapshot: Mapping[str, Any]) -> list[tuple[str, str]]:
+    """The patient's identification: the profile's as it is now where it can be read, else the copy in the
+    session's manifest. A pseudonymous profile says so (the clinic's key links it to the person)."""
+    def get(name: str) -> str:
+        value = getattr(profile, name, None) if profile is not None else None
+        if value in (None, ""):
+            value = snapshot.get(name)
+        return str(value or "")
+
+    name, born, record = get("full_name"), get("birth_date"), get("record_number")
+    side = get("affected_side") or "unknown"
+    out = [("Patient ID", patient_id + ("" if (name or record) else "   (pseudonym: the clinic's key identifies "
+                                                                      "the patient)"))]
+    if name:
+        out.append(("Name", name))
+    if born:
+        out.append(("Date of birth", born))
+    if record:
+        out.append(("Medical record no.", record))
+    out.append(("Affected side", side))
+    return out
+
+
+def sign_off(pdf: _Pdf, operator: str) -> None:
+    pdf.heading("Sign-off", keep=130)
+    pdf.fields([("Operator (recorded)", operator or "—")], label_width=130)
+    pdf.ensure(60)
+    third = (pdf.inner_width - 40) / 3
+    pdf.y += 4
+    for k, label in enumerate(("Clinician (name)", "Date", "Signature")):
+        pdf.rule_line(label, third, pdf.MARGIN + k * (third + 20))
+    pdf.y += 48
 
 
 # ------------------------------------------------------------------------------------------- progress PDF
@@ -523,36 +1089,84 @@ def write_progress_report(patient_id: str, out: str | Path, rows: Sequence[Progr
     pdf.text("Patient progress report", 17, True, "#1a3d6d", gap=8)
     first = rows[0].date if rows else "—"
     last = rows[-1].date if rows else "—"
-    pdf.fields([
-        ("Patient", patient_id + (f"   (affected side: {profile.affected_side})" if profile is not None else "")),
-        ("Sessions", f"{len(rows)}   ({first} … {last})"),
+    interrupted = [k + 1 for k, r in enumerate(rows) if r.interrupted]
+    pairs = [
+        *identification(patient_id, profile, {}),
+        ("Sessions", f"{len(rows)}   ({first} … {last})"
+                     + (f"; interrupted: #{', #'.join(map(str, interrupted))}" if interrupted else "")),
         ("Repetitions", str(sum(int(r.summary.get("repetitions") or 0) for r in rows))),
-    ])
+    ]
     if profile is not None:
         scores = profile.scores
-        pdf.fields([(label, fmt(getattr(scores, key, None))) for key, label in SCORES]
-                   + [("Assessed on", scores.assessed_on or "—")])
+        pairs += [(label, fmt(getattr(scores, key, None), "{}")) for key, label in SCORES]
+        pairs.append(("Assessed on", scores.assessed_on or "—"))
+    pdf.fields(pairs, label_width=190)
 
     pdf.heading("Sessions")
-    pdf.table(["Date", "Exercises", "Reps", "Peak m/s", "SPARC", "Range m", "Move s", "α", "Alarms"],
-              [[r.date, ", ".join(r.exercises)[:40] or "—", fmt(r.summary.get("repetitions"), "{}"),
+    pdf.table(["#", "Date and time", "Exercises", "Reps (done)", "Peak m/s", "SPARC", "Range m", "α", "Alarms",
+               "Session"],
+              [[str(k + 1), r.date, "; ".join(r.exercises) or "—",
+                f"{fmt(r.summary.get('repetitions'), '{}')} ({fmt(r.summary.get('completed'), '{}')})",
                 fmt(r.value("peak_speed_m_s")), fmt(r.value("sparc")), fmt(r.value("range_m")),
-                fmt(r.value("movement_time_s")), fmt(r.value("mean_alpha")), fmt(r.summary.get("alarms"), "{}")]
-               for r in rows], [1.2, 2.6, 0.6, 0.9, 0.8, 0.9, 0.8, 0.6, 0.7])
+                fmt(r.value("mean_alpha")), fmt(r.summary.get("alarms"), "{}"),
+                "interrupted" if r.interrupted else "complete"]
+               for k, r in enumerate(rows)], [0.3, 1.45, 2.35, 0.85, 0.75, 0.65, 0.75, 0.4, 0.65, 0.95],
+              align_right=(3, 4, 5, 6, 7, 8))
 
-    pdf.heading("Trends across sessions (session means)")
-    n = list(range(1, len(rows) + 1))
-    ticks = [(float(i), rows[i - 1].date[5:]) for i in n] if len(n) <= 12 else None
-    plots = [{"title": label, "series": [(label, n, [r.value(key) for r in rows])], "unit": unit,
-              "x_label": "session", "x_ticks": ticks} for key, label, unit in TREND_METRICS
-             if any(r.value(key) is not None for r in rows)]
-    pdf.plot_grid(plots)
+    n = len(rows)
+    ticks = [(float(i), f"#{i}") for i in range(1, n + 1)]
+    titles = list(dict.fromkeys(t for r in rows for t in r.per_exercise))
+    if not titles:
+        titles = [""]
+    for title in titles:
+        pdf.heading(f"Trends: {title}" if title else "Trends across sessions (session means)", keep=200)
+        pdf.text("Session means of this exercise's repetitions, by session number (dates in the table above). "
+                 "○ = a session whose runs of this exercise were all interrupted: shown, but not joined to the "
+                 "trend line.", 8, colour="#444444")
+        plots = []
+        for key, label, unit in TREND_METRICS:
+            xs, ys, hollow = trend_points(rows, title, key)
+            if xs or hollow:
+                plots.append({"title": label, "series": [(label, xs, ys)], "unit": unit, "x_label": "session",
+                              "x_ticks": ticks, "hollow": hollow})
+        if plots:
+            pdf.plot_grid(plots)
+        else:
+            pdf.text("No repetition of this exercise has metrics yet.", colour="#555555")
     scored = [(key, label) for key, label in SCORES if any(r.scores.get(key) is not None for r in rows)]
     if scored:
-        pdf.heading("Clinical scores (as in the profile at each session)")
-        pdf.plot_grid([{"title": label, "series": [(label, n, [r.scores.get(key) for r in rows])],
+        pdf.heading("Clinical scores (as in the profile at each session)", keep=200)
+        pdf.plot_grid([{"title": label, "series": [(label, [k + 1.0 for k in range(n)],
+                                                    [_score(r.scores.get(key)) for r in rows])],
                         "x_label": "session", "x_ticks": ticks} for key, label in scored])
     return pdf.finish()
+
+
+def trend_points(rows: Sequence[ProgressRow], title: str, key: str
+                 ) -> tuple[list[float], list[float], list[tuple[float, float]]]:
+    """One exercise's trend of ``key`` by session number: the points joined by the line (x, y), and apart the
+    sessions whose runs of that exercise were all interrupted (drawn as open circles, never as a decline).
+    ``title`` "" = the whole session's means (recordings without exercises)."""
+    xs: list[float] = []
+    ys: list[float] = []
+    hollow: list[tuple[float, float]] = []
+    for k, r in enumerate(rows):
+        trend = r.per_exercise.get(title) if title else None
+        if title and trend is None:
+            continue
+        value = trend.values.get(key) if trend is not None else r.value(key)
+        if value is None:
+            continue
+        if (trend.interrupted if trend is not None else r.interrupted):
+            hollow.append((k + 1.0, float(value)))
+        else:
+            xs.append(k + 1.0)
+            ys.append(float(value))
+    return xs, ys, hollow
+
+
+def _score(value: Any) -> float | None:
+    return float(value) if isinstance(value, int | float) and not isinstance(value, bool) else None
 
 
 # ------------------------------------------------------------------------------------------- command line

@@ -98,7 +98,7 @@ def test_session_and_progress_pdfs_render(tmp_path: Path) -> None:
     assert pages >= 2  # 12 repetitions, plots and alarms do not fit on one A4 page
     assert len(render(tmp_path / "session.pdf", tmp_path)) == pages
     rows = progress_rows("P1", root)
-    assert [r.date for r in rows] == ["2026-03-01", "2026-03-02", "2026-03-03"]
+    assert [r.date for r in rows] == ["2026-03-01 10:00", "2026-03-02 10:00", "2026-03-03 10:00"]
     assert [round(r.value("range_m"), 2) for r in rows] == [0.15, 0.18, 0.21]
     assert [r.scores["fugl_meyer_ue"] for r in rows] == [30, 32, 34]
     pages = write_progress_report("P1", tmp_path / "progress.pdf", rows)

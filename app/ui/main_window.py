@@ -372,9 +372,10 @@ class MainWindow(QMainWindow):
             self.manager.end_session()
 
     def show_patients(self) -> None:
-        from app.ui.patient_dialog import PatientDialog
+        from app.ui.patients_window import PatientsDialog
 
-        PatientDialog(None, self.manager.config.safety, parent=self).open()
+        self._patients_window = PatientsDialog(self.manager.config.safety, parent=self)
+        self._patients_window.show()
 
     def show_sessions_browser(self) -> None:
         from app.recording import sessions_root

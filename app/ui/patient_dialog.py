@@ -1,4 +1,5 @@
-"""Create or edit a patient profile, and choose patient + operator to start a session.
+"""Create or edit a patient profile, and choose patient + operator to start a session (the session-start
+dialog: the operator is chosen explicitly each time; the last one is offered as a button, never pre-filled).
 
 The form is validated by the same code that loads profile files (app.patients.parse_profile →
 app.yamlschema): the form is turned into the YAML document it would save, and any problem is shown
@@ -81,6 +82,14 @@ class PatientDialog(QDialog):
         self.id_edit = self._line("patient_id", p.patient_id, "Pseudonym or identifier: letters, digits, - and _")
         self.id_edit.setReadOnly(profile is not None)  # the id names the file and the sessions folder
         form.addRow("Patient ID", self.id_edit)
+        self.name_edit = self._line("full_name", p.full_name, "Optional: for the printed record. Leave empty for a "
+                                    "pseudonymous profile")
+        form.addRow("Name", self.name_edit)
+        self.birth_edit = self._line("birth_date", p.birth_date, "Optional: YYYY-MM-DD")
+        self.birth_edit.setPlaceholderText("YYYY-MM-DD")
+        form.addRow("Date of birth", self.birth_edit)
+        self.record_edit = self._line("record_number", p.record_number, "Optional: the clinic's medical record number")
+        form.addRow("Medical record no.", self.record_edit)
         self.side_box = QComboBox()
         for side in ("unknown", "left", "right", "both"):
             self.side_box.addItem(side, side)
@@ -199,6 +208,10 @@ class PatientDialog(QDialog):
             scores["other"] = dict(original.scores.other)
         data: dict[str, Any] = {
             "patient_id": self.id_edit.text().strip(),
+            # as typed (text, never a YAML date or number: "0123" stays "0123")
+            "full_name": self.name_edit.text().strip(),
+            "birth_date": self.birth_edit.text().strip(),
+            "record_number": self.record_edit.text().strip(),
             "affected_side": self.side_box.currentData(),
             "scores": scores,
             "assistance": {k: v for k, v in (("k_r", _value(self.k_r.text())), ("k_f", _value(self.k_f.text())))
@@ -222,7 +235,11 @@ class PatientDialog(QDialog):
         try:
             return parse_profile(text, "patient form", self.safety)
         except PatientError as exc:
-            self.show_error(exc.key, exc.problem)
+            key = exc.key
+            if not key or key == "(top level)":  # a whole-profile check names its field in the problem's first word
+                first = exc.problem.split(" ", 1)[0]
+                key = first if first in self.fields else key
+            self.show_error(key, exc.problem)
             return None
 
     def show_error(self, key: str, problem: str) -> None:
@@ -277,10 +294,22 @@ class StartSessionDialog(QDialog):
         row.addWidget(self.patient_box, 1)
         row.addWidget(self.edit_button)
         row.addWidget(new_button)
-        self.operator_edit = QLineEdit(str(QSettings().value("session/operator", "")))
+        # The operator signs the session's record: typed (or the last one taken with a click) by whoever starts
+        # it, never kept from the last session as the value (issue #26: a colleague signed as someone else).
+        self.operator_edit = QLineEdit("")
         self.operator_edit.setAccessibleName("Operator")
         self.operator_edit.setPlaceholderText("Your name or staff ID")
         self.operator_edit.textChanged.connect(self._update)
+        self.last_operator = str(QSettings().value("session/operator", "") or "")
+        self.last_operator_button: QPushButton | None = None
+        operator_row = QHBoxLayout()
+        operator_row.addWidget(self.operator_edit, 1)
+        if self.last_operator:
+            self.last_operator_button = QPushButton(f"I am {self.last_operator}")
+            self.last_operator_button.setToolTip("The operator of the last session on this computer: click only if "
+                                                 "that is you")
+            self.last_operator_button.clicked.connect(lambda: self.operator_edit.setText(self.last_operator))
+            operator_row.addWidget(self.last_operator_button)
         self.note_edit = QLineEdit()
         self.note_edit.setAccessibleName("Session note")
         self.problem = QLabel("")
@@ -288,7 +317,7 @@ class StartSessionDialog(QDialog):
         self.problem.setStyleSheet("color: #b00020;")
         form = QFormLayout()
         form.addRow("Patient", row)
-        form.addRow("Operator", self.operator_edit)
+        form.addRow("Operator", operator_row)
         form.addRow("Note", self.note_edit)
         self.buttons = QDialogButtonBox(QDialogButtonBox.StandardButton.Ok | QDialogButtonBox.StandardButton.Cancel)
         self.buttons.button(QDialogButtonBox.StandardButton.Ok).setText("Start session")

@@ -1,10 +1,12 @@
-"""Session summary: what an exercise (or a whole session) did — a table of repetitions, plots of the metrics
-across the repetitions, the alarms and interruptions. Shown at the end of an exercise and from the sessions
-browser; "Save PDF…" writes the printable report (app/reports.py)."""
+"""Session summary: what each exercise run of a session (or of one exercise's end) did — per run a table of its
+repetitions (numbered within the run), plots of the metrics across them, its alarms — so runs of different
+exercises are never drawn as one line. Shown at the end of an exercise and from the sessions browser; "Save
+PDF…" writes the printable report (app/reports.py), which reads the same :func:`app.reports.run_reports`."""
 
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -21,16 +23,24 @@ from PySide6.QtWidgets import (
     QPushButton,
     QTableWidget,
     QTableWidgetItem,
+    QTabWidget,
     QVBoxLayout,
     QWidget,
 )
 
-from app.metrics import metrics_of_session
-from app.reports import REPETITION_COLUMNS, fmt, y_range
+from app.reports import (
+    REPETITION_COLUMNS,
+    SOURCE_TEXT,
+    RunReport,
+    alarm_text,
+    fmt,
+    parameters_text,
+    y_range,
+)
 
 log = logging.getLogger(__name__)
 
-# (title, [(key, name)], unit) — the plots across repetitions
+# (title, [(key, name)], unit) — the plots across one run's repetitions
 SUMMARY_PLOTS: tuple[tuple[str, tuple[tuple[str, str], ...], str], ...] = (
     ("Peak speed", (("peak_speed_m_s", "peak"), ("mean_speed_m_s", "mean")), "m/s"),
     ("Smoothness (SPARC)", (("sparc", "SPARC"),), ""),
@@ -40,36 +50,44 @@ SUMMARY_PLOTS: tuple[tuple[str, tuple[tuple[str, str], ...], str], ...] = (
 PLOT_PENS = ("#1f77b4", "#d62728")
 
 
-class SessionSummary(QWidget):
-    """The summary of ``metrics`` (app.metrics.metrics_of_session's result)."""
+def _table(headers: Sequence[str], name: str) -> QTableWidget:
+    table = QTableWidget(0, len(headers))
+    table.setHorizontalHeaderLabels(list(headers))
+    table.setEditTriggers(QAbstractItemView.EditTrigger.NoEditTriggers)
+    table.verticalHeader().setVisible(False)
+    table.setAccessibleName(name)
+    table.setWordWrap(True)
+    return table
 
-    def __init__(self, metrics: dict[str, Any], title: str = "", folder: Path | None = None,
-                 parent: QWidget | None = None) -> None:
+
+class RunSummary(QWidget):
+    """One run: what ran, how it ended, its parameters, its repetitions and their plots, its alarms."""
+
+    def __init__(self, report: RunReport, parent: QWidget | None = None) -> None:
         super().__init__(parent)
-        self.metrics = metrics
-        self.folder = folder
-        reps = metrics["repetitions"]
-        summary = metrics["summary"]
-
+        self.report = report
+        run, summary, reps = report.run, report.summary, report.repetitions
         self.header = QLabel()
         self.header.setWordWrap(True)
         self.header.setTextFormat(Qt.TextFormat.RichText)
+        self.header.setTextInteractionFlags(Qt.TextInteractionFlag.TextSelectableByMouse)
         how = "marked by the exercise" if summary.get("source") == "marks" else "found from the handle's speed"
-        line = (f"<b>{summary.get('repetitions', 0)}</b> repetitions ({summary.get('completed', 0)} completed, "
-                f"{how})")
+        counted = (f"<b>{len(reps)}</b> repetitions ({report.completed} completed, {how})" if reps
+                   else f"<b>{report.reps_text()}</b>")
         for key, label, unit in (("peak_speed_m_s", "peak speed", "m/s"), ("range_m", "range", "m"),
-                                 ("sparc", "SPARC", "")):
+                                 ("sparc", "SPARC", ""), ("reaction_time_s", "reaction time", "s")):
             entry = summary.get(key)
-            if isinstance(entry, dict):
-                line += f" · mean {label} <b>{fmt(entry['mean'])}</b> {unit}"
-        self.header.setText((f"<h3>{title}</h3>" if title else "") + line)
+            if isinstance(entry, dict) and reps:
+                counted += f" · mean {label} <b>{fmt(entry['mean'])}</b> {unit}"
+        params = ", ".join(f"{label} {value}" for label, value in parameters_text(run)) or "—"
+        origin = SOURCE_TEXT.get(run.source, run.source) + (f" by {run.operator}" if run.operator else "")
+        restart = " · restart of an interrupted run" if run.restart_of else ""
+        self.header.setText(f"<b>Run {report.number}: {report.title}</b> — from the {origin}{restart}<br>"
+                            f"Ended: <b>{run.end_text()}</b><br>Parameters: {params}<br>{counted}")
 
-        self.table = QTableWidget(len(reps), len(REPETITION_COLUMNS))
-        self.table.setHorizontalHeaderLabels([h for _, h, _ in REPETITION_COLUMNS])
-        self.table.setEditTriggers(QAbstractItemView.EditTrigger.NoEditTriggers)
-        self.table.verticalHeader().setVisible(False)
+        self.table = _table([h for _, h, _ in REPETITION_COLUMNS], f"Repetitions of run {report.number}")
+        self.table.setRowCount(len(reps))
         self.table.horizontalHeader().setSectionResizeMode(QHeaderView.ResizeMode.Stretch)
-        self.table.setAccessibleName("Repetitions")
         for row, r in enumerate(reps):
             for col, (key, _, spec) in enumerate(REPETITION_COLUMNS):
                 item = QTableWidgetItem(fmt(r.get(key), spec))
@@ -85,14 +103,13 @@ class SessionSummary(QWidget):
             plot = pg.PlotWidget(title=title_ + (f" [{unit}]" if unit else ""))
             plot.setBackground("w")
             plot.showGrid(x=True, y=True, alpha=0.3)
-            plot.setLabel("bottom", "repetition")
-            plot.setMinimumHeight(150)
+            plot.setLabel("bottom", f"repetition of run {report.number}")
+            plot.setMinimumHeight(110)
             if len(keys) > 1:
-                plot.addLegend(offset=(-5, 5))
+                plot.addLegend(offset=(-5, 5), colCount=len(keys))
             values: list[float] = []
             for j, (key, name) in enumerate(keys):
-                ys = [r.get(key) for r in reps]
-                pts = [(a, b) for a, b in zip(x, ys, strict=True) if b is not None]
+                pts = [(a, b) for a, b in zip(x, [r.get(key) for r in reps], strict=True) if b is not None]
                 if pts:
                     values += [b for _, b in pts]
                     plot.plot([a for a, _ in pts], [b for _, b in pts], name=name,
@@ -100,39 +117,140 @@ class SessionSummary(QWidget):
                               symbolBrush=PLOT_PENS[j % 2])
             if values:
                 plot.setYRange(*y_range(values), padding=0)
+            if x:
+                plot.getAxis("bottom").setTicks([[(i, str(i)) for i in x]] if len(x) <= 20 else None)
             self.plots[title_] = plot
             grid.addWidget(plot, k // 2, k % 2)
 
-        alarms = metrics.get("alarms") or []
-        self.alarms = QTableWidget(len(alarms), 3)
-        self.alarms.setHorizontalHeaderLabels(["Time s", "Event", "Details"])
-        self.alarms.setEditTriggers(QAbstractItemView.EditTrigger.NoEditTriggers)
-        self.alarms.verticalHeader().setVisible(False)
-        self.alarms.horizontalHeader().setSectionResizeMode(2, QHeaderView.ResizeMode.Stretch)
-        self.alarms.setAccessibleName("Alarms and interruptions")
-        for row, a in enumerate(alarms):
-            data = a.get("data") or {}
-            details = data.get("text") or data.get("reason") or ", ".join(f"{k}: {v}" for k, v in data.items())
-            for col, text in enumerate((f"{a['t_s']:.1f}", a["kind"], str(details))):
-                self.alarms.setItem(row, col, QTableWidgetItem(text))
-        self.alarms.setMaximumHeight(60 + 24 * min(len(alarms), 4))
-        alarms_label = QLabel(f"<b>Alarms and interruptions</b>: {len(alarms) or 'none'}")
+        self.alarms = _alarm_table(report.alarms, f"Alarms and interruptions of run {report.number}")
+        # up to six repetitions visible without scrolling; the plots take the rest
+        row_h = self.table.verticalHeader().defaultSectionSize()
+        self.table.setMinimumHeight(self.table.horizontalHeader().sizeHint().height() + row_h * min(6, len(reps))
+                                    + 6)
+        lay = QVBoxLayout(self)
+        lay.addWidget(self.header)
+        if reps:
+            lay.addWidget(self.table, 2)
+            lay.addLayout(grid, 3)
+        else:  # nothing to tabulate or plot: say so instead of empty axes
+            self.table.hide()
+            for plot in self.plots.values():
+                plot.hide()
+            none = QLabel("No repetition in this run" + (": it ended before its first movement."
+                                                          if report.interrupted else "."))
+            none.setWordWrap(True)
+            lay.addWidget(none)
+            lay.addStretch(1)
+        lay.addWidget(QLabel(f"<b>Alarms and interruptions of this run</b>: {len(report.alarms) or 'none'}"))
+        lay.addWidget(self.alarms)
+
+
+    def showEvent(self, event: Any) -> None:
+        super().showEvent(event)
+        self.alarms.resizeRowsToContents()  # the columns have their final widths now: wrap the sentences in full
+
+
+def _alarm_table(alarms: Sequence[dict[str, Any]], name: str) -> QTableWidget:
+    table = _table(["Time s", "Event", "Details"], name)
+    table.setRowCount(len(alarms))
+    table.horizontalHeader().setSectionResizeMode(2, QHeaderView.ResizeMode.Stretch)
+    for row, a in enumerate(alarms):
+        details = alarm_text(a.get("data") or {})
+        for col, text in enumerate((f"{a['t_s']:.1f}", str(a["kind"]).replace("_", " "), details)):
+            item = QTableWidgetItem(text)
+            item.setToolTip(text)  # the whole sentence, however narrow the column
+            table.setItem(row, col, item)
+    table.resizeRowsToContents()
+    # wrapped sentences need the row height of the column's final width
+    table.horizontalHeader().sectionResized.connect(lambda *_a: table.resizeRowsToContents())
+    table.setMaximumHeight(60 + 24 * min(len(alarms), 4))
+    return table
+
+
+class SessionSummary(QWidget):
+    """The summary of ``runs`` (app.reports.run_reports): one tab per run, and an overview of the runs when
+    there are several."""
+
+    def __init__(self, runs: Sequence[RunReport], title: str = "", folder: Path | None = None,
+                 parent: QWidget | None = None) -> None:
+        super().__init__(parent)
+        self.runs = list(runs)
+        self.folder = folder
+        self.header = QLabel((f"<h3>{title}</h3>" if title else "")
+                             + (f"{len(self.runs)} exercise run(s)" if self.runs else "No exercise run."))
+        self.header.setTextFormat(Qt.TextFormat.RichText)
+        self.header.setWordWrap(True)
+        self.run_views: dict[str, RunSummary] = {}
+        self.tabs = QTabWidget()
+        self.tabs.setAccessibleName("Runs")
+        self.overview: QTableWidget | None = None
+        if len(self.runs) > 1:
+            self.overview = _table(["Run", "Exercise", "Repetitions", "Ended"], "Runs of the session")
+            self.overview.setRowCount(len(self.runs))
+            self.overview.horizontalHeader().setSectionResizeMode(1, QHeaderView.ResizeMode.Stretch)
+            self.overview.horizontalHeader().setSectionResizeMode(3, QHeaderView.ResizeMode.Stretch)
+            numbers = {r.run.run_id: r.number for r in self.runs}
+            restarted_as = {r.run.restart_of: r.number for r in self.runs if r.run.restart_of}
+            for row, r in enumerate(self.runs):
+                ended = r.run.end_text()
+                if r.run.restart_of:
+                    ended += f"; restart of run {numbers.get(r.run.restart_of, '?')}"
+                if r.run.run_id in restarted_as:
+                    ended += f"; restarted as run {restarted_as[r.run.run_id]}"
+                for col, text in enumerate((str(r.number), r.title, r.reps_text(), ended)):
+                    item = QTableWidgetItem(text)
+                    item.setToolTip(text)
+                    self.overview.setItem(row, col, item)
+            self.overview.resizeRowsToContents()
+            self.overview.cellDoubleClicked.connect(lambda row, _col: self.tabs.setCurrentIndex(row + 1))
+            self.tabs.addTab(self.overview, "All runs")
+        for r in self.runs:
+            view = RunSummary(r, self)
+            self.run_views[r.run.run_id] = view
+            self.tabs.addTab(view, f"{r.number}. {_short(r.title)}")
+            self.tabs.setTabToolTip(self.tabs.count() - 1, f"Run {r.number}: {r.title} — {r.run.end_text()}")
+        self.tabs.setCurrentIndex(0)  # several runs: their overview first
+        self.tabs.tabBar().setVisible(len(self.runs) > 1)
 
         self.pdf_button = QPushButton("Save PDF &report…")
         self.pdf_button.setEnabled(folder is not None)
         self.pdf_button.clicked.connect(self.ask_pdf)
         self.status = QLabel("")
+        self.status.setWordWrap(True)
         buttons = QHBoxLayout()
         buttons.addWidget(self.status, 1)
         buttons.addWidget(self.pdf_button)
-
         lay = QVBoxLayout(self)
         lay.addWidget(self.header)
-        lay.addWidget(self.table, 2)
-        lay.addLayout(grid, 3)
-        lay.addWidget(alarms_label)
-        lay.addWidget(self.alarms)
+        lay.addWidget(self.tabs, 1)
         lay.addLayout(buttons)
+
+    @property
+    def tables(self) -> dict[str, QTableWidget]:
+        """Each run's repetition table, by run id."""
+        return {rid: view.table for rid, view in self.run_views.items()}
+
+    @property
+    def table(self) -> QTableWidget | None:
+        """The last run's repetition table (the one an exercise's end shows)."""
+        return self.run_views[self.runs[-1].run.run_id].table if self.runs else None
+
+    @property
+    def plots(self) -> dict[str, pg.PlotWidget]:
+        """The last run's plots."""
+        return self.run_views[self.runs[-1].run.run_id].plots if self.runs else {}
+
+    @property
+    def metrics(self) -> dict[str, Any]:
+        """The metrics shown, in app.metrics.metrics_of_session's shape: one run's own, or for several runs their
+        repetitions one after the other and the counts (never means pooled across different exercises)."""
+        if len(self.runs) == 1:
+            r = self.runs[0]
+            return {"repetitions": r.repetitions, "summary": r.summary, "alarms": r.alarms}
+        reps = [rep for r in self.runs for rep in r.repetitions]
+        return {"repetitions": reps, "alarms": [a for r in self.runs for a in r.alarms],
+                "summary": {"repetitions": len(reps), "completed": sum(1 for rep in reps if rep.get("completed")),
+                            "runs": len(self.runs)}}
 
     def ask_pdf(self) -> None:
         if self.folder is None:
@@ -155,19 +273,32 @@ class SessionSummary(QWidget):
         return True
 
 
+def _short(title: str, n: int = 28) -> str:
+    return title if len(title) <= n else title[: n - 1] + "…"
+
+
+def runs_between(reports: Sequence[RunReport], since_mono: float | None, until_mono: float | None
+                 ) -> list[RunReport]:
+    """The runs that started within [since, until] (one exercise's end: its run, and a restart of it)."""
+    lo = -float("inf") if since_mono is None else since_mono - 0.5
+    hi = float("inf") if until_mono is None else until_mono
+    return [r for r in reports if lo <= r.run.started_mono <= hi]
+
+
 class SessionSummaryDialog(QDialog):
-    """A session's (or one exercise's) summary in its own window."""
+    """A session's (or one exercise's) summary in its own window, run by run."""
 
     def __init__(self, folder: Path, since_mono: float | None = None, until_mono: float | None = None,
                  title: str = "", parent: QWidget | None = None) -> None:
         super().__init__(parent)
         from app.recording import load_session
+        from app.reports import run_reports
 
         session = load_session(folder)
-        metrics = metrics_of_session(session, since_mono, until_mono)
+        runs = runs_between(run_reports(session), since_mono, until_mono)
         patient = session.manifest.get("patient_id", folder.parent.name)
         self.setWindowTitle(f"Summary — {patient} — {folder.name}")
-        self.summary = SessionSummary(metrics, title or f"Session {folder.name} — {patient}", folder, self)
+        self.summary = SessionSummary(runs, title or f"Session {folder.name} — {patient}", folder, self)
         close = QPushButton("&Close")
         close.clicked.connect(self.accept)
         lay = QVBoxLayout(self)
@@ -176,4 +307,4 @@ class SessionSummaryDialog(QDialog):
         row.addStretch(1)
         row.addWidget(close)
         lay.addLayout(row)
-        self.resize(900, 760)
+        self.resize(900, 700)

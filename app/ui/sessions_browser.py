@@ -44,6 +44,7 @@ from app.recording import (
     load_session,
     read_events,
 )
+from app.reports import run_titles
 
 log = logging.getLogger(__name__)
 
@@ -276,14 +277,15 @@ class SessionsBrowser(QWidget):
         self.summaries = list_sessions(pid, self.root) if pid else []
         self.table.setRowCount(len(self.summaries))
         for row, s in enumerate(self.summaries):
-            exercises = ", ".join(s.exercises) if s.exercises else "—"
+            titles = run_titles(s.folder) or s.exercises  # the runs' titles, not file names (older: scripts)
+            exercises = ", ".join(titles) if titles else "—"
             status = session_status(s, self.active())
             cells = (_date_text(s.start), _duration_text(s.duration_s), exercises, str(s.alarms), s.operator,
                      status.text)
             for col, text in enumerate(cells):
                 item = QTableWidgetItem(text)
                 item.setData(FOLDER_ROLE, str(s.folder))
-                if col == 2 and s.exercises:
+                if col == 2 and titles:
                     item.setToolTip(exercises)  # a long list is elided in its cell
                 if col == 5:
                     item.setToolTip(status.tooltip)
