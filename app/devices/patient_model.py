@@ -74,6 +74,7 @@ from app.devices.udp_frames import (
     unseal,
 )
 from app.patient_model.decision_tree import DEFAULT_CONFIG_PATH, decode_path_code
+from app.patient_model.process import LINK_KEY_FD_ENV, key_pipe
 
 if TYPE_CHECKING:
     from app.devices.registry import DeviceContext, DeviceHandle
@@ -132,13 +133,21 @@ class HelperProcess:
         env = dict(os.environ)
         env["PYTHONPATH"] = os.pathsep.join(p for p in (str(ROOT), env.get("PYTHONPATH", "")) if p)
         env.pop(LINK_KEY_ENV, None)
+        env.pop(LINK_KEY_FD_ENV, None)
+        pass_fds: tuple[int, ...] = ()
         if self.authenticate:
             import secrets
 
             self.key = secrets.token_bytes(KEY_SIZE)
-            env[LINK_KEY_ENV] = self.key.hex()  # private to the child (not in its argv, not in ps)
-        self.proc = subprocess.Popen(self.argv, cwd=str(ROOT), env=env, stdin=subprocess.DEVNULL,
-                                     stdout=subprocess.DEVNULL)
+            # through a pipe: never the environment (readable in /proc/<pid>/environ all the helper's life)
+            pass_fds = (key_pipe(self.key),)
+            env[LINK_KEY_FD_ENV] = str(pass_fds[0])
+        try:
+            self.proc = subprocess.Popen(self.argv, cwd=str(ROOT), env=env, stdin=subprocess.DEVNULL,
+                                         stdout=subprocess.DEVNULL, pass_fds=pass_fds)
+        finally:
+            for fd in pass_fds:
+                os.close(fd)
         self.starts += 1
         log.info("started %s (pid %d)", self.module, self.proc.pid)
 

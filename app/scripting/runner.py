@@ -438,8 +438,8 @@ class ScriptRunner:
                 answer.value = msg.get("value")
                 answer.event.set()
             return None
-        elif op == "__violation__":
-            bridge.refuse(msg, str(msg.get("reason")))
+        elif op == "__violation__":  # a line the bridge would not take: the kernel is being ended for it
+            bridge.refuse(msg, str(msg.get("reason")), kind="bad line")
             return None
         bridge.refuse(msg, f"an unknown request {str(op)[:40]!r}")
         return None
@@ -493,7 +493,11 @@ class ScriptRunner:
         result.duration_s = time.monotonic() - t0
         self.gate.set("closed")
         bridge.unsubscribe_all()
+        self._end_script_processes(kernel)
         self._report(result)
+        if bridge.refusals:
+            self.output("info", f"{bridge.refusals} requests of the script were refused "
+                                f"({', '.join(f'{n} {k}' for k, n in sorted(bridge.refusal_log.by_kind.items()))}).\n")
         with self._safe_lock:
             safe_thread, self._safe_thread = self._safe_thread, None
         if safe_thread is not None:
@@ -580,6 +584,9 @@ class ScriptRunner:
     def _ended_result(self, kernel: KernelProcess, filename: str) -> ScriptResult:
         if self._stop_requested.is_set():
             return ScriptResult("stopped", self.stop_reason or "stopped", filename)
+        if kernel.violation is not None:
+            return ScriptResult("error", f"the script was ended: its process sent the application {kernel.violation}",
+                                filename)
         cause = kernel.cause()
         where = _last_script_line(kernel.stderr_tail, filename)
         result = ScriptResult("error", f"the script's process ended: {cause}", filename, where)
@@ -590,6 +597,16 @@ class ScriptRunner:
             result.line = line if isinstance(line, int) else result.line
             result.traceback = str(report.get("traceback") or "")[:100_000]
         return result
+
+    def _end_script_processes(self, kernel: KernelProcess) -> None:
+        """No process a script started outlives its run: the kernel's warden ends them all (setsid and
+        double-forked ones too); the kernel itself stays for the prompt. A kernel that has ended took them
+        with it (its warden ends everything before it exits)."""
+        ended = kernel.sweep()
+        if ended:
+            log.info("script kernel %s: %d processes the script started were ended with its run", kernel.pid, ended)
+            self.output("info", f"{ended} process{'es' if ended > 1 else ''} the script started "
+                                f"{'were' if ended > 1 else 'was'} ended with it.\n")
 
     # ------------------------------------------------------------------ homing and safe state
     def _home_if_needed(self) -> None:
