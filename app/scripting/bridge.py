@@ -823,6 +823,11 @@ class ApiBridge:
             if not isinstance(rid, int):
                 self.refuse(msg, "a call without an id")
                 return True
+            if not self._is_api_call(msg):  # refused before it costs any of the call budget
+                obj, name = msg.get("obj"), msg.get("name")
+                self.refuse(msg, f"{obj!s:.40}.{name!s:.60} is not a script API call")
+                self.reply(rid, error=ScriptError(f"{obj!s:.40}.{name!s:.60}: not a script API call (refused)"))
+                return True
             wait = self.limiter.admit()
             if wait is None:  # a flood: refused at once, counted, answered (the script's call raises)
                 self.refuse(msg, f"a call over the rate limit ({CALL_RATE:.0f} calls a second)", kind="over rate")
@@ -850,16 +855,18 @@ class ApiBridge:
             return True
         return False
 
-    def _call(self, msg: dict[str, Any]) -> None:
-        rid = msg["id"]
+    @staticmethod
+    def _is_api_call(msg: dict[str, Any]) -> bool:
         obj, name, args = msg.get("obj"), msg.get("name"), msg.get("args")
         allowed = ALLOWED_CALLS.get(obj, frozenset()) if isinstance(obj, str) else frozenset()
         attributes = ALLOWED_ATTRIBUTES.get(obj, frozenset()) if isinstance(obj, str) else frozenset()
-        if not isinstance(name, str) or (name not in allowed and name not in attributes) \
-                or not isinstance(args, list) or not all(_is_plain_arg(a) for a in args):
-            self.refuse(msg, f"{obj!s:.40}.{name!s:.60} is not a script API call")
-            self.reply(rid, error=ScriptError(f"{obj!s:.40}.{name!s:.60}: not a script API call (refused)"))
-            return
+        return isinstance(name, str) and (name in allowed or name in attributes) and isinstance(args, list) \
+            and len(args) <= 16 and all(_is_plain_arg(a) for a in args)
+
+    def _call(self, msg: dict[str, Any]) -> None:
+        rid = msg["id"]
+        obj, name, args = msg["obj"], msg["name"], msg["args"]
+        attributes = ALLOWED_ATTRIBUTES.get(obj, frozenset())
         if not self.gate.enter():
             self.reply(rid, error=ScriptStopped("the script is being stopped"))
             return

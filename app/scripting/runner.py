@@ -494,6 +494,7 @@ class ScriptRunner:
         self.gate.set("closed")
         bridge.unsubscribe_all()
         self._end_script_processes(kernel)
+        bridge.refusal_log.flush()  # the run's refusals are in its record before it ends
         self._report(result)
         if bridge.refusals:
             self.output("info", f"{bridge.refusals} requests of the script were refused "
