@@ -30,9 +30,9 @@ This module also holds the small UDP-peer machinery the VR link shares (``UdpPee
 ``HelperProcess``, ``free_udp_port``).
 
 Link security (issue #17; codec in app.devices.udp_frames): a helper process we start gets a fresh
-key at every start, through its environment (``LINK_KEY_ENV``), and every datagram both ways carries a
-MAC; datagrams without a valid MAC, with a sequence number that does not increase (a replay), or — for
-the patient model — acknowledging no frame sent in the last 0.5 s are dropped and counted
+key at every start, through an inherited pipe (``key_pipe``; never its environment), and every datagram
+both ways carries a MAC; datagrams without a valid MAC, with a sequence number that does not increase (a
+replay), or — for the patient model — acknowledging no frame sent in the last 0.5 s are dropped and counted
 (``invalid_datagrams["mac" | "replay" | "stale ack"]``).  A helper that exits because it cannot bind its
 port (exit code 3: another process holds it) is reported as ``helper_failed`` (a STOP alarm by the fault
 policy) and the link never counts as reconnected through someone else's socket.  An ``external`` peer
