@@ -68,6 +68,12 @@ PROBLEMS_LOGGED = 5  # handler failures logged with a traceback per kernel; the 
 CALL_RATE = 2000.0
 CALL_BURST = 200
 CALL_QUEUE_S = 0.05
+# Refused requests a kernel may send: a script through the API is never refused (its proxies send only API
+# calls and wait for each answer), so refusals come from a script writing to its socket itself. Past
+# REFUSAL_BURST in a row (REFUSAL_RATE a second refill it) the kernel is ended like one that sent a bad line:
+# each refusal costs the application a parse and an answer, and a flood of them would cost it a core.
+REFUSAL_RATE = 100.0
+REFUSAL_BURST = 1000
 CONTROL_TIMEOUT_S = 5.0  # the warden's answers (its first line comes ~20 ms after the start)
 
 # stream -> (device, label): the streams a script may subscribe to (one place: the kernel gets it in hello)
@@ -495,7 +501,7 @@ class KernelProcess:
                         self._poll()
                     except Exception as exc:  # never a reader's end: the kernel is ended, the readers go on
                         self._problem(f"reading the kernel's link failed: {type(exc).__name__}: {exc}")
-                        self._violate("a message that could not be read")
+                        self.end_for_violation("a message that could not be read")
                 if self._busy >= READERS - 1:  # keep a reader free: the overflow pool runs this one
                     self._overflow().submit(job)
                     job = None
@@ -523,7 +529,7 @@ class KernelProcess:
             if self.problems == PROBLEMS_LOGGED:
                 log.error("script kernel %s: further failures are counted, not logged", self.warden_pid)
 
-    def _violate(self, reason: str) -> None:
+    def end_for_violation(self, reason: str) -> None:
         """The kernel sent a line the application will not take: end it (the run ends with an error that
         says so); what it sends from now on is dropped unread."""
         if self.violation is None:
@@ -559,13 +565,13 @@ class KernelProcess:
                     self._inbox.append(msg)
                     if _OWN in msg:
                         buf.clear()
-                        self._violate(str(msg["reason"]))
+                        self.end_for_violation(str(msg["reason"]))
                         break
                 if len(buf) > MAX_MESSAGE:
                     msg = _violation(f"a message longer than {MAX_MESSAGE // (1024 * 1024)} MB")
                     self._inbox.append(msg)
                     buf.clear()
-                    self._violate(str(msg["reason"]))
+                    self.end_for_violation(str(msg["reason"]))
             else:
                 pipe = key.fileobj
                 try:
@@ -803,6 +809,7 @@ class ApiBridge:
         self.objects = api.build_api(self.context)
         self.encoder = SampleEncoder()
         self.limiter = CallLimiter()
+        self.refusal_budget = CallLimiter(REFUSAL_RATE, REFUSAL_BURST, 0.0)
         sup = getattr(manager, "supervisor", None)
         self.refusal_log = RefusalLog(kernel.warden_pid, getattr(sup, "event", None))
         self._sub_lock = threading.Lock()
@@ -925,6 +932,8 @@ class ApiBridge:
         """Count a refused request; the first REFUSALS_RECORDED are recorded one by one (supervisor event
         ``script_request_refused``), the rest in periodic summaries (``script_requests_refused``)."""
         reason = str(reason)[:200]
+        if kind != "bad line" and self.refusal_budget.admit() is None:
+            self.kernel.end_for_violation(f"a flood of requests (more than {REFUSAL_BURST} refused in a row)")
         if self.refusal_log.note(kind, reason):
             sup = getattr(self.manager, "supervisor", None)
             if sup is not None:
