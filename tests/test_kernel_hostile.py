@@ -374,6 +374,25 @@ def test_a_script_polling_a_value_is_paced_not_refused(manager: FakeManager, out
     assert "refused" not in output.text()
 
 
+def test_a_print_flood_reaches_the_console_bounded(manager: FakeManager, output: Output) -> None:
+    from app.scripting import runner as runner_module
+
+    rate = getattr(runner_module, "OUTPUT_RATE", 512 * 1024)
+    burst = getattr(runner_module, "OUTPUT_BURST", 4 * 1024 * 1024)
+    runner = ScriptRunner(manager, output, home_first=False)
+    runner.start("chunk = 'x' * 99999 + '\\n'\nprint('printing')\nfor _ in range(400):\n    print(chunk, end='')\n",
+                 "<print>")
+    started(runner, output, "printing")
+    t0 = time.monotonic()
+    assert runner.wait(20.0)
+    took = time.monotonic() - t0
+    assert runner.result is not None and runner.result.status == "finished", runner.result
+    passed = len(output.text("stdout"))
+    assert passed <= burst + rate * took + 100_000, f"{passed} characters reached the console in {took:.1f} s"
+    dropped = re.search(r"(\d+) characters of the script's output were dropped", output.text("info"))
+    assert dropped is not None and int(dropped.group(1)) + passed >= 400 * 100_000
+
+
 # ---------------------------------------------------------------------------------------------- link keys
 def environ_of(pid: int) -> bytes:
     return Path(f"/proc/{pid}/environ").read_bytes()

@@ -48,6 +48,33 @@ HOME_TIMEOUT_S = 60.0
 POLITE_STOP_S = 0.05  # the kernel's own stop (every wait notices within 20 ms) before SIGTERM
 TERMINATE_S = 0.04  # SIGTERM before SIGKILL
 ANSWER_TIMEOUT_S = 0.5  # completion and namespace reads from the GUI thread
+# Script output passed on to the console, in characters: OUTPUT_RATE a second once OUTPUT_BURST is spent.
+# The console appends on the GUI thread; a script printing megabytes in a loop would otherwise keep it busy
+# (and its queue growing) for as long as it runs. What is over is dropped and counted, never queued.
+OUTPUT_RATE = 512 * 1024
+OUTPUT_BURST = 4 * 1024 * 1024
+
+
+class _OutputBudget:
+    def __init__(self, rate: float = OUTPUT_RATE, burst: float = OUTPUT_BURST) -> None:
+        self.rate = rate
+        self.burst = burst
+        self.tokens = burst
+        self.t = time.monotonic()
+        self.dropped = 0
+        self._lock = threading.Lock()
+
+    def take(self, n: int) -> bool:
+        """True if ``n`` characters may go on; otherwise they are counted as dropped."""
+        with self._lock:
+            now = time.monotonic()
+            self.tokens = min(self.burst, self.tokens + (now - self.t) * self.rate)
+            self.t = now
+            if self.tokens >= n:
+                self.tokens -= n
+                return True
+            self.dropped += n
+            return False
 
 
 @dataclass
@@ -108,6 +135,7 @@ class ScriptRunner:
         self.body_started_at: float | None = None  # monotonic time the script's own code began (after homing)
         self.callback_errors: dict[tuple[str, int, str], int] = {}
         self.callbacks_dropped = 0
+        self._output_budget = _OutputBudget()
         self.kernel_start_s: float | None = None  # Start → the kernel has the script (the last run)
         self.gate = Gate()
         add_hook = getattr(manager, "add_shutdown_hook", None)
@@ -253,6 +281,7 @@ class ScriptRunner:
             self.paused = False
             self.callback_errors = {}
             self.callbacks_dropped = 0
+            self._output_budget = _OutputBudget()
             self.filename = filename
             self.context.stop_event.clear()
             self.gate.set("open")
@@ -415,7 +444,7 @@ class ScriptRunner:
         if op == "out":
             stream, text = msg.get("stream"), msg.get("text")
             if stream in ("stdout", "stderr", "info") and isinstance(text, str):
-                self.output(stream, text[:1_000_000])
+                self._pass_output(stream, text[:1_000_000])
                 return None
         elif op == "done":
             if kernel is self._kernel and self.running and self._done_msg is None:
@@ -446,7 +475,16 @@ class ScriptRunner:
 
     def _raw_output(self, stream: str, text: str) -> None:
         """What the kernel wrote to its own stdout/stderr (C extensions, a crash report)."""
-        self.output("stderr" if stream == "stderr" else "stdout", text)
+        self._pass_output("stderr" if stream == "stderr" else "stdout", text)
+
+    def _pass_output(self, stream: str, text: str) -> None:
+        budget = self._output_budget
+        first_drop = budget.dropped == 0
+        if budget.take(len(text)):
+            self.output(stream, text)
+        elif first_drop:
+            self.output("info", f"The script writes more than the console takes ({OUTPUT_RATE // 1024} KB a second "
+                                "after the first 4 MB): the rest of its output is dropped and counted.\n")
 
     def _on_kernel_exit(self, kernel: KernelProcess) -> None:
         for run in list(self._prompts.values()):
@@ -717,6 +755,8 @@ class ScriptRunner:
         if self.callbacks_dropped:
             self.output("info", f"{self.callbacks_dropped} samples were skipped because the callbacks were "
                                 "slower than the data.\n")
+        if self._output_budget.dropped:
+            self.output("info", f"{self._output_budget.dropped} characters of the script's output were dropped.\n")
 
 
 def _kill_all(kernels: list[KernelProcess]) -> None:

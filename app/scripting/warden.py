@@ -50,38 +50,69 @@ def _prctl(option: int, value: int) -> bool:
         return False
 
 
-def _parents() -> dict[int, tuple[int, str]]:
-    """pid → (parent pid, state) of every process (from /proc)."""
-    out: dict[int, tuple[int, str]] = {}
+def _state(pid: int) -> str:
     try:
-        entries = os.listdir("/proc")
+        with open(f"/proc/{pid}/stat", "rb") as f:
+            return f.read().rsplit(b")", 1)[1].split()[0].decode()
+    except (OSError, IndexError):
+        return "X"
+
+
+def _children(pid: int) -> list[int] | None:
+    """``pid``'s children from /proc/<pid>/task/*/children (None where the kernel does not offer them)."""
+    try:
+        tasks = os.listdir(f"/proc/{pid}/task")
     except OSError:
-        return out
-    for entry in entries:
-        if not entry.isdigit():
-            continue
+        return []
+    out: list[int] = []
+    for tid in tasks:
         try:
-            with open(f"/proc/{entry}/stat", "rb") as f:
-                fields = f.read().rsplit(b")", 1)[1].split()
-            out[int(entry)] = (int(fields[1]), fields[0].decode())
-        except (OSError, IndexError, ValueError):
+            with open(f"/proc/{pid}/task/{tid}/children", "rb") as f:
+                out.extend(int(p) for p in f.read().split())
+        except FileNotFoundError:
+            return None
+        except (OSError, ValueError):
             continue
     return out
 
 
-def descendants(root: int) -> list[int]:
-    """Living (non-zombie) processes below ``root``."""
-    parents = _parents()
+def _all_children() -> dict[int, list[int]]:
+    """parent → children of every process, from each /proc/<pid>/stat (the slow way: ~13 ms under load)."""
     children: dict[int, list[int]] = {}
-    for pid, (ppid, _state) in parents.items():
-        children.setdefault(ppid, []).append(pid)
+    try:
+        entries = os.listdir("/proc")
+    except OSError:
+        return children
+    for entry in entries:
+        if entry.isdigit():
+            try:
+                with open(f"/proc/{entry}/stat", "rb") as f:
+                    ppid = int(f.read().rsplit(b")", 1)[1].split()[1])
+            except (OSError, IndexError, ValueError):
+                continue
+            children.setdefault(ppid, []).append(int(entry))
+    return children
+
+
+def descendants(root: int) -> list[int]:
+    """Living (non-zombie) processes below ``root``: walked down from ``root`` (its subtree only), or from a
+    scan of every process where /proc/<pid>/task/<tid>/children is missing."""
+    table: dict[int, list[int]] | None = None
     out: list[int] = []
-    todo = list(children.get(root, ()))
+    todo = [root]
+    seen = {root}
     while todo:
         pid = todo.pop()
-        if parents.get(pid, (0, "Z"))[1] not in ("Z", "X"):
-            out.append(pid)
-        todo.extend(children.get(pid, ()))
+        kids = _children(pid) if table is None else table.get(pid, [])
+        if kids is None:
+            table = _all_children()
+            kids = table.get(pid, [])
+        for kid in kids:
+            if kid not in seen:
+                seen.add(kid)
+                todo.append(kid)
+                if _state(kid) not in ("Z", "X"):
+                    out.append(kid)
     return out
 
 
