@@ -24,6 +24,7 @@ import yaml
 from yaml.nodes import MappingNode, Node
 
 from app.devices.sciencemode import CHANNELS, MAX_CURRENT_MA, MAX_PULSE_WIDTH_US, PulseMode, PulseSetting
+from app.safe_files import UserFileError, read_user_file
 from app.yamlschema import ConfigError, check_yaml, decode_text, load_dataclass, rng
 
 PROFILE_VERSION = 1
@@ -309,10 +310,18 @@ def parse_profile(text: str | bytes, filename: str = "<profile>") -> FesProfile:
     return profile
 
 
+MAX_PROFILE_BYTES = 256 * 1024  # a profile is a few hundred bytes; a script may name any path
+PROFILE_READ_TIMEOUT_S = 2.0
+
+
 def load_profile(path: str | Path) -> FesProfile:
+    """Read and check a profile file: only a regular file of at most MAX_PROFILE_BYTES, read within
+    PROFILE_READ_TIMEOUT_S (app/safe_files.py: a script's ``fes.loadFile("/dev/zero")`` is read by the app)."""
     path = Path(path)
     try:
-        data = path.read_bytes()
+        data = read_user_file(path, MAX_PROFILE_BYTES, PROFILE_READ_TIMEOUT_S)
+    except UserFileError as exc:
+        raise FesProfileError(str(path), None, "", f"cannot read the file: {exc.problem}") from exc
     except OSError as exc:
         raise FesProfileError(str(path), None, "", f"cannot read the file: {exc.strerror or exc}") from exc
     return parse_profile(data, str(path))  # bytes: a non-UTF-8 file is refused with its line

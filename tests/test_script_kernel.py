@@ -171,8 +171,6 @@ for request in ({"op": "call", "id": 900001, "obj": "linarm", "name": "heartbeat
                 {"op": "reset_emergency_stop", "operator": "script"},
                 {"op": "subscribe", "id": 900005, "stream": "linarm.transport"}):
     link.sendall((json.dumps(request) + "\n").encode())
-link.sendall(b"\x80\x81 not json at all\n")
-link.sendall(b'["a list, not an object"]\n')
 wait(0.3)
 try:
     linarmppManager.resetEmergencyStop("script")
@@ -195,9 +193,8 @@ def test_requests_that_are_not_api_calls_are_refused_and_recorded(qtbot: Any, ou
     assert runner.wait(5.0)
     assert runner.result is not None and runner.result.status == "stopped", (runner.result, output.text())
     refused = [data["reason"] for kind, data in events if kind == "script_request_refused"]
-    assert len(refused) == 8, refused
+    assert len(refused) == 6, refused  # a line that is not a JSON object ends the script: test_kernel_hostile.py
     assert any("heartbeat" in r for r in refused) and any("supervisor" in r for r in refused)
-    assert any("not JSON" in r for r in refused)
     assert "no reset in the API" in output.text("stdout")
     assert manager.supervisor.estop_latched, "a script can raise the e-stop"
     assert [c for c in manager.linarm.commands if c[0] not in ("setCtrlState",)] == []  # nothing got through

@@ -30,9 +30,9 @@ This module also holds the small UDP-peer machinery the VR link shares (``UdpPee
 ``HelperProcess``, ``free_udp_port``).
 
 Link security (issue #17; codec in app.devices.udp_frames): a helper process we start gets a fresh
-key at every start, through its environment (``LINK_KEY_ENV``), and every datagram both ways carries a
-MAC; datagrams without a valid MAC, with a sequence number that does not increase (a replay), or — for
-the patient model — acknowledging no frame sent in the last 0.5 s are dropped and counted
+key at every start, through an inherited pipe (``key_pipe``; never its environment), and every datagram
+both ways carries a MAC; datagrams without a valid MAC, with a sequence number that does not increase (a
+replay), or — for the patient model — acknowledging no frame sent in the last 0.5 s are dropped and counted
 (``invalid_datagrams["mac" | "replay" | "stale ack"]``).  A helper that exits because it cannot bind its
 port (exit code 3: another process holds it) is reported as ``helper_failed`` (a STOP alarm by the fault
 policy) and the link never counts as reconnected through someone else's socket.  An ``external`` peer
@@ -74,6 +74,7 @@ from app.devices.udp_frames import (
     unseal,
 )
 from app.patient_model.decision_tree import DEFAULT_CONFIG_PATH, decode_path_code
+from app.patient_model.process import LINK_KEY_FD_ENV, key_pipe
 
 if TYPE_CHECKING:
     from app.devices.registry import DeviceContext, DeviceHandle
@@ -132,13 +133,21 @@ class HelperProcess:
         env = dict(os.environ)
         env["PYTHONPATH"] = os.pathsep.join(p for p in (str(ROOT), env.get("PYTHONPATH", "")) if p)
         env.pop(LINK_KEY_ENV, None)
+        env.pop(LINK_KEY_FD_ENV, None)
+        pass_fds: tuple[int, ...] = ()
         if self.authenticate:
             import secrets
 
             self.key = secrets.token_bytes(KEY_SIZE)
-            env[LINK_KEY_ENV] = self.key.hex()  # private to the child (not in its argv, not in ps)
-        self.proc = subprocess.Popen(self.argv, cwd=str(ROOT), env=env, stdin=subprocess.DEVNULL,
-                                     stdout=subprocess.DEVNULL)
+            # through a pipe: never the environment (readable in /proc/<pid>/environ all the helper's life)
+            pass_fds = (key_pipe(self.key),)
+            env[LINK_KEY_FD_ENV] = str(pass_fds[0])
+        try:
+            self.proc = subprocess.Popen(self.argv, cwd=str(ROOT), env=env, stdin=subprocess.DEVNULL,
+                                         stdout=subprocess.DEVNULL, pass_fds=pass_fds)
+        finally:
+            for fd in pass_fds:
+                os.close(fd)
         self.starts += 1
         log.info("started %s (pid %d)", self.module, self.proc.pid)
 

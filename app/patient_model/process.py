@@ -27,7 +27,7 @@ while they carry "not available" the ``--clinical-score`` value is used (default
 the in-between band), and the reply is flagged FALLBACK, as it is while any index still has no
 data (its neutral value is used).
 
-When the manager started it with a link key (environment variable ``LINARMPP_LINK_KEY``, hex; never
+When the manager started it with a link key (through an inherited pipe named by ``LINARMPP_LINK_KEY_FD``; never
 on the command line), every frame must carry a valid MAC and a sequence number newer than the last
 (app.devices.udp_frames ``unseal`` / ``SequenceGuard``), and every reply is sealed; others are dropped and
 counted ("invalid", "replay").  Exit code 3: the ``--listen`` port cannot be bound.
@@ -209,14 +209,49 @@ class ParentWatch:
         return os.getppid() != self.parent
 
 
-def take_link_key() -> bytes | None:
-    """The key the manager passed in our environment (removed from it: children never inherit it)."""
-    text = os.environ.pop(LINK_KEY_ENV, "")
+LINK_KEY_FD_ENV = "LINARMPP_LINK_KEY_FD"  # the number of an inherited pipe holding the key (not the key)
+_NO_ONE_HAS = b"\x00" * 32  # a key nobody has: fail closed
+
+
+def key_pipe(key: bytes) -> int:
+    """A pipe already holding ``key`` (hex) for a helper about to start: its read end (pass it to the child in
+    ``pass_fds`` and its number in LINK_KEY_FD_ENV, then close it here). A key in the environment stays
+    readable in /proc/<pid>/environ for the helper's whole life, even after ``os.environ.pop`` (that is the
+    block the process started with); a pipe is read once and is gone. 64 bytes never fill a pipe, so the
+    write cannot block."""
+    read_end, write_end = os.pipe()
     try:
-        return bytes.fromhex(text) if text else None
-    except ValueError:
-        log.error("the link key in %s is not hex: refusing every frame", LINK_KEY_ENV)
-        return b"\x00" * 32  # a key nobody has: fail closed
+        os.write(write_end, key.hex().encode("ascii"))
+    finally:
+        os.close(write_end)
+    return read_end
+
+
+def take_link_key() -> bytes | None:
+    """The key the manager passed through a pipe (LINK_KEY_FD_ENV names the descriptor; read to its end
+    and closed, so no child inherits it). A key in the environment itself is refused: it cannot be taken
+    back from /proc/<pid>/environ."""
+    if os.environ.pop(LINK_KEY_ENV, None) is not None:
+        log.error("a link key came in the environment (%s), readable by any process of this user: refusing "
+                  "every frame", LINK_KEY_ENV)
+        return _NO_ONE_HAS
+    fd_text = os.environ.pop(LINK_KEY_FD_ENV, "")
+    if not fd_text:
+        return None
+    try:
+        fd = int(fd_text)
+        chunks: list[bytes] = []
+        while sum(map(len, chunks)) < 4096:
+            chunk = os.read(fd, 4096)
+            if not chunk:
+                break
+            chunks.append(chunk)
+        os.close(fd)
+        text = b"".join(chunks).decode("ascii").strip()
+        return bytes.fromhex(text)
+    except (ValueError, OSError, UnicodeDecodeError) as exc:
+        log.error("the link key could not be read from the pipe %s (%s): refusing every frame", fd_text, exc)
+        return _NO_ONE_HAS
 
 
 def serve(sock: socket.socket, peer: tuple[str, int], model: EmbeddedPatientModel,

@@ -501,10 +501,13 @@ class FESUser:
     def writeFile(self, data: Any, fileName: str) -> None:
         """Save a profile (an ``FesProfile``, e.g. ``fes.profile``) as YAML."""
         from app.fes_profile import FesProfile, save_profile
+        from app.safe_files import check_writable_target
 
         if not isinstance(data, FesProfile):
             raise TypeError(f"fes.writeFile expects a profile (e.g. fes.profile), got {type(data).__name__}")
-        save_profile(data, self._ctx.resolve_path(str(fileName)))
+        path = self._ctx.resolve_path(str(fileName))
+        check_writable_target(path)  # never replace a device node, a pipe or a folder (the app may run as root)
+        save_profile(data, path)
 
     saveFile = writeFile  # the Appendix lists both names
 

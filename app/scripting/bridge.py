@@ -24,6 +24,7 @@ import itertools
 import json
 import logging
 import os
+import re
 import selectors
 import signal
 import socket
@@ -50,11 +51,30 @@ from app.scripting.api import (
 log = logging.getLogger(__name__)
 
 KERNEL_FILE = Path(__file__).resolve().parent / "kernel.py"
+WARDEN_FILE = Path(__file__).resolve().parent / "warden.py"  # the kernel's parent: owns whatever a script starts
 MEMORY_LIMIT_BYTES = 2 * 1024**3  # address space of a kernel: a runaway allocation fails as MemoryError there
 MAX_MESSAGE = 4 * 1024 * 1024  # a longer line from the kernel is a protocol violation
 BACKLOG_LIMIT = 16 * 1024 * 1024  # bytes waiting for a kernel that does not read: samples beyond are dropped
 READERS = 3  # leader/follower threads per kernel (calls run on the thread that read them)
 REFUSALS_RECORDED = 20  # per kernel; a flood of bad requests is counted, not recorded one by one
+REFUSALS_LOGGED = 10  # per kernel, line by line; then one summary line per REFUSAL_SUMMARY_S at most
+REFUSAL_SUMMARY_S = 5.0
+PROBLEMS_LOGGED = 5  # handler failures logged with a traceback per kernel; the rest are counted
+# Calls a kernel may make: CALL_RATE a second on average, CALL_BURST at once. A call over the rate waits its
+# turn (a script polling ``fes.stimulating`` in a loop is only slowed down) as long as no more than
+# CALL_QUEUE_S of calls are queued; beyond that — a flood, calls written without waiting for answers — it is
+# refused at once and counted. Measured (tests/test_kernel_hostile.py): a script's own call loop makes
+# ~3000 round trips a second on this machine; the robot's and the FES's commands wait for an ACK anyway.
+CALL_RATE = 2000.0
+CALL_BURST = 200
+CALL_QUEUE_S = 0.05
+# Refused requests a kernel may send: a script through the API is never refused (its proxies send only API
+# calls and wait for each answer), so refusals come from a script writing to its socket itself. Past
+# REFUSAL_BURST in a row (REFUSAL_RATE a second refill it) the kernel is ended like one that sent a bad line:
+# each refusal costs the application a parse and an answer, and a flood of them would cost it a core.
+REFUSAL_RATE = 100.0
+REFUSAL_BURST = 1000
+CONTROL_TIMEOUT_S = 5.0  # the warden's answers (its first line comes ~20 ms after the start)
 
 # stream -> (device, label): the streams a script may subscribe to (one place: the kernel gets it in hello)
 STREAMS: dict[str, tuple[str, str]] = {
@@ -185,18 +205,54 @@ class SampleEncoder:
 
 
 # ---------------------------------------------------------------------------------------------- process
+_LONE_SURROGATE = re.compile(rb"\\u[dD][89a-fA-F]", re.ASCII)
+
+
+_OWN: Any = object()  # marks a violation found here (a JSON key is always text: a kernel cannot forge it)
+
+
+def _violation(reason: str) -> dict[str, Any]:
+    return {"op": "__violation__", "reason": reason, _OWN: True}
+
+
 def _parse(line: bytes) -> dict[str, Any]:
+    """One line from the kernel as a JSON object, or a ``__violation__`` saying what is wrong with it. Never
+    raises: a hostile script writes these bytes (deep nesting, huge numbers, invalid UTF-8, lone surrogates)."""
+    if len(line) > MAX_MESSAGE:
+        return _violation(f"a message longer than {MAX_MESSAGE // (1024 * 1024)} MB")
     try:
         msg = json.loads(line)
-    except (ValueError, UnicodeDecodeError):
-        return {"op": "__violation__", "reason": "a message that is not JSON"}
+    except RecursionError:
+        return _violation("a message nested too deeply")
+    except UnicodeDecodeError:
+        return _violation("a message that is not UTF-8 text")
+    except (ValueError, MemoryError):  # not JSON; an integer of more than 4300 digits
+        return _violation("a message that is not JSON")
+    except Exception:  # whatever else the decoder may raise: never a reader thread's end
+        return _violation("a message that could not be read")
     if not isinstance(msg, dict):
-        return {"op": "__violation__", "reason": "a message that is not a JSON object"}
+        return _violation("a message that is not a JSON object")
+    if _LONE_SURROGATE.search(line):  # "\ud800" decodes to text no file, log or console can encode
+        try:
+            json.dumps(msg, ensure_ascii=False).encode("utf-8")
+        except (UnicodeEncodeError, RecursionError, ValueError):
+            return _violation("a message with text that is not valid Unicode")
     return msg
 
 
 def _encode(msg: dict[str, Any]) -> bytes:
     return (json.dumps(msg, separators=(",", ":"), default=str) + "\n").encode()
+
+
+def _kernel_environment() -> dict[str, str]:
+    """The kernel's environment: the application's, without anything meant for another helper."""
+    from app.devices.udp_frames import LINK_KEY_ENV
+    from app.patient_model.process import LINK_KEY_FD_ENV
+
+    env = dict(os.environ)
+    for name in (LINK_KEY_ENV, LINK_KEY_FD_ENV):
+        env.pop(name, None)
+    return env
 
 
 def describe_end(returncode: int | None) -> str:
@@ -238,22 +294,39 @@ class KernelProcess:
         self._closed = False
         self.samples_dropped = 0
         self._early: list[dict[str, Any]] = []
+        self.violation: str | None = None  # why the application ended this kernel (a line it would not take)
+        self.problems = 0  # messages whose handling failed (logged up to PROBLEMS_LOGGED)
         t0 = time.perf_counter()
         parent, child = socket.socketpair(socket.AF_UNIX, socket.SOCK_STREAM)
         for s in (parent, child):
             s.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, 1 << 20)
             s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 20)
+        control, control_child = socket.socketpair(socket.AF_UNIX, socket.SOCK_STREAM)
         try:
+            # The warden (app/scripting/warden.py) is the kernel's parent, in a session of its own: a child
+            # subreaper that ends every process the script starts at Stop, at the run's end and when the
+            # application goes (its control link closes). Its exit status is the kernel's.
             self.proc = subprocess.Popen(
-                [sys.executable, "-I", str(KERNEL_FILE), str(child.fileno()), str(int(memory_limit))],
-                pass_fds=(child.fileno(),), stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
-                stderr=subprocess.PIPE, start_new_session=True, cwd=os.getcwd())
+                [sys.executable, "-I", str(WARDEN_FILE), str(child.fileno()), str(int(memory_limit)),
+                 str(control_child.fileno())],
+                pass_fds=(child.fileno(), control_child.fileno()), stdin=subprocess.DEVNULL,
+                stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True, cwd=os.getcwd(),
+                env=_kernel_environment())
+        except BaseException:
+            control.close()
+            raise
         finally:
             child.close()
+            control_child.close()
         self._t_spawn = t0
         self.sock = parent
         self.sock.setblocking(False)
-        self.pid = self.proc.pid
+        self.warden_pid = self.proc.pid
+        self._control = control
+        self._control.settimeout(CONTROL_TIMEOUT_S)
+        self._control_lock = threading.Lock()
+        self._control_buf = b""
+        self._kernel_pid: int | None = None
         self._lead = threading.Lock()
         self._busy_lock = threading.Lock()
         self._busy = 0
@@ -268,19 +341,77 @@ class KernelProcess:
         for pipe, name in ((self.proc.stdout, "stdout"), (self.proc.stderr, "stderr")):
             os.set_blocking(pipe.fileno(), False)
             self._sel.register(pipe, selectors.EVENT_READ, name)
-        self._writer = threading.Thread(target=self._write_main, name=f"kernel-{self.pid}-writer", daemon=True)
+        self._writer = threading.Thread(target=self._write_main, name=f"kernel-{self.warden_pid}-writer", daemon=True)
         self._writer.start()
         for i in range(READERS):
-            threading.Thread(target=self._reader_main, name=f"kernel-{self.pid}-reader{i}", daemon=True).start()
+            threading.Thread(target=self._reader_main, name=f"kernel-{self.warden_pid}-reader{i}", daemon=True).start()
         self.send(hello_message())
 
     # ------------------------------------------------------------------ state
+    @property
+    def pid(self) -> int:
+        """The kernel's own process id (the warden reports it as soon as it has forked)."""
+        if self._kernel_pid is None:
+            line = self._control_line()
+            if line is not None and line.startswith("pid "):
+                try:
+                    self._kernel_pid = int(line[4:])
+                except ValueError:
+                    pass
+        return self._kernel_pid if self._kernel_pid is not None else self.warden_pid
+
     @property
     def alive(self) -> bool:
         return not self.ended.is_set() and self.proc.poll() is None
 
     def cause(self) -> str:
+        if self.violation is not None:
+            return f"ended by the application: it sent {self.violation}"
         return describe_end(self.returncode)
+
+    # ------------------------------------------------------------------ the warden's control link
+    def _control_line(self, timeout_s: float = CONTROL_TIMEOUT_S) -> str | None:
+        """The warden's next line (None when it has not come in ``timeout_s`` or the link is closed)."""
+        with self._control_lock:
+            deadline = time.monotonic() + timeout_s
+            while b"\n" not in self._control_buf:
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    return None
+                try:
+                    self._control.settimeout(remaining)
+                    data = self._control.recv(256)
+                except (OSError, ValueError):
+                    return None
+                if not data:
+                    return None
+                self._control_buf += data
+            line, self._control_buf = self._control_buf.split(b"\n", 1)
+            return line.decode("ascii", "replace")
+
+    def _control_send(self, command: str) -> bool:
+        try:
+            self._control.sendall(command.encode() + b"\n")
+            return True
+        except (OSError, ValueError):
+            return False
+
+    def sweep(self, timeout_s: float = 3.0) -> int | None:
+        """End every process the script started, except the kernel itself (it serves the prompt on); the
+        number ended, or None when the warden did not answer (the kernel has ended: the warden then ended
+        them all already)."""
+        if self.ended.is_set() or self.proc.poll() is not None:
+            return None
+        self.pid  # noqa: B018 - the warden's first line (the kernel's pid) is read before its answer
+        if not self._control_send("sweep"):
+            return None
+        line = self._control_line(timeout_s)
+        if line is None or not line.startswith("swept "):
+            return None
+        try:
+            return int(line[6:])
+        except ValueError:
+            return None
 
     def bind(self, handler: Callable[[dict[str, Any]], Callable[[], None] | None],
              on_output: Callable[[str, str], None], on_exit: Callable[[KernelProcess], None]) -> None:
@@ -362,12 +493,16 @@ class KernelProcess:
                         try:
                             job = self._deliver(self._inbox.popleft())
                         except Exception:  # a handler's bug must not cost a reader thread
-                            log.exception("script kernel %s: a message could not be handled", self.pid)
+                            self._problem("a message could not be handled", exc_info=True)
                         continue
                     if not self._sock_open:
                         self._finish()
                         return
-                    self._poll()
+                    try:
+                        self._poll()
+                    except Exception as exc:  # never a reader's end: the kernel is ended, the readers go on
+                        self._problem(f"reading the kernel's link failed: {type(exc).__name__}: {exc}")
+                        self.end_for_violation("a message that could not be read")
                 if self._busy >= READERS - 1:  # keep a reader free: the overflow pool runs this one
                     self._overflow().submit(job)
                     job = None
@@ -377,15 +512,31 @@ class KernelProcess:
             try:
                 job()
             except Exception:
-                log.exception("script kernel %s: a request failed", self.pid)
+                self._problem("a request failed", exc_info=True)
             finally:
                 with self._busy_lock:
                     self._busy -= 1
 
     def _overflow(self) -> ThreadPoolExecutor:
         if self._overflow_pool is None:
-            self._overflow_pool = ThreadPoolExecutor(max_workers=4, thread_name_prefix=f"kernel-{self.pid}-call")
+            self._overflow_pool = ThreadPoolExecutor(max_workers=4, thread_name_prefix=f"kernel-{self.warden_pid}-call")
         return self._overflow_pool
+
+    def _problem(self, what: str, exc_info: bool = False) -> None:
+        """A failure while serving this kernel: logged PROBLEMS_LOGGED times, then only counted."""
+        self.problems += 1
+        if self.problems <= PROBLEMS_LOGGED:
+            log.error("script kernel %s: %s", self.warden_pid, what, exc_info=exc_info)
+            if self.problems == PROBLEMS_LOGGED:
+                log.error("script kernel %s: further failures are counted, not logged", self.warden_pid)
+
+    def end_for_violation(self, reason: str) -> None:
+        """The kernel sent a line the application will not take: end it (the run ends with an error that
+        says so); what it sends from now on is dropped unread."""
+        if self.violation is None:
+            self.violation = reason
+            log.warning("script kernel %s sent %s: ending it", self.warden_pid, reason)
+        self.kill()
 
     def _poll(self) -> None:
         """Wait (≤ 0.5 s) for the kernel's socket or pipes; parse what came into the inbox."""
@@ -401,6 +552,8 @@ class KernelProcess:
                     self._sel.unregister(self.sock)
                     self._sock_open = False
                     continue
+                if self.violation is not None:
+                    continue  # the kernel is being ended: nothing more of it is read
                 buf = self._buf
                 buf += data
                 while True:
@@ -409,11 +562,17 @@ class KernelProcess:
                         break
                     line = bytes(buf[:end])
                     del buf[:end + 1]
-                    self._inbox.append(_parse(line))
+                    msg = _parse(line)
+                    self._inbox.append(msg)
+                    if _OWN in msg:
+                        buf.clear()
+                        self.end_for_violation(str(msg["reason"]))
+                        break
                 if len(buf) > MAX_MESSAGE:
-                    self._inbox.append({"op": "__violation__", "reason": "a message longer than 4 MB"})
+                    msg = _violation(f"a message longer than {MAX_MESSAGE // (1024 * 1024)} MB")
+                    self._inbox.append(msg)
                     buf.clear()
-                    self.kill()
+                    self.end_for_violation(str(msg["reason"]))
             else:
                 pipe = key.fileobj
                 try:
@@ -443,7 +602,15 @@ class KernelProcess:
             self.returncode = self.proc.wait(0.5)
         except subprocess.TimeoutExpired:
             self.kill()
-            self.returncode = self.proc.wait(1.0)
+            try:  # the warden ends its sweep within 2 s
+                self.returncode = self.proc.wait(3.0)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.returncode = self.proc.wait(1.0)
+        try:
+            self._control.close()
+        except OSError:
+            pass
         for key in list(self._sel.get_map().values()):
             if key.data in ("stdout", "stderr"):
                 try:
@@ -484,18 +651,23 @@ class KernelProcess:
 
     # ------------------------------------------------------------------ ending
     def terminate(self) -> None:
-        if self.proc.poll() is None:
+        """SIGTERM to the kernel (through its warden, which then ends whatever the script started)."""
+        if self.proc.poll() is None and not self._control_send("term"):
             try:
                 self.proc.terminate()
             except OSError:
                 pass
 
     def kill(self) -> None:
-        if self.proc.poll() is None:
-            try:
-                self.proc.kill()
-            except OSError:
-                pass
+        """SIGKILL to the kernel (through its warden, which then ends whatever the script started). Never
+        the warden itself while it answers: killed, it could no longer end the script's processes."""
+        if self.proc.poll() is None and not self._control_send("kill"):
+            for pid in {self._kernel_pid, self.warden_pid}:
+                if pid is not None:
+                    try:
+                        os.kill(pid, signal.SIGKILL)
+                    except OSError:
+                        pass
 
     def retire(self) -> None:
         """End an idle kernel: ask, and kill it if it does not go (never blocks the caller for long)."""
@@ -512,7 +684,7 @@ class KernelProcess:
                 self.kill()
                 self.ended.wait(1.0)
 
-        threading.Thread(target=reap, name=f"kernel-{self.pid}-reaper", daemon=True).start()
+        threading.Thread(target=reap, name=f"kernel-{self.warden_pid}-reaper", daemon=True).start()
 
     def end_now(self, polite_s: float, term_s: float) -> bool:
         """TERM after ``polite_s`` without an end, KILL ``term_s`` later; True once it has ended."""
@@ -553,6 +725,78 @@ class _InlineContext(ScriptContext):
         return fn(*args, **kwargs)
 
 
+# ---------------------------------------------------------------------------------------------- limits
+class CallLimiter:
+    """A kernel's call budget (a virtual-time bucket): :meth:`admit` says how long a call waits for its turn,
+    or None when it is refused (more than ``queue_s`` of calls already waiting)."""
+
+    def __init__(self, rate: float = CALL_RATE, burst: int = CALL_BURST, queue_s: float = CALL_QUEUE_S) -> None:
+        self.interval = 1.0 / rate
+        self.burst_s = burst * self.interval
+        self.queue_s = queue_s
+        self._lock = threading.Lock()
+        self._tat = time.monotonic()  # when the calls admitted so far would be done at the steady rate
+
+    def admit(self) -> float | None:
+        with self._lock:
+            now = time.monotonic()
+            tat = max(self._tat, now) + self.interval
+            wait = tat - now - self.burst_s
+            if wait > self.queue_s:
+                return None
+            self._tat = tat
+            return max(0.0, wait)
+
+
+class RefusalLog:
+    """Refused requests of one kernel: counted by kind; the first REFUSALS_LOGGED logged one by one, then one
+    summary line (and supervisor event) per REFUSAL_SUMMARY_S while they go on, and one at the end. A flood
+    of refusals used to write ~88 000 log lines a second and rotate the application's logs away."""
+
+    def __init__(self, kernel_pid: int, event: Callable[..., None] | None) -> None:
+        self.kernel_pid = kernel_pid
+        self.event = event
+        self.total = 0
+        self.by_kind: collections.Counter[str] = collections.Counter()
+        self._lock = threading.Lock()
+        self._unreported = 0
+        self._last_reason = ""
+        self._last_summary = time.monotonic()
+
+    def note(self, kind: str, reason: str) -> bool:
+        """Count one refusal; True when it is one of the first (logged and recorded one by one)."""
+        with self._lock:
+            self.total += 1
+            self.by_kind[kind] += 1
+            if self.total <= REFUSALS_LOGGED:
+                log.warning("script kernel %s: refused %s", self.kernel_pid, reason)
+                if self.total == REFUSALS_LOGGED:
+                    log.warning("script kernel %s: further refusals are counted and summarised every %.0f s",
+                                self.kernel_pid, REFUSAL_SUMMARY_S)
+                return self.total <= REFUSALS_RECORDED
+            self._unreported += 1
+            self._last_reason = reason
+            now = time.monotonic()
+            if now - self._last_summary >= REFUSAL_SUMMARY_S:
+                self._summary_locked(now)
+            return self.total <= REFUSALS_RECORDED
+
+    def flush(self) -> None:
+        with self._lock:
+            if self._unreported:
+                self._summary_locked(time.monotonic())
+
+    def _summary_locked(self, now: float) -> None:
+        kinds = ", ".join(f"{n} {k}" for k, n in sorted(self.by_kind.items()))
+        log.warning("script kernel %s: %d more requests refused since the last report (%d in all: %s); "
+                    "the last: %s", self.kernel_pid, self._unreported, self.total, kinds, self._last_reason)
+        if self.event is not None:
+            self.event("script_requests_refused", count=self._unreported, total=self.total,
+                       by_kind=dict(self.by_kind), last=self._last_reason, kernel_pid=self.kernel_pid)
+        self._unreported = 0
+        self._last_summary = now
+
+
 # ---------------------------------------------------------------------------------------------- the bridge
 class ApiBridge:
     """Answers one kernel's requests with the in-app API objects; streams the samples it subscribed to."""
@@ -565,7 +809,10 @@ class ApiBridge:
         self.context = _InlineContext(manager, source=source, base_dir=base_dir)
         self.objects = api.build_api(self.context)
         self.encoder = SampleEncoder()
-        self.refusals = 0
+        self.limiter = CallLimiter()
+        self.refusal_budget = CallLimiter(REFUSAL_RATE, REFUSAL_BURST, 0.0)
+        sup = getattr(manager, "supervisor", None)
+        self.refusal_log = RefusalLog(kernel.warden_pid, getattr(sup, "event", None))
         self._sub_lock = threading.Lock()
         self._subscribed: set[str] = set()
         self._schema_sent: dict[str, type] = {}
@@ -584,6 +831,20 @@ class ApiBridge:
             if not isinstance(rid, int):
                 self.refuse(msg, "a call without an id")
                 return True
+            if not self._is_api_call(msg):  # refused before it costs any of the call budget
+                obj, name = msg.get("obj"), msg.get("name")
+                self.refuse(msg, f"{obj!s:.40}.{name!s:.60} is not a script API call")
+                self.reply(rid, error=ScriptError(f"{obj!s:.40}.{name!s:.60}: not a script API call (refused)"))
+                return True
+            wait = self.limiter.admit()
+            if wait is None:  # a flood: refused at once, counted, answered (the script's call raises)
+                self.refuse(msg, f"a call over the rate limit ({CALL_RATE:.0f} calls a second)", kind="over rate")
+                self.reply(rid, error=ScriptError(f"too many API calls: more than {CALL_RATE:.0f} a second "
+                                                  "(refused)"))
+                return True
+            if wait > 0:
+                due = time.monotonic() + wait
+                return lambda: (time.sleep(max(0.0, due - time.monotonic())), self._call(msg))[1]
             return lambda: self._call(msg)
         if op in ("subscribe", "peek"):
             rid = msg.get("id")
@@ -602,16 +863,18 @@ class ApiBridge:
             return True
         return False
 
-    def _call(self, msg: dict[str, Any]) -> None:
-        rid = msg["id"]
+    @staticmethod
+    def _is_api_call(msg: dict[str, Any]) -> bool:
         obj, name, args = msg.get("obj"), msg.get("name"), msg.get("args")
         allowed = ALLOWED_CALLS.get(obj, frozenset()) if isinstance(obj, str) else frozenset()
         attributes = ALLOWED_ATTRIBUTES.get(obj, frozenset()) if isinstance(obj, str) else frozenset()
-        if not isinstance(name, str) or (name not in allowed and name not in attributes) \
-                or not isinstance(args, list) or not all(_is_plain_arg(a) for a in args):
-            self.refuse(msg, f"{obj!s:.40}.{name!s:.60} is not a script API call")
-            self.reply(rid, error=ScriptError(f"{obj!s:.40}.{name!s:.60}: not a script API call (refused)"))
-            return
+        return isinstance(name, str) and (name in allowed or name in attributes) and isinstance(args, list) \
+            and len(args) <= 16 and all(_is_plain_arg(a) for a in args)
+
+    def _call(self, msg: dict[str, Any]) -> None:
+        rid = msg["id"]
+        obj, name, args = msg["obj"], msg["name"], msg["args"]
+        attributes = ALLOWED_ATTRIBUTES.get(obj, frozenset())
         if not self.gate.enter():
             self.reply(rid, error=ScriptStopped("the script is being stopped"))
             return
@@ -662,15 +925,21 @@ class ApiBridge:
             msg["value"] = value
         self.kernel.send(msg)
 
-    def refuse(self, msg: dict[str, Any], reason: str) -> None:
-        """Record a request that is not an API call (once per kind, up to REFUSALS_RECORDED per kernel)."""
-        self.refusals += 1
-        log.warning("script kernel %s: refused %s", self.kernel.pid, reason)
-        if self.refusals <= REFUSALS_RECORDED:
+    @property
+    def refusals(self) -> int:
+        return self.refusal_log.total
+
+    def refuse(self, msg: dict[str, Any], reason: str, kind: str = "not an API call") -> None:
+        """Count a refused request; the first REFUSALS_RECORDED are recorded one by one (supervisor event
+        ``script_request_refused``), the rest in periodic summaries (``script_requests_refused``)."""
+        reason = str(reason)[:200]
+        if kind != "bad line" and self.refusal_budget.admit() is None:
+            self.kernel.end_for_violation(f"a flood of requests (more than {REFUSAL_BURST} refused in a row)")
+        if self.refusal_log.note(kind, reason):
             sup = getattr(self.manager, "supervisor", None)
             if sup is not None:
                 sup.event("script_request_refused", reason=reason, op=str(msg.get("op"))[:40],
-                          kernel_pid=self.kernel.pid)
+                          kernel_pid=self.kernel.warden_pid)
 
     # ------------------------------------------------------------------ samples
     def _driver(self, stream: str) -> tuple[Any, str]:
@@ -733,6 +1002,7 @@ class ApiBridge:
         self.unsubscribe_all()
         with self._sub_lock:
             self._closed = True
+        self.refusal_log.flush()
 
 
 def _is_plain_arg(value: Any) -> bool:

@@ -48,6 +48,33 @@ HOME_TIMEOUT_S = 60.0
 POLITE_STOP_S = 0.05  # the kernel's own stop (every wait notices within 20 ms) before SIGTERM
 TERMINATE_S = 0.04  # SIGTERM before SIGKILL
 ANSWER_TIMEOUT_S = 0.5  # completion and namespace reads from the GUI thread
+# Script output passed on to the console, in characters: OUTPUT_RATE a second once OUTPUT_BURST is spent.
+# The console appends on the GUI thread; a script printing megabytes in a loop would otherwise keep it busy
+# (and its queue growing) for as long as it runs. What is over is dropped and counted, never queued.
+OUTPUT_RATE = 512 * 1024
+OUTPUT_BURST = 4 * 1024 * 1024
+
+
+class _OutputBudget:
+    def __init__(self, rate: float = OUTPUT_RATE, burst: float = OUTPUT_BURST) -> None:
+        self.rate = rate
+        self.burst = burst
+        self.tokens = burst
+        self.t = time.monotonic()
+        self.dropped = 0
+        self._lock = threading.Lock()
+
+    def take(self, n: int) -> bool:
+        """True if ``n`` characters may go on; otherwise they are counted as dropped."""
+        with self._lock:
+            now = time.monotonic()
+            self.tokens = min(self.burst, self.tokens + (now - self.t) * self.rate)
+            self.t = now
+            if self.tokens >= n:
+                self.tokens -= n
+                return True
+            self.dropped += n
+            return False
 
 
 @dataclass
@@ -108,6 +135,7 @@ class ScriptRunner:
         self.body_started_at: float | None = None  # monotonic time the script's own code began (after homing)
         self.callback_errors: dict[tuple[str, int, str], int] = {}
         self.callbacks_dropped = 0
+        self._output_budget = _OutputBudget()
         self.kernel_start_s: float | None = None  # Start → the kernel has the script (the last run)
         self.gate = Gate()
         add_hook = getattr(manager, "add_shutdown_hook", None)
@@ -253,6 +281,7 @@ class ScriptRunner:
             self.paused = False
             self.callback_errors = {}
             self.callbacks_dropped = 0
+            self._output_budget = _OutputBudget()
             self.filename = filename
             self.context.stop_event.clear()
             self.gate.set("open")
@@ -415,7 +444,7 @@ class ScriptRunner:
         if op == "out":
             stream, text = msg.get("stream"), msg.get("text")
             if stream in ("stdout", "stderr", "info") and isinstance(text, str):
-                self.output(stream, text[:1_000_000])
+                self._pass_output(stream, text[:1_000_000])
                 return None
         elif op == "done":
             if kernel is self._kernel and self.running and self._done_msg is None:
@@ -438,15 +467,24 @@ class ScriptRunner:
                 answer.value = msg.get("value")
                 answer.event.set()
             return None
-        elif op == "__violation__":
-            bridge.refuse(msg, str(msg.get("reason")))
+        elif op == "__violation__":  # a line the bridge would not take: the kernel is being ended for it
+            bridge.refuse(msg, str(msg.get("reason")), kind="bad line")
             return None
         bridge.refuse(msg, f"an unknown request {str(op)[:40]!r}")
         return None
 
     def _raw_output(self, stream: str, text: str) -> None:
         """What the kernel wrote to its own stdout/stderr (C extensions, a crash report)."""
-        self.output("stderr" if stream == "stderr" else "stdout", text)
+        self._pass_output("stderr" if stream == "stderr" else "stdout", text)
+
+    def _pass_output(self, stream: str, text: str) -> None:
+        budget = self._output_budget
+        first_drop = budget.dropped == 0
+        if budget.take(len(text)):
+            self.output(stream, text)
+        elif first_drop:
+            self.output("info", f"The script writes more than the console takes ({OUTPUT_RATE // 1024} KB a second "
+                                "after the first 4 MB): the rest of its output is dropped and counted.\n")
 
     def _on_kernel_exit(self, kernel: KernelProcess) -> None:
         for run in list(self._prompts.values()):
@@ -493,7 +531,12 @@ class ScriptRunner:
         result.duration_s = time.monotonic() - t0
         self.gate.set("closed")
         bridge.unsubscribe_all()
+        self._end_script_processes(kernel)
+        bridge.refusal_log.flush()  # the run's refusals are in its record before it ends
         self._report(result)
+        if bridge.refusals:
+            self.output("info", f"{bridge.refusals} requests of the script were refused "
+                                f"({', '.join(f'{n} {k}' for k, n in sorted(bridge.refusal_log.by_kind.items()))}).\n")
         with self._safe_lock:
             safe_thread, self._safe_thread = self._safe_thread, None
         if safe_thread is not None:
@@ -580,6 +623,9 @@ class ScriptRunner:
     def _ended_result(self, kernel: KernelProcess, filename: str) -> ScriptResult:
         if self._stop_requested.is_set():
             return ScriptResult("stopped", self.stop_reason or "stopped", filename)
+        if kernel.violation is not None:
+            return ScriptResult("error", f"the script was ended: its process sent the application {kernel.violation}",
+                                filename)
         cause = kernel.cause()
         where = _last_script_line(kernel.stderr_tail, filename)
         result = ScriptResult("error", f"the script's process ended: {cause}", filename, where)
@@ -590,6 +636,16 @@ class ScriptRunner:
             result.line = line if isinstance(line, int) else result.line
             result.traceback = str(report.get("traceback") or "")[:100_000]
         return result
+
+    def _end_script_processes(self, kernel: KernelProcess) -> None:
+        """No process a script started outlives its run: the kernel's warden ends them all (setsid and
+        double-forked ones too); the kernel itself stays for the prompt. A kernel that has ended took them
+        with it (its warden ends everything before it exits)."""
+        ended = kernel.sweep()
+        if ended:
+            log.info("script kernel %s: %d processes the script started were ended with its run", kernel.pid, ended)
+            self.output("info", f"{ended} process{'es' if ended > 1 else ''} the script started "
+                                f"{'were' if ended > 1 else 'was'} ended with it.\n")
 
     # ------------------------------------------------------------------ homing and safe state
     def _home_if_needed(self) -> None:
@@ -699,6 +755,8 @@ class ScriptRunner:
         if self.callbacks_dropped:
             self.output("info", f"{self.callbacks_dropped} samples were skipped because the callbacks were "
                                 "slower than the data.\n")
+        if self._output_budget.dropped:
+            self.output("info", f"{self._output_budget.dropped} characters of the script's output were dropped.\n")
 
 
 def _kill_all(kernels: list[KernelProcess]) -> None:
