@@ -170,3 +170,64 @@ def test_the_record_keeps_the_arrival_time_beside_the_sample_time(tmp_path, qtbo
     assert list(stream.t) == pytest.approx([10.0, 10.01, 10.02, 10.03, 10.04])
     assert stream.arrival is not None and list(stream.arrival) == pytest.approx([10.05] * 5)
     assert list(stream.data["x"]) == [0.0, 1.0, 2.0, 3.0, 4.0]
+
+
+# ---------------------------------------------------------------------------------------------- a script
+MOTION_SCRIPT = '''
+# ruff: noqa: F821
+import time
+
+linarm.setCtrlState(linarm.CONTROL_STATES.IDLE_CTRL_STATE)
+linarm.setCtrlMode(linarm.CONTROL_MODES.POS_REF_BY_TARGET_POS)
+linarm.setCtrlState(linarm.CONTROL_STATES.ON_CTRL_STATE)
+linarm.moveCentreTo(0.15, 0.2, 0.4, 0, False)
+t0 = time.monotonic()
+while abs(linarm.linarmVsaState.equilibriumPos - 0.15) > 0.002 and time.monotonic() - t0 < 10:
+    time.sleep(0.01)
+linarm.moveCentreTo(0.40, 0.10, 0.4, 0, False)
+speeds, clock_speeds, prev = [], [], None
+t_end = time.monotonic() + 2.5
+while time.monotonic() < t_end:  # 200 Hz
+    s = linarm.linarmVsaState
+    now = time.monotonic()
+    stamp = getattr(s, "timestamp", now)  # the sample's time (before #27 samples had none: the script's clock)
+    if prev is not None and stamp > prev[1]:
+        speeds.append(abs(s.equilibriumPos - prev[0]) / (stamp - prev[1]))
+    if prev is not None and now > prev[2]:
+        clock_speeds.append(abs(s.equilibriumPos - prev[0]) / (now - prev[2]))
+    prev = (s.equilibriumPos, stamp, now)
+    time.sleep(0.005)
+linarm.setCtrlState(linarm.CONTROL_STATES.IDLE_CTRL_STATE)
+clock_speeds.sort()
+print(f"READS {len(speeds)} PEAK {max(speeds):.4f} CLOCK_P99 {clock_speeds[int(0.99 * len(clock_speeds))]:.4f} CLOCK_MAX {clock_speeds[-1]:.4f}")
+'''
+
+
+@pytest.mark.realtime
+def test_a_script_reading_at_200_hz_sees_the_speed_of_the_move(qtbot, monkeypatch) -> None:
+    """A 0.10 m/s move read from a script at 200 Hz (the simulator in its own process on the default socket link,
+    as the app runs): before #27 the frames came in bunches of 8-9 and the script saw 0.78 m/s."""
+    from app.config import AppConfig
+    from app.devices import linarm
+    from app.scripting.runner import ScriptRunner
+
+    monkeypatch.setenv("LINARMPP_SIM_HOST", "process")
+    manager = LinarmppManager(AppConfig(), factories={"linarm": linarm.create})
+    manager.start()
+    out: list[str] = []
+    runner = ScriptRunner(manager, lambda _stream, text: out.append(text), home_first=True)
+    try:
+        qtbot.waitUntil(manager.all_connected, timeout=20000)
+        runner.start(MOTION_SCRIPT, "motion_check.py")
+        qtbot.waitUntil(lambda: runner.wait(0.0), timeout=60000)
+    finally:
+        runner.stop("test over", 5.0)
+        manager.shutdown()
+    text = "".join(out)
+    line = next((ln for ln in text.splitlines() if ln.startswith("READS")), "")
+    assert line, f"the script did not finish: {runner.result} {text[-500:]}"
+    fields = line.split()
+    reads, peak = int(fields[1]), float(fields[3])
+    assert reads > 200, line
+    assert peak <= 0.13, f"instantaneous speed {peak:.3f} m/s in a 0.10 m/s move ({line})"
+    print(line)
