@@ -199,7 +199,8 @@ while time.monotonic() < t_end:  # 200 Hz
     time.sleep(0.005)
 linarm.setCtrlState(linarm.CONTROL_STATES.IDLE_CTRL_STATE)
 clock_speeds.sort()
-print(f"READS {len(speeds)} PEAK {max(speeds):.4f} CLOCK_P99 {clock_speeds[int(0.99 * len(clock_speeds))]:.4f} CLOCK_MAX {clock_speeds[-1]:.4f}")
+p99 = clock_speeds[int(0.99 * len(clock_speeds))]
+print(f"READS {len(speeds)} PEAK {max(speeds):.4f} CLOCK_P99 {p99:.4f} CLOCK_MAX {clock_speeds[-1]:.4f}")
 '''
 
 
