@@ -7,7 +7,9 @@ One run = a fresh manager with every device simulated (no window), in a child pr
 connect and one second of settling, every sample every driver publishes is collected for ``--seconds`` from
 the drivers' listeners — the timestamp the recorder, LSL, the scripts and the graphs see. Printed per stream:
 p50 / p99 / max gap between consecutive timestamps (ms), the largest group of samples sharing one timestamp,
-and the verdict for streams of 50 Hz and more: p99 gap ≤ 2.5 periods and no timestamp shared.
+and the verdict for streams of 50 Hz and more: p99 gap ≤ 2.5 periods and no timestamp shared; then the same
+figures for the arrival times (when each sample's read returned: how the link and the host delivered them —
+before #27 the two were the same).
 
 Configurations (the simulator hosting decides which links exist):
 
@@ -58,6 +60,7 @@ def child(seconds: float) -> int:
     common.qt_app()
     manager = common.start_manager(cfg)
     times: dict[str, list[float]] = {}
+    arrivals: dict[str, list[float]] = {}
     rates: dict[str, float] = {}
     try:
         common.run_qt_for(1.0)
@@ -66,10 +69,12 @@ def child(seconds: float) -> int:
             driver = handle.driver
             for spec in driver.streams:
                 times.setdefault(spec.name, [])
+                arrivals.setdefault(spec.name, [])
                 rates[spec.name] = float(spec.nominal_rate_hz)
 
-            def on_sample(stream: str, t: float, _sample: Any) -> None:
+            def on_sample(stream: str, t: float, _sample: Any, driver: Any = driver) -> None:
                 times[stream].append(t)
+                arrivals[stream].append(getattr(driver, "arrival_s", t))  # before #27: the stamp was the arrival
 
             driver.add_listener(on_sample)
             listeners.append((driver, on_sample))
@@ -78,7 +83,7 @@ def child(seconds: float) -> int:
             driver.remove_listener(fn)
     finally:
         manager.shutdown()
-    print("RESULT " + json.dumps({"times": times, "rates": rates,
+    print("RESULT " + json.dumps({"times": times, "arrivals": arrivals, "rates": rates,
                                   "load": common._read("/proc/loadavg").split()[0]}))
     return 0
 
@@ -114,6 +119,7 @@ def run_one(name: str, loaded: bool, seconds: float) -> tuple[bool, list[str]]:
     for stream, ts in sorted(result["times"].items()):
         rate = result["rates"][stream]
         s = summarise(ts)
+        a = summarise(result.get("arrivals", {}).get(stream, ts))
         period_ms = 1000.0 / rate if rate else float("nan")
         verdict = ""
         if rate >= FAST_HZ:
@@ -122,7 +128,8 @@ def run_one(name: str, loaded: bool, seconds: float) -> tuple[bool, list[str]]:
             verdict = "met" if fine else "MISSED"
         out.append(f"   {stream:22} {rate:5.0f} Hz n={s['n']:5d}  gap p50 {s['p50']:7.2f}  p99 {s['p99']:7.2f}"
                    f"  max {s['max']:7.2f} ms  ({s['p99'] / period_ms:4.1f} periods)  largest shared-timestamp "
-                   f"group {s['group']}{'  BACKWARDS ' + str(s['backwards']) if s['backwards'] else ''}  {verdict}")
+                   f"group {s['group']}{'  BACKWARDS ' + str(s['backwards']) if s['backwards'] else ''}  {verdict}"
+                   f"   | arrivals: p99 {a['p99']:7.2f} max {a['max']:7.2f} ms, group {a['group']}")
     return ok, out
 
 
