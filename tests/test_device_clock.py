@@ -230,3 +230,16 @@ def test_physio_samples_are_stamped_on_the_board_clock(qtbot) -> None:
     # the board's clock counts whole milliseconds: its quantisation adds up to 0.5 ms
     assert np.percentile(err, 99) < 0.001, f"p99 {1000 * np.percentile(err, 99):.2f} ms from the send times"
     assert np.all(np.diff([t for t, _s in got]) > 0)
+
+
+def test_a_slightly_older_sample_is_stamped_on_the_line_without_a_reset() -> None:
+    """Two streams of one device clock may interleave a little out of order: no re-seed, no disorder."""
+    clock = DeviceClock(wrap_s=WRAP_US / 1e6)
+    stamps = []
+    for k in range(2000):
+        stamps.append(clock.map(k * PERIOD_S, 1000.0 + k * PERIOD_S + 0.001))
+        if k % 10 == 5:
+            older = clock.map(k * PERIOD_S - 0.002, 1000.0 + k * PERIOD_S + 0.001)
+            assert older < stamps[-1]
+    assert clock.resets == 0
+    assert np.all(np.diff(stamps) > 0)

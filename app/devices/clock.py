@@ -15,7 +15,7 @@ Lab Streaming Layer's clock synchronisation keeps the best (least delayed) measu
 convex-hull method of network clock-skew estimation:
 
 * points are decimated to the minimum of each ``bin_s`` of device time and kept for ``window_s``;
-* every bin the lower convex hull of the kept minima is computed; its edge spanning the middle of the window
+* every ``refit_s`` the lower convex hull of the kept minima is computed; its edge spanning the middle of the window
   gives the drift (a long baseline between two least-delayed points); the offset is the supporting line with
   that slope, i.e. the lowest point — so a later sample can only move the line down, never up;
 * a sample below the line moves the line down at once (it proves the offset lower);
@@ -73,7 +73,8 @@ class DeviceClock:
     def __init__(self, *, wrap_s: float | None = None, window_s: float = 30.0, bin_s: float = 0.05,
                  jump_s: float = 1.0, outlier_s: float = 0.1, outlier_run: int = 3,
                  warmup_s: float = 2.0, max_drift: float = 1e-3, recent_s: float = 5.0,
-                 late_s: float = 0.1, late_run_s: float = 2.0) -> None:
+                 late_s: float = 0.1, late_run_s: float = 2.0, refit_s: float = 0.5,
+                 reorder_s: float = 0.02) -> None:
         self.wrap_s = wrap_s
         self.window_s = window_s
         self.bin_s = bin_s
@@ -85,6 +86,8 @@ class DeviceClock:
         self.recent_s = recent_s
         self.late_s = late_s
         self.late_run_s = late_run_s
+        self.refit_s = refit_s
+        self.reorder_s = reorder_s
         self.resets = -1  # the first seed is not a reset
         self.outliers = 0
         self._seeded = False
@@ -101,6 +104,7 @@ class DeviceClock:
         self._bins_x: list[float] = []
         self._bins_y: list[float] = []
         self._bin_start = 0.0
+        self._refit_at = 0.0
         self._offset = 0.0
         self._drift = 0.0
         self._suspect = 0
@@ -131,12 +135,19 @@ class DeviceClock:
         if not self._seeded:
             self._seed(device_s, arrival_s)
             return self._stamp(0.0, arrival_s)
+        if device_s == self._raw_last and self._last_x == self._x:
+            return self._last_mapped  # another sample of the same device instant (the LINarm's VSA and motors)
         step = device_s - self._raw_last
         if self.wrap_s is not None:
             step %= self.wrap_s
             if step > self.wrap_s / 2:
                 step -= self.wrap_s  # a step back, not most of a wrap ahead
         elapsed = arrival_s - self._arrival_last
+        if -self.reorder_s <= step < 0.0:
+            # a sample a little older than the last (another stream of the same clock, a reordered datagram):
+            # on the line, leaving the estimate and the other samples' order alone
+            x = self._x + step
+            return min(self._origin + x + self._offset + self._drift * x, arrival_s)
         # The device clock and the host's must advance alike; bursts and late reads make them differ by the
         # link's delay, never by more than jump_s: beyond that the device clock jumped (reset, restart).
         if step < 0.0 or abs(step - elapsed) > self.jump_s:
@@ -199,8 +210,10 @@ class DeviceClock:
             if y < ys[-1]:
                 xs[-1], ys[-1] = x, y
             return
-        # a new bin: drop what left the window, refit on the completed bins
-        self._refit()
+        # a new bin: drop what left the window; refit on the completed bins now and then (the hull is O(bins))
+        if x >= self._refit_at or len(xs) < 8:
+            self._refit()
+            self._refit_at = x + self.refit_s
         xs.append(x)
         ys.append(y)
         self._bin_start = x
