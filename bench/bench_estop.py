@@ -145,7 +145,7 @@ def main() -> int:
 
 def run(args: argparse.Namespace) -> int:
     common.print_machine("e-stop latency: button / shortcut / API → FES Stop and robot IDLE on the wire")
-    print(f"   simulators: {common.hosting()} hosting, link {os.environ.get('LINARMPP_SIM_LINK') or 'socket'}"
+    print(f"   simulators: {common.hosting()} hosting, link {common.link_kind()}"
           f"{', two yes' if args.load else ''}", flush=True)
     app = common.qt_app()
     manager = common.start_manager(common.bench_config())

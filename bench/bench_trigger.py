@@ -232,7 +232,7 @@ def main() -> int:
 
 def run(args: argparse.Namespace) -> int:
     common.print_machine("trigger latency: grip frame written → moveCentreTo on the LINarm wire")
-    print(f"   simulators: {common.hosting()} hosting, link {os.environ.get('LINARMPP_SIM_LINK') or 'socket'}"
+    print(f"   simulators: {common.hosting()} hosting, link {common.link_kind()}"
           f"{', two yes' if args.load else ''}", flush=True)
     app = common.qt_app()
     # The UDP helpers are not part of this path; they stay off so their processes do not add noise.

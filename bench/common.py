@@ -306,6 +306,11 @@ def hosting() -> str:
     return os.environ.get("LINARMPP_SIM_HOST") or "process"
 
 
+def link_kind() -> str:
+    """The simulators' links: in-process hosting always uses ptys; the process the configured link."""
+    return "pty" if hosting() == "thread" else (os.environ.get("LINARMPP_SIM_LINK") or "socket")
+
+
 # ---------------------------------------------------------------------------------------------- the app
 def bench_config(**device_changes: Any) -> Any:
     """The default configuration (every device simulated), with ``devices`` fields replaced."""
