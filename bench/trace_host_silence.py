@@ -222,8 +222,8 @@ def main(argv: list[str] | None = None) -> int:
         if last is not None:
             print(f"  silent at {t_event - ticks[0]:.2f} s: the last read returned {last[2]} bytes "
                   f"{1000 * (t_event - last[1]):.0f} ms before the judgement "
-                  f"(its wait: {1000 * (last[1] - last[0]):.0f} ms); the next read returned {nxt[2] if nxt else '-'} bytes after "
-                  f"{1000 * (nxt[1] - nxt[0]) if nxt else float('nan'):.1f} ms")
+                  f"(its wait: {1000 * (last[1] - last[0]):.0f} ms); the next read returned "
+                  f"{nxt[2] if nxt else '-'} bytes after {1000 * (nxt[1] - nxt[0]) if nxt else float('nan'):.1f} ms")
     print("driver thread while its loop stalled > 100 ms (20 ms samples):")
     print("\n".join("  " + line for line in stalls) or "  (no stall)")
     print("per-thread CPU over the run (s, % of one core):")
