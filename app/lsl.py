@@ -7,8 +7,9 @@ float64 channels with label and unit in the stream's description; plus an irregu
 outlet ``linarmpp.events`` carrying each recorded event as JSON (type ``Markers``).
 
 Time stamps are LSL's clock: the offset between ``time.monotonic()`` (our samples' clock) and
-``pylsl.local_clock()`` is measured once at start, so each sample keeps its decode time rather than
-the time it was pushed. (On Linux both are CLOCK_MONOTONIC and the offset is ~0.)
+``pylsl.local_clock()`` is measured once at start, so each sample keeps the time it was taken — the
+device's clock mapped to the host's by app.devices.clock (#27), the same stamp the recorder writes —
+rather than the time it was pushed. (On Linux both are CLOCK_MONOTONIC and the offset is ~0.)
 
 Like the recorder, the drivers' listeners only append to a bounded deque; a worker thread pushes
 chunks every 10 ms. If pylsl or its liblsl cannot be loaded the application runs without LSL and

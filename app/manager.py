@@ -307,7 +307,7 @@ class LinarmppManager(QObject):
         from app.safety import AlarmLevel
 
         name = handle.name
-        state = {"was_connected": False}
+        state: dict[str, Any] = {"was_connected": False, "silence_alarm": None}
 
         def on_event(event: str, detail: str) -> None:
             if event == "connected":
@@ -318,7 +318,18 @@ class LinarmppManager(QObject):
                 self.supervisor.raise_alarm(self.fault_policy.loss_level(name), name,  # STOP unless nothing needs it
                                             f"{name} connection lost: {detail}")
             elif event == "silent" and self._started:
-                self.supervisor.raise_alarm(AlarmLevel.WARNING, name, f"{name} stopped sending data")
+                state["silence_alarm"] = self.supervisor.raise_alarm(AlarmLevel.WARNING, name,
+                                                                     f"{name} stopped sending data")
+            elif event == "alive" and state.get("silence_alarm") is not None:
+                # The stream resumed: the warning says so and leaves the banner; it stays in the alarm history.
+                alarm, state["silence_alarm"] = state["silence_alarm"], None
+                try:
+                    gap = f" after {float(detail):.1f} s"
+                except ValueError:
+                    gap = ""
+                alarm.text = f"{alarm.text} (resumed{gap})"
+                self.supervisor.event("stream_resumed", device=name, silent_s=detail, ident=alarm.ident)
+                self.supervisor.acknowledge(alarm.ident, operator=f"{name} resumed")
             elif event == "controller_error":
                 self.supervisor.raise_alarm(AlarmLevel.STOP, name, detail)
 

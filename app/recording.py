@@ -7,7 +7,9 @@ earlier session is never overwritten::
     manifest.json          patient, operator, app and device versions, config snapshot, stream specs,
                            start (and, once stopped, end) with time zone, per-stream counts
     events.jsonl           one JSON object per line: t_wall, t_mono, kind, who, origin, data
-    streams/<stream>.csv   header ``t_mono_s,<channel>,...`` then one line per sample
+    streams/<stream>.csv   header ``t_mono_s,<channel>,...,t_arrival_s`` then one line per sample: t_mono_s
+                           when the sample was taken (the device's clock mapped to the host's, #27),
+                           t_arrival_s when its bytes came back from a read (a diagnostic)
 
 Crash safety (docs/sessions.md): every file is append-only text written in whole lines, flushed to the
 OS and fsync'ed at least every ``recording.flush_interval_s`` (≤ 1 s), so after a SIGKILL or a power
@@ -64,6 +66,7 @@ MANIFEST_FILE = "manifest.json"
 EVENTS_FILE = "events.jsonl"
 STREAMS_DIR = "streams"
 TIME_COLUMN = "t_mono_s"
+ARRIVAL_COLUMN = "t_arrival_s"  # last column: when the sample's read returned (diagnostic; older files lack it)
 _WRITER_PERIOD_S = 0.02  # how often the writer drains the queues (latency, not the flush interval)
 _RETRY_PERIOD_S = 1.0  # after a write error: how often the kept events are tried again
 FILE_MODE = 0o600  # session files hold health data: the user only (folders 0o700)
@@ -336,7 +339,7 @@ class SessionRecorder:
         self.queue_limit = queue_limit
         self.fsync = fsync
         self.folder: Path | None = None
-        self._samples: collections.deque[tuple[str, float, Any]] = collections.deque()
+        self._samples: collections.deque[tuple[str, float, Any, float]] = collections.deque()
         self._events: collections.deque[dict[str, Any]] = collections.deque()
         self._drops: dict[str, list[int]] = {}
         self._reported_drops: dict[str, int] = {}
@@ -484,7 +487,7 @@ class SessionRecorder:
                 path = folder / STREAMS_DIR / stream_file_name(spec.name)
                 fh = _open_private(path, buffering=1 << 16)
                 self._outs[spec.name] = _StreamOut(spec, fh, path)
-                fh.write(",".join([TIME_COLUMN, *(c.name for c in spec.channels)]) + "\n")
+                fh.write(",".join([TIME_COLUMN, *(c.name for c in spec.channels), ARRIVAL_COLUMN]) + "\n")
                 fh.flush()  # the header on disk now: a stream file is never without its columns
         self._events_fh = _open_private(folder / EVENTS_FILE)
         if profile is None:
@@ -623,7 +626,7 @@ class SessionRecorder:
             if len(queue) >= limit:
                 drops[0] += 1
                 return
-            queue.append((stream, t, sample))
+            queue.append((stream, t, sample, getattr(driver, "arrival_s", t)))
 
         in_gap = [not driver.connected]
         if in_gap[0]:
@@ -790,7 +793,7 @@ class SessionRecorder:
         samples = self._samples
         outs = self._outs
         for _ in range(len(samples)):
-            stream, t, sample = samples.popleft()
+            stream, t, sample, arrival = samples.popleft()
             out = outs.get(stream)
             if out is None:
                 if stream not in self._unknown_streams:
@@ -803,6 +806,7 @@ class SessionRecorder:
                     values.append(repr(float(getattr(sample, ch.name))))
                 except (TypeError, ValueError, AttributeError):
                     values.append("nan")
+            values.append(repr(float(arrival)))
             out.fh.write(",".join(values) + "\n")
             out.count += 1
             if out.first_t is None:
@@ -896,6 +900,7 @@ class RecordedStream:
     data: dict[str, np.ndarray]
     device: str = ""
     dropped_lines: int = 0  # a cut-short last line (crash) or unreadable lines
+    arrival: np.ndarray | None = None  # when each sample's read returned (files before #27: None)
 
     @property
     def spec(self) -> StreamSpec:
@@ -1092,6 +1097,11 @@ def load_session(folder: str | Path) -> RecordedSession:
             problems.append(f"{name}: file {rel} is not a regular file; not read")
             continue
         header, values, dropped = read_stream_csv(path)
+        arrival = None
+        if header and header[-1] == ARRIVAL_COLUMN:
+            if values.ndim == 2 and values.shape[1] == len(header):
+                arrival, values = values[:, -1].copy(), values[:, :-1]
+            header = header[:-1]
         if spec.get("channels") is None:
             channels = tuple(Channel(h, "", h) for h in header[1:])
         else:
@@ -1106,7 +1116,7 @@ def load_session(folder: str | Path) -> RecordedSession:
         t = values[:, 0].copy()
         data = {c.name: values[:, i + 1].copy() for i, c in enumerate(channels)}
         streams[name] = RecordedStream(name, channels, float(spec.get("nominal_rate_hz") or 0.0), t, data,
-                                       device=spec.get("device", ""), dropped_lines=dropped)
+                                       device=spec.get("device", ""), dropped_lines=dropped, arrival=arrival)
         if dropped:
             problems.append(f"{name}: {dropped} incomplete line(s) dropped")
     events, dropped = read_events(folder / EVENTS_FILE)

@@ -13,6 +13,10 @@ t0 is stamped (time.monotonic_ns) just before the event is posted or the call is
 simulator threads receiving the bytes: the RehaStim core decodes a ScienceMode Stop, the LINarm core a
 ``setCtrlState(IDLE)``. Before every trial the e-stop is reset and stimulation restarted (profile
 frontal_reaching.yaml), so Stop interrupts a running stimulation.
+
+The simulators run as the application runs them, in a process of their own on its default link (loopback
+sockets), and the wire stamps are taken in that process (``common.RemoteWire``); ``--host thread`` hosts them as
+threads of the benchmark's process (the layout of the figures before #27). ``--load``: two ``yes`` meanwhile.
 """
 
 from __future__ import annotations
@@ -28,9 +32,8 @@ from pathlib import Path
 from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-# Both ends are stamped on the simulator threads (common.WireTap wraps the simulator cores), so the
-# simulators run as threads of this process here, as in the suite; the app itself hosts them in a process.
-os.environ.setdefault("LINARMPP_SIM_HOST", "thread")
+if "--host" in sys.argv:  # before the app is imported: where the simulators run
+    os.environ["LINARMPP_SIM_HOST"] = sys.argv[sys.argv.index("--host") + 1]
 
 import common
 
@@ -125,16 +128,34 @@ def main() -> int:
     parser.add_argument("--refresh-hz", type=float, default=120.0)
     parser.add_argument("--profile", action="store_true", help="py-spy the GUI-load phase into "
                                                                 "bench/profiles/estop_gui_load.{raw,txt}")
+    parser.add_argument("--host", choices=("process", "thread"), default="process",
+                        help="simulators in their own process (the app's default) or threads of this one")
+    parser.add_argument("--load", action="store_true", help="two `yes > /dev/null` processes meanwhile")
     args = parser.parse_args()
+    import subprocess
+
+    loads = [subprocess.Popen(["yes"], stdout=subprocess.DEVNULL) for _ in range(2)] if args.load else []
+    try:
+        return run(args)
+    finally:
+        for proc in loads:
+            proc.kill()
+            proc.wait()
+
+
+def run(args: argparse.Namespace) -> int:
     common.print_machine("e-stop latency: button / shortcut / API → FES Stop and robot IDLE on the wire")
+    print(f"   simulators: {common.hosting()} hosting, link {common.link_kind()}"
+          f"{', two yes' if args.load else ''}", flush=True)
     app = common.qt_app()
     manager = common.start_manager(common.bench_config())
     window = None
     rng = random.Random(1)
     try:
         linarm_watch, fes_watch = idle_watch(), fes_stop_watch(manager.config.devices.fes.protocol)
-        common.tap(manager.devices["linarm"].simulator, on_host=linarm_watch, keep=False)
-        common.tap(manager.devices["fes"].simulator, on_host=fes_watch, keep=False)
+        wires = [common.wire(manager.devices["linarm"].simulator, on_host=linarm_watch),
+                 common.wire(manager.devices["fes"].simulator, on_host=fes_watch)]
+        remote = any(isinstance(w, common.RemoteWire) for w in wires)
         window = common.open_window(manager, load=False)
         sources = triggers(window, manager)
         results: dict[str, list[float]] = {}
@@ -160,9 +181,12 @@ def main() -> int:
                     thread.start()
                     thread.join()
                     def seen(t0: list[int] = t0) -> bool:
+                        for w in wires:
+                            w.refresh()
                         return linarm_watch.after(t0[0]) is not None and fes_watch.after(t0[0]) is not None
 
-                    ok = common.run_qt_until(seen, 3.0)
+                    # the simulator process's log is fetched over its control pipe: not every 5 ms
+                    ok = common.run_qt_until(seen, 3.0, poll_ms=50 if remote else 5)
                     t_idle, t_fes = linarm_watch.after(t0[0]), fes_watch.after(t0[0])
                     if not ok or t_idle is None or t_fes is None:
                         print(f"  {gui}, {name}: no stop seen on the wire within 3 s "

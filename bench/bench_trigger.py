@@ -19,8 +19,11 @@ GUI idle = the real MainWindow open (offscreen), no graph selected. GUI load = e
 in the graphs, redrawn by the graphs' timer at ``--refresh-hz`` (120 Hz, the configuration's maximum: the GUI
 thread redraws back to back).
 
-Both ends are stamped on the simulator threads with time.monotonic_ns(): the physio core's emitted frames
-(decoded afterwards to find the crossing frame) and the LINarm core's received host bytes.
+Both ends are stamped where the devices are, with the monotonic clock: the physio simulator's emitted frames
+(decoded afterwards to find the crossing frame) and the LINarm simulator's received host bytes. By default the
+simulators run as the application runs them, in a process of their own on its default link (loopback sockets),
+and the stamps are taken in that process (``common.RemoteWire``); ``--host thread`` hosts them as threads of the
+benchmark's process (the layout of the figures before #27).
 """
 
 from __future__ import annotations
@@ -32,11 +35,11 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-# Both ends are stamped on the simulator threads (common.WireTap wraps the simulator cores), so the
-# simulators run as threads of this process here, as in the suite; the app itself hosts them in a process.
-os.environ.setdefault("LINARMPP_SIM_HOST", "thread")
+if "--host" in sys.argv:  # before the app is imported: where the simulators run
+    os.environ["LINARMPP_SIM_HOST"] = sys.argv[sys.argv.index("--host") + 1]
 
 import common
 
@@ -124,7 +127,7 @@ def latencies(moves: list[int], frames: list[tuple[int, float]]) -> tuple[list[f
     return out, unmatched
 
 
-def run_case(runner: object, manager: object, linarm_tap: common.WireTap, physio_tap: common.WireTap,
+def run_case(runner: object, manager: object, linarm_tap: Any, physio_tap: Any,
              trials: int, busy: bool, label: str) -> list[float]:
     runner.ready(10.0)  # type: ignore[attr-defined]
     try:  # a watchdog trip of a loaded machine in an earlier case must not refuse this one's homing check
@@ -132,12 +135,17 @@ def run_case(runner: object, manager: object, linarm_tap: common.WireTap, physio
     except Exception as exc:
         print(f"  (resetError before {label}: {exc})")
     since = time.monotonic_ns()
+    linarm_tap.refresh()
+    physio_tap.refresh()
     n_host, n_dev = len(linarm_tap.host), len(physio_tap.device)
     runner.start(script(trials, busy), f"<trigger bench: {label}>")
     done = common.run_qt_until(lambda: not runner.running, timeout_s=60.0 + trials * 3 * SQUEEZE_PERIOD_S)
     if not done:
         runner.stop("benchmark timeout")
         common.run_qt_until(lambda: not runner.running, 5.0)
+    common.run_qt_until(lambda: False, 0.2)  # the last move's bytes into the simulator's log
+    linarm_tap.refresh()
+    physio_tap.refresh()
     result = runner.result
     if result is None or result.status != "finished":
         message = result.message if result is not None else "timeout"
@@ -202,6 +210,8 @@ def main() -> int:
                                                                 "bench/profiles/trigger_gui_load.{raw,txt}")
     parser.add_argument("--load", action="store_true", help="two `yes > /dev/null` processes meanwhile")
     parser.add_argument("--wait-s", type=float, default=3.0, help="length of each wait-cost measurement")
+    parser.add_argument("--host", choices=("process", "thread"), default="process",
+                        help="simulators in their own process (the app's default) or threads of this one")
     args = parser.parse_args()
     loads = [subprocess.Popen(["yes"], stdout=subprocess.DEVNULL) for _ in range(2)] if args.load else []
 
@@ -222,6 +232,8 @@ def main() -> int:
 
 def run(args: argparse.Namespace) -> int:
     common.print_machine("trigger latency: grip frame written → moveCentreTo on the LINarm wire")
+    print(f"   simulators: {common.hosting()} hosting, link {common.link_kind()}"
+          f"{', two yes' if args.load else ''}", flush=True)
     app = common.qt_app()
     # The UDP helpers are not part of this path; they stay off so their processes do not add noise.
     config = common.bench_config(patient_model=UdpEndpoint(mode="off"), vr=UdpEndpoint(mode="off"))
@@ -230,8 +242,8 @@ def run(args: argparse.Namespace) -> int:
     profiler = None
     try:
         manager.sim_patient().squeeze_periodically(period=SQUEEZE_PERIOD_S, duty=SQUEEZE_DUTY)
-        linarm_tap = common.tap(manager.devices["linarm"].simulator)
-        physio_tap = common.tap(manager.devices["physio"].simulator)
+        linarm_tap = common.wire(manager.devices["linarm"].simulator, host=True)
+        physio_tap = common.wire(manager.devices["physio"].simulator, host=False, device=True)
         window = common.open_window(manager, load=False)
         # Home once (the runner homes a robot that is not), outside the measured cases. One runner for
         # everything, as in the window: each Start takes the warm spare kernel.

@@ -258,6 +258,59 @@ def tap(simulator: Any, **kwargs: Any) -> WireTap:
     return wrapper
 
 
+class RemoteWire:
+    """The wire of a simulator hosted in its own process (the app's default): the rows its SerialSimulator
+    logged there — host bytes as it read them, device bytes as it wrote them — stamped with time.monotonic() in
+    the simulator process (CLOCK_MONOTONIC: one clock for every process). ``host`` / ``device`` are
+    (monotonic_ns, bytes) lists like WireTap's, brought up to date by :meth:`refresh`; ``on_host`` is called
+    for each new host row on refresh."""
+
+    def __init__(self, simulator: Any, host: bool = True, device: bool = False,
+                 on_host: Callable[[int, bytes], None] | None = None) -> None:
+        self.sim = simulator
+        self.want_host, self.want_device = host, device
+        self.on_host = on_host
+        self.host: list[tuple[int, bytes]] = []
+        self.device: list[tuple[int, bytes]] = []
+        if host:
+            simulator.keep_host_log = True
+        if device:
+            simulator.device_log(keep=True)
+
+    def refresh(self) -> None:
+        if self.want_host:
+            rows = self.sim.host_bytes_log
+            new = [(round(t * 1e9), data) for t, data in rows[len(self.host):]]
+            self.host.extend(new)
+            if self.on_host is not None:
+                for t_ns, data in new:
+                    self.on_host(t_ns, data)
+        if self.want_device:
+            first, rows = self.sim.device_log(since=len(self.device))
+            del self.device[first:]
+            self.device.extend((round(t * 1e9), data) for t, data in rows)
+
+
+def wire(simulator: Any, host: bool = True, device: bool = False,
+         on_host: Callable[[int, bytes], None] | None = None) -> Any:
+    """The simulator's wire, stamped on its side: a RemoteWire (own process) or a WireTap (a thread here)."""
+    if hasattr(simulator, "process"):
+        return RemoteWire(simulator, host, device, on_host)
+    tapped = tap(simulator, on_host=on_host, keep=on_host is None)
+    tapped.refresh = lambda: None  # type: ignore[attr-defined]
+    return tapped
+
+
+def hosting() -> str:
+    """Where the simulators run in this benchmark ('process': the app's default; 'thread')."""
+    return os.environ.get("LINARMPP_SIM_HOST") or "process"
+
+
+def link_kind() -> str:
+    """The simulators' links: in-process hosting always uses ptys; the process the configured link."""
+    return "pty" if hosting() == "thread" else (os.environ.get("LINARMPP_SIM_LINK") or "socket")
+
+
 # ---------------------------------------------------------------------------------------------- the app
 def bench_config(**device_changes: Any) -> Any:
     """The default configuration (every device simulated), with ``devices`` fields replaced."""

@@ -66,6 +66,8 @@ def main(argv: list[str] | None = None) -> int:
     from app.scripting.headless import run_headless
 
     writes: list[tuple[float, str]] = []
+    reads: list[tuple[float, float, int]] = []  # LINarm driver reads: entry, return, bytes
+    silence_events: list[tuple[float, str, str]] = []
     ticks: list[float] = []
     sim_in: list[float] = []
     sim_poll: list[float] = []
@@ -89,6 +91,20 @@ def main(argv: list[str] | None = None) -> int:
             on_tick(now)
 
         drv.on_tick = tick
+        # Silence judgements (#27): every read's entry, return and size, and every silent/alive event, so a
+        # "stopped sending data" can be told apart: the device sent nothing, or the read timed out and this
+        # thread then waited for the CPU while the device's bytes piled up (the next read found them at once).
+        transport_read = drv.transport.read
+
+        def read(timeout: float) -> bytes:
+            t_in = time.monotonic()
+            data = transport_read(timeout)
+            reads.append((t_in, time.monotonic(), len(data)))
+            return data
+
+        drv.transport.read = read
+        drv.add_event_listener(lambda event, detail: silence_events.append((time.monotonic(), event, detail))
+                               if event in ("silent", "alive") else None)
         sim = manager.devices["linarm"].simulator
         core = getattr(sim, "core", None)
         if core is not None and hasattr(core, "handle_host_bytes"):
@@ -195,6 +211,19 @@ def main(argv: list[str] | None = None) -> int:
         during = [f"{m} ({who})" for t, m, who in imports if a <= t <= b]
         print(f"imports during the driver stall of {1000 * (b - a):.0f} ms at {a - ticks[0]:.1f} s: "
               f"{len(during)}: {', '.join(during[:25])}")
+    print(f"LINarm silence events: {len(silence_events)}")
+    for t_event, event, detail in silence_events:
+        if event != "silent":
+            print(f"  {event} at {t_event - ticks[0]:.2f} s {detail}")
+            continue
+        before = [r for r in reads if r[1] <= t_event]
+        after = [r for r in reads if r[0] >= t_event]
+        last, nxt = (before[-1] if before else None), (after[0] if after else None)
+        if last is not None:
+            print(f"  silent at {t_event - ticks[0]:.2f} s: the last read returned {last[2]} bytes "
+                  f"{1000 * (t_event - last[1]):.0f} ms before the judgement "
+                  f"(its wait: {1000 * (last[1] - last[0]):.0f} ms); the next read returned "
+                  f"{nxt[2] if nxt else '-'} bytes after {1000 * (nxt[1] - nxt[0]) if nxt else float('nan'):.1f} ms")
     print("driver thread while its loop stalled > 100 ms (20 ms samples):")
     print("\n".join("  " + line for line in stalls) or "  (no stall)")
     print("per-thread CPU over the run (s, % of one core):")

@@ -50,11 +50,14 @@ class StreamSpec:
 
 @dataclass
 class SampleBatch:
-    """Samples of one stream since the last batch: ``t`` in monotonic seconds, one array per channel."""
+    """Samples of one stream since the last batch: ``t`` in monotonic seconds (when each sample was taken, on
+    the device's clock mapped to the host's: app.devices.clock), one array per channel, and ``arrival`` (when
+    each came back from a read; a diagnostic, None when not kept)."""
 
     stream: StreamSpec
     t: np.ndarray
     data: dict[str, np.ndarray]
+    arrival: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.t)
@@ -97,6 +100,7 @@ class _Accumulator:
 
     spec: StreamSpec
     t: list[float] = field(default_factory=list)
+    arrival: list[float] = field(default_factory=list)
     samples: list[Any] = field(default_factory=list)
     count_window: int = 0
     total: int = 0
@@ -116,8 +120,10 @@ class _Accumulator:
             rows = np.array([self._row(s) for s in self.samples], dtype=np.float64).reshape(n, len(self.names))
             columns = rows.T.copy()  # each channel contiguous
             data = {name: columns[k] for k, name in enumerate(self.names)}
-        batch = SampleBatch(self.spec, np.asarray(self.t, dtype=np.float64), data)
+        batch = SampleBatch(self.spec, np.asarray(self.t, dtype=np.float64), data,
+                            np.asarray(self.arrival, dtype=np.float64))
         self.t = []
+        self.arrival = []
         self.samples = []
         return batch
 
@@ -194,6 +200,10 @@ class DeviceDriver(QThread):
         self._listeners: list[SampleListener] = []
         self._event_listeners: list[EventListener] = []
         self._last_sample_mono = 0.0
+        # When the sample being published came back from its read (monotonic s): listeners that keep it as a
+        # diagnostic (the recorder's arrival column) read it during their call.
+        self.arrival_s = 0.0
+        self._silent_since = 0.0  # the last sample before a silence
         self._in_read = False  # on_bytes is running: publish leaves the notification to the loop
         self._notify_pending = False
         self._rates: dict[str, float] = {s.name: 0.0 for s in self.streams}
@@ -264,13 +274,18 @@ class DeviceDriver(QThread):
     def on_disconnect(self) -> None:
         """Transport is about to close: fail pending requests."""
 
-    def publish(self, stream: str, t_s: float, sample: Any) -> None:
-        """Hand one decoded sample to every consumer. ``sample`` exposes the stream's channels
-        as attributes; ``t_s`` is time.monotonic() at decode."""
+    def publish(self, stream: str, t_s: float, sample: Any, arrival_s: float | None = None) -> None:
+        """Hand one decoded sample to every consumer. ``sample`` exposes the stream's channels as attributes;
+        ``t_s`` is when it was taken on the host's monotonic clock (the device clock mapped by
+        app.devices.clock, or a dejittered arrival), ``arrival_s`` when it came back from its read (default
+        ``t_s``)."""
         self._latest[stream] = sample
+        arrival = t_s if arrival_s is None else arrival_s
+        self.arrival_s = arrival
         acc = self._acc[stream]
         with self._acc_lock:
             acc.t.append(t_s)
+            acc.arrival.append(arrival)
             acc.samples.append(sample)
             acc.count_window += 1
             acc.total += 1
@@ -352,10 +367,31 @@ class DeviceDriver(QThread):
             on_tick(now)
             if silence_timeout is not None:
                 silent = now - self._last_sample_mono > silence_timeout
+                if silent and not self._silent:
+                    # Judge the device, not this thread: when the read above timed out and this thread then
+                    # waited for the CPU or the interpreter lock (a busy start-up, a loaded machine), the
+                    # device's bytes have been waiting meanwhile. Take them before calling the device silent
+                    # (the false "stopped sending data" warnings of #27: the next read found data at once).
+                    pending = read(0.0)
+                    if pending:
+                        self._in_read = True
+                        try:
+                            on_bytes(pending, monotonic_ns())
+                        finally:
+                            self._in_read = False
+                            if self._notify_pending:
+                                self._notify_pending = False
+                                self.notifier.notify()
+                        now = monotonic()
+                        silent = now - self._last_sample_mono > silence_timeout
                 if silent != self._silent:
                     self._silent = silent
+                    if silent:
+                        self._silent_since = self._last_sample_mono
                     self.silence_changed.emit(silent)
-                    self._fire_event("silent" if silent else "alive", "")
+                    # "alive" carries how long the stream was silent (s), for "resumed after 0.3 s"
+                    self._fire_event("silent" if silent else "alive",
+                                     "" if silent else f"{self._last_sample_mono - self._silent_since:.3f}")
             if now >= next_batch:
                 self._emit_batches()
                 next_batch = now + batch_period

@@ -19,6 +19,7 @@ from PySide6.QtCore import Signal
 
 from app.config import LinarmDevice
 from app.devices import linarm_protocol as proto
+from app.devices.clock import DeviceClock
 from app.devices.cmdmessenger import CmdMessengerDecoder
 from app.devices.driver import Channel, DeviceDriver, StreamSpec, UpdateNotifier
 from app.devices.linarm_protocol import ControlState, ReplyError
@@ -47,6 +48,7 @@ class LinarmStateSample:
     virtualVsa: bool
     endstrokesDisabled: bool
     controllerTime: float  # s, controller clock
+    timestamp: float = 0.0  # s, host monotonic clock: the controller's time of this state (app.devices.clock)
 
 
 @dataclass(frozen=True, slots=True)
@@ -57,6 +59,7 @@ class MotorSample:
     current: float
     target: float
     controllerTime: float
+    timestamp: float = 0.0  # s, host monotonic clock (the controller's clock mapped)
 
 
 @dataclass(frozen=True, slots=True)
@@ -68,6 +71,7 @@ class VsaSample:
     handleVel: float
     interactionForce: float
     controllerTime: float
+    timestamp: float = 0.0  # s, host monotonic clock (the controller's clock mapped)
 
     @property
     def centre(self) -> float:
@@ -146,6 +150,9 @@ class LinarmDriver(DeviceDriver):
         self.command_timeout_s = command_timeout_s
         self.heartbeat_period_s = heartbeat_period_s
         self.decoder = CmdMessengerDecoder()
+        # The controller's micros() (t_us, wrapping at 2**32 µs) mapped to the host's clock: every state sample
+        # is stamped when the controller sampled it, not when the read that carried it returned (#27).
+        self.clock = DeviceClock(wrap_s=proto.T_US_WRAP_S)
         self.firmware_version = ""
         self.protocol_errors = 0
         self._seq = 0
@@ -261,6 +268,7 @@ class LinarmDriver(DeviceDriver):
     def on_connect(self) -> None:
         self._envelope_locked = False
         self.decoder.reset()
+        self.clock.reset()  # a reconnect may be a restarted controller
         self._identified.clear()
         self.firmware_version = ""
         # Flush the controller's parser, then identify (command 0 is harmless by design).
@@ -402,21 +410,26 @@ class LinarmDriver(DeviceDriver):
                               last_error=d.last_error or "")
 
     def _dispatch(self, msg: Any, t: float) -> None:
+        """``t``: when the read carrying ``msg`` returned (monotonic s)."""
         if isinstance(msg, proto.VsaState):
             # The interaction force is read from the spring elongations, which mean nothing until homing
             # has referenced the encoders: show it as unknown rather than as a huge number.
             state = self._latest.get("linarm.state")
             force = msg.force if state is not None and state.initialized else float("nan")
-            self.publish("linarm.vsa", t, VsaSample(msg.equilibrium_pos, msg.delta, msg.stiffness, msg.handle_pos,
-                                                    msg.handle_vel, force, msg.t_us / 1e6))
+            taken = self.clock.map(msg.t_us * 1e-6, t)
+            self.publish("linarm.vsa", taken, VsaSample(msg.equilibrium_pos, msg.delta, msg.stiffness, msg.handle_pos,
+                                                        msg.handle_vel, force, msg.t_us / 1e6, taken), t)
         elif isinstance(msg, proto.MotorState):
-            self.publish(f"linarm.motor{msg.index}", t, MotorSample(msg.index, msg.position, msg.velocity,
-                                                                    msg.current, msg.target, msg.t_us / 1e6))
+            taken = self.clock.map(msg.t_us * 1e-6, t)
+            self.publish(f"linarm.motor{msg.index}", taken, MotorSample(msg.index, msg.position, msg.velocity,
+                                                                        msg.current, msg.target, msg.t_us / 1e6,
+                                                                        taken), t)
         elif isinstance(msg, proto.LinarmState):
-            self.publish("linarm.state", t, LinarmStateSample(
+            taken = self.clock.map(msg.t_us * 1e-6, t)
+            self.publish("linarm.state", taken, LinarmStateSample(
                 int(msg.control_state), int(msg.control_mode), int(msg.home_state), int(msg.error_state),
                 int(msg.trigger_mode), bool(msg.initialized), int(msg.trajectory_type), bool(msg.demo),
-                bool(msg.virtual_vsa), bool(msg.endstrokes_disabled), msg.t_us / 1e6))
+                bool(msg.virtual_vsa), bool(msg.endstrokes_disabled), msg.t_us / 1e6, taken), t)
         elif isinstance(msg, proto.Ack):
             pending = self._pending.get(msg.seq)
             if pending is not None and not pending.future.done():

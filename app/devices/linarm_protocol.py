@@ -40,6 +40,7 @@ from app.devices.linarm_constants import constants_table
 PROTOCOL_VERSION = 1
 SEQ_MIN, SEQ_MAX = 0, 65535
 HEARTBEAT_PERIOD = 0.100  # s, host -> controller
+T_US_WRAP_S = 2**32 * 1e-6  # the controller's micros() wraps every 71.6 min
 WATCHDOG_TIMEOUT = 0.250  # s of host silence before the controller stops the motors
 DEFAULT_STREAM_PERIOD = 0.005  # s (200 Hz)
 LINARM_STATE_DIVIDER = 10  # LINARM_STATE goes out every 10th stream tick (and at once on a change)

@@ -56,6 +56,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from app.devices.clock import CountedClock
 from app.devices.driver import Channel, DeviceDriver, StreamSpec, UpdateNotifier
 from app.devices.transport import DatagramTransport, TransportError, UdpTransport
 from app.devices.udp_frames import (
@@ -561,6 +562,9 @@ class PatientModelDriver(UdpPeerDriver):
         # acknowledges went out within ACK_WINDOW_S, at any rate (at 10× that is 500 frames; a table of
         # the last 256 sends refused legitimate replies that came back 0.13-0.26 s late, #16).
         self._sent_at: list[float] = [-math.inf] * 0x10000
+        # No device clock in the replies: their arrival times, dejittered on the reply's sequence number at the
+        # nominal rate (app.devices.clock), so a drained backlog does not put several replies on one instant.
+        self.clock = CountedClock(rate_hz, wrap=0x10000)
 
     def build_datagram(self, now: float) -> bytes | None:
         if self.frame_source is None:
@@ -579,11 +583,11 @@ class PatientModelDriver(UdpPeerDriver):
         self.check_seq(r.seq)
         a_r, a_f = self.split(r.alpha) if self.split is not None else (NAN, NAN)
         flags = int(r.flags)
-        self.publish("patient_model.main", t, PatientModelSample(
+        self.publish("patient_model.main", self.clock.map(t, r.seq), PatientModelSample(
             alpha=r.alpha, a_r=a_r, a_f=a_f, tpi=r.tpi, mpi=r.mpi, pti=r.pti, alphaMin=r.alphaMin,
             alphaMax=r.alphaMax, pathCode=r.path, path=path_text(r.path), level=r.level,
             valid=bool(flags & _VALID), fallback=bool(flags & _FALLBACK), seq=r.seq,
-            ackSeq=r.ackSeq, roundTrip=t - sent))
+            ackSeq=r.ackSeq, roundTrip=t - sent), t)
 
 
 _VALID, _FALLBACK = int(ReplyFlag.VALID), int(ReplyFlag.FALLBACK)  # plain ints: IntFlag's & is slow per reply

@@ -6,10 +6,12 @@ module only connects them to a transport and to the manager.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from typing import TYPE_CHECKING
 
 from app.config import PhysioCalibration, PhysioDevice
+from app.devices.clock import DeviceClock
 from app.devices.driver import Channel, DeviceDriver, StreamSpec, UpdateNotifier
 from app.devices.physio_codec import Calibration, ChannelCalibration, PhysioStreamDecoder
 from app.devices.sim.base import SerialSimulator
@@ -44,14 +46,20 @@ class PhysioDriver(DeviceDriver):
         super().__init__("physio", transport, notifier=notifier, silence_timeout_s=silence_timeout_s)
         self.calibration = calibration
         self.decoder = PhysioStreamDecoder(calibration)
+        # The board's millisecond tick (unwrapped by the decoder into boardTime) mapped to the host's clock:
+        # samples are stamped when the board took them, not when the read carrying them returned (#27).
+        self.clock = DeviceClock()
 
     def on_connect(self) -> None:
         self.decoder.reset()  # a new connection starts a new sequence; old gaps are not losses
+        self.clock.reset()
 
     def on_bytes(self, data: bytes, t_ns: int) -> None:
         t = t_ns / 1e9
+        stamp, replace = self.clock.map, dataclasses.replace
         for sample in self.decoder.feed(data, t):
-            self.publish("physio.main", t, sample)
+            taken = stamp(sample.boardTime, t)
+            self.publish("physio.main", taken, replace(sample, timestamp=taken), t)
 
     @property
     def frames_lost(self) -> int:

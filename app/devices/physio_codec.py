@@ -421,7 +421,7 @@ class PhysioSample:
     """One decoded frame in physical units; field names as the seed's scripts use them."""
 
     seq: int
-    timestamp: float        # s, receive time given by the caller (monotonic clock)
+    timestamp: float        # s, monotonic: the driver's stamp (boardTime mapped to the host clock, #27)
     boardTime: float        # s, board clock, unwrapped from the 16-bit ms tick
     force: float            # grip force, N
     temperature: float      # skin temperature, °C

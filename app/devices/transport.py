@@ -246,7 +246,7 @@ class _LoopbackPort:
             sock = socket.create_connection((host, int(port)), timeout=1.0)
         except (OSError, ValueError) as exc:
             raise TransportError(f"cannot open {url}: {exc}") from exc
-        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)  # the host's commands too (see SocketLink)
         sock.setblocking(False)
         return cls(sock)
 
@@ -534,6 +534,9 @@ class SocketLink:
                     client.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
                 client.close()
                 return
+            # Each frame goes out when written: without TCP_NODELAY, Nagle's algorithm held the device's small
+            # writes until the driver's delayed ACK (~40 ms on Linux loopback), bunching 8-9 LINarm frames (#27).
+            client.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
             client.setblocking(False)
             self.clients_accepted += 1
             self._client = client

@@ -35,6 +35,7 @@ import time
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
+from app.devices.clock import CountedClock
 from app.devices.driver import Channel, StreamSpec, UpdateNotifier
 from app.devices.patient_model import (
     HelperProcess,
@@ -184,6 +185,9 @@ class VrDriver(UdpPeerDriver):
         self.task = task or VrTask()
         self._seq = 0
         self.events_received = 0
+        # The frames' own schedule, dejittered on their sequence number (app.devices.clock): a catch-up after a
+        # late pass sends several frames at one instant, but each stands for its own period.
+        self.clock = CountedClock(rate_hz, wrap=0x10000)
 
     def task_snapshot(self) -> tuple[float, TaskData]:
         """The task as the patient model's frames carry it (any thread)."""
@@ -216,11 +220,11 @@ class VrDriver(UdpPeerDriver):
             robotVelocity=_num(v, "handleVel"), robotPosition=handle, targetPosition=target, task=task,
             alpha=self._alpha(), flags=flags))
         t = self.task
-        self.publish("vr.main", now, VrSample(
+        self.publish("vr.main", self.clock.map(now, seq), VrSample(
             targetPos=target, score=float(t.score), targetsReached=float(t.targetsReached),
             targetsMissed=t.targetsMissed, subTask=task.subTask, taskState=int(task.taskState),
             handlePos=handle, lastEvent=t.lastEvent, timeToTarget=t.timeToTarget,
-            packetRateOut=self.packet_rate_out, packetRateIn=self.packet_rate_in))
+            packetRateOut=self.packet_rate_out, packetRateIn=self.packet_rate_in), now)
         return data
 
     def handle_datagram(self, data: bytes, t: float) -> None:

@@ -47,6 +47,8 @@ class SerialSimulator:
         self.link: SimLink = self.link_factory()
         self.host_bytes_log: list[tuple[float, bytes]] = []  # what the driver sent, for tests
         self.keep_host_log = False
+        self.device_bytes_log: list[tuple[float, bytes]] = []  # what the device wrote, for benchmarks
+        self.keep_device_log = False
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._lock = threading.Lock()  # guards `core` against test/GUI threads poking it
@@ -123,6 +125,8 @@ class SerialSimulator:
                     with self._lock:
                         out = self.core.poll(now)
                     if out:
+                        if self.keep_device_log:
+                            self.device_bytes_log.append((time.monotonic(), out))
                         link.write(out)
                     next_tick += self.tick_s
                     if next_tick < now - 0.1:  # fell far behind (debugger, suspended VM): do not burst

@@ -341,6 +341,14 @@ def _answer(request: dict[str, Any], sims: dict[str, Any], patient: Any) -> dict
             since = int(request.get("since", 0))
             since = since if 0 <= since <= len(log_now) else 0  # a restarted simulator began a new log
             result = {"from": since, "rows": [[t, data.hex()] for t, data in log_now[since:]]}
+        elif op == "device_log":  # benchmarks: the bytes the device wrote, stamped in this process
+            sim = sims[request["device"]]
+            if "keep" in request:
+                sim.keep_device_log = bool(request["keep"])
+            log_now = list(sim.device_bytes_log)
+            since = int(request.get("since", 0))
+            since = since if 0 <= since <= len(log_now) else 0
+            result = {"from": since, "rows": [[t, data.hex()] for t, data in log_now[since:]]}
         elif op == "control":
             sim = sims[request["device"]]
             fn = DEVICE_CONTROLS[request["name"]]
@@ -538,6 +546,16 @@ class RemoteSimulator:
         del self._host_log[int(answer["from"]):]
         self._host_log.extend((float(t), bytes.fromhex(h)) for t, h in answer["rows"])
         return list(self._host_log)
+
+
+    def device_log(self, since: int = 0, keep: bool | None = None) -> tuple[int, list[tuple[float, bytes]]]:
+        """(first row's index, rows) of what the device wrote since row ``since`` (monotonic time, bytes),
+        stamped in the simulator process; ``keep`` switches the log on or off (benchmarks)."""
+        fields: dict[str, Any] = {"since": since}
+        if keep is not None:
+            fields["keep"] = bool(keep)
+        answer = self.process.call("device_log", device=self.name, timeout_s=10.0, **fields)
+        return int(answer["from"]), [(float(t), bytes.fromhex(h)) for t, h in answer["rows"]]
 
 
 class ThreadHostedControls:
