@@ -401,20 +401,26 @@ class MainWindow(QMainWindow):
         return getattr(self._script_console(), "runner", None)
 
     def _interrupted_exercise(self) -> Restartable | None:
-        """The exercise a STOP interrupted (the script console's last run, or the one still running:
-        Recover stops it first), for the banner's Recover."""
-        console = self._script_console()
-        runner = getattr(console, "runner", None)
-        if runner is None:
+        """The run a STOP interrupted (the session's runs, app/runs.py: the one still running — Recover stops it
+        first — or the last one, stopped), for the banner's Recover. It is started again exactly: the same
+        exercise with the same parameters from the Exercises tab, the same script text from the Script tab.
+        Console code, or a program changed on disk since, is not restarted: the reason is given instead."""
+        from app.runs import restart_candidate
+
+        runs = getattr(self.manager, "runs", None)
+        run = restart_candidate(runs.runs()) if runs is not None else None
+        if run is None:
             return None
-        if runner.running:
-            name = getattr(getattr(console, "path", None), "name", None) or "the script"
-            return Restartable(name, console.start_script)
-        result = runner.result
-        if result is None or result.status == "finished":  # stopped, error or refused (e.g. mid-homing)
-            return None
-        name = Path(result.filename).name if result.filename else "the script"
-        return Restartable(name, console.start_script)
+        panels = getattr(self.frames.get("CommandsFrame"), "panels", {})
+        owner = panels.get("ExercisesPanel") if run.program.kind == "exercise" else panels.get("ScriptConsole")
+        if run.program.kind == "console" or owner is None:
+            why = run.program.changed_on_disk() if run.program.kind == "console" else "its tab is not available"
+            return Restartable(run.title, lambda: False, why_not=why, run_id=run.run_id)
+        why_not = owner.restart_problem(run)
+        details = run.parameters_text() if run.program.kind == "exercise" else (
+            f"the text that ran ({run.program.path or 'the editor'})")
+        return Restartable(run.title, lambda: owner.restart_run(run), why_not=why_not, details=details,
+                           run_id=run.run_id)
 
     def _stop_script_for_recovery(self) -> bool:
         """Recover never resets the e-stop under a running script: stop it first (True if it ran)."""
