@@ -615,6 +615,11 @@ class LinarmppManager:
         """A short message for the clinician (shown beside the repetition count, recorded as an event)."""
         self._ctx.manager.progress.report(text)
 
+    def setRunState(self, state: str, detail: str = "") -> None:
+        """Say what the run does now, for the progress area and the record: "waiting_for_grip", "moving",
+        "resting" or "running" (homing, paused, stopped and finished are set by the application)."""
+        self._ctx.manager.progress.set_run_state(state, detail)
+
 
 # ---------------------------------------------------------------------------------------------- namespace
 API_NAMES = ("linarm", "physiologicalSensors", "fes", "patientModel", "VRUnity", "linarmppManager")

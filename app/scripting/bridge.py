@@ -110,7 +110,8 @@ ALLOWED_CALLS: dict[str, frozenset[str]] = {
     "linarm": frozenset({c.name for c in api.SCRIPT_COMMANDS} | {"getConfigData"}),
     "fes": frozenset({"loadFile", "writeFile", "start", "stop", "setCurrentScaleFactor", "setPWScaleFactor",
                       "setPhase", "getConfigData"}),
-    "linarmppManager": frozenset({"emergencyStop", "startRepetition", "endRepetition", "reportProgress"}),
+    "linarmppManager": frozenset({"emergencyStop", "startRepetition", "endRepetition", "reportProgress",
+                                  "setRunState"}),
 }
 ALLOWED_ATTRIBUTES: dict[str, frozenset[str]] = {"fes": frozenset({"profile", "stimulating"})}
 _ERROR_NAMES: tuple[tuple[type[BaseException], str], ...] = (

@@ -916,6 +916,10 @@ class LinarmppManager:
         """A short message for the clinician (shown beside the repetition count, recorded as an event)."""
         self._k.call("linarmppManager", "reportProgress", str(text))
 
+    def setRunState(self, state: str, detail: str = "") -> None:
+        """Say what the run does now: "waiting_for_grip", "moving", "resting" or "running"."""
+        self._k.call("linarmppManager", "setRunState", str(state), str(detail))
+
 
 def make_wait_condition(kernel: Kernel, namespace: Mapping[str, Any]) -> Callable[..., bool]:
     """``waitCondition(condition, timeout=None)`` or the seed's ``waitCondition("expr", locals(), timeout)``:

@@ -48,6 +48,7 @@ HOME_TIMEOUT_S = 60.0
 POLITE_STOP_S = 0.05  # the kernel's own stop (every wait notices within 20 ms) before SIGTERM
 TERMINATE_S = 0.04  # SIGTERM before SIGKILL
 ANSWER_TIMEOUT_S = 0.5  # completion and namespace reads from the GUI thread
+DEFAULT_DELTA_TOLERANCE_M = 0.001  # pretension this close to the homed one: the default stiffness already
 
 
 @dataclass
@@ -564,11 +565,15 @@ class ScriptRunner:
         progress = getattr(self.manager, "progress", None)
         run = self.run
         if progress is not None:
-            progress.begin(run.title if run is not None else name, run_id=run.run_id if run is not None else "")
+            if run is not None:
+                progress.begin(run.title, run_id=run.run_id)
+            else:
+                progress.begin(name)
         result: ScriptResult | None = None
         try:
-            if self.home_first:
+            if self.home_first:  # "prepare the robot": homed, and the controller's default settings
                 self._home_if_needed()
+                self._apply_run_defaults()
         except ScriptStopped:
             result = ScriptResult("stopped", self.stop_reason or "stopped", filename)
         except BaseException as exc:
@@ -712,6 +717,51 @@ class ScriptRunner:
         if not ctx.wait_until(homed, self.home_timeout_s):
             raise RuntimeError(f"the LINarm did not finish homing within {self.home_timeout_s:.0f} s")
         self.output("info", "LINarm homed.\n")
+
+    def _apply_run_defaults(self) -> None:
+        """Each run starts from the controller's own settings, not from what the previous run left (issue #26:
+        a stiffness set by one exercise carried into the next): admittance Ka and assistance Kt back to their
+        defaults, and the springs' pretension back to the homed one (a slow move of the carriages only: the
+        centre holds). Done here, by the runner, so that every program — library exercise, a clinic's own
+        script, console code run as a script — gets it without having to reset what others may have set; an
+        exercise then sets what it needs itself. Skipped when the robot is not connected or not homed, and with
+        ``home_first`` off (the operator prepares the robot himself: the Script tab's "Home the robot first")."""
+        linarm = self.manager.driver("linarm") if self.manager is not None else None
+        if linarm is None or not linarm.connected:
+            return
+        state = linarm.latest("linarm.state")
+        if state is None or not state.initialized:
+            return
+        from app.devices.linarm_constants import K
+
+        ctx, src = self.context, "script runner"
+        ctx.call("linarm.setAdmittanceParameter", linarm.command, "setAdmittanceParameter", K["ADMITTANCE_KA"],
+                 source=src, timeout_s=3.0)
+        ctx.call("linarm.setAssistanceParameter", linarm.command, "setAssistanceParameter", K["ASSISTANCE_KT"],
+                 source=src, timeout_s=3.0)
+        vsa = linarm.latest("linarm.vsa")
+        home_delta = float(K["HOME_DELTA"])
+        if vsa is None or abs(float(vsa.delta) - home_delta) <= DEFAULT_DELTA_TOLERANCE_M:
+            return
+        self._set_run_state("starting", "the robot's default stiffness")
+        self.output("info", f"Robot stiffness back to its default (pretension {home_delta * 1000:.0f} mm)…\n")
+        ctx.call("linarm.setCtrlState(IDLE)", linarm.command, "setCtrlState", int(ControlState.IDLE_CTRL_STATE),
+                 source=src, timeout_s=3.0)
+        ctx.call("linarm.setCtrlMode", linarm.command, "setCtrlMode", int(ControlMode.POS_REF_BY_TARGET_POS),
+                 source=src, timeout_s=3.0)
+        ctx.call("linarm.setCtrlState(ON)", linarm.command, "setCtrlState", int(ControlState.ON_CTRL_STATE),
+                 source=src, timeout_s=3.0)
+        ctx.call("linarm.moveDeltaTo", linarm.command, "moveDeltaTo", home_delta, 0.05, 0.2, 0.0, False,
+                 source=src, timeout_s=3.0)
+
+        def settled() -> bool:
+            v = linarm.latest("linarm.vsa")
+            return v is not None and abs(float(v.delta) - home_delta) <= DEFAULT_DELTA_TOLERANCE_M / 2
+
+        ctx.wait_until(settled, 5.0)
+        ctx.call("linarm.setCtrlState(IDLE)", linarm.command, "setCtrlState", int(ControlState.IDLE_CTRL_STATE),
+                 source=src, timeout_s=3.0)
+        self._set_run_state("starting")
 
     def _safe_state_now(self, reason: str) -> None:
         """On Stop: FES and robot to the safe state at once, before the kernel has even ended."""

@@ -320,7 +320,8 @@ class ScriptConsole(QWidget):
         self.stop_button = QPushButton("■ Stop")
         self.home_first = QCheckBox("Home the robot first")
         self.home_first.setChecked(True)
-        self.home_first.setToolTip("Before the script starts, home the LINarm if the controller says it is not homed")
+        self.home_first.setToolTip("Before the script starts, home the LINarm if the controller says it is not homed, "
+                                   "and give it back its default stiffness, admittance and assistance")
         self.status = QLabel("No script running")
         self.file_label = QLabel("(unsaved script)")
         self.start_button.setToolTip("Run the script in the editor (in the script kernel, a process of its own)")
