@@ -146,3 +146,41 @@ def test_a_console_run_is_not_restarted_and_the_dialog_says_why(qtbot: Any, wind
     dialog.recover_button.click()
     qtbot.waitUntil(lambda: not manager.supervisor.estop_latched, timeout=5000)
     assert len(manager.runs.runs()) == n, "recovery without a restart starts nothing"
+
+
+def test_f12_in_a_dialog_opens_nothing_behind_it(qtbot: Any, window: MainWindow) -> None:
+    """Issue #26, item 7: the exercise's summary waits until the modal dialog in which F12 was pressed has
+    closed (a window opened behind a modal dialog cannot be used: its Close did nothing)."""
+    from PySide6.QtWidgets import QApplication, QDialog, QLabel, QVBoxLayout
+
+    from app.ui.exercises_panel import SUMMARY_DELAY_MS
+
+    panel = window.frames["CommandsFrame"].panels["ExercisesPanel"]
+    runner = panel.runner
+    panel.select("trigger_reaching")
+    for name, value in FORM.items():
+        panel.set_value(name, value)
+    assert panel.start()
+    qtbot.waitUntil(lambda: window.manager.runs.current() is not None
+                    and window.manager.runs.current().state in ("running", "homing"), timeout=20000)
+    dialog = QDialog(window)
+    QVBoxLayout(dialog).addWidget(QLabel("a dialog the operator is working in"))
+    dialog.open()  # window-modal, as the application's dialogs are
+    qtbot.waitExposed(dialog)
+    QTest.keyClick(dialog, Qt.Key.Key_F12)
+    qtbot.waitUntil(lambda: not runner.running, timeout=5000)
+    seen_behind: list[bool] = []
+
+    def look() -> bool:
+        summary = panel.summary_dialog
+        seen_behind.append(summary is not None and summary.isVisible() and dialog.isVisible())
+        return False
+
+    qtbot.wait(SUMMARY_DELAY_MS + 600)
+    look()
+    assert not any(seen_behind), "the summary opened behind the modal dialog"
+    dialog.reject()
+    qtbot.waitUntil(lambda: panel.summary_dialog is not None and panel.summary_dialog.isVisible(), timeout=5000)
+    assert QApplication.activeModalWidget() is None
+    panel.summary_dialog.close()  # its Close works: nothing blocks it
+    assert not panel.summary_dialog.isVisible()
