@@ -139,6 +139,23 @@ class DeviceStatus(QLabel):
             self.setAccessibleName(f"{self.name} {state}")
 
 
+def _script_restart_words(program: Any) -> str:
+    """What a Script-tab restart runs, in words: always the text that ran (kept in the record), and whether the
+    file has changed on disk since (then the file's new text is not what restarts)."""
+    from app.runs import text_hash
+
+    where = program.path or "the editor"
+    if program.path:
+        try:
+            changed = text_hash(Path(program.path).read_text(encoding="utf-8")) != program.text_sha256
+        except (OSError, UnicodeDecodeError):
+            changed = True
+        if changed:
+            return (f"the text that ran; {Path(program.path).name} has changed on disk since, and its new text is "
+                    "not what restarts")
+    return f"the text that ran ({where})"
+
+
 def recorder_folder(manager: LinarmppManager) -> Path | None:
     recorder = manager.recorder
     return None if recorder is None else recorder.folder
@@ -417,8 +434,7 @@ class MainWindow(QMainWindow):
             why = run.program.changed_on_disk() if run.program.kind == "console" else "its tab is not available"
             return Restartable(run.title, lambda: False, why_not=why, run_id=run.run_id)
         why_not = owner.restart_problem(run)
-        details = run.parameters_text() if run.program.kind == "exercise" else (
-            f"the text that ran ({run.program.path or 'the editor'})")
+        details = run.parameters_text() if run.program.kind == "exercise" else _script_restart_words(run.program)
         return Restartable(run.title, lambda: owner.restart_run(run), why_not=why_not, details=details,
                            run_id=run.run_id)
 
