@@ -184,3 +184,15 @@ def test_f12_in_a_dialog_opens_nothing_behind_it(qtbot: Any, window: MainWindow)
     assert QApplication.activeModalWidget() is None
     panel.summary_dialog.close()  # its Close works: nothing blocks it
     assert not panel.summary_dialog.isVisible()
+
+
+def test_a_new_session_brings_the_exercises_forward(qtbot: Any, window: MainWindow, tmp_path: Path) -> None:
+    """Launch → first exercise: Start session… (1), patient (2), operator (3), OK (4), Start (5) — the session's
+    start brings the Exercises tab to the front (it was a sixth action: finding the tab)."""
+    commands = window.frames["CommandsFrame"]
+    assert commands.tabs.tabText(commands.tabs.currentIndex()) == "Exercises"  # the fixture started a session
+    commands.tabs.setCurrentIndex(0)
+    window.manager.end_session()
+    assert commands.tabs.currentIndex() == 0  # the end of a session leaves the tabs alone
+    window.manager.start_session("P-RUNS-2", "Dr Rossi", root=tmp_path / "second")
+    assert commands.tabs.tabText(commands.tabs.currentIndex()) == "Exercises"

@@ -311,7 +311,8 @@ class ScriptRunner:
     def _end_run(self, result: ScriptResult) -> None:
         """The run's end from what happened: the script's result and the cause of a stop."""
         run = self.run
-        runs = getattr(self.manager, "runs", None)
+        # a run may live in an earlier log (a session started meanwhile): end it where it began
+        runs = self._run_log if self._run_log is not None else getattr(self.manager, "runs", None)
         if run is None or runs is None:
             return
         if result.status == "finished":
@@ -326,9 +327,7 @@ class ScriptRunner:
         else:
             where = f" (line {result.line})" if result.line else ""
             reason, detail = "script_error", f"{result.message}{where}"
-        # a run may live in an earlier log (a session started meanwhile): end it where it began
-        log_ = self._run_log if self._run_log is not None else runs
-        log_.end(run.run_id, reason, detail[:300])
+        runs.end(run.run_id, reason, detail[:300])
 
     def _set_run_state(self, state: str, detail: str = "") -> None:
         run, runs = self.run, self._run_log

@@ -238,6 +238,8 @@ class MainWindow(QMainWindow):
         row.addWidget(self.session_button)
         bar.addWidget(holder)
         self.manager.session_changed.connect(lambda _folder: self._show_session())
+        # A session has started: its plan and exercises come next (one action fewer to the first exercise).
+        self.manager.session_changed.connect(lambda folder: self.show_tab("Exercises") if folder is not None else None)
         self._show_session()
 
     def _build_frames(self) -> None:
@@ -402,13 +404,17 @@ class MainWindow(QMainWindow):
         self._browser.show()
 
     def show_alarms(self) -> None:
+        self.show_tab("Alarms")
+
+    def show_tab(self, title: str) -> None:
+        """Bring the Commands frame's tab ``title`` to the front (the frame shown if it was closed)."""
         commands = self.frames.get("CommandsFrame")
         tabs = getattr(commands, "tabs", None)
-        if tabs is None:
+        if tabs is None or "CommandsFrame" not in self.docks:
             return
         self.docks["CommandsFrame"].show()
         for i in range(tabs.count()):
-            if tabs.tabText(i) == "Alarms":
+            if tabs.tabText(i) == title:
                 tabs.setCurrentIndex(i)
 
     def _script_console(self) -> QWidget | None:
