@@ -176,6 +176,8 @@ class ExerciseRun:
         if self.end_reason is None:
             return "running"
         text = END_REASON_TEXT.get(self.end_reason, self.end_reason)
+        if self.end_detail.lower().startswith(text.lower()):  # "emergency stop pressed (keyboard)": said once
+            return self.end_detail
         return f"{text}: {self.end_detail}" if self.end_detail else text
 
     def state_text(self) -> str:
