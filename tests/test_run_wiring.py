@@ -163,3 +163,22 @@ def test_the_elapsed_time_stops_with_the_run(qapp: Any) -> None:
     assert state.elapsed_s() == pytest.approx(10.0)
     assert state.state_text == "stopped: emergency stop" and not state.running
     assert state.label() == "repetition 1 of 3"
+
+
+def test_a_headless_run_is_in_its_record(qapp: Any, tmp_path: Path) -> None:
+    from app.scripting.headless import EXIT_OK, run_headless
+
+    script = tmp_path / "short.py"
+    script.write_text("linarmppManager.startRepetition(1, 1)\nlinarmppManager.endRepetition(1, True)\n",
+                      encoding="utf-8")
+    cfg = AppConfig()
+    cfg = replace(cfg, devices=replace(cfg.devices, patient_model=UdpEndpoint(mode="off"),
+                                       vr=UdpEndpoint(mode="off")))
+    code = run_headless(cfg, str(script), record_dir=str(tmp_path / "rec"), home_first=False,
+                        output=lambda _s, _t: None)
+    assert code == EXIT_OK
+    (events_file,) = (tmp_path / "rec").rglob("events.jsonl")
+    events = [json.loads(line) for line in events_file.read_text(encoding="utf-8").splitlines()]
+    (run,) = runs_from_events(events)
+    assert (run.source, run.end_reason, run.program.kind) == ("headless", "finished", "script_file")
+    assert run.program.path == str(script.resolve()) and [m.ok for m in run.repetitions] == [True]
