@@ -182,3 +182,16 @@ def test_a_headless_run_is_in_its_record(qapp: Any, tmp_path: Path) -> None:
     (run,) = runs_from_events(events)
     assert (run.source, run.end_reason, run.program.kind) == ("headless", "finished", "script_file")
     assert run.program.path == str(script.resolve()) and [m.ok for m in run.repetitions] == [True]
+
+
+def test_closing_the_application_ends_the_run_as_app_exit(qtbot: Any, manager: LinarmppManager,
+                                                          runner: ScriptRunner, tmp_path: Path) -> None:
+    manager.start_session("P-EXIT", "Dr Bianchi", root=tmp_path)
+    runner.home_first = False
+    run = runner.start("wait(30)\n", "/tmp/wait.py")
+    qtbot.waitUntil(lambda: manager.runs.get(run.run_id).state == "running", timeout=5000)
+    live = manager.runs
+    manager.shutdown()
+    assert live.get(run.run_id).end_reason == "app_exit"
+    assert runner.wait(5.0)
+    assert live.get(run.run_id).end_reason == "app_exit"  # the runner's later end does not overwrite it
