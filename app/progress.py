@@ -82,7 +82,7 @@ class ExerciseProgress(QObject):
                           ended_monotonic=ended if ended is not None else state.ended_monotonic))
 
     def _current_run_id(self, state: ProgressState) -> str:
-        if state.run_id:
+        if state.run_id and state.running:
             return state.run_id
         current = self._runs.current() if self._runs is not None else None
         return current.run_id if current is not None else ""
@@ -116,7 +116,8 @@ class ExerciseProgress(QObject):
         text = run.state_text() if run is not None and not run.running else (state.state_text or status)
         ended = run.ended_mono if run is not None and run.ended_mono is not None else now
         # The exercise's last message ("moving to 0.30 m") is not true after a stop: only a finished run keeps it.
-        last_text = state.text if (run.end_reason == "finished" if run is not None else status == "finished") else ""
+        ended_run = run is not None and not run.running
+        last_text = state.text if ((run.end_reason if ended_run else status) == "finished") else ""
         self._set(replace(state, running=False, in_repetition=False, paused_since=None, paused_s=paused_s,
                           ended_monotonic=ended, state_text=text, text=last_text,
                           run_state=run.state if run is not None else state.run_state))

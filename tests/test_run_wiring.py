@@ -195,3 +195,20 @@ def test_closing_the_application_ends_the_run_as_app_exit(qtbot: Any, manager: L
     assert live.get(run.run_id).end_reason == "app_exit"
     assert runner.wait(5.0)
     assert live.get(run.run_id).end_reason == "app_exit"  # the runner's later end does not overwrite it
+
+
+def test_a_repetition_open_at_the_stop_ends_before_its_run(qtbot: Any, manager: LinarmppManager,
+                                                           runner: ScriptRunner) -> None:
+    """The record reads in order: the interrupted repetition's end (not completed), then the run's end."""
+    events: list[tuple[str, dict[str, Any]]] = []
+    manager.supervisor.add_event_subscriber(lambda kind, data: events.append((kind, dict(data))))
+    runner.home_first = False
+    run = runner.start("linarmppManager.startRepetition(1, 3)\nwait(30)\n", "/tmp/rep.py")
+    qtbot.waitUntil(lambda: manager.runs.get(run.run_id).repetitions != (), timeout=10000)
+    runner.stop()
+    kinds = [(k, d.get("ok")) for k, d in events
+             if k in ("repetition_end", "run_end") and d.get("run_id") == run.run_id]
+    assert kinds == [("repetition_end", False), ("run_end", None)]
+    end = next(d for k, d in events if k == "run_end" and d["run_id"] == run.run_id)
+    assert end["completed"] == 0 and end["not_started"] is False
+

@@ -602,9 +602,9 @@ class ScriptRunner:
         self.context.close()  # the homing helper's thread and listeners end with the run
         if sup is not None:
             sup.event("script_stop", name=name, reason=result.message or result.status, status=result.status)
-        self._end_run(result)
         if progress is not None:
-            progress.finish(result.status)
+            progress.finish(result.status)  # an open repetition ends (not completed) before its run does
+        self._end_run(result)
         self.gate.set("open")
         self.paused = False
         self.result = result
