@@ -322,16 +322,43 @@ def find_exercise(ident: str, library: list[Exercise] | None = None) -> Exercise
 
 
 # ------------------------------------------------------------------------------------------- starting
-def start_exercise(runner: Any, manager: Any, exercise: Exercise, values: Mapping[str, Any]) -> Validation:
+def exercise_program(exercise: Exercise, source: str | None = None) -> Any:
+    """The exercise as a run's Program: its id, title, version (hash of its YAML + script as loaded) and the
+    hash of the script's text (Recover refuses to restart it when the file changed since)."""
+    from app.runs import Program, text_hash
+
+    source = exercise.script.read_text(encoding="utf-8") if source is None else source
+    yaml_path = exercise.script.parent / f"{exercise.ident}.yaml"
+    try:
+        yaml_text = yaml_path.read_text(encoding="utf-8")
+    except OSError:
+        yaml_text = ""
+    version = text_hash(yaml_text + "\n" + source)[:16]
+    return Program("exercise", exercise.ident, exercise.title, text_hash(source), version=version,
+                   path=str(exercise.script))
+
+
+def run_parameters(exercise: Exercise, params: Mapping[str, Any]) -> tuple[Any, ...]:
+    """The checked values with their labels and units, in the form's order (the record a report prints)."""
+    from app.runs import RunParameter
+
+    return tuple(RunParameter(p.name, p.label, params[p.name], p.unit) for p in exercise.parameters
+                 if p.name in params)
+
+
+def start_exercise(runner: Any, manager: Any, exercise: Exercise, values: Mapping[str, Any], *,
+                   source: str = "exercises_tab", restart_of: str | None = None) -> Validation:
     """Validate and, only when every value is accepted, record ``exercise_start`` and start the script on
-    ``runner`` with the values as ``exerciseParams``. Returns the validation (``ok`` False: nothing started).
-    Raises RuntimeError when a script already runs (nothing started either)."""
+    ``runner`` with the values as ``exerciseParams``, as a run (app/runs.py) of kind "exercise" with the
+    parameters' labels and units, started from ``source`` (``restart_of``: the run Recover restarts).
+    Returns the validation (``ok`` False: nothing started). Raises RuntimeError when a script already runs
+    (nothing started either)."""
     checked = validate(exercise, values)
     if not checked.ok:
         return checked
     if runner.running:
         raise RuntimeError("a script is running: stop it before starting an exercise")
-    source = exercise.script.read_text(encoding="utf-8")
+    text = exercise.script.read_text(encoding="utf-8")
     data = {"exercise": exercise.ident, "title": exercise.title, "script": exercise.script.name,
             "params": dict(checked.params)}
     record = getattr(manager, "record_event", None)
@@ -340,5 +367,20 @@ def start_exercise(runner: Any, manager: Any, exercise: Exercise, values: Mappin
         record("exercise_start", "", **data)  # the session's own record of what the clinician chose
     elif sup is not None:
         sup.event("exercise_start", **data)
-    runner.start(source, str(exercise.script), dict(checked.params))
+    if _takes_run(runner):
+        runner.start(text, str(exercise.script), dict(checked.params), program=exercise_program(exercise, text),
+                     parameters=run_parameters(exercise, checked.params), run_source=source,
+                     restart_of=restart_of)
+    else:  # a runner without run records (a test's stand-in)
+        runner.start(text, str(exercise.script), dict(checked.params))
     return checked
+
+
+def _takes_run(runner: Any) -> bool:
+    import inspect
+
+    try:
+        params = inspect.signature(runner.start).parameters
+    except (TypeError, ValueError):
+        return False
+    return "program" in params or any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values())

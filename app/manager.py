@@ -52,6 +52,7 @@ class LinarmppManager(QObject):
         from app.progress import ExerciseProgress
 
         self.progress = ExerciseProgress(self.supervisor.event)  # the running exercise's repetitions
+        self.runs = self._new_run_log()  # the exercise runs (app/runs.py); a new log for each session
         from app.fault_policy import FaultPolicy
 
         self.fault_policy = FaultPolicy(self)  # every STOP alarm -> safe state (window and headless alike)
@@ -194,6 +195,7 @@ class LinarmppManager(QObject):
         self.recorder = recorder
         self.patient_profile = profile
         self.operator = operator
+        self.runs = self._new_run_log()
         if profile is not None:
             self.supervisor.robot = effective_robot_limits(profile, self.config.safety.robot)
             self.supervisor.event("patient_limits_applied", patient=patient_id)
@@ -214,6 +216,7 @@ class LinarmppManager(QObject):
         recorder, self.recorder = self.recorder, None
         if recorder is None:
             return
+        self.runs.end_current("session_ended" if reason != "application closing" else "app_exit")  # recorded
         self.supervisor.bring_to_safe_state("session ended")
         recorder.stop(reason)
         self.supervisor.robot = self.config.safety.robot
@@ -225,6 +228,21 @@ class LinarmppManager(QObject):
         robot = self.driver("linarm")
         if robot is not None and robot.connected and hasattr(robot, "apply_limits"):
             robot.apply_limits(self.supervisor.robot)
+
+    def _new_run_log(self) -> Any:
+        """The runs go into the session record as they happen (record_event). Without the window's session, as
+        the supervisor's events: a recorder of its own (the headless runner's) hears those."""
+        from app.runs import RunLog
+
+        def record(kind: str, **data: Any) -> None:
+            if self.recorder is not None:
+                self.record_event(kind, **data)
+            else:
+                self.supervisor.event(kind, **data)
+
+        runs = RunLog(record)
+        self.progress.attach_runs(runs)
+        return runs
 
     def record_event(self, kind: str, who: str = "", **data: Any) -> None:
         """An event for the session record (script start/stop, parameter changes); logged without one."""
@@ -252,6 +270,7 @@ class LinarmppManager(QObject):
             return
         self._started = False
         t0 = time.monotonic()
+        self.runs.end_current("app_exit")
         self.supervisor.bring_to_safe_state("application closing")
         if self.recorder is not None:
             self.end_session("application closing")

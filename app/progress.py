@@ -31,11 +31,17 @@ class ProgressState:
     paused_s: float = 0.0  # time spent paused so far (not counted as elapsed)
     paused_since: float | None = None
     running: bool = False
+    run_id: str = ""  # the run (app/runs.py) these marks belong to
+    run_state: str = ""  # the run's state (app.runs.RUN_STATES), "" without a run
+    state_text: str = ""  # the run's state in words: "waiting for the grip", "stopped: emergency stop"
+    ended_monotonic: float | None = None  # when the run ended: the elapsed time stops there
 
     def elapsed_s(self, now: float | None = None) -> float:
         if self.started_monotonic is None:
             return 0.0
         now = time.monotonic() if now is None else now
+        if self.ended_monotonic is not None:
+            now = min(now, self.ended_monotonic)
         paused = self.paused_s + ((now - self.paused_since) if self.paused_since is not None else 0.0)
         return max(0.0, now - self.started_monotonic - paused)
 
@@ -43,7 +49,7 @@ class ProgressState:
         if not self.exercise and not self.repetition:
             return ""
         if self.repetition == 0:
-            return "starting"
+            return self.state_text or ("starting" if self.running else "")
         return f"repetition {self.repetition} of {self.total}" if self.total else f"repetition {self.repetition}"
 
 
@@ -56,6 +62,30 @@ class ExerciseProgress(QObject):
         self._clock = clock
         self._lock = threading.Lock()
         self._state = ProgressState()
+        self._runs: Any = None  # app.runs.RunLog: the session's runs (the manager attaches each new one)
+        self._unsubscribe: Callable[[], None] | None = None
+
+    def attach_runs(self, runs: Any) -> None:
+        """Follow ``runs`` (a RunLog): the marks carry the current run's id, the state shows the run's state."""
+        if self._unsubscribe is not None:
+            self._unsubscribe()
+        self._runs = runs
+        self._unsubscribe = runs.subscribe(self._run_changed) if runs is not None else None
+
+    def _run_changed(self, run: Any) -> None:
+        with self._lock:
+            state = self._state
+        if run.run_id != state.run_id:
+            return
+        ended = None if run.running else run.ended_mono
+        self._set(replace(state, run_state=run.state, state_text=run.state_text(),
+                          ended_monotonic=ended if ended is not None else state.ended_monotonic))
+
+    def _current_run_id(self, state: ProgressState) -> str:
+        if state.run_id and state.running:
+            return state.run_id
+        current = self._runs.current() if self._runs is not None else None
+        return current.run_id if current is not None else ""
 
     @property
     def state(self) -> ProgressState:
@@ -63,8 +93,12 @@ class ExerciseProgress(QObject):
             return self._state
 
     # ------------------------------------------------------------------ called by the script host
-    def begin(self, exercise: str, total: int | None = None) -> None:
-        self._set(ProgressState(exercise=exercise, total=_total(total), started_monotonic=self._clock(), running=True))
+    def begin(self, exercise: str, total: int | None = None, run_id: str = "") -> None:
+        run = self._runs.get(run_id) if (run_id and self._runs is not None) else None
+        started = run.started_mono if run is not None else self._clock()
+        self._set(ProgressState(exercise=exercise, total=_total(total), started_monotonic=started, running=True,
+                                run_id=run_id, run_state=run.state if run is not None else "",
+                                state_text=run.state_text() if run is not None else ""))
 
     def finish(self, status: str = "finished") -> None:
         with self._lock:
@@ -72,8 +106,21 @@ class ExerciseProgress(QObject):
         if not state.running:
             return
         if state.in_repetition:
-            self._event("repetition_end", index=state.repetition, ok=False, status=status)
-        self._set(replace(state, running=False, in_repetition=False, paused_since=None))
+            self._event("repetition_end", index=state.repetition, ok=False, status=status,
+                        **self._run_field(state))
+            if state.run_id and self._runs is not None:
+                self._runs.repetition_ended(state.run_id, state.repetition, False)
+        now = self._clock()
+        paused_s = state.paused_s + ((now - state.paused_since) if state.paused_since is not None else 0.0)
+        run = self._runs.get(state.run_id) if (state.run_id and self._runs is not None) else None
+        text = run.state_text() if run is not None and not run.running else (state.state_text or status)
+        ended = run.ended_mono if run is not None and run.ended_mono is not None else now
+        # The exercise's last message ("moving to 0.30 m") is not true after a stop: only a finished run keeps it.
+        ended_run = run is not None and not run.running
+        last_text = state.text if ((run.end_reason if ended_run else status) == "finished") else ""
+        self._set(replace(state, running=False, in_repetition=False, paused_since=None, paused_s=paused_s,
+                          ended_monotonic=ended, state_text=text, text=last_text,
+                          run_state=run.state if run is not None else state.run_state))
 
     def pause(self) -> None:
         with self._lock:
@@ -97,7 +144,10 @@ class ExerciseProgress(QObject):
         with self._lock:
             state = self._state
         total = _total(total) if total is not None else state.total
-        self._event("repetition_start", index=index, total=total)
+        run_id = self._current_run_id(state)
+        self._event("repetition_start", index=index, total=total, **({"run_id": run_id} if run_id else {}))
+        if run_id and self._runs is not None:
+            self._runs.repetition_started(run_id, index)
         started = state.started_monotonic if state.started_monotonic is not None else self._clock()
         self._set(replace(state, repetition=index, total=total, in_repetition=True, started_monotonic=started,
                           running=True))
@@ -106,7 +156,10 @@ class ExerciseProgress(QObject):
         with self._lock:
             state = self._state
         index = state.repetition if index is None else int(index)
-        self._event("repetition_end", index=index, ok=bool(ok))
+        run_id = self._current_run_id(state)
+        self._event("repetition_end", index=index, ok=bool(ok), **({"run_id": run_id} if run_id else {}))
+        if run_id and self._runs is not None:
+            self._runs.repetition_ended(run_id, index, bool(ok))
         self._set(replace(state, in_repetition=False))
 
     def prompt(self, index: int | None = None, cue: str = "squeeze", threshold_n: float | None = None) -> None:
@@ -118,7 +171,24 @@ class ExerciseProgress(QObject):
         data: dict[str, Any] = {"index": index, "cue": str(cue)[:40]}
         if threshold_n is not None:
             data["threshold_n"] = float(threshold_n)
+        run_id = self._current_run_id(state)
+        if run_id:
+            data["run_id"] = run_id  # the run it belongs to (app/runs.py: prompt events carry run_id)
         self._event("prompt", **data)
+
+    def set_run_state(self, state: str, detail: str = "") -> None:
+        """The program says what its run does now (linarmppManager.setRunState): "waiting_for_grip", "moving",
+        "resting" or "running". The runner owns the others (homing, paused, stopped, finished)."""
+        from app.runs import PROGRAM_STATES
+
+        state = str(state)
+        if state not in PROGRAM_STATES:
+            raise ValueError(f"a run state is one of {', '.join(PROGRAM_STATES)}, got {state!r}")
+        with self._lock:
+            current = self._state
+        run_id = self._current_run_id(current)
+        if run_id and self._runs is not None:
+            self._runs.set_state(run_id, state, str(detail)[:120])
 
     def report(self, text: str) -> None:
         text = str(text)[:200]
@@ -128,6 +198,10 @@ class ExerciseProgress(QObject):
         self._set(replace(state, text=text))
 
     # ------------------------------------------------------------------ internals
+    @staticmethod
+    def _run_field(state: ProgressState) -> dict[str, Any]:
+        return {"run_id": state.run_id} if state.run_id else {}
+
     def _event(self, kind: str, **data: Any) -> None:
         if self._record is not None:
             self._record(kind, **data)

@@ -32,9 +32,19 @@ from typing import Any, Literal
 
 ProgramKind = Literal["exercise", "script_file", "console"]
 RunSource = Literal["exercises_tab", "script_tab", "console", "headless", "recover", "plan"]
-RunState = Literal["starting", "homing", "waiting_for_grip", "moving", "resting", "paused", "stopped", "finished"]
+RunState = Literal["starting", "homing", "waiting_for_grip", "moving", "resting", "paused", "stopped", "finished",
+                   "running"]
+# "running": the program's own code runs and it has not said what it does (a script without setRunState).
 RUN_STATES: tuple[str, ...] = ("starting", "homing", "waiting_for_grip", "moving", "resting", "paused",
-                               "stopped", "finished")
+                               "stopped", "finished", "running")
+# What the progress area says for each state (the end's cause is added for "stopped").
+STATE_TEXT: dict[str, str] = {
+    "starting": "starting", "homing": "homing the robot", "waiting_for_grip": "waiting for the grip",
+    "moving": "moving", "resting": "resting", "paused": "paused", "stopped": "stopped", "finished": "finished",
+    "running": "running",
+}
+# The states a program may announce itself (linarmppManager.setRunState); the others belong to the runner.
+PROGRAM_STATES: tuple[str, ...] = ("waiting_for_grip", "moving", "resting", "running")
 # Why a run ended. "refused": refused before its first movement (a limit, a conflict) — never "completed".
 EndReason = Literal["finished", "stopped_by_operator", "emergency_stop", "safety_stop", "script_error",
                     "refused", "session_ended", "app_exit", "crashed"]
@@ -53,6 +63,10 @@ END_REASON_TEXT: dict[str, str] = {
 }
 
 RUN_START, RUN_STATE, RUN_END, PROMPT = "run_start", "run_state", "run_end", "prompt"
+# Ends after which Recover offers to start the run again (a finished run needs nothing; a refused one would
+# be refused again until its cause is fixed).
+INTERRUPTED_REASONS: tuple[str, ...] = ("stopped_by_operator", "emergency_stop", "safety_stop", "script_error",
+                                        "session_ended", "app_exit", "crashed")
 
 
 def text_hash(text: str) -> str:
@@ -162,7 +176,21 @@ class ExerciseRun:
         if self.end_reason is None:
             return "running"
         text = END_REASON_TEXT.get(self.end_reason, self.end_reason)
+        if self.end_detail.lower().startswith(text.lower()):  # "emergency stop pressed (keyboard)": said once
+            return self.end_detail
         return f"{text}: {self.end_detail}" if self.end_detail else text
+
+    def state_text(self) -> str:
+        """The run's state in words: "waiting for the grip", "stopped: emergency stop", "finished"."""
+        if not self.running:
+            if self.end_reason == "finished":
+                return "finished"
+            return f"stopped: {END_REASON_TEXT.get(self.end_reason or '', self.end_reason or '')}"
+        text = STATE_TEXT.get(self.state, self.state)
+        return f"{text} ({self.state_detail})" if self.state_detail else text
+
+    def parameters_text(self) -> str:
+        return ", ".join(p.text() for p in self.parameters)
 
 
 Listener = Callable[[ExerciseRun], None]
@@ -297,6 +325,19 @@ class RunLog:
     def _notify(self, run: ExerciseRun) -> None:
         for fn in list(self._listeners):
             fn(run)
+
+
+def restart_candidate(runs: Sequence[ExerciseRun]) -> ExerciseRun | None:
+    """The run Recover offers to start again: the running one (Recover stops it first), else the last run if a
+    STOP, an error or the operator interrupted it. Console entries that finished (a value looked at after the
+    STOP) do not hide the interrupted run before them."""
+    for run in reversed(runs):
+        if run.running:
+            return run
+        if run.program.kind == "console" and run.end_reason == "finished":
+            continue
+        return run if run.end_reason in INTERRUPTED_REASONS else None
+    return None
 
 
 def runs_from_events(events: Iterable[Mapping[str, Any]], t_end: float | None = None) -> list[ExerciseRun]:

@@ -623,6 +623,11 @@ class LinarmppManager:
         reaction time is measured from it (docs/metrics.md)."""
         self._ctx.manager.progress.prompt(index, cue, threshold)
 
+    def setRunState(self, state: str, detail: str = "") -> None:
+        """Say what the run does now, for the progress area and the record: "waiting_for_grip", "moving",
+        "resting" or "running" (homing, paused, stopped and finished are set by the application)."""
+        self._ctx.manager.progress.set_run_state(state, detail)
+
 
 # ---------------------------------------------------------------------------------------------- namespace
 API_NAMES = ("linarm", "physiologicalSensors", "fes", "patientModel", "VRUnity", "linarmppManager")

@@ -131,7 +131,7 @@ ALLOWED_CALLS: dict[str, frozenset[str]] = {
     "fes": frozenset({"loadFile", "writeFile", "start", "stop", "setCurrentScaleFactor", "setPWScaleFactor",
                       "setPhase", "getConfigData"}),
     "linarmppManager": frozenset({"emergencyStop", "startRepetition", "endRepetition", "reportProgress",
-                                  "prompt"}),
+                                  "prompt", "setRunState"}),
 }
 ALLOWED_ATTRIBUTES: dict[str, frozenset[str]] = {"fes": frozenset({"profile", "stimulating"})}
 _ERROR_NAMES: tuple[tuple[type[BaseException], str], ...] = (

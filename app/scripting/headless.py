@@ -103,7 +103,7 @@ def run_headless(config: AppConfig, script_path: str, duration_s: float | None =
                 recorder.add_event_tap(lsl.marker)
         alarms_before = {a.ident for a in manager.supervisor.alarms()}
         runner = ScriptRunner(manager, output or _print_sink, home_first=home_first)
-        runner.start(source, str(path.resolve()))
+        runner.start(source, str(path.resolve()), run_source="headless")  # a run of the session record
         safety_stop = ""
         try:
             while not runner.wait(0.02):

@@ -921,6 +921,10 @@ class LinarmppManager:
         reaction time is measured from it (docs/metrics.md)."""
         self._k.call("linarmppManager", "prompt", index, str(cue), threshold)
 
+    def setRunState(self, state: str, detail: str = "") -> None:
+        """Say what the run does now: "waiting_for_grip", "moving", "resting" or "running"."""
+        self._k.call("linarmppManager", "setRunState", str(state), str(detail))
+
 
 def make_wait_condition(kernel: Kernel, namespace: Mapping[str, Any]) -> Callable[..., bool]:
     """``waitCondition(condition, timeout=None)`` or the seed's ``waitCondition("expr", locals(), timeout)``:

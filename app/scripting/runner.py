@@ -48,6 +48,7 @@ HOME_TIMEOUT_S = 60.0
 POLITE_STOP_S = 0.05  # the kernel's own stop (every wait notices within 20 ms) before SIGTERM
 TERMINATE_S = 0.04  # SIGTERM before SIGKILL
 ANSWER_TIMEOUT_S = 0.5  # completion and namespace reads from the GUI thread
+DEFAULT_DELTA_TOLERANCE_M = 0.001  # pretension this close to the homed one: the default stiffness already
 # Script output passed on to the console, in characters: OUTPUT_RATE a second once OUTPUT_BURST is spent.
 # The console appends on the GUI thread; a script printing megabytes in a loop would otherwise keep it busy
 # (and its queue growing) for as long as it runs. What is over is dropped and counted, never queued.
@@ -137,6 +138,10 @@ class ScriptRunner:
         self.callbacks_dropped = 0
         self._output_budget = _OutputBudget()
         self.kernel_start_s: float | None = None  # Start → the kernel has the script (the last run)
+        self.run: Any = None  # the run (app.runs.ExerciseRun) of the last Start, as it was opened
+        self.stop_cause = ""  # why the run stopped (app.runs.END_REASONS): emergency_stop, safety_stop, …
+        self._console_run: Any = None  # the console entry's run while one runs (no script running)
+        self._run_log: Any = None  # the run log the last run was opened in
         self.gate = Gate()
         add_hook = getattr(manager, "add_shutdown_hook", None)
         if callable(add_hook):  # no kernel outlives the devices it was driving
@@ -221,8 +226,9 @@ class ScriptRunner:
     def close(self) -> None:
         """Stop what runs and end the kernels (the window closes)."""
         if self.running:
-            self.stop("the application is closing", wait_s=0.5)
+            self.stop("the application is closing", wait_s=0.5, cause="app_exit")
             self.wait(2.0)
+        self._end_console_run(None, "app_exit")
         self._closed = True
         with self._kernel_lock:
             kernels = [k for k in (self._kernel, self._spare) if k is not None]
@@ -259,9 +265,15 @@ class ScriptRunner:
     def running(self) -> bool:
         return not self._done.is_set()
 
-    def start(self, source: str, filename: str = "<script>", params: dict[str, Any] | None = None) -> None:
+    def start(self, source: str, filename: str = "<script>", params: dict[str, Any] | None = None, *,
+              program: Any = None, parameters: Any = (), run_source: str = "script_tab",
+              restart_of: str | None = None) -> Any:
         """Run ``source`` (the script's text) in a fresh kernel; ``filename`` names it in tracebacks.
-        ``params`` (plain data: an exercise form's values) is the script's global ``exerciseParams``."""
+        ``params`` (plain data: an exercise form's values) is the script's global ``exerciseParams``.
+
+        Opens the run (app/runs.py) in the manager's run log: ``program`` (a Program; by default the script file
+        with its exact text), ``parameters`` (RunParameters), ``run_source`` (who started it) and ``restart_of``
+        (the run Recover restarts). Returns the run (None without a run log); the run ends with the script."""
         t0 = time.monotonic()
         with self._run_lock:
             if self.running:
@@ -297,6 +309,8 @@ class ScriptRunner:
             self._ensure_spare()
             bridge = self._bridge
             assert bridge is not None
+            self.stop_cause = ""
+            self.run = self._open_run(source, filename, params, program, parameters, run_source, restart_of)
             base = Path(filename).resolve().parent if not filename.startswith("<") else None
             bridge.context.base_dir = base
             self.context.base_dir = base
@@ -304,19 +318,67 @@ class ScriptRunner:
                                       args=(kernel, bridge, source, filename, params, t0),
                                       name="script-control", daemon=True)
             thread.start()
+            return self.run
+
+    def _open_run(self, source: str, filename: str, params: dict[str, Any], program: Any, parameters: Any,
+                  run_source: str, restart_of: str | None) -> Any:
+        runs = getattr(self.manager, "runs", None)
+        if runs is None:
+            return None
+        from app.runs import Program, RunParameter, text_hash
+
+        if program is None:
+            path = "" if filename.startswith("<") else filename
+            program = Program("script_file", path or filename, Path(filename).name if path else "the editor's script",
+                              text_hash(source), path=path, text=source)
+        if not parameters and params:
+            parameters = tuple(RunParameter(str(k), str(k), v) for k, v in params.items())
+        operator = str(getattr(self.manager, "operator", "") or "")
+        self._run_log = runs
+        return runs.start(program, tuple(parameters), run_source, operator, restart_of=restart_of)
+
+    def _end_run(self, result: ScriptResult) -> None:
+        """The run's end from what happened: the script's result and the cause of a stop."""
+        run = self.run
+        # a run may live in an earlier log (a session started meanwhile): end it where it began
+        runs = self._run_log if self._run_log is not None else getattr(self.manager, "runs", None)
+        if run is None or runs is None:
+            return
+        if result.status == "finished":
+            reason, detail = "finished", ""
+        elif result.status == "stopped":
+            reason, detail = self.stop_cause or "stopped_by_operator", result.message
+        elif result.status == "refused":
+            live = runs.get(run.run_id)
+            started = live is not None and bool(live.repetitions)
+            # refused before its first movement (a limit such as the patient's FES cap): "not started"
+            reason, detail = ("safety_stop" if started else "refused"), result.message
+        else:
+            where = f" (line {result.line})" if result.line else ""
+            reason, detail = "script_error", f"{result.message}{where}"
+        runs.end(run.run_id, reason, detail[:300])
+
+    def _set_run_state(self, state: str, detail: str = "") -> None:
+        run, runs = self.run, self._run_log
+        if run is not None and runs is not None:
+            runs.set_state(run.run_id, state, detail)
 
     def start_file(self, path: str | Path, params: dict[str, Any] | None = None) -> None:
         path = Path(path)
         self.start(path.read_text(encoding="utf-8"), str(path), params)
 
-    def request_stop(self, reason: str = "stopped by the operator") -> None:
+    def request_stop(self, reason: str = "stopped by the operator", cause: str = "stopped_by_operator") -> None:
         """Stop the script (and prompt entries); returns at once, never blocks (the supervisor's "script"
-        stop action). FES and robot go to the safe state at once; the kernel ends within 200 ms."""
+        stop action). FES and robot go to the safe state at once; the kernel ends within 200 ms.
+        ``cause`` is the run's end reason (app.runs.END_REASONS); the first stop's reason and cause are kept."""
         running = self.running
         if not running and not any(p.is_alive() for p in list(self._prompts.values())):
             return
         if not self.stop_reason and running:
             self.stop_reason = reason
+            self.stop_cause = cause
+        if not running:
+            self._end_console_run(None, cause, reason[:300])
         self.context.stop_event.set()
         kernel = self._kernel
         if running:
@@ -333,10 +395,11 @@ class ScriptRunner:
                     thread.start()
                     self._safe_thread = thread
 
-    def stop(self, reason: str = "stopped by the operator", wait_s: float = 1.0) -> bool:
+    def stop(self, reason: str = "stopped by the operator", wait_s: float = 1.0,
+             cause: str = "stopped_by_operator") -> bool:
         """Stop and wait up to ``wait_s`` for user code to end; True when it has. Then, within what is left
         of ``wait_s``, wait for the run to finish its safe state too, so that a Start right after works."""
-        self.request_stop(reason)
+        self.request_stop(reason, cause)
         deadline = time.monotonic() + wait_s
         if self.running and not self._user_ended.wait(wait_s):
             return False
@@ -361,6 +424,9 @@ class ScriptRunner:
         if kernel is not None:
             kernel.send({"op": "pause"})
         self._stop_fes("script paused")
+        run = self._run_log.get(self.run.run_id) if (self.run is not None and self._run_log is not None) else None
+        self._state_before_pause = (run.state, run.state_detail) if run is not None else ("running", "")
+        self._set_run_state("paused")
         progress = getattr(self.manager, "progress", None)
         if progress is not None:
             progress.pause()
@@ -375,6 +441,7 @@ class ScriptRunner:
         kernel = self._kernel
         if kernel is not None:
             kernel.send({"op": "resume"})
+        self._set_run_state(*getattr(self, "_state_before_pause", ("running", "")))
         progress = getattr(self.manager, "progress", None)
         if progress is not None:
             progress.resume()
@@ -399,9 +466,32 @@ class ScriptRunner:
         rid = next(self._ids)
         self._prompts = {k: p for k, p in self._prompts.items() if p.is_alive()}
         self._prompts[rid] = run
+        self._open_console_run(rid, source)
         if not kernel.send({"op": "exec", "id": rid, "source": source}):
             run._done.set()
+            self._end_console_run(rid, "script_error", "the script kernel did not take the entry")
         return run
+
+    def _open_console_run(self, rid: int, source: str) -> None:
+        """Code typed at the prompt while no script runs is a run of its own (kind "console"): a STOP during it
+        is recorded against it, and Recover says it cannot be restarted. During a script it belongs to the
+        script's run."""
+        runs = getattr(self.manager, "runs", None)
+        if runs is None or self.running or self._console_run is not None:
+            return
+        from app.runs import Program, text_hash
+
+        self._run_log = runs
+        program = Program("console", "<console>", "Console code", text_hash(source), text=source)
+        self._console_run = runs.start(program, (), "console", str(getattr(self.manager, "operator", "") or ""))
+        self._console_rid = rid
+
+    def _end_console_run(self, rid: int | None, reason: str, detail: str = "") -> None:
+        run, runs = self._console_run, self._run_log
+        if run is None or runs is None or (rid is not None and rid != getattr(self, "_console_rid", None)):
+            return
+        self._console_run = None
+        runs.end(run.run_id, reason, detail)
 
     def completions(self, text: str) -> list[str]:
         """Names completing ``text`` (``linarm.mo`` → ``linarm.moveCentreTo``, …) in the kernel's live
@@ -460,6 +550,8 @@ class ScriptRunner:
             run = self._prompts.get(msg.get("id"))  # type: ignore[arg-type]
             if run is not None:
                 run._done.set()
+            rid = msg.get("id")
+            self._end_console_run(rid if isinstance(rid, int) else None, "finished")
             return None
         elif op == "answer":
             answer = self._answers.get(msg.get("id"))  # type: ignore[arg-type]
@@ -489,6 +581,8 @@ class ScriptRunner:
     def _on_kernel_exit(self, kernel: KernelProcess) -> None:
         for run in list(self._prompts.values()):
             run._done.set()
+        if kernel is self._kernel:
+            self._end_console_run(None, "script_error", f"the script's process ended: {kernel.cause()}")
         for answer in list(self._answers.values()):
             answer.event.set()
         if kernel is self._kernel:
@@ -506,12 +600,17 @@ class ScriptRunner:
         if sup is not None:
             sup.event("script_start", name=name, text=source, kernel_pid=kernel.pid)
         progress = getattr(self.manager, "progress", None)
+        run = self.run
         if progress is not None:
-            progress.begin(name)
+            if run is not None:
+                progress.begin(run.title, run_id=run.run_id)
+            else:
+                progress.begin(name)
         result: ScriptResult | None = None
         try:
-            if self.home_first:
+            if self.home_first:  # "prepare the robot": homed, and the controller's default settings
                 self._home_if_needed()
+                self._apply_run_defaults()
         except ScriptStopped:
             result = ScriptResult("stopped", self.stop_reason or "stopped", filename)
         except BaseException as exc:
@@ -524,6 +623,7 @@ class ScriptRunner:
             result = ScriptResult("stopped", self.stop_reason or "stopped", filename)
         if result is None:
             self.body_started_at = time.monotonic()
+            self._set_run_state("running")  # until the program says what it does (setRunState)
             kernel.send({"op": "run", "source": source, "filename": filename, "params": params})
             self.kernel_start_s = time.monotonic() - t_start
             result = self._supervise(kernel, filename)
@@ -546,7 +646,8 @@ class ScriptRunner:
         if sup is not None:
             sup.event("script_stop", name=name, reason=result.message or result.status, status=result.status)
         if progress is not None:
-            progress.finish(result.status)
+            progress.finish(result.status)  # an open repetition ends (not completed) before its run does
+        self._end_run(result)
         self.gate.set("open")
         self.paused = False
         self.result = result
@@ -658,6 +759,7 @@ class ScriptRunner:
                          timeout_s=3.0)
         if reply.get("initialized"):
             return
+        self._set_run_state("homing")
         self.output("info", "The LINarm is not homed: homing it before the script starts…\n")
         log.info("script runner: homing the LINarm before %s", self.filename)
         ctx.call("linarm.setCtrlState(HOME)", linarm.command, "setCtrlState", int(ControlState.HOME_CTRL_STATE),
@@ -670,6 +772,51 @@ class ScriptRunner:
         if not ctx.wait_until(homed, self.home_timeout_s):
             raise RuntimeError(f"the LINarm did not finish homing within {self.home_timeout_s:.0f} s")
         self.output("info", "LINarm homed.\n")
+
+    def _apply_run_defaults(self) -> None:
+        """Each run starts from the controller's own settings, not from what the previous run left (issue #26:
+        a stiffness set by one exercise carried into the next): admittance Ka and assistance Kt back to their
+        defaults, and the springs' pretension back to the homed one (a slow move of the carriages only: the
+        centre holds). Done here, by the runner, so that every program — library exercise, a clinic's own
+        script, console code run as a script — gets it without having to reset what others may have set; an
+        exercise then sets what it needs itself. Skipped when the robot is not connected or not homed, and with
+        ``home_first`` off (the operator prepares the robot himself: the Script tab's "Home the robot first")."""
+        linarm = self.manager.driver("linarm") if self.manager is not None else None
+        if linarm is None or not linarm.connected:
+            return
+        state = linarm.latest("linarm.state")
+        if state is None or not state.initialized:
+            return
+        from app.devices.linarm_constants import K
+
+        ctx, src = self.context, "script runner"
+        ctx.call("linarm.setAdmittanceParameter", linarm.command, "setAdmittanceParameter", K["ADMITTANCE_KA"],
+                 source=src, timeout_s=3.0)
+        ctx.call("linarm.setAssistanceParameter", linarm.command, "setAssistanceParameter", K["ASSISTANCE_KT"],
+                 source=src, timeout_s=3.0)
+        vsa = linarm.latest("linarm.vsa")
+        home_delta = float(K["HOME_DELTA"])
+        if vsa is None or abs(float(vsa.delta) - home_delta) <= DEFAULT_DELTA_TOLERANCE_M:
+            return
+        self._set_run_state("starting", "the robot's default stiffness")
+        self.output("info", f"Robot stiffness back to its default (pretension {home_delta * 1000:.0f} mm)…\n")
+        ctx.call("linarm.setCtrlState(IDLE)", linarm.command, "setCtrlState", int(ControlState.IDLE_CTRL_STATE),
+                 source=src, timeout_s=3.0)
+        ctx.call("linarm.setCtrlMode", linarm.command, "setCtrlMode", int(ControlMode.POS_REF_BY_TARGET_POS),
+                 source=src, timeout_s=3.0)
+        ctx.call("linarm.setCtrlState(ON)", linarm.command, "setCtrlState", int(ControlState.ON_CTRL_STATE),
+                 source=src, timeout_s=3.0)
+        ctx.call("linarm.moveDeltaTo", linarm.command, "moveDeltaTo", home_delta, 0.05, 0.2, 0.0, False,
+                 source=src, timeout_s=3.0)
+
+        def settled() -> bool:
+            v = linarm.latest("linarm.vsa")
+            return v is not None and abs(float(v.delta) - home_delta) <= DEFAULT_DELTA_TOLERANCE_M / 2
+
+        ctx.wait_until(settled, 5.0)
+        ctx.call("linarm.setCtrlState(IDLE)", linarm.command, "setCtrlState", int(ControlState.IDLE_CTRL_STATE),
+                 source=src, timeout_s=3.0)
+        self._set_run_state("starting")
 
     def _safe_state_now(self, reason: str) -> None:
         """On Stop: FES and robot to the safe state at once, before the kernel has even ended."""
@@ -736,8 +883,14 @@ class ScriptRunner:
 
         def stop_script(reason: str) -> None:
             runner = ref()
-            if runner is not None and runner.running:
-                runner.request_stop(reason)
+            if runner is None:
+                return
+            cause = _stop_cause(sup, reason)
+            console_run, runs = runner._console_run, runner._run_log
+            if console_run is not None and runs is not None:  # a console entry commanding the devices
+                runs.end(console_run.run_id, cause, reason[:300])
+            if runner.running:
+                runner.request_stop(reason, cause)
 
         register("script", stop_script)
 
@@ -757,6 +910,18 @@ class ScriptRunner:
                                 "slower than the data.\n")
         if self._output_budget.dropped:
             self.output("info", f"{self._output_budget.dropped} characters of the script's output were dropped.\n")
+
+
+def _stop_cause(sup: Any, reason: str) -> str:
+    """The supervisor's stop, as a run's end reason: the e-stop (latched before its actions run), the end of
+    the session, the application closing, or a safety stop (a fault: device lost, robot error, …)."""
+    if getattr(sup, "estop_latched", False):
+        return "emergency_stop"
+    if reason == "session ended":
+        return "session_ended"
+    if reason in ("application closing", "main window closed"):
+        return "app_exit"
+    return "safety_stop"
 
 
 def _kill_all(kernels: list[KernelProcess]) -> None:

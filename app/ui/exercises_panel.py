@@ -172,6 +172,12 @@ class ExercisesPanel(QWidget):
         font.setPointSizeF(font.pointSizeF() * 1.4)
         font.setBold(True)
         self.repetition_label.setFont(font)
+        # The run's state in words ("Trigger reaching — waiting for the grip", "… — stopped: emergency stop"),
+        # from the run itself (app/runs.py), whichever tab started it.
+        self.state_label = QLabel("")
+        self.state_label.setObjectName("runState")
+        self.state_label.setAccessibleName("Run state")
+        self.state_label.setWordWrap(True)
         self.elapsed_label = QLabel("")
         self.progress_bar = QProgressBar()
         self.progress_bar.setTextVisible(False)
@@ -184,6 +190,7 @@ class ExercisesPanel(QWidget):
         row.addWidget(self.repetition_label, 1)
         row.addWidget(self.elapsed_label)
         status.addLayout(row)
+        status.addWidget(self.state_label)
         status.addWidget(self.progress_bar)
         status.addWidget(self.progress_text)
 
@@ -233,7 +240,8 @@ class ExercisesPanel(QWidget):
         self._exercised_in_session = False
         self.load_plan()
         if folder is None and ended is not None and exercised:
-            QTimer.singleShot(0, self, lambda: self.show_summary(ended, None, None, f"Session {ended.name}"))
+            QTimer.singleShot(0, self, lambda: show_when_unblocked(
+                self, lambda: self.show_summary(ended, None, None, f"Session {ended.name}")))
 
     # ------------------------------------------------------------------ the runner (one per window)
     @property
@@ -333,8 +341,9 @@ class ExercisesPanel(QWidget):
         self.fields[name].set(value)
 
     # ------------------------------------------------------------------ start / pause / stop
-    def start(self) -> bool:
-        """Validate the form and start the exercise; False (with the reasons shown) when nothing started."""
+    def start(self, source: str = "exercises_tab", restart_of: str | None = None) -> bool:
+        """Validate the form and start the exercise; False (with the reasons shown) when nothing started.
+        ``source`` and ``restart_of`` go into the run's record (Recover: "recover" and the interrupted run)."""
         if self.exercise is None:
             return False
         checked = validate(self.exercise, self.values())
@@ -353,7 +362,8 @@ class ExercisesPanel(QWidget):
             return False
         started = time.monotonic()  # before exercise_start is recorded: the summary's window includes it
         try:
-            start_exercise(runner, self.manager, self.exercise, checked.params)
+            start_exercise(runner, self.manager, self.exercise, checked.params, source=source,
+                           restart_of=restart_of)
         except (RuntimeError, SyntaxError, OSError) as exc:
             self._say(f"Not started: {exc}", error=True)
             return False
@@ -366,6 +376,41 @@ class ExercisesPanel(QWidget):
                   " No session is being recorded: start a session to keep its data and metrics."))
         self._sync_buttons()
         return True
+
+    # ------------------------------------------------------------------ Recover
+    def restart_problem(self, run: Any) -> str:
+        """Why ``run`` (an exercise's run) cannot be started again exactly ("" when it can)."""
+        exercise = next((e for e in self.library if e.ident == run.program.ident), None)
+        if exercise is None:
+            return f"the exercise '{run.program.ident}' is no longer in the library"
+        changed = run.program.changed_on_disk()
+        if changed:
+            return changed
+        from app.exercises import exercise_program
+
+        try:
+            now = exercise_program(exercise)
+        except OSError as exc:
+            return f"{exercise.script.name} cannot be read ({exc.__class__.__name__})"
+        if run.program.version and now.version != run.program.version:
+            return f"the exercise {exercise.title} has changed on disk since the run started"
+        checked = validate(exercise, run.params_dict())
+        if not checked.ok:
+            return "its parameters are no longer accepted: " + checked.message(exercise)
+        return ""
+
+    def restart_run(self, run: Any) -> bool:
+        """Start ``run``'s exercise again with its parameters (source "recover", linked to ``run``): the form
+        shows what runs, and this tab follows it."""
+        if self.restart_problem(run):
+            return False
+        exercise = next(e for e in self.library if e.ident == run.program.ident)
+        self.exercise_list.blockSignals(True)
+        self.exercise_list.setCurrentRow(self.library.index(exercise))
+        self.exercise_list.blockSignals(False)
+        self._plan_step = None
+        self.show_exercise(exercise, run.params_dict())
+        return self.start(source="recover", restart_of=run.run_id)
 
     def toggle_pause(self) -> None:
         runner = self.runner
@@ -399,8 +444,17 @@ class ExercisesPanel(QWidget):
         else:
             self.progress_bar.setRange(0, 0 if state.running else 1)
         self.progress_text.setText(state.text)
+        self.state_label.setText(self.state_text(state))
         self._tick()
         self._sync_buttons()
+
+    @staticmethod
+    def state_text(state: ProgressState) -> str:
+        """"<title> — <the run's state>": what the progress area says about the run (its own words)."""
+        if not state.exercise:
+            return ""
+        text = state.state_text or ("running" if state.running else "")
+        return f"{state.exercise} — {text}" if text else state.exercise
 
     def _tick(self) -> None:
         progress = getattr(self.manager, "progress", None)
@@ -422,6 +476,11 @@ class ExercisesPanel(QWidget):
         exercise = getattr(self, "_started_exercise", None)
         name = exercise.title if exercise is not None else "The exercise"
         text = f"{name}: {status}" + (f" — {result.message}" if result is not None and result.message else "")
+        opened = getattr(self._runner, "run", None)
+        runs = getattr(self.manager, "runs", None)
+        run = runs.get(opened.run_id) if opened is not None and runs is not None else None
+        if run is not None and not run.running:  # the run's own end: "emergency stop: …", "refused …"
+            text = f"{name}: {run.end_text()}"
         self._say(text, error=status not in ("finished", "stopped"))
         self.progress_bar.setRange(0, 1)
         self.progress_bar.setValue(1 if status == "finished" else 0)
@@ -431,7 +490,9 @@ class ExercisesPanel(QWidget):
         recorder = getattr(self.manager, "recorder", None)
         if recorder is not None and getattr(recorder, "folder", None) is not None:
             folder, since, until = Path(recorder.folder), self._started_mono, time.monotonic()
-            QTimer.singleShot(SUMMARY_DELAY_MS, self, lambda: self.show_summary(folder, since, until, name))
+            # Never behind a modal dialog (F12 pressed in one): shown once no modal dialog blocks it.
+            QTimer.singleShot(SUMMARY_DELAY_MS, self, lambda: show_when_unblocked(
+                self, lambda: self.show_summary(folder, since, until, name)))
 
     def show_summary(self, folder: Path, since: float | None, until: float | None, title: str) -> QWidget | None:
         from app.ui.session_summary import SessionSummaryDialog
@@ -458,3 +519,28 @@ class ExercisesPanel(QWidget):
         self.pause_button.setEnabled(running)
         self.pause_button.setText("&Resume" if paused else "&Pause")
         self.stop_button.setEnabled(running)
+
+
+def show_when_unblocked(owner: QWidget, show: Any) -> None:
+    """Run ``show`` (it opens a window) now, or, while a modal dialog is open, once the last one has closed:
+    a window opened behind a modal dialog cannot be used, its Close does nothing (issue #26, item 7)."""
+    from PySide6.QtWidgets import QApplication
+
+    modal = QApplication.activeModalWidget()
+    if modal is None or not modal.isVisible():
+        show()
+        return
+
+    done = {"once": False}
+
+    def again(*_args: Any) -> None:
+        if done["once"]:  # a dialog opened again later must not show it a second time
+            return
+        done["once"] = True
+        QTimer.singleShot(0, owner, lambda: show_when_unblocked(owner, show))
+
+    finished = getattr(modal, "finished", None)
+    if finished is not None:
+        finished.connect(again)
+    else:  # not a QDialog: look again shortly
+        QTimer.singleShot(200, owner, again)

@@ -139,6 +139,23 @@ class DeviceStatus(QLabel):
             self.setAccessibleName(f"{self.name} {state}")
 
 
+def _script_restart_words(program: Any) -> str:
+    """What a Script-tab restart runs, in words: always the text that ran (kept in the record), and whether the
+    file has changed on disk since (then the file's new text is not what restarts)."""
+    from app.runs import text_hash
+
+    where = program.path or "the editor"
+    if program.path:
+        try:
+            changed = text_hash(Path(program.path).read_text(encoding="utf-8")) != program.text_sha256
+        except (OSError, UnicodeDecodeError):
+            changed = True
+        if changed:
+            return (f"the text that ran; {Path(program.path).name} has changed on disk since, and its new text is "
+                    "not what restarts")
+    return f"the text that ran ({where})"
+
+
 def recorder_folder(manager: LinarmppManager) -> Path | None:
     recorder = manager.recorder
     return None if recorder is None else recorder.folder
@@ -221,6 +238,8 @@ class MainWindow(QMainWindow):
         row.addWidget(self.session_button)
         bar.addWidget(holder)
         self.manager.session_changed.connect(lambda _folder: self._show_session())
+        # A session has started: its plan and exercises come next (one action fewer to the first exercise).
+        self.manager.session_changed.connect(lambda folder: self.show_tab("Exercises") if folder is not None else None)
         self._show_session()
 
     def _build_frames(self) -> None:
@@ -386,13 +405,17 @@ class MainWindow(QMainWindow):
         self._browser.show()
 
     def show_alarms(self) -> None:
+        self.show_tab("Alarms")
+
+    def show_tab(self, title: str) -> None:
+        """Bring the Commands frame's tab ``title`` to the front (the frame shown if it was closed)."""
         commands = self.frames.get("CommandsFrame")
         tabs = getattr(commands, "tabs", None)
-        if tabs is None:
+        if tabs is None or "CommandsFrame" not in self.docks:
             return
         self.docks["CommandsFrame"].show()
         for i in range(tabs.count()):
-            if tabs.tabText(i) == "Alarms":
+            if tabs.tabText(i) == title:
                 tabs.setCurrentIndex(i)
 
     def _script_console(self) -> QWidget | None:
@@ -402,20 +425,25 @@ class MainWindow(QMainWindow):
         return getattr(self._script_console(), "runner", None)
 
     def _interrupted_exercise(self) -> Restartable | None:
-        """The exercise a STOP interrupted (the script console's last run, or the one still running:
-        Recover stops it first), for the banner's Recover."""
-        console = self._script_console()
-        runner = getattr(console, "runner", None)
-        if runner is None:
+        """The run a STOP interrupted (the session's runs, app/runs.py: the one still running — Recover stops it
+        first — or the last one, stopped), for the banner's Recover. It is started again exactly: the same
+        exercise with the same parameters from the Exercises tab, the same script text from the Script tab.
+        Console code, or a program changed on disk since, is not restarted: the reason is given instead."""
+        from app.runs import restart_candidate
+
+        runs = getattr(self.manager, "runs", None)
+        run = restart_candidate(runs.runs()) if runs is not None else None
+        if run is None:
             return None
-        if runner.running:
-            name = getattr(getattr(console, "path", None), "name", None) or "the script"
-            return Restartable(name, console.start_script)
-        result = runner.result
-        if result is None or result.status == "finished":  # stopped, error or refused (e.g. mid-homing)
-            return None
-        name = Path(result.filename).name if result.filename else "the script"
-        return Restartable(name, console.start_script)
+        panels = getattr(self.frames.get("CommandsFrame"), "panels", {})
+        owner = panels.get("ExercisesPanel") if run.program.kind == "exercise" else panels.get("ScriptConsole")
+        if run.program.kind == "console" or owner is None:
+            why = run.program.changed_on_disk() if run.program.kind == "console" else "its tab is not available"
+            return Restartable(run.title, lambda: False, why_not=why, run_id=run.run_id)
+        why_not = owner.restart_problem(run)
+        details = run.parameters_text() if run.program.kind == "exercise" else _script_restart_words(run.program)
+        return Restartable(run.title, lambda: owner.restart_run(run), why_not=why_not, details=details,
+                           run_id=run.run_id)
 
     def _stop_script_for_recovery(self) -> bool:
         """Recover never resets the e-stop under a running script: stop it first (True if it ran)."""

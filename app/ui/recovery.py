@@ -41,10 +41,19 @@ ROBOT_REPLY_TIMEOUT_S = 3.0
 
 @dataclass(frozen=True)
 class Restartable:
-    """The exercise a STOP interrupted and how to start it again."""
+    """The run a STOP interrupted (app/runs.py) and how to start it again. ``why_not``: why it cannot be
+    started again exactly (console code, a file changed on disk since): the dialog says so and offers the
+    recovery without the restart. ``details``: what the restart runs (its parameters, in words)."""
 
     name: str
     start: Callable[[], bool]
+    why_not: str = ""
+    details: str = ""
+    run_id: str = ""
+
+    @property
+    def possible(self) -> bool:
+        return not self.why_not
 
 
 def robot_state(manager: LinarmppManager) -> Any:
@@ -68,6 +77,8 @@ def recovery_needed(manager: LinarmppManager) -> bool:
 def plan(manager: LinarmppManager, restart: Restartable | None, script_running: bool = False) -> list[str]:
     """What Recover will do, in words, in order (shown in the dialog before anything is done)."""
     sup = manager.supervisor
+    if restart is not None and not restart.possible:
+        restart = None
     steps: list[str] = ["stop the script still running"] if script_running else []
     open_ = sum(1 for a in sup.alarms() if not a.acknowledged)
     if open_:
@@ -94,6 +105,8 @@ class Recovery(QObject):
                  parent: QObject | None = None, stop_script: Callable[[], bool] | None = None) -> None:
         super().__init__(parent)
         self.manager = manager
+        if restart is not None and not restart.possible:
+            restart = None  # never started: the dialog said why
         # Stops a script still running across the stop (True when one was stopped): it must never
         # carry on commanding the robot once the e-stop is reset.
         self.stop_script = stop_script or (lambda: False)
@@ -198,6 +211,19 @@ class RecoverDialog(QDialog):
         steps = plan(manager, restart, script_running)
         self.steps_label = QLabel("Recover will:<ul>" + "".join(f"<li>{s}</li>" for s in steps) + "</ul>")
         lay.addWidget(self.steps_label)
+        # What the restart runs, or why the interrupted run cannot be started again (in plain words).
+        self.restart_note = QLabel("")
+        self.restart_note.setObjectName("restartNote")
+        self.restart_note.setWordWrap(True)
+        if restart is not None and restart.possible:
+            self.restart_note.setText(f"Restart: {restart.name}" + (f" — {restart.details}" if restart.details else ""))
+        elif restart is not None:
+            self.restart_note.setText(f"{restart.name} cannot be restarted: {restart.why_not}. "
+                                      "Recover brings the devices back without starting it; start it again "
+                                      "yourself if it should continue.")
+            self.restart_note.setStyleSheet("color: #8a5a00;")
+        self.restart_note.setVisible(bool(self.restart_note.text()))
+        lay.addWidget(self.restart_note)
         form = QFormLayout()
         self.operator = QLineEdit(operator)
         self.operator.setObjectName("recoverOperator")
@@ -209,11 +235,11 @@ class RecoverDialog(QDialog):
         lay.addWidget(self.error)
         buttons = QDialogButtonBox()
         self.restart_button: QPushButton | None = None
-        if restart is not None:
+        if restart is not None and restart.possible:
             self.restart_button = buttons.addButton(f"Recover and &restart {restart.name}",
                                                     QDialogButtonBox.ButtonRole.AcceptRole)
             self.restart_button.clicked.connect(lambda: self._choose("restart"))
-        self.recover_button = buttons.addButton("Recover &only" if restart else "&Recover",
+        self.recover_button = buttons.addButton("Recover &only" if self.restart_button else "&Recover",
                                                 QDialogButtonBox.ButtonRole.AcceptRole)
         self.recover_button.clicked.connect(lambda: self._choose("recover"))
         cancel = buttons.addButton(QDialogButtonBox.StandardButton.Cancel)

@@ -60,6 +60,10 @@ _TRACE_LINE = re.compile(r'File "([^"]+)", line (\d+)')
 _WORD_BEFORE_CURSOR = re.compile(r"[A-Za-z_][\w.]*$")
 
 
+_SOURCE_WORDS = {"exercises_tab": "Exercises tab", "script_tab": "Script tab", "recover": "Recover",
+                 "console": "console", "headless": "headless runner", "plan": "therapy plan"}
+
+
 def _mono_font() -> QFont:
     font = QFontDatabase.systemFont(QFontDatabase.SystemFont.FixedFont)
     font.setPointSize(max(font.pointSize(), 10))
@@ -306,6 +310,7 @@ class ScriptConsole(QWidget):
         self.path: Path | None = None
         self._was_running = False
         self._started_at = 0.0
+        self._run: Any = None  # the run this tab started (app.runs.ExerciseRun), for its status line
         self._continuation: list[str] = []
 
         self.open_button = QPushButton("Open…")
@@ -315,7 +320,8 @@ class ScriptConsole(QWidget):
         self.stop_button = QPushButton("■ Stop")
         self.home_first = QCheckBox("Home the robot first")
         self.home_first.setChecked(True)
-        self.home_first.setToolTip("Before the script starts, home the LINarm if the controller says it is not homed")
+        self.home_first.setToolTip("Before the script starts, home the LINarm if the controller says it is not homed, "
+                                   "and give it back its default stiffness, admittance and assistance")
         self.status = QLabel("No script running")
         self.file_label = QLabel("(unsaved script)")
         self.start_button.setToolTip("Run the script in the editor (in the script kernel, a process of its own)")
@@ -430,14 +436,45 @@ class ScriptConsole(QWidget):
         filename = str(self.path) if self.path is not None else "<editor>"
         self.runner.home_first = self.home_first.isChecked()
         try:
-            self.runner.start(self.editor.toPlainText(), filename)
+            self._run = self.runner.start(self.editor.toPlainText(), filename, run_source="script_tab")
         except SyntaxError as exc:
             self._append("stderr", f'  File "{filename}", line {exc.lineno}\nSyntaxError: {exc.msg}\n')
             if exc.lineno:
                 self.editor.set_error_line(exc.lineno)
             return False
+        except RuntimeError as exc:  # a script runs already (started from the Exercises tab)
+            self._append("stderr", f"Not started: {exc}\n")
+            return False
         name = self.path.name if self.path else "the script"
         self._append("info", f"── {time.strftime('%H:%M:%S')} starting {name} ──\n")
+        self._started_at = time.monotonic()
+        self._was_running = True
+        self._sync_buttons()
+        return True
+
+    def restart_problem(self, run: Any) -> str:
+        """Why ``run`` cannot be started again exactly from here ("" when it can): console code is not kept."""
+        if run.program.kind not in ("script_file",):
+            return run.program.changed_on_disk() or f"{run.title} is not a script of this tab"
+        return run.program.changed_on_disk()
+
+    def restart_run(self, run: Any) -> bool:
+        """Run ``run``'s program again, exactly the text that ran (even if the file or the editor changed since),
+        with its parameters; recorded as a restart ("recover") of ``run``."""
+        if self.runner.running or self.restart_problem(run):
+            return False
+        program = run.program
+        filename = program.path or "<editor>"
+        self.editor.set_error_line(None)
+        self.runner.home_first = self.home_first.isChecked()
+        try:
+            self._run = self.runner.start(program.text, filename, run.params_dict() or None, program=program,
+                                          parameters=run.parameters, run_source="recover",
+                                          restart_of=run.run_id)
+        except (SyntaxError, RuntimeError) as exc:
+            self._append("stderr", f"Not restarted: {exc}\n")
+            return False
+        self._append("info", f"── {time.strftime('%H:%M:%S')} restarting {program.title} (Recover) ──\n")
         self._started_at = time.monotonic()
         self._was_running = True
         self._sync_buttons()
@@ -473,12 +510,13 @@ class ScriptConsole(QWidget):
         self._drain()
         running = self.runner.running
         if running:
-            self.status.setText(f"Running {self.path.name if self.path else 'the script'} — "
-                                f"{time.monotonic() - self._started_at:.0f} s")
+            self.status.setText(self.running_text())
         elif self._was_running:
             self._was_running = False
             self._drain()
             self._show_result(self.runner.result)
+        elif self.status.text().startswith("Busy:"):  # another tab's run has ended: this tab ran nothing
+            self.status.setText("No script running")
         self._sync_buttons()
 
     def _drain(self) -> None:
@@ -489,13 +527,34 @@ class ScriptConsole(QWidget):
                 return
             self._append(stream, text)
 
+    def running_text(self) -> str:
+        """The run in progress, from the run itself: this tab's ("Running x.py — waiting for the grip — 12 s")
+        or another tab's (the Exercises tab shares the runner: this tab then runs nothing of its own)."""
+        opened = getattr(self.runner, "run", None)
+        runs = getattr(self.manager, "runs", None)
+        run = runs.get(opened.run_id) if opened is not None and runs is not None else None
+        if run is None:
+            return f"Running {self.path.name if self.path else 'the script'} — " \
+                   f"{time.monotonic() - self._started_at:.0f} s"
+        mine = self._run is not None and self._run.run_id == run.run_id
+        if not mine:
+            return f"Busy: {run.title} runs (started from the {_SOURCE_WORDS.get(run.source, run.source)})"
+        state = "" if run.state in ("running", "starting") else f" — {run.state_text()}"
+        return f"Running {run.title}{state} — {run.elapsed_s():.0f} s"
+
     def _show_result(self, result: ScriptResult | None) -> None:
         if result is None:
             self.status.setText("Script ended")
             return
         texts = {"finished": "Finished", "stopped": "Stopped", "error": "Error", "refused": "Refused by safety"}
         where = f" at line {result.line}" if result.line and not result.ok else ""
-        self.status.setText(f"{texts.get(result.status, result.status)}{where} ({result.duration_s:.1f} s)")
+        runs = getattr(self.manager, "runs", None)
+        run = runs.get(self._run.run_id) if self._run is not None and runs is not None else None
+        if run is not None and not run.running and run.end_reason != "finished":
+            reason = run.end_text().split(":", 1)[0]  # "emergency stop", "script error", …
+            self.status.setText(f"{reason[:1].upper()}{reason[1:]}{where} ({result.duration_s:.1f} s)")
+        else:
+            self.status.setText(f"{texts.get(result.status, result.status)}{where} ({result.duration_s:.1f} s)")
         if result.line and not result.ok and self._is_editor_file(result.filename):
             self.editor.set_error_line(result.line)
 

@@ -1,0 +1,198 @@
+"""Issue #26, acceptance 1 (in the real window, simulated devices): Recover restarts exactly the run a STOP
+interrupted. An Exercises-tab run stopped by F12 comes back with the same program text and the same
+parameters in ≤ 2 actions after the STOP; a Script-tab run likewise restarts its file; a console run is not
+restarted, and the dialog says why. Each run is a record of the session (``manager.runs``).
+
+Actions counted (for the lead's note), STOP → running again: Recover… (1), "Recover and restart <title>" (2).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import pytest
+from PySide6.QtCore import Qt
+from PySide6.QtTest import QTest
+from PySide6.QtWidgets import QMessageBox
+
+from app.config import AppConfig, UdpEndpoint
+from app.manager import LinarmppManager
+from app.ui.main_window import MainWindow
+
+ROOT = Path(__file__).resolve().parent.parent
+FORM = {"movements": "6", "start_m": "0.15", "end_m": "0.30", "speed_m_s": "0.2", "acceleration_m_s2": "0.5",
+        "trigger_threshold_n": "0", "rest_s": "0.3"}
+
+
+@pytest.fixture
+def window(qtbot: Any, tmp_path: Path, monkeypatch: Any) -> Iterator[MainWindow]:
+    cfg = AppConfig()
+    cfg = replace(cfg, devices=replace(cfg.devices, patient_model=UdpEndpoint(mode="off"),
+                                       vr=UdpEndpoint(mode="off")))
+    manager = LinarmppManager(cfg)
+    manager.start()
+    win = MainWindow(manager)
+    qtbot.addWidget(win)
+    win.show()
+    try:
+        qtbot.waitUntil(manager.all_connected, timeout=20000)
+        manager.start_session("P-RUNS", "Dr Rossi", root=tmp_path)
+        yield win
+    finally:
+        console = win.frames["CommandsFrame"].panels.get("ScriptConsole")
+        if console is not None:
+            console.runner.stop("test over", wait_s=2.0)
+        monkeypatch.setattr(QMessageBox, "question", lambda *a, **k: QMessageBox.StandardButton.Yes)
+        for summary in [getattr(win.frames["CommandsFrame"].panels.get("ExercisesPanel"), "summary_dialog", None)]:
+            if summary is not None:
+                summary.close()
+        win.close()
+        manager.shutdown()
+
+
+def _f12(win: MainWindow) -> None:
+    QTest.keyClick(win, Qt.Key.Key_F12)
+
+
+def _recover_dialog(qtbot: Any, win: MainWindow) -> Any:
+    banner = win.alarm_banner
+    qtbot.waitUntil(lambda: not banner.recover_button.isHidden(), timeout=3000)
+    banner.recover_button.click()  # action 1
+    dialog = banner.dialog
+    assert dialog is not None and dialog.isVisible()
+    return dialog
+
+
+def test_an_exercises_tab_run_stopped_by_f12_restarts_the_same_exercise(qtbot: Any, window: MainWindow) -> None:
+    manager = window.manager
+    panel = window.frames["CommandsFrame"].panels["ExercisesPanel"]
+    console = window.frames["CommandsFrame"].panels["ScriptConsole"]
+    runner = panel.runner
+    panel.select("trigger_reaching")
+    for name, value in FORM.items():
+        panel.set_value(name, value)
+    assert panel.start()
+    robot = manager.driver("linarm")
+    qtbot.waitUntil(lambda: runner.running and robot.latest("linarm.state") is not None
+                    and robot.latest("linarm.state").controlState != 0, timeout=20000)
+    _f12(window)
+    qtbot.waitUntil(lambda: not runner.running, timeout=5000)
+    assert "Running" not in console.status.text(), "the Script tab ran nothing"
+
+    dialog = _recover_dialog(qtbot, window)
+    assert dialog.restart_button is not None
+    assert "Trigger reaching" in dialog.restart_button.text()
+    dialog.restart_button.click()  # action 2
+    qtbot.waitUntil(lambda: runner.running, timeout=10000)
+    assert Path(runner.filename).name == "trigger_reaching.py", "Recover restarted another program"
+    first, again = manager.runs.runs()[-2:]
+    assert first.end_reason == "emergency_stop" and first.source == "exercises_tab"
+    assert again.restart_of == first.run_id and again.source == "recover"
+    assert again.program == first.program and again.program.kind == "exercise"
+    assert again.params_dict() == first.params_dict()
+    assert again.params_dict()["movements"] == 6 and again.params_dict()["speed_m_s"] == 0.2
+    assert {p.name: p.unit for p in again.parameters}["speed_m_s"] == "m/s"
+    # the Exercises panel follows the restarted run (it does not stay on "Starting")
+    qtbot.waitUntil(lambda: "Trigger reaching" in panel.state_label.text(), timeout=5000)
+    runner.stop("test over", wait_s=2.0)
+    qtbot.waitUntil(lambda: "stopped" in panel.state_label.text().lower(), timeout=5000)
+    elapsed = panel.elapsed_label.text()
+    qtbot.wait(1300)
+    assert panel.elapsed_label.text() == elapsed, "the elapsed time stops with the run"
+
+
+def test_a_script_tab_run_stopped_by_f12_restarts_its_file(qtbot: Any, window: MainWindow) -> None:
+    manager = window.manager
+    console = window.frames["CommandsFrame"].panels["ScriptConsole"]
+    runner = console.runner
+    path = ROOT / "resources" / "scripts" / "trigger_exercise.py"
+    console.load_file(path)
+    assert console.start_script()
+    robot = manager.driver("linarm")
+    qtbot.waitUntil(lambda: runner.running and robot.latest("linarm.state") is not None
+                    and robot.latest("linarm.state").controlState != 0, timeout=20000)
+    _f12(window)
+    qtbot.waitUntil(lambda: not runner.running, timeout=5000)
+    dialog = _recover_dialog(qtbot, window)
+    assert dialog.restart_button is not None and "trigger_exercise.py" in dialog.restart_button.text()
+    dialog.restart_button.click()
+    qtbot.waitUntil(lambda: runner.running, timeout=10000)
+    first, again = manager.runs.runs()[-2:]
+    assert first.program.kind == "script_file" and first.source == "script_tab"
+    assert first.end_reason == "emergency_stop"
+    assert again.restart_of == first.run_id and again.program.text == path.read_text(encoding="utf-8")
+    assert again.program.path == str(path) and runner.filename == str(path)
+    qtbot.waitUntil(lambda: console.status.text().startswith("Running trigger_exercise.py"), timeout=3000)
+
+
+def test_a_console_run_is_not_restarted_and_the_dialog_says_why(qtbot: Any, window: MainWindow) -> None:
+    manager = window.manager
+    console = window.frames["CommandsFrame"].panels["ScriptConsole"]
+    console.run_prompt_line("wait(30)")
+    qtbot.waitUntil(lambda: any(r.program.kind == "console" and r.running for r in manager.runs.runs()),
+                    timeout=5000)
+    _f12(window)
+    run = next(r for r in manager.runs.runs() if r.program.kind == "console")
+    qtbot.waitUntil(lambda: not manager.runs.get(run.run_id).running, timeout=5000)
+    assert manager.runs.get(run.run_id).end_reason == "emergency_stop"
+    dialog = _recover_dialog(qtbot, window)
+    assert dialog.restart_button is None
+    assert "console" in dialog.restart_note.text() and "not" in dialog.restart_note.text()
+    assert dialog.recover_button.isVisible()
+    n = len(manager.runs.runs())
+    dialog.recover_button.click()
+    qtbot.waitUntil(lambda: not manager.supervisor.estop_latched, timeout=5000)
+    assert len(manager.runs.runs()) == n, "recovery without a restart starts nothing"
+
+
+def test_f12_in_a_dialog_opens_nothing_behind_it(qtbot: Any, window: MainWindow) -> None:
+    """Issue #26, item 7: the exercise's summary waits until the modal dialog in which F12 was pressed has
+    closed (a window opened behind a modal dialog cannot be used: its Close did nothing)."""
+    from PySide6.QtWidgets import QApplication, QDialog, QLabel, QVBoxLayout
+
+    from app.ui.exercises_panel import SUMMARY_DELAY_MS
+
+    panel = window.frames["CommandsFrame"].panels["ExercisesPanel"]
+    runner = panel.runner
+    panel.select("trigger_reaching")
+    for name, value in FORM.items():
+        panel.set_value(name, value)
+    assert panel.start()
+    qtbot.waitUntil(lambda: window.manager.runs.current() is not None
+                    and window.manager.runs.current().state in ("running", "homing"), timeout=20000)
+    dialog = QDialog(window)
+    QVBoxLayout(dialog).addWidget(QLabel("a dialog the operator is working in"))
+    dialog.open()  # window-modal, as the application's dialogs are
+    qtbot.waitExposed(dialog)
+    QTest.keyClick(dialog, Qt.Key.Key_F12)
+    qtbot.waitUntil(lambda: not runner.running, timeout=5000)
+    seen_behind: list[bool] = []
+
+    def look() -> bool:
+        summary = panel.summary_dialog
+        seen_behind.append(summary is not None and summary.isVisible() and dialog.isVisible())
+        return False
+
+    qtbot.wait(SUMMARY_DELAY_MS + 600)
+    look()
+    assert not any(seen_behind), "the summary opened behind the modal dialog"
+    dialog.reject()
+    qtbot.waitUntil(lambda: panel.summary_dialog is not None and panel.summary_dialog.isVisible(), timeout=5000)
+    assert QApplication.activeModalWidget() is None
+    panel.summary_dialog.close()  # its Close works: nothing blocks it
+    assert not panel.summary_dialog.isVisible()
+
+
+def test_a_new_session_brings_the_exercises_forward(qtbot: Any, window: MainWindow, tmp_path: Path) -> None:
+    """Launch → first exercise: Start session… (1), patient (2), operator (3), OK (4), Start (5) — the session's
+    start brings the Exercises tab to the front (it was a sixth action: finding the tab)."""
+    commands = window.frames["CommandsFrame"]
+    assert commands.tabs.tabText(commands.tabs.currentIndex()) == "Exercises"  # the fixture started a session
+    commands.tabs.setCurrentIndex(0)
+    window.manager.end_session()
+    assert commands.tabs.currentIndex() == 0  # the end of a session leaves the tabs alone
+    window.manager.start_session("P-RUNS-2", "Dr Rossi", root=tmp_path / "second")
+    assert commands.tabs.tabText(commands.tabs.currentIndex()) == "Exercises"
