@@ -76,10 +76,11 @@ def write_run_session(folder: Path, runs: list[RunSpec], *, start_iso: str = "20
             direction = -direction
             squeeze = (t >= start - r.reaction_s) & (t <= start + 0.6)
             grip[squeeze] = 30.0
-            events += [{"kind": "prompt", "t_mono": T0 + start - r.reaction_s - 0.2,
-                        "data": {"run_id": run_id, "index": k + 1, "cue": "squeeze"}},
-                       {"kind": "repetition_start", "t_mono": T0 + start - 0.1,
+            # As the exercises mark them: the repetition starts, then the "squeeze now" cue (its prompt).
+            events += [{"kind": "repetition_start", "t_mono": T0 + start - r.reaction_s - 0.3,
                         "data": {"run_id": run_id, "index": k + 1, "total": r.reps}},
+                       {"kind": "prompt", "t_mono": T0 + start - r.reaction_s - 0.2,
+                        "data": {"run_id": run_id, "index": k + 1, "cue": "squeeze"}},
                        {"kind": "repetition_end", "t_mono": T0 + start + duration + 0.2,
                         "data": {"run_id": run_id, "index": k + 1, "ok": (k + 1) not in r.failed}}]
             cursor += duration + gap
