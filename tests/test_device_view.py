@@ -95,3 +95,25 @@ def test_the_picture_is_repainted_only_when_something_moves_by_half_a_pixel(qtbo
     canvas.set_state(SceneState(0.1, 0.4, 0.252, None, False))  # connection lost: repainted
     canvas.set_state(SceneState(0.1, 0.4, 0.252, 0.3, False))  # a target appears: repainted
     assert len(repaints) == 4
+
+
+def test_during_an_exercise_the_target_is_where_the_robot_takes_the_handle(qtbot) -> None:
+    """Issue #30: the 3D view showed the VR game's target (0.1/0.4 m) during an exercise moving the handle
+    between 0.15 and 0.35 m. While a run is running, the target is the robot's last moveCentreTo."""
+    from app.runs import Program, RunLog, text_hash
+
+    manager, drivers = make_stub_manager()
+    manager.runs = RunLog()
+    view = DeviceView(manager)
+    qtbot.addWidget(view)
+    publish_scene(drivers)  # the VR game's target: 0.3 m
+    manager.devices["linarm"].driver.centre_target_m = 0.35
+    view.refresh()
+    assert view.state.target == 0.3  # no exercise running: the VR game's target
+    run = manager.runs.start(Program("exercise", "trigger_reaching", "Trigger reaching", text_hash("")), [],
+                             "exercises_tab", "op")
+    view.refresh()
+    assert view.state.target == 0.35 and "target 0.350 m" in view.caption.text()
+    manager.runs.end(run.run_id, "finished")
+    view.refresh()
+    assert view.state.target == 0.3

@@ -160,3 +160,21 @@ def test_replay_opens_on_measured_signals_and_closes_from_its_own_button(tmp_pat
     assert sorted(window.plots.selected) == sorted(chosen)
     window.close_button.click()
     assert not window.isVisible()
+
+
+def test_the_sessions_windows_close_from_their_own_buttons(session, qtbot) -> None:
+    """Issue #30: the Sessions browser and a session's details had no Close button."""
+    from app.ui.sessions_browser import SessionDetails, SessionsBrowser
+
+    browser = SessionsBrowser(session.folder.parent.parent)
+    qtbot.addWidget(browser)
+    browser.show()
+    browser.close_button.click()
+    assert not browser.isVisible()
+    details = SessionDetails(session.folder)
+    qtbot.addWidget(details)
+    details.show()
+    from PySide6.QtWidgets import QDialogButtonBox
+
+    details.findChild(QDialogButtonBox).button(QDialogButtonBox.StandardButton.Close).click()
+    assert not details.isVisible()

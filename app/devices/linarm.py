@@ -159,6 +159,7 @@ class LinarmDriver(DeviceDriver):
         self._seq_lock = threading.Lock()
         self._command_lock = threading.Lock()  # one command in flight (the controller's rx buffer is small)
         self._pending: dict[int, _Pending] = {}
+        self.centre_target_m: float | None = None  # the last accepted moveCentreTo target (m)
         self._identify_seq: int | None = None
         self._identified = threading.Event()
         self._last_heartbeat = 0.0
@@ -187,6 +188,8 @@ class LinarmDriver(DeviceDriver):
             raise TypeError(f"{name} takes {len(spec.args)} argument(s) ({names}), got {len(args)}")
         named = {a.name: v for a, v in zip(spec.args, args, strict=True)}
         self.supervisor.check_robot_command(name, named, source)
+        if name == "moveCentreTo":  # where the robot is taking the handle: the exercise's target (3D view)
+            self.centre_target_m = float(named["targetPos"])
         if not self.connected:
             raise TransportError("the LINarm is not connected")
         timeout = self.command_timeout_s if timeout_s is None else timeout_s

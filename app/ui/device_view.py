@@ -150,11 +150,22 @@ class DeviceView(RefreshWhenVisible, QWidget):
             if centre is not None and delta is not None:  # motors not streamed: place them from the VSA
                 m0 = centre - abs(delta) - 0.05 if m0 is None else m0
                 m1 = centre + abs(delta) + 0.05 if m1 is None else m1
-        target = self._api_target if self._api_target_set else _attr(self._latest("vr.main"), "targetPos")
         linarm = self.manager.devices.get("linarm")
+        target = self._api_target if self._api_target_set else self._exercise_target(linarm)
         connected = bool(linarm and linarm.driver.connected)
         return SceneState(m0, m1, handle, target, connected)
 
+
+    def _exercise_target(self, linarm: Any) -> float | None:
+        """The target to show: while an exercise runs, where the robot is taking the handle (its last
+        moveCentreTo); otherwise the VR game's target. The VR game's 0.1/0.4 m was shown during an exercise
+        moving between 0.15 and 0.35 m (issue #30)."""
+        runs = getattr(self.manager, "runs", None)
+        running = runs is not None and runs.current() is not None
+        robot_target = getattr(linarm.driver, "centre_target_m", None) if linarm is not None else None
+        if running and robot_target is not None:
+            return float(robot_target)
+        return _attr(self._latest("vr.main"), "targetPos")
 
     def refresh(self) -> None:
         state = self.read_state()

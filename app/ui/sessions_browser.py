@@ -15,11 +15,12 @@ from pathlib import Path
 from typing import Any
 
 from PySide6.QtCore import Qt, QTimer
-from PySide6.QtGui import QColor
+from PySide6.QtGui import QColor, QKeySequence, QShortcut
 from PySide6.QtWidgets import (
     QAbstractItemView,
     QComboBox,
     QDialog,
+    QDialogButtonBox,
     QFileDialog,
     QHBoxLayout,
     QHeaderView,
@@ -190,6 +191,9 @@ class SessionDetails(QDialog):
         layout.addWidget(self.events, 2)
         layout.addWidget(QLabel("Scripts run"))
         layout.addWidget(self.script_text, 1)
+        close = QDialogButtonBox(QDialogButtonBox.StandardButton.Close)
+        close.rejected.connect(self.reject)
+        layout.addWidget(close)
         self.resize(900, 600)
 
 
@@ -247,6 +251,11 @@ class SessionsBrowser(QWidget):
                   self.progress_button):
             buttons.addWidget(b)
         buttons.addWidget(self.status, 1)
+        # A window of its own needs its own way out (issue #30: only the title bar's cross closed it).
+        self.close_button = QPushButton("&Close")
+        self.close_button.clicked.connect(self.close)
+        buttons.addWidget(self.close_button)
+        QShortcut(QKeySequence(Qt.Key.Key_Escape), self, activated=self.close)
 
         layout = QVBoxLayout(self)
         layout.addLayout(top)
