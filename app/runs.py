@@ -299,8 +299,10 @@ class RunLog:
             run = replace(run, ended_mono=now, end_reason=reason, end_detail=detail, state=final_state)
             self._runs[run_id] = run
         completed = sum(1 for m in run.repetitions if m.ok)
+        # "Not started" only for a run refused before its first movement: a script that marks no repetitions
+        # (the seed's Fig. 18) still moved the patient; its movements are counted from the handle (metrics).
         self._emit(RUN_END, run_id=run_id, reason=reason, detail=detail, completed=completed,
-                   not_started=not run.repetitions)
+                   not_started=reason == "refused" and not run.repetitions)
         self._notify(run)
         return run
 

@@ -129,6 +129,7 @@ def test_a_clinicians_day(day: tuple[LinarmppManager, MainWindow], qtbot: Any, m
     qtbot.waitUntil(lambda: manager.runs.current() is not None
                     and any(m.end_mono is not None for m in manager.runs.current().repetitions), timeout=60000)
     first = manager.runs.current()
+    assert first.source == "exercises_tab" and first.operator == OPERATOR  # a click's `checked` was its source
     _shot(window, "03-exercise-running")
 
     # 4. F12 in the middle of it; Recover restarts exactly that run (two actions).

@@ -151,7 +151,8 @@ class ExercisesPanel(QWidget):
 
         self.start_button = QPushButton("▶ &Start exercise")
         self.start_button.setDefault(True)
-        self.start_button.clicked.connect(self.start)
+        # Not connected straight to start(): clicked(bool) would arrive as its `source` (recorded as False).
+        self.start_button.clicked.connect(lambda _checked=False: self.start())
         self.defaults_button = QPushButton("&Defaults")
         self.defaults_button.clicked.connect(self.reset_defaults)
         self.pause_button = QPushButton("&Pause")
