@@ -126,8 +126,8 @@ def test_a_clinicians_day(day: tuple[LinarmppManager, MainWindow], qtbot: Any, m
                                              reaction_delay=REACTION_DELAY_S)
     qtbot.mouseClick(panel.start_button, Qt.MouseButton.LeftButton)
     runner = panel.runner
-    qtbot.waitUntil(lambda: manager.runs.current() is not None
-                    and any(m.end_mono is not None for m in manager.runs.current().repetitions), timeout=60000)
+    _wait(qtbot, manager, window, lambda: manager.runs.current() is not None
+          and any(m.end_mono is not None for m in manager.runs.current().repetitions), 60000, "a first repetition")
     first = manager.runs.current()
     assert first.source == "exercises_tab" and first.operator == OPERATOR  # a click's `checked` was its source
     _shot(window, "03-exercise-running")
@@ -149,7 +149,8 @@ def test_a_clinicians_day(day: tuple[LinarmppManager, MainWindow], qtbot: Any, m
                     and manager.runs.current().restart_of == first.run_id, timeout=15000)
     again = manager.runs.current()
     assert again.program == first.program and again.params_dict() == first.params_dict()
-    qtbot.waitUntil(lambda: manager.runs.get(again.run_id).end_reason is not None, timeout=120000)
+    _wait(qtbot, manager, window, lambda: manager.runs.get(again.run_id).end_reason is not None, 120000,
+          "the restarted run's end")
     assert manager.runs.get(again.run_id).end_reason == "finished"
     # The exercise's summary (on screen): its reaction times, to be found again in the PDF.
     qtbot.waitUntil(lambda: panel.summary_dialog is not None and panel.summary_dialog.isVisible(), timeout=15000)
@@ -169,7 +170,8 @@ def test_a_clinicians_day(day: tuple[LinarmppManager, MainWindow], qtbot: Any, m
     qtbot.waitUntil(lambda: manager.runs.current() is not None
                     and manager.runs.current().program.kind == "script_file", timeout=15000)
     script_run = manager.runs.current()
-    qtbot.waitUntil(lambda: manager.runs.get(script_run.run_id).end_reason is not None, timeout=150000)
+    _wait(qtbot, manager, window, lambda: manager.runs.get(script_run.run_id).end_reason is not None, 150000,
+          "the script run's end")
     assert manager.runs.get(script_run.run_id).end_reason == "finished", console.runner.result
     _shot(window, "07-script-done")
     for w in QApplication.topLevelWidgets():  # a summary the script tab may have opened
@@ -201,6 +203,19 @@ def test_a_clinicians_day(day: tuple[LinarmppManager, MainWindow], qtbot: Any, m
         for pdf in (session_pdf, progress_pdf):
             subprocess.run(["pdftoppm", "-png", "-r", "70", str(pdf), str(Path(folder_out) / pdf.stem)], check=True)
     assert len(runs) == 3
+
+
+def _wait(qtbot: Any, manager: LinarmppManager, window: MainWindow, cond: Any, timeout_ms: int, what: str) -> None:
+    """qtbot.waitUntil, saying on a timeout where the day stood (runs, their states, the window's picture)."""
+    try:
+        qtbot.waitUntil(cond, timeout=timeout_ms)
+    except Exception as exc:
+        _shot(window, f"timeout-{what.replace(' ', '-')}")
+        runs = [(r.run_id, r.title, r.state, r.end_reason, len(r.repetitions)) for r in manager.runs.runs()] \
+            if manager.runs is not None else None
+        state = manager.driver("linarm").latest("linarm.state") if manager.driver("linarm") else None
+        raise AssertionError(f"timed out waiting for {what}: runs {runs}, robot {state}, "
+                             f"alarms {[a.text for a in manager.supervisor.alarms()]}") from exc
 
 
 def _column_texts(summary: Any, header: str) -> list[str]:

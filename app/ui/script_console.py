@@ -54,6 +54,7 @@ from PySide6.QtWidgets import (
 from app.config import RESOURCES
 from app.scripting.api import API_NAMES
 from app.scripting.runner import ScriptResult, ScriptRunner
+from app.ui.widgets import ElidedLabel
 
 EXAMPLES_DIR = RESOURCES / "scripts"
 _TRACE_LINE = re.compile(r'File "([^"]+)", line (\d+)')
@@ -71,6 +72,30 @@ def _mono_font() -> QFont:
 
 
 # ---------------------------------------------------------------------------------------------- highlighting
+
+class StatusLabel(ElidedLabel):
+    """The run's status beside the buttons: elided (whole in its tooltip) rather than widening the Commands
+    frame — "Running trigger_exercise.py — 34 s" pushed the Values frame from 660 to 545 px (issue #30).
+    ``setText``/``text`` keep a plain label's interface, on the whole text."""
+
+    def setText(self, text: str) -> None:  # type: ignore[override]
+        self.set_full_text(text)
+
+    def text(self) -> str:  # type: ignore[override]
+        return self.full_text()
+
+    def _elide(self) -> None:
+        width = self.contentsRect().width() - 2 * self.margin()
+        shown = self.fontMetrics().elidedText(self.full_text(), Qt.TextElideMode.ElideRight, max(width, 0))
+        if shown != QLabel.text(self):
+            QLabel.setText(self, shown)
+        tip = self.full_text() if shown != self.full_text() else ""
+        if tip != self.toolTip():
+            self.setToolTip(tip)
+
+    def is_elided(self) -> bool:
+        return QLabel.text(self) != self.full_text()
+
 class PythonHighlighter(QSyntaxHighlighter):
     """Keywords, builtins, the script API's objects, strings, numbers and comments."""
 
@@ -322,7 +347,7 @@ class ScriptConsole(QWidget):
         self.home_first.setChecked(True)
         self.home_first.setToolTip("Before the script starts, home the LINarm if the controller says it is not homed, "
                                    "and give it back its default stiffness, admittance and assistance")
-        self.status = QLabel("No script running")
+        self.status = StatusLabel("No script running")
         self.file_label = QLabel("(unsaved script)")
         self.start_button.setToolTip("Run the script in the editor (in the script kernel, a process of its own)")
         self.stop_button.setToolTip("Stop the script at once; the FES stops and the robot goes to its safe state")
