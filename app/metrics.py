@@ -683,17 +683,21 @@ def analyse(sig: SessionSignals, lo: float = -math.inf, hi: float = math.inf) ->
     else:
         first_prompt = prompts[0].t if prompts else None
         k = 0
-        prev_end = -math.inf
+        prev_start = -math.inf
         for a, b in movements:
             if first_prompt is not None and b < first_prompt + 0.05 and a < first_prompt:
                 positioning.append(_positioning_entry(sig, "to_start", a, b))
                 continue
             k += 1
-            prompt = _prompt_for(prompts, max(prev_end, lo), b)
+            # The last cue since the previous movement began: a script cues when the *commanded* centre has
+            # arrived (the seed's Fig. 18: within 5 mm), while the handle may still be settling, so the
+            # previous movement's end can fall after the cue (the clinician's day: every RT was "—").
+            # ... and the cue before this movement's onset, never the next one (given while this one settles).
+            prompt = _prompt_for(prompts, max(prev_start, lo), a + 0.05)
             m = repetition_metrics(sig, a, b, k, source="speed", prompt=prompt)
             m.completed = covered(m, None)
             reps.append(m)
-            prev_end = b
+            prev_start = a
     positioning.sort(key=lambda p: p["start_s"])
     return Analysis(reps, positioning)
 

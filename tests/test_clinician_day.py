@@ -96,6 +96,7 @@ def test_a_clinicians_day(day: tuple[LinarmppManager, MainWindow], qtbot: Any, m
     plan = patients.edit_plan()
     assert plan is not None
     plan.add_step("trigger_reaching")
+    qtbot.waitExposed(plan)
     for name, value in PLAN_PARAMS.items():
         plan.editors[name].setText(value)
     assert plan.error_label.text() == ""
@@ -198,6 +199,14 @@ def test_a_clinicians_day(day: tuple[LinarmppManager, MainWindow], qtbot: Any, m
     # Repetitions numbered within each run: the run headings each followed by a repetition 1.
     assert len(re.findall(r"(?m)^1 ", text)) >= 3, text
     assert overlaps(session_pdf) == [] and overlaps(progress_pdf) == []
+    # The Script-tab run cues the patient once the robot has arrived; the simulated patient squeezes
+    # REACTION_DELAY_S after arriving: the reaction times measured from the record agree (first movement: no
+    # squeeze, the script's 10 s timeout moved it; that repetition has none).
+    from app.metrics import session_metrics
+
+    by_run = {r["run_id"]: r for r in session_metrics(folder)["runs"]}
+    rts = [r["reaction_time_s"] for r in by_run[script_run.run_id]["repetitions"] if r.get("reaction_time_s")]
+    assert len(rts) >= 6 and all(abs(rt - REACTION_DELAY_S) < 0.1 for rt in rts), rts
     folder_out = os.environ.get("LINARMPP_DAY_SHOTS")
     if folder_out:
         for pdf in (session_pdf, progress_pdf):
