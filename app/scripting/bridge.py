@@ -280,6 +280,9 @@ class KernelProcess:
         self.handler: Callable[[dict[str, Any]], Callable[[], None] | None] | None = None
         self.on_output: Callable[[str, str], None] | None = None
         self.on_exit: Callable[[KernelProcess], None] | None = None
+        # called once (reader thread) when the kernel's link closes: the kernel has ended, even if its
+        # warden has not yet reported how (it ends what the script started first)
+        self.on_link_closed: Callable[[KernelProcess], None] | None = None
         self.used = False
         self.ready = threading.Event()
         self.ended = threading.Event()
@@ -550,6 +553,12 @@ class KernelProcess:
                 if not data:
                     self._sel.unregister(self.sock)
                     self._sock_open = False
+                    closed = self.on_link_closed
+                    if closed is not None:
+                        try:
+                            closed(self)
+                        except Exception:
+                            log.exception("script kernel %s: on_link_closed failed", self.warden_pid)
                     continue
                 if self.violation is not None:
                     continue  # the kernel is being ended: nothing more of it is read
