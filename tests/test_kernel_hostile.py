@@ -393,6 +393,21 @@ def test_a_print_flood_reaches_the_console_bounded(manager: FakeManager, output:
     assert dropped is not None and int(dropped.group(1)) + passed >= 400 * 100_000
 
 
+def test_a_script_writing_megabytes_is_slowed_to_the_read_budget(manager: FakeManager, output: Output) -> None:
+    rate = getattr(bridge_module, "READ_RATE", 8 * 1024 * 1024)
+    burst = getattr(bridge_module, "READ_BURST", 16 * 1024 * 1024)
+    runner = ScriptRunner(manager, output, home_first=False)
+    runner.start("line = 'x' * 3_000_000\nn = 0\nt0 = time.monotonic()\nwhile time.monotonic() - t0 < 2.0:\n"
+                 "    print(line)\n    n += 1\nprint('wrote', n, time.monotonic() - t0)\n", "<megabytes>")
+    assert runner.wait(20.0)
+    assert runner.result is not None and runner.result.status == "finished", runner.result
+    found = re.search(r"wrote (\d+) ([\d.]+)", output.text("stdout"))
+    assert found is not None, output.text()[-300:]
+    written, took = int(found.group(1)) * 3_000_000, float(found.group(2))
+    assert written <= burst + rate * took + 2 * (1 << 20) + 3_000_000, \
+        f"the application read {written / 1e6:.0f} MB from the script in {took:.1f} s"
+
+
 # ---------------------------------------------------------------------------------------------- link keys
 def environ_of(pid: int) -> bytes:
     return Path(f"/proc/{pid}/environ").read_bytes()
