@@ -96,6 +96,7 @@ def _unblock_fifo(path: Path) -> None:
     os.close(fd)
 
 
+@pytest.mark.realtime  # a bound on the wall clock
 @pytest.mark.parametrize("case, words", [
     ("/dev/zero", "a character device, not a regular file (refused)"),
     ("a named pipe", "a named pipe, not a regular file (refused)"),
@@ -182,6 +183,7 @@ def escaped_pid(output: Output) -> int:
     return int(output.text("stdout").split("escaped", 1)[1].split()[0])
 
 
+@pytest.mark.realtime  # a bound on the wall clock
 @pytest.mark.parametrize("how", ["Stop", "the runner's close"])
 def test_a_setsid_grandchild_ends_with_stop_and_with_close(manager: FakeManager, output: Output, how: str) -> None:
     runner = ScriptRunner(manager, output, home_first=False)
@@ -219,6 +221,7 @@ time.sleep(60)
 '''
 
 
+@pytest.mark.realtime  # a bound on the wall clock
 def test_a_setsid_grandchild_ends_when_the_application_is_killed() -> None:
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     app = subprocess.Popen([sys.executable, "-c", APP, escape_script()], cwd=str(ROOT), env=env,
@@ -270,6 +273,7 @@ BAD_LINES = {
 }
 
 
+@pytest.mark.realtime  # a bound on the wall clock
 @pytest.mark.parametrize("case", list(BAD_LINES))
 def test_a_bad_line_ends_that_script_not_the_bridge(manager: FakeManager, output: Output, case: str) -> None:
     line, times, words = BAD_LINES[case]
@@ -309,6 +313,7 @@ def bridge_log_lines(caplog: pytest.LogCaptureFixture) -> int:
     return sum(1 for r in caplog.records if r.name.startswith("app.scripting"))
 
 
+@pytest.mark.realtime  # a bound on the wall clock
 def test_a_flood_of_refused_requests_is_counted_with_bounded_log_lines(manager: FakeManager, output: Output,
                                                                       caplog: pytest.LogCaptureFixture) -> None:
     caplog.set_level(logging.INFO, logger="app.scripting")
