@@ -96,6 +96,7 @@ def _unblock_fifo(path: Path) -> None:
     os.close(fd)
 
 
+@pytest.mark.realtime  # a bound on the wall clock
 @pytest.mark.parametrize("case, words", [
     ("/dev/zero", "a character device, not a regular file (refused)"),
     ("a named pipe", "a named pipe, not a regular file (refused)"),
@@ -182,6 +183,7 @@ def escaped_pid(output: Output) -> int:
     return int(output.text("stdout").split("escaped", 1)[1].split()[0])
 
 
+@pytest.mark.realtime  # a bound on the wall clock
 @pytest.mark.parametrize("how", ["Stop", "the runner's close"])
 def test_a_setsid_grandchild_ends_with_stop_and_with_close(manager: FakeManager, output: Output, how: str) -> None:
     runner = ScriptRunner(manager, output, home_first=False)
@@ -219,6 +221,7 @@ time.sleep(60)
 '''
 
 
+@pytest.mark.realtime  # a bound on the wall clock
 def test_a_setsid_grandchild_ends_when_the_application_is_killed() -> None:
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     app = subprocess.Popen([sys.executable, "-c", APP, escape_script()], cwd=str(ROOT), env=env,
@@ -270,6 +273,7 @@ BAD_LINES = {
 }
 
 
+@pytest.mark.realtime  # a bound on the wall clock
 @pytest.mark.parametrize("case", list(BAD_LINES))
 def test_a_bad_line_ends_that_script_not_the_bridge(manager: FakeManager, output: Output, case: str) -> None:
     line, times, words = BAD_LINES[case]
@@ -309,6 +313,7 @@ def bridge_log_lines(caplog: pytest.LogCaptureFixture) -> int:
     return sum(1 for r in caplog.records if r.name.startswith("app.scripting"))
 
 
+@pytest.mark.realtime  # a bound on the wall clock
 def test_a_flood_of_refused_requests_is_counted_with_bounded_log_lines(manager: FakeManager, output: Output,
                                                                       caplog: pytest.LogCaptureFixture) -> None:
     caplog.set_level(logging.INFO, logger="app.scripting")
@@ -391,6 +396,21 @@ def test_a_print_flood_reaches_the_console_bounded(manager: FakeManager, output:
     assert passed <= burst + rate * took + 100_000, f"{passed} characters reached the console in {took:.1f} s"
     dropped = re.search(r"(\d+) characters of the script's output were dropped", output.text("info"))
     assert dropped is not None and int(dropped.group(1)) + passed >= 400 * 100_000
+
+
+def test_a_script_writing_megabytes_is_slowed_to_the_read_budget(manager: FakeManager, output: Output) -> None:
+    rate = getattr(bridge_module, "READ_RATE", 8 * 1024 * 1024)
+    burst = getattr(bridge_module, "READ_BURST", 16 * 1024 * 1024)
+    runner = ScriptRunner(manager, output, home_first=False)
+    runner.start("line = 'x' * 3_000_000\nn = 0\nt0 = time.monotonic()\nwhile time.monotonic() - t0 < 2.0:\n"
+                 "    print(line)\n    n += 1\nprint('wrote', n, time.monotonic() - t0)\n", "<megabytes>")
+    assert runner.wait(20.0)
+    assert runner.result is not None and runner.result.status == "finished", runner.result
+    found = re.search(r"wrote (\d+) ([\d.]+)", output.text("stdout"))
+    assert found is not None, output.text()[-300:]
+    written, took = int(found.group(1)) * 3_000_000, float(found.group(2))
+    assert written <= burst + rate * took + 2 * (1 << 20) + 3_000_000, \
+        f"the application read {written / 1e6:.0f} MB from the script in {took:.1f} s"
 
 
 # ---------------------------------------------------------------------------------------------- link keys

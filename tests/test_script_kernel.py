@@ -239,7 +239,7 @@ def test_stop_ends_whatever_the_kernel_does(manager: FakeManager, output: Output
     kinds = [k for k, _ in manager.supervisor.events]
     assert "script_stop" in kinds and "script_safe_state" in kinds
     runner.start("print('next one runs')\n", "<next>")
-    assert runner.wait(3.0) and runner.result.status == "finished"
+    assert runner.wait(3.0) and runner.result.status == "finished", (runner.result, output.text()[-800:])
     assert runner.kernel_pid != pid or case in ("busy loop", "long sleep")
 
 

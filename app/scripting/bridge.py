@@ -74,6 +74,11 @@ CALL_QUEUE_S = 0.05
 # each refusal costs the application a parse and an answer, and a flood of them would cost it a core.
 REFUSAL_RATE = 100.0
 REFUSAL_BURST = 1000
+# Bytes read from a kernel: READ_RATE a second once READ_BURST is spent. A script is only slowed (its writes
+# wait in the socket: back-pressure), never failed; the application's readers never parse more than this
+# (a script printing 3 MB lines in a loop would otherwise keep a reader thread, and the GIL, busy).
+READ_RATE = 8 * 1024 * 1024
+READ_BURST = 16 * 1024 * 1024
 CONTROL_TIMEOUT_S = 5.0  # the warden's answers (its first line comes ~20 ms after the start)
 
 # stream -> (device, label): the streams a script may subscribe to (one place: the kernel gets it in hello)
@@ -281,6 +286,9 @@ class KernelProcess:
         self.handler: Callable[[dict[str, Any]], Callable[[], None] | None] | None = None
         self.on_output: Callable[[str, str], None] | None = None
         self.on_exit: Callable[[KernelProcess], None] | None = None
+        # called once (reader thread) when the kernel's link closes: the kernel has ended, even if its
+        # warden has not yet reported how (it ends what the script started first)
+        self.on_link_closed: Callable[[KernelProcess], None] | None = None
         self.used = False
         self.ready = threading.Event()
         self.ended = threading.Event()
@@ -295,6 +303,9 @@ class KernelProcess:
         self.samples_dropped = 0
         self._early: list[dict[str, Any]] = []
         self.violation: str | None = None  # why the application ended this kernel (a line it would not take)
+        self.bytes_read = 0
+        self._read_tokens = float(READ_BURST)
+        self._read_t = time.monotonic()
         self.problems = 0  # messages whose handling failed (logged up to PROBLEMS_LOGGED)
         t0 = time.perf_counter()
         parent, child = socket.socketpair(socket.AF_UNIX, socket.SOCK_STREAM)
@@ -542,6 +553,12 @@ class KernelProcess:
         """Wait (≤ 0.5 s) for the kernel's socket or pipes; parse what came into the inbox."""
         for key, _ in self._sel.select(0.5):
             if key.data == "sock":
+                now = time.monotonic()
+                self._read_tokens = min(float(READ_BURST), self._read_tokens + (now - self._read_t) * READ_RATE)
+                self._read_t = now
+                if self._read_tokens < 0:  # over the read budget: the kernel waits (its socket fills up)
+                    time.sleep(min(0.05, -self._read_tokens / READ_RATE))
+                    continue
                 try:
                     data = self.sock.recv(1 << 16)
                 except BlockingIOError:
@@ -551,7 +568,15 @@ class KernelProcess:
                 if not data:
                     self._sel.unregister(self.sock)
                     self._sock_open = False
+                    closed = self.on_link_closed
+                    if closed is not None:
+                        try:
+                            closed(self)
+                        except Exception:
+                            log.exception("script kernel %s: on_link_closed failed", self.warden_pid)
                     continue
+                self.bytes_read += len(data)
+                self._read_tokens -= len(data)
                 if self.violation is not None:
                     continue  # the kernel is being ended: nothing more of it is read
                 buf = self._buf

@@ -180,15 +180,24 @@ class ScriptRunner:
         self._kernels[:] = [k for k in self._kernels if not k.ended.is_set()] + [kernel]
         return kernel
 
-    def _next_kernel(self) -> KernelProcess:
+    def _replace_ended(self, ended: KernelProcess) -> None:
+        """A fresh kernel for the prompt and the next Start, if ``ended`` is still the current one. Both the
+        run's control thread and the kernel's exit report come here: whichever is second must not retire
+        the fresh kernel the first installed (a Start may already be running in it)."""
+        self._next_kernel(replacing=ended)
+
+    def _next_kernel(self, replacing: KernelProcess | None = None) -> KernelProcess:
         """Make the spare the current kernel (retiring the old one) and start a new spare."""
         with self._kernel_lock:
+            if replacing is not None and self._kernel is not replacing and self._kernel is not None:
+                return self._kernel
             old = self._kernel
             kernel = self._spare if self._spare is not None and self._spare.alive else self._spawn()
             self._spare = None
             self._kernel = kernel
             bridge = ApiBridge(self.manager, kernel, self.gate)
             old_bridge, self._bridge = self._bridge, bridge
+            kernel.on_link_closed = self._on_link_closed
             kernel.bind(lambda msg, k=kernel, b=bridge: self._on_message(k, b, msg), self._raw_output,
                         self._on_kernel_exit)
         if old_bridge is not None:
@@ -578,6 +587,19 @@ class ScriptRunner:
             self.output("info", f"The script writes more than the console takes ({OUTPUT_RATE // 1024} KB a second "
                                 "after the first 4 MB): the rest of its output is dropped and counted.\n")
 
+    def _on_link_closed(self, kernel: KernelProcess) -> None:
+        """The running script's kernel has gone (crash, os._exit, killed): FES and robot to the safe state at
+        once, as on Stop, without waiting for the process's status (its warden first ends whatever the script
+        started; on a loaded machine that took it past the 200 ms budget)."""
+        if kernel is not self._kernel or not self.running or self._done_msg is not None:
+            return
+        with self._safe_lock:
+            if self._safe_thread is None or not self._safe_thread.is_alive():
+                thread = threading.Thread(target=self._safe_state_now, args=("the script's process ended",),
+                                          name="script-safe-state", daemon=True)
+                thread.start()
+                self._safe_thread = thread
+
     def _on_kernel_exit(self, kernel: KernelProcess) -> None:
         for run in list(self._prompts.values()):
             run._done.set()
@@ -589,7 +611,8 @@ class ScriptRunner:
             self._wake.set()
             if not self.running and kernel.used and not self._closed:
                 self.output("info", f"The script kernel ended ({kernel.cause()}); a fresh one is ready.\n")
-                threading.Thread(target=self._next_kernel, name="script-kernel-next", daemon=True).start()
+                threading.Thread(target=self._replace_ended, args=(kernel,), name="script-kernel-next",
+                                 daemon=True).start()
 
     # ------------------------------------------------------------------ the run (control thread)
     def _control_main(self, kernel: KernelProcess, bridge: ApiBridge, source: str, filename: str,
@@ -654,7 +677,7 @@ class ScriptRunner:
         self._done.set()
         if not kernel.alive and kernel is self._kernel and not self._closed:
             try:  # a fresh kernel for the prompt and the next Start (which would start one itself)
-                self._next_kernel()
+                self._replace_ended(kernel)
                 self._ensure_spare()
             except OSError as exc:
                 log.error("the script kernel could not be started: %s", exc)
