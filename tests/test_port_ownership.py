@@ -288,6 +288,9 @@ def test_a_second_client_on_the_simulators_port_is_refused_and_the_driver_keeps_
         qtbot.waitUntil(lambda: driver.total_samples("linarm.vsa") > before + 100, timeout=5000)
         assert driver.connected and connects == [], connects
         assert refused == 50
+        # The far end agrees: the simulator process accepted one client (the driver) and refused the 50.
+        stats = manager.simulators.process.call("link_stats", device="linarm")
+        assert stats == {"accepted": 1, "refused": 50}, stats
         assert int(driver.latest("linarm.state").controlState) == 0  # nothing the intruders sent was executed
     finally:
         manager.shutdown()

@@ -8,12 +8,14 @@ is counted in the session record; a forged frame repeated many times raises one 
 
 from __future__ import annotations
 
+import threading
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Any
 
 import pytest
+from PySide6.QtCore import QCoreApplication
 
 from app.config import AppConfig
 from app.devices import linarm
@@ -79,6 +81,17 @@ class Rig:
                     times.append(t)
         return times
 
+    def latch_and_wait(self, hold: Any) -> None:
+        """Hold the robot (e-stop or STOP alarm) and wait until the IDLE that sends has reached the controller:
+        an injection made before it arrives would be undone by it, not by the state monitor."""
+        t = time.monotonic()
+        hold()
+        deadline = time.monotonic() + 3.0
+        while not self.host_idles_after(t):
+            assert time.monotonic() < deadline, "the safe state's IDLE did not reach the controller"
+            QCoreApplication.processEvents()
+            threading.Event().wait(0.005)
+
     def alarms(self, text: str) -> list[Any]:
         return [a for a in self.manager.supervisor.alarms() if text in a.text]
 
@@ -105,7 +118,7 @@ def _state(rig: Rig) -> int:
 
 # ------------------------------------------------------------------------------------------ ON while held
 def test_a_robot_switched_on_while_the_estop_is_latched_is_idled_within_a_state_period(rig: Rig, qtbot) -> None:
-    rig.manager.supervisor.emergency_stop("test", "F12")
+    rig.latch_and_wait(lambda: rig.manager.supervisor.emergency_stop("test", "F12"))
     t_on = rig.switch_on_behind_the_apps_back()
     assert _state(rig) == ON
     qtbot.waitUntil(lambda: rig.host_idles_after(t_on) != [], timeout=2000)
@@ -128,7 +141,7 @@ def test_a_robot_switched_on_while_the_estop_is_latched_is_idled_within_a_state_
 
 
 def test_a_robot_homing_behind_the_apps_back_while_a_stop_alarm_is_open_is_idled(rig: Rig, qtbot) -> None:
-    rig.manager.supervisor.raise_alarm(AlarmLevel.STOP, "physio", "physio connection lost: test")
+    rig.latch_and_wait(lambda: rig.manager.supervisor.raise_alarm(AlarmLevel.STOP, "physio", "physio lost: test"))
     t_home = rig.inject("goToHome")
     qtbot.waitUntil(lambda: rig.host_idles_after(t_home) != [] and _state(rig) == IDLE, timeout=2000)
     assert rig.host_idles_after(t_home)[0] - t_home < STATE_PERIOD_S + 0.1
@@ -241,3 +254,22 @@ def test_check_robot_state_idles_on_the_first_sample_and_raises_one_alarm_per_ca
     sup.check_robot_state(Sample(HOME), unreachable)
     failed = [a for a in sup.alarms() if "Robot found homing" in a.text]
     assert len(failed) == 1 and "could not be sent" in failed[0].text
+
+
+def test_repeats_of_a_cause_are_counted_on_its_open_alarm_until_acknowledged(monkeypatch, qtbot) -> None:
+    import app.safety as safety
+
+    sup = SafetySupervisor(AppConfig().safety)
+    raised: list[Any] = []
+    sup.alarm_raised.connect(raised.append)
+    first = sup.raise_alarm(AlarmLevel.STOP, "linarm", "LINarm error: TRACKING_ERROR (forged)")
+    for _ in range(11):
+        assert sup.raise_alarm(AlarmLevel.STOP, "linarm", "LINarm error: TRACKING_ERROR (forged)") is first
+    assert first.repeats == 11 and len(raised) == 1  # one signal: the fault policy's safe state ran once
+    assert sup.raise_alarm(AlarmLevel.STOP, "linarm", "LINarm error: OVER_FORCE") is not first  # another cause
+    sup.acknowledge(first.ident, "tester")
+    again = sup.raise_alarm(AlarmLevel.STOP, "linarm", "LINarm error: TRACKING_ERROR (forged)")
+    assert again is not first and again.repeats == 0  # acknowledged: the next occurrence is a new alarm
+    monkeypatch.setattr(safety, "ALARM_REPEAT_HOLD_S", 0.05)
+    qtbot.wait(100)
+    assert sup.raise_alarm(AlarmLevel.STOP, "linarm", "LINarm error: TRACKING_ERROR (forged)") is not again

@@ -349,6 +349,10 @@ def _answer(request: dict[str, Any], sims: dict[str, Any], patient: Any) -> dict
             since = int(request.get("since", 0))
             since = since if 0 <= since <= len(log_now) else 0
             result = {"from": since, "rows": [[t, data.hex()] for t, data in log_now[since:]]}
+        elif op == "link_stats":  # clients the device's loopback link accepted / refused (a pty has none)
+            link = sims[request["device"]].link
+            result = {"accepted": int(getattr(link, "clients_accepted", 0)),
+                      "refused": int(getattr(link, "clients_refused", 0))}
         elif op == "control":
             sim = sims[request["device"]]
             fn = DEVICE_CONTROLS[request["name"]]
