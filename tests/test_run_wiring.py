@@ -132,6 +132,14 @@ def test_each_run_starts_from_the_default_stiffness(qtbot: Any, manager: Linarmp
     assert first.end_reason == "finished", first.end_detail
     robot = manager.driver("linarm")
     assert robot.latest("linarm.vsa").stiffness > 1700  # left stiff
+    # Refused (the e-stop latched), the defaults are reported and the program still starts.
+    said: list[str] = []
+    runner.output = lambda _stream, text: said.append(text)
+    manager.supervisor.emergency_stop("test")
+    looked = _run(runner, "print('looking only')\n", "look.py")
+    assert looked.end_reason == "finished", looked.end_detail
+    assert any("default settings were not restored" in t for t in said) and "looking only\n" in said
+    manager.supervisor.reset_emergency_stop("Dr Bianchi")
     probe = ("print(linarm.getAdmittanceParameter())\n"
              "assert abs(linarm.linarmVsaState.stiffness - 900) < 60, linarm.linarmVsaState.stiffness\n"
              "assert abs(linarm.getAdmittanceParameter() - 0.005) < 1e-9, linarm.getAdmittanceParameter()\n")

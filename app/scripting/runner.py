@@ -633,7 +633,7 @@ class ScriptRunner:
         try:
             if self.home_first:  # "prepare the robot": homed, and the controller's default settings
                 self._home_if_needed()
-                self._apply_run_defaults()
+                self._try_run_defaults()
         except ScriptStopped:
             result = ScriptResult("stopped", self.stop_reason or "stopped", filename)
         except BaseException as exc:
@@ -795,6 +795,19 @@ class ScriptRunner:
         if not ctx.wait_until(homed, self.home_timeout_s):
             raise RuntimeError(f"the LINarm did not finish homing within {self.home_timeout_s:.0f} s")
         self.output("info", "LINarm homed.\n")
+
+    def _try_run_defaults(self) -> None:
+        """The defaults are a courtesy to the program, not a condition of it: refused (the e-stop latched, a
+        robot error) they are reported and the program still starts — its own commands meet the same refusal."""
+        try:
+            self._apply_run_defaults()
+        except ScriptStopped:
+            raise
+        except Exception as exc:
+            if self._stop_requested.is_set():
+                raise
+            log.info("robot defaults not restored before %s: %s", self.filename, exc)
+            self.output("info", f"The robot's default settings were not restored: {exc}\n")
 
     def _apply_run_defaults(self) -> None:
         """Each run starts from the controller's own settings, not from what the previous run left (issue #26:

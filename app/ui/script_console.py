@@ -565,7 +565,10 @@ class ScriptConsole(QWidget):
         if not mine:
             return f"Busy: {run.title} runs (started from the {_SOURCE_WORDS.get(run.source, run.source)})"
         state = "" if run.state in ("running", "starting") else f" — {run.state_text()}"
-        return f"Running {run.title}{state} — {run.elapsed_s():.0f} s"
+        progress = getattr(getattr(self.manager, "progress", None), "state", None)
+        # the progress area's elapsed time (pauses not counted) when it follows this run
+        elapsed = progress.elapsed_s() if getattr(progress, "run_id", "") == run.run_id else run.elapsed_s()
+        return f"Running {run.title}{state} — {elapsed:.0f} s"
 
     def _show_result(self, result: ScriptResult | None) -> None:
         if result is None:
