@@ -41,6 +41,7 @@ linarm.setCtrlMode(linarm.CONTROL_MODES.POS_REF_BY_TARGET_POS)
 linarm.setCtrlState(linarm.CONTROL_STATES.ON_CTRL_STATE)
 linarm.moveCentreTo(START, SPEED, ACCELERATION, 0, False)  # positioning: not a repetition
 waitCondition(lambda: abs(linarm.linarmVsaState.equilibriumPos - START) < ARRIVED_M, MOVE_TIMEOUT_S)
+waitCondition(lambda: abs(linarm.linarmVsaState.handlePos - START) < HANDLE_REACHED_M, SETTLE_TIMEOUT_S)
 wait(REST_S)
 
 try:
@@ -59,10 +60,11 @@ try:
         linarmppManager.reportProgress(f"moving to {target:.2f} m")
         linarm.moveCentreTo(target, SPEED, ACCELERATION, 0, False)
         waitCondition(lambda: abs(linarm.linarmVsaState.equilibriumPos - target) < ARRIVED_M, MOVE_TIMEOUT_S)
-        reached = waitCondition(lambda: abs(linarm.linarmVsaState.handlePos - target) < HANDLE_REACHED_M,
+        # the handle itself near the target, having covered the way (from where it was, not the centre's)
+        reached = waitCondition(lambda: abs(linarm.linarmVsaState.handlePos - target) < HANDLE_REACHED_M
+                                and abs(linarm.linarmVsaState.handlePos - here) >= COVERED * abs(target - here),
                                 SETTLE_TIMEOUT_S)
-        covered = abs(linarm.linarmVsaState.handlePos - here) >= COVERED * abs(target - here)
         wait(REST_S)  # the handle settles: the repetition ends at rest
-        linarmppManager.endRepetition(k + 1, ok=bool(reached and covered))
+        linarmppManager.endRepetition(k + 1, ok=bool(reached))
 finally:
     linarm.setCtrlState(linarm.CONTROL_STATES.IDLE_CTRL_STATE)
