@@ -685,7 +685,7 @@ def analyse(sig: SessionSignals, lo: float = -math.inf, hi: float = math.inf) ->
         k = 0
         prev_end = -math.inf
         for a, b in movements:
-            if first_prompt is not None and b < first_prompt + 0.05 and a < first_prompt:
+            if first_prompt is not None and a < first_prompt:  # began before the exercise's cue
                 positioning.append(_positioning_entry(sig, "to_start", a, b))
                 continue
             k += 1
