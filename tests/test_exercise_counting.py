@@ -51,7 +51,7 @@ def exercise_script(tmp: Path, exercise: str, params: dict[str, Any]) -> Path:
 
 def run_trigger(tmp: Path, params: dict[str, Any], on_prompt: dict[int, tuple[float, float]]) -> Any:
     """Trigger reaching, headless and recorded; the patient squeezes ``on_prompt[index] = (delay, duration)``
-    after the prompt of that movement (no squeeze for the others). Returns the loaded session."""
+    after the start of that movement's repetition (no squeeze for the others). Returns the loaded session."""
     from app.scripting.headless import EXIT_OK, run_headless
 
     timers: list[threading.Timer] = []
@@ -62,7 +62,9 @@ def run_trigger(tmp: Path, params: dict[str, Any], on_prompt: dict[int, tuple[fl
         patient.idle()
 
         def on_event(kind: str, data: dict[str, Any]) -> None:
-            if kind == "prompt" and data.get("index") in on_prompt:
+            # on the repetition's start (the prompt follows it at once): the same patient for a script that
+            # does not prompt (today's, to see these tests fail on it)
+            if kind == "repetition_start" and data.get("index") in on_prompt:
                 delay, duration = on_prompt[data["index"]]
                 timer = threading.Timer(delay, patient.squeeze, (duration,))
                 timers.append(timer)
