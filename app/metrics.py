@@ -40,6 +40,7 @@ SPARC_REST_SPEED_M_S = ONSET_MIN_SPEED_M_S  # SPARC's window: the movement from 
 GRIP_ONSET_MARGIN_N = 2.0  # a squeeze's onset: the grip rises ≥ 2 N above its resting baseline ...
 GRIP_ONSET_FRACTION = 0.10  # ... or 10 % of the way from the baseline to the trigger threshold, if more
 BASELINE_WINDOW_S = 0.5  # the resting grip: median of the 0.5 s before the prompt
+PROMPT_SLACK_S = 0.15  # a movement that began this much before the exercise's first prompt was positioning
 COVERED_FRACTION = 0.9  # completed: the handle covered ≥ 90 % of the commanded distance (docs/metrics.md)
 
 
@@ -685,7 +686,8 @@ def analyse(sig: SessionSignals, lo: float = -math.inf, hi: float = math.inf) ->
         k = 0
         prev_end = -math.inf
         for a, b in movements:
-            if first_prompt is not None and a < first_prompt:  # began before the exercise's cue
+            # began before the exercise's cue (by more than the low-pass and the widening to 5 mm/s smear it)
+            if first_prompt is not None and a < first_prompt - PROMPT_SLACK_S:
                 positioning.append(_positioning_entry(sig, "to_start", a, b))
                 continue
             k += 1

@@ -108,12 +108,15 @@ def test_recorded_exercise_metrics_report_and_progress(tmp_path: Path, qtbot: An
     assert summary["exercise_params"]["speed_m_s"] == SPEED_M_S
     assert summary["range_m"]["mean"] == pytest.approx(RANGE_M, rel=0.03)
 
-    # the same recording without the marks: segmentation finds the move to the start and the 4 movements
+    assert [p["kind"] for p in result["positioning"]] == ["homing", "outside_repetitions"]  # to the start, apart
+
+    # the same recording without the marks: segmentation finds the 4 movements; the move to the start began
+    # before the exercise's first prompt: positioning, apart
     sig = signals_from_session(load_session(folder))
     sig.marks = []
     segmented = repetitions(sig)
-    assert len(segmented) == 5
-    for r in segmented[1:]:
+    assert len(segmented) == 4
+    for r in segmented:
         assert r.range_m == pytest.approx(RANGE_M, rel=0.03) and r.peak_speed_m_s == pytest.approx(SPEED_M_S, rel=0.05)
 
     pdf = tmp_path / "session.pdf"
