@@ -945,8 +945,9 @@ def metrics_of_session(session: Any, since_mono: float | None = None,
         sig.trigger_threshold_n = float(threshold) if threshold is not None else None
         sig.movement_distance_m = movement_distance(params)
     by_run = metrics_by_run(session, sig)
-    by_run = [r for r in by_run if lo <= r.run.started_mono - session.start_mono <= hi
-              or (since_mono is None and until_mono is None)]
+    t0 = session.start_mono
+    by_run = [r for r in by_run  # the runs overlapping the window (their repetitions are filtered below)
+              if r.run.started_mono - t0 <= hi and (r.run.ended_mono or session.end_mono) - t0 >= lo]
     reps: list[dict[str, Any]] = []
     positioning: list[dict[str, Any]] = []
     objects: list[RepetitionMetrics] = []
