@@ -446,12 +446,10 @@ def squeeze_after(grip: Series, threshold: float, prompt: float, before: float) 
         else:
             onset = float(t[i])
     onset = min(max(onset, prompt), crossing)
-    after = (grip.t >= crossing)
-    ta, va = grip.t[after], grip.v[after]
+    va = grip.v[grip.t >= crossing]
     fall = np.nonzero(va < threshold)[0]
-    peak_sel = va[:int(fall[0])] if len(fall) else va
+    peak_sel = va[:int(fall[0])] if len(fall) else va  # the squeeze: until it falls back below the threshold
     peak = float(np.nanmax(peak_sel)) if len(peak_sel) else float(threshold)
-    del ta
     return Squeeze(onset, crossing, peak, baseline)
 
 
