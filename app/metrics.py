@@ -4,8 +4,12 @@ Pure: numpy in, numbers out (no Qt, no files) — but for :func:`session_metrics
 a session folder. Definitions and sources are in docs/metrics.md; each function's docstring names its own.
 
 A repetition is what the exercise marked (``repetition_start`` / ``repetition_end`` session events, written by
-``linarmppManager.startRepetition / endRepetition``); where an exercise marked none, the handle's movements are
-segmented from its speed (:func:`segment_by_speed`). Times are seconds from the session's start, SI units.
+``linarmppManager.startRepetition / endRepetition``), its onset and end taken from the handle; where an exercise
+marked none, the handle's movements are segmented from its speed and its turns (:func:`segment_by_speed`).
+Robot positioning (homing, moves outside the marks or before the exercise's first ``prompt``) is reported
+apart (:func:`analyse`); per exercise run of the run record: :func:`metrics_by_run`. The patient's reaction
+time runs from the exercise's ``prompt`` to the grip's onset. Times are seconds from the session's start, SI
+units.
 """
 
 from __future__ import annotations
