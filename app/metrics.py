@@ -4,8 +4,12 @@ Pure: numpy in, numbers out (no Qt, no files) — but for :func:`session_metrics
 a session folder. Definitions and sources are in docs/metrics.md; each function's docstring names its own.
 
 A repetition is what the exercise marked (``repetition_start`` / ``repetition_end`` session events, written by
-``linarmppManager.startRepetition / endRepetition``); where an exercise marked none, the handle's movements are
-segmented from its speed (:func:`segment_by_speed`). Times are seconds from the session's start, SI units.
+``linarmppManager.startRepetition / endRepetition``), its onset and end taken from the handle; where an exercise
+marked none, the handle's movements are segmented from its speed and its turns (:func:`segment_by_speed`).
+Robot positioning (homing, moves outside the marks or before the exercise's first ``prompt``) is reported
+apart (:func:`analyse`); per exercise run of the run record: :func:`metrics_by_run`. The patient's reaction
+time runs from the exercise's ``prompt`` to the grip's onset. Times are seconds from the session's start, SI
+units.
 """
 
 from __future__ import annotations
@@ -40,6 +44,7 @@ SPARC_REST_SPEED_M_S = ONSET_MIN_SPEED_M_S  # SPARC's window: the movement from 
 GRIP_ONSET_MARGIN_N = 2.0  # a squeeze's onset: the grip rises ≥ 2 N above its resting baseline ...
 GRIP_ONSET_FRACTION = 0.10  # ... or 10 % of the way from the baseline to the trigger threshold, if more
 BASELINE_WINDOW_S = 0.5  # the resting grip: median of the 0.5 s before the prompt
+PROMPT_SLACK_S = 0.15  # a movement that began this much before the exercise's first prompt was positioning
 COVERED_FRACTION = 0.9  # completed: the handle covered ≥ 90 % of the commanded distance (docs/metrics.md)
 
 
@@ -445,12 +450,10 @@ def squeeze_after(grip: Series, threshold: float, prompt: float, before: float) 
         else:
             onset = float(t[i])
     onset = min(max(onset, prompt), crossing)
-    after = (grip.t >= crossing)
-    ta, va = grip.t[after], grip.v[after]
+    va = grip.v[grip.t >= crossing]
     fall = np.nonzero(va < threshold)[0]
-    peak_sel = va[:int(fall[0])] if len(fall) else va
+    peak_sel = va[:int(fall[0])] if len(fall) else va  # the squeeze: until it falls back below the threshold
     peak = float(np.nanmax(peak_sel)) if len(peak_sel) else float(threshold)
-    del ta
     return Squeeze(onset, crossing, peak, baseline)
 
 
@@ -685,7 +688,8 @@ def analyse(sig: SessionSignals, lo: float = -math.inf, hi: float = math.inf) ->
         k = 0
         prev_start = -math.inf
         for a, b in movements:
-            if first_prompt is not None and b < first_prompt + 0.05 and a < first_prompt:
+            # began before the exercise's cue (by more than the low-pass and the widening to 5 mm/s smear it)
+            if first_prompt is not None and a < first_prompt - PROMPT_SLACK_S:
                 positioning.append(_positioning_entry(sig, "to_start", a, b))
                 continue
             k += 1
@@ -947,8 +951,9 @@ def metrics_of_session(session: Any, since_mono: float | None = None,
         sig.trigger_threshold_n = float(threshold) if threshold is not None else None
         sig.movement_distance_m = movement_distance(params)
     by_run = metrics_by_run(session, sig)
-    by_run = [r for r in by_run if lo <= r.run.started_mono - session.start_mono <= hi
-              or (since_mono is None and until_mono is None)]
+    t0 = session.start_mono
+    by_run = [r for r in by_run  # the runs overlapping the window (their repetitions are filtered below)
+              if r.run.started_mono - t0 <= hi and (r.run.ended_mono or session.end_mono) - t0 >= lo]
     reps: list[dict[str, Any]] = []
     positioning: list[dict[str, Any]] = []
     objects: list[RepetitionMetrics] = []

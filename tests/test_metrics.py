@@ -404,3 +404,15 @@ def test_homing_then_an_immediate_movement_is_not_clipped() -> None:
     (m,) = repetitions(sig)
     assert m.range_m == pytest.approx(0.2, abs=0.002)
     assert m.start_s < 2.1
+
+
+def test_the_prompt_mark_is_a_session_event_with_its_cue() -> None:
+    from app.progress import ExerciseProgress
+
+    events: list[tuple[str, dict]] = []
+    progress = ExerciseProgress(lambda kind, **data: events.append((kind, data)))
+    progress.start_repetition(3, 8)
+    progress.prompt(None, "squeeze", 20)
+    progress.prompt(4, "move")
+    assert events[1:] == [("prompt", {"index": 3, "cue": "squeeze", "threshold_n": 20.0}),
+                          ("prompt", {"index": 4, "cue": "move"})]

@@ -101,19 +101,24 @@ def test_recorded_exercise_metrics_report_and_progress(tmp_path: Path, qtbot: An
         assert r["speed_peaks"] == 1 and -2.5 < r["sparc"] < -1.3, r
         assert 0 <= r["start_s"] < r["movement_onset_s"] < r["end_s"]
         assert r["grip_at_start_n"] is not None and r["peak_force_n"] is not None
-        # each movement began after the grip crossed 20 N: a reaction time within a squeeze cycle
-        assert r["reaction_time_s"] is not None and 0.0 <= r["reaction_time_s"] < 1.3, r
+        # each movement began after the grip crossed 20 N: the robot's latency; the patient's reaction time
+        # from the prompt, within a squeeze cycle — none when the (periodic) squeeze began before the prompt
+        assert r["robot_latency_s"] is not None and 0.0 <= r["robot_latency_s"] < 0.5, r
+        assert r["reaction_time_s"] is None or 0.0 <= r["reaction_time_s"] < 1.3, r
     summary = result["summary"]
     assert summary["repetitions"] == 4 and summary["completed"] == 4 and summary["alarms"] == 0
     assert summary["exercise_params"]["speed_m_s"] == SPEED_M_S
     assert summary["range_m"]["mean"] == pytest.approx(RANGE_M, rel=0.03)
 
-    # the same recording without the marks: segmentation finds the move to the start and the 4 movements
+    assert [p["kind"] for p in result["positioning"]] == ["homing", "outside_repetitions"]  # to the start, apart
+
+    # the same recording without the marks: segmentation finds the 4 movements; the move to the start began
+    # before the exercise's first prompt: positioning, apart
     sig = signals_from_session(load_session(folder))
     sig.marks = []
     segmented = repetitions(sig)
-    assert len(segmented) == 5
-    for r in segmented[1:]:
+    assert len(segmented) == 4
+    for r in segmented:
         assert r.range_m == pytest.approx(RANGE_M, rel=0.03) and r.peak_speed_m_s == pytest.approx(SPEED_M_S, rel=0.05)
 
     pdf = tmp_path / "session.pdf"

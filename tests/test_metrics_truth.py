@@ -43,6 +43,8 @@ def test_counts_and_kinematics_equal_the_truth(name: str, kind: str, tmp_path: P
         assert kinds.count("to_start") == 1  # the move to the first point, before the exercise's start prompt
     if case["truth"]["kind"] == "trigger":
         assert kinds.count("outside_repetitions") == 1  # the move to the start point, before repetition 1
+    if case["truth"]["kind"] == "sway":
+        assert kinds == ["homing"]  # the patient's first sway starts at the prompt: a repetition
     assert result["summary"]["repetitions"] == case["truth"]["count"]
 
 

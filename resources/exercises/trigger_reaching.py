@@ -22,25 +22,42 @@ SETTLE_TIMEOUT_S = 2.0   # how long the handle may lag the centre at the end of 
 MOVE_TIMEOUT_S = 30.0
 
 
+released = True  # re-armed: the grip has been below the threshold since the last trigger
+
+
 def grip():
     return physiologicalSensors.physiologicalSensorsData.force
 
 
+def watch_grip(sample):  # every grip sample, in order: a release re-arms the trigger
+    global released
+    if sample.force < THRESHOLD:
+        released = True
+
+
 def wait_for_squeeze(timeout_s):
-    """One squeeze = one trigger: a grip still held from the last trigger must be released first (re-armed
-    only below the threshold), then squeezed through it again."""
+    """One squeeze = one trigger: a grip still held since the last trigger must be released first (re-armed
+    only below the threshold), then squeezed through it again. A new squeeze begun before the prompt (after a
+    release) triggers at once."""
+    global released
     started = time.monotonic()
-    if not waitCondition(lambda: grip() < THRESHOLD, timeout_s):
+    if not released and not waitCondition(lambda: released, timeout_s):
         return False
     left = timeout_s - (time.monotonic() - started)
-    return left > 0 and waitCondition(lambda: grip() > THRESHOLD, left)
+    if left > 0 and waitCondition(lambda: grip() > THRESHOLD, left):
+        released = False
+        return True
+    return False
 
 
+if THRESHOLD > 0:
+    physiologicalSensors.setPhysiologicalSensorsDataCallbackFun(watch_grip)
 linarm.setCtrlState(linarm.CONTROL_STATES.IDLE_CTRL_STATE)
 linarm.setCtrlMode(linarm.CONTROL_MODES.POS_REF_BY_TARGET_POS)
 linarm.setCtrlState(linarm.CONTROL_STATES.ON_CTRL_STATE)
 linarm.moveCentreTo(START, SPEED, ACCELERATION, 0, False)  # positioning: not a repetition
 waitCondition(lambda: abs(linarm.linarmVsaState.equilibriumPos - START) < ARRIVED_M, MOVE_TIMEOUT_S)
+waitCondition(lambda: abs(linarm.linarmVsaState.handlePos - START) < HANDLE_REACHED_M, SETTLE_TIMEOUT_S)
 wait(REST_S)
 
 try:
@@ -59,10 +76,11 @@ try:
         linarmppManager.reportProgress(f"moving to {target:.2f} m")
         linarm.moveCentreTo(target, SPEED, ACCELERATION, 0, False)
         waitCondition(lambda: abs(linarm.linarmVsaState.equilibriumPos - target) < ARRIVED_M, MOVE_TIMEOUT_S)
-        reached = waitCondition(lambda: abs(linarm.linarmVsaState.handlePos - target) < HANDLE_REACHED_M,
+        # the handle itself near the target, having covered the way (from where it was, not the centre's)
+        reached = waitCondition(lambda: abs(linarm.linarmVsaState.handlePos - target) < HANDLE_REACHED_M
+                                and abs(linarm.linarmVsaState.handlePos - here) >= COVERED * abs(target - here),
                                 SETTLE_TIMEOUT_S)
-        covered = abs(linarm.linarmVsaState.handlePos - here) >= COVERED * abs(target - here)
         wait(REST_S)  # the handle settles: the repetition ends at rest
-        linarmppManager.endRepetition(k + 1, ok=bool(reached and covered))
+        linarmppManager.endRepetition(k + 1, ok=bool(reached))
 finally:
     linarm.setCtrlState(linarm.CONTROL_STATES.IDLE_CTRL_STATE)

@@ -28,6 +28,14 @@ DeltaPos1 = 0.010
 forceThreshold = 30
 #####
 
+released = True  # added: re-armed once the grip has been below 20 N since the last trigger
+def watchGrip(data):  # added
+    global released
+    if data.force < 20:
+        released = True
+physiologicalSensors.setPhysiologicalSensorsDataCallbackFun(watchGrip)  # added
+
+
 def waitCondition(cond, loc, timeoutReaching):
     import time
     old = time.time()
@@ -43,13 +51,15 @@ linarm.moveDeltaTo(DeltaPos1,maxVelTrap,maxAccTrap,0, False)
 
 for i in range(0,numCicli):
     linarmppManager.prompt(2 * i + 1, "squeeze", 20)  # added
-    waitCondition("physiologicalSensors.physiologicalSensorsData.force<20", locals(), 10)  # added: re-arm
+    waitCondition("released", locals(), 10)  # added: a grip held since the last trigger is released first
     waitCondition("physiologicalSensors.physiologicalSensorsData.force>20", locals(), 10)
+    released = False  # added
     linarm.moveCentreTo(endPoint,maxVelTrap,maxAccTrap,0, False)
     waitCondition("abs(endPoint-linarm.linarmVsaState.equilibriumPos)<5e-3", locals(), 10)
     linarmppManager.prompt(2 * i + 2, "squeeze", 20)  # added
-    waitCondition("physiologicalSensors.physiologicalSensorsData.force<20", locals(), 10)  # added: re-arm
+    waitCondition("released", locals(), 10)  # added
     waitCondition("physiologicalSensors.physiologicalSensorsData.force>20", locals(), 10)
+    released = False  # added
     linarm.moveCentreTo(startPoint,maxVelTrap,maxAccTrap,0, False)
     waitCondition("abs(startPoint-linarm.linarmVsaState.equilibriumPos)<5e-3", locals(), 10)
 
