@@ -243,3 +243,18 @@ def test_a_slightly_older_sample_is_stamped_on_the_line_without_a_reset() -> Non
             assert older < stamps[-1]
     assert clock.resets == 0
     assert np.all(np.diff(stamps) > 0)
+
+
+def test_a_clock_that_fell_behind_reseeds() -> None:
+    """A board that restarted quicker than its counter's wrap can show: its clock now runs 0.4 s behind the line.
+    Every later sample then looks 0.4 s late; after 5 s of that the clock starts again and is right once more."""
+    clock = DeviceClock()
+    for k in range(2000):  # 10 s on time
+        clock.map(k * PERIOD_S, 100.0 + k * PERIOD_S + 0.0005)
+    t_restart = 100.0 + 2000 * PERIOD_S
+    stamps = []
+    for k in range(1600):  # the device time goes on from where it was, 0.4 s of host time later
+        send = t_restart + 0.4 + k * PERIOD_S
+        stamps.append((send, clock.map((2000 + k) * PERIOD_S, send + 0.0005)))
+    assert clock.resets == 1
+    assert all(abs(m - s) < 0.002 for s, m in stamps[-200:])

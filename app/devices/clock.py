@@ -73,7 +73,7 @@ class DeviceClock:
     def __init__(self, *, wrap_s: float | None = None, window_s: float = 30.0, bin_s: float = 0.05,
                  jump_s: float = 1.0, outlier_s: float = 0.1, outlier_run: int = 3,
                  warmup_s: float = 2.0, max_drift: float = 1e-3, recent_s: float = 5.0,
-                 late_s: float = 0.1, late_run_s: float = 2.0, refit_s: float = 0.5,
+                 late_s: float = 0.25, late_run_s: float = 5.0, refit_s: float = 0.5,
                  reorder_s: float = 0.02) -> None:
         self.wrap_s = wrap_s
         self.window_s = window_s
