@@ -70,3 +70,35 @@ def test_a_burst_of_signals_to_the_window_ends_it_safely(app_process: AppProcess
     app_process.wait_stimulating()
     t0 = burst(app_process.pid, signum)
     assert_ended_safely(app_process, t0, signum)
+
+
+def test_a_burst_runs_on_signal_once_outside_the_handler() -> None:
+    """The mechanism on its own, in this process: 200 SIGTERMs, one call, on the signal thread, while the main
+    thread holds a non-reentrant lock the call needs (the old handler deadlocked on exactly that)."""
+    import os
+    import threading
+
+    from app.signal_events import SignalEvents
+
+    write_lock = threading.Lock()  # stands in for the transport's write lock
+    calls: list[tuple[int, str]] = []
+
+    def on_signal(signum: int) -> None:
+        with write_lock:
+            calls.append((signum, threading.current_thread().name))
+
+    before = signal.getsignal(signal.SIGTERM)
+    events = SignalEvents(on_signal, exit_deadline_s=None).install()
+    try:
+        with write_lock:  # the main thread is "writing" when the burst arrives
+            for _ in range(200):
+                os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(0.05)  # the Python-level handlers run here, between bytecodes: they must do nothing
+            assert calls == []
+        assert events.wait(2.0)
+        assert calls == [(signal.SIGTERM, "signal events")]
+        assert events.received == signal.SIGTERM and events.count >= 1
+    finally:
+        events.remove()
+        assert signal.getsignal(signal.SIGTERM) == signal.SIG_IGN  # the rest of a burst, while the app closes
+        signal.signal(signal.SIGTERM, before)
