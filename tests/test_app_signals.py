@@ -102,3 +102,42 @@ def test_a_burst_runs_on_signal_once_outside_the_handler() -> None:
         events.remove()
         assert signal.getsignal(signal.SIGTERM) == signal.SIG_IGN  # the rest of a burst, while the app closes
         signal.signal(signal.SIGTERM, before)
+
+
+BACKSTOP = r"""
+import os, signal, sys, time
+from app.signal_events import SignalEvents
+
+def on_signal(signum):
+    time.sleep(60)  # a shutdown that hangs
+
+def last_resort(signum):
+    print("LAST RESORT", signum, flush=True)
+
+SignalEvents(on_signal, exit_deadline_s=0.3, last_resort=last_resort).install()
+print("READY", flush=True)
+time.sleep(60)
+"""
+
+
+def test_a_shutdown_that_hangs_is_ended_by_the_backstop() -> None:
+    import subprocess
+    import sys
+
+    from tests.app_process import ROOT
+
+    proc = subprocess.Popen([sys.executable, "-c", BACKSTOP], stdout=subprocess.PIPE, text=True, cwd=str(ROOT),
+                            env={**__import__("os").environ, "PYTHONPATH": str(ROOT)})
+    try:
+        assert proc.stdout is not None and proc.stdout.readline().strip() == "READY"
+        t0 = time.monotonic()
+        proc.send_signal(signal.SIGTERM)
+        code = proc.wait(5.0)
+        assert code == 143 and time.monotonic() - t0 < 2.0
+        assert proc.stdout.read().strip() == "LAST RESORT 15"
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        if proc.stdout is not None:
+            proc.stdout.close()
