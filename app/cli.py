@@ -11,6 +11,10 @@ all run :func:`main`. With no arguments: the clinician window, every device simu
                       (exit 0 done, 1 nothing written: why on stderr, 2 wrong arguments,
                        3 done from an incomplete session: what is missing on stderr)
 
+SIGTERM, SIGINT (Ctrl-C) and SIGHUP end the window or a headless run the same way: the devices are brought to
+a safe state at once (FES Stop, robot IDLE; app/signal_events.py), the session is closed, and the process
+exits with 128 + the signal's number (143, 130, 129).
+
 The parser is built in one place, :func:`build_parser`: a new option is one ``add_argument`` line there.
 """
 
@@ -77,7 +81,10 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
             return 2
         from app.scripting.headless import run_headless
 
-        return run_headless(config, args.script, duration_s=args.duration, record_dir=args.record)
+        code = run_headless(config, args.script, duration_s=args.duration, record_dir=args.record)
+        if code > 128:  # ended by a signal, devices safe and session closed: no slow interpreter teardown
+            _exit_now(code)
+        return code
     from app.application import run_gui
 
     return run_gui(config, screenshot=args.screenshot, quit_after_s=args.quit_after)
@@ -149,6 +156,19 @@ def _unwritable(out: object) -> str:
     if path.exists() and not os.access(path, os.W_OK):
         return "the file is read-only"
     return ""
+
+
+def _exit_now(code: int) -> None:
+    """A process told to end by a signal ends now (issue #25: within 2 s), once its logs are written."""
+    import logging
+
+    logging.shutdown()
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError):
+            pass
+    os._exit(code)
 
 
 def _install_desktop_entry() -> int:

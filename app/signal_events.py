@@ -8,10 +8,10 @@ signals of a burst are counted and otherwise ignored. The thread acts even while
 (the Qt loop in C, a long wait), and Python never raises KeyboardInterrupt at an arbitrary point (which
 aborted the headless runner with "QThread destroyed" while threads still ran).
 
-If the process has not ended ``exit_deadline_s`` after the first signal (a hang in the shutdown), the
-thread brings the devices to a safe state once more and ends the process with ``os._exit`` — the FES
-guardian (app.devices.fes_guardian) sends Stop when the process is gone, and the robot's controller idles
-on its own host watchdog.
+If the process has not ended ``exit_deadline_s`` after the first signal (a hang in the shutdown, or in
+``on_signal`` itself), a timer thread brings the devices to a safe state once more and ends the process
+with ``os._exit`` — the FES guardian (app.devices.fes_guardian) sends Stop when the process is gone, and
+the robot's controller idles on its own host watchdog.
 """
 
 from __future__ import annotations
@@ -24,7 +24,6 @@ import signal
 import socket
 import sys
 import threading
-import time
 from collections.abc import Callable
 from typing import Any
 
@@ -61,7 +60,7 @@ class SignalEvents:
         self._on_signal = on_signal
         self._exit_deadline_s = exit_deadline_s
         self._last_resort = last_resort
-        self.received: int | None = None  # the first signal's number, once it was handled
+        self.received: int | None = None  # the first signal's number, set as it arrives (before on_signal runs)
         self.count = 0
         self._previous: dict[int, Any] = {}
         self._previous_wakeup_fd = -1
@@ -69,6 +68,7 @@ class SignalEvents:
         self._thread: threading.Thread | None = None
         self._closing = threading.Event()
         self._handled = threading.Event()
+        self._backstop: threading.Timer | None = None
 
     @property
     def installed(self) -> bool:
@@ -104,6 +104,10 @@ class SignalEvents:
         with contextlib.suppress(ValueError):
             signal.set_wakeup_fd(self._previous_wakeup_fd)
         self._closing.set()
+        if self._backstop is not None:
+            self._backstop.cancel()
+            self._backstop.join(timeout=1.0)
+            self._backstop = None
         assert self._sockets is not None
         with contextlib.suppress(OSError):
             self._sockets[1].send(b"\0")  # wakes the thread (0 is no signal)
@@ -128,15 +132,8 @@ class SignalEvents:
     def _watch(self) -> None:
         assert self._sockets is not None
         reader = self._sockets[0]
-        first_at: float | None = None
         while True:
-            timeout = None
-            if first_at is not None and self._exit_deadline_s is not None:
-                timeout = max(0.0, first_at + self._exit_deadline_s - time.monotonic())
-            ready, _, _ = select.select([reader], [], [], timeout)
-            if not ready:
-                self._exit_now()
-                return
+            select.select([reader], [], [])
             try:
                 data = reader.recv(4096)
             except BlockingIOError:
@@ -151,7 +148,11 @@ class SignalEvents:
                 continue
             signum = signals[0]
             self.received = signum
-            first_at = time.monotonic()
+            if self._exit_deadline_s is not None:  # its own thread: on_signal itself may be what hangs
+                self._backstop = threading.Timer(self._exit_deadline_s, self._exit_now)
+                self._backstop.name = "signal backstop"
+                self._backstop.daemon = True
+                self._backstop.start()
             log.warning("%s received: bringing the devices to a safe state and closing", signal_name(signum))
             try:
                 self._on_signal(signum)
@@ -163,6 +164,8 @@ class SignalEvents:
                 return
 
     def _exit_now(self) -> None:
+        if self._closing.is_set():
+            return
         signum = self.received or signal.SIGTERM
         log.critical("the application did not end within %.0f s of %s: ending it now", self._exit_deadline_s or 0,
                      signal_name(signum))

@@ -70,3 +70,74 @@ def test_a_burst_of_signals_to_the_window_ends_it_safely(app_process: AppProcess
     app_process.wait_stimulating()
     t0 = burst(app_process.pid, signum)
     assert_ended_safely(app_process, t0, signum)
+
+
+def test_a_burst_runs_on_signal_once_outside_the_handler() -> None:
+    """The mechanism on its own, in this process: 200 SIGTERMs, one call, on the signal thread, while the main
+    thread holds a non-reentrant lock the call needs (the old handler deadlocked on exactly that)."""
+    import os
+    import threading
+
+    from app.signal_events import SignalEvents
+
+    write_lock = threading.Lock()  # stands in for the transport's write lock
+    calls: list[tuple[int, str]] = []
+
+    def on_signal(signum: int) -> None:
+        with write_lock:
+            calls.append((signum, threading.current_thread().name))
+
+    before = signal.getsignal(signal.SIGTERM)
+    events = SignalEvents(on_signal, exit_deadline_s=None).install()
+    try:
+        with write_lock:  # the main thread is "writing" when the burst arrives
+            for _ in range(200):
+                os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(0.05)  # the Python-level handlers run here, between bytecodes: they must do nothing
+            assert calls == []
+        assert events.wait(2.0)
+        assert calls == [(signal.SIGTERM, "signal events")]
+        assert events.received == signal.SIGTERM and events.count >= 1
+    finally:
+        events.remove()
+        assert signal.getsignal(signal.SIGTERM) == signal.SIG_IGN  # the rest of a burst, while the app closes
+        signal.signal(signal.SIGTERM, before)
+
+
+BACKSTOP = r"""
+import os, signal, sys, time
+from app.signal_events import SignalEvents
+
+def on_signal(signum):
+    time.sleep(60)  # a shutdown that hangs
+
+def last_resort(signum):
+    print("LAST RESORT", signum, flush=True)
+
+SignalEvents(on_signal, exit_deadline_s=0.3, last_resort=last_resort).install()
+print("READY", flush=True)
+time.sleep(60)
+"""
+
+
+def test_a_shutdown_that_hangs_is_ended_by_the_backstop() -> None:
+    import subprocess
+    import sys
+
+    from tests.app_process import ROOT
+
+    proc = subprocess.Popen([sys.executable, "-c", BACKSTOP], stdout=subprocess.PIPE, text=True, cwd=str(ROOT),
+                            env={**__import__("os").environ, "PYTHONPATH": str(ROOT)})
+    try:
+        assert proc.stdout is not None and proc.stdout.readline().strip() == "READY"
+        t0 = time.monotonic()
+        proc.send_signal(signal.SIGTERM)
+        code = proc.wait(5.0)
+        assert code == 143 and time.monotonic() - t0 < 2.0
+        assert proc.stdout.read().strip() == "LAST RESORT 15"
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        if proc.stdout is not None:
+            proc.stdout.close()

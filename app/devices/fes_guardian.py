@@ -178,6 +178,11 @@ class GuardianError(RuntimeError):
     pass
 
 
+def available() -> bool:
+    """Whether this platform can run the guardian (it passes the link's descriptor over a Unix socket)."""
+    return all(hasattr(socket, name) for name in ("AF_UNIX", "SOCK_SEQPACKET", "send_fds", "CMSG_SPACE"))
+
+
 class FesGuardian:
     """The driver's handle on its guardian process. ``arm``/``disarm`` from any thread; ``heartbeat`` from the
     driver's thread. Duck-types the little of ``subprocess.Popen`` that the manager's shutdown calls."""
@@ -188,6 +193,7 @@ class FesGuardian:
         self._control: socket.socket | None = None
         self._lock = threading.Lock()  # arm/disarm/close; the heartbeat takes no lock
         self._last_heartbeat = 0.0
+        self._last_look = 0.0
         self.armed = False
 
     @property
@@ -199,6 +205,8 @@ class FesGuardian:
         return self.proc is not None and self.proc.poll() is None and self._control is not None
 
     def start(self) -> FesGuardian:
+        if not available():
+            raise GuardianError("the FES guardian needs Unix sockets that pass descriptors (Linux, macOS)")
         ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
         try:
             self.proc = subprocess.Popen(
@@ -252,11 +260,14 @@ class FesGuardian:
                 with contextlib.suppress(OSError):
                     control.send(DISARM)
 
-    def tripped(self) -> str:
-        """Why the guardian sent Stop since the last call ('' when it did not)."""
+    def tripped(self, now: float | None = None) -> str:
+        """Why the guardian sent Stop since the last call ('' when it did not). Looks at most every
+        HEARTBEAT_PERIOD_S (the driver calls it on every loop pass)."""
+        now = time.monotonic() if now is None else now
         control = self._control
-        if control is None:
+        if control is None or now - self._last_look < HEARTBEAT_PERIOD_S:
             return ""
+        self._last_look = now
         why = ""
         while True:
             try:

@@ -34,6 +34,7 @@ from PySide6.QtCore import QThread, Signal
 from app.config import FesDevice
 from app.devices.driver import Channel, DeviceDriver, StreamSpec, UpdateNotifier
 from app.devices.fes_guardian import FesGuardian, GuardianError
+from app.devices.fes_guardian import available as fes_guardian_available
 from app.devices.sciencemode import (
     CHANNELS,
     SM2_KEEPALIVE_PERIOD_S,
@@ -524,8 +525,8 @@ class FesDriver(DeviceDriver):
     def on_tick(self, now_s: float) -> None:
         now = self.clock()
         if self.guardian is not None:
-            self.guardian.heartbeat()  # this thread is alive and serving the stimulator
-            tripped = self.guardian.tripped()
+            self.guardian.heartbeat(now_s)  # this thread is alive and serving the stimulator
+            tripped = self.guardian.tripped(now_s)
             if tripped:
                 text = (f"The application stopped serving the stimulator ({tripped}): the FES guardian sent Stop; "
                         "stimulation must be started again")
@@ -953,14 +954,17 @@ def create(ctx: DeviceContext) -> DeviceHandle | None:
         supervisor.fes_limiter = FesLimiter(FesLimits.from_config(ctx.safety.fes))
     driver = FesDriver(SerialTransport(url, settings), supervisor, protocol=protocol,
                        ack_timeout_s=cfg.ack_timeout_s, notifier=ctx.notifier)
-    driver.require_guardian = True
     processes: list[Any] = []
-    try:  # started with the app, so that a stimulation never waits for it
-        driver.guardian = FesGuardian().start()
-        processes.append(driver.guardian)
-    except GuardianError as exc:
-        log.error("fes: %s; stimulation will be refused", exc)
-        supervisor.event("device_error", device="fes", error=str(exc))
+    if fes_guardian_available():
+        driver.require_guardian = True  # where it can run, never stimulate without it
+        try:  # started with the app, so that a stimulation never waits for it
+            driver.guardian = FesGuardian().start()
+            processes.append(driver.guardian)
+        except GuardianError as exc:
+            log.error("fes: %s; stimulation will be refused", exc)
+            supervisor.event("device_error", device="fes", error=str(exc))
+    else:  # Windows: SM2's own watchdog (1.2 s) only; SM1 stops only on Stop (docs/fes.md)
+        log.warning("fes: no dead man's switch on this platform: a frozen app's stimulation is not stopped by it")
     ctx.add_stop_action("FES stop", lambda reason: driver.stop_stimulation(reason, "safety supervisor"))
     for name, label in (("linarm", "LINarm"), ("physio", "physiological sensors")):
         other = ctx.peers.get(name)

@@ -12,6 +12,9 @@ Behaviour the reference leaves open, as chosen here (docs/fes.md):
   SinglePulse only outside CCL; one-shot mode (MSI 0) is refused as a parameter error; a pulse width
   below 20 µs with a non-zero current is delivered as 20 µs (firmware note in the reference §4).
 - An update takes effect at the time it is received (the device applies it from the next pass, ≤ t1 later).
+- No host: SM1 keeps stimulating for ever (it has no watchdog; a closed link or a dead PC changes nothing),
+  SM2 stops 1.2 s after its last valid packet (its watchdog) and announces itself again. Issue #25's
+  dead man's switch (app/devices/fes_guardian.py) is tested against exactly this.
 """
 
 from __future__ import annotations
