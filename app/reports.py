@@ -442,18 +442,10 @@ def progress_rows(patient_id: str, root: Path | None = None,
 
 
 def alarms_of_session(session: Any) -> list[dict[str, Any]]:
-    """Alarms and interruptions of a session, times from its start (as app.metrics lists them)."""
-    t0 = session.start_mono
-    kinds = {"alarm", "emergency_stop", "script_stop", "exercise_paused", "exercise_resumed", "gap_start"}
-    out = []
-    for e in session.events:
-        if e.get("kind") not in kinds:
-            continue
-        data = dict(e.get("data") or {})
-        if e["kind"] == "script_stop" and data.get("status") in ("finished", None):
-            continue
-        out.append({"t_s": round(float(e.get("t_mono", t0)) - t0, 3), "kind": e["kind"], "data": data})
-    return out
+    """Alarms and interruptions of a session, times from its start: the metrics' list (one definition)."""
+    from app.metrics import session_alarms
+
+    return session_alarms(session)
 
 
 # ------------------------------------------------------------------------------------------- drawing

@@ -43,15 +43,19 @@ try:
     for rep in range(REPETITIONS):
         linarmppManager.startRepetition(rep + 1, REPETITIONS)
         linarmppManager.prompt(rep + 1, "move")  # reach now: the reaction time runs to the handle's onset
+        linarmppManager.setRunState("moving", "reaching out")
         going_out = True
         linarm.setAssistanceTargetPos(TARGET)
         reached = waitCondition(lambda: abs(linarm.linarmVsaState.handlePos - TARGET) < REACHED_M, TIMEOUT_S)
         linarmppManager.endRepetition(rep + 1, ok=reached)
         linarmppManager.reportProgress("target reached" if reached else "target not reached")
+        linarmppManager.setRunState("resting")
         wait(REST_S)
         going_out = False
+        linarmppManager.setRunState("moving", "back to the start")
         linarm.setAssistanceTargetPos(START)
         waitCondition(lambda: abs(linarm.linarmVsaState.handlePos - START) < REACHED_M, TIMEOUT_S)
+        linarmppManager.setRunState("resting")
         wait(REST_S)
 finally:
     if USE_FES:

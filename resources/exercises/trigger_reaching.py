@@ -69,17 +69,20 @@ try:
         if THRESHOLD > 0:
             linarmppManager.reportProgress(f"squeeze the handle ({THRESHOLD:g} N) to move")
             linarmppManager.prompt(k + 1, "squeeze", THRESHOLD)
+            linarmppManager.setRunState("waiting_for_grip")
             if not wait_for_squeeze(TRIGGER_TIMEOUT_S):
                 linarmppManager.endRepetition(k + 1, ok=False)
                 linarmppManager.reportProgress("no grip: movement skipped")
                 continue
         linarmppManager.reportProgress(f"moving to {target:.2f} m")
+        linarmppManager.setRunState("moving")
         linarm.moveCentreTo(target, SPEED, ACCELERATION, 0, False)
         waitCondition(lambda: abs(linarm.linarmVsaState.equilibriumPos - target) < ARRIVED_M, MOVE_TIMEOUT_S)
         # the handle itself near the target, having covered the way (from where it was, not the centre's)
         reached = waitCondition(lambda: abs(linarm.linarmVsaState.handlePos - target) < HANDLE_REACHED_M
                                 and abs(linarm.linarmVsaState.handlePos - here) >= COVERED * abs(target - here),
                                 SETTLE_TIMEOUT_S)
+        linarmppManager.setRunState("resting")
         wait(REST_S)  # the handle settles: the repetition ends at rest
         linarmppManager.endRepetition(k + 1, ok=bool(reached))
 finally:
