@@ -68,7 +68,7 @@ def find_firmware_sil() -> Path | None:
 
 
 MCU_IMAGE_PATHS = (ROOT / "firmware" / "build" / "due" / "linarm_mps2.elf",
-                   ROOT / "firmware" / "build" / "pytest-mcu" / "linarm_mps2.elf")
+                   ROOT / "firmware" / "build" / "pytest-due" / "linarm_mps2.elf")
 QEMU_SYSTEM_ARM = "qemu-system-arm"
 
 
@@ -151,23 +151,44 @@ class McuCore:
     board's UART0 on a loopback TCP port; host bytes go to that socket, the board's output is polled from it."""
 
     def __init__(self, image: Path, connect_timeout_s: float = 10.0) -> None:
+        port, console_port = free_tcp_port(), free_tcp_port()
+        self.sock: Any = None
+        self.console: Any = None
+        self.proc = subprocess.Popen(
+            qemu_mps2_command(image, port, f"tcp:127.0.0.1:{console_port},server=on,wait=off"),
+            stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+            preexec_fn=firmware_child_setup)
+        deadline = time.monotonic() + connect_timeout_s
+        try:
+            self.sock = self._connect(port, deadline)
+            self.console = self._connect(console_port, deadline)
+            # The board greets on its console once its UARTs are enabled; bytes sent to UART0 before that may
+            # stay in qemu's socket (its CMSDK UART refuses them while receive is off).
+            greeting = b""
+            while b"HELLO" not in greeting:
+                self.console.settimeout(max(0.05, deadline - time.monotonic()))
+                chunk = self.console.recv(256)
+                if not chunk:
+                    raise OSError("the board's console closed")
+                greeting += chunk
+            self.console.sendall(b"\n")  # heard: the greetings stop
+        except OSError as exc:
+            self.close()
+            raise RuntimeError(f"the emulated board did not come up: {exc}") from exc
+        self.sock.setblocking(False)
+
+    def _connect(self, port: int, deadline: float) -> Any:
         import socket
 
-        port = free_tcp_port()
-        self.proc = subprocess.Popen(qemu_mps2_command(image, port), stdin=subprocess.DEVNULL,
-                                     stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                                     preexec_fn=firmware_child_setup)
-        deadline = time.monotonic() + connect_timeout_s
         while True:  # qemu listens a moment after it starts
             try:
-                self.sock = socket.create_connection(("127.0.0.1", port), timeout=1.0)
-                break
+                sock = socket.create_connection(("127.0.0.1", port), timeout=1.0)
+                sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+                return sock
             except OSError:
                 if self.proc.poll() is not None or time.monotonic() > deadline:
-                    self.close()
-                    raise RuntimeError(f"qemu-system-arm did not open UART0 on port {port}") from None
+                    raise
                 time.sleep(0.05)
-        self.sock.setblocking(False)
 
     def handle_host_bytes(self, data: bytes, t: float) -> bytes:
         with contextlib.suppress(OSError):
@@ -183,8 +204,10 @@ class McuCore:
             return b""
 
     def close(self) -> None:
-        with contextlib.suppress(Exception):
-            self.sock.close()
+        for sock in (self.sock, self.console):
+            if sock is not None:
+                with contextlib.suppress(Exception):
+                    sock.close()
         if self.proc.poll() is None:
             self.proc.terminate()
             try:

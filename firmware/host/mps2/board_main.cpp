@@ -12,11 +12,15 @@
 //   Lockstep (simulated time, as linarm_sil --lockstep, for the shared protocol scenarios); every reply is
 //   "R <n>": n = the bytes written to UART0 since the previous reply, which the harness reads there:
 //   "L <centre_um> <delta_um> <homed> <service>"  a fresh controller and robot, ticks only on "A" from now on
-//   "S <n>"    n host bytes are coming on UART0: receive and dispatch them all
+//   "S <n>"    the host has sent n bytes on UART0 since "L" (a running total: some may have arrived before this
+//              line): receive and dispatch them all
 //   "A <n>"    run n control ticks (1 ms of simulated time each)
 //   "F <mN>"   a constant push on the handle (milli-newton, + towards +x)
 //   "N"        power cycle (boot IDENTIFY)
-//   "Z"        nothing: flush the count (the bytes written before the harness took over)
+//   "Z"        "R 0": forget the count (bytes written before the harness connected were dropped by qemu)
+// Until the first console byte arrives the board says "HELLO mps2-1.0" there every 100 ms: a host must not
+// send before the UARTs are enabled (qemu's CMSDK UART refuses bytes while RX is off, and its chardev may not
+// look at the socket again), so harnesses wait for it.
 #include <Arduino.h>
 #include <CmdMessenger.h>
 #include <stdlib.h>
@@ -125,6 +129,7 @@ void sayNumber(const char* key, uint32_t v) {
 }
 
 uint32_t g_txReported = 0;
+uint32_t g_rxBase = 0;  // UART0 bytes received before the lockstep harness's "L"
 void replyCount() {
   uint32_t tx = mps2::uart0.txBytes();
   say("R ");
@@ -171,10 +176,11 @@ void command(char* line) {
     o.service = strtol(rest, &rest, 10) != 0;
     g_options = o;
     g_lockstep = true;
+    g_rxBase = mps2::uart0.rxBytes();
     build(o);
     replyCount();
   } else if (line[0] == 'S') {
-    uint32_t target = mps2::uart0.rxBytes() + static_cast<uint32_t>(a);
+    uint32_t target = g_rxBase + static_cast<uint32_t>(a);
     while (static_cast<int32_t>(mps2::uart0.rxBytes() - target) < 0 || mps2::uart0.available() > 0) poll(m);
     replyCount();
   } else if (line[0] == 'A') {
@@ -186,7 +192,8 @@ void command(char* line) {
   } else if (line[0] == 'N') {
     build(g_options);
     replyCount();
-  } else if (line[0] == 'Z') {
+  } else if (line[0] == 'Z') {  // bytes written before a harness connected were never seen by it
+    g_txReported = mps2::uart0.txBytes();
     replyCount();
   } else {
     say("ERR\n");
@@ -195,9 +202,20 @@ void command(char* line) {
 
 char g_line[48];
 uint32_t g_lineLength = 0;
+bool g_consoleHeard = false;
 void console() {
   int c;
+  if (!g_consoleHeard && mps2::millis() % 100 == 0) {
+    static uint32_t lastHello = 0xFFFFFFFF;
+    if (lastHello != mps2::millis()) {
+      lastHello = mps2::millis();
+      say("HELLO ");
+      say(FIRMWARE_VERSION);
+      say("\n");
+    }
+  }
   while ((c = mps2::uart1.read()) >= 0) {
+    g_consoleHeard = true;
     if (c == '\n' || c == '\r') {
       if (g_lineLength) {
         g_line[g_lineLength] = 0;

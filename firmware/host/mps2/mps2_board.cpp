@@ -26,6 +26,10 @@ void UartStream::begin(uint32_t baud) {
 }
 
 void UartStream::onRxInterrupt() {
+  // Acknowledge first, then drain: a byte that lands after the last RX_FULL check raises the interrupt again.
+  // (Acknowledging after the drain lost it: RX_FULL stayed set with no interrupt pending, and the UART, which
+  // has a single holding register, refused every later byte: the link stalled.)
+  regs_->intstatus = INT_RX;  // INTCLEAR
   uint32_t state = regs_->state;
   if (state & STATE_RX_OVERRUN) {
     ++rxOverruns_;
@@ -43,7 +47,6 @@ void UartStream::onRxInterrupt() {
     head_ = head_ + 1;
     if (used + 1 > rxHighWater_) rxHighWater_ = used + 1;
   }
-  regs_->intstatus = INT_RX;  // INTCLEAR
 }
 
 int UartStream::available() { return static_cast<int>(head_ - tail_); }
