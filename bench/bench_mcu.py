@@ -92,15 +92,15 @@ def run(image: Path, seconds: float, shift: int) -> int:
             rows.append((mode, s, (host.frames - frames0) / pump_s))
 
         measure("idle", seconds)
-        host.send("setCtrlState", int(ControlState.HOME))
+        host.send("setCtrlState", int(ControlState.HOME_CTRL_STATE))
         measure("homing", min(seconds, 2.0))
         deadline = time.monotonic() + 30.0
         while time.monotonic() < deadline and (host.state is None or host.state.home_state != HomeState.HOME_DONE
-                                               or host.state.control_state != ControlState.ON):
+                                               or host.state.control_state != ControlState.ON_CTRL_STATE):
             if host.state is not None and host.state.home_state == HomeState.HOME_DONE:
-                host.send("setCtrlState", int(ControlState.ON))
+                host.send("setCtrlState", int(ControlState.ON_CTRL_STATE))
             host.pump(0.3)
-        if host.state is None or host.state.control_state != ControlState.ON:
+        if host.state is None or host.state.control_state != ControlState.ON_CTRL_STATE:
             print(f"homing did not finish: {host.state}", file=sys.stderr)
             return 1
         host.send("setCtrlMode", int(ControlMode.POS_REF_BY_TARGET_POS))
@@ -115,9 +115,9 @@ def run(image: Path, seconds: float, shift: int) -> int:
             calls[0] += 1
 
         measure("trajectory", seconds, every_s=0.1, each=back_and_forth)
-        host.send("setCtrlState", int(ControlState.IDLE))
+        host.send("setCtrlState", int(ControlState.IDLE_CTRL_STATE))
         host.send("setCtrlMode", int(ControlMode.POS_REF_BY_ADMITTANCE))
-        host.send("setCtrlState", int(ControlState.ON))
+        host.send("setCtrlState", int(ControlState.ON_CTRL_STATE))
         pushes = iter([10.0, -10.0] * 1000)
         ticks = [0]
 
@@ -128,7 +128,7 @@ def run(image: Path, seconds: float, shift: int) -> int:
                 board.ask(f"F {round(next(pushes) * 1000)}")
 
         measure("admittance 200 Hz", seconds, every_s=0.005, each=stream_200hz)
-        host.send("setCtrlState", int(ControlState.IDLE))
+        host.send("setCtrlState", int(ControlState.IDLE_CTRL_STATE))
     finally:
         board.close()
 

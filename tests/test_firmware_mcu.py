@@ -151,7 +151,7 @@ def test_host_silence_idles_the_motors_within_the_watchdog_time(realtime_board: 
                 received.append((now, decode_controller_frame(frame)))
 
     board.uart0.sendall(encode_command("startDataStream", 1, 0.005) + encode_command("setCtrlState", 2,
-                                                                                     int(ControlState.HOME)))
+                                                                                     int(ControlState.HOME_CTRL_STATE)))
     end = time.monotonic() + 0.5
     seq = 3
     while time.monotonic() < end:
@@ -159,7 +159,7 @@ def test_host_silence_idles_the_motors_within_the_watchdog_time(realtime_board: 
         seq += 1
         pump(time.monotonic() + 0.05)
     homing = [m for _, m in received if isinstance(m, LinarmState)]
-    assert homing and homing[-1].control_state == ControlState.HOME, homing[-3:]
+    assert homing and homing[-1].control_state == ControlState.HOME_CTRL_STATE, homing[-3:]
     assert any(isinstance(m, MotorState) and abs(m.current) > 0.01 for _, m in received), "the motors never ran"
     before_silence = len(received)
     t_last_host = time.monotonic()
@@ -176,7 +176,7 @@ def test_host_silence_idles_the_motors_within_the_watchdog_time(realtime_board: 
     later = [m for _, m in after if getattr(m, "t_us", -1) > event.t_us]
     states = [m for m in later if isinstance(m, LinarmState)]
     currents = [m.current for m in later if isinstance(m, MotorState)]
-    assert states and all(s.control_state == ControlState.IDLE and s.error_state == ErrorState.WATCHDOG
+    assert states and all(s.control_state == ControlState.IDLE_CTRL_STATE and s.error_state == ErrorState.WATCHDOG
                           for s in states)
     assert currents and all(c == 0.0 for c in currents), currents[:6]
 

@@ -80,12 +80,18 @@ void init() {
 uint32_t millis() { return g_ms; }
 
 uint32_t counts() {
+  static uint32_t last = 0;
   for (;;) {
     uint32_t ms = g_ms;
     uint32_t val = *SYST_CVR;
-    if (g_ms == ms) {  // no SysTick interrupt between the two reads: ms and val belong together
-      return ms * SYSTICK_COUNTS_PER_MS + (SYSTICK_COUNTS_PER_MS - 1 - val);
-    }
+    if (g_ms != ms) continue;  // a SysTick interrupt between the two reads: ms and val may not belong together
+    uint32_t now = ms * SYSTICK_COUNTS_PER_MS + (SYSTICK_COUNTS_PER_MS - 1 - val);
+    // Under qemu -icount the counter can read as reloaded before its interrupt has counted the millisecond:
+    // time never runs backwards, so that reading is one period later than it looks.
+    if (static_cast<int32_t>(now - last) < 0 && static_cast<int32_t>(now - last) > -static_cast<int32_t>(SYSTICK_COUNTS_PER_MS))
+      now += SYSTICK_COUNTS_PER_MS;
+    last = now;
+    return now;
   }
 }
 
