@@ -196,6 +196,18 @@ def test_trigger_exercise_fig18_against_the_emulated_board(mcu_image: Path, tmp_
         cfg = base()
         return replace(cfg, simulation=replace(cfg.simulation, linarm="mcu", host="process"))
 
+    import app.devices.sim.host as sim_host
+
+    asked: list[Path] = []
+
+    def image_found() -> Path:
+        asked.append(mcu_image)
+        return mcu_image
+
     monkeypatch.setattr(test_seed_scripts, "config", mcu_config)
+    monkeypatch.setattr(sim_host, "find_mcu_image", image_found)
     monkeypatch.delenv("LINARMPP_SIM_HOST", raising=False)
     test_seed_scripts.test_trigger_exercise_fig18_moves_only_after_the_grip(tmp_path)
+    assert asked, "the LINarm was not simulated by the emulated board"
+    manifests = [p.read_text(encoding="utf-8") for p in tmp_path.rglob("*.json")]
+    assert any("mps2-1.0" in text for text in manifests), "the record does not name the board's firmware"
