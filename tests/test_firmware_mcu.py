@@ -171,6 +171,8 @@ def test_host_silence_idles_the_motors_within_the_watchdog_time(realtime_board: 
     assert [m.error_state for _, m in events] == [ErrorState.WATCHDOG], events
     t_wall, event = events[0]
     silence = (event.t_us - t_controller_silent) * 1e-6  # the controller's own clock (SysTick-paced ticks)
+    print(f"watchdog: {silence:.3f} s of silence on the controller's clock, the event on the host "
+          f"{t_wall - t_last_host:.3f} s after its last byte")
     assert WATCHDOG_S - 0.01 <= silence <= WATCHDOG_S + 0.05, f"watchdog after {silence:.3f} s of silence"
     assert t_wall - t_last_host <= WATCHDOG_S + 0.15, f"the event reached the host {t_wall - t_last_host:.3f} s late"
     later = [m for _, m in after if getattr(m, "t_us", -1) > event.t_us]

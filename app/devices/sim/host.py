@@ -192,9 +192,11 @@ class McuCore:
 
     def handle_host_bytes(self, data: bytes, t: float) -> bytes:
         with contextlib.suppress(OSError):
-            self.sock.setblocking(True)
-            self.sock.sendall(data)
-            self.sock.setblocking(False)
+            try:
+                self.sock.setblocking(True)  # a few host bytes: the board takes them at once
+                self.sock.sendall(data)
+            finally:
+                self.sock.setblocking(False)
         return self.poll(t)
 
     def poll(self, t: float) -> bytes:
