@@ -1,6 +1,6 @@
 """The firmware's 1 kHz budget on the emulated Cortex-M3 board (issue #31): the controller image for the MPS2
 AN385 (firmware/host/mps2) under qemu-system-arm with instruction counting (-icount), the host streaming to it
-over UART0 in real time. The image measures every control tick's work in SysTick counts (25 MHz); with
+over UART0 in real time. The image measures every control tick's work in counts of its 25 MHz system clock (a CMSDK timer); with
 -icount shift=N one count is 40 / 2**N instructions. Per mode it prints the worst and p99 tick, the plant's
 step (the simulated robot: hardware on the DUE, not part of its budget), the worst command poll, late ticks,
 the painted stack's high-water mark and UART0's receive overruns / ring overflows, beside the DUE's budget:
@@ -77,7 +77,7 @@ class Host:
 
 
 def run(image: Path, seconds: float, shift: int) -> int:
-    per_count = 40 / 2 ** shift  # instructions per SysTick count (25 MHz) at 2**shift ns per instruction
+    per_count = 40 / 2 ** shift  # instructions per count of the 25 MHz clock at 2**shift ns per instruction
     board = McuBoard(image, icount=shift)
     rows = []
     try:
@@ -89,7 +89,10 @@ def run(image: Path, seconds: float, shift: int) -> int:
             frames0 = host.frames
             host.pump(pump_s, **pump)
             s = board.status()
-            rows.append((mode, s, (host.frames - frames0) / pump_s))
+            st = host.state
+            seen = (f"{ControlState(st.control_state).name.split('_')[0]}/{ControlMode(st.control_mode).name[8:]}"
+                    f"/{st.error_state.name}" if st else "?")
+            rows.append((mode, s, (host.frames - frames0) / pump_s, seen))
 
         measure("idle", seconds)
         host.send("setCtrlState", int(ControlState.HOME_CTRL_STATE))
@@ -133,20 +136,20 @@ def run(image: Path, seconds: float, shift: int) -> int:
         board.close()
 
     budget = DUE_CYCLES_PER_TICK
-    print(f"emulated MPS2 AN385 (Cortex-M3) under qemu-system-arm -icount shift={shift}: 1 SysTick count = "
+    print(f"emulated MPS2 AN385 (Cortex-M3) under qemu-system-arm -icount shift={shift}: 1 count of the 25 MHz clock = "
           f"{per_count:g} instructions; the DUE's budget: {budget} cycles per 1 ms tick (target: worst <= "
           f"{TARGET_SHARE:.0%})")
     print(f"{'mode':<19}{'ticks':>7}{'worst':>9}{'p99':>9}{'worst/DUE':>10}{'plant':>9}{'poll':>9}{'late':>6}"
-          f"{'stack B':>9}{'rx B':>8}{'ovr':>5}{'drop':>5}{'ring':>6}{'frames/s':>9}")
+          f"{'stack B':>9}{'rx B':>8}{'ovr':>5}{'drop':>5}{'ring':>6}{'frames/s':>9}  state/mode/error at the end")
     worst_share, overruns = 0.0, 0
-    for mode, s, fps in rows:
+    for mode, s, fps, seen in rows:
         worst, p99 = s["tick_max"] * per_count, s["tick_p99"] * per_count
         share = worst / budget
         worst_share = max(worst_share, share)
         overruns += s["rx_overruns"] + s["rx_dropped"]
         print(f"{mode:<19}{s['ticks']:>7}{worst:>9.0f}{p99:>9.0f}{share:>10.1%}{s['plant_max'] * per_count:>9.0f}"
               f"{s['poll_max'] * per_count:>9.0f}{s['late']:>6}{s['stack_hwm']:>9}{s['rx_bytes']:>8}"
-              f"{s['rx_overruns']:>5}{s['rx_dropped']:>5}{s['rx_ring_hwm']:>6}{fps:>9.0f}")
+              f"{s['rx_overruns']:>5}{s['rx_dropped']:>5}{s['rx_ring_hwm']:>6}{fps:>9.0f}  {seen}")
     print("instructions per tick (worst, p99: the controller's controlTick incl. interrupts); plant = the simulated "
           "robot's step; poll = the worst app.poll() with bytes; stack B = painted-stack high-water mark of "
           f"{rows[-1][1]['stack_size']} B; rx B / ovr / drop / ring = UART0 bytes, hardware overruns, ring "

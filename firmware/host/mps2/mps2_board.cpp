@@ -14,6 +14,13 @@ volatile uint32_t* const SYST_CVR = reinterpret_cast<volatile uint32_t*>(0xE000E
 volatile uint32_t* const NVIC_ISER0 = reinterpret_cast<volatile uint32_t*>(0xE000E100);
 const uint32_t IRQ_UART0_RX = 0, IRQ_UART1_RX = 2;  // AN385 wiring in qemu's mps2.c
 
+// CMSDK APB timer 1, free running from 0xFFFFFFFF at the 25 MHz PCLK: the work counter. Not SysTick: under
+// qemu -icount, SysTick's counter could read as reloaded before its interrupt had counted the millisecond,
+// and a (milliseconds, SysTick value) pair then came out one period short.
+volatile uint32_t* const TIMER1_CTRL = reinterpret_cast<volatile uint32_t*>(0x40001000);
+volatile uint32_t* const TIMER1_VALUE = reinterpret_cast<volatile uint32_t*>(0x40001004);
+volatile uint32_t* const TIMER1_RELOAD = reinterpret_cast<volatile uint32_t*>(0x40001008);
+
 volatile uint32_t g_ms = 0;
 }  // namespace
 
@@ -74,26 +81,15 @@ void init() {
   *SYST_RVR = SYSTICK_COUNTS_PER_MS - 1;
   *SYST_CVR = 0;
   *SYST_CSR = 7;  // processor clock, interrupt, enable
+  *TIMER1_RELOAD = 0xFFFFFFFFu;
+  *TIMER1_VALUE = 0xFFFFFFFFu;
+  *TIMER1_CTRL = 1;  // enable, no interrupt
   *NVIC_ISER0 = (1u << IRQ_UART0_RX) | (1u << IRQ_UART1_RX);
 }
 
 uint32_t millis() { return g_ms; }
 
-uint32_t counts() {
-  static uint32_t last = 0;
-  for (;;) {
-    uint32_t ms = g_ms;
-    uint32_t val = *SYST_CVR;
-    if (g_ms != ms) continue;  // a SysTick interrupt between the two reads: ms and val may not belong together
-    uint32_t now = ms * SYSTICK_COUNTS_PER_MS + (SYSTICK_COUNTS_PER_MS - 1 - val);
-    // Under qemu -icount the counter can read as reloaded before its interrupt has counted the millisecond:
-    // time never runs backwards, so that reading is one period later than it looks.
-    if (static_cast<int32_t>(now - last) < 0 && static_cast<int32_t>(now - last) > -static_cast<int32_t>(SYSTICK_COUNTS_PER_MS))
-      now += SYSTICK_COUNTS_PER_MS;
-    last = now;
-    return now;
-  }
-}
+uint32_t counts() { return 0xFFFFFFFFu - *TIMER1_VALUE; }  // counts up at 25 MHz
 
 }  // namespace mps2
 

@@ -48,7 +48,7 @@ extern UartStream uart1;  // the board console (status, and the lockstep harness
 
 void init();
 uint32_t millis();
-// A free-running count of SysTick clock periods (25 MHz), for measuring work: wraps every 171 s.
+// A free-running count of system clock periods (25 MHz, as SysTick's), for measuring work: wraps every 171 s.
 uint32_t counts();
 inline void waitForInterrupt() { __asm volatile("wfi"); }
 inline void disableIrq() { __asm volatile("cpsid i" ::: "memory"); }
