@@ -1,10 +1,10 @@
-"""The firmware's 1 kHz budget on the emulated Cortex-M3 board (issue #31): the controller image for the MPS2
-AN385 (firmware/host/mps2) under qemu-system-arm with instruction counting (-icount), the host streaming to it
-over UART0 in real time. The image measures every control tick's work in counts of its 25 MHz system clock (a CMSDK timer); with
--icount shift=N one count is 40 / 2**N instructions. Per mode it prints the worst and p99 tick, the plant's
-step (the simulated robot: hardware on the DUE, not part of its budget), the worst command poll, late ticks,
-the painted stack's high-water mark and UART0's receive overruns / ring overflows, beside the DUE's budget:
-84 000 cycles per 1 ms tick at 84 MHz.
+"""The firmware's 1 kHz budget on the emulated Cortex-M3 board (issue #31): the controller image for the MPS2 AN385
+(firmware/host/mps2) under qemu-system-arm with instruction counting (-icount), the host streaming to it over
+UART0 in real time. The image measures every control tick's work in counts of its 25 MHz system clock (a CMSDK
+timer); with -icount shift=N one count is 40 / 2**N instructions. Per mode it prints the worst and p99 tick, the
+plant's step (the simulated robot: hardware on the DUE, not part of its budget), the worst command poll, late
+ticks, the painted stack's high-water mark and UART0's receive overruns / ring overflows, beside the DUE's
+budget: 84 000 cycles per 1 ms tick at 84 MHz.
 
 Caveat: qemu counts instructions, not cycles. A Cortex-M3 at 84 MHz with the SAM3X8E's flash wait states
 needs more than one cycle for many of them (loads, branches, soft-float calls): read the percentages as
