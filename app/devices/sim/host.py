@@ -83,7 +83,7 @@ def qemu_mps2_command(image: Path, uart0_port: int, uart1: str = "null", icount:
     server; ``uart1`` (the board console) is any qemu chardev spec. ``icount``: count instructions
     (virtual time = 2^icount ns per instruction) instead of following the host's clock."""
     cmd = [QEMU_SYSTEM_ARM, "-M", "mps2-an385", "-nographic", "-monitor", "none", "-kernel", str(image),
-           "-serial", f"tcp:127.0.0.1:{uart0_port},server=on,wait=off", "-serial", uart1]
+           "-serial", f"tcp:127.0.0.1:{uart0_port},server=on,wait=off,nodelay=on", "-serial", uart1]
     if icount is not None:
         cmd += ["-icount", f"shift={icount},sleep=on"]
     return cmd
@@ -155,7 +155,7 @@ class McuCore:
         self.sock: Any = None
         self.console: Any = None
         self.proc = subprocess.Popen(
-            qemu_mps2_command(image, port, f"tcp:127.0.0.1:{console_port},server=on,wait=off"),
+            qemu_mps2_command(image, port, f"tcp:127.0.0.1:{console_port},server=on,wait=off,nodelay=on"),
             stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
             preexec_fn=firmware_child_setup)
         deadline = time.monotonic() + connect_timeout_s
