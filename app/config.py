@@ -233,10 +233,11 @@ class SimulationConfig:
     of their own, so the app's process is what it is with real hardware; ``thread`` runs them in the
     app's process (tests that reach into a simulator). ``linarm: firmware`` simulates the LINarm with the
     firmware's software-in-the-loop executable (built from firmware/host with CMake) instead of the
-    Python model."""
+    Python model; ``linarm: mcu`` with the firmware's ARM image on an emulated Cortex-M3 board
+    (qemu-system-arm -M mps2-an385, image built from firmware/host/due)."""
 
     host: Literal["process", "thread"] = "process"
-    linarm: Literal["python", "firmware"] = "python"
+    linarm: Literal["python", "firmware", "mcu"] = "python"
     link: Literal["pty", "socket"] = "socket"
 
 

@@ -101,6 +101,14 @@ class SimulatorHosting:
                 raise RuntimeError("simulation.linarm is 'firmware' but the firmware's SIL executable is not "
                                    "built (cmake -S firmware/host -B firmware/build && cmake --build firmware/build)")
             kind, params = "linarm_firmware", {**params, "executable": str(sil)}
+        elif kind == "linarm" and self.linarm_kind == "mcu":
+            from app.devices.sim.host import find_mcu_image
+
+            image = find_mcu_image()
+            if image is None:
+                raise RuntimeError("simulation.linarm is 'mcu' but the firmware's MPS2 image is not built (cmake "
+                                   "--build firmware/build/due --target linarm_mps2.elf, see firmware/README.md)")
+            kind, params = "linarm_mcu", {**params, "image": str(image)}
         tcp_port = free_tcp_port() if self.link == "socket" else None
         self._spec[name] = {"kind": kind, **params, **({"tcp_port": tcp_port} if tcp_port else {})}
         self.patient()

@@ -13,7 +13,9 @@ host watchdog stops the motors; the SIGKILL test watches exactly that through th
 hosting for tests that reach into a simulator core.
 
 The LINarm may be the Python model or the firmware's software-in-the-loop executable (``linarm: firmware``,
-built from firmware/host with CMake): the real controller code on its simulated plant.
+built from firmware/host with CMake): the real controller code on its simulated plant. ``linarm: mcu`` runs
+the firmware's ARM image for the emulated MPS2 AN385 board under ``qemu-system-arm`` instead (the same plant
+inside the image) and talks to it through the board's UART0, a TCP character device of qemu.
 """
 
 from __future__ import annotations
@@ -63,6 +65,28 @@ def find_firmware_sil() -> Path | None:
             if candidate.is_file() and os.access(candidate, os.X_OK):
                 return candidate
     return None
+
+
+MCU_IMAGE_PATHS = (ROOT / "firmware" / "build" / "due" / "linarm_mps2.elf",
+                   ROOT / "firmware" / "build" / "pytest-due" / "linarm_mps2.elf")
+QEMU_SYSTEM_ARM = "qemu-system-arm"
+
+
+def find_mcu_image() -> Path | None:
+    """The firmware's image for the emulated MPS2 AN385 board, when built
+    (``cmake --build firmware/build/due --target linarm_mps2.elf``)."""
+    return next((p for p in MCU_IMAGE_PATHS if p.is_file()), None)
+
+
+def qemu_mps2_command(image: Path, uart0_port: int, uart1: str = "null", icount: int | None = None) -> list[str]:
+    """qemu-system-arm running ``image`` on the MPS2 AN385 board, UART0 (the protocol) on a loopback TCP
+    server; ``uart1`` (the board console) is any qemu chardev spec. ``icount``: count instructions
+    (virtual time = 2^icount ns per instruction) instead of following the host's clock."""
+    cmd = [QEMU_SYSTEM_ARM, "-M", "mps2-an385", "-nographic", "-monitor", "none", "-kernel", str(image),
+           "-serial", f"tcp:127.0.0.1:{uart0_port},server=on,wait=off,nodelay=on", "-serial", uart1]
+    if icount is not None:
+        cmd += ["-icount", f"shift={icount},sleep=on"]
+    return cmd
 
 
 def free_tcp_port() -> int:
@@ -120,6 +144,79 @@ class SilCore:
             self.proc.wait(1.0)
         with contextlib.suppress(Exception):
             self.proc.stdout.close()  # type: ignore[union-attr]
+
+
+class McuCore:
+    """The firmware's image on the emulated MPS2 AN385 board as a simulator core: qemu-system-arm with the
+    board's UART0 on a loopback TCP port; host bytes go to that socket, the board's output is polled from it."""
+
+    def __init__(self, image: Path, connect_timeout_s: float = 10.0) -> None:
+        port, console_port = free_tcp_port(), free_tcp_port()
+        self.sock: Any = None
+        self.console: Any = None
+        self.proc = subprocess.Popen(
+            qemu_mps2_command(image, port, f"tcp:127.0.0.1:{console_port},server=on,wait=off,nodelay=on"),
+            stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+            preexec_fn=firmware_child_setup)
+        deadline = time.monotonic() + connect_timeout_s
+        try:
+            self.sock = self._connect(port, deadline)
+            self.console = self._connect(console_port, deadline)
+            # The board greets on its console once its UARTs are enabled; bytes sent to UART0 before that may
+            # stay in qemu's socket (its CMSDK UART refuses them while receive is off).
+            greeting = b""
+            while b"HELLO" not in greeting:
+                self.console.settimeout(max(0.05, deadline - time.monotonic()))
+                chunk = self.console.recv(256)
+                if not chunk:
+                    raise OSError("the board's console closed")
+                greeting += chunk
+            self.console.sendall(b"\n")  # heard: the greetings stop
+        except OSError as exc:
+            self.close()
+            raise RuntimeError(f"the emulated board did not come up: {exc}") from exc
+        self.sock.setblocking(False)
+
+    def _connect(self, port: int, deadline: float) -> Any:
+        import socket
+
+        while True:  # qemu listens a moment after it starts
+            try:
+                sock = socket.create_connection(("127.0.0.1", port), timeout=1.0)
+                sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+                return sock
+            except OSError:
+                if self.proc.poll() is not None or time.monotonic() > deadline:
+                    raise
+                time.sleep(0.05)
+
+    def handle_host_bytes(self, data: bytes, t: float) -> bytes:
+        with contextlib.suppress(OSError):
+            try:
+                self.sock.setblocking(True)  # a few host bytes: the board takes them at once
+                self.sock.sendall(data)
+            finally:
+                self.sock.setblocking(False)
+        return self.poll(t)
+
+    def poll(self, t: float) -> bytes:
+        try:
+            return self.sock.recv(65536)
+        except (BlockingIOError, OSError, AttributeError):
+            return b""
+
+    def close(self) -> None:
+        for sock in (self.sock, self.console):
+            if sock is not None:
+                with contextlib.suppress(Exception):
+                    sock.close()
+        if self.proc.poll() is None:
+            self.proc.terminate()
+            try:
+                self.proc.wait(2.0)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait(2.0)
 
 
 class LinarmStateWatch:
@@ -204,6 +301,14 @@ def build_simulators(spec: dict[str, Any], patient: Any, emit: Callable[[dict[st
                 return _Watched(core, LinarmStateWatch(emit)) if emit else core
 
             sims[name] = SerialSimulator(name, sil_core, link, tick_s=0.002, link_factory=link_factory)
+        elif kind == "linarm_mcu":
+            image = Path(params["image"])
+
+            def mcu_core(image: Path = image) -> Any:
+                core = McuCore(image)
+                return _Watched(core, LinarmStateWatch(emit)) if emit else core
+
+            sims[name] = SerialSimulator(name, mcu_core, link, tick_s=0.002, link_factory=link_factory)
         elif kind == "physio":
             from app.devices.physio import PhysioSimCore
             from app.devices.physio_codec import Calibration, ChannelCalibration
