@@ -360,8 +360,8 @@ class ScriptConsole(QWidget):
         for w in (self.open_button, self.save_button, self.save_as_button, self.start_button, self.stop_button):
             bar.addWidget(w)
         bar.addWidget(self.home_first)
-        bar.addStretch(1)
-        bar.addWidget(self.status)
+        self.status.setAlignment(Qt.AlignmentFlag.AlignRight | Qt.AlignmentFlag.AlignVCenter)
+        bar.addWidget(self.status, 1)  # the room left, and no more: elided beyond it
 
         self.editor = CodeEditor()
         self.editor.setPlaceholderText(
