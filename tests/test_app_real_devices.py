@@ -25,7 +25,8 @@ def test_every_simulated_device_connects_and_closing_leaves_nothing_running(qtbo
     qtbot.waitUntil(lambda: all(" connected" in label.text() for label in window.device_status.values()),
                     timeout=3000)
     processes = [p for h in manager.devices.values() for p in h.extras.get("processes", [])]
-    assert len(processes) == 2 and all(p.poll() is None for p in processes)
+    # the patient model's and the VR stand-in's helpers, and the FES dead man's switch (app/devices/fes_guardian.py)
+    assert len(processes) == 3 and all(p.poll() is None for p in processes)
     drivers = [h.driver for h in manager.devices.values()]
     window.close()
     t0 = time.monotonic()

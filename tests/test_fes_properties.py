@@ -72,7 +72,9 @@ class Session:
     link: Loopback
     driver: FesDriver
     supervisor: SafetySupervisor
-    limits_log: list[tuple[float, FesLimits]] = field(default_factory=list)
+    # (wire index from which, limits): ordered by the wire, not the virtual clock — an update sent at the same
+    # instant just before a change of caps was judged by the new caps (hypothesis found it: 0 mA 1 µs, cap 0 µs)
+    limits_log: list[tuple[int, FesLimits]] = field(default_factory=list)
     estop_log: list[tuple[int, bool]] = field(default_factory=list)  # (wire index from which, latched)
 
     def advance(self, seconds: float) -> None:
@@ -96,7 +98,7 @@ def session(protocol: str, limits: FesLimits) -> Session:
     driver._set_connected(True, "loopback")
     driver.on_connect()
     driver._driver_thread = threading.get_ident() + 1  # the test thread plays the caller, not the loop
-    s = Session(protocol, clock, link, driver, supervisor, [(clock[0], limits)])
+    s = Session(protocol, clock, link, driver, supervisor, [(0, limits)])
     s.advance(0.6 if protocol == "sm2" else 0.01)  # SM2: the device's Init and our InitAck
     assert driver.device_ready
     return s
@@ -113,8 +115,8 @@ def violations(s: Session) -> list[str]:
     changed: dict[int, tuple[float, float]] = {}
     found: list[str] = []
 
-    def limits_at(t: float) -> FesLimits:
-        return [lim for tl, lim in s.limits_log if tl <= t][-1]
+    def limits_at(index: int) -> FesLimits:
+        return [lim for i, lim in s.limits_log if i <= index][-1]
 
     def latched_at(index: int) -> bool:
         states = [on for i, on in s.estop_log if i <= index]
@@ -134,7 +136,7 @@ def violations(s: Session) -> list[str]:
                 if config is None:
                     found.append(f"{t:.3f}: an update without a channel list")
                     continue
-                lim = limits_at(t)
+                lim = limits_at(index)
                 for ch, p in zip(config.channels, msg.settings, strict=True):
                     found += check_channel(s.protocol, lim, config, ch, p, t, started_at, last[ch], changed[ch],
                                            latched_at(index))
@@ -245,8 +247,9 @@ def run(s: Session, profile: FesProfile, script: list[tuple]) -> None:
             elif action == "phase":
                 d.set_phase(args[0])
             elif action == "clinical_caps":
+                before = len(s.link.wire)
                 d.set_clinical_caps(args[0])
-                s.limits_log.append((s.clock[0], s.supervisor.fes_limiter.limits))
+                s.limits_log.append((before, s.supervisor.fes_limiter.limits))
             elif action == "load":
                 d.load_profile(args[0])
         except (SafetyError, FesError):
@@ -318,7 +321,7 @@ def test_the_checker_catches_a_violation() -> None:
     s = session("sm1", limits)
     run(s, demanding_profile(), [("start",), ("wait", 2.0)])
     assert violations(s) == []
-    s.limits_log.append((s.clock[0], replace(limits, max_current_ma=25.0)))  # the checker's view only
+    s.limits_log.append((len(s.link.wire), replace(limits, max_current_ma=25.0)))  # the checker's view only
     run(s, demanding_profile(), [("wait", 0.1)])
     found = violations(s)
     assert found and "above the cap 25 mA" in found[0]
