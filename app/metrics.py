@@ -1069,7 +1069,7 @@ def metrics_by_run(session: Any, sig: SessionSignals | None = None) -> list[RunM
         summary = summarize(reps, duration_s=hi - lo,
                             alarms=sum(1 for a in run_alarms if a["kind"] in ("alarm", "emergency_stop")))
         summary.update(_clean({"run_id": run.run_id, "title": run.title, "end_reason": run.end_reason,
-                               "not_started": not_started,
+                               "exercise_params": params, "not_started": not_started,
                                "positioning_moves": sum(1 for p in positioning if p["kind"] != "homing")}))
         dicts = []
         for m in reps:

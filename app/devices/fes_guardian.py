@@ -303,6 +303,10 @@ class FesGuardian:
     def wait(self, timeout: float | None = None) -> int | None:
         return self.proc.wait(timeout) if self.proc is not None else None
 
+    def poll(self) -> int | None:
+        """As ``Popen.poll``: None while the guardian runs (a never-started guardian reads as ended, 0)."""
+        return self.proc.poll() if self.proc is not None else 0
+
     def kill(self) -> None:
         if self.proc is not None:
             self.proc.kill()
