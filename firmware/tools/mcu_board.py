@@ -19,7 +19,8 @@ class McuBoard:
     def __init__(self, image: Path, icount: int | None = None) -> None:
         self.uart0_port, console_port = free_tcp_port(), free_tcp_port()
         self.proc = subprocess.Popen(
-            qemu_mps2_command(image, self.uart0_port, f"tcp:127.0.0.1:{console_port},server=on,wait=off,nodelay=on", icount),
+            qemu_mps2_command(image, self.uart0_port,
+                              f"tcp:127.0.0.1:{console_port},server=on,wait=off,nodelay=on", icount),
             stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
         try:
             self.uart0 = self._connect(self.uart0_port)
