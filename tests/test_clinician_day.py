@@ -48,7 +48,9 @@ def _shot(widget: Any, name: str) -> None:
 
 
 @pytest.fixture
-def day(qtbot: Any, monkeypatch: Any) -> Iterator[tuple[LinarmppManager, MainWindow]]:
+def day(qtbot: Any, monkeypatch: Any, tmp_path: Path) -> Iterator[tuple[LinarmppManager, MainWindow]]:
+    # A clinic of its own: patients, sessions and settings under this test's folder (a rerun starts afresh).
+    monkeypatch.setenv("LINARMPP_HOME", str(tmp_path / "home"))
     cfg = AppConfig()
     # The assistance link and the VR game play no part in these exercises: off, as a site without them.
     cfg = replace(cfg, devices=replace(cfg.devices, patient_model=UdpEndpoint(mode="off"),
@@ -154,7 +156,11 @@ def test_a_clinicians_day(day: tuple[LinarmppManager, MainWindow], qtbot: Any, m
           "the restarted run's end")
     assert manager.runs.get(again.run_id).end_reason == "finished"
     # The exercise's summary (on screen): its reaction times, to be found again in the PDF.
-    qtbot.waitUntil(lambda: panel.summary_dialog is not None and panel.summary_dialog.isVisible(), timeout=15000)
+    # The restarted run's own summary (the interrupted run's may have opened first, after the STOP).
+    def restarted_summary() -> bool:
+        d = panel.summary_dialog
+        return d is not None and d.isVisible() and [r.run.run_id for r in d.summary.runs] == [again.run_id]
+    _wait(qtbot, manager, window, restarted_summary, 15000, "the restarted run's summary")
     summary = panel.summary_dialog
     _shot(summary, "06-exercise-summary")
     screen_rts = _column_texts(summary, "RT s")
