@@ -1075,8 +1075,11 @@ def sign_off(pdf: _Pdf, operator: str) -> None:
 # ------------------------------------------------------------------------------------------- progress PDF
 def write_progress_report(patient_id: str, out: str | Path, rows: Sequence[ProgressRow],
                           profile: Any = None) -> int:
-    """Write the patient's progress report from :func:`progress_rows`; returns the number of pages."""
+    """Write the patient's progress report from :func:`progress_rows`; returns the number of pages. Without
+    ``profile`` the patient's saved profile is read (their identification is never dropped for lack of it)."""
     _ensure_gui_app()
+    if profile is None:
+        profile = _profile_of(patient_id)
     pdf = _Pdf(Path(out), f"Progress {patient_id}", _footer(f"progress of {patient_id}"))
     pdf.text("Patient progress report", 17, True, "#1a3d6d", gap=8)
     first = rows[0].date if rows else "—"

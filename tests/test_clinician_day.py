@@ -205,6 +205,7 @@ def test_a_clinicians_day(day: tuple[LinarmppManager, MainWindow], qtbot: Any, m
     # Repetitions numbered within each run: the run headings each followed by a repetition 1.
     assert len(re.findall(r"(?m)^1 ", text)) >= 3, text
     assert overlaps(session_pdf) == [] and overlaps(progress_pdf) == []
+    assert "Maria Esposito" in pdf_text(progress_pdf)  # the patient identified on both reports
     # The Script-tab run cues the patient once the robot has arrived; the simulated patient squeezes
     # REACTION_DELAY_S after arriving: the reaction times measured from the record agree (first movement: no
     # squeeze, the script's 10 s timeout moved it; that repetition has none).
