@@ -222,12 +222,22 @@ class _ExerciseFile:
             raise ValueError(f"a parameter name is repeated: {', '.join(repeated)}")
 
 
-def _key_line(text: str, key: str) -> int | None:
-    """The line of a top-level key (the text already passed check_yaml: composing it is safe)."""
+def _key_line(text: str, key: str, index: int | None = None) -> int | None:
+    """The line of a top-level key, or of item ``index`` of its list (the text already passed check_yaml:
+    composing it is safe)."""
     try:
         root = yaml.compose(text, Loader=yaml.SafeLoader)
     except yaml.YAMLError:
         return None
+    if isinstance(root, MappingNode):
+        for knode, vnode in root.value:
+            if knode.value != key:
+                continue
+            if index is None:
+                return knode.start_mark.line + 1
+            if isinstance(vnode, SequenceNode) and index < len(vnode.value):
+                return vnode.value[index].start_mark.line + 1
+    return None
     if isinstance(root, MappingNode):
         for knode, _ in root.value:
             if knode.value == key:
@@ -276,21 +286,9 @@ def load_exercise(path: str | Path) -> Exercise:
         try:
             params.append(p.parameter())
         except ValueError as exc:  # the default outside the declared range: the parameter's own line
-            line = _parameter_line(text, k)
+            line = _key_line(text, "parameters", k)
             raise ExerciseError(f"{path}:{line}: parameters[{k}]: {exc}" if line else f"{path}: {exc}") from None
     return Exercise(path.stem, raw.title or path.stem, raw.description.strip(), script, tuple(params), raw.order)
-
-
-def _parameter_line(text: str, index: int) -> int | None:
-    try:
-        root = yaml.compose(text, Loader=yaml.SafeLoader)
-    except yaml.YAMLError:
-        return None
-    if isinstance(root, MappingNode):
-        for knode, vnode in root.value:
-            if knode.value == "parameters" and isinstance(vnode, SequenceNode) and index < len(vnode.value):
-                return vnode.value[index].start_mark.line + 1
-    return None
 
 
 def load_library(folder: Path | None = None) -> tuple[list[Exercise], list[str]]:

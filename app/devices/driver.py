@@ -345,6 +345,17 @@ class DeviceDriver(QThread):
                 self._stop.wait(backoff)
         self._emit_batches(force=True)
 
+    def _take_bytes(self, on_bytes: Any, data: bytes, t_ns: int) -> None:
+        """Decode one read; waiters are woken once per read (not per sample), after it."""
+        self._in_read = True
+        try:
+            on_bytes(data, t_ns)
+        finally:
+            self._in_read = False
+            if self._notify_pending:
+                self._notify_pending = False
+                self.notifier.notify()
+
     def _io_loop(self) -> None:
         # Runs once per read (hundreds of times a second): the lookups are done once, here.
         read, on_bytes, on_tick = self.transport.read, self.on_bytes, self.on_tick
@@ -352,17 +363,11 @@ class DeviceDriver(QThread):
         batch_period, silence_timeout = self.batch_period_s, self.silence_timeout_s
         next_batch = monotonic() + batch_period
         self._last_sample_mono = monotonic()
+        take = self._take_bytes
         while not stop.is_set():
             data = read(self.read_timeout_s)  # read each pass: a driver may set it in on_tick (FES: its t1 grid)
             if data:
-                self._in_read = True
-                try:
-                    on_bytes(data, monotonic_ns())
-                finally:
-                    self._in_read = False
-                    if self._notify_pending:
-                        self._notify_pending = False
-                        self.notifier.notify()
+                take(on_bytes, data, monotonic_ns())
             now = monotonic()
             on_tick(now)
             if silence_timeout is not None:
@@ -374,14 +379,7 @@ class DeviceDriver(QThread):
                     # (the false "stopped sending data" warnings of #27: the next read found data at once).
                     pending = read(0.0)
                     if pending:
-                        self._in_read = True
-                        try:
-                            on_bytes(pending, monotonic_ns())
-                        finally:
-                            self._in_read = False
-                            if self._notify_pending:
-                                self._notify_pending = False
-                                self.notifier.notify()
+                        take(on_bytes, pending, monotonic_ns())
                         now = monotonic()
                         silent = now - self._last_sample_mono > silence_timeout
                 if silent != self._silent:
