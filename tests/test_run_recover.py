@@ -100,8 +100,11 @@ def test_an_exercises_tab_run_stopped_by_f12_restarts_the_same_exercise(qtbot: A
     qtbot.waitUntil(lambda: manager.progress.state.run_id == again.run_id, timeout=20000)
     qtbot.waitUntil(lambda: panel.state_label.text().startswith("Trigger reaching"), timeout=5000)
     runner.stop("test over", wait_s=2.0)
+    # The label follows the run on the GUI loop: under load it may still show the first run's "stopped: emergency
+    # stop" for a moment (two `yes` beside the suite showed it), so wait for this run's own words.
     qtbot.waitUntil(lambda: not manager.runs.get(again.run_id).running
-                    and "— stopped: " in panel.state_label.text(), timeout=5000)
+                    and panel.state_label.text().endswith(manager.runs.get(again.run_id).state_text()),
+                    timeout=5000)
     assert panel.state_label.text().endswith(manager.runs.get(again.run_id).state_text())
     elapsed = panel.elapsed_label.text()
     qtbot.wait(1300)
