@@ -134,9 +134,7 @@ class CommandsFrame(QWidget):
             self.tabs.addTab(empty, "Panels")
 
         self._sync_devices()
-        # A bound slot, not a lambda: Qt disconnects it when this frame is deleted (a lambda outlived a closed
-        # window and touched its deleted labels when a device changed during the manager's shutdown).
-        manager.device_connection_changed.connect(self._on_device_connection_changed)
+        manager.device_connection_changed.connect(lambda *_a: self.refresh())
         self.timer = QTimer(self)
         self.timer.setInterval(500)
         self.timer.timeout.connect(self.refresh)
@@ -177,9 +175,6 @@ class CommandsFrame(QWidget):
             self.devices_grid.addWidget(toggle, 0, n)
             self.toggles[name] = toggle
         self.no_devices.setVisible(not self.toggles)
-
-    def _on_device_connection_changed(self, *_args: object) -> None:
-        self.refresh()
 
     def refresh(self) -> None:
         self._sync_devices()
