@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import logging
 import operator
-import os
 import threading
 import time
 from collections.abc import Callable
@@ -27,70 +26,14 @@ from typing import Any
 import numpy as np
 from PySide6.QtCore import QThread, Signal
 
+from app.bus import Channel, SampleBatch, StreamSpec, UpdateNotifier
+from app.devices.realtime import REALTIME_ENV, request_realtime
 from app.devices.transport import Transport, TransportError
 
+__all__ = ["REALTIME_ENV", "Channel", "DeviceDriver", "SampleBatch", "StreamSpec", "UpdateNotifier",
+           "request_realtime"]
+
 log = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class Channel:
-    """One scalar signal of a stream: attribute name on the sample, unit, human label."""
-
-    name: str
-    unit: str
-    label: str
-
-
-@dataclass(frozen=True)
-class StreamSpec:
-    name: str  # "<device>.<stream>", e.g. "linarm.vsa"
-    channels: tuple[Channel, ...]
-    nominal_rate_hz: float
-
-
-@dataclass
-class SampleBatch:
-    """Samples of one stream since the last batch: ``t`` in monotonic seconds (when each sample was taken, on
-    the device's clock mapped to the host's: app.devices.clock), one array per channel, and ``arrival`` (when
-    each came back from a read; a diagnostic, None when not kept)."""
-
-    stream: StreamSpec
-    t: np.ndarray
-    data: dict[str, np.ndarray]
-    arrival: np.ndarray | None = None
-
-    def __len__(self) -> int:
-        return len(self.t)
-
-
-class UpdateNotifier:
-    """A generation counter + condition shared by all drivers: 'some device published something'.
-
-    ``notify`` runs once per read on every driver thread: with nobody waiting (no script in a wait) it is one
-    C-level lock and an increment, not Condition.notify_all's Python code."""
-
-    def __init__(self) -> None:
-        self._lock = threading.RLock()
-        self._cond = threading.Condition(self._lock)
-        self._waiting = 0  # threads in wait_after, counted under the lock
-        self.generation = 0
-
-    def notify(self) -> None:
-        with self._lock:
-            self.generation += 1
-            if self._waiting:
-                self._cond.notify_all()
-
-    def wait_after(self, generation: int, timeout: float) -> int:
-        """Block until the generation moves past ``generation`` (or timeout); return the new one."""
-        with self._lock:
-            if self.generation == generation:
-                self._waiting += 1
-                try:
-                    self._cond.wait(timeout)
-                finally:
-                    self._waiting -= 1
-            return self.generation
 
 
 @dataclass
@@ -126,30 +69,6 @@ class _Accumulator:
         self.arrival = []
         self.samples = []
         return batch
-
-
-REALTIME_ENV = "LINARMPP_REALTIME"  # "0": never ask for real-time scheduling
-_realtime_refused_logged = False
-
-
-def request_realtime(priority: int) -> bool:
-    """Ask the OS to run the calling thread round-robin real-time at ``priority`` (Linux: needs root,
-    CAP_SYS_NICE or an RLIMIT_RTPRIO, e.g. ``@linarmpp - rtprio 20`` in /etc/security/limits.d). True when
-    granted. Measured on a saturated 2-core machine: a normal thread waiting in select() for 10 ms was
-    scheduled up to 170 ms late; a SCHED_RR one at most 13 ms late (docs/decisions.md, #16)."""
-    global _realtime_refused_logged
-    if os.environ.get(REALTIME_ENV) == "0" or not hasattr(os, "sched_setscheduler"):
-        return False
-    try:
-        # 0: this thread (Linux); RESET_ON_FORK: threads it starts (executors) run at normal priority
-        os.sched_setscheduler(0, os.SCHED_RR | getattr(os, "SCHED_RESET_ON_FORK", 0), os.sched_param(priority))
-        return True
-    except (OSError, ValueError) as exc:
-        if not _realtime_refused_logged:
-            _realtime_refused_logged = True
-            log.warning("real-time scheduling refused (%s): device links run at normal priority; grant "
-                        "rtprio to the user for timing under load", exc)
-        return False
 
 
 SampleListener = Callable[[str, float, Any], None]

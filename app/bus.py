@@ -1,0 +1,464 @@
+"""The stream bus: the one way samples and device events leave a driver (issue #29).
+
+Qt-free. The composition root builds one :class:`StreamBus` and hands it to every device (in its typed
+``DeviceContext``) and to every consumer; nobody reaches into a driver for its data.
+
+* A driver **declares** its streams (:class:`StreamSpec`) and **publishes** typed, timestamped samples and
+  device events (``connected``, ``disconnected``, ``silent``, ``alive``, ``controller_error``, …).
+* The bus keeps each stream's **latest** sample and the :class:`UpdateNotifier` a script's ``waitCondition``
+  waits on (woken once per driver read, not once per sample).
+* A consumer **subscribes** by name to the streams (and events) it wants and gets a **bounded, counted queue**
+  (:class:`Subscription`): it drains it on its own thread or timer, so a slow consumer can only lose its own
+  oldest items (counted in ``dropped``), never slow a driver or another consumer.
+* **Inline** delivery (the callback runs on the publishing driver's thread, before ``publish`` returns) is
+  kept for the safety monitor only, by name (:data:`INLINE_SUBSCRIBERS`): its check must see every sample
+  before anything else does.
+* The graphs and values want columns at display rate: a :class:`BatchSubscription` accumulates samples as they
+  are decoded and hands them over as numpy columns (:class:`SampleBatch`) when taken. The Qt adapter
+  (``app/ui/qt_bus.py``) takes them on a GUI timer and emits Qt signals; nothing here knows about Qt.
+
+Stream names are constants in :mod:`app.streams`.
+"""
+
+from __future__ import annotations
+
+import logging
+import operator
+import threading
+import time
+from collections import deque
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+
+# ---------------------------------------------------------------------------------------------- stream types
+@dataclass(frozen=True)
+class Channel:
+    """One scalar signal of a stream: attribute name on the sample, unit, human label."""
+
+    name: str
+    unit: str
+    label: str
+
+
+@dataclass(frozen=True)
+class StreamSpec:
+    name: str  # "<device>.<stream>", e.g. app.streams.LINARM_VSA
+    channels: tuple[Channel, ...]
+    nominal_rate_hz: float
+
+    @property
+    def device(self) -> str:
+        return self.name.partition(".")[0]
+
+
+@dataclass
+class SampleBatch:
+    """Samples of one stream since the last batch: ``t`` in monotonic seconds (when each sample was taken, on
+    the device's clock mapped to the host's: app.devices.clock), one array per channel, and ``arrival`` (when
+    each came back from a read; a diagnostic, None when not kept)."""
+
+    stream: StreamSpec
+    t: np.ndarray
+    data: dict[str, np.ndarray]
+    arrival: np.ndarray | None = None
+
+    def __len__(self) -> int:
+        return len(self.t)
+
+
+@dataclass(frozen=True, slots=True)
+class SampleItem:
+    """One published sample: ``t`` when it was taken (device clock mapped to host monotonic s), ``arrival``
+    when the read that carried it returned."""
+
+    stream: str
+    t: float
+    sample: Any
+    arrival: float
+
+
+@dataclass(frozen=True, slots=True)
+class DeviceEvent:
+    """Something that happened to a device's link: ``kind`` is one of :data:`EVENT_KINDS` (drivers may add
+    their own), ``detail`` a sentence or a number as text, ``t`` host monotonic s."""
+
+    device: str
+    kind: str
+    detail: str
+    t: float
+
+
+BusItem = SampleItem | DeviceEvent
+EVENT_KINDS = ("connected", "disconnected", "silent", "alive", "controller_error")
+
+# Who may run on the publishing driver's thread. Anything else gets a queue.
+INLINE_SUBSCRIBERS = frozenset({"safety"})
+DEFAULT_MAXLEN = 4096  # items per subscription: ~4 s of the LINarm's four streams at their nominal rates
+
+
+class UpdateNotifier:
+    """A generation counter + condition: 'some device published something'.
+
+    ``notify`` runs once per read on every driver thread: with nobody waiting (no script in a wait) it is one
+    C-level lock and an increment, not Condition.notify_all's Python code."""
+
+    def __init__(self) -> None:
+        self._lock = threading.RLock()
+        self._cond = threading.Condition(self._lock)
+        self._waiting = 0  # threads in wait_after, counted under the lock
+        self.generation = 0
+
+    def notify(self) -> None:
+        with self._lock:
+            self.generation += 1
+            if self._waiting:
+                self._cond.notify_all()
+
+    def wait_after(self, generation: int, timeout: float) -> int:
+        """Block until the generation moves past ``generation`` (or timeout); return the new one."""
+        with self._lock:
+            if self.generation == generation:
+                self._waiting += 1
+                try:
+                    self._cond.wait(timeout)
+                finally:
+                    self._waiting -= 1
+            return self.generation
+
+
+# ---------------------------------------------------------------------------------------------- subscriptions
+class Subscription:
+    """A consumer's bounded queue of bus items. ``received`` counts every item offered, ``dropped`` the oldest
+    ones pushed out because the consumer did not drain in time. Thread-safe: drivers put, the consumer drains."""
+
+    def __init__(self, bus: StreamBus, name: str, streams: frozenset[str] | None, events: bool,
+                 maxlen: int) -> None:
+        if maxlen < 1:
+            raise ValueError("a subscription holds at least one item")
+        self.bus = bus
+        self.name = name
+        self.streams = streams  # None: every stream
+        self.events = events
+        self.maxlen = maxlen
+        self.received = 0
+        self.dropped = 0
+        self._items: deque[BusItem] = deque()
+        self._lock = threading.Lock()
+        self._ready = threading.Event()  # set by StreamBus.wake when items wait
+        self.closed = False
+
+    def wants(self, stream: str) -> bool:
+        return self.streams is None or stream in self.streams
+
+    def put(self, item: BusItem) -> None:
+        with self._lock:
+            self.received += 1
+            if len(self._items) >= self.maxlen:
+                self._items.popleft()
+                self.dropped += 1
+            self._items.append(item)
+
+    def pending(self) -> int:
+        return len(self._items)
+
+    def drain(self, max_items: int | None = None) -> list[BusItem]:
+        """The queued items, oldest first (at most ``max_items``); they leave the queue."""
+        with self._lock:
+            if max_items is None or max_items >= len(self._items):
+                out = list(self._items)
+                self._items.clear()
+            else:
+                out = [self._items.popleft() for _ in range(max_items)]
+            if not self._items:
+                self._ready.clear()
+        return out
+
+    def wait(self, timeout: float | None) -> bool:
+        """Block until items are queued (or ``timeout``); True when some are. Woken once per driver read."""
+        if self._items:
+            return True
+        self._ready.wait(timeout)
+        return bool(self._items)
+
+    def _signal(self) -> None:
+        if self._items and not self._ready.is_set():
+            self._ready.set()
+
+    def close(self) -> None:
+        self.bus.unsubscribe(self)
+
+    def __enter__(self) -> Subscription:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+@dataclass
+class InlineSubscription:
+    """A callback run on the publishing thread (safety monitor only: :data:`INLINE_SUBSCRIBERS`)."""
+
+    bus: StreamBus
+    name: str
+    callback: Callable[[BusItem], None]
+    streams: frozenset[str] | None
+    events: bool
+    failures: int = 0
+    closed: bool = False
+
+    def wants(self, stream: str) -> bool:
+        return self.streams is None or stream in self.streams
+
+    def close(self) -> None:
+        self.bus.unsubscribe(self)
+
+
+@dataclass
+class _Columns:
+    """One stream's samples since the last take: the samples themselves (one append per sample); their
+    channels are read into columns when taken, one C call per sample (``attrgetter``)."""
+
+    spec: StreamSpec
+    maxlen: int
+    t: deque[float] = field(default_factory=deque)
+    arrival: deque[float] = field(default_factory=deque)
+    samples: deque[Any] = field(default_factory=deque)
+    dropped: int = 0
+
+    def __post_init__(self) -> None:
+        self.names = [c.name for c in self.spec.channels]
+        self._row = operator.attrgetter(*self.names) if self.names else None
+
+    def add(self, t: float, sample: Any, arrival: float) -> None:
+        if len(self.t) >= self.maxlen:
+            self.t.popleft()
+            self.arrival.popleft()
+            self.samples.popleft()
+            self.dropped += 1
+        self.t.append(t)
+        self.arrival.append(arrival)
+        self.samples.append(sample)
+
+    def take(self) -> SampleBatch:
+        n = len(self.samples)
+        if self._row is None or n == 0:
+            data: dict[str, np.ndarray] = {name: np.empty(0) for name in self.names}
+        else:
+            row = self._row
+            rows = np.array([row(s) for s in self.samples], dtype=np.float64).reshape(n, len(self.names))
+            columns = rows.T.copy()  # each channel contiguous
+            data = {name: columns[k] for k, name in enumerate(self.names)}
+        batch = SampleBatch(self.spec, np.asarray(self.t, dtype=np.float64), data,
+                            np.asarray(self.arrival, dtype=np.float64))
+        self.t, self.arrival, self.samples = deque(), deque(), deque()
+        return batch
+
+
+class BatchSubscription:
+    """Samples accumulated as they are decoded, taken as columns (display rate, e.g. the Qt adapter's timer).
+    Bounded to ``max_age_s`` of each stream at its nominal rate; what fell out is counted in ``dropped``."""
+
+    def __init__(self, bus: StreamBus, name: str, streams: frozenset[str] | None, max_age_s: float) -> None:
+        self.bus = bus
+        self.name = name
+        self.streams = streams
+        self.max_age_s = max_age_s
+        self._lock = threading.Lock()
+        self._columns: dict[str, _Columns] = {}
+        self.closed = False
+
+    def wants(self, stream: str) -> bool:
+        return self.streams is None or stream in self.streams
+
+    def add(self, spec: StreamSpec, t: float, sample: Any, arrival: float) -> None:
+        with self._lock:
+            cols = self._columns.get(spec.name)
+            if cols is None:
+                cols = self._columns[spec.name] = _Columns(spec, max(16, int(spec.nominal_rate_hz * self.max_age_s)))
+            cols.add(t, sample, arrival)
+
+    @property
+    def dropped(self) -> int:
+        return sum(c.dropped for c in self._columns.values())
+
+    def take(self, device: str | None = None) -> dict[str, SampleBatch]:
+        """Every stream's samples since the last take (only ``device``'s when given), as columns."""
+        with self._lock:
+            return {name: cols.take() for name, cols in self._columns.items()
+                    if cols.t and (device is None or cols.spec.device == device)}
+
+    def close(self) -> None:
+        self.bus.unsubscribe(self)
+
+
+AnySubscription = Subscription | InlineSubscription | BatchSubscription
+
+
+# ---------------------------------------------------------------------------------------------- the bus
+class StreamBus:
+    """Streams by name, their latest samples, and the consumers' subscriptions (see the module docstring)."""
+
+    def __init__(self, notifier: UpdateNotifier | None = None) -> None:
+        self.notifier = notifier or UpdateNotifier()
+        self._specs: dict[str, StreamSpec] = {}
+        self._latest: dict[str, Any] = {}
+        self._latest_t: dict[str, float] = {}
+        self._totals: dict[str, int] = {}
+        self._events: dict[str, DeviceEvent] = {}  # each device's last event
+        self._lock = threading.Lock()  # guards the subscription lists (copy-on-write: publish reads without it)
+        self._queued: tuple[Subscription, ...] = ()
+        self._inline: tuple[InlineSubscription, ...] = ()
+        self._batches: tuple[BatchSubscription, ...] = ()
+        # stream -> (inline, queued, batch) subscribers wanting it; rebuilt when subscriptions change
+        self._routes: dict[str, tuple[tuple[InlineSubscription, ...], tuple[Subscription, ...],
+                                      tuple[BatchSubscription, ...]]] = {}
+        self._event_routes: tuple[tuple[InlineSubscription, ...], tuple[Subscription, ...]] = ((), ())
+
+    # ------------------------------------------------------------------ streams
+    def declare(self, specs: Iterable[StreamSpec]) -> None:
+        """A driver's streams (at construction). A name declared twice must mean the same stream."""
+        with self._lock:
+            for spec in specs:
+                known = self._specs.get(spec.name)
+                if known is not None and known != spec:
+                    raise ValueError(f"stream {spec.name} is declared twice, differently")
+                self._specs[spec.name] = spec
+                self._totals.setdefault(spec.name, 0)
+            self._reroute()
+
+    def spec(self, stream: str) -> StreamSpec:
+        return self._specs[stream]
+
+    def specs(self, device: str | None = None) -> dict[str, StreamSpec]:
+        return {n: s for n, s in self._specs.items() if device is None or s.device == device}
+
+    def latest(self, stream: str) -> Any:
+        """The newest sample of ``stream`` (None before the first)."""
+        return self._latest.get(stream)
+
+    def latest_time(self, stream: str) -> float | None:
+        return self._latest_t.get(stream)
+
+    def total(self, stream: str) -> int:
+        return self._totals.get(stream, 0)
+
+    def last_event(self, device: str) -> DeviceEvent | None:
+        return self._events.get(device)
+
+    # ------------------------------------------------------------------ publishing (driver threads)
+    def publish(self, stream: str, t: float, sample: Any, arrival: float | None = None, *,
+                wake: bool = True) -> None:
+        """One decoded sample to every subscriber of ``stream``. ``wake=False`` inside a read: the driver calls
+        :meth:`wake` once after the read's last sample, so waiters wake once per read."""
+        arrival = t if arrival is None else arrival
+        self._latest[stream] = sample
+        self._latest_t[stream] = t
+        self._totals[stream] = self._totals.get(stream, 0) + 1
+        route = self._routes.get(stream)
+        if route is None:
+            raise KeyError(f"stream {stream!r} was never declared")
+        inline, queued, batches = route
+        if inline or queued:
+            item = SampleItem(stream, t, sample, arrival)
+            for sub in inline:
+                self._call_inline(sub, item)
+            for q in queued:
+                q.put(item)
+        if batches:
+            spec = self._specs[stream]
+            for b in batches:
+                b.add(spec, t, sample, arrival)
+        if wake:
+            self.wake()
+
+    def event(self, device: str, kind: str, detail: str = "") -> None:
+        """A device event (connected, disconnected, silent, alive, controller_error, …) to the subscribers that
+        asked for events, and to waiters."""
+        item = DeviceEvent(device, kind, detail, time.monotonic())
+        self._events[device] = item
+        inline, queued = self._event_routes
+        for sub in inline:
+            self._call_inline(sub, item)
+        for q in queued:
+            q.put(item)
+        self.wake()
+
+    def wake(self) -> None:
+        """Wake the consumers waiting on their queues, and the notifier's waiters (once per read)."""
+        for q in self._queued:
+            q._signal()
+        self.notifier.notify()
+
+    def _call_inline(self, sub: InlineSubscription, item: BusItem) -> None:
+        try:
+            sub.callback(item)
+        except Exception:  # a consumer's bug must not stop the device
+            sub.failures += 1
+            log.exception("bus subscriber %s failed", sub.name)
+
+    # ------------------------------------------------------------------ subscribing (any thread)
+    def subscribe(self, name: str, streams: Iterable[str] | None = None, *, events: bool = False,
+                  maxlen: int = DEFAULT_MAXLEN) -> Subscription:
+        """A bounded, counted queue of ``streams``' samples (every stream when None) and, with ``events``, the
+        device events. Close it (or use it as a context manager) when done."""
+        sub = Subscription(self, name, self._names(streams), events, maxlen)
+        with self._lock:
+            self._queued = (*self._queued, sub)
+            self._reroute()
+        return sub
+
+    def subscribe_inline(self, name: str, callback: Callable[[BusItem], None], streams: Iterable[str] | None = None,
+                         *, events: bool = False) -> InlineSubscription:
+        """``callback(item)`` on the publishing thread, before ``publish`` returns: only for the safety monitor
+        (:data:`INLINE_SUBSCRIBERS`); it must be quick and must not block."""
+        if name not in INLINE_SUBSCRIBERS:
+            raise ValueError(f"{name!r} may not run on a driver's thread; subscribe() gives it a queue")
+        sub = InlineSubscription(self, name, callback, self._names(streams), events)
+        with self._lock:
+            self._inline = (*self._inline, sub)
+            self._reroute()
+        return sub
+
+    def subscribe_batches(self, name: str, streams: Iterable[str] | None = None, *,
+                          max_age_s: float = 10.0) -> BatchSubscription:
+        """Samples as columns, taken at the consumer's rate (the Qt adapter's display timer)."""
+        sub = BatchSubscription(self, name, self._names(streams), max_age_s)
+        with self._lock:
+            self._batches = (*self._batches, sub)
+            self._reroute()
+        return sub
+
+    def unsubscribe(self, sub: AnySubscription) -> None:
+        with self._lock:
+            sub.closed = True
+            self._queued = tuple(s for s in self._queued if s is not sub)
+            self._inline = tuple(s for s in self._inline if s is not sub)
+            self._batches = tuple(s for s in self._batches if s is not sub)
+            self._reroute()
+
+    def subscriptions(self) -> list[AnySubscription]:
+        """Every open subscription (diagnostics: names, received and dropped counts)."""
+        return [*self._inline, *self._queued, *self._batches]
+
+    def _names(self, streams: Iterable[str] | None) -> frozenset[str] | None:
+        if streams is None:
+            return None
+        names = frozenset([streams] if isinstance(streams, str) else streams)
+        return names
+
+    def _reroute(self) -> None:
+        """Rebuild the per-stream routes (under ``_lock``); publish reads them without locking."""
+        routes = {}
+        for stream in self._specs:
+            routes[stream] = (tuple(s for s in self._inline if s.wants(stream)),
+                              tuple(s for s in self._queued if s.wants(stream)),
+                              tuple(s for s in self._batches if s.wants(stream)))
+        self._routes = routes
+        self._event_routes = (tuple(s for s in self._inline if s.events),
+                              tuple(s for s in self._queued if s.events))

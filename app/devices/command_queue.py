@@ -1,0 +1,242 @@
+"""One command path per device (issue #29): a priority queue with one writer thread, and a status per command.
+
+Every command of a device — the window's buttons, a script's calls, the assistance split, the connection
+handshake, the heartbeat and the emergency stop — is submitted here and written to the wire by the queue's
+one thread, in priority order (:class:`Priority`): the e-stop first, then the heartbeat, then the link's own
+safety work (handshake, limits, envelope), then everything else in arrival order.
+
+``submit`` returns at once with a :class:`CommandStatus` (a ``concurrent.futures.Future``): the caller may wait
+on it (a script, the headless runner), attach a callback (the GUI turns it into a signal; it never waits on
+the GUI thread), or ignore it (the assistance split logs a refusal). ``written`` says when the bytes left.
+
+A command that expects an acknowledgement is **exclusive**: one is in flight at a time (the controller's
+receive buffer is small, and replies are matched in order); the next exclusive one waits until the in-flight
+one is done or timed out. The e-stop and heartbeats are not exclusive: they are written between, at once.
+
+The supervisor still sees everything: commands are checked before they are queued (a refusal fails the status
+with SafetyError and sends nothing), and the e-stop is recorded by the supervisor as it always was; the queue
+only orders the wire. Qt-free: the queue's thread is a plain thread (real-time when the driver asks).
+"""
+
+from __future__ import annotations
+
+import enum
+import heapq
+import itertools
+import logging
+import threading
+import time
+from collections.abc import Callable
+from concurrent.futures import Future
+from dataclasses import dataclass, field
+
+log = logging.getLogger(__name__)
+
+
+class Priority(enum.IntEnum):
+    ESTOP = 0  # motors off / stimulation off: ahead of everything, never behind a command in flight
+    HEARTBEAT = 1  # keeps the controller's host watchdog fed
+    LINK = 2  # handshake, limits, envelope: the link's own safety work
+    NORMAL = 3  # operator, script, assistance, VR task: in arrival order
+
+
+class CommandQueueClosed(RuntimeError):
+    """The device's command queue has stopped (the application is closing); nothing was sent."""
+
+
+class CommandStatus(Future):
+    """A submitted command: a Future holding the reply (or the error), plus when its bytes were written."""
+
+    def __init__(self, name: str, source: str, priority: Priority) -> None:
+        super().__init__()
+        self.name = name
+        self.source = source
+        self.priority = priority
+        self.submitted_at = time.monotonic()
+        self.written_at: float | None = None
+        self._written = threading.Event()
+
+    @property
+    def written(self) -> bool:
+        return self._written.is_set()
+
+    def wait_written(self, timeout: float | None = None) -> bool:
+        """Block until the bytes were written (True), the command failed before that, or ``timeout``."""
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while not self._written.is_set():
+            if self.done():
+                return self._written.is_set()
+            remaining = None if deadline is None else deadline - time.monotonic()
+            if remaining is not None and remaining <= 0:
+                return False
+            self._written.wait(0.005 if remaining is None else min(remaining, 0.005))
+        return True
+
+    def mark_written(self) -> None:
+        self.written_at = time.monotonic()
+        self._written.set()
+
+
+@dataclass(order=True)
+class _Entry:
+    priority: int
+    seq: int
+    status: CommandStatus = field(compare=False)
+    write: Callable[[CommandStatus], None] = field(compare=False)  # puts the bytes on the wire (queue thread)
+    exclusive: bool = field(compare=False)
+    timeout_s: float = field(compare=False)
+
+
+class CommandQueue:
+    """See the module docstring. ``periodic`` (e.g. the heartbeat) is called by the queue's thread every
+    ``period_s`` while the queue runs; ``realtime_priority`` asks the OS for round-robin scheduling."""
+
+    def __init__(self, name: str, *, periodic: Callable[[], None] | None = None, period_s: float = 0.1,
+                 realtime_priority: int | None = None) -> None:
+        self.name = name
+        self.periodic = periodic
+        self.period_s = period_s
+        self.realtime_priority = realtime_priority
+        self._heap: list[_Entry] = []
+        self._seq = itertools.count()
+        self._cond = threading.Condition()
+        self._in_flight: _Entry | None = None
+        self._in_flight_deadline = 0.0
+        self._thread: threading.Thread | None = None
+        self._closed = False
+        self.written_total = 0
+
+    # ------------------------------------------------------------------ any thread
+    def submit(self, name: str, write: Callable[[CommandStatus], None], *, source: str = "",
+               priority: Priority = Priority.NORMAL, exclusive: bool = True, timeout_s: float = 1.0) -> CommandStatus:
+        """Queue one command. ``write(status)`` runs on the queue's thread and writes its bytes; for an
+        ``exclusive`` command, whoever reads the reply completes ``status`` (set_result / set_exception), else
+        the queue fails it with TimeoutError after ``timeout_s``. A non-exclusive command is done once written."""
+        status = CommandStatus(name, source, priority)
+        with self._cond:
+            if self._closed:
+                status.set_exception(CommandQueueClosed(f"{self.name}: {name} not sent, the device is closing"))
+                return status
+            heapq.heappush(self._heap, _Entry(int(priority), next(self._seq), status, write, exclusive, timeout_s))
+            self._cond.notify()
+        return status
+
+    def start(self) -> None:
+        with self._cond:
+            self._closed = False
+        if self._thread is None or not self._thread.is_alive():
+            self._thread = threading.Thread(target=self._run, name=f"{self.name}-commands", daemon=True)
+            self._thread.start()
+
+    def close(self, reason: str = "the device is closing") -> None:
+        """Stop the thread; every command not yet written fails with CommandQueueClosed."""
+        with self._cond:
+            self._closed = True
+            pending, self._heap = self._heap, []
+            if self._in_flight is not None:
+                pending.append(self._in_flight)
+                self._in_flight = None
+            self._cond.notify()
+        for entry in pending:
+            if not entry.status.done():
+                entry.status.set_exception(CommandQueueClosed(f"{self.name}: {entry.status.name} not sent, {reason}"))
+        thread = self._thread
+        if thread is not None and thread is not threading.current_thread():
+            thread.join(1.0)
+
+    def fail_in_flight(self, exc: BaseException) -> None:
+        """The link was lost: the command awaiting its reply fails now."""
+        with self._cond:
+            entry, self._in_flight = self._in_flight, None
+            self._cond.notify()
+        if entry is not None and not entry.status.done():
+            entry.status.set_exception(exc)
+
+    @property
+    def in_flight(self) -> CommandStatus | None:
+        entry = self._in_flight
+        return entry.status if entry is not None else None
+
+    def pending(self) -> int:
+        return len(self._heap)
+
+    # ------------------------------------------------------------------ the queue's thread
+    def _run(self) -> None:
+        if self.realtime_priority is not None:
+            from app.devices.realtime import request_realtime
+
+            request_realtime(self.realtime_priority)
+        next_periodic = time.monotonic() + self.period_s
+        while True:
+            with self._cond:
+                entry = None
+                while entry is None:
+                    if self._closed:
+                        return
+                    now = time.monotonic()
+                    if self._in_flight is not None and (self._in_flight.status.done()
+                                                        or now >= self._in_flight_deadline):
+                        self._expire_in_flight(now)
+                    entry = self._next_ready()
+                    if entry is not None:
+                        break
+                    if self.periodic is not None and now >= next_periodic:
+                        break
+                    wake = next_periodic if self.periodic is not None else now + 1.0
+                    if self._in_flight is not None:
+                        wake = min(wake, self._in_flight_deadline)
+                    self._cond.wait(max(0.0, min(wake - now, 0.005 if self._in_flight is not None else 1.0)))
+                if entry is not None and entry.exclusive:
+                    self._in_flight = entry
+                    self._in_flight_deadline = time.monotonic() + entry.timeout_s
+            if entry is None:
+                next_periodic = time.monotonic() + self.period_s
+                try:
+                    self.periodic()  # type: ignore[misc]
+                except Exception:
+                    log.exception("%s: periodic command failed", self.name)
+                continue
+            self._write(entry)
+
+    def _next_ready(self) -> _Entry | None:
+        """The highest-priority entry that may go now (an exclusive one waits for the one in flight)."""
+        if not self._heap:
+            return None
+        if self._in_flight is None or not self._heap[0].exclusive:
+            return heapq.heappop(self._heap)
+        # Something exclusive is in flight: a non-exclusive entry behind the head (e-stop, heartbeat) may pass.
+        for i, entry in enumerate(self._heap):
+            if not entry.exclusive:
+                self._heap.pop(i)
+                heapq.heapify(self._heap)
+                return entry
+        return None
+
+    def _expire_in_flight(self, now: float) -> None:
+        entry, self._in_flight = self._in_flight, None
+        if entry is not None and not entry.status.done():
+            entry.status.set_exception(TimeoutError(
+                f"{self.name} did not acknowledge {entry.status.name} within {entry.timeout_s:.2f} s"))
+
+    def _write(self, entry: _Entry) -> None:
+        status = entry.status
+        if status.done():  # cancelled by its caller meanwhile
+            self._release(entry)
+            return
+        try:
+            entry.write(status)
+        except Exception as exc:  # the caller learns why through its status
+            self._release(entry)
+            if not status.done():
+                status.set_exception(exc)
+            return
+        status.mark_written()
+        self.written_total += 1
+        if not entry.exclusive and not status.done():
+            status.set_result(None)
+
+    def _release(self, entry: _Entry) -> None:
+        with self._cond:
+            if self._in_flight is entry:
+                self._in_flight = None
+

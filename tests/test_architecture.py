@@ -1,0 +1,262 @@
+"""The house's structure, read from the source with ``ast`` (issue #29): no third-party tool.
+
+* no import circle anywhere in ``app/`` (every import counts: module level, inside functions, and under
+  ``TYPE_CHECKING`` — a circle for the type checker is still two modules that cannot be understood apart);
+* nothing under ``app/devices/sim/``, no codec, and neither the bus nor the command queue imports Qt, directly
+  or through another module of ``app/`` (the simulator process must not load PySide6);
+* no device module imports the manager, directly or through another module;
+* outside ``app/ui/``, no parameter or attribute called manager / app / context is typed ``Any`` (or left
+  untyped): a device or a consumer says what it really uses.
+"""
+
+from __future__ import annotations
+
+import ast
+from collections.abc import Iterator
+from functools import cache
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+APP = ROOT / "app"
+QT_MODULES = ("PySide6", "shiboken6", "pyqtgraph", "qasync", "OpenGL")
+CODECS = ("app.devices.cmdmessenger", "app.devices.sciencemode", "app.devices.physio_codec",
+          "app.devices.udp_frames", "app.devices.linarm_protocol")
+QT_FREE_CORE = ("app.bus", "app.streams", "app.devices.command_queue", "app.devices.realtime")
+MANAGER_NAMES = frozenset({"manager", "mgr", "app", "ctx", "context"})
+
+
+def module_name(path: Path, root: Path = ROOT) -> str:
+    parts = list(path.relative_to(root).with_suffix("").parts)
+    if parts[-1] == "__init__":
+        parts.pop()
+    return ".".join(parts)
+
+
+@cache
+def app_modules(root: Path = ROOT) -> dict[str, Path]:
+    return {module_name(p, root): p for p in sorted((root / "app").rglob("*.py"))}
+
+
+def _imports(path: Path, name: str) -> Iterator[str]:
+    """Every module name an ``import`` statement of ``path`` names (absolute; relative ones resolved)."""
+    package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"), str(path))):
+        if isinstance(node, ast.Import):
+            for alias in node.names:
+                yield alias.name
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base_parts = package.split(".")[: len(package.split(".")) - node.level + 1]
+                base = ".".join([*base_parts, node.module] if node.module else base_parts)
+            else:
+                base = node.module or ""
+            yield base
+            for alias in node.names:
+                yield f"{base}.{alias.name}"
+
+
+def _owner(target: str, modules: dict[str, Path]) -> str | None:
+    """The ``app`` module an imported name lives in (``app.devices.driver.Channel`` → ``app.devices.driver``)."""
+    while target:
+        if target in modules:
+            return target
+        target = target.rpartition(".")[0]
+    return None
+
+
+@cache
+def import_graph(root: Path = ROOT) -> tuple[dict[str, set[str]], dict[str, set[str]]]:
+    """(app module → app modules it imports, app module → third-party top-level packages it imports)."""
+    modules = app_modules(root)
+    internal: dict[str, set[str]] = {}
+    external: dict[str, set[str]] = {}
+    for name, path in modules.items():
+        ins, outs = set(), set()
+        for target in _imports(path, name):
+            owner = _owner(target, modules)
+            if owner is not None:
+                if owner != name and not (name.startswith(owner + ".") and modules[owner].name == "__init__.py"):
+                    ins.add(owner)
+            elif not target.startswith("app"):
+                outs.add(target.partition(".")[0])
+        internal[name], external[name] = ins, outs
+    return internal, external
+
+
+def import_cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """The strongly connected components with more than one module (Tarjan, iterative), each sorted."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    cycles: list[list[str]] = []
+    counter = 0
+    for start in graph:
+        if start in index:
+            continue
+        work = [(start, iter(sorted(graph[start])))]
+        index[start] = low[start] = counter
+        counter += 1
+        stack.append(start)
+        on_stack.add(start)
+        while work:
+            node, children = work[-1]
+            for child in children:
+                if child not in graph:
+                    continue
+                if child not in index:
+                    index[child] = low[child] = counter
+                    counter += 1
+                    stack.append(child)
+                    on_stack.add(child)
+                    work.append((child, iter(sorted(graph[child]))))
+                    break
+                if child in on_stack:
+                    low[node] = min(low[node], index[child])
+            else:
+                work.pop()
+                if work:
+                    parent = work[-1][0]
+                    low[parent] = min(low[parent], low[node])
+                if low[node] == index[node]:
+                    component = []
+                    while True:
+                        member = stack.pop()
+                        on_stack.discard(member)
+                        component.append(member)
+                        if member == node:
+                            break
+                    if len(component) > 1:
+                        cycles.append(sorted(component))
+    return cycles
+
+
+def reachable(graph: dict[str, set[str]], start: str) -> dict[str, str]:
+    """Every module ``start`` imports, directly or not, with the module that imports it (for the message)."""
+    seen: dict[str, str] = {}
+    todo = [start]
+    while todo:
+        node = todo.pop()
+        for child in graph.get(node, ()):
+            if child not in seen and child != start:
+                seen[child] = node
+                todo.append(child)
+    return seen
+
+
+def _chain(parents: dict[str, str], start: str, end: str) -> str:
+    chain = [end]
+    while chain[-1] != start and chain[-1] in parents:
+        chain.append(parents[chain[-1]])
+    return " → ".join(reversed(chain))
+
+
+def qt_reach(root: Path, module: str) -> list[str]:
+    """How ``module`` reaches Qt, if it does: the import chains, one per offending module."""
+    internal, external = import_graph(root)
+    parents = reachable(internal, module)
+    found = []
+    for candidate in [module, *parents]:
+        qt = sorted(external.get(candidate, set()) & set(QT_MODULES))
+        if qt:
+            found.append(f"{_chain(parents, module, candidate)} imports {', '.join(qt)}")
+    return found
+
+
+def untyped_manager_parameters(root: Path = ROOT) -> list[str]:
+    """Parameters and annotated attributes named like the manager or a context, typed ``Any`` or untyped,
+    outside ``app/ui/``."""
+    problems = []
+    for name, path in app_modules(root).items():
+        if name.startswith("app.ui"):
+            continue
+        tree = ast.parse(path.read_text(encoding="utf-8"), str(path))
+        for node in ast.walk(tree):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda)):
+                args = node.args
+                for arg in [*args.posonlyargs, *args.args, *args.kwonlyargs]:
+                    if arg.arg in MANAGER_NAMES and (isinstance(node, ast.Lambda) or _is_any(arg.annotation)):
+                        where = getattr(node, "name", "lambda")
+                        problems.append(f"{path.relative_to(root)}:{arg.lineno} {where}({arg.arg}: "
+                                        f"{ast.unparse(arg.annotation) if arg.annotation else 'untyped'})")
+            elif isinstance(node, ast.AnnAssign):
+                target = node.target
+                attr = target.attr if isinstance(target, ast.Attribute) else getattr(target, "id", "")
+                if attr in MANAGER_NAMES and _is_any(node.annotation):
+                    problems.append(f"{path.relative_to(root)}:{node.lineno} {ast.unparse(target)}: "
+                                    f"{ast.unparse(node.annotation)}")
+    return problems
+
+
+def _is_any(annotation: ast.expr | None) -> bool:
+    if annotation is None:
+        return True
+    text = ast.unparse(annotation).replace("typing.", "").replace(" ", "")
+    return text in ("Any", "Any|None", "None|Any", "Optional[Any]", "'Any'", '"Any"', "object")
+
+
+# ---------------------------------------------------------------------------------------------- the rules
+def test_no_import_circle_in_app() -> None:
+    internal, _ = import_graph(ROOT)
+    cycles = import_cycles(internal)
+    assert not cycles, "import circles in app/ (every import counts, TYPE_CHECKING too):\n" + "\n".join(
+        " ↔ ".join(c) for c in cycles)
+
+
+def test_simulators_codecs_bus_and_command_queue_are_qt_free() -> None:
+    modules = app_modules(ROOT)
+    checked = [m for m in modules if m.startswith("app.devices.sim")] + [*CODECS, *QT_FREE_CORE]
+    missing = [m for m in [*CODECS, *QT_FREE_CORE] if m not in modules]
+    assert not missing, f"modules this rule names are gone: {missing} (update the rule)"
+    offenders = [line for m in checked for line in qt_reach(ROOT, m)]
+    assert not offenders, "Qt reached from simulators / codecs / bus:\n" + "\n".join(offenders)
+
+
+def test_no_device_module_imports_the_manager() -> None:
+    internal, _ = import_graph(ROOT)
+    offenders = []
+    for name in app_modules(ROOT):
+        if name.startswith("app.devices"):
+            parents = reachable(internal, name)
+            if "app.manager" in parents:
+                offenders.append(_chain(parents, name, "app.manager"))
+    assert not offenders, "device modules reaching the manager:\n" + "\n".join(offenders)
+
+
+def test_no_untyped_manager_outside_the_ui() -> None:
+    problems = untyped_manager_parameters(ROOT)
+    assert not problems, "manager/context typed Any (say what is used instead):\n" + "\n".join(problems)
+
+
+# ---------------------------------------------------------------------------------------------- the rules' own tests
+@pytest.fixture
+def toy(tmp_path: Path) -> Path:
+    (tmp_path / "app" / "devices" / "sim").mkdir(parents=True)
+    for init in ("app", "app/devices", "app/devices/sim"):
+        (tmp_path / init / "__init__.py").write_text("")
+    return tmp_path
+
+
+def _write(root: Path, rel: str, text: str) -> None:
+    (root / rel).write_text(text)
+    app_modules.cache_clear()
+    import_graph.cache_clear()
+
+
+def test_rules_catch_a_circle_a_qt_import_a_manager_import_and_an_any(toy: Path) -> None:
+    _write(toy, "app/a.py", "def f():\n    from app import b\n")
+    _write(toy, "app/b.py", "from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    from app.a import f\n")
+    _write(toy, "app/manager.py", "from typing import Any\nclass M:\n    def __init__(self, app: Any): ...\n")
+    _write(toy, "app/devices/helper.py", "from PySide6.QtCore import QObject\nfrom app.manager import M\n")
+    _write(toy, "app/devices/sim/core.py", "from app.devices.helper import QObject\n")
+    _write(toy, "app/devices/clean.py", "import numpy\nfrom . import helper as _h\n")
+    internal, external = import_graph(toy)
+    assert import_cycles(internal) == [["app.a", "app.b"]]
+    assert qt_reach(toy, "app.devices.sim.core") == [
+        "app.devices.sim.core → app.devices.helper imports PySide6"]
+    assert "app.manager" in reachable(internal, "app.devices.clean")  # relative import resolved
+    assert untyped_manager_parameters(toy) == ["app/manager.py:3 __init__(app: Any)"]
+    app_modules.cache_clear()
+    import_graph.cache_clear()
