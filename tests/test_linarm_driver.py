@@ -13,8 +13,9 @@ import pytest
 
 from app.config import AppConfig, SafetyConfig
 from app.devices import linarm_protocol as proto
-from app.devices.linarm import LinarmCommandError, LinarmDriver, LinarmSimAdapter
+from app.devices.linarm import LinarmCommandError, LinarmDriver
 from app.devices.linarm_protocol import ControlMode, ControlState, ReplyError
+from app.devices.sim.adapters import LinarmSimAdapter
 from app.devices.sim.base import SerialSimulator
 from app.devices.transport import SerialTransport
 from app.safety import SafetySupervisor

@@ -21,6 +21,7 @@ from app.devices.physio_codec import (
     Calibration,
     PhysioSample,
 )
+from app.devices.sim.adapters import PhysioSimCore
 from app.manager import DeviceHandle, LinarmppManager
 from app.ui.physio_viewer import DASH, TILE_ORDER, PhysioViewer, fault_words, format_value
 from app.ui.theme import colours
@@ -30,7 +31,7 @@ class GlitchyBoard:
     """The simulated board's core, with a faulty cable on demand: drop whole frames, or flip a
     byte inside one (its CRC then fails)."""
 
-    def __init__(self, core: physio.PhysioSimCore) -> None:
+    def __init__(self, core: PhysioSimCore) -> None:
         self.core = core
         self.source = core.source
         self.drop = 0

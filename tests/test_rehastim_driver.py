@@ -17,11 +17,11 @@ from app.devices.rehastim import (
     SERIAL_SETTINGS,
     FesDriver,
     FesError,
-    RehaStimSimAdapter,
     create,
     simulated_link_settings,
 )
 from app.devices.sciencemode import PulseMode, PulseSetting, Sm2Result
+from app.devices.sim.adapters import RehaStimSimAdapter
 from app.devices.sim.base import SerialSimulator
 from app.devices.sim.rehastim_core import StimulationLogEntry
 from app.devices.transport import SerialTransport

@@ -1,5 +1,7 @@
 """The simulated devices in their own process (app.devices.sim.host), issue #16:
 
+* the simulator process runs every simulated device without loading Qt (#29: the simulators live apart from
+  the drivers);
 * SIGKILL of the app while the robot is ON: the simulated controller (the Python model, and the firmware's
   SIL build) stops the motors through its host watchdog within the timeout, and the simulator process
   does not outlive the app by more than its linger;
@@ -18,10 +20,11 @@ from pathlib import Path
 
 import pytest
 
-from app.devices.linarm_protocol import ControlState, ErrorState
+from app.devices.linarm_protocol import WATCHDOG_TIMEOUT, ControlState, ErrorState
+from tests.test_architecture import QT_MODULES
 
 ROOT = Path(__file__).resolve().parent.parent
-WATCHDOG_TIMEOUT_S = 0.25  # the controller's host-silence watchdog (firmware/linarm_controller, linarm_model)
+WATCHDOG_TIMEOUT_S = WATCHDOG_TIMEOUT  # the controller's host-silence watchdog (the protocol table's, #29)
 STATE_PERIOD_S = 0.05  # the state stream (20 Hz) reports it
 SCHEDULING_SLACK_S = 0.10  # a shared, loaded test machine
 
@@ -58,6 +61,43 @@ print("READY", manager.simulators.process.pid, flush=True)
 while True:
     app.processEvents(); time.sleep(0.01)
 """
+
+
+def test_the_simulator_modules_import_without_qt() -> None:
+    """Every module under app/devices/sim/, imported in a fresh interpreter, loads no Qt (the ast rule of
+    tests/test_architecture.py, seen at run time: a module that imports Qt by a path ast cannot see fails here)."""
+    modules = sorted(".".join(p.relative_to(ROOT).with_suffix("").parts)
+                     for p in (ROOT / "app" / "devices" / "sim").glob("*.py") if p.name != "__init__.py")
+    assert "app.devices.sim.host" in modules and "app.devices.sim.adapters" in modules
+    probe = (f"import importlib, sys\nfor m in {modules!r}: importlib.import_module(m)\n"
+             f"print(sorted({{n.partition('.')[0] for n in sys.modules}} & {set(QT_MODULES)!r}))")
+    result = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=60,
+                            cwd=str(ROOT), env={**os.environ, "PYTHONPATH": str(ROOT)})
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.strip() == "[]", f"the simulator modules load Qt: {result.stdout.strip()}"
+
+
+def test_the_app_s_simulator_process_runs_every_device_without_qt(qtbot, monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    """The simulator process the app starts for its serial devices (LINarm, physiological board, FES), with
+    the spec the devices' create() functions give it, reports from inside that it never loaded Qt. Before #29
+    it did: it built the simulators from the driver modules (app.devices.linarm imports PySide6)."""
+    from app.config import AppConfig
+    from app.devices import linarm, physio, rehastim
+    from app.manager import LinarmppManager
+
+    monkeypatch.setenv("LINARMPP_SIM_HOST", "process")
+    manager = LinarmppManager(AppConfig(), factories={"linarm": linarm.create, "physio": physio.create,
+                                                       "fes": rehastim.create})
+    manager.start()
+    try:
+        process = manager.simulators.process
+        assert process is not None and process.alive
+        assert process.call("status") == {"linarm": True, "physio": True, "fes": True}
+        packages = set(process.call("packages"))
+        assert "app" in packages and "numpy" in packages  # the answer is the child's sys.modules
+        assert not packages & set(QT_MODULES), f"the simulator process loaded {sorted(packages & set(QT_MODULES))}"
+    finally:
+        manager.shutdown()
 
 
 def _events(path: Path) -> list[dict]:

@@ -25,7 +25,8 @@ def test_the_linarm_stream_over_the_socket_link_does_not_stall(qtbot) -> None:
     """The default link (a loopback socket to the simulator): without TCP_NODELAY on the simulator's end, Nagle's
     algorithm held the frames for the driver's delayed ACK, ~40 ms ten times a second (p99 gap 43 ms at 200 Hz).
     The arrival gaps are measured: the stamps themselves are on the controller's clock and would hide it."""
-    from app.devices.linarm import LinarmDriver, LinarmSimAdapter
+    from app.devices.linarm import LinarmDriver
+    from app.devices.sim.adapters import LinarmSimAdapter
     from app.devices.sim.base import SerialSimulator
     from app.devices.transport import SerialTransport, SocketLink
 

@@ -467,41 +467,11 @@ class LinarmDriver(DeviceDriver):
             return self._seq
 
 
-# ---------------------------------------------------------------------------------------------- simulator
-class _PatientOnCoreClock:
-    """The shared simulated patient lives on the monotonic clock; the LINarm core counts from 0."""
-
-    def __init__(self, patient: Any, t0: float) -> None:
-        self.patient = patient
-        self.t0 = t0
-
-    def handle_force(self, t: float, handle_pos: float, handle_vel: float) -> float:
-        t_abs = t + self.t0
-        self.patient.update_handle(t_abs, handle_pos, handle_vel)
-        return float(self.patient.handle_force(t_abs, handle_pos, handle_vel))
-
-
-class LinarmSimAdapter:
-    """LinarmSimCore on the simulator thread's monotonic clock."""
-
-    def __init__(self, patient: Any | None, **core_kwargs: Any) -> None:
-        from app.devices.sim.linarm_model import LinarmSimCore
-
-        self.t0 = time.monotonic()
-        self.core = LinarmSimCore(patient=_PatientOnCoreClock(patient, self.t0) if patient is not None else None,
-                                  **core_kwargs)
-
-    def handle_host_bytes(self, data: bytes, t: float) -> bytes:
-        return self.core.handle_host_bytes(data, t - self.t0)
-
-    def poll(self, t: float) -> bytes:
-        return self.core.stream_bytes(t - self.t0)
-
-
 def create(ctx: DeviceContext) -> DeviceHandle | None:
     """The LINarm from its context: driver on its serial link (or the simulator's), the supervisor's robot
     probes and monitor, and the robot's stop action."""
     from app.devices.registry import DeviceHandle
+    from app.devices.sim.adapters import LinarmSimAdapter
     from app.safety import RobotProbes
 
     cfg: LinarmDevice = ctx.config

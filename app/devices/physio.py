@@ -7,7 +7,6 @@ module only connects them to a transport and to the manager.
 from __future__ import annotations
 
 import dataclasses
-import time
 from typing import TYPE_CHECKING
 
 from app.config import PhysioCalibration, PhysioDevice
@@ -15,12 +14,10 @@ from app.devices.clock import DeviceClock
 from app.devices.driver import Channel, DeviceDriver, StreamSpec, UpdateNotifier
 from app.devices.physio_codec import Calibration, ChannelCalibration, PhysioStreamDecoder
 from app.devices.sim.base import SerialSimulator
-from app.devices.sim.physio_signals import PhysioSimSource
 from app.devices.transport import SerialSettings, SerialTransport, Transport
 
 if TYPE_CHECKING:
     from app.devices.registry import DeviceContext, DeviceHandle
-    from app.devices.sim.patient import SimulatedPatient
 
 PHYSIO_STREAM = StreamSpec("physio.main", (
     Channel("heartRate", "bpm", "Heart rate"),
@@ -70,22 +67,9 @@ class PhysioDriver(DeviceDriver):
         return self.decoder.badFrames
 
 
-class PhysioSimCore:
-    """The simulated acquisition board: streams frames at its rate; ignores what the host sends."""
-
-    def __init__(self, patient: SimulatedPatient, rate_hz: float, calibration: Calibration, seed: int = 1) -> None:
-        self.source = PhysioSimSource(patient, seed=seed, rate_hz=rate_hz, calibration=calibration,
-                                      start_time=time.monotonic())
-
-    def handle_host_bytes(self, data: bytes, t: float) -> bytes:
-        return b""
-
-    def poll(self, t: float) -> bytes:
-        return self.source.frames_until(t)
-
-
 def create(ctx: DeviceContext) -> DeviceHandle | None:
     from app.devices.registry import DeviceHandle
+    from app.devices.sim.adapters import PhysioSimCore
 
     cfg: PhysioDevice = ctx.config
     if cfg.mode == "off":

@@ -66,7 +66,6 @@ from app.devices.sciencemode import (
     encode_sm2_start,
 )
 from app.devices.sim.base import SerialSimulator
-from app.devices.sim.rehastim_core import RehaStimSimCore
 from app.devices.transport import SerialSettings, SerialTransport, Transport
 from app.fes_limits import ChannelCaps, FesLimiter, FesLimits, FesUpdate, rms_current_ma
 from app.fes_profile import MAX_SCALE, FesProfile
@@ -882,17 +881,6 @@ class FesDriver(DeviceDriver):
         self.fault.emit(text)
 
 
-# ====================================================================== simulated device
-class RehaStimSimAdapter(RehaStimSimCore):
-    """RehaStimSimCore on the SerialSimulator's interface (``with_core`` hands out the core's API)."""
-
-    def handle_host_bytes(self, data: bytes, t: float) -> bytes:
-        return self.handle_bytes(data, t)
-
-    def poll(self, t: float) -> bytes:
-        return self.tick(t)
-
-
 def simulated_link_settings(protocol: Protocol) -> SerialSettings:
     """The device's settings without parity: a pty has no UART, and Linux refuses to re-apply PARENB to a
     pty (EINVAL on the next tcsetattr, e.g. when the read timeout changes)."""
@@ -929,6 +917,7 @@ def watch_link(source: Any, fes: FesDriver, label: str) -> None:
 
 def create(ctx: DeviceContext) -> DeviceHandle | None:
     from app.devices.registry import DeviceHandle
+    from app.devices.sim.adapters import RehaStimSimAdapter
 
     cfg: FesDevice = ctx.config
     if cfg.mode == "off":

@@ -13,11 +13,23 @@ import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Protocol
+from typing import Any, Protocol
 
+from app.devices.realtime import request_realtime
 from app.devices.transport import SimLink, make_sim_link
 
 log = logging.getLogger(__name__)
+
+# What the Simulation panel and tests may ask of a device's simulator core, by name: one table for both
+# hostings (this thread, and the simulator process of app.devices.sim.host), so the panel works the same
+# in- and out-of-process.
+DEVICE_CONTROLS: dict[str, Callable[..., Any]] = {
+    "phasic_event": lambda core, amplitude=None: core.source.phasic_event(time.monotonic(), amplitude),
+    "set_fault_flags": lambda core, flags: core.source.set_fault_flags(int(flags)),
+    "frames_sent": lambda core: int(core.source.frames_sent),
+    "fes_channel_state": lambda core: bool(core.channel_state()),
+    "fes_running": lambda core: bool(core.running),
+}
 
 
 class SimCore(Protocol):
@@ -93,17 +105,13 @@ class SerialSimulator:
             return fn(self.core)
 
     def control(self, name: str, *args: object) -> object:
-        """A named control of the core (app.devices.sim.host.DEVICE_CONTROLS), as the simulator process
-        offers it: the Simulation panel calls the same names however its simulators are hosted."""
-        from app.devices.sim.host import DEVICE_CONTROLS
-
+        """A named control of the core (DEVICE_CONTROLS), as the simulator process offers it: the
+        Simulation panel calls the same names however its simulators are hosted."""
         fn = DEVICE_CONTROLS[name]
         return self.with_core(lambda core: fn(core, *args))
 
     def _run(self) -> None:
         if self.realtime_priority is not None:
-            from app.devices.driver import request_realtime
-
             request_realtime(self.realtime_priority)
         link = self.link
         next_tick = time.monotonic()

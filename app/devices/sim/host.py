@@ -36,6 +36,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from app.devices.sim.base import DEVICE_CONTROLS, SerialSimulator
+
 log = logging.getLogger(__name__)
 
 ROOT = Path(__file__).resolve().parents[3]
@@ -45,15 +47,6 @@ EVENTS_ENV = "LINARMPP_SIM_EVENTS"  # a file the simulator process appends its d
 SIMULATOR_RT_PRIORITY = 10  # the SIL firmware's, as SerialSimulator's: below the LINarm link (20, 21)
 PR_SET_PDEATHSIG = 1
 
-# What the Simulation panel and tests may ask of a device's simulator core, by name: one table for both
-# hostings, so the panel works the same in- and out-of-process.
-DEVICE_CONTROLS: dict[str, Callable[..., Any]] = {
-    "phasic_event": lambda core, amplitude=None: core.source.phasic_event(time.monotonic(), amplitude),
-    "set_fault_flags": lambda core, flags: core.source.set_fault_flags(int(flags)),
-    "frames_sent": lambda core: int(core.source.frames_sent),
-    "fes_channel_state": lambda core: bool(core.channel_state()),
-    "fes_running": lambda core: bool(core.running),
-}
 PATIENT_METHODS = frozenset({"idle", "squeeze", "squeeze_periodically", "squeeze_at_targets", "set_peak_force",
                              "passive", "push_to", "fail_weak", "fail_stop_early"})
 
@@ -272,8 +265,6 @@ class _Watched:
 def build_simulators(spec: dict[str, Any], patient: Any, emit: Callable[[dict[str, Any]], None] | None = None
                      ) -> dict[str, Any]:
     """The SerialSimulators of ``spec["devices"]`` (name → parameters), not yet started."""
-    from app.devices.sim.base import SerialSimulator
-
     runtime = Path(spec["runtime_dir"])
     sims: dict[str, Any] = {}
     for name, params in spec["devices"].items():
@@ -286,7 +277,7 @@ def build_simulators(spec: dict[str, Any], patient: Any, emit: Callable[[dict[st
             def link_factory(port: int = int(params["tcp_port"])) -> Any:
                 return SocketLink(port)
         if kind == "linarm":
-            from app.devices.linarm import LinarmSimAdapter
+            from app.devices.sim.adapters import LinarmSimAdapter
 
             def linarm_core(patient: Any = patient) -> Any:
                 core = LinarmSimAdapter(patient)
@@ -310,15 +301,15 @@ def build_simulators(spec: dict[str, Any], patient: Any, emit: Callable[[dict[st
 
             sims[name] = SerialSimulator(name, mcu_core, link, tick_s=0.002, link_factory=link_factory)
         elif kind == "physio":
-            from app.devices.physio import PhysioSimCore
             from app.devices.physio_codec import Calibration, ChannelCalibration
+            from app.devices.sim.adapters import PhysioSimCore
 
             cal = Calibration(**{k: ChannelCalibration(*v) for k, v in params["calibration"].items()})
             rate = float(params["rate_hz"])
             sims[name] = SerialSimulator(name, lambda rate=rate, cal=cal: PhysioSimCore(patient, rate, cal), link,
                                          tick_s=min(0.005, 0.5 / rate), link_factory=link_factory)
         elif kind == "fes":
-            from app.devices.rehastim import RehaStimSimAdapter
+            from app.devices.sim.adapters import RehaStimSimAdapter
 
             protocol = params["protocol"]
             sims[name] = SerialSimulator(name, lambda protocol=protocol: RehaStimSimAdapter(protocol), link,
@@ -458,6 +449,8 @@ def _answer(request: dict[str, Any], sims: dict[str, Any], patient: Any) -> dict
             link = sims[request["device"]].link
             result = {"accepted": int(getattr(link, "clients_accepted", 0)),
                       "refused": int(getattr(link, "clients_refused", 0))}
+        elif op == "packages":  # the top-level packages this process has loaded (tests: no Qt in here)
+            result = sorted({name.partition(".")[0] for name in list(sys.modules)})
         elif op == "control":
             sim = sims[request["device"]]
             fn = DEVICE_CONTROLS[request["name"]]

@@ -1,0 +1,76 @@
+"""The pure device simulator cores on the link thread's interface (``SimCore``: host bytes in, reply bytes out,
+``poll`` at monotonic time ``t``), for both hostings: the simulator process (app.devices.sim.host) and the
+in-process SerialSimulator.
+
+They lived in the driver modules until #29; there they made the simulator process import the drivers, and
+with them Qt. Here they import only the pure cores and codecs: nothing under ``app/devices/sim/`` reaches Qt
+(tests/test_architecture.py), and a driver module imports this one, never the reverse.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import TYPE_CHECKING, Any
+
+from app.devices.physio_codec import Calibration
+from app.devices.sim.linarm_model import LinarmSimCore
+from app.devices.sim.physio_signals import PhysioSimSource
+from app.devices.sim.rehastim_core import RehaStimSimCore
+
+if TYPE_CHECKING:
+    from app.devices.sim.patient import SimulatedPatient
+
+
+# ---------------------------------------------------------------------------------------------- LINarm
+class _PatientOnCoreClock:
+    """The shared simulated patient lives on the monotonic clock; the LINarm core counts from 0."""
+
+    def __init__(self, patient: Any, t0: float) -> None:
+        self.patient = patient
+        self.t0 = t0
+
+    def handle_force(self, t: float, handle_pos: float, handle_vel: float) -> float:
+        t_abs = t + self.t0
+        self.patient.update_handle(t_abs, handle_pos, handle_vel)
+        return float(self.patient.handle_force(t_abs, handle_pos, handle_vel))
+
+
+class LinarmSimAdapter:
+    """LinarmSimCore on the simulator thread's monotonic clock."""
+
+    def __init__(self, patient: Any | None, **core_kwargs: Any) -> None:
+        self.t0 = time.monotonic()
+        self.core = LinarmSimCore(patient=_PatientOnCoreClock(patient, self.t0) if patient is not None else None,
+                                  **core_kwargs)
+
+    def handle_host_bytes(self, data: bytes, t: float) -> bytes:
+        return self.core.handle_host_bytes(data, t - self.t0)
+
+    def poll(self, t: float) -> bytes:
+        return self.core.stream_bytes(t - self.t0)
+
+
+# ---------------------------------------------------------------------------------------------- physiological board
+class PhysioSimCore:
+    """The simulated acquisition board: streams frames at its rate; ignores what the host sends."""
+
+    def __init__(self, patient: SimulatedPatient, rate_hz: float, calibration: Calibration, seed: int = 1) -> None:
+        self.source = PhysioSimSource(patient, seed=seed, rate_hz=rate_hz, calibration=calibration,
+                                      start_time=time.monotonic())
+
+    def handle_host_bytes(self, data: bytes, t: float) -> bytes:
+        return b""
+
+    def poll(self, t: float) -> bytes:
+        return self.source.frames_until(t)
+
+
+# ---------------------------------------------------------------------------------------------- FES stimulator
+class RehaStimSimAdapter(RehaStimSimCore):
+    """RehaStimSimCore on the SerialSimulator's interface (``with_core`` hands out the core's API)."""
+
+    def handle_host_bytes(self, data: bytes, t: float) -> bytes:
+        return self.handle_bytes(data, t)
+
+    def poll(self, t: float) -> bytes:
+        return self.tick(t)
