@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
+from app.devices.linarm_protocol import WATCHDOG_TIMEOUT
 from app.resources import DEFAULT_CONFIG_FILE, RESOURCES  # noqa: F401 - RESOURCES re-exported for callers
 from app.yamlschema import ConfigError, load_file, rng, to_plain
 
@@ -179,8 +180,9 @@ class SafetyConfig:
     # A streaming device that is silent for this many of its sample periods raises an alarm.
     silence_periods: int = field(default=3, metadata=rng(2, 100))
     # ...but never less than this: a Python driver thread can be starved of the GIL for tens of ms while
-    # the GUI draws (qt-stack.md §4); 0.25 s matches the controller watchdog and avoids false alarms.
-    silence_min_s: float = field(default=0.25, metadata=rng(0.01, 5, "s"))
+    # the GUI draws (qt-stack.md §4); the controller's host watchdog (the protocol table's WATCHDOG_TIMEOUT)
+    # avoids false alarms, and calls a link silent no sooner than the controller itself would.
+    silence_min_s: float = field(default=WATCHDOG_TIMEOUT, metadata=rng(0.01, 5, "s"))
     # A device that moves the patient or drives current (LINarm, FES) still silent this long after its
     # silence alarm is a STOP (app/fault_policy.py): long enough that a host starved for a moment (the
     # whole process silent at once, as on a loaded CI machine) does not stop a therapy.

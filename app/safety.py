@@ -25,8 +25,14 @@ from typing import Any
 from PySide6.QtCore import QObject, Signal
 
 from app.config import RobotLimits, SafetyConfig
+from app.devices.linarm_constants import K
 
 log = logging.getLogger(__name__)
+
+# The robot monitor (check_robot_sample) is the controller's envelope check one layer up, with the same margins:
+# they are read from the constants table the firmware and the simulator are built from, never written here.
+ENVELOPE_VELOCITY_FACTOR = K["ENVELOPE_VELOCITY_FACTOR"]  # handle speed above this x max_velocity_m_s: stop
+ENVELOPE_POSITION_MARGIN = K["ENVELOPE_POSITION_MARGIN"]  # m outside [position_min_m, position_max_m]: stop
 
 
 class SafetyError(RuntimeError):
@@ -189,8 +195,9 @@ class SafetySupervisor(QObject):
 
     def check_robot_sample(self, vsa: Any) -> None:
         """Per-cycle check of the measured robot state (after CORC): a handle faster than the velocity
-        limit (with 20 % margin for measurement noise), an interaction force above its limit, or a handle
-        more than 1 cm outside the allowed range stops the robot and raises a STOP alarm, once per excursion.
+        limit times ENVELOPE_VELOCITY_FACTOR (a margin for measurement noise), an interaction force above its
+        limit, or a handle more than ENVELOPE_POSITION_MARGIN outside the allowed range stops the robot and
+        raises a STOP alarm, once per excursion (the margins are the controller's, from its constants table).
         Runs on the LINarm driver thread for every state sample; it must stay cheap."""
         lim = self.robot
         problem = kind = ""
@@ -200,14 +207,15 @@ class SafetySupervisor(QObject):
         self._samples_homed = self._samples_homed + 1 if homed else 0
         # The first samples after referencing may still carry the old reference: skip a few (25 ms at 200 Hz).
         homed = self._samples_homed > ROBOT_MONITOR_GRACE_SAMPLES
-        if abs(vsa.handleVel) > 1.2 * lim.max_velocity_m_s:
+        if abs(vsa.handleVel) > ENVELOPE_VELOCITY_FACTOR * lim.max_velocity_m_s:
             kind = "speed"
             problem = f"handle speed {abs(vsa.handleVel):.3f} m/s above the limit {lim.max_velocity_m_s:.3f} m/s"
         elif homed and abs(vsa.interactionForce) > lim.max_interaction_force_n:
             kind = "force"
             problem = (f"interaction force {abs(vsa.interactionForce):.1f} N above the limit "
                        f"{lim.max_interaction_force_n:.1f} N")
-        elif homed and not (lim.position_min_m - 0.01 <= vsa.handlePos <= lim.position_max_m + 0.01):
+        elif homed and not (lim.position_min_m - ENVELOPE_POSITION_MARGIN <= vsa.handlePos
+                            <= lim.position_max_m + ENVELOPE_POSITION_MARGIN):
             kind = "range"
             problem = f"handle at {vsa.handlePos:.3f} m, outside {lim.position_min_m:.3f} .. {lim.position_max_m:.3f} m"
         if problem and not self._robot_excursion:

@@ -1,11 +1,15 @@
 """One source for the controller's constants (app/devices/linarm_constants.py): the generated firmware header,
-the firmware's own defaults as it reports them, the Python simulator and the LINarm panel must all carry the
-table's values. Any constant that differs anywhere fails here."""
+the firmware's own defaults as it reports them, the Python simulator, the LINarm panel and the host's safety
+supervisor must all carry the table's values. Any constant that differs anywhere fails here. So does the
+host's copy of the controller's watchdog timeout (the protocol table's WATCHDOG_TIMEOUT) in the config."""
 
 from __future__ import annotations
 
+import ast
 import dataclasses
 import importlib.util
+import json
+import os
 import re
 import struct
 import subprocess
@@ -18,7 +22,7 @@ import pytest
 from app.devices import linarm_constants
 from app.devices.cmdmessenger import CmdMessengerDecoder
 from app.devices.linarm_constants import CONSTANTS, K
-from app.devices.linarm_protocol import Ack, decode_controller_frame, encode_command, protocol_table
+from app.devices.linarm_protocol import WATCHDOG_TIMEOUT, Ack, decode_controller_frame, encode_command, protocol_table
 from app.devices.sim import linarm_model
 from app.devices.sim.linarm_model import LinarmParams, LinarmSimCore
 from tests.test_firmware import FIRMWARE, GENERATOR, ROOT, FirmwareTarget, build_firmware
@@ -128,6 +132,101 @@ def test_the_panel_shows_the_controller_defaults_of_the_table() -> None:
     assert set(linarm_panel.CONTROLLER_DEFAULTS) == set(PANEL)
     for key, name in PANEL.items():
         assert linarm_panel.DEFAULTS[key] == K[name], f"panel {key}={linarm_panel.DEFAULTS[key]} vs table {K[name]}"
+
+
+# ---------------------------------------------------------------------------------------------- the host's supervisor
+ENVELOPE = ("ENVELOPE_VELOCITY_FACTOR", "ENVELOPE_POSITION_MARGIN")
+
+
+def literal_copies(path: Path, values: dict[str, float], scope: str | None = None) -> list[str]:
+    """Numeric literals in ``path`` (within the class or function ``scope``, if given) equal to one of
+    ``values``: each a hand-written copy of a fact that has its one place elsewhere."""
+    tree: ast.AST = ast.parse(path.read_text(encoding="utf-8"), str(path))
+    if scope is not None:
+        tree = next(n for n in ast.walk(tree) if isinstance(n, (ast.ClassDef, ast.FunctionDef)) and n.name == scope)
+    return [f"{path.relative_to(ROOT)}:{node.lineno}: {node.value!r} is {name}"
+            for node in ast.walk(tree)
+            if isinstance(node, ast.Constant) and type(node.value) in (int, float)
+            for name, value in values.items() if node.value == pytest.approx(value, rel=1e-9, abs=0)]
+
+
+def test_the_supervisor_writes_no_envelope_margin_by_hand() -> None:
+    """app/safety.py's robot monitor is the controller's envelope check one layer up: its margins are the
+    table's, read from it, never a literal (it once held ``1.2 *`` and ``± 0.01``)."""
+    from app import safety
+
+    copies = literal_copies(ROOT / "app" / "safety.py", {name: K[name] for name in ENVELOPE})
+    assert not copies, "read these from app/devices/linarm_constants.py:\n" + "\n".join(copies)
+    assert (safety.ENVELOPE_VELOCITY_FACTOR, safety.ENVELOPE_POSITION_MARGIN) == tuple(K[n] for n in ENVELOPE)
+
+
+# The supervisor's trip points, probed in a fresh interpreter whose table says ``sys.argv[1:3]``: a sample just
+# inside and just outside each margin, after the grace samples that follow homing.
+TRIP_PROBE = r"""
+import json, sys
+from app.devices import linarm_constants
+factor, margin = float(sys.argv[1]), float(sys.argv[2])
+linarm_constants.K.update(ENVELOPE_VELOCITY_FACTOR=factor, ENVELOPE_POSITION_MARGIN=margin)
+from types import SimpleNamespace
+from app.config import SafetyConfig
+from app.safety import RobotProbes, SafetySupervisor, StopAction
+sup = SafetySupervisor(SafetyConfig())
+lim = sup.robot
+stops = []
+sup.add_stop_action(StopAction("robot IDLE", stops.append, robot=True))
+sup.set_robot_probes(RobotProbes(lambda: None, lambda: None, lambda: True))
+centre = (lim.position_min_m + lim.position_max_m) / 2
+ok = SimpleNamespace(handleVel=0.0, interactionForce=0.0, handlePos=centre)
+for _ in range(20):
+    sup.check_robot_sample(ok)
+eps, v = 1e-4, factor * lim.max_velocity_m_s
+probes = {"speed_inside": (v - eps, centre), "speed_outside": (v + eps, centre),
+          "above_max_inside": (0.0, lim.position_max_m + margin - eps),
+          "above_max_outside": (0.0, lim.position_max_m + margin + eps),
+          "below_min_inside": (0.0, lim.position_min_m - margin + eps),
+          "below_min_outside": (0.0, lim.position_min_m - margin - eps)}
+tripped = {}
+for name, (vel, pos) in probes.items():
+    before = len(stops)
+    sup.check_robot_sample(SimpleNamespace(handleVel=vel, interactionForce=0.0, handlePos=pos))
+    tripped[name] = len(stops) > before
+    sup.check_robot_sample(ok)
+print(json.dumps(tripped))
+"""
+
+
+def supervisor_trips(factor: float, margin: float) -> dict[str, bool]:
+    result = subprocess.run([sys.executable, "-c", TRIP_PROBE, repr(factor), repr(margin)], capture_output=True,
+                            text=True, timeout=60, cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)})
+    assert result.returncode == 0, result.stderr
+    return dict(json.loads(result.stdout.strip().splitlines()[-1]))
+
+
+@pytest.mark.parametrize(("factor", "margin"), [(K["ENVELOPE_VELOCITY_FACTOR"], K["ENVELOPE_POSITION_MARGIN"]),
+                                                (1.7, 0.03), (1.05, 0.004)], ids=["table", "wider", "narrower"])
+def test_the_supervisor_trips_where_the_table_says(factor: float, margin: float) -> None:
+    """Change the table and the supervisor's trip points move with it: just inside each margin nothing happens,
+    just outside the robot is stopped (speed above factor x max_velocity, position beyond either end + margin)."""
+    trips = supervisor_trips(factor, margin)
+    assert trips == {name: name.endswith("_outside") for name in trips} and len(trips) == 6, trips
+
+
+# ---------------------------------------------------------------------------------------------- the watchdog's copy
+def test_the_config_takes_the_silence_floor_from_the_controller_watchdog() -> None:
+    """safety.silence_min_s defaults to the controller's host watchdog (one value: the protocol table's, which
+    the firmware header is generated from), not a literal beside it."""
+    from app.config import SafetyConfig
+
+    config = ROOT / "app" / "config.py"
+    copies = literal_copies(config, {"WATCHDOG_TIMEOUT": WATCHDOG_TIMEOUT}, scope="SafetyConfig")
+    assert not copies, "read it from app/devices/linarm_protocol.py:\n" + "\n".join(copies)
+    assert SafetyConfig().silence_min_s == WATCHDOG_TIMEOUT == protocol_table()["limits"]["watchdog_timeout_s"]
+    probe = ("import sys\nfrom app.devices import linarm_protocol\nlinarm_protocol.WATCHDOG_TIMEOUT = 0.4\n"
+             "from app.config import SafetyConfig\nprint(SafetyConfig().silence_min_s)")
+    result = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=60, cwd=ROOT,
+                            env={**os.environ, "PYTHONPATH": str(ROOT)})
+    assert result.returncode == 0, result.stderr
+    assert float(result.stdout.strip().splitlines()[-1]) == 0.4, "the config's default did not follow the table"
 
 
 # ---------------------------------------------------------------------------------------------- what they report

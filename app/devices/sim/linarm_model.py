@@ -722,7 +722,8 @@ class LinarmSimCore:
         if env is not None and on and not self.demo:  # the locked envelope first: the host's monitor, one layer down
             margin = ENVELOPE_POSITION_MARGIN
             if abs(m["vh"]) > ENVELOPE_VELOCITY_FACTOR * env.max_vel:
-                self._latch(ErrorState.ENVELOPE_BREACH, f"handle at {abs(m['vh']):.3f} m/s, above 1.2 x the locked "
+                self._latch(ErrorState.ENVELOPE_BREACH, f"handle at {abs(m['vh']):.3f} m/s, above "
+                                                        f"{ENVELOPE_VELOCITY_FACTOR:g} x the locked "
                                                         f"{env.max_vel:g} m/s")
                 return
             if not env.pos_min - margin <= m["h"] <= env.pos_max + margin:
