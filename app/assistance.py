@@ -34,7 +34,7 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, replace
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Protocol
 
 from app.config import AssistanceConfig, AssistanceMap
 
@@ -96,6 +96,16 @@ class AssistanceSplit:
 
 RobotApply = Callable[[float, float, float], None]  # (k_m N/m, k_a m/(s·N), k_t N/m)
 FesApply = Callable[[float | None], None]           # pulse width µs; None = the profile's (α lost)
+
+
+class AssistanceLevels(Protocol):
+    """What a device's frames need of the assistance (the patient model's a_r, a_f; the VR frame's α): the
+    last α applied and the split with the gains in force. :class:`AssistanceController` is one."""
+
+    @property
+    def alpha(self) -> float | None: ...
+
+    def levels(self, alpha: float) -> tuple[float, float]: ...
 
 
 class AssistanceInactive(Exception):
@@ -202,11 +212,6 @@ class AssistanceController:
                 neutral = self._split.compute(0.0, self._k_r, self._k_f)
                 if self._call("robot", self._apply_robot, neutral.k_m, neutral.k_a, neutral.k_t):
                     self.applied_robot = None
-
-    def on_patient_model_sample(self, stream: str, t: float, sample: Any) -> None:
-        """A driver listener: ``driver.add_listener(controller.on_patient_model_sample)``."""
-        if stream == "patient_model.main":
-            self.update_alpha(float(getattr(sample, "alpha", math.nan)))
 
     def set_gains(self, k_r: float, k_f: float, now: float | None = None) -> None:
         for name, v in (("k_r", k_r), ("k_f", k_f)):

@@ -30,17 +30,27 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING
 
 from PySide6.QtCore import Qt
 
+from app import streams
+from app.bus import BusItem, DeviceEvent, StreamBus
 from app.safety import Alarm, AlarmLevel
+
+if TYPE_CHECKING:
+    from app.devices.driver import DeviceDriver
+    from app.safety import SafetySupervisor
 
 log = logging.getLogger(__name__)
 
-STOP_ON_SILENCE: frozenset[str] = frozenset({"linarm", "fes"})
-DRIVING_LINKS: frozenset[str] = frozenset({"patient_model", "vr"})  # a loss matters only while they drive
+STOP_ON_SILENCE: frozenset[str] = frozenset({streams.LINARM, streams.FES})
+# a loss matters only while they drive
+DRIVING_LINKS: frozenset[str] = frozenset({streams.PATIENT_MODEL, streams.VR})
+
+DriverLookup = Callable[[str], "DeviceDriver | None"]
 
 
 @dataclass(frozen=True)
@@ -51,43 +61,49 @@ class Fault:
 
 
 class FaultPolicy:
-    """Created once by the manager (``manager.fault_policy``); ``attach_devices`` after they start."""
+    """Created once by the manager (``manager.fault_policy``); ``attach_devices`` after they start.
 
-    def __init__(self, manager: Any) -> None:
-        self.manager = manager
-        self.supervisor = manager.supervisor
+    What it uses: the supervisor (alarms, safe state), the bus (device events, the robot's state), the drivers
+    by name (still silent? still connected? FES stimulating?), whether the application runs (``running``: no
+    fault is judged while it shuts down) and how long a silence may last before it is a STOP."""
+
+    def __init__(self, supervisor: SafetySupervisor, bus: StreamBus, drivers: DriverLookup,
+                 running: Callable[[], bool] = lambda: True, silence_stop_s: float = 1.0) -> None:
+        self.supervisor = supervisor
+        self.bus = bus
+        self.drivers = drivers
+        self.running = running
+        self.silence_stop_s = silence_stop_s
         self.faults: list[Fault] = []
         self._lock = threading.Lock()
-        self._attached: set[str] = set()
+        self._attached = False
         # Direct: the safe state runs in the thread that raised the alarm, not when the GUI thread gets to it.
         self.supervisor.alarm_raised.connect(self._on_alarm, Qt.ConnectionType.DirectConnection)
 
     # ------------------------------------------------------------------ inputs
     def attach_devices(self) -> None:
-        """Listen to the devices' silence (idempotent; call after ``manager.start()`` created them)."""
-        for name, handle in dict(getattr(self.manager, "devices", {})).items():
-            if name in self._attached:
-                continue
-            self._attached.add(name)
+        """Listen to the devices' silence and helper failures: a safety monitor, inline on the bus (idempotent)."""
+        if self._attached:
+            return
+        self._attached = True
+        self.bus.subscribe_inline("safety", self._on_event, (), events=True)
 
-            def on_event(event: str, detail: str, device: str = name) -> None:
-                if not getattr(self.manager, "_started", True):
-                    return
-                if event == "silent" and device in STOP_ON_SILENCE:
-                    self._silence_check(device, detail)
-                elif event == "helper_failed":
-                    self.process_failed(device, detail)
-
-            handle.driver.add_event_listener(on_event)
+    def _on_event(self, item: BusItem) -> None:
+        if not isinstance(item, DeviceEvent) or not self.running():
+            return
+        if item.kind == "silent" and item.device in STOP_ON_SILENCE:
+            self._silence_check(item.device, item.detail)
+        elif item.kind == "helper_failed":
+            self.process_failed(item.device, item.detail)
 
     def _silence_check(self, device: str, detail: str) -> None:
-        delay = float(getattr(getattr(self.manager.config, "safety", None), "silence_stop_s", 1.0))
+        delay = self.silence_stop_s
 
         def check() -> None:
-            driver = self.manager.driver(device) if hasattr(self.manager, "driver") else None
-            if driver is None or not getattr(self.manager, "_started", True):
+            driver = self.drivers(device)
+            if driver is None or not self.running():
                 return
-            if getattr(driver, "silent", False) and getattr(driver, "connected", False):
+            if driver.silent and driver.connected:
                 self.supervisor.raise_alarm(AlarmLevel.STOP, device, f"{device} stopped sending data for "
                                             f"{delay:g} s: {detail or 'silent'}")
 
@@ -107,15 +123,10 @@ class FaultPolicy:
     # ------------------------------------------------------------------ the policy
     def drives_something(self) -> bool:
         """An actuator α or the VR task can influence is active: FES stimulating, or the LINarm ON."""
-        fes = self._driver("fes")
-        if fes is not None and bool(getattr(fes, "stimulating", False)):
+        fes = self._driver(streams.FES)
+        if fes is not None and bool(getattr(fes, "stimulating", False)):  # an FesDriver
             return True
-        robot = self._driver("linarm")
-        latest = getattr(robot, "latest", None)
-        try:
-            state = latest("linarm.state") if callable(latest) else None
-        except Exception:
-            state = None
+        state = self.bus.latest(streams.LINARM_STATE) if self._driver(streams.LINARM) is not None else None
         from app.devices.linarm_protocol import ControlState
 
         return state is not None and getattr(state, "controlState", None) == int(ControlState.ON_CTRL_STATE)
@@ -126,9 +137,9 @@ class FaultPolicy:
             return AlarmLevel.WARNING
         return AlarmLevel.STOP
 
-    def _driver(self, name: str) -> Any:
+    def _driver(self, name: str) -> DeviceDriver | None:
         try:
-            return self.manager.driver(name)
+            return self.drivers(name)
         except Exception:
             return None
 

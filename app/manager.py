@@ -1,38 +1,180 @@
-"""LinarmppManager: owns the devices (drivers and, when simulated, their simulators), the safety
-supervisor, and the shared update notifier. The GUI, the script runner and the headless runner
-all work through one manager; none of them touches a port.
+"""LinarmppManager: the composition root. It builds the stream bus first, then the safety supervisor, the
+assistance controller and the devices (drivers and, when simulated, their simulators), and wires the consumers
+to the bus: the safety monitors inline (the devices' loss and silence alarms, the fault policy), the therapy
+(patient-model α → split → robot and FES, the VR task's target → the robot) on one queued "therapy" thread.
+The GUI, the script runner and the headless runner all work through one manager; none of them touches a port.
 """
 
 from __future__ import annotations
 
 import logging
 import shutil
+import threading
 import time
 from collections.abc import Callable
+from concurrent.futures import Future
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from PySide6.QtCore import QObject, Signal
 
+from app import streams
+from app.assistance import AssistanceController, AssistanceInactive
+from app.bus import BusItem, DeviceEvent, SampleItem, StreamBus, Subscription
 from app.config import AppConfig
-from app.devices.driver import DeviceDriver, UpdateNotifier
+from app.devices.driver import DeviceDriver
+from app.devices.linarm_constants import K
 from app.devices.registry import DeviceFactory, DeviceHandle, SimulatorHosting, build_devices
+from app.fault_policy import FaultPolicy
 from app.paths import runtime_dir
-from app.safety import SafetySupervisor
+from app.safety import AlarmLevel, SafetySupervisor
+
+if TYPE_CHECKING:
+    from app.devices.linarm import LinarmDriver
 
 log = logging.getLogger(__name__)
 
-__all__ = ["DeviceFactory", "DeviceHandle", "LinarmppManager"]
+__all__ = ["DeviceFactory", "DeviceHandle", "DeviceWatch", "LinarmppManager", "TherapyThread"]
+
+# The pretension move by which the robot's share of α changes the VSA's stiffness (setStiffness's motion
+# profile): the constants table's, and execTime 0 = planned from that velocity and acceleration.
+STIFFNESS_MOVE = (K["PRETENSION_MOVE_VELOCITY"], K["PRETENSION_MOVE_ACCELERATION"], 0.0)
+
+
+class TherapyThread:
+    """The one thread the therapy's consumers run on: it drains their queued bus subscription (the patient
+    model's α and link events, the VR task's frames) and applies them through the devices' command paths, so a
+    command waiting for its ack never delays a driver, the safety monitor or another consumer. Within a pass
+    only the newest α and the newest target count (a backlog is not replayed to the robot), in the order the
+    events came: an α lost after its last sample is never applied.
+
+    Started by ``LinarmppManager.start``, stopped (and joined) by ``shutdown``."""
+
+    NAME = "therapy"
+    MAXLEN = 1024  # ~5 s of α at 100 Hz and the VR frames at 50 Hz: more backlog than that is counted, dropped
+
+    def __init__(self, bus: StreamBus, on_alpha: Callable[[float], None], on_alpha_lost: Callable[[str], None],
+                 on_target: Callable[[float], None]) -> None:
+        self.bus = bus
+        self.on_alpha = on_alpha
+        self.on_alpha_lost = on_alpha_lost
+        self.on_target = on_target
+        self.subscription: Subscription | None = None
+        self._thread: threading.Thread | None = None
+        self._stop = threading.Event()
+        self.passes = 0
+
+    @property
+    def running(self) -> bool:
+        return self._thread is not None and self._thread.is_alive()
+
+    def start(self) -> None:
+        if self.running:
+            return
+        self._stop.clear()
+        self.subscription = self.bus.subscribe(self.NAME, (streams.PATIENT_MODEL_MAIN, streams.VR_MAIN), events=True,
+                                               maxlen=self.MAXLEN)
+        self._thread = threading.Thread(target=self._run, args=(self.subscription,), name=self.NAME, daemon=True)
+        self._thread.start()
+
+    def stop(self, timeout_s: float = 1.0) -> bool:
+        """End the thread (after the command it may be waiting on) and close its subscription."""
+        self._stop.set()
+        sub, self.subscription = self.subscription, None
+        if sub is not None:
+            sub.close()
+            sub._ready.set()  # wake its wait at once (closing a subscription does not wake its waiter)
+        thread, self._thread = self._thread, None
+        if thread is not None and thread is not threading.current_thread():
+            thread.join(timeout_s)
+            return not thread.is_alive()
+        return True
+
+    def _run(self, sub: Subscription) -> None:
+        while not self._stop.is_set():
+            if not sub.wait(0.5):
+                continue
+            try:
+                self.handle(sub.drain())
+            except Exception:  # a consumer's bug must not end the therapy thread
+                log.exception("therapy: a pass failed")
+
+    def handle(self, items: list[BusItem]) -> None:
+        """One pass over the queued items (the thread's body; tests call it directly)."""
+        self.passes += 1
+        alpha: float | None = None
+        target: float | None = None
+        for item in items:
+            if isinstance(item, SampleItem):
+                if item.stream == streams.PATIENT_MODEL_MAIN:
+                    alpha = float(getattr(item.sample, "alpha", float("nan")))
+                elif item.stream == streams.VR_MAIN:
+                    value = getattr(item.sample, "targetPos", None)
+                    if value is not None and value == value:  # not NaN
+                        target = float(value)
+            elif isinstance(item, DeviceEvent) and item.device == streams.PATIENT_MODEL \
+                    and item.kind in ("disconnected", "silent"):
+                alpha = None  # whatever came before the loss is stale
+                self.on_alpha_lost(item.kind)
+        if alpha is not None:
+            self.on_alpha(alpha)
+        if target is not None:
+            self.on_target(target)
+
+
+class DeviceWatch:
+    """Connection loss and silence become alarms (and events in the session record). A safety monitor: the
+    manager subscribes it inline on the bus (``bus.subscribe_inline("safety", watch, (), events=True)``), so the
+    alarm — and the fault policy's safe state — comes on the thread that saw the event."""
+
+    def __init__(self, supervisor: SafetySupervisor, loss_level: Callable[[str], AlarmLevel],
+                 running: Callable[[], bool] = lambda: True) -> None:
+        self.supervisor = supervisor
+        self.loss_level = loss_level  # the fault policy's: STOP unless nothing needs the device
+        self.running = running
+        self._state: dict[str, dict[str, Any]] = {}  # per device: seen connected, its open silence alarm
+
+    def watch(self, device: str) -> None:
+        self._state.setdefault(device, {"was_connected": False, "silence_alarm": None})
+
+    def __call__(self, item: BusItem) -> None:
+        if not isinstance(item, DeviceEvent):
+            return
+        name, event, detail = item.device, item.kind, item.detail
+        state = self._state.get(name)
+        if state is None:
+            return
+        if event == "connected":
+            if state["was_connected"]:
+                self.supervisor.raise_alarm(AlarmLevel.INFO, name, f"{name} reconnected")
+            state["was_connected"] = True
+        elif event == "disconnected" and state["was_connected"] and self.running():
+            self.supervisor.raise_alarm(self.loss_level(name), name, f"{name} connection lost: {detail}")
+        elif event == "silent" and self.running():
+            state["silence_alarm"] = self.supervisor.raise_alarm(AlarmLevel.WARNING, name,
+                                                                 f"{name} stopped sending data")
+        elif event == "alive" and state.get("silence_alarm") is not None:
+            # The stream resumed: the warning says so and leaves the banner; it stays in the alarm history.
+            alarm, state["silence_alarm"] = state["silence_alarm"], None
+            try:
+                gap = f" after {float(detail):.1f} s"
+            except ValueError:
+                gap = ""
+            alarm.text = f"{alarm.text} (resumed{gap})"
+            self.supervisor.event("stream_resumed", device=name, silent_s=detail, ident=alarm.ident)
+            self.supervisor.acknowledge(alarm.ident, operator=f"{name} resumed")
+        elif event == "controller_error":
+            self.supervisor.raise_alarm(AlarmLevel.STOP, name, detail)
 
 
 class LinarmppManager(QObject):
-    device_connection_changed = Signal(str, bool, str)  # device, connected, reason
     session_changed = Signal(object)  # the session folder (Path) or None when no session runs
 
     def __init__(self, config: AppConfig, factories: dict[str, DeviceFactory] | None = None) -> None:
         super().__init__()
         self.config = config
-        self.notifier = UpdateNotifier()
+        self.bus = StreamBus()  # first: every device publishes on it, every consumer subscribes to it
+        self.notifier = self.bus.notifier  # what a script's waitCondition waits on (woken once per driver read)
         self.supervisor = SafetySupervisor(config.safety)
         self.runtime_dir: Path = runtime_dir()
         self.devices: dict[str, DeviceHandle] = {}
@@ -48,130 +190,116 @@ class LinarmppManager(QObject):
         self.patient_profile: Any = None
         self.operator = ""
         self._lsl: Any = None
-        self.assistance: Any = None  # app.assistance.AssistanceController, created in start()
+        # α from the patient model → split → robot (k_m, k_a, k_t) and FES (pulse width). Built before the
+        # devices: the patient model's and the VR's frames carry its split and α.
+        self.assistance = AssistanceController(config.assistance, self._apply_robot_assistance,
+                                               self._apply_fes_pulse_width, supervisor=self.supervisor)
+        self._last_target: float | None = None
+        self.therapy = TherapyThread(self.bus, self.assistance.update_alpha, self._alpha_lost, self._follow_target)
         from app.progress import ExerciseProgress
 
         self.progress = ExerciseProgress(self.supervisor.event)  # the running exercise's repetitions
         self.runs = self._new_run_log()  # the exercise runs (app/runs.py); a new log for each session
-        from app.fault_policy import FaultPolicy
-
-        self.fault_policy = FaultPolicy(self)  # every STOP alarm -> safe state (window and headless alike)
+        # every STOP alarm -> safe state (window and headless alike)
+        self.fault_policy = FaultPolicy(self.supervisor, self.bus, self.driver, lambda: self._started,
+                                        config.safety.silence_stop_s)
+        self.device_watch = DeviceWatch(self.supervisor, self.fault_policy.loss_level, lambda: self._started)
+        self._watching = False
 
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> None:
         """Build every configured device (app.devices.registry), start the simulators (their own
-        process, or threads here), then the drivers."""
+        process, or threads here), then the drivers and the therapy thread."""
         if self._started:
             return
         self._started = True
         self.devices = build_devices(
-            self._factories, self.config, notifier=self.notifier, supervisor=self.supervisor,
-            runtime_dir=self.runtime_dir, simulators=self.simulators, app=self,
+            self._factories, self.config, bus=self.bus, supervisor=self.supervisor,
+            runtime_dir=self.runtime_dir, simulators=self.simulators, assistance=self.assistance,
             on_error=lambda name, exc: self.supervisor.event("device_error", device=name, error=str(exc)))
         try:
             self.simulators.start()
         except Exception as exc:
             log.exception("the simulated devices could not be started")
             self.supervisor.event("device_error", device="simulators", error=str(exc))
-        for name, handle in self.devices.items():
-            self._watch_device(handle)
-            handle.driver.connection_changed.connect(
-                lambda ok, why, n=name: self.device_connection_changed.emit(n, ok, why))
+        # The safety monitors, after the devices' own (LINarm monitor, FES link watch: subscribed by their
+        # create), in the order they always ran: the device watch's alarms, then the fault policy.
+        for name in self.devices:
+            self.device_watch.watch(name)
+        if not self._watching:
+            self._watching = True
+            self.bus.subscribe_inline("safety", self.device_watch, (), events=True)
+        self.fault_policy.attach_devices()
+        self.therapy.start()
+        for handle in self.devices.values():
             if handle.simulator is not None:
                 handle.simulator.start()
             handle.driver.start()
         log.info("devices started: %s", ", ".join(self.devices) or "none")
-        self.fault_policy.attach_devices()
-        self._wire_assistance()
 
-    # ------------------------------------------------------------------ the therapy loop
-    def _wire_assistance(self) -> None:
-        """α from the patient model → split → robot (k_m, k_a, k_t) and FES (pulse width), and the VR
-        task's target → the robot's assistance target. Commands go through the drivers' checked paths
-        on a worker thread, so a slow ack never stalls the patient-model link."""
-        from concurrent.futures import ThreadPoolExecutor
+    # ------------------------------------------------------------------ the therapy (on the therapy thread)
+    def _robot(self) -> LinarmDriver | None:
+        """The LINarm driver when there is one (its command path runs the supervisor's checks)."""
+        from app.devices.linarm import LinarmDriver
 
-        from app.assistance import AssistanceController, AssistanceInactive
+        robot = self.driver(streams.LINARM)
+        return robot if isinstance(robot, LinarmDriver) else None
 
-        executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="assistance")
-        executor.submit(lambda: None)  # its thread exists from start-up, not from the first α (ends at shutdown)
-        self.add_shutdown_hook(lambda: executor.shutdown(wait=False, cancel_futures=True))
-
-        def report(future: Any) -> None:
-            exc = future.exception()
-            if exc is not None:
-                log.warning("assistance not applied: %s", exc)
-
+    def _apply_robot_assistance(self, k_m: float, k_a: float, k_t: float) -> None:
+        """The robot's share of α only acts in the interaction modes it parameterises (admittance, assistance)
+        while ON: a position-controlled exercise or a script's moves are never altered."""
         from app.devices.linarm_protocol import ControlMode, ControlState
 
+        robot = self._robot()
+        if robot is None or not robot.connected:
+            raise AssistanceInactive("the LINarm is not connected")
+        state = self.bus.latest(streams.LINARM_STATE)
         assisted_modes = (int(ControlMode.POS_REF_BY_ADMITTANCE), int(ControlMode.POS_REF_BY_ASSISTANCE))
+        if state is None or state.controlState != int(ControlState.ON_CTRL_STATE) \
+                or state.controlMode not in assisted_modes:
+            raise AssistanceInactive("robot assistance applies only while ON in admittance or assistance mode")
+        # Each parameter on its own: a refused one must not hold back the others.
+        for args in (("setAdmittanceParameter", k_a), ("setAssistanceParameter", k_t),
+                     ("setStiffness", k_m, *STIFFNESS_MOVE)):
+            _command(robot, args, "assistance")
 
-        def apply_robot(k_m: float, k_a: float, k_t: float) -> None:
-            # The robot's share of α only acts in the interaction modes it parameterises (admittance,
-            # assistance) while ON: a position-controlled exercise or a script's moves are never altered.
-            robot = self.driver("linarm")
-            if robot is None or not robot.connected:
-                raise AssistanceInactive("the LINarm is not connected")
-            state = robot.latest("linarm.state")
-            if state is None or state.controlState != int(ControlState.ON_CTRL_STATE) \
-                    or state.controlMode not in assisted_modes:
-                raise AssistanceInactive("robot assistance applies only while ON in admittance or assistance mode")
+    def _apply_fes_pulse_width(self, pulse_width_us: float | None) -> None:
+        from app.devices.rehastim import FesDriver
 
-            # Each parameter on its own: a refused one must not hold back the others.
-            for args in (("setAdmittanceParameter", k_a), ("setAssistanceParameter", k_t),
-                         ("setStiffness", k_m, 0.05, 0.2, 0.0)):
-                executor.submit(robot.command, *args, source="assistance").add_done_callback(report)
+        fes = self.driver(streams.FES)
+        if not isinstance(fes, FesDriver):
+            raise AssistanceInactive("no FES device")
+        fes.set_pulse_width_override(pulse_width_us)
 
-        def apply_fes_pulse_width(pulse_width_us: float) -> None:
-            fes = self.driver("fes")
-            if fes is None or not hasattr(fes, "set_pulse_width_override"):
-                raise AssistanceInactive("no FES device")
-            fes.set_pulse_width_override(pulse_width_us)
+    def _alpha_lost(self, _why: str) -> None:
+        self.assistance.invalidate()  # no stale α is ever applied, whatever the GUI changes meanwhile
 
-        self.assistance = AssistanceController(self.config.assistance, apply_robot, apply_fes_pulse_width,
-                                               supervisor=self.supervisor)
-        model = self.driver("patient_model")
-        if model is not None:
-            model.add_listener(self.assistance.on_patient_model_sample)
-            assistance = self.assistance
-
-            def model_lost(event: str, _detail: str) -> None:
-                if event in ("disconnected", "silent"):
-                    assistance.invalidate()  # no stale α is ever applied, whatever the GUI changes meanwhile
-
-            model.add_event_listener(model_lost)
-        vr = self.driver("vr")
-        robot = self.driver("linarm")
-        if vr is not None and robot is not None:
-            last = {"target": None}
-
-            def follow_target(stream: str, t: float, sample: Any) -> None:
-                target = getattr(sample, "targetPos", None)
-                if target is None or target != target or target == last["target"]:
-                    return
-                state = robot.latest("linarm.state")
-                if not robot.connected or state is None or not state.initialized:
-                    return
-                last["target"] = target
-                executor.submit(robot.command, "setAssistanceTargetPos", float(target),
-                                source="VR task").add_done_callback(report)
-
-            vr.add_listener(follow_target)
+    def _follow_target(self, target: float) -> None:
+        """The VR task's target becomes the robot's assistance target (once per new target)."""
+        robot = self._robot()
+        if target == self._last_target or robot is None or not robot.connected:
+            return
+        state = self.bus.latest(streams.LINARM_STATE)
+        if state is None or not state.initialized:
+            return
+        self._last_target = target
+        _command(robot, ("setAssistanceTargetPos", target), "VR task")
 
     def apply_patient_profile(self, profile: Any) -> None:
         """The patient's clinical score feeds the embedded model; their gains the assistance split."""
-        model = self.driver("patient_model")
+        from app.devices.patient_model import PatientModelDriver
+        from app.devices.rehastim import FesDriver
+
+        model = self.driver(streams.PATIENT_MODEL)
         score = profile.scores.fugl_meyer_ue
-        if model is not None and score is not None and hasattr(model, "clinical_score"):
+        if isinstance(model, PatientModelDriver) and score is not None:
             model.clinical_score = int(score)
-        if self.assistance is not None:
-            self.assistance.set_gains(profile.assistance.k_r, profile.assistance.k_f)
-        fes = self.driver("fes")
-        set_caps = getattr(fes, "set_clinical_caps", None)
-        if callable(set_caps):
+        self.assistance.set_gains(profile.assistance.k_r, profile.assistance.k_f)
+        fes = self.driver(streams.FES)
+        if isinstance(fes, FesDriver):
             from app.patients import clinical_caps
 
-            set_caps(clinical_caps(profile))
+            fes.set_clinical_caps(clinical_caps(profile))
         self.supervisor.event("patient_profile_applied", patient=profile.patient_id,
                               k_r=profile.assistance.k_r, k_f=profile.assistance.k_f, clinical_score=score)
 
@@ -200,9 +328,7 @@ class LinarmppManager(QObject):
             self.supervisor.robot = effective_robot_limits(profile, self.config.safety.robot)
             self.supervisor.event("patient_limits_applied", patient=patient_id)
             self._apply_robot_limits()
-            apply_profile = getattr(self, "apply_patient_profile", None)
-            if callable(apply_profile):
-                apply_profile(profile)
+            self.apply_patient_profile(profile)
         if self.config.recording.lsl and self._lsl is None:
             from app.lsl import start_lsl
 
@@ -225,8 +351,8 @@ class LinarmppManager(QObject):
         self.session_changed.emit(None)
 
     def _apply_robot_limits(self) -> None:
-        robot = self.driver("linarm")
-        if robot is not None and robot.connected and hasattr(robot, "apply_limits"):
+        robot = self._robot()
+        if robot is not None and robot.connected:
             robot.apply_limits(self.supervisor.robot)
 
     def _new_run_log(self) -> Any:
@@ -278,6 +404,8 @@ class LinarmppManager(QObject):
             self._lsl.stop()
             self._lsl = None
         self._run_shutdown_hooks()
+        if not self.therapy.stop(timeout_s):
+            log.error("the therapy thread did not stop within %.2f s", timeout_s)
         for handle in self.devices.values():
             handle.driver._stop.set()  # all at once, then wait: total time = the slowest, not the sum
         for handle in self.devices.values():
@@ -321,46 +449,31 @@ class LinarmppManager(QObject):
                 log.exception("safe stop of %s failed", name)
         return handle.driver.stop(timeout_s)
 
-    def _watch_device(self, handle: DeviceHandle) -> None:
-        """Connection loss and silence become alarms (and events in the session record)."""
-        from app.safety import AlarmLevel
-
-        name = handle.name
-        state: dict[str, Any] = {"was_connected": False, "silence_alarm": None}
-
-        def on_event(event: str, detail: str) -> None:
-            if event == "connected":
-                if state["was_connected"]:
-                    self.supervisor.raise_alarm(AlarmLevel.INFO, name, f"{name} reconnected")
-                state["was_connected"] = True
-            elif event == "disconnected" and state["was_connected"] and self._started:
-                self.supervisor.raise_alarm(self.fault_policy.loss_level(name), name,  # STOP unless nothing needs it
-                                            f"{name} connection lost: {detail}")
-            elif event == "silent" and self._started:
-                state["silence_alarm"] = self.supervisor.raise_alarm(AlarmLevel.WARNING, name,
-                                                                     f"{name} stopped sending data")
-            elif event == "alive" and state.get("silence_alarm") is not None:
-                # The stream resumed: the warning says so and leaves the banner; it stays in the alarm history.
-                alarm, state["silence_alarm"] = state["silence_alarm"], None
-                try:
-                    gap = f" after {float(detail):.1f} s"
-                except ValueError:
-                    gap = ""
-                alarm.text = f"{alarm.text} (resumed{gap})"
-                self.supervisor.event("stream_resumed", device=name, silent_s=detail, ident=alarm.ident)
-                self.supervisor.acknowledge(alarm.ident, operator=f"{name} resumed")
-            elif event == "controller_error":
-                self.supervisor.raise_alarm(AlarmLevel.STOP, name, detail)
-
-        handle.driver.add_event_listener(on_event)
-
     # ------------------------------------------------------------------ queries
     def driver(self, name: str) -> DeviceDriver | None:
+        """The driver of device ``name`` (its commands and link state; its samples are on ``bus``)."""
         handle = self.devices.get(name)
         return handle.driver if handle else None
 
     def all_connected(self) -> bool:
         return bool(self.devices) and all(h.driver.connected for h in self.devices.values())
+
+
+def _command(robot: LinarmDriver, args: tuple[Any, ...], source: str) -> None:
+    """One robot command from the therapy thread; a refusal or a failed ack is logged, never raised (the next
+    α or target tries again)."""
+    def report(future: Future) -> None:
+        exc = future.exception()
+        if exc is not None:
+            log.warning("%s not applied: %s", source, exc)
+
+    try:
+        result = robot.command(*args, source=source)
+    except Exception as exc:
+        log.warning("%s not applied: %s", source, exc)
+        return
+    if isinstance(result, Future):  # a command path that returns its status instead of waiting for the ack
+        result.add_done_callback(report)
 
 
 def _stop_process(proc: Any) -> None:

@@ -31,6 +31,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import common
 
+from app import streams
+from app.bus import SampleItem
+
 NOMINAL = {"physio": 100.0, "linarm": 200.0, "patient_model": 100.0, "vr": 50.0}
 LINARM_MAX_HZ = 1000.0  # startDataStream(period ≥ 0.001 s)
 
@@ -116,18 +119,17 @@ def run_step(step: float, seconds: float, profile: str = "", headless: bool = Fa
         period = 1.0 / config.devices.linarm.state_rate_hz
         linarm_gaps, model_seq, model_ack, vr_seq = ClockGaps(period), SeqGaps(), SeqGaps(), SeqGaps()
 
-        def on_linarm(stream: str, _t: float, s: Any) -> None:
-            if stream == "linarm.vsa":
+        def on_sample(item: SampleItem) -> None:
+            s = item.sample
+            if item.stream == streams.LINARM_VSA:
                 linarm_gaps.add(s.controllerTime)
-
-        def on_model(_stream: str, _t: float, s: Any) -> None:
-            model_seq.add(int(s.seq))
-            model_ack.add(int(s.ackSeq))
-
-        def on_vr(_stream: str, _t: float, s: Any) -> None:
-            seq = getattr(s, "seq", None)
-            if seq is not None:
-                vr_seq.add(int(seq))
+            elif item.stream == streams.PATIENT_MODEL_MAIN:
+                model_seq.add(int(s.seq))
+                model_ack.add(int(s.ackSeq))
+            elif item.stream == streams.VR_MAIN:
+                seq = getattr(s, "seq", None)
+                if seq is not None:
+                    vr_seq.add(int(seq))
 
         common.run_qt_for(2.0)  # settle: connections, first stream periods
         physio = manager.driver("physio")
@@ -135,12 +137,10 @@ def run_step(step: float, seconds: float, profile: str = "", headless: bool = Fa
         lost0, bad0 = (physio.frames_lost, physio.bad_frames) if physio is not None else (0, 0)
         sent0 = physio_sim.control("frames_sent") if physio_sim is not None else 0
         got0 = physio.total_samples("physio.main") if physio is not None else 0
-        if manager.driver("linarm") is not None:
-            manager.driver("linarm").add_listener(on_linarm)
-        if manager.driver("patient_model") is not None:
-            manager.driver("patient_model").add_listener(on_model)
-        if manager.driver("vr") is not None:
-            manager.driver("vr").add_listener(on_vr)
+        # The sequence checks read a queued bus subscription, drained once the run is over (nothing of the bench
+        # runs on the driver threads or the GUI thread meanwhile); one big enough for the run, its drops counted.
+        watched = manager.bus.subscribe("bench sequences", (streams.LINARM_VSA, streams.PATIENT_MODEL_MAIN,
+                                                            streams.VR_MAIN), maxlen=10_000_000)
         helpers = helper_pids(manager)
         udp = {n: manager.driver(n) for n in ("patient_model", "vr") if manager.driver(n) is not None}
         udp0 = {n: (d.datagrams_sent, d.datagrams_received) for n, d in udp.items()}
@@ -163,6 +163,12 @@ def run_step(step: float, seconds: float, profile: str = "", headless: bool = Fa
         if spy is not None:
             spy.wait()
             print(f"  profile: {common.summarise_py_spy(profile)}")
+        watched.close()
+        for item in watched.drain():
+            if isinstance(item, SampleItem):
+                on_sample(item)
+        if watched.dropped:
+            print(f"  the sequence check's queue dropped {watched.dropped} samples: its gaps are not the link's")
         rates = {name: h.driver.rates() for name, h in manager.devices.items()}
         return {
             "step": step, "config": config.devices,

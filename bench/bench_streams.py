@@ -31,13 +31,14 @@ import subprocess
 import sys
 import time
 from pathlib import Path
-from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import itertools
 
 import common
+
+from app.bus import SampleItem
 
 CONFIGS: dict[str, dict[str, str]] = {
     "socket": {"LINARMPP_SIM_HOST": "process", "LINARMPP_SIM_LINK": "socket"},
@@ -64,23 +65,21 @@ def child(seconds: float) -> int:
     rates: dict[str, float] = {}
     try:
         common.run_qt_for(1.0)
-        listeners = []
         for handle in manager.devices.values():
-            driver = handle.driver
-            for spec in driver.streams:
+            for spec in handle.driver.streams:
                 times.setdefault(spec.name, [])
                 arrivals.setdefault(spec.name, [])
                 rates[spec.name] = float(spec.nominal_rate_hz)
-
-            def on_sample(stream: str, t: float, _sample: Any, driver: Any = driver) -> None:
-                times[stream].append(t)
-                arrivals[stream].append(getattr(driver, "arrival_s", t))  # before #27: the stamp was the arrival
-
-            driver.add_listener(on_sample)
-            listeners.append((driver, on_sample))
+        # Every stream's samples on a queued bus subscription, drained once the run is over (its drops counted).
+        watched = manager.bus.subscribe("bench streams", list(times), maxlen=10_000_000)
         common.run_qt_for(seconds)
-        for driver, fn in listeners:
-            driver.remove_listener(fn)
+        watched.close()
+        for item in watched.drain():
+            if isinstance(item, SampleItem):
+                times[item.stream].append(item.t)
+                arrivals[item.stream].append(item.arrival)  # before #27: the stamp was the arrival
+        if watched.dropped:
+            print(f"the bench's queue dropped {watched.dropped} samples", file=sys.stderr)
     finally:
         manager.shutdown()
     print("RESULT " + json.dumps({"times": times, "arrivals": arrivals, "rates": rates,

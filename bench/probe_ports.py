@@ -32,6 +32,7 @@ os.environ["LINARMPP_HOME"] = tempfile.mkdtemp(prefix="probe-ports-home-")
 
 from PySide6.QtCore import QCoreApplication  # noqa: E402
 
+from app.bus import DeviceEvent, Subscription  # noqa: E402
 from app.config import AppConfig, SimulationConfig  # noqa: E402
 from app.devices import linarm  # noqa: E402
 from app.devices import linarm_protocol as proto  # noqa: E402
@@ -115,6 +116,12 @@ def start(link: str, host: str = "process") -> LinarmppManager:
     return manager
 
 
+def disconnects(link_events: Subscription) -> list[str]:
+    """The LINarm driver's disconnections (their reasons) since the subscription began."""
+    return [item.detail for item in link_events.drain()
+            if isinstance(item, DeviceEvent) and item.device == "linarm" and item.kind == "disconnected"]
+
+
 def out_of_idle(events: list[dict[str, Any]], t0: float, t1: float) -> tuple[float, float]:
     """(total, longest) seconds the controller reported a state other than IDLE within [t0, t1]."""
     total = longest = 0.0
@@ -154,8 +161,7 @@ def row_tty(seconds: float = 10.0) -> None:
     manager = start("pty")
     driver = manager.driver("linarm")
     url = driver.transport.url
-    lost: list[str] = []
-    driver.connection_changed.connect(lambda up, reason: None if up else lost.append(reason))
+    link_events = manager.bus.subscribe("probe link events", (), events=True)
     locking = subprocess.run([sys.executable, "-c", LOCKING_OPEN, url], capture_output=True, text=True)
     print("  a locking open (pyserial exclusive):", locking.stdout.strip())
     if shutil.which("setpriv"):
@@ -183,7 +189,7 @@ def row_tty(seconds: float = 10.0) -> None:
     total, longest = out_of_idle(list(manager.simulators.process.events), t0, time.monotonic())
     print(f"  a privileged intruder (CAP_SYS_ADMIN passes TIOCEXCL): {opened}, {said}; {seconds:.0f} s, F12 latched:")
     print(f"    robot out of IDLE {total:.3f} s in total, longest stretch {longest * 1000:.0f} ms; "
-          f"driver disconnects: {len(lost)}")
+          f"driver disconnects: {len(disconnects(link_events))}")
     for line in describe_alarms(sup.alarms()[n_alarms:]):
         print("   ", line)
     manager.shutdown()
@@ -194,8 +200,7 @@ def row_tcp(seconds: float = 20.0) -> None:
     manager = start("socket")
     driver = manager.driver("linarm")
     host, _, port = driver.transport.url[len("socket://"):].partition(":")
-    lost: list[str] = []
-    driver.connection_changed.connect(lambda up, reason: None if up else lost.append(reason))
+    link_events = manager.bus.subscribe("probe link events", (), events=True)
     manager.supervisor.emergency_stop("probe", "F12")
     tries = refused = served = 0
     t0 = time.monotonic()
@@ -217,8 +222,9 @@ def row_tcp(seconds: float = 20.0) -> None:
             served += 1
         pump(0.1)
     total, _ = out_of_idle(list(manager.simulators.process.events), t0, time.monotonic())
+    kicked = len(disconnects(link_events))
     print(f"  {tries} intruding clients in {seconds:.0f} s: {refused} refused, {served} served; driver kicked "
-          f"{len(lost)} times; robot out of IDLE {total:.3f} s; driver connected at the end: {driver.connected}")
+          f"{kicked} times; robot out of IDLE {total:.3f} s; driver connected at the end: {driver.connected}")
     manager.shutdown()
 
 

@@ -26,6 +26,7 @@ import sys
 import threading
 import time
 from pathlib import Path
+from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import common
@@ -62,12 +63,14 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     os.environ["LINARMPP_SIM_HOST"] = args.host
 
+    from app.bus import DeviceEvent, Subscription
     from app.config import AppConfig
     from app.scripting.headless import run_headless
 
     writes: list[tuple[float, str]] = []
     reads: list[tuple[float, float, int]] = []  # LINarm driver reads: entry, return, bytes
     silence_events: list[tuple[float, str, str]] = []
+    event_queue: list[Subscription] = []
     ticks: list[float] = []
     sim_in: list[float] = []
     sim_poll: list[float] = []
@@ -103,8 +106,8 @@ def main(argv: list[str] | None = None) -> int:
             return data
 
         drv.transport.read = read
-        drv.add_event_listener(lambda event, detail: silence_events.append((time.monotonic(), event, detail))
-                               if event in ("silent", "alive") else None)
+        # the LINarm's silent/alive events (stamped when published), drained after the run
+        event_queue.append(manager.bus.subscribe("trace silence", (), events=True, maxlen=1_000_000))
         sim = manager.devices["linarm"].simulator
         core = getattr(sim, "core", None)
         if core is not None and hasattr(core, "handle_host_bytes"):
@@ -122,8 +125,12 @@ def main(argv: list[str] | None = None) -> int:
             core.handle_host_bytes, core.poll = handle, polled
         for name in ("physio", "fes", "patient_model", "vr"):
             d = manager.driver(name)
-            if d is not None:
-                d.add_listener(lambda *_a, n=name: names.setdefault(threading.get_native_id(), f"driver:{n}"))
+            if d is not None:  # name the driver threads: their loop passes run on_tick
+                def named_tick(now: float, n: str = name, inner: Any = d.on_tick) -> None:
+                    names.setdefault(threading.get_native_id(), f"driver:{n}")
+                    inner(now)
+
+                d.on_tick = named_tick
 
     stalls: list[str] = []
     cpu_seen: dict[int, float] = {}
@@ -211,6 +218,10 @@ def main(argv: list[str] | None = None) -> int:
         during = [f"{m} ({who})" for t, m, who in imports if a <= t <= b]
         print(f"imports during the driver stall of {1000 * (b - a):.0f} ms at {a - ticks[0]:.1f} s: "
               f"{len(during)}: {', '.join(during[:25])}")
+    for queue in event_queue:
+        silence_events.extend((item.t, item.kind, item.detail) for item in queue.drain()
+                              if isinstance(item, DeviceEvent) and item.device == "linarm"
+                              and item.kind in ("silent", "alive"))
     print(f"LINarm silence events: {len(silence_events)}")
     for t_event, event, detail in silence_events:
         if event != "silent":

@@ -6,10 +6,14 @@ from __future__ import annotations
 
 import struct
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 from app.devices.driver import Channel, DeviceDriver, StreamSpec
 from app.devices.sim.base import SerialSimulator
 from app.devices.transport import SerialTransport
+
+if TYPE_CHECKING:
+    from app.devices.registry import DeviceContext
 
 FRAME = struct.Struct("<cIc")
 
@@ -77,9 +81,9 @@ def make_counter_device(tmp_path, name: str = "counter"):
 def counter_factory(tmp_path, name: str = "counter"):
     from app.manager import DeviceHandle
 
-    def factory(manager) -> DeviceHandle:
+    def factory(ctx: DeviceContext) -> DeviceHandle:
         sim = make_counter_device(tmp_path, name)
-        driver = CounterDriver(sim.url, notifier=manager.notifier, silence_timeout_s=0.05)
+        driver = CounterDriver(sim.url, bus=ctx.bus, silence_timeout_s=0.05)
         driver.name = name
         return DeviceHandle(name, driver, sim)
 

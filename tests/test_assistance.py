@@ -305,3 +305,91 @@ def test_a_click_anywhere_on_a_gain_slider_changes_it_by_at_most_one_step(qtbot)
     qtbot.mouseMove(slider, QPoint(slider.width() - 1 if before < 50 else 1, handle.y()))  # a flick to the end
     qtbot.mouseRelease(slider, Qt.MouseButton.LeftButton, pos=QPoint(slider.width() - 1, handle.y()))
     assert 0 < abs(slider.value() - before) <= GAIN_MAX_STEP
+
+
+# ------------------------------------------------------------------ the therapy thread (app/manager.py)
+def _therapy(bus=None):
+    from app.bus import StreamBus
+    from app.manager import TherapyThread
+
+    calls: list[tuple[str, object]] = []
+    therapy = TherapyThread(bus or StreamBus(), lambda a: calls.append(("alpha", a)),
+                            lambda why: calls.append(("lost", why)), lambda t: calls.append(("target", t)))
+    return therapy, calls
+
+
+def _item(stream: str, **fields: float):
+    from types import SimpleNamespace
+
+    from app.bus import SampleItem
+
+    return SampleItem(stream, 0.0, SimpleNamespace(**fields), 0.0)
+
+
+def test_a_therapy_pass_applies_the_newest_alpha_and_target_and_never_one_from_before_a_loss() -> None:
+    from app import streams
+    from app.bus import DeviceEvent
+
+    therapy, calls = _therapy()
+    lost = DeviceEvent(streams.PATIENT_MODEL, "silent", "", 0.0)
+    other = DeviceEvent(streams.PHYSIO, "disconnected", "", 0.0)
+    therapy.handle([_item(streams.PATIENT_MODEL_MAIN, alpha=0.1), _item(streams.VR_MAIN, targetPos=0.1),
+                    _item(streams.PATIENT_MODEL_MAIN, alpha=0.2), _item(streams.VR_MAIN, targetPos=0.4), other])
+    assert calls == [("alpha", 0.2), ("target", 0.4)], "a backlog is not replayed: the newest of each"
+    calls.clear()
+    therapy.handle([_item(streams.PATIENT_MODEL_MAIN, alpha=0.3), lost, _item(streams.VR_MAIN, targetPos=math.nan)])
+    assert calls == [("lost", "silent")], "an α from before the loss is stale; a NaN target is no target"
+    calls.clear()
+    therapy.handle([lost, _item(streams.PATIENT_MODEL_MAIN, alpha=0.5)])
+    assert calls == [("lost", "silent"), ("alpha", 0.5)], "an α after the loss (the model is back) counts"
+
+
+def test_the_therapy_thread_takes_alpha_from_the_bus_off_the_driver_thread_and_stops(qtbot) -> None:
+    import threading
+
+    from app import streams
+    from app.bus import StreamBus
+    from app.devices.patient_model import PATIENT_MODEL_STREAM
+
+    bus = StreamBus()
+    bus.declare([PATIENT_MODEL_STREAM])
+    therapy, calls = _therapy(bus)
+    seen_on: list[str] = []
+    therapy.on_alpha = lambda a: (calls.append(("alpha", a)), seen_on.append(threading.current_thread().name))
+    therapy.start()
+    try:
+        assert therapy.running and any(t.name == "therapy" for t in threading.enumerate())
+        bus.publish(streams.PATIENT_MODEL_MAIN, 1.0, _item(streams.PATIENT_MODEL_MAIN, alpha=0.7).sample)
+        qtbot.waitUntil(lambda: ("alpha", 0.7) in calls, timeout=2000)
+    finally:
+        assert therapy.stop(2.0)
+    assert seen_on == ["therapy"]
+    assert not therapy.running and not any(t.name == "therapy" for t in threading.enumerate())
+    assert all(s.name != "therapy" for s in bus.subscriptions()), "its subscription is closed"
+
+
+def test_the_stiffness_move_of_the_assistance_is_the_constants_tables() -> None:
+    """setStiffness(k_m, maxVel, maxAcc, execTime) from the split: the motion profile is one fact, in the table
+    (issue #29; it was the literal (0.05, 0.2, 0.0) in the manager). Fails when a copy comes back."""
+    import ast
+    from pathlib import Path
+
+    from app.devices.linarm_constants import K
+    from app.manager import STIFFNESS_MOVE
+
+    velocity, acceleration, exec_time = STIFFNESS_MOVE
+    assert (velocity, acceleration) == (K["PRETENSION_MOVE_VELOCITY"], K["PRETENSION_MOVE_ACCELERATION"])
+    assert exec_time == 0.0  # planned from the velocity and acceleration
+    # what the controller's setter accepts under its default limits (firmware: Linarm::plan)
+    assert K["MOVE_LIMIT_MIN"] <= velocity <= K["MAX_VELOCITY"]
+    assert K["MOVE_LIMIT_MIN"] <= acceleration <= K["MAX_ACCELERATION"]
+    copies = []
+    for path in sorted((Path(__file__).resolve().parents[1] / "app").rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            items = node.elts if isinstance(node, ast.Tuple) else node.args if isinstance(node, ast.Call) else []
+            names = [i for i, e in enumerate(items) if isinstance(e, ast.Constant) and e.value == "setStiffness"]
+            for i in names:
+                literals = [e for e in items[i + 2:] if isinstance(e, ast.Constant) and isinstance(e.value, float)]
+                if literals:
+                    copies.append(f"{path.name}:{node.lineno} {ast.unparse(node)}")
+    assert not copies, f"setStiffness's motion profile typed again instead of read from the table: {copies}"

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
+from app.bus import SampleItem
 from app.devices import linarm_protocol as proto
 from app.devices.clock import CountedClock, DeviceClock
 
@@ -182,8 +183,7 @@ def test_linarm_samples_are_stamped_on_the_controller_clock(qtbot, ppm: float) -
     from app.safety import SafetySupervisor
 
     driver = LinarmDriver(_NoLink(), SafetySupervisor(SafetyConfig()))  # type: ignore[arg-type]
-    got: list[tuple[str, float, object]] = []
-    driver.add_listener(lambda stream, t, sample: got.append((stream, t, sample)))
+    queue = driver.bus.subscribe("test", maxlen=1_000_000)
     frames = device_frames(12.0, ppm, start_raw_s=WRAP_US / 1e6 - 6.0)  # the controller's micros() wraps
     send_by_raw = {}
     for arrival, burst in bursty_link(frames, random.Random(7)):
@@ -193,6 +193,8 @@ def test_linarm_samples_are_stamped_on_the_controller_clock(qtbot, ppm: float) -
             send_by_raw[raw] = f.send_s
             data += _vsa_frame(raw) + _motor_frame(raw, 0)
         driver.on_bytes(data, round(arrival * 1e9))
+    got = [(item.stream, item.t, item.sample) for item in queue.drain() if isinstance(item, SampleItem)]
+    assert queue.dropped == 0
     vsa = [(t, s) for stream, t, s in got if stream == "linarm.vsa"]
     assert len(vsa) == len(frames)
     stamps = [(send_by_raw[round(s.controllerTime * 1e6) % WRAP_US], t) for t, s in vsa]
@@ -211,8 +213,7 @@ def test_physio_samples_are_stamped_on_the_board_clock(qtbot) -> None:
     from app.devices.physio_codec import Calibration, PhysioRawFrame, encode_physio_frame
 
     driver = PhysioDriver(_NoLink(), Calibration())  # type: ignore[arg-type]
-    got: list[tuple[float, object]] = []
-    driver.add_listener(lambda _stream, t, sample: got.append((t, sample)))
+    queue = driver.bus.subscribe("test", maxlen=1_000_000)
     period = 0.01
     frames = device_frames(15.0, 200.0, start_raw_s=50.0, period_s=period, wrap_s=65.536, tick_s=0.001)
     send_by_seq = {}
@@ -224,6 +225,8 @@ def test_physio_samples_are_stamped_on_the_board_clock(qtbot) -> None:
             data += encode_physio_frame(PhysioRawFrame(seq=seq, tick=round(f.device_raw * 1000) & 0xFFFF,
                                                        ppg=2000, skinConductance=100, temperature=100, force=0))
         driver.on_bytes(data, round(arrival * 1e9))
+    got = [(item.t, item.sample) for item in queue.drain() if isinstance(item, SampleItem)]
+    assert queue.dropped == 0
     assert len(got) == len(frames)
     stamps = [(send_by_seq[s.seq], t) for t, s in got]  # type: ignore[attr-defined]
     err = errors_after(stamps, 5.0, frames[0].send_s)

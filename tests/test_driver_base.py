@@ -1,4 +1,5 @@
-"""The driver base over a real pty with a simulator thread: data flow, batching, kill/reconnect."""
+"""The driver base over a real pty with a simulator thread: data flow, batching, kill/reconnect. The driver
+publishes on its stream bus; the tests read it as consumers do (a queued subscription, display-rate batches)."""
 
 from __future__ import annotations
 
@@ -7,21 +8,69 @@ import threading
 
 import numpy as np
 import pytest
+from PySide6.QtCore import QTimer
 
+from app.bus import DeviceEvent, SampleItem, StreamBus
 from app.devices.driver import Channel, DeviceDriver, StreamSpec, UpdateNotifier
 from app.devices.sim.base import SerialSimulator
 from tests.fakes import CounterCore, CounterDriver
 from tests.memory_link import MemoryLink
 
 
+class ConnectionLog:
+    """The driver's connection changes as (connected, reason), read from a queued bus subscription (what the Qt
+    adapter's connection_changed carries)."""
+
+    def __init__(self, bus: StreamBus) -> None:
+        self.sub = bus.subscribe("test connection log", (), events=True)
+        self.items: list[tuple[bool, str]] = []
+        self.silence: list[bool] = []  # True: went silent, False: alive again
+
+    def _take(self) -> None:
+        for item in self.sub.drain():
+            if isinstance(item, DeviceEvent):
+                if item.kind in ("connected", "disconnected"):
+                    self.items.append((item.kind == "connected", item.detail))
+                elif item.kind in ("silent", "alive"):
+                    self.silence.append(item.kind == "silent")
+
+    def __iter__(self):
+        self._take()
+        return iter(list(self.items))
+
+    def silence_changes(self) -> list[bool]:
+        self._take()
+        return list(self.silence)
+
+
+class Batches(list):
+    """Display-rate column batches, taken from the bus at 30 Hz like the Qt adapter's timer."""
+
+    def __init__(self, bus: StreamBus) -> None:
+        super().__init__()
+        self.sub = bus.subscribe_batches("test batches")
+        self.timer = QTimer()
+        self.timer.timeout.connect(self._take)
+        self.timer.start(33)
+
+    def _take(self) -> None:
+        batch = self.sub.take()
+        if batch:
+            self.append(batch)
+
+    def close(self) -> None:
+        self.timer.stop()
+        self._take()
+        self.sub.close()
+
+
 @pytest.fixture
 def counter(tmp_path, qtbot):
     sim = SerialSimulator("counter", CounterCore, tmp_path / "counter.tty")
     sim.start()
-    driver = CounterDriver(sim.url, notifier=UpdateNotifier(), silence_timeout_s=0.05)
+    driver = CounterDriver(sim.url, bus=StreamBus(UpdateNotifier()), silence_timeout_s=0.05)
     driver.reconnect_backoff_s = (0.05, 0.2)
-    events: list[tuple[bool, str]] = []
-    driver.connection_changed.connect(lambda ok, why: events.append((ok, why)))
+    events = ConnectionLog(driver.bus)
     driver.start()
     yield sim, driver, events
     driver.stop()
@@ -31,9 +80,11 @@ def counter(tmp_path, qtbot):
 
 def test_samples_arrive_in_batches_in_order(counter, qtbot) -> None:
     _sim, driver, _ = counter
-    batches = []
-    driver.samples.connect(batches.append)
-    qtbot.waitUntil(lambda: sum(len(b["counter.main"]) for b in batches) >= 300, timeout=5000)
+    batches = Batches(driver.bus)
+    try:
+        qtbot.waitUntil(lambda: sum(len(b["counter.main"]) for b in batches) >= 300, timeout=5000)
+    finally:
+        batches.timer.stop()
     counts = [c for b in batches for c in b["counter.main"].data["count"]]
     diffs = {b - a for a, b in itertools.pairwise(counts)}
     assert diffs == {1.0}, "samples must arrive complete and in order"
@@ -51,7 +102,7 @@ def test_killed_simulator_is_reported_then_reconnected(counter, qtbot) -> None:
         qtbot.waitUntil(lambda: driver.connected, timeout=3000)
         sim.kill()
         qtbot.waitUntil(lambda: not driver.connected, timeout=3000)
-        qtbot.waitUntil(lambda: any(not ok for ok, _ in events), timeout=3000)  # the queued signal
+        qtbot.waitUntil(lambda: any(not ok for ok, _ in events), timeout=3000)  # the queued event
         down = [why for ok, why in events if not ok]
         assert down and down[-1], "the disconnection carries a reason"
         assert "lost" in down[-1] or "cannot open" in down[-1]
@@ -66,11 +117,12 @@ def test_killed_simulator_is_reported_then_reconnected(counter, qtbot) -> None:
 
 
 def test_silence_is_detected_while_connected(counter, qtbot) -> None:
-    sim, driver, _ = counter
+    sim, driver, events = counter
     qtbot.waitUntil(lambda: driver.connected and driver.total_samples("counter.main") > 10, timeout=3000)
-    with qtbot.waitSignal(driver.silence_changed, timeout=3000) as blocker:
-        sim.with_core(lambda core: setattr(core, "period_s", 10.0))  # the device stops talking
-    assert blocker.args == [True]
+    before = len(events.silence_changes())
+    sim.with_core(lambda core: setattr(core, "period_s", 10.0))  # the device stops talking
+    qtbot.waitUntil(lambda: len(events.silence_changes()) > before, timeout=3000)
+    assert events.silence_changes()[before:before + 1] == [True]
 
 
 def test_stop_is_prompt(counter) -> None:
@@ -95,6 +147,7 @@ class _CountingNotifier(UpdateNotifier):
 
 
 def _two_stream_driver(reads: list[bytes], notifier: UpdateNotifier) -> DeviceDriver:
+    """A driver on a private bus whose notifier counts the wake-ups."""
     from dataclasses import dataclass
 
     @dataclass(frozen=True)
@@ -113,25 +166,32 @@ def _two_stream_driver(reads: list[bytes], notifier: UpdateNotifier) -> DeviceDr
     link = MemoryLink()
     for data in reads:
         link.push(data)
-    return PairDriver("pair", link, notifier=notifier)
+    return PairDriver("pair", link, bus=StreamBus(notifier))
 
 
-def test_every_sample_reaches_listeners_latest_and_batches_with_one_wake_up_per_read(qtbot) -> None:
+def test_every_sample_reaches_subscribers_latest_and_batches_with_one_wake_up_per_read(qtbot) -> None:
     reads = [bytes(range(i, i + 7)) for i in range(0, 210, 7)]  # 30 reads, 210 samples
     notifier = _CountingNotifier()
     driver = _two_stream_driver(reads, notifier)
     seen: list[tuple[str, float]] = []
-    driver.add_listener(lambda stream, _t, s: seen.append((stream, s.a)))
-    batches: list[dict] = []
-    driver.samples.connect(batches.append)
+    queue = driver.bus.subscribe("test", ("pair.x", "pair.y"))
+
+    def subscriber_took_all() -> bool:
+        seen.extend((item.stream, item.sample.a) for item in queue.drain() if isinstance(item, SampleItem))
+        return len(seen) == 210
+
+    batches = Batches(driver.bus)
     driver.start()
     try:
-        qtbot.waitUntil(lambda: len(seen) == 210 and driver.total_samples("pair.y") == 105, timeout=5000)
+        qtbot.waitUntil(lambda: subscriber_took_all() and driver.total_samples("pair.y") == 105, timeout=5000)
         qtbot.waitUntil(lambda: sum(len(b.get("pair.x", ())) for b in batches) == 105, timeout=5000)
         qtbot.waitUntil(lambda: notifier.calls >= 31, timeout=5000)
         notified = notifier.calls
     finally:
         driver.stop()
+        batches.close()
+        queue.close()
+    assert queue.dropped == 0
     assert [a for _s, a in seen] == [float(b) for b in range(210)]
     assert notified == 1 + 30  # connected, then once per read (not once per sample)
     assert driver.latest("pair.x").a == 209.0 and driver.latest("pair.y").a == 208.0

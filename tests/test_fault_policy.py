@@ -19,6 +19,7 @@ from typing import Any
 import pytest
 
 from app.config import AppConfig
+from app.devices.registry import DeviceContext
 from app.manager import DeviceHandle, LinarmppManager
 from tests.fakes import CounterDriver, make_counter_device
 
@@ -54,14 +55,14 @@ class Safe:
 
 def fake_factories(tmp_path: Path, safe: Safe) -> dict[str, Any]:
     def factory_for(name: str):
-        def factory(manager) -> DeviceHandle:
+        def factory(ctx: DeviceContext) -> DeviceHandle:
             sim = make_counter_device(tmp_path, name)
-            driver = CounterDriver(sim.url, notifier=manager.notifier)  # no natural silence: faults are injected
+            driver = CounterDriver(sim.url, bus=ctx.bus)  # no natural silence: faults are injected
             driver.name = name
             if name == "fes":
-                manager.supervisor.register_estop_action("FES stop", safe.action("FES stop"))
+                ctx.supervisor.register_estop_action("FES stop", safe.action("FES stop"))
             if name == "linarm":
-                manager.supervisor.register_estop_action("robot IDLE", safe.action("robot IDLE"))
+                ctx.supervisor.register_estop_action("robot IDLE", safe.action("robot IDLE"))
             return DeviceHandle(name, driver, sim)
         return factory
     return {name: factory_for(name) for name in DEVICES}

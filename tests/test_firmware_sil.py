@@ -10,12 +10,13 @@ from __future__ import annotations
 import dataclasses
 import os
 import subprocess
-import threading
 import tty
 from collections.abc import Iterator
 
 import pytest
 
+from app import streams
+from app.bus import SampleItem, StreamBus
 from app.config import SafetyConfig
 from app.devices.linarm import LinarmCommandError, LinarmDriver
 from app.devices.linarm_protocol import ControlMode, ControlState, HomeState, ReplyError
@@ -53,20 +54,17 @@ def sil_link() -> Iterator[str]:
 
 
 class CentreRecorder:
-    """(controller time, centre) of every VSA sample, from the driver thread."""
+    """(controller time, centre) of every VSA sample, from a queued bus subscription (none dropped: counted)."""
 
-    def __init__(self) -> None:
-        self.lock = threading.Lock()
+    def __init__(self, bus: StreamBus) -> None:
+        self.queue = bus.subscribe("test centre", (streams.LINARM_VSA,), maxlen=1_000_000)
         self.samples: list[tuple[float, float]] = []
 
-    def __call__(self, stream: str, t: float, sample: object) -> None:
-        if stream == "linarm.vsa":
-            with self.lock:
-                self.samples.append((sample.controllerTime, sample.equilibriumPos))  # type: ignore[attr-defined]
-
     def since(self, t0: float) -> list[tuple[float, float]]:
-        with self.lock:
-            return [s for s in self.samples if s[0] >= t0]
+        self.samples.extend((i.sample.controllerTime, i.sample.equilibriumPos)
+                            for i in self.queue.drain() if isinstance(i, SampleItem))
+        assert self.queue.dropped == 0
+        return [s for s in self.samples if s[0] >= t0]
 
 
 def speeds(samples: list[tuple[float, float]], window: int = 4) -> list[tuple[float, float]]:
@@ -80,8 +78,7 @@ def speeds(samples: list[tuple[float, float]], window: int = 4) -> list[tuple[fl
 
 def test_driver_runs_the_trigger_exercise_on_the_firmware(qtbot, sil_link: str) -> None:  # type: ignore[no-untyped-def]
     driver = LinarmDriver(SerialTransport(sil_link), SafetySupervisor(SafetyConfig()))
-    recorder = CentreRecorder()
-    driver.add_listener(recorder)
+    recorder = CentreRecorder(driver.bus)
     driver.start()
     try:
         qtbot.waitUntil(lambda: driver.connected and driver.latest("linarm.vsa") is not None, timeout=5000)

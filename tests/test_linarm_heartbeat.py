@@ -10,6 +10,8 @@ import time
 
 import pytest
 
+from app import streams
+from app.bus import BusItem, SampleItem
 from app.config import AppConfig
 from app.devices import linarm
 from app.devices.linarm import HEARTBEAT_READER_GRACE_S
@@ -34,13 +36,14 @@ def test_a_stalled_reading_loop_does_not_delay_the_heartbeat_and_a_wedged_one_st
         stall = {"s": 0.0}
         released = threading.Event()
 
-        def slow_consumer(stream: str, _t: float, _sample: object) -> None:
-            if stall["s"] and stream == "linarm.vsa":
+        def slow_consumer(item: BusItem) -> None:
+            if stall["s"] and isinstance(item, SampleItem) and item.stream == streams.LINARM_VSA:
                 seconds, stall["s"] = stall["s"], 0.0
                 time.sleep(seconds)  # a consumer that blocks the reading loop (what a starved thread looks like)
                 released.set()
 
-        robot.add_listener(slow_consumer)
+        # inline, on the reading loop (only a safety monitor may: what would wedge the loop is a slow one)
+        manager.bus.subscribe_inline("safety", slow_consumer, (streams.LINARM_VSA,))
         # 1. the loop stalls 0.4 s (> the 0.25 s watchdog), within the grace: the beats go on
         t0 = time.monotonic()
         stall["s"] = 0.4

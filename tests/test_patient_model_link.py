@@ -14,15 +14,20 @@ from dataclasses import dataclass
 
 import pytest
 
+from app import streams
 from app.assistance import AssistanceSplit
+from app.bus import StreamBus
 from app.config import AppConfig
+from app.devices.linarm import VSA_STREAM
 from app.devices.patient_model import (
-    ManagerFrameSource,
+    DeviceFrameSource,
+    LinkInputs,
     PatientModelDriver,
     embedded_process,
     free_udp_port,
     path_text,
 )
+from app.devices.physio import PHYSIO_STREAM
 from app.devices.transport import UdpTransport
 from app.devices.udp_frames import (
     PatientModelFrame,
@@ -57,24 +62,20 @@ class VsaSample:
     interactionForce: float = 0.0
 
 
-class FakeDriver:
-    def __init__(self, stream: str, sample: object) -> None:
-        self.stream, self.sample = stream, sample
-        self.connected, self.silent = True, False
-
-    def latest(self, stream: str) -> object:
-        return self.sample if stream == self.stream else None
-
-
-class FakeManager:
-    supervisor = None
+class FakeLink:
+    """Another device's link state, as its driver reports it."""
 
     def __init__(self) -> None:
-        self.devices = {"physio": FakeDriver("physio.main", PhysioSample()),
-                        "linarm": FakeDriver("linarm.vsa", VsaSample())}
+        self.connected, self.silent = True, False
 
-    def driver(self, name: str) -> FakeDriver | None:
-        return self.devices.get(name)
+
+def fake_inputs() -> LinkInputs:
+    """The other devices as the frames read them: their latest samples on the bus, their links up."""
+    bus = StreamBus()
+    bus.declare([PHYSIO_STREAM, VSA_STREAM])
+    bus.publish(streams.PHYSIO_MAIN, 0.0, PhysioSample())
+    bus.publish(streams.LINARM_VSA, 0.0, VsaSample())
+    return LinkInputs(bus, {streams.PHYSIO: FakeLink(), streams.LINARM: FakeLink()})
 
 
 class ScriptedTask:
@@ -96,10 +97,11 @@ def link(qtbot):
     manager_port, model_port = free_udp_port(HOST), free_udp_port(HOST)
     proc = embedded_process(HOST, model_port, manager_port, extra=["--idle-exit", "5"])
     split = AssistanceSplit(AppConfig().assistance)
+    inputs = fake_inputs()
     driver = PatientModelDriver(UdpTransport((HOST, manager_port), (HOST, model_port)), 100.0,
-                                split=lambda a: (lambda t: (t.a_r, t.a_f))(split.compute(a, 0.5, 0.5)))
-    manager = FakeManager()
-    driver.frame_source = ManagerFrameSource(manager, driver)
+                                split=lambda a: (lambda t: (t.a_r, t.a_f))(split.compute(a, 0.5, 0.5)),
+                                bus=inputs.bus)
+    driver.frame_source = DeviceFrameSource(inputs, driver)
     task = ScriptedTask()
     driver.task_source = task
     driver.clinical_score = 40
@@ -107,7 +109,7 @@ def link(qtbot):
     driver.start()
     try:
         qtbot.waitUntil(lambda: driver.connected, timeout=10000)
-        yield driver, task, manager, proc
+        yield driver, task, inputs, proc
     finally:
         driver.stop()
         proc.stop()

@@ -18,6 +18,7 @@ from pathlib import Path
 import pytest
 import serial
 
+from app.bus import DeviceEvent, Subscription
 from app.config import AppConfig, SimulationConfig
 from app.devices import linarm, transport
 from app.devices import linarm_protocol as proto
@@ -54,6 +55,12 @@ LOCKING_OPEN = textwrap.dedent("""
     except serial.SerialException as exc:
         print("refused", exc)
 """)
+
+
+def _connects(link_events: Subscription, device: str) -> list[bool]:
+    """The device's connection changes (True: connected) since the subscription began."""
+    return [item.kind == "connected" for item in link_events.drain()
+            if isinstance(item, DeviceEvent) and item.device == device and item.kind in ("connected", "disconnected")]
 
 
 def _python(code: str, *args: str, **kwargs) -> subprocess.Popen[str]:
@@ -129,8 +136,7 @@ def test_the_apps_robot_tty_cannot_be_opened_a_second_time(qtbot) -> None:
         qtbot.waitUntil(lambda: driver.connected and driver.latest("linarm.state") is not None, timeout=10000)
         url = driver.transport.url
         assert not url.startswith("socket://")
-        connects: list[bool] = []
-        driver.connection_changed.connect(lambda up, _reason: connects.append(up))
+        link_events = driver.bus.subscribe("test connects", (), events=True)
         probe = _python(LOCKING_OPEN, url, stdout=subprocess.PIPE)
         out, _ = probe.communicate(timeout=20)
         assert out.startswith("refused"), out
@@ -140,6 +146,7 @@ def test_the_apps_robot_tty_cannot_be_opened_a_second_time(qtbot) -> None:
         assert transport.port_holders(url) == []
         before = driver.total_samples("linarm.vsa")
         qtbot.waitUntil(lambda: driver.total_samples("linarm.vsa") > before + 50, timeout=5000)
+        connects = _connects(link_events, driver.name)
         assert driver.connected and connects == []
     finally:
         manager.shutdown()
@@ -180,14 +187,14 @@ def test_a_program_holding_the_robots_tty_at_connect_is_named_in_a_stop_alarm(qt
         qtbot.waitUntil(lambda: any(f"pid {holder.pid}" in a.text for a in manager.supervisor.alarms()),
                         timeout=5000)
         qtbot.waitUntil(lambda: driver.connected, timeout=5000)
-        connects: list[bool] = []
-        driver.connection_changed.connect(lambda up, _reason: connects.append(up))
+        link_events = driver.bus.subscribe("test connects", (), events=True)
         before = driver.total_samples("linarm.vsa")
         qtbot.waitUntil(lambda: driver.total_samples("linarm.vsa") > before + 100, timeout=5000)
         named = [a for a in manager.supervisor.alarms() if f"pid {holder.pid}" in a.text]
         assert len(named) == 1 and named[0].level == AlarmLevel.STOP, [a.text for a in named]
         assert named[0].text.startswith("Another program has the LINarm's port open") and "python" in named[0].text
         assert manager.supervisor.robot_hold_reason()
+        connects = _connects(link_events, driver.name)
         assert connects == [] and driver.connected
     finally:
         if holder is not None:
@@ -281,11 +288,11 @@ def test_a_second_client_on_the_simulators_port_is_refused_and_the_driver_keeps_
         qtbot.waitUntil(lambda: driver.connected and driver.latest("linarm.state") is not None, timeout=10000)
         url = driver.transport.url
         assert url.startswith("socket://")
-        connects: list[bool] = []
-        driver.connection_changed.connect(lambda up, _reason: connects.append(up))
+        link_events = driver.bus.subscribe("test connects", (), events=True)
         refused = sum(_intrude(url) for _ in range(50))
         before = driver.total_samples("linarm.vsa")
         qtbot.waitUntil(lambda: driver.total_samples("linarm.vsa") > before + 100, timeout=5000)
+        connects = _connects(link_events, driver.name)
         assert driver.connected and connects == [], connects
         assert refused == 50
         # The far end agrees: the simulator process accepted one client (the driver) and refused the 50.

@@ -34,6 +34,8 @@ from hypothesis import strategies as st
 from hypothesis.control import currently_in_test_context
 from PySide6.QtWidgets import QApplication
 
+from app import streams
+from app.bus import SampleItem, Subscription
 from app.config import AppConfig, AssistanceMap, RobotLimits, UdpEndpoint
 from app.devices import linarm, patient_model
 from app.devices import linarm_protocol as proto
@@ -164,6 +166,7 @@ class Rig:
     events: list[tuple[str, dict[str, Any]]] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)
     vsa: deque = field(default_factory=lambda: deque(maxlen=4000))  # (t, centre, delta)
+    vsa_queue: Subscription | None = None  # the LINarm's VSA samples on the bus, pulled into ``vsa``
     receiver: ArduinoReceiver = field(default_factory=ArduinoReceiver)
     cursor: int = 0
     wire_frames: dict[str, int] = field(default_factory=dict)
@@ -198,11 +201,17 @@ class Rig:
                 self.wire_frames[cmd.name] = self.wire_frames.get(cmd.name, 0) + 1
                 problems = rule_breaks(cmd.name, cmd.args, self.limits)
                 if timed:
+                    self.pull_vsa()
                     window = [s for s in list(self.vsa) if t - 0.3 <= s[0] <= t]
                     starts = [s[1] if cmd.name == "moveCentreTo" else s[2] for s in window]
                     problems += timed_move_breaks(cmd.name, cmd.args, self.limits, starts)
                 found += [f"{t:.3f}: {cmd.name}{cmd.args} on the wire: {p}" for p in problems]
         return found
+
+    def pull_vsa(self) -> None:
+        if self.vsa_queue is not None:
+            self.vsa.extend((i.t, i.sample.equilibriumPos, i.sample.delta)
+                            for i in self.vsa_queue.drain() if isinstance(i, SampleItem))
 
     def events_since(self, n: int, kind: str, source: str) -> list[dict[str, Any]]:
         return [d for k, d in self.events[n:] if k == kind and d.get("source") == source]
@@ -285,7 +294,7 @@ def rig(qapp) -> Iterator[Rig]:
 
     handler = Warnings(logging.WARNING)
     logging.getLogger("app.manager").addHandler(handler)
-    driver.add_listener(lambda s, t, x: r.vsa.append((t, x.equilibriumPos, x.delta)) if s == "linarm.vsa" else None)
+    r.vsa_queue = manager.bus.subscribe("test vsa", (streams.LINARM_VSA,), maxlen=4000)
     # α changes are applied at most max_update_rate_hz: the fastest allowed keeps the examples short.
     manager.assistance.set_config(replace(manager.assistance.config, max_update_rate_hz=100.0))
     try:

@@ -6,16 +6,17 @@ from __future__ import annotations
 import threading
 import time
 from types import SimpleNamespace
-from typing import Any
 
 import numpy as np
 import pytest
 
+from app import streams
+from app.bus import DeviceEvent, SampleItem, StreamBus
 from app.config import SafetyConfig
 from app.devices.driver import DeviceDriver
 from app.devices.physio import PhysioDriver
 from app.devices.physio_codec import Calibration, PhysioRawFrame, encode_physio_frame
-from app.manager import LinarmppManager
+from app.manager import DeviceWatch, LinarmppManager
 from app.safety import AlarmLevel, SafetySupervisor
 
 
@@ -34,18 +35,20 @@ def test_the_linarm_stream_over_the_socket_link_does_not_stall(qtbot) -> None:
     sim.start()
     driver = LinarmDriver(SerialTransport(sim.url), SafetySupervisor(SafetyConfig()))
     arrivals: list[float] = []
+    queue = driver.bus.subscribe("test", (streams.LINARM_VSA,))
 
-    def on_sample(stream: str, _t: float, _sample: Any) -> None:
-        if stream == "linarm.vsa":
-            arrivals.append(driver.arrival_s)
+    def took(n: int) -> bool:
+        arrivals.extend(item.arrival for item in queue.drain() if isinstance(item, SampleItem))
+        return len(arrivals) >= n
 
-    driver.add_listener(on_sample)
     driver.start()
     try:
-        qtbot.waitUntil(lambda: len(arrivals) >= 500, timeout=15000)
+        qtbot.waitUntil(lambda: took(500), timeout=15000)
     finally:
         driver.stop()
         sim.stop()
+        queue.close()
+    assert queue.dropped == 0
     gaps = np.diff(arrivals[100:])  # after the start-up
     p99 = float(np.percentile(gaps, 99))
     assert p99 < 2.5 * 0.005, f"p99 gap between LINarm frames {1000 * p99:.1f} ms (a stall on the link)"
@@ -103,37 +106,39 @@ def test_a_starved_reading_thread_is_not_a_silent_device(qtbot) -> None:
     silence timeout for the CPU; the frames were waiting all along (the next read found them at once)."""
     link = _StarvedLink()
     driver = PhysioDriver(link, Calibration(), silence_timeout_s=0.25)  # type: ignore[arg-type]
-    events: list[str] = []
-    driver.add_event_listener(lambda event, _detail: events.append(event))
+    queue = driver.bus.subscribe("test", (), events=True)
     driver.start()
     try:
         qtbot.waitUntil(lambda: link.stalled and driver.total_samples("physio.main") > 150, timeout=10000)
     finally:
         driver.stop()
+        queue.close()
+    events = [item.kind for item in queue.drain() if isinstance(item, DeviceEvent)]
+    assert "connected" in events  # the subscription did hear the driver
     assert "silent" not in events, events
 
 
 # ---------------------------------------------------------------------------------------------- the warning
 class _Events:
-    def __init__(self) -> None:
-        self.listeners: list[Any] = []
+    """A device's events on a bus, as its driver publishes them."""
 
-    def add_event_listener(self, fn: Any) -> None:
-        self.listeners.append(fn)
+    def __init__(self, bus: StreamBus, device: str) -> None:
+        self.bus = bus
+        self.device = device
 
     def fire(self, event: str, detail: str = "") -> None:
-        for fn in self.listeners:
-            fn(event, detail)
+        self.bus.event(self.device, event, detail)
 
 
 def test_a_resumed_stream_leaves_the_banner_and_stays_in_the_history(qtbot) -> None:
     supervisor = SafetySupervisor(SafetyConfig())
     recorded: list[tuple[str, dict]] = []
     supervisor.add_event_subscriber(lambda kind, data: recorded.append((kind, data)))
-    driver = _Events()
-    manager = SimpleNamespace(supervisor=supervisor, _started=True,
-                              fault_policy=SimpleNamespace(loss_level=lambda _n: AlarmLevel.STOP))
-    LinarmppManager._watch_device(manager, SimpleNamespace(name="linarm", driver=driver))  # type: ignore[arg-type]
+    bus = StreamBus()
+    driver = _Events(bus, "linarm")
+    watch = DeviceWatch(supervisor, lambda _n: AlarmLevel.STOP)
+    watch.watch("linarm")
+    bus.subscribe_inline("safety", watch, (), events=True)
     driver.fire("connected")
     driver.fire("silent")
     [alarm] = [a for a in supervisor.alarms() if "stopped sending data" in a.text]

@@ -9,7 +9,10 @@ from dataclasses import dataclass
 
 import pytest
 
-from app.devices.patient_model import free_udp_port
+from app import streams
+from app.bus import StreamBus
+from app.devices.linarm import VSA_STREAM
+from app.devices.patient_model import LinkInputs, free_udp_port
 from app.devices.transport import UdpTransport
 from app.devices.udp_frames import (
     TaskData,
@@ -109,33 +112,40 @@ class Vsa:
 
 
 class FakeLinarm:
+    """The LINarm as the VR frames read it: its link up (its driver), its VSA samples on the bus."""
+
     connected, silent = True, False
 
-    def __init__(self) -> None:
+    def __init__(self, bus: StreamBus) -> None:
+        self.bus = bus
+        bus.declare([VSA_STREAM])
         self.sample = Vsa()
 
-    def latest(self, stream: str) -> Vsa | None:
-        return self.sample if stream == "linarm.vsa" else None
+    @property
+    def sample(self) -> Vsa:
+        return self.bus.latest(streams.LINARM_VSA)
+
+    @sample.setter
+    def sample(self, value: Vsa) -> None:
+        self.bus.publish(streams.LINARM_VSA, time.monotonic(), value)
 
 
-class FakeManager:
-    supervisor = None
-    assistance = None
+class FakeDevices:
+    """The other devices of the VR link: the LINarm only, no assistance controller, no supervisor."""
 
     def __init__(self) -> None:
-        self.linarm = FakeLinarm()
-
-    def driver(self, name: str) -> FakeLinarm | None:
-        return self.linarm if name == "linarm" else None
+        self.bus = StreamBus()
+        self.linarm = FakeLinarm(self.bus)
+        self.inputs = LinkInputs(self.bus, {streams.LINARM: self.linarm})
 
 
 @pytest.fixture
 def vr_link(qtbot):
     manager_port, standin_port = free_udp_port(HOST), free_udp_port(HOST)
     proc = standin_process(HOST, standin_port, manager_port, extra=["--hold", "0.1", "--time-limit", "30"])
-    manager = FakeManager()
-    driver = VrDriver(UdpTransport((HOST, manager_port), (HOST, standin_port)), 50.0, manager=manager,
-                      task=VrTask((0.10, 0.40), rest_s=0.2))
+    manager = FakeDevices()
+    driver = VrDriver(UdpTransport((HOST, manager_port), (HOST, standin_port)), 50.0, inputs=manager.inputs,
+                      bus=manager.bus, task=VrTask((0.10, 0.40), rest_s=0.2))
     proc.start()
     driver.start()
     try:

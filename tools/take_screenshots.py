@@ -28,6 +28,7 @@ def main() -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
 
+    from app import streams
     from app.application import configure_qt_identity, share_gl_contexts
 
     share_gl_contexts()
@@ -74,7 +75,7 @@ def main() -> int:
                         "linarm.vsa.interactionForce", "fes.channels.current3", "fes.channels.pulseWidth3"])
     deadline = time.monotonic() + 40
     while time.monotonic() < deadline:
-        vsa = manager.driver("linarm").latest("linarm.vsa")
+        vsa = manager.bus.latest(streams.LINARM_VSA)
         if vsa is not None and vsa.equilibriumPos > 0.2 and runner.running:
             break
         pump(0.2)

@@ -1,14 +1,10 @@
 """The device-driver base: one QThread per device owning its transport.
 
-A driver reads bytes, decodes them with its (pure) codec into typed, timestamped samples and
-publishes them three ways, each suited to its consumer:
-
-* ``samples`` Qt signal — column batches at display rate (~30 Hz) for the GUI, never one signal
-  per sample;
-* listeners — plain callables run on the driver thread for each sample (recorder queue, safety
-  watchdogs, script callbacks' queue); they must be quick and must not block;
-* ``latest(stream)`` plus the shared :class:`UpdateNotifier` — so a script's ``waitCondition``
-  wakes within a millisecond of the frame that satisfies it instead of polling.
+A driver reads bytes, decodes them with its (pure) codec into typed, timestamped samples and publishes them
+one way: on the :class:`~app.bus.StreamBus` (issue #29). The bus keeps each stream's latest sample, wakes a
+script's ``waitCondition`` once per read, runs the safety monitor inline and gives every other consumer a
+bounded, counted queue (or display-rate columns for the Qt adapter). Connection changes, silence and errors
+are bus events (``connected``, ``disconnected``, ``silent``, ``alive``, ``error``, ``controller_error``, …).
 
 The loop reconnects with back-off when the transport drops, and stops within one read timeout.
 """
@@ -16,17 +12,14 @@ The loop reconnects with back-off when the transport drops, and stops within one
 from __future__ import annotations
 
 import logging
-import operator
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
 from typing import Any
 
-import numpy as np
-from PySide6.QtCore import QThread, Signal
+from PySide6.QtCore import QThread
 
-from app.bus import Channel, SampleBatch, StreamSpec, UpdateNotifier
+from app.bus import Channel, SampleBatch, StreamBus, StreamSpec, UpdateNotifier
 from app.devices.realtime import REALTIME_ENV, request_realtime
 from app.devices.transport import Transport, TransportError
 
@@ -35,54 +28,12 @@ __all__ = ["REALTIME_ENV", "Channel", "DeviceDriver", "SampleBatch", "StreamSpec
 
 log = logging.getLogger(__name__)
 
-
-@dataclass
-class _Accumulator:
-    """One stream's samples since the last batch. The samples themselves are kept (one append per sample);
-    their channels are read into columns at batch time, one C call per sample (``attrgetter``)."""
-
-    spec: StreamSpec
-    t: list[float] = field(default_factory=list)
-    arrival: list[float] = field(default_factory=list)
-    samples: list[Any] = field(default_factory=list)
-    count_window: int = 0
-    total: int = 0
-    last_t: float = 0.0
-
-    def __post_init__(self) -> None:
-        names = [c.name for c in self.spec.channels]
-        self.names = names
-        self._row = operator.attrgetter(*names) if names else None
-
-    def take_batch(self) -> SampleBatch:
-        """The accumulated samples as columns (float64, one array per channel); starts a new batch."""
-        n = len(self.samples)
-        if self._row is None:
-            data: dict[str, np.ndarray] = {}
-        else:
-            rows = np.array([self._row(s) for s in self.samples], dtype=np.float64).reshape(n, len(self.names))
-            columns = rows.T.copy()  # each channel contiguous
-            data = {name: columns[k] for k, name in enumerate(self.names)}
-        batch = SampleBatch(self.spec, np.asarray(self.t, dtype=np.float64), data,
-                            np.asarray(self.arrival, dtype=np.float64))
-        self.t = []
-        self.arrival = []
-        self.samples = []
-        return batch
-
-
-SampleListener = Callable[[str, float, Any], None]
-EventListener = Callable[[str, str], None]
+RATE_WINDOW_S = 1.0  # rates() is the count of the last window of this length
 
 
 class DeviceDriver(QThread):
     """Base class. Subclasses set ``streams`` and implement ``on_bytes`` (and optionally
     ``on_connect``, ``on_tick``, ``on_disconnect``)."""
-
-    connection_changed = Signal(bool, str)
-    samples = Signal(object)  # dict[str, SampleBatch]
-    error = Signal(str)
-    silence_changed = Signal(bool)  # True: connected but no sample for `silence_timeout_s`
 
     streams: tuple[StreamSpec, ...] = ()
     # Round-robin real-time priority of the driver thread (None: normal scheduling). Off by default: a
@@ -96,8 +47,7 @@ class DeviceDriver(QThread):
         name: str,
         transport: Transport,
         *,
-        notifier: UpdateNotifier | None = None,
-        batch_hz: float = 30.0,
+        bus: StreamBus | None = None,
         read_timeout_s: float = 0.01,
         silence_timeout_s: float | None = None,
     ) -> None:
@@ -105,26 +55,22 @@ class DeviceDriver(QThread):
         self.setObjectName(f"driver:{name}")
         self.name = name
         self.transport = transport
-        self.notifier = notifier or UpdateNotifier()
+        # The composition root's bus; a private one when none is given (a driver on its own, in a test or a bench).
+        self.bus = bus if bus is not None else StreamBus()
+        self.bus.declare(self.streams)
+        self._bus_publish = self.bus.publish  # looked up once: publish runs hundreds of times a second
         self.read_timeout_s = read_timeout_s
-        self.batch_period_s = 1.0 / batch_hz
         self.silence_timeout_s = silence_timeout_s
         self._stop = threading.Event()
         self._connected = False
         self._silent = False
         self._last_reason = ""
-        self._latest: dict[str, Any] = {}
-        self._acc = {s.name: _Accumulator(s) for s in self.streams}
-        self._acc_lock = threading.Lock()
-        self._listeners: list[SampleListener] = []
-        self._event_listeners: list[EventListener] = []
         self._last_sample_mono = 0.0
-        # When the sample being published came back from its read (monotonic s): listeners that keep it as a
-        # diagnostic (the recorder's arrival column) read it during their call.
-        self.arrival_s = 0.0
         self._silent_since = 0.0  # the last sample before a silence
-        self._in_read = False  # on_bytes is running: publish leaves the notification to the loop
-        self._notify_pending = False
+        self._in_read = False  # on_bytes is running: publish leaves the wake-up to the loop
+        self._wake_pending = False
+        self._count_window = {s.name: 0 for s in self.streams}  # samples this rate window, per stream
+        self._totals = {s.name: 0 for s in self.streams}
         self._rates: dict[str, float] = {s.name: 0.0 for s in self.streams}
         self._rate_window_start = time.monotonic()
         self.reconnect_backoff_s = (0.1, 2.0)
@@ -141,24 +87,15 @@ class DeviceDriver(QThread):
         return self._silent
 
     def latest(self, stream: str) -> Any:
-        return self._latest.get(stream)
+        """The newest sample of ``stream`` (the bus keeps it; None before the first)."""
+        return self.bus.latest(stream)
 
     def rates(self) -> dict[str, float]:
+        """Samples per second of each stream over the last second."""
         return dict(self._rates)
 
-    def add_listener(self, fn: SampleListener) -> None:
-        """``fn(stream_name, t_monotonic_s, sample)`` on the driver thread, for every sample."""
-        self._listeners = [*self._listeners, fn]
-
-    def remove_listener(self, fn: SampleListener) -> None:
-        self._listeners = [f for f in self._listeners if f is not fn]
-
-    def add_event_listener(self, fn: EventListener) -> None:
-        """``fn(event, detail)`` on the driver thread: 'connected', 'disconnected', 'silent', 'alive'."""
-        self._event_listeners = [*self._event_listeners, fn]
-
-    def remove_event_listener(self, fn: EventListener) -> None:
-        self._event_listeners = [f for f in self._event_listeners if f is not fn]
+    def total_samples(self, stream: str) -> int:
+        return self._totals[stream]
 
     def send(self, data: bytes) -> None:
         """Write bytes now, from any thread (the transport serialises writers)."""
@@ -194,36 +131,20 @@ class DeviceDriver(QThread):
         """Transport is about to close: fail pending requests."""
 
     def publish(self, stream: str, t_s: float, sample: Any, arrival_s: float | None = None) -> None:
-        """Hand one decoded sample to every consumer. ``sample`` exposes the stream's channels as attributes;
+        """Hand one decoded sample to the bus. ``sample`` exposes the stream's channels as attributes;
         ``t_s`` is when it was taken on the host's monotonic clock (the device clock mapped by
         app.devices.clock, or a dejittered arrival), ``arrival_s`` when it came back from its read (default
         ``t_s``)."""
-        self._latest[stream] = sample
-        arrival = t_s if arrival_s is None else arrival_s
-        self.arrival_s = arrival
-        acc = self._acc[stream]
-        with self._acc_lock:
-            acc.t.append(t_s)
-            acc.arrival.append(arrival)
-            acc.samples.append(sample)
-            acc.count_window += 1
-            acc.total += 1
-            acc.last_t = t_s
+        self._count_window[stream] += 1
+        self._totals[stream] += 1
         self._last_sample_mono = time.monotonic()
-        for fn in self._listeners:
-            try:
-                fn(stream, t_s, sample)
-            except Exception:  # a consumer's bug must not stop the device
-                log.exception("%s: sample listener failed", self.name)
         if self._in_read:
             # Within one read the samples arrive together: waiters are woken once, after the last of them
-            # (the loop notifies), instead of once per sample.
-            self._notify_pending = True
+            # (the loop wakes the bus), instead of once per sample.
+            self._wake_pending = True
+            self._bus_publish(stream, t_s, sample, arrival_s, wake=False)
         else:
-            self.notifier.notify()
-
-    def total_samples(self, stream: str) -> int:
-        return self._acc[stream].total
+            self._bus_publish(stream, t_s, sample, arrival_s)
 
     # ------------------------------------------------------------------ the loop
     def run(self) -> None:
@@ -251,7 +172,7 @@ class DeviceDriver(QThread):
             except Exception as exc:  # a decoder bug must never take the thread down silently
                 log.exception("%s: driver failure", self.name)
                 reason = f"driver failure: {exc!r}"
-                self.error.emit(f"{self.name}: {reason}")
+                self._fire_event("error", f"{self.name}: {reason}")
             finally:
                 try:
                     self.on_disconnect()
@@ -259,28 +180,28 @@ class DeviceDriver(QThread):
                     log.exception("%s: on_disconnect failed", self.name)
                 self.transport.close()
             self._set_connected(False, reason)
-            self._emit_batches(force=True)
+            self._update_rates(force=True)
             if not self._stop.is_set():
                 self._stop.wait(backoff)
-        self._emit_batches(force=True)
+        self._update_rates(force=True)
 
-    def _take_bytes(self, on_bytes: Any, data: bytes, t_ns: int) -> None:
+    def _take_bytes(self, on_bytes: Callable[[bytes, int], None], data: bytes, t_ns: int) -> None:
         """Decode one read; waiters are woken once per read (not per sample), after it."""
         self._in_read = True
         try:
             on_bytes(data, t_ns)
         finally:
             self._in_read = False
-            if self._notify_pending:
-                self._notify_pending = False
-                self.notifier.notify()
+            if self._wake_pending:
+                self._wake_pending = False
+                self.bus.wake()
 
     def _io_loop(self) -> None:
         # Runs once per read (hundreds of times a second): the lookups are done once, here.
         read, on_bytes, on_tick = self.transport.read, self.on_bytes, self.on_tick
         monotonic, monotonic_ns, stop = time.monotonic, time.monotonic_ns, self._stop
-        batch_period, silence_timeout = self.batch_period_s, self.silence_timeout_s
-        next_batch = monotonic() + batch_period
+        silence_timeout = self.silence_timeout_s
+        next_rates = monotonic() + RATE_WINDOW_S
         self._last_sample_mono = monotonic()
         take = self._take_bytes
         while not stop.is_set():
@@ -305,29 +226,24 @@ class DeviceDriver(QThread):
                     self._silent = silent
                     if silent:
                         self._silent_since = self._last_sample_mono
-                    self.silence_changed.emit(silent)
                     # "alive" carries how long the stream was silent (s), for "resumed after 0.3 s"
                     self._fire_event("silent" if silent else "alive",
                                      "" if silent else f"{self._last_sample_mono - self._silent_since:.3f}")
-            if now >= next_batch:
-                self._emit_batches()
-                next_batch = now + batch_period
+            if now >= next_rates:
+                self._update_rates()
+                next_rates = now + RATE_WINDOW_S
 
-    def _emit_batches(self, force: bool = False) -> None:
-        out: dict[str, SampleBatch] = {}
+    def _update_rates(self, force: bool = False) -> None:
+        """Each stream's samples per second over the window that just ended (once a second, and at a disconnect)."""
         now = time.monotonic()
         window = now - self._rate_window_start
-        with self._acc_lock:
-            for name, acc in self._acc.items():
-                if acc.t:
-                    out[name] = acc.take_batch()
-            if window >= 1.0 or force:
-                for name, acc in self._acc.items():
-                    self._rates[name] = acc.count_window / window if window > 0 else 0.0
-                    acc.count_window = 0
-                self._rate_window_start = now
-        if out:
-            self.samples.emit(out)
+        if window < RATE_WINDOW_S and not force:
+            return
+        counts = self._count_window
+        self._rates = {name: (n / window if window > 0 else 0.0) for name, n in counts.items()}
+        for name in counts:
+            counts[name] = 0
+        self._rate_window_start = now
 
     def _set_connected(self, connected: bool, reason: str) -> None:
         changed = connected != self._connected or (not connected and reason != self._last_reason)
@@ -339,13 +255,8 @@ class DeviceDriver(QThread):
         if changed:
             level = logging.INFO if connected else logging.WARNING
             log.log(level, "%s: %s", self.name, reason)
-            self.connection_changed.emit(connected, reason)
-            self._fire_event("connected" if connected else "disconnected", reason)
-            self.notifier.notify()
+            self._fire_event("connected" if connected else "disconnected", reason)  # the bus wakes the waiters
 
     def _fire_event(self, event: str, detail: str) -> None:
-        for fn in self._event_listeners:
-            try:
-                fn(event, detail)
-            except Exception:
-                log.exception("%s: event listener failed", self.name)
+        """A device event on the bus (``bus.event`` wakes the waiters and runs the safety monitor inline)."""
+        self.bus.event(self.name, event, detail)

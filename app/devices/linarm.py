@@ -17,11 +17,13 @@ from typing import TYPE_CHECKING, Any
 
 from PySide6.QtCore import Signal
 
+from app import streams
+from app.bus import BusItem, DeviceEvent, SampleItem, StreamBus
 from app.config import LinarmDevice
 from app.devices import linarm_protocol as proto
 from app.devices.clock import DeviceClock
 from app.devices.cmdmessenger import CmdMessengerDecoder
-from app.devices.driver import Channel, DeviceDriver, StreamSpec, UpdateNotifier
+from app.devices.driver import Channel, DeviceDriver, StreamSpec
 from app.devices.linarm_protocol import ControlState, ReplyError
 from app.devices.sim.base import SerialSimulator
 from app.devices.transport import SerialSettings, SerialTransport, Transport, TransportError
@@ -78,12 +80,12 @@ class VsaSample:
         return self.equilibriumPos
 
 
-STATE_STREAM = StreamSpec("linarm.state", (
+STATE_STREAM = StreamSpec(streams.LINARM_STATE, (
     Channel("controlState", "", "Control state"), Channel("controlMode", "", "Control mode"),
     Channel("homeState", "", "Home state"), Channel("errorState", "", "Error state"),
     Channel("triggerMode", "", "Trigger mode"), Channel("initialized", "", "Initialised"),
 ), 20.0)
-VSA_STREAM = StreamSpec("linarm.vsa", (
+VSA_STREAM = StreamSpec(streams.LINARM_VSA, (
     Channel("equilibriumPos", "m", "Centre (equilibrium)"), Channel("delta", "m", "Delta"),
     Channel("stiffness", "N/m", "Stiffness"), Channel("handlePos", "m", "Handle position"),
     Channel("handleVel", "m/s", "Handle velocity"), Channel("interactionForce", "N", "Interaction force"),
@@ -91,7 +93,7 @@ VSA_STREAM = StreamSpec("linarm.vsa", (
 
 
 def _motor_stream(i: int) -> StreamSpec:
-    return StreamSpec(f"linarm.motor{i}", (
+    return StreamSpec(streams.LINARM_MOTORS[i], (
         Channel("position", "m", f"Motor {i} position"), Channel("velocity", "m/s", f"Motor {i} velocity"),
         Channel("current", "A", f"Motor {i} current"), Channel("target", "m", f"Motor {i} target"),
     ), 200.0)
@@ -142,9 +144,9 @@ class LinarmDriver(DeviceDriver):
 
     def __init__(self, transport: Transport, supervisor: SafetySupervisor, *,
                  stream_period_s: float = proto.DEFAULT_STREAM_PERIOD, command_timeout_s: float = 1.0,
-                 heartbeat_period_s: float = proto.HEARTBEAT_PERIOD, notifier: UpdateNotifier | None = None,
+                 heartbeat_period_s: float = proto.HEARTBEAT_PERIOD, bus: StreamBus | None = None,
                  silence_timeout_s: float | None = None) -> None:
-        super().__init__("linarm", transport, notifier=notifier, silence_timeout_s=silence_timeout_s)
+        super().__init__(streams.LINARM, transport, bus=bus, silence_timeout_s=silence_timeout_s)
         self.supervisor = supervisor
         self.stream_period_s = stream_period_s
         self.command_timeout_s = command_timeout_s
@@ -417,19 +419,19 @@ class LinarmDriver(DeviceDriver):
         if isinstance(msg, proto.VsaState):
             # The interaction force is read from the spring elongations, which mean nothing until homing
             # has referenced the encoders: show it as unknown rather than as a huge number.
-            state = self._latest.get("linarm.state")
+            state = self.latest(streams.LINARM_STATE)
             force = msg.force if state is not None and state.initialized else float("nan")
             taken = self.clock.map(msg.t_us * 1e-6, t)
-            self.publish("linarm.vsa", taken, VsaSample(msg.equilibrium_pos, msg.delta, msg.stiffness, msg.handle_pos,
-                                                        msg.handle_vel, force, msg.t_us / 1e6, taken), t)
+            self.publish(streams.LINARM_VSA, taken, VsaSample(msg.equilibrium_pos, msg.delta, msg.stiffness,
+                                                              msg.handle_pos, msg.handle_vel, force, msg.t_us / 1e6,
+                                                              taken), t)
         elif isinstance(msg, proto.MotorState):
             taken = self.clock.map(msg.t_us * 1e-6, t)
-            self.publish(f"linarm.motor{msg.index}", taken, MotorSample(msg.index, msg.position, msg.velocity,
-                                                                        msg.current, msg.target, msg.t_us / 1e6,
-                                                                        taken), t)
+            self.publish(streams.LINARM_MOTORS[msg.index], taken, MotorSample(
+                msg.index, msg.position, msg.velocity, msg.current, msg.target, msg.t_us / 1e6, taken), t)
         elif isinstance(msg, proto.LinarmState):
             taken = self.clock.map(msg.t_us * 1e-6, t)
-            self.publish("linarm.state", taken, LinarmStateSample(
+            self.publish(streams.LINARM_STATE, taken, LinarmStateSample(
                 int(msg.control_state), int(msg.control_mode), int(msg.home_state), int(msg.error_state),
                 int(msg.trigger_mode), bool(msg.initialized), int(msg.trajectory_type), bool(msg.demo),
                 bool(msg.virtual_vsa), bool(msg.endstrokes_disabled), msg.t_us / 1e6, taken), t)
@@ -489,36 +491,38 @@ def create(ctx: DeviceContext) -> DeviceHandle | None:
     link = SerialTransport(url, SerialSettings(baudrate=cfg.baudrate))
     driver = LinarmDriver(link, supervisor, stream_period_s=1.0 / cfg.state_rate_hz,
                           command_timeout_s=cfg.command_timeout_s, heartbeat_period_s=cfg.heartbeat_period_s,
-                          notifier=ctx.notifier, silence_timeout_s=ctx.silence_timeout(cfg.state_rate_hz))
+                          bus=ctx.bus, silence_timeout_s=ctx.silence_timeout(cfg.state_rate_hz))
+    bus = ctx.bus
 
     def centre() -> float | None:
-        vsa = driver.latest("linarm.vsa")
+        vsa = bus.latest(streams.LINARM_VSA)
         return vsa.equilibriumPos if vsa is not None else None
 
     def delta() -> float | None:
-        vsa = driver.latest("linarm.vsa")
+        vsa = bus.latest(streams.LINARM_VSA)
         return vsa.delta if vsa is not None else None
 
     def homed() -> bool:
-        state = driver.latest("linarm.state")
+        state = bus.latest(streams.LINARM_STATE)
         return bool(state is not None and state.initialized)
 
-    def monitor(stream: str, t: float, sample: Any) -> None:
-        if stream == "linarm.vsa":
-            supervisor.check_robot_sample(sample)
-        elif stream == "linarm.state":
-            # ON or homing while the e-stop is latched or a STOP alarm is open: IDLE within one state period,
-            # one alarm per cause (a second controller may have switched it ON behind the app's back).
-            supervisor.check_robot_state(sample, driver.emergency_idle)
-
-    def on_event(event: str, _detail: str) -> None:
-        if event == "connected":
+    def monitor(item: BusItem) -> None:
+        # The supervisor's robot monitor sees every sample on the driver thread, before any other consumer.
+        if isinstance(item, SampleItem):
+            if item.stream == streams.LINARM_VSA:
+                supervisor.check_robot_sample(item.sample)
+            else:
+                # ON or homing while the e-stop is latched or a STOP alarm is open: IDLE within one state
+                # period, one alarm per cause (a second controller may have switched it ON behind the app's back).
+                supervisor.check_robot_state(item.sample, driver.emergency_idle)
+        elif isinstance(item, DeviceEvent) and item.device == streams.LINARM and item.kind == "connected":
+            # The controller's safety envelope is locked at every connect (apply_limits only queues the
+            # commands): a safety action, so it rides on the safety monitor's inline subscription.
             future = driver.apply_limits(supervisor.robot)
             future.add_done_callback(lambda f: f.exception() and log.error(
                 "LINarm limits not applied: %s", f.exception()))
 
-    driver.add_event_listener(on_event)
     ctx.set_robot_probes(RobotProbes(centre, delta, homed))
-    driver.add_listener(monitor)
+    bus.subscribe_inline("safety", monitor, (streams.LINARM_VSA, streams.LINARM_STATE), events=True)
     ctx.add_stop_action("robot IDLE", driver.emergency_idle, robot=True)
-    return DeviceHandle("linarm", driver, simulator)
+    return DeviceHandle(streams.LINARM, driver, simulator)

@@ -112,6 +112,13 @@ CONSTANTS: tuple[Constant, ...] = (
         ("KI_MAX", 1.0e7, "N/(m s)", "setPidTunings"),
         ("KD_MAX", 1.0e4, "N s/m", "setPidTunings"),
     ),
+    *_group(
+        "host",  # what the host asks of the controller (the firmware does not use them; the setters check them)
+        ("PRETENSION_MOVE_VELOCITY", 0.05, "m/s",
+         "maxVel of the pretension move by which the assistance split changes the stiffness (setStiffness)"),
+        ("PRETENSION_MOVE_ACCELERATION", 0.2, "m/s^2",
+         "maxAcc of the pretension move by which the assistance split changes the stiffness (setStiffness)"),
+    ),
 )
 
 K: dict[str, float] = {c.name: c.value for c in CONSTANTS}

@@ -14,15 +14,16 @@ socket is bound the driver reports "waiting for the patient model".  Datagrams f
 sender (``UdpTransport.dropped_foreign``) and datagrams that do not decode (wrong size, header, CRC
 or value; ``invalid_datagrams`` by reason) are dropped and counted.
 
-What goes into each frame (``ManagerFrameSource``): the latest ``physio.main`` sample (NaN and no
+What goes into each frame (``DeviceFrameSource``, reading the stream bus): the latest ``physio.main`` sample (NaN and no
 PHYSIO_VALID flag when the physio link is down or silent), the latest ``linarm.vsa`` sample
 (handlePos, handleVel, interactionForce; NaN when absent), the task (target, sub-task index,
-state, time, score) from the VR link's ``task_snapshot()`` — or from ``driver.task_source`` when
+state, time, score) from the VR link's ``task_snapshot()`` (``driver.vr_task``, handed in by the VR link's
+``create``) — or from ``driver.task_source`` when
 an exercise script sets one — and ``driver.clinical_score`` (set from the patient's profile or the
 assistance panel; None = not available).
 
 Each valid reply is published on "patient_model.main" as a ``PatientModelSample``: α, a_r, a_f
-(with the current k_r, k_f: from ``manager.assistance`` when the manager has one), TPI, MPI, PTI,
+(with the current k_r, k_f: from the assistance controller the context hands in), TPI, MPI, PTI,
 the α range, the decision path (code and text), the layer-5 level and the reply flags.  The script
 API's ``patientModel.patientModelData`` is this sample.
 
@@ -51,13 +52,15 @@ import socket
 import subprocess
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 
+from app import streams
+from app.bus import StreamBus
 from app.devices.clock import CountedClock
-from app.devices.driver import Channel, DeviceDriver, StreamSpec, UpdateNotifier
+from app.devices.driver import Channel, DeviceDriver, StreamSpec
 from app.devices.transport import DatagramTransport, TransportError, UdpTransport
 from app.devices.udp_frames import (
     ACK_WINDOW_S,
@@ -78,14 +81,17 @@ from app.patient_model.decision_tree import DEFAULT_CONFIG_PATH, decode_path_cod
 from app.patient_model.process import LINK_KEY_FD_ENV, key_pipe
 
 if TYPE_CHECKING:
+    from app.assistance import AssistanceLevels
+    from app.config import AssistanceConfig
     from app.devices.registry import DeviceContext, DeviceHandle
+    from app.safety import SafetySupervisor
 
 log = logging.getLogger(__name__)
 
 ROOT = Path(__file__).resolve().parents[2]
 NAN = math.nan
 
-PATIENT_MODEL_STREAM = StreamSpec("patient_model.main", (
+PATIENT_MODEL_STREAM = StreamSpec(streams.PATIENT_MODEL_MAIN, (
     Channel("alpha", "", "Assistance level α"),
     Channel("a_r", "", "Robot assistance a_r"),
     Channel("a_f", "", "FES assistance a_f"),
@@ -206,8 +212,8 @@ class UdpPeerDriver(DeviceDriver):
 
     def __init__(self, name: str, transport: DatagramTransport, rate_hz: float, *,
                  alive_timeout_s: float, process: HelperProcess | None = None,
-                 notifier: UpdateNotifier | None = None, key: bytes | None = None) -> None:
-        super().__init__(name, transport, notifier=notifier, read_timeout_s=0.0)  # paced by _pace
+                 bus: StreamBus | None = None, key: bytes | None = None) -> None:
+        super().__init__(name, transport, bus=bus, read_timeout_s=0.0)  # paced by _pace
         self.static_key = key  # an external peer's shared key (None: plain frames unless our helper has one)
         self.seq_guard = SequenceGuard()
         self.helper_failures = 0
@@ -398,7 +404,7 @@ class UdpPeerDriver(DeviceDriver):
                 self._process_backoff_s = 1.0
             return
         log.warning("%s: helper process exited with code %s; restarting", self.name, code)
-        self.error.emit(f"{self.name}: helper process exited (code {code}); restarting")
+        self._fire_event("error", f"{self.name}: helper process exited (code {code}); restarting")
         if code == HelperProcess.BIND_FAILED:
             # Someone else holds the helper's port: an alarm, never "reconnected" through their socket (its
             # datagrams carry no valid MAC), and the next start listens on a fresh port of ours.
@@ -468,6 +474,26 @@ TaskSource = Callable[[], tuple[float, TaskData]]  # (target position m, task da
 SplitSource = Callable[[float], tuple[float, float]]  # α -> (a_r, a_f)
 
 
+class LinkState(Protocol):
+    """What a frame needs of another device's driver: whether its samples are current."""
+
+    @property
+    def connected(self) -> bool: ...
+
+    @property
+    def silent(self) -> bool: ...
+
+
+@dataclass(frozen=True)
+class LinkInputs:
+    """Where the UDP peers' frames read the other devices: their latest samples on the bus, whether their links
+    are up (their drivers, from the context's peers), the FES stimulating, the e-stop latched."""
+
+    bus: StreamBus
+    peers: Mapping[str, LinkState]
+    supervisor: SafetySupervisor | None = None
+
+
 @dataclass(frozen=True)
 class DeviceInputs:
     """What the UDP frames need from the other devices, read once per frame."""
@@ -477,44 +503,37 @@ class DeviceInputs:
     flags: int           # SystemFlag bits
 
 
-def _device(manager: Any, name: str) -> Any:
-    try:
-        return manager.driver(name)
-    except Exception:
-        return None
-
-
-def read_inputs(manager: Any) -> DeviceInputs:
-    physio = _device(manager, "physio")
-    p = physio.latest("physio.main") if physio is not None else None
-    if not (bool(getattr(physio, "connected", False)) and not bool(getattr(physio, "silent", False))):
-        p = None  # a stale sample must not look current to the model
-    linarm = _device(manager, "linarm")
-    robot_on = linarm is not None and bool(getattr(linarm, "connected", False))
-    v = linarm.latest("linarm.vsa") if robot_on else None
+def read_inputs(inputs: LinkInputs) -> DeviceInputs:
+    bus, peers = inputs.bus, inputs.peers
+    physio = peers.get(streams.PHYSIO)
+    p = None
+    if physio is not None and physio.connected and not physio.silent:
+        p = bus.latest(streams.PHYSIO_MAIN)  # a stale sample must not look current to the model
+    linarm = peers.get(streams.LINARM)
+    robot_on = linarm is not None and linarm.connected
+    v = bus.latest(streams.LINARM_VSA) if robot_on else None
     flags = 0
     if p is not None:
         flags |= SystemFlag.PHYSIO_VALID
     if robot_on:
         flags |= SystemFlag.ROBOT_ON
-    fes = _device(manager, "fes")
-    if fes is not None and bool(getattr(fes, "stimulating", False)):
+    fes = peers.get(streams.FES)
+    if fes is not None and bool(getattr(fes, "stimulating", False)):  # an FesDriver
         flags |= SystemFlag.FES_ON
-    supervisor = getattr(manager, "supervisor", None)
-    if supervisor is not None and bool(getattr(supervisor, "estop_latched", False)):
+    if inputs.supervisor is not None and inputs.supervisor.estop_latched:
         flags |= SystemFlag.EMERGENCY_STOP
     return DeviceInputs(p, v, int(flags))
 
 
-class ManagerFrameSource:
+class DeviceFrameSource:
     """Builds each frame from the other devices' latest samples (see the module docstring)."""
 
-    def __init__(self, manager: Any, driver: PatientModelDriver) -> None:
-        self.manager = manager
+    def __init__(self, inputs: LinkInputs, driver: PatientModelDriver) -> None:
+        self.inputs = inputs
         self.driver = driver
 
     def __call__(self, seq: int) -> PatientModelFrame:
-        inp = read_inputs(self.manager)
+        inp = read_inputs(self.inputs)
         p, v = inp.physio, inp.vsa
         target, task = self._task()
         score = self.driver.clinical_score
@@ -526,9 +545,7 @@ class ManagerFrameSource:
             clinicalScore=score if score is not None and 0 <= score <= 254 else None, flags=inp.flags)
 
     def _task(self) -> tuple[float, TaskData]:
-        source = self.driver.task_source
-        if source is None:
-            source = getattr(_device(self.manager, "vr"), "task_snapshot", None)
+        source = self.driver.task_source or self.driver.vr_task
         if source is None:
             return NAN, TaskData()
         return source()
@@ -549,14 +566,15 @@ class PatientModelDriver(UdpPeerDriver):
 
     def __init__(self, transport: DatagramTransport, rate_hz: float = 100.0, *,
                  frame_source: FrameSource | None = None, split: SplitSource | None = None,
-                 process: HelperProcess | None = None, notifier: UpdateNotifier | None = None,
+                 process: HelperProcess | None = None, bus: StreamBus | None = None,
                  alive_timeout_s: float = 0.5, key: bytes | None = None) -> None:
-        super().__init__("patient_model", transport, rate_hz, alive_timeout_s=alive_timeout_s,
-                         process=process, notifier=notifier, key=key)
+        super().__init__(streams.PATIENT_MODEL, transport, rate_hz, alive_timeout_s=alive_timeout_s,
+                         process=process, bus=bus, key=key)
         self.frame_source = frame_source
         self.split = split
         self.clinical_score: int | None = None  # set from the patient's profile / the assistance panel
         self.task_source: TaskSource | None = None  # overrides the VR link's task when set
+        self.vr_task: TaskSource | None = None  # the VR link's task (app.devices.vr.create hands it in)
         self._seq = 0
         # When each sequence number was last sent, indexed by it: a reply is "fresh" when the frame it
         # acknowledges went out within ACK_WINDOW_S, at any rate (at 10× that is 500 frames; a table of
@@ -583,7 +601,7 @@ class PatientModelDriver(UdpPeerDriver):
         self.check_seq(r.seq)
         a_r, a_f = self.split(r.alpha) if self.split is not None else (NAN, NAN)
         flags = int(r.flags)
-        self.publish("patient_model.main", self.clock.map(t, r.seq), PatientModelSample(
+        self.publish(streams.PATIENT_MODEL_MAIN, self.clock.map(t, r.seq), PatientModelSample(
             alpha=r.alpha, a_r=a_r, a_f=a_f, tpi=r.tpi, mpi=r.mpi, pti=r.pti, alphaMin=r.alphaMin,
             alphaMax=r.alphaMax, pathCode=r.path, path=path_text(r.path), level=r.level,
             valid=bool(flags & _VALID), fallback=bool(flags & _FALLBACK), seq=r.seq,
@@ -593,18 +611,18 @@ class PatientModelDriver(UdpPeerDriver):
 _VALID, _FALLBACK = int(ReplyFlag.VALID), int(ReplyFlag.FALLBACK)  # plain ints: IntFlag's & is slow per reply
 
 
-def manager_split(manager: Any) -> SplitSource:
-    """α -> (a_r, a_f) with the gains in force: ``manager.assistance`` if any, else the config."""
+def assistance_split(assistance: AssistanceLevels | None, config: AssistanceConfig | None = None) -> SplitSource:
+    """α -> (a_r, a_f) with the gains in force: the assistance controller's when there is one (the manager
+    always hands its own in), else ``config``'s (default: the default config's)."""
+    if assistance is not None:
+        return assistance.levels
     from app.assistance import AssistanceSplit
+    from app.config import AssistanceConfig
 
-    fallback = AssistanceSplit(manager.config.assistance)
+    c = config or AssistanceConfig()
 
     def split(alpha: float) -> tuple[float, float]:
-        controller = getattr(manager, "assistance", None)
-        if controller is not None:
-            return controller.levels(alpha)
-        c = fallback.config
-        return fallback.levels(alpha, c.k_r, c.k_f)
+        return AssistanceSplit.levels(alpha, c.k_r, c.k_f)
 
     return split
 
@@ -622,12 +640,12 @@ def link_key(cfg: Any) -> bytes | None:
     return key
 
 
-def warn_if_plain(manager: Any, name: str, cfg: Any) -> None:
+def warn_if_plain(supervisor: SafetySupervisor, name: str, cfg: Any) -> None:
     """An external peer on the plain seed layout: say so where the operator sees it (the alarms)."""
     if cfg.mode == "external" and not cfg.authenticated:
         from app.safety import AlarmLevel
 
-        manager.supervisor.raise_alarm(AlarmLevel.WARNING, name, f"the {name} link to {cfg.peer_host}:"
+        supervisor.raise_alarm(AlarmLevel.WARNING, name, f"the {name} link to {cfg.peer_host}:"
                                        f"{cfg.peer_port} is not authenticated (plain frames, external peer)")
 
 
@@ -640,8 +658,6 @@ def embedded_process(host: str, model_port: int, manager_port: int, config_path:
 
 def create(ctx: DeviceContext) -> DeviceHandle | None:
     from app.devices.registry import DeviceHandle
-
-    manager = ctx.app  # the frame sources read the other devices and the assistance through it
 
     cfg = ctx.config
     if cfg.mode == "off":
@@ -662,10 +678,11 @@ def create(ctx: DeviceContext) -> DeviceHandle | None:
         peer = (cfg.peer_host, cfg.peer_port)
     if process is not None:
         process.authenticate = cfg.authenticated
-    driver = PatientModelDriver(UdpTransport((host, listen_port), peer), cfg.rate_hz, split=manager_split(manager),
-                                process=process, notifier=ctx.notifier, key=link_key(cfg))
-    driver.frame_source = ManagerFrameSource(manager, driver)
-    warn_if_plain(manager, "patient_model", cfg)
+    driver = PatientModelDriver(UdpTransport((host, listen_port), peer), cfg.rate_hz,
+                                split=assistance_split(ctx.assistance),
+                                process=process, bus=ctx.bus, key=link_key(cfg))
+    driver.frame_source = DeviceFrameSource(LinkInputs(ctx.bus, ctx.peers, ctx.supervisor), driver)
+    warn_if_plain(ctx.supervisor, streams.PATIENT_MODEL, cfg)
     if process is not None:
         process.start()
-    return DeviceHandle("patient_model", driver, None, extras)
+    return DeviceHandle(streams.PATIENT_MODEL, driver, None, extras)

@@ -9,9 +9,11 @@ from __future__ import annotations
 import dataclasses
 from typing import TYPE_CHECKING
 
+from app import streams
+from app.bus import StreamBus
 from app.config import PhysioCalibration, PhysioDevice
 from app.devices.clock import DeviceClock
-from app.devices.driver import Channel, DeviceDriver, StreamSpec, UpdateNotifier
+from app.devices.driver import Channel, DeviceDriver, StreamSpec
 from app.devices.physio_codec import Calibration, ChannelCalibration, PhysioStreamDecoder
 from app.devices.sim.base import SerialSimulator
 from app.devices.transport import SerialSettings, SerialTransport, Transport
@@ -19,7 +21,7 @@ from app.devices.transport import SerialSettings, SerialTransport, Transport
 if TYPE_CHECKING:
     from app.devices.registry import DeviceContext, DeviceHandle
 
-PHYSIO_STREAM = StreamSpec("physio.main", (
+PHYSIO_STREAM = StreamSpec(streams.PHYSIO_MAIN, (
     Channel("heartRate", "bpm", "Heart rate"),
     Channel("skinConductance", "µS", "Skin conductance"),
     Channel("temperature", "°C", "Skin temperature"),
@@ -39,8 +41,8 @@ class PhysioDriver(DeviceDriver):
     streams = (PHYSIO_STREAM,)
 
     def __init__(self, transport: Transport, calibration: Calibration, *,
-                 notifier: UpdateNotifier | None = None, silence_timeout_s: float | None = None) -> None:
-        super().__init__("physio", transport, notifier=notifier, silence_timeout_s=silence_timeout_s)
+                 bus: StreamBus | None = None, silence_timeout_s: float | None = None) -> None:
+        super().__init__(streams.PHYSIO, transport, bus=bus, silence_timeout_s=silence_timeout_s)
         self.calibration = calibration
         self.decoder = PhysioStreamDecoder(calibration)
         # The board's millisecond tick (unwrapped by the decoder into boardTime) mapped to the host's clock:
@@ -53,10 +55,10 @@ class PhysioDriver(DeviceDriver):
 
     def on_bytes(self, data: bytes, t_ns: int) -> None:
         t = t_ns / 1e9
-        stamp, replace = self.clock.map, dataclasses.replace
+        stamp, replace, publish = self.clock.map, dataclasses.replace, self.publish
         for sample in self.decoder.feed(data, t):
             taken = stamp(sample.boardTime, t)
-            self.publish("physio.main", taken, replace(sample, timestamp=taken), t)
+            publish(streams.PHYSIO_MAIN, taken, replace(sample, timestamp=taken), t)
 
     @property
     def frames_lost(self) -> int:
@@ -88,6 +90,6 @@ def create(ctx: DeviceContext) -> DeviceHandle | None:
                 ("force", calibration.force))})
         url = simulator.url
     driver = PhysioDriver(SerialTransport(url, SerialSettings(baudrate=cfg.baudrate)), calibration,
-                          notifier=ctx.notifier,
+                          bus=ctx.bus,
                           silence_timeout_s=ctx.silence_timeout(cfg.rate_hz))
-    return DeviceHandle("physio", driver, simulator)
+    return DeviceHandle(streams.PHYSIO, driver, simulator)

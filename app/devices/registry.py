@@ -1,9 +1,10 @@
 """The composition root: which devices exist, and the one place that assembles them.
 
 Each device module offers ``create(ctx: DeviceContext) -> DeviceHandle | None`` (None when its config says
-``off``). A device gets everything it needs from its context — its config section, the shared update
-notifier, the supervisor's registration API (typed stop actions, robot probes, FES limits), the link to
-its simulator when simulated, and the drivers built before it — and never imports the manager.
+``off``). A device gets everything it needs from its context — its config section, the stream bus (where
+its driver publishes and where it reads the other devices' latest samples and events), the supervisor's
+registration API (typed stop actions, robot probes, FES limits), the link to its simulator when simulated,
+the drivers built before it and the assistance split (the UDP peers' frames) — and never imports the manager.
 
 Simulated serial devices are hosted by :class:`SimulatorHosting`: in a process of their own by default
 (app.devices.sim.host), or in the app's process (``simulation.host: thread``).
@@ -20,19 +21,22 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from app import streams
+from app.assistance import AssistanceLevels
+from app.bus import StreamBus
 from app.config import AppConfig, SafetyConfig
-from app.devices.driver import DeviceDriver, UpdateNotifier
+from app.devices.driver import DeviceDriver
 from app.safety import RobotProbes, SafetySupervisor, StopAction
 
 log = logging.getLogger(__name__)
 
 # name → module; the order is the build order (the patient model needs the others' streams).
 DEVICE_MODULES: dict[str, str] = {
-    "linarm": "app.devices.linarm",
-    "physio": "app.devices.physio",
-    "fes": "app.devices.rehastim",
-    "patient_model": "app.devices.patient_model",
-    "vr": "app.devices.vr",
+    streams.LINARM: "app.devices.linarm",
+    streams.PHYSIO: "app.devices.physio",
+    streams.FES: "app.devices.rehastim",
+    streams.PATIENT_MODEL: "app.devices.patient_model",
+    streams.VR: "app.devices.vr",
 }
 
 
@@ -133,12 +137,14 @@ class DeviceContext:
     name: str
     config: Any  # the device's own config section (e.g. app.config.LinarmDevice)
     safety: SafetyConfig
-    notifier: UpdateNotifier
+    bus: StreamBus  # the driver publishes here; the other devices' latest samples and events are read here
     supervisor: SafetySupervisor  # the drivers' checked command paths call it
     runtime_dir: Path
     simulators: SimulatorHosting
     peers: Mapping[str, DeviceDriver]  # drivers built before this one, by name
-    app: Any = None  # the manager, for the UDP peers' frame sources only (patient model, VR)
+    # α and its split with the gains in force (the manager's AssistanceController), for the UDP peers' frames;
+    # None: the config's gains, and α as the patient model last published it
+    assistance: AssistanceLevels | None = None
 
     # ---------------------------------------------------------------- the supervisor's registration API
     def add_stop_action(self, name: str, run: Callable[[str], None], *, robot: bool = False) -> None:
@@ -171,16 +177,17 @@ def default_factories(config: AppConfig) -> dict[str, DeviceFactory]:
     return factories
 
 
-def build_devices(factories: Mapping[str, DeviceFactory], config: AppConfig, *, notifier: UpdateNotifier,
-                  supervisor: SafetySupervisor, runtime_dir: Path, simulators: SimulatorHosting, app: Any = None,
+def build_devices(factories: Mapping[str, DeviceFactory], config: AppConfig, *, bus: StreamBus,
+                  supervisor: SafetySupervisor, runtime_dir: Path, simulators: SimulatorHosting,
+                  assistance: AssistanceLevels | None = None,
                   on_error: Callable[[str, Exception], None] | None = None) -> dict[str, DeviceHandle]:
     """Every device of ``factories``, in order, each from its typed context; a device that fails to build
     is reported through ``on_error`` and left out."""
     handles: dict[str, DeviceHandle] = {}
     for name, factory in factories.items():
         section = getattr(config.devices, name, None)
-        ctx = DeviceContext(name, section, config.safety, notifier, supervisor, runtime_dir, simulators,
-                            {n: h.driver for n, h in handles.items()}, app)
+        ctx = DeviceContext(name, section, config.safety, bus, supervisor, runtime_dir, simulators,
+                            {n: h.driver for n, h in handles.items()}, assistance)
         try:
             handle = factory(ctx)
         except Exception as exc:

@@ -31,8 +31,10 @@ from typing import TYPE_CHECKING, Any, Literal
 import serial
 from PySide6.QtCore import QThread, Signal
 
+from app import streams
+from app.bus import BusItem, DeviceEvent, StreamBus
 from app.config import FesDevice
-from app.devices.driver import Channel, DeviceDriver, StreamSpec, UpdateNotifier
+from app.devices.driver import Channel, DeviceDriver, StreamSpec
 from app.devices.fes_guardian import FesGuardian, GuardianError
 from app.devices.fes_guardian import available as fes_guardian_available
 from app.devices.sciencemode import (
@@ -104,7 +106,7 @@ def _channel_fields() -> tuple[Channel, ...]:
     )
 
 
-FES_STREAM = StreamSpec("fes.channels", _channel_fields(), 40.0)
+FES_STREAM = StreamSpec(streams.FES_CHANNELS, _channel_fields(), 40.0)
 
 
 @dataclass(frozen=True, slots=True)
@@ -205,12 +207,12 @@ class FesDriver(DeviceDriver):
         *,
         protocol: Protocol = "sm1",
         ack_timeout_s: float = 0.5,
-        notifier: UpdateNotifier | None = None,
+        bus: StreamBus | None = None,
         clock: Callable[[], float] = time.monotonic,
     ) -> None:
         if protocol not in SERIAL_SETTINGS:
             raise ValueError(f"protocol = {protocol!r}; allowed: 'sm1' or 'sm2'")
-        super().__init__("fes", transport, notifier=notifier, read_timeout_s=MAX_WAKE_PERIOD_S)
+        super().__init__(streams.FES, transport, bus=bus, read_timeout_s=MAX_WAKE_PERIOD_S)
         self.supervisor = supervisor
         self.protocol: Protocol = protocol
         self.ack_timeout_s = ack_timeout_s
@@ -727,7 +729,7 @@ class FesDriver(DeviceDriver):
 
     def _publish(self, now: float) -> None:
         sent = self._sent if self._stimulating else {}
-        self.publish("fes.channels", now, FesChannelsSample.from_settings(sent))
+        self.publish(streams.FES_CHANNELS, now, FesChannelsSample.from_settings(sent))
 
     # -- writing
     def _next_pn(self) -> int:
@@ -902,17 +904,20 @@ def link_descriptor(transport: Any) -> int | None:
         return None
 
 
-def watch_link(source: Any, fes: FesDriver, label: str) -> None:
-    """Stop stimulation when ``source`` (a DeviceDriver) disconnects or goes silent."""
+def watch_link(bus: StreamBus, source: str, fes: FesDriver, label: str) -> None:
+    """Stop stimulation when device ``source`` disconnects or goes silent: a safety monitor, inline on the
+    bus (it runs on the source's driver thread as the event is published, before any queued consumer)."""
 
-    def on_event(event: str, detail: str) -> None:
-        if event in ("disconnected", "silent") and fes.stimulating:
-            what = "was lost" if event == "disconnected" else "went silent"
+    def on_event(item: BusItem) -> None:
+        if not isinstance(item, DeviceEvent) or item.device != source:
+            return
+        if item.kind in ("disconnected", "silent") and fes.stimulating:
+            what = "was lost" if item.kind == "disconnected" else "went silent"
             text = f"The {label} link {what} while stimulating; stimulation stopped"
             fes.stop_stimulation(text, label)
-            fes._report_fault(text + (f" ({detail})" if detail else ""))
+            fes._report_fault(text + (f" ({item.detail})" if item.detail else ""))
 
-    source.add_event_listener(on_event)
+    bus.subscribe_inline("safety", on_event, (), events=True)
 
 
 def create(ctx: DeviceContext) -> DeviceHandle | None:
@@ -942,7 +947,7 @@ def create(ctx: DeviceContext) -> DeviceHandle | None:
     if supervisor.fes_limiter is None:
         supervisor.fes_limiter = FesLimiter(FesLimits.from_config(ctx.safety.fes))
     driver = FesDriver(SerialTransport(url, settings), supervisor, protocol=protocol,
-                       ack_timeout_s=cfg.ack_timeout_s, notifier=ctx.notifier)
+                       ack_timeout_s=cfg.ack_timeout_s, bus=ctx.bus)
     processes: list[Any] = []
     if fes_guardian_available():
         driver.require_guardian = True  # where it can run, never stimulate without it
@@ -955,9 +960,8 @@ def create(ctx: DeviceContext) -> DeviceHandle | None:
     else:  # Windows: SM2's own watchdog (1.2 s) only; SM1 stops only on Stop (docs/fes.md)
         log.warning("fes: no dead man's switch on this platform: a frozen app's stimulation is not stopped by it")
     ctx.add_stop_action("FES stop", lambda reason: driver.stop_stimulation(reason, "safety supervisor"))
-    for name, label in (("linarm", "LINarm"), ("physio", "physiological sensors")):
-        other = ctx.peers.get(name)
-        if other is not None:
-            watch_link(other, driver, label)
-    return DeviceHandle("fes", driver, simulator, {"safe_stop": lambda reason: driver.stop_stimulation(reason),
+    for name, label in ((streams.LINARM, "LINarm"), (streams.PHYSIO, "physiological sensors")):
+        if name in ctx.peers:
+            watch_link(ctx.bus, name, driver, label)
+    return DeviceHandle(streams.FES, driver, simulator, {"safe_stop": lambda reason: driver.stop_stimulation(reason),
                                                    "processes": processes})

@@ -35,10 +35,14 @@ import time
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
+from app import streams
+from app.bus import StreamBus
 from app.devices.clock import CountedClock
-from app.devices.driver import Channel, StreamSpec, UpdateNotifier
+from app.devices.driver import Channel, StreamSpec
 from app.devices.patient_model import (
     HelperProcess,
+    LinkInputs,
+    PatientModelDriver,
     UdpPeerDriver,
     free_udp_port,
     link_key,
@@ -58,11 +62,12 @@ from app.devices.udp_frames import (
 )
 
 if TYPE_CHECKING:
+    from app.assistance import AssistanceLevels
     from app.devices.registry import DeviceContext, DeviceHandle
 
 NAN = math.nan
 
-VR_STREAM = StreamSpec("vr.main", (
+VR_STREAM = StreamSpec(streams.VR_MAIN, (
     Channel("targetPos", "m", "Target position"),
     Channel("score", "", "Game score"),
     Channel("targetsReached", "", "Targets reached"),
@@ -176,12 +181,14 @@ class VrDriver(UdpPeerDriver):
     streams = (VR_STREAM,)
 
     def __init__(self, transport: DatagramTransport, rate_hz: float = 50.0, *,
-                 manager: Any = None, task: VrTask | None = None, process: HelperProcess | None = None,
-                 notifier: UpdateNotifier | None = None, alive_timeout_s: float = 2.5,
+                 inputs: LinkInputs | None = None, assistance: AssistanceLevels | None = None,
+                 task: VrTask | None = None, process: HelperProcess | None = None,
+                 bus: StreamBus | None = None, alive_timeout_s: float = 2.5,
                  key: bytes | None = None) -> None:
-        super().__init__("vr", transport, rate_hz, alive_timeout_s=alive_timeout_s, process=process,
-                         notifier=notifier, key=key)
-        self.manager = manager
+        super().__init__(streams.VR, transport, rate_hz, alive_timeout_s=alive_timeout_s, process=process,
+                         bus=bus, key=key)
+        self.inputs = inputs  # the other devices' samples for the frames (None: NaN, no flags)
+        self.assistance = assistance  # the α being applied (None: the patient model's last α on the bus)
         self.task = task or VrTask()
         self._seq = 0
         self.events_received = 0
@@ -194,11 +201,9 @@ class VrDriver(UdpPeerDriver):
         return self.task.snapshot()
 
     def _alpha(self) -> float:
-        controller = getattr(self.manager, "assistance", None)
-        alpha = getattr(controller, "alpha", None) if controller is not None else None
-        if alpha is None and self.manager is not None:
-            pm = self.manager.driver("patient_model")
-            sample = pm.latest("patient_model.main") if pm is not None else None
+        alpha = self.assistance.alpha if self.assistance is not None else None
+        if alpha is None:
+            sample = self.bus.latest(streams.PATIENT_MODEL_MAIN)
             alpha = getattr(sample, "alpha", None)
         if alpha is None or math.isnan(alpha):
             return 0.0
@@ -207,8 +212,8 @@ class VrDriver(UdpPeerDriver):
     def build_datagram(self, now: float) -> bytes | None:
         p = v = None
         flags = 0
-        if self.manager is not None:
-            inp = read_inputs(self.manager)
+        if self.inputs is not None:
+            inp = read_inputs(self.inputs)
             p, v, flags = inp.physio, inp.vsa, inp.flags
         handle = _num(v, "handlePos")
         self.task.tick(now, handle)
@@ -220,7 +225,7 @@ class VrDriver(UdpPeerDriver):
             robotVelocity=_num(v, "handleVel"), robotPosition=handle, targetPosition=target, task=task,
             alpha=self._alpha(), flags=flags))
         t = self.task
-        self.publish("vr.main", self.clock.map(now, seq), VrSample(
+        self.publish(streams.VR_MAIN, self.clock.map(now, seq), VrSample(
             targetPos=target, score=float(t.score), targetsReached=float(t.targetsReached),
             targetsMissed=t.targetsMissed, subTask=task.subTask, taskState=int(task.taskState),
             handlePos=handle, lastEvent=t.lastEvent, timeToTarget=t.timeToTarget,
@@ -254,8 +259,6 @@ def standin_process(host: str, standin_port: int, manager_port: int, window: boo
 def create(ctx: DeviceContext) -> DeviceHandle | None:
     from app.devices.registry import DeviceHandle
 
-    manager = ctx.app  # the frame sources read the other devices and the assistance through it
-
     cfg = ctx.config
     if cfg.mode == "off":
         return None
@@ -272,9 +275,13 @@ def create(ctx: DeviceContext) -> DeviceHandle | None:
         peer = (cfg.peer_host, cfg.peer_port)
     if process is not None:
         process.authenticate = cfg.authenticated
-    driver = VrDriver(UdpTransport((host, listen_port), peer), cfg.rate_hz, manager=manager, process=process,
-                      notifier=ctx.notifier, key=link_key(cfg))
-    warn_if_plain(manager, "vr", cfg)
+    driver = VrDriver(UdpTransport((host, listen_port), peer), cfg.rate_hz,
+                      inputs=LinkInputs(ctx.bus, ctx.peers, ctx.supervisor), assistance=ctx.assistance,
+                      process=process, bus=ctx.bus, key=link_key(cfg))
+    model = ctx.peers.get(streams.PATIENT_MODEL)
+    if isinstance(model, PatientModelDriver):
+        model.vr_task = driver.task_snapshot  # the patient model's frames carry the VR task
+    warn_if_plain(ctx.supervisor, streams.VR, cfg)
     if process is not None:
         process.start()
-    return DeviceHandle("vr", driver, None, extras)
+    return DeviceHandle(streams.VR, driver, None, extras)

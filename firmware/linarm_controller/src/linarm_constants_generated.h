@@ -84,6 +84,10 @@ const float KP_MAX = 1000000.0f;  // N/m: setPidTunings
 const float KI_MAX = 10000000.0f;  // N/(m s): setPidTunings
 const float KD_MAX = 10000.0f;  // N s/m: setPidTunings
 
+// host
+const float PRETENSION_MOVE_VELOCITY = 0.05f;  // m/s: maxVel of the pretension move by which the assistance split changes the stiffness (setStiffness)
+const float PRETENSION_MOVE_ACCELERATION = 0.2f;  // m/s^2: maxAcc of the pretension move by which the assistance split changes the stiffness (setStiffness)
+
 }  // namespace cfg
 
 #endif  // LINARM_CONSTANTS_GENERATED_H

@@ -9,7 +9,7 @@
 
 namespace proto {
 
-static const char TABLE_HASH[] = "4fec3ec322fa0660";
+static const char TABLE_HASH[] = "f938a116e35134d1";
 static const uint8_t PROTOCOL_VERSION = 1;
 static const char DEVICE_NAME[] = "LINarm2";
 static const uint8_t ARDUINO_MAX_MESSAGE = 62;
