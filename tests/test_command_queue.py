@@ -203,7 +203,7 @@ def test_a_command_submitted_while_another_is_in_flight_is_written_after_its_ack
     controller.hold = {"resetError"}
     first = driver.submit("resetError", source="test")
     second = driver.submit("setDemo", False, source="test")
-    qtbot.waitUntil(lambda: controller.held, timeout=2000)
+    qtbot.waitUntil(lambda: bool(controller.held), timeout=2000)
     qtbot.wait(100)  # the second must not go while the first awaits its ACK
     assert "setDemo" not in controller.names() and not second.written and not first.done()
     released_at = time.monotonic()
@@ -218,7 +218,7 @@ def test_the_estop_passes_a_command_in_flight(linarm, qtbot) -> None:
     controller.hold = {"resetError"}
     pending = driver.submit("resetError", source="test")
     queued = driver.submit("setDemo", False, source="test")
-    qtbot.waitUntil(lambda: controller.held, timeout=2000)
+    qtbot.waitUntil(lambda: bool(controller.held), timeout=2000)
     t0 = time.monotonic()
     status = driver.emergency_idle("test")  # returns once written
     assert time.monotonic() - t0 < ESTOP_WRITE_BOUND_S and status.written
@@ -233,7 +233,7 @@ def test_the_heartbeat_keeps_beating_while_a_command_waits_for_its_ack(linarm, q
     driver, controller, _ = linarm
     controller.hold = {"resetError"}
     pending = driver.submit("resetError", source="test")
-    qtbot.waitUntil(lambda: controller.held, timeout=2000)
+    qtbot.waitUntil(lambda: bool(controller.held), timeout=2000)
     t0 = time.monotonic()
     qtbot.wait(400)  # 0.4 s > the controller's 250 ms watchdog
     beats = [t for t, n, _a in controller.log if n == "heartbeat" and t >= t0]
@@ -265,7 +265,7 @@ def test_a_refusal_is_a_failed_status_and_nothing_is_sent(linarm) -> None:
     assert ("robot_command", {"source": "test", "command": "setDemo", "args": {"demo": False}, "ok": True}) in events
 
 
-def test_the_estop_without_a_link_raises_transport_error() -> None:
+def test_the_estop_without_a_link_raises_transport_error(qtbot) -> None:
     driver = LinarmDriver(ScriptedController(), SafetySupervisor(SafetyConfig()))  # type: ignore[arg-type]
     with pytest.raises(TransportError):
         driver.emergency_idle("test")

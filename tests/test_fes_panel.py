@@ -196,6 +196,7 @@ def test_the_requested_rate_is_shown_and_the_delivered_one_explained(panel: FesP
 
 
 @pytest.mark.realtime
+@pytest.mark.sim_in_thread  # the simulator's core is reached to withhold an ack
 def test_start_does_not_block_the_gui_thread_while_the_stimulator_has_not_answered(panel: FesPanel, qtbot) -> None:
     """Issue #29: Start waited for the channel list init's ack on the GUI thread (up to ack_timeout_s). Now the
     click returns at once, the button says "Starting…", and a missing ack is said in plain words."""
