@@ -9,6 +9,16 @@ Under Xvfb the 3D view is drawn by Mesa llvmpipe, i.e. on the CPU by threads of 
 figure. "Window share" = the GUI thread + the llvmpipe threads; the X server's own CPU (it composes what the app
 puts on screen) is printed beside it. ``--moving`` runs bench/scripts/reach_exercise.py (0.10 <-> 0.40 m) during
 the measurement. The machine may be shared: the load average is printed with every run.
+
+``--fes-start N`` measures instead the GUI thread's longest stall while starting FES (issue #29, acceptance 3):
+with the window open, an FES panel (app.ui.fes_panel.FesPanel, the commands frame's) loads
+frontal_reaching.yaml and its Start button is clicked N times (each followed by Stop); a 1 ms timer on the GUI
+thread records the gaps between its ticks, and the longest gap from the click until stimulation runs (or the
+panel says why not) is the stall. The same gaps over a window without a click are printed beside it (what the
+GUI thread does anyway). Before #29 the click waited on the GUI thread for the channel list's acks; it runs the
+same on either code (it only clicks the button). ``--no-ack`` withholds the init's ack each time (simulators
+hosted as threads, to reach their core): the stimulator that does not answer, where the old Start waited
+``ack_timeout_s``. ``--load``: two ``yes > /dev/null`` meanwhile.
 """
 
 from __future__ import annotations
@@ -23,6 +33,8 @@ from pathlib import Path
 from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+if "--no-ack" in sys.argv:  # before the app is imported: the simulators as threads, so their core is reachable
+    os.environ["LINARMPP_SIM_HOST"] = "thread"
 
 import common
 from bench_headroom import config_at
@@ -113,6 +125,119 @@ def one_run(seconds: float, moving: bool, screenshot: str, profile: str = "") ->
         common.shutdown(manager, window)
 
 
+class GapMeter:
+    """A 1 ms timer on the GUI thread: (when, gap since the previous tick) for every tick."""
+
+    def __init__(self) -> None:
+        from PySide6.QtCore import Qt, QTimer
+
+        self.ticks: list[tuple[float, float]] = []
+        self._last = time.monotonic()
+        self.timer = QTimer()
+        self.timer.setTimerType(Qt.TimerType.PreciseTimer)
+        self.timer.setInterval(1)
+        self.timer.timeout.connect(self._tick)
+        self.timer.start()
+
+    def _tick(self) -> None:
+        now = time.monotonic()
+        self.ticks.append((now, now - self._last))
+        self._last = now
+
+    def longest(self, t0: float, t1: float) -> float:
+        """The longest gap ending in [t0, t1] (a stall that began in it ends at the first tick after it)."""
+        end = next((t for t, _g in self.ticks if t > t1), t1)
+        return max((g for t, g in self.ticks if t0 < t <= end), default=0.0)
+
+
+def fes_start_stall(clicks: int, no_ack: bool) -> dict[str, Any]:
+    from PySide6.QtCore import QTimer
+
+    from app.ui.fes_panel import PROFILES_DIR, FesPanel
+
+    manager = common.start_manager(config_at(1.0))
+    window = None
+    panel = None
+    try:
+        window = common.open_window(manager, load=False, refresh_hz=manager.config.ui.refresh_hz)
+        panel = FesPanel(manager)
+        panel.resize(900, 560)
+        panel.show()
+        fes = panel.driver
+        if fes is None:
+            raise RuntimeError("no FES device in the configuration")
+        if not common.run_qt_until(lambda: fes.device_ready, 10.0):
+            raise RuntimeError("the stimulator did not get ready within 10 s")
+        if not panel.load_profile_file(PROFILES_DIR / "frontal_reaching.yaml"):
+            raise RuntimeError(f"profile not loaded: {panel.message.text()}")
+        common.run_qt_until(lambda: False, 1.0)  # settle
+        meter = GapMeter()
+        stalls, idle, started, outcomes = [], [], 0, []
+        sim = manager.devices["fes"].simulator
+        for _ in range(clicks):
+            manager.supervisor.reset_emergency_stop("benchmark")
+            common.run_qt_until(lambda: panel.start_button.isEnabled(), 3.0)
+            t_idle = time.monotonic()
+            common.run_qt_until(lambda: False, 0.3)  # what the GUI thread does without a click
+            idle.append(meter.longest(t_idle, time.monotonic()))
+            if no_ack:
+                sim.with_core(lambda core: core.inject_no_ack(1))
+            message_before = panel.message.text()
+            clicked = {"t": 0.0}
+
+            def click(clicked: dict[str, float] = clicked) -> None:
+                clicked["t"] = time.monotonic()
+                panel.start_button.click()  # as a mouse click does: on the GUI thread, from its event loop
+
+            QTimer.singleShot(0, click)
+            def decided_now(clicked: dict[str, float] = clicked, before: str = message_before) -> bool:
+                text = panel.message.text()
+                return clicked["t"] > 0 and (fes.stimulating or ("Not started" in text and text != before))
+
+            decided = common.run_qt_until(decided_now, 5.0)
+            t_end = time.monotonic()
+            common.run_qt_until(lambda: False, 0.05)  # the tick that ends a stall still running at t_end
+            stalls.append(meter.longest(clicked["t"], t_end))
+            started += int(fes.stimulating)
+            outcomes.append("started" if fes.stimulating else (panel.message.text() if decided else "undecided"))
+            panel.stop_button.click()
+            if no_ack:
+                sim.with_core(lambda core: core.clear_faults())
+            common.run_qt_until(lambda: False, 0.3)
+        meter.timer.stop()
+        return {"stalls": stalls, "idle": idle, "started": started, "outcomes": outcomes,
+                "load": common._read("/proc/loadavg").split()[:3]}
+    finally:
+        if panel is not None:
+            panel.close()
+        common.shutdown(manager, window)
+
+
+def fes_main(args: argparse.Namespace) -> int:
+    import subprocess
+
+    common.qt_app()
+    common.print_machine("bench_window: the GUI thread's longest stall while starting FES")
+    print(f"  {args.fes_start} clicks on the FES panel's Start{', the init not acknowledged' if args.no_ack else ''}"
+          f"{', two yes' if args.load else ''}; simulators {common.hosting()}", flush=True)
+    loads = [subprocess.Popen(["yes"], stdout=subprocess.DEVNULL) for _ in range(2)] if args.load else []
+    try:
+        r = fes_start_stall(args.fes_start, args.no_ack)
+    finally:
+        for proc in loads:
+            proc.kill()
+            proc.wait()
+    ms = [s * 1000 for s in r["stalls"]]
+    idle = [s * 1000 for s in r["idle"]]
+    print(f"  started {r['started']} of {len(ms)}; outcomes other than started: "
+          f"{sorted(set(o for o in r['outcomes'] if o != 'started')) or 'none'}")
+    print(f"  GUI thread's longest stall while starting FES: max {max(ms):.1f} ms, median {statistics.median(ms):.1f}"
+          f" ms (per click: {' '.join(f'{v:.1f}' for v in ms)})")
+    print(f"  the same without a click (0.3 s windows): max {max(idle):.1f} ms, median {statistics.median(idle):.1f}"
+          f" ms; load average {' '.join(r['load'])}")
+    return 0
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--seconds", type=float, default=10.0)
@@ -120,7 +245,13 @@ def main() -> int:
     parser.add_argument("--moving", action="store_true", help="run the reach exercise while measuring")
     parser.add_argument("--screenshot", default="", help="save the window of the last run as PNG")
     parser.add_argument("--profile", action="store_true", help="py-spy the first run into bench/profiles/window*")
+    parser.add_argument("--fes-start", type=int, default=0, metavar="N",
+                        help="measure the GUI thread's longest stall over N clicks of the FES panel's Start instead")
+    parser.add_argument("--no-ack", action="store_true", help="with --fes-start: the init's ack never comes")
+    parser.add_argument("--load", action="store_true", help="with --fes-start: two `yes > /dev/null` meanwhile")
     args = parser.parse_args()
+    if args.fes_start:
+        return fes_main(args)
     app = common.qt_app()
     common.print_machine("bench_window: the window's CPU at nominal rates")
     print(f"  platform {app.platformName()}; robot {'moving (reach exercise)' if args.moving else 'idle'}")

@@ -4,6 +4,7 @@ and the per-channel numbers they give, channel status; plus its screenshot."""
 from __future__ import annotations
 
 import shutil
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -49,8 +50,8 @@ def test_load_start_knobs_stop(panel: FesPanel, qtbot) -> None:
     panel.current_knob.dial.setValue(50)  # 0.50 ×
     assert panel.driver.current_scale == pytest.approx(0.5)
     assert column(panel, 2) == ["10.0"] and panel.current_knob.value_label.text() == "0.50 ×"
-    panel.start_button.click()
-    assert panel.driver.stimulating and "Stimulating" in panel.status_label.text()
+    panel.start_button.click()  # the start's acks come back on the FES queue's thread; the GUI does not wait
+    qtbot.waitUntil(lambda: panel.driver.stimulating and "Stimulating" in panel.status_label.text(), timeout=3000)
     assert not panel.load_button.isEnabled()
     qtbot.waitUntil(lambda: int(column(panel, 4)[0]) > 0, timeout=3000)  # "Now mA" is what was sent
     panel.stop_button.click()
@@ -192,3 +193,26 @@ def test_the_requested_rate_is_shown_and_the_delivered_one_explained(panel: FesP
     if abs(delivered - 30.0) >= 0.05:
         assert f"delivered {delivered:.1f} Hz" in text and "time steps" in text
     panel.stop_button.click()
+
+
+@pytest.mark.realtime
+@pytest.mark.sim_in_thread  # the simulator's core is reached to withhold an ack
+def test_start_does_not_block_the_gui_thread_while_the_stimulator_has_not_answered(panel: FesPanel, qtbot) -> None:
+    """Issue #29: Start waited for the channel list init's ack on the GUI thread (up to ack_timeout_s). Now the
+    click returns at once, the button says "Starting…", and a missing ack is said in plain words."""
+    assert panel.load_profile_file(WRIST)
+    sim = panel.manager.devices["fes"].simulator
+    sim.with_core(lambda core: core.inject_no_ack(1))  # the init's ack never comes
+    t0 = time.monotonic()
+    panel.start_button.click()
+    blocked = time.monotonic() - t0
+    assert blocked < 0.1, f"the GUI thread waited {blocked * 1000:.0f} ms in Start"
+    assert panel.start_button.text() == "Starting…" and not panel.start_button.isEnabled()
+    qtbot.waitUntil(lambda: "Not started" in panel.message.text(), timeout=3000)
+    assert "did not acknowledge the channel list init" in panel.message.text()
+    assert not panel.driver.stimulating and panel.start_button.text() == "&Start stimulation"
+    sim.with_core(lambda core: core.clear_faults())
+    panel.start_button.click()
+    qtbot.waitUntil(lambda: panel.driver.stimulating and "Stimulating." in panel.message.text(), timeout=3000)
+    panel.stop_button.click()
+    assert not panel.driver.stimulating

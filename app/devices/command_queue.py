@@ -27,7 +27,7 @@ import logging
 import threading
 import time
 from collections.abc import Callable
-from concurrent.futures import Future
+from concurrent.futures import Future, InvalidStateError
 from dataclasses import dataclass, field
 
 log = logging.getLogger(__name__)
@@ -54,27 +54,58 @@ class CommandStatus(Future):
         self.priority = priority
         self.submitted_at = time.monotonic()
         self.written_at: float | None = None
+        self.timeout_s: float | None = None  # how long its reply may take once written (exclusive commands)
         self._written = threading.Event()
+        self._settled = threading.Event()  # written or done: what wait_written waits for (no polling: e-stop path)
+        self.add_done_callback(lambda _s: self._settled.set())
 
     @property
     def written(self) -> bool:
         return self._written.is_set()
 
     def wait_written(self, timeout: float | None = None) -> bool:
-        """Block until the bytes were written (True), the command failed before that, or ``timeout``."""
-        deadline = None if timeout is None else time.monotonic() + timeout
-        while not self._written.is_set():
-            if self.done():
-                return self._written.is_set()
-            remaining = None if deadline is None else deadline - time.monotonic()
-            if remaining is not None and remaining <= 0:
-                return False
-            self._written.wait(0.005 if remaining is None else min(remaining, 0.005))
-        return True
+        """Block until the bytes were written (True), the command failed before that (False), or ``timeout``."""
+        self._settled.wait(timeout)
+        return self._written.is_set()
 
     def mark_written(self) -> None:
         self.written_at = time.monotonic()
         self._written.set()
+        self._settled.set()
+
+    def resolve(self, value: object) -> bool:
+        """set_result unless already done (a caller may have cancelled it meanwhile); True when it took."""
+        try:
+            self.set_result(value)
+        except InvalidStateError:
+            return False
+        return True
+
+    def fail(self, exc: BaseException) -> bool:
+        """set_exception unless already done; True when it took."""
+        try:
+            self.set_exception(exc)
+        except InvalidStateError:
+            return False
+        return True
+
+    @classmethod
+    def failed(cls, name: str, exc: BaseException, source: str = "",
+               priority: Priority = Priority.NORMAL) -> CommandStatus:
+        """A status that never reached the queue (refused, or no link): ``exc`` is why."""
+        status = cls(name, source, priority)
+        status.set_exception(exc)
+        return status
+
+    @classmethod
+    def done_now(cls, name: str, value: object = None, source: str = "", written: bool = True,
+                 priority: Priority = Priority.NORMAL) -> CommandStatus:
+        """A status completed at once (a command written on the caller's thread, or nothing to do)."""
+        status = cls(name, source, priority)
+        if written:
+            status.mark_written()
+        status.set_result(value)
+        return status
 
 
 @dataclass(order=True)
@@ -89,37 +120,48 @@ class _Entry:
 
 class CommandQueue:
     """See the module docstring. ``periodic`` (e.g. the heartbeat) is called by the queue's thread every
-    ``period_s`` while the queue runs; ``realtime_priority`` asks the OS for round-robin scheduling."""
+    ``period_s`` while the queue runs, ahead of every queued command but the e-stop; ``realtime_priority`` asks
+    the OS for round-robin scheduling. ``on_timeout(status)`` runs on the queue's thread when an exclusive
+    command's reply did not come in time (e.g. to resync the device's parser) and returns the exception the
+    status fails with (None: a plain TimeoutError)."""
 
     def __init__(self, name: str, *, periodic: Callable[[], None] | None = None, period_s: float = 0.1,
-                 realtime_priority: int | None = None) -> None:
+                 realtime_priority: int | None = None,
+                 on_timeout: Callable[[CommandStatus], BaseException | None] | None = None) -> None:
         self.name = name
         self.periodic = periodic
         self.period_s = period_s
         self.realtime_priority = realtime_priority
+        self.on_timeout = on_timeout
         self._heap: list[_Entry] = []
         self._seq = itertools.count()
         self._cond = threading.Condition()
         self._in_flight: _Entry | None = None
         self._in_flight_deadline = 0.0
         self._thread: threading.Thread | None = None
-        self._closed = False
+        self._closed = True  # until start(): a command submitted to a queue not running fails at once
         self.written_total = 0
+        self.realtime = False  # whether the OS granted realtime_priority to the queue's thread
 
     # ------------------------------------------------------------------ any thread
     def submit(self, name: str, write: Callable[[CommandStatus], None], *, source: str = "",
                priority: Priority = Priority.NORMAL, exclusive: bool = True, timeout_s: float = 1.0) -> CommandStatus:
         """Queue one command. ``write(status)`` runs on the queue's thread and writes its bytes; for an
-        ``exclusive`` command, whoever reads the reply completes ``status`` (set_result / set_exception), else
-        the queue fails it with TimeoutError after ``timeout_s``. A non-exclusive command is done once written."""
+        ``exclusive`` command, whoever reads the reply completes ``status`` (resolve / fail), else the queue
+        fails it after ``timeout_s`` (see ``on_timeout``). A non-exclusive command is done once written."""
         status = CommandStatus(name, source, priority)
+        status.timeout_s = timeout_s if exclusive else None
         with self._cond:
             if self._closed:
-                status.set_exception(CommandQueueClosed(f"{self.name}: {name} not sent, the device is closing"))
+                status.set_exception(CommandQueueClosed(f"{self.name}: {name} not sent, the device is not running"))
                 return status
             heapq.heappush(self._heap, _Entry(int(priority), next(self._seq), status, write, exclusive, timeout_s))
             self._cond.notify()
         return status
+
+    @property
+    def running(self) -> bool:
+        return not self._closed and self._thread is not None and self._thread.is_alive()
 
     def start(self) -> None:
         with self._cond:
@@ -128,8 +170,8 @@ class CommandQueue:
             self._thread = threading.Thread(target=self._run, name=f"{self.name}-commands", daemon=True)
             self._thread.start()
 
-    def close(self, reason: str = "the device is closing") -> None:
-        """Stop the thread; every command not yet written fails with CommandQueueClosed."""
+    def close(self, reason: str = "the device is closing", error: BaseException | None = None) -> None:
+        """Stop the thread; every command not yet done fails with ``error`` (default CommandQueueClosed)."""
         with self._cond:
             self._closed = True
             pending, self._heap = self._heap, []
@@ -138,8 +180,8 @@ class CommandQueue:
                 self._in_flight = None
             self._cond.notify()
         for entry in pending:
-            if not entry.status.done():
-                entry.status.set_exception(CommandQueueClosed(f"{self.name}: {entry.status.name} not sent, {reason}"))
+            entry.status.fail(error if error is not None
+                              else CommandQueueClosed(f"{self.name}: {entry.status.name} not sent, {reason}"))
         thread = self._thread
         if thread is not None and thread is not threading.current_thread():
             thread.join(1.0)
@@ -149,8 +191,8 @@ class CommandQueue:
         with self._cond:
             entry, self._in_flight = self._in_flight, None
             self._cond.notify()
-        if entry is not None and not entry.status.done():
-            entry.status.set_exception(exc)
+        if entry is not None:
+            entry.status.fail(exc)
 
     @property
     def in_flight(self) -> CommandStatus | None:
@@ -161,42 +203,59 @@ class CommandQueue:
         return len(self._heap)
 
     # ------------------------------------------------------------------ the queue's thread
+    def _wake(self, _status: object = None) -> None:
+        with self._cond:
+            self._cond.notify()
+
     def _run(self) -> None:
         if self.realtime_priority is not None:
             from app.devices.realtime import request_realtime
 
-            request_realtime(self.realtime_priority)
+            self.realtime = request_realtime(self.realtime_priority)
         next_periodic = time.monotonic() + self.period_s
         while True:
+            expired: _Entry | None = None
             with self._cond:
                 entry = None
-                while entry is None:
+                run_periodic = False
+                while True:
                     if self._closed:
                         return
                     now = time.monotonic()
                     if self._in_flight is not None and (self._in_flight.status.done()
                                                         or now >= self._in_flight_deadline):
-                        self._expire_in_flight(now)
+                        expired, self._in_flight = self._in_flight, None
+                        if expired.status.done():
+                            expired = None
+                        else:
+                            break  # its timeout is handled outside the lock (it may write a resync)
+                    due = self.periodic is not None and now >= next_periodic
+                    if due and not (self._heap and self._heap[0].priority < Priority.HEARTBEAT):
+                        run_periodic = True  # the heartbeat goes before everything but an e-stop
+                        break
                     entry = self._next_ready()
                     if entry is not None:
-                        break
-                    if self.periodic is not None and now >= next_periodic:
                         break
                     wake = next_periodic if self.periodic is not None else now + 1.0
                     if self._in_flight is not None:
                         wake = min(wake, self._in_flight_deadline)
-                    self._cond.wait(max(0.0, min(wake - now, 0.005 if self._in_flight is not None else 1.0)))
+                    self._cond.wait(max(0.0, wake - now))
                 if entry is not None and entry.exclusive:
                     self._in_flight = entry
                     self._in_flight_deadline = time.monotonic() + entry.timeout_s
-            if entry is None:
-                next_periodic = time.monotonic() + self.period_s
+                    entry.status.add_done_callback(self._wake)  # the reply frees the queue at once
+            if expired is not None:
+                self._expire(expired)
+                continue
+            if run_periodic:
+                next_periodic = max(next_periodic + self.period_s, time.monotonic())
                 try:
                     self.periodic()  # type: ignore[misc]
                 except Exception:
                     log.exception("%s: periodic command failed", self.name)
                 continue
-            self._write(entry)
+            if entry is not None:
+                self._write(entry)
 
     def _next_ready(self) -> _Entry | None:
         """The highest-priority entry that may go now (an exclusive one waits for the one in flight)."""
@@ -204,7 +263,7 @@ class CommandQueue:
             return None
         if self._in_flight is None or not self._heap[0].exclusive:
             return heapq.heappop(self._heap)
-        # Something exclusive is in flight: a non-exclusive entry behind the head (e-stop, heartbeat) may pass.
+        # Something exclusive is in flight: a non-exclusive entry behind the head (e-stop, handshake) may pass.
         for i, entry in enumerate(self._heap):
             if not entry.exclusive:
                 self._heap.pop(i)
@@ -212,11 +271,15 @@ class CommandQueue:
                 return entry
         return None
 
-    def _expire_in_flight(self, now: float) -> None:
-        entry, self._in_flight = self._in_flight, None
-        if entry is not None and not entry.status.done():
-            entry.status.set_exception(TimeoutError(
-                f"{self.name} did not acknowledge {entry.status.name} within {entry.timeout_s:.2f} s"))
+    def _expire(self, entry: _Entry) -> None:
+        exc: BaseException | None = None
+        if self.on_timeout is not None:
+            try:
+                exc = self.on_timeout(entry.status)
+            except Exception:
+                log.exception("%s: timeout handler failed", self.name)
+        entry.status.fail(exc if exc is not None else TimeoutError(
+            f"{self.name} did not acknowledge {entry.status.name} within {entry.timeout_s:.2f} s"))
 
     def _write(self, entry: _Entry) -> None:
         status = entry.status
@@ -227,16 +290,15 @@ class CommandQueue:
             entry.write(status)
         except Exception as exc:  # the caller learns why through its status
             self._release(entry)
-            if not status.done():
-                status.set_exception(exc)
+            status.fail(exc)
             return
-        status.mark_written()
+        if not status.written:
+            status.mark_written()
         self.written_total += 1
-        if not entry.exclusive and not status.done():
-            status.set_result(None)
+        if not entry.exclusive:
+            status.resolve(None)
 
     def _release(self, entry: _Entry) -> None:
         with self._cond:
             if self._in_flight is entry:
                 self._in_flight = None
-

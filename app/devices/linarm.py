@@ -11,7 +11,9 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from concurrent.futures import Future, ThreadPoolExecutor
+from collections.abc import Callable
+from concurrent.futures import Future
+from concurrent.futures import TimeoutError as FutureTimeout
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
@@ -23,10 +25,12 @@ from app.config import LinarmDevice
 from app.devices import linarm_protocol as proto
 from app.devices.clock import DeviceClock
 from app.devices.cmdmessenger import CmdMessengerDecoder
+from app.devices.command_queue import CommandQueue, CommandQueueClosed, CommandStatus, Priority
 from app.devices.driver import Channel, DeviceDriver, StreamSpec
 from app.devices.linarm_protocol import ControlState, ReplyError
 from app.devices.sim.base import SerialSimulator
 from app.devices.transport import SerialSettings, SerialTransport, Transport, TransportError
+from app.safety import SafetyError
 
 if TYPE_CHECKING:
     from app.devices.registry import DeviceContext, DeviceHandle
@@ -125,11 +129,20 @@ LIMITS_ATTEMPTS = 3  # apply_limits: tries of the whole (idempotent) sequence af
 GARBAGE_RECORD_PERIOD_S = 1.0
 
 
+# emergency_idle waits this long for its IDLE to be written by the queue's thread (it is written ahead of anything
+# queued; the bound only covers a wedged write), then reports it as not sent.
+ESTOP_WRITE_BOUND_S = 0.1
+
+
 @dataclass
 class _Pending:
+    """A command written and awaiting its ACK (at most one: the queue keeps commands exclusive)."""
+
     seq: int
     name: str
-    future: Future
+    status: CommandStatus
+    source: str = ""
+    args: dict[str, Any] | None = None
 
 
 # ---------------------------------------------------------------------------------------------- driver
@@ -138,7 +151,7 @@ class LinarmDriver(DeviceDriver):
     # The reading loop runs real-time too: the heartbeat beats only while it passes (0.5 s), and at normal
     # priority it was measured stalling 0.5-0.6 s under load (#16). The other drivers stay at normal priority.
     realtime_priority = 20
-    heartbeat_priority = 21  # the heartbeat thread's: it feeds the controller's 250 ms host watchdog
+    heartbeat_priority = 21  # the command queue's thread (it beats): it feeds the controller's 250 ms host watchdog
     controller_error = Signal(str)  # an ERROR_EVENT from the controller, as a sentence
     identified = Signal(str)  # firmware version
 
@@ -158,18 +171,19 @@ class LinarmDriver(DeviceDriver):
         self.firmware_version = ""
         self.protocol_errors = 0
         self._seq = 0
-        self._seq_lock = threading.Lock()
-        self._command_lock = threading.Lock()  # one command in flight (the controller's rx buffer is small)
-        self._pending: dict[int, _Pending] = {}
+        self._pending: dict[int, _Pending] = {}  # by seq; written by the queue's thread, completed by the reader
         self.centre_target_m: float | None = None  # the last accepted moveCentreTo target (m)
         self._identify_seq: int | None = None
         self._identified = threading.Event()
         self._last_heartbeat = 0.0
         self._reader_alive = 0.0
-        self._heartbeat: threading.Thread | None = None
-        self._heartbeat_stop = threading.Event()
-        self._async = ThreadPoolExecutor(max_workers=1, thread_name_prefix="linarm-cmd")
-        self._async_closed = False
+        self._reader_ident: int | None = None
+        self._beating = False
+        # The one command path (#29): every write to the controller — commands, limits, handshake, heartbeat (its
+        # periodic), e-stop IDLE — is made by this queue's thread, real-time at the heartbeat's priority.
+        self.commands = CommandQueue("linarm", periodic=self._beat, period_s=heartbeat_period_s,
+                                     realtime_priority=self.heartbeat_priority,
+                                     on_timeout=self._on_command_timeout)
         self._envelope_locked = False  # per connection: the controller may have restarted in between
         self.envelope: dict[str, Any] = {}  # the controller's locked envelope, as its ACK reported it
         self._garbage_recorded = (0, 0, 0)  # (bad frames, discarded bytes, undecodable frames) last recorded
@@ -178,10 +192,12 @@ class LinarmDriver(DeviceDriver):
         self._shared_seen: Any = None  # the transport's shared_with last alarmed about
 
     # ------------------------------------------------------------------ commands (any thread)
-    def command(self, name: str, *args: Any, source: str = "", timeout_s: float | None = None) -> dict[str, Any]:
-        """Send ``name(*args)`` (seed API names and argument order), wait for the ACK and return its values.
-        Raises SafetyError (refused by the supervisor, nothing sent), LinarmCommandError, LinarmTimeout,
-        TransportError."""
+    def submit(self, name: str, *args: Any, source: str = "", priority: Priority = Priority.NORMAL,
+               timeout_s: float | None = None) -> CommandStatus:
+        """Queue ``name(*args)`` (seed API names and argument order) and return at once. The status holds the
+        ACK's values, or fails with SafetyError (refused by the supervisor: nothing was sent), LinarmCommandError
+        (the controller refused it), LinarmTimeout, TransportError (no link) or CommandQueueClosed; ValueError /
+        TypeError for a name or arguments the protocol does not have (raised here, not through the status)."""
         spec = proto.COMMANDS_BY_NAME.get(name)
         if spec is None:
             raise ValueError(f"unknown LINarm command {name!r}")
@@ -189,96 +205,184 @@ class LinarmDriver(DeviceDriver):
             names = ", ".join(a.name for a in spec.args)
             raise TypeError(f"{name} takes {len(spec.args)} argument(s) ({names}), got {len(args)}")
         named = {a.name: v for a, v in zip(spec.args, args, strict=True)}
-        self.supervisor.check_robot_command(name, named, source)
+        try:
+            self.supervisor.check_robot_command(name, named, source)
+        except SafetyError as exc:
+            return CommandStatus.failed(name, exc, source, priority)
         if name == "moveCentreTo":  # where the robot is taking the handle: the exercise's target (3D view)
             self.centre_target_m = float(named["targetPos"])
-        if not self.connected:
-            raise TransportError("the LINarm is not connected")
+        if not self.connected and priority != Priority.LINK:  # the handshake's own commands go before `connected`
+            return CommandStatus.failed(name, TransportError("the LINarm is not connected"), source, priority)
+        proto.encode_command(name, 0, *args)  # values the wire cannot carry are refused here, not on the wire
         timeout = self.command_timeout_s if timeout_s is None else timeout_s
-        with self._command_lock:
+
+        def write(status: CommandStatus) -> None:  # the queue's thread
             seq = self._next_seq()
-            frame = proto.encode_command(name, seq, *args)  # raises on values the wire cannot carry
-            pending = _Pending(seq, name, Future())
-            self._pending[seq] = pending
-            try:
-                self.transport.write(frame)
-                reply = pending.future.result(timeout)
-            except TimeoutError as exc:
-                # Resync the controller's parser (a lone ';' flushes its buffer) before the next command.
-                try:
-                    self.transport.write(b";")
-                except TransportError:
-                    pass
-                raise LinarmTimeout(f"LINarm did not acknowledge {name} within {timeout:.2f} s") from exc
-            finally:
-                self._pending.pop(seq, None)
-        self.supervisor.event("robot_command", source=source, command=name, args=named, ok=True)
-        return reply
+            frame = proto.encode_command(name, seq, *args)
+            self._pending[seq] = _Pending(seq, name, status, source, named)  # before the write: the ACK may win
+            status.add_done_callback(lambda _s: self._pending.pop(seq, None))
+            self.transport.write(frame)
 
-    def command_async(self, name: str, *args: Any, source: str = "") -> Future:
-        """The same, off the caller's thread (GUI buttons): the Future holds the ACK values or the error."""
-        return self._executor().submit(self.command, name, *args, source=source)
+        return self.commands.submit(name, write, source=source, priority=priority, exclusive=True,
+                                    timeout_s=timeout)
 
-    def apply_limits(self, limits: Any) -> Future:
+    def command(self, name: str, *args: Any, source: str = "", timeout_s: float | None = None) -> dict[str, Any]:
+        """:meth:`submit`, then wait for the ACK and return its values (scripts, the runner, tests; never the GUI
+        thread). Raises what the status holds: SafetyError, LinarmCommandError, LinarmTimeout, TransportError."""
+        if threading.get_ident() in (self._reader_ident, self._queue_ident()):
+            raise RuntimeError("LinarmDriver.command must not wait on the driver's own threads; use submit")
+        status = self.submit(name, *args, source=source, timeout_s=timeout_s)
+        timeout = self.command_timeout_s if timeout_s is None else timeout_s
+        # The queue completes every status (ACK, its timeout, the link lost, the queue closed); the bound here
+        # only guards against a bug: the commands queued ahead may each take their own timeout first.
+        try:
+            return status.result(timeout + self.command_timeout_s * (self.commands.pending() + 1) + 5.0)
+        except CommandQueueClosed as exc:
+            raise TransportError(f"{name} not sent: {exc}") from exc
+        except FutureTimeout as exc:
+            if status.done():  # the status's own LinarmTimeout
+                raise
+            status.cancel()
+            raise LinarmTimeout(f"LINarm did not acknowledge {name} within {timeout:.2f} s") from exc
+
+    def command_async(self, name: str, *args: Any, source: str = "") -> CommandStatus:
+        """The GUI's form: the same as :meth:`submit` (the status holds the ACK values or the error)."""
+        return self.submit(name, *args, source=source)
+
+    def apply_limits(self, limits: Any) -> CommandStatus:
         """Make the controller's own limits the configured ones (its defaults may be wider): speed and
         acceleration of jog ramps and timed moves, the force limit, the allowed range.
 
         The first call on a connection first sends the site's limits (the supervisor's configuration) and locks
         them as the controller's safety envelope (``lockEnvelope``): until the controller restarts nothing can
         widen them, whatever this host does later. ``limits`` (e.g. a patient's narrower profile) then follow,
-        inside the envelope. Runs off the caller's thread; the Future fails with the first refusal and holds the
-        locked envelope (the ACK's values) on success."""
-        def send() -> dict[str, Any]:
-            # Every command here is idempotent: a timeout (a busy link at connect) is tried again.
-            for attempt in range(LIMITS_ATTEMPTS):
-                try:
-                    return align()
-                except LinarmTimeout:
-                    if attempt == LIMITS_ATTEMPTS - 1 or not self.connected:
-                        raise
-                    log.warning("LINarm limits: a command timed out; trying again")
-            raise AssertionError("unreachable")
+        inside the envelope. Returns at once: the commands go one after the other through the queue at LINK
+        priority (each after the previous one's ACK); the status fails with the first refusal and holds the
+        locked envelope (the ACK's values) on success. A timeout (a busy link at connect) tries the whole
+        (idempotent) sequence again, LIMITS_ATTEMPTS times in all."""
+        overall = CommandStatus("apply_limits", "limits", Priority.LINK)
+        attempts = {"n": 0}
 
-        def align() -> dict[str, Any]:
+        def steps() -> list[tuple[str, tuple[Any, ...]]]:
+            out: list[tuple[str, tuple[Any, ...]]] = []
             if not self._envelope_locked:
                 site = getattr(getattr(self.supervisor, "config", None), "robot", None) or limits
-                self._send_limits(site)
-                self.envelope = self.command("lockEnvelope", source="limits")
-                self._envelope_locked = True
-                log.info("LINarm safety envelope locked: %s", self.envelope)
+                out += self._limit_commands(site)
+                out.append(("lockEnvelope", ()))
                 if limits == site:
-                    return self.envelope
-            self._send_limits(limits)
-            return self.envelope
+                    return out
+            return out + self._limit_commands(limits)
 
-        return self._executor().submit(send)
+        def run(todo: list[tuple[str, tuple[Any, ...]]]) -> None:
+            if overall.done():
+                return
+            if not todo:
+                overall.resolve(self.envelope)
+                return
+            name, args = todo[0]
+            try:
+                status = self.submit(name, *args, source="limits", priority=Priority.LINK)
+            except Exception as exc:  # a value the wire cannot carry
+                overall.fail(exc)
+                return
+            status.add_done_callback(lambda st: after(name, st, todo[1:]))
 
-    def _send_limits(self, limits: Any) -> None:
-        self.command("setMaxVelocity", float(limits.max_velocity_m_s), source="limits")
-        self.command("setMaxAcceleration", float(limits.max_acceleration_m_s2), source="limits")
-        self.command("setMaxForce", float(limits.max_interaction_force_n), source="limits")
-        self.command("setPosLimit", float(limits.position_min_m), float(limits.position_max_m), source="limits")
+        def after(name: str, status: Future, rest: list[tuple[str, tuple[Any, ...]]]) -> None:
+            exc = status.exception() if not status.cancelled() else CommandQueueClosed("cancelled")
+            if exc is None:
+                if name == "lockEnvelope":
+                    self.envelope = status.result()
+                    self._envelope_locked = True
+                    log.info("LINarm safety envelope locked: %s", self.envelope)
+                run(rest)
+            elif isinstance(exc, LinarmTimeout) and attempts["n"] < LIMITS_ATTEMPTS - 1 and self.connected:
+                attempts["n"] += 1
+                log.warning("LINarm limits: a command timed out; trying again")
+                run(steps())
+            else:
+                overall.fail(exc)
 
-    def emergency_idle(self, reason: str = "") -> None:
-        """Motors off now: written straight to the wire, not queued behind a command in flight. Raises
-        TransportError when it cannot be written (no link open, or the write failed), so the caller records
-        the action as not done (``ok: false``) instead of believing an IDLE nobody sent (#25)."""
+        run(steps())
+        return overall
+
+    def _send_limits(self, limits: Any) -> list[CommandStatus]:
+        """The four limit commands, queued at LINK priority (their statuses, in order)."""
+        return [self.submit(name, *args, source="limits", priority=Priority.LINK)
+                for name, args in self._limit_commands(limits)]
+
+    @staticmethod
+    def _limit_commands(limits: Any) -> list[tuple[str, tuple[Any, ...]]]:
+        return [("setMaxVelocity", (float(limits.max_velocity_m_s),)),
+                ("setMaxAcceleration", (float(limits.max_acceleration_m_s2),)),
+                ("setMaxForce", (float(limits.max_interaction_force_n),)),
+                ("setPosLimit", (float(limits.position_min_m), float(limits.position_max_m)))]
+
+    def emergency_idle(self, reason: str = "") -> CommandStatus:
+        """Motors off now: IDLE at the queue's ESTOP priority, written ahead of (and between) anything queued
+        or awaiting its ACK, with a ';' first to flush the controller's parser. Waits only until the bytes are
+        written (ESTOP_WRITE_BOUND_S). Raises TransportError when they could not be written (no link open, the
+        queue not running, the write failed), so the caller records the action as not done (``ok: false``)
+        instead of believing an IDLE nobody sent (#25). The supervisor records the e-stop, as before."""
         if not self.transport.is_open:  # open, not `connected`: IDLE is also sent during the handshake
             why = self._last_reason or "never connected"
             raise TransportError(f"IDLE not sent: the LINarm link is not open ({why})")
-        seq = self._next_seq()
-        self.transport.write(b";" + proto.encode_command("setCtrlState", seq, int(ControlState.IDLE_CTRL_STATE)))
+
+        def write(_status: CommandStatus) -> None:
+            self.transport.write(b";" + proto.encode_command("setCtrlState", self._next_seq(),
+                                                             int(ControlState.IDLE_CTRL_STATE)))
+
+        status = self.commands.submit("emergency_idle", write, source=reason or "emergency stop",
+                                      priority=Priority.ESTOP, exclusive=False)
+        if not status.wait_written(ESTOP_WRITE_BOUND_S):
+            # Not cancelled: an IDLE written late is still welcome; the record says it was not written in time.
+            exc = status.exception(0) if status.done() else None
+            if isinstance(exc, TransportError):
+                raise exc
+            detail = f": {exc}" if exc is not None else f" within {ESTOP_WRITE_BOUND_S * 1000:.0f} ms"
+            raise TransportError(f"IDLE not written{detail}")
+        return status
+
+    @property
+    def _async(self) -> Any:
+        """Compatibility for tests/test_script_api.py (``driver._async.shutdown(wait=False)``, from the executor
+        this queue replaced): shutting it down closes the queue. Remove once that test calls commands.close()."""
+        commands = self.commands
+
+        class _Shutdown:
+            @staticmethod
+            def shutdown(wait: bool = True, cancel_futures: bool = False) -> None:
+                commands.close("the LINarm driver stopped")
+
+        return _Shutdown()
+
+    def _queue_ident(self) -> int | None:
+        thread = self.commands._thread
+        return thread.ident if thread is not None else None
+
+    def _on_command_timeout(self, status: CommandStatus) -> BaseException:
+        """An ACK that did not come (the queue's thread): resync the controller's parser (a lone ';' flushes its
+        buffer) before the next command."""
+        try:
+            self.transport.write(b";")
+        except TransportError:
+            pass
+        for seq, pending in list(self._pending.items()):
+            if pending.status is status:
+                self._pending.pop(seq, None)
+        return LinarmTimeout(f"LINarm did not acknowledge {status.name} within {status.timeout_s:.2f} s")
 
     # ------------------------------------------------------------------ driver thread
     def on_connect(self) -> None:
+        self._reader_ident = threading.get_ident()
         self._envelope_locked = False
+        self._beating = False
         self.decoder.reset()
         self.clock.reset()  # a reconnect may be a restarted controller
         self._identified.clear()
         self.firmware_version = ""
-        # Flush the controller's parser, then identify (command 0 is harmless by design).
-        self._identify_seq = self._next_seq()
-        self.transport.write(b";" + proto.encode_command("identify", self._identify_seq))
+        self.commands.start()
+        # Flush the controller's parser, then identify (command 0 is harmless by design): through the queue.
+        self._link_write("identify", lambda seq: b";" + proto.encode_command("identify", seq))
         deadline = time.monotonic() + 2.0
         while not self._identified.is_set():
             if time.monotonic() > deadline:
@@ -294,10 +398,20 @@ class LinarmDriver(DeviceDriver):
         if hold:
             self.emergency_idle(hold)
             self.supervisor.event("robot_idle_on_connect", reason=hold, ok=True)
-        seq = self._next_seq()
-        self.transport.write(proto.encode_command("startDataStream", seq, float(self.stream_period_s)))
+        period = float(self.stream_period_s)
+        self._link_write("startDataStream", lambda seq: proto.encode_command("startDataStream", seq, period))
         self._last_heartbeat = self._reader_alive = time.monotonic()
-        self._start_heartbeat()
+        self._beating = True  # the queue's periodic heartbeat from now on
+
+    def _link_write(self, name: str, frame: Callable[[int], bytes]) -> None:
+        """A handshake frame through the queue (LINK priority), waited for until written (driver thread)."""
+        status = self.commands.submit(name, lambda _s: self.transport.write(frame(self._next_seq())),
+                                      source="handshake", priority=Priority.LINK, exclusive=False)
+        if not status.wait_written(2.0):
+            exc = status.exception(0) if status.done() else None
+            if isinstance(exc, TransportError):
+                raise exc
+            raise TransportError(f"the LINarm {name} could not be written" + (f": {exc}" if exc else ""))
 
     def on_bytes(self, data: bytes, t_ns: int) -> None:
         self._handle_frames(data, t_ns)
@@ -322,56 +436,35 @@ class LinarmDriver(DeviceDriver):
                                     key=("port shared", self.name, tuple(pid for pid, _ in shared)))
 
     # ------------------------------------------------------------------ the heartbeat path
-    def _start_heartbeat(self) -> None:
-        """The heartbeat has a thread of its own that only writes: on a tty, the reading loop may wait in the
-        kernel for the receive worker (poll → tty_buffer_flush_work), and listeners run on it; neither may
-        delay the bytes that keep the controller's 250 ms watchdog fed (docs/decisions.md, #16)."""
-        self._heartbeat_stop = threading.Event()
-        self._heartbeat = threading.Thread(target=self._heartbeat_loop, args=(self._heartbeat_stop,),
-                                           name="linarm-heartbeat", daemon=True)
-        self._heartbeat.start()
-
-    def _stop_heartbeat(self) -> None:
-        thread, stop = getattr(self, "_heartbeat", None), getattr(self, "_heartbeat_stop", None)
-        if stop is not None:
-            stop.set()
-        if thread is not None and thread is not threading.current_thread():
-            thread.join(1.0)
-        self._heartbeat = None
-
-    def _heartbeat_loop(self, stop: threading.Event) -> None:
-        from app.devices.driver import request_realtime
-
-        request_realtime(self.heartbeat_priority)  # 10 wake-ups a second: no cost to the GUI thread
-        while not stop.wait(self.heartbeat_period_s):
-            # A wedged reading loop (the supervisor's robot monitor runs on it) must not be hidden from the
-            # controller: without a loop pass for HEARTBEAT_READER_GRACE_S the beats stop and its watchdog acts.
-            if time.monotonic() - self._reader_alive > HEARTBEAT_READER_GRACE_S:
-                continue
-            try:
-                self.transport.write(proto.encode_command("heartbeat", self._next_seq()))
-                self._last_heartbeat = time.monotonic()
-            except TransportError:
-                return
+    def _beat(self) -> None:
+        """The queue's periodic (its real-time thread, heartbeat_priority): the heartbeat never waits for the
+        reading loop (on a tty it may wait in the kernel for the receive worker, and listeners run on it) nor
+        for a command awaiting its ACK (docs/decisions.md, #16)."""
+        if not self._beating:
+            return
+        # A wedged reading loop (the supervisor's robot monitor runs on it) must not be hidden from the
+        # controller: without a loop pass for HEARTBEAT_READER_GRACE_S the beats stop and its watchdog acts.
+        if time.monotonic() - self._reader_alive > HEARTBEAT_READER_GRACE_S:
+            return
+        try:
+            self.transport.write(proto.encode_command("heartbeat", self._next_seq()))
+            self._last_heartbeat = time.monotonic()
+        except TransportError:
+            self._beating = False
 
     def on_disconnect(self) -> None:
-        self._stop_heartbeat()
+        self._beating = False
         self._record_garbage(force=True)
+        lost = TransportError("the LINarm link was lost")
+        self.commands.close("the LINarm link was lost", error=lost)
         for pending in list(self._pending.values()):
-            if not pending.future.done():
-                pending.future.set_exception(TransportError("the LINarm link was lost"))
+            pending.status.fail(lost)
+        self._pending.clear()
 
     def stop(self, timeout_s: float = 1.0) -> bool:
         done = super().stop(timeout_s)
-        self._async_closed = True
-        self._async.shutdown(wait=False, cancel_futures=True)
+        self.commands.close("the LINarm driver stopped")
         return done
-
-    def _executor(self) -> ThreadPoolExecutor:
-        if self._async_closed:  # reconnected after an operator's disconnect: a fresh worker
-            self._async = ThreadPoolExecutor(max_workers=1, thread_name_prefix="linarm-cmd")
-            self._async_closed = False
-        return self._async
 
     # ------------------------------------------------------------------ decoding
     def _handle_frames(self, data: bytes, t_ns: int, during_connect: bool = False) -> None:
@@ -437,12 +530,15 @@ class LinarmDriver(DeviceDriver):
                 bool(msg.virtual_vsa), bool(msg.endstrokes_disabled), msg.t_us / 1e6, taken), t)
         elif isinstance(msg, proto.Ack):
             pending = self._pending.get(msg.seq)
-            if pending is not None and not pending.future.done():
-                pending.future.set_result(dict(msg.values))
+            if pending is not None and not pending.status.done():
+                # Recorded before the status completes: whoever waits on it finds the record written.
+                self.supervisor.event("robot_command", source=pending.source, command=pending.name,
+                                      args=pending.args, ok=True)
+                pending.status.resolve(dict(msg.values))
         elif isinstance(msg, proto.ErrorReply):
             pending = self._pending.get(msg.seq)
-            if pending is not None and not pending.future.done():
-                pending.future.set_exception(LinarmCommandError(pending.name, msg.code, msg.message))
+            if pending is not None and not pending.status.done():
+                pending.status.fail(LinarmCommandError(pending.name, msg.code, msg.message))
             elif msg.seq not in self._pending:
                 log.info("linarm: unsolicited error reply %s", msg)
         elif isinstance(msg, proto.Identify):
@@ -464,9 +560,9 @@ class LinarmDriver(DeviceDriver):
             self._fire_event("controller_error", text)
 
     def _next_seq(self) -> int:
-        with self._seq_lock:
-            self._seq = proto.next_seq(self._seq)
-            return self._seq
+        """Sequence numbers are taken on the queue's thread only (every write is made there): no lock."""
+        self._seq = proto.next_seq(self._seq)
+        return self._seq
 
 
 def create(ctx: DeviceContext) -> DeviceHandle | None:

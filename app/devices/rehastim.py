@@ -34,6 +34,7 @@ from PySide6.QtCore import QThread, Signal
 from app import streams
 from app.bus import BusItem, DeviceEvent, StreamBus
 from app.config import FesDevice
+from app.devices.command_queue import CommandQueue, CommandQueueClosed, CommandStatus, Priority
 from app.devices.driver import Channel, DeviceDriver, StreamSpec
 from app.devices.fes_guardian import FesGuardian, GuardianError
 from app.devices.fes_guardian import available as fes_guardian_available
@@ -246,6 +247,10 @@ class FesDriver(DeviceDriver):
         # thread. ``create`` starts one and requires it; a driver built bare (unit tests) runs without.
         self.guardian: FesGuardian | None = None
         self.require_guardian = False
+        # Start's path (#29): the channel list's init and start wait for the stimulator's acks on this queue's
+        # thread, never on the caller's (the GUI's). Stop is written at once from any thread (stop_stimulation);
+        # the channel-list updates and keep-alives stay on the driver thread's t1 grid.
+        self.commands = CommandQueue("fes")
 
     # ================================================================== public API (any thread)
     @property
@@ -302,13 +307,45 @@ class FesDriver(DeviceDriver):
         self.supervisor.event("fes_profile_loaded", name=profile.name, channels=list(ccl.channels),
                               frequency_hz=ccl.frequency_hz)
 
+    def submit_start(self, source: str = "") -> CommandStatus:
+        """Start running the loaded profile, without waiting: returns at once with a status. The quick checks
+        (e-stop, profile, link, limits) are made here and a refusal fails the status at once (SafetyError /
+        FesError, nothing sent); the channel list's init and start, which wait for the stimulator's acks, run on
+        the FES command queue's thread. The status completes (None) once stimulation runs, or fails with why
+        not. A Stop from any thread meanwhile (its generation) cancels the start."""
+        try:
+            if self._driver_thread == threading.get_ident() or threading.get_ident() == self._queue_ident():
+                raise FesError("start_stimulation must not be called from the FES driver's threads")
+            if self._stimulating:
+                return CommandStatus.done_now("start", None, source, written=False)
+            self._check_start(source)
+        except (SafetyError, FesError) as exc:
+            return CommandStatus.failed("start", exc, source)
+        generation = self._stop_generation  # a Stop after this click wins, even before the queue takes it
+        status = self.commands.submit("start", lambda _s: self._start_now(source, generation), source=source,
+                                      exclusive=False)
+        if status.done() and isinstance(status.exception(0), CommandQueueClosed):
+            return CommandStatus.failed("start", FesError("the stimulator is not connected"), source)
+        return status
+
     def start_stimulation(self, source: str = "") -> None:
-        """Initialise the channel list and start running the profile. Raises SafetyError (limits, e-stop)
-        or FesError (no profile, device not ready, init refused or not acknowledged)."""
-        if self._driver_thread == threading.get_ident():
-            raise FesError("start_stimulation must not be called from the FES driver thread")
-        if self._stimulating:
-            return
+        """:meth:`submit_start` and wait for the outcome (scripts, tests; never the GUI thread). Raises
+        SafetyError (limits, e-stop) or FesError (no profile, device not ready, init refused or not
+        acknowledged)."""
+        status = self.submit_start(source)
+        try:
+            status.result(4 * self.ack_timeout_s + 5.0)  # init + start, each bounded by ack_timeout_s
+        except CommandQueueClosed as exc:
+            raise FesError(f"stimulation not started: {exc}") from exc
+        except TimeoutError as exc:
+            if status.done():
+                raise
+            status.cancel()
+            self.stop_stimulation("the start did not finish", source)
+            raise FesError("stimulation did not start in time; Stop was sent") from exc
+
+    def _check_start(self, source: str) -> None:
+        """The start's checks that need no reply from the stimulator (any thread)."""
         if self.supervisor.estop_latched:
             raise self.supervisor.refuse(source, "stimulation refused: the emergency stop is latched; reset it first")
         profile, ccl = self._profile, self._ccl
@@ -319,8 +356,17 @@ class FesDriver(DeviceDriver):
         if not self.device_ready:
             raise FesError("the stimulator has not announced itself yet (no ScienceMode 2 Init received)")
         self._check_within_limits(profile, ccl, self._pw_override, source)
+
+    def _start_now(self, source: str, generation: int) -> None:
+        """Initialise the channel list and start (the FES command queue's thread: it waits for acks)."""
+        if self._stimulating:
+            return
+        if generation != self._stop_generation:
+            raise FesError("stimulation was stopped while it was starting")
+        self._check_start(source)  # again: the e-stop or the link may have changed while it was queued
+        profile, ccl = self._profile, self._ccl
+        assert profile is not None and ccl is not None  # _check_start
         self._arm_guardian()  # before the first byte that could start stimulation
-        generation = self._stop_generation
         limiter = self.limiter
         with self._lock:
             now = self.clock()
@@ -361,14 +407,22 @@ class FesDriver(DeviceDriver):
                               current_scale=profile.current_scale, pulse_width_scale=profile.pulse_width_scale)
         self.stimulation_changed.emit(True)
 
-    def stop_stimulation(self, reason: str = "", source: str = "") -> None:
-        """Send Stop at once (also when not stimulating: it is always safe). Never raises."""
+    def _queue_ident(self) -> int | None:
+        thread = self.commands._thread
+        return thread.ident if thread is not None else None
+
+    def stop_stimulation(self, reason: str = "", source: str = "") -> CommandStatus:
+        """Send Stop at once, from the calling thread (also when not stimulating: it is always safe): the
+        stimulator's e-stop is never queued behind a start waiting for its acks. Never raises; the returned
+        status is done, ``written`` when Stop left (its ack is checked by the driver loop, a missing one is a
+        fault)."""
         was = self._stimulating
         self._stimulating = False  # the update loop sends nothing more
         self._stop_generation += 1
+        written = False
         got = self._lock.acquire(timeout=STOP_LOCK_WAIT_S)  # let an update being written finish first
         try:
-            self._send_stop()
+            written = self._send_stop()
             if self.guardian is not None:
                 self.guardian.disarm()  # after Stop went out: its duplicate of the link is closed at once
             if got:
@@ -385,6 +439,7 @@ class FesDriver(DeviceDriver):
         if was:
             self.supervisor.event("fes_stopped", reason=reason, source=source)
             self.stimulation_changed.emit(False)
+        return CommandStatus.done_now("stop", None, source, written=written, priority=Priority.ESTOP)
 
     def set_current_scale(self, factor: float, source: str = "") -> float:
         return self._set_scale("current", factor, source)
@@ -468,7 +523,8 @@ class FesDriver(DeviceDriver):
 
     # -- contract aliases: start("source") / stop("reason"); the bare QThread/DeviceDriver forms still work
     def start(self, source: Any = None, *args: Any) -> None:  # type: ignore[override]
-        """``start("who")`` starts stimulation; ``start()`` (or a QThread priority) runs the driver thread."""
+        """``start("who")`` starts stimulation (and waits for it: start_stimulation); ``start()`` (or a QThread
+        priority) runs the driver thread."""
         if isinstance(source, str):
             self.start_stimulation(source)
         elif source is None:
@@ -488,6 +544,7 @@ class FesDriver(DeviceDriver):
     # ================================================================== driver thread hooks
     def on_connect(self) -> None:
         self._driver_thread = threading.get_ident()
+        self.commands.start()
         with self._lock:
             self._sm1_acks = Sm1AckDecoder()
             self._sm2 = Sm2Decoder()
@@ -507,6 +564,8 @@ class FesDriver(DeviceDriver):
         with self._lock:
             self._sm2_ready = False
             self._fail_pending("the link was lost")
+        # A start waiting for its acks has just been failed (above); one still queued fails here.
+        self.commands.close("the FES link was lost", error=FesError("the FES link was lost"))
 
     def on_bytes(self, data: bytes, t_ns: int) -> None:
         faults: list[str] = []
@@ -773,10 +832,10 @@ class FesDriver(DeviceDriver):
         if not pending.ok:
             raise FesError(f"the stimulator refused the {what}: {pending.problem}")
 
-    def _send_stop(self) -> None:
-        """Write Stop now; never raises (nothing to stop on a link that is gone)."""
+    def _send_stop(self) -> bool:
+        """Write Stop now; never raises (nothing to stop on a link that is gone). True when it was written."""
         if not self.transport.is_open and not self._stimulating:
-            return  # closed link, nothing running (e.g. the second Stop of a shutdown): nothing to say
+            return False  # closed link, nothing running (e.g. the second Stop of a shutdown): nothing to say
         try:
             if self.protocol == "sm1":
                 self._write_acked(Sm1Ident.STOP, "stop", lambda _pn: encode_sm1_stop())
@@ -784,6 +843,8 @@ class FesDriver(DeviceDriver):
                 self._write_acked(None, "stop", lambda pn: encode_sm2(Sm2StopChannelListMode(pn)))
         except Exception as exc:
             log.warning("fes: Stop could not be sent: %s", exc)
+            return False
+        return True
 
     # -- acks and device messages (under the lock, driver thread); return fault texts
     def _resolve(self, match: Callable[[_Pending], bool], ok: bool, problem: str) -> _Pending | None:

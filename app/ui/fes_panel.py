@@ -12,7 +12,7 @@ from html import escape
 from pathlib import Path
 from typing import Any
 
-from PySide6.QtCore import Qt, QTimer
+from PySide6.QtCore import Qt, QTimer, Signal
 from PySide6.QtGui import QBrush, QColor
 from PySide6.QtWidgets import (
     QAbstractItemView,
@@ -30,6 +30,7 @@ from PySide6.QtWidgets import (
 )
 
 from app.config import RESOURCES
+from app.devices.command_queue import CommandQueueClosed, CommandStatus
 from app.devices.rehastim import FesDriver, FesError
 from app.fes_limits import FesLimits
 from app.fes_profile import MAX_SCALE, FesProfile, FesProfileError, load_profile
@@ -154,7 +155,25 @@ class ScaleKnob(QWidget):
         return self.dial.value() / DIAL_STEPS
 
 
+START_TEXT = "&Start stimulation"
+STARTING_TEXT = "Starting…"
+
+
+def start_failure_text(exc: BaseException) -> str:
+    """Why a start did not happen, in the words shown to the user."""
+    reason = getattr(exc, "reason", None)
+    if reason:
+        return str(reason)
+    if isinstance(exc, CommandQueueClosed):
+        return "the stimulator's link closed before it could start"
+    return str(exc) or type(exc).__name__
+
+
 class FesPanel(RefreshWhenVisible, QWidget):
+    # A start's status when it completes, delivered on the GUI thread (emitted from the FES command queue's
+    # thread: a queued connection). The GUI never waits for the stimulator's acks (#29).
+    start_finished = Signal(object)
+
     def __init__(self, manager: LinarmppManager, parent: QWidget | None = None) -> None:
         super().__init__(parent)
         self.manager = manager
@@ -165,7 +184,8 @@ class FesPanel(RefreshWhenVisible, QWidget):
 
         self.status_label = QLabel()
         self.status_label.setTextFormat(Qt.TextFormat.RichText)
-        self.start_button = QPushButton("&Start stimulation")
+        self.start_button = QPushButton(START_TEXT)
+        self._starting: CommandStatus | None = None  # a start on its way (the button says "Starting…")
         self.stop_button = QPushButton("S&top stimulation")
         self.stop_button.setStyleSheet("QPushButton { font-weight: bold; }")
         self.load_button = QPushButton("&Load profile…")
@@ -241,6 +261,7 @@ class FesPanel(RefreshWhenVisible, QWidget):
         lay.addWidget(self.message)
 
         self.start_button.clicked.connect(self.start)
+        self.start_finished.connect(self._start_done)
         self.stop_button.clicked.connect(self.stop)
         self.load_button.clicked.connect(self.choose_profile_file)
         self.edit_button.clicked.connect(self.open_editor)
@@ -256,15 +277,37 @@ class FesPanel(RefreshWhenVisible, QWidget):
         self.refresh()
 
     # ------------------------------------------------------------------ actions
-    def start(self) -> None:
-        if self.driver is None:
-            return
+    def start(self) -> CommandStatus | None:
+        """Submit the start and return at once; its outcome is shown when its status completes (_start_done)."""
+        if self.driver is None or self._starting is not None:
+            return None
+        status = self.driver.submit_start("FES panel")
+        if not status.done():
+            self._starting = status
+            self.start_button.setText(STARTING_TEXT)
+            self.start_button.setEnabled(False)
+            self.show_message("Starting: initialising the stimulator's channel list…", "warn")
+        status.add_done_callback(self._emit_start_finished)  # at once (this thread) when already decided
+        return status
+
+    def _emit_start_finished(self, status: CommandStatus) -> None:
         try:
-            self.driver.start_stimulation("FES panel")
-        except (SafetyError, FesError) as exc:
-            self.show_message(f"Not started: {exc.reason}", "bad")
-        else:
+            self.start_finished.emit(status)
+        except RuntimeError:  # the panel was deleted while the start was on its way
+            pass
+
+    def _start_done(self, status: CommandStatus) -> None:
+        if self._starting is status:
+            self._starting = None
+        self.start_button.setText(START_TEXT)
+        exc = status.exception(0) if not status.cancelled() else FesError("the start was cancelled")
+        if exc is None:
             self.show_message("Stimulating.", "ok")
+        elif isinstance(exc, SafetyError | FesError | CommandQueueClosed):
+            self.show_message(f"Not started: {start_failure_text(exc)}", "bad")
+        else:
+            log.error("FES start failed: %r", exc)
+            self.show_message(f"Not started: {start_failure_text(exc)}", "bad")
         self.refresh()
 
     def stop(self) -> None:
@@ -380,7 +423,8 @@ class FesPanel(RefreshWhenVisible, QWidget):
         latched = " — <b>emergency stop latched</b>" if self.manager.supervisor.estop_latched else ""
         self.status_label.setText(f"<b style='color:{colour}'>● {state}</b> &nbsp; RehaStim, {protocol}{latched}")
         profile = d.profile
-        self.start_button.setEnabled(profile is not None and d.device_ready and not d.stimulating)
+        self.start_button.setEnabled(profile is not None and d.device_ready and not d.stimulating
+                                     and self._starting is None)
         self.stop_button.setEnabled(True)  # Stop is always allowed
         self.load_button.setEnabled(not d.stimulating)
         for knob in (self.current_knob, self.width_knob):

@@ -7,9 +7,10 @@ next to the inputs are the safety supervisor's limits (``config.safety.robot``);
 themselves accept anything the wire can carry, because the supervisor -- not the panel -- is the one
 place that enforces limits, and its refusal is shown in plain words.
 
-Every command goes through ``LinarmDriver.command_async`` (never blocking the GUI thread); a timer
-collects the finished Futures on the GUI thread and shows each outcome: done, refused by the
-supervisor (its reason, in red), refused by the controller (its code), timeout or link lost.
+Every command goes through ``LinarmDriver.submit`` (the device's one command queue, #29): it returns a
+CommandStatus at once and the GUI thread never waits on it; a timer collects the finished statuses on the
+GUI thread and shows each outcome: done, refused by the supervisor (its reason, in red), refused by the
+controller (its code), timeout or link lost.
 """
 
 from __future__ import annotations
@@ -18,7 +19,6 @@ import logging
 import math
 import time
 from collections.abc import Callable
-from concurrent.futures import Future
 from dataclasses import dataclass
 from typing import Any
 
@@ -49,6 +49,7 @@ from PySide6.QtWidgets import (
 
 from app.devices import linarm_protocol as proto
 from app.devices.cmdmessenger import Kind
+from app.devices.command_queue import CommandQueueClosed, CommandStatus
 from app.devices.linarm import LinarmCommandError, LinarmTimeout
 from app.devices.linarm_constants import K
 from app.devices.linarm_protocol import (
@@ -361,10 +362,10 @@ class CommandForm:
             out.append(self.fixed[arg.name] if arg.name in self.fixed else self.inputs[arg.name].value())
         return tuple(out)
 
-    def send(self) -> Future | None:
+    def send(self) -> CommandStatus | None:
         return self.panel.send(self.name, *self.values())
 
-    def read_back(self) -> Future | None:
+    def read_back(self) -> CommandStatus | None:
         assert self.read is not None
         spec = COMMANDS_BY_NAME[self.read]
         args = tuple(self.inputs[a.name].value() for a in spec.args)
@@ -464,7 +465,7 @@ class LinarmPanel(RefreshWhenVisible, QWidget):
         self.limits = manager.config.safety.robot
         self.outcomes: list[Outcome] = []
         self.last_outcome: Outcome | None = None
-        self._pending: list[tuple[str, Future, Callable[[dict[str, Any]], None] | None]] = []
+        self._pending: list[tuple[str, CommandStatus, Callable[[dict[str, Any]], None] | None]] = []
         self._watched_driver: Any = None
         self.forms: dict[str, CommandForm] = {}
 
@@ -741,23 +742,24 @@ class LinarmPanel(RefreshWhenVisible, QWidget):
     def driver(self) -> Any:
         return self.manager.driver("linarm")
 
-    def set_control_state(self, state: int) -> Future | None:
+    def set_control_state(self, state: int) -> CommandStatus | None:
         return self.send("setCtrlState", int(state))
 
-    def go_home(self) -> Future | None:
+    def go_home(self) -> CommandStatus | None:
         return self.send("goToHome")
 
-    def send(self, name: str, *args: Any, on_ok: Callable[[dict[str, Any]], None] | None = None) -> Future | None:
-        """Send a command without blocking; its outcome is shown when the Future completes."""
+    def send(self, name: str, *args: Any,
+             on_ok: Callable[[dict[str, Any]], None] | None = None) -> CommandStatus | None:
+        """Submit a command without waiting; its outcome is shown when its status completes."""
         title = command_title(name)
         driver = self.driver()
         if driver is None:
             self._show(Outcome(name, "link", f"{title}: not sent — the LINarm is switched off in the configuration"))
             return None
         try:
-            future = driver.command_async(name, *args, source=SOURCE)
-        except RuntimeError as exc:  # the driver's executor is shut down (application closing)
-            self._show(Outcome(name, "link", f"{title}: not sent — {exc}"))
+            future = driver.submit(name, *args, source=SOURCE)
+        except (ValueError, TypeError) as exc:  # a value the wire cannot carry: refused before the queue
+            self._show(Outcome(name, "error", f"{title}: not sent — {exc}"))
             return None
         self._pending.append((name, future, on_ok))
         self._show(Outcome(name, "sending", f"{title}: sending…"), log_it=False)
@@ -766,7 +768,7 @@ class LinarmPanel(RefreshWhenVisible, QWidget):
         return future
 
     def _collect(self) -> None:
-        still: list[tuple[str, Future, Callable[[dict[str, Any]], None] | None]] = []
+        still: list[tuple[str, CommandStatus, Callable[[dict[str, Any]], None] | None]] = []
         for name, future, on_ok in self._pending:
             if not future.done():
                 still.append((name, future, on_ok))
@@ -784,7 +786,7 @@ class LinarmPanel(RefreshWhenVisible, QWidget):
         self.refresh()
 
     @staticmethod
-    def _outcome_of(name: str, future: Future) -> Outcome:
+    def _outcome_of(name: str, future: CommandStatus) -> Outcome:
         title = command_title(name)
         if future.cancelled():
             return Outcome(name, "link", f"{title}: cancelled (the LINarm driver stopped)")
@@ -806,6 +808,8 @@ class LinarmPanel(RefreshWhenVisible, QWidget):
             return Outcome(name, "timeout", f"{title}: no answer from the LINarm — {exc}. Check the link.")
         if isinstance(exc, TransportError):
             return Outcome(name, "link", f"{title}: not sent — {exc}.")
+        if isinstance(exc, CommandQueueClosed):
+            return Outcome(name, "link", f"{title}: not sent — the LINarm link closed before it was sent.")
         return Outcome(name, "error", f"{title}: not sent — {exc}")
 
     def _show(self, outcome: Outcome, log_it: bool = True) -> None:
