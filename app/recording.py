@@ -475,6 +475,7 @@ class SessionRecorder:
         _reserve_space(folder / RESERVE_FILE, RESERVE_BYTES)
         self.folder = folder
         self._events.clear()
+        self._sample_subs, self._event_sub = {}, None  # the last session's (closed) queues and their counts
         self._reported_drops.clear()
         self._reported_event_drops = 0
         self.event_count = 0

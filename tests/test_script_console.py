@@ -15,7 +15,7 @@ from PySide6.QtCore import QElapsedTimer, Qt, QTimer, QUrl
 from app.config import AppConfig
 from app.devices.driver import UpdateNotifier
 from app.ui.script_console import ScriptConsole
-from tests.test_script_runner import fake_bus
+from tests.test_script_runner import FakeSupervisor, fake_bus
 
 
 @dataclass(frozen=True)
@@ -55,6 +55,7 @@ class Manager:
         self.config = AppConfig()
         self.notifier = UpdateNotifier()
         self.bus = fake_bus(self.notifier)
+        self.supervisor = FakeSupervisor()
         self.bus.publish("physio.main", time.monotonic(), PhysioSample())  # the sensors' latest sample
         self.drivers = {"physio": Driver({"physio.main": PhysioSample()}), "linarm": Driver({}),
                         "fes": Driver({})}

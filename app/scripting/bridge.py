@@ -64,7 +64,7 @@ WARDEN_FILE = Path(__file__).resolve().parent / "warden.py"  # the kernel's pare
 MEMORY_LIMIT_BYTES = 2 * 1024**3  # address space of a kernel: a runaway allocation fails as MemoryError there
 MAX_MESSAGE = 4 * 1024 * 1024  # a longer line from the kernel is a protocol violation
 BACKLOG_LIMIT = 16 * 1024 * 1024  # bytes waiting for a kernel that does not read: samples beyond are dropped
-READERS = 3  # leader/follower threads per kernel (calls run on the thread that read them)
+READERS = 3  # leader/follower threads per kernel (urgent work a handler returns, the e-stop, runs off the lead)
 REFUSALS_RECORDED = 20  # per kernel; a flood of bad requests is counted, not recorded one by one
 REFUSALS_LOGGED = 10  # per kernel, line by line; then one summary line per REFUSAL_SUMMARY_S at most
 REFUSAL_SUMMARY_S = 5.0
@@ -503,9 +503,9 @@ class KernelProcess:
     # ------------------------------------------------------------------ reading (leader/follower threads)
     def _reader_main(self) -> None:
         """One of READERS threads. The leader reads and delivers messages in order; a message whose handler
-        returns work (an API call) is run by the thread that read it, after it handed the lead to another
-        reader: a call goes from the socket to the driver without a thread hop (one GIL hand-over less on
-        the trigger path), and a call waiting for its ACK never holds up what the kernel sends next."""
+        returns work (the script's e-stop: ApiBridge queues every other call for its call thread) is run by
+        the thread that read it, after it handed the lead to another reader, so it neither waits for a
+        thread hop nor holds up what the kernel sends next."""
         while True:
             job: Callable[[], None] | None = None
             with self._lead:

@@ -539,7 +539,7 @@ class ScriptRunner:
                     msg: dict[str, Any]) -> Callable[[], None] | None:
         served = bridge.handle(msg)
         if callable(served):
-            return served  # an API call: run by the reader that read it, off the lead
+            return served  # the script's e-stop: run at once by the reader that read it, off the lead
         if served:
             return None
         op = msg.get("op")
