@@ -24,13 +24,16 @@ import typing
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import yaml
 from yaml.nodes import MappingNode, SequenceNode
 
 from app.resources import RESOURCES
 from app.yamlschema import ConfigError, load_dataclass, read_text, rng
+
+if TYPE_CHECKING:
+    from app.services import EventHost, ExerciseRunner
 
 EXERCISES_DIR = RESOURCES / "exercises"
 PARAMETER_TYPES = ("int", "float", "bool", "choice")
@@ -344,7 +347,7 @@ def run_parameters(exercise: Exercise, params: Mapping[str, Any]) -> tuple[Any, 
                  if p.name in params)
 
 
-def start_exercise(runner: Any, manager: Any, exercise: Exercise, values: Mapping[str, Any], *,
+def start_exercise(runner: ExerciseRunner, manager: EventHost, exercise: Exercise, values: Mapping[str, Any], *,
                    source: str = "exercises_tab", restart_of: str | None = None) -> Validation:
     """Validate and, only when every value is accepted, record ``exercise_start`` and start the script on
     ``runner`` with the values as ``exerciseParams``, as a run (app/runs.py) of kind "exercise" with the
@@ -359,12 +362,10 @@ def start_exercise(runner: Any, manager: Any, exercise: Exercise, values: Mappin
     text = exercise.script.read_text(encoding="utf-8")
     data = {"exercise": exercise.ident, "title": exercise.title, "script": exercise.script.name,
             "params": dict(checked.params)}
-    record = getattr(manager, "record_event", None)
-    sup = getattr(manager, "supervisor", None)
-    if callable(record) and getattr(manager, "recorder", None) is not None:
-        record("exercise_start", "", **data)  # the session's own record of what the clinician chose
-    elif sup is not None:
-        sup.event("exercise_start", **data)
+    if manager.recorder is not None:
+        manager.record_event("exercise_start", "", **data)  # the session's own record of what the clinician chose
+    else:
+        manager.supervisor.event("exercise_start", **data)
     if _takes_run(runner):
         runner.start(text, str(exercise.script), dict(checked.params), program=exercise_program(exercise, text),
                      parameters=run_parameters(exercise, checked.params), run_source=source,
@@ -374,7 +375,7 @@ def start_exercise(runner: Any, manager: Any, exercise: Exercise, values: Mappin
     return checked
 
 
-def _takes_run(runner: Any) -> bool:
+def _takes_run(runner: ExerciseRunner) -> bool:
     import inspect
 
     try:

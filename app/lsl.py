@@ -11,8 +11,9 @@ Time stamps are LSL's clock: the offset between ``time.monotonic()`` (our sample
 device's clock mapped to the host's by app.devices.clock (#27), the same stamp the recorder writes —
 rather than the time it was pushed. (On Linux both are CLOCK_MONOTONIC and the offset is ~0.)
 
-Like the recorder, the drivers' listeners only append to a bounded deque; a worker thread pushes
-chunks every 10 ms. If pylsl or its liblsl cannot be loaded the application runs without LSL and
+Like the recorder, the bridge subscribes to the stream bus (app/bus.py): a bounded, counted queue the
+drivers' threads fill; a worker thread drains it and pushes chunks every 10 ms (what a stalled worker
+loses is counted in ``dropped``). If pylsl or its liblsl cannot be loaded the application runs without LSL and
 says so once in the log (:func:`lsl_status`).
 """
 
@@ -25,8 +26,12 @@ import threading
 import time
 from typing import TYPE_CHECKING, Any
 
+from app import streams
+from app.bus import SampleItem, StreamSpec, Subscription
+
 if TYPE_CHECKING:
-    from app.manager import LinarmppManager
+    from app.config import AppConfig
+    from app.services import LslHost
 
 log = logging.getLogger(__name__)
 
@@ -61,34 +66,38 @@ def measure_clock_offset(tries: int = 7) -> float:
 
 
 class LslBridge:
-    """Outlets for every stream of ``manager``'s devices; ``stop`` removes them."""
+    """Outlets for every stream declared on ``host``'s bus; ``stop`` removes them."""
 
-    def __init__(self, manager: LinarmppManager, queue_limit: int = 200_000) -> None:
+    def __init__(self, host: LslHost, queue_limit: int = 200_000) -> None:
         import pylsl
 
         self._pylsl = pylsl
-        self.manager = manager
+        self.host = host
+        self.config = host.config
         self.queue_limit = queue_limit
         self.offset_s = measure_clock_offset()
         self.outlets: dict[str, Any] = {}
         self._channels: dict[str, tuple[str, ...]] = {}
-        self._queue: collections.deque[tuple[str, float, Any]] = collections.deque()
         self._markers: collections.deque[tuple[float, str]] = collections.deque()
-        self.dropped = 0
-        self._attached: list[tuple[Any, Any]] = []
+        self._sub: Subscription | None = None
+        self._dropped_before = 0  # what earlier subscriptions (an earlier start) lost
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
-        for name, handle in manager.devices.items():
-            for spec in handle.driver.streams:
-                self.outlets[spec.name] = self._make_outlet(spec, name)
-                self._channels[spec.name] = tuple(c.name for c in spec.channels)
+        for spec in host.bus.specs().values():
+            self.outlets[spec.name] = self._make_outlet(spec, spec.device)
+            self._channels[spec.name] = tuple(c.name for c in spec.channels)
         info = pylsl.StreamInfo(EVENTS_STREAM, "Markers", 1, pylsl.IRREGULAR_RATE, "string",
                                 f"{SOURCE_PREFIX}.events")
         self.events_outlet = pylsl.StreamOutlet(info)
 
-    def _make_outlet(self, spec: Any, device: str) -> Any:
+    @property
+    def dropped(self) -> int:
+        """Samples lost because the worker did not drain in time."""
+        return self._dropped_before + (self._sub.dropped if self._sub is not None else 0)
+
+    def _make_outlet(self, spec: StreamSpec, device: str) -> Any:
         pylsl = self._pylsl
-        info = pylsl.StreamInfo(spec.name, device, len(spec.channels), lsl_rate_hz(self.manager.config, device, spec),
+        info = pylsl.StreamInfo(spec.name, device, len(spec.channels), lsl_rate_hz(self.config, device, spec),
                                 "double64",
                                 f"{SOURCE_PREFIX}.{spec.name}")
         desc = info.desc()
@@ -103,23 +112,24 @@ class LslBridge:
 
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> None:
-        for handle in self.manager.devices.values():
-            fn = self._listener()
-            handle.driver.add_listener(fn)
-            self._attached.append((handle.driver, fn))
+        if self._sub is None:
+            self._sub = self.host.bus.subscribe("lsl", tuple(self._channels), maxlen=self.queue_limit)
         self._stop.clear()
         self._thread = threading.Thread(target=self._run, name="lsl-outlets", daemon=True)
         self._thread.start()
         log.info("LSL outlets: %s (clock offset %.6f s)", ", ".join(self.outlets), self.offset_s)
 
     def stop(self) -> None:
-        for driver, fn in self._attached:
-            driver.remove_listener(fn)
-        self._attached.clear()
+        sub, self._sub = self._sub, None
+        if sub is not None:
+            sub.close()  # no new samples; the worker pushes what is queued, then ends
         self._stop.set()
         if self._thread is not None:
             self._thread.join(timeout=2.0)
             self._thread = None
+        if sub is not None:
+            self._push(sub)
+            self._dropped_before += sub.dropped
         self.outlets.clear()  # outlets vanish from the network when released
         self.events_outlet = None
 
@@ -133,36 +143,25 @@ class LslBridge:
         self._markers.append((t, json.dumps(record, ensure_ascii=False, default=str)))
 
     # ------------------------------------------------------------------ internals
-    def _listener(self) -> Any:
-        queue, limit = self._queue, self.queue_limit
-
-        def on_sample(stream: str, t: float, sample: Any) -> None:
-            if len(queue) >= limit:
-                self.dropped += 1
-                return
-            queue.append((stream, t, sample))
-
-        return on_sample
-
     def _run(self) -> None:
+        sub = self._sub
         while not self._stop.wait(_PUSH_PERIOD_S):
             try:
-                self._push()
+                self._push(sub)
             except Exception:
                 log.exception("LSL push failed")
-        self._push()
 
-    def _push(self) -> None:
+    def _push(self, sub: Subscription | None) -> None:
         chunks: dict[str, tuple[list[list[float]], list[float]]] = {}
-        queue = self._queue
-        for _ in range(len(queue)):
-            stream, t, sample = queue.popleft()
-            names = self._channels.get(stream)
+        for item in sub.drain() if sub is not None else ():
+            if not isinstance(item, SampleItem):
+                continue
+            names = self._channels.get(item.stream)
             if names is None:
                 continue
-            rows, stamps = chunks.setdefault(stream, ([], []))
-            rows.append([_num(getattr(sample, n, float("nan"))) for n in names])
-            stamps.append(t + self.offset_s)
+            rows, stamps = chunks.setdefault(item.stream, ([], []))
+            rows.append([_num(getattr(item.sample, n, float("nan"))) for n in names])
+            stamps.append(item.t + self.offset_s)
         for stream, (rows, stamps) in chunks.items():
             outlet = self.outlets.get(stream)
             if outlet is not None:
@@ -183,10 +182,10 @@ def _num(value: Any) -> float:
 
 # Streams published when something changes (FES: on each update the driver sends, ~10 Hz), not at a fixed
 # rate: declared irregular (0) so an LSL consumer does not expect the stimulation frequency.
-IRREGULAR_STREAMS: frozenset[str] = frozenset({"fes.channels"})
+IRREGULAR_STREAMS: frozenset[str] = frozenset({streams.FES_CHANNELS})
 
 
-def lsl_rate_hz(config: Any, device: str, spec: Any) -> float:
+def lsl_rate_hz(config: AppConfig, device: str, spec: StreamSpec) -> float:
     """The nominal rate declared to LSL: the configured rate, or 0 (irregular)."""
     if spec.name in IRREGULAR_STREAMS:
         return 0.0
@@ -195,17 +194,17 @@ def lsl_rate_hz(config: Any, device: str, spec: Any) -> float:
     return float(configured_rate_hz(config, device, spec))
 
 
-def start_lsl(manager: LinarmppManager, force: bool = False) -> LslBridge | None:
+def start_lsl(host: LslHost, force: bool = False) -> LslBridge | None:
     """Outlets for every stream when ``recording.lsl`` is on (or ``force``); None when off or when
     pylsl/liblsl is missing on this platform (logged as a warning: the application runs without LSL)."""
-    if not (force or manager.config.recording.lsl):
+    if not (force or host.config.recording.lsl):
         return None
     ok, text = lsl_status()
     if not ok:
         log.warning("recording.lsl is on but %s; running without LSL outlets", text)
         return None
     try:
-        bridge = LslBridge(manager)
+        bridge = LslBridge(host)
     except Exception as exc:
         log.warning("LSL outlets could not be created (%s); running without LSL outlets", exc)
         return None

@@ -17,9 +17,12 @@ cut the files hold every line up to the last flush; at worst the last line is cu
 :func:`load_session` drops it. The manifest is replaced atomically (temp file + rename), so it is the
 start version or the final one, never half of either.
 
-Threads: the drivers' sample listeners only append to a bounded deque (no lock, no I/O, no
-formatting); one writer thread formats and writes. If the deque is full (the disk stalled for
-minutes) samples are dropped, counted per device, and the drop is recorded as an event.
+Threads: the recorder subscribes to the stream bus (app/bus.py): one bounded, counted queue per device for
+its samples and one for the device events, filled by the drivers' threads (no I/O, no formatting there);
+one writer thread drains them, formats and writes. If a device's queue is full (the disk stalled for
+minutes) its oldest samples are dropped, counted per device, and the drop is recorded as an event and in
+the manifest (``dropped_samples``; lost device events: ``dropped_device_events``). The supervisor's events
+come through ``SafetySupervisor.add_event_subscriber`` (the recorder no longer takes its one-slot sink).
 
 Write failures (docs/sessions.md, "When recording fails"): any error writing the session files (a full
 disk, a removed drive, a read-only folder) makes the writer call ``on_failure(folder, error)`` once —
@@ -39,6 +42,7 @@ from __future__ import annotations
 import collections
 import datetime as _dt
 import errno
+import heapq
 import json
 import logging
 import os
@@ -52,12 +56,12 @@ from typing import TYPE_CHECKING, Any, TextIO
 
 import numpy as np
 
-from app import paths
-from app.devices.driver import Channel, StreamSpec
+from app import paths, streams
+from app.bus import Channel, DeviceEvent, StreamSpec, Subscription
 
 if TYPE_CHECKING:
     from app.config import AppConfig
-    from app.manager import LinarmppManager
+    from app.services import SessionHost
 
 log = logging.getLogger(__name__)
 
@@ -295,17 +299,18 @@ def _device_versions(driver: Any) -> dict[str, Any]:
     return out
 
 
-def configured_rate_hz(config: Any, device: str, spec: StreamSpec) -> float:
+# The streams whose rate the configuration sets (the spec's figure is the default's): stream -> the setting.
+_CONFIGURED_RATES = {streams.LINARM_VSA: "state_rate_hz", streams.PHYSIO_MAIN: "rate_hz",
+                     streams.PATIENT_MODEL_MAIN: "rate_hz", streams.VR_MAIN: "rate_hz"}
+
+
+def configured_rate_hz(config: AppConfig, device: str, spec: StreamSpec) -> float:
     """The rate a stream runs at with this configuration (the spec's figure is the default's)."""
-    devices = getattr(config, "devices", None)
-    cfg = getattr(devices, device, None)
-    if cfg is None:
+    setting = _CONFIGURED_RATES.get(spec.name)
+    cfg = getattr(config.devices, device, None)  # a device the configuration has no section for: the default
+    if setting is None or cfg is None:
         return spec.nominal_rate_hz
-    if device == "linarm" and spec.name == "linarm.vsa":
-        return float(getattr(cfg, "state_rate_hz", spec.nominal_rate_hz))
-    if device in ("physio", "patient_model", "vr") and spec.name.endswith(".main"):
-        return float(getattr(cfg, "rate_hz", spec.nominal_rate_hz))
-    return spec.nominal_rate_hz
+    return float(getattr(cfg, setting, spec.nominal_rate_hz))
 
 
 def _spec_dict(spec: StreamSpec, device: str, rate_hz: float | None = None) -> dict[str, Any]:
@@ -329,31 +334,37 @@ class _StreamOut:
     last_t: float | None = None
 
 
+# Device events the recorder's queue holds: they are rare (a few a minute), so this is a stall of hours.
+DEVICE_EVENT_QUEUE = 10_000
+
+
 class SessionRecorder:
     """Records one session at a time. ``start`` → samples and events flow to disk → ``stop``.
 
-    ``event`` and the listeners may be called from any thread and never block.
+    ``event`` may be called from any thread and never blocks; samples and device events come from the bus.
+    ``queue_limit`` bounds each device's queue of samples waiting for the writer.
     """
 
     def __init__(self, queue_limit: int = 500_000, fsync: bool = True) -> None:
         self.queue_limit = queue_limit
         self.fsync = fsync
         self.folder: Path | None = None
-        self._samples: collections.deque[tuple[str, float, Any, float]] = collections.deque()
         self._events: collections.deque[dict[str, Any]] = collections.deque()
-        self._drops: dict[str, list[int]] = {}
+        self._sample_subs: dict[str, Subscription] = {}  # device -> its streams' samples
+        self._event_sub: Subscription | None = None  # the devices' events (connected, silent, …)
+        self._in_gap: dict[str, bool] = {}  # device -> no data now (writer thread only)
+        self._device_streams: dict[str, list[str]] = {}
         self._reported_drops: dict[str, int] = {}
+        self._reported_event_drops = 0
         self._outs: dict[str, _StreamOut] = {}
         self._events_fh: TextIO | None = None
         self._writer: threading.Thread | None = None
         self._stop = threading.Event()
-        self._manager: LinarmppManager | None = None
-        self._attached: list[tuple[Any, Callable, Callable]] = []
-        self._previous_sink: Callable[[str, dict[str, Any]], None] | None = None
+        self._supervisor: Any = None  # the SafetySupervisor this session's recorder listens to
+        self._safety_sink = self._on_safety_event  # one bound method: the supervisor removes it by identity
         self._manifest: dict[str, Any] = {}
         self._flush_interval_s = 0.5
         self._taps: list[EventTap] = []
-        self._unknown_streams: set[str] = set()
         self._lock = threading.Lock()  # start/stop only
         self._hooked: set[int] = set()
         self.event_count = 0
@@ -376,15 +387,21 @@ class SessionRecorder:
 
     @property
     def dropped(self) -> int:
-        return sum(c[0] for c in self._drops.values())
+        """Samples lost because the writer did not drain in time (every device)."""
+        return sum(self._drops().values())
+
+    def _drops(self) -> dict[str, int]:
+        return {device: sub.dropped for device, sub in self._sample_subs.items()}
 
     def add_event_tap(self, fn: EventTap) -> None:
         """``fn(record)`` on the writer thread for every event written (e.g. LSL markers)."""
         self._taps.append(fn)
 
-    def start(self, manager: LinarmppManager, patient_id: str, operator: str, note: str = "",
+    def start(self, host: SessionHost, patient_id: str, operator: str, note: str = "",
               root: Path | None = None, profile: Any = None) -> Path:
-        """Create the session folder, write the manifest, attach to every device; returns the folder."""
+        """Create the session folder, write the manifest, subscribe to the bus's streams and device events and
+        to the supervisor's events; returns the folder. ``host`` is what the recorder uses of the
+        application (app.services.SessionHost; the LinarmppManager is one)."""
         with self._lock:
             if self._writer is not None:
                 raise RuntimeError(f"a session is already being recorded in {self.folder}")
@@ -392,7 +409,7 @@ class SessionRecorder:
                 raise ValueError("a session needs a patient")
             if not operator:
                 raise ValueError("a session needs an operator")
-            config = manager.config
+            config = host.config
             self._flush_interval_s = min(float(config.recording.flush_interval_s), 1.0)
             t_wall, t_mono = time.time(), time.monotonic()
             now = _dt.datetime.fromtimestamp(t_wall).astimezone()
@@ -406,7 +423,7 @@ class SessionRecorder:
                 raise RecordingError(exc.errno or errno.EIO,
                                      f"cannot record in {root}: {exc.strerror or exc}") from exc
             try:
-                self._begin(manager, folder, patient_id, operator, note, profile, t_wall, t_mono, now)
+                self._begin(host, folder, patient_id, operator, note, profile, t_wall, t_mono, now)
             except BaseException as exc:
                 self._abandon(folder)
                 if isinstance(exc, OSError):
@@ -422,18 +439,12 @@ class SessionRecorder:
                 self.event("low_disk_space", "recorder", warning=warning)
                 from app.safety import AlarmLevel
 
-                manager.supervisor.raise_alarm(AlarmLevel.WARNING, "recording", warning[:1].upper() + warning[1:])
-            for name, handle in manager.devices.items():
-                self._attach(name, handle.driver)
-            sup = manager.supervisor
-            # SafetySupervisor has no getter; chain whatever sink was set before so nobody loses events.
-            self._previous_sink = sup.event_sink
-            sup.set_event_sink(self._on_safety_event)
-            add_hook = getattr(manager, "add_shutdown_hook", None)
-            if callable(add_hook) and id(manager) not in self._hooked:
-                self._hooked.add(id(manager))
+                host.supervisor.raise_alarm(AlarmLevel.WARNING, "recording", warning[:1].upper() + warning[1:])
+            self._subscribe(host)
+            if id(host) not in self._hooked:
+                self._hooked.add(id(host))
                 # Runs after the manager's safe-state actions, so those are recorded too; stop is idempotent.
-                add_hook(lambda: self.stop("application closing"))
+                host.add_shutdown_hook(lambda: self.stop("application closing"))
             log.info("session recording in %s", folder)
             return folder
 
@@ -452,43 +463,45 @@ class SessionRecorder:
 
         shutil.rmtree(folder, ignore_errors=True)
 
-    def _begin(self, manager: LinarmppManager, folder: Path, patient_id: str, operator: str, note: str,
+    def _begin(self, host: SessionHost, folder: Path, patient_id: str, operator: str, note: str,
                profile: Any, t_wall: float, t_mono: float, now: _dt.datetime) -> None:
-        """The session's files: the reserve, one file per stream, the events, the first manifest."""
-        config = manager.config
+        """The session's files: the reserve, one file per stream (every stream declared on the bus), the
+        events, the first manifest."""
+        config = host.config
         self._outs.clear()  # the last session's (closed) files: _abandon must see only this one's
         self._events_fh = None
         (folder / STREAMS_DIR).mkdir(mode=DIR_MODE)
         _private_dir(folder / STREAMS_DIR)
         _reserve_space(folder / RESERVE_FILE, RESERVE_BYTES)
         self.folder = folder
-        self._manager = manager
-        self._samples.clear()
         self._events.clear()
-        self._drops.clear()
+        self._sample_subs, self._event_sub = {}, None  # the last session's (closed) queues and their counts
         self._reported_drops.clear()
-        self._unknown_streams.clear()
+        self._reported_event_drops = 0
         self.event_count = 0
         self.failure, self.failure_t_wall, self.failed_samples = "", None, 0
         self._kept_events.clear()
         self._unflushed = []
         self._events_synced = 0
-        policy = getattr(manager, "fault_policy", None)
-        if self.on_failure is None and policy is not None:
-            self.on_failure = policy.recording_failed
+        if self.on_failure is None:
+            self.on_failure = host.fault_policy.recording_failed
+        specs = host.bus.specs()
+        self._device_streams = {}
+        for spec in specs.values():
+            self._device_streams.setdefault(spec.device, []).append(spec.name)
         streams: dict[str, Any] = {}
         devices: dict[str, Any] = {}
-        for name, handle in manager.devices.items():
+        for name, handle in host.devices.items():
             driver = handle.driver
             devices[name] = {"simulated": handle.simulated, "connected": bool(driver.connected),
-                             "streams": [s.name for s in driver.streams], **_device_versions(driver)}
-            for spec in driver.streams:
-                streams[spec.name] = _spec_dict(spec, name, configured_rate_hz(config, name, spec))
-                path = folder / STREAMS_DIR / stream_file_name(spec.name)
-                fh = _open_private(path, buffering=1 << 16)
-                self._outs[spec.name] = _StreamOut(spec, fh, path)
-                fh.write(",".join([TIME_COLUMN, *(c.name for c in spec.channels), ARRIVAL_COLUMN]) + "\n")
-                fh.flush()  # the header on disk now: a stream file is never without its columns
+                             "streams": list(self._device_streams.get(name, [])), **_device_versions(driver)}
+        for spec in specs.values():
+            streams[spec.name] = _spec_dict(spec, spec.device, configured_rate_hz(config, spec.device, spec))
+            path = folder / STREAMS_DIR / stream_file_name(spec.name)
+            fh = _open_private(path, buffering=1 << 16)
+            self._outs[spec.name] = _StreamOut(spec, fh, path)
+            fh.write(",".join([TIME_COLUMN, *(c.name for c in spec.channels), ARRIVAL_COLUMN]) + "\n")
+            fh.flush()  # the header on disk now: a stream file is never without its columns
         self._events_fh = _open_private(folder / EVENTS_FILE)
         if profile is None:
             profile = _try_load_profile(patient_id, config)
@@ -531,17 +544,7 @@ class SessionRecorder:
             writer = self._writer
             if writer is None:
                 return None
-            manager = self._manager
-            for driver, on_sample, on_event in self._attached:
-                driver.remove_listener(on_sample)
-                remove = getattr(driver, "remove_event_listener", None)
-                if callable(remove):
-                    remove(on_event)
-                else:  # the base class has no remover yet: drop ours from its copy-on-write list
-                    driver.remove_event_listener(on_event)
-            self._attached.clear()
-            if manager is not None and manager.supervisor.event_sink == self._on_safety_event:
-                manager.supervisor.set_event_sink(self._previous_sink)
+            self._unsubscribe()  # what is queued stays in the queues: the writer drains it below
             self.event("session_stop", "", reason=reason)
             self._stop.set()
             writer.join()
@@ -572,7 +575,8 @@ class SessionRecorder:
                 "counts": counts,
                 "first_t_mono_s": {n: o.first_t for n, o in self._outs.items()},
                 "last_t_mono_s": {n: o.last_t for n, o in self._outs.items()},
-                "dropped_samples": {d: c[0] for d, c in self._drops.items()},
+                "dropped_samples": self._drops(),
+                "dropped_device_events": self._event_sub.dropped if self._event_sub is not None else 0,
                 "event_count": self.event_count - len(self._kept_events),
             })
             try:
@@ -617,48 +621,51 @@ class SessionRecorder:
             os.close(fd)
 
     # ------------------------------------------------------------------ producers (any thread)
-    def _attach(self, device: str, driver: Any) -> None:
-        drops = self._drops.setdefault(device, [0])
-        queue, limit = self._samples, self.queue_limit
+    def _subscribe(self, host: SessionHost) -> None:
+        """One queue per device for its samples, one for the device events (the bus fills them on the drivers'
+        threads), and the supervisor's events (alarms, e-stop, commands refused) on the thread raising them."""
+        bus = host.bus
+        self._sample_subs = {device: bus.subscribe(f"recorder:{device}", names, maxlen=self.queue_limit)
+                             for device, names in self._device_streams.items()}
+        self._event_sub = bus.subscribe("recorder:events", (), events=True, maxlen=DEVICE_EVENT_QUEUE)
+        self._in_gap = {}
+        for name, handle in host.devices.items():
+            self._in_gap[name] = not handle.driver.connected
+            if self._in_gap[name]:
+                self._enqueue_event("gap_start", name, "device", {
+                    "device": name, "cause": "not connected", "detail": "",
+                    "streams": list(self._device_streams.get(name, []))})
+        self._supervisor = host.supervisor
+        host.supervisor.add_event_subscriber(self._safety_sink)
 
-        def on_sample(stream: str, t: float, sample: Any) -> None:
-            # Driver thread: two O(1) operations, no lock, no I/O. Only this driver's thread touches `drops`.
-            if len(queue) >= limit:
-                drops[0] += 1
-                return
-            queue.append((stream, t, sample, getattr(driver, "arrival_s", t)))
+    def _unsubscribe(self) -> None:
+        if self._supervisor is not None:
+            self._supervisor.remove_event_subscriber(self._safety_sink)
+            self._supervisor = None
+        for sub in (*self._sample_subs.values(), *((self._event_sub,) if self._event_sub is not None else ())):
+            sub.close()
 
-        in_gap = [not driver.connected]
-        if in_gap[0]:
-            self._enqueue_event("gap_start", device, "device", {
-                "device": device, "cause": "not connected", "detail": "", "streams": [s.name for s in driver.streams]})
-
-        def on_event(event: str, detail: str) -> None:
-            streams = [s.name for s in driver.streams]
-            if event in ("disconnected", "silent"):
-                kind = "device_disconnected" if in_gap[0] else "gap_start"
-                in_gap[0] = True
-            elif event in ("connected", "alive"):
-                kind = "gap_end" if in_gap[0] else f"device_{event}"
-                in_gap[0] = False
-            else:
-                kind = f"device_{event}"
-            self._enqueue_event(kind, device, "device", {"device": device, "cause": event, "detail": detail,
-                                                        "streams": streams})
-
-        driver.add_listener(on_sample)
-        driver.add_event_listener(on_event)
-        self._attached.append((driver, on_sample, on_event))
+    def _device_event_record(self, ev: DeviceEvent) -> dict[str, Any]:
+        """A device event from the bus as a session event: a data gap starts when a device disconnects or
+        goes silent and ends when it is back (writer thread: the only one that reads or sets ``_in_gap``)."""
+        device, event = ev.device, ev.kind
+        in_gap = self._in_gap.get(device, False)
+        if event in ("disconnected", "silent"):
+            kind = "device_disconnected" if in_gap else "gap_start"
+            self._in_gap[device] = True
+        elif event in ("connected", "alive"):
+            kind = "gap_end" if in_gap else f"device_{event}"
+            self._in_gap[device] = False
+        else:
+            kind = f"device_{event}"
+        t_wall = time.time() - (time.monotonic() - ev.t)  # when it happened, not when the writer saw it
+        return {"t_wall_epoch_s": t_wall, "t_mono": ev.t, "kind": kind, "who": device, "origin": "device",
+                "data": {"device": device, "cause": event, "detail": ev.detail,
+                         "streams": list(self._device_streams.get(device, []))}}
 
     def _on_safety_event(self, kind: str, data: dict[str, Any]) -> None:
         who = str(data.get("operator") or data.get("source") or "safety")
         self._enqueue_event(kind, who, "safety", dict(data))
-        previous = self._previous_sink
-        if previous is not None:
-            try:
-                previous(kind, data)
-            except Exception:
-                log.exception("previous event sink failed")
 
     def _enqueue_event(self, kind: str, who: str, origin: str, data: dict[str, Any]) -> None:
         # Events are rare and must never be dropped: their queue is unbounded.
@@ -735,13 +742,9 @@ class SessionRecorder:
 
     def _drain_failed(self, now: float, force: bool) -> None:
         """After a write error: samples are dropped (counted); events are kept and tried again each second."""
-        n = len(self._samples)
-        for _ in range(n):
-            self._samples.popleft()
-        self.failed_samples += n
-        events = self._events
-        for _ in range(len(events)):
-            record = self._event_record(events.popleft())
+        self.failed_samples += sum(len(sub.drain()) for sub in self._sample_subs.values())
+        for ev in self._take_events():
+            record = self._event_record(ev)
             self._kept_events.append(json.dumps(record, ensure_ascii=False, default=str) + "\n")
             self.event_count += 1
             self._tap(record)
@@ -789,45 +792,74 @@ class SessionRecorder:
             except Exception:
                 log.exception("event tap failed")
 
-    def _drain(self) -> None:
-        samples = self._samples
-        outs = self._outs
-        for _ in range(len(samples)):
-            stream, t, sample, arrival = samples.popleft()
-            out = outs.get(stream)
-            if out is None:
-                if stream not in self._unknown_streams:
-                    self._unknown_streams.add(stream)
-                    self._enqueue_event("unknown_stream", "recorder", "recorder", {"stream": stream})
-                continue
-            values = [repr(float(t))]
-            for ch in out.spec.channels:
-                try:
-                    values.append(repr(float(getattr(sample, ch.name))))
-                except (TypeError, ValueError, AttributeError):
-                    values.append("nan")
-            values.append(repr(float(arrival)))
-            out.fh.write(",".join(values) + "\n")
-            out.count += 1
-            if out.first_t is None:
-                out.first_t = t
-            out.last_t = t
-        for device, counter in self._drops.items():
-            if counter[0] != self._reported_drops.get(device, 0):
-                self._enqueue_event("samples_dropped", "recorder", "recorder",
-                                    {"device": device, "dropped_total": counter[0],
-                                     "reason": "recorder queue full (disk too slow)"})
-                self._reported_drops[device] = counter[0]
+    def _take_events(self) -> list[dict[str, Any]]:
+        """The events to write now, in time order: the application's, the supervisor's and the recorder's own
+        (queued by ``_enqueue_event``) merged with the device events from the bus."""
         events = self._events
+        pending = [events.popleft() for _ in range(len(events))]
+        sub = self._event_sub
+        if sub is not None:
+            device = [self._device_event_record(ev) for ev in sub.drain() if isinstance(ev, DeviceEvent)]
+            if device:
+                pending = list(heapq.merge(pending, device, key=lambda e: e["t_mono"]))
+            if sub.dropped != self._reported_event_drops:
+                self._reported_event_drops = sub.dropped
+                pending.append(self._recorder_event("device_events_dropped", {
+                    "dropped_total": sub.dropped, "reason": "recorder queue full (disk too slow)"}))
+        return pending
+
+    @staticmethod
+    def _recorder_event(kind: str, data: dict[str, Any]) -> dict[str, Any]:
+        return {"t_wall_epoch_s": time.time(), "t_mono": time.monotonic(), "kind": kind, "who": "recorder",
+                "origin": "recorder", "data": data}
+
+    def _drain(self) -> None:
+        outs = self._outs
+        for sub in self._sample_subs.values():
+            items = sub.drain()
+            for k, item in enumerate(items):
+                out = outs.get(item.stream)  # type: ignore[union-attr]  # a sample subscription: SampleItems
+                if out is None:
+                    continue
+                t = item.t  # type: ignore[union-attr]
+                sample = item.sample  # type: ignore[union-attr]
+                values = [repr(float(t))]
+                for ch in out.spec.channels:
+                    try:
+                        values.append(repr(float(getattr(sample, ch.name))))
+                    except (TypeError, ValueError, AttributeError):
+                        values.append("nan")
+                values.append(repr(float(item.arrival)))  # type: ignore[union-attr]
+                try:
+                    out.fh.write(",".join(values) + "\n")
+                except BaseException:
+                    self.failed_samples += len(items) - k  # this one and the rest of the batch: not written
+                    raise
+                out.count += 1
+                if out.first_t is None:
+                    out.first_t = t
+                out.last_t = t
+        for device, dropped in self._drops().items():
+            if dropped != self._reported_drops.get(device, 0):
+                self._enqueue_event("samples_dropped", "recorder", "recorder",
+                                    {"device": device, "dropped_total": dropped,
+                                     "reason": "recorder queue full (disk too slow)"})
+                self._reported_drops[device] = dropped
+        pending = self._take_events()
         fh = self._events_fh
         wrote = False
-        for _ in range(len(events)):
-            record = self._event_record(events[0])
+        for k, ev in enumerate(pending):
+            record = self._event_record(ev)
             line = json.dumps(record, ensure_ascii=False, default=str) + "\n"
             self._unflushed.append(line)  # before the write: a failing write keeps the event
-            events.popleft()
             if fh is not None:
-                fh.write(line)
+                try:
+                    fh.write(line)
+                except BaseException:
+                    self._events.extendleft(reversed(pending[k + 1:]))  # the rest: kept for the failure path
+                    self.event_count += 1
+                    self._tap(record)
+                    raise
                 wrote = True
             self.event_count += 1
             self._tap(record)
@@ -1148,6 +1180,9 @@ def _count_problems(manifest: dict[str, Any], streams: dict[str, RecordedStream]
     for device, n in (manifest.get("dropped_samples") or {}).items():
         if isinstance(n, int) and n > 0:
             out.append(f"{device}: {n} samples dropped while recording (the disk was too slow)")
+    lost_events = manifest.get("dropped_device_events")
+    if isinstance(lost_events, int) and lost_events > 0:
+        out.append(f"{lost_events} device events dropped while recording (the disk was too slow)")
     return out
 
 

@@ -44,6 +44,7 @@ if "--host" in sys.argv:  # before the app is imported: where the simulators run
 import common
 
 from app.config import RESOURCES, UdpEndpoint
+from app.streams import LINARM, PHYSIO
 
 TRIGGER_N = 20.0  # Fig. 18's threshold
 RELAX_N = 15.0  # the script re-arms below this
@@ -131,7 +132,7 @@ def run_case(runner: object, manager: object, linarm_tap: Any, physio_tap: Any,
              trials: int, busy: bool, label: str) -> list[float]:
     runner.ready(10.0)  # type: ignore[attr-defined]
     try:  # a watchdog trip of a loaded machine in an earlier case must not refuse this one's homing check
-        manager.driver("linarm").command("resetError", source="bench")  # type: ignore[attr-defined]
+        manager.driver(LINARM).command("resetError", source="bench")  # type: ignore[attr-defined]
     except Exception as exc:
         print(f"  (resetError before {label}: {exc})")
     since = time.monotonic_ns()
@@ -151,7 +152,7 @@ def run_case(runner: object, manager: object, linarm_tap: Any, physio_tap: Any,
         message = result.message if result is not None else "timeout"
         print(f"  {label}: the script ended early ({message}); the trials before that are kept")
     moves = move_times(linarm_tap.host[n_host:], since)
-    driver = manager.driver("physio")  # type: ignore[attr-defined]
+    driver = manager.driver(PHYSIO)  # type: ignore[attr-defined]
     frames = force_frames(physio_tap.device[max(0, n_dev - 200):], driver.calibration)
     values, unmatched = latencies(moves, frames)
     if unmatched:
@@ -242,8 +243,8 @@ def run(args: argparse.Namespace) -> int:
     profiler = None
     try:
         manager.sim_patient().squeeze_periodically(period=SQUEEZE_PERIOD_S, duty=SQUEEZE_DUTY)
-        linarm_tap = common.wire(manager.devices["linarm"].simulator, host=True)
-        physio_tap = common.wire(manager.devices["physio"].simulator, host=False, device=True)
+        linarm_tap = common.wire(manager.devices[LINARM].simulator, host=True)
+        physio_tap = common.wire(manager.devices[PHYSIO].simulator, host=False, device=True)
         window = common.open_window(manager, load=False)
         # Home once (the runner homes a robot that is not), outside the measured cases. One runner for
         # everything, as in the window: each Start takes the warm spare kernel.
@@ -251,7 +252,7 @@ def run(args: argparse.Namespace) -> int:
 
         runner = ScriptRunner(manager, lambda _s, _t: None)
         for _attempt in range(3):  # a watchdog trip on a loaded machine ends homing: reset and home again
-            manager.driver("linarm").command("resetError", source="bench")
+            manager.driver(LINARM).command("resetError", source="bench")
             runner.start("pass", "<homing>")
             common.run_qt_until(lambda: not runner.running, 90.0)
             if runner.result is not None and runner.result.status == "finished":

@@ -58,7 +58,7 @@ class FakeSupervisor:
 
 
 def test_start_exercise_starts_only_valid_values_and_records_them() -> None:
-    manager = type("M", (), {"supervisor": FakeSupervisor()})()
+    manager = type("M", (), {"supervisor": FakeSupervisor(), "recorder": None})()  # no session: the supervisor's events
     runner = FakeRunner()
     e = find_exercise("trigger_reaching")
     refused = start_exercise(runner, manager, e, {"speed_m_s": 0.9})

@@ -12,9 +12,9 @@ from typing import Any
 import numpy as np
 import pytest
 
+from app.bus import Channel, StreamBus, StreamSpec
 from app.config import AppConfig, config_as_dict
 from app.devices import physio
-from app.devices.driver import Channel, StreamSpec
 from app.manager import LinarmppManager
 from app.recording import SessionRecorder, list_sessions, load_session, summarize_session
 from app.safety import AlarmLevel, SafetySupervisor
@@ -96,41 +96,31 @@ def test_ten_second_session_is_complete(tmp_path, qtbot) -> None:
 
 # ---------------------------------------------------------------------------------------------- fakes
 class FakeDriver:
-    """Just the listener surface of DeviceDriver, driven by the test."""
+    """A device publishing on the bus (app/bus.py), driven by the test."""
 
     streams = (StreamSpec("fake.main", (Channel("x", "m", "X"), Channel("y", "N", "Y")), 100.0),)
 
-    def __init__(self) -> None:
+    def __init__(self, bus: StreamBus) -> None:
+        self.bus = bus
         self.connected = True
-        self.listeners: list[Any] = []
-        self._event_listeners: list[Any] = []
-
-    def add_listener(self, fn: Any) -> None:
-        self.listeners.append(fn)
-
-    def remove_listener(self, fn: Any) -> None:
-        self.listeners.remove(fn)
-
-    def add_event_listener(self, fn: Any) -> None:
-        self._event_listeners.append(fn)
-
-    def remove_event_listener(self, fn: Any) -> None:
-        self._event_listeners.remove(fn)
+        bus.declare(self.streams)
 
     def push(self, t: float, x: float, y: float) -> None:
-        for fn in self.listeners:
-            fn("fake.main", t, SimpleNamespace(x=x, y=y))
+        self.bus.publish("fake.main", t, SimpleNamespace(x=x, y=y))
 
     def fire(self, event: str, detail: str = "") -> None:
-        for fn in self._event_listeners:
-            fn(event, detail)
+        self.bus.event("fake", event, detail)
 
 
 def fake_manager() -> tuple[Any, FakeDriver]:
-    driver = FakeDriver()
+    """Just what the recorder uses of the application (app.services.SessionHost)."""
+    bus = StreamBus()
+    driver = FakeDriver(bus)
     config = AppConfig()
-    manager = SimpleNamespace(config=config, supervisor=SafetySupervisor(config.safety),
-                              devices={"fake": SimpleNamespace(driver=driver, simulated=True)})
+    manager = SimpleNamespace(config=config, bus=bus, supervisor=SafetySupervisor(config.safety),
+                              devices={"fake": SimpleNamespace(driver=driver, simulated=True)},
+                              fault_policy=SimpleNamespace(recording_failed=lambda folder, error: None),
+                              add_shutdown_hook=lambda fn: None)
     return manager, driver
 
 
@@ -145,8 +135,8 @@ def test_values_are_recorded_exactly_and_listeners_detach(tmp_path) -> None:
         driver.push(float(t), float(x), float(y))
     driver.push(float(ts[-1] + 1), float("nan"), 0.0)
     recorder.stop()
-    assert driver.listeners == [] and driver._event_listeners == []
-    assert manager.supervisor._event_sink is None
+    assert manager.bus.subscriptions() == []  # its sample and event queues are closed
+    assert manager.supervisor._event_sink is None and manager.supervisor._subscribers == []
     stream = load_session(folder).streams["fake.main"]
     assert np.array_equal(stream.t[:-1], ts) and np.array_equal(stream.data["x"][:-1], xs)
     assert np.array_equal(stream.data["y"][:-1], ys) and np.isnan(stream.data["x"][-1])

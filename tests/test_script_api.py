@@ -12,9 +12,10 @@ from typing import Any
 
 import pytest
 
+from app import streams
+from app.bus import StreamBus, StreamSpec, UpdateNotifier
 from app.config import RESOURCES, SafetyConfig
 from app.devices import linarm_protocol as proto
-from app.devices.driver import UpdateNotifier
 from app.devices.linarm import LinarmCommandError, LinarmDriver, LinarmTimeout
 from app.devices.transport import SerialTransport
 from app.safety import SafetySupervisor
@@ -26,7 +27,6 @@ from app.scripting.api import (
     ScriptContext,
     ScriptStopped,
     build_api,
-    make_wait_condition,
 )
 
 # The Appendix's LinarmUser services (5.3.2.1) and members.
@@ -43,13 +43,30 @@ APPENDIX_LINARM = [
 ]
 
 
+class BusSamples(dict):
+    """A fake device's latest samples: setting one publishes it on the bus, as a driver does."""
+
+    def __init__(self, bus: StreamBus) -> None:
+        super().__init__()
+        self.bus = bus
+
+    def __setitem__(self, stream: str, sample: Any) -> None:
+        super().__setitem__(stream, sample)
+        self.bus.publish(stream, time.monotonic(), sample)
+
+
+def fake_bus(notifier: UpdateNotifier | None = None) -> StreamBus:
+    bus = StreamBus(notifier)
+    bus.declare(StreamSpec(name, (), 100.0) for name in streams.STREAMS)
+    return bus
+
+
 class Driver:
-    def __init__(self, notifier: UpdateNotifier) -> None:
-        self.notifier = notifier
+    def __init__(self, bus: StreamBus) -> None:
+        self.notifier = bus.notifier
         self.connected = True
         self.command_timeout_s = 0.2
-        self.samples: dict[str, Any] = {}
-        self.listeners: list[Any] = []
+        self.samples: dict[str, Any] = BusSamples(bus)
         self.calls: list[tuple[str, tuple[Any, ...], str]] = []
         self.replies: dict[str, dict[str, Any]] = {}
         self.raise_on: dict[str, BaseException] = {}
@@ -57,12 +74,6 @@ class Driver:
 
     def latest(self, stream: str) -> Any:
         return self.samples.get(stream)
-
-    def add_listener(self, fn: Any) -> None:
-        self.listeners.append(fn)
-
-    def remove_listener(self, fn: Any) -> None:
-        self.listeners.remove(fn)
 
     def command(self, name: str, *args: Any, source: str = "", timeout_s: float | None = None) -> dict[str, Any]:
         self.threads.add(threading.current_thread().name)
@@ -105,7 +116,8 @@ class Manager:
 
         self.config = AppConfig()
         self.notifier = UpdateNotifier()
-        self.drivers: dict[str, Any] = {"linarm": Driver(self.notifier), "physio": Driver(self.notifier)}
+        self.bus = fake_bus(self.notifier)
+        self.drivers: dict[str, Any] = {"linarm": Driver(self.bus), "physio": Driver(self.bus)}
 
     def driver(self, name: str) -> Any:
         return self.drivers.get(name)
@@ -210,16 +222,6 @@ def test_controller_errors_and_timeouts_become_sentences(manager: Manager, objec
     assert time.monotonic() - t0 < 0.5
 
 
-def test_a_command_that_never_returns_times_out(manager: Manager, objects: dict[str, Any]) -> None:
-    release = threading.Event()
-    manager.drivers["linarm"].command = lambda *a, **k: release.wait(5) or {}
-    t0 = time.monotonic()
-    with pytest.raises(CommandError, match=r"no answer within 1\.2 s"):
-        objects["linarm"].resetError()
-    assert 1.1 < time.monotonic() - t0 < 2.0
-    release.set()
-
-
 def test_the_safety_supervisor_checks_every_script_command() -> None:
     """The real driver path (not started): limits are checked before anything is sent."""
     supervisor = SafetySupervisor(SafetyConfig())
@@ -278,8 +280,7 @@ def test_a_read_waits_for_the_first_sample(manager: Manager, objects: dict[str, 
 
     def later() -> None:
         time.sleep(0.05)
-        manager.drivers["physio"].samples["physio.main"] = sample
-        manager.notifier.notify()
+        manager.drivers["physio"].samples["physio.main"] = sample  # published: the bus wakes the waiter
 
     threading.Thread(target=later).start()
     assert objects["physiologicalSensors"].physiologicalSensorsData.force == 21.5
@@ -302,8 +303,11 @@ def test_callback_setters_queue_samples_never_run_them(manager: Manager, ctx: Sc
     physio.setPhysiologicalSensorsDataCallbackFun(ran.append)
     physio.setPhysiologicalSensorsDataCallbackFun(ran.append)
     assert len(physio.physiologicalDataCallbackList) == 2  # a function is added to the list
-    assert len(manager.drivers["physio"].listeners) == 1  # one listener per stream
-    manager.drivers["physio"].listeners[0]("physio.main", 0.0, "sample")
+    assert len(manager.bus.subscriptions()) == 1  # one bus subscription for the callback streams
+    manager.drivers["physio"].samples["physio.main"] = "sample"
+    deadline = time.monotonic() + 2.0
+    while not posted and time.monotonic() < deadline:
+        time.sleep(0.005)
     assert ran == [] and posted[0][0] == "physio.main" and posted[0][2] == "sample"
     physio.setPhysiologicalSensorsDataCallbackFun([print])
     assert physio.physiologicalDataCallbackList == [print]  # a list replaces it
@@ -312,7 +316,7 @@ def test_callback_setters_queue_samples_never_run_them(manager: Manager, ctx: Sc
     with pytest.raises(TypeError, match="expects a function"):
         physio.setPhysiologicalSensorsDataCallbackFun(3)
     ctx.close()
-    assert manager.drivers["physio"].listeners == []
+    assert manager.bus.subscriptions() == []
 
 
 # ---------------------------------------------------------------------------------------------- FES
@@ -336,14 +340,3 @@ def test_fes_calls_reach_the_driver(manager: Manager, ctx: ScriptContext, object
 
     assert load_profile(tmp_path / "copy.yaml").channels.keys() == profile.channels.keys()
     assert (RESOURCES / "fes_profiles" / "frontal_reaching.yaml").is_file()
-
-
-# ---------------------------------------------------------------------------------------------- waitCondition
-def test_wait_condition_forms(manager: Manager, ctx: ScriptContext, objects: dict[str, Any]) -> None:
-    namespace: dict[str, Any] = {**objects, "limit": 5}
-    wait_condition = make_wait_condition(ctx, namespace)
-    assert wait_condition("limit > 3", 0.1) is True
-    assert wait_condition("x > 3", {"x": 1}, 0.05) is False  # the seed's (cond, locals(), timeout)
-    assert wait_condition(lambda: True) is True
-    with pytest.raises(TypeError):
-        wait_condition(42, 1)

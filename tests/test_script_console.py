@@ -15,6 +15,7 @@ from PySide6.QtCore import QElapsedTimer, Qt, QTimer, QUrl
 from app.config import AppConfig
 from app.devices.driver import UpdateNotifier
 from app.ui.script_console import ScriptConsole
+from tests.test_script_runner import FakeSupervisor, fake_bus
 
 
 @dataclass(frozen=True)
@@ -53,6 +54,9 @@ class Manager:
     def __init__(self) -> None:
         self.config = AppConfig()
         self.notifier = UpdateNotifier()
+        self.bus = fake_bus(self.notifier)
+        self.supervisor = FakeSupervisor()
+        self.bus.publish("physio.main", time.monotonic(), PhysioSample())  # the sensors' latest sample
         self.drivers = {"physio": Driver({"physio.main": PhysioSample()}), "linarm": Driver({}),
                         "fes": Driver({})}
 

@@ -38,6 +38,18 @@ def cpu_seconds(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
+# ---------------------------------------------------------------------------------------------- waitCondition
+def test_wait_condition_forms(manager: FakeManager, output: Output) -> None:
+    """The kernel's ``waitCondition`` (moved here from the in-app copy only this test used, #29)."""
+    runner = ScriptRunner(manager, output, home_first=False)
+    runner.start("limit = 5\n"
+                 "print(waitCondition('limit > 3', 0.1), waitCondition('x > 3', {'x': 1}, 0.05),"  # the seed's form
+                 " waitCondition(lambda: True))\n"
+                 "try:\n    waitCondition(42, 1)\nexcept TypeError:\n    print('TypeError')\n", "<test>")
+    assert runner.wait(5.0) and runner.result is not None and runner.result.status == "finished", output.text()
+    assert output.text("stdout") == "True False True\nTypeError\n"
+
+
 # ---------------------------------------------------------------------------------------------- the process
 def test_the_script_runs_in_another_process_started_ahead(manager: FakeManager, output: Output) -> None:
     runner = ScriptRunner(manager, output, home_first=False)

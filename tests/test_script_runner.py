@@ -11,8 +11,9 @@ from typing import Any
 
 import pytest
 
+from app import streams
+from app.bus import StreamBus, StreamSpec, UpdateNotifier
 from app.config import AppConfig
-from app.devices.driver import UpdateNotifier
 from app.scripting.runner import ScriptRunner
 
 STOP_BUDGET_S = 0.2
@@ -35,16 +36,34 @@ class ForceSample:
     temperature: float = 33.0
 
 
-class FakeDriver:
-    """A driver as the API sees it: latest(), listeners, command() with ACKs, notifier bumps."""
+class BusSamples(dict):
+    """A fake device's latest samples: setting one publishes it on the bus, as a driver does."""
 
-    def __init__(self, name: str, notifier: UpdateNotifier) -> None:
+    def __init__(self, bus: StreamBus) -> None:
+        super().__init__()
+        self.bus = bus
+
+    def __setitem__(self, stream: str, sample: Any) -> None:
+        super().__setitem__(stream, sample)
+        self.bus.publish(stream, time.monotonic(), sample)
+
+
+def fake_bus(notifier: UpdateNotifier | None = None) -> StreamBus:
+    """A bus with every stream of the application declared (no channels: nothing here draws them)."""
+    bus = StreamBus(notifier)
+    bus.declare(StreamSpec(name, (), 100.0) for name in streams.STREAMS)
+    return bus
+
+
+class FakeDriver:
+    """A driver as the API sees it: latest(), command() with ACKs; its samples are published on the bus."""
+
+    def __init__(self, name: str, bus: StreamBus) -> None:
         self.name = name
-        self.notifier = notifier
+        self.notifier = bus.notifier
         self.connected = True
         self.command_timeout_s = 0.5
-        self.samples: dict[str, Any] = {}
-        self.listeners: list[Any] = []
+        self.samples: dict[str, Any] = BusSamples(bus)
         self.commands: list[tuple[str, tuple[Any, ...], str]] = []
         self.replies: dict[str, dict[str, Any]] = {"getIsInitialized": {"initialized": True}}
         self.fes_stops: list[tuple[str, str]] = []
@@ -52,17 +71,8 @@ class FakeDriver:
     def latest(self, stream: str) -> Any:
         return self.samples.get(stream)
 
-    def add_listener(self, fn: Any) -> None:
-        self.listeners = [*self.listeners, fn]
-
-    def remove_listener(self, fn: Any) -> None:
-        self.listeners = [f for f in self.listeners if f is not fn]
-
     def publish(self, stream: str, sample: Any) -> None:
-        self.samples[stream] = sample
-        for fn in self.listeners:
-            fn(stream, time.monotonic(), sample)
-        self.notifier.notify()
+        self.samples[stream] = sample  # on the bus: its subscribers and waiters see it
 
     def command(self, name: str, *args: Any, source: str = "", timeout_s: float | None = None) -> dict[str, Any]:
         self.commands.append((name, args, source))
@@ -93,12 +103,13 @@ class FakeManager:
         cfg = AppConfig()
         self.config = replace(cfg, safety=replace(cfg.safety, robot_safe_state=robot_safe_state))
         self.notifier = UpdateNotifier()
+        self.bus = fake_bus(self.notifier)
         self.supervisor = FakeSupervisor()
-        self.linarm = FakeDriver("linarm", self.notifier)
+        self.linarm = FakeDriver("linarm", self.bus)
         self.linarm.samples["linarm.state"] = StateSample()
-        self.physio = FakeDriver("physio", self.notifier)
+        self.physio = FakeDriver("physio", self.bus)
         self.physio.samples["physio.main"] = ForceSample(1.0)
-        self.fes = FakeDriver("fes", self.notifier)
+        self.fes = FakeDriver("fes", self.bus)
 
     def driver(self, name: str) -> Any:
         return {"linarm": self.linarm, "physio": self.physio, "fes": self.fes}.get(name)
@@ -196,7 +207,8 @@ def test_stop_interrupts_a_sleep_inside_a_callback(manager: FakeManager, output:
     assert runner.stop(wait_s=1.0)
     assert time.monotonic() - t0 < STOP_BUDGET_S
     assert runner.wait(2.0)
-    assert not manager.physio.listeners, "the script's listener must be removed when it ends"
+    assert not [s for s in manager.bus.subscriptions() if s.name.startswith("script")], \
+        "the script's subscription must be closed when it ends"
 
 
 def test_hold_safe_state_keeps_the_robot_on(output: Output) -> None:

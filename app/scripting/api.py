@@ -8,15 +8,20 @@ camelCase names, so the seed's scripts run unchanged.
 Rules every object follows:
 
 * attribute reads (``linarm.linarmVsaState``, ``physiologicalSensors.physiologicalSensorsData``…)
-  return the device's latest sample; before the first sample they wait briefly for it, then raise
+  return the stream's latest sample on the bus (app/bus.py); before the first sample they wait briefly for
+  it (on the bus's notifier), then raise
   :class:`DeviceUnavailable`. Each read also releases the GIL for a moment, so a script busy-waiting
   on a device value (the seed's own ``waitCondition``) leaves the devices and the GUI their share;
 * commands block until the device acknowledges them and raise a :class:`ScriptError` with a plain
-  sentence on refusal, error or timeout. They run on a helper thread while the script waits in short
-  slices, so Stop interrupts a script even while it waits for an acknowledgement. They all pass
-  through the drivers' single command path, hence through the safety supervisor;
-* callbacks registered with the ``set…CallbackFun`` methods never run on a driver thread: a driver
-  listener only queues ``(callbacks, sample)`` to the script's callback thread (see runner.py).
+  sentence on refusal, error or timeout (the driver's own ACK timeout). They run on a helper thread
+  while the script waits in short slices, so Stop interrupts a script even while it waits for an
+  acknowledgement. They all pass through the drivers' single command path, hence through the safety
+  supervisor;
+* callbacks registered with the ``set…CallbackFun`` methods never run on a driver thread: the stream's
+  samples come from a bus subscription, and ``(callbacks, sample)`` is posted to the script's callback
+  thread (``post_callback``) by a thread of the context's own.
+
+The context is handed what it uses of the application (app.services.ScriptHost), not the manager.
 """
 
 from __future__ import annotations
@@ -25,21 +30,25 @@ import inspect
 import logging
 import threading
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
+from app import streams
+from app.bus import SampleItem, Subscription
 from app.devices import linarm_protocol as proto
 from app.devices.transport import TransportError
 from app.safety import SafetyError
+
+if TYPE_CHECKING:
+    from app.services import ScriptHost
 
 log = logging.getLogger(__name__)
 
 WAIT_SLICE_S = 0.02  # longest uninterrupted wait of a script thread: bounds the Stop latency
 FIRST_SAMPLE_TIMEOUT_S = 2.0  # how long an attribute read waits for a device's first sample
-COMMAND_GRACE_S = 1.0  # on top of the driver's own ACK timeout, before the script gives up waiting
-FES_COMMAND_TIMEOUT_S = 3.0
+CALLBACK_QUEUE = 4096  # samples of one callback stream waiting to be posted (oldest dropped, counted)
 
 
 # ---------------------------------------------------------------------------------------------- errors
@@ -72,11 +81,11 @@ CallbackPoster = Callable[[str, list[Callable[[Any], Any]], Any], None]
 
 
 class ScriptContext:
-    """What the API objects share for one script run: the manager, the stop flag, the command helper
-    thread and the callback queue (the runner sets ``post_callback``)."""
+    """What the API objects share for one script run: the application's services (``host``), the stop flag,
+    the command helper thread and the callback subscriptions (``post_callback`` receives their samples)."""
 
-    def __init__(self, manager: Any, *, source: str = "script", base_dir: Path | None = None) -> None:
-        self.manager = manager
+    def __init__(self, host: ScriptHost, *, source: str = "script", base_dir: Path | None = None) -> None:
+        self.host = host
         self.source = source
         self.base_dir = base_dir  # relative file names in scripts (fes.loadFile) resolve here first
         self.stop_event = threading.Event()
@@ -84,7 +93,9 @@ class ScriptContext:
         self.run_program: Callable[[str], None] | None = None  # LinarmppManager.startProgram
         self._executor: ThreadPoolExecutor | None = None
         self._executor_lock = threading.Lock()
-        self._listeners: list[tuple[Any, Callable[..., None]]] = []
+        self._callbacks: dict[str, list[Callable[[Any], Any]]] = {}  # stream -> the script's callback list
+        self._callback_sub: Subscription | None = None
+        self._callback_thread: threading.Thread | None = None
         self._listener_lock = threading.Lock()
         self._peeking = threading.local()  # completion reads attributes without waiting or stopping
 
@@ -113,37 +124,32 @@ class ScriptContext:
     def wait_until(self, predicate: Callable[[], Any], timeout: float | None) -> bool:
         """Evaluate ``predicate`` now and again on every new device sample (at least every 50 ms) until it
         is true (True) or ``timeout`` s pass (False). Stop interrupts it."""
-        notifier = getattr(self.manager, "notifier", None)
+        notifier = self.host.bus.notifier
         deadline = None if timeout is None else time.monotonic() + float(timeout)
         while True:
             self.check()
-            generation = notifier.generation if notifier is not None else 0
+            generation = notifier.generation
             if predicate():
                 return True
             now = time.monotonic()
             if deadline is not None and now >= deadline:
                 return False
             slice_s = WAIT_SLICE_S if deadline is None else min(WAIT_SLICE_S, max(0.0, deadline - now))
-            if notifier is not None:
-                notifier.wait_after(generation, slice_s)
-            else:
-                self.stop_event.wait(slice_s)
+            notifier.wait_after(generation, slice_s)
 
     # ------------------------------------------------------------------ commands off the script thread
-    def call(self, what: str, fn: Callable[..., Any], *args: Any, timeout_s: float, **kwargs: Any) -> Any:
-        """Run ``fn`` on the command helper thread and wait for it in short, interruptible slices."""
+    def call(self, fn: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
+        """Run ``fn`` on the command helper thread and wait for it in short, interruptible slices. How long
+        is the command's own business (the driver's ACK timeout raises LinarmTimeout, a TimeoutError)."""
         self.check()
         future = self._submit(fn, *args, **kwargs)
-        deadline = time.monotonic() + timeout_s
         while True:
             try:
                 return future.result(WAIT_SLICE_S)
             except TimeoutError:
                 if future.done():
-                    raise  # the command's own timeout (LinarmTimeout is a TimeoutError)
+                    raise  # the command's own timeout
             self.check()  # the command itself finishes on the helper thread; the script stops now
-            if time.monotonic() > deadline:
-                raise CommandError(f"{what}: no answer within {timeout_s:.1f} s")
 
     def _submit(self, fn: Callable[..., Any], *args: Any, **kwargs: Any) -> Future:
         with self._executor_lock:
@@ -153,7 +159,7 @@ class ScriptContext:
 
     # ------------------------------------------------------------------ samples
     def driver(self, name: str, label: str) -> Any:
-        driver = self.manager.driver(name) if self.manager is not None else None
+        driver = self.host.driver(name)
         if driver is None:
             raise DeviceUnavailable(f"{label} is not available: it is switched off in the configuration "
                                     "or its driver is missing from this build")
@@ -161,16 +167,18 @@ class ScriptContext:
 
     def latest(self, device: str, stream: str, label: str) -> Any:
         """The latest sample of ``stream``, waiting up to FIRST_SAMPLE_TIMEOUT_S for a first one."""
+        bus = self.host.bus
         if getattr(self._peeking, "on", False):
-            return self.driver(device, label).latest(stream)
+            self.driver(device, label)
+            return bus.latest(stream)
         self.check()  # a busy-wait on a device value stops here, without an asynchronous exception
         driver = self.driver(device, label)
-        sample = driver.latest(stream)
+        sample = bus.latest(stream)
         if sample is None:
-            if not self.wait_until(lambda: driver.latest(stream) is not None, FIRST_SAMPLE_TIMEOUT_S):
-                state = "connected" if getattr(driver, "connected", False) else "not connected"
+            if not self.wait_until(lambda: bus.latest(stream) is not None, FIRST_SAMPLE_TIMEOUT_S):
+                state = "connected" if driver.connected else "not connected"
                 raise DeviceUnavailable(f"{label}: no data received yet (the device is {state})")
-            sample = driver.latest(stream)
+            sample = bus.latest(stream)
         time.sleep(0)  # release the GIL: busy-waiting scripts read a device value on every pass
         return sample
 
@@ -184,31 +192,47 @@ class ScriptContext:
             self._peeking.on = False
 
     def subscribe(self, device: str, stream: str, label: str, callbacks: list[Callable[[Any], Any]]) -> None:
-        """Queue ``(callbacks, sample)`` for the callback thread on every ``stream`` sample (once per list)."""
-        driver = self.driver(device, label)
+        """Post ``(stream, callbacks, sample)`` for the callback thread on every ``stream`` sample (once per
+        list). The samples come from one bus subscription of the context, drained by a thread of its own:
+        never a driver's thread."""
+        self.driver(device, label)
         with self._listener_lock:
-            if any(d is driver and getattr(fn, "_script_stream", None) == stream for d, fn in self._listeners):
+            if stream in self._callbacks:
                 return
+            self._callbacks[stream] = callbacks
+            old = self._callback_sub
+            # one queue for every callback stream, so their samples keep the order they were published in
+            self._callback_sub = self.host.bus.subscribe(f"script-callbacks:{self.source}", tuple(self._callbacks),
+                                                         maxlen=CALLBACK_QUEUE)
+            if old is not None:
+                old.close()
+            if self._callback_thread is None or not self._callback_thread.is_alive():
+                self._callback_thread = threading.Thread(target=self._post_callbacks, name="script-callbacks",
+                                                         daemon=True)
+                self._callback_thread.start()
 
-            def on_sample(name: str, _t: float, sample: Any) -> None:  # driver thread: queue only
-                if name == stream and callbacks and not self.stop_event.is_set():
-                    post = self.post_callback
-                    if post is not None:
-                        post(stream, callbacks, sample)
-
-            on_sample._script_stream = stream  # type: ignore[attr-defined]
-            driver.add_listener(on_sample)
-            self._listeners.append((driver, on_sample))
+    def _post_callbacks(self) -> None:
+        while True:
+            sub = self._callback_sub
+            if sub is None:
+                return
+            sub.wait(0.1)
+            for item in sub.drain():
+                if isinstance(item, SampleItem) and not self.stop_event.is_set():
+                    callbacks, post = self._callbacks.get(item.stream), self.post_callback
+                    if callbacks and post is not None:
+                        post(item.stream, callbacks, item.sample)
 
     def close(self) -> None:
-        """Detach every listener and let the command helper thread end (the script run is over)."""
+        """Close the callback subscription and let the command helper thread end (the script run is over)."""
         with self._listener_lock:
-            for driver, fn in self._listeners:
-                try:
-                    driver.remove_listener(fn)
-                except Exception:
-                    log.exception("could not remove a script listener")
-            self._listeners.clear()
+            sub, self._callback_sub = self._callback_sub, None
+            self._callbacks.clear()
+            thread, self._callback_thread = self._callback_thread, None
+        if sub is not None:
+            sub.close()
+        if thread is not None and thread is not threading.current_thread():
+            thread.join(1.0)
         with self._executor_lock:
             if self._executor is not None:
                 self._executor.shutdown(wait=False, cancel_futures=True)
@@ -310,46 +334,45 @@ class LinarmUser:
     @property
     def linarmState(self) -> Any:
         """controlState, controlMode, homeState, errorState, triggerMode, initialized, trajectoryType, …"""
-        return self._ctx.latest("linarm", "linarm.state", "the LINarm")
+        return self._ctx.latest(streams.LINARM, streams.LINARM_STATE, "the LINarm")
 
     @property
     def linarmVsaState(self) -> Any:
         """equilibriumPos (m), delta (m), stiffness (N/m), handlePos (m), handleVel (m/s), interactionForce (N)."""
-        return self._ctx.latest("linarm", "linarm.vsa", "the LINarm")
+        return self._ctx.latest(streams.LINARM, streams.LINARM_VSA, "the LINarm")
 
     @property
     def linarmMotor0State(self) -> Any:
         """position (m), velocity (m/s), current (A), target (m) of motor 0."""
-        return self._ctx.latest("linarm", "linarm.motor0", "the LINarm")
+        return self._ctx.latest(streams.LINARM, streams.LINARM_MOTOR0, "the LINarm")
 
     @property
     def linarmMotor1State(self) -> Any:
         """position (m), velocity (m/s), current (A), target (m) of motor 1."""
-        return self._ctx.latest("linarm", "linarm.motor1", "the LINarm")
+        return self._ctx.latest(streams.LINARM, streams.LINARM_MOTOR1, "the LINarm")
 
     # ------------------------------------------------------------------ callbacks
     def setLinarmDataCallbackFun(self, fun: Any) -> None:
         """Call ``fun(linarmState)`` on every LINarm state sample (on the script's callback thread)."""
-        self._callbacks("linarm.state", self.linarmDataCallbackList, fun, "setLinarmDataCallbackFun")
+        self._callbacks(streams.LINARM_STATE, self.linarmDataCallbackList, fun, "setLinarmDataCallbackFun")
 
     def setLinarmMotor0DataCallbackFun(self, fun: Any) -> None:
-        self._callbacks("linarm.motor0", self.linarmMotor0DataCallbackList, fun, "setLinarmMotor0DataCallbackFun")
+        self._callbacks(streams.LINARM_MOTOR0, self.linarmMotor0DataCallbackList, fun, "setLinarmMotor0DataCallbackFun")
 
     def setLinarmMotor1DataCallbackFun(self, fun: Any) -> None:
-        self._callbacks("linarm.motor1", self.linarmMotor1DataCallbackList, fun, "setLinarmMotor1DataCallbackFun")
+        self._callbacks(streams.LINARM_MOTOR1, self.linarmMotor1DataCallbackList, fun, "setLinarmMotor1DataCallbackFun")
 
     def setLinarmVsaDataCallbackFun(self, fun: Any) -> None:
         """Call ``fun(linarmVsaState)`` on every VSA sample (200 Hz: keep it short)."""
-        self._callbacks("linarm.vsa", self.linarmVsaDataCallbackList, fun, "setLinarmVsaDataCallbackFun")
+        self._callbacks(streams.LINARM_VSA, self.linarmVsaDataCallbackList, fun, "setLinarmVsaDataCallbackFun")
 
     def _callbacks(self, stream: str, target: list[Callable[[Any], Any]], fun: Any, what: str) -> None:
         _set_callbacks(target, fun, f"linarm.{what}")
-        self._ctx.subscribe("linarm", stream, "the LINarm", target)
+        self._ctx.subscribe(streams.LINARM, stream, "the LINarm", target)
 
     def getConfigData(self) -> dict[str, Any]:
         """The robot's configuration and safety limits as the application holds them."""
-        manager = self._ctx.manager
-        cfg = manager.config
+        cfg = self._ctx.host.config
         from app.yamlschema import to_plain
 
         return {"device": to_plain(cfg.devices.linarm), "limits": to_plain(cfg.safety.robot)}
@@ -361,11 +384,10 @@ class LinarmUser:
             names = ", ".join(a.name for a in spec.args) or "no arguments"
             raise TypeError(f"linarm.{name} takes {len(spec.args)} argument(s) ({names}), got {len(args)}")
         values = tuple(_coerce(name, a, v) for a, v in zip(spec.args, args, strict=True))
-        driver = self._ctx.driver("linarm", "the LINarm")
+        driver = self._ctx.driver(streams.LINARM, "the LINarm")
         shown = f"linarm.{name}({', '.join(_show(v) for v in values)})"
-        timeout = float(getattr(driver, "command_timeout_s", 1.0)) + COMMAND_GRACE_S
         try:
-            reply = self._ctx.call(shown, driver.command, name, *values, source=self._ctx.source, timeout_s=timeout)
+            reply = self._ctx.call(driver.command, name, *values, source=self._ctx.source)
         except SafetyError as exc:
             raise CommandRefused(f"{shown}: {exc.reason}") from exc
         except TransportError as exc:
@@ -407,13 +429,13 @@ class PhysiologicalSensorsUser:
     @property
     def physiologicalSensorsData(self) -> Any:
         """force (N), temperature (°C), heartRate (bpm), skinConductance (µS), boardTime (s), …"""
-        return self._ctx.latest("physio", "physio.main", "the physiological sensors")
+        return self._ctx.latest(streams.PHYSIO, streams.PHYSIO_MAIN, "the physiological sensors")
 
     def setPhysiologicalSensorsDataCallbackFun(self, fun: Any) -> None:
         """Call ``fun(physiologicalSensorsData)`` on every sample (100 Hz), on the script's callback thread."""
         funs = self.physiologicalDataCallbackList
         _set_callbacks(funs, fun, "physiologicalSensors.setPhysiologicalSensorsDataCallbackFun")
-        self._ctx.subscribe("physio", "physio.main", "the physiological sensors", funs)
+        self._ctx.subscribe(streams.PHYSIO, streams.PHYSIO_MAIN, "the physiological sensors", funs)
 
 
 class PatientModelUser:
@@ -430,12 +452,12 @@ class PatientModelUser:
 
     @property
     def patientModelData(self) -> Any:
-        return self._ctx.latest("patient_model", "patient_model.main", "the patient model")
+        return self._ctx.latest(streams.PATIENT_MODEL, streams.PATIENT_MODEL_MAIN, "the patient model")
 
     def setPatientModelDataCallbackFun(self, fun: Any) -> None:
         funs = self.patientModelDataCallbackList
         _set_callbacks(funs, fun, "patientModel.setPatientModelDataCallbackFun")
-        self._ctx.subscribe("patient_model", "patient_model.main", "the patient model", funs)
+        self._ctx.subscribe(streams.PATIENT_MODEL, streams.PATIENT_MODEL_MAIN, "the patient model", funs)
 
 
 class VRUnityUser:
@@ -452,11 +474,11 @@ class VRUnityUser:
 
     @property
     def VRUnityData(self) -> Any:
-        return self._ctx.latest("vr", "vr.main", "the VR renderer")
+        return self._ctx.latest(streams.VR, streams.VR_MAIN, "the VR renderer")
 
     def setVRUnityDataCallbackFun(self, fun: Any) -> None:
         _set_callbacks(self.VRUnityDataCallbackList, fun, "VRUnity.setVRUnityDataCallbackFun")
-        self._ctx.subscribe("vr", "vr.main", "the VR renderer", self.VRUnityDataCallbackList)
+        self._ctx.subscribe(streams.VR, streams.VR_MAIN, "the VR renderer", self.VRUnityDataCallbackList)
 
 
 # ---------------------------------------------------------------------------------------------- FES
@@ -473,11 +495,11 @@ class FESUser:
         return "<fes: RehaStim stimulator (FESUser)>"
 
     def _driver(self) -> Any:
-        return self._ctx.driver("fes", "the FES stimulator")
+        return self._ctx.driver(streams.FES, "the FES stimulator")
 
     def _call(self, what: str, fn: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
         try:
-            return self._ctx.call(what, fn, *args, timeout_s=FES_COMMAND_TIMEOUT_S, **kwargs)
+            return self._ctx.call(fn, *args, **kwargs)
         except SafetyError as exc:
             raise CommandRefused(f"{what} was refused: {exc.reason}") from exc
         except TransportError as exc:
@@ -608,25 +630,25 @@ class LinarmppManager:
     # marks are session events from which the per-repetition metrics find the repetitions.
     def startRepetition(self, index: int, total: int | None = None) -> None:
         """Mark the start of repetition ``index`` (from 1), optionally of ``total``."""
-        self._ctx.manager.progress.start_repetition(index, total)
+        self._ctx.host.progress.start_repetition(index, total)
 
     def endRepetition(self, index: int | None = None, ok: bool = True) -> None:
         """Mark the end of repetition ``index`` (the current one when omitted); ``ok=False`` if it failed."""
-        self._ctx.manager.progress.end_repetition(index, ok)
+        self._ctx.host.progress.end_repetition(index, ok)
 
     def reportProgress(self, text: str) -> None:
         """A short message for the clinician (shown beside the repetition count, recorded as an event)."""
-        self._ctx.manager.progress.report(text)
+        self._ctx.host.progress.report(text)
 
     def prompt(self, index: int | None = None, cue: str = "squeeze", threshold: float | None = None) -> None:
         """Mark the cue to the patient, now ("squeeze" the handle, ``threshold`` N; or "move"): the patient's
         reaction time is measured from it (docs/metrics.md)."""
-        self._ctx.manager.progress.prompt(index, cue, threshold)
+        self._ctx.host.progress.prompt(index, cue, threshold)
 
     def setRunState(self, state: str, detail: str = "") -> None:
         """Say what the run does now, for the progress area and the record: "waiting_for_grip", "moving",
         "resting" or "running" (homing, paused, stopped and finished are set by the application)."""
-        self._ctx.manager.progress.set_run_state(state, detail)
+        self._ctx.host.progress.set_run_state(state, detail)
 
 
 # ---------------------------------------------------------------------------------------------- namespace
@@ -635,7 +657,7 @@ API_NAMES = ("linarm", "physiologicalSensors", "fes", "patientModel", "VRUnity",
 
 def emergency_stop(context: ScriptContext, reason: str = "emergency stop from a script") -> None:
     """The script API's e-stop: the supervisor's, then this script ends (it must not go on moving)."""
-    context.manager.supervisor.emergency_stop(context.source, reason)
+    context.host.supervisor.emergency_stop(context.source, reason)
     raise ScriptStopped(reason)
 
 
@@ -654,32 +676,3 @@ def build_api(context: ScriptContext) -> dict[str, Any]:
         "ScriptError": ScriptError, "CommandError": CommandError, "CommandRefused": CommandRefused,
         "DeviceUnavailable": DeviceUnavailable, "NotInitializedError": NotInitializedError,
     }
-
-
-def make_wait_condition(context: ScriptContext, namespace: Mapping[str, Any]) -> Callable[..., bool]:
-    """The built-in ``waitCondition``: ``waitCondition(condition, timeout=None)`` or the seed's
-    ``waitCondition("expression", locals(), timeout)``. ``condition`` is a string evaluated in the script's
-    namespace or a callable; re-evaluated on every new device sample. True when met, False on timeout."""
-
-    def waitCondition(condition: Any, *args: Any, timeout: float | None = None) -> bool:
-        local_vars: Mapping[str, Any] | None = None
-        rest = list(args)
-        if rest and (isinstance(rest[0], Mapping) or rest[0] is None) and not isinstance(rest[0], int | float):
-            local_vars = rest.pop(0)
-        if rest:
-            timeout = rest.pop(0)
-        if rest:
-            raise TypeError("waitCondition(condition, timeout) or waitCondition(condition, locals(), timeout)")
-        if isinstance(condition, str):
-            code = compile(condition, "<waitCondition>", "eval")
-            globals_ = namespace if isinstance(namespace, dict) else dict(namespace)
-
-            def predicate() -> Any:
-                return eval(code, globals_, local_vars if local_vars is not None else globals_)
-        elif callable(condition):
-            predicate = condition
-        else:
-            raise TypeError(f"waitCondition needs a string expression or a function, got {condition!r}")
-        return context.wait_until(predicate, None if timeout is None else float(timeout))
-
-    return waitCondition

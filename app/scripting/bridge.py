@@ -6,11 +6,14 @@ the bridge that answers the kernel's requests with the in-app API (app/scripting
   reader threads of its own (never the GUI thread). Writes never block the caller: what the socket
   does not take at once waits in a backlog a writer thread drains.
 * :class:`ApiBridge` serves one kernel: ``subscribe`` (every sample of the stream from then on, in
-  order, pushed from the driver thread as it is published), ``peek`` (completion), and ``call`` — only
-  the API's own methods (:data:`ALLOWED_CALLS`), executed by the existing API objects on the reader
-  thread that read the request (leader/follower: another reader takes over reading meanwhile), so they
-  pass through the drivers' single command path and the safety supervisor exactly as before. Anything
-  else is refused and recorded (supervisor event ``script_request_refused``).
+  order: the bridge's subscription to the stream bus, app/bus.py, drained and sent to the kernel by a
+  thread of the bridge's own), ``peek`` (completion), and ``call`` — only the API's own methods
+  (:data:`ALLOWED_CALLS`), executed by the existing API objects, in the order the kernel sent them, on
+  the bridge's call thread: never on the thread that reads the kernel's requests, so a command waiting
+  for its acknowledgement holds up neither the reading nor the kernel's next requests. The script's
+  e-stop (``linarmppManager.emergencyStop``) is never queued behind a command: it runs as soon as it is
+  read, off the reading lead. Every call passes through the drivers' single command path and the safety
+  supervisor. Anything else is refused and recorded (supervisor event ``script_request_refused``).
 
 Kernel → application is JSON only: a hostile script controls those bytes, so they are never unpickled,
 and every field is checked before use.
@@ -24,6 +27,7 @@ import itertools
 import json
 import logging
 import os
+import queue
 import re
 import selectors
 import signal
@@ -35,8 +39,10 @@ import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
+from app import streams
+from app.bus import SampleItem, Subscription
 from app.devices import linarm_protocol as proto
 from app.scripting import api
 from app.scripting.api import (
@@ -48,6 +54,9 @@ from app.scripting.api import (
     ScriptStopped,
 )
 
+if TYPE_CHECKING:
+    from app.services import ScriptHost
+
 log = logging.getLogger(__name__)
 
 KERNEL_FILE = Path(__file__).resolve().parent / "kernel.py"
@@ -55,7 +64,7 @@ WARDEN_FILE = Path(__file__).resolve().parent / "warden.py"  # the kernel's pare
 MEMORY_LIMIT_BYTES = 2 * 1024**3  # address space of a kernel: a runaway allocation fails as MemoryError there
 MAX_MESSAGE = 4 * 1024 * 1024  # a longer line from the kernel is a protocol violation
 BACKLOG_LIMIT = 16 * 1024 * 1024  # bytes waiting for a kernel that does not read: samples beyond are dropped
-READERS = 3  # leader/follower threads per kernel (calls run on the thread that read them)
+READERS = 3  # leader/follower threads per kernel (urgent work a handler returns, the e-stop, runs off the lead)
 REFUSALS_RECORDED = 20  # per kernel; a flood of bad requests is counted, not recorded one by one
 REFUSALS_LOGGED = 10  # per kernel, line by line; then one summary line per REFUSAL_SUMMARY_S at most
 REFUSAL_SUMMARY_S = 5.0
@@ -83,49 +92,52 @@ CONTROL_TIMEOUT_S = 5.0  # the warden's answers (its first line comes ~20 ms aft
 
 # stream -> (device, label): the streams a script may subscribe to (one place: the kernel gets it in hello)
 STREAMS: dict[str, tuple[str, str]] = {
-    "linarm.state": ("linarm", "the LINarm"),
-    "linarm.vsa": ("linarm", "the LINarm"),
-    "linarm.motor0": ("linarm", "the LINarm"),
-    "linarm.motor1": ("linarm", "the LINarm"),
-    "physio.main": ("physio", "the physiological sensors"),
-    "patient_model.main": ("patient_model", "the patient model"),
-    "vr.main": ("vr", "the VR renderer"),
+    streams.LINARM_STATE: (streams.LINARM, "the LINarm"),
+    streams.LINARM_VSA: (streams.LINARM, "the LINarm"),
+    streams.LINARM_MOTOR0: (streams.LINARM, "the LINarm"),
+    streams.LINARM_MOTOR1: (streams.LINARM, "the LINarm"),
+    streams.PHYSIO_MAIN: (streams.PHYSIO, "the physiological sensors"),
+    streams.PATIENT_MODEL_MAIN: (streams.PATIENT_MODEL, "the patient model"),
+    streams.VR_MAIN: (streams.VR, "the VR renderer"),
 }
+SAMPLE_QUEUE = 65536  # samples waiting to be sent to a kernel (oldest dropped and counted beyond)
+ESTOP_CALL = ("linarmppManager", "emergencyStop")  # never queued behind a command
 
 # The proxies' shape: state properties (name -> stream, doc) and callback setters (name -> stream, list).
 OBJECT_SHAPES: dict[str, dict[str, Any]] = {
     "linarm": {
         "doc": "linarm: the LINarm2 robot. Commands block until the controller acknowledges them.",
         "properties": {
-            "linarmState": ("linarm.state", "controlState, controlMode, homeState, errorState, triggerMode, "
+            "linarmState": (streams.LINARM_STATE, "controlState, controlMode, homeState, errorState, triggerMode, "
                                             "initialized, trajectoryType, …"),
-            "linarmVsaState": ("linarm.vsa", "equilibriumPos (m), delta (m), stiffness (N/m), handlePos (m), "
+            "linarmVsaState": (streams.LINARM_VSA, "equilibriumPos (m), delta (m), stiffness (N/m), handlePos (m), "
                                              "handleVel (m/s), interactionForce (N)."),
-            "linarmMotor0State": ("linarm.motor0", "position (m), velocity (m/s), current (A), target (m)."),
-            "linarmMotor1State": ("linarm.motor1", "position (m), velocity (m/s), current (A), target (m)."),
+            "linarmMotor0State": (streams.LINARM_MOTOR0, "position (m), velocity (m/s), current (A), target (m)."),
+            "linarmMotor1State": (streams.LINARM_MOTOR1, "position (m), velocity (m/s), current (A), target (m)."),
         },
         "callbacks": {
-            "setLinarmDataCallbackFun": ("linarm.state", "linarmDataCallbackList"),
-            "setLinarmMotor0DataCallbackFun": ("linarm.motor0", "linarmMotor0DataCallbackList"),
-            "setLinarmMotor1DataCallbackFun": ("linarm.motor1", "linarmMotor1DataCallbackList"),
-            "setLinarmVsaDataCallbackFun": ("linarm.vsa", "linarmVsaDataCallbackList"),
+            "setLinarmDataCallbackFun": (streams.LINARM_STATE, "linarmDataCallbackList"),
+            "setLinarmMotor0DataCallbackFun": (streams.LINARM_MOTOR0, "linarmMotor0DataCallbackList"),
+            "setLinarmMotor1DataCallbackFun": (streams.LINARM_MOTOR1, "linarmMotor1DataCallbackList"),
+            "setLinarmVsaDataCallbackFun": (streams.LINARM_VSA, "linarmVsaDataCallbackList"),
         },
     },
     "physiologicalSensors": {
         "doc": "physiologicalSensors: grip force (N), skin temperature (°C), heart rate (bpm), skin conductance (µS).",
-        "properties": {"physiologicalSensorsData": ("physio.main", "force (N), temperature (°C), heartRate (bpm), "
-                                                                   "skinConductance (µS), boardTime (s), …")},
-        "callbacks": {"setPhysiologicalSensorsDataCallbackFun": ("physio.main", "physiologicalDataCallbackList")},
+        "properties": {"physiologicalSensorsData": (streams.PHYSIO_MAIN,
+                                                    "force (N), temperature (°C), heartRate (bpm), "
+                                                    "skinConductance (µS), boardTime (s), …")},
+        "callbacks": {"setPhysiologicalSensorsDataCallbackFun": (streams.PHYSIO_MAIN, "physiologicalDataCallbackList")},
     },
     "patientModel": {
         "doc": "patientModel: the patient model's latest output (alpha, a_r, a_f, tpi, mpi, pti).",
-        "properties": {"patientModelData": ("patient_model.main", "alpha, a_r, a_f, tpi, mpi, pti")},
-        "callbacks": {"setPatientModelDataCallbackFun": ("patient_model.main", "patientModelDataCallbackList")},
+        "properties": {"patientModelData": (streams.PATIENT_MODEL_MAIN, "alpha, a_r, a_f, tpi, mpi, pti")},
+        "callbacks": {"setPatientModelDataCallbackFun": (streams.PATIENT_MODEL_MAIN, "patientModelDataCallbackList")},
     },
     "VRUnity": {
         "doc": "VRUnity: the VR renderer's latest frame (targetPos, score, targetsReached).",
-        "properties": {"VRUnityData": ("vr.main", "targetPos, score, targetsReached")},
-        "callbacks": {"setVRUnityDataCallbackFun": ("vr.main", "VRUnityDataCallbackList")},
+        "properties": {"VRUnityData": (streams.VR_MAIN, "targetPos, score, targetsReached")},
+        "callbacks": {"setVRUnityDataCallbackFun": (streams.VR_MAIN, "VRUnityDataCallbackList")},
     },
     "fes": {"doc": "fes: the RehaStim stimulator; every change passes the FES limiter of the safety supervisor."},
 }
@@ -491,9 +503,9 @@ class KernelProcess:
     # ------------------------------------------------------------------ reading (leader/follower threads)
     def _reader_main(self) -> None:
         """One of READERS threads. The leader reads and delivers messages in order; a message whose handler
-        returns work (an API call) is run by the thread that read it, after it handed the lead to another
-        reader: a call goes from the socket to the driver without a thread hop (one GIL hand-over less on
-        the trigger path), and a call waiting for its ACK never holds up what the kernel sends next."""
+        returns work (the script's e-stop: ApiBridge queues every other call for its call thread) is run by
+        the thread that read it, after it handed the lead to another reader, so it neither waits for a
+        thread hop nor holds up what the kernel sends next."""
         while True:
             job: Callable[[], None] | None = None
             with self._lead:
@@ -743,10 +755,11 @@ class Gate:
 
 
 class _InlineContext(ScriptContext):
-    """The in-app API's context for a kernel's requests: the bridge worker already runs off every script
-    thread, so a command runs here directly (one thread hop less on the trigger path)."""
+    """The in-app API's context for a kernel's requests: the bridge's call thread already runs off every
+    script thread (and off the kernel's readers), so a command runs here directly (one thread hop less on
+    the trigger path)."""
 
-    def call(self, what: str, fn: Callable[..., Any], *args: Any, timeout_s: float, **kwargs: Any) -> Any:
+    def call(self, fn: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
         return fn(*args, **kwargs)
 
 
@@ -826,30 +839,33 @@ class RefusalLog:
 class ApiBridge:
     """Answers one kernel's requests with the in-app API objects; streams the samples it subscribed to."""
 
-    def __init__(self, manager: Any, kernel: KernelProcess, gate: Gate, *, source: str = "script",
+    def __init__(self, host: ScriptHost, kernel: KernelProcess, gate: Gate, *, source: str = "script",
                  base_dir: Path | None = None) -> None:
-        self.manager = manager
+        self.host = host
         self.kernel = kernel
         self.gate = gate
-        self.context = _InlineContext(manager, source=source, base_dir=base_dir)
+        self.context = _InlineContext(host, source=source, base_dir=base_dir)
         self.objects = api.build_api(self.context)
         self.encoder = SampleEncoder()
         self.limiter = CallLimiter()
         self.refusal_budget = CallLimiter(REFUSAL_RATE, REFUSAL_BURST, 0.0)
-        sup = getattr(manager, "supervisor", None)
-        self.refusal_log = RefusalLog(kernel.warden_pid, getattr(sup, "event", None))
+        self.refusal_log = RefusalLog(kernel.warden_pid, host.supervisor.event)
         self._sub_lock = threading.Lock()
         self._subscribed: set[str] = set()
         self._schema_sent: dict[str, type] = {}
-        self._listeners: dict[str, tuple[Any, Callable[..., None]]] = {}  # device -> (driver, listener)
+        self._samples: Subscription | None = None  # every stream a kernel may subscribe to, from the bus
+        self._pump: threading.Thread | None = None  # drains it into the kernel's link
+        self._calls: queue.SimpleQueue[tuple[float, dict[str, Any]] | None] = queue.SimpleQueue()
+        self._caller: threading.Thread | None = None  # runs the kernel's calls in order (started at the first)
+        self._caller_lock = threading.Lock()
         self._profiles: dict[int, Any] = {}
         self._profile_ids = itertools.count(1)
         self._closed = False
 
     # ------------------------------------------------------------------ requests (reader thread)
     def handle(self, msg: dict[str, Any]) -> bool | Callable[[], None]:
-        """Serve ``msg`` if it is a request (True, or for a call the work to run off the reading lead);
-        False if it is not one of the bridge's."""
+        """Serve ``msg`` if it is a request (True; the e-stop: the work to run at once, off the reading lead);
+        False if it is not one of the bridge's. A call is queued for the bridge's call thread."""
         op = msg.get("op")
         if op == "call":
             rid = msg.get("id")
@@ -861,16 +877,16 @@ class ApiBridge:
                 self.refuse(msg, f"{obj!s:.40}.{name!s:.60} is not a script API call")
                 self.reply(rid, error=ScriptError(f"{obj!s:.40}.{name!s:.60}: not a script API call (refused)"))
                 return True
+            if (msg["obj"], msg["name"]) == ESTOP_CALL:
+                return lambda: self._call(msg)  # never behind a command waiting for its ACK, nor the rate
             wait = self.limiter.admit()
             if wait is None:  # a flood: refused at once, counted, answered (the script's call raises)
                 self.refuse(msg, f"a call over the rate limit ({CALL_RATE:.0f} calls a second)", kind="over rate")
                 self.reply(rid, error=ScriptError(f"too many API calls: more than {CALL_RATE:.0f} a second "
                                                   "(refused)"))
                 return True
-            if wait > 0:
-                due = time.monotonic() + wait
-                return lambda: (time.sleep(max(0.0, due - time.monotonic())), self._call(msg))[1]
-            return lambda: self._call(msg)
+            self._queue_call(time.monotonic() + wait, msg)
+            return True
         if op in ("subscribe", "peek"):
             rid = msg.get("id")
             stream = msg.get("stream")
@@ -896,11 +912,40 @@ class ApiBridge:
         return isinstance(name, str) and (name in allowed or name in attributes) and isinstance(args, list) \
             and len(args) <= 16 and all(_is_plain_arg(a) for a in args)
 
+    # ------------------------------------------------------------------ the call thread
+    def _queue_call(self, due: float, msg: dict[str, Any]) -> None:
+        with self._caller_lock:
+            if self._closed:
+                self.reply(msg["id"], error=ScriptStopped("the script has ended"))
+                return
+            self._calls.put((due, msg))
+            if self._caller is None:
+                self._caller = threading.Thread(target=self._caller_main, name=f"kernel-{self.kernel.warden_pid}-calls",
+                                                daemon=True)
+                self._caller.start()
+
+    def _caller_main(self) -> None:
+        """The kernel's calls, one after the other in the order they were read (a call over the rate waits its
+        turn here, not on a reader)."""
+        while True:
+            entry = self._calls.get()
+            if entry is None:
+                return
+            due, msg = entry
+            delay = due - time.monotonic()
+            if delay > 0:
+                time.sleep(delay)
+            try:
+                self._call(msg)
+            except Exception:  # a bug serving one call must not end the thread serving the others
+                log.exception("script kernel %s: a call failed", self.kernel.warden_pid)
+
     def _call(self, msg: dict[str, Any]) -> None:
         rid = msg["id"]
         obj, name, args = msg["obj"], msg["name"], msg["args"]
         attributes = ALLOWED_ATTRIBUTES.get(obj, frozenset())
-        if not self.gate.enter():
+        # The e-stop passes whatever the gate says: paused or stopping, stopping the devices is always welcome.
+        if (obj, name) != ESTOP_CALL and not self.gate.enter():
             self.reply(rid, error=ScriptStopped("the script is being stopped"))
             return
         try:
@@ -961,72 +1006,89 @@ class ApiBridge:
         if kind != "bad line" and self.refusal_budget.admit() is None:
             self.kernel.end_for_violation(f"a flood of requests (more than {REFUSAL_BURST} refused in a row)")
         if self.refusal_log.note(kind, reason):
-            sup = getattr(self.manager, "supervisor", None)
-            if sup is not None:
-                sup.event("script_request_refused", reason=reason, op=str(msg.get("op"))[:40],
-                          kernel_pid=self.kernel.warden_pid)
+            self.host.supervisor.event("script_request_refused", reason=reason, op=str(msg.get("op"))[:40],
+                                       kernel_pid=self.kernel.warden_pid)
 
     # ------------------------------------------------------------------ samples
     def _driver(self, stream: str) -> tuple[Any, str]:
         device, label = STREAMS[stream]
-        driver = self.manager.driver(device) if self.manager is not None else None
+        driver = self.host.driver(device)
         if driver is None:
             raise DeviceUnavailable(f"{label} is not available: it is switched off in the configuration "
                                     "or its driver is missing from this build")
         return driver, label
 
     def _peek(self, stream: str) -> Any:
-        driver, _label = self._driver(stream)
-        return self.encoder.snapshot(driver.latest(stream))
+        self._driver(stream)
+        return self.encoder.snapshot(self.host.bus.latest(stream))
 
     def _subscribe(self, stream: str) -> dict[str, Any]:
         driver, label = self._driver(stream)
-        device = STREAMS[stream][0]
+        bus = self.host.bus
         with self._sub_lock:
             if self._closed:
                 raise ScriptStopped("the script has ended")
+            if self._samples is None:
+                # One queue for every stream a kernel may use, so the samples reach the kernel in the order
+                # they were published; the pump sends those of the streams subscribed so far.
+                self._samples = bus.subscribe(f"script:{self.kernel.warden_pid}", tuple(STREAMS), maxlen=SAMPLE_QUEUE)
+                self._pump = threading.Thread(target=self._pump_main, args=(self._samples,),
+                                              name=f"kernel-{self.kernel.warden_pid}-samples", daemon=True)
+                self._pump.start()
             self._subscribed.add(stream)
-            if device not in self._listeners:
-                listener = self._make_listener()
-                driver.add_listener(listener)
-                self._listeners[device] = (driver, listener)
-        return {"label": label, "connected": bool(getattr(driver, "connected", True)),
-                "sample": self.encoder.snapshot(driver.latest(stream))}
+            sample = bus.latest(stream)
+        return {"label": label, "connected": bool(driver.connected), "sample": self.encoder.snapshot(sample)}
 
-    def _make_listener(self) -> Callable[[str, float, Any], None]:
+    def _pump_main(self, sub: Subscription) -> None:
+        """The subscribed streams' samples to the kernel, as the bus delivers them (woken once per driver
+        read); never blocks on the kernel (what its link does not take waits in the link's backlog)."""
         subscribed = self._subscribed
         schema_sent = self._schema_sent
         encoder = self.encoder
         kernel = self.kernel
+        while not sub.closed:
+            sub.wait(0.05)  # woken by the bus; the timeout only bounds how long a closed queue keeps it
+            for item in sub.drain():
+                if not isinstance(item, SampleItem) or item.stream not in subscribed:
+                    continue
+                stream, sample = item.stream, item.sample
+                fields = encoder.fields(sample)
+                head = b""
+                if schema_sent.get(stream) is not type(sample):
+                    schema_sent[stream] = type(sample)
+                    head = _encode({"op": "schema", "s": stream, "type": type(sample).__name__,
+                                    "fields": list(fields)})
+                kernel.send_bytes(head + _encode({"op": "sample", "s": stream, "v": encoder.values(sample, fields)}),
+                                  droppable=not head)
 
-        def on_sample(stream: str, _t: float, sample: Any) -> None:  # driver thread: encode and write, no wait
-            if stream not in subscribed:
-                return
-            fields = encoder.fields(sample)
-            head = b""
-            if schema_sent.get(stream) is not type(sample):
-                schema_sent[stream] = type(sample)
-                head = _encode({"op": "schema", "s": stream, "type": type(sample).__name__, "fields": list(fields)})
-            kernel.send_bytes(head + _encode({"op": "sample", "s": stream, "v": encoder.values(sample, fields)}),
-                              droppable=not head)
-
-        return on_sample
+    @property
+    def samples_dropped(self) -> int:
+        """Samples the bridge's subscription lost because its pump fell behind (the link's own: the kernel's)."""
+        sub = self._samples
+        return sub.dropped if sub is not None else 0
 
     def unsubscribe_all(self) -> None:
         with self._sub_lock:
             self._subscribed.clear()
             self._schema_sent.clear()
-            for driver, listener in self._listeners.values():
-                try:
-                    driver.remove_listener(listener)
-                except Exception:
-                    log.exception("could not remove a script listener")
-            self._listeners.clear()
+            sub, self._samples = self._samples, None
+            pump, self._pump = self._pump, None
+        if sub is not None:
+            sub.close()  # the pump sees it within 50 ms and ends (never waited for here: Start may be waiting)
+        del pump
 
     def close(self) -> None:
         self.unsubscribe_all()
         with self._sub_lock:
             self._closed = True
+        with self._caller_lock:
+            self._closed = True
+            caller, self._caller = self._caller, None
+        if caller is not None:
+            self._calls.put(None)  # after the calls queued before it: each is answered (refused: the gate)
+            if caller is not threading.current_thread():
+                caller.join(0.05)  # a call waiting for its ACK ends on its own; never hold the closing thread
+        self.context.close()
         self.refusal_log.flush()
 
 

@@ -27,9 +27,17 @@ import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
 
+from app import streams
 from app.config import AppConfig
+
+if TYPE_CHECKING:
+    from PySide6.QtCore import QCoreApplication
+
+    from app.manager import LinarmppManager
+    from app.safety import AlarmLevel
+    from app.signal_events import SignalEvents
 
 log = logging.getLogger(__name__)
 
@@ -40,7 +48,7 @@ HEADLESS_PATIENT = "headless"
 
 def run_headless(config: AppConfig, script_path: str, duration_s: float | None = None,
                  record_dir: str | None = None, *, home_first: bool = True,
-                 prepare: Callable[[Any], None] | None = None,
+                 prepare: Callable[[LinarmppManager], None] | None = None,
                  output: Callable[[str, str], None] | None = None) -> int:
     """Run ``script_path`` against the devices of ``config``; returns the process exit code.
 
@@ -170,7 +178,7 @@ def _record_dir_problem(root: Path, config: AppConfig) -> str:
     return ""
 
 
-def _wait_connected(manager: Any, app: Any, signals: Any = None) -> None:
+def _wait_connected(manager: LinarmppManager, app: QCoreApplication, signals: SignalEvents | None = None) -> None:
     deadline = time.monotonic() + CONNECT_TIMEOUT_S
     while not manager.all_connected() and time.monotonic() < deadline:
         if signals is not None and signals.received is not None:
@@ -183,20 +191,22 @@ def _wait_connected(manager: Any, app: Any, signals: Any = None) -> None:
                     CONNECT_TIMEOUT_S, ", ".join(missing))
 
 
-def _let_the_record_show_the_safe_state(manager: Any, app: Any, timeout_s: float = 0.5) -> None:
+def _let_the_record_show_the_safe_state(manager: LinarmppManager, app: QCoreApplication,
+                                        timeout_s: float = 0.5) -> None:
     """The LINarm reports its state at 20 Hz: wait for a state sample taken after the safe state, so that a
     recording ends with it (IDLE, or still ON when holding)."""
-    driver = manager.driver("linarm")
+    driver = manager.driver(streams.LINARM)
     if driver is None or not driver.connected:
         return
-    before = driver.total_samples("linarm.state")
+    bus = manager.bus
+    before = bus.total(streams.LINARM_STATE)
     deadline = time.monotonic() + timeout_s
-    while driver.total_samples("linarm.state") < before + 2 and time.monotonic() < deadline:
+    while bus.total(streams.LINARM_STATE) < before + 2 and time.monotonic() < deadline:
         app.processEvents()
         time.sleep(0.01)
 
 
-def _safety_stop(manager: Any, before: set[int], level: Any) -> str:
+def _safety_stop(manager: LinarmppManager, before: set[int], level: AlarmLevel) -> str:
     sup = manager.supervisor
     if sup.estop_latched:
         return "the emergency stop is latched"

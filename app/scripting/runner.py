@@ -34,12 +34,16 @@ import weakref
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
+from app import streams
 from app.devices.linarm_protocol import ControlMode, ControlState, HomeState
 from app.resources import RESOURCES
 from app.scripting.api import CommandRefused, ScriptContext, ScriptStopped
 from app.scripting.bridge import ApiBridge, Gate, KernelProcess
+
+if TYPE_CHECKING:
+    from app.services import ScriptHost
 
 log = logging.getLogger(__name__)
 
@@ -119,13 +123,12 @@ class ScriptRunner:
     appends to a deque it drains on a timer). ``on_finished(result)`` is called on the run's control thread
     after the safe state."""
 
-    def __init__(self, manager: Any, output: OutputSink | None = None, *, safe_state: str | None = None,
+    def __init__(self, manager: ScriptHost, output: OutputSink | None = None, *, safe_state: str | None = None,
                  home_first: bool = True, home_timeout_s: float = HOME_TIMEOUT_S,
                  on_finished: Callable[[ScriptResult], None] | None = None) -> None:
         self.manager = manager
         self.output: OutputSink = output or _stdout_sink
-        config = getattr(manager, "config", None)
-        self.safe_state = safe_state or (config.safety.robot_safe_state if config is not None else "idle")
+        self.safe_state = safe_state or manager.config.safety.robot_safe_state
         self.home_first = home_first
         self.home_timeout_s = home_timeout_s
         self.on_finished = on_finished
@@ -536,7 +539,7 @@ class ScriptRunner:
                     msg: dict[str, Any]) -> Callable[[], None] | None:
         served = bridge.handle(msg)
         if callable(served):
-            return served  # an API call: run by the reader that read it, off the lead
+            return served  # the script's e-stop: run at once by the reader that read it, off the lead
         if served:
             return None
         op = msg.get("op")
@@ -774,22 +777,20 @@ class ScriptRunner:
     # ------------------------------------------------------------------ homing and safe state
     def _home_if_needed(self) -> None:
         """The seed's scripts assume a homed robot: home it first when the controller says it is not."""
-        linarm = self.manager.driver("linarm") if self.manager is not None else None
+        linarm = self.manager.driver(streams.LINARM)
         if linarm is None or not linarm.connected:
             return
         ctx = self.context
-        reply = ctx.call("linarm.getIsInitialized()", linarm.command, "getIsInitialized", source="script runner",
-                         timeout_s=3.0)
+        reply = ctx.call(linarm.command, "getIsInitialized", source="script runner")
         if reply.get("initialized"):
             return
         self._set_run_state("homing")
         self.output("info", "The LINarm is not homed: homing it before the script starts…\n")
         log.info("script runner: homing the LINarm before %s", self.filename)
-        ctx.call("linarm.setCtrlState(HOME)", linarm.command, "setCtrlState", int(ControlState.HOME_CTRL_STATE),
-                 source="script runner", timeout_s=3.0)
+        ctx.call(linarm.command, "setCtrlState", int(ControlState.HOME_CTRL_STATE), source="script runner")
 
         def homed() -> bool:
-            state = linarm.latest("linarm.state")
+            state = linarm.latest(streams.LINARM_STATE)
             return state is not None and bool(state.initialized) and state.homeState == HomeState.HOME_DONE
 
         if not ctx.wait_until(homed, self.home_timeout_s):
@@ -817,41 +818,34 @@ class ScriptRunner:
         script, console code run as a script — gets it without having to reset what others may have set; an
         exercise then sets what it needs itself. Skipped when the robot is not connected or not homed, and with
         ``home_first`` off (the operator prepares the robot himself: the Script tab's "Home the robot first")."""
-        linarm = self.manager.driver("linarm") if self.manager is not None else None
+        linarm = self.manager.driver(streams.LINARM)
         if linarm is None or not linarm.connected:
             return
-        state = linarm.latest("linarm.state")
+        state = linarm.latest(streams.LINARM_STATE)
         if state is None or not state.initialized:
             return
         from app.devices.linarm_constants import K
 
         ctx, src = self.context, "script runner"
-        ctx.call("linarm.setAdmittanceParameter", linarm.command, "setAdmittanceParameter", K["ADMITTANCE_KA"],
-                 source=src, timeout_s=3.0)
-        ctx.call("linarm.setAssistanceParameter", linarm.command, "setAssistanceParameter", K["ASSISTANCE_KT"],
-                 source=src, timeout_s=3.0)
-        vsa = linarm.latest("linarm.vsa")
+        ctx.call(linarm.command, "setAdmittanceParameter", K["ADMITTANCE_KA"], source=src)
+        ctx.call(linarm.command, "setAssistanceParameter", K["ASSISTANCE_KT"], source=src)
+        vsa = linarm.latest(streams.LINARM_VSA)
         home_delta = float(K["HOME_DELTA"])
         if vsa is None or abs(float(vsa.delta) - home_delta) <= DEFAULT_DELTA_TOLERANCE_M:
             return
         self._set_run_state("starting", "the robot's default stiffness")
         self.output("info", f"Robot stiffness back to its default (pretension {home_delta * 1000:.0f} mm)…\n")
-        ctx.call("linarm.setCtrlState(IDLE)", linarm.command, "setCtrlState", int(ControlState.IDLE_CTRL_STATE),
-                 source=src, timeout_s=3.0)
-        ctx.call("linarm.setCtrlMode", linarm.command, "setCtrlMode", int(ControlMode.POS_REF_BY_TARGET_POS),
-                 source=src, timeout_s=3.0)
-        ctx.call("linarm.setCtrlState(ON)", linarm.command, "setCtrlState", int(ControlState.ON_CTRL_STATE),
-                 source=src, timeout_s=3.0)
-        ctx.call("linarm.moveDeltaTo", linarm.command, "moveDeltaTo", home_delta, 0.05, 0.2, 0.0, False,
-                 source=src, timeout_s=3.0)
+        ctx.call(linarm.command, "setCtrlState", int(ControlState.IDLE_CTRL_STATE), source=src)
+        ctx.call(linarm.command, "setCtrlMode", int(ControlMode.POS_REF_BY_TARGET_POS), source=src)
+        ctx.call(linarm.command, "setCtrlState", int(ControlState.ON_CTRL_STATE), source=src)
+        ctx.call(linarm.command, "moveDeltaTo", home_delta, 0.05, 0.2, 0.0, False, source=src)
 
         def settled() -> bool:
-            v = linarm.latest("linarm.vsa")
+            v = linarm.latest(streams.LINARM_VSA)
             return v is not None and abs(float(v.delta) - home_delta) <= DEFAULT_DELTA_TOLERANCE_M / 2
 
         ctx.wait_until(settled, 5.0)
-        ctx.call("linarm.setCtrlState(IDLE)", linarm.command, "setCtrlState", int(ControlState.IDLE_CTRL_STATE),
-                 source=src, timeout_s=3.0)
+        ctx.call(linarm.command, "setCtrlState", int(ControlState.IDLE_CTRL_STATE), source=src)
         self._set_run_state("starting")
 
     def _safe_state_now(self, reason: str) -> None:
@@ -862,7 +856,7 @@ class ScriptRunner:
             log.exception("immediate safe state failed")
 
     def _stop_fes(self, reason: str) -> bool:
-        fes = self.manager.driver("fes") if self.manager is not None else None
+        fes = self.manager.driver(streams.FES)
         if fes is None:
             return False
         try:
@@ -883,9 +877,9 @@ class ScriptRunner:
         done: list[str] = []
         if self._stop_fes(reason):
             done.append("FES stopped")
-        linarm = self.manager.driver("linarm") if self.manager is not None else None
+        linarm = self.manager.driver(streams.LINARM)
         if linarm is not None and linarm.connected:
-            state = linarm.latest("linarm.state")
+            state = linarm.latest(streams.LINARM_STATE)
             # IDLE is sent even when the last state sample says IDLE: it is up to 50 ms old, and a command
             # acknowledged since (setCtrlState ON from the script) may not be in it yet.
             try:
