@@ -157,9 +157,11 @@ class PlotsFrame(QWidget):
         frame makes its own) through the manager's shared store; or, with ``store``, that store's signals."""
         super().__init__()
         self.manager = manager
+        self.qt_bus: QtBus | None = None  # None: a given store's signals (a replay), no live data
         if store is None:
             assert manager is not None
-            store = shared_store(manager, qt_bus_for(manager, qt_bus, self))
+            self.qt_bus = qt_bus_for(manager, qt_bus, self)
+            store = shared_store(manager, self.qt_bus)
         self.store = store
         refresh_hz = manager.config.ui.refresh_hz if manager is not None else 30.0
         self.selected: list[str] = []
