@@ -33,7 +33,7 @@ def main() -> int:
 
     app = QApplication.instance() or QApplication(sys.argv)
     from app.application import configure_qt_identity
-    from app.devices.driver import Channel, SampleBatch, StreamSpec
+    from app.bus import Channel, SampleBatch, StreamSpec
     from app.ui.plots_frame import PlotsFrame
     from app.ui.signal_store import SignalStore
 

@@ -88,13 +88,14 @@ def one_run(seconds: float, moving: bool, screenshot: str, profile: str = "") ->
         if plots is not None:
             plots.set_selected(list(DEFAULT_SIGNALS))
         if moving:
+            from app import streams
             from app.scripting.runner import ScriptRunner
 
             runner = ScriptRunner(manager, lambda _s, _t: None, home_first=True)
             runner.start(SCRIPT.read_text(encoding="utf-8"), str(SCRIPT))
 
             def moving_now() -> bool:
-                s = manager.driver("linarm").latest("linarm.vsa")
+                s = manager.bus.latest(streams.LINARM_VSA)
                 return s is not None and abs(float(s.equilibriumPos) - 0.10) < 0.01
             if not common.run_qt_until(moving_now, 40.0):
                 print("  (the reach exercise did not reach its start point within 40 s)")

@@ -40,6 +40,32 @@ def test_window_shows_devices_connected_and_closes_cleanly(qtbot, tmp_path) -> N
     assert all(not h.simulator.running for h in manager.devices.values())
 
 
+def test_the_window_has_one_bus_adapter_and_closing_it_unsubscribes(qtbot, tmp_path) -> None:
+    """Issue #29: one adapter turns bus traffic into Qt signals for the whole window; a closed window's adapter
+    no longer subscribes to the bus (napari style: the Qt layer lets go on close)."""
+    from app.ui.physio_viewer import PULSE_SUBSCRIBER
+    from app.ui.qt_bus import BATCHES_NAME, EVENTS_NAME
+
+    manager, window = make_window(qtbot, tmp_path, names=("alpha",))
+    ui_names = {BATCHES_NAME, EVENTS_NAME, PULSE_SUBSCRIBER}
+
+    def ui_subscriptions() -> list[str]:
+        return sorted(sub.name for sub in manager.bus.subscriptions() if sub.name in ui_names)
+
+    try:
+        qtbot.waitUntil(manager.all_connected, timeout=5000)
+        commands = window.frames["CommandsFrame"]
+        readers = [*window.frames.values(), *commands.panels.values()]
+        adapters = {id(w.qt_bus) for w in readers if getattr(w, "qt_bus", None) is not None}
+        assert adapters == {id(window.qt_bus)}  # every frame and panel that reads the bus, through the one
+        assert ui_subscriptions() == [BATCHES_NAME, EVENTS_NAME]  # the graphs' columns and the link events
+        qtbot.waitUntil(lambda: window.frames["PlotsFrame"].store.count("counter.main.count") > 50, timeout=3000)
+        window.close()
+        assert ui_subscriptions() == [] and window.qt_bus.closed and not window.qt_bus.timer.isActive()
+    finally:
+        manager.shutdown(timeout_s=1.0)
+
+
 def test_emergency_stop_button_and_key_latch_and_reset(qtbot, tmp_path, monkeypatch) -> None:
     manager, window = make_window(qtbot, tmp_path, names=("alpha",))
     calls: list[str] = []

@@ -16,7 +16,7 @@ from tests.fakes import counter_factory
 
 
 def test_toggle_disconnects_and_reconnects_a_device(qtbot, tmp_path) -> None:
-    manager = LinarmppManager(AppConfig(), factories={"alpha": counter_factory(tmp_path)})
+    manager = LinarmppManager(AppConfig(), factories={"alpha": counter_factory(tmp_path, "alpha")})
     manager.start()
     try:
         frame = CommandsFrame(manager)

@@ -6,9 +6,10 @@ from __future__ import annotations
 
 import pytest
 
+from app.bus import StreamBus
 from app.config import AppConfig
 from app.devices import linarm
-from app.devices.linarm import LinarmStateSample, MotorSample, VsaSample
+from app.devices.linarm import LinarmDriver, LinarmStateSample, MotorSample, VsaSample
 from app.manager import DeviceHandle, LinarmppManager
 from app.ui.linarm_viewer import DASH, STATE_ROWS, LinarmViewer
 from app.ui.theme import colours
@@ -23,11 +24,12 @@ def test_shows_every_quantity_of_the_simulated_linarm(qtbot) -> None:
     manager.start()
     try:
         driver = manager.driver("linarm")
+        bus = manager.bus
         viewer = LinarmViewer(manager)
         qtbot.addWidget(viewer)
-        qtbot.waitUntil(lambda: driver.connected and driver.latest("linarm.vsa") is not None
-                        and driver.latest("linarm.motor1") is not None
-                        and driver.latest("linarm.state") is not None, timeout=5000)
+        qtbot.waitUntil(lambda: driver.connected and bus.latest("linarm.vsa") is not None
+                        and bus.latest("linarm.motor1") is not None
+                        and bus.latest("linarm.state") is not None, timeout=5000)
         viewer.refresh()
         assert viewer.text_of("state.controlState") == "IDLE_CTRL_STATE (0)"
         assert viewer.text_of("state.errorState") == "NO_ERROR (0)"
@@ -39,10 +41,10 @@ def test_shows_every_quantity_of_the_simulated_linarm(qtbot) -> None:
         for key in viewer.values:
             # Before homing the interaction force (read from the spring elongations) is unknown: "—".
             assert (viewer.text_of(key) == DASH) == (key == "vsa.interactionForce"), key
-        vsa = driver.latest("linarm.vsa")
+        vsa = bus.latest("linarm.vsa")
         assert float(viewer.text_of("vsa.stiffness")) == pytest.approx(vsa.stiffness, abs=50)
         assert float(viewer.text_of("vsa.equilibriumPos")) == pytest.approx(vsa.equilibriumPos, abs=0.002)
-        m1 = driver.latest("linarm.motor1")
+        m1 = bus.latest("linarm.motor1")
         assert float(viewer.text_of("motor1.position")) == pytest.approx(m1.position, abs=0.002)
         assert "connected" in viewer.header.text() and "Hz" in viewer.header.text()
 
@@ -56,7 +58,7 @@ def test_shows_every_quantity_of_the_simulated_linarm(qtbot) -> None:
 
 
 class _FakeLinarm:
-    """Duck-typed driver: connected, fixed latest samples."""
+    """Duck-typed driver: connected, fixed latest samples (published on the manager's bus)."""
 
     def __init__(self, samples: dict[str, object]) -> None:
         self.samples = samples
@@ -64,8 +66,11 @@ class _FakeLinarm:
         self.silent = False
         self.firmware_version = "test"
 
-    def latest(self, stream: str) -> object:
-        return self.samples.get(stream)
+    def publish(self, bus: StreamBus) -> None:
+        bus.declare(LinarmDriver.streams)
+        bus.event("linarm", "connected", "fake link")
+        for stream, sample in self.samples.items():
+            bus.publish(stream, 12.5, sample)
 
     def rates(self) -> dict[str, float]:
         return {"linarm.vsa": 200.0}
@@ -83,6 +88,7 @@ def test_error_and_homing_colours_and_flags(qtbot) -> None:
         "linarm.motor1": MotorSample(1, 0.3, 0.0, -0.25, 0.3, 12.5),
     })
     manager.devices["linarm"] = DeviceHandle("linarm", fake)  # type: ignore[arg-type]
+    fake.publish(manager.bus)
     viewer = LinarmViewer(manager)
     qtbot.addWidget(viewer)
     viewer.refresh()

@@ -8,8 +8,8 @@ import dataclasses
 import math
 
 import pytest
-from PySide6.QtCore import QObject, Signal
 
+from app.bus import StreamBus
 from app.config import AppConfig, PhysioCalibration
 from app.devices import physio
 from app.devices.physio import PHYSIO_STREAM
@@ -23,7 +23,7 @@ from app.devices.physio_codec import (
 )
 from app.devices.sim.adapters import PhysioSimCore
 from app.manager import DeviceHandle, LinarmppManager
-from app.ui.physio_viewer import DASH, TILE_ORDER, PhysioViewer, fault_words, format_value
+from app.ui.physio_viewer import DASH, PULSE_SUBSCRIBER, TILE_ORDER, PhysioViewer, fault_words, format_value
 from app.ui.theme import colours
 
 
@@ -141,33 +141,30 @@ def test_live_values_squeeze_counters_faults_and_calibration(qtbot) -> None:
         manager.shutdown()
 
 
-class _FakePhysio(QObject):
-    """Duck-typed driver: connected, one fixed sample, fixed counters."""
+class _FakePhysio:
+    """Duck-typed driver: connected, one fixed sample (published on the manager's bus), fixed counters."""
 
-    samples = Signal(object)
     streams = (PHYSIO_STREAM,)
 
     def __init__(self, sample: PhysioSample) -> None:
-        super().__init__()
         self.sample = sample
         self.connected = True
         self.silent = False
         self.calibration = Calibration()
         self.decoder = type("D", (), {"framesDecoded": 5000, "framesLost": 0, "badFrames": 2,
                                       "discardedBytes": 40, "seqDiscontinuities": 1})()
-        self.listeners: list[object] = []
 
-    def latest(self, stream: str) -> object:
-        return self.sample if stream == "physio.main" else None
+    def publish(self, bus: StreamBus) -> None:
+        bus.declare(self.streams)
+        bus.event("physio", "connected", "fake link")
+        bus.publish("physio.main", 1.0, self.sample)
 
     def rates(self) -> dict[str, float]:
         return {"physio.main": 60.0}
 
-    def add_listener(self, fn: object) -> None:
-        self.listeners.append(fn)
 
-    def remove_listener(self, fn: object) -> None:
-        self.listeners.remove(fn)
+def _pulse_subscriptions(manager: LinarmppManager) -> int:
+    return sum(sub.name == PULSE_SUBSCRIBER for sub in manager.bus.subscriptions())
 
 
 def test_no_lock_faults_and_slow_rate_from_a_stub(qtbot) -> None:
@@ -177,6 +174,7 @@ def test_no_lock_faults_and_slow_rate_from_a_stub(qtbot) -> None:
                           flags=FLAG_FORCE_FAULT | FLAG_ADC_OVERRUN | 0x80, lostBefore=0)
     fake = _FakePhysio(sample)
     manager.devices["physio"] = DeviceHandle("physio", fake)  # type: ignore[arg-type]
+    fake.publish(manager.bus)
     viewer = PhysioViewer(manager)
     qtbot.addWidget(viewer)
     c = colours()
@@ -188,10 +186,10 @@ def test_no_lock_faults_and_slow_rate_from_a_stub(qtbot) -> None:
     assert viewer.text_of("rate") == "60.0 Hz" and viewer.colour_of("rate") == c.warn  # below 100 Hz
     assert (viewer.text_of("decoded"), viewer.text_of("bad"), viewer.text_of("discarded")) == ("5000", "2", "40")
     assert viewer.text_of("discontinuities") == "1" and viewer.colour_of("lost") == c.text
-    assert len(fake.listeners) == 1  # the pulse tap
+    assert _pulse_subscriptions(manager) == 1  # the pulse tap
     manager.devices.clear()  # the device goes away: the viewer lets go of it
     viewer.refresh()
-    assert fake.listeners == [] and "not connected" in viewer.header.text()
+    assert _pulse_subscriptions(manager) == 0 and "not connected" in viewer.header.text()
 
 
 def test_off_shows_not_connected_and_dashes(qtbot) -> None:

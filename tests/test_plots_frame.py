@@ -209,7 +209,7 @@ def test_live_frame_from_a_counter_device_over_a_pty(qtbot, tmp_path: Path) -> N
         qtbot.addWidget(frame)
         frame.resize(800, 500)
         frame.show()
-        assert frame.store is shared_store(manager)  # one store per manager
+        assert frame.qt_bus is not None and frame.store is shared_store(manager, frame.qt_bus)  # one per manager
         frame.set_selected(["counter.main.count"])
         qtbot.waitUntil(lambda: frame.store.count("counter.main.count") > 300, timeout=5000)
         frame.redraw()

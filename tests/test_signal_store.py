@@ -1,6 +1,6 @@
 """The GUI ring buffers: exact snapshots across wrap-around, envelopes that keep every extreme,
 growth when a device runs faster than nominal, CSV export bit-exact with units, and feeding from a
-real driver over a pty."""
+real driver over a pty through the bus and its Qt adapter."""
 
 from __future__ import annotations
 
@@ -11,7 +11,8 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from app.devices.driver import Channel, SampleBatch, StreamSpec
+from app.bus import Channel, SampleBatch, StreamBus, StreamSpec
+from app.ui.qt_bus import QtBus
 from app.ui.signal_store import BLOCK, SignalStore
 from tests.fakes import CounterDriver, make_counter_device
 
@@ -141,10 +142,12 @@ def test_csv_export_of_a_time_window(tmp_path: Path) -> None:
 def test_attach_feeds_from_a_real_driver_over_a_pty(qtbot, tmp_path: Path) -> None:
     sim = make_counter_device(tmp_path)
     sim.start()
-    driver = CounterDriver(sim.url)
+    bus = StreamBus()
+    driver = CounterDriver(sim.url, bus=bus)
+    qt_bus = QtBus(bus)
     store = SignalStore(history_s=5.0)
-    store.attach_driver(driver, "counter")
-    store.attach_driver(driver, "counter")  # idempotent: one connection, no double samples
+    store.attach_bus(qt_bus)
+    store.attach_bus(qt_bus)  # idempotent: one connection, no double samples
     assert [i.key for i in store.signals()] == ["counter.main.count"]
     driver.start()
     try:
@@ -152,10 +155,30 @@ def test_attach_feeds_from_a_real_driver_over_a_pty(qtbot, tmp_path: Path) -> No
     finally:
         driver.stop()
         sim.stop()
+        qt_bus.close()
     _t, counts = store.snapshot("counter.main.count")
     # The counter increments by one per frame: nothing lost, nothing duplicated.
     assert np.all(np.diff(counts) == 1)
     assert BLOCK > 1
+
+
+def test_the_store_follows_one_adapter_at_a_time(qtbot) -> None:
+    """Two adapters on one bus (a window's and a frame's own): attached to the second, the store lets go of
+    the first, so no sample is stored twice."""
+    bus = StreamBus()
+    bus.declare([SLOW])
+    first, second = QtBus(bus), QtBus(bus)
+    store = SignalStore(history_s=5.0)
+    store.attach_bus(first)
+    store.attach_bus(second)
+    for k in range(10):
+        bus.publish(SLOW.name, k * 0.01, type("S", (), {"c": float(k)})())
+    first.tick()
+    second.tick()
+    _t, values = store.snapshot("dev.slow.c")
+    assert values.tolist() == [float(k) for k in range(10)]
+    first.close()
+    second.close()
 
 
 def test_on_screen_is_false_on_a_hidden_tab_a_minimised_window_or_scrolled_away(qtbot) -> None:

@@ -21,7 +21,7 @@ from app.ui.simulation_panel import SimulationPanel, parse_positions
 def manager(qtbot) -> Iterator[LinarmppManager]:
     m = LinarmppManager(AppConfig(), factories={"linarm": linarm.create, "physio": physio.create})
     m.start()
-    qtbot.waitUntil(lambda: m.all_connected() and m.driver("physio").latest("physio.main") is not None,
+    qtbot.waitUntil(lambda: m.all_connected() and m.bus.latest("physio.main") is not None,
                     timeout=5000)
     yield m
     m.shutdown()
@@ -104,7 +104,7 @@ def test_kill_and_restart_a_simulated_device(qtbot, manager) -> None:
     assert not manager.devices["physio"].simulator.running and "unplugged" in status.text()
     assert not kill.isEnabled()
     qtbot.waitUntil(lambda: not driver.connected or driver.silent, timeout=5000)
-    count = driver.total_samples("physio.main")
+    count = manager.bus.total("physio.main")
     qtbot.mouseClick(restart, Qt.MouseButton.LeftButton)
     assert manager.devices["physio"].simulator.running and "running" in status.text()
-    qtbot.waitUntil(lambda: driver.connected and driver.total_samples("physio.main") > count + 20, timeout=10000)
+    qtbot.waitUntil(lambda: driver.connected and manager.bus.total("physio.main") > count + 20, timeout=10000)

@@ -1,6 +1,6 @@
-"""Frame 1: values with units from the drivers' latest samples, "—" when absent, state colours,
+"""Frame 1: values with units from the bus's latest samples, "—" when absent, state colours,
 active FES channels only, device indicators. Also home of the stub devices the other frame
-tests use (drivers with the real stream names that publish synthetic samples on demand)."""
+tests use (devices with the real stream names that publish synthetic samples on the manager's bus on demand)."""
 
 from __future__ import annotations
 
@@ -9,8 +9,8 @@ from typing import Any
 
 import numpy as np
 
+from app.bus import Channel, StreamBus, StreamSpec
 from app.config import AppConfig
-from app.devices.driver import Channel, DeviceDriver, StreamSpec
 from app.manager import DeviceHandle, LinarmppManager
 from app.ui.theme import colours
 from app.ui.values_frame import DASH, ValuesFrame, enum_name
@@ -43,21 +43,32 @@ STREAMS: dict[str, StreamSpec] = {
 }
 
 
-class StubDriver(DeviceDriver):
-    """A driver that never runs its thread: tests publish samples and emit batches by hand."""
+class StubDriver:
+    """A device without a thread or a link: tests publish its samples and link events on the bus by hand. It
+    answers what the window still asks a driver (rates, whether its thread runs)."""
 
-    def __init__(self, name: str, streams: tuple[StreamSpec, ...]) -> None:
-        self.streams = streams  # instance attribute before the base reads it
-        super().__init__(name, transport=None)  # type: ignore[arg-type]
-        self._connected = True
+    def __init__(self, name: str, streams: tuple[StreamSpec, ...], bus: StreamBus) -> None:
+        self.name = name
+        self.streams = streams
+        self.bus = bus
+        bus.declare(streams)
+        self.set_connected(True)
+
+    def set_connected(self, connected: bool, reason: str = "") -> None:
+        self.connected = connected
+        self.bus.event(self.name, "connected" if connected else "disconnected",
+                       reason or ("stub link" if connected else "stub unplugged"))
 
     def put(self, stream: str, t: float, **values: float) -> None:
         spec = next(s for s in self.streams if s.name == stream)
         full = {c.name: values.get(c.name, 0.0) for c in spec.channels}
-        self.publish(stream, t, SimpleNamespace(**full))
+        self.bus.publish(stream, t, SimpleNamespace(**full))
 
-    def flush(self) -> None:
-        self._emit_batches(force=True)
+    def rates(self) -> dict[str, float]:
+        return {s.name: s.nominal_rate_hz for s in self.streams}
+
+    def isRunning(self) -> bool:
+        return False
 
 
 def make_stub_manager(devices: tuple[str, ...] = ("linarm", "physio", "fes", "patient_model", "vr"),
@@ -66,7 +77,7 @@ def make_stub_manager(devices: tuple[str, ...] = ("linarm", "physio", "fes", "pa
     drivers: dict[str, StubDriver] = {}
     for dev in devices:
         specs = tuple(s for name, s in STREAMS.items() if name.split(".")[0] == dev)
-        drivers[dev] = StubDriver(dev, specs)
+        drivers[dev] = StubDriver(dev, specs, manager.bus)
         manager.devices[dev] = DeviceHandle(dev, drivers[dev], extras={"simulated": True})
     return manager, drivers
 
@@ -122,7 +133,7 @@ def test_absent_and_disconnected_devices_show_dashes(qtbot) -> None:
     assert frame.text_of("linarm.vsa", "handlePos") == "0.200 m"
     assert frame.text_of("physio.main", "heartRate") == DASH  # no physio device at all
     assert frame.active_fes_texts() == []
-    drivers["linarm"]._connected = False
+    drivers["linarm"].set_connected(False)
     frame.refresh()
     assert frame.text_of("linarm.vsa", "handlePos") == DASH  # stale values are not shown
     assert "disconnected" in frame.device_labels["linarm"].text()

@@ -8,6 +8,8 @@ Expects (all optional, so the panel also works before the lead wires them):
   shows and edits and says the split is not active;
 * ``manager.driver("patient_model")`` — a ``PatientModelDriver``; the clinical score is written to
   its ``clinical_score`` (None = not set: the model uses its default and flags the reply);
+* the stream bus (the window's Qt bus adapter, else ``manager.bus``) — without a controller, the model's
+  latest α is shown from it;
 * ``manager.config.safety`` — the spin boxes stop at the robot's stiffness limit and the FES
   pulse-width limit (the drivers' command paths check them again).
 
@@ -34,7 +36,9 @@ from PySide6.QtWidgets import (
     QWidget,
 )
 
+from app import streams
 from app.config import AssistanceConfig, AssistanceMap
+from app.ui.qt_bus import QtBus
 from app.ui.widgets import StepSlider, on_screen
 
 # (config field, label, unit, decimals, step)
@@ -91,10 +95,12 @@ class _GainEditor(QWidget):
 class AssistancePanel(QWidget):
     config_changed = Signal(object)  # AssistanceConfig
 
-    def __init__(self, manager: Any, refresh_hz: float = 10.0, parent: QWidget | None = None) -> None:
+    def __init__(self, manager: Any, refresh_hz: float = 10.0, parent: QWidget | None = None, *,
+                 qt_bus: QtBus | None = None) -> None:
         super().__init__(parent)
         self.setWindowTitle("Assistance")
         self.manager = manager
+        self.qt_bus = qt_bus
         controller = self.controller
         self.config: AssistanceConfig = (controller.config if controller is not None
                                          else manager.config.assistance)
@@ -174,7 +180,7 @@ class AssistancePanel(QWidget):
 
     def _pm_driver(self) -> Any:
         try:
-            return self.manager.driver("patient_model")
+            return self.manager.driver(streams.PATIENT_MODEL)
         except Exception:
             return None
 
@@ -236,12 +242,16 @@ class AssistancePanel(QWidget):
             self.live["status"].setText(f"active; last refusal: {err}" if err else "active")
             return
         self.live["status"].setText("assistance split not active (the manager has no controller)")
-        pm = self._pm_driver()
-        s = pm.latest("patient_model.main") if pm is not None else None
+        s = self._model_sample() if self._pm_driver() is not None else None
         if s is not None:
             self.live["alpha"].setText(_fmt(s.alpha))
             self.live["a_r"].setText(_fmt(self.config.k_r * s.alpha))
             self.live["a_f"].setText(_fmt(self.config.k_f * s.alpha))
+
+    def _model_sample(self) -> Any:
+        """The patient model's latest sample on the bus (None before the first, or without a bus)."""
+        bus = self.qt_bus.bus if self.qt_bus is not None else getattr(self.manager, "bus", None)
+        return bus.latest(streams.PATIENT_MODEL_MAIN) if bus is not None else None
 
 
 def _fmt(x: float | None) -> str:

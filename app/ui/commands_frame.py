@@ -28,6 +28,7 @@ from PySide6.QtWidgets import (
 )
 
 from app.manager import LinarmppManager
+from app.ui.qt_bus import QtBus, qt_bus_for, takes_qt_bus
 from app.ui.theme import colours
 
 log = logging.getLogger(__name__)
@@ -101,9 +102,12 @@ class DeviceToggle(QPushButton):
 
 
 class CommandsFrame(QWidget):
-    def __init__(self, manager: LinarmppManager) -> None:
+    def __init__(self, manager: LinarmppManager, *, qt_bus: QtBus | None = None) -> None:
+        """The device toggles and panels of ``manager``; link states (and the panels' data) through ``qt_bus``
+        (the window's; else the frame's own)."""
         super().__init__()
         self.manager = manager
+        self.qt_bus = qt_bus_for(manager, qt_bus, self)
         self.toggles: dict[str, DeviceToggle] = {}
         self.panels: dict[str, QWidget] = {}
         # Confirmation before disconnecting a device; tests replace it.
@@ -134,7 +138,7 @@ class CommandsFrame(QWidget):
             self.tabs.addTab(empty, "Panels")
 
         self._sync_devices()
-        manager.device_connection_changed.connect(lambda *_a: self.refresh())
+        self.qt_bus.connection_changed.connect(lambda *_a: self.refresh())
         self.timer = QTimer(self)
         self.timer.setInterval(500)
         self.timer.timeout.connect(self.refresh)
@@ -152,7 +156,8 @@ class CommandsFrame(QWidget):
                 if exc.name != module_name:
                     raise  # the panel exists but one of its imports is missing: a real bug
                 continue
-            panel = getattr(module, class_name)(self.manager)
+            factory = getattr(module, class_name)
+            panel = factory(self.manager, qt_bus=self.qt_bus) if takes_qt_bus(factory) else factory(self.manager)
             self.panels[class_name] = panel
             if class_name in SELF_SCROLLING:
                 self.tabs.addTab(panel, title)
@@ -183,7 +188,7 @@ class CommandsFrame(QWidget):
             if handle is None:
                 toggle.setEnabled(False)
                 continue
-            toggle.show_state(handle.driver.isRunning(), handle.driver.connected)
+            toggle.show_state(handle.driver.isRunning(), self.qt_bus.connected(name))
 
     def set_running(self, name: str, running: bool) -> bool:
         """Connect (start) or disconnect (stop) one device, asking first before disconnecting one
@@ -191,7 +196,7 @@ class CommandsFrame(QWidget):
         handle = self.manager.devices.get(name)
         if handle is None:
             return False
-        if not running and handle.driver.connected and not self.confirm(name):
+        if not running and self.qt_bus.connected(name) and not self.confirm(name):
             self.refresh()
             return False
         ok = set_device_running(self.manager, name, running)

@@ -11,8 +11,8 @@ by a visible amount (``GL_STEP_M``) or the camera moves, at most 20 times a seco
 Anywhere else (``offscreen``, Wayland without GLX, ...) it is a 2D QPainter side view of the same scene:
 a GL widget must never even be constructed there, because offscreen GL crashes the process uncatchably (qt-stack.md §2).
 
-Positions come from ``driver.latest()`` at the UI refresh rate: motors from ``linarm.motor0`` and
-``linarm.motor1``, the handle from ``linarm.vsa``; the target from ``set_target()`` when set,
+Positions come from the bus's latest samples (``QtBus.latest``) at the UI refresh rate: motors from
+``linarm.motor0`` and ``linarm.motor1``, the handle from ``linarm.vsa``; the target from ``set_target()`` when set,
 otherwise from the VR renderer's ``vr.main`` targetPos.
 """
 
@@ -30,7 +30,9 @@ from PySide6.QtCore import QPoint, QPointF, QRectF, QSizeF, Qt, QTimer
 from PySide6.QtGui import QColor, QFont, QGuiApplication, QPainter, QPainterPath, QPen
 from PySide6.QtWidgets import QLabel, QSizePolicy, QVBoxLayout, QWidget
 
+from app import streams
 from app.manager import LinarmppManager
+from app.ui.qt_bus import QtBus, qt_bus_for
 from app.ui.theme import colours
 from app.ui.values_frame import format_value  # no "-0.000 m"
 from app.ui.widgets import RefreshWhenVisible
@@ -85,10 +87,12 @@ def spring_points(x0: float, x1: float, amplitude: float, coils: int = SPRING_CO
 
 
 class DeviceView(RefreshWhenVisible, QWidget):
-    def __init__(self, manager: LinarmppManager, *, allow_gl: bool = True) -> None:
-        """``allow_gl=False`` draws the 2D scene even where OpenGL works (no GPU driver, tests)."""
+    def __init__(self, manager: LinarmppManager, *, allow_gl: bool = True, qt_bus: QtBus | None = None) -> None:
+        """``allow_gl=False`` draws the 2D scene even where OpenGL works (no GPU driver, tests). The live state
+        comes through ``qt_bus`` (the window's; else the view's own)."""
         super().__init__()
         self.manager = manager
+        self.qt_bus = qt_bus_for(manager, qt_bus, self)
         limits = manager.config.safety.robot
         self.rail = (min(0.0, limits.position_min_m - RAIL_MARGIN_M), limits.position_max_m + RAIL_MARGIN_M)
         self.state = SceneState()
@@ -135,24 +139,23 @@ class DeviceView(RefreshWhenVisible, QWidget):
 
     # ------------------------------------------------------------------ live state
     def _latest(self, stream: str) -> Any:
-        handle = self.manager.devices.get(stream.split(".", 1)[0])
-        if handle is None or not handle.driver.connected:
+        if not self.qt_bus.connected(streams.device_of(stream)):
             return None
-        return handle.driver.latest(stream)
+        return self.qt_bus.latest(stream)
 
     def read_state(self) -> SceneState:
-        vsa = self._latest("linarm.vsa")
-        m0 = _attr(self._latest("linarm.motor0"), "position")
-        m1 = _attr(self._latest("linarm.motor1"), "position")
+        vsa = self._latest(streams.LINARM_VSA)
+        m0 = _attr(self._latest(streams.LINARM_MOTOR0), "position")
+        m1 = _attr(self._latest(streams.LINARM_MOTOR1), "position")
         handle = _attr(vsa, "handlePos")
         if vsa is not None and (m0 is None or m1 is None):
             centre, delta = _attr(vsa, "equilibriumPos"), _attr(vsa, "delta")
             if centre is not None and delta is not None:  # motors not streamed: place them from the VSA
                 m0 = centre - abs(delta) - 0.05 if m0 is None else m0
                 m1 = centre + abs(delta) + 0.05 if m1 is None else m1
-        linarm = self.manager.devices.get("linarm")
+        linarm = self.manager.devices.get(streams.LINARM)
         target = self._api_target if self._api_target_set else self._exercise_target(linarm)
-        connected = bool(linarm and linarm.driver.connected)
+        connected = linarm is not None and self.qt_bus.connected(streams.LINARM)
         return SceneState(m0, m1, handle, target, connected)
 
 
@@ -165,7 +168,7 @@ class DeviceView(RefreshWhenVisible, QWidget):
         robot_target = getattr(linarm.driver, "centre_target_m", None) if linarm is not None else None
         if running and robot_target is not None:
             return float(robot_target)
-        return _attr(self._latest("vr.main"), "targetPos")
+        return _attr(self._latest(streams.VR_MAIN), "targetPos")
 
     def refresh(self) -> None:
         state = self.read_state()

@@ -12,6 +12,8 @@ from typing import Any
 
 from PySide6.QtWidgets import QMessageBox, QWidget
 
+from app import streams
+
 
 def exercise_stimulates(exercise: Any, values: Mapping[str, Any]) -> bool:
     """True when this exercise, with these values, will load and run an FES profile: it has an ``fes_profile``
@@ -26,7 +28,7 @@ def fes_conflict_text(manager: Any, exercise: Any, values: Mapping[str, Any]) ->
     """The conflict in plain words, or "" when there is none."""
     if not exercise_stimulates(exercise, values):
         return ""
-    fes = manager.driver("fes") if "fes" in getattr(manager, "devices", {}) else None
+    fes = manager.driver(streams.FES) if streams.FES in getattr(manager, "devices", {}) else None
     if fes is None or not getattr(fes, "stimulating", False):
         return ""
     profile = getattr(getattr(fes, "profile", None), "name", "") or "a profile"
@@ -47,5 +49,5 @@ def resolve_fes_conflict(parent: QWidget | None, manager: Any, exercise: Any, va
         QMessageBox.StandardButton.Cancel) == QMessageBox.StandardButton.Yes)
     if not question(text):
         return False
-    manager.driver("fes").stop_stimulation("to start an exercise", "Exercises tab")
+    manager.driver(streams.FES).stop_stimulation("to start an exercise", "Exercises tab")
     return True

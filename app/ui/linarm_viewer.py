@@ -3,7 +3,7 @@ control state, mode, homing, error (colour-coded names), trigger and trajectory 
 flags, the VSA (centre, delta, stiffness, handle, force) and both motors.
 
 Labels and units come from the driver's stream specs (``LinarmDriver.streams``), enum names from
-the protocol table; values are read from ``driver.latest()`` on a timer, never per sample.
+the protocol table; values are the bus's latest samples (``QtBus.latest``), read on a timer, never per sample.
 """
 
 from __future__ import annotations
@@ -15,10 +15,12 @@ from PySide6.QtCore import Qt, QTimer
 from PySide6.QtGui import QFont, QFontDatabase
 from PySide6.QtWidgets import QFrame, QGridLayout, QGroupBox, QHBoxLayout, QLabel, QScrollArea, QVBoxLayout, QWidget
 
+from app import streams
 from app.devices import linarm_protocol as proto
 from app.devices.linarm import STATE_STREAM, VSA_STREAM, LinarmDriver
 from app.devices.linarm_protocol import ControlState, ErrorState, HomeState
 from app.manager import LinarmppManager
+from app.ui.qt_bus import QtBus, qt_bus_for
 from app.ui.theme import colours
 from app.ui.widgets import LabelBoard, RefreshWhenVisible
 
@@ -39,7 +41,7 @@ STATE_ROWS: list[tuple[str, str, str | None]] = [
 ]
 # decimals per unit (positions to 0.1 mm)
 DECIMALS = {"m": 4, "m/s": 3, "N/m": 0, "N": 2, "A": 2}
-MOTOR_STREAMS = tuple(s for s in LinarmDriver.streams if s.name.startswith("linarm.motor"))
+MOTOR_STREAMS = tuple(s for s in LinarmDriver.streams if s.name in streams.LINARM_MOTORS)
 # Labels shown once per stream (the stream specs' own labels for the state; see STATE_STREAM).
 _STATE_LABELS = {ch.name: ch.label for ch in STATE_STREAM.channels}
 
@@ -89,9 +91,11 @@ def state_colour(field: str, value: Any) -> str:
 
 
 class LinarmViewer(RefreshWhenVisible, LabelBoard, QWidget):
-    def __init__(self, manager: LinarmppManager) -> None:
+    def __init__(self, manager: LinarmppManager, *, qt_bus: QtBus | None = None) -> None:
+        """The robot of ``manager``; its samples and link state through ``qt_bus`` (the window's; else its own)."""
         super().__init__()
         self.manager = manager
+        self.qt_bus = qt_bus_for(manager, qt_bus, self)
         self.values: dict[str, QLabel] = {}
         self._shown: dict[str, tuple[str, str]] = {}
         mono = QFontDatabase.systemFont(QFontDatabase.SystemFont.FixedFont)
@@ -178,15 +182,15 @@ class LinarmViewer(RefreshWhenVisible, LabelBoard, QWidget):
 
     def refresh(self) -> None:
         c = colours()
-        driver = self.manager.driver("linarm")
+        driver = self.manager.driver(streams.LINARM)
         if driver is None:
             self.header.setText(f"<span style='color:{c.idle}'>●</span> LINarm is off in the configuration")
             fresh = False
-        elif not driver.connected:
+        elif not self.qt_bus.connected(streams.LINARM):
             self.header.setText(f"<span style='color:{c.bad}'>●</span> <b>LINarm disconnected</b>"
                                 " — last known values, greyed")
             fresh = False
-        elif driver.silent:
+        elif self.qt_bus.silent(streams.LINARM):
             self.header.setText(f"<span style='color:{c.warn}'>●</span> LINarm connected but silent"
                                 " — values are stale")
             fresh = False
@@ -196,8 +200,8 @@ class LinarmViewer(RefreshWhenVisible, LabelBoard, QWidget):
             self.header.setText(f"<span style='color:{c.ok}'>●</span> LINarm connected · {rate:.0f} Hz"
                                 + (f" · firmware {fw}" if fw else ""))
             fresh = True
-        latest = (lambda _s: None) if driver is None else driver.latest
-        state = latest("linarm.state")
+        latest = (lambda _s: None) if driver is None else self.qt_bus.latest
+        state = latest(streams.LINARM_STATE)
         for key, _label, enum_attr in STATE_ROWS:
             value = getattr(state, key, None)
             if enum_attr is not None:
@@ -207,7 +211,7 @@ class LinarmViewer(RefreshWhenVisible, LabelBoard, QWidget):
             self._set(f"state.{key}", text, state_colour(key, value) if fresh else c.idle)
         self._set("state.controllerTime", format_number(getattr(state, "controllerTime", None), 3) + " s"
                   if state is not None else DASH, c.text if fresh else c.idle)
-        vsa = latest("linarm.vsa")
+        vsa = latest(streams.LINARM_VSA)
         for ch in VSA_STREAM.channels:
             self._set(f"vsa.{ch.name}", format_number(getattr(vsa, ch.name, None), DECIMALS.get(ch.unit, 3)),
                       c.text if fresh else c.idle)

@@ -1,8 +1,9 @@
 """The clinician's main window: the seed's four frames as rearrangeable docks, an always-visible
 emergency stop, a status bar with each device's connection and rate, and menus.
 
-The window is a view: it reads the manager's drivers (signals, rates) and sends commands through
-the manager; it never parses bytes or opens ports.
+The window is a view: its one Qt bus adapter (:class:`~app.ui.qt_bus.QtBus` on ``manager.bus``) brings the
+samples and device events to its frames as Qt signals; it sends commands through the manager; it never parses
+bytes or opens ports. Closing the window closes the adapter: nothing of the window stays subscribed to the bus.
 """
 
 from __future__ import annotations
@@ -33,6 +34,7 @@ from app.logging_setup import log_file
 from app.manager import LinarmppManager
 from app.paths import data_dir, sessions_dir
 from app.resources import RESOURCES
+from app.ui.qt_bus import QtBus, takes_qt_bus
 from app.ui.recovery import Restartable
 
 log = logging.getLogger(__name__)
@@ -165,6 +167,8 @@ class MainWindow(QMainWindow):
     def __init__(self, manager: LinarmppManager) -> None:
         super().__init__()
         self.manager = manager
+        # The window's one adapter: every frame takes its samples and device events from it.
+        self.qt_bus = QtBus(manager.bus, parent=self)
         self.setWindowTitle("LINarm++ Manager")
         self.setObjectName("MainWindow")
         self.setDockNestingEnabled(True)
@@ -266,7 +270,7 @@ class MainWindow(QMainWindow):
             placeholder.setAlignment(Qt.AlignmentFlag.AlignCenter)
             return placeholder
         factory: Callable[..., QWidget] = getattr(module, class_name)
-        return factory(self.manager)
+        return factory(self.manager, qt_bus=self.qt_bus) if takes_qt_bus(factory) else factory(self.manager)
 
     def _build_menus(self) -> None:
         file_menu = self.menuBar().addMenu("&File")
@@ -311,12 +315,12 @@ class MainWindow(QMainWindow):
 
     def _build_status_bar(self) -> None:
         self.device_status: dict[str, DeviceStatus] = {}
-        for name, handle in self.manager.devices.items():
+        for name in self.manager.devices:
             label = DeviceStatus(name)
-            label.set_connection(handle.driver.connected, "starting")
+            label.set_connection(self.qt_bus.connected(name), "starting")
             self.statusBar().addPermanentWidget(label)
             self.device_status[name] = label
-        self.manager.device_connection_changed.connect(self._on_device_connection)
+        self.qt_bus.connection_changed.connect(self._on_device_connection)
         self._status_timer = QTimer(self)
         # Rates and silence once a second; a connection or loss shows at once (_on_device_connection).
         self._status_timer.setInterval(1000)
@@ -476,9 +480,8 @@ class MainWindow(QMainWindow):
 
     def _refresh_status(self) -> None:
         for name, label in self.device_status.items():
-            driver = self.manager.devices[name].driver
-            label.connected = driver.connected
-            label.refresh(driver.rates(), driver.silent)
+            label.connected = self.qt_bus.connected(name)
+            label.refresh(self.manager.devices[name].driver.rates(), self.qt_bus.silent(name))
 
     def show_about(self) -> None:
         QMessageBox.about(
@@ -574,6 +577,7 @@ class MainWindow(QMainWindow):
             if callable(save):
                 save(settings)
         super().closeEvent(event)
+        self.qt_bus.close()  # the frames' data stops here; the bus forgets the window
         # The main window holds the e-stop: when it closes, the whole application ends (devices safe in
         # run_gui's shutdown). No other window may keep the app — and the devices — running without it.
         self.manager.supervisor.bring_to_safe_state("main window closed")

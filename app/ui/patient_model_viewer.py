@@ -1,9 +1,10 @@
 """The patient-model viewer: α, a_r, a_f and TPI, MPI, PTI over time, and the decision tree with the
 path the model took (D2.2 §3.3).
 
-``PatientModelViewer(manager)`` follows ``manager.driver("patient_model")``: column batches from its
-``samples`` signal fill the plots' history; the latest sample (path, range, level) redraws the tree
-on a timer.  ``feed(t, sample)`` adds one sample directly (replay, tests).
+``PatientModelViewer(manager)`` follows the patient model's stream on the bus: column batches from the Qt bus
+adapter's ``samples`` signal fill the plots' history; the latest sample (path, range, level) redraws the tree
+on a timer; the link's counters come from ``manager.driver("patient_model")``.  ``feed(t, sample)`` adds one
+sample directly (replay, tests).
 
 ``DecisionTreeView`` draws every node of layers 1-4 (1 root, 3 groups, 6 TPI, 12 MPI nodes and the
 24 PTI leaves, each leaf coloured by the middle of its α range), the taken path highlighted, and
@@ -22,6 +23,7 @@ from PySide6.QtCore import QPointF, QRectF, Qt, QTimer
 from PySide6.QtGui import QColor, QFont, QPainter, QPaintEvent, QPen
 from PySide6.QtWidgets import QGridLayout, QHBoxLayout, QLabel, QSplitter, QVBoxLayout, QWidget
 
+from app import streams
 from app.patient_model.decision_tree import (
     GROUPS,
     INDEX_LAYERS,
@@ -29,6 +31,7 @@ from app.patient_model.decision_tree import (
     TreeConfig,
     load_tree_config,
 )
+from app.ui.qt_bus import QtBus, qt_bus_for
 from app.ui.theme import colours, curve_colour
 from app.ui.widgets import RefreshWhenVisible
 
@@ -209,11 +212,15 @@ def _fmt(x: float | None, digits: int = 2) -> str:
 
 class PatientModelViewer(RefreshWhenVisible, QWidget):
     def __init__(self, manager: Any = None, driver: Any = None, tree_config: TreeConfig | None = None,
-                 history_s: float = 60.0, refresh_hz: float = 20.0, parent: QWidget | None = None) -> None:
+                 history_s: float = 60.0, refresh_hz: float = 20.0, parent: QWidget | None = None, *,
+                 qt_bus: QtBus | None = None) -> None:
+        """Live from ``qt_bus`` (the window's; with a manager and none, the viewer's own), or fed by hand
+        (:meth:`feed`) without either."""
         super().__init__(parent)
         self.setWindowTitle("Patient model")
         self.manager = manager
-        self.driver = driver if driver is not None else (manager.driver("patient_model") if manager else None)
+        self.driver = driver if driver is not None else (manager.driver(streams.PATIENT_MODEL) if manager else None)
+        self.qt_bus = qt_bus_for(manager, qt_bus, self) if manager is not None or qt_bus is not None else None
         self.history_s = history_s
         self._t: deque[float] = deque()
         self._cols: dict[str, deque[float]] = {k: deque() for k in (*ALPHA_CHANNELS, *INDEX_CHANNELS)}
@@ -268,15 +275,15 @@ class PatientModelViewer(RefreshWhenVisible, QWidget):
         layout.addLayout(grid)
         layout.addWidget(split, 1)
 
-        if self.driver is not None:
-            self.driver.samples.connect(self._on_batches)
+        if self.qt_bus is not None:
+            self.qt_bus.samples.connect(self._on_batches)
         self.timer = QTimer(self)
         self.timer.timeout.connect(self._tick)
         self.timer.start(int(1000 / refresh_hz))
 
     # ------------------------------------------------------------------ data in
     def _on_batches(self, batches: dict[str, Any]) -> None:
-        b = batches.get("patient_model.main")
+        b = batches.get(streams.PATIENT_MODEL_MAIN)
         if b is None:
             return
         self._t.extend(b.t.tolist())
@@ -306,11 +313,12 @@ class PatientModelViewer(RefreshWhenVisible, QWidget):
     # ------------------------------------------------------------------ display
 
     def refresh(self) -> None:
-        latest = self.driver.latest("patient_model.main") if self.driver is not None else self._latest
-        if self.driver is not None:
+        qt_bus = self.qt_bus if self.driver is not None else None
+        latest = qt_bus.latest(streams.PATIENT_MODEL_MAIN) if qt_bus is not None else self._latest
+        if qt_bus is not None:
             drops = self.driver.dropped_total if hasattr(self.driver, "dropped_total") else 0
-            state = "connected" if self.driver.connected else "not connected"
-            rate = self.driver.rates().get("patient_model.main", 0.0)
+            state = "connected" if qt_bus.connected(streams.PATIENT_MODEL) else "not connected"
+            rate = self.driver.rates().get(streams.PATIENT_MODEL_MAIN, 0.0)
             self.status.setText(f"Patient model {state} · {rate:.0f} replies/s · {drops} datagrams dropped")
         if latest is not None and latest is not self._shown:
             self._show_sample(latest)

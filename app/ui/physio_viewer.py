@@ -3,17 +3,16 @@ units, a small live trace of each (last 10 s) plus the raw pulse waveform, the l
 and counters (decoded, lost, bad CRC, discarded bytes), the board's sensor-fault flags in words and
 the calibration in use.
 
-Labels and units come from the driver's stream spec (``PHYSIO_STREAM``); values are read from
-``driver.latest()`` on a timer, never per sample.  The four traces come from the shared signal store
-(fed by the driver's ``samples`` batches); the pulse (PPG) is not a stream channel, so a tiny
-listener keeps the last seconds of it, timed on the board clock so the waveform is not distorted by
-the bursty USB arrival times.
+Labels and units come from the driver's stream spec (``PHYSIO_STREAM``); values are the bus's latest
+sample (``QtBus.latest``), read on a timer, never per sample.  The four traces come from the shared signal
+store (fed by the Qt bus adapter's ``samples`` batches); the pulse (PPG) is not a stream channel, so the viewer
+has a bus subscription of its own to the physio stream, drained on its timer into the last seconds of the
+pulse, timed on the board clock so the waveform is not distorted by the bursty USB arrival times.
 """
 
 from __future__ import annotations
 
 import math
-import threading
 from collections import deque
 from typing import Any
 
@@ -23,15 +22,19 @@ from PySide6.QtCore import Qt, QTimer
 from PySide6.QtGui import QFont, QFontDatabase
 from PySide6.QtWidgets import QFrame, QGridLayout, QGroupBox, QHBoxLayout, QLabel, QVBoxLayout, QWidget
 
+from app import streams
+from app.bus import SampleItem, StreamBus, Subscription
 from app.devices.physio import PHYSIO_STREAM
 from app.devices.physio_codec import FAULT_FLAGS
 from app.manager import LinarmppManager
+from app.ui.qt_bus import QtBus, qt_bus_for
 from app.ui.signal_store import SignalStore, shared_store, signal_key
 from app.ui.theme import colours, curve_colour
 from app.ui.widgets import LabelBoard, on_screen
 
 DASH = "—"
-STREAM = PHYSIO_STREAM.name
+STREAM = streams.PHYSIO_MAIN
+PULSE_SUBSCRIBER = "physio-viewer-pulse"  # the viewer's own bus subscription (the PPG)
 TRACE_S = 10.0  # seconds of history in each small trace
 CHANNELS = {ch.name: ch for ch in PHYSIO_STREAM.channels}
 # Tile order as the seed lists the sensors: grip force first (it drives the trigger exercises).
@@ -71,31 +74,35 @@ def format_value(value: Any, decimals: int) -> str:
 
 
 class PulseTap:
-    """Driver listener keeping the last seconds of the raw pulse as (board time s, counts).
+    """The last seconds of the raw pulse as (board time s, counts), from the viewer's bus subscription to the
+    physio stream: drained on the GUI thread (:meth:`take`), so a slow GUI loses only its own oldest beats."""
 
-    Runs on the driver thread for every sample: appends under a lock and nothing else."""
-
-    def __init__(self, maxlen: int) -> None:
-        self._lock = threading.Lock()
+    def __init__(self, bus: StreamBus, maxlen: int) -> None:
+        # The queue holds what arrives between two drains; the deques the last seconds.
+        self.subscription: Subscription = bus.subscribe(PULSE_SUBSCRIBER, [STREAM], maxlen=maxlen)
         self._t: deque[float] = deque(maxlen=maxlen)
         self._v: deque[float] = deque(maxlen=maxlen)
         self.generation = 0
 
-    def __call__(self, stream: str, _t: float, sample: Any) -> None:
-        if stream != STREAM:
-            return
+    def take(self) -> None:
+        for item in self.subscription.drain():
+            if isinstance(item, SampleItem):
+                self.add(item.sample)
+
+    def add(self, sample: Any) -> None:
         bt = float(sample.boardTime)
-        with self._lock:
-            if self._t and bt < self._t[-1]:  # a new connection restarts the board clock
-                self._t.clear()
-                self._v.clear()
-            self._t.append(bt)
-            self._v.append(float(sample.ppg))
-            self.generation += 1
+        if self._t and bt < self._t[-1]:  # a new connection restarts the board clock
+            self._t.clear()
+            self._v.clear()
+        self._t.append(bt)
+        self._v.append(float(sample.ppg))
+        self.generation += 1
 
     def arrays(self) -> tuple[np.ndarray, np.ndarray]:
-        with self._lock:
-            return np.fromiter(self._t, float, len(self._t)), np.fromiter(self._v, float, len(self._v))
+        return np.fromiter(self._t, float, len(self._t)), np.fromiter(self._v, float, len(self._v))
+
+    def close(self) -> None:
+        self.subscription.close()
 
 
 def _y_range(y: np.ndarray, min_span: float) -> tuple[float, float] | None:
@@ -133,9 +140,12 @@ def _trace(colour: str, height: int) -> tuple[pg.PlotWidget, pg.PlotDataItem]:
 
 
 class PhysioViewer(LabelBoard, QWidget):
-    def __init__(self, manager: LinarmppManager) -> None:
+    def __init__(self, manager: LinarmppManager, *, qt_bus: QtBus | None = None) -> None:
+        """The physiological board of ``manager``: samples, link state and traces through ``qt_bus`` (the
+        window's; else the viewer's own), the link's counters from its driver."""
         super().__init__()
         self.manager = manager
+        self.qt_bus = qt_bus_for(manager, qt_bus, self)
         self.values: dict[str, QLabel] = {}
         self.units: dict[str, QLabel] = {}
         self.plots: dict[str, pg.PlotWidget] = {}
@@ -280,25 +290,25 @@ class PhysioViewer(LabelBoard, QWidget):
         return self._shown.get(key, ("", ""))[1]
 
     def _attach(self, driver: Any) -> None:
-        """Follow the manager's physio driver: listen for the pulse, feed the store from it."""
+        """Follow the manager's physio device: subscribe to its pulse, feed the store; let go when it goes."""
         _detach(self._attachment)
         self._driver = driver
         self._tap = None
         self._drawn.clear()
         if driver is None:
             return
-        self._store = shared_store(self.manager)
-        if hasattr(driver, "add_listener"):
-            self._tap = PulseTap(self._tap_len)
-            driver.add_listener(self._tap)
-            self._attachment.update(driver=driver, tap=self._tap)
+        self._store = shared_store(self.manager, self.qt_bus)
+        self._tap = PulseTap(self.qt_bus.bus, self._tap_len)
+        self._attachment.update(tap=self._tap)
 
     def _tick(self) -> None:
-        """The timer's slot: keep following the driver (the pulse tap must not miss beats), but draw
+        """The timer's slot: keep following the device (the pulse must not miss beats), but draw
         nothing while nobody can see the view (see ``on_screen``)."""
-        driver = self.manager.driver("physio")
+        driver = self.manager.driver(streams.PHYSIO)
         if driver is not self._driver:
             self._attach(driver)
+        if self._tap is not None:
+            self._tap.take()
         if on_screen(self):
             self.refresh()
 
@@ -308,18 +318,20 @@ class PhysioViewer(LabelBoard, QWidget):
 
     def refresh(self) -> None:
         c = colours()
-        driver = self.manager.driver("physio")
+        driver = self.manager.driver(streams.PHYSIO)
         if driver is not self._driver:
             self._attach(driver)
+        if self._tap is not None:
+            self._tap.take()
         if driver is None:
             self.header.setText(f"<span style='color:{c.idle}'>●</span> Physiological sensors not connected"
                                 " (off in the configuration)")
             fresh = False
-        elif not driver.connected:
+        elif not self.qt_bus.connected(streams.PHYSIO):
             self.header.setText(f"<span style='color:{c.bad}'>●</span> <b>Physiological sensors not"
                                 " connected</b> — last known values, greyed")
             fresh = False
-        elif driver.silent:
+        elif self.qt_bus.silent(streams.PHYSIO):
             self.header.setText(f"<span style='color:{c.warn}'>●</span> Physiological sensors connected"
                                 " but silent — values are stale")
             fresh = False
@@ -329,7 +341,7 @@ class PhysioViewer(LabelBoard, QWidget):
             fresh = True
         text = c.text if fresh else c.idle
 
-        sample = driver.latest(STREAM) if driver is not None else None
+        sample = self.qt_bus.latest(STREAM) if driver is not None else None
         flags = int(getattr(sample, "flags", 0) or 0)
         bad_channels = faulty_channels(flags)
         for name in TILE_ORDER:
@@ -393,6 +405,6 @@ class PhysioViewer(LabelBoard, QWidget):
 
 
 def _detach(attachment: dict[str, Any]) -> None:
-    driver, tap = attachment.pop("driver", None), attachment.pop("tap", None)
-    if driver is not None and tap is not None:
-        driver.remove_listener(tap)
+    tap = attachment.pop("tap", None)
+    if tap is not None:
+        tap.close()

@@ -51,9 +51,11 @@ from PySide6.QtWidgets import (
     QWidget,
 )
 
+from app import streams
 from app.manager import LinarmppManager
 from app.paths import sessions_dir
-from app.ui.signal_store import SignalInfo, SignalStore, shared_store
+from app.ui.qt_bus import QtBus, qt_bus_for
+from app.ui.signal_store import SignalInfo, SignalStore, shared_store, signal_key
 from app.ui.theme import colours, curve_colour
 from app.ui.widgets import on_screen
 
@@ -63,8 +65,8 @@ KEY_ROLE = Qt.ItemDataRole.UserRole
 SI_BASE_UNITS = {"m", "N", "N/m", "m/s", "m/s^2", "A", "V", "s", "S", "Ω", "W", "Hz"}
 FES_CHANNEL = re.compile(r"(Current|Pulse width) ch (\d+)")  # the stimulator's channel labels
 HISTORY_CHOICES_S = (5.0, 10.0, 20.0, 30.0, 60.0, 120.0, 300.0, 600.0)
-DEFAULT_SIGNALS = ("linarm.vsa.handlePos", "linarm.vsa.equilibriumPos", "linarm.vsa.interactionForce",
-                   "physio.main.heartRate")
+DEFAULT_SIGNALS = (signal_key(streams.LINARM_VSA, "handlePos"), signal_key(streams.LINARM_VSA, "equilibriumPos"),
+                   signal_key(streams.LINARM_VSA, "interactionForce"), signal_key(streams.PHYSIO_MAIN, "heartRate"))
 SCOPE_VISIBLE, SCOPE_ALL = "visible", "all"
 LAYOUT_ONE_TABLE, LAYOUT_PER_STREAM = "one_table", "per_stream"
 NO_UNIT = "(no unit)"
@@ -149,12 +151,17 @@ class _TimedGraphics(pg.GraphicsLayoutWidget):
 
 
 class PlotsFrame(QWidget):
-    def __init__(self, manager: LinarmppManager | None, store: SignalStore | None = None) -> None:
+    def __init__(self, manager: LinarmppManager | None, store: SignalStore | None = None, *,
+                 qt_bus: QtBus | None = None) -> None:
+        """The live graphs of ``manager``'s devices, fed by ``qt_bus`` (the window's adapter; without one the
+        frame makes its own) through the manager's shared store; or, with ``store``, that store's signals."""
         super().__init__()
         self.manager = manager
+        self.qt_bus: QtBus | None = None  # None: a given store's signals (a replay), no live data
         if store is None:
             assert manager is not None
-            store = shared_store(manager)
+            self.qt_bus = qt_bus_for(manager, qt_bus, self)
+            store = shared_store(manager, self.qt_bus)
         self.store = store
         refresh_hz = manager.config.ui.refresh_hz if manager is not None else 30.0
         self.selected: list[str] = []
@@ -200,7 +207,7 @@ class PlotsFrame(QWidget):
     # ------------------------------------------------------------------ names
     def _muscles(self) -> dict[int, str]:
         """Channel -> muscle of the loaded FES profile (empty without one)."""
-        fes = self.manager.driver("fes") if self.manager is not None else None
+        fes = self.manager.driver(streams.FES) if self.manager is not None else None
         profile = getattr(fes, "profile", None)
         channels = getattr(profile, "channels", None) or {}
         return {int(ch): str(cp.muscle) for ch, cp in channels.items() if getattr(cp, "muscle", "")}
@@ -209,7 +216,7 @@ class PlotsFrame(QWidget):
         """The name shown in the tree, legends and readout. FES channels lead with their number, then
         the quantity, then the muscle of the loaded profile (issue #19: eight identical "Current c…")."""
         match = FES_CHANNEL.fullmatch(info.label)
-        if info.device != "fes" or match is None:
+        if info.device != streams.FES or match is None:
             return info.label
         kind, number = match.group(1).lower(), int(match.group(2))
         muscle = self._muscles().get(number)
@@ -381,7 +388,7 @@ class PlotsFrame(QWidget):
                 depth += 1
                 p = p.parent()
             key = item.data(0, KEY_ROLE)
-            if key is not None and self.store.info(key).device == "fes":
+            if key is not None and self.store.info(key).device == streams.FES:
                 continue
             need = max(need, fm.horizontalAdvance(item.text(0)) + check + self.tree.indentation() * (depth + 1))
         unit = max((fm.horizontalAdvance(i.text(1)) for i in self._leaf_items()), default=20) + 16

@@ -27,6 +27,7 @@ from PySide6.QtWidgets import (
     QWidget,
 )
 
+from app import streams
 from app.devices.linarm_protocol import ErrorState, HomeState
 from app.manager import LinarmppManager
 from app.safety import AlarmLevel
@@ -57,10 +58,10 @@ class Restartable:
 
 
 def robot_state(manager: LinarmppManager) -> Any:
-    driver = manager.driver("linarm")
+    driver = manager.driver(streams.LINARM)
     if driver is None or not driver.connected:
         return None
-    return driver.latest("linarm.state")
+    return manager.bus.latest(streams.LINARM_STATE)
 
 
 def recovery_needed(manager: LinarmppManager) -> bool:
@@ -143,7 +144,7 @@ class Recovery(QObject):
                     sup.acknowledge(alarm.ident, self.operator)
         state = robot_state(self.manager)
         if state is not None and int(state.errorState) != NO_ERROR:
-            driver = self.manager.driver("linarm")
+            driver = self.manager.driver(streams.LINARM)
             try:
                 self._future = driver.command_async("resetError", source=SOURCE)
             except Exception as exc:  # a refusal or a closed driver: say so, do nothing more
@@ -183,7 +184,7 @@ class Recovery(QObject):
             return
         state = robot_state(self.manager)
         if state is not None and int(state.homeState) != HOME_DONE:
-            driver = self.manager.driver("linarm")
+            driver = self.manager.driver(streams.LINARM)
             try:
                 driver.command_async("goToHome", source=SOURCE)
             except Exception as exc:

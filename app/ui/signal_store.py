@@ -1,7 +1,7 @@
-"""GUI-side history of every live signal: ring buffers fed by the drivers' ``samples`` batches.
+"""GUI-side history of every live signal: ring buffers fed by the Qt bus adapter's ``samples`` batches.
 
-One :class:`SignalStore` per manager (``shared_store(manager)``) keeps, for every stream a driver
-declares, a ring of timestamps and one ring per channel, so each (stream, channel) is a signal with
+One :class:`SignalStore` per manager (``shared_store(manager, qt_bus)``) keeps, for every stream declared on
+the bus, a ring of timestamps and one ring per channel, so each (stream, channel) is a signal with
 the unit and label of its :class:`~app.devices.driver.StreamSpec`. Signals are named
 ``"<stream>.<channel>"``, e.g. ``"linarm.vsa.handlePos"``.
 
@@ -28,12 +28,14 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+import shiboken6
 from PySide6.QtCore import QObject, Signal
 
-from app.devices.driver import DeviceDriver, SampleBatch, StreamSpec
+from app.bus import SampleBatch, StreamSpec
 
 if TYPE_CHECKING:
     from app.manager import LinarmppManager
+    from app.ui.qt_bus import QtBus
 
 BLOCK = 32  # samples per envelope block: 60 s × 1 kHz → 1875 blocks per channel
 MIN_CAPACITY = 1024
@@ -197,22 +199,25 @@ class SignalStore(QObject):
         self._rings: dict[str, _Ring] = {}
         self._info: dict[str, SignalInfo] = {}
         self._stream_device: dict[str, str] = {}
-        self._drivers: list[weakref.ref[DeviceDriver]] = []
+        self._source: weakref.ref[QtBus] | None = None  # the adapter feeding the store
 
     # -------------------------------------------------------------- wiring
-    def attach(self, manager: LinarmppManager) -> None:
-        """Connect every device's driver (idempotent: call again after devices are added)."""
-        for name, handle in manager.devices.items():
-            self.attach_driver(handle.driver, name)
-
-    def attach_driver(self, driver: DeviceDriver, device: str | None = None) -> None:
-        if any(ref() is driver for ref in self._drivers):
+    def attach_bus(self, qt_bus: QtBus) -> None:
+        """Be fed by ``qt_bus`` (its ``samples``), with every stream declared on its bus listed at once.
+        One source at a time: attaching another adapter lets go of the previous one (no sample twice).
+        Idempotent; call again to list streams declared since."""
+        for spec in qt_bus.specs().values():
+            self.add_stream(spec)
+        current = self._source() if self._source is not None else None
+        if current is qt_bus:
             return
-        self._drivers.append(weakref.ref(driver))
-        device = device or driver.name
-        for spec in driver.streams:
-            self.add_stream(spec, device)
-        driver.samples.connect(self.feed)
+        if current is not None and shiboken6.isValid(current):
+            try:
+                current.samples.disconnect(self.feed)
+            except (RuntimeError, TypeError):  # already gone with its window
+                pass
+        self._source = weakref.ref(qt_bus)
+        qt_bus.samples.connect(self.feed)
 
     def add_stream(self, spec: StreamSpec, device: str | None = None) -> None:
         if spec.name in self._rings:
@@ -228,7 +233,7 @@ class SignalStore(QObject):
         self.signals_changed.emit()
 
     def feed(self, batches: dict[str, SampleBatch]) -> None:
-        """Slot for ``DeviceDriver.samples``: store each batch (unknown streams are added)."""
+        """Slot for ``QtBus.samples``: store each batch (unknown streams are added)."""
         for name, batch in batches.items():
             ring = self._rings.get(name)
             if ring is None:
@@ -435,12 +440,12 @@ class SignalStore(QObject):
 _shared: weakref.WeakKeyDictionary[Any, SignalStore] = weakref.WeakKeyDictionary()
 
 
-def shared_store(manager: LinarmppManager) -> SignalStore:
-    """The one store of ``manager`` (created and attached on first use; re-attaches new devices)."""
+def shared_store(manager: LinarmppManager, qt_bus: QtBus) -> SignalStore:
+    """The one store of ``manager`` (created on first use), fed by ``qt_bus`` (see :meth:`SignalStore.attach_bus`)."""
     store = _shared.get(manager)
     if store is None:
         history = max(float(manager.config.ui.history_s), 1.0)
         store = SignalStore(history)
         _shared[manager] = store
-    store.attach(manager)
+    store.attach_bus(qt_bus)
     return store

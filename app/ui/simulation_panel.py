@@ -32,8 +32,11 @@ from PySide6.QtWidgets import (
     QWidget,
 )
 
+from app import streams
+from app.bus import StreamBus
 from app.devices.physio_codec import FAULT_FLAGS
 from app.manager import LinarmppManager
+from app.ui.qt_bus import QtBus
 from app.ui.theme import colours
 
 log = logging.getLogger(__name__)
@@ -89,9 +92,11 @@ def _scroll(content: QWidget) -> QScrollArea:
 
 
 class SimulationPanel(QWidget):
-    def __init__(self, manager: LinarmppManager) -> None:
+    def __init__(self, manager: LinarmppManager, *, qt_bus: QtBus | None = None) -> None:
+        """The simulators of ``manager``; the live grip force from the bus (``qt_bus``'s, else the manager's)."""
         super().__init__()
         self.manager = manager
+        self.bus: StreamBus = qt_bus.bus if qt_bus is not None else manager.bus
         self.patient: Any = manager.patient
         self.sim_buttons: dict[str, tuple[QPushButton, QPushButton, QLabel]] = {}
         outer = QVBoxLayout(self)
@@ -316,7 +321,7 @@ class SimulationPanel(QWidget):
         return self._apply(f"push to {x:.3f} m, give up after {k:.0%}", lambda p: p.fail_stop_early(x, f, k))
 
     def _physio_core_handle(self) -> Any:
-        handle = self.manager.devices.get("physio")
+        handle = self.manager.devices.get(streams.PHYSIO)
         return handle.simulator if handle is not None and handle.simulator is not None else None
 
     def phasic_event(self) -> bool:
@@ -381,7 +386,7 @@ class SimulationPanel(QWidget):
         except Exception as exc:
             self._say(f"Not applied: {exc}", ok=False)
             return
-        if name == "physio":  # a freshly powered board has no fault flags
+        if name == streams.PHYSIO:  # a freshly powered board has no fault flags
             for check in self.fault_checks.values():
                 check.setChecked(False)
         self._say(f"Simulated {name}: plugged back in (fresh power-up).")
@@ -390,9 +395,8 @@ class SimulationPanel(QWidget):
 
     # ------------------------------------------------------------------ state
     def grip_force_now(self) -> float | None:
-        """The grip force the physiological driver last received (N), if any."""
-        driver = self.manager.driver("physio")
-        sample = driver.latest("physio.main") if driver is not None else None
+        """The grip force the physiological board last sent (N), if any."""
+        sample = self.bus.latest(streams.PHYSIO_MAIN)
         force = getattr(sample, "force", None)
         return float(force) if force is not None else None
 

@@ -2,11 +2,11 @@
 part the robot's control state, mode and error state (colour-coded) and each device's connection
 and sample rate.
 
-The frame polls ``driver.latest(stream)`` on a 5 Hz timer: a number changing faster cannot be read
-(a meter's display updates 2-5 times a second; the motion itself is in the graphs and the device view),
-and polling costs nothing when devices are absent. A value's text is set only when the shown (rounded)
-text changes, and its label paints its own background, so a new digit repaints that label alone. Absent devices or
-values show "—".
+The frame polls each stream's latest sample on the bus (``QtBus.latest``) on a 5 Hz timer: a number changing
+faster cannot be read (a meter's display updates 2-5 times a second; the motion itself is in the graphs and
+the device view), and polling costs nothing when devices are absent. A value's text is set only when the shown
+(rounded) text changes, and its label paints its own background, so a new digit repaints that label alone.
+Absent devices or values show "—".
 """
 
 from __future__ import annotations
@@ -31,7 +31,9 @@ from PySide6.QtWidgets import (
     QWidget,
 )
 
+from app import streams
 from app.manager import LinarmppManager
+from app.ui.qt_bus import QtBus, qt_bus_for
 from app.ui.theme import colours
 from app.ui.widgets import RefreshWhenVisible
 
@@ -55,28 +57,28 @@ class Quantity:
 # The display order of the seed's quantities; units are the streams' own (SI except FES).
 GROUPS: list[tuple[str, list[Quantity]]] = [
     ("Robot", [
-        Quantity("Handle position", "linarm.vsa", "handlePos", 3, "m"),
-        Quantity("Handle velocity", "linarm.vsa", "handleVel", 3, "m/s"),
-        Quantity("Interaction force", "linarm.vsa", "interactionForce", 1, "N"),
-        Quantity("Stiffness", "linarm.vsa", "stiffness", 0, "N/m"),
-        Quantity("Centre", "linarm.vsa", "equilibriumPos", 3, "m"),
-        Quantity("Delta", "linarm.vsa", "delta", 4, "m"),
+        Quantity("Handle position", streams.LINARM_VSA, "handlePos", 3, "m"),
+        Quantity("Handle velocity", streams.LINARM_VSA, "handleVel", 3, "m/s"),
+        Quantity("Interaction force", streams.LINARM_VSA, "interactionForce", 1, "N"),
+        Quantity("Stiffness", streams.LINARM_VSA, "stiffness", 0, "N/m"),
+        Quantity("Centre", streams.LINARM_VSA, "equilibriumPos", 3, "m"),
+        Quantity("Delta", streams.LINARM_VSA, "delta", 4, "m"),
     ]),
     ("Physiology", [
-        Quantity("Grip force", "physio.main", "force", 1, "N"),
-        Quantity("Heart rate", "physio.main", "heartRate", 0, "bpm"),
-        Quantity("Skin conductance", "physio.main", "skinConductance", 2, "µS"),
-        Quantity("Temperature", "physio.main", "temperature", 1, "°C"),
+        Quantity("Grip force", streams.PHYSIO_MAIN, "force", 1, "N"),
+        Quantity("Heart rate", streams.PHYSIO_MAIN, "heartRate", 0, "bpm"),
+        Quantity("Skin conductance", streams.PHYSIO_MAIN, "skinConductance", 2, "µS"),
+        Quantity("Temperature", streams.PHYSIO_MAIN, "temperature", 1, "°C"),
     ]),
     ("Patient model", [
-        Quantity("α", "patient_model.main", "alpha", 2, ""),
-        Quantity("a_r", "patient_model.main", "a_r", 2, ""),
-        Quantity("a_f", "patient_model.main", "a_f", 2, ""),
+        Quantity("α", streams.PATIENT_MODEL_MAIN, "alpha", 2, ""),
+        Quantity("a_r", streams.PATIENT_MODEL_MAIN, "a_r", 2, ""),
+        Quantity("a_f", streams.PATIENT_MODEL_MAIN, "a_f", 2, ""),
     ]),
 ]
 
-STATE_STREAM = "linarm.state"
-FES_STREAM = "fes.channels"
+STATE_STREAM = streams.LINARM_STATE
+FES_STREAM = streams.FES_CHANNELS
 # (title, channel, enum name in app.devices.linarm_protocol)
 STATE_FIELDS: list[tuple[str, str, str]] = [
     ("Control state", "controlState", "CONTROL_STATES"),
@@ -179,9 +181,11 @@ class ValueTile(QFrame):
 
 
 class ValuesFrame(RefreshWhenVisible, QWidget):
-    def __init__(self, manager: LinarmppManager) -> None:
+    def __init__(self, manager: LinarmppManager, *, qt_bus: QtBus | None = None) -> None:
+        """``manager``'s devices and streams, read through ``qt_bus`` (the window's; else the frame's own)."""
         super().__init__()
         self.manager = manager
+        self.qt_bus = qt_bus_for(manager, qt_bus, self)
         self.tiles: dict[tuple[str, str], ValueTile] = {}
         self.state_tiles: dict[str, ValueTile] = {}
         self.fes_labels: list[QLabel] = []
@@ -331,20 +335,18 @@ class ValuesFrame(RefreshWhenVisible, QWidget):
 
     # ------------------------------------------------------------------ reading
     def _latest(self, stream: str) -> Any:
-        handle = self.manager.devices.get(stream.split(".", 1)[0])
-        if handle is None or not handle.driver.connected:
+        """The stream's newest sample while its device is connected (a stale value is never shown)."""
+        if not self.qt_bus.connected(streams.device_of(stream)):
             return None
-        return handle.driver.latest(stream)
+        return self.qt_bus.latest(stream)
 
     def _unit(self, stream: str, channel: str) -> str | None:
-        handle = self.manager.devices.get(stream.split(".", 1)[0])
-        if handle is None:
+        spec = self.qt_bus.specs().get(stream)
+        if spec is None:
             return None
-        for spec in handle.driver.streams:
-            if spec.name == stream:
-                for ch in spec.channels:
-                    if ch.name == channel:
-                        return ch.unit
+        for ch in spec.channels:
+            if ch.name == channel:
+                return ch.unit
         return None
 
     def _sync_devices(self) -> None:
@@ -379,7 +381,8 @@ class ValuesFrame(RefreshWhenVisible, QWidget):
                                                state_colour(channel, value) if value is not None else None)
 
         fes = self._latest(FES_STREAM)
-        profile = getattr(self.manager.driver("fes"), "profile", None) if hasattr(self.manager, "driver") else None
+        fes_driver = self.manager.driver(streams.FES) if hasattr(self.manager, "driver") else None
+        profile = getattr(fes_driver, "profile", None)
         muscles = getattr(profile, "channels", None) or {}
         active = 0
         for ch, label in enumerate(self.fes_labels, start=1):
@@ -403,11 +406,11 @@ class ValuesFrame(RefreshWhenVisible, QWidget):
             if handle is None:
                 label.setText(f"<span style='color:{c.idle}'>●</span> {name} {DASH}")
                 continue
-            driver = handle.driver
-            rate = max(driver.rates().values(), default=0.0)
-            if driver.connected and not driver.silent:
+            rate = max(handle.driver.rates().values(), default=0.0)  # the link's own diagnostic
+            connected = self.qt_bus.connected(name)
+            if connected and not self.qt_bus.silent(name):
                 colour, state = c.ok, f"{rate:.0f} Hz"
-            elif driver.connected:
+            elif connected:
                 colour, state = c.warn, "silent"
             else:
                 colour, state = c.bad, "disconnected"

@@ -1,7 +1,7 @@
 """The VR renderer viewer (D2.2 §3.4): link state, packet rates, target and handle on the rail, score.
 
-``VrViewer(manager)`` reads ``manager.driver("vr")`` on a timer (the latest "vr.main" sample and
-the driver's counters); ``show_sample(sample)`` displays one sample without a driver (tests).
+``VrViewer(manager)`` reads, on a timer, the latest "vr.main" sample on the bus (through the Qt bus adapter)
+and the counters of ``manager.driver("vr")``; ``show_sample(sample)`` displays one sample without a driver (tests).
 """
 
 from __future__ import annotations
@@ -13,7 +13,9 @@ from PySide6.QtCore import QPointF, QRectF, QTimer
 from PySide6.QtGui import QColor, QPainter, QPaintEvent, QPen
 from PySide6.QtWidgets import QFormLayout, QLabel, QVBoxLayout, QWidget
 
+from app import streams
 from app.devices.udp_frames import TaskState
+from app.ui.qt_bus import QtBus, qt_bus_for
 from app.ui.theme import colours
 from app.ui.widgets import RefreshWhenVisible
 
@@ -60,10 +62,13 @@ class RailView(QWidget):
 
 class VrViewer(RefreshWhenVisible, QWidget):
     def __init__(self, manager: Any = None, driver: Any = None, refresh_hz: float = 10.0,
-                 parent: QWidget | None = None) -> None:
+                 parent: QWidget | None = None, *, qt_bus: QtBus | None = None) -> None:
+        """Live from ``qt_bus`` (the window's; with a manager and none, the viewer's own) with the link's
+        counters from ``driver`` (the manager's VR driver); :meth:`show_sample` by hand without them."""
         super().__init__(parent)
         self.setWindowTitle("VR renderer")
-        self.driver = driver if driver is not None else (manager.driver("vr") if manager else None)
+        self.driver = driver if driver is not None else (manager.driver(streams.VR) if manager else None)
+        self.qt_bus = qt_bus_for(manager, qt_bus, self) if manager is not None or qt_bus is not None else None
         self.fields: dict[str, QLabel] = {}
         form = QFormLayout()
         for key, label in (("link", "Link"), ("rates", "Packets"), ("dropped", "Dropped"),
@@ -81,14 +86,15 @@ class VrViewer(RefreshWhenVisible, QWidget):
 
 
     def refresh(self) -> None:
-        d = self.driver
-        if d is None:
+        d, qt_bus = self.driver, self.qt_bus
+        if d is None or qt_bus is None:
             return
-        self.fields["link"].setText("connected" if d.connected else "not connected (no events from the renderer)")
+        connected = qt_bus.connected(streams.VR)
+        self.fields["link"].setText("connected" if connected else "not connected (no events from the renderer)")
         self.fields["rates"].setText(f"{getattr(d, 'packet_rate_out', 0.0):.0f} frames/s out, "
                                      f"{getattr(d, 'packet_rate_in', 0.0):.1f} events/s in")
         self.fields["dropped"].setText(f"{getattr(d, 'dropped_total', 0)}")
-        sample = d.latest("vr.main")
+        sample = qt_bus.latest(streams.VR_MAIN)
         if sample is not None:
             self.show_sample(sample)
 
