@@ -172,6 +172,9 @@ class LinarmppManager(QObject):
             from app.patients import clinical_caps
 
             set_caps(clinical_caps(profile))
+        set_districts = getattr(fes, "set_district_channels", None)
+        if callable(set_districts):  # district-addressed FES profiles use the patient's chosen electrodes
+            set_districts(profile.fes.district_channels())
         self.supervisor.event("patient_profile_applied", patient=profile.patient_id,
                               k_r=profile.assistance.k_r, k_f=profile.assistance.k_f, clinical_score=score)
 

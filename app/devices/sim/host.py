@@ -55,7 +55,7 @@ DEVICE_CONTROLS: dict[str, Callable[..., Any]] = {
     "fes_running": lambda core: bool(core.running),
 }
 PATIENT_METHODS = frozenset({"idle", "squeeze", "squeeze_periodically", "squeeze_at_targets", "set_peak_force",
-                             "passive", "push_to", "fail_weak", "fail_stop_early"})
+                             "passive", "push_to", "fail_weak", "fail_stop_early", "set_electrode_distances"})
 
 
 def find_firmware_sil() -> Path | None:
@@ -321,8 +321,8 @@ def build_simulators(spec: dict[str, Any], patient: Any, emit: Callable[[dict[st
             from app.devices.rehastim import RehaStimSimAdapter
 
             protocol = params["protocol"]
-            sims[name] = SerialSimulator(name, lambda protocol=protocol: RehaStimSimAdapter(protocol), link,
-                                         tick_s=0.002, link_factory=link_factory)
+            sims[name] = SerialSimulator(name, lambda protocol=protocol: RehaStimSimAdapter(protocol, observer=patient),
+                                         link, tick_s=0.002, link_factory=link_factory)
         else:
             raise ValueError(f"unknown simulator kind {kind!r}")
     return sims
