@@ -131,9 +131,13 @@ class ElectrodeSetupDialog(QDialog):
         self.plot = pg.PlotWidget()
         self.plot.setBackground("w")
         self.plot.showGrid(x=True, y=True, alpha=0.3)
-        self.plot.setLabel("bottom", "Current", units="mA")
-        self.plot.setLabel("left", "Response (interaction force)", units="N")
-        self.plot.addLegend(offset=(10, 10))
+        for side in ("bottom", "left"):  # dark axes and text on the white plot: readable when printed too
+            axis = self.plot.getAxis(side)
+            axis.setPen(pg.mkPen("#444444"))
+            axis.setTextPen(pg.mkPen("#222222"))
+        self.plot.setLabel("bottom", "Test current", units="mA")
+        self.plot.setLabel("left", "Response: interaction force", units="N")
+        self.plot.addLegend(offset=(10, 10), labelTextColor="#222222", brush=pg.mkBrush(255, 255, 255, 220))
         self.plot.setMinimumSize(420, 260)
 
         self.table = QTableWidget(0, len(COLUMNS))
@@ -164,7 +168,7 @@ class ElectrodeSetupDialog(QDialog):
         top.addLayout(left)
         top.addWidget(self.plot, 1)
         lay = QVBoxLayout(self)
-        lay.addLayout(top, 3)
+        lay.addLayout(top, 5)
         lay.addWidget(self.table, 2)
         lay.addLayout(choose)
 
@@ -249,6 +253,8 @@ class ElectrodeSetupDialog(QDialog):
         self.progress.setValue(total)
         self._fill_table()
         self._show_proposal()
+        self._say(f"{result.district.name}: {total} test bursts" + (f", ended early: {result.aborted}"
+                                                                      if result.aborted else ", complete."), "")
 
     def _restore_profile(self) -> None:
         fes, previous = self.manager.driver("fes"), self._previous_profile
