@@ -63,12 +63,61 @@ class PhysioDevice(SerialDevice):
 
 
 @dataclass(frozen=True)
+class ElectrodeCombinationConfig:
+    """One candidate combination of an electrode array: the stimulator channel its electrode pair is wired to,
+    and which electrodes of the array form the pair (as labelled on the garment, e.g. "1-2")."""
+
+    channel: int = field(default=1, metadata=rng(1, 8))
+    electrodes: str = ""
+
+
+@dataclass(frozen=True)
+class ElectrodeDistrictConfig:
+    """A muscular district's electrode array (issue #32, docs/fes.md "Electrode set-up"): its candidate
+    combinations, and the way its muscle moves the handle (the sign of the LINarm's interaction force that
+    counts as its response; ``either``: the size of the change)."""
+
+    combinations: list[ElectrodeCombinationConfig] = field(default_factory=list)
+    direction: Literal["positive", "negative", "either"] = "either"
+
+    def validate(self) -> None:
+        if not self.combinations:
+            raise ValueError("combinations: a district needs at least one electrode combination (a channel)")
+        channels = [c.channel for c in self.combinations]
+        if len(set(channels)) != len(channels):
+            raise ValueError(f"combinations: channel {next(c for c in channels if channels.count(c) > 1)} "
+                             "is listed twice")
+
+
+def _default_electrodes() -> dict[str, ElectrodeDistrictConfig]:
+    """The simulated set-up's wiring: two arrays of four electrodes, four candidate pairs each."""
+    pairs = ("1-2", "3-4", "1-3", "2-4")
+    return {
+        "anterior deltoid": ElectrodeDistrictConfig(
+            [ElectrodeCombinationConfig(ch, e) for ch, e in zip((1, 2, 3, 4), pairs, strict=True)], "positive"),
+        "triceps": ElectrodeDistrictConfig(
+            [ElectrodeCombinationConfig(ch, e) for ch, e in zip((5, 6, 7, 8), pairs, strict=True)], "positive"),
+    }
+
+
+@dataclass(frozen=True)
 class FesDevice(SerialDevice):
     protocol: Literal["sm1", "sm2"] = "sm1"
     ack_timeout_s: float = field(default=0.5, metadata=rng(0.01, 10, "s"))
+    # The electrode arrays: per muscular district, the channels wired to its candidate combinations.
+    electrodes: dict[str, ElectrodeDistrictConfig] = field(default_factory=_default_electrodes)
 
     def validate(self) -> None:
         super().validate()
+        seen: dict[int, str] = {}
+        for name, district in self.electrodes.items():
+            if not name.strip():
+                raise ValueError("electrodes: a district needs a name (e.g. anterior deltoid)")
+            for combination in district.combinations:
+                if combination.channel in seen:
+                    raise ValueError(f"electrodes: channel {combination.channel} is wired to both "
+                                     f"{seen[combination.channel]!r} and {name!r}")
+                seen[combination.channel] = name
 
 
 @dataclass(frozen=True)

@@ -8,6 +8,10 @@ factors (the seed's FESUser.setCurrentScaleFactor / setPWScaleFactor).
 
 Files are YAML with a ``version`` field (see docs/fes.md). ``load_profile`` validates the whole file
 and raises ``FesProfileError`` naming the file, the line and the key; nothing half-built is returned.
+
+A profile may address muscular districts instead of (or beside) channels (``districts:``, issue #32): each
+district's trapezoids go to the channel of the electrode combination chosen for the patient
+(``resolve_districts``); channel-numbered profiles are unchanged.
 """
 
 from __future__ import annotations
@@ -106,6 +110,8 @@ class FesProfile:
     description: str = ""
     current_scale: float = 1.0
     pulse_width_scale: float = 1.0
+    # district name -> its trapezoids; stimulated on the district's chosen channel (resolve_districts)
+    districts: Mapping[str, ChannelProfile] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         problems = self.problems()
@@ -118,8 +124,8 @@ class FesProfile:
         if self.axis not in ("time", "phase"):
             out.append(("axis", f"expected 'time' or 'phase', got {self.axis!r}"))
             return out
-        if not self.channels:
-            out.append(("channels", "at least one channel is needed"))
+        if not self.channels and not self.districts:
+            out.append(("channels", "at least one channel (or district) is needed"))
         for key, v in (("current_scale", self.current_scale), ("pulse_width_scale", self.pulse_width_scale)):
             if not (math.isfinite(v) and 0 <= v <= MAX_SCALE):
                 out.append((key, f"{v:g} is outside the allowed range 0 .. {MAX_SCALE:g}"))
@@ -134,7 +140,38 @@ class FesProfile:
                 ("pulse_width_us", cp.pulse_width_us, MAX_PULSE_WIDTH_US, "µs"),
             ):
                 out += [(f"channels.{ch}.{key}.{k}", p) for k, p in trap.problems(self.axis, maximum, unit)]
+        for name, cp in self.districts.items():
+            if not str(name).strip():
+                out.append(("districts", "a district needs a name (e.g. anterior deltoid)"))
+                continue
+            for key, trap, maximum, unit in (
+                ("current_ma", cp.current_ma, MAX_CURRENT_MA, "mA"),
+                ("pulse_width_us", cp.pulse_width_us, MAX_PULSE_WIDTH_US, "µs"),
+            ):
+                out += [(f"districts.{name}.{key}.{k}", p) for k, p in trap.problems(self.axis, maximum, unit)]
         return out
+
+    def resolve_districts(self, channel_of: Mapping[str, int]) -> FesProfile:
+        """This profile with every district on its chosen channel (``channel_of``: district -> channel, the
+        patient's chosen combinations); the channel's ``muscle`` is the district's name. Unchanged when the
+        profile names no district. Raises FesProfileError when a district has no chosen combination or its
+        channel is already used by the profile."""
+        if not self.districts:
+            return self
+        known = {str(k).strip().lower(): v for k, v in channel_of.items()}
+        channels = dict(self.channels)
+        for name, cp in self.districts.items():
+            channel = known.get(str(name).strip().lower())
+            if channel is None:
+                raise FesProfileError(f"profile {self.name!r}", None, f"districts.{name}",
+                                      f"no electrode combination is chosen for {name!r} yet: run the electrode "
+                                      "set-up (FES tab) for this patient first")
+            if channel in channels:
+                raise FesProfileError(f"profile {self.name!r}", None, f"districts.{name}",
+                                      f"the chosen combination of {name!r} is channel {channel}, which the "
+                                      "profile already uses")
+            channels[channel] = replace(cp, muscle=str(name))
+        return replace(self, channels=channels, districts={})
 
     @property
     def end(self) -> float:
@@ -222,7 +259,8 @@ class _ProfileFile:
     version: int
     name: str
     axis: Literal["time", "phase"]
-    channels: dict[int, _ChannelFile]
+    channels: dict[int, _ChannelFile] = field(default_factory=dict)
+    districts: dict[str, _ChannelFile] = field(default_factory=dict)
     description: str = ""
     frequency_hz: float = field(default=40.0, metadata=rng(1, 100, "Hz"))
     current_scale: float = field(default=1.0, metadata=rng(0, MAX_SCALE))
@@ -296,6 +334,12 @@ def parse_profile(text: str | bytes, filename: str = "<profile>") -> FesProfile:
             )
             for ch, c in raw.channels.items()
         }
+        districts = {
+            name: ChannelProfile(
+                _trapezoid(c.current_ma), _trapezoid(c.pulse_width_us), c.muscle or name, PulseMode[c.mode.upper()]
+            )
+            for name, c in raw.districts.items()
+        }
         profile = FesProfile(
             raw.name,
             raw.axis,
@@ -304,6 +348,7 @@ def parse_profile(text: str | bytes, filename: str = "<profile>") -> FesProfile:
             raw.description,
             raw.current_scale,
             raw.pulse_width_scale,
+            districts,
         )
     except FesProfileError as exc:
         raise _fail(filename, _node_at(root, exc.key.split(".")), exc.key, exc.problem) from exc
@@ -355,6 +400,16 @@ def profile_to_yaml(profile: FesProfile) -> str:
             for ch, cp in sorted(profile.channels.items())
         },
     }
+    if profile.districts:
+        plain["districts"] = {
+            str(name): {
+                "muscle": cp.muscle,
+                "mode": PulseMode(cp.mode).name.lower(),
+                "current_ma": _trapezoid_plain(cp.current_ma),
+                "pulse_width_us": _trapezoid_plain(cp.pulse_width_us),
+            }
+            for name, cp in profile.districts.items()
+        }
     header = (
         "# LINarm++ FES profile (docs/fes.md). Points are seconds (axis: time) or movement phase 0..1\n"
         "# (axis: phase); current in mA, pulse width in µs.\n"

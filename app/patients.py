@@ -59,17 +59,39 @@ class ClinicalChannelCap:
 
 
 @dataclass(frozen=True)
+class ElectrodeChoice:
+    """The electrode combination chosen for one muscular district (issue #32): its stimulator channel, which
+    electrodes of the array it is, when and by whom it was chosen, and what the set-up measured for it."""
+
+    channel: int = field(default=1, metadata=rng(1, 8))
+    electrodes: str = ""
+    chosen_at: str = ""  # ISO time with zone
+    chosen_by: str = ""  # the therapist (the session's operator)
+    proposed_channel: int | None = field(default=None, metadata=rng(1, 8))  # what the set-up proposed
+    response_per_ma: float | None = field(default=None, metadata=rng(0, 1000, "N/mA"))
+    motor_threshold_ma: float | None = field(default=None, metadata=rng(0, 126, "mA"))
+    discomfort: int | None = field(default=None, metadata=rng(0, 10))  # the patient's rating, 0..10
+    session: str = ""  # the session folder's name, when chosen during a session
+
+
+@dataclass(frozen=True)
 class PatientFes:
     """``profile``: an FES profile file (name in resources/fes_profiles or a path); empty = none chosen.
-    ``caps``: clinical caps per stimulator channel 1..8."""
+    ``caps``: clinical caps per stimulator channel 1..8. ``electrodes``: the chosen combination per muscular
+    district (FES profiles that name a district stimulate its channel)."""
 
     profile: str = ""
     caps: dict[int, ClinicalChannelCap] = field(default_factory=dict)
+    electrodes: dict[str, ElectrodeChoice] = field(default_factory=dict)
 
     def validate(self) -> None:
         bad = [ch for ch in self.caps if not 1 <= ch <= 8]
         if bad:
             raise ValueError(f"caps: channel {bad[0]} does not exist; the stimulator has channels 1..8")
+
+    def district_channels(self) -> dict[str, int]:
+        """The chosen channel of each district (what a district-addressed FES profile stimulates)."""
+        return {name: choice.channel for name, choice in self.electrodes.items()}
 
 
 @dataclass(frozen=True)
@@ -358,7 +380,8 @@ def profile_field_names() -> list[str]:
 
 
 __all__ = [
-    "ClinicalChannelCap", "ClinicalScores", "PatientAssistance", "PatientEntry", "PatientError", "PatientFes",
+    "ClinicalChannelCap", "ClinicalScores", "ElectrodeChoice", "PatientAssistance", "PatientEntry", "PatientError",
+    "PatientFes",
     "PatientProfile", "PatientRobotLimits", "PlanProblem", "PlannedExercise", "clinical_caps",
     "effective_robot_limits", "limit_problems", "list_patients", "load_patient", "matches", "parse_profile",
     "patient_file", "plan_problems", "profile_to_yaml", "save_patient",

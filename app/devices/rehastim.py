@@ -251,6 +251,7 @@ class FesDriver(DeviceDriver):
         # thread, never on the caller's (the GUI's). Stop is written at once from any thread (stop_stimulation);
         # the channel-list updates and keep-alives stay on the driver thread's t1 grid.
         self.commands = CommandQueue("fes")
+        self.district_channels: dict[str, int] = {}  # district -> chosen channel (set_district_channels)
 
     # ================================================================== public API (any thread)
     @property
@@ -294,11 +295,23 @@ class FesDriver(DeviceDriver):
             raise FesError("no FES limits are configured")
         return lim
 
+    def set_district_channels(self, channels: Mapping[str, int]) -> None:
+        """The patient's chosen electrode combination per muscular district (issue #32): the channel a profile
+        that names a district stimulates, from the next ``load_profile``."""
+        self.district_channels = dict(channels)
+        self.supervisor.event("fes_district_channels", channels=dict(channels))
+
     def load_profile(self, profile: FesProfile) -> None:
         """Use ``profile`` (with its own scale factors) from the next start. Refused while stimulating,
-        when the channel list cannot be built at its frequency, or when its peaks exceed the limits."""
+        when the channel list cannot be built at its frequency, or when its peaks exceed the limits. A profile
+        naming districts is put on their chosen channels (``set_district_channels``)."""
         if self._stimulating:
             raise FesError("stop stimulation before loading another profile")
+        if profile.districts:
+            try:
+                profile = profile.resolve_districts(self.district_channels)
+            except ValueError as exc:  # FesProfileError: no combination chosen, or a channel used twice
+                raise FesError(str(getattr(exc, "problem", exc))) from exc
         ccl = self._channel_list_for(profile)
         self._check_within_limits(profile, ccl, self._pw_override, "load profile")
         with self._lock:
@@ -999,8 +1012,8 @@ def create(ctx: DeviceContext) -> DeviceHandle | None:
     if cfg.mode == "simulated":
         link = ctx.runtime_dir / "fes.tty"
         simulator = ctx.simulators.serial(
-            "fes", "fes", lambda _patient: SerialSimulator("fes", lambda: RehaStimSimAdapter(protocol), link,
-                                                           tick_s=0.002),
+            "fes", "fes", lambda patient: SerialSimulator(
+                "fes", lambda: RehaStimSimAdapter(protocol, observer=patient), link, tick_s=0.002),
             protocol=protocol)
         url = simulator.url
         settings = simulated_link_settings(protocol)

@@ -566,6 +566,54 @@ class FESUser:
             raise DeviceUnavailable("this FES driver does not follow a movement phase")
         set_phase(None if phase is None else float(phase))
 
+    def electrodeSetup(self, district: str, ceiling_mA: float, start_mA: float = 6.0, step_mA: float = 2.0,
+                       pulseWidth_us: float = 250.0, accept: bool = False) -> dict[str, Any]:
+        """Not in the seed (issue #32): test every electrode combination of ``district``'s array with ramped
+        bursts from ``start_mA`` to ``ceiling_mA`` (never above the patient's caps) while the robot holds the arm;
+        returns the responses and the proposal (the largest response per mA). ``accept``: save the proposal as the
+        patient's choice (docs/fes.md "Electrode set-up")."""
+        from app import electrodes
+
+        manager = self._ctx.manager
+        fes, robot = self._driver(), self._ctx.driver("linarm", "the LINarm")
+        districts = electrodes.districts_from_config(manager.config.devices.fes.electrodes)
+        if district not in districts:
+            raise ScriptError(f"no district {district!r} in the configuration (devices.fes.electrodes): "
+                              f"{', '.join(districts) or 'none'}")
+        plan = electrodes.SetupPlan(ceiling_ma=float(ceiling_mA), start_ma=float(start_mA), step_ma=float(step_mA),
+                                    pulse_width_us=float(pulseWidth_us),
+                                    frequency_hz=manager.config.safety.fes.frequency_hz)
+        bus = getattr(manager, "bus", None)
+        source = f"{self._ctx.source}: fes.electrodeSetup"
+
+        def record(kind: str, data: dict[str, Any]) -> None:
+            if manager.recorder is not None:
+                manager.record_event(kind, **data)
+            else:
+                manager.supervisor.event(kind, **data)
+
+        try:
+            result = electrodes.run_district_setup(fes, robot, manager.supervisor,
+                                                   bus.latest if bus is not None else robot.latest, record,
+                                                   districts[district], plan, lambda: self._ctx.stopped,
+                                                   source=source)
+        except electrodes.SetupAborted as exc:
+            raise CommandRefused(f"fes.electrodeSetup({district!r}) was refused: {exc.reason}") from exc
+        self._ctx.check()
+        summary = electrodes.result_summary(result)
+        channel = result.proposal.channel if result.proposal is not None else None
+        if accept and channel is not None and not result.aborted:
+            profile = manager.patient_profile
+            if profile is None:
+                raise ScriptError("the proposal cannot be saved: this session's patient has no profile")
+            profile = electrodes.save_choice(result, channel, profile, manager.operator or self._ctx.source, "",
+                                             manager.config.safety)
+            manager.patient_profile = profile
+            fes.set_district_channels(profile.fes.district_channels())
+            record("electrode_choice", electrodes.choice_event(result, profile.fes.electrodes[district]))
+            summary["accepted"] = channel
+        return summary
+
     @property
     def profile(self) -> Any:
         return getattr(self._driver(), "profile", None)

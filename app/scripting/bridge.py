@@ -146,7 +146,7 @@ OBJECT_SHAPES: dict[str, dict[str, Any]] = {
 ALLOWED_CALLS: dict[str, frozenset[str]] = {
     "linarm": frozenset({c.name for c in api.SCRIPT_COMMANDS} | {"getConfigData"}),
     "fes": frozenset({"loadFile", "writeFile", "start", "stop", "setCurrentScaleFactor", "setPWScaleFactor",
-                      "setPhase", "getConfigData"}),
+                      "setPhase", "getConfigData", "electrodeSetup"}),
     "linarmppManager": frozenset({"emergencyStop", "startRepetition", "endRepetition", "reportProgress",
                                   "prompt", "setRunState"}),
 }

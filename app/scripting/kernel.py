@@ -842,6 +842,8 @@ def build_api(kernel: Kernel) -> dict[str, Any]:
         "setPWScaleFactor": fes_method("setPWScaleFactor", "Scale the pulse width (0..2); returns it."),
         "setPhase": fes_method("setPhase", "The movement phase 0..1 a phase profile follows (None: at rest)."),
         "getConfigData": fes_method("getConfigData", "Device, profile, scale factors and limits."),
+        "electrodeSetup": fes_method("electrodeSetup", "Test a district's electrode combinations; returns the "
+                                                       "proposal (issue #32, docs/fes.md)."),
         "profile": fes_get("profile", _profile), "stimulating": fes_get("stimulating"),
     }
     FESUser = _api_class("fes", "FESUser", shapes.get("fes", {}), fes_extra)

@@ -197,6 +197,11 @@ class FesPanel(RefreshWhenVisible, QWidget):
             b.setToolTip(tip)
         self.profile_label = QLabel("No profile loaded")
         self.profile_label.setWordWrap(True)
+        # Issue #32: choose each district's best electrode combination of its array (app/ui/electrode_setup.py).
+        self.electrodes_button = QPushButton("Electrode set-&up…")
+        self.electrodes_button.setToolTip("Test each electrode combination of a district's array and choose the best")
+        self.electrodes_button.clicked.connect(self.open_electrode_setup)
+        self.electrode_dialog: QWidget | None = None
 
         self.current_knob = ScaleKnob("Current scale")
         self.width_knob = ScaleKnob("Pulse-width scale")
@@ -227,6 +232,7 @@ class FesPanel(RefreshWhenVisible, QWidget):
         buttons.setSpacing(4)
         for i, b in enumerate((self.start_button, self.stop_button, self.load_button, self.edit_button)):
             buttons.addWidget(b, i // 2, i % 2)
+        buttons.addWidget(self.electrodes_button, 2, 0, 1, 2)
         left = QVBoxLayout()
         left.setSpacing(4)
         left.addWidget(self.status_label)
@@ -315,6 +321,14 @@ class FesPanel(RefreshWhenVisible, QWidget):
             self.driver.stop_stimulation("stop button", "FES panel")
             self.show_message("Stopped.", "ok")
         self.refresh()
+
+    def open_electrode_setup(self) -> None:
+        from app.ui.electrode_setup import ElectrodeSetupDialog
+
+        if self.electrode_dialog is None:
+            self.electrode_dialog = ElectrodeSetupDialog(self.manager, self)
+        self.electrode_dialog.show()
+        self.electrode_dialog.raise_()
 
     def choose_profile_file(self) -> None:
         path = file_dialogs.ask_open_file(self, "Load FES profile", self.last_dir,

@@ -48,7 +48,7 @@ SIMULATOR_RT_PRIORITY = 10  # the SIL firmware's, as SerialSimulator's: below th
 PR_SET_PDEATHSIG = 1
 
 PATIENT_METHODS = frozenset({"idle", "squeeze", "squeeze_periodically", "squeeze_at_targets", "set_peak_force",
-                             "passive", "push_to", "fail_weak", "fail_stop_early"})
+                             "passive", "push_to", "fail_weak", "fail_stop_early", "set_electrode_distances"})
 
 
 def find_firmware_sil() -> Path | None:
@@ -312,8 +312,8 @@ def build_simulators(spec: dict[str, Any], patient: Any, emit: Callable[[dict[st
             from app.devices.sim.adapters import RehaStimSimAdapter
 
             protocol = params["protocol"]
-            sims[name] = SerialSimulator(name, lambda protocol=protocol: RehaStimSimAdapter(protocol), link,
-                                         tick_s=0.002, link_factory=link_factory)
+            sims[name] = SerialSimulator(name, lambda protocol=protocol: RehaStimSimAdapter(protocol, observer=patient),
+                                         link, tick_s=0.002, link_factory=link_factory)
         else:
             raise ValueError(f"unknown simulator kind {kind!r}")
     return sims

@@ -8,7 +8,12 @@ Two things a patient does to the devices:
   release tau 0.15 s) plus small noise;
 * pushes the handle: ``handle_force(t, pos, vel)`` (N, + toward +x) -- passive (a small damping),
   push toward a target with a given force, or fail the sub-task (too weak, or stops early) so the
-  patient-model tests can watch the assistance rise.
+  patient-model tests can watch the assistance rise;
+* answers electrical stimulation (issue #32): the RehaStim simulator tells it what each channel delivers
+  (``stimulation``); each channel is one electrode combination of an array, at some distance from its
+  muscle's motor point (``ElectrodeSite``: random per seed, or set with ``set_electrode_distances``). The
+  evoked force has a motor threshold that rises with the distance and a saturating recruitment curve, and is
+  added to ``handle_force`` through first-order muscle dynamics.
 
 Time is the simulators' clock (s): every caller must use the same clock (the app uses
 time.monotonic()); an older ``t`` than already seen just returns the current value.
@@ -21,7 +26,7 @@ from __future__ import annotations
 import enum
 import math
 import threading
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -33,6 +38,22 @@ GRIP_RISE_TAU_S = 0.10
 GRIP_FALL_TAU_S = 0.15
 GRIP_NOISE_N = 0.3        # per-sample standard deviation
 _GRIP_STEP_S = 0.005      # integration sub-step so periodic edges are resolved
+
+# Evoked response (issue #32, docs/fes.md "Electrode set-up"). A simple model, not physiology: the threshold
+# current of a pair centred on the motor point is THRESHOLD_AT_MOTOR_POINT_MA (at 250 µs), it rises with the
+# square of the distance (doubled THRESHOLD_DOUBLING_CM away), and with shorter pulses (strength-duration,
+# chronaxie CHRONAXIE_US). Above threshold F = F_max (1 - exp(-(I/I_th - 1) / RECRUITMENT_SPREAD)), so the
+# force per mA of a combination scales with 1/I_th: a pair with a 20 % lower threshold gives 20 % more force
+# per mA.
+THRESHOLD_AT_MOTOR_POINT_MA = 8.0
+THRESHOLD_DOUBLING_CM = 1.5
+CHRONAXIE_US = 300.0
+REFERENCE_PULSE_WIDTH_US = 250.0
+RECRUITMENT_SPREAD = 0.5
+EVOKED_MAX_FORCE_N = 12.0   # a fully recruited muscle, as the handle feels it under the position hold
+EVOKED_RISE_TAU_S = 0.08
+EVOKED_FALL_TAU_S = 0.12
+SITE_DISTANCE_RANGE_CM = (0.2, 2.5)  # random distances per simulated patient seed
 
 HANDLE_DAMPING_NS_M = 2.0  # passive arm: N per m/s
 HANDLE_NOISE_N = 0.1
@@ -72,6 +93,40 @@ class PatientSettings:
     stopFraction: float
 
 
+@dataclass(frozen=True)
+class ElectrodeSite:
+    """One stimulator channel = one electrode combination: how far its current path is from the motor point of
+    the muscle it lies on, which way that muscle pushes the handle (+1 toward +x, -1) and its full force."""
+
+    distance_cm: float
+    direction: float = 1.0
+    max_force_n: float = EVOKED_MAX_FORCE_N
+
+    def threshold_ma(self, pulse_width_us: float) -> float:
+        """The motor threshold (mA) at this pulse width."""
+        pw = max(pulse_width_us, 1.0)
+        strength_duration = (1.0 + CHRONAXIE_US / pw) / (1.0 + CHRONAXIE_US / REFERENCE_PULSE_WIDTH_US)
+        return THRESHOLD_AT_MOTOR_POINT_MA * (1.0 + (self.distance_cm / THRESHOLD_DOUBLING_CM) ** 2) \
+            * strength_duration
+
+    def force_n(self, current_ma: float, pulse_width_us: float) -> float:
+        """The steady evoked force (N, signed) at this current and pulse width."""
+        if current_ma <= 0.0 or pulse_width_us <= 0.0:
+            return 0.0
+        ratio = current_ma / self.threshold_ma(pulse_width_us)
+        if ratio <= 1.0:
+            return 0.0
+        return self.direction * self.max_force_n * (1.0 - math.exp(-(ratio - 1.0) / RECRUITMENT_SPREAD))
+
+
+def random_electrode_sites(seed: int, channels: Sequence[int] = tuple(range(1, 9))) -> dict[int, ElectrodeSite]:
+    """Each channel's site for a simulated patient: distances uniform in SITE_DISTANCE_RANGE_CM from a generator
+    of its own (the grip and handle noise of a seed stay as they were)."""
+    rng = np.random.default_rng([int(seed), 32])
+    lo, hi = SITE_DISTANCE_RANGE_CM
+    return {int(ch): ElectrodeSite(float(rng.uniform(lo, hi))) for ch in channels}
+
+
 class SimulatedPatient:
     def __init__(self, seed: int = 0, peak_force: float = GRIP_PEAK_N) -> None:
         self._lock = threading.RLock()
@@ -100,6 +155,10 @@ class SimulatedPatient:
         self._stop_fraction = 0.5
         self._push_start: float | None = None  # handle position when the push began
         self._gave_up = False
+        # evoked response to stimulation
+        self._sites = random_electrode_sites(seed)
+        self._stim: dict[int, tuple[float, float]] = {}  # channel -> (mA, µs) being delivered
+        self._evoked = 0.0  # noise-free evoked force (N), the muscle state
 
     # -- behaviours (any thread) --------------------------------------------------------------
 
@@ -157,6 +216,39 @@ class SimulatedPatient:
             self._stop_fraction = min(1.0, max(0.0, fraction))
             self._start_push(HandleMode.STOP_EARLY, target, force)
 
+    def set_electrode_distances(self, distances: Mapping[int | str, float],
+                                directions: Mapping[int | str, float] | None = None) -> None:
+        """Electrode-to-motor-point distance (cm) of each channel's combination (others keep theirs);
+        ``directions``: +1 / -1 per channel (the way its muscle pushes the handle)."""
+        with self._lock:
+            for ch, d in distances.items():
+                old = self._sites.get(int(ch), ElectrodeSite(0.0))
+                self._sites[int(ch)] = ElectrodeSite(max(0.0, float(d)), old.direction, old.max_force_n)
+            for ch, sign in (directions or {}).items():
+                old = self._sites.get(int(ch), ElectrodeSite(1.0))
+                self._sites[int(ch)] = ElectrodeSite(old.distance_cm, 1.0 if float(sign) >= 0 else -1.0,
+                                                     old.max_force_n)
+
+    def electrode_sites(self) -> dict[int, ElectrodeSite]:
+        with self._lock:
+            return dict(self._sites)
+
+    def stimulation(self, t: float, channel: int, current_ma: float, pulse_width_us: float) -> None:
+        """The stimulator delivers this on ``channel`` from ``t`` on (0 mA: nothing). Called by the RehaStim
+        simulator for every change (app/devices/sim/rehastim_core.py)."""
+        with self._lock:
+            self._advance(t)
+            if current_ma > 0 and pulse_width_us > 0:
+                self._stim[int(channel)] = (float(current_ma), float(pulse_width_us))
+            else:
+                self._stim.pop(int(channel), None)
+
+    def evoked_force(self, t: float) -> float:
+        """The force (N) the stimulated muscles add on the handle at ``t`` (noise-free)."""
+        with self._lock:
+            self._advance(t)
+            return self._evoked
+
     def settings(self) -> PatientSettings:
         with self._lock:
             return PatientSettings(self._grip_mode, self._duration, self._period, self._duty, self._targets,
@@ -185,7 +277,8 @@ class SimulatedPatient:
             self._advance(t)
             self._pos, self._vel = handle_pos, handle_vel
             self._track_arrival()
-            noise = float(self._rng.normal(0.0, HANDLE_NOISE_N))
+            # the stimulated muscles' force adds to whatever the patient does (noise included)
+            noise = float(self._rng.normal(0.0, HANDLE_NOISE_N)) + self._evoked
             damping = -HANDLE_DAMPING_NS_M * handle_vel
             mode = self._handle_mode
             if mode is HandleMode.PASSIVE or (mode is HandleMode.STOP_EARLY and self._gave_up):
@@ -239,6 +332,10 @@ class SimulatedPatient:
             return start <= t < start + self._duration
         return False
 
+    def _evoked_goal(self) -> float:
+        return sum(self._sites.get(ch, ElectrodeSite(SITE_DISTANCE_RANGE_CM[1])).force_n(i, w)
+                   for ch, (i, w) in self._stim.items())
+
     def _advance(self, t: float) -> None:
         if self._t is None:
             self._t = t
@@ -250,6 +347,8 @@ class SimulatedPatient:
         if self._mode_t0 is None:
             self._mode_t0 = self._t
         now = self._t
+        evoked_goal = self._evoked_goal()
+        evoked_tau = EVOKED_RISE_TAU_S if abs(evoked_goal) > abs(self._evoked) else EVOKED_FALL_TAU_S
         while now < t:
             step = min(_GRIP_STEP_S, t - now)
             on = self._commanded(now)
@@ -258,4 +357,6 @@ class SimulatedPatient:
             # exact first-order response over a step with a constant command
             self._grip = goal + (self._grip - goal) * math.exp(-step / tau)
             now += step
+        if evoked_goal != 0.0 or self._evoked != 0.0:  # the stimulation is constant between two calls
+            self._evoked = evoked_goal + (self._evoked - evoked_goal) * math.exp(-(t - self._t) / evoked_tau)
         self._t = t

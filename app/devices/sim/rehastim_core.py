@@ -20,7 +20,7 @@ Behaviour the reference leaves open, as chosen here (docs/fes.md):
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal
+from typing import Literal, Protocol
 
 from app.devices.sciencemode import (
     MAX_CURRENT_MA,
@@ -67,6 +67,13 @@ from app.devices.sciencemode import (
 _OFF = PulseSetting(0, 0)
 
 
+class StimulationObserver(Protocol):
+    """Who hears what the simulated stimulator delivers (the simulated patient, issue #32): every change of a
+    channel's delivered current or pulse width, at the device's time ``t``; 0 mA = the channel is off."""
+
+    def stimulation(self, t: float, channel: int, current_ma: float, pulse_width_us: float) -> None: ...
+
+
 @dataclass(frozen=True)
 class StimulationLogEntry:
     """From ``t`` on ``channel`` delivers this (kind 'ccl'), or one pulse was delivered at ``t``."""
@@ -80,10 +87,12 @@ class StimulationLogEntry:
 
 
 class RehaStimSimCore:
-    def __init__(self, protocol: Literal["sm1", "sm2"] = "sm1", *, init_version: int = 1) -> None:
+    def __init__(self, protocol: Literal["sm1", "sm2"] = "sm1", *, init_version: int = 1,
+                 observer: StimulationObserver | None = None) -> None:
         if protocol not in ("sm1", "sm2"):
             raise ValueError(f"protocol = {protocol!r}; allowed: 'sm1' or 'sm2'")
         self.protocol = protocol
+        self.observer = observer
         self.log: list[StimulationLogEntry] = []
         self.events: list[tuple[float, str]] = []  # refusals, faults, watchdog: for tests and the UI
         self.config: ChannelListConfig | None = None
@@ -149,7 +158,7 @@ class RehaStimSimCore:
         self._blocked_channels.clear()
 
     def power_cycle(self, t: float) -> None:
-        self.__init__(self.protocol, init_version=self.init_version)  # type: ignore[misc]
+        self.__init__(self.protocol, init_version=self.init_version, observer=self.observer)  # type: ignore[misc]
         self._next_init_t = t if self.protocol == "sm2" else None
 
     # ── the byte interface ──────────────────────────────────────────────────────────────────────
@@ -206,6 +215,8 @@ class RehaStimSimCore:
                 self.log.append(
                     StimulationLogEntry(t, ch, after.current_ma, after.pulse_width_us, after.mode)
                 )
+                if self.observer is not None:
+                    self.observer.stimulation(t, ch, after.current_ma, after.pulse_width_us)
         self._state = new
 
     def _stop(self, t: float) -> None:

@@ -1,0 +1,142 @@
+"""The electrode set-up dialog (issue #32): its plot and table from a set-up, the discomfort ratings, the
+choice saved in the patient's profile, the FES panel's button, and one run on the simulated devices."""
+
+from __future__ import annotations
+
+import shutil
+
+import pytest
+
+from app.config import AppConfig
+from app.devices import linarm, rehastim
+from app.devices.sim.patient import SimulatedPatient
+from app.electrodes import Combination, District, ElectrodeSetup, SetupPlan
+from app.fes_limits import FesLimits
+from app.manager import LinarmppManager
+from app.patients import PatientProfile, load_patient
+from app.ui.electrode_setup import COLUMNS, ElectrodeSetupDialog
+from tests.conftest import screenshot_path
+from tests.test_electrodes import Rig
+
+DELTOID = District("anterior deltoid", tuple(Combination(ch, e) for ch, e in
+                                             ((1, "1-2"), (2, "3-4"), (3, "1-3"), (4, "2-4"))), "positive")
+
+
+def a_result():
+    patient = SimulatedPatient(seed=11)
+    patient.set_electrode_distances({1: 2.0, 2: 0.866, 3: 1.5, 4: 0.5})
+    return ElectrodeSetup(DELTOID, SetupPlan(ceiling_ma=30.0), FesLimits(), Rig(patient).ports()).run()
+
+
+@pytest.fixture
+def dialog(qtbot):
+    manager = LinarmppManager(AppConfig(), factories={})
+    d = ElectrodeSetupDialog(manager)
+    qtbot.addWidget(d)
+    yield d
+    d.close()
+
+
+def cell(d: ElectrodeSetupDialog, row: int, col: int) -> str:
+    return d.table.item(row, col).text()
+
+
+def test_screenshot_and_table_at_1366(dialog, qtbot) -> None:
+    result = a_result()
+    dialog.resize(1366, 768)
+    dialog.show()
+    qtbot.waitExposed(dialog)
+    dialog.show_result(result)
+    assert [cell(dialog, r, 0) for r in range(4)] == ["1", "2", "3", "4"]
+    assert "proposed" in cell(dialog, 3, 1) and cell(dialog, 3, 4) != "—"
+    assert dialog.proposal_label.text().startswith("Proposed: channel 4")
+    assert dialog.accept_button.isEnabled() and dialog.pick_button.isEnabled()
+    curves = {ch: c.getData() for ch, c in dialog._curves.items()}
+    assert len(curves[4][0]) == len(SetupPlan(ceiling_ma=30.0).ladder(30)) and max(curves[4][1]) > 5
+    assert dialog.table.columnCount() == len(COLUMNS)
+    out = screenshot_path("electrode-setup-1366.png")
+    image = dialog.grab().toImage()
+    assert (image.width(), image.height()) == (1366, 768)
+    tmp = out.with_suffix(".tmp.png")
+    assert image.save(str(tmp))
+    shutil.move(tmp, out)
+
+
+def test_discomfort_rating_changes_the_proposal(dialog) -> None:
+    dialog.show_result(a_result())
+    spin = dialog.table.cellWidget(3, len(COLUMNS) - 1)
+    assert spin.specialValueText() == "not rated"
+    spin.setValue(9)  # channel 4 hurts
+    assert dialog.result.combination(4).discomfort == 9
+    assert dialog.proposal_label.text().startswith("Proposed: channel 2")
+    spin.setValue(spin.minimum())
+    assert dialog.result.combination(4).discomfort is None
+    assert dialog.proposal_label.text().startswith("Proposed: channel 4")
+
+
+def test_the_choice_is_saved_and_recorded(dialog) -> None:
+    events: list[tuple[str, dict]] = []
+    dialog.manager.supervisor.add_event_subscriber(lambda kind, data: events.append((kind, data)))
+    dialog.manager.patient_profile = PatientProfile("UI7")
+    dialog.manager.operator = "therapist U"
+    dialog.show_result(a_result())
+    dialog.table.selectRow(1)
+    assert dialog.use_selected()  # the therapist picks channel 2 instead of the proposed 4
+    stored = load_patient("UI7").fes.electrodes["anterior deltoid"]
+    assert (stored.channel, stored.proposed_channel, stored.chosen_by) == (2, 4, "therapist U")
+    choice = next(d for k, d in events if k == "electrode_choice")
+    assert choice["channel"] == 2 and not choice["accepted_proposal"] and choice["saved"]
+    assert "saved in UI7's profile" in dialog.status.text()
+    assert dialog.accept_proposal()
+    assert load_patient("UI7").fes.electrodes["anterior deltoid"].channel == 4
+
+
+def test_without_devices_the_setup_does_not_start(dialog) -> None:
+    assert not dialog.start()
+    assert "needs the stimulator" in dialog.status.text()
+
+
+def test_the_fes_panel_opens_the_setup(qtbot) -> None:
+    from app.ui.fes_panel import FesPanel
+
+    manager = LinarmppManager(AppConfig(), factories={"fes": rehastim.create})
+    manager.start()
+    try:
+        panel = FesPanel(manager)
+        qtbot.addWidget(panel)
+        panel.electrodes_button.click()
+        assert isinstance(panel.electrode_dialog, ElectrodeSetupDialog) and panel.electrode_dialog.isVisible()
+        assert panel.electrode_dialog.district_box.currentText() == "anterior deltoid"
+        panel.electrode_dialog.close()
+    finally:
+        manager.shutdown()
+
+
+@pytest.mark.realtime
+@pytest.mark.sim_in_thread
+def test_the_dialog_on_the_simulated_devices(qtbot) -> None:
+    manager = LinarmppManager(AppConfig(), factories={"linarm": linarm.create, "fes": rehastim.create})
+    manager.start()
+    try:
+        robot, fes = manager.driver("linarm"), manager.driver("fes")
+        qtbot.waitUntil(lambda: manager.all_connected() and fes.device_ready, timeout=5000)
+        robot.command("goToHome", source="test", timeout_s=2.0)
+        qtbot.waitUntil(lambda: (s := robot.latest("linarm.state")) is not None and s.homeState == 4,
+                        timeout=15000)
+        manager.patient.set_electrode_distances({1: 2.0, 2: 0.5, 3: 1.5, 4: 0.866})
+        manager.patient_profile = PatientProfile("UI8")
+        d = ElectrodeSetupDialog(manager)
+        qtbot.addWidget(d)
+        d.show()
+        assert d.start(SetupPlan(ceiling_ma=16.0, start_ma=8.0, step_ma=4.0, ramp_s=0.0, hold_s=0.4,
+                                 measure_s=0.2, baseline_s=0.15, rest_s=0.1))
+        assert not d.start_button.isEnabled() and d.stop_button.isEnabled()
+        qtbot.waitUntil(lambda: not d.running and d.start_button.isEnabled(), timeout=60000)
+        assert d.progress.value() == 12
+        assert d.result.proposal.channel == 2, d.result.proposal
+        assert d.accept_proposal()
+        assert fes.district_channels == {"anterior deltoid": 2}
+        assert load_patient("UI8").fes.electrodes["anterior deltoid"].channel == 2
+        d.close()
+    finally:
+        manager.shutdown()
