@@ -300,7 +300,8 @@ class LinarmppManager(QObject):
             from app.patients import clinical_caps
 
             fes.set_clinical_caps(clinical_caps(profile))
-            fes.set_district_channels(profile.fes.district_channels())  # district-addressed profiles: the chosen electrodes
+            # district-addressed profiles stimulate the patient's chosen electrodes
+            fes.set_district_channels(profile.fes.district_channels())
         self.supervisor.event("patient_profile_applied", patient=profile.patient_id,
                               k_r=profile.assistance.k_r, k_f=profile.assistance.k_f, clinical_score=score)
 
