@@ -128,8 +128,13 @@ def test_it_listens_only_while_someone_listens_to_it(qtbot) -> None:
     # Nobody draws: no columns are kept on the driver threads, and the timer stops.
     assert _names(bus) == [EVENTS_NAME] and not qt_bus.timer.isActive()
     bus.publish(MAIN.name, 1.0, SimpleNamespace(x=1.0, f=0.0))
-    qt_bus.connection_changed.connect(lambda *_a: None)  # link states only: no batches
+    bus.event("dev", "connected", "up")
+    assert qt_bus.connected("dev")  # the state is kept with nobody listening ...
+    changes: list[tuple[str, bool, str]] = []
+    qt_bus.connection_changed.connect(lambda *a: changes.append(a))  # link states only: no batches
     assert qt_bus.timer.isActive() and _names(bus) == [EVENTS_NAME]
+    qt_bus.tick()
+    assert changes == []  # ... but no signal is held back for listeners that came later
     qt_bus.close()
 
 

@@ -153,10 +153,12 @@ class QtBus(QObject):
         events = self._subs.events
         if events is None:
             return
+        emit = self.listened()  # with nobody listening, the state is all that is kept
         for item in events.drain():
             if isinstance(item, DeviceEvent):
                 self._links[item.device] = _fold(self._links.get(item.device) or LinkState(), item)
-                self._pending.append(item)
+                if emit:
+                    self._pending.append(item)
 
     def _emit_event(self, event: DeviceEvent) -> None:
         self.device_event.emit(event.device, event.kind, event.detail)

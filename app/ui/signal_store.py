@@ -2,7 +2,7 @@
 
 One :class:`SignalStore` per manager (``shared_store(manager, qt_bus)``) keeps, for every stream declared on
 the bus, a ring of timestamps and one ring per channel, so each (stream, channel) is a signal with
-the unit and label of its :class:`~app.devices.driver.StreamSpec`. Signals are named
+the unit and label of its :class:`~app.bus.StreamSpec`. Signals are named
 ``"<stream>.<channel>"``, e.g. ``"linarm.vsa.handlePos"``.
 
 Drawing long histories fast: besides the raw samples each ring keeps a min/max per block of
@@ -13,7 +13,7 @@ to a few thousand points by combining block extremes instead of scanning every s
 Rings store every value twice (at ``i`` and ``i + capacity``) so any window of the history is one
 contiguous numpy view without copying or wrap-around handling.
 
-Everything here runs on the GUI thread: batches arrive through queued Qt signals.
+Everything here runs on the GUI thread: batches arrive from the Qt bus adapter, taken on its GUI timer.
 """
 
 from __future__ import annotations
@@ -186,7 +186,7 @@ class _Ring:
 
 
 class SignalStore(QObject):
-    """Ring buffers for every signal of every attached driver; fed on the GUI thread."""
+    """Ring buffers for every signal on the attached bus; fed on the GUI thread."""
 
     signals_changed = Signal()  # new streams were attached
     updated = Signal()  # a batch was stored
