@@ -120,6 +120,22 @@ def test_a_queue_not_running_fails_at_once_and_close_fails_what_waits() -> None:
     assert isinstance(waiting.exception(0), TransportError)
 
 
+def test_an_idle_queue_rests_its_thread_and_the_next_submit_wakes_it() -> None:
+    q = CommandQueue("resting", idle_exit_s=0.05)
+    q.start()
+    try:
+        first = q.submit("first", lambda _s: None, exclusive=False)
+        assert first.result(1.0) is None
+        thread = q._thread
+        assert thread is not None
+        thread.join(2.0)
+        assert not thread.is_alive() and q.running  # resting, still accepting
+        again = q.submit("again", lambda _s: None, exclusive=False)
+        assert again.result(1.0) is None and again.written
+    finally:
+        q.close()
+
+
 # ---------------------------------------------------------------------------------------------- the LINarm
 class ScriptedController:
     """A Transport that answers like the controller: Identify for identify, an ACK for every other command but

@@ -177,3 +177,16 @@ def test_commands_are_checked_by_the_supervisor_before_the_wire(robot: LinarmDri
     with pytest.raises(SafetyError, match="outside the allowed range"):
         robot.command("moveCentreTo", limits.position_max_m + 0.01, 0.1, 0.1, 0.0, False)
     assert robot.latest("linarm.state").controlState == ON  # nothing was sent, nothing changed
+
+
+def test_apply_limits_locks_the_site_envelope_then_narrows_it_through_the_queue(robot: LinarmDriver) -> None:
+    """The connect-time limits (#29: LINK-priority statuses, one command after the other's ACK): the site's
+    limits are locked as the controller's envelope, a narrower profile follows inside it."""
+    site = robot.supervisor.robot
+    status = robot.apply_limits(site)
+    envelope = status.result(5.0)
+    assert envelope["maxVel"] == pytest.approx(site.max_velocity_m_s, rel=1e-6)
+    assert envelope["minPos"] == pytest.approx(site.position_min_m, rel=1e-6)
+    narrower = dataclasses.replace(site, max_velocity_m_s=site.max_velocity_m_s / 2)
+    assert robot.apply_limits(narrower).result(5.0) == envelope
+    assert robot.apply_limits(site).result(5.0) == envelope

@@ -127,8 +127,12 @@ class CommandQueue:
 
     def __init__(self, name: str, *, periodic: Callable[[], None] | None = None, period_s: float = 0.1,
                  realtime_priority: int | None = None,
-                 on_timeout: Callable[[CommandStatus], BaseException | None] | None = None) -> None:
+                 on_timeout: Callable[[CommandStatus], BaseException | None] | None = None,
+                 idle_exit_s: float | None = None) -> None:
         self.name = name
+        # With no periodic: the thread ends after this long with nothing to do, and the next submit starts it
+        # again (a device whose commands are rare, e.g. the FES start, keeps no idle thread).
+        self.idle_exit_s = idle_exit_s if periodic is None else None
         self.periodic = periodic
         self.period_s = period_s
         self.realtime_priority = realtime_priority
@@ -157,18 +161,24 @@ class CommandQueue:
                 return status
             heapq.heappush(self._heap, _Entry(int(priority), next(self._seq), status, write, exclusive, timeout_s))
             self._cond.notify()
+            if self._thread is None:  # it ended while idle (idle_exit_s)
+                self._spawn()
         return status
+
+    def _spawn(self) -> None:
+        self._thread = threading.Thread(target=self._run, name=f"{self.name}-commands", daemon=True)
+        self._thread.start()
 
     @property
     def running(self) -> bool:
-        return not self._closed and self._thread is not None and self._thread.is_alive()
+        """Accepting commands (its thread may be resting: idle_exit_s)."""
+        return not self._closed
 
     def start(self) -> None:
         with self._cond:
             self._closed = False
-        if self._thread is None or not self._thread.is_alive():
-            self._thread = threading.Thread(target=self._run, name=f"{self.name}-commands", daemon=True)
-            self._thread.start()
+            if self._thread is None or not self._thread.is_alive():
+                self._spawn()
 
     def close(self, reason: str = "the device is closing", error: BaseException | None = None) -> None:
         """Stop the thread; every command not yet done fails with ``error`` (default CommandQueueClosed)."""
@@ -213,6 +223,7 @@ class CommandQueue:
 
             self.realtime = request_realtime(self.realtime_priority)
         next_periodic = time.monotonic() + self.period_s
+        idle_since = time.monotonic()
         while True:
             expired: _Entry | None = None
             with self._cond:
@@ -222,6 +233,13 @@ class CommandQueue:
                     if self._closed:
                         return
                     now = time.monotonic()
+                    if self.idle_exit_s is not None:
+                        if self._heap or self._in_flight is not None:
+                            idle_since = now
+                        elif now - idle_since >= self.idle_exit_s:
+                            if self._thread is threading.current_thread():
+                                self._thread = None  # the next submit starts another
+                            return
                     if self._in_flight is not None and (self._in_flight.status.done()
                                                         or now >= self._in_flight_deadline):
                         expired, self._in_flight = self._in_flight, None
@@ -236,7 +254,7 @@ class CommandQueue:
                     entry = self._next_ready()
                     if entry is not None:
                         break
-                    wake = next_periodic if self.periodic is not None else now + 1.0
+                    wake = next_periodic if self.periodic is not None else now + (self.idle_exit_s or 1.0)
                     if self._in_flight is not None:
                         wake = min(wake, self._in_flight_deadline)
                     self._cond.wait(max(0.0, wake - now))

@@ -250,7 +250,7 @@ class FesDriver(DeviceDriver):
         # Start's path (#29): the channel list's init and start wait for the stimulator's acks on this queue's
         # thread, never on the caller's (the GUI's). Stop is written at once from any thread (stop_stimulation);
         # the channel-list updates and keep-alives stay on the driver thread's t1 grid.
-        self.commands = CommandQueue("fes")
+        self.commands = CommandQueue("fes", idle_exit_s=1.0)
         self.district_channels: dict[str, int] = {}  # district -> chosen channel (set_district_channels)
 
     # ================================================================== public API (any thread)
