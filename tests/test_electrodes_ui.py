@@ -140,3 +140,21 @@ def test_the_dialog_on_the_simulated_devices(qtbot) -> None:
         d.close()
     finally:
         manager.shutdown()
+
+
+def test_editing_the_patient_keeps_the_chosen_electrodes(qtbot) -> None:
+    """The Patients dialog does not show the electrode choices; saving the form must not drop them."""
+    from dataclasses import replace
+
+    from app.patients import ElectrodeChoice
+    from app.ui.patient_dialog import PatientDialog
+
+    profile = PatientProfile("PD1")
+    profile = replace(profile, fes=replace(profile.fes, electrodes={
+        "triceps": ElectrodeChoice(6, "3-4", "2026-11-25T22:00:00+00:00", "therapist D", 5, 0.4, 12.0, 2)}))
+    d = PatientDialog(profile, AppConfig().safety)
+    qtbot.addWidget(d)
+    d.notes.setPlainText("edited")
+    edited = d.validate()
+    assert edited is not None and edited.notes == "edited"
+    assert edited.fes.electrodes == profile.fes.electrodes
