@@ -158,3 +158,22 @@ def test_editing_the_patient_keeps_the_chosen_electrodes(qtbot) -> None:
     edited = d.validate()
     assert edited is not None and edited.notes == "edited"
     assert edited.fes.electrodes == profile.fes.electrodes
+
+
+def test_a_session_applies_the_patients_electrodes_and_its_end_forgets_them(qtbot, tmp_path) -> None:
+    from dataclasses import replace
+
+    from app.patients import ElectrodeChoice, save_patient
+
+    profile = PatientProfile("SE1")
+    save_patient(replace(profile, fes=replace(profile.fes, electrodes={"triceps": ElectrodeChoice(7, "1-3")})))
+    manager = LinarmppManager(AppConfig(), factories={"fes": rehastim.create})
+    manager.start()
+    try:
+        fes = manager.driver("fes")
+        manager.start_session("SE1", "therapist", root=tmp_path)
+        assert fes.district_channels == {"triceps": 7}
+        manager.end_session()
+        assert fes.district_channels == {}
+    finally:
+        manager.shutdown()
