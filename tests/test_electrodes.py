@@ -430,3 +430,13 @@ def test_the_stimulator_resolves_district_profiles(qtbot) -> None:
     driver.load_profile(profile)
     assert sorted(driver.profile.channels) == [2, 8] and driver.channel_list.channels == (2, 8)
     assert "fes_district_channels" in events
+
+
+def test_scripts_may_call_the_setup_through_the_kernel_bridge() -> None:
+    """A script in the kernel process reaches fes.electrodeSetup: the bridge lets the call through."""
+    from app.scripting.bridge import ApiBridge
+
+    call = {"op": "call", "id": 1, "obj": "fes", "name": "electrodeSetup",
+            "args": ["anterior deltoid", 20, 6, 2, 250, True]}
+    assert ApiBridge._is_api_call(call)
+    assert not ApiBridge._is_api_call({**call, "name": "electrodeSetupX"})
