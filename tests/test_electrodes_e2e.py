@@ -76,7 +76,7 @@ def rig(qtbot):
         manager.devices["fes"].simulator.keep_host_log = True
         robot.command("goToHome", source="test", timeout_s=2.0)
         qtbot.waitUntil(lambda: (s := robot.latest("linarm.state")) is not None and s.initialized
-                        and s.homeState == 4, timeout=15000)
+                        and s.homeState == 4, timeout=30000)
         # the array: channel 4 is the best pair, channel 2 needs 20 % more current for the same force
         manager.patient.set_electrode_distances({2: 0.866, 4: 0.5})
         yield manager

@@ -50,7 +50,7 @@ def window(qtbot):
         manager.devices["fes"].simulator.keep_host_log = True
         robot.command("goToHome", source="test", timeout_s=2.0)
         qtbot.waitUntil(lambda: (s := robot.latest("linarm.state")) is not None and s.homeState == 4,
-                        timeout=15000)
+                        timeout=30000)
         yield manager, win
     finally:
         manager.supervisor.reset_emergency_stop("test")

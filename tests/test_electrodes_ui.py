@@ -122,7 +122,7 @@ def test_the_dialog_on_the_simulated_devices(qtbot) -> None:
         qtbot.waitUntil(lambda: manager.all_connected() and fes.device_ready, timeout=5000)
         robot.command("goToHome", source="test", timeout_s=2.0)
         qtbot.waitUntil(lambda: (s := robot.latest("linarm.state")) is not None and s.homeState == 4,
-                        timeout=15000)
+                        timeout=30000)
         manager.patient.set_electrode_distances({1: 2.0, 2: 0.5, 3: 1.5, 4: 0.866})
         manager.patient_profile = PatientProfile("UI8")
         d = ElectrodeSetupDialog(manager)
@@ -132,7 +132,7 @@ def test_the_dialog_on_the_simulated_devices(qtbot) -> None:
                                  measure_s=0.2, baseline_s=0.15, rest_s=0.1))
         assert not d.start_button.isEnabled() and d.stop_button.isEnabled()
         qtbot.waitUntil(lambda: not d.running and d.start_button.isEnabled(), timeout=60000)
-        assert d.progress.value() == 12
+        assert d.progress.value() == 12, (d.status.text(), d.result.aborted)
         assert d.result.proposal.channel == 2, d.result.proposal
         assert d.accept_proposal()
         assert fes.district_channels == {"anterior deltoid": 2}
