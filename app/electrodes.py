@@ -31,6 +31,7 @@ from app.fes_limits import FesLimits, rms_current_ma
 log = logging.getLogger(__name__)
 
 Direction = Literal["positive", "negative", "either"]
+MIN_READINGS = 3  # distinct LINarm readings a baseline or a measurement needs
 DISCOMFORT_MAX = 10  # the patient's rating: 0 = no discomfort .. 10 = the worst imaginable (numeric scale)
 
 
@@ -350,8 +351,13 @@ class ElectrodeSetup:
         held = False
         try:
             self._check()
-            ports.hold_arm()
-            held = True
+            held = True  # a hold that fails half-way is still undone
+            try:
+                ports.hold_arm()
+            except SetupAborted:
+                raise
+            except Exception as exc:  # refused by the supervisor, the controller, or no link
+                raise SetupAborted(f"the robot could not hold the arm: {getattr(exc, 'reason', exc)}") from exc
             for combo in result.combinations:
                 for current in p.ladder(combo.ceiling_ma):
                     burst = self._burst(combo, current)
@@ -371,11 +377,14 @@ class ElectrodeSetup:
                 "motor_thresholds_ma": {r.combination.channel: r.motor_threshold_ma(p.detect_n)
                                         for r in result.combinations}})
             self._emit("finished", result)
-        except SetupAborted as exc:
-            result.aborted = exc.reason
-            ports.stop(exc.reason)
+        except Exception as exc:  # SetupAborted, or anything unexpected: stimulation stops either way
+            reason = exc.reason if isinstance(exc, SetupAborted) else f"the set-up failed: {exc}"
+            if not isinstance(exc, SetupAborted):
+                log.exception("electrode set-up failed")
+            result.aborted = reason
+            ports.stop(reason)
             result.repropose()
-            ports.record("electrode_setup_aborted", {"district": district.name, "reason": exc.reason,
+            ports.record("electrode_setup_aborted", {"district": district.name, "reason": reason,
                                                      "bursts": sum(len(r.bursts) for r in result.combinations)})
             self._emit("aborted", result)
         finally:
@@ -391,8 +400,9 @@ class ElectrodeSetup:
         p, ports = self.plan, self.ports
         channel = combo.combination.channel
         baseline = self._sample(p.baseline_s)
-        if not baseline:
-            raise SetupAborted("no reading from the LINarm (interaction force): is it connected?")
+        if len(baseline) < MIN_READINGS:
+            raise SetupAborted(f"too few LINarm readings before the burst ({len(baseline)}): is it connected and "
+                               "streaming?")
         f0 = sum(r.force_n for r in baseline) / len(baseline)
         x0 = sum(r.position_m for r in baseline) / len(baseline)
         burst = Burst(channel, current, round(p.pulse_width_us), p.frequency_hz,
@@ -404,13 +414,15 @@ class ElectrodeSetup:
             raise SetupAborted(f"the test burst of {current} mA on channel {channel} was refused: "
                                f"{getattr(exc, 'reason', exc)}") from exc
         t0 = ports.now()
-        self._wait_until(t0 + burst.ramp_s + burst.hold_s - p.measure_s)
-        window = self._sample(p.measure_s)
-        if not ports.stimulating():
+        plateau_end = t0 + burst.ramp_s + burst.hold_s
+        self._wait_until(plateau_end - p.measure_s)
+        window = self._sample(p.measure_s, since=plateau_end - p.measure_s)
+        if not ports.stimulating() and ports.now() < t0 + burst.duration_s:
             raise SetupAborted(f"stimulation on channel {channel} ended before the burst did (stopped elsewhere)")
         self._wait_until(t0 + burst.duration_s)
-        if not window:
-            raise SetupAborted("no reading from the LINarm during the burst")
+        if len(window) < MIN_READINGS:
+            raise SetupAborted(f"too few LINarm readings during the burst ({len(window)}): the LINarm stopped "
+                               "sending, or this computer is too busy to measure")
         mean = sum(r.force_n for r in window) / len(window)
         change = mean - f0
         direction = self.district.direction
@@ -439,18 +451,21 @@ class ElectrodeSetup:
     def _wait(self, seconds: float) -> None:
         self._wait_until(self.ports.now() + seconds)
 
-    def _sample(self, seconds: float) -> list[ArmReading]:
+    def _sample(self, seconds: float, since: float | None = None) -> list[ArmReading]:
+        """The distinct readings stamped from ``since`` (default: now) for ``seconds``: a reading read twice
+        counts once, and one stamped outside the window (read late, on a busy computer) not at all."""
         ports = self.ports
-        end = ports.now() + seconds
-        out: list[ArmReading] = []
+        start = ports.now() if since is None else since
+        end = start + seconds
+        out: dict[float, ArmReading] = {}
         while True:
             self._check()
             reading = ports.read_arm()
-            if reading is not None:
-                out.append(reading)
+            if reading is not None and start - 1e-9 <= reading.t <= end + 1e-9:
+                out[reading.t] = reading
             left = end - ports.now()
             if left <= 1e-9:
-                return out
+                return list(out.values())
             ports.sleep(min(left, self.plan.sample_period_s))
 
     def _emit(self, kind: str, payload: Any) -> None:
@@ -556,7 +571,8 @@ def app_ports(fes: Any, robot_command: Callable[..., Any], latest: Callable[[str
         vsa = latest(streams.LINARM_VSA)
         if vsa is None:
             return None
-        return ArmReading(float(getattr(vsa, "timestamp", 0.0)), float(vsa.interactionForce), float(vsa.handlePos))
+        stamp = float(getattr(vsa, "timestamp", 0.0) or 0.0) or time.monotonic()  # unstamped: taken as now
+        return ArmReading(stamp, float(vsa.interactionForce), float(vsa.handlePos))
 
     def release_arm() -> None:
         if hold_reason():  # the e-stop or a STOP alarm has put the robot in its safe state: leave it there

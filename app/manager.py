@@ -350,6 +350,9 @@ class LinarmppManager(QObject):
         self.supervisor.robot = self.config.safety.robot
         self._apply_robot_limits()
         self.patient_profile = None
+        set_districts = getattr(self.driver("fes"), "set_district_channels", None)
+        if callable(set_districts):  # the next patient's district profiles must not use this one's electrodes
+            set_districts({})
         self.session_changed.emit(None)
 
     def _apply_robot_limits(self) -> None:

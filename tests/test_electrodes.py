@@ -430,3 +430,66 @@ def test_the_stimulator_resolves_district_profiles(qtbot) -> None:
     driver.load_profile(profile)
     assert sorted(driver.profile.channels) == [2, 8] and driver.channel_list.channels == (2, 8)
     assert "fes_district_channels" in events
+
+
+def test_scripts_may_call_the_setup_through_the_kernel_bridge() -> None:
+    """A script in the kernel process reaches fes.electrodeSetup: the bridge lets the call through."""
+    from app.scripting.bridge import ApiBridge
+
+    call = {"op": "call", "id": 1, "obj": "fes", "name": "electrodeSetup",
+            "args": ["anterior deltoid", 20, 6, 2, 250, True]}
+    assert ApiBridge._is_api_call(call)
+    assert not ApiBridge._is_api_call({**call, "name": "electrodeSetupX"})
+
+
+def test_a_hold_the_robot_refuses_ends_the_setup_before_any_burst() -> None:
+    rig = Rig(SimulatedPatient(seed=2))
+
+    def refuse() -> None:
+        rig.holds += 1
+        raise RuntimeError("setCtrlState refused: a STOP alarm is open")
+
+    ports = rig.ports()
+    ports = SetupPorts(**{**ports.__dict__, "hold_arm": refuse})
+    result = ElectrodeSetup(DELTOID, PLAN, LIMITS, ports).run()
+    assert result.aborted == "the robot could not hold the arm: setCtrlState refused: a STOP alarm is open"
+    assert rig.bursts == [] and rig.stops and rig.events[-1][0] == "electrode_setup_aborted"
+
+
+def test_an_unexpected_failure_mid_burst_still_stops_stimulation_and_releases_the_arm() -> None:
+    rig = Rig(SimulatedPatient(seed=2))
+    reads = {"n": 0}
+
+    def read() -> ArmReading | None:
+        reads["n"] += 1
+        if len(rig.bursts) == 3 and rig.stimulating():
+            raise OSError("link lost")
+        return rig.read_arm()
+
+    ports = SetupPorts(**{**rig.ports().__dict__, "read_arm": read})
+    result = ElectrodeSetup(DELTOID, PLAN, LIMITS, ports).run()
+    assert result.aborted == "the set-up failed: link lost"
+    assert rig.stops and not rig.stimulating() and not rig.held and len(rig.bursts) == 3
+
+
+def test_a_starved_measurement_is_not_taken_for_a_response() -> None:
+    """The worker wakes 0.5 s late inside a burst's measurement window (a busy computer): the readings stamped
+    after the plateau are not averaged; the set-up ends saying why instead of reporting a wrong response."""
+    rig = Rig(SimulatedPatient(seed=2))
+    jumped: list[float] = []
+    sleep = rig.clock.sleep
+
+    def late_sleep(seconds: float) -> None:
+        if not jumped and len(rig.bursts) == 3 and rig.stimulating():
+            t0, b = rig.bursts[-1]
+            if rig.clock.t >= t0 + b.ramp_s + b.hold_s - PLAN.measure_s + 0.01:
+                jumped.append(rig.clock.t)
+                sleep(0.5)
+                return
+        sleep(seconds)
+
+    ports = SetupPorts(**{**rig.ports().__dict__, "sleep": late_sleep})
+    result = ElectrodeSetup(DELTOID, PLAN, LIMITS, ports).run()
+    assert jumped
+    assert "too busy to measure" in result.aborted
+    assert len(result.combinations[0].bursts) == 2  # the two measured before are kept

@@ -26,7 +26,7 @@ from app.fes_profile import load_profile, parse_profile
 from app.manager import LinarmppManager
 from app.patients import PatientProfile, load_patient
 
-pytestmark = [pytest.mark.realtime, pytest.mark.sim_in_thread]
+pytestmark = [pytest.mark.realtime]
 
 PLAN = SetupPlan(ceiling_ma=16.0, start_ma=8.0, step_ma=4.0, ramp_s=0.0, hold_s=0.5, measure_s=0.25,
                  baseline_s=0.2, rest_s=0.2)
@@ -76,7 +76,7 @@ def rig(qtbot):
         manager.devices["fes"].simulator.keep_host_log = True
         robot.command("goToHome", source="test", timeout_s=2.0)
         qtbot.waitUntil(lambda: (s := robot.latest("linarm.state")) is not None and s.initialized
-                        and s.homeState == 4, timeout=15000)
+                        and s.homeState == 4, timeout=30000)
         # the array: channel 4 is the best pair, channel 2 needs 20 % more current for the same force
         manager.patient.set_electrode_distances({2: 0.866, 4: 0.5})
         yield manager
@@ -93,6 +93,7 @@ def run_setup(manager, plan: SetupPlan = PLAN, stopped=lambda: False):
     return result, events
 
 
+@pytest.mark.sim_in_thread
 def test_setup_on_the_simulated_devices(rig, qtbot, tmp_path) -> None:
     manager = rig
     fes, robot = manager.driver("fes"), manager.driver("linarm")
@@ -148,6 +149,7 @@ def test_setup_on_the_simulated_devices(rig, qtbot, tmp_path) -> None:
         assert set(currents_on_the_wire(sim, t_mark)) == set(channels)
 
 
+@pytest.mark.sim_in_thread
 def test_emergency_stop_during_a_burst(rig, qtbot) -> None:
     manager = rig
     fes, sim = manager.driver("fes"), manager.devices["fes"].simulator
@@ -180,6 +182,7 @@ def test_emergency_stop_during_a_burst(rig, qtbot) -> None:
     assert not fes.stimulating
 
 
+@pytest.mark.sim_in_thread
 def test_script_stop_ends_the_setup(rig, qtbot) -> None:
     manager = rig
     sim = manager.devices["fes"].simulator
@@ -198,3 +201,27 @@ def test_script_stop_ends_the_setup(rig, qtbot) -> None:
 
 
 
+
+
+def test_script_api_with_the_simulators_in_their_own_process(rig, qtbot) -> None:
+    """As the app runs by default: the simulators (and the patient) in the simulator process, which hears the
+    stimulator through its hook; the script API's fes.electrodeSetup runs the set-up and accepts the proposal."""
+    from app.scripting.api import FESUser, ScriptContext
+
+    manager = rig
+    assert manager.simulators.out_of_process
+    manager.patient.set_electrode_distances({1: 2.0, 2: 1.5, 3: 0.5, 4: 0.866})  # channel 3 is the best
+    manager.patient_profile = PatientProfile("API1")
+    manager.operator = "therapist S"
+    context = ScriptContext(manager, source="test script")
+    try:
+        summary = FESUser(context).electrodeSetup("anterior deltoid", 16, 8, 4, 250, True)
+    finally:
+        context.close()
+    assert summary["proposedChannel"] == 3 and summary["accepted"] == 3 and not summary["aborted"]
+    assert [c["channel"] for c in summary["combinations"]] == [1, 2, 3, 4]
+    assert all(len(c["bursts"]) == 3 for c in summary["combinations"])
+    assert load_patient("API1").fes.electrodes["anterior deltoid"].chosen_by == "therapist S"
+    assert manager.driver("fes").district_channels == {"anterior deltoid": 3}
+    on_wire = currents_on_the_wire(manager.devices["fes"].simulator)
+    assert set(on_wire) == {1, 2, 3, 4} and max(max(v) for v in on_wire.values()) == 16

@@ -122,7 +122,7 @@ def test_the_dialog_on_the_simulated_devices(qtbot) -> None:
         qtbot.waitUntil(lambda: manager.all_connected() and fes.device_ready, timeout=5000)
         robot.command("goToHome", source="test", timeout_s=2.0)
         qtbot.waitUntil(lambda: (s := robot.latest("linarm.state")) is not None and s.homeState == 4,
-                        timeout=15000)
+                        timeout=30000)
         manager.patient.set_electrode_distances({1: 2.0, 2: 0.5, 3: 1.5, 4: 0.866})
         manager.patient_profile = PatientProfile("UI8")
         d = ElectrodeSetupDialog(manager)
@@ -132,11 +132,48 @@ def test_the_dialog_on_the_simulated_devices(qtbot) -> None:
                                  measure_s=0.2, baseline_s=0.15, rest_s=0.1))
         assert not d.start_button.isEnabled() and d.stop_button.isEnabled()
         qtbot.waitUntil(lambda: not d.running and d.start_button.isEnabled(), timeout=60000)
-        assert d.progress.value() == 12
+        assert d.progress.value() == 12, (d.status.text(), d.result.aborted)
         assert d.result.proposal.channel == 2, d.result.proposal
         assert d.accept_proposal()
         assert fes.district_channels == {"anterior deltoid": 2}
         assert load_patient("UI8").fes.electrodes["anterior deltoid"].channel == 2
         d.close()
+    finally:
+        manager.shutdown()
+
+
+def test_editing_the_patient_keeps_the_chosen_electrodes(qtbot) -> None:
+    """The Patients dialog does not show the electrode choices; saving the form must not drop them."""
+    from dataclasses import replace
+
+    from app.patients import ElectrodeChoice
+    from app.ui.patient_dialog import PatientDialog
+
+    profile = PatientProfile("PD1")
+    profile = replace(profile, fes=replace(profile.fes, electrodes={
+        "triceps": ElectrodeChoice(6, "3-4", "2026-11-25T22:00:00+00:00", "therapist D", 5, 0.4, 12.0, 2)}))
+    d = PatientDialog(profile, AppConfig().safety)
+    qtbot.addWidget(d)
+    d.notes.setPlainText("edited")
+    edited = d.validate()
+    assert edited is not None and edited.notes == "edited"
+    assert edited.fes.electrodes == profile.fes.electrodes
+
+
+def test_a_session_applies_the_patients_electrodes_and_its_end_forgets_them(qtbot, tmp_path) -> None:
+    from dataclasses import replace
+
+    from app.patients import ElectrodeChoice, save_patient
+
+    profile = PatientProfile("SE1")
+    save_patient(replace(profile, fes=replace(profile.fes, electrodes={"triceps": ElectrodeChoice(7, "1-3")})))
+    manager = LinarmppManager(AppConfig(), factories={"fes": rehastim.create})
+    manager.start()
+    try:
+        fes = manager.driver("fes")
+        manager.start_session("SE1", "therapist", root=tmp_path)
+        assert fes.district_channels == {"triceps": 7}
+        manager.end_session()
+        assert fes.district_channels == {}
     finally:
         manager.shutdown()

@@ -224,6 +224,8 @@ class PatientDialog(QDialog):
             data["created"] = original.created
         if original.therapy_plan:  # not edited here (the profile's YAML): kept as it is
             data["therapy_plan"] = [asdict(step) for step in original.therapy_plan]
+        if original.fes.electrodes:  # chosen by the electrode set-up (issue #32), not edited here: kept as it is
+            data["fes"]["electrodes"] = {name: asdict(choice) for name, choice in original.fes.electrodes.items()}
         return data
 
     def validate(self) -> PatientProfile | None:
