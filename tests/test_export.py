@@ -19,8 +19,8 @@ from app.export import (
     write_aligned_csv,
 )
 from app.recording import RecordedSession, SessionRecorder, load_session
-from app.safety import SafetySupervisor
 from tests.fakes import ListenerDriver
+from tests.recorder_host import recorder_host
 
 
 def _Driver() -> ListenerDriver:
@@ -34,8 +34,7 @@ def _Driver() -> ListenerDriver:
 def session(tmp_path) -> RecordedSession:
     driver = _Driver()
     config = AppConfig()
-    manager = SimpleNamespace(config=config, supervisor=SafetySupervisor(config.safety),
-                              devices={"dev": SimpleNamespace(driver=driver, simulated=True)})
+    manager = recorder_host(config, {"dev": driver})
     recorder = SessionRecorder()
     folder = recorder.start(manager, "P010", "op", root=tmp_path / "sessions")
     rng = np.random.default_rng(11)

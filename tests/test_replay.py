@@ -12,8 +12,8 @@ from app.config import AppConfig
 from app.devices.driver import Channel, StreamSpec
 from app.recording import RecordedSession, SessionRecorder, load_session
 from app.replay import ReplaySource
-from app.safety import SafetySupervisor
 from tests.fakes import ListenerDriver
+from tests.recorder_host import recorder_host
 
 RATE_HZ = 10.0
 SECONDS = 20.0
@@ -28,8 +28,7 @@ def _Driver() -> ListenerDriver:
 def session(tmp_path) -> RecordedSession:
     driver = _Driver()
     config = AppConfig()
-    manager = SimpleNamespace(config=config, supervisor=SafetySupervisor(config.safety),
-                              devices={"fake": SimpleNamespace(driver=driver, simulated=True)})
+    manager = recorder_host(config, {"fake": driver})
     recorder = SessionRecorder()
     folder = recorder.start(manager, "P020", "op", root=tmp_path)
     rng = np.random.default_rng(2)
@@ -135,9 +134,7 @@ def test_replay_opens_on_measured_signals_and_closes_from_its_own_button(tmp_pat
 
     state, vsa = ListenerDriver(STATE_STREAM), ListenerDriver(VSA_STREAM)
     config = AppConfig()
-    manager = SimpleNamespace(config=config, supervisor=SafetySupervisor(config.safety),
-                              devices={"linarm": SimpleNamespace(driver=state, simulated=True),
-                                       "linarm2": SimpleNamespace(driver=vsa, simulated=True)})
+    manager = recorder_host(config, {"linarm": state, "linarm2": vsa})
     recorder = SessionRecorder()
     folder = recorder.start(manager, "P021", "op", root=tmp_path)
     t0 = time.monotonic()

@@ -18,6 +18,7 @@ from app.patients import PatientProfile, load_patient, save_patient
 from app.recording import SessionRecorder, load_session
 from app.safety import AlarmLevel, SafetySupervisor
 from tests.fakes import ListenerDriver
+from tests.recorder_host import recorder_host
 
 
 def _Driver() -> ListenerDriver:
@@ -28,8 +29,7 @@ def _Driver() -> ListenerDriver:
 def record(root, patient: str, script: str | None, alarm: bool, crashed: bool = False):
     driver = _Driver()
     config = AppConfig()
-    manager = SimpleNamespace(config=config, supervisor=SafetySupervisor(config.safety),
-                              devices={"fake": SimpleNamespace(driver=driver, simulated=True)})
+    manager = recorder_host(config, {"fake": driver})
     recorder = SessionRecorder()
     folder = recorder.start(manager, patient, "dr_bianchi", root=root)
     t0 = time.monotonic()
@@ -175,8 +175,7 @@ def test_statuses_say_what_happened(home, qtbot) -> None:
     driver = _Driver()
     config = AppConfig()
     sup = SafetySupervisor(config.safety)
-    manager = SimpleNamespace(config=config, supervisor=sup,
-                              devices={"fake": SimpleNamespace(driver=driver, simulated=True)})
+    manager = recorder_host(config, {"fake": driver}, sup)
     recorder = SessionRecorder()
     rough = recorder.start(manager, "P040", "dr_bianchi", root=root)
     for i in range(5):
