@@ -211,3 +211,19 @@ def test_truncated_last_lines_are_dropped(tmp_path) -> None:
     assert np.array_equal(stream.data["y"], -np.arange(20.0))
     assert session.events[-1]["kind"] == "session_stop"
     assert any("incomplete" in p for p in session.problems)
+
+
+def test_the_recorder_subscribes_to_the_supervisor_without_taking_its_sink(tmp_path) -> None:
+    """#29: the recorder chained the supervisor's one-slot sink (whoever set it next cut the recorder off, and
+    a stop restored a stale one). Now it is one of the supervisor's event subscribers; the sink stays its owner's."""
+    manager, _ = fake_manager()
+    theirs: list[str] = []
+    sink = lambda kind, data: theirs.append(kind)  # noqa: E731
+    manager.supervisor.set_event_sink(sink)
+    recorder = SessionRecorder()
+    folder = recorder.start(manager, "P007", "op", root=tmp_path)
+    assert manager.supervisor.event_sink is sink
+    manager.supervisor.set_event_sink(None)  # the sink's owner goes: the record still gets the events
+    manager.supervisor.event("alarm", source="test", text="after the sink changed")
+    recorder.stop()
+    assert [e["kind"] for e in load_session(folder).events if e["origin"] == "safety"] == ["alarm"]
