@@ -97,8 +97,12 @@ class ScriptHost(Protocol):
     progress: ExerciseProgress
     runs: RunLog
     operator: str
+    recorder: Any  # app.recording.SessionRecorder while a session runs, else None
+    patient_profile: Any  # app.patients.PatientProfile of the running session, else None (the electrode set-up)
 
     def driver(self, name: str) -> Any: ...  # the device's own driver class (its commands), None when absent
+
+    def record_event(self, kind: str, who: str = "", **data: Any) -> None: ...
 
     def add_shutdown_hook(self, fn: Callable[[], None]) -> None: ...
 

@@ -16,6 +16,7 @@ from types import SimpleNamespace
 
 import pytest
 
+from app.bus import DeviceEvent
 from app.config import AppConfig
 from app.devices import rehastim
 from app.devices.sciencemode import (
@@ -76,12 +77,19 @@ def stimulating(tmp_path, qtbot, protocol: str = "sm1", links: bool = False) -> 
             def factory(manager, base=base, name=name):  # type: ignore[no-untyped-def]
                 handle = base(manager)
                 handle.driver.silence_timeout_s = 0.3
-                handle.driver.add_event_listener(  # registered before the FES driver's listener
-                    lambda event, _detail, name=name: stamps.setdefault((name, event), time.monotonic()))
                 return handle
             factories[name] = factory
     factories["fes"] = rehastim.create
     manager = LinarmppManager(config, factories=factories)
+    # When each link event happened (DeviceEvent.t: stamped as the driver published it, before any consumer).
+    link_events = manager.bus.subscribe("test-link-events", [], events=True)
+
+    def stamp(link: str, event: str) -> float | None:
+        for item in link_events.drain():
+            if isinstance(item, DeviceEvent):
+                stamps.setdefault((item.device, item.kind), item.t)
+        return stamps.get((link, event))
+
     manager.start()
     try:
         driver = manager.driver("fes")
@@ -94,7 +102,8 @@ def stimulating(tmp_path, qtbot, protocol: str = "sm1", links: bool = False) -> 
         driver.load_profile(PROFILE)
         driver.start_stimulation("test")
         qtbot.waitUntil(lambda: bool(sim.with_core(lambda c: c.channel_state())), timeout=2000)
-        yield Setup(manager=manager, driver=driver, sim=sim, protocol=protocol, faults=faults, stamps=stamps)
+        yield Setup(manager=manager, driver=driver, sim=sim, protocol=protocol, faults=faults, stamps=stamps,
+                    stamp=stamp)
     finally:
         manager.shutdown()
 
@@ -224,7 +233,7 @@ def test_losing_the_linarm_or_physio_link_stops(tmp_path, qtbot, link: str, even
             handle.simulator.kill()
         else:  # the board stops streaming but the link stays up
             handle.simulator.with_core(lambda c: setattr(c, "period_s", 1e6))
-        qtbot.waitUntil(lambda: (link, event) in s.stamps, timeout=2000)
+        qtbot.waitUntil(lambda: s.stamp(link, event) is not None, timeout=2000)
         assert_stopped_within(s, qtbot, s.stamps[(link, event)])
         # Either the FES driver's own link watch or, first, the fault policy (a lost LINarm is a STOP alarm,
         # issue #17) stopped it; either way the cause is on record.

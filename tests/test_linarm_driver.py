@@ -11,6 +11,7 @@ from typing import Any
 import numpy as np
 import pytest
 
+from app import streams
 from app.config import AppConfig, SafetyConfig
 from app.devices import linarm_protocol as proto
 from app.devices.linarm import LinarmCommandError, LinarmDriver
@@ -130,26 +131,28 @@ def test_a_controller_error_is_raised_with_its_code(robot: LinarmDriver, qtbot) 
 
 
 def record_centre(robot: LinarmDriver) -> tuple[list[tuple[float, float]], Any]:
+    """The centre as the bus delivers it: ``pump()`` moves the queued samples into the list."""
     samples: list[tuple[float, float]] = []
+    sub = robot.bus.subscribe("test-centre", [streams.LINARM_VSA], maxlen=100_000)
 
-    def listener(stream: str, t: float, sample: Any) -> None:
-        if stream == "linarm.vsa":
-            # The controller's own clock: arrival times on the PC are bunched by the serial reads.
-            samples.append((sample.controllerTime, sample.equilibriumPos))
+    def pump() -> list[tuple[float, float]]:
+        # The controller's own clock: arrival times on the PC are bunched by the serial reads.
+        samples.extend((item.sample.controllerTime, item.sample.equilibriumPos) for item in sub.drain())
+        return samples
 
-    robot.add_listener(listener)
-    return samples, listener
+    pump.close = sub.close  # type: ignore[attr-defined]
+    return samples, pump
 
 
 @pytest.mark.parametrize("trajectory", [0, 1], ids=["trapezoidal", "cycloidal"])
 def test_reaching_motion_profile_on_the_recorded_samples(robot: LinarmDriver, qtbot, trajectory: int) -> None:
     enter(robot, qtbot, "on-target")
     robot.command("setTrajectoryType", trajectory)
-    samples, listener = record_centre(robot)
+    samples, pump = record_centre(robot)
     robot.command("moveCentreTo", 0.40, 0.15, 0.15, 0.0, False)
-    qtbot.waitUntil(lambda: bool(samples) and abs(samples[-1][1] - 0.40) < 0.002
+    qtbot.waitUntil(lambda: bool(pump()) and abs(samples[-1][1] - 0.40) < 0.002
                     and abs(robot.latest("linarm.vsa").handleVel) < 0.01, timeout=8000)
-    robot.remove_listener(listener)
+    pump.close()
     t = np.array([s[0] for s in samples])
     x = np.array([s[1] for s in samples])
     assert abs(x[-1] - 0.40) <= 0.005

@@ -122,10 +122,10 @@ def test_create_uses_the_protocols_settings_on_a_real_port(protocol: str) -> Non
     supervisor = SafetySupervisor(config.safety)
     from pathlib import Path
 
-    from app.devices.driver import UpdateNotifier
+    from app.bus import StreamBus
     from app.devices.registry import DeviceContext, SimulatorHosting
 
-    ctx = DeviceContext("fes", config.devices.fes, config.safety, UpdateNotifier(), supervisor, Path("/nonexistent"),
+    ctx = DeviceContext("fes", config.devices.fes, config.safety, StreamBus(), supervisor, Path("/nonexistent"),
                         SimulatorHosting(config, Path("/nonexistent")), {})
     handle = create(ctx)
     assert handle is not None and handle.simulator is None

@@ -161,10 +161,12 @@ def test_the_record_keeps_the_arrival_time_beside_the_sample_time(tmp_path, qtbo
     class Quiet(DeviceDriver):
         streams = (spec,)
 
-    driver = Quiet("dev", SimpleNamespace())  # type: ignore[arg-type]
-    manager = SimpleNamespace(
-        config=AppConfig(), supervisor=SafetySupervisor(SafetyConfig()),
-        devices={"dev": SimpleNamespace(driver=driver, simulated=True)}, operator="op")
+    from app.bus import StreamBus
+    from tests.recorder_host import recorder_host
+
+    bus = StreamBus()
+    driver = Quiet("dev", SimpleNamespace(), bus=bus)  # type: ignore[arg-type]
+    manager = recorder_host(AppConfig(), {"dev": driver}, SafetySupervisor(SafetyConfig()), bus=bus)
     recorder = SessionRecorder(fsync=False)
     folder = recorder.start(manager, "P001", "op", root=tmp_path)  # type: ignore[arg-type]
     for k in range(5):

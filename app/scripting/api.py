@@ -574,7 +574,7 @@ class FESUser:
         patient's choice (docs/fes.md "Electrode set-up")."""
         from app import electrodes
 
-        manager = self._ctx.manager
+        manager = self._ctx.host
         fes, robot = self._driver(), self._ctx.driver("linarm", "the LINarm")
         districts = electrodes.districts_from_config(manager.config.devices.fes.electrodes)
         if district not in districts:
@@ -583,7 +583,7 @@ class FESUser:
         plan = electrodes.SetupPlan(ceiling_ma=float(ceiling_mA), start_ma=float(start_mA), step_ma=float(step_mA),
                                     pulse_width_us=float(pulseWidth_us),
                                     frequency_hz=manager.config.safety.fes.frequency_hz)
-        bus = getattr(manager, "bus", None)
+        bus = manager.bus
         source = f"{self._ctx.source}: fes.electrodeSetup"
 
         def record(kind: str, data: dict[str, Any]) -> None:
@@ -594,7 +594,7 @@ class FESUser:
 
         try:
             result = electrodes.run_district_setup(fes, robot, manager.supervisor,
-                                                   bus.latest if bus is not None else robot.latest, record,
+                                                   bus.latest, record,
                                                    districts[district], plan, lambda: self._ctx.stopped,
                                                    source=source)
         except electrodes.SetupAborted as exc:
