@@ -23,7 +23,7 @@ from app.assistance import AssistanceController, AssistanceInactive
 from app.bus import BusItem, DeviceEvent, SampleItem, StreamBus, Subscription
 from app.config import AppConfig
 from app.devices.driver import DeviceDriver
-from app.devices.linarm_constants import K
+from app.devices.linarm_constants import PRETENSION_MOVE
 from app.devices.registry import DeviceFactory, DeviceHandle, SimulatorHosting, build_devices
 from app.fault_policy import FaultPolicy
 from app.paths import runtime_dir
@@ -38,7 +38,7 @@ __all__ = ["DeviceFactory", "DeviceHandle", "DeviceWatch", "LinarmppManager", "T
 
 # The pretension move by which the robot's share of α changes the VSA's stiffness (setStiffness's motion
 # profile): the constants table's, and execTime 0 = planned from that velocity and acceleration.
-STIFFNESS_MOVE = (K["PRETENSION_MOVE_VELOCITY"], K["PRETENSION_MOVE_ACCELERATION"], 0.0)
+STIFFNESS_MOVE = PRETENSION_MOVE
 
 
 class TherapyThread:

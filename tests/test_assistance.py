@@ -387,9 +387,10 @@ def test_the_stiffness_move_of_the_assistance_is_the_constants_tables() -> None:
     for path in sorted((Path(__file__).resolve().parents[1] / "app").rglob("*.py")):
         for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
             items = node.elts if isinstance(node, ast.Tuple) else node.args if isinstance(node, ast.Call) else []
-            names = [i for i, e in enumerate(items) if isinstance(e, ast.Constant) and e.value == "setStiffness"]
+            names = [i for i, e in enumerate(items)
+                     if isinstance(e, ast.Constant) and e.value in ("setStiffness", "moveDeltaTo")]
             for i in names:
                 literals = [e for e in items[i + 2:] if isinstance(e, ast.Constant) and isinstance(e.value, float)]
                 if literals:
                     copies.append(f"{path.name}:{node.lineno} {ast.unparse(node)}")
-    assert not copies, f"setStiffness's motion profile typed again instead of read from the table: {copies}"
+    assert not copies, f"the pretension move (setStiffness, moveDeltaTo) typed again, not read from the table: {copies}"

@@ -115,14 +115,18 @@ CONSTANTS: tuple[Constant, ...] = (
     *_group(
         "host",  # what the host asks of the controller (the firmware does not use them; the setters check them)
         ("PRETENSION_MOVE_VELOCITY", 0.05, "m/s",
-         "maxVel of the pretension move by which the assistance split changes the stiffness (setStiffness)"),
+         "maxVel of the host's pretension (delta) moves: the assistance's setStiffness, the runner's moveDeltaTo"),
         ("PRETENSION_MOVE_ACCELERATION", 0.2, "m/s^2",
-         "maxAcc of the pretension move by which the assistance split changes the stiffness (setStiffness)"),
+         "maxAcc of the host's pretension (delta) moves: the assistance's setStiffness, the runner's moveDeltaTo"),
     ),
 )
 
 K: dict[str, float] = {c.name: c.value for c in CONSTANTS}
 assert len(K) == len(CONSTANTS), "duplicate constant names"
+
+# The host's pretension (delta) move as a command's (maxVel, maxAcc, execTime) arguments: execTime 0 = planned
+# from that velocity and acceleration. setStiffness (the assistance split) and moveDeltaTo (the runner) use it.
+PRETENSION_MOVE: tuple[float, float, float] = (K["PRETENSION_MOVE_VELOCITY"], K["PRETENSION_MOVE_ACCELERATION"], 0.0)
 
 
 def constants_table() -> list[dict[str, object]]:

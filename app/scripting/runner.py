@@ -37,6 +37,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from app import streams
+from app.devices.linarm_constants import PRETENSION_MOVE, K
 from app.devices.linarm_protocol import ControlMode, ControlState, HomeState
 from app.resources import RESOURCES
 from app.scripting.api import CommandRefused, ScriptContext, ScriptStopped
@@ -824,7 +825,6 @@ class ScriptRunner:
         state = linarm.latest(streams.LINARM_STATE)
         if state is None or not state.initialized:
             return
-        from app.devices.linarm_constants import K
 
         ctx, src = self.context, "script runner"
         ctx.call(linarm.command, "setAdmittanceParameter", K["ADMITTANCE_KA"], source=src)
@@ -838,7 +838,7 @@ class ScriptRunner:
         ctx.call(linarm.command, "setCtrlState", int(ControlState.IDLE_CTRL_STATE), source=src)
         ctx.call(linarm.command, "setCtrlMode", int(ControlMode.POS_REF_BY_TARGET_POS), source=src)
         ctx.call(linarm.command, "setCtrlState", int(ControlState.ON_CTRL_STATE), source=src)
-        ctx.call(linarm.command, "moveDeltaTo", home_delta, 0.05, 0.2, 0.0, False, source=src)
+        ctx.call(linarm.command, "moveDeltaTo", home_delta, *PRETENSION_MOVE, False, source=src)
 
         def settled() -> bool:
             v = linarm.latest(streams.LINARM_VSA)

@@ -85,8 +85,8 @@ const float KI_MAX = 10000000.0f;  // N/(m s): setPidTunings
 const float KD_MAX = 10000.0f;  // N s/m: setPidTunings
 
 // host
-const float PRETENSION_MOVE_VELOCITY = 0.05f;  // m/s: maxVel of the pretension move by which the assistance split changes the stiffness (setStiffness)
-const float PRETENSION_MOVE_ACCELERATION = 0.2f;  // m/s^2: maxAcc of the pretension move by which the assistance split changes the stiffness (setStiffness)
+const float PRETENSION_MOVE_VELOCITY = 0.05f;  // m/s: maxVel of the host's pretension (delta) moves: the assistance's setStiffness, the runner's moveDeltaTo
+const float PRETENSION_MOVE_ACCELERATION = 0.2f;  // m/s^2: maxAcc of the host's pretension (delta) moves: the assistance's setStiffness, the runner's moveDeltaTo
 
 }  // namespace cfg
 
