@@ -183,6 +183,8 @@ class Subscription:
         """Block until items are queued (or ``timeout``); True when some are. Woken once per driver read."""
         if self._items:
             return True
+        if self.closed:
+            return False
         self._ready.wait(timeout)
         return bool(self._items)
 
@@ -191,7 +193,9 @@ class Subscription:
             self._ready.set()
 
     def close(self) -> None:
+        """Leave the bus; a consumer waiting in :meth:`wait` returns at once (False when nothing is left)."""
         self.bus.unsubscribe(self)
+        self._ready.set()
 
     def __enter__(self) -> Subscription:
         return self

@@ -82,8 +82,7 @@ class TherapyThread:
         self._stop.set()
         sub, self.subscription = self.subscription, None
         if sub is not None:
-            sub.close()
-            sub._ready.set()  # wake its wait at once (closing a subscription does not wake its waiter)
+            sub.close()  # wakes its wait at once
         thread, self._thread = self._thread, None
         if thread is not None and thread is not threading.current_thread():
             thread.join(timeout_s)

@@ -215,3 +215,28 @@ def test_a_slow_subscriber_loses_its_own_oldest_items_and_delays_nobody(qtbot) -
     assert slow.received == n_reads * PER_READ and slow.dropped > 0
     assert len(got_slow) + slow.dropped + slow.pending() == slow.received
     assert got_slow == sorted(got_slow), "what the slow consumer got is still in order"
+
+
+def test_closing_a_subscription_wakes_its_waiter() -> None:
+    """A consumer blocked in wait() returns when its subscription is closed (a thread's stop does not wait for
+    its timeout)."""
+    import threading
+    import time as _time
+
+    from app.bus import StreamBus
+
+    bus = StreamBus()
+    sub = bus.subscribe("waiter", [])
+    returned: list[tuple[bool, float]] = []
+
+    def wait() -> None:
+        t0 = _time.monotonic()
+        returned.append((sub.wait(5.0), _time.monotonic() - t0))
+
+    thread = threading.Thread(target=wait)
+    thread.start()
+    sub.close()  # whether the thread is already waiting or not yet: it must not wait out its 5 s
+    thread.join(2.0)
+    assert not thread.is_alive()
+    assert returned and returned[0][0] is False and returned[0][1] < 2.0
+    assert sub.wait(5.0) is False  # closed: no wait at all

@@ -242,7 +242,7 @@ def test_the_safety_supervisor_checks_every_script_command() -> None:
             linarm.moveCentreTo(0.3, 0.1, 0.1, 0, False)
     finally:
         context.close()
-        driver._async.shutdown(wait=False)
+        driver.commands.close("the test ended")
 
 
 def test_calls_from_many_threads_all_complete(manager: Manager, objects: dict[str, Any]) -> None:

@@ -342,19 +342,6 @@ class LinarmDriver(DeviceDriver):
             raise TransportError(f"IDLE not written{detail}")
         return status
 
-    @property
-    def _async(self) -> Any:
-        """Compatibility for tests/test_script_api.py (``driver._async.shutdown(wait=False)``, from the executor
-        this queue replaced): shutting it down closes the queue. Remove once that test calls commands.close()."""
-        commands = self.commands
-
-        class _Shutdown:
-            @staticmethod
-            def shutdown(wait: bool = True, cancel_futures: bool = False) -> None:
-                commands.close("the LINarm driver stopped")
-
-        return _Shutdown()
-
     def _queue_ident(self) -> int | None:
         thread = self.commands._thread
         return thread.ident if thread is not None else None
