@@ -215,13 +215,14 @@ def test_script_api_with_the_simulators_in_their_own_process(rig, qtbot) -> None
     manager.operator = "therapist S"
     context = ScriptContext(manager, source="test script")
     try:
-        summary = FESUser(context).electrodeSetup("anterior deltoid", 16, 8, 4, 250, True)
+        # two currents per combination (8 and 12 mA) at the API's clinical timing (1 s ramps, 1 s rests)
+        summary = FESUser(context).electrodeSetup("anterior deltoid", 12, 8, 4, 250, True)
     finally:
         context.close()
     assert summary["proposedChannel"] == 3 and summary["accepted"] == 3 and not summary["aborted"]
     assert [c["channel"] for c in summary["combinations"]] == [1, 2, 3, 4]
-    assert all(len(c["bursts"]) == 3 for c in summary["combinations"])
+    assert all(len(c["bursts"]) == 2 for c in summary["combinations"])
     assert load_patient("API1").fes.electrodes["anterior deltoid"].chosen_by == "therapist S"
     assert manager.driver("fes").district_channels == {"anterior deltoid": 3}
     on_wire = currents_on_the_wire(manager.devices["fes"].simulator)
-    assert set(on_wire) == {1, 2, 3, 4} and max(max(v) for v in on_wire.values()) == 16
+    assert set(on_wire) == {1, 2, 3, 4} and max(max(v) for v in on_wire.values()) == 12
