@@ -23,6 +23,8 @@ from typing import Any
 
 import numpy as np
 
+from app import streams
+
 # ------------------------------------------------------------------------------------------- parameters
 SPEED_CUTOFF_HZ = 6.0  # low-pass of the position before differentiating (−3 dB): docs/metrics.md, "Speed"
 SPARC_AMPLITUDE_THRESHOLD = 0.05  # Balasubramanian et al. 2015: adaptive cut-off where |V(f)| ≥ 5 % of its peak
@@ -825,18 +827,18 @@ def signals_from_session(session: Any) -> SessionSignals:
         finite = np.isfinite(v)  # "unknown" samples (NaN: e.g. the force before homing) carry no value
         return Series(t[finite] - t0, v[finite]) if finite.any() else None
 
-    vsa = session.streams.get("linarm.vsa")
+    vsa = session.streams.get(streams.LINARM_VSA)
     rate = float(vsa.nominal_rate_hz) if vsa is not None and vsa.nominal_rate_hz else 200.0
-    position = series("linarm.vsa", "handlePos", regular=True) or Series(np.zeros(0), np.zeros(0))
+    position = series(streams.LINARM_VSA, "handlePos", regular=True) or Series(np.zeros(0), np.zeros(0))
     sig = SessionSignals(position=position, rate_hz=rate,
-                         force=series("linarm.vsa", "interactionForce", regular=True),
-                         grip=series("physio.main", "force", regular=True),
-                         heart_rate=series("physio.main", "heartRate"),
-                         skin_conductance=series("physio.main", "skinConductance"),
-                         alpha=series("patient_model.main", "alpha"),
-                         a_r=series("patient_model.main", "a_r"),
-                         a_f=series("patient_model.main", "a_f"))
-    fes = session.streams.get("fes.channels")
+                         force=series(streams.LINARM_VSA, "interactionForce", regular=True),
+                         grip=series(streams.PHYSIO_MAIN, "force", regular=True),
+                         heart_rate=series(streams.PHYSIO_MAIN, "heartRate"),
+                         skin_conductance=series(streams.PHYSIO_MAIN, "skinConductance"),
+                         alpha=series(streams.PATIENT_MODEL_MAIN, "alpha"),
+                         a_r=series(streams.PATIENT_MODEL_MAIN, "a_r"),
+                         a_f=series(streams.PATIENT_MODEL_MAIN, "a_f"))
+    fes = session.streams.get(streams.FES_CHANNELS)
     if fes is not None and len(fes.t):
         for name in fes.data:
             if name.startswith("current") and np.nanmax(np.abs(fes.data[name])) > 0:
@@ -899,7 +901,7 @@ def homing_intervals(session: Any, position: Series | None = None) -> list[tuple
     movement that followed homing at once."""
     from app.devices.linarm_protocol import ControlState
 
-    state = session.streams.get("linarm.state")
+    state = session.streams.get(streams.LINARM_STATE)
     if state is None or not len(state.t) or "controlState" not in state.data:
         return []
     t = state.t - session.start_mono

@@ -20,6 +20,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
+from app import streams
 from app.metrics import SUMMARY_METRICS, metrics_of_session
 from app.runs import ExerciseRun, Program, RunParameter, runs_from_events
 
@@ -337,7 +338,7 @@ def session_report_data(folder: str | Path, profile: Any = None) -> SessionRepor
     runs = run_reports(session)
     t: list[float] = []
     x: list[float] = []
-    vsa = session.streams.get("linarm.vsa")
+    vsa = session.streams.get(streams.LINARM_VSA)
     if vsa is not None and len(vsa.t) and "handlePos" in vsa.data:
         step = max(1, len(vsa.t) // 2000)
         t = [float(v) - session.start_mono for v in vsa.t[::step]]
