@@ -438,6 +438,13 @@ class StreamBus:
             self._reroute()
         return sub
 
+    def resubscribe(self, sub: Subscription, streams: Iterable[str] | None) -> None:
+        """Change which streams a queued subscription receives (e.g. a script subscribing to one more): its
+        queue and counts stay, so the order of what it already holds is kept."""
+        with self._lock:
+            sub.streams = self._names(streams)
+            self._reroute()
+
     def unsubscribe(self, sub: AnySubscription) -> None:
         with self._lock:
             sub.closed = True

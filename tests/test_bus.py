@@ -240,3 +240,22 @@ def test_closing_a_subscription_wakes_its_waiter() -> None:
     assert not thread.is_alive()
     assert returned and returned[0][0] is False and returned[0][1] < 2.0
     assert sub.wait(5.0) is False  # closed: no wait at all
+
+
+def test_resubscribe_changes_the_streams_and_keeps_the_queue() -> None:
+    """A script that subscribes to one more stream: what its queue holds stays, in order; a stream it did not
+    ask for never reaches it."""
+    from types import SimpleNamespace
+
+    from app.bus import Channel, StreamBus, StreamSpec
+
+    bus = StreamBus()
+    bus.declare([StreamSpec("a.main", (Channel("x", "", "x"),), 10.0),
+                 StreamSpec("b.main", (Channel("x", "", "x"),), 10.0)])
+    sub = bus.subscribe("script", ["a.main"])
+    bus.publish("a.main", 1.0, SimpleNamespace(x=1.0))
+    bus.publish("b.main", 2.0, SimpleNamespace(x=2.0))
+    bus.resubscribe(sub, ["a.main", "b.main"])
+    bus.publish("b.main", 3.0, SimpleNamespace(x=3.0))
+    assert [(i.stream, i.t) for i in sub.drain()] == [("a.main", 1.0), ("b.main", 3.0)]
+    assert sub.received == 2 and sub.dropped == 0

@@ -1028,14 +1028,17 @@ class ApiBridge:
         with self._sub_lock:
             if self._closed:
                 raise ScriptStopped("the script has ended")
+            self._subscribed.add(stream)
             if self._samples is None:
-                # One queue for every stream a kernel may use, so the samples reach the kernel in the order
-                # they were published; the pump sends those of the streams subscribed so far.
-                self._samples = bus.subscribe(f"script:{self.kernel.warden_pid}", tuple(STREAMS), maxlen=SAMPLE_QUEUE)
+                # One queue for the streams the kernel subscribed to, so their samples reach it in the order they
+                # were published; only those streams wake the pump (not every driver's every read).
+                self._samples = bus.subscribe(f"script:{self.kernel.warden_pid}", tuple(self._subscribed),
+                                              maxlen=SAMPLE_QUEUE)
                 self._pump = threading.Thread(target=self._pump_main, args=(self._samples,),
                                               name=f"kernel-{self.kernel.warden_pid}-samples", daemon=True)
                 self._pump.start()
-            self._subscribed.add(stream)
+            else:
+                bus.resubscribe(self._samples, tuple(self._subscribed))
             sample = bus.latest(stream)
         return {"label": label, "connected": bool(driver.connected), "sample": self.encoder.snapshot(sample)}
 
