@@ -128,11 +128,11 @@ def test_the_dialog_on_the_simulated_devices(qtbot) -> None:
         d = ElectrodeSetupDialog(manager)
         qtbot.addWidget(d)
         d.show()
-        assert d.start(SetupPlan(ceiling_ma=16.0, start_ma=8.0, step_ma=4.0, ramp_s=0.0, hold_s=0.4,
+        assert d.start(SetupPlan(ceiling_ma=12.0, start_ma=8.0, step_ma=4.0, ramp_s=0.0, hold_s=0.4,
                                  measure_s=0.2, baseline_s=0.15, rest_s=0.1))
         assert not d.start_button.isEnabled() and d.stop_button.isEnabled()
         qtbot.waitUntil(lambda: not d.running and d.start_button.isEnabled(), timeout=60000)
-        assert d.progress.value() == 12, (d.status.text(), d.result.aborted)
+        assert d.progress.value() == 8, (d.status.text(), d.result.aborted)  # 4 combinations x (8, 12 mA)
         assert d.result.proposal.channel == 2, d.result.proposal
         assert d.accept_proposal()
         assert fes.district_channels == {"anterior deltoid": 2}
