@@ -5,9 +5,12 @@ every millisecond; the host may send `R` to reset the counter."""
 from __future__ import annotations
 
 import struct
+import time
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
+from app import streams
+from app.bus import StreamBus, UpdateNotifier
 from app.devices.driver import Channel, DeviceDriver, StreamSpec
 from app.devices.sim.base import SerialSimulator
 from app.devices.transport import SerialTransport
@@ -115,3 +118,22 @@ class ListenerDriver:
     def fire(self, event: str, detail: str = "") -> None:
         for fn in self.event_listeners:
             fn(event, detail)
+
+
+class BusSamples(dict):
+    """A fake device's latest samples: setting one publishes it on the bus, as a driver does."""
+
+    def __init__(self, bus: StreamBus) -> None:
+        super().__init__()
+        self.bus = bus
+
+    def __setitem__(self, stream: str, sample: Any) -> None:
+        super().__setitem__(stream, sample)
+        self.bus.publish(stream, time.monotonic(), sample)
+
+
+def fake_bus(notifier: UpdateNotifier | None = None) -> StreamBus:
+    """A bus with every stream of the application declared (no channels: nothing here draws them)."""
+    bus = StreamBus(notifier)
+    bus.declare(StreamSpec(name, (), 100.0) for name in streams.STREAMS)
+    return bus

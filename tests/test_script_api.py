@@ -12,8 +12,7 @@ from typing import Any
 
 import pytest
 
-from app import streams
-from app.bus import StreamBus, StreamSpec, UpdateNotifier
+from app.bus import StreamBus, UpdateNotifier
 from app.config import RESOURCES, SafetyConfig
 from app.devices import linarm_protocol as proto
 from app.devices.linarm import LinarmCommandError, LinarmDriver, LinarmTimeout
@@ -28,6 +27,7 @@ from app.scripting.api import (
     ScriptStopped,
     build_api,
 )
+from tests.fakes import BusSamples, fake_bus
 
 # The Appendix's LinarmUser services (5.3.2.1) and members.
 APPENDIX_LINARM = [
@@ -43,22 +43,6 @@ APPENDIX_LINARM = [
 ]
 
 
-class BusSamples(dict):
-    """A fake device's latest samples: setting one publishes it on the bus, as a driver does."""
-
-    def __init__(self, bus: StreamBus) -> None:
-        super().__init__()
-        self.bus = bus
-
-    def __setitem__(self, stream: str, sample: Any) -> None:
-        super().__setitem__(stream, sample)
-        self.bus.publish(stream, time.monotonic(), sample)
-
-
-def fake_bus(notifier: UpdateNotifier | None = None) -> StreamBus:
-    bus = StreamBus(notifier)
-    bus.declare(StreamSpec(name, (), 100.0) for name in streams.STREAMS)
-    return bus
 
 
 class Driver:

@@ -11,10 +11,10 @@ from typing import Any
 
 import pytest
 
-from app import streams
-from app.bus import StreamBus, StreamSpec, UpdateNotifier
+from app.bus import StreamBus, UpdateNotifier
 from app.config import AppConfig
 from app.scripting.runner import ScriptRunner
+from tests.fakes import BusSamples, fake_bus
 
 STOP_BUDGET_S = 0.2
 
@@ -36,23 +36,6 @@ class ForceSample:
     temperature: float = 33.0
 
 
-class BusSamples(dict):
-    """A fake device's latest samples: setting one publishes it on the bus, as a driver does."""
-
-    def __init__(self, bus: StreamBus) -> None:
-        super().__init__()
-        self.bus = bus
-
-    def __setitem__(self, stream: str, sample: Any) -> None:
-        super().__setitem__(stream, sample)
-        self.bus.publish(stream, time.monotonic(), sample)
-
-
-def fake_bus(notifier: UpdateNotifier | None = None) -> StreamBus:
-    """A bus with every stream of the application declared (no channels: nothing here draws them)."""
-    bus = StreamBus(notifier)
-    bus.declare(StreamSpec(name, (), 100.0) for name in streams.STREAMS)
-    return bus
 
 
 class FakeDriver:
