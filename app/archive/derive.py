@@ -31,6 +31,19 @@ def _float(value: Any) -> float | None:
         return None
 
 
+def _start_epoch(start: dict[str, Any]) -> float:
+    """The start in epoch seconds (the browser's order): the manifest's, else from its ISO time."""
+    epoch = _float(start.get("t_wall_epoch_s"))
+    if epoch:
+        return epoch
+    try:
+        import datetime as _dt
+
+        return _dt.datetime.fromisoformat(str(start.get("t_wall", ""))).timestamp()
+    except ValueError:
+        return 0.0
+
+
 def derive_session(folder: Path, manifest: dict[str, Any], uuid: str, digest: str, station: str) -> Derived:
     from app import metrics as m
     from app.recording import load_session
@@ -83,7 +96,7 @@ def derive_session(folder: Path, manifest: dict[str, Any], uuid: str, digest: st
         "uuid": uuid, "patient_id": str(manifest.get("patient_id") or folder.parent.name)[:64],
         "station": str(config.get("station") or "") or str((manifest.get("host") or {}).get("node") or "") or station,
         "operator": str(manifest.get("operator", "")), "note": str(manifest.get("note", "")),
-        "start_iso": str(start.get("t_wall", "")), "start_epoch_s": _float(start.get("t_wall_epoch_s")) or 0.0,
+        "start_iso": str(start.get("t_wall", "")), "start_epoch_s": _start_epoch(start),
         "end_iso": str(end.get("t_wall", "")) if end else "",
         "duration_s": float(manifest["duration_s"]) if isinstance(manifest.get("duration_s"), int | float)
         else session.duration_s,

@@ -414,7 +414,7 @@ class SqlArchive:
         profile.validate()
         values = profile_values(profile)
         keys = None if fields is None else _check_keys(fields)
-        times = (profile.created, profile.updated) if reason == "import" else None
+        times = (profile.created, profile.updated if reason == "import" else "")
         return self._save(profile.patient_id, values, keys, expected_version, operator, reason, times)
 
     def choose_electrodes(self, patient_id: str, district: str, choice: ElectrodeChoice | None, *,
@@ -451,7 +451,7 @@ class SqlArchive:
             if row is not None and not changed:
                 return self._record(conn, row)
             merged = {**current, **changed}
-            created = (times[0] if times else "") or (row.created if row is not None else "") or at
+            created = (row.created if row is not None else "") or (times[0] if times else "") or at
             updated = (times[1] if times else "") or at
             profile = profile_from_values(patient_id, merged, created, updated)  # validates the result
             columns = self._columns(profile, merged)
