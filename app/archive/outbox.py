@@ -95,7 +95,7 @@ class Outbox:
             self._failures += 1
             delay = self._backoff[min(self._failures, len(self._backoff)) - 1]
             self._next_try = self._clock() + delay
-            self._error = f"the archive cannot be reached: {exc}; next try in {delay:g} s"
+            self._error = f"{exc}; next try in {delay:g} s"  # "the archive at … cannot be reached (…)"
             log.warning("outbox: %s", self._error)
             return self.status()
         except ArchiveError as exc:  # refused for another reason (schema too new, configuration): said, retried
