@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from app.archive.store import canonical, chain_hash, genesis, journal_parts
+from app.archive.chain import canonical, chain_hash, genesis, journal_parts
 
 log = logging.getLogger(__name__)
 

@@ -66,6 +66,7 @@ from app.archive.api import (
     VerifyReport,
     electrode_field,
 )
+from app.archive.chain import canonical, chain_hash, genesis, history_parts, ledger_parts, session_seal
 from app.archive.models import (
     Blob,
     BlobChunk,
@@ -89,40 +90,6 @@ ARCHIVE_FILE = "archive.sqlite3"  # the embedded archive in <data>
 CHUNK_BYTES = 1 << 20
 _INSERT_BATCH = 8  # chunks per INSERT round trip (8 MiB)
 _LEDGER_LOCK = 0x4C494E41  # "LINA": PostgreSQL advisory lock of the ledger's append
-SEP = "\x1e"
-
-
-# ---------------------------------------------------------------------------------------------- hashing
-def canonical(value: Any) -> str:
-    """The stored and hashed text of a JSON value: sorted keys, no spaces, UTF-8 as is."""
-    return json.dumps(value, sort_keys=True, separators=(",", ":"), ensure_ascii=False, default=str)
-
-
-def chain_hash(prev: str, parts: Sequence[Any]) -> str:
-    text = SEP.join([prev, *("" if p is None else (repr(p) if isinstance(p, float) else str(p)) for p in parts)])
-    return hashlib.sha256(text.encode("utf-8")).hexdigest()
-
-
-def genesis(kind: str, key: str) -> str:
-    return hashlib.sha256(f"linarmpp-archive{SEP}{kind}{SEP}{key}".encode()).hexdigest()
-
-
-def journal_parts(uuid: str, seq: int, t_wall: str, t_mono: float | None, kind: str, who: str, origin: str,
-                  data: str) -> list[Any]:
-    return [uuid, seq, t_wall, t_mono, kind, who, origin, data]
-
-
-def history_parts(h: PatientHistory | Any) -> list[Any]:
-    return [h.patient_id, h.version, h.fields, h.values, h.changed_by, h.changed_station, h.changed_at, h.reason]
-
-
-def ledger_parts(r: LedgerRow | Any) -> list[Any]:
-    return [r.seq, r.kind, r.key, r.version, r.head, r.at, r.station]
-
-
-def session_seal(content_digest: str, journal_head: str, journal_rows: int) -> str:
-    """What the ledger seals of a session: its files' digest and its journal's head and length."""
-    return hashlib.sha256(SEP.join([content_digest, journal_head, str(journal_rows)]).encode()).hexdigest()
 
 
 def _now() -> str:
@@ -558,7 +525,6 @@ class SqlArchive:
                                         .returning(SessionRow.uuid)).first()
                 if inserted is None:  # another station committed it meanwhile
                     known = conn.execute(select(SessionRow.content_digest).where(SessionRow.uuid == uuid)).scalar()
-                    conn.rollback()
                     return self._already(uuid, str(known), digest, folder, files, total, t0)
                 for f in files:
                     done = self._store_blob(conn, f, done, total, progress)
