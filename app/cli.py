@@ -8,6 +8,7 @@ all run :func:`main`. With no arguments: the clinician window, every device simu
     linarmpp --metrics SESSION_FOLDER                      per-repetition metrics as JSON (docs/metrics.md)
     linarmpp --report SESSION_FOLDER --out FILE.pdf        the session's PDF report
     linarmpp --progress PATIENT_ID --out FILE.pdf          the patient's progress PDF
+    linarmpp archive {status,upgrade,import,export,upload,verify,grants} …   the archive (docs/archive.md)
                       (exit 0 done, 1 nothing written: why on stderr, 2 wrong arguments,
                        3 done from an incomplete session: what is missing on stderr)
 
@@ -52,7 +53,10 @@ def parse_args(argv: list[str], prog: str | None = None) -> argparse.Namespace:
 
 
 def main(argv: list[str] | None = None, prog: str | None = None) -> int:
-    args = parse_args(sys.argv[1:] if argv is None else argv, prog)
+    argv = sys.argv[1:] if argv is None else argv
+    if argv[:1] == ["archive"]:
+        return _archive_command(argv[1:], prog)
+    args = parse_args(argv, prog)
     from app.paths import set_private_umask
 
     set_private_umask()  # patient data: files 0600, folders 0700, whatever the login's umask (issue #17)
@@ -88,6 +92,17 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
     from app.application import run_gui
 
     return run_gui(config, screenshot=args.screenshot, quit_after_s=args.quit_after)
+
+
+def _archive_command(argv: list[str], prog: str | None) -> int:
+    """``linarmpp archive …`` (app/archive/cli.py): its own parser and exit codes."""
+    from app.archive.cli import archive_main
+    from app.logging_setup import setup_logging
+    from app.paths import set_private_umask
+
+    set_private_umask()
+    setup_logging(console=False)  # the command's own sentences go to stderr; details to the log
+    return archive_main(argv, f"{prog or 'linarmpp'} archive")
 
 
 EXIT_REPORT_OK, EXIT_REPORT_FAILED, EXIT_REPORT_USAGE, EXIT_REPORT_INCOMPLETE = 0, 1, 2, 3

@@ -293,6 +293,35 @@ class SimulationConfig:
 
 
 @dataclass(frozen=True)
+class ArchiveConfig:
+    """The clinic's archive (docs/archive.md). ``url`` empty: an SQLite file in the data folder (one PC). A clinic:
+    ``postgresql+psycopg://ROLE@HOST[:PORT]/DATABASE`` (or ``postgresql+psycopg:///DB?service=NAME``). The password
+    is never in this file: ``password_file`` (readable by this user only) or libpq's own (~/.pgpass, PGPASSFILE,
+    a service file)."""
+
+    url: str = ""
+    password_file: str = ""
+
+    def validate(self) -> None:
+        from urllib.parse import urlsplit
+
+        if not self.url:
+            return
+        try:
+            parts = urlsplit(self.url)
+            password = parts.password
+        except ValueError as exc:
+            raise ValueError(f"url {self.url!r} is not a database URL: {exc}") from None
+        if password is not None:
+            raise ValueError("url holds a password; a password in the configuration would be readable by anyone "
+                             "who can read the file: remove it from the URL and put it in password_file (a file "
+                             "only you can read) or in ~/.pgpass")
+        if not parts.scheme.startswith(("postgresql", "sqlite")):
+            raise ValueError(f"url {self.url!r}: the archive is PostgreSQL (postgresql+psycopg://…) or SQLite "
+                             "(sqlite:///FILE)")
+
+
+@dataclass(frozen=True)
 class AppConfig:
     version: int = field(default=1, metadata=rng(1, 1))
     devices: Devices = field(default_factory=Devices)
@@ -301,6 +330,8 @@ class AppConfig:
     recording: RecordingConfig = field(default_factory=RecordingConfig)
     ui: UiConfig = field(default_factory=UiConfig)
     simulation: SimulationConfig = field(default_factory=SimulationConfig)
+    archive: ArchiveConfig = field(default_factory=ArchiveConfig)
+    station: str = ""  # this PC's name in the archive ('' = the computer's network name)
     source: str = field(default="(defaults)", compare=False)
 
 

@@ -49,6 +49,7 @@ import os
 import re
 import threading
 import time
+import uuid
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -510,6 +511,9 @@ class SessionRecorder:
 
         self._manifest = {
             "format_version": FORMAT_VERSION,
+            # The session's identity in the clinic's archive (docs/archive.md): made here, at its start, so an
+            # upload is idempotent and a session interrupted before its end is still one session.
+            "session_uuid": str(uuid.uuid4()),
             "status": "recording",
             "patient_id": patient_id,
             "patient": to_plain(profile) if profile is not None and not isinstance(profile, str) else None,
