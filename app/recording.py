@@ -1230,7 +1230,8 @@ def _stream_files(folder: Path) -> list[str]:
     return sorted(f"{STREAMS_DIR}/{p.name}" for p in (folder / STREAMS_DIR).glob("*.csv") if p.is_file())
 
 
-def index_session(folder: str | Path, *, force: bool = False) -> str:
+def index_session(folder: str | Path, *, force: bool = False,
+                  progress: Callable[[float], object] | None = None) -> str:
     """Write the columnar side-file of every stream file that has none (or a stale one). Returns '' when done
     (or nothing was needed), else why not in words: a session still being written, a folder that cannot be
     written. Meant for the worker process: it parses every CSV it has to index."""
@@ -1254,7 +1255,10 @@ def index_session(folder: str | Path, *, force: bool = False) -> str:
     out = folder / COLUMNS_DIR
     try:
         out.mkdir(mode=DIR_MODE, exist_ok=True)
-        for rel in todo:
+        sizes = [(folder / rel).stat().st_size for rel in todo]
+        for k, rel in enumerate(todo):
+            if progress is not None:
+                progress(sum(sizes[:k]) / max(1, sum(sizes)))
             st = (folder / rel).stat()
             header, values, dropped = read_stream_csv(folder / rel)
             if (folder / rel).stat().st_size != st.st_size:
@@ -1267,6 +1271,17 @@ def index_session(folder: str | Path, *, force: bool = False) -> str:
     except OSError as exc:
         return f"the columnar copy of {folder} could not be written: {exc.strerror or exc}"
     return ""
+
+
+INDEX_MIN_BYTES = 8 << 20  # below this (a minute or two of recording) the CSV files parse in well under 0.1 s
+
+
+def index_worthwhile(folder: Path) -> bool:
+    """Whether a session's files are large enough for a columnar copy to matter (a few stat calls)."""
+    try:
+        return sum((folder / rel).stat().st_size for rel in _stream_files(folder)) >= INDEX_MIN_BYTES
+    except OSError:
+        return False
 
 
 def _save_npy_atomic(path: Path, array: np.ndarray) -> None:

@@ -37,6 +37,7 @@ from app.reports import (
     parameters_text,
     y_range,
 )
+from app.ui.tasks import QtTasks
 
 log = logging.getLogger(__name__)
 
@@ -172,10 +173,11 @@ class SessionSummary(QWidget):
     there are several."""
 
     def __init__(self, runs: Sequence[RunReport], title: str = "", folder: Path | None = None,
-                 parent: QWidget | None = None) -> None:
+                 parent: QWidget | None = None, tasks: QtTasks | None = None) -> None:
         super().__init__(parent)
         self.runs = list(runs)
         self.folder = folder
+        self.tasks = tasks  # the worker process that draws the PDF (issue #37); None: drawn here
         self.header = QLabel((f"<h3>{title}</h3>" if title else "")
                              + (f"{len(self.runs)} exercise run(s)" if self.runs else "No exercise run."))
         self.header.setTextFormat(Qt.TextFormat.RichText)
@@ -258,19 +260,42 @@ class SessionSummary(QWidget):
         default = Path.home() / f"{self.folder.parent.name}_{self.folder.name}.pdf"
         path, _ = QFileDialog.getSaveFileName(self, "Save session report", str(default), "PDF files (*.pdf)")
         if path:
-            self.save_pdf(Path(path))
+            if self.tasks is not None:
+                self.save_pdf_in_worker(Path(path))
+            else:
+                self.save_pdf(Path(path))
 
     def save_pdf(self, path: Path) -> bool:
-        from app.reports import write_session_report
+        """Draw and write the report here (verified before "written" is said)."""
+        from app.outputs import OutputError
+        from app.reports import save_session_report
 
         try:
-            pages = write_session_report(self.folder, path)  # type: ignore[arg-type]
-        except Exception as exc:  # a full disk, a folder not writable: say so, the summary stays
+            pages = save_session_report(self.folder, path)  # type: ignore[arg-type]
+        except OutputError as exc:  # a full disk, a folder not writable: one sentence, the summary stays
+            self.status.setText(str(exc))
+            return False
+        except Exception as exc:
             log.exception("session report failed")
-            self.status.setText(f"Report not written: {exc}")
+            self.status.setText(f"The session report {path} was not written: {exc}")
             return False
         self.status.setText(f"Report written: {path} ({pages} pages)")
         return True
+
+    def save_pdf_in_worker(self, path: Path) -> Any:
+        """Draw and write the report in the worker process (a progress dialog, Cancel); the status line says how
+        it ended. Returns the task."""
+        assert self.tasks is not None and self.folder is not None
+
+        def done(task: Any) -> None:
+            if task.ok:
+                self.status.setText(f"Report written: {path} ({task.result} pages)")
+            else:
+                self.status.setText(task.error if task.error else "The session report was not written.")
+
+        self.status.setText(f"Writing the report to {path}…")
+        return self.tasks.run("session_report", str(self.folder), str(path), title="Session report", parent=self,
+                              outputs=(path,), on_done=done)
 
 
 def _short(title: str, n: int = 28) -> str:
@@ -286,19 +311,25 @@ def runs_between(reports: Sequence[RunReport], since_mono: float | None, until_m
 
 
 class SessionSummaryDialog(QDialog):
-    """A session's (or one exercise's) summary in its own window, run by run."""
+    """A session's (or one exercise's) summary in its own window, run by run. ``data``: what the worker process
+    read (app.worker.jobs.SummaryData: the sessions browser); without it the session is read here."""
 
     def __init__(self, folder: Path, since_mono: float | None = None, until_mono: float | None = None,
-                 title: str = "", parent: QWidget | None = None) -> None:
+                 title: str = "", parent: QWidget | None = None, *, data: Any = None,
+                 tasks: QtTasks | None = None) -> None:
         super().__init__(parent)
-        from app.recording import load_session
-        from app.reports import run_reports
+        if data is not None:
+            reports, patient = data.runs, data.patient_id
+        else:
+            from app.recording import load_session
+            from app.reports import run_reports
 
-        session = load_session(folder)
-        runs = runs_between(run_reports(session), since_mono, until_mono)
-        patient = session.manifest.get("patient_id", folder.parent.name)
+            session = load_session(folder)
+            reports = run_reports(session)
+            patient = session.manifest.get("patient_id", folder.parent.name)
+        runs = runs_between(reports, since_mono, until_mono)
         self.setWindowTitle(f"Summary — {patient} — {folder.name}")
-        self.summary = SessionSummary(runs, title or f"Session {folder.name} — {patient}", folder, self)
+        self.summary = SessionSummary(runs, title or f"Session {folder.name} — {patient}", folder, self, tasks)
         close = QPushButton("&Close")
         close.clicked.connect(self.accept)
         lay = QVBoxLayout(self)
