@@ -1248,13 +1248,10 @@ def index_session(folder: str | Path, *, force: bool = False,
         if (not isinstance(manifest, dict) or manifest.get("status") == "recording") \
                 and time.time() - newest < COLUMNS_QUIET_S:
             return "the session is still being recorded"
-    index = _read_columns_index(folder)
     todo = [rel for rel in files if columns_path(folder, rel) is None]
     if not todo:
         return ""
-    out = folder / COLUMNS_DIR
     try:
-        out.mkdir(mode=DIR_MODE, exist_ok=True)
         sizes = [(folder / rel).stat().st_size for rel in todo]
         for k, rel in enumerate(todo):
             if progress is not None:
@@ -1264,13 +1261,25 @@ def index_session(folder: str | Path, *, force: bool = False,
             if (folder / rel).stat().st_size != st.st_size:
                 return f"{rel} changed while it was read"
             columns = np.ascontiguousarray(values.T) if values.size else np.zeros((len(header), 0))
-            _save_npy_atomic(out / _columns_name(rel), columns)
-            index[rel] = {"size": st.st_size, "mtime_ns": st.st_mtime_ns, "rows": int(columns.shape[1]),
-                          "header": header, "dropped": dropped}
-        write_json_atomic(out / COLUMNS_INDEX, {"format": COLUMNS_FORMAT, "files": index})
+            save_columns(folder, rel, header, columns, dropped, st)
     except OSError as exc:
         return f"the columnar copy of {folder} could not be written: {exc.strerror or exc}"
     return ""
+
+
+def save_columns(folder: Path, rel: str, header: list[str], columns: np.ndarray, dropped: int = 0,
+                 st: os.stat_result | None = None) -> None:
+    """Write the side-file of the stream file ``rel`` from its parsed table ``columns`` [len(header), n] (exactly
+    what parsing the file gives), and record in the index what it was made from (``st``: the file's stat when it
+    was read; now by default). Raises OSError."""
+    st = st or (folder / rel).stat()
+    out = folder / COLUMNS_DIR
+    out.mkdir(mode=DIR_MODE, exist_ok=True)
+    _save_npy_atomic(out / _columns_name(rel), np.ascontiguousarray(columns, dtype=np.float64))
+    index = _read_columns_index(folder)
+    index[rel] = {"size": st.st_size, "mtime_ns": st.st_mtime_ns, "rows": int(columns.shape[1]),
+                  "header": list(header), "dropped": int(dropped)}
+    write_json_atomic(out / COLUMNS_INDEX, {"format": COLUMNS_FORMAT, "files": index})
 
 
 INDEX_MIN_BYTES = 8 << 20  # below this (a minute or two of recording) the CSV files parse in well under 0.1 s

@@ -80,18 +80,22 @@ def _columns(spec: StreamSpec, t: np.ndarray, rng: np.random.Generator) -> list[
     return [np.where(np.mod(rel, 7.0) < 3.5, 0.10, 0.35), np.floor(rel / 7.0), np.floor(rel / 7.0)]
 
 
-def _write_stream(path: Path, spec: StreamSpec, rate_hz: float, seconds: float, rng: np.random.Generator) -> int:
+def _write_stream(path: Path, spec: StreamSpec, rate_hz: float, seconds: float, rng: np.random.Generator
+                  ) -> tuple[list[str], np.ndarray]:
+    """The stream file; returns its header and its values [columns, samples] (what parsing it gives)."""
     n = int(seconds * rate_hz)
-    header = ",".join([recording.TIME_COLUMN, *(c.name for c in spec.channels), recording.ARRIVAL_COLUMN]) + "\n"
+    header = [recording.TIME_COLUMN, *(c.name for c in spec.channels), recording.ARRIVAL_COLUMN]
+    parts = []
     with open(path, "w", encoding="utf-8", newline="\n") as fh:
-        fh.write(header)
+        fh.write(",".join(header) + "\n")
         for a in range(0, n, _CHUNK_ROWS):
             i = np.arange(a, min(n, a + _CHUNK_ROWS))
             t = T0 + i / rate_hz + rng.random(len(i)) * 1e-4  # a device's clock mapped to the host's
             table = np.column_stack([t, *_columns(spec, t, rng), t + 0.0012 + rng.random(len(i)) * 1e-3])
             text = repr(table.tolist())  # every value as repr() writes it, at C speed
             fh.write(text[2:-2].replace("], [", "\n").replace(", ", ",") + "\n")
-    return n
+            parts.append(table.T)
+    return header, np.concatenate(parts, axis=1)
 
 
 def _events(seconds: float) -> list[dict[str, Any]]:
@@ -134,16 +138,23 @@ def _events(seconds: float) -> list[dict[str, Any]]:
     return events
 
 
-def write_long_session(root: Path, seconds: float = 1800.0, patient: str = "P-LONG", seed: int = 37) -> Path:
-    """A session of ``seconds`` under ``root/<patient>/<stamp>``, as the recorder leaves a stopped one."""
+def write_long_session(root: Path, seconds: float = 1800.0, patient: str = "P-LONG", seed: int = 37,
+                       columns: bool = True) -> Path:
+    """A session of ``seconds`` under ``root/<patient>/<stamp>``, as the recorder leaves a stopped one; with
+    ``columns``, also its columnar side-file as the worker writes it at the session's end (from the values
+    written, which is what parsing the files gives: no parse needed here)."""
     folder = root / recording.safe_name(patient) / "20260301-100000"
     (folder / recording.STREAMS_DIR).mkdir(parents=True)
     rng = np.random.default_rng(seed)
     specs, counts = {}, {}
     for spec, rate in RATES:
         rel = f"{recording.STREAMS_DIR}/{recording.stream_file_name(spec.name)}"
-        counts[spec.name] = _write_stream(folder / rel, spec, rate, seconds, rng)
+        header, values = _write_stream(folder / rel, spec, rate, seconds, rng)
+        counts[spec.name] = values.shape[1]
         specs[spec.name] = recording._spec_dict(spec, spec.name.split(".")[0], rate)
+        if columns:
+            recording.save_columns(folder, rel, header, values)
+        del values
     epoch = time.mktime((2026, 3, 1, 10, 0, 0, 0, 0, -1))
     lines = []
     for e in _events(seconds):
@@ -160,3 +171,22 @@ def write_long_session(root: Path, seconds: float = 1800.0, patient: str = "P-LO
                 "event_count": len(lines), "dropped_samples": {}, "dropped_device_events": 0}
     recording.write_json_atomic(folder / recording.MANIFEST_FILE, manifest)
     return folder
+
+
+def shared_long_session(tmp_path_factory: Any, seconds: float = 1800.0) -> Path:
+    """The 30-minute session, made once per test run and shared by its processes (xdist workers wait on a lock
+    while the first makes it). Read-only for the tests that use it."""
+    import fcntl
+    import os
+    import shutil
+
+    base = tmp_path_factory.getbasetemp()
+    root = base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base
+    target = root / f"long-session-{int(seconds)}"
+    with open(root / f"long-session-{int(seconds)}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if not (target / "made").exists():
+            shutil.rmtree(target, ignore_errors=True)
+            write_long_session(target, seconds)
+            (target / "made").touch()
+    return target / "P-LONG" / "20260301-100000"

@@ -15,7 +15,7 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-from PySide6.QtCore import Qt, QTimer
+from PySide6.QtCore import Qt, QTimer, Signal
 from PySide6.QtGui import QCloseEvent, QKeySequence, QShortcut
 from PySide6.QtWidgets import (
     QComboBox,
@@ -64,9 +64,16 @@ def default_replay_signals(rec: RecordedSession) -> list[str]:
 
 
 class ReplayWindow(QWidget):
+    """``staged``: the window is built a piece per turn of the event loop (the graphs' choice, the first screen,
+    the event list), so that opening it never holds the GUI thread for more than one piece; ``ready`` says when
+    the first screen is drawn. Unstaged (the default), it is complete when constructed."""
+
+    ready = Signal()
+
     def __init__(self, session: RecordedSession | SessionData | str | Path, history_s: float = 30.0,
-                 parent: QWidget | None = None) -> None:
+                 parent: QWidget | None = None, *, staged: bool = False) -> None:
         super().__init__(parent)
+        self.is_ready = False
         self.source = ReplaySource(session.open() if isinstance(session, SessionData) else session)
         rec = self.source.session
         m = rec.manifest
@@ -77,7 +84,9 @@ class ReplayWindow(QWidget):
         self.plots = PlotsFrame(None, self.store)
         self.plots.timer.stop()  # redrawn when the replay moves, not on a free-running timer
         self.plots.x_origin = self.source.start  # the x-axis in session time, as the slider and events
-        self.plots.set_selected(default_replay_signals(rec))
+        self._initial_signals = default_replay_signals(rec)
+        if not staged:
+            self.plots.set_selected(self._initial_signals)
         self.speed = 1.0
         self._last_tick = 0.0
 
@@ -101,7 +110,8 @@ class ReplayWindow(QWidget):
         self.events = QListWidget()
         self.events.setAccessibleName("Session events")
         self._events_left = [e for e in rec.events if isinstance(e.get("t_mono"), int | float)]
-        self._add_events()
+        if not staged:
+            self._add_events()
         self.events.itemActivated.connect(lambda it: self.seek(float(it.data(Qt.ItemDataRole.UserRole))))
 
         bar = QHBoxLayout()
@@ -131,7 +141,23 @@ class ReplayWindow(QWidget):
         self.timer.setInterval(_TICK_MS)
         self.timer.timeout.connect(self._tick)
         self.resize(1100, 650)
+        if staged:
+            QTimer.singleShot(0, self, self._stage_signals)
+        else:
+            self._first_screen()
+
+    def _stage_signals(self) -> None:
+        self.plots.set_selected(self._initial_signals)
+        QTimer.singleShot(0, self, self._stage_first_screen)
+
+    def _stage_first_screen(self) -> None:
+        self._first_screen()
+        QTimer.singleShot(0, self, self._add_events)
+
+    def _first_screen(self) -> None:
         self.seek(min(self.source.duration, self.plots.history_s))  # open on a full first screen
+        self.is_ready = True
+        self.ready.emit()
 
     def _add_events(self) -> None:
         """The next block of the event list; the rest on the next turn of the event loop."""

@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Any
 
 import pyqtgraph as pg
-from PySide6.QtCore import Qt
+from PySide6.QtCore import Qt, QTimer, Signal
 from PySide6.QtWidgets import (
     QAbstractItemView,
     QDialog,
@@ -170,11 +170,16 @@ def _alarm_table(alarms: Sequence[dict[str, Any]], name: str) -> QTableWidget:
 
 class SessionSummary(QWidget):
     """The summary of ``runs`` (app.reports.run_reports): one tab per run, and an overview of the runs when
-    there are several."""
+    there are several. ``staged``: each run's tab is built on a turn of the event loop of its own (a run's plots
+    and table cost tens of ms: opening a long session's summary never holds the GUI thread for all of them);
+    ``ready`` when the last is built."""
+
+    ready = Signal()
 
     def __init__(self, runs: Sequence[RunReport], title: str = "", folder: Path | None = None,
-                 parent: QWidget | None = None, tasks: QtTasks | None = None) -> None:
+                 parent: QWidget | None = None, tasks: QtTasks | None = None, staged: bool = False) -> None:
         super().__init__(parent)
+        self._to_build: list[RunReport] = []
         self.runs = list(runs)
         self.folder = folder
         self.tasks = tasks  # the worker process that draws the PDF (issue #37); None: drawn here
@@ -207,10 +212,16 @@ class SessionSummary(QWidget):
             self.overview.cellDoubleClicked.connect(lambda row, _col: self.tabs.setCurrentIndex(row + 1))
             self.tabs.addTab(self.overview, "All runs")
         for r in self.runs:
-            view = RunSummary(r, self)
-            self.run_views[r.run.run_id] = view
+            if staged:
+                view: QWidget = QLabel("…")  # this run's tab is built on a later turn (see _build_next)
+                self._to_build.append(r)
+            else:
+                view = RunSummary(r, self)
+                self.run_views[r.run.run_id] = view
             self.tabs.addTab(view, f"{r.number}. {_short(r.title)}")
             self.tabs.setTabToolTip(self.tabs.count() - 1, f"Run {r.number}: {r.title} — {r.run.end_text()}")
+        if self._to_build:
+            QTimer.singleShot(0, self, self._build_next)
         self.tabs.setCurrentIndex(0)  # several runs: their overview first
         self.tabs.tabBar().setVisible(len(self.runs) > 1)
 
@@ -226,6 +237,27 @@ class SessionSummary(QWidget):
         lay.addWidget(self.header)
         lay.addWidget(self.tabs, 1)
         lay.addLayout(buttons)
+
+    @property
+    def is_ready(self) -> bool:
+        return not self._to_build
+
+    def _build_next(self) -> None:
+        r = self._to_build.pop(0)
+        index = self.runs.index(r) + (1 if self.overview is not None else 0)
+        current = self.tabs.currentIndex()
+        view = RunSummary(r, self)
+        self.run_views[r.run.run_id] = view
+        old = self.tabs.widget(index)
+        self.tabs.removeTab(index)
+        old.deleteLater()
+        self.tabs.insertTab(index, view, f"{r.number}. {_short(r.title)}")
+        self.tabs.setTabToolTip(index, f"Run {r.number}: {r.title} — {r.run.end_text()}")
+        self.tabs.setCurrentIndex(current)
+        if self._to_build:
+            QTimer.singleShot(0, self, self._build_next)
+        else:
+            self.ready.emit()
 
     @property
     def tables(self) -> dict[str, QTableWidget]:
@@ -316,7 +348,7 @@ class SessionSummaryDialog(QDialog):
 
     def __init__(self, folder: Path, since_mono: float | None = None, until_mono: float | None = None,
                  title: str = "", parent: QWidget | None = None, *, data: Any = None,
-                 tasks: QtTasks | None = None) -> None:
+                 tasks: QtTasks | None = None, staged: bool = False) -> None:
         super().__init__(parent)
         if data is not None:
             reports, patient = data.runs, data.patient_id
@@ -329,7 +361,8 @@ class SessionSummaryDialog(QDialog):
             patient = session.manifest.get("patient_id", folder.parent.name)
         runs = runs_between(reports, since_mono, until_mono)
         self.setWindowTitle(f"Summary — {patient} — {folder.name}")
-        self.summary = SessionSummary(runs, title or f"Session {folder.name} — {patient}", folder, self, tasks)
+        self.summary = SessionSummary(runs, title or f"Session {folder.name} — {patient}", folder, self, tasks,
+                                      staged)
         close = QPushButton("&Close")
         close.clicked.connect(self.accept)
         lay = QVBoxLayout(self)

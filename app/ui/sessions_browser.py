@@ -396,7 +396,8 @@ class SessionsBrowser(QWidget):
         from app.ui.session_summary import SessionSummaryDialog
 
         return self._open("session_summary", (str(folder),), f"Summary of session {folder.name}",
-                          lambda data: SessionSummaryDialog(folder, data=data, tasks=self.tasks, parent=self))
+                          lambda data: SessionSummaryDialog(folder, data=data, tasks=self.tasks, parent=self,
+                                                            staged=True))
 
     def open_progress(self) -> Task | None:
         pid = self.patient_box.currentData()
@@ -414,7 +415,7 @@ class SessionsBrowser(QWidget):
         from app.ui.replay_window import ReplayWindow
 
         return self._open("session_data", (str(folder),), f"Replay of session {folder.name}",
-                          lambda data: ReplayWindow(data, self.history_s))
+                          lambda data: ReplayWindow(data, self.history_s, staged=True))
 
     def ask_export(self, kind: str) -> None:
         folder = self.selected_folder()
