@@ -74,13 +74,15 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
     from app.config import ConfigError, load_config
     from app.logging_setup import setup_logging
 
+    report_command = bool(args.metrics or args.report or args.progress or args.export)
     try:
-        setup_logging(logging.DEBUG if args.verbose else logging.INFO)
+        # A report command says what happened in its own lines on stderr; its log goes to the log file only.
+        setup_logging(logging.DEBUG if args.verbose else logging.INFO, console=not report_command or args.verbose)
     except OSError as exc:  # a read-only data folder (issue #37): one line, not a traceback
         _report_error(f"LINarm++ Manager cannot use its data folder: {exc}; nothing was started. Set LINARMPP_HOME "
                       "to a folder you can write, or free the disk.",
                       window=not args.headless and os.environ.get("QT_QPA_PLATFORM") != "offscreen"
-                      and not (args.metrics or args.report or args.progress or args.export))
+                      and not report_command)
         return 4 if args.headless else 1
     try:
         config = load_config(args.config)
@@ -89,7 +91,7 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
         _report_error(f"Configuration refused, nothing was started:\n  {exc}",
                       window=not args.headless and os.environ.get("QT_QPA_PLATFORM") != "offscreen")
         return 2
-    if args.metrics or args.report or args.progress or args.export:
+    if report_command:
         return _report_command(config, args)
     if args.headless:
         if not args.script:
@@ -179,7 +181,7 @@ def _export_command(session: str, out: object) -> int:
     service = TaskService(nice=0)
     try:
         message = service.run(kind, str(Path(session).resolve()), str(dest.resolve()), outputs=(dest.resolve(),),
-                              title=f"The export of {Path(session).name}")
+                              title=f"The export of {Path(session).name} to {dest}")
     except TaskFailed as exc:
         print(str(exc), file=sys.stderr)
         return EXIT_REPORT_FAILED

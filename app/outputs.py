@@ -64,6 +64,16 @@ class NotRight(ValueError):
     """A written output read back is not what was meant (``str()``: why, in words)."""
 
 
+FULL_BELOW_BYTES = 1 << 20  # an output that fails its check with less than this free: the disk is full
+
+
+def _space_left(folder: Path) -> float:
+    try:
+        return float(shutil.disk_usage(folder).free)
+    except OSError:
+        return float("inf")
+
+
 def _cap(text: str) -> str:
     return text[:1].upper() + text[1:]
 
@@ -85,6 +95,8 @@ def why_not(exc: BaseException, dest: Path, what: str = "the file") -> str:
     if err == errno.ENOENT and not Path(dest.parent).is_dir():
         return f"{head}: the folder {dest.parent} does not exist."
     if isinstance(exc, NotRight):
+        if _space_left(dest.parent) < FULL_BELOW_BYTES:  # a writer that did not say why: the disk filled up
+            return f"{head}: the disk is full (no space left in {dest.parent})."
         return f"{head}: {text}; nothing was left there."
     detail = exc.strerror if isinstance(exc, OSError) and exc.strerror else (text or type(exc).__name__)
     return f"{head}: {detail}."

@@ -357,7 +357,7 @@ class TaskService:
             if what == "ready":
                 worker.ready_s = time.perf_counter() - worker.t_spawn
                 self.last_start_s = worker.ready_s
-                log.info("worker process %s ready in %.2f s", msg[1], worker.ready_s)
+                log.debug("worker process %s ready in %.2f s", msg[1], worker.ready_s)
             elif task is None or msg[1] != task.id:
                 pass  # a message of a task already ended (cancelled, then finished anyway)
             elif what == "progress":
@@ -431,7 +431,7 @@ def _crash_sentence(task: Task, code: int | None, why: str) -> str:
         except OSError:
             continue
         if free < LOW_SPACE_MIB:
-            text += f" The disk holding {dest.parent} is full ({free:.1f} MiB free)."
+            text += f" The disk is full ({free:.1f} MiB free in {dest.parent})."
             break
     if task.outputs:
         text += " Nothing was written."
