@@ -30,7 +30,7 @@ RATES: tuple[tuple[StreamSpec, float], ...] = (
     (PHYSIO_STREAM, 100.0), (FES_STREAM, 40.0), (PATIENT_MODEL_STREAM, 100.0), (VR_STREAM, 50.0),
 )
 REACH_S, REST_S, DISTANCE_M = 2.0, 1.5, 0.25
-_CHUNK_ROWS = 50_000
+BLOCK_S = 70.0  # the channels' values repeat with this period (ten reach-and-back cycles)
 
 
 def _reach(t: np.ndarray) -> np.ndarray:
@@ -82,20 +82,31 @@ def _columns(spec: StreamSpec, t: np.ndarray, rng: np.random.Generator) -> list[
 
 def _write_stream(path: Path, spec: StreamSpec, rate_hz: float, seconds: float, rng: np.random.Generator
                   ) -> tuple[list[str], np.ndarray]:
-    """The stream file; returns its header and its values [columns, samples] (what parsing it gives)."""
+    """The stream file; returns its header and its values [columns, samples] (what parsing it gives). The
+    channels' values repeat every BLOCK_S (their text is made once: 17-digit floats are slow to format); the
+    times never do."""
     n = int(seconds * rate_hz)
     header = [recording.TIME_COLUMN, *(c.name for c in spec.channels), recording.ARRIVAL_COLUMN]
-    parts = []
+    nb = min(n, int(BLOCK_S * rate_hz))
+    block = np.column_stack(_columns(spec, T0 + np.arange(nb) / rate_hz, rng)) if nb else np.zeros((0, 0))
+    text = repr(block.tolist())
+    block_lines = text[2:-2].split("], [") if nb else []
+    block_lines = [ln.replace(", ", ",") for ln in block_lines]
+    times, arrivals = [], []
     with open(path, "w", encoding="utf-8", newline="\n") as fh:
         fh.write(",".join(header) + "\n")
-        for a in range(0, n, _CHUNK_ROWS):
-            i = np.arange(a, min(n, a + _CHUNK_ROWS))
+        for a in range(0, n, nb or 1):
+            i = np.arange(a, min(n, a + nb))
             t = T0 + i / rate_hz + rng.random(len(i)) * 1e-4  # a device's clock mapped to the host's
-            table = np.column_stack([t, *_columns(spec, t, rng), t + 0.0012 + rng.random(len(i)) * 1e-3])
-            text = repr(table.tolist())  # every value as repr() writes it, at C speed
-            fh.write(text[2:-2].replace("], [", "\n").replace(", ", ",") + "\n")
-            parts.append(table.T)
-    return header, np.concatenate(parts, axis=1)
+            arrival = t + 0.0012 + rng.random(len(i)) * 1e-3
+            t_text = repr(t.tolist())[1:-1].split(", ")
+            a_text = repr(arrival.tolist())[1:-1].split(", ")
+            fh.write("\n".join(map(",".join, zip(t_text, block_lines, a_text, strict=False))) + "\n")
+            times.append(t)
+            arrivals.append(arrival)
+    t_all = np.concatenate(times)
+    values = np.tile(block.T, (1, -(-n // nb)))[:, :n] if nb else np.zeros((len(spec.channels), 0))
+    return header, np.vstack([t_all, values, np.concatenate(arrivals)])
 
 
 def _events(seconds: float) -> list[dict[str, Any]]:
