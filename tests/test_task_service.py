@@ -69,6 +69,12 @@ def test_a_crash_in_the_worker_is_a_failed_task_and_the_next_task_gets_a_new_wor
     assert str(failed.value) == "Exporting to HDF5 failed: the worker process stopped unexpectedly (signal SIGSEGV)."
     second = queued_after.value(20)[2]
     assert second != first and service.crashes == 1 and service.spawns == 2
+    # a worker whose native code failed retires after its answer; the task after it runs in a new one
+    retired = service.submit(f"{JOBS}:fail_and_retire")
+    after = service.submit(f"{JOBS}:echo")
+    with pytest.raises(TaskFailed, match="No space left on device"):
+        retired.value(20)
+    assert after.value(20)[2] not in (first, second) and service.crashes == 1
 
 
 def test_cancel_stops_a_running_task_or_kills_a_stuck_worker(service: TaskService) -> None:

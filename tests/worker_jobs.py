@@ -34,3 +34,9 @@ def crash(ctx: Any, how: str = "segv") -> None:
 
 def fail(ctx: Any) -> None:
     raise ValueError("this task cannot be done")
+
+
+def fail_and_retire(ctx: Any) -> None:
+    """A failure in native code: this worker should not run another task."""
+    ctx.retire = True
+    raise OSError(28, "No space left on device")

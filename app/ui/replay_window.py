@@ -63,6 +63,17 @@ def default_replay_signals(rec: RecordedSession) -> list[str]:
     return chosen[:_DEFAULT_PLOTTED]
 
 
+class ReplayPlots(PlotsFrame):
+    """The graphs of a replay: they open on the replay's own signals (``opening``, set just before one is made),
+    not on the live graphs' saved choice -- which would build every plot twice, once for each choice."""
+
+    opening: list[str] = []
+
+    def _restore_settings(self) -> None:
+        super()._restore_settings()
+        self._wanted = list(type(self).opening)
+
+
 class ReplayWindow(QWidget):
     """``staged``: the window is built a piece per turn of the event loop (the graphs' choice, the first screen,
     the event list), so that opening it never holds the GUI thread for more than one piece; ``ready`` says when
@@ -81,12 +92,12 @@ class ReplayWindow(QWidget):
         self.store = SignalStore(history_s=max(history_s, 1.0))
         for spec, device in self.source.specs().values():
             self.store.add_stream(spec, device or None)
-        self.plots = PlotsFrame(None, self.store)
+        self._initial_signals = default_replay_signals(rec)
+        # Staged: the frame and its signal list now, its plots on the next turn (the two cost about as much).
+        ReplayPlots.opening = [] if staged else self._initial_signals
+        self.plots = ReplayPlots(None, self.store)
         self.plots.timer.stop()  # redrawn when the replay moves, not on a free-running timer
         self.plots.x_origin = self.source.start  # the x-axis in session time, as the slider and events
-        self._initial_signals = default_replay_signals(rec)
-        if not staged:
-            self.plots.set_selected(self._initial_signals)
         self.speed = 1.0
         self._last_tick = 0.0
 

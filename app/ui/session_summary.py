@@ -170,9 +170,9 @@ def _alarm_table(alarms: Sequence[dict[str, Any]], name: str) -> QTableWidget:
 
 class SessionSummary(QWidget):
     """The summary of ``runs`` (app.reports.run_reports): one tab per run, and an overview of the runs when
-    there are several. ``staged``: each run's tab is built on a turn of the event loop of its own (a run's plots
-    and table cost tens of ms: opening a long session's summary never holds the GUI thread for all of them);
-    ``ready`` when the last is built."""
+    there are several. ``staged``: a run's tab is built when it is first shown, on a turn of the event loop of its
+    own (a run's plots and table cost ~120 ms on the reference machine: opening a long session's summary shows
+    its overview at once and builds no run it does not show); ``ready`` once the tab shown is built."""
 
     ready = Signal()
 
@@ -220,9 +220,10 @@ class SessionSummary(QWidget):
                 self.run_views[r.run.run_id] = view
             self.tabs.addTab(view, f"{r.number}. {_short(r.title)}")
             self.tabs.setTabToolTip(self.tabs.count() - 1, f"Run {r.number}: {r.title} — {r.run.end_text()}")
-        if self._to_build:
-            QTimer.singleShot(0, self, self._build_next)
         self.tabs.setCurrentIndex(0)  # several runs: their overview first
+        if self._to_build:
+            self.tabs.currentChanged.connect(lambda _i: QTimer.singleShot(0, self, self._build_shown))
+            QTimer.singleShot(0, self, self._build_shown)
         self.tabs.tabBar().setVisible(len(self.runs) > 1)
 
         self.pdf_button = QPushButton("Save PDF &report…")
@@ -240,24 +241,29 @@ class SessionSummary(QWidget):
 
     @property
     def is_ready(self) -> bool:
-        return not self._to_build
+        """The tab shown is built (a staged summary builds the others when they are shown)."""
+        return self._run_at(self.tabs.currentIndex()) not in self._to_build
 
-    def _build_next(self) -> None:
-        r = self._to_build.pop(0)
-        index = self.runs.index(r) + (1 if self.overview is not None else 0)
-        current = self.tabs.currentIndex()
-        view = RunSummary(r, self)
-        self.run_views[r.run.run_id] = view
-        old = self.tabs.widget(index)
-        self.tabs.removeTab(index)
-        old.deleteLater()
-        self.tabs.insertTab(index, view, f"{r.number}. {_short(r.title)}")
-        self.tabs.setTabToolTip(index, f"Run {r.number}: {r.title} — {r.run.end_text()}")
-        self.tabs.setCurrentIndex(current)
-        if self._to_build:
-            QTimer.singleShot(0, self, self._build_next)
-        else:
-            self.ready.emit()
+    def _run_at(self, index: int) -> RunReport | None:
+        k = index - (1 if self.overview is not None else 0)
+        return self.runs[k] if 0 <= k < len(self.runs) else None
+
+    def _build_shown(self) -> None:
+        index = self.tabs.currentIndex()
+        r = self._run_at(index)
+        if r is not None and r in self._to_build:
+            self._to_build.remove(r)
+            view = RunSummary(r, self)
+            self.run_views[r.run.run_id] = view
+            placeholder = self.tabs.widget(index)
+            self.tabs.blockSignals(True)  # the tab shown stays shown while it is swapped
+            self.tabs.removeTab(index)
+            self.tabs.insertTab(index, view, f"{r.number}. {_short(r.title)}")
+            self.tabs.setTabToolTip(index, f"Run {r.number}: {r.title} — {r.run.end_text()}")
+            self.tabs.setCurrentIndex(index)
+            self.tabs.blockSignals(False)
+            placeholder.deleteLater()
+        self.ready.emit()
 
     @property
     def tables(self) -> dict[str, QTableWidget]:

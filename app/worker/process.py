@@ -89,6 +89,11 @@ def main(fd: int) -> None:
     for entry in reversed(init.get("sys_path") or []):
         if entry not in sys.path:
             sys.path.insert(1, entry)
+    if hasattr(os, "sched_setscheduler"):  # never a real-time policy inherited from the application's threads
+        try:
+            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+        except OSError:
+            pass
     nice = int(init.get("nice") or 0)
     if nice and hasattr(os, "nice"):
         try:
@@ -147,6 +152,8 @@ def main(fd: int) -> None:
                 logging.getLogger("app.worker").error("task %s (%s) failed:\n%s", tid, kind, message[3])
         with lock:
             flags.pop(tid, None)
+        if ctx.retire:  # the application must not send this worker another task: it ends after this answer
+            message = (*message, "retire") if message[0] != "cancelled" else (*message, None, None, "retire")
         try:
             sender.send(*message)
         except LinkClosed:

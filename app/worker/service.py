@@ -101,6 +101,7 @@ class Task:
         self.started: float | None = None
         self.finished: float | None = None
         self.cancel_requested = False
+        self.worker: Any = None  # the worker process running it (service side)
         self._on_update = on_update
         self._ended = threading.Event()
 
@@ -231,6 +232,7 @@ class TaskService:
             self._worker = self._start_worker()
         task = self._queue.popleft()
         self._current = task
+        task.worker = self._worker
         task.status, task.started = TaskStatus.RUNNING, time.monotonic()
         self._pending.append(task)
         try:
@@ -366,6 +368,10 @@ class TaskService:
             elif what in ("done", "failed", "cancelled"):
                 worker.kill_at = None
                 self._current = None
+                retire = len(msg) == {"done": 4, "failed": 5, "cancelled": 5}[what] and msg[-1] == "retire"
+                if retire and self._worker is worker:  # it ends after this answer: the next task gets a new one
+                    worker.quitting = True
+                    self._worker = None
                 if what == "done":
                     self._end(task, TaskStatus.DONE, result=msg[2])
                 elif what == "failed":
@@ -381,7 +387,7 @@ class TaskService:
         with self._lock:
             if self._worker is worker:
                 self._worker = None
-            task = self._current
+            task = self._current if self._current is not None and self._current.worker is worker else None
             if task is not None:
                 self._current = None
                 for dest in task.outputs:
@@ -428,8 +434,12 @@ def _crash_sentence(task: Task, code: int | None, why: str) -> str:
     for dest in task.outputs:
         try:
             free = shutil.disk_usage(dest.parent).free / (1 << 20)
+            read_only = bool(os.statvfs(dest.parent).f_flag & os.ST_RDONLY)
         except OSError:
             continue
+        if read_only:
+            text += f" The folder {dest.parent} is read-only."
+            break
         if free < LOW_SPACE_MIB:
             text += f" The disk is full ({free:.1f} MiB free in {dest.parent})."
             break
