@@ -100,6 +100,13 @@ def main(fd: int) -> None:
             os.nice(nice)
         except OSError:
             pass
+        # The worker runs in a session of its own, which Linux schedules as a group of its own (autogroup): its
+        # nice value alone would not yield the CPU to the application's group. The group's nice does.
+        try:
+            with open("/proc/self/autogroup", "w", encoding="ascii") as fh:
+                fh.write(str(nice))
+        except OSError:
+            pass
     faulthandler.enable()  # a crash's stack into the worker's log (its stderr)
     logging.basicConfig(level=logging.INFO, stream=sys.stderr,
                         format="%(asctime)s %(levelname)-7s worker[%(process)d] %(name)s: %(message)s")
