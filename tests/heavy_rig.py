@@ -21,9 +21,16 @@ from PySide6.QtGui import QKeyEvent
 from app.config import AppConfig
 from app.devices import linarm, physio, rehastim
 from app.devices.linarm_protocol import ControlMode, ControlState, HomeState
+from app.fes_profile import ChannelProfile, FesProfile, Trapezoid
 from app.manager import LinarmppManager
 from tests.test_estop_wire import robot_idle_after
-from tests.test_fes_exit_paths import PROFILE, first_stop_after
+from tests.test_fes_exit_paths import first_stop_after
+
+# Stimulates from the first second and for an hour (the exit-path tests' profile ends at 100 s: a slow machine
+# may take longer than that to read a summary).
+PROFILE = FesProfile("exercise profile", "time",
+                     {1: ChannelProfile(Trapezoid(10.0, (0.0, 0.25), (3600.0, 3601.0)),
+                                        Trapezoid(150.0, (0.0, 0.25), (3600.0, 3601.0)))})
 
 WATCHDOG_S = 0.25  # the controller's host watchdog (firmware): a longer silence of the host trips it
 

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from app.worker.process import JobContext, JobError
+from app.worker.context import JobContext, JobError
 from app.worker.session_data import SessionData, SessionOverview, overview_of, session_data
 
 Job = Callable[..., Any]
