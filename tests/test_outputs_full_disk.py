@@ -24,7 +24,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 def cli(*args: str, home: Path, stdout: Path | None = None) -> subprocess.CompletedProcess[str]:
     env = {**os.environ, "LINARMPP_HOME": str(home), "QT_QPA_PLATFORM": "offscreen"}
-    out = open(stdout, "w") if stdout is not None else subprocess.PIPE  # noqa: SIM115 - closed below
+    out = open(stdout, "w") if stdout is not None else subprocess.PIPE  # closed below
     try:
         return subprocess.run([sys.executable, "main.py", *args], cwd=ROOT, env=env, stdout=out,
                               stderr=subprocess.PIPE, text=True, timeout=120)
