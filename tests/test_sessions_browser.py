@@ -91,6 +91,7 @@ def test_browser_lists_opens_exports_and_replays(home, qtbot) -> None:
         browser.replay()
     window = opened.args[0]
     qtbot.addWidget(window)
+    qtbot.waitUntil(lambda: window.is_ready, timeout=5000)  # built a piece per turn of the event loop
     assert "fake.main.x" in window.plots.curves
     assert len(window.plots.curves["fake.main.x"].getData()[1]) > 0
 

@@ -242,17 +242,23 @@ class SessionSummary(QWidget):
     @property
     def is_ready(self) -> bool:
         """The tab shown is built (a staged summary builds the others when they are shown)."""
-        return self._run_at(self.tabs.currentIndex()) not in self._to_build
+        shown = self._run_at(self.tabs.currentIndex())
+        return not any(x is shown for x in self._to_build)
 
     def _run_at(self, index: int) -> RunReport | None:
         k = index - (1 if self.overview is not None else 0)
         return self.runs[k] if 0 <= k < len(self.runs) else None
 
     def _build_shown(self) -> None:
-        index = self.tabs.currentIndex()
-        r = self._run_at(index)
-        if r is not None and r in self._to_build:
-            self._to_build.remove(r)
+        self._build(self._run_at(self.tabs.currentIndex()))
+        self.ready.emit()
+
+    def _build(self, r: RunReport | None) -> None:
+        """Build ``r``'s tab now if it is still a placeholder (when shown, or when a caller asks for it)."""
+        if r is not None and any(x is r for x in self._to_build):
+            index = next(k for k, x in enumerate(self.runs) if x is r) + (1 if self.overview is not None else 0)
+            shown = self.tabs.currentIndex()
+            self._to_build = [x for x in self._to_build if x is not r]
             view = RunSummary(r, self)
             self.run_views[r.run.run_id] = view
             placeholder = self.tabs.widget(index)
@@ -260,25 +266,32 @@ class SessionSummary(QWidget):
             self.tabs.removeTab(index)
             self.tabs.insertTab(index, view, f"{r.number}. {_short(r.title)}")
             self.tabs.setTabToolTip(index, f"Run {r.number}: {r.title} — {r.run.end_text()}")
-            self.tabs.setCurrentIndex(index)
+            self.tabs.setCurrentIndex(shown)
             self.tabs.blockSignals(False)
             placeholder.deleteLater()
-        self.ready.emit()
 
     @property
     def tables(self) -> dict[str, QTableWidget]:
-        """Each run's repetition table, by run id."""
-        return {rid: view.table for rid, view in self.run_views.items()}
+        """Each run's repetition table, by run id (a tab not built yet is built now)."""
+        for r in list(self._to_build):
+            self._build(r)
+        return {r.run.run_id: self.run_views[r.run.run_id].table for r in self.runs}
 
     @property
     def table(self) -> QTableWidget | None:
         """The last run's repetition table (the one an exercise's end shows)."""
-        return self.run_views[self.runs[-1].run.run_id].table if self.runs else None
+        if not self.runs:
+            return None
+        self._build(self.runs[-1])
+        return self.run_views[self.runs[-1].run.run_id].table
 
     @property
     def plots(self) -> dict[str, pg.PlotWidget]:
         """The last run's plots."""
-        return self.run_views[self.runs[-1].run.run_id].plots if self.runs else {}
+        if not self.runs:
+            return {}
+        self._build(self.runs[-1])
+        return self.run_views[self.runs[-1].run.run_id].plots
 
     @property
     def metrics(self) -> dict[str, Any]:
