@@ -8,9 +8,16 @@ all run :func:`main`. With no arguments: the clinician window, every device simu
     linarmpp --metrics SESSION_FOLDER                      per-repetition metrics as JSON (docs/metrics.md)
     linarmpp --report SESSION_FOLDER --out FILE.pdf        the session's PDF report
     linarmpp --progress PATIENT_ID --out FILE.pdf          the patient's progress PDF
+    linarmpp --export SESSION_FOLDER --out FILE.h5|FOLDER  the session as one HDF5 file, or as CSV files in a folder
     linarmpp archive {status,upgrade,import,export,upload,verify,grants} …   the archive (docs/archive.md)
                       (exit 0 done, 1 nothing written: why on stderr, 2 wrong arguments,
                        3 done from an incomplete session: what is missing on stderr)
+
+Every output is verified before it is said written (app/outputs.py): a full disk or a read-only folder is one
+sentence on stderr and exit 1, and leaves nothing at the destination. Exports run in the worker process
+(app/worker): HDF5 can crash the process that writes it on a full disk, and that is then a failed export. A data
+folder that cannot be written (``LINARMPP_HOME``, a read-only disk) is one line and exit 1 (the window: a message
+box too; ``--headless``: exit 4, as for a record folder that cannot be written).
 
 SIGTERM, SIGINT (Ctrl-C) and SIGHUP end the window or a headless run the same way: the devices are brought to
 a safe state at once (FES Stop, robot IDLE; app/signal_events.py), the session is closed, and the process
@@ -41,7 +48,9 @@ def build_parser(prog: str | None = None) -> argparse.ArgumentParser:
     parser.add_argument("--metrics", metavar="SESSION_FOLDER", help="print the session's per-repetition metrics (JSON)")
     parser.add_argument("--report", metavar="SESSION_FOLDER", help="write the session's PDF report to --out")
     parser.add_argument("--progress", metavar="PATIENT_ID", help="write the patient's progress PDF to --out")
-    parser.add_argument("--out", metavar="FILE", help="output file of --report / --progress")
+    parser.add_argument("--export", metavar="SESSION_FOLDER",
+                        help="export the session to --out: FILE.h5 (HDF5) or a new FOLDER (CSV files)")
+    parser.add_argument("--out", metavar="FILE", help="output of --report / --progress / --export")
     parser.add_argument("--verbose", action="store_true")
     parser.add_argument("--install-desktop-entry", action="store_true",
                         help="add LINarm++ Manager to this user's application menu (Linux), then exit")
@@ -69,7 +78,16 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
     from app.config import ConfigError, load_config
     from app.logging_setup import setup_logging
 
-    setup_logging(logging.DEBUG if args.verbose else logging.INFO)
+    report_command = bool(args.metrics or args.report or args.progress or args.export)
+    try:
+        # A report command says what happened in its own lines on stderr; its log goes to the log file only.
+        setup_logging(logging.DEBUG if args.verbose else logging.INFO, console=not report_command or args.verbose)
+    except OSError as exc:  # a read-only data folder (issue #37): one line, not a traceback
+        _report_error(f"LINarm++ Manager cannot use its data folder: {exc}; nothing was started. Set LINARMPP_HOME "
+                      "to a folder you can write, or free the disk.",
+                      window=not args.headless and os.environ.get("QT_QPA_PLATFORM") != "offscreen"
+                      and not report_command)
+        return 4 if args.headless else 1
     try:
         config = load_config(args.config)
     except ConfigError as exc:
@@ -77,7 +95,7 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
         _report_error(f"Configuration refused, nothing was started:\n  {exc}",
                       window=not args.headless and os.environ.get("QT_QPA_PLATFORM") != "offscreen")
         return 2
-    if args.metrics or args.report or args.progress:
+    if report_command:
         return _report_command(config, args)
     if args.headless:
         if not args.script:
@@ -116,16 +134,23 @@ def _report_command(config: object, args: argparse.Namespace) -> int:
     import logging
     from pathlib import Path
 
+    from app.outputs import OutputError
     from app.recording import MANIFEST_FILE, session_problems
     from app.reports import run_report_command
 
-    if args.out and (args.report or args.progress):
-        problem = _unwritable(Path(args.out))
+    if args.export and not args.out:
+        print("--export needs --out FILE.h5 or --out FOLDER", file=sys.stderr)
+        return EXIT_REPORT_USAGE
+    if args.export and not (Path(args.export) / MANIFEST_FILE).is_file():
+        print(f"{args.export} is not a session folder (no {MANIFEST_FILE})", file=sys.stderr)
+        return EXIT_REPORT_USAGE
+    if args.out and (args.report or args.progress or args.export):
+        problem = _unwritable(Path(args.out), folder_ok=bool(args.export))
         if problem:
             print(f"Cannot write {args.out}: {problem}; nothing was written", file=sys.stderr)
             return EXIT_REPORT_FAILED
     incomplete = False
-    for folder in dict.fromkeys(f for f in (args.metrics, args.report) if f):
+    for folder in dict.fromkeys(f for f in (args.metrics, args.report, args.export) if f):
         if not (Path(folder) / MANIFEST_FILE).is_file():
             continue  # run_report_command says it is not a session folder (exit 2)
         problems = session_problems(folder)
@@ -135,15 +160,24 @@ def _report_command(config: object, args: argparse.Namespace) -> int:
             for line in problems:
                 print(f"  - {line}", file=sys.stderr)
     try:
-        code = run_report_command(config, metrics=args.metrics, report=args.report, progress=args.progress,
-                                  out=args.out)
+        code = EXIT_REPORT_OK
+        if args.metrics or args.report or args.progress:
+            code = run_report_command(config, metrics=args.metrics, report=args.report, progress=args.progress,
+                                      out=args.out)
+        sys.stdout.flush()  # --metrics' JSON: a full disk under a redirected stdout shows here, not at exit
+        if code == EXIT_REPORT_OK and args.export:
+            code = _export_command(args.export, Path(args.out))
+    except OutputError as exc:  # the output could not be written or verified: its one sentence
+        print(exc.sentence, file=sys.stderr)
+        return EXIT_REPORT_FAILED
     except OSError as exc:
-        where = exc.filename or args.out or args.metrics or args.report
-        print(f"Cannot write {where}: {exc.strerror or exc}", file=sys.stderr)
+        _quiet_stdout()
+        where = exc.filename or args.out or "the standard output"
+        print(f"Cannot write {where}: {exc.strerror or exc}; nothing was written.", file=sys.stderr)
         return EXIT_REPORT_FAILED
     except Exception as exc:  # a damaged session no reader expected: one line here, the traceback in the log
         logging.getLogger(__name__).exception("the report command failed")
-        print(f"Cannot read the session {args.metrics or args.report or args.progress}: "
+        print(f"Cannot read the session {args.metrics or args.report or args.progress or args.export}: "
               f"{type(exc).__name__}: {exc}", file=sys.stderr)
         return EXIT_REPORT_FAILED
     if code == EXIT_REPORT_OK and incomplete:
@@ -151,15 +185,48 @@ def _report_command(config: object, args: argparse.Namespace) -> int:
     return code
 
 
-def _unwritable(out: object) -> str:
+def _export_command(session: str, out: object) -> int:
+    """``--export``: in the worker process (a crash of HDF5 there is a failed export, one sentence)."""
+    from pathlib import Path
+
+    from app.worker import TaskFailed, TaskService
+
+    dest = Path(str(out))
+    kind = "export_hdf5" if dest.suffix.lower() in (".h5", ".hdf5") else "export_csv"
+    service = TaskService(nice=0)
+    try:
+        message = service.run(kind, str(Path(session).resolve()), str(dest.resolve()), outputs=(dest.resolve(),),
+                              title=f"The export of {Path(session).name} to {dest}")
+    except TaskFailed as exc:
+        print(str(exc), file=sys.stderr)
+        return EXIT_REPORT_FAILED
+    finally:
+        service.close()
+    print(message, file=sys.stderr)
+    return EXIT_REPORT_OK
+
+
+def _quiet_stdout() -> None:
+    """After a failed write to stdout (a full disk), what its buffer still holds must not fail again at exit
+    (Python would print "Exception ignored" and exit 120)."""
+    try:
+        null = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(null, sys.stdout.fileno())  # the buffered rest goes nowhere, quietly
+        os.close(null)
+    except (OSError, ValueError):
+        pass
+
+
+def _unwritable(out: object, folder_ok: bool = False) -> str:
     """Why a file cannot be created at ``out`` ('' when it can): tried with a real file in its folder,
-    since permission bits say nothing of a read-only mount or of root."""
+    since permission bits say nothing of a read-only mount or of root. ``folder_ok``: ``out`` may be a folder
+    (a CSV export)."""
     import tempfile
     from pathlib import Path
 
     path = Path(str(out))
     folder = path.parent if str(path.parent) else Path(".")
-    if path.is_dir():
+    if path.is_dir() and not folder_ok:
         return "it is a folder"
     if not folder.is_dir():
         return f"the folder {folder} does not exist"

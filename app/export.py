@@ -15,6 +15,10 @@ CSV export: ``<stream>.csv`` per stream with a header of names and units (``hear
 ``events.csv`` and a copy of ``manifest.json``.
 
 Long exports report ``progress(fraction) -> bool``; returning False cancels and removes what was written.
+
+Both are written only when right (issue #37, app/outputs.py): under a temporary name beside the destination, read
+back and compared with the session, then renamed into place; a full disk or a read-only folder is one sentence
+(:class:`app.outputs.OutputError`) and leaves nothing behind.
 """
 
 from __future__ import annotations
@@ -28,6 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from app.devices.driver import Channel
+from app.outputs import NotRight, OutputError, write_verified
 from app.recording import RecordedSession, RecordedStream, safe_name, write_json_atomic
 
 FORMAT = "linarmpp-session"
@@ -46,45 +51,70 @@ def _report(progress: Progress | None, fraction: float) -> None:
 
 # ---------------------------------------------------------------------------------------------- HDF5
 def export_hdf5(session: RecordedSession, path: str | Path, progress: Progress | None = None) -> Path:
-    """Write the whole session to one HDF5 file (written to a temp name, renamed when complete)."""
+    """Write the whole session to one HDF5 file, verified (app/outputs.py): written under a temporary name, reopened
+    and compared with the session, then renamed into place. Raises :class:`app.outputs.OutputError` (one sentence,
+    nothing at ``path``) when it cannot be written, ExportCancelled when ``progress`` says stop.
+
+    A full disk can make HDF5 itself crash the process (SIGSEGV, issue #37): the window and the command line run
+    exports in the worker process (app/worker), where that is a failed task."""
+    path = Path(path)
+    write_verified(path, lambda tmp: _write_hdf5(session, tmp, progress),
+                   lambda tmp, _result: verify_hdf5(session, tmp), what="the HDF5 export")
+    if progress is not None:
+        progress(1.0)  # written and verified (too late to cancel: the file is in place)
+    return path
+
+
+def _write_hdf5(session: RecordedSession, tmp: Path, progress: Progress | None) -> Path:
     import h5py
 
-    path = Path(path)
-    tmp = path.with_name(f".{path.name}.part")
     total = max(1, sum(len(s) for s in session.streams.values()))
     done = 0
+    with h5py.File(tmp, "w") as h5:
+        h5.attrs["format"] = FORMAT
+        h5.attrs["format_version"] = FORMAT_VERSION
+        h5.attrs["manifest"] = json.dumps(session.manifest, ensure_ascii=False, default=str)
+        streams = h5.create_group("streams")
+        for name, stream in session.streams.items():
+            _report(progress, 0.9 * done / total)
+            g = streams.create_group(name.replace("/", "_"))
+            g.attrs["stream"] = name
+            g.attrs["device"] = stream.device
+            g.attrs["nominal_rate_hz"] = stream.nominal_rate_hz
+            g.attrs["channels"] = [c.name for c in stream.channels]
+            g.create_dataset("t_mono_s", data=np.asarray(stream.t, dtype=np.float64), compression="gzip",
+                             shuffle=True)
+            for ch in stream.channels:
+                ds = g.create_dataset(ch.name, data=np.asarray(stream.data[ch.name], dtype=np.float64),
+                                      compression="gzip", shuffle=True)
+                ds.attrs["unit"] = ch.unit
+                ds.attrs["label"] = ch.label
+            done += len(stream)
+        ev = h5.create_group("events")
+        text = [json.dumps(e, ensure_ascii=False, default=str) for e in session.events]
+        ev.create_dataset("json", data=np.array(text, dtype=object), dtype=h5py.string_dtype("utf-8"))
+        ev.create_dataset("t_mono_s", data=np.array([float(e.get("t_mono", np.nan)) for e in session.events],
+                                                    dtype=np.float64))
+    _report(progress, 0.9)
+    return tmp
+
+
+def verify_hdf5(session: RecordedSession, path: Path) -> None:
+    """The HDF5 file at ``path`` reopens and holds every stream's every value and every event (raises NotRight)."""
     try:
-        with h5py.File(tmp, "w") as h5:
-            h5.attrs["format"] = FORMAT
-            h5.attrs["format_version"] = FORMAT_VERSION
-            h5.attrs["manifest"] = json.dumps(session.manifest, ensure_ascii=False, default=str)
-            streams = h5.create_group("streams")
-            for name, stream in session.streams.items():
-                _report(progress, done / total)
-                g = streams.create_group(name.replace("/", "_"))
-                g.attrs["stream"] = name
-                g.attrs["device"] = stream.device
-                g.attrs["nominal_rate_hz"] = stream.nominal_rate_hz
-                g.attrs["channels"] = [c.name for c in stream.channels]
-                g.create_dataset("t_mono_s", data=np.asarray(stream.t, dtype=np.float64), compression="gzip",
-                                 shuffle=True)
-                for ch in stream.channels:
-                    ds = g.create_dataset(ch.name, data=np.asarray(stream.data[ch.name], dtype=np.float64),
-                                          compression="gzip", shuffle=True)
-                    ds.attrs["unit"] = ch.unit
-                    ds.attrs["label"] = ch.label
-                done += len(stream)
-            ev = h5.create_group("events")
-            text = [json.dumps(e, ensure_ascii=False, default=str) for e in session.events]
-            ev.create_dataset("json", data=np.array(text, dtype=object), dtype=h5py.string_dtype("utf-8"))
-            ev.create_dataset("t_mono_s", data=np.array([float(e.get("t_mono", np.nan)) for e in session.events],
-                                                        dtype=np.float64))
-        _report(progress, 1.0)
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    return path
+        back = load_hdf5(path)
+    except Exception as exc:  # h5py raises OSError, KeyError, ValueError for a damaged file
+        raise NotRight(f"the file does not reopen as a session export ({type(exc).__name__}: {exc})") from exc
+    if set(back.streams) != set(session.streams):
+        raise NotRight(f"it holds the streams {sorted(back.streams)}, not {sorted(session.streams)}")
+    for name, stream in session.streams.items():
+        other = back.streams[name]
+        if not np.array_equal(other.t, stream.t, equal_nan=True) or any(
+                not np.array_equal(other.data.get(c.name), stream.data[c.name], equal_nan=True)
+                for c in stream.channels):
+            raise NotRight(f"the stream {name} read back differs from the session")
+    if len(back.events) != len(session.events):
+        raise NotRight(f"it holds {len(back.events)} events, not {len(session.events)}")
 
 
 def load_hdf5(path: str | Path) -> RecordedSession:
@@ -108,45 +138,82 @@ def load_hdf5(path: str | Path) -> RecordedSession:
 
 
 # ---------------------------------------------------------------------------------------------- CSV
-
-
+EXPORT_FILES = ("events.csv", "manifest.json")  # besides one <stream>.csv per stream
 
 
 def export_csv(session: RecordedSession, folder: str | Path, progress: Progress | None = None) -> list[Path]:
-    """One CSV per stream (header of names and units), events.csv and manifest.json in ``folder``."""
+    """One CSV per stream (header of names and units), events.csv and manifest.json in ``folder``, verified (every
+    file there with every row) in a temporary folder beside it and then renamed into place: a failure leaves no
+    partial folder. An existing ``folder`` is replaced only when it is empty or an earlier export of this kind."""
     folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
-    written: list[Path] = []
+    if folder.exists() and not _replaceable(folder):
+        raise OutputError(f"The CSV export {folder} was not written: that folder exists and holds other files; "
+                          "choose a new folder.")
+    names = write_verified(folder, lambda tmp: _write_csv(session, tmp, progress),
+                           lambda tmp, _names: verify_csv(session, tmp), what="the CSV export", replace_folder=True)
+    if progress is not None:
+        progress(1.0)
+    return [folder / n for n in names]
+
+
+def _replaceable(folder: Path) -> bool:
+    if not folder.is_dir():
+        return False
+    names = {p.name for p in folder.iterdir()}
+    return not names or (set(EXPORT_FILES) <= names and all(n.endswith(".csv") or n in EXPORT_FILES for n in names))
+
+
+def _stream_file(name: str) -> str:
+    return f"{safe_name(name)}.csv"
+
+
+def _write_csv(session: RecordedSession, folder: Path, progress: Progress | None) -> list[str]:
+    folder.mkdir(mode=0o700)
+    written: list[str] = []
     total = max(1, sum(len(s) for s in session.streams.values()))
     done = 0
+    for name, stream in session.streams.items():
+        _report(progress, 0.9 * done / total)
+        written.append(_stream_file(name))
+        write_aligned_csv(folder / written[-1],
+                          [(stream.t, [(c.name, c.unit, stream.data[c.name]) for c in stream.channels])],
+                          [f"LINarm++ Manager session export: stream {name}", "time: monotonic seconds"])
+        done += len(stream)
+    with open(folder / "events.csv", "w", encoding="utf-8", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["t_wall", "t_mono_s", "kind", "who", "origin", "data"])
+        for e in session.events:
+            w.writerow([e.get("t_wall", ""), repr(float(e.get("t_mono", float("nan")))), e.get("kind", ""),
+                        e.get("who", ""), e.get("origin", ""),
+                        json.dumps(e.get("data", {}), ensure_ascii=False, default=str)])
+    write_json_atomic(folder / "manifest.json", session.manifest)
+    _report(progress, 0.9)
+    return [*written, *EXPORT_FILES]
+
+
+def verify_csv(session: RecordedSession, folder: Path) -> None:
+    """Every stream file holds every sample (its rows counted, its last row's time compared), events.csv every
+    event, manifest.json the manifest (raises NotRight)."""
+    for name, stream in session.streams.items():
+        path = folder / _stream_file(name)
+        try:
+            data = path.read_bytes()
+        except OSError as exc:
+            raise NotRight(f"{path.name} is missing ({exc.strerror or exc})") from exc
+        lines = [ln for ln in data.split(b"\n") if ln and not ln.startswith(b"#")]
+        rows = len(lines) - 2  # the names and the units
+        if rows != len(stream) or (rows and float(lines[-1].split(b",", 1)[0]) != float(stream.t[-1])):
+            raise NotRight(f"{path.name} holds {max(rows, 0)} of the {len(stream)} samples of {name}")
     try:
-        for name, stream in session.streams.items():
-            path = folder / f"{safe_name(name)}.csv"
-            written.append(path)
-            _report(progress, done / total)
-            write_aligned_csv(path, [(stream.t, [(c.name, c.unit, stream.data[c.name]) for c in stream.channels])],
-                              [f"LINarm++ Manager session export: stream {name}", "time: monotonic seconds"])
-            done += len(stream)
-        path = folder / "events.csv"
-        written.append(path)
-        with open(path, "w", encoding="utf-8", newline="") as fh:
-            w = csv.writer(fh)
-            w.writerow(["t_wall", "t_mono_s", "kind", "who", "origin", "data"])
-            for e in session.events:
-                w.writerow([e.get("t_wall", ""), repr(float(e.get("t_mono", float("nan")))), e.get("kind", ""),
-                            e.get("who", ""), e.get("origin", ""),
-                            json.dumps(e.get("data", {}), ensure_ascii=False, default=str)])
-        path = folder / "manifest.json"
-        written.append(path)
-        write_json_atomic(path, session.manifest)
-        _report(progress, 1.0)
-    except BaseException:
-        for p in written:
-            p.unlink(missing_ok=True)
-        raise
-    return written
-
-
+        with open(folder / "events.csv", encoding="utf-8", newline="") as fh:
+            events = sum(1 for _ in csv.reader(fh)) - 1
+        manifest = json.loads((folder / "manifest.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError) as exc:
+        raise NotRight(f"the events or the manifest are not readable ({exc})") from exc
+    if events != len(session.events):
+        raise NotRight(f"events.csv holds {events} of the {len(session.events)} events")
+    if json.loads(json.dumps(session.manifest, default=str)) != manifest:
+        raise NotRight("manifest.json differs from the session's manifest")
 
 
 def load_csv_export(folder: str | Path) -> RecordedSession:

@@ -7,7 +7,7 @@ import logging.handlers
 import os
 from pathlib import Path
 
-from app.paths import log_dir
+from app.paths import DataFolderError, log_dir
 
 LOG_FORMAT = "%(asctime)s %(levelname)-7s %(threadName)s %(name)s: %(message)s"
 _configured: Path | None = None
@@ -26,19 +26,31 @@ class _PrivateRotatingFileHandler(logging.handlers.RotatingFileHandler):
 
 
 def setup_logging(level: int = logging.INFO, console: bool = True) -> Path:
-    """Configure the root logger once; return the log file's path (shown in Help → About)."""
+    """Configure the root logger once; return the log file's path (shown in Help → About).
+
+    Raises :class:`app.paths.DataFolderError` (one sentence naming the folder) when the log cannot be written:
+    a read-only data folder is said in one line by the entry point, not as a traceback (issue #37)."""
     global _configured
     if _configured is not None:
         return _configured
-    path = log_dir() / "linarmpp.log"
-    path.touch(mode=0o600, exist_ok=True)
+    folder = log_dir()
+    path = folder / "linarmpp.log"
+    try:
+        path.touch(mode=0o600, exist_ok=True)
+        with open(path, "a", encoding="utf-8"):  # touch succeeds on an existing file of a read-only disk
+            pass
+    except OSError as exc:
+        raise DataFolderError(folder, exc) from exc
     try:
         os.chmod(path, 0o600)  # the log names patients and operators: the user only
     except OSError:
         pass
     root = logging.getLogger()
     root.setLevel(level)
-    file_handler = _PrivateRotatingFileHandler(path, maxBytes=5_000_000, backupCount=5, encoding="utf-8")
+    try:
+        file_handler = _PrivateRotatingFileHandler(path, maxBytes=5_000_000, backupCount=5, encoding="utf-8")
+    except OSError as exc:
+        raise DataFolderError(folder, exc) from exc
     file_handler.setFormatter(logging.Formatter(LOG_FORMAT))
     root.addHandler(file_handler)
     if console:

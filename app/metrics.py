@@ -780,6 +780,20 @@ def _clean(value: Any) -> Any:
 
 
 # ------------------------------------------------------------------------------------------- from a recording
+def _event_t(e: Mapping[str, Any], default: float) -> float | None:
+    """An event's time: ``default`` when it has none, None when it has one that is not a number (a malformed
+    record: app.recording lists it among the session's problems; the metrics leave the event out)."""
+    t = e.get("t_mono", default)
+    if isinstance(t, bool) or not isinstance(t, int | float) or not math.isfinite(t):
+        return None
+    return float(t)
+
+
+def _event_data(e: Mapping[str, Any]) -> Mapping[str, Any]:
+    data = e.get("data")
+    return data if isinstance(data, Mapping) else {}
+
+
 def marks_from_events(events: Iterable[Mapping[str, Any]], t_zero: float, t_end: float) -> list[Mark]:
     """Pair ``repetition_start`` / ``repetition_end`` events. A start without its end (the script was stopped,
     or the next start came first) ends there, as not completed."""
@@ -789,8 +803,11 @@ def marks_from_events(events: Iterable[Mapping[str, Any]], t_zero: float, t_end:
         kind = e.get("kind")
         if kind not in ("repetition_start", "repetition_end", "script_stop"):
             continue
-        t = float(e.get("t_mono", t_zero)) - t_zero
-        data = e.get("data") or {}
+        t_mono = _event_t(e, t_zero)
+        if t_mono is None:
+            continue
+        t = t_mono - t_zero
+        data = _event_data(e)
         if kind == "repetition_start":
             if open_ is not None:
                 marks.append(Mark(open_[0], t, open_[1], ok=False))
@@ -870,12 +887,13 @@ def prompts_from_events(events: Iterable[Mapping[str, Any]], t_zero: float,
     for e in events:
         if e.get("kind") != "prompt":
             continue
-        data = e.get("data") or {}
-        if run_id is not None and data.get("run_id") not in (None, run_id):
+        data = _event_data(e)
+        t_mono = _event_t(e, t_zero)
+        if t_mono is None or (run_id is not None and data.get("run_id") not in (None, run_id)):
             continue
         threshold = data.get("threshold_n")
         index = data.get("index")
-        out.append(Prompt(float(e.get("t_mono", t_zero)) - t_zero, int(index) if index is not None else None,
+        out.append(Prompt(t_mono - t_zero, int(index) if index is not None else None,
                           str(data.get("cue") or "squeeze"), float(threshold) if threshold is not None else None))
     return out
 
@@ -931,10 +949,11 @@ def session_alarms(session: Any) -> list[dict[str, Any]]:
     for e in session.events:
         if e.get("kind") not in kinds:
             continue
-        data = dict(e.get("data") or {})
-        if e["kind"] == "script_stop" and data.get("status") in ("finished", None):
+        data = dict(_event_data(e))
+        t_mono = _event_t(e, t0)
+        if t_mono is None or (e["kind"] == "script_stop" and data.get("status") in ("finished", None)):
             continue
-        out.append({"t_s": round(float(e.get("t_mono", t0)) - t0, 3), "kind": e["kind"], "data": _clean(data)})
+        out.append({"t_s": round(t_mono - t0, 3), "kind": e["kind"], "data": _clean(data)})
     return out
 
 
@@ -946,7 +965,8 @@ def metrics_of_session(session: Any, since_mono: float | None = None,
     sig = signals_from_session(session)
     lo = -math.inf if since_mono is None else since_mono - session.start_mono
     hi = math.inf if until_mono is None else until_mono - session.start_mono
-    events = [e for e in session.events if lo <= float(e.get("t_mono", 0.0)) - session.start_mono <= hi]
+    events = [e for e in session.events
+              if (te := _event_t(e, 0.0)) is not None and lo <= te - session.start_mono <= hi]
     params = exercise_params(events)
     if since_mono is not None or until_mono is not None:
         threshold = params.get("trigger_threshold_n")
@@ -1009,8 +1029,11 @@ def _runs_of(session: Any) -> list[Any]:
         return runs
     out: list[ExerciseRun] = []
     for e in session.events:
-        data = e.get("data") or {}
-        t = float(e.get("t_mono", session.start_mono))
+        data = _event_data(e)
+        t_event = _event_t(e, session.start_mono)
+        if t_event is None:
+            continue
+        t = t_event
         if e.get("kind") == "script_start":
             name = str(data.get("name") or "script")
             text = str(data.get("text") or "")
@@ -1046,7 +1069,8 @@ def metrics_by_run(session: Any, sig: SessionSignals | None = None) -> list[RunM
     for run in _runs_of(session):
         lo = run.started_mono - t0
         hi = (run.ended_mono if run.ended_mono is not None else session.end_mono) - t0
-        run_events = [e for e in session.events if lo - 1e-6 <= float(e.get("t_mono", t0)) - t0 <= hi + 1e-6]
+        run_events = [e for e in session.events
+                      if (te := _event_t(e, t0)) is not None and lo - 1e-6 <= te - t0 <= hi + 1e-6]
         mine = [e for e in run_events if (e.get("data") or {}).get("run_id") in (None, run.run_id)]
         rs = copy.copy(sig)
         rs.marks = [mk for mk in marks_from_events(mine, t0, hi) if lo - 1e-6 <= mk.start <= hi]

@@ -28,9 +28,27 @@ def set_private_umask() -> int:
     return os.umask(0o077)
 
 
+class DataFolderError(OSError):
+    """A folder of the application's data cannot be made or written (a read-only disk, no permission): ``str()``
+    is one sentence naming it (issue #37: every entry point died with a traceback instead)."""
+
+    def __init__(self, path: Path, exc: OSError) -> None:
+        reason = exc.strerror or str(exc)
+        super().__init__(exc.errno, f"the folder {path} cannot be written ({reason})", str(path))
+        self.path = path
+        self.reason = reason
+
+    def __str__(self) -> str:
+        return f"the folder {self.path} cannot be written ({self.reason})"
+
+
 def private_dir(path: Path) -> Path:
-    """``path`` created if needed and made 0700 (best effort where POSIX modes do not apply)."""
-    path.mkdir(parents=True, exist_ok=True, mode=PRIVATE_DIR_MODE)
+    """``path`` created if needed and made 0700 (best effort where POSIX modes do not apply). Raises
+    :class:`DataFolderError` when it cannot be created."""
+    try:
+        path.mkdir(parents=True, exist_ok=True, mode=PRIVATE_DIR_MODE)
+    except OSError as exc:
+        raise DataFolderError(path, exc) from exc
     if os.name == "posix":
         try:
             if path.stat().st_mode & 0o777 != PRIVATE_DIR_MODE:

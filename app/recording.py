@@ -1000,35 +1000,52 @@ def _read_text_lines(path: Path) -> tuple[list[str], int]:
 
 
 def read_stream_csv(path: Path) -> tuple[list[str], np.ndarray, int]:
-    """(column names, values [n, columns] float64, dropped line count) of a stream file."""
-    lines, dropped = _read_text_lines(path)
-    if not lines:
-        return [], np.zeros((0, 0)), dropped
-    header = lines[0].split(",")
+    """(column names, values [n, columns] float64, dropped line count) of a stream file.
+
+    The complete lines are parsed as bytes in one call when every line has the header's number of fields; a file
+    with a damaged line is read line by line and keeps the good ones. Values are Python's own float parse of the
+    ``repr`` the recorder wrote: exact. (Parsing is what makes a long session slow to read -- some 150 ns a value;
+    :func:`load_session` reads the columnar side-file instead when there is one.)"""
+    raw = path.read_bytes()
+    first = raw.find(b"\n")
+    if first < 0:  # not even a whole header
+        return [], np.zeros((0, 0)), (1 if raw else 0)
+    header = raw[:first].decode("utf-8", errors="replace").split(",")
     ncols = len(header)
-    good = [ln for ln in lines[1:] if ln and ln.count(",") == ncols - 1]
-    dropped += len(lines) - 1 - len(good)
-    if not good:
+    body = raw[first + 1:]
+    last = body.rfind(b"\n")
+    dropped = 1 if len(body) - (last + 1) > 0 else 0  # a last line cut short by a crash
+    body = body[:last + 1]
+    nlines = body.count(b"\n")
+    if nlines == 0:
         return header, np.zeros((0, ncols)), dropped
-    try:
-        values = np.array(",".join(good).split(","), dtype=np.float64).reshape(len(good), ncols)
-    except ValueError:  # a garbled line (should not happen): parse line by line, keep the good ones
-        rows = []
-        for ln in good:
-            try:
-                rows.append([float(x) for x in ln.split(",")])
-            except ValueError:
-                dropped += 1
-        values = np.array(rows, dtype=np.float64).reshape(len(rows), ncols)
-    return header, values, dropped
+    if body.count(b",") == nlines * (ncols - 1) and b"\n\n" not in body and not body.startswith(b"\n"):
+        try:
+            flat = np.array(body[:-1].replace(b"\n", b",").split(b","), dtype=np.float64)
+        except ValueError:  # a field that is not a number: the slow path finds which line
+            pass
+        else:
+            if flat.size == nlines * ncols:
+                return header, flat.reshape(nlines, ncols), dropped
+    lines = body.decode("utf-8", errors="replace").split("\n")[:-1]
+    good = [ln for ln in lines if ln and ln.count(",") == ncols - 1]
+    dropped += len(lines) - len(good)
+    rows = []
+    for ln in good:
+        try:
+            rows.append([float(x) for x in ln.split(",")])
+        except ValueError:
+            dropped += 1
+    return header, np.array(rows, dtype=np.float64).reshape(len(rows), ncols), dropped
 
 
-def read_events(path: Path) -> tuple[list[dict[str, Any]], int]:
+def _event_lines(path: Path) -> tuple[list[tuple[int, dict[str, Any]]], int]:
+    """(line number, record) of every readable event, and the count of unreadable lines."""
     if not path.exists():
         return [], 0
     lines, dropped = _read_text_lines(path)
     out = []
-    for ln in lines:
+    for number, ln in enumerate(lines, start=1):
         if not ln.strip():
             continue
         try:
@@ -1037,10 +1054,15 @@ def read_events(path: Path) -> tuple[list[dict[str, Any]], int]:
             dropped += 1
             continue
         if isinstance(record, dict):
-            out.append(record)
+            out.append((number, record))
         else:  # not an event (a hand-edited or damaged file): counted like a cut line
             dropped += 1
     return out, dropped
+
+
+def read_events(path: Path) -> tuple[list[dict[str, Any]], int]:
+    records, dropped = _event_lines(path)
+    return [r for _n, r in records], dropped
 
 
 def read_failure_sidecar(folder: Path) -> dict[str, Any] | None:
@@ -1092,8 +1114,282 @@ def _status_problem(manifest: dict[str, Any]) -> str:
     return f"the manifest's status is {status!r}, not 'complete'"
 
 
-def load_session(folder: str | Path) -> RecordedSession:
-    """Read a session folder, tolerant of a crash: a missing end, a cut-short last line."""
+# ---------------------------------------------------------------------------------------------- columns side-file
+# A derived, columnar copy of the stream files (issue #37): ``<session>/.columns/<stream file>.npy`` holds the parsed
+# table as float64 [columns, samples] (every column contiguous) and ``index.json`` what each copy was made from
+# (the CSV's size, its modification time, its dropped lines). It is a cache: the CSV files stay the record, a copy
+# that no longer matches its CSV is ignored, and the folder may be deleted at any time. Written in the worker
+# process (app/worker) at a session's end or at its first load; read by load_session and mapped by the replay.
+COLUMNS_DIR = ".columns"
+COLUMNS_INDEX = "index.json"
+COLUMNS_FORMAT = 1
+COLUMNS_QUIET_S = 60.0  # a session still being written (or crashed a moment ago) is not indexed: its files change
+MAX_SESSION_S = 24 * 3600.0  # a time further than this from the session's start and its data is not one of it
+_TAIL_BYTES = 4096
+
+
+@dataclass
+class StreamTable:
+    """A stream file's parsed table: the header's names and the values as [columns, samples]."""
+
+    header: list[str]
+    columns: np.ndarray  # float64 [len(header), n]
+    dropped: int
+
+    @property
+    def rows(self) -> int:
+        return int(self.columns.shape[1]) if self.columns.ndim == 2 else 0
+
+
+def _columns_name(rel: str) -> str:
+    return safe_name(Path(rel).name) + ".npy"
+
+
+def _read_columns_index(folder: Path) -> dict[str, Any]:
+    try:
+        index = json.loads((folder / COLUMNS_DIR / COLUMNS_INDEX).read_text(encoding="utf-8"))
+    except (OSError, ValueError, RecursionError):
+        return {}
+    if not isinstance(index, dict) or index.get("format") != COLUMNS_FORMAT or not isinstance(index.get("files"), dict):
+        return {}
+    return index["files"]
+
+
+def _last_line_values(path: Path, ncols: int) -> np.ndarray | None:
+    """The values of the last complete line of a CSV (its last 4 KB read)."""
+    try:
+        with open(path, "rb") as fh:
+            size = fh.seek(0, os.SEEK_END)
+            fh.seek(max(0, size - _TAIL_BYTES))
+            tail = fh.read()
+    except OSError:
+        return None
+    lines = tail.split(b"\n")[:-1]
+    if not lines:
+        return None
+    try:
+        values = np.array(lines[-1].split(b","), dtype=np.float64)
+    except ValueError:
+        return None
+    return values if values.size == ncols else None
+
+
+def columns_path(folder: Path, rel: str, *, check: bool = True) -> Path | None:
+    """The side-file of the stream file ``rel`` when it is there and still matches that file, else None.
+    A match: the CSV's size is the one recorded, and its modification time too -- or, for a copied folder (new
+    times), its last line holds exactly the copy's last row."""
+    entry = _read_columns_index(folder).get(rel)
+    if not isinstance(entry, dict):
+        return None
+    npy = folder / COLUMNS_DIR / _columns_name(rel)
+    try:
+        st = (folder / rel).stat()
+        if not npy.is_file() or st.st_size != entry.get("size"):
+            return None
+    except OSError:
+        return None
+    if not check or st.st_mtime_ns == entry.get("mtime_ns"):
+        return npy
+    rows, ncols = entry.get("rows"), len(entry.get("header") or [])
+    if not rows:
+        return npy if rows == 0 else None
+    last = _last_line_values(folder / rel, ncols)
+    if last is None:
+        return None
+    try:
+        table = np.load(npy, mmap_mode="r")
+        same = table.shape == (ncols, rows) and np.array_equal(np.asarray(table[:, -1]), last, equal_nan=True)
+    except (OSError, ValueError):
+        return None
+    return npy if same else None
+
+
+def _load_columns(folder: Path, rel: str, mmap: bool = False) -> StreamTable | None:
+    npy = columns_path(folder, rel)
+    if npy is None:
+        return None
+    entry = _read_columns_index(folder)[rel]
+    try:
+        columns = np.load(npy, mmap_mode="r" if mmap else None, allow_pickle=False)
+    except (OSError, ValueError):
+        return None
+    header = [str(h) for h in entry.get("header") or []]
+    if columns.ndim != 2 or columns.shape != (len(header), entry.get("rows")) or columns.dtype != np.float64:
+        return None
+    return StreamTable(header, columns, int(entry.get("dropped") or 0))
+
+
+def read_stream_table(folder: Path, rel: str, columns: bool = True, mmap: bool = False) -> StreamTable:
+    """A stream file's table: from its columnar side-file when that matches the file, else parsed from the CSV."""
+    if columns:
+        table = _load_columns(folder, rel, mmap)
+        if table is not None:
+            return table
+    header, values, dropped = read_stream_csv(folder / rel)
+    return StreamTable(header, np.ascontiguousarray(values.T), dropped)
+
+
+def _stream_files(folder: Path) -> list[str]:
+    """The session's stream files (relative paths), whether or not the manifest names them."""
+    return sorted(f"{STREAMS_DIR}/{p.name}" for p in (folder / STREAMS_DIR).glob("*.csv") if p.is_file())
+
+
+def index_session(folder: str | Path, *, force: bool = False,
+                  progress: Callable[[float], object] | None = None) -> str:
+    """Write the columnar side-file of every stream file that has none (or a stale one). Returns '' when done
+    (or nothing was needed), else why not in words: a session still being written, a folder that cannot be
+    written. Meant for the worker process: it parses every CSV it has to index."""
+    folder = Path(folder)
+    files = _stream_files(folder)
+    if not files:
+        return ""
+    if not force:
+        try:
+            manifest = json.loads((folder / MANIFEST_FILE).read_text(encoding="utf-8"))
+        except (OSError, ValueError, RecursionError):
+            manifest = {}
+        newest = max(((folder / rel).stat().st_mtime for rel in files), default=0.0)
+        if (not isinstance(manifest, dict) or manifest.get("status") == "recording") \
+                and time.time() - newest < COLUMNS_QUIET_S:
+            return "the session is still being recorded"
+    todo = [rel for rel in files if columns_path(folder, rel) is None]
+    if not todo:
+        return ""
+    try:
+        sizes = [(folder / rel).stat().st_size for rel in todo]
+        for k, rel in enumerate(todo):
+            if progress is not None:
+                progress(sum(sizes[:k]) / max(1, sum(sizes)))
+            st = (folder / rel).stat()
+            header, values, dropped = read_stream_csv(folder / rel)
+            if (folder / rel).stat().st_size != st.st_size:
+                return f"{rel} changed while it was read"
+            columns = np.ascontiguousarray(values.T) if values.size else np.zeros((len(header), 0))
+            save_columns(folder, rel, header, columns, dropped, st)
+    except OSError as exc:
+        return f"the columnar copy of {folder} could not be written: {exc.strerror or exc}"
+    return ""
+
+
+def save_columns(folder: Path, rel: str, header: list[str], columns: np.ndarray, dropped: int = 0,
+                 st: os.stat_result | None = None) -> None:
+    """Write the side-file of the stream file ``rel`` from its parsed table ``columns`` [len(header), n] (exactly
+    what parsing the file gives), and record in the index what it was made from (``st``: the file's stat when it
+    was read; now by default). Raises OSError."""
+    st = st or (folder / rel).stat()
+    out = folder / COLUMNS_DIR
+    out.mkdir(mode=DIR_MODE, exist_ok=True)
+    _save_npy_atomic(out / _columns_name(rel), np.ascontiguousarray(columns, dtype=np.float64))
+    index = _read_columns_index(folder)
+    index[rel] = {"size": st.st_size, "mtime_ns": st.st_mtime_ns, "rows": int(columns.shape[1]),
+                  "header": list(header), "dropped": int(dropped)}
+    write_json_atomic(out / COLUMNS_INDEX, {"format": COLUMNS_FORMAT, "files": index})
+
+
+INDEX_MIN_BYTES = 8 << 20  # below this (a minute or two of recording) the CSV files parse in well under 0.1 s
+
+
+def index_worthwhile(folder: Path) -> bool:
+    """Whether a session's files are large enough for a columnar copy to matter (a few stat calls)."""
+    try:
+        return sum((folder / rel).stat().st_size for rel in _stream_files(folder)) >= INDEX_MIN_BYTES
+    except OSError:
+        return False
+
+
+def _save_npy_atomic(path: Path, array: np.ndarray) -> None:
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    try:
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, FILE_MODE)
+        with open(fd, "wb") as fh:
+            np.save(fh, array, allow_pickle=False)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except OSError:
+            pass
+        raise
+
+
+# ---------------------------------------------------------------------------------------------- loading
+def _finite_number(value: Any) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool) and np.isfinite(value)
+
+
+def _checked_manifest_times(manifest: dict[str, Any], problems: list[str]) -> dict[str, Any]:
+    """A start or end time that is not a number is reported and left out (the data's own times are used)."""
+    out = manifest
+    for part in ("start", "end"):
+        section = manifest.get(part)
+        if isinstance(section, dict) and "t_mono_s" in section and section["t_mono_s"] is not None \
+                and not _finite_number(section["t_mono_s"]):
+            problems.append(f"the manifest's {part} time {section['t_mono_s']!r} is not a time; not used")
+            out = {**out, part: {k: v for k, v in section.items() if k != "t_mono_s"}}
+    return out
+
+
+def _checked_events(records: list[tuple[int, dict[str, Any]]], anchors: list[float],
+                    problems: list[str]) -> list[dict[str, Any]]:
+    """Events every reader can use: a time that is a number within the session, a kind that is a text, data
+    that is an object. An event without a usable time is left out (it has no place on the time line); a wrong
+    kind or data is replaced. Each is one line of ``problems``, naming the event's line in events.jsonl."""
+    out = []
+    for number, e in records:
+        t, kind = e.get("t_mono"), e.get("kind")
+        what = f"{EVENTS_FILE} line {number} ({kind if isinstance(kind, str) else 'no kind'})"
+        if not _finite_number(t):
+            problems.append(f"{what}: its time {t!r} is not a number; the event was left out")
+            continue
+        if not _plausible(np.array([float(t)]), anchors)[0]:
+            problems.append(f"{what}: its time {t!r} is outside the session; the event was left out")
+            continue
+        if not isinstance(kind, str):
+            problems.append(f"{what}: its kind {kind!r} is not a text; read as 'unknown'")
+            e = {**e, "kind": "unknown"}
+        if "data" in e and not isinstance(e["data"], dict):
+            problems.append(f"{what}: its data {str(e['data'])[:40]!r} is not an object; left empty")
+            e = {**e, "data": {}}
+        out.append(e)
+    return out
+
+
+def _time_anchors(manifest: dict[str, Any], tables: dict[str, StreamTable]) -> list[float]:
+    """Times the session certainly covers: its start in the manifest and the median time of each stream. A sample
+    or event further than MAX_SESSION_S from all of them is a forged or corrupted time (one such value must not
+    stretch the session's time line to the year 3000: issue #37, replay's OverflowError)."""
+    anchors = []
+    start = (manifest.get("start") or {}).get("t_mono_s")
+    if _finite_number(start):
+        anchors.append(float(start))
+    for table in tables.values():
+        if table.rows:
+            t = np.asarray(table.columns[0])
+            finite = t[np.isfinite(t)]
+            if finite.size:
+                anchors.append(float(np.median(finite)))
+    return anchors
+
+
+def _plausible(t: np.ndarray, anchors: list[float]) -> np.ndarray:
+    ok = np.isfinite(t)
+    if not anchors:
+        return ok
+    near = np.zeros(t.shape, dtype=bool)
+    for a in anchors:
+        near |= np.abs(t - a) <= MAX_SESSION_S
+    return ok & near
+
+
+def load_session(folder: str | Path, *, columns: bool = True, mmap: bool = False) -> RecordedSession:
+    """Read a session folder, tolerant of a crash (a missing end, a cut-short last line) and of damage (a line
+    or an event time that cannot be read is left out and listed in ``problems``).
+
+    ``columns``: read each stream from its columnar side-file when it matches its CSV (fast; see
+    :func:`index_session`); ``mmap``: map those side-files instead of reading them (the arrays are then
+    read-only)."""
     folder = Path(folder)
     problems: list[str] = []
     try:
@@ -1107,13 +1403,14 @@ def load_session(folder: str | Path) -> RecordedSession:
     manifest = _manifest_with_sidecar(folder, manifest)
     if manifest and (problem := _status_problem(manifest)):
         problems.append(problem)
+    manifest = _checked_manifest_times(manifest, problems)
     specs: dict[str, Any] = dict(manifest.get("streams") or {})
     known_files = {v.get("file") for v in specs.values() if isinstance(v, dict)}
     for path in sorted((folder / STREAMS_DIR).glob("*.csv")):
         rel = f"{STREAMS_DIR}/{path.name}"
         if rel not in known_files and path.stem not in specs:  # no manifest entry: names from the header, no units
             specs[path.stem] = {"file": rel, "device": "", "nominal_rate_hz": 0.0, "channels": None}
-    streams: dict[str, RecordedStream] = {}
+    tables: dict[str, tuple[dict[str, Any], StreamTable]] = {}
     streams_dir = (folder / STREAMS_DIR).resolve()
     for name, spec in specs.items():
         rel = spec.get("file") if isinstance(spec, dict) else None
@@ -1132,40 +1429,52 @@ def load_session(folder: str | Path) -> RecordedSession:
         if not path.is_file():
             problems.append(f"{name}: file {rel} is not a regular file; not read")
             continue
-        header, values, dropped = read_stream_csv(path)
+        tables[name] = (spec, read_stream_table(folder, f"{STREAMS_DIR}/{path.name}", columns, mmap))
+    anchors = _time_anchors(manifest, {n: t for n, (_s, t) in tables.items()})
+    streams: dict[str, RecordedStream] = {}
+    for name, (spec, table) in tables.items():
+        header, values, dropped = list(table.header), table.columns, table.dropped
         arrival = None
         if header and header[-1] == ARRIVAL_COLUMN:
-            if values.ndim == 2 and values.shape[1] == len(header):
-                arrival, values = values[:, -1].copy(), values[:, :-1]
+            if values.ndim == 2 and values.shape[0] == len(header):
+                arrival, values = values[-1], values[:-1]
             header = header[:-1]
         if spec.get("channels") is None:
             channels = tuple(Channel(h, "", h) for h in header[1:])
         else:
             channels = tuple(Channel(c["name"], c.get("unit", ""), c.get("label", c["name"]))
                              for c in spec["channels"])
-        columns = header[1:] if header else [c.name for c in channels]
-        if header and [c.name for c in channels] != columns:
-            problems.append(f"{name}: file columns {columns} differ from the manifest; using the file's")
-            channels = tuple(Channel(h, "", h) for h in columns)
+        columns_ = header[1:] if header else [c.name for c in channels]
+        if header and [c.name for c in channels] != columns_:
+            problems.append(f"{name}: file columns {columns_} differ from the manifest; using the file's")
+            channels = tuple(Channel(h, "", h) for h in columns_)
         if values.size == 0:
-            values = np.zeros((0, len(channels) + 1))
-        t = values[:, 0].copy()
-        data = {c.name: values[:, i + 1].copy() for i, c in enumerate(channels)}
+            values, arrival = np.zeros((len(channels) + 1, 0)), (None if arrival is None else np.zeros(0))
+        t = values[0]
+        bad = ~_plausible(np.asarray(t), anchors)
+        if bad.any():  # a forged or corrupted time: the sample has no place on the time line
+            problems.append(f"{name}: {int(bad.sum())} sample(s) with a time outside the session left out")
+            keep = ~bad
+            values = values[:, keep]
+            arrival = None if arrival is None else arrival[keep]
+            t = values[0]
+        data = {c.name: values[i + 1] for i, c in enumerate(channels)}
         streams[name] = RecordedStream(name, channels, float(spec.get("nominal_rate_hz") or 0.0), t, data,
                                        device=spec.get("device", ""), dropped_lines=dropped, arrival=arrival)
         if dropped:
             problems.append(f"{name}: {dropped} incomplete line(s) dropped")
-    events, dropped = read_events(folder / EVENTS_FILE)
+    records, dropped = _event_lines(folder / EVENTS_FILE)
     if not (folder / EVENTS_FILE).exists():
         problems.append(f"{EVENTS_FILE} is missing")
     if dropped:
         problems.append(f"events: {dropped} incomplete line(s) dropped")
-    problems += _count_problems(manifest, streams, events)
+    events = _checked_events(records, anchors, problems)
+    problems += _count_problems(manifest, streams, events, len(records))
     return RecordedSession(folder, manifest, streams, events, problems)
 
 
 def _count_problems(manifest: dict[str, Any], streams: dict[str, RecordedStream],
-                    events: list[dict[str, Any]]) -> list[str]:
+                    events: list[dict[str, Any]], readable_events: int | None = None) -> list[str]:
     """What the stopped session's manifest counted and the files no longer hold (a truncated copy, a
     file cut by hand), and the samples the recorder had to drop."""
     out = []
@@ -1179,8 +1488,9 @@ def _count_problems(manifest: dict[str, Any], streams: dict[str, RecordedStream]
             file = (specs.get(name) or {}).get("file", name)
             out.append(f"{name}: {expected - have} of {expected} samples missing from {file}")
     expected_events = manifest.get("event_count")
-    if isinstance(expected_events, int) and len(events) < expected_events:
-        out.append(f"events: {expected_events - len(events)} of {expected_events} missing from {EVENTS_FILE}")
+    have = len(events) if readable_events is None else readable_events  # left-out events are listed already
+    if isinstance(expected_events, int) and have < expected_events:
+        out.append(f"events: {expected_events - have} of {expected_events} missing from {EVENTS_FILE}")
     for device, n in (manifest.get("dropped_samples") or {}).items():
         if isinstance(n, int) and n > 0:
             out.append(f"{device}: {n} samples dropped while recording (the disk was too slow)")
@@ -1227,21 +1537,25 @@ def summarize_session(folder: Path) -> SessionSummary:
         manifest = {}
     manifest = _manifest_with_sidecar(folder, manifest)
     events, _ = read_events(folder / EVENTS_FILE)
-    exercises = tuple(str(e.get("data", {}).get("name") or "script") for e in events if e.get("kind") == "script_start")
+    exercises = tuple(str((e.get("data") if isinstance(e.get("data"), dict) else {}).get("name") or "script")
+                      for e in events if e.get("kind") == "script_start")
     alarms = sum(1 for e in events if e.get("kind") == "alarm")
-    start = manifest.get("start") or {}
-    end = manifest.get("end") or {}
-    if "duration_s" in manifest:
+    start = manifest.get("start") if isinstance(manifest.get("start"), dict) else {}
+    start_mono = start.get("t_mono_s") if _finite_number(start.get("t_mono_s")) else None
+    if _finite_number(manifest.get("duration_s")):
         duration = float(manifest["duration_s"])
     else:  # crashed: the last thing written
-        monos = [float(e["t_mono"]) for e in events if isinstance(e.get("t_mono"), int | float)]
-        last = max(monos, default=start.get("t_mono_s", 0.0))
-        for info in (manifest.get("streams") or {}).values():
-            path = folder / info.get("file", "")
-            if path.exists():
-                last = max(last, _last_time(path))
-        duration = max(0.0, float(last) - float(start.get("t_mono_s", last)))
-    del end
+        monos = [float(e["t_mono"]) for e in events if _finite_number(e.get("t_mono"))
+                 and (start_mono is None or 0.0 <= e["t_mono"] - start_mono <= MAX_SESSION_S)]
+        last = max(monos, default=start_mono if start_mono is not None else 0.0)
+        specs = manifest.get("streams") if isinstance(manifest.get("streams"), dict) else {}
+        for info in specs.values():
+            path = folder / str(info.get("file", "") if isinstance(info, dict) else "")
+            if isinstance(info, dict) and isinstance(info.get("file"), str) and path.is_file():
+                t = _last_time(path)
+                if start_mono is None or 0.0 <= t - start_mono <= MAX_SESSION_S:
+                    last = max(last, t)
+        duration = max(0.0, float(last) - float(start_mono if start_mono is not None else last))
     return SessionSummary(folder, str(manifest.get("patient_id", folder.parent.name)),
                           str(manifest.get("operator", "")), str(start.get("t_wall", "")), duration, exercises,
                           alarms, manifest.get("status") == "complete", str(manifest.get("note", "")),

@@ -12,6 +12,7 @@ that exercise were all interrupted is marked, not drawn as a decline. Also the c
 from __future__ import annotations
 
 import datetime as _dt
+import errno
 import json
 import math
 import sys
@@ -138,8 +139,11 @@ def legacy_runs(events: Sequence[Mapping[str, Any]], t_end: float) -> list[Exerc
 
     for e in events:
         kind = e.get("kind")
-        data = e.get("data") or {}
-        t = float(e.get("t_mono", 0.0))
+        data = e.get("data") if isinstance(e.get("data"), dict) else {}
+        t_mono = e.get("t_mono", 0.0)
+        if not isinstance(t_mono, int | float) or isinstance(t_mono, bool) or not math.isfinite(t_mono):
+            continue  # a malformed time (app.recording lists it among the problems): no place on the time line
+        t = float(t_mono)
         if kind == "exercise_start":
             pending_exercise = {**data, "_t": t}
         elif kind == "script_start":
@@ -798,7 +802,8 @@ class _Pdf:
 
     def finish(self) -> int:
         self._draw_footer()
-        self.painter.end()
+        if not self.painter.end():  # the writer could not finish the file (issue #37: it was ignored)
+            raise OSError(errno.EIO, "the PDF writer could not finish the file")
         return self.page
 
 
@@ -896,8 +901,27 @@ def alarm_text(data: Mapping[str, Any]) -> str:
     return " — ".join(p for p in (said, rest) if p)
 
 
+def save_session_report(folder: str | Path, out: str | Path, data: SessionReportData | None = None) -> int:
+    """The session's report at ``out``, verified (app/outputs.py: drawn under a temporary name, read back, its pages
+    counted, then renamed into place); returns the number of pages. Raises :class:`app.outputs.OutputError` (one
+    sentence, nothing left at ``out``) when it cannot be written."""
+    from app.outputs import verify_pdf, write_verified
+
+    return write_verified(Path(out), lambda tmp: write_session_report(folder, tmp, data), verify_pdf,
+                          what="the session report")
+
+
+def save_progress_report(patient_id: str, out: str | Path, rows: Sequence[ProgressRow], profile: Any = None) -> int:
+    """The progress report at ``out``, verified as :func:`save_session_report`; returns the number of pages."""
+    from app.outputs import verify_pdf, write_verified
+
+    return write_verified(Path(out), lambda tmp: write_progress_report(patient_id, tmp, rows, profile), verify_pdf,
+                          what="the progress report")
+
+
 def write_session_report(folder: str | Path, out: str | Path, data: SessionReportData | None = None) -> int:
-    """Write the session's report; returns the number of pages."""
+    """Draw the session's report into ``out``; returns the number of pages. (What the user saves goes through
+    :func:`save_session_report`, which verifies the file before saying it is written.)"""
     _ensure_gui_app()
     data = data or session_report_data(folder)
     m = data.metrics
@@ -1182,7 +1206,7 @@ def run_report_command(config: Any, *, metrics: str | None = None, report: str |
     if metrics:
         print(json.dumps(_metrics_json(metrics), indent=1, ensure_ascii=False))
     if report:
-        pages = write_session_report(report, out)  # type: ignore[arg-type]
+        pages = save_session_report(report, out)  # type: ignore[arg-type]
         print(f"Session report written: {out} ({pages} page{'s' if pages > 1 else ''})", file=sys.stderr)
     if progress:
         from app.patients import PatientError, load_patient
@@ -1195,7 +1219,7 @@ def run_report_command(config: Any, *, metrics: str | None = None, report: str |
             profile = load_patient(progress, config.safety)
         except (PatientError, OSError):
             profile = None
-        pages = write_progress_report(progress, out, rows, profile)  # type: ignore[arg-type]
+        pages = save_progress_report(progress, out, rows, profile)  # type: ignore[arg-type]
         print(f"Progress report written: {out} ({pages} page{'s' if pages > 1 else ''})", file=sys.stderr)
     return 0
 

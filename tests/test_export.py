@@ -86,7 +86,7 @@ def test_cancelled_export_leaves_nothing(session, tmp_path) -> None:
     assert list(tmp_path.glob("*.h5*")) == [] and list(tmp_path.glob(".*")) == []
     with pytest.raises(ExportCancelled):
         export_csv(session, tmp_path / "csv", progress=lambda f: f < 0.5)
-    assert list((tmp_path / "csv").iterdir()) == []
+    assert not (tmp_path / "csv").exists() and list(tmp_path.glob(".*")) == []  # no partial folder (#37)
 
 
 def test_one_writer_aligns_streams_of_different_rates(tmp_path) -> None:

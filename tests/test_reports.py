@@ -116,12 +116,16 @@ def test_summary_and_progress_views_from_the_sessions_browser(qtbot, tmp_path: P
     qtbot.addWidget(browser)
     browser.set_patient("P7")
     assert browser.summary_button.isEnabled() and browser.progress_button.isEnabled()
-    summary = browser.open_summary()
+    with qtbot.waitSignal(browser.opened, timeout=30000) as opened:  # read in the worker process (#37)
+        browser.open_summary()
+    summary = opened.args[0]
     qtbot.addWidget(summary)
     assert summary.summary.table.rowCount() == 3
     assert summary.summary.table.item(0, 3).text() == "0.250"  # the newest session first: 0.25 m
     assert summary.summary.save_pdf(tmp_path / "s.pdf") and (tmp_path / "s.pdf").stat().st_size > 1000
-    progress = browser.open_progress()
+    with qtbot.waitSignal(browser.opened, timeout=30000) as opened:
+        browser.open_progress()
+    progress = opened.args[0]
     qtbot.addWidget(progress)
     view = progress.view
     assert view.table.rowCount() == 2

@@ -73,20 +73,26 @@ def test_browser_lists_opens_exports_and_replays(home, qtbot) -> None:
     assert rows[str(second)][1] == "0:10", "interrupted: duration up to the last sample written"
 
     browser.select_folder(first)
-    details = browser.open_details()
-    assert details is not None and details.events.rowCount() == len(load_session(first).events)
+    with qtbot.waitSignal(browser.opened, timeout=20000) as opened:  # read in the worker process (#37)
+        browser.open_details()
+    details = opened.args[0]
+    assert details.events.rowCount() == len(load_session(first).events)
     assert "linarm.moveCentreTo(0.2)" in details.script_text.toPlainText()
 
     done: list[tuple[bool, str]] = []
     job = browser.export(first, "hdf5", home / "out.h5", on_done=lambda ok, msg: done.append((ok, msg)))
-    qtbot.waitUntil(lambda: bool(done), timeout=10000)
-    assert done[0][0] and "exported" in browser.status.text()
+    qtbot.waitUntil(lambda: bool(done), timeout=20000)
+    assert done[0][0] and "Exported" in browser.status.text() and "verified" in browser.status.text()
     assert job.fraction == 1.0
     exported = load_hdf5(home / "out.h5").streams["fake.main"]
     assert np.array_equal(exported.data["x"], load_session(first).streams["fake.main"].data["x"])
 
-    window = browser.replay()
-    assert window is not None and "fake.main.x" in window.plots.curves
+    with qtbot.waitSignal(browser.opened, timeout=20000) as opened:
+        browser.replay()
+    window = opened.args[0]
+    qtbot.addWidget(window)
+    qtbot.waitUntil(lambda: window.is_ready, timeout=5000)  # built a piece per turn of the event loop
+    assert "fake.main.x" in window.plots.curves
     assert len(window.plots.curves["fake.main.x"].getData()[1]) > 0
 
 
@@ -99,7 +105,7 @@ def test_cancelled_export_reports_and_leaves_nothing(home, qtbot) -> None:
     job.start()
     qtbot.waitUntil(lambda: job.done, timeout=10000)
     assert not job.ok and job.message == "export cancelled"
-    assert not any((home / "csv_out").glob("*"))
+    assert not (home / "csv_out").exists() and not list(home.glob(".csv_out*"))
 
 
 def test_patient_dialog_shows_validation_at_the_field(home, qtbot) -> None:

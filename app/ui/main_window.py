@@ -36,6 +36,7 @@ from app.paths import data_dir, sessions_dir
 from app.resources import RESOURCES
 from app.ui.qt_bus import QtBus, takes_qt_bus
 from app.ui.recovery import Restartable
+from app.ui.tasks import QtTasks
 
 log = logging.getLogger(__name__)
 
@@ -244,6 +245,12 @@ class MainWindow(QMainWindow):
         self.manager.session_changed.connect(lambda _folder: self._show_session())
         # A session has started: its plan and exercises come next (one action fewer to the first exercise).
         self.manager.session_changed.connect(lambda folder: self.show_tab("Exercises") if folder is not None else None)
+        # Heavy work (reading sessions, reports, exports) runs in a worker process (issue #37), started when first
+        # needed; a session that ends gets its columnar copy there, so opening it later is fast.
+        self._tasks: QtTasks | None = None
+        self._tasks_closed = False
+        self._recording: Path | None = recorder_folder(self.manager)
+        self.manager.session_changed.connect(self._session_folder_changed)
         self._show_session()
 
     def _build_frames(self) -> None:
@@ -400,12 +407,27 @@ class MainWindow(QMainWindow):
         self._patients_window = PatientsDialog(self.manager.config.safety, parent=self)
         self._patients_window.show()
 
+    def tasks(self) -> QtTasks:
+        """The window's worker process (app/ui/tasks.py), made when first needed."""
+        if self._tasks is None:
+            self._tasks = QtTasks(parent=self)
+            if self._tasks_closed:
+                self._tasks.close()
+        return self._tasks
+
+    def _session_folder_changed(self, folder: Path | None) -> None:
+        from app.recording import index_worthwhile
+
+        ended, self._recording = self._recording, folder
+        if ended is not None and folder != ended and not self._tasks_closed and index_worthwhile(ended):
+            self.tasks().run("index_session", str(ended), title=f"Indexing session {ended.name}")
+
     def show_sessions_browser(self) -> None:
         from app.recording import sessions_root
         from app.ui.sessions_browser import SessionsBrowser
 
         self._browser = SessionsBrowser(sessions_root(self.manager.config), self.manager.config.ui.history_s,
-                                        active=lambda: recorder_folder(self.manager))
+                                        active=lambda: recorder_folder(self.manager), tasks=self.tasks())
         self._browser.show()
 
     def show_alarms(self) -> None:
@@ -578,6 +600,9 @@ class MainWindow(QMainWindow):
                 save(settings)
         super().closeEvent(event)
         self.qt_bus.close()  # the frames' data stops here; the bus forgets the window
+        self._tasks_closed = True
+        if self._tasks is not None:
+            self._tasks.close()  # the worker process ends with the window
         # The main window holds the e-stop: when it closes, the whole application ends (devices safe in
         # run_gui's shutdown). No other window may keep the app — and the devices — running without it.
         self.manager.supervisor.bring_to_safe_state("main window closed")

@@ -1,6 +1,7 @@
 """Patient progress: the session metrics and the clinical scores across a patient's sessions, as trend plots
 (pyqtgraph), so a therapist sees whether speed, smoothness and range improve and assistance falls.
-"Save PDF…" writes the progress report (app/reports.py)."""
+"Save PDF…" writes the progress report (app/reports.py). From the sessions browser the sessions are read, and the PDF
+drawn, in the worker process (issue #37)."""
 
 from __future__ import annotations
 
@@ -27,6 +28,7 @@ from PySide6.QtWidgets import (
 )
 
 from app.reports import SCORES, TREND_METRICS, ProgressRow, fmt, progress_rows, y_range
+from app.ui.tasks import QtTasks
 
 log = logging.getLogger(__name__)
 
@@ -35,9 +37,10 @@ class ProgressView(QWidget):
     """Trends of ``rows`` (app.reports.progress_rows: one per session, oldest first)."""
 
     def __init__(self, patient_id: str, rows: list[ProgressRow], profile: Any = None,
-                 parent: QWidget | None = None) -> None:
+                 parent: QWidget | None = None, tasks: QtTasks | None = None) -> None:
         super().__init__(parent)
         self.patient_id, self.rows, self.profile = patient_id, rows, profile
+        self.tasks = tasks  # the worker process that draws the PDF (issue #37); None: drawn here
         header = QLabel(f"<h3>Progress of {patient_id}</h3>{len(rows)} session(s)"
                         + (f", {rows[0].date} … {rows[-1].date}" if rows else ""))
         header.setTextFormat(Qt.TextFormat.RichText)
@@ -98,19 +101,41 @@ class ProgressView(QWidget):
         default = Path.home() / f"{self.patient_id}_progress.pdf"
         path, _ = QFileDialog.getSaveFileName(self, "Save progress report", str(default), "PDF files (*.pdf)")
         if path:
-            self.save_pdf(Path(path))
+            if self.tasks is not None:
+                self.save_pdf_in_worker(Path(path))
+            else:
+                self.save_pdf(Path(path))
 
     def save_pdf(self, path: Path) -> bool:
-        from app.reports import write_progress_report
+        """Draw and write the report here (verified before "written" is said)."""
+        from app.outputs import OutputError
+        from app.reports import save_progress_report
 
         try:
-            pages = write_progress_report(self.patient_id, path, self.rows, self.profile)
+            pages = save_progress_report(self.patient_id, path, self.rows, self.profile)
+        except OutputError as exc:
+            self.status.setText(str(exc))
+            return False
         except Exception as exc:
             log.exception("progress report failed")
-            self.status.setText(f"Report not written: {exc}")
+            self.status.setText(f"The progress report {path} was not written: {exc}")
             return False
         self.status.setText(f"Report written: {path} ({pages} pages)")
         return True
+
+    def save_pdf_in_worker(self, path: Path) -> Any:
+        """Draw and write the report in the worker process; the status line says how it ended. Returns the task."""
+        assert self.tasks is not None
+
+        def done(task: Any) -> None:
+            if task.ok:
+                self.status.setText(f"Report written: {path} ({task.result} pages)")
+            else:
+                self.status.setText(task.error if task.error else "The progress report was not written.")
+
+        self.status.setText(f"Writing the report to {path}…")
+        return self.tasks.run("progress_report", self.patient_id, str(path), rows=self.rows, profile=self.profile,
+                              title="Progress report", parent=self, outputs=(path,), on_done=done)
 
 
 def _num(value: Any) -> float | None:
@@ -121,7 +146,8 @@ class ProgressDialog(QDialog):
     """A patient's progress in its own window; reading every session shows a cancellable progress bar."""
 
     def __init__(self, patient_id: str, root: Path | None = None, profile: Any = None,
-                 parent: QWidget | None = None) -> None:
+                 parent: QWidget | None = None, *, rows: list[ProgressRow] | None = None,
+                 tasks: QtTasks | None = None) -> None:
         super().__init__(parent)
         self.setWindowTitle(f"Progress — {patient_id}")
         if profile is None:
@@ -131,12 +157,13 @@ class ProgressDialog(QDialog):
                 profile = load_patient(patient_id)
             except (PatientError, OSError):
                 profile = None
-        wait = QProgressDialog(f"Reading the sessions of {patient_id}…", "", 0, 100, parent)
-        wait.setCancelButton(None)
-        wait.setMinimumDuration(400)
-        rows = progress_rows(patient_id, root, lambda f: wait.setValue(int(f * 100)))
-        wait.close()
-        self.view = ProgressView(patient_id, rows, profile, self)
+        if rows is None:  # read here (a caller without the worker process: the sessions browser reads them there)
+            wait = QProgressDialog(f"Reading the sessions of {patient_id}…", "", 0, 100, parent)
+            wait.setCancelButton(None)
+            wait.setMinimumDuration(400)
+            rows = progress_rows(patient_id, root, lambda f: wait.setValue(int(f * 100)))
+            wait.close()
+        self.view = ProgressView(patient_id, rows, profile, self, tasks)
         close = QPushButton("&Close")
         close.clicked.connect(self.accept)
         lay = QVBoxLayout(self)

@@ -4,6 +4,10 @@ The window owns a private :class:`~app.ui.signal_store.SignalStore` and a
 :class:`~app.ui.plots_frame.PlotsFrame` on it, and feeds the store from a
 :class:`~app.replay.ReplaySource` exactly as drivers feed the live store, so the graphs behave as
 if live. Seeking refills the store with the history before the new position.
+
+The sessions browser reads the session in the worker process (issue #37) and hands the window a
+:class:`~app.worker.session_data.SessionData`, whose samples are mapped, not copied: opening a 30-minute session
+costs the GUI thread milliseconds. The event list is filled a block at a time, so a long one never holds a frame.
 """
 
 from __future__ import annotations
@@ -11,7 +15,7 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-from PySide6.QtCore import Qt, QTimer
+from PySide6.QtCore import Qt, QTimer, Signal
 from PySide6.QtGui import QCloseEvent, QKeySequence, QShortcut
 from PySide6.QtWidgets import (
     QComboBox,
@@ -31,11 +35,14 @@ from app.replay import ReplaySource
 from app.ui.plots_frame import DEFAULT_SIGNALS, PlotsFrame
 from app.ui.signal_store import SignalStore, signal_key
 from app.ui.widgets import ClickToPositionStyle
+from app.worker.session_data import SessionData
 
 SPEEDS = (0.25, 0.5, 1.0, 2.0, 5.0, 10.0)
 _TICK_MS = 33
 _SLIDER_STEPS_PER_S = 100  # the slider moves in 10 ms steps
 _DEFAULT_PLOTTED = 6  # signals ticked when the window opens
+_EVENTS_PER_TURN = 300  # event-list rows added per turn of the event loop (a block costs well under a frame)
+_SLIDER_MAX = 2**31 - 1  # QSlider's range is a C int
 
 
 def _fmt(seconds: float) -> str:
@@ -56,21 +63,41 @@ def default_replay_signals(rec: RecordedSession) -> list[str]:
     return chosen[:_DEFAULT_PLOTTED]
 
 
+class ReplayPlots(PlotsFrame):
+    """The graphs of a replay: they open on the replay's own signals (``opening``, set just before one is made),
+    not on the live graphs' saved choice -- which would build every plot twice, once for each choice."""
+
+    opening: list[str] = []
+
+    def _restore_settings(self) -> None:
+        super()._restore_settings()
+        self._wanted = list(type(self).opening)
+
+
 class ReplayWindow(QWidget):
-    def __init__(self, session: RecordedSession | str | Path, history_s: float = 30.0,
-                 parent: QWidget | None = None) -> None:
+    """``staged``: the window is built a piece per turn of the event loop (the graphs' choice, the first screen,
+    the event list), so that opening it never holds the GUI thread for more than one piece; ``ready`` says when
+    the first screen is drawn. Unstaged (the default), it is complete when constructed."""
+
+    ready = Signal()
+
+    def __init__(self, session: RecordedSession | SessionData | str | Path, history_s: float = 30.0,
+                 parent: QWidget | None = None, *, staged: bool = False) -> None:
         super().__init__(parent)
-        self.source = ReplaySource(session)
+        self.is_ready = False
+        self.source = ReplaySource(session.open() if isinstance(session, SessionData) else session)
         rec = self.source.session
         m = rec.manifest
         self.setWindowTitle(f"Replay — {m.get('patient_id', '?')} — {(m.get('start') or {}).get('t_wall', '')[:19]}")
         self.store = SignalStore(history_s=max(history_s, 1.0))
         for spec, device in self.source.specs().values():
             self.store.add_stream(spec, device or None)
-        self.plots = PlotsFrame(None, self.store)
+        self._initial_signals = default_replay_signals(rec)
+        # Staged: the frame and its signal list now, its plots on the next turn (the two cost about as much).
+        ReplayPlots.opening = [] if staged else self._initial_signals
+        self.plots = ReplayPlots(None, self.store)
         self.plots.timer.stop()  # redrawn when the replay moves, not on a free-running timer
         self.plots.x_origin = self.source.start  # the x-axis in session time, as the slider and events
-        self.plots.set_selected(default_replay_signals(rec))
         self.speed = 1.0
         self._last_tick = 0.0
 
@@ -81,7 +108,7 @@ class ReplayWindow(QWidget):
         self.slider.setAccessibleName("Replay position")
         self._slider_style = ClickToPositionStyle()  # a click seeks there (no page jump); kept alive here
         self.slider.setStyle(self._slider_style)
-        self.slider.setRange(0, max(1, round(self.source.duration * _SLIDER_STEPS_PER_S)))
+        self.slider.setRange(0, max(1, min(_SLIDER_MAX, round(self.source.duration * _SLIDER_STEPS_PER_S))))
         self.slider.valueChanged.connect(self._on_slider)
         self.time_label = QLabel()
         self.speed_box = QComboBox()
@@ -93,14 +120,9 @@ class ReplayWindow(QWidget):
 
         self.events = QListWidget()
         self.events.setAccessibleName("Session events")
-        for e in rec.events:
-            if not isinstance(e.get("t_mono"), int | float):
-                continue
-            text = f"{_fmt(e['t_mono'] - self.source.start)}  {e.get('kind', '')}  {e.get('who', '')}"
-            item = QListWidgetItem(text)
-            item.setData(Qt.ItemDataRole.UserRole, float(e["t_mono"]) - self.source.start)
-            item.setToolTip(f"{text}\n{e.get('data', '')}")  # the whole line, even when the list is narrow
-            self.events.addItem(item)
+        self._events_left = [e for e in rec.events if isinstance(e.get("t_mono"), int | float)]
+        if not staged:
+            self._add_events()
         self.events.itemActivated.connect(lambda it: self.seek(float(it.data(Qt.ItemDataRole.UserRole))))
 
         bar = QHBoxLayout()
@@ -130,7 +152,35 @@ class ReplayWindow(QWidget):
         self.timer.setInterval(_TICK_MS)
         self.timer.timeout.connect(self._tick)
         self.resize(1100, 650)
+        if staged:
+            QTimer.singleShot(0, self, self._stage_signals)
+        else:
+            self._first_screen()
+
+    def _stage_signals(self) -> None:
+        self.plots.set_selected(self._initial_signals)
+        QTimer.singleShot(0, self, self._stage_first_screen)
+
+    def _stage_first_screen(self) -> None:
+        self._first_screen()
+        QTimer.singleShot(0, self, self._add_events)
+
+    def _first_screen(self) -> None:
         self.seek(min(self.source.duration, self.plots.history_s))  # open on a full first screen
+        self.is_ready = True
+        self.ready.emit()
+
+    def _add_events(self) -> None:
+        """The next block of the event list; the rest on the next turn of the event loop."""
+        block, self._events_left = self._events_left[:_EVENTS_PER_TURN], self._events_left[_EVENTS_PER_TURN:]
+        for e in block:
+            text = f"{_fmt(e['t_mono'] - self.source.start)}  {e.get('kind', '')}  {e.get('who', '')}"
+            item = QListWidgetItem(text)
+            item.setData(Qt.ItemDataRole.UserRole, float(e["t_mono"]) - self.source.start)
+            item.setToolTip(f"{text}\n{e.get('data', '')}")  # the whole line, even when the list is narrow
+            self.events.addItem(item)
+        if self._events_left:
+            QTimer.singleShot(0, self, self._add_events)
 
     # ------------------------------------------------------------------ control
     def seek(self, elapsed_s: float) -> None:

@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Any
 
 import pyqtgraph as pg
-from PySide6.QtCore import Qt
+from PySide6.QtCore import Qt, QTimer, Signal
 from PySide6.QtWidgets import (
     QAbstractItemView,
     QDialog,
@@ -37,6 +37,7 @@ from app.reports import (
     parameters_text,
     y_range,
 )
+from app.ui.tasks import QtTasks
 
 log = logging.getLogger(__name__)
 
@@ -169,13 +170,19 @@ def _alarm_table(alarms: Sequence[dict[str, Any]], name: str) -> QTableWidget:
 
 class SessionSummary(QWidget):
     """The summary of ``runs`` (app.reports.run_reports): one tab per run, and an overview of the runs when
-    there are several."""
+    there are several. ``staged``: a run's tab is built when it is first shown, on a turn of the event loop of its
+    own (a run's plots and table cost ~120 ms on the reference machine: opening a long session's summary shows
+    its overview at once and builds no run it does not show); ``ready`` once the tab shown is built."""
+
+    ready = Signal()
 
     def __init__(self, runs: Sequence[RunReport], title: str = "", folder: Path | None = None,
-                 parent: QWidget | None = None) -> None:
+                 parent: QWidget | None = None, tasks: QtTasks | None = None, staged: bool = False) -> None:
         super().__init__(parent)
+        self._to_build: list[RunReport] = []
         self.runs = list(runs)
         self.folder = folder
+        self.tasks = tasks  # the worker process that draws the PDF (issue #37); None: drawn here
         self.header = QLabel((f"<h3>{title}</h3>" if title else "")
                              + (f"{len(self.runs)} exercise run(s)" if self.runs else "No exercise run."))
         self.header.setTextFormat(Qt.TextFormat.RichText)
@@ -205,11 +212,18 @@ class SessionSummary(QWidget):
             self.overview.cellDoubleClicked.connect(lambda row, _col: self.tabs.setCurrentIndex(row + 1))
             self.tabs.addTab(self.overview, "All runs")
         for r in self.runs:
-            view = RunSummary(r, self)
-            self.run_views[r.run.run_id] = view
+            if staged:
+                view: QWidget = QLabel("…")  # this run's tab is built on a later turn (see _build_next)
+                self._to_build.append(r)
+            else:
+                view = RunSummary(r, self)
+                self.run_views[r.run.run_id] = view
             self.tabs.addTab(view, f"{r.number}. {_short(r.title)}")
             self.tabs.setTabToolTip(self.tabs.count() - 1, f"Run {r.number}: {r.title} — {r.run.end_text()}")
         self.tabs.setCurrentIndex(0)  # several runs: their overview first
+        if self._to_build:
+            self.tabs.currentChanged.connect(lambda _i: QTimer.singleShot(0, self, self._build_shown))
+            QTimer.singleShot(0, self, self._build_shown)
         self.tabs.tabBar().setVisible(len(self.runs) > 1)
 
         self.pdf_button = QPushButton("Save PDF &report…")
@@ -226,19 +240,58 @@ class SessionSummary(QWidget):
         lay.addLayout(buttons)
 
     @property
+    def is_ready(self) -> bool:
+        """The tab shown is built (a staged summary builds the others when they are shown)."""
+        shown = self._run_at(self.tabs.currentIndex())
+        return not any(x is shown for x in self._to_build)
+
+    def _run_at(self, index: int) -> RunReport | None:
+        k = index - (1 if self.overview is not None else 0)
+        return self.runs[k] if 0 <= k < len(self.runs) else None
+
+    def _build_shown(self) -> None:
+        self._build(self._run_at(self.tabs.currentIndex()))
+        self.ready.emit()
+
+    def _build(self, r: RunReport | None) -> None:
+        """Build ``r``'s tab now if it is still a placeholder (when shown, or when a caller asks for it)."""
+        if r is not None and any(x is r for x in self._to_build):
+            index = next(k for k, x in enumerate(self.runs) if x is r) + (1 if self.overview is not None else 0)
+            shown = self.tabs.currentIndex()
+            self._to_build = [x for x in self._to_build if x is not r]
+            view = RunSummary(r, self)
+            self.run_views[r.run.run_id] = view
+            placeholder = self.tabs.widget(index)
+            self.tabs.blockSignals(True)  # the tab shown stays shown while it is swapped
+            self.tabs.removeTab(index)
+            self.tabs.insertTab(index, view, f"{r.number}. {_short(r.title)}")
+            self.tabs.setTabToolTip(index, f"Run {r.number}: {r.title} — {r.run.end_text()}")
+            self.tabs.setCurrentIndex(shown)
+            self.tabs.blockSignals(False)
+            placeholder.deleteLater()
+
+    @property
     def tables(self) -> dict[str, QTableWidget]:
-        """Each run's repetition table, by run id."""
-        return {rid: view.table for rid, view in self.run_views.items()}
+        """Each run's repetition table, by run id (a tab not built yet is built now)."""
+        for r in list(self._to_build):
+            self._build(r)
+        return {r.run.run_id: self.run_views[r.run.run_id].table for r in self.runs}
 
     @property
     def table(self) -> QTableWidget | None:
         """The last run's repetition table (the one an exercise's end shows)."""
-        return self.run_views[self.runs[-1].run.run_id].table if self.runs else None
+        if not self.runs:
+            return None
+        self._build(self.runs[-1])
+        return self.run_views[self.runs[-1].run.run_id].table
 
     @property
     def plots(self) -> dict[str, pg.PlotWidget]:
         """The last run's plots."""
-        return self.run_views[self.runs[-1].run.run_id].plots if self.runs else {}
+        if not self.runs:
+            return {}
+        self._build(self.runs[-1])
+        return self.run_views[self.runs[-1].run.run_id].plots
 
     @property
     def metrics(self) -> dict[str, Any]:
@@ -258,19 +311,42 @@ class SessionSummary(QWidget):
         default = Path.home() / f"{self.folder.parent.name}_{self.folder.name}.pdf"
         path, _ = QFileDialog.getSaveFileName(self, "Save session report", str(default), "PDF files (*.pdf)")
         if path:
-            self.save_pdf(Path(path))
+            if self.tasks is not None:
+                self.save_pdf_in_worker(Path(path))
+            else:
+                self.save_pdf(Path(path))
 
     def save_pdf(self, path: Path) -> bool:
-        from app.reports import write_session_report
+        """Draw and write the report here (verified before "written" is said)."""
+        from app.outputs import OutputError
+        from app.reports import save_session_report
 
         try:
-            pages = write_session_report(self.folder, path)  # type: ignore[arg-type]
-        except Exception as exc:  # a full disk, a folder not writable: say so, the summary stays
+            pages = save_session_report(self.folder, path)  # type: ignore[arg-type]
+        except OutputError as exc:  # a full disk, a folder not writable: one sentence, the summary stays
+            self.status.setText(str(exc))
+            return False
+        except Exception as exc:
             log.exception("session report failed")
-            self.status.setText(f"Report not written: {exc}")
+            self.status.setText(f"The session report {path} was not written: {exc}")
             return False
         self.status.setText(f"Report written: {path} ({pages} pages)")
         return True
+
+    def save_pdf_in_worker(self, path: Path) -> Any:
+        """Draw and write the report in the worker process (a progress dialog, Cancel); the status line says how
+        it ended. Returns the task."""
+        assert self.tasks is not None and self.folder is not None
+
+        def done(task: Any) -> None:
+            if task.ok:
+                self.status.setText(f"Report written: {path} ({task.result} pages)")
+            else:
+                self.status.setText(task.error if task.error else "The session report was not written.")
+
+        self.status.setText(f"Writing the report to {path}…")
+        return self.tasks.run("session_report", str(self.folder), str(path), title="Session report", parent=self,
+                              outputs=(path,), on_done=done)
 
 
 def _short(title: str, n: int = 28) -> str:
@@ -286,19 +362,26 @@ def runs_between(reports: Sequence[RunReport], since_mono: float | None, until_m
 
 
 class SessionSummaryDialog(QDialog):
-    """A session's (or one exercise's) summary in its own window, run by run."""
+    """A session's (or one exercise's) summary in its own window, run by run. ``data``: what the worker process
+    read (app.worker.jobs.SummaryData: the sessions browser); without it the session is read here."""
 
     def __init__(self, folder: Path, since_mono: float | None = None, until_mono: float | None = None,
-                 title: str = "", parent: QWidget | None = None) -> None:
+                 title: str = "", parent: QWidget | None = None, *, data: Any = None,
+                 tasks: QtTasks | None = None, staged: bool = False) -> None:
         super().__init__(parent)
-        from app.recording import load_session
-        from app.reports import run_reports
+        if data is not None:
+            reports, patient = data.runs, data.patient_id
+        else:
+            from app.recording import load_session
+            from app.reports import run_reports
 
-        session = load_session(folder)
-        runs = runs_between(run_reports(session), since_mono, until_mono)
-        patient = session.manifest.get("patient_id", folder.parent.name)
+            session = load_session(folder)
+            reports = run_reports(session)
+            patient = session.manifest.get("patient_id", folder.parent.name)
+        runs = runs_between(reports, since_mono, until_mono)
         self.setWindowTitle(f"Summary — {patient} — {folder.name}")
-        self.summary = SessionSummary(runs, title or f"Session {folder.name} — {patient}", folder, self)
+        self.summary = SessionSummary(runs, title or f"Session {folder.name} — {patient}", folder, self, tasks,
+                                      staged)
         close = QPushButton("&Close")
         close.clicked.connect(self.accept)
         lay = QVBoxLayout(self)

@@ -1,6 +1,8 @@
 """Sessions browser: a patient's sessions (date, duration, exercises, alarms); open, export, replay.
 
-Exports run on a worker thread behind a cancellable progress dialog; the GUI stays live.
+Opening a session (its details, summary, replay, the patient's progress) and exporting it run in the worker process
+(app/worker, issue #37) behind a progress dialog with Cancel: the real-time process's interpreter never parses a
+session, and a crash there (HDF5 on a full disk) is one sentence here. The window is built from the result.
 """
 
 from __future__ import annotations
@@ -8,14 +10,13 @@ from __future__ import annotations
 import datetime as _dt
 import json
 import logging
-import threading
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from PySide6.QtCore import Qt, QTimer
-from PySide6.QtGui import QColor, QKeySequence, QShortcut
+from PySide6.QtCore import Qt, Signal
+from PySide6.QtGui import QCloseEvent, QColor, QKeySequence, QShortcut
 from PySide6.QtWidgets import (
     QAbstractItemView,
     QComboBox,
@@ -25,8 +26,8 @@ from PySide6.QtWidgets import (
     QHBoxLayout,
     QHeaderView,
     QLabel,
+    QMessageBox,
     QPlainTextEdit,
-    QProgressDialog,
     QPushButton,
     QTableWidget,
     QTableWidgetItem,
@@ -35,7 +36,6 @@ from PySide6.QtWidgets import (
 )
 
 from app import paths
-from app.export import ExportCancelled, export_csv, export_hdf5
 from app.patients import list_patients
 from app.recording import (
     EVENTS_FILE,
@@ -46,6 +46,9 @@ from app.recording import (
     read_events,
 )
 from app.reports import run_titles
+from app.ui.tasks import QtTasks
+from app.worker import Task, TaskService, TaskStatus
+from app.worker.session_data import SessionOverview, overview_of
 
 log = logging.getLogger(__name__)
 
@@ -104,60 +107,84 @@ def session_status(summary: SessionSummary, active: Path | None = None) -> Sessi
                          False)
 
 
-class ExportJob:
-    """One export on a worker thread; ``done``, ``ok`` and ``message`` tell the result (the browser
-    polls them from a GUI timer, so nothing crosses threads but plain attributes)."""
+EXPORT_JOBS = {"hdf5": "export_hdf5", "csv": "export_csv"}
 
-    def __init__(self, folder: Path, kind: str, destination: Path) -> None:
-        if kind not in ("hdf5", "csv"):
+
+class ExportJob:
+    """One export, run by the worker process; ``done``, ``ok``, ``message`` and ``fraction`` tell where it is.
+    Without a service of its own it starts a worker for this export alone and ends it when done."""
+
+    def __init__(self, folder: Path, kind: str, destination: Path, service: TaskService | None = None) -> None:
+        if kind not in EXPORT_JOBS:
             raise ValueError(f"unknown export kind {kind!r}")
         self.folder, self.kind, self.destination = folder, kind, destination
-        self.fraction = 0.0
-        self.cancelled = threading.Event()
-        self.done = False
-        self.ok = False
-        self.message = ""
-        self._thread = threading.Thread(target=self._run, name="session-export", daemon=True)
+        self.service = service
+        self._own = service is None
+        self.task: Task | None = None
+        self._cancel_first = False
 
-    def start(self) -> None:
-        self._thread.start()
+    def start(self, on_update: Callable[[Task], Any] | None = None) -> Task:
+        if self.service is None:
+            self.service = TaskService()
+
+        def update(task: Task) -> None:
+            if task.done and self._own and self.service is not None:
+                self.service.close()
+            if on_update is not None:
+                on_update(task)
+
+        self.task = self.service.submit(EXPORT_JOBS[self.kind], str(self.folder), str(self.destination),
+                                        title=f"Export of {self.folder.name} to {self.kind.upper()}",
+                                        outputs=(self.destination,), on_update=update)
+        if self._cancel_first:
+            self.task.cancel()
+        return self.task
 
     def cancel(self) -> None:
-        self.cancelled.set()
+        if self.task is None:
+            self._cancel_first = True
+        else:
+            self.task.cancel()
 
-    def _progress(self, fraction: float) -> bool:
-        self.fraction = fraction
-        return not self.cancelled.is_set()
+    @property
+    def fraction(self) -> float:
+        return self.task.fraction if self.task is not None else 0.0
 
-    def _run(self) -> None:
-        try:
-            session = load_session(self.folder)
-            if self.kind == "hdf5":
-                export_hdf5(session, self.destination, self._progress)
-            else:
-                export_csv(session, self.destination, self._progress)
-            self.ok, self.message = True, f"exported to {self.destination}"
-        except ExportCancelled:
-            self.message = "export cancelled"
-        except Exception as exc:
-            log.exception("export of %s failed", self.folder)
-            self.message = f"export failed: {exc}"
-        self.done = True
+    @property
+    def done(self) -> bool:
+        return self.task is not None and self.task.done
+
+    @property
+    def ok(self) -> bool:
+        return self.task is not None and self.task.ok
+
+    @property
+    def message(self) -> str:
+        task = self.task
+        if task is None or not task.done:
+            return ""
+        if task.status is TaskStatus.DONE:
+            return str(task.result)
+        if task.status is TaskStatus.CANCELLED:
+            return "export cancelled"
+        return task.error
 
 
 class SessionDetails(QDialog):
-    """The manifest's essentials and every event of one session."""
+    """The manifest's essentials and every event of one session (read by the worker: a
+    :class:`~app.worker.session_data.SessionOverview`; a folder is read here, for a caller without a worker)."""
 
-    def __init__(self, folder: Path, parent: QWidget | None = None) -> None:
+    def __init__(self, folder: Path | SessionOverview, parent: QWidget | None = None) -> None:
         super().__init__(parent)
-        session = load_session(folder)
+        session = folder if isinstance(folder, SessionOverview) else overview_of(load_session(folder))
+        folder = session.folder
         m = session.manifest
         self.setWindowTitle(f"Session {folder.name} — {m.get('patient_id', '?')}")
         lines = [
             f"Patient: {m.get('patient_id', '?')}    Operator: {m.get('operator', '?')}",
             f"Start: {(m.get('start') or {}).get('t_wall', '?')}    End: {(m.get('end') or {}).get('t_wall', '—')}",
             f"Duration: {_duration_text(session.duration_s)}    App version: {m.get('app_version', '?')}",
-            "Streams: " + ", ".join(f"{n} ({len(s)} samples)" for n, s in session.streams.items()),
+            "Streams: " + ", ".join(f"{n} ({count} samples)" for n, count in session.samples.items()),
         ]
         if m.get("note"):
             lines.append(f"Note: {m['note']}")
@@ -198,14 +225,21 @@ class SessionDetails(QDialog):
 
 
 class SessionsBrowser(QWidget):
-    """List, open, export and replay the sessions of one patient."""
+    """List, open, export and replay the sessions of one patient. The reading and writing run in the worker
+    process (``tasks``: the main window's; without one the browser starts its own and ends it when it closes)."""
+
+    opened = Signal(object)  # the window or dialog an action opened, once its data is read
 
     def __init__(self, root: Path | None = None, history_s: float = 30.0, parent: QWidget | None = None,
-                 active: Callable[[], Path | None] | None = None) -> None:
+                 active: Callable[[], Path | None] | None = None, tasks: QtTasks | None = None) -> None:
         super().__init__(parent)
         self.root = root or paths.sessions_dir()
         self.active = active or (lambda: None)  # the folder being recorded now (shown "in progress")
         self.history_s = history_s
+        self.tasks = tasks or QtTasks(parent=self)
+        self._own_tasks = tasks is None
+        if not self._own_tasks:
+            self.tasks.warm()  # the window's worker: started now, so the first open does not wait for it
         self.setWindowTitle("Sessions")
         self.windows: list[QWidget] = []  # replay windows and dialogs kept alive
         self.jobs: list[ExportJob] = []
@@ -324,47 +358,64 @@ class SessionsBrowser(QWidget):
         self.progress_button.setEnabled(ok)
 
     # ------------------------------------------------------------------ actions
-    def open_details(self) -> SessionDetails | None:
+    def _open(self, kind: str, args: tuple[Any, ...], title: str, make: Callable[[Any], QWidget | None]) -> Task:
+        """Read in the worker, then ``make(result)`` the window on the GUI thread (shown, kept, ``opened``); a
+        failure is one sentence in the status line."""
+        def done(task: Task) -> None:
+            if task.status is TaskStatus.CANCELLED:
+                self.status.setText(f"{title}: cancelled.")
+                return
+            if not task.ok:
+                self._say(task.error, error=True)
+                return
+            widget = make(task.result)
+            if widget is None:
+                return
+            self.windows.append(widget)
+            widget.show()
+            self.status.setText("")
+            self.opened.emit(widget)
+
+        return self.tasks.run(kind, *args, title=title, parent=self, on_done=done)
+
+    def _say(self, text: str, error: bool = False) -> None:
+        self.status.setText(text)
+        self.status.setStyleSheet("color: #c62828;" if error else "")
+
+    def open_details(self) -> Task | None:
         folder = self.selected_folder()
         if folder is None:
             return None
-        dialog = SessionDetails(folder, self)
-        self.windows.append(dialog)
-        dialog.show()
-        return dialog
+        return self._open("session_overview", (str(folder),), f"Reading session {folder.name}",
+                          lambda overview: SessionDetails(overview, self))
 
-    def open_summary(self) -> QWidget | None:
+    def open_summary(self) -> Task | None:
         folder = self.selected_folder()
         if folder is None:
             return None
         from app.ui.session_summary import SessionSummaryDialog
 
-        dialog = SessionSummaryDialog(folder, parent=self)
-        self.windows.append(dialog)
-        dialog.show()
-        return dialog
+        return self._open("session_summary", (str(folder),), f"Summary of session {folder.name}",
+                          lambda data: SessionSummaryDialog(folder, data=data, tasks=self.tasks, parent=self,
+                                                            staged=True))
 
-    def open_progress(self) -> QWidget | None:
+    def open_progress(self) -> Task | None:
         pid = self.patient_box.currentData()
         if not pid:
             return None
         from app.ui.progress_view import ProgressDialog
 
-        dialog = ProgressDialog(pid, self.root, parent=self)
-        self.windows.append(dialog)
-        dialog.show()
-        return dialog
+        return self._open("progress_rows", (pid, str(self.root)), f"Progress of {pid}",
+                          lambda rows: ProgressDialog(pid, self.root, parent=self, rows=rows, tasks=self.tasks))
 
-    def replay(self) -> QWidget | None:
+    def replay(self) -> Task | None:
         folder = self.selected_folder()
         if folder is None:
             return None
         from app.ui.replay_window import ReplayWindow
 
-        window = ReplayWindow(folder, self.history_s)
-        self.windows.append(window)
-        window.show()
-        return window
+        return self._open("session_data", (str(folder),), f"Replay of session {folder.name}",
+                          lambda data: ReplayWindow(data, self.history_s, staged=True))
 
     def ask_export(self, kind: str) -> None:
         folder = self.selected_folder()
@@ -383,31 +434,30 @@ class SessionsBrowser(QWidget):
 
     def export(self, folder: Path, kind: str, destination: Path,
                on_done: Callable[[bool, str], Any] | None = None) -> ExportJob:
-        """Export with a cancellable progress dialog; returns the running job."""
-        job = ExportJob(folder, kind, destination)
-        dialog = QProgressDialog(f"Exporting {folder.name} to {kind.upper()}…", "Cancel", 0, 1000, self)
-        dialog.setWindowModality(Qt.WindowModality.WindowModal)
-        dialog.setMinimumDuration(300)
-        dialog.canceled.connect(job.cancel)
-        timer = QTimer(dialog)
-        timer.setInterval(50)
+        """Export in the worker with a progress dialog (Cancel); a failure is one message (the status line and a
+        message box), and nothing is said written that was not verified. Returns the running job."""
+        job = ExportJob(folder, kind, destination, self.tasks.service)
 
-        def poll() -> None:
-            if not job.done:
-                dialog.setValue(int(job.fraction * 1000))
-                return
-            timer.stop()
-            dialog.reset()
-            dialog.close()
-            self.status.setText(job.message)
+        def done(task: Task) -> None:
             if job in self.jobs:
                 self.jobs.remove(job)
+            self._say(job.message, error=task.status is TaskStatus.FAILED)
+            if task.status is TaskStatus.FAILED:
+                box = QMessageBox(QMessageBox.Icon.Warning, "Export not written", job.message,
+                                  QMessageBox.StandardButton.Ok, self)
+                box.setAttribute(Qt.WidgetAttribute.WA_DeleteOnClose)
+                box.open()
+                self.message_box = box
             if on_done is not None:
                 on_done(job.ok, job.message)
 
-        timer.timeout.connect(poll)
+        job.task = self.tasks.run(EXPORT_JOBS[kind], str(folder), str(destination),
+                                  title=f"Export of {folder.name} to {kind.upper()}", parent=self,
+                                  outputs=(destination,), on_done=done)
         self.jobs.append(job)
-        job.progress_dialog = dialog  # type: ignore[attr-defined]
-        job.start()
-        timer.start()
         return job
+
+    def closeEvent(self, event: QCloseEvent) -> None:
+        if self._own_tasks:
+            self.tasks.close()
+        super().closeEvent(event)
