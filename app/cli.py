@@ -8,6 +8,7 @@ all run :func:`main`. With no arguments: the clinician window, every device simu
     linarmpp --metrics SESSION_FOLDER                      per-repetition metrics as JSON (docs/metrics.md)
     linarmpp --report SESSION_FOLDER --out FILE.pdf        the session's PDF report
     linarmpp --progress PATIENT_ID --out FILE.pdf          the patient's progress PDF
+    linarmpp export --format bids|xdf|edf SESSION… --out DIR   sessions for research tools (docs/export.md)
                       (exit 0 done, 1 nothing written: why on stderr, 2 wrong arguments,
                        3 done from an incomplete session: what is missing on stderr)
 
@@ -52,7 +53,10 @@ def parse_args(argv: list[str], prog: str | None = None) -> argparse.Namespace:
 
 
 def main(argv: list[str] | None = None, prog: str | None = None) -> int:
-    args = parse_args(sys.argv[1:] if argv is None else argv, prog)
+    argv = sys.argv[1:] if argv is None else argv
+    if argv[:1] == ["export"]:
+        return _export_command(argv[1:], prog)
+    args = parse_args(argv, prog)
     from app.paths import set_private_umask
 
     set_private_umask()  # patient data: files 0600, folders 0700, whatever the login's umask (issue #17)
@@ -134,6 +138,22 @@ def _report_command(config: object, args: argparse.Namespace) -> int:
     if code == EXIT_REPORT_OK and incomplete:
         return EXIT_REPORT_INCOMPLETE
     return code
+
+
+def _export_command(argv: list[str], prog: str | None) -> int:
+    """``linarmpp export --format bids|xdf|edf SESSION… --out DIR`` (issue #41; app/research_export/command.py)."""
+    import logging
+
+    from app.logging_setup import setup_logging
+    from app.paths import set_private_umask
+    from app.research_export.command import main as export_main
+
+    set_private_umask()  # exports hold health data: files 0600, folders 0700
+    try:
+        setup_logging(logging.INFO, console=False)  # the terminal shows progress; details go to the log
+    except OSError:
+        pass  # no log folder: the export still runs and says what it did on the terminal
+    return export_main(argv, prog=f"{prog or 'linarmpp'} export")
 
 
 def _unwritable(out: object) -> str:
