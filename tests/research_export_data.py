@@ -110,7 +110,8 @@ def record_session(root: Path, patient_id: str = "PZ-017", seconds: float = 6.0,
         streams.PATIENT_MODEL_MAIN: _feeder(100.0, seconds, t0 + 0.004, 0.0, rng, CountedClock(100.0, wrap=0x10000)),
         streams.VR_MAIN: _feeder(50.0, seconds, t0 + 0.005, 0.0, rng, CountedClock(50.0, wrap=0x10000)),
     }
-    fes_t = np.sort(t0 + rng.uniform(0, seconds, size=int(seconds * 10)))  # on change, ~10 Hz
+    # the stimulator's driver publishes on each update, at most 10 a second (and every 0.1 s when idle)
+    fes_t = t0 + np.cumsum(0.1 + rng.uniform(0.0, 0.004, size=int(seconds * 9.5)))
     stamps[streams.FES_CHANNELS] = fes_t
     grip_t = stamps[streams.PHYSIO_MAIN]
     grip_k = int(np.searchsorted(grip_t, t0 + grip_at))

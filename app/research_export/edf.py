@@ -117,7 +117,7 @@ def _labels(session: Session) -> dict[tuple[str, str], str]:
     used: set[str] = set()
     for stream, ch in names:
         text = ch if counts[ch] == 1 else f"{kinds.acq_label(stream)} {ch}"
-        text = text.encode("ascii", errors="replace").decode("ascii")[:16]
+        text = _text(text)[:16]
         base, n = text, 2
         while text in used:
             text = f"{base[:14]}{n}"
@@ -278,6 +278,12 @@ def _edf_start(session: Session, t0: float, shift_days: int) -> _dt.datetime:
     return moment
 
 
+def _text(text: str) -> str:
+    """EDF header text: printable ASCII only (µ → u, ° → deg, anything else → ?)."""
+    text = text.replace("µ", "u").replace("°", "deg")
+    return "".join(ch if " " <= ch <= "~" else "?" for ch in text)
+
+
 def _ascii(text: str) -> str:
     return text.encode("ascii", errors="replace").decode("ascii").replace(" ", "_")
 
@@ -297,7 +303,7 @@ def export_edf(session: Session, path: str | Path, *, include_names: bool = Fals
     t_first, t_last = session.start_mono, session.start_mono
     for info in session.streams.values():
         sigs = [_Signal(info.name, i, labels[(info.name, c.name)], kinds.edf_unit(c.unit),
-                        f"{info.name}: {c.label}") for i, c in enumerate(info.channels)]
+                        _text(f"{info.name} {c.name} ({c.label})")) for i, c in enumerate(info.channels)]
         for chunk in session.chunks(info.name):
             with np.errstate(invalid="ignore"):
                 lo, hi = np.nanmin(chunk.values, axis=0), np.nanmax(chunk.values, axis=0)
