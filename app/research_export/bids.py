@@ -28,7 +28,6 @@ import hashlib
 import json
 import math
 import os
-import re
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -145,22 +144,19 @@ def _cell(value: Any) -> str:
 
 
 # ---------------------------------------------------------------------------------------------- samples as text
-_FIRST_FIELD = re.compile(rb"^[^,\n]*,", re.M)
-_LAST_FIELD = re.compile(rb",[^,\n]*$", re.M)
-
-
 def tsv_block(chunk: Chunk, t0: float) -> bytes:
     """A chunk's samples as TSV rows: the time from ``t0`` (s), then the values as the session's file holds
     them (Python's shortest repr: they read back to the same doubles); missing values ``n/a``."""
     seconds = [repr(x).encode() for x in (chunk.t - t0).tolist()]
     if chunk.raw is not None:  # the file's own text: only the time and the arrival column change
-        body = _FIRST_FIELD.sub(b"", chunk.raw)
+        rows = chunk.raw.split(b"\n")
+        rows.pop()  # the block ends with a newline
         if chunk.arrival_column:
-            body = _LAST_FIELD.sub(b"", body)
-        rows = body.split(b"\n")
-        rows.pop()
-        if len(rows) == len(seconds):
-            text = b"\n".join(map(b"\t".join, zip(seconds, rows, strict=True))) + b"\n"
+            middle = [r[r.index(b",") + 1:r.rindex(b",")] for r in rows]
+        else:
+            middle = [r[r.index(b",") + 1:] for r in rows]
+        if len(middle) == len(seconds):
+            text = b"\n".join(map(b"\t".join, zip(seconds, middle, strict=True))) + b"\n"
             return text.replace(b",", b"\t").replace(b"nan", b"n/a")
     lines = []
     for s, row in zip(seconds, chunk.values.tolist(), strict=True):
@@ -310,7 +306,7 @@ def _write_motion(out: _Digest, folder: Path, name: str, s: Session, info: Strea
     tsv = out.stream(folder / f"{name}_motion.tsv", gz=False)
     first = last = math.nan
     try:
-        for chunk in s.chunks(info.name):
+        for chunk in s.chunks(info.name, raw=True, columns=[]):
             tsv.write(tsv_block(chunk, t0), len(chunk))
             if math.isnan(first):
                 first = float(chunk.t[0])
@@ -379,7 +375,7 @@ def _write_continuous(out: _Digest, folder: Path, name: str, s: Session, info: S
     tsv = out.stream(folder / f"{name}.tsv.gz", gz=True)
     first = last = math.nan
     try:
-        for chunk in s.chunks(info.name):
+        for chunk in s.chunks(info.name, raw=True, columns=[]):
             tsv.write(tsv_block(chunk, t0), len(chunk))
             if math.isnan(first):
                 first = float(chunk.t[0])
@@ -640,9 +636,9 @@ def _metrics_session(s: Session, steps: Steps) -> Any:
             continue
         cols = [i for i, c in enumerate(info.channels) if c.name in keep]
         ts, parts = [], []
-        for chunk in s.chunks(name):
+        for chunk in s.chunks(name, columns=cols):
             ts.append(chunk.t)
-            parts.append(chunk.values[:, cols].copy())
+            parts.append(chunk.values)
             steps.advance(chunk.nbytes * 0.5)
         t = np.concatenate(ts) if ts else np.zeros(0)
         values = np.concatenate(parts) if parts else np.zeros((0, len(cols)))

@@ -148,7 +148,6 @@ class _Placer:
     digital: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), dtype=np.int16))
     done: bool = False
     nbytes: int = 0
-    switches: FesSwitches | None = None
     _carry_slot: int | None = None
 
     def __post_init__(self) -> None:
@@ -165,8 +164,6 @@ class _Placer:
             self.done = True
             return False
         self.nbytes += chunk.nbytes
-        if self.switches is not None:
-            self.switches.feed(chunk.t, chunk.values)
         natural = np.rint((chunk.t - self.t0) * self.rate).astype(np.int64)
         if self.info.irregular:
             keep = self._latest_per_slot(natural)
@@ -301,7 +298,11 @@ def export_edf(session: Session, path: str | Path, *, include_names: bool = Fals
     # pass 1: each signal's range, the streams' extent, FES switches
     signals: dict[str, list[_Signal]] = {}
     t_first, t_last = session.start_mono, session.start_mono
+    switches: list[FesSwitches] = []
     for info in session.streams.values():
+        sw = FesSwitches([c.name for c in info.channels]) if info.irregular else None
+        if sw is not None:
+            switches.append(sw)
         sigs = [_Signal(info.name, i, labels[(info.name, c.name)], kinds.edf_unit(c.unit),
                         _text(f"{info.name} {c.name} ({c.label})")) for i, c in enumerate(info.channels)]
         for chunk in session.chunks(info.name):
@@ -312,11 +313,14 @@ def export_edf(session: Session, path: str | Path, *, include_names: bool = Fals
                     s.lo, s.hi = min(s.lo, float(a)), max(s.hi, float(b))
             t_first = min(t_first, float(chunk.t[0]))
             t_last = max(t_last, float(chunk.t[-1]))
+            if sw is not None:
+                sw.feed(chunk.t, chunk.values)
             steps.advance(chunk.nbytes, f"EDF {session.patient_id}: ranges")
         for s in sigs:
             s.pmin, s.pmax = physical_range(s.lo, s.hi)
         signals[info.name] = sigs
     marks = [m for m in event_marks(session.events, session.end_mono) if m.kind in CLINICAL_KINDS]
+    fes_marks = sorted((m for sw in switches for m in sw.marks), key=lambda m: m.t)
     t0 = min(t_first, session.start_mono, *(m.t for m in marks[:1]))
     t_end = max(t_last, session.end_mono, *(m.t + m.duration for m in marks))
     rates = {n: (s.rate_hz if s.rate_hz > 0 else 10.0) for n, s in session.streams.items()}
@@ -327,13 +331,19 @@ def export_edf(session: Session, path: str | Path, *, include_names: bool = Fals
             result.notes.append(f"{name}: {r:g} Hz is not a whole number of samples per {record_s:g} s record; "
                                 f"written at {spr[name] / record_s:g} Hz")
     n_records = max(1, math.ceil((t_end - t0) * (1 + 1e-12) / record_s + 1e-9))
+    room = MAX_ANNOTATION_SIGNALS * n_records - 1  # edflib: one annotation per annotation signal and record
+    if len(marks) > room:
+        raise ExportError(f"{session.label}: {len(marks)} events do not fit the annotations of {n_records} EDF "
+                          "records")
+    if len(marks) + len(fes_marks) > room:
+        result.notes.append(f"{path.name}: {len(marks) + len(fes_marks) - room} of {len(fes_marks)} FES on/off "
+                            "switches left out of the annotations (no room in EDF's records); XDF and BIDS have them")
+        fes_marks = fes_marks[: room - len(marks)]
+    marks = sorted(marks + fes_marks, key=lambda m: m.t)
     start = _edf_start(session, t0, shift_days)
     placers = []
     for name, info in session.streams.items():
-        placer = _Placer(info, signals[name], spr[name], record_s, t0, session)
-        if info.irregular and any(c.name.startswith("current") for c in info.channels):
-            placer.switches = FesSwitches([c.name for c in info.channels])
-        placers.append(placer)
+        placers.append(_Placer(info, signals[name], spr[name], record_s, t0, session))
     headers = [s.header(spr[p.info.name] / record_s) for p in placers for s in p.signals]
     if not headers:
         raise ExportError(f"{session.label} has no stream to write")
@@ -348,10 +358,7 @@ def export_edf(session: Session, path: str | Path, *, include_names: bool = Fals
                 warnings.simplefilter("ignore", UserWarning)
                 writer.setDatarecordDuration(record_s)
             # edflib stores one annotation per annotation signal in each data record: room for all of them
-            per_record = math.ceil((len(marks) + 2 * len(session.streams)) / n_records) + 1
-            if per_record > MAX_ANNOTATION_SIGNALS:
-                raise ExportError(f"{session.label}: {len(marks)} annotations do not fit {n_records} EDF records")
-            writer.set_number_of_annotation_signals(per_record)
+            writer.set_number_of_annotation_signals(min(MAX_ANNOTATION_SIGNALS, len(marks) // n_records + 1))
             writer.setSignalHeaders(headers)
             writer.setStartdatetime(start)
             writer.setPatientCode(_ascii(session.patient_id))
@@ -378,10 +385,6 @@ def export_edf(session: Session, path: str | Path, *, include_names: bool = Fals
                 if now != read or r % 60 == 0:
                     steps.advance(now - read, f"EDF {session.patient_id}: {r * record_s:.0f} s")
                     read = now
-            for p in placers:
-                if p.switches is not None:
-                    marks += p.switches.marks
-            marks.sort(key=lambda m: m.t)
             for m in marks:
                 writer.writeAnnotation(m.t - t0, m.duration if m.duration > 0 else -1, m.label[:ANNOTATION_CHARS])
                 written_annotations += 1

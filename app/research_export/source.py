@@ -171,9 +171,13 @@ class Session:
     def total_bytes(self) -> int:
         return sum(s.size for s in self.streams.values())
 
-    def chunks(self, stream: str, block_bytes: int = BLOCK_BYTES) -> Iterator[Chunk]:
-        """The stream's samples in file order, a block of whole lines at a time. Counts what it reads in
-        :attr:`tallies` (a later full pass replaces the earlier count)."""
+    def chunks(self, stream: str, block_bytes: int = BLOCK_BYTES, *, raw: bool = False,
+               columns: list[int] | None = None) -> Iterator[Chunk]:
+        """The stream's samples in file order, a block of whole lines at a time. ``raw``: each chunk also carries
+        its lines as the file holds them; ``columns``: only these channels are parsed (indices; [] for the times
+        alone). Counts what it reads in :attr:`tallies` (a later full pass replaces the earlier count). While the
+        caller holds a chunk the generator keeps nothing but a line cut by the block's end (several streams can be
+        read side by side at the cost of their chunks)."""
         info = self.streams[stream]
         tally = StreamTally()
         self.tallies[stream] = tally
@@ -182,32 +186,45 @@ class Session:
             header = fh.readline()
             if not header.endswith(b"\n"):
                 return  # no complete header line: nothing to read
-            columns = header.decode("utf-8", errors="replace").rstrip("\n").split(",")
-            keep = len(columns) - 1 if columns[-1] == recording.ARRIVAL_COLUMN else len(columns)
+            names = header.decode("utf-8", errors="replace").rstrip("\n").split(",")
+            keep = len(names) - 1 if names[-1] == recording.ARRIVAL_COLUMN else len(names)
             if keep != ncols:
                 raise ValueError(f"{info.file}: {keep} columns where {ncols} were expected")
+            wanted = None if columns is None else [0, *(c + 1 for c in columns)]
             rest = b""
             while True:
                 block = fh.read(block_bytes)
                 if not block:
                     break
                 data = rest + block
+                del block
                 cut = data.rfind(b"\n") + 1
-                rest = data[cut:]
                 if cut == 0:
+                    rest = data
                     continue
-                values, dropped = _parse_lines(data[:cut], len(columns))
+                rest = data[cut:]
+                lines = data[:cut]
+                del data
+                values, dropped = _parse_lines(lines, len(names), wanted)
                 tally.dropped_lines += dropped
-                if keep != len(columns):
+                use = wanted
+                if dropped and raw and wanted is not None:  # no raw text for this block: the caller needs values
+                    values, _ = _parse_lines(lines, len(names), None)
+                    use = None
+                if use is None and keep != len(names):
                     values = values[:, :keep]
                 if len(values):
                     tally.samples += len(values)
                     if tally.first_t is None:
                         tally.first_t = float(values[0, 0])
                     tally.last_t = float(values[-1, 0])
-                    yield Chunk(np.ascontiguousarray(values[:, 0]), np.ascontiguousarray(values[:, 1:]), cut,
-                                data[:cut] if not dropped else None,
-                                keep != len(columns))
+                    chunk = Chunk(np.ascontiguousarray(values[:, 0]), np.ascontiguousarray(values[:, 1:]), cut,
+                                  lines if raw and not dropped else None, keep != len(names))
+                    del values, lines
+                    yield chunk
+                    del chunk
+                else:
+                    del lines
             if rest:
                 tally.dropped_lines += 1  # a last line without its newline: cut short by a crash
 
@@ -230,38 +247,39 @@ class _Len:
         return self.n
 
 
-def _pandas_read(data: bytes, ncols: int) -> np.ndarray:
+def _pandas_read(data: bytes, ncols: int, usecols: list[int] | None) -> np.ndarray:
     import pandas as pd
 
     kwargs: dict[str, Any] = {}
     if int(pd.__version__.split(".", 1)[0]) < 3:
         kwargs["float_precision"] = "round_trip"  # pandas 3 reads the shortest repr back exactly by default
-    frame = pd.read_csv(io.BytesIO(data), header=None, names=range(ncols), dtype=np.float64, engine="c",
-                        na_filter=True, keep_default_na=False, na_values=["nan", "NaN", "-nan"], **kwargs)
+    frame = pd.read_csv(io.BytesIO(data), header=None, names=range(ncols), usecols=usecols, dtype=np.float64,
+                        engine="c", na_filter=True, keep_default_na=False, na_values=["nan", "NaN", "-nan"], **kwargs)
     return frame.to_numpy(dtype=np.float64)
 
 
-_FIELDS = re.compile(rb"[^\n]*\n")
+_LINE = re.compile(rb"[^\n]*\n")
 
 
-def _parse_lines(data: bytes, ncols: int) -> tuple[np.ndarray, int]:
-    """Whole lines ``data`` as float64 [n, ncols]; lines with the wrong number of fields (or unparsable) are
-    dropped and counted, as load_session does."""
+def _parse_lines(data: bytes, ncols: int, usecols: list[int] | None = None) -> tuple[np.ndarray, int]:
+    """Whole lines ``data`` as float64 [n, ncols] (or the ``usecols`` columns); lines with the wrong number of
+    fields (or unparsable) are dropped and counted, as load_session does."""
     lines = data.count(b"\n")
     empty = data.count(b"\n\n") + (1 if data.startswith(b"\n") else 0)
-    if data.count(b",") == (lines - empty) * (ncols - 1) and not empty:
+    if data.count(b",") == lines * (ncols - 1) and not empty:
         try:
-            return _pandas_read(data, ncols), 0
+            return _pandas_read(data, ncols, usecols), 0
         except ValueError:
             pass  # a garbled value: line by line below
-    good = [ln for ln in _FIELDS.findall(data) if ln.count(b",") == ncols - 1 and len(ln) > 1]
+    good = [ln for ln in _LINE.findall(data) if ln.count(b",") == ncols - 1 and len(ln) > 1]
     rows: list[list[float]] = []
     for ln in good:
         try:
             rows.append([float(x) for x in ln.split(b",")])
         except ValueError:
             continue
-    return np.array(rows, dtype=np.float64).reshape(len(rows), ncols), lines - len(rows)
+    values = np.array(rows, dtype=np.float64).reshape(len(rows), ncols)
+    return (values if usecols is None else values[:, usecols]), lines - len(rows)
 
 
 def _irregular(stream: str) -> bool:
