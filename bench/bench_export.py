@@ -5,7 +5,7 @@
 
 The session is synthesised in the recorder's on-disk format (tests/research_export_data.synth_session: every
 stream at its default rate, 6.4 million samples in two hours) and cached in --cache. Each export runs in a child
-process that measures its own resident memory after its imports and its peak at the end (ru_maxrss): the growth is
+process that measures its own resident memory after its imports and its peak at the end (VmHWM): the growth is
 what the export itself needed. Figures for bench/README.md, "Session 6 (#41)".
 """
 
@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import resource
 import shutil
 import subprocess
 import sys
@@ -24,9 +23,11 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 
 
-def _rss_mb() -> float:
+def _status_mb(field: str) -> float:
+    """VmRSS (resident now) or VmHWM (the peak of this process image: unlike ru_maxrss it does not inherit the
+    parent's peak across fork and exec)."""
     for line in Path("/proc/self/status").read_text().splitlines():
-        if line.startswith("VmRSS:"):
+        if line.startswith(f"{field}:"):
             return int(line.split()[1]) / 1024
     return 0.0
 
@@ -40,7 +41,7 @@ def child(fmt: str, folder: str, out: str) -> dict[str, float]:
     from app.research_export import bids, edf, xdf
     from app.research_export.source import FolderSource, open_session
 
-    base = _rss_mb()
+    base = _status_mb("VmRSS")
     t0 = time.perf_counter()
     session = open_session(FolderSource(folder))
     if fmt == "bids":
@@ -50,7 +51,7 @@ def child(fmt: str, folder: str, out: str) -> dict[str, float]:
     else:
         edf.export_edf(session, Path(out))
     seconds = time.perf_counter() - t0
-    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    peak = _status_mb("VmHWM")
     return {"seconds": seconds, "growth_mb": peak - base, "base_mb": base, "peak_mb": peak}
 
 

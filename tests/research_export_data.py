@@ -235,15 +235,22 @@ def synth_session(root: Path, patient_id: str, seconds: float, *, start_iso: str
                                             for c in spec.channels]}
     events = [{"t_wall": start_iso, "t_mono": t0, "kind": "session_start", "who": "dr_rossi", "origin": "app",
                "data": {}}]
-    k = 0
-    for rep_start in np.arange(10.0, seconds - 10.0, 5.0):
-        k += 1
-        events += [{"t_wall": "", "t_mono": t0 + rep_start, "kind": "repetition_start", "who": "exercise",
-                    "origin": "app", "data": {"index": k, "run_id": "run-1"}},
-                   {"t_wall": "", "t_mono": t0 + rep_start + 0.2, "kind": "prompt", "who": "exercise",
-                    "origin": "app", "data": {"index": k, "cue": "squeeze", "run_id": "run-1"}},
-                   {"t_wall": "", "t_mono": t0 + rep_start + 3.0, "kind": "repetition_end", "who": "exercise",
-                    "origin": "app", "data": {"index": k, "ok": True, "run_id": "run-1"}}]
+    run_s = 600.0  # an exercise run every ten minutes, repetitions every 5 s within it
+    for n, run_start in enumerate(np.arange(5.0, max(seconds - 10.0, 5.0), run_s), start=1):
+        run_id, run_end = f"run-{n}", min(run_start + run_s - 5.0, seconds - 5.0)
+        events.append({"t_wall": "", "t_mono": t0 + run_start, "kind": "run_start", "who": "dr_rossi",
+                       "origin": "app", "data": {"run_id": run_id, "program": {
+                           "kind": "exercise", "ident": "trigger_reaching", "title": "Trigger reaching"},
+                           "parameters": [], "source": "exercises_tab", "operator": "dr_rossi"}})
+        for k, rep_start in enumerate(np.arange(run_start + 5.0, run_end - 5.0, 5.0), start=1):
+            events += [{"t_wall": "", "t_mono": t0 + rep_start, "kind": "repetition_start", "who": "exercise",
+                        "origin": "app", "data": {"index": k, "run_id": run_id}},
+                       {"t_wall": "", "t_mono": t0 + rep_start + 0.2, "kind": "prompt", "who": "exercise",
+                        "origin": "app", "data": {"index": k, "cue": "squeeze", "run_id": run_id}},
+                       {"t_wall": "", "t_mono": t0 + rep_start + 3.0, "kind": "repetition_end", "who": "exercise",
+                        "origin": "app", "data": {"index": k, "ok": True, "run_id": run_id}}]
+        events.append({"t_wall": "", "t_mono": t0 + run_end, "kind": "run_end", "who": "dr_rossi", "origin": "app",
+                       "data": {"run_id": run_id, "reason": "finished"}})
     events.append({"t_wall": "", "t_mono": t0 + seconds, "kind": "session_stop", "who": "", "origin": "app",
                    "data": {"reason": "stopped"}})
     (folder / recording.EVENTS_FILE).write_text("".join(json.dumps(e) + "\n" for e in events))

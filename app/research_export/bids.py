@@ -574,17 +574,38 @@ Patients appear by pseudonym only unless the export was asked for names.
 METRIC_UNITS = {"s": "s", "m": "m", "m/s": "m/s", "N": "N", "bpm": "bpm", "µS": "uS", "": "n/a"}
 
 
+RUN_BOUNDARIES = frozenset({"run_start", "run_end", "script_start", "script_stop"})
+WINDOW_MARGIN_S = 1.0  # data kept either side of a run (a movement's onset just before its start)
+
+
 def _write_metrics(out: _Digest, root: Path, p: _Planned, steps: Steps, result: ExportResult) -> None:
-    from app.metrics import SUMMARY_METRICS, metrics_of_session
+    """Per-repetition metrics (app.metrics), one exercise run at a time: a run's data are read, its metrics
+    computed, then the next run's — memory holds one run, not the session."""
+    from app.metrics import SUMMARY_METRICS, _runs_of, metrics_by_run
+    from app.recording import RecordedSession
 
     s = p.session
     steps.advance(0, f"BIDS sub-{p.subject} ses-{p.ses}: metrics")
-    light = _metrics_session(s, steps)
-    try:
-        metrics = metrics_of_session(light)
-    except Exception as exc:  # a session the metrics cannot read: the dataset without them, said
-        result.notes.append(f"{s.label}: no per-repetition metrics ({type(exc).__name__}: {exc})")
-        return
+    runs = _runs_of(RecordedSession(Path(s.label), s.manifest, {}, s.events))
+    windows = _RunWindows(s, steps)
+    reps: list[dict[str, Any]] = []
+    summaries: dict[str, Any] = {}
+    for run in runs:
+        lo = run.started_mono - WINDOW_MARGIN_S
+        hi = (run.ended_mono if run.ended_mono is not None else s.end_mono) + WINDOW_MARGIN_S
+        events = [e for e in s.events if e.get("kind") not in RUN_BOUNDARIES
+                  or run.started_mono - 1e-6 <= float(e["t_mono"]) <= hi - WINDOW_MARGIN_S + 1e-6]
+        light = RecordedSession(Path(s.label), s.manifest, windows.take(lo, hi), events, list(s.problems))
+        try:
+            found = [r for r in metrics_by_run(light) if r.run.run_id == run.run_id]
+        except Exception as exc:  # a run the metrics cannot read: the others still, and said
+            result.notes.append(f"{s.label}: no metrics for run {run.run_id} ({type(exc).__name__}: {exc})")
+            continue
+        for r in found:
+            reps += r.repetitions
+            summaries[run.run_id] = r.summary
+        del light
+    windows.finish()
     deriv = root / "derivatives" / METRICS_PIPELINE
     if not (deriv / "dataset_description.json").exists():
         from app.recording import app_version
@@ -593,7 +614,6 @@ def _write_metrics(out: _Digest, root: Path, p: _Planned, steps: Steps, result: 
             "Name": "LINarm++ per-repetition metrics", "BIDSVersion": BIDS_VERSION, "DatasetType": "derivative",
             "GeneratedBy": [{"Name": "LINarm++ Manager metrics", "Version": app_version(),
                              "Description": "app.metrics (docs/metrics.md)"}]})
-    reps = metrics["repetitions"]
     columns = ["run_id", "index", "start_s", "end_s", "duration_s", "completed", "source",
                *[k for k in SUMMARY_METRICS if k != "duration_s"], "prompt_s", "movement_onset_s", "movement_end_s"]
     rows = [[r.get(c) for c in columns] for r in reps]
@@ -616,35 +636,66 @@ def _write_metrics(out: _Digest, root: Path, p: _Planned, steps: Steps, result: 
     })
     out.write_json(folder / f"{name}.json", {"Description": "per-repetition metrics (LINarm++ Manager, "
                                                             "docs/metrics.md)", **described})
-    out.write_json(folder / f"{_prefix(p)}_desc-summary_metrics.json", metrics["summary"])
+    out.write_json(folder / f"{_prefix(p)}_desc-summary_metrics.json", {"runs": summaries})
 
 
-def _metrics_session(s: Session, steps: Steps) -> Any:
-    """The session with only what the metrics read (app.metrics.signals_from_session), loaded a block at a time."""
-    from app.recording import RecordedSession, RecordedStream
+# What the metrics read (app.metrics.signals_from_session), stream -> channels (None: all of them).
+METRIC_CHANNELS: dict[str, tuple[str, ...] | None] = {
+    streams.LINARM_VSA: ("handlePos", "interactionForce"),
+    streams.PHYSIO_MAIN: ("force", "heartRate", "skinConductance"),
+    streams.PATIENT_MODEL_MAIN: ("alpha", "a_r", "a_f"),
+    streams.FES_CHANNELS: None,
+}
 
-    wanted = {streams.LINARM_VSA: ("handlePos", "interactionForce"),
-              streams.PHYSIO_MAIN: ("force", "heartRate", "skinConductance"),
-              streams.PATIENT_MODEL_MAIN: ("alpha", "a_r", "a_f")}
-    loaded: dict[str, RecordedStream] = {}
-    for name, info in s.streams.items():
-        if name == streams.FES_CHANNELS:
-            keep = [c.name for c in info.channels]
-        elif name in wanted:
-            keep = [c for c in wanted[name] if c in {ch.name for ch in info.channels}]
-        else:
-            continue
-        cols = [i for i, c in enumerate(info.channels) if c.name in keep]
-        ts, parts = [], []
-        for chunk in s.chunks(name, columns=cols):
-            ts.append(chunk.t)
-            parts.append(chunk.values)
-            steps.advance(chunk.nbytes * 0.5)
-        t = np.concatenate(ts) if ts else np.zeros(0)
-        values = np.concatenate(parts) if parts else np.zeros((0, len(cols)))
-        del ts, parts
-        chans = tuple(info.channels[i] for i in cols)
-        loaded[name] = RecordedStream(name, chans, info.rate_hz, t,
-                                      {c.name: np.ascontiguousarray(values[:, k]) for k, c in enumerate(chans)},
-                                      device=info.device)
-    return RecordedSession(Path(s.label), s.manifest, loaded, s.events, list(s.problems))
+
+class _RunWindows:
+    """The streams the metrics read, in windows of time taken in order (one pass over each file)."""
+
+    def __init__(self, s: Session, steps: Steps) -> None:
+        from app.recording import RecordedStream
+
+        self._stream_type = RecordedStream
+        self.steps = steps
+        self.readers: dict[str, Any] = {}
+        for name, wanted in METRIC_CHANNELS.items():
+            info = s.streams.get(name)
+            if info is None:
+                continue
+            cols = [i for i, c in enumerate(info.channels) if wanted is None or c.name in wanted]
+            chans = tuple(info.channels[i] for i in cols)
+            self.readers[name] = [info, chans, s.chunks(name, columns=cols), np.zeros(0), np.zeros((0, len(cols))),
+                                  False]
+
+    def take(self, lo: float, hi: float) -> dict[str, Any]:
+        out = {}
+        for name, entry in self.readers.items():
+            info, chans, chunks, t, v, done = entry
+            keep = t >= lo
+            t, v = t[keep], v[keep]
+            parts_t, parts_v = [t], [v]
+            while not done and (not len(parts_t[-1]) or parts_t[-1][-1] <= hi):
+                try:
+                    chunk = next(chunks)
+                except StopIteration:
+                    done = True
+                    break
+                self.steps.advance(chunk.nbytes * 0.5)
+                keep = chunk.t >= lo
+                parts_t.append(chunk.t[keep])
+                parts_v.append(chunk.values[keep])
+            t = np.concatenate(parts_t)
+            v = np.concatenate(parts_v)
+            entry[3], entry[4], entry[5] = t, v, done
+            inside = t <= hi
+            wt, wv = t[inside], v[inside]
+            out[name] = self._stream_type(name, chans, info.rate_hz, wt,
+                                          {c.name: np.ascontiguousarray(wv[:, k]) for k, c in enumerate(chans)},
+                                          device=info.device)
+        return out
+
+    def finish(self) -> None:
+        """Read what is left (the streams' tallies count every line) and let go of it."""
+        for entry in self.readers.values():
+            for chunk in entry[2]:
+                self.steps.advance(chunk.nbytes * 0.5)
+            entry[3] = entry[4] = None

@@ -50,6 +50,7 @@ from app.research_export.source import Session, StreamInfo
 
 NO_VALUE = -32768  # the digital value reserved for "no value"
 DIGITAL_MIN, DIGITAL_MAX = -32768, 32767
+RECORDS_PER_BATCH = 60  # data records placed at once (numpy over a minute, not a record, at a time)
 MAX_SHIFT_SLOTS = 1  # a sample whose nearest slot is taken may go to the next one, never further
 HOLD_SLOTS = 1  # a regular stream's empty stretch up to this many slots holds the previous value
 ANNOTATION_CHARS = 80  # an annotation's text (EDFbrowser shows the start of longer ones)
@@ -213,17 +214,18 @@ class _Placer:
         later_same = np.concatenate([natural[1:] == natural[:-1], [False]])
         return ~later_same & (natural > self.last_slot)
 
-    def record(self, r: int) -> np.ndarray:
-        """The (spr, signals) digital block of data record ``r``."""
-        first, end = r * self.spr, (r + 1) * self.spr
+    def records(self, r: int, n: int) -> np.ndarray:
+        """The (n·spr, signals) digital block of data records ``r`` … ``r + n − 1``."""
+        first, end = r * self.spr, (r + n) * self.spr
+        length = end - first
         while not self.done and (not len(self.slots) or self.slots[-1] < end):
             if not self._read():
                 break
         n = int(np.searchsorted(self.slots, end))
         slots, digital = self.slots[:n], self.digital[:n]
         self.slots, self.digital = self.slots[n:], self.digital[n:]
-        block = np.full((self.spr, len(self.signals)), NO_VALUE, dtype=np.int16)
-        filled = np.zeros(self.spr, dtype=bool)
+        block = np.full((length, len(self.signals)), NO_VALUE, dtype=np.int16)
+        filled = np.zeros(length, dtype=bool)
         inside = slots >= first  # samples before the grid's start (none: t0 is the earliest time) are dropped
         self.dropped += int((~inside).sum())
         idx = slots[inside] - first
@@ -236,13 +238,14 @@ class _Placer:
         """Empty slots: the previous value where the stream holds it (irregular: until the next update; regular:
         a single empty slot between two samples), "no value" elsewhere."""
         far = np.iinfo(np.int64).max // 4
-        idx = np.arange(self.spr)
+        length = len(filled)
+        idx = np.arange(length)
         last_index = np.maximum.accumulate(np.where(filled, idx, -1))
         carry = self._carry_slot if self._carry_slot is not None else -far
         prev = np.where(last_index >= 0, first + last_index, carry)
-        next_index = np.minimum.accumulate(np.where(filled, idx, self.spr)[::-1])[::-1]
+        next_index = np.minimum.accumulate(np.where(filled, idx, length)[::-1])[::-1]
         pending = int(self.slots[0]) if len(self.slots) else far
-        nxt = np.where(next_index < self.spr, first + next_index, pending)
+        nxt = np.where(next_index < length, first + next_index, pending)
         empty = ~filled & (prev > -far)
         if self.info.irregular:
             hold = empty if not (self.done and not len(self.slots)) else empty & (first + idx <= self.last_slot)
@@ -373,18 +376,20 @@ def export_edf(session: Session, path: str | Path, *, include_names: bool = Fals
                 writer.setTechnician(_ascii(str(session.manifest["operator"]))[:30])
             writer.setEquipment(_ascii(f"LINarm++ Manager {session.manifest.get('app_version', '')}".strip())[:30])
             read = 0
-            for r in range(n_records):
-                blocks = [p.record(r) for p in placers]
-                data = np.concatenate([b.T.reshape(-1) for b in blocks]).astype(np.int16)
+            for r0 in range(0, n_records, RECORDS_PER_BATCH):
+                n = min(RECORDS_PER_BATCH, n_records - r0)
+                blocks = [p.records(r0, n) for p in placers]
                 for p, b in zip(placers, blocks, strict=True):
-                    for i, s in enumerate(p.signals):
-                        s.digest.update(np.ascontiguousarray(b[:, i]).tobytes())
-                if writer.blockWriteDigitalShortSamples(data) != 0:
-                    raise OSError(f"writing data record {r + 1} of {tmp.name} failed (disk full?)")
+                    for i, sig in enumerate(p.signals):
+                        sig.digest.update(np.ascontiguousarray(b[:, i]).tobytes())
+                for k in range(n):
+                    data = np.concatenate([b[k * p.spr:(k + 1) * p.spr].T.reshape(-1)
+                                           for p, b in zip(placers, blocks, strict=True)])
+                    if writer.blockWriteDigitalShortSamples(data) != 0:
+                        raise OSError(f"writing data record {r0 + k + 1} of {tmp.name} failed (disk full?)")
                 now = sum(p.nbytes for p in placers)
-                if now != read or r % 60 == 0:
-                    steps.advance(now - read, f"EDF {session.patient_id}: {r * record_s:.0f} s")
-                    read = now
+                steps.advance(now - read, f"EDF {session.patient_id}: {r0 * record_s:.0f} s")
+                read = now
             for m in marks:
                 writer.writeAnnotation(m.t - t0, m.duration if m.duration > 0 else -1, m.label[:ANNOTATION_CHARS])
                 written_annotations += 1
