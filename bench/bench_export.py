@@ -32,18 +32,22 @@ def _status_mb(field: str) -> float:
     return 0.0
 
 
-def child(fmt: str, folder: str, out: str) -> dict[str, float]:
-    """Run one export in this process; return its seconds and its memory growth (MB)."""
+def child(fmt: str, folder: str, out: str, block_bytes: int = 0) -> dict[str, float]:
+    """Run one export in this process, as the command line does; return its seconds and its memory growth (MB)."""
     sys.path.insert(0, str(ROOT))
     import pandas  # noqa: F401  - imports first: their memory is not the export's
     import pyedflib  # noqa: F401
 
     from app.research_export import bids, edf, xdf
+    from app.research_export.common import release_memory_promptly
     from app.research_export.source import FolderSource, open_session
 
+    release_memory_promptly()
     base = _status_mb("VmRSS")
     t0 = time.perf_counter()
     session = open_session(FolderSource(folder))
+    if block_bytes:
+        session.block_bytes = block_bytes
     if fmt == "bids":
         bids.export_bids([session], Path(out))
     elif fmt == "xdf":
@@ -53,6 +57,29 @@ def child(fmt: str, folder: str, out: str) -> dict[str, float]:
     seconds = time.perf_counter() - t0
     peak = _status_mb("VmHWM")
     return {"seconds": seconds, "growth_mb": peak - base, "base_mb": base, "peak_mb": peak}
+
+
+def child_all(folder: str, out: str, block_bytes: str = "0") -> dict[str, dict[str, float]]:
+    """The three exports one after the other in this process, the peak reset before each (Linux: writing 5 to
+    /proc/self/clear_refs resets VmHWM), so each format's growth is its own."""
+    import gc
+
+    figures = {}
+    for fmt in ("xdf", "edf", "bids"):
+        gc.collect()
+        Path("/proc/self/clear_refs").write_text("5")
+        figures[fmt] = child(fmt, folder, str(Path(out) / f"out.{fmt}"), int(block_bytes))
+    return figures
+
+
+def measure_all(folder: Path, out: Path, block_bytes: int = 0) -> dict[str, dict[str, float]]:
+    """:func:`child_all` in a child process (one interpreter start for the three formats)."""
+    proc = subprocess.run([sys.executable, str(Path(__file__).resolve()), "--child-all", str(folder), str(out),
+                           str(block_bytes)],
+                          capture_output=True, text=True, check=False, timeout=600)
+    if proc.returncode != 0:
+        raise RuntimeError(f"the exports failed:\n{proc.stderr[-2000:]}")
+    return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
 def measure(fmt: str, folder: Path, out: Path) -> dict[str, float]:
@@ -80,6 +107,9 @@ def session(cache: Path, minutes: float) -> Path:
 def main() -> int:
     if len(sys.argv) > 1 and sys.argv[1] == "--child":
         print(json.dumps(child(*sys.argv[2:5])))
+        return 0
+    if len(sys.argv) > 1 and sys.argv[1] == "--child-all":
+        print(json.dumps(child_all(*sys.argv[2:5])))
         return 0
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--minutes", type=float, default=120.0)

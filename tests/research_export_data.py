@@ -194,9 +194,10 @@ def _values(stream: str, spec: StreamSpec, k: int, t: float, t0: float, grip_k: 
 # ---------------------------------------------------------------------------------------------- long sessions
 def synth_session(root: Path, patient_id: str, seconds: float, *, start_iso: str = "2026-03-01T10:00:00+01:00",
                   start_epoch: float = 1_772_355_600.0, t0: float = 20_000.0, only: tuple[str, ...] | None = None,
-                  folder_name: str = "20260301-100000") -> Path:
+                  folder_name: str = "20260301-100000", run_s: float = 600.0) -> Path:
     """A session of ``seconds`` in the recorder's on-disk format, every stream at its default rate (FES at 10 Hz),
-    written quickly (each stream's value columns repeat a one-minute cycle; times advance)."""
+    written quickly (each stream's value columns repeat a one-minute cycle; times advance): a reach out and back
+    every 5 s, a grip squeeze and 2 s of FES on channels 1-2 in each, exercise runs of ``run_s``."""
     folder = root / patient_id / folder_name
     (folder / recording.STREAMS_DIR).mkdir(parents=True)
     rates = {streams.LINARM_STATE: 20.0, streams.LINARM_VSA: 200.0, streams.LINARM_MOTOR0: 200.0,
@@ -212,11 +213,21 @@ def synth_session(root: Path, patient_id: str, seconds: float, *, start_iso: str
             rate = rates[spec.name]
             n = int(seconds * rate)
             cycle = int(60 * rate)
-            cols = rng.standard_normal((cycle, len(spec.channels)))
+            cols = 0.01 * rng.standard_normal((cycle, len(spec.channels)))  # sensor noise
+            x = np.arange(cycle) / rate
+            reach = 0.1 * (1 - np.cos(2 * np.pi * x / 5.0))  # a reach out and back every 5 s, as the marks say
+            if spec.name in (streams.LINARM_VSA, *streams.LINARM_MOTORS):
+                cols[:, 0] += 0.1 + reach
+            if spec.name == streams.LINARM_VSA:
+                cols[:, 3] = 0.1 + reach + 1e-4 * cols[:, 3]  # handle position
+                cols[:, 4] = np.gradient(cols[:, 3], 1 / rate)
             if spec.name == streams.PHYSIO_MAIN:
-                cols[:, 3] = np.where(np.arange(cycle) % 500 < 100, 30.0, 2.0) + 0.01 * cols[:, 3]  # grip squeezes
-            if spec.name == streams.FES_CHANNELS:
-                cols = np.where(cols > 1.0, 20.0, 0.0)
+                cols[:, 3] = np.where(x % 5.0 < 1.0, 30.0, 2.0) + cols[:, 3]  # grip squeezes
+            if spec.name == streams.FES_CHANNELS:  # channels 1 and 2 stimulate for 2 s of every 5 s
+                on = (x % 5.0 >= 1.0) & (x % 5.0 < 3.0)
+                cols[:] = 0.0
+                cols[:, 0] = cols[:, 1] = np.where(on, 20.0, 0.0)
+                cols[:, 8] = cols[:, 9] = np.where(on, 250.0, 0.0)
             rests = [",".join(repr(float(v)) for v in row) for row in cols]
             t = t0 + 0.01 + np.arange(n) / rate * (1 + 30e-6)
             arrival = t + 0.002
@@ -235,7 +246,7 @@ def synth_session(root: Path, patient_id: str, seconds: float, *, start_iso: str
                                             for c in spec.channels]}
     events = [{"t_wall": start_iso, "t_mono": t0, "kind": "session_start", "who": "dr_rossi", "origin": "app",
                "data": {}}]
-    run_s = 600.0  # an exercise run every ten minutes, repetitions every 5 s within it
+    # an exercise run every ``run_s`` (ten minutes), repetitions every 5 s within it
     for n, run_start in enumerate(np.arange(5.0, max(seconds - 10.0, 5.0), run_s), start=1):
         run_id, run_end = f"run-{n}", min(run_start + run_s - 5.0, seconds - 5.0)
         events.append({"t_wall": "", "t_mono": t0 + run_start, "kind": "run_start", "who": "dr_rossi",

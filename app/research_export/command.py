@@ -17,7 +17,7 @@ import sys
 from pathlib import Path
 
 from app.recording import MANIFEST_FILE, safe_name
-from app.research_export.common import ExportCancelled, ExportError, ExportResult
+from app.research_export.common import ExportCancelled, ExportError, ExportResult, release_memory_promptly
 from app.research_export.source import FolderSource, Session, is_session_folder, open_session
 
 EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_INCOMPLETE = 0, 1, 2, 3
@@ -121,6 +121,7 @@ def main(argv: list[str], prog: str = "linarmpp export") -> int:
             print(f"  - {line}", file=sys.stderr)
         return EXIT_FAILED
     terminal = _Terminal(args.quiet)
+    release_memory_promptly()
     try:
         if args.format == "bids":
             result = _bids(sessions, out, args, terminal)

@@ -127,6 +127,7 @@ class Session:
     streams: dict[str, StreamInfo]
     problems: list[str] = field(default_factory=list)
     tallies: dict[str, StreamTally] = field(default_factory=dict)
+    block_bytes: int = BLOCK_BYTES  # how much of a stream file one read takes (memory per stream read)
 
     @property
     def label(self) -> str:
@@ -171,7 +172,7 @@ class Session:
     def total_bytes(self) -> int:
         return sum(s.size for s in self.streams.values())
 
-    def chunks(self, stream: str, block_bytes: int = BLOCK_BYTES, *, raw: bool = False,
+    def chunks(self, stream: str, block_bytes: int | None = None, *, raw: bool = False,
                columns: list[int] | None = None) -> Iterator[Chunk]:
         """The stream's samples in file order, a block of whole lines at a time. ``raw``: each chunk also carries
         its lines as the file holds them; ``columns``: only these channels are parsed (indices; [] for the times
@@ -193,7 +194,7 @@ class Session:
             wanted = None if columns is None else [0, *(c + 1 for c in columns)]
             rest = b""
             while True:
-                block = fh.read(block_bytes)
+                block = fh.read(block_bytes or self.block_bytes)
                 if not block:
                     break
                 data = rest + block
@@ -265,12 +266,14 @@ def _parse_lines(data: bytes, ncols: int, usecols: list[int] | None = None) -> t
     """Whole lines ``data`` as float64 [n, ncols] (or the ``usecols`` columns); lines with the wrong number of
     fields (or unparsable) are dropped and counted, as load_session does."""
     lines = data.count(b"\n")
-    empty = data.count(b"\n\n") + (1 if data.startswith(b"\n") else 0)
-    if data.count(b",") == lines * (ncols - 1) and not empty:
+    if data.count(b",") == lines * (ncols - 1):
         try:
-            return _pandas_read(data, ncols, usecols), 0
+            values = _pandas_read(data, ncols, usecols)
         except ValueError:
             pass  # a garbled value: line by line below
+        else:
+            if len(values) == lines:  # (pandas skips a blank line: then the count differs, and line by line)
+                return values, 0
     good = [ln for ln in _LINE.findall(data) if ln.count(b",") == ncols - 1 and len(ln) > 1]
     rows: list[list[float]] = []
     for ln in good:
