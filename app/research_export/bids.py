@@ -340,8 +340,11 @@ def _write_motion(out: _Digest, folder: Path, name: str, s: Session, info: Strea
         "Manufacturer": "LINarm++",
         "ManufacturersModelName": "LINarm2",
         "SoftwareVersions": _software(s, info.device),
+        "Instructions": "the exercise's cues to the patient are the events with trial_type prompt",
+        "SubjectArtefactDescription": "n/a",
         "MotionChannelCount": len(info.channels) + 1,
         "LATENCYChannelCount": 1,
+        **{f"{kind}ChannelCount": 0 for kind in ("ACCEL", "ANGACCEL", "GYRO", "JNTANG", "MAGN", "ORNT")},
         "POSChannelCount": counts.get("POS", 0),
         "VELChannelCount": counts.get("VEL", 0),
         "MiscChannelCount": counts.get("MISC", 0),
@@ -386,6 +389,7 @@ def _write_continuous(out: _Digest, folder: Path, name: str, s: Session, info: S
     finally:
         tsv.close()
     sidecar = {
+        "TaskName": TASK,
         "SamplingFrequency": info.rate_hz or 0,
         "StartTime": (first - t0) if tsv.rows else 0,
         "Columns": ["timestamp", *(c.name for c in info.channels)],
@@ -446,6 +450,7 @@ def _write_held(out: _Digest, folder: Path, name: str, s: Session, info: StreamI
     finally:
         tsv.close()
     sidecar = {
+        "TaskName": TASK,
         "SamplingFrequency": rate,
         "StartTime": (first - t0) if tsv.rows else 0,
         "Columns": ["time", "timestamp", *(c.name for c in info.channels)],
