@@ -6,7 +6,8 @@
 The session is synthesised in the recorder's on-disk format (tests/research_export_data.synth_session: every
 stream at its default rate, 6.4 million samples in two hours) and cached in --cache. Each export runs in a child
 process that measures its own resident memory after its imports and its peak at the end (VmHWM): the growth is
-what the export itself needed. Figures for bench/README.md, "Session 6 (#41)".
+what the export itself needed. The CPU time is printed too: on a shared machine the wall time mostly says how busy
+it was. Figures for bench/README.md, "Session 6 (#41)".
 """
 
 from __future__ import annotations
@@ -44,7 +45,7 @@ def child(fmt: str, folder: str, out: str, block_bytes: int = 0) -> dict[str, fl
 
     release_memory_promptly()
     base = _status_mb("VmRSS")
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     session = open_session(FolderSource(folder))
     if block_bytes:
         session.block_bytes = block_bytes
@@ -54,9 +55,9 @@ def child(fmt: str, folder: str, out: str, block_bytes: int = 0) -> dict[str, fl
         xdf.export_xdf(session, Path(out))
     else:
         edf.export_edf(session, Path(out))
-    seconds = time.perf_counter() - t0
+    seconds, cpu = time.perf_counter() - t0, time.process_time() - c0
     peak = _status_mb("VmHWM")
-    return {"seconds": seconds, "growth_mb": peak - base, "base_mb": base, "peak_mb": peak}
+    return {"seconds": seconds, "cpu_s": cpu, "growth_mb": peak - base, "base_mb": base, "peak_mb": peak}
 
 
 def child_all(folder: str, out: str, block_bytes: str = "0") -> dict[str, dict[str, float]]:
@@ -118,14 +119,16 @@ def main() -> int:
     args = parser.parse_args()
     folder = session(args.cache, args.minutes)
     size = sum(p.stat().st_size for p in folder.rglob("*") if p.is_file()) / 2**20
-    print(f"session: {args.minutes:g} min, {size:.0f} MB of CSV")
+    import os
+
+    print(f"session: {args.minutes:g} min, {size:.0f} MB of CSV; load average {os.getloadavg()[0]:.1f}")
     with tempfile.TemporaryDirectory(dir=args.cache) as tmp:
         for fmt in args.formats:
             out = Path(tmp) / f"out.{fmt}"
             r = measure(fmt, folder, out)
             written = sum(p.stat().st_size for p in ([out] if out.is_file() else out.rglob("*")) if p.is_file())
-            print(f"{fmt:4s}: {r['seconds']:6.1f} s, peak RSS growth {r['growth_mb']:6.1f} MB "
-                  f"(base {r['base_mb']:.0f} MB), written {written / 2**20:.0f} MB")
+            print(f"{fmt:4s}: {r['seconds']:6.1f} s ({r['cpu_s']:.1f} s of CPU), peak RSS growth "
+                  f"{r['growth_mb']:6.1f} MB (base {r['base_mb']:.0f} MB), written {written / 2**20:.0f} MB")
             shutil.rmtree(out, ignore_errors=True) if out.is_dir() else out.unlink(missing_ok=True)
     return 0
 

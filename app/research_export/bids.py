@@ -52,7 +52,7 @@ from app.research_export.source import Chunk, Session, StreamInfo
 
 BIDS_VERSION = "1.11.0"
 TASK = "therapy"
-GZIP_LEVEL = 2  # the physio files: fast (a two-hour session in seconds), still ~4x smaller than the text
+GZIP_LEVEL = 1  # the physio/stim files: fast (a two-hour session in a few seconds), still ~4x smaller than the text
 METRICS_PIPELINE = "linarmpp-metrics"
 PROFILE_SCORES = ("fugl_meyer_ue", "modified_ashworth", "action_research_arm_test", "box_and_block")
 
