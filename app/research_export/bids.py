@@ -404,6 +404,10 @@ def _write_continuous(out: _Digest, folder: Path, name: str, s: Session, info: S
     return tsv.rows, first, last
 
 
+def _cells(row: tuple[float, ...]) -> bytes:
+    return b"\t".join(repr(v).encode() if math.isfinite(v) else b"n/a" for v in row)
+
+
 def _write_held(out: _Digest, folder: Path, name: str, s: Session, info: StreamInfo, steps: Steps,
                 switches: FesSwitches) -> tuple[int, float, float]:
     """A stream published on change (FES) on a regular grid at its nominal rate: each row holds the update in force
@@ -417,12 +421,12 @@ def _write_held(out: _Digest, folder: Path, name: str, s: Session, info: StreamI
     prev_text = b""
     updates = 0
     first = last = math.nan
+    settings: dict[tuple[float, ...], bytes] = {}  # a setting's text, written once (the same few settings recur)
     try:
         for chunk in s.chunks(info.name):
             switches.feed(chunk.t, chunk.values)
-            texts = [b"\t".join([repr(t - t0).encode(), *(repr(v).encode() if math.isfinite(v) else b"n/a"
-                                                          for v in row)])
-                     for t, row in zip(chunk.t.tolist(), chunk.values.tolist(), strict=True)]
+            texts = [repr(t - t0).encode() + b"\t" + (settings.get(row) or settings.setdefault(row, _cells(row)))
+                     for t, row in zip(chunk.t.tolist(), map(tuple, chunk.values.tolist()), strict=True)]
             if grid0 is None:
                 grid0 = float(chunk.t[0])
                 first = grid0
