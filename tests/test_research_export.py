@@ -222,3 +222,23 @@ def test_the_known_events_agree_across_the_three_formats(exported) -> None:
     for a, b in ((xdf_estop, edf_estop), (xdf_estop, bids_estop), (xdf_grip, edf_grip), (xdf_grip, bids_grip)):
         assert abs(a - b) <= period
     assert abs(xdf_estop - rec.estop_t) <= US and abs(bids_estop - rec.estop_t) <= US
+
+
+def test_the_derivatives_are_the_applications_metrics(exported) -> None:
+    """derivatives/linarmpp-metrics, computed one exercise run at a time, are app.metrics' repetitions of the
+    whole session (what ``--metrics`` prints)."""
+    import pandas as pd
+
+    from app.metrics import metrics_of_session
+
+    expected = metrics_of_session(exported["session"])["repetitions"]
+    (path,) = (exported["bids"] / "derivatives" / "linarmpp-metrics").rglob("*_desc-repetitions_metrics.tsv")
+    table = pd.read_csv(path, sep="\t", na_values="n/a")
+    assert len(table) == len(expected) > 0
+    for row, rep in zip(table.to_dict("records"), expected, strict=True):
+        for key in ("index", "start_s", "end_s", "duration_s", "peak_speed_m_s", "range_m", "sparc",
+                    "reaction_time_s", "grip_at_start_n"):
+            if rep.get(key) is None:
+                assert math.isnan(row[key]), key
+            else:
+                assert row[key] == pytest.approx(rep[key], rel=1e-9, abs=1e-12), key

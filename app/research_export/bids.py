@@ -652,6 +652,7 @@ def _write_metrics(out: _Digest, root: Path, p: _Planned, steps: Steps, result: 
 
 # What the metrics read (app.metrics.signals_from_session), stream -> channels (None: all of them).
 METRIC_CHANNELS: dict[str, tuple[str, ...] | None] = {
+    streams.LINARM_STATE: ("controlState",),  # homing (app.metrics.homing_intervals)
     streams.LINARM_VSA: ("handlePos", "interactionForce"),
     streams.PHYSIO_MAIN: ("force", "heartRate", "skinConductance"),
     streams.PATIENT_MODEL_MAIN: ("alpha", "a_r", "a_f"),
