@@ -160,3 +160,32 @@ def test_memory_does_not_grow_with_the_sessions_length(tmp_path) -> None:
     print("peak RSS growth (MB), 2 min vs 8 min:", figures)
     for fmt in a:
         assert b[fmt]["growth_mb"] <= a[fmt]["growth_mb"] + 5.0, figures
+
+
+def test_an_archived_session_exports_as_its_folder_does(sessions, tmp_path) -> None:
+    """The archive's SessionFiles (files, open, read_bytes: app/archive/api.py, #39) is a session source: the same
+    XDF bytes as from the folder (a stand-in over the folder's files here; stage 2 uses the archive's)."""
+    import io as _io
+    from types import SimpleNamespace
+
+    from app.research_export.source import ArchivedSource
+
+    folder = next((sessions / "PC-002").iterdir())
+
+    class Files:  # what app.archive's SessionFiles offers
+        uuid = "3f1c"
+
+        def files(self):
+            return [SimpleNamespace(name=str(p.relative_to(folder)), size=p.stat().st_size, sha256="")
+                    for p in folder.rglob("*") if p.is_file()]
+
+        def open(self, name):
+            return _io.BytesIO((folder / name).read_bytes())
+
+        def read_bytes(self, name):
+            return (folder / name).read_bytes()
+
+    a = export_xdf(open_session(FolderSource(folder)), tmp_path / "folder.xdf")
+    b = export_xdf(open_session(ArchivedSource(Files())), tmp_path / "archive.xdf")
+    assert a.written and b.written
+    assert (tmp_path / "folder.xdf").read_bytes() == (tmp_path / "archive.xdf").read_bytes()

@@ -75,6 +75,39 @@ class FolderSource:
             return fh.read()
 
 
+class ArchivedSource:
+    """A session the clinic's archive holds, read without materialising it: any object with the archive's
+    ``SessionFiles`` calls (``files()`` → entries with ``name`` and ``size``, ``open(name)`` streaming the bytes,
+    ``read_bytes(name)``; app/archive/api.py, issue #39). Stage 2 of #41 wires it to the command line and the
+    sessions browser; ``archive.materialised(uuid)`` + :class:`FolderSource` works as well."""
+
+    def __init__(self, files: Any, label: str = "") -> None:
+        self.files = files
+        self.label = label or f"archived session {getattr(files, 'uuid', '')}".strip()
+        self._sizes: dict[str, int] | None = None
+
+    def _listing(self) -> dict[str, int]:
+        if self._sizes is None:
+            self._sizes = {str(f.name): int(f.size) for f in self.files.files()}
+        return self._sizes
+
+    def names(self) -> list[str]:
+        return sorted(self._listing())
+
+    def size(self, name: str) -> int:
+        return self._listing()[name]
+
+    def open(self, name: str) -> IO[bytes]:
+        if name not in self._listing():
+            raise FileNotFoundError(f"{self.label} has no file {name}")
+        return self.files.open(name)
+
+    def read_bytes(self, name: str) -> bytes:
+        if name not in self._listing():
+            raise FileNotFoundError(f"{self.label} has no file {name}")
+        return self.files.read_bytes(name)
+
+
 def is_session_folder(folder: str | Path) -> bool:
     return (Path(folder) / recording.MANIFEST_FILE).is_file()
 
