@@ -84,6 +84,8 @@ def test_participants_are_pseudonyms_ages_and_dates_shifted(dataset) -> None:
     sessions_tsv = (root / "sub-PZ017" / "sub-PZ017_sessions.tsv").read_text().splitlines()
     assert sessions_tsv[1].split("\t")[1].startswith("1926-03-01T")  # 2026-03-01 less 36 525 days (100 years)
     assert "2026-" not in "".join(p.read_text() for p in root.rglob("*_scans.tsv"))
+    events = "".join(p.read_text() for p in root.rglob("*_events.tsv"))
+    assert "20260301" not in events and "2026-03" not in events  # no session folder path, no wall time
 
 
 def test_names_only_when_asked(dataset, tmp_path) -> None:

@@ -47,7 +47,7 @@ from app.research_export.common import (
     open_private,
     remove_quietly,
 )
-from app.research_export.marks import FesSwitches, Mark, event_marks, record_json
+from app.research_export.marks import FesSwitches, Mark, event_marks, exported, record_json
 from app.research_export.source import Chunk, Session, StreamInfo
 
 BIDS_VERSION = "1.11.0"
@@ -173,6 +173,7 @@ class _Planned:
     subject: str
     ses: str  # "1", "2", …
     start: _dt.datetime  # local wall time of the session's start, dates shifted
+    shift_days: int = 0
 
 
 @dataclass
@@ -202,7 +203,7 @@ def plan(sessions: list[Session], shift_days: int = 0) -> list[_Planned]:
     for label, group in sorted(by_subject.items()):
         group.sort(key=lambda s: (_local_start(s), s.label))
         for k, s in enumerate(group, start=1):
-            out.append(_Planned(s, label, str(k), _local_start(s) - _dt.timedelta(days=shift_days)))
+            out.append(_Planned(s, label, str(k), _local_start(s) - _dt.timedelta(days=shift_days), shift_days))
     return out
 
 
@@ -286,7 +287,7 @@ def _write_session(out: _Digest, root: Path, p: _Planned, steps: Steps) -> _Writ
         written.samples[info.name] = count
     marks = event_marks(s.events, s.end_mono) + (switches.marks if switches else [])
     marks.sort(key=lambda m: m.t)
-    rows = [_event_row(m, t0) for m in marks]
+    rows = [_event_row(m, t0, p.shift_days) for m in marks]
     out.write_tsv(motion / f"{_prefix(p)}_events.tsv", EVENT_COLUMNS, rows)
     out.write_tsv(ses_dir / f"sub-{p.subject}_ses-{p.ses}_scans.tsv", ["filename", "acq_time"], written.scans)
     return written
@@ -295,8 +296,8 @@ def _write_session(out: _Digest, root: Path, p: _Planned, steps: Steps) -> _Writ
 EVENT_COLUMNS = ["onset", "duration", "trial_type", "value", "who", "origin", "data"]
 
 
-def _event_row(m: Mark, t0: float) -> list[Any]:
-    record = m.record or {}
+def _event_row(m: Mark, t0: float, shift_days: int = 0) -> list[Any]:
+    record = exported(m.record, shift_days) if m.record else {}
     data = record_json(record["data"]) if "data" in record else None
     return [m.t - t0, m.duration, m.kind, m.value or None, record.get("who") or None, record.get("origin") or None,
             data]

@@ -6,6 +6,7 @@ EDF+ annotations are all made from these, so an event has the same name and time
 
 from __future__ import annotations
 
+import datetime as _dt
 import json
 from dataclasses import dataclass
 from typing import Any
@@ -136,6 +137,24 @@ class FesSwitches:
             kind = "fes_on" if active[r, c] else "fes_off"
             self.marks.append(Mark(float(t[r]), 0.0, kind, f"channel {self.columns[c][1]}", None))
         self.on = active[-1]
+
+
+def exported(record: dict[str, Any], shift_days: int = 0) -> dict[str, Any]:
+    """An event as it leaves the application. With dates shifted (de-identification), its wall time moves back as
+    every date does, and the session folder's path (named after the real date and time) is left out."""
+    if not shift_days:
+        return record
+    out = dict(record)
+    if isinstance(out.get("t_wall"), str) and out["t_wall"]:
+        try:
+            moment = _dt.datetime.fromisoformat(out["t_wall"]) - _dt.timedelta(days=shift_days)
+            out["t_wall"] = moment.isoformat(timespec="microseconds")
+        except ValueError:
+            out["t_wall"] = ""
+    data = out.get("data")
+    if isinstance(data, dict) and "folder" in data:
+        out["data"] = {k: v for k, v in data.items() if k != "folder"}
+    return out
 
 
 def record_json(record: dict[str, Any]) -> str:

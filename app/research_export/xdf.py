@@ -16,7 +16,6 @@ window, a boundary chunk every :data:`BOUNDARY_S`, the footers last — so memor
 
 from __future__ import annotations
 
-import datetime as _dt
 import math
 import os
 import struct
@@ -42,7 +41,7 @@ from app.research_export.common import (
     part_path,
     remove_quietly,
 )
-from app.research_export.marks import FesSwitches, Mark, event_marks, record_json
+from app.research_export.marks import FesSwitches, Mark, event_marks, exported, record_json
 from app.research_export.source import Chunk, Session
 
 MAGIC = b"XDF:"
@@ -429,7 +428,7 @@ def _write_xdf(session: Session, out: HashingWriter, steps: Steps, shift_days: i
             ev_j += 1
         if ev_j > ev_i:
             stamps = [float(e["t_mono"]) for e in events[ev_i:ev_j]]
-            writer.string_samples(events_sid, stamps, [record_json(_shifted(e, shift_days))
+            writer.string_samples(events_sid, stamps, [record_json(exported(e, shift_days))
                                                        for e in events[ev_i:ev_j]])
             outs[events_sid].wrote(stamps)
             ev_i = ev_j
@@ -470,17 +469,6 @@ def _write_xdf(session: Session, out: HashingWriter, steps: Steps, shift_days: i
         last = o.last if o.count else 0.0
         writer.stream_footer(sid, footer_xml(first, last, o.count, o.offsets))
     return outs
-
-
-def _shifted(record: dict[str, Any], days: int) -> dict[str, Any]:
-    """An event with its wall time moved back ``days`` days (de-identification by date shifting)."""
-    if not days or not isinstance(record.get("t_wall"), str):
-        return record
-    try:
-        moment = _dt.datetime.fromisoformat(record["t_wall"]) - _dt.timedelta(days=days)
-    except ValueError:
-        return {**record, "t_wall": ""}
-    return {**record, "t_wall": moment.isoformat(timespec="microseconds")}
 
 
 def _verify(path: Path, out: HashingWriter, counts: dict[int, _Out]) -> None:
