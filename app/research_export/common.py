@@ -153,8 +153,3 @@ def release_memory_promptly() -> None:
         libc.mallopt(-3, 256 * 1024)  # M_MMAP_THRESHOLD
     except (OSError, AttributeError):
         pass
-
-
-def os_sentence(exc: OSError, where: Path | str) -> str:
-    """An OSError as the sentence the user reads (the folder and what the system said)."""
-    return f"{exc.filename or where}: {exc.strerror or exc}"

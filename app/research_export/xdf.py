@@ -24,7 +24,7 @@ import xml.etree.ElementTree as ET
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import IO, Any
+from typing import IO
 
 import numpy as np
 
@@ -486,13 +486,3 @@ def _verify(path: Path, out: HashingWriter, counts: dict[int, _Out]) -> None:
         if got is None or not got.header or not got.footer or got.samples != o.count:
             raise OSError(f"{path.name}: stream {o.name} reads back with {got.samples if got else 0} of "
                           f"{o.count} samples")
-
-
-def describe(path: Path) -> dict[str, Any]:
-    """Stream names and sample counts of an XDF file (without loading it)."""
-    scan = scan_xdf(path)
-    out = {}
-    for sid, s in scan.streams.items():
-        name = ET.fromstring(s.header.split("?>", 1)[-1]).findtext("name") if s.header else str(sid)
-        out[name or str(sid)] = s.samples
-    return out
