@@ -10,6 +10,7 @@ all run :func:`main`. With no arguments: the clinician window, every device simu
     linarmpp --progress PATIENT_ID --out FILE.pdf          the patient's progress PDF
     linarmpp --export SESSION_FOLDER --out FILE.h5|FOLDER  the session as one HDF5 file, or as CSV files in a folder
     linarmpp archive {status,upgrade,import,export,upload,verify,grants} …   the archive (docs/archive.md)
+    linarmpp export --format bids|xdf|edf SESSION… --out DIR   sessions for research tools (docs/export.md)
                       (exit 0 done, 1 nothing written: why on stderr, 2 wrong arguments,
                        3 done from an incomplete session: what is missing on stderr)
 
@@ -65,6 +66,8 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     if argv[:1] == ["archive"]:
         return _archive_command(argv[1:], prog)
+    if argv[:1] == ["export"]:
+        return _export_command(argv[1:], prog)
     args = parse_args(argv, prog)
     from app.paths import set_private_umask
 
@@ -166,7 +169,7 @@ def _report_command(config: object, args: argparse.Namespace) -> int:
                                       out=args.out)
         sys.stdout.flush()  # --metrics' JSON: a full disk under a redirected stdout shows here, not at exit
         if code == EXIT_REPORT_OK and args.export:
-            code = _export_command(args.export, Path(args.out))
+            code = _session_export_command(args.export, Path(args.out))
     except OutputError as exc:  # the output could not be written or verified: its one sentence
         print(exc.sentence, file=sys.stderr)
         return EXIT_REPORT_FAILED
@@ -185,7 +188,23 @@ def _report_command(config: object, args: argparse.Namespace) -> int:
     return code
 
 
-def _export_command(session: str, out: object) -> int:
+def _export_command(argv: list[str], prog: str | None) -> int:
+    """``linarmpp export --format bids|xdf|edf SESSION… --out DIR`` (issue #41; app/research_export/command.py)."""
+    import logging
+
+    from app.logging_setup import setup_logging
+    from app.paths import set_private_umask
+    from app.research_export.command import main as export_main
+
+    set_private_umask()  # exports hold health data: files 0600, folders 0700
+    try:
+        setup_logging(logging.INFO, console=False)  # the terminal shows progress; details go to the log
+    except OSError:
+        pass  # no log folder: the export still runs and says what it did on the terminal
+    return export_main(argv, prog=f"{prog or 'linarmpp'} export")
+
+
+def _session_export_command(session: str, out: object) -> int:
     """``--export``: in the worker process (a crash of HDF5 there is a failed export, one sentence)."""
     from pathlib import Path
 

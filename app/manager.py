@@ -330,14 +330,20 @@ class LinarmppManager(QObject):
             self.supervisor.event("patient_limits_applied", patient=patient_id)
             self._apply_robot_limits()
             self.apply_patient_profile(profile)
+        lsl = self.start_lsl()
+        if lsl is not None:
+            recorder.add_event_tap(lsl.marker)  # every session's events, on the one event outlet
+        self.session_changed.emit(folder)
+        return folder
+
+    def start_lsl(self) -> Any:
+        """The LSL outlets when ``recording.lsl`` is on, opened once whatever asks (a session, a headless run):
+        twice would publish every stream twice with one silent event outlet (#41). None when off or unavailable."""
         if self.config.recording.lsl and self._lsl is None:
             from app.lsl import start_lsl
 
             self._lsl = start_lsl(self)
-            if self._lsl is not None:
-                recorder.add_event_tap(self._lsl.marker)
-        self.session_changed.emit(folder)
-        return folder
+        return self._lsl
 
     def end_session(self, reason: str = "ended by the operator") -> None:
         recorder, self.recorder = self.recorder, None

@@ -103,12 +103,9 @@ def run_headless(config: AppConfig, script_path: str, duration_s: float | None =
                 _emit(output, "stderr", f"Cannot record: {exc.strerror if isinstance(exc, RecordingError) else exc}\n")
                 return EXIT_RECORDING
             _emit(output, "info", f"Recording the session in {folder}\n")
-        if config.recording.lsl:  # as start_session does in the window
-            from app.lsl import start_lsl
-
-            lsl = start_lsl(manager)
-            if lsl is not None and recorder is not None:
-                recorder.add_event_tap(lsl.marker)
+        lsl = manager.start_lsl()  # the manager's outlets: one set, shared with a session the run starts (#41)
+        if lsl is not None and recorder is not None:
+            recorder.add_event_tap(lsl.marker)
         alarms_before = {a.ident for a in manager.supervisor.alarms()}
         runner = ScriptRunner(manager, output or _print_sink, home_first=home_first)
         runner.start(source, str(path.resolve()), run_source="headless")  # a run of the session record
