@@ -57,6 +57,7 @@ from typing import TYPE_CHECKING, Any, TextIO
 import numpy as np
 
 from app import paths, streams
+from app.alarm_count import alarm_count
 from app.bus import Channel, DeviceEvent, StreamSpec, Subscription
 
 if TYPE_CHECKING:
@@ -1224,7 +1225,7 @@ def summarize_session(folder: Path) -> SessionSummary:
     manifest = _manifest_with_sidecar(folder, manifest)
     events, _ = read_events(folder / EVENTS_FILE)
     exercises = tuple(str(e.get("data", {}).get("name") or "script") for e in events if e.get("kind") == "script_start")
-    alarms = sum(1 for e in events if e.get("kind") == "alarm")
+    alarms = alarm_count(events)  # the one definition (app.alarm_count): the reports count the same
     start = manifest.get("start") or {}
     end = manifest.get("end") or {}
     if "duration_s" in manifest:
