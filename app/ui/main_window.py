@@ -183,6 +183,9 @@ class MainWindow(QMainWindow):
         app = QApplication.instance()
         if app is not None:
             app.installEventFilter(self._estop_filter)
+        from app.ui.widgets import install_wheel_guard
+
+        install_wheel_guard()  # the wheel over a number box scrolls the form unless the box has the focus (#36)
         manager.supervisor.estop_changed.connect(self._on_estop_changed)
         self._quit_confirmed = False  # may_quit() said yes: a second close event does not ask again
         self._restore_settings()

@@ -16,11 +16,13 @@ from PySide6.QtWidgets import (
     QAbstractItemView,
     QDialog,
     QFileDialog,
+    QFrame,
     QGridLayout,
     QHBoxLayout,
     QHeaderView,
     QLabel,
     QPushButton,
+    QScrollArea,
     QTableWidget,
     QTableWidgetItem,
     QTabWidget,
@@ -207,7 +209,13 @@ class SessionSummary(QWidget):
         for r in self.runs:
             view = RunSummary(r, self)
             self.run_views[r.run.run_id] = view
-            self.tabs.addTab(view, f"{r.number}. {_short(r.title)}")
+            # Scrolled within its tab: a run with many repetitions and alarms is taller than a 1366×768 screen,
+            # and the window (its Close button) must stay on the screen (#36).
+            scroll = QScrollArea()
+            scroll.setWidgetResizable(True)
+            scroll.setFrameShape(QFrame.Shape.NoFrame)
+            scroll.setWidget(view)
+            self.tabs.addTab(scroll, f"{r.number}. {_short(r.title)}")
             self.tabs.setTabToolTip(self.tabs.count() - 1, f"Run {r.number}: {r.title} — {r.run.end_text()}")
         self.tabs.setCurrentIndex(0)  # several runs: their overview first
         self.tabs.tabBar().setVisible(len(self.runs) > 1)
@@ -307,4 +315,19 @@ class SessionSummaryDialog(QDialog):
         row.addStretch(1)
         row.addWidget(close)
         lay.addLayout(row)
-        self.resize(900, 700)
+        self.fit_to_screen()
+
+    # Room the window manager takes around a dialog (title bar and borders), kept free when sizing it.
+    FRAME_ROOM = (16, 48)
+
+    def fit_to_screen(self) -> None:
+        """900×700, or less on a smaller screen: the whole dialog — its Close button too — on the screen the
+        dialog opens on (1366×768: 740 px below the panel, the title bar above the dialog)."""
+        screen = self.screen()
+        area = screen.availableGeometry() if screen is not None else None
+        width, height = 900, 700
+        if area is not None:
+            width = min(width, area.width() - self.FRAME_ROOM[0])
+            height = min(height, area.height() - self.FRAME_ROOM[1])
+            self.setMaximumSize(area.width() - self.FRAME_ROOM[0], area.height() - self.FRAME_ROOM[1])
+        self.resize(width, height)
