@@ -989,6 +989,14 @@ def program_technical(run: ExerciseRun) -> str:
     return "; ".join(parts)
 
 
+def run_heading(report: RunReport) -> str:
+    """A run's name in the session report: its exercise's one name (:func:`exercise_identity`), and the script's
+    file when the exercise ran as a script ("Trigger reaching (…) — script trigger_exercise.py")."""
+    if report.exercise == report.title:
+        return report.title
+    return f"{report.exercise} — script {report.title}"
+
+
 def end_words(run: ExerciseRun) -> str:
     """How a run ended, in the clinician's words (its cause as recorded: technical appendix)."""
     return plain(run.end_text())
@@ -1125,6 +1133,12 @@ def _g(value: Any) -> str:
     return f"{float(value):g}" if isinstance(value, int | float) else "—"
 
 
+def _newton(value: Any) -> str:
+    """A test burst's response to 0.01 N (below that: 0; a negative response is no response in that direction)."""
+    v = round(float(value), 2) if isinstance(value, int | float) else 0.0
+    return "0" if v == 0 else f"{v:.2f}"
+
+
 def _ma(value: float | None) -> str:
     return "—" if value is None else f"{_g(value)} mA"
 
@@ -1245,7 +1259,7 @@ def render_session_report(pdf: _Pdf, data: SessionReportData) -> None:
                 notes.append(f"restart of run {numbers.get(r.run.restart_of, '?')}")
             if r.run.run_id in restarts:
                 notes.append(f"restarted as run {restarts[r.run.run_id]}")
-            rows.append([str(r.number), r.title, SOURCE_TEXT.get(r.run.source, r.run.source) + (
+            rows.append([str(r.number), run_heading(r), SOURCE_TEXT.get(r.run.source, r.run.source) + (
                 f", {r.run.operator}" if r.run.operator else ""), clock(r.run.started_mono),
                 _duration(r.run.elapsed_s()), r.reps_text(), "; ".join([end_words(r.run), *notes])])
         pdf.table(["Run", "Exercise", "Started from, by", "Start", "Duration", "Repetitions", "Ended"], rows,
@@ -1263,7 +1277,7 @@ def render_session_report(pdf: _Pdf, data: SessionReportData) -> None:
     pdf.new_page()
     for r in runs:
         run = r.run
-        pdf.heading(f"Run {r.number} — {r.title}", 11.5, keep=140)
+        pdf.heading(f"Run {r.number} — {run_heading(r)}", 11.5, keep=140)
         info = [("Program", program_text(run)),
                 ("Started", f"{clock(run.started_mono)} — {_started_from(run)}"),
                 ("Ended", f"{clock(run.ended_mono)} — {end_words(run)}")]
@@ -1380,7 +1394,7 @@ def _draw_setup(pdf: _Pdf, data: SessionReportData, setup: ElectrodeSetupRecord)
     pdf.fields(fields, label_width=110)
     rows = []
     for c in setup.combinations:
-        responses = ", ".join(f"{_g(b.get('current_ma') or 0)}: {number_text(float(b.get('response_n') or 0.0), 2)}"
+        responses = ", ".join(f"{_g(b.get('current_ma') or 0)}: {_newton(b.get('response_n'))}"
                               for b in c.bursts) or "—"
         widths = {_g(b.get("pulse_width_us") or 0) for b in c.bursts}
         chosen = setup.choice is not None and setup.choice.get("channel") == c.channel
@@ -1518,7 +1532,7 @@ def write_progress_report(patient_id: str, out: str | Path, rows: Sequence[Progr
                 fmt(r.value("peak_speed_m_s")), fmt(r.value("sparc")), fmt(r.value("range_m")),
                 fmt(r.value("mean_alpha")), fmt(r.summary.get("alarms"), "{}"),
                 "interrupted" if r.interrupted else "complete"]
-               for k, r in enumerate(rows)], [0.3, 1.45, 2.2, 0.85, 0.75, 0.65, 0.7, 0.55, 0.65, 0.95],
+               for k, r in enumerate(rows)], [0.3, 1.45, 2.1, 0.85, 0.75, 0.65, 0.8, 0.55, 0.65, 0.95],
               align_right=(3, 4, 5, 6, 7, 8))
 
     n = len(rows)

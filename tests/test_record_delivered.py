@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import re
 import shutil
+import subprocess
 import unicodedata
 from pathlib import Path
 
@@ -20,6 +21,7 @@ from app.devices.linarm_protocol import ErrorState
 from app.recording import load_session, read_events
 from app.reports import exercise_identity, progress_rows, run_reports, write_progress_report, write_session_report
 from app.runs import Program, text_hash
+from tests.conftest import screenshot_path
 from tests.delivered_session import EXPECTED_ALARMS, SEED_SCRIPT, write_delivered_session
 from tests.pdf_layout import overlaps, pdf_text
 from tests.pdf_text import (
@@ -33,6 +35,15 @@ from tests.run_sessions import RunSpec, write_run_session
 
 needs_poppler = pytest.mark.skipif(shutil.which("pdftotext") is None, reason="poppler-utils is not installed")
 TRIGGER = "Trigger reaching (grip-triggered passive movements)"
+
+
+def save_pages(pdf: Path, name: str) -> list[Path]:
+    """The PDF's pages as a reader sees them (pdftoppm, 60 dpi), where the screenshots go (tests/conftest.py)."""
+    first = screenshot_path(f"{name}-1.png")
+    for old in first.parent.glob(f"{name}-*.png"):
+        old.unlink()
+    subprocess.run(["pdftoppm", "-png", "-r", "60", str(pdf), str(first.parent / name)], check=True, timeout=60)
+    return sorted(first.parent.glob(f"{name}-*.png"))
 
 
 def nf(text: str) -> str:
@@ -65,7 +76,7 @@ def test_the_session_pdf_records_the_electrode_setup_and_the_stimulation_outside
     # the set-up's detail: each combination's currents up to the highest, its responses, the ratings, the choice
     setup = flat.split("Electrode set-up Test bursts given", 1)[1].split("Stimulation outside the exercises", 1)[0]
     assert nf("1 1-2 12 8, 10 … 30 mA at 250 µs") in setup
-    assert "30: 5" in setup and "Motor threshold" in setup  # channel 2 responds 5 N at 30 mA
+    assert "30: 5.00" in setup and "8: 0," in setup and "Motor threshold" in setup  # channel 2: 5 N at 30 mA
     assert "7/10" in setup and "3/10" in setup and "4/10" in setup and "not rated" in setup
     assert "Chosen channel 2 (electrodes 3-4) by Dr Rossi at 10:04:10, the proposal; saved in the patient's" in setup
     assert "Ended early the emergency stop was pressed" in setup
@@ -74,7 +85,10 @@ def test_the_session_pdf_records_the_electrode_setup_and_the_stimulation_outside
     assert nf("10:02:07 Wrist extension, 8 s cycle (example) FES panel channel 3: up to 20 mA, 200 µs 0 min 08 s "
               "the profile ran to its end") in stim
     assert nf("channel 3: up to 16 mA, 200 µs 0 min 03 s emergency stop pressed (F12 key)") in stim
+    # the Script tab's run of the seed's script is the trigger exercise, its file named
+    assert f"Run 3 — {TRIGGER} — script trigger_exercise.py" in flat
     assert overlaps(pdf) == []
+    save_pages(pdf, "report-session")
 
 
 @needs_poppler
@@ -223,6 +237,7 @@ def test_the_progress_pdf_lists_one_exercise_under_one_name(tmp_path: Path) -> N
     assert flat.count("Trends: ") == 2 and f"Trends: {TRIGGER}" in flat and "Trends: my_reach.py" in flat
     assert "trigger_exercise.py" not in flat and "trigger_reaching.py" not in flat
     assert overlaps(pdf) == []
+    save_pages(pdf, "report-progress")
 
 
 def test_exercise_identity_rule() -> None:
