@@ -51,6 +51,26 @@ def asked(monkeypatch: pytest.MonkeyPatch) -> Questions:
     return questions
 
 
+def questions_on_quit(window: MainWindow) -> list[tuple[str, str]]:
+    """Press Quit (Ctrl+Q's action) in ``window`` from its event loop, answer "No" / "Cancel" to whatever it asks,
+    and return the questions, (title, text): [] when it quit without asking. Reusable (the clinician's day)."""
+    questions: list[tuple[str, str]] = []
+
+    def question(_parent: Any, title: str, text: str, *args: Any, **kwargs: Any) -> QMessageBox.StandardButton:
+        questions.append((title, text))
+        buttons = args[0] if args else kwargs.get("buttons", QMessageBox.StandardButton.No)
+        cancel = QMessageBox.StandardButton.Cancel
+        return cancel if buttons & cancel else QMessageBox.StandardButton.No
+
+    original = QMessageBox.question
+    QMessageBox.question = staticmethod(question)  # type: ignore[method-assign]
+    try:
+        _trigger_in_loop(_quit_action(window))
+    finally:
+        QMessageBox.question = original  # type: ignore[method-assign]
+    return questions
+
+
 def _quit_action(window: MainWindow) -> QAction:
     return next(a for a in window.findChildren(QAction) if a.text().replace("&", "") == "Quit")
 
@@ -77,6 +97,7 @@ def test_ctrl_q_in_the_middle_of_an_exercise_asks_first(qtbot, manager, asked) -
     assert window.isVisible() and manager.runs.get(run.run_id).running  # "No": nothing stopped, nothing closed
     window.close()  # the window's own close button asks the same
     assert len(asked) == 2 and asked[1][0] == "Quit" and window.isVisible()
+    assert questions_on_quit(window)[0][0] == "Quit" and window.isVisible()  # the reusable form says the same
     manager.runs.end(run.run_id, "finished")
     _trigger_in_loop(quit_action)  # nothing runs any more: Quit quits, without a question
     assert len(asked) == 2 and not window.isVisible()

@@ -143,7 +143,11 @@ class RunSummary(QWidget):
             none.setWordWrap(True)
             lay.addWidget(none)
             lay.addStretch(1)
-        lay.addWidget(QLabel(f"<b>Alarms and interruptions of this run</b>: {len(report.alarms) or 'none'}"))
+        # The run's number of alarms as every view counts them (app/alarm_count.py); the list also has the
+        # interruptions (a program's end, a data gap), which are not alarms.
+        alarms = int(report.summary.get("alarms") or 0)
+        lay.addWidget(QLabel(f"<b>Alarms of this run</b>: {alarms or 'none'}"
+                             + (" — listed below with the interruptions" if report.alarms else "")))
         lay.addWidget(self.alarms)
 
 
