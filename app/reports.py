@@ -1508,6 +1508,13 @@ def write_progress_report(patient_id: str, out: str | Path, rows: Sequence[Progr
     if profile is None:
         profile = _profile_of(patient_id)
     pdf = _Pdf(Path(out), f"Progress {patient_id}", _footer(f"progress of {patient_id}"))
+    render_progress_report(pdf, patient_id, rows, profile)
+    return pdf.finish()
+
+
+def render_progress_report(pdf: _Pdf, patient_id: str, rows: Sequence[ProgressRow], profile: Any) -> None:
+    """The progress report's pages (:func:`write_progress_report` writes them): the patient, the sessions, one
+    trend section per exercise (its one name, :func:`exercise_identity`), the clinical scores."""
     pdf.text("Patient progress report", 17, True, "#1a3d6d", gap=8)
     first = rows[0].date if rows else "—"
     last = rows[-1].date if rows else "—"
@@ -1561,7 +1568,6 @@ def write_progress_report(patient_id: str, out: str | Path, rows: Sequence[Progr
         pdf.plot_grid([{"title": label, "series": [(label, [k + 1.0 for k in range(n)],
                                                     [_score(r.scores.get(key)) for r in rows])],
                         "x_label": "session", "x_ticks": ticks} for key, label in scored])
-    return pdf.finish()
 
 
 def trend_points(rows: Sequence[ProgressRow], title: str, key: str
