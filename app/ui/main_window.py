@@ -561,23 +561,20 @@ class MainWindow(QMainWindow):
 
     # ------------------------------------------------------------------ quitting (issue #36)
     def _activity(self) -> str:
-        """What quitting would interrupt, in words ("" when nothing runs): a run (exercise, script, console code)
-        or stimulation."""
+        """What quitting would interrupt, in words ("" when nothing runs): a run (an exercise, a script, console
+        code). Stimulation alone (the FES panel) stops with the devices' safe state and is not asked about."""
         runs = getattr(self.manager, "runs", None)
         run = runs.current() if runs is not None else None
         if run is not None:
             return f"“{run.title}” is running."
         if getattr(self._script_runner(), "running", False):
             return "A script is running."
-        fes = self.manager.driver("fes") if hasattr(self.manager, "driver") else None
-        if getattr(fes, "stimulating", False):
-            return "Stimulation is running."
         return ""
 
     def may_quit(self) -> bool:
         """Asked before the window closes (Ctrl+Q, File → Quit, the window's own close button): unsaved edits in
-        the Script tab's editor first (Save / Discard / Cancel: never lost without a word), then an exercise, a
-        script or stimulation in progress (End session's question and words). False: the window stays open."""
+        the Script tab's editor first (Save / Discard / Cancel: never lost without a word), then an exercise or a
+        script in progress (End session's question and words). False: the window stays open."""
         console = self._script_console()
         unsaved = getattr(console, "has_unsaved_changes", None)
         if callable(unsaved) and unsaved():
