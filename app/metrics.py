@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 
 from app import streams
+from app.alarm_count import counted_alarms
 
 # ------------------------------------------------------------------------------------------- parameters
 SPEED_CUTOFF_HZ = 6.0  # low-pass of the position before differentiating (−3 dB): docs/metrics.md, "Speed"
@@ -957,6 +958,13 @@ def session_alarms(session: Any) -> list[dict[str, Any]]:
     return out
 
 
+def _alarms_between(session: Any, lo: float, hi: float) -> int:
+    """The alarms raised between ``lo`` and ``hi`` s from the session's start, counted as every view counts them
+    (app.alarm_count: over the whole record, then by time, so that a STOP latched earlier is known)."""
+    t0 = session.start_mono
+    return sum(1 for e in counted_alarms(session.events) if lo <= round(float(e.get("t_mono", t0)) - t0, 3) <= hi)
+
+
 def metrics_of_session(session: Any, since_mono: float | None = None,
                        until_mono: float | None = None) -> dict[str, Any]:
     """``{"repetitions": [...], "summary": {...}, "alarms": [...], "positioning": [...], "runs": [...]}`` of a
@@ -988,8 +996,7 @@ def metrics_of_session(session: Any, since_mono: float | None = None,
     alarms = [a for a in session_alarms(session) if lo <= a["t_s"] <= hi]
     duration = session.duration_s if since_mono is None and until_mono is None else \
         min(hi, session.duration_s) - max(lo, 0.0)
-    summary = summarize(objects, duration_s=duration,
-                        alarms=sum(1 for a in alarms if a["kind"] in ("alarm", "emergency_stop")))
+    summary = summarize(objects, duration_s=duration, alarms=_alarms_between(session, lo, hi))
     summary["positioning_moves"] = sum(1 for p in positioning if p["kind"] != "homing")
     if params:
         summary["exercise_params"] = _clean(params)
@@ -1065,7 +1072,6 @@ def metrics_by_run(session: Any, sig: SessionSignals | None = None) -> list[RunM
     sig = signals_from_session(session) if sig is None else sig
     t0 = session.start_mono
     out: list[RunMetrics] = []
-    alarms = session_alarms(session)
     for run in _runs_of(session):
         lo = run.started_mono - t0
         hi = (run.ended_mono if run.ended_mono is not None else session.end_mono) - t0
@@ -1091,9 +1097,7 @@ def metrics_by_run(session: Any, sig: SessionSignals | None = None) -> list[RunM
         for k, m in enumerate(reps):
             if m.source == "speed":
                 m.index = k + 1
-        run_alarms = [a for a in alarms if lo <= a["t_s"] <= hi]
-        summary = summarize(reps, duration_s=hi - lo,
-                            alarms=sum(1 for a in run_alarms if a["kind"] in ("alarm", "emergency_stop")))
+        summary = summarize(reps, duration_s=hi - lo, alarms=_alarms_between(session, lo, hi))
         summary.update(_clean({"run_id": run.run_id, "title": run.title, "end_reason": run.end_reason,
                                "exercise_params": params, "not_started": not_started,
                                "positioning_moves": sum(1 for p in positioning if p["kind"] != "homing")}))

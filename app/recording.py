@@ -58,6 +58,7 @@ from typing import TYPE_CHECKING, Any, TextIO
 import numpy as np
 
 from app import paths, streams
+from app.alarm_count import alarm_count
 from app.bus import Channel, DeviceEvent, StreamSpec, Subscription
 
 if TYPE_CHECKING:
@@ -1539,7 +1540,7 @@ def summarize_session(folder: Path) -> SessionSummary:
     events, _ = read_events(folder / EVENTS_FILE)
     exercises = tuple(str((e.get("data") if isinstance(e.get("data"), dict) else {}).get("name") or "script")
                       for e in events if e.get("kind") == "script_start")
-    alarms = sum(1 for e in events if e.get("kind") == "alarm")
+    alarms = alarm_count(events)  # the one definition (app.alarm_count): the reports count the same
     start = manifest.get("start") if isinstance(manifest.get("start"), dict) else {}
     start_mono = start.get("t_mono_s") if _finite_number(start.get("t_mono_s")) else None
     if _finite_number(manifest.get("duration_s")):

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import datetime as _dt
 import errno
+import functools
 import json
 import math
 import sys
@@ -22,6 +23,9 @@ from pathlib import Path
 from typing import Any
 
 from app import streams
+from app.alarm_count import counted_alarms
+from app.clinical_words import event_words, is_technical, plain, source_words
+from app.delivered import ElectrodeSetupRecord, StimulationRecord, electrode_setups, stimulation_outside_runs
 from app.metrics import SUMMARY_METRICS, metrics_of_session
 from app.runs import ExerciseRun, Program, RunParameter, runs_from_events
 
@@ -77,11 +81,19 @@ DEFINITIONS: tuple[tuple[str, str], ...] = (
     ("Force N", "Peak interaction force between the patient and the handle."),
     ("Grip N", "Grip force measured in the 100 ms before the repetition started."),
     ("RT s", "Reaction time: how long the patient took to respond to the exercise's cue (exact definition: "
-             "docs/metrics.md, reaction_time_s)."),
-    ("α, a_r", "α: the patient model's assistance level (0 = none … 1 = full); a_r: the robot's share of "
-               "the assistance."),
+             "docs/metrics.md, \"Reaction time\")."),
+    ("α, a_r, a_f", "α: the patient model's assistance level (0 = none … 1 = full); a_r: the robot's share of "
+                    "the assistance; a_f: the stimulation's share."),
     ("FES charge", "Charge delivered per stimulator channel over the repetitions (current × pulse width × "
                    "pulses), in mC."),
+    ("Alarms", "Warnings, stop and fatal alarms raised, each once (an emergency stop is one stop alarm). Not "
+               "counted: information messages (\"Emergency stop reset\", \"reconnected\"), repeats of an open "
+               "alarm, acknowledgements, data gaps."),
+    ("Response, N", "Electrode set-up: the change of the force on the handle during a test burst, in the "
+                    "district's direction, minus the force just before it."),
+    ("Motor threshold", "Electrode set-up: the lowest test current whose response reached the detection level "
+                        "(0.5 N unless set otherwise)."),
+    ("Discomfort", "The patient's rating of a combination's test bursts: 0 = none … 10 = the worst imaginable."),
 )
 
 
@@ -240,13 +252,90 @@ def run_at(runs: Sequence[ExerciseRun], t_mono: float) -> ExerciseRun | None:
 
 
 def run_titles(folder: Path) -> tuple[str, ...]:
-    """The titles of a session's runs in order, from its events alone (no streams: the sessions list stays
-    fast); empty for a recording made before the run record."""
+    """The exercises of a session's runs in order (:func:`exercise_identity`: one exercise, one name, whatever
+    started it), from its events alone (no streams: the sessions list stays fast); empty for a recording made
+    before the run record."""
     from app.recording import EVENTS_FILE, read_events
 
     events, _ = read_events(Path(folder) / EVENTS_FILE)
-    return tuple(str(((e.get("data") or {}).get("program") or {}).get("title") or "program")
+    return tuple(exercise_identity(Program.from_dict((e.get("data") or {}).get("program") or {}))[1]
                  for e in events if e.get("kind") == "run_start")
+
+
+# ------------------------------------------------------------------------------------------- one exercise, one name
+# The app's example scripts (resources/scripts) that are the library exercise of another name: the seed's own text
+# of the trigger exercise (resources/exercises/trigger_reaching.yaml says so). The others share the exercise's id.
+EXAMPLE_SCRIPT_EXERCISE: dict[str, str] = {"trigger_exercise.py": "trigger_reaching"}
+
+
+@dataclass(frozen=True)
+class _Library:
+    titles: dict[str, str]  # exercise id → title
+    by_hash: dict[str, str]  # text hash of a script (the library's or an example's) → exercise id
+    by_path: dict[str, str]  # resolved path of such a script → exercise id
+
+
+@functools.lru_cache(maxsize=1)
+def _library() -> _Library:
+    """The library's exercises and the example scripts that are the same exercises (read once per process)."""
+    from app.exercises import load_library
+    from app.resources import resource_path
+    from app.runs import text_hash
+
+    titles: dict[str, str] = {}
+    by_hash: dict[str, str] = {}
+    by_path: dict[str, str] = {}
+
+    def add(path: Path, ident: str) -> None:
+        try:
+            by_hash[text_hash(path.read_text(encoding="utf-8"))] = ident
+            by_path[str(path.resolve())] = ident
+        except (OSError, UnicodeDecodeError):
+            pass
+
+    try:
+        exercises = load_library()[0]
+    except Exception:  # no library (a broken install): every run keeps its own name
+        exercises = []
+    for e in exercises:
+        titles[e.ident] = e.title
+        add(e.script, e.ident)
+    try:
+        examples = sorted(resource_path("scripts").glob("*.py"))
+    except OSError:
+        examples = []
+    for path in examples:
+        ident = EXAMPLE_SCRIPT_EXERCISE.get(path.name, path.stem)
+        if ident in titles:
+            add(path, ident)
+    return _Library(titles, by_hash, by_path)
+
+
+def exercise_identity(program: Program) -> tuple[str, str]:
+    """(key, name) under which a run's program is counted across sessions (the progress report, the sessions
+    browser). The rule (docs/sessions.md, "One exercise, one name"): a run is the library exercise E when its
+    program is E (Exercises tab, plan, Recover: kind "exercise", E's id), or when it ran E's script or one of the
+    app's example scripts of E (resources/scripts/<id>.py; the seed's trigger_exercise.py for trigger reaching),
+    recognised by the text's hash or by the file's path — from the Script tab, the console or headless alike. Its
+    name is then E's title as the library has it now. Any other program is its own: a script by its file name,
+    console code as "Console code"."""
+    lib = _library()
+    ident = ""
+    if program.kind == "exercise" and program.ident:
+        ident = program.ident
+    elif program.kind in ("script_file", "console"):
+        ident = lib.by_hash.get(program.text_sha256, "")
+        if not ident and program.path:
+            try:
+                ident = lib.by_path.get(str(Path(program.path).resolve()), "")
+            except (OSError, ValueError):
+                ident = ""
+    if ident:
+        return f"exercise:{ident}", lib.titles.get(ident) or program.title or _library_title(ident) or ident
+    if program.kind == "console":
+        return "console", program.title or "Console code"
+    name = Path(program.path).name if program.path else (program.title or program.ident or "program")
+    return f"script:{name}", program.title or name
 
 
 @dataclass
@@ -263,6 +352,13 @@ class RunReport:
     @property
     def title(self) -> str:
         return self.run.title or self.run.program.ident or "program"
+
+    @property
+    def exercise(self) -> str:
+        """The exercise's one name across tabs and sessions (:func:`exercise_identity`)."""
+        if self.run.program.kind == "console" and not self.run.program.ident:  # movements without a program
+            return self.title
+        return exercise_identity(self.run.program)[1]
 
     @property
     def completed(self) -> int:
@@ -320,6 +416,10 @@ class SessionReportData:
     position: tuple[list[float], list[float]]  # (t s from the start, handle position m), decimated
     problems: list[str]
     profile: Any = None  # the patient's profile (app.patients) as it is now, when it can be read
+    events: list[dict[str, Any]] = field(default_factory=list)  # the record's events (acknowledgements, ids)
+    setups: list[ElectrodeSetupRecord] = field(default_factory=list)  # the electrode set-ups, in order
+    stimulation: list[StimulationRecord] = field(default_factory=list)  # FES started outside every run
+    end_mono: float = 0.0
 
     @property
     def patient_id(self) -> str:
@@ -349,7 +449,12 @@ def session_report_data(folder: str | Path, profile: Any = None) -> SessionRepor
         x = [float(v) for v in vsa.data["handlePos"][::step]]
     if profile is None:
         profile = _profile_of(session.manifest.get("patient_id") or Path(folder).parent.name)
-    return SessionReportData(Path(folder), session.manifest, metrics, runs, (t, x), list(session.problems), profile)
+    events = [dict(e) for e in session.events]
+    fes = session.streams.get(streams.FES_CHANNELS)
+    return SessionReportData(Path(folder), session.manifest, metrics, runs, (t, x), list(session.problems), profile,
+                             events, electrode_setups(events, fes),
+                             stimulation_outside_runs(events, [r.run for r in runs], session.end_mono, fes),
+                             float(session.end_mono))
 
 
 def _profile_of(patient_id: str) -> Any:
@@ -406,9 +511,10 @@ class ProgressRow:
 
 
 def exercise_trends(reports: Iterable[RunReport]) -> dict[str, ExerciseTrend]:
+    """Per exercise (:func:`exercise_identity`: its runs from any tab under one name), its runs pooled."""
     groups: dict[str, list[RunReport]] = {}
     for r in reports:
-        groups.setdefault(r.title, []).append(r)
+        groups.setdefault(r.exercise, []).append(r)
     out = {}
     for title, group in groups.items():
         reps = [rep for r in group for rep in r.repetitions]
@@ -437,7 +543,7 @@ def progress_rows(patient_id: str, root: Path | None = None,
         m = metrics_of_session(session)
         reports = run_reports(session)
         scores = dict(((session.manifest.get("patient") or {}).get("scores")) or {})
-        titles = tuple(dict.fromkeys(r.title for r in reports)) or s.exercises
+        titles = tuple(dict.fromkeys(r.exercise for r in reports)) or s.exercises
         rows.append(ProgressRow(s.folder, s.start, titles, m["summary"], scores, s.complete,
                                 exercise_trends(reports)))
     if progress is not None:
@@ -857,24 +963,59 @@ def _duration(seconds: Any) -> str:
 
 # ------------------------------------------------------------------------------------------- session PDF
 def program_text(run: ExerciseRun) -> str:
+    """What ran, in the clinician's words (ids, paths, versions and hashes are in the technical appendix)."""
     prog = run.program
     if prog.kind == "exercise":
-        version = f", version {prog.version[:10]}" if prog.version else ""
-        return f"library exercise “{prog.ident}”{version}"
+        return "library exercise"
     if prog.kind == "console":
         if not prog.ident:
             return "none (the handle's movements, found from its speed)"
         return "code typed in the script console"
-    return f"script file {prog.path or prog.ident}"
+    name = Path(prog.path).name if prog.path else plain(prog.ident or prog.title)
+    key, exercise = exercise_identity(prog)
+    if key.startswith("exercise:"):
+        return f"script file {name}, the exercise “{exercise}” run as a script"
+    return f"script file {name}"
+
+
+def program_technical(run: ExerciseRun) -> str:
+    """What ran, for the engineer: the run's id, the program's kind, id, file, version and text hash."""
+    prog = run.program
+    parts = [f"run id {run.run_id}", f"kind {prog.kind}"]
+    if prog.ident:
+        parts.append(f"id {prog.ident}")
+    if prog.path:
+        parts.append(f"file {prog.path}")
+    if prog.version:
+        parts.append(f"version {prog.version}")
+    if prog.text_sha256:
+        parts.append(f"text sha256 {prog.text_sha256}")
+    parts.append(f"end {run.end_reason or 'running'}" + (f": {run.end_detail}" if run.end_detail else ""))
+    return "; ".join(parts)
+
+
+def run_heading(report: RunReport) -> str:
+    """A run's name in the session report: its exercise's one name (:func:`exercise_identity`), and the script's
+    file when the exercise ran as a script ("Trigger reaching (…) — script trigger_exercise.py")."""
+    if report.exercise == report.title:
+        return report.title
+    return f"{report.exercise} — script {report.title}"
+
+
+def end_words(run: ExerciseRun) -> str:
+    """How a run ended, in the clinician's words (its cause as recorded: technical appendix)."""
+    return plain(run.end_text())
 
 
 def parameters_text(run: ExerciseRun) -> list[tuple[str, str]]:
-    """The parameters in words with their units: (label, "value unit")."""
+    """The parameters in words with their units: (label, "value unit"). A script's own names (no label) are said
+    as words."""
     out = []
     for p in run.parameters:
         number = isinstance(p.value, int | float) and not isinstance(p.value, bool)
-        value = fmt(p.value) if number else fmt(p.value, "{}")
-        out.append((p.label or p.name, value + (f" {p.unit}" if p.unit else "")))
+        value = fmt(p.value) if number else plain(fmt(p.value, "{}"))
+        label = p.label if p.label and p.label != p.name else plain(p.name)
+        out.append((label, value + (f" {p.unit}" if p.unit else "")))
     return out
 
 
@@ -895,10 +1036,182 @@ def repetition_row(r: Mapping[str, Any]) -> list[str]:
 
 
 def alarm_text(data: Mapping[str, Any]) -> str:
-    """An alarm's own sentence first (its text or reason), then the rest, in full."""
-    said = str(data.get("text") or data.get("reason") or data.get("message") or "")
-    rest = ", ".join(f"{k}: {v}" for k, v in data.items() if k not in ("text", "reason", "message", "ident"))
-    return " — ".join(p for p in (said, rest) if p)
+    """An alarm's or interruption's own sentence in the clinician's words, and who raised it (the record's own
+    wording is in the report's technical appendix: :func:`alarm_technical`)."""
+    said = plain(data.get("text") or data.get("reason") or data.get("message") or "")
+    device = data.get("device")
+    if not said and device:  # a data gap: the device and why
+        said = f"{source_words(device)}: {plain(data.get('detail') or data.get('cause') or 'no data')}"
+    who = data.get("source")
+    if who and data.get("level") is not None:
+        name = source_words(who)
+        if name.lower() not in said.lower():
+            said = f"{said} ({name})" if said else name
+    return said
+
+
+def alarm_technical(kind: str, data: Mapping[str, Any]) -> str:
+    """An alarm's or interruption's record as written: its kind and every field."""
+    return kind + ": " + ", ".join(f"{k}={v}" for k, v in data.items())
+
+
+@dataclass(frozen=True)
+class AlarmRow:
+    """One line of the report's alarms table: when, in which run, what, the details, and its acknowledgement."""
+
+    t_s: float  # from the session's start
+    run: str  # the run's number, "—" outside every run
+    what: str
+    details: str
+    acknowledged: str
+    counted: bool  # counted in the session's number of alarms (app/alarm_count.py)
+    technical: str  # the record's own words
+
+
+def alarm_rows(data: SessionReportData) -> list[AlarmRow]:
+    """The session's alarms and interruptions as the report lists them: each stop once (the supervisor's STOP
+    alarm; its own ``emergency_stop`` event only where no alarm came with it), no line for a program's end (the
+    runs' table says how each ended), and who acknowledged each alarm, when."""
+    t0 = float((data.manifest.get("start") or {}).get("t_mono_s") or 0.0)
+    counted_ids = {id(e) for e in counted_alarms(data.events)}
+    acks: dict[Any, tuple[str, float]] = {}
+    for e in data.events:
+        if e.get("kind") == "alarm_acknowledged":
+            d = e.get("data") or {}
+            acks.setdefault(d.get("ident"), (str(d.get("operator") or e.get("who") or ""), float(e.get("t_mono", t0))))
+    estop_alarms = [float(e.get("t_mono", t0)) for e in data.events if e.get("kind") == "alarm"
+                    and str((e.get("data") or {}).get("text") or "").startswith("Emergency stop")]
+    runs = [r.run for r in data.runs]
+    number_of = {r.run.run_id: str(r.number) for r in data.runs}
+    rows: list[AlarmRow] = []
+    kinds = ("alarm", "emergency_stop", "exercise_paused", "exercise_resumed", "gap_start", "command_refused")
+    for e in data.events:
+        kind = str(e.get("kind") or "")
+        if kind not in kinds:
+            continue
+        d = dict(e.get("data") or {})
+        t = float(e.get("t_mono", t0))
+        if kind == "emergency_stop" and (any(abs(t - ta) <= 1.0 for ta in estop_alarms)
+                                         or id(e) not in counted_ids):
+            continue  # the STOP alarm it raised is the line (a press while latched adds nothing)
+        run = run_at(runs, t)
+        ack = ""
+        if kind == "alarm":
+            who, when = acks.get(d.get("ident"), ("", 0.0))
+            if who or when:
+                ack = f"{who or 'operator'}, {_clock_of(data, when)}"
+        what = event_words(kind, d)
+        rows.append(AlarmRow(t - t0, number_of.get(run.run_id, "—") if run is not None else "—", what,
+                             alarm_text(d), ack, id(e) in counted_ids, alarm_technical(kind, d)))
+    return rows
+
+
+def _clock_of(data: SessionReportData, t_mono: float | None) -> str:
+    """A monotonic time of the session as the clock showed it (HH:MM:SS), or seconds from the start."""
+    start = data.manifest.get("start") or {}
+    start_mono = float(start.get("t_mono_s") or 0.0)
+    if t_mono is None:
+        return "—"
+    try:
+        start_dt = _dt.datetime.fromisoformat(str(start.get("t_wall")))
+    except ValueError:
+        return f"{t_mono - start_mono:.0f} s"
+    return (start_dt + _dt.timedelta(seconds=t_mono - start_mono)).strftime("%H:%M:%S")
+
+
+def alarms_summary(data: SessionReportData) -> str:
+    """"7 (4 stop alarms, 3 warnings)": the session's alarm count (app/alarm_count.py) and its levels."""
+    counted = counted_alarms(data.events)
+    if not counted:
+        return "none"
+    levels: dict[str, int] = {}
+    for e in counted:
+        level = str((e.get("data") or {}).get("level") or ("STOP" if e.get("kind") == "emergency_stop" else ""))
+        name = {"STOP": "stop alarm", "FATAL": "fatal alarm", "WARNING": "warning"}.get(level, "alarm")
+        levels[name] = levels.get(name, 0) + 1
+    parts = [f"{n} {name}{'s' if n > 1 else ''}" for name, n in levels.items()]
+    return f"{len(counted)} ({', '.join(parts)})"
+
+
+def _g(value: Any) -> str:
+    """A setting as typed: 8 mA, 12.5 mA, 250 µs (no trailing zeros)."""
+    return f"{float(value):g}" if isinstance(value, int | float) else "—"
+
+
+def _newton(value: Any) -> str:
+    """A test burst's response to 0.01 N (below that: 0; a negative response is no response in that direction)."""
+    v = round(float(value), 2) if isinstance(value, int | float) else 0.0
+    return "0" if v == 0 else f"{v:.2f}"
+
+
+def _ma(value: float | None) -> str:
+    return "—" if value is None else f"{_g(value)} mA"
+
+
+def _currents_text(currents: Sequence[float]) -> str:
+    """"8, 10 … 30 mA" (a ladder said by its first two steps and its end)."""
+    if not currents:
+        return "none"
+    values = [_g(c) for c in currents]
+    if len(values) <= 4:
+        return ", ".join(values) + " mA"
+    return f"{values[0]}, {values[1]} … {values[-1]} mA"
+
+
+def setup_summary(setup: ElectrodeSetupRecord) -> str:
+    """One district's set-up in a sentence: bursts, currents up to the highest, pulse width, and the choice."""
+    plan = setup.plan
+    width = plan.get("pulse_width_us")
+    text = (f"{setup.district}: {setup.bursts} test burst{'s' if setup.bursts != 1 else ''} on "
+            f"{len(setup.combinations)} combinations, up to {_ma(setup.highest_ma)}"
+            + (f" at {_g(width)} µs" if isinstance(width, int | float) else ""))
+    if setup.aborted:
+        text += f"; ended early: {plain(setup.aborted)}"
+    choice = setup.choice
+    if choice:
+        text += (f"; channel {choice.get('channel')} (electrodes {choice.get('electrodes')}) chosen by "
+                 f"{choice.get('chosen_by') or 'the operator'}"
+                 + (" (the proposal)" if choice.get("accepted_proposal") else
+                    f" (proposed: channel {choice.get('proposed_channel')})"))
+    elif not setup.aborted:
+        text += "; no combination chosen"
+    return text
+
+
+def stimulation_summary(data: SessionReportData) -> str:
+    stims = data.stimulation
+    if not stims:
+        return "none"
+    total = sum(s.duration_s(data.end_mono) for s in stims)
+    profiles = ", ".join(dict.fromkeys(s.profile or "a profile" for s in stims))
+    return f"{len(stims)} time{'s' if len(stims) > 1 else ''}, {_duration(total)} in all ({profiles})"
+
+
+def stimulation_end_words(s: StimulationRecord) -> str:
+    if s.ended_mono is None:
+        return "no end in the record (the session ended while stimulating)"
+    reason, source = s.end_reason, s.end_source
+    if source == "fes profile" or reason == "the time profile finished":
+        return "the profile ran to its end"
+    if reason == "stop button":
+        return f"Stop pressed in the {source or 'FES panel'}"
+    said = plain(reason) or "stopped"
+    return said if not source or source.lower() in said.lower() else f"{said} ({source_words(source)})"
+
+
+def _channels_text(channels: Mapping[int, tuple[float, float]]) -> str:
+    if not channels:
+        return "not recorded"
+    return "; ".join(f"channel {ch}: up to {_g(ma)} mA, {_g(us)} µs"
+                     for ch, (ma, us) in sorted(channels.items()))
+
+
+def _started_from(run: ExerciseRun) -> str:
+    """"Exercises tab, by Dr Rossi", "Recover (restart), by Dr Rossi"."""
+    return SOURCE_TEXT.get(run.source, run.source) + (f", by {run.operator}" if run.operator else "")
+
+
+TECHNICAL_APPENDIX = "Technical appendix (for the engineer)"
 
 
 def save_session_report(folder: str | Path, out: str | Path, data: SessionReportData | None = None) -> int:
@@ -920,44 +1233,43 @@ def save_progress_report(patient_id: str, out: str | Path, rows: Sequence[Progre
 
 
 def write_session_report(folder: str | Path, out: str | Path, data: SessionReportData | None = None) -> int:
-    """Draw the session's report into ``out``; returns the number of pages. (What the user saves goes through
-    :func:`save_session_report`, which verifies the file before saying it is written.)"""
+    """Draw the session's report into ``out``; returns the number of pages. Reading the session
+    (:func:`session_report_data`), drawing it (:func:`render_session_report`) and finishing the file are apart;
+    what the user saves goes through :func:`save_session_report`, which writes aside, reads the file back and
+    only then moves it into place."""
     _ensure_gui_app()
     data = data or session_report_data(folder)
+    pdf = _Pdf(Path(out), f"Session {data.patient_id} {data.started}", _footer(f"session {data.folder.name}"))
+    render_session_report(pdf, data)
+    return pdf.finish()
+
+
+def render_session_report(pdf: _Pdf, data: SessionReportData) -> None:
+    """The session's report, in the clinician's words first: page 1 the patient, the session, its runs, what
+    was delivered besides them and the alarms, with the sign-off; then each run, the electrode set-ups, the
+    stimulation outside the exercises, the whole session's alarms and the definitions; last a technical
+    appendix with what the record says in the engineer's words (paths, ids, hashes, raw messages)."""
     m = data.metrics
     manifest = data.manifest
     patient = manifest.get("patient") or {}
-    profile = data.profile
     start = manifest.get("start") or {}
     start_mono = float(start.get("t_mono_s") or 0.0)
-    try:
-        start_dt: _dt.datetime | None = _dt.datetime.fromisoformat(str(start.get("t_wall")))
-    except ValueError:
-        start_dt = None
 
     def clock(t_mono: float | None) -> str:
-        if t_mono is None:
-            return "—"
-        if start_dt is None:
-            return f"{t_mono - start_mono:.0f} s"
-        return (start_dt + _dt.timedelta(seconds=t_mono - start_mono)).strftime("%H:%M:%S")
+        return _clock_of(data, t_mono)
 
-    pdf = _Pdf(Path(out), f"Session {data.patient_id} {data.started}", _footer(f"session {data.folder.name}"))
     pdf.text("Therapy session report", 17, True, "#1a3d6d", gap=8)
     status = "complete" if manifest.get("status") == "complete" else "INTERRUPTED (the application did not end it)"
-    ident = identification(data.patient_id, profile, patient)
     runs = data.runs
     duration = manifest.get("duration_s")
     if duration is None:
         duration = m["summary"].get("session_duration_s")
     pdf.fields([
-        *ident,
+        *identification(data.patient_id, data.profile, patient),
         ("Operator", str(manifest.get("operator") or "—")),
         ("Date", _when(data.started)),
         ("Duration", f"{_duration(duration)}   ({status})"),
-        ("Exercise runs", f"{len(runs)}: " + "; ".join(f"{r.number}. {r.title}" for r in runs) if runs else "none"),
         ("Note", str(manifest.get("note") or "—")),
-        ("Session folder", str(data.folder)),
     ])
 
     numbers = {r.run.run_id: r.number for r in runs}
@@ -966,29 +1278,35 @@ def write_session_report(folder: str | Path, out: str | Path, data: SessionRepor
     if runs:
         rows = []
         for r in runs:
-            end = r.run.end_text()
             notes = []
             if r.run.restart_of:
-                notes.append(f"restart of run {numbers.get(r.run.restart_of, r.run.restart_of)}")
+                notes.append(f"restart of run {numbers.get(r.run.restart_of, '?')}")
             if r.run.run_id in restarts:
                 notes.append(f"restarted as run {restarts[r.run.run_id]}")
-            rows.append([str(r.number), r.title, SOURCE_TEXT.get(r.run.source, r.run.source) + (
+            rows.append([str(r.number), run_heading(r), SOURCE_TEXT.get(r.run.source, r.run.source) + (
                 f", {r.run.operator}" if r.run.operator else ""), clock(r.run.started_mono),
-                _duration(r.run.elapsed_s()), r.reps_text(), "; ".join([end, *notes])])
+                _duration(r.run.elapsed_s()), r.reps_text(), "; ".join([end_words(r.run), *notes])])
         pdf.table(["Run", "Exercise", "Started from, by", "Start", "Duration", "Repetitions", "Ended"], rows,
                   [0.4, 2.2, 1.5, 0.8, 0.9, 1.2, 2.3])
     else:
         pdf.text("No exercise was run in this session.", colour="#555555")
+    delivered = [("Electrode set-up", "; ".join(setup_summary(s) for s in data.setups) if data.setups else "none"),
+                 ("Stimulation outside the exercises", stimulation_summary(data)),
+                 ("Alarms", alarms_summary(data))]
+    pdf.heading("Also in this session", keep=90)
+    pdf.fields(delivered, label_width=150)
+    # The sign-off belongs with the summary it signs: it follows it on its page (never alone on the last one).
+    sign_off(pdf, str(manifest.get("operator") or ""))
 
+    pdf.new_page()
     for r in runs:
         run = r.run
-        pdf.heading(f"Run {r.number} — {r.title}", 11.5, keep=140)
+        pdf.heading(f"Run {r.number} — {run_heading(r)}", 11.5, keep=140)
         info = [("Program", program_text(run)),
-                ("Started", f"{clock(run.started_mono)} from the {SOURCE_TEXT.get(run.source, run.source)}"
-                            + (f" by {run.operator}" if run.operator else "")),
-                ("Ended", f"{clock(run.ended_mono)} — {run.end_text()}")]
+                ("Started", f"{clock(run.started_mono)} — {_started_from(run)}"),
+                ("Ended", f"{clock(run.ended_mono)} — {end_words(run)}")]
         if run.restart_of:
-            info.append(("Restart of", f"run {numbers.get(run.restart_of, run.restart_of)}"))
+            info.append(("Restart of", f"run {numbers.get(run.restart_of, '?')}"))
         if run.run_id in restarts:
             info.append(("Restarted as", f"run {restarts[run.run_id]}"))
         pdf.fields(info, label_width=110)
@@ -997,13 +1315,13 @@ def write_session_report(folder: str | Path, out: str | Path, data: SessionRepor
         if params:
             pdf.fields(params, label_width=190)
         else:
-            pdf.text("none (a script's own values; see its text in the session's events)", colour="#555555")
+            pdf.text("none (a script's own values; its text is kept in the session's record)", colour="#555555")
         summary = r.summary
         how = "marked by the exercise" if summary.get("source") == "marks" else "segmented from the handle speed"
         pdf.subheading("Summary of this run")
         counted = (f"{len(r.repetitions)} ({r.completed} completed; {how})" if r.repetitions
                    else r.reps_text())
-        summary_fields = [("Repetitions", counted), ("Alarms / stops", str(summary.get("alarms", 0)))]
+        summary_fields = [("Repetitions", counted), ("Alarms", str(summary.get("alarms", 0)))]
         if r.positioning:
             summary_fields.append(("Positioning moves", f"{len(r.positioning)} (the robot placing the handle; not "
                                                         "repetitions)"))
@@ -1026,11 +1344,29 @@ def write_session_report(folder: str | Path, out: str | Path, data: SessionRepor
                 {"title": f"Run {r.number}: range of motion", "unit": "m", "x_label": "repetition",
                  "x_ticks": ticks, "series": [("range", idx, [rep.get("range_m") for rep in r.repetitions])]},
             ], height=130)
-        if r.alarms:
+        mine = [a for a in alarm_rows(data) if a.run == str(r.number)]
+        if mine:
             pdf.subheading(f"Alarms and interruptions during run {r.number}")
-            pdf.table(["Time s", "Event", "Details"],
-                      [[f"{a['t_s']:.1f}", a["kind"].replace("_", " "), alarm_text(a["data"])] for a in r.alarms],
-                      [0.8, 1.4, 6])
+            pdf.table(["Time", "What", "Details", "Acknowledged by"],
+                      [[clock(a.t_s + start_mono), a.what, a.details, a.acknowledged] for a in mine],
+                      [0.8, 1.1, 4.8, 1.5])
+
+    if data.setups:
+        pdf.heading("Electrode set-up", keep=200)
+        pdf.text("Test bursts given with the robot holding the arm still; the response is the change of the force "
+                 "on the handle during each burst (definitions at the end).", 8, colour="#444444")
+        for setup in data.setups:
+            _draw_setup(pdf, data, setup)
+
+    pdf.heading("Stimulation outside the exercises", keep=90)
+    if data.stimulation:
+        pdf.table(["Start", "Profile", "Started from", "Sent (highest)", "Duration", "How it ended"],
+                  [[clock(s.started_mono), s.profile or "—", source_words(s.source) or "—",
+                    _channels_text(s.channels), _duration(s.duration_s(data.end_mono)), stimulation_end_words(s)]
+                   for s in data.stimulation], [0.8, 2.0, 1.1, 2.2, 0.9, 1.8])
+    else:
+        pdf.text("None: every stimulation of this session was part of an exercise or of the electrode set-up.",
+                 colour="#555555")
 
     pdf.heading("The whole session", keep=200)
     t, x = data.position
@@ -1038,29 +1374,116 @@ def write_session_report(folder: str | Path, out: str | Path, data: SessionRepor
              shade=[(r.run.started_mono - start_mono, (r.run.ended_mono or start_mono) - start_mono) for r in runs],
              markers=False, height=170)
     pdf.heading("Alarms and interruptions (whole session)")
-    alarms = m["alarms"]
-    if alarms:
-        number_of = {r.run.run_id: str(r.number) for r in runs}
-
-        def run_number(t_s: float) -> str:
-            run = run_at([r.run for r in runs], t_s + start_mono)
-            return number_of.get(run.run_id, "—") if run is not None else "—"
-        pdf.table(["Time s", "Run", "Event", "Details"],
-                  [[f"{a['t_s']:.1f}", run_number(a["t_s"]), a["kind"].replace("_", " "), alarm_text(a["data"])]
-                   for a in alarms], [0.8, 0.5, 1.4, 6])
+    rows_all = alarm_rows(data)
+    if rows_all:
+        pdf.text(f"Alarms counted: {alarms_summary(data)}. Information messages and data gaps are listed but not "
+                 "counted (definitions at the end).", 8, colour="#444444")
+        pdf.table(["Time", "Run", "What", "Details", "Acknowledged by"],
+                  [[clock(a.t_s + start_mono), a.run, a.what, a.details, a.acknowledged] for a in rows_all],
+                  [0.8, 0.45, 1.1, 4.4, 1.5])
     else:
         pdf.text("None.")
     if data.problems:
         pdf.heading("Recording problems")
         for p in data.problems:
-            pdf.text("• " + p)
+            pdf.text("• " + plain(p))
 
     pdf.heading("Definitions", keep=120)
     pdf.fields(list(DEFINITIONS), label_width=110)
-    pdf.text("Full definitions and sources: docs/metrics.md of LINarm++ Manager.", 8, colour="#555555")
+    pdf.text("Full definitions and sources: the metrics and sessions documents of LINarm++ Manager.", 8,
+             colour="#555555")
 
-    sign_off(pdf, str(manifest.get("operator") or ""))
-    return pdf.finish()
+    _draw_technical_appendix(pdf, data)
+
+
+def _draw_setup(pdf: _Pdf, data: SessionReportData, setup: ElectrodeSetupRecord) -> None:
+    plan = setup.plan
+
+    def num(key: str, unit: str) -> str:
+        value = plan.get(key)
+        return f"{_g(value)} {unit}" if isinstance(value, int | float) else "—"
+
+    pdf.subheading(f"{setup.district[:1].upper()}{setup.district[1:]} — {_clock_of(data, setup.started_mono)}"
+                   + (f", {setup.operator}" if setup.operator else ""), keep=160)
+    fields = [("Test bursts", f"{setup.bursts} on {len(setup.combinations)} combinations, up to "
+                              f"{_ma(setup.highest_ma)}"),
+              ("Settings", f"from {num('start_ma', 'mA')} in steps of {num('step_ma', 'mA')} up to "
+                           f"{num('ceiling_ma', 'mA')} (or the channel's cap), pulse width "
+                           f"{num('pulse_width_us', 'µs')}, {num('frequency_hz', 'Hz')}")]
+    planned = plan.get("pulse_width_us")
+    sent = [us for _ma_, us in setup.delivered.values()]
+    if sent and isinstance(planned, int | float) and abs(max(sent) - float(planned)) > 0.5:
+        fields.append(("Pulse width sent", f"up to {_g(max(sent))} µs, not the {_g(planned)} µs set (an override was "
+                                           "active: see the stimulator's record)"))
+    pdf.fields(fields, label_width=110)
+    rows = []
+    for c in setup.combinations:
+        responses = ", ".join(f"{_g(b.get('current_ma') or 0)}: {_newton(b.get('response_n'))}"
+                              for b in c.bursts) or "—"
+        widths = {_g(b.get("pulse_width_us") or 0) for b in c.bursts}
+        chosen = setup.choice is not None and setup.choice.get("channel") == c.channel
+        rows.append([str(c.channel) + (" ✓" if chosen else ""), c.electrodes or "—", str(len(c.bursts)),
+                     _currents_text(c.currents) + (f" at {', '.join(sorted(widths))} µs" if widths else ""),
+                     responses, _ma(c.motor_threshold_ma),
+                     "not rated" if c.discomfort is None else f"{c.discomfort}/10"])
+    pdf.table(["Ch.", "Electrodes", "Bursts", "Currents tested", "Response, N (at mA)", "Motor threshold",
+               "Discomfort"], rows, [0.4, 0.95, 0.6, 1.6, 2.7, 0.95, 1.0])
+    outcome = []
+    if setup.aborted:
+        outcome.append(("Ended early", plain(setup.aborted)))
+    if setup.proposed_channel is not None or setup.proposal_reason:
+        outcome.append(("Proposed", plain(setup.proposal_reason) or f"channel {setup.proposed_channel}"))
+    choice = setup.choice
+    if choice:
+        when = str(choice.get("chosen_at") or "")
+        try:
+            when = _dt.datetime.fromisoformat(when).strftime("%H:%M:%S")
+        except ValueError:
+            pass
+        outcome.append(("Chosen", f"channel {choice.get('channel')} (electrodes {choice.get('electrodes')}) by "
+                                  f"{choice.get('chosen_by') or 'the operator'}" + (f" at {when}" if when else "")
+                                  + (", the proposal" if choice.get("accepted_proposal") else
+                                     f", not the proposal (channel {choice.get('proposed_channel')})")
+                                  + ("; saved in the patient's profile" if choice.get("saved") else
+                                     "; not saved (no profile file)")))
+    elif not setup.aborted:
+        outcome.append(("Chosen", "no combination was chosen"))
+    pdf.fields(outcome, label_width=110)
+
+
+def _draw_technical_appendix(pdf: _Pdf, data: SessionReportData) -> None:
+    """What the record says in the engineer's words: where it is, what exactly ran, and every alarm and
+    interruption as written (the pages before say them in the clinician's words)."""
+    from app.recording import app_version
+
+    pdf.new_page()
+    pdf.heading(TECHNICAL_APPENDIX, 13)
+    pdf.text("For the engineer: the record's own identifiers and messages. The clinical pages before this one say "
+             "the same in words.", 8, colour="#444444")
+    fields = [("Session folder", str(data.folder)), ("Printed by", f"LINarm++ Manager {app_version()}")]
+    recorded = data.manifest.get("app_version") or data.manifest.get("version")
+    if recorded:
+        fields.append(("Recorded by", str(recorded)))
+    pdf.fields(fields, label_width=120)
+    if data.runs:
+        pdf.subheading("Programs")
+        pdf.fields([(f"Run {r.number}", program_technical(r.run)) for r in data.runs], label_width=60)
+    rows = alarm_rows(data)
+    if rows:
+        pdf.subheading("Alarms and interruptions as recorded")
+        pdf.table(["Time s", "Record"], [[f"{a.t_s:.1f}", a.technical] for a in rows], [0.7, 8])
+    stims = [s for s in data.stimulation if s.end_reason or s.end_source]
+    if stims:
+        pdf.subheading("Stimulation outside the exercises as recorded")
+        pdf.table(["Start", "Record"], [[_clock_of(data, s.started_mono),
+                                         f"source={s.source}; profile={s.profile}; end reason={s.end_reason}; "
+                                         f"end source={s.end_source}; current scale={s.current_scale}"]
+                                        for s in stims], [0.7, 8])
+    technical = [p for p in data.problems if is_technical(p)]
+    if technical:
+        pdf.subheading("Recording problems as recorded")
+        for p in technical:
+            pdf.text("• " + p, 8)
 
 
 def identification(patient_id: str, profile: Any, snapshot: Mapping[str, Any]) -> list[tuple[str, str]]:
@@ -1086,8 +1509,11 @@ def identification(patient_id: str, profile: Any, snapshot: Mapping[str, Any]) -
     return out
 
 
+SIGN_OFF_HEIGHT = 150.0  # the sign-off block: its heading, the operator, three lines to write on
+
+
 def sign_off(pdf: _Pdf, operator: str) -> None:
-    pdf.heading("Sign-off", keep=130)
+    pdf.heading("Sign-off", keep=SIGN_OFF_HEIGHT)
     pdf.fields([("Operator (recorded)", operator or "—")], label_width=130)
     pdf.ensure(60)
     third = (pdf.inner_width - 40) / 3
@@ -1106,6 +1532,13 @@ def write_progress_report(patient_id: str, out: str | Path, rows: Sequence[Progr
     if profile is None:
         profile = _profile_of(patient_id)
     pdf = _Pdf(Path(out), f"Progress {patient_id}", _footer(f"progress of {patient_id}"))
+    render_progress_report(pdf, patient_id, rows, profile)
+    return pdf.finish()
+
+
+def render_progress_report(pdf: _Pdf, patient_id: str, rows: Sequence[ProgressRow], profile: Any) -> None:
+    """The progress report's pages (:func:`write_progress_report` writes them): the patient, the sessions, one
+    trend section per exercise (its one name, :func:`exercise_identity`), the clinical scores."""
     pdf.text("Patient progress report", 17, True, "#1a3d6d", gap=8)
     first = rows[0].date if rows else "—"
     last = rows[-1].date if rows else "—"
@@ -1130,7 +1563,7 @@ def write_progress_report(patient_id: str, out: str | Path, rows: Sequence[Progr
                 fmt(r.value("peak_speed_m_s")), fmt(r.value("sparc")), fmt(r.value("range_m")),
                 fmt(r.value("mean_alpha")), fmt(r.summary.get("alarms"), "{}"),
                 "interrupted" if r.interrupted else "complete"]
-               for k, r in enumerate(rows)], [0.3, 1.45, 2.35, 0.85, 0.75, 0.65, 0.75, 0.4, 0.65, 0.95],
+               for k, r in enumerate(rows)], [0.3, 1.45, 2.1, 0.85, 0.75, 0.65, 0.8, 0.55, 0.65, 0.95],
               align_right=(3, 4, 5, 6, 7, 8))
 
     n = len(rows)
@@ -1159,7 +1592,6 @@ def write_progress_report(patient_id: str, out: str | Path, rows: Sequence[Progr
         pdf.plot_grid([{"title": label, "series": [(label, [k + 1.0 for k in range(n)],
                                                     [_score(r.scores.get(key)) for r in rows])],
                         "x_label": "session", "x_ticks": ticks} for key, label in scored])
-    return pdf.finish()
 
 
 def trend_points(rows: Sequence[ProgressRow], title: str, key: str

@@ -184,7 +184,11 @@ class MainWindow(QMainWindow):
         app = QApplication.instance()
         if app is not None:
             app.installEventFilter(self._estop_filter)
+        from app.ui.widgets import install_wheel_guard
+
+        install_wheel_guard()  # the wheel over a number box scrolls the form unless the box has the focus (#36)
         manager.supervisor.estop_changed.connect(self._on_estop_changed)
+        self._quit_confirmed = False  # may_quit() said yes: a second close event does not ask again
         self._restore_settings()
 
     # ------------------------------------------------------------------ building
@@ -389,15 +393,18 @@ class MainWindow(QMainWindow):
         dialog.accepted.connect(accepted)
         dialog.open()
 
-    def end_session(self) -> None:
-        if self.manager.recorder is None:
-            return
+    def _stop_question(self, question: str) -> str:
+        """The words of End session's question, also Quit's: what stops, and the alarms left unacknowledged."""
         open_ = [a for a in self.manager.supervisor.alarms() if not a.acknowledged]
         warning = (f"<br><br><b>{len(open_)} alarm(s) are not acknowledged</b> — they stay unacknowledged in "
                    "the session record. Acknowledge them first from the Alarms list if you want them signed."
                    if open_ else "")
-        answer = QMessageBox.question(self, "End session",
-                                      f"End the session? Stimulation stops and the robot goes idle.{warning}")
+        return f"{question} Stimulation stops and the robot goes idle.{warning}"
+
+    def end_session(self) -> None:
+        if self.manager.recorder is None:
+            return
+        answer = QMessageBox.question(self, "End session", self._stop_question("End the session?"))
         if answer == QMessageBox.StandardButton.Yes:
             self.manager.end_session()
 
@@ -528,23 +535,7 @@ class MainWindow(QMainWindow):
         settings = QSettings()
         palette = settings.value("ui/palette", self.manager.config.ui.palette)
         self.dark_action.setChecked(palette == "dark")
-        geometry = settings.value("main/geometry")
-        state = settings.value("main/state")
-        if geometry is not None:
-            self.restoreGeometry(geometry)
-        else:  # first run: the whole screen (1366×768 laptops and 1920×1080 desks alike); then remembered
-            # The screen's size as well as "maximised": a window manager maximises (checked under openbox:
-            # 1920×1061 below its title bar); without one (a kiosk X session) nothing would, and the window
-            # stayed 1366×768 in a corner of a 1920×1080 screen (issue #30).
-            screen = self.screen().availableGeometry() if self.screen() is not None else None
-            if screen is not None and screen.width() >= 1366 and screen.height() >= 768:
-                self.setGeometry(screen)
-            else:
-                self.resize(1366, 768)
-            self.setWindowState(self.windowState() | Qt.WindowState.WindowMaximized)
-        if state is not None:
-            self.restoreState(state)
-        else:
+        if not self._restore_geometry(settings):
             self._first_run_layout()
         self._default_state = None
 
@@ -590,10 +581,100 @@ class MainWindow(QMainWindow):
             painter.end()
         return pixmap
 
+    # ------------------------------------------------------------------ quitting (issue #36)
+    def _activity(self) -> str:
+        """What quitting would interrupt, in words ("" when nothing runs): a run (an exercise, a script, console
+        code). Stimulation alone (the FES panel) stops with the devices' safe state and is not asked about."""
+        runs = getattr(self.manager, "runs", None)
+        run = runs.current() if runs is not None else None
+        if run is not None:
+            return f"“{run.title}” is running."
+        if getattr(self._script_runner(), "running", False):
+            return "A script is running."
+        return ""
+
+    def may_quit(self) -> bool:
+        """Asked before the window closes (Ctrl+Q, File → Quit, the window's own close button): unsaved edits in
+        the Script tab's editor first (Save / Discard / Cancel: never lost without a word), then an exercise or a
+        script in progress (End session's question and words). False: the window stays open."""
+        console = self._script_console()
+        unsaved = getattr(console, "has_unsaved_changes", None)
+        if callable(unsaved) and unsaved():
+            path = getattr(console, "path", None)
+            name = path.name if path is not None else "The script in the Script tab"
+            answer = QMessageBox.question(
+                self, "Unsaved script", f"{name} has changes that are not saved. Save them before quitting?",
+                QMessageBox.StandardButton.Save | QMessageBox.StandardButton.Discard
+                | QMessageBox.StandardButton.Cancel, QMessageBox.StandardButton.Save)
+            if answer == QMessageBox.StandardButton.Cancel:
+                return False
+            if answer == QMessageBox.StandardButton.Save and not console.save_file(path):  # type: ignore[union-attr]
+                return False  # the save dialog was cancelled, or the file could not be written: stay
+        activity = self._activity()
+        if activity:
+            question = self._stop_question(f"{activity} Stop it{', end the session' if self.manager.recorder else ''}"
+                                           " and quit?")
+            answer = QMessageBox.question(self, "Quit", question, QMessageBox.StandardButton.Yes
+                                          | QMessageBox.StandardButton.No, QMessageBox.StandardButton.No)
+            if answer != QMessageBox.StandardButton.Yes:
+                return False
+        return True
+
+    # ------------------------------------------------------------------ geometry (issue #36)
+    def _screen_area(self) -> Any:
+        """The available area of the screen the window opens on (QRect), None without a screen."""
+        screen = self.screen()
+        return screen.availableGeometry() if screen is not None else None
+
+    @staticmethod
+    def _screen_key(area: Any) -> str:
+        return f"{area.width()}x{area.height()}" if area is not None else "unknown"
+
+    def _restore_geometry(self, settings: QSettings) -> bool:
+        """The geometry and layout saved on a screen of this size, when they fit it; else this screen's default
+        (the whole screen, maximised). A geometry made on another screen (1272×720 from a 1366×768 laptop on a
+        1920×1080 desk, 1011×718 with clipped labels the other way) is never applied here: each screen size
+        keeps its own. Returns whether the saved layout (dock state) was restored."""
+        area = self._screen_area()
+        key = self._screen_key(area)
+        geometry = settings.value(f"main/geometry/{key}")
+        restored = False
+        if geometry is not None and self.restoreGeometry(geometry):
+            normal = self.normalGeometry() if self.isMaximized() else self.geometry()
+            fits = area is None or (normal.width() <= area.width() and normal.height() <= area.height())
+            restored = fits
+        if not restored:
+            self._default_geometry(area)
+            return False
+        state = settings.value(f"main/state/{key}")
+        return state is not None and self.restoreState(state)
+
+    def _default_geometry(self, area: Any) -> None:
+        """First run on this screen: the whole screen (1366×768 laptops and 1920×1080 desks alike), maximised.
+        The screen's size as well as "maximised": a window manager maximises (checked under openbox: 1920×1061
+        below its title bar); without one (a kiosk X session) nothing would, and the window stayed 1366×768 in a
+        corner of a 1920×1080 screen (issue #30)."""
+        self.setWindowState(self.windowState() & ~Qt.WindowState.WindowMaximized)
+        if area is not None and area.width() >= 1366 and area.height() >= 768:
+            self.setGeometry(area)
+        else:
+            self.resize(1366, 768)
+        self.setWindowState(self.windowState() | Qt.WindowState.WindowMaximized)
+
+    def _save_geometry(self, settings: QSettings) -> None:
+        """The geometry (with the maximised state) and the layout, under this screen's size."""
+        key = self._screen_key(self._screen_area())
+        settings.setValue(f"main/geometry/{key}", self.saveGeometry())
+        settings.setValue(f"main/state/{key}", self.saveState())
+
     def closeEvent(self, event: QEvent) -> None:
+        if not self._quit_confirmed:
+            if not self.may_quit():
+                event.ignore()
+                return
+            self._quit_confirmed = True
         settings = QSettings()
-        settings.setValue("main/geometry", self.saveGeometry())
-        settings.setValue("main/state", self.saveState())
+        self._save_geometry(settings)
         for frame in self.frames.values():
             save = getattr(frame, "save_settings", None)
             if callable(save):

@@ -34,7 +34,7 @@ from PySide6.QtWidgets import (
 )
 
 from app.config import SafetyConfig
-from app.patients import PatientError, PatientProfile, list_patients, parse_profile, save_patient
+from app.patients import PatientEntry, PatientError, PatientProfile, list_patients, matches, parse_profile, save_patient
 
 _SCORES = (("fugl_meyer_ue", "Fugl-Meyer UE (0–66)"), ("modified_ashworth", "Modified Ashworth (0–4)"),
            ("action_research_arm_test", "ARAT (0–57)"), ("box_and_block", "Box and Block (blocks/min)"),
@@ -276,25 +276,49 @@ class PatientDialog(QDialog):
         super().accept()
 
 
+def patient_text(entry: PatientEntry) -> str:
+    """A patient as the session-start list shows them: "Bianchi Maria — P-017 (record MRN-20417)"; a pseudonymous
+    profile by its id alone; a file that cannot be loaded says so."""
+    p = entry.profile
+    if p is None:
+        return f"{entry.patient_id} (invalid file)"
+    text = f"{p.full_name} — {entry.patient_id}" if p.full_name else entry.patient_id
+    return text + (f" (record {p.record_number})" if p.record_number else "")
+
+
 class StartSessionDialog(QDialog):
-    """Choose the patient and the operator of a new session (a session always has both)."""
+    """Choose the patient and the operator of a new session (a session always has both). The patients are listed
+    by name, id and record number, and searched; a new patient and their therapy plan are made from here (the
+    first run's path to the first exercise: New patient…, Therapy plan…, Start session)."""
 
     def __init__(self, safety: SafetyConfig | None = None, folder: Path | None = None,
                  parent: QWidget | None = None) -> None:
         super().__init__(parent)
         self.safety = safety
         self.folder = folder
+        self.child: QDialog | None = None  # the form open on top of this one (window-modal)
         self.setWindowTitle("Start session")
+        self.search_edit = QLineEdit()
+        self.search_edit.setAccessibleName("Search patients")
+        self.search_edit.setPlaceholderText("Search by name, ID or record number")
+        self.search_edit.setClearButtonEnabled(True)
+        self.search_edit.textChanged.connect(lambda _t: self.reload())
         self.patient_box = QComboBox()
         self.patient_box.setAccessibleName("Patient")
+        self.patient_box.setMinimumContentsLength(28)
+        self.patient_box.setSizeAdjustPolicy(QComboBox.SizeAdjustPolicy.AdjustToMinimumContentsLengthWithIcon)
         self.patient_box.currentIndexChanged.connect(self._update)
         new_button = QPushButton("&New patient…")
         new_button.clicked.connect(self.new_patient)
         self.edit_button = QPushButton("&Edit…")
         self.edit_button.clicked.connect(self.edit_patient)
+        self.plan_button = QPushButton("Therapy &plan…")
+        self.plan_button.setToolTip("The patient's exercises, in the order the Exercises tab offers them")
+        self.plan_button.clicked.connect(self.edit_plan)
         row = QHBoxLayout()
         row.addWidget(self.patient_box, 1)
         row.addWidget(self.edit_button)
+        row.addWidget(self.plan_button)
         row.addWidget(new_button)
         # The operator signs the session's record: typed (or the last one taken with a click) by whoever starts
         # it, never kept from the last session as the value (issue #26: a colleague signed as someone else).
@@ -318,6 +342,7 @@ class StartSessionDialog(QDialog):
         self.problem.setWordWrap(True)
         self.problem.setStyleSheet("color: #b00020;")
         form = QFormLayout()
+        form.addRow("Search", self.search_edit)
         form.addRow("Patient", row)
         form.addRow("Operator", operator_row)
         form.addRow("Note", self.note_edit)
@@ -332,12 +357,17 @@ class StartSessionDialog(QDialog):
         self.reload()
 
     def reload(self, select: str | None = None) -> None:
+        """List the patients the search finds (all of them without a search), ``select`` (or the one chosen)
+        chosen again. A patient chosen by ``select`` is shown even when the search would hide them."""
         current = select or self.patient_box.currentData()
         self.entries = {e.patient_id: e for e in list_patients(self.folder, self.safety)}
+        search = self.search_edit.text().strip()
+        shown = [e for e in self.entries.values() if not search or matches(e, search) or e.patient_id == select]
         self.patient_box.blockSignals(True)
         self.patient_box.clear()
-        for pid, entry in self.entries.items():
-            self.patient_box.addItem(pid if entry.profile else f"{pid} (invalid file)", pid)
+        for entry in shown:
+            self.patient_box.addItem(patient_text(entry), entry.patient_id)
+            self.patient_box.setItemData(self.patient_box.count() - 1, patient_text(entry), Qt.ItemDataRole.ToolTipRole)
         idx = self.patient_box.findData(current) if current else 0
         self.patient_box.setCurrentIndex(max(0, idx))
         self.patient_box.blockSignals(False)
@@ -346,29 +376,48 @@ class StartSessionDialog(QDialog):
     def _update(self, *_args: Any) -> None:
         entry = self.entries.get(self.patient_box.currentData())
         problem = ""
-        if entry is None:
+        if entry is None and self.entries and self.search_edit.text().strip():
+            problem = "No patient matches the search."
+        elif entry is None:
             problem = "Create a patient first (New patient…)."
         elif entry.profile is None:
             problem = entry.error
         elif not self.operator_edit.text().strip():
             problem = "Enter the operator's name."
         self.problem.setText(problem)
-        self.edit_button.setEnabled(entry is not None and entry.profile is not None)
+        valid = entry is not None and entry.profile is not None
+        self.edit_button.setEnabled(valid)
+        self.plan_button.setEnabled(valid)
         self.buttons.button(QDialogButtonBox.StandardButton.Ok).setEnabled(not problem)
 
-    def new_patient(self) -> PatientDialog:
-        dialog = PatientDialog(None, self.safety, self.folder, self)
-        if dialog.exec() and dialog.profile is not None:
-            self.reload(dialog.profile.patient_id)
+    def _open(self, dialog: QDialog, select: str | None) -> QDialog:
+        """Open ``dialog`` on top of this one (window-modal, not a nested event loop: F12 and the alarms keep
+        working), and list the patients again when it closes, ``select`` (or the patient it saved) chosen."""
+        self.child = dialog
+        dialog.finished.connect(lambda _r: self.reload(
+            getattr(getattr(dialog, "profile", None), "patient_id", None) if select is None else select))
+        dialog.open()
         return dialog
 
-    def edit_patient(self) -> None:
+    def new_patient(self) -> QDialog:
+        self.search_edit.clear()  # the new patient is shown, whatever was searched
+        return self._open(PatientDialog(None, self.safety, self.folder, self), None)
+
+    def edit_patient(self) -> QDialog | None:
         entry = self.entries.get(self.patient_box.currentData())
         if entry is None or entry.profile is None:
-            return
-        dialog = PatientDialog(entry.profile, self.safety, self.folder, self)
-        if dialog.exec():
-            self.reload(entry.patient_id)
+            return None
+        return self._open(PatientDialog(entry.profile, self.safety, self.folder, self), entry.patient_id)
+
+    def edit_plan(self) -> QDialog | None:
+        """The chosen patient's therapy plan (the Patients window's plan form), from the session's start: a new
+        patient's plan is made here, before the first session."""
+        from app.ui.patients_window import PlanDialog
+
+        entry = self.entries.get(self.patient_box.currentData())
+        if entry is None or entry.profile is None:
+            return None
+        return self._open(PlanDialog(entry.profile, self.safety, self.folder, parent=self), entry.patient_id)
 
     def values(self) -> tuple[str, str, str]:
         """(patient_id, operator, note) as chosen."""

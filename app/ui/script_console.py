@@ -425,6 +425,10 @@ class ScriptConsole(QWidget):
         self.path = path
         self.file_label.setText(str(path))
 
+    def has_unsaved_changes(self) -> bool:
+        """Whether the editor holds edits not saved to a file (the window asks before quitting)."""
+        return self.editor.document().isModified() and bool(self.editor.toPlainText().strip())
+
     def open_file(self, path: str | Path | None = None) -> None:
         if path is None:
             start = str(self.path.parent if self.path else EXAMPLES_DIR)

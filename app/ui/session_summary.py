@@ -16,11 +16,13 @@ from PySide6.QtWidgets import (
     QAbstractItemView,
     QDialog,
     QFileDialog,
+    QFrame,
     QGridLayout,
     QHBoxLayout,
     QHeaderView,
     QLabel,
     QPushButton,
+    QScrollArea,
     QTableWidget,
     QTableWidgetItem,
     QTabWidget,
@@ -142,7 +144,11 @@ class RunSummary(QWidget):
             none.setWordWrap(True)
             lay.addWidget(none)
             lay.addStretch(1)
-        lay.addWidget(QLabel(f"<b>Alarms and interruptions of this run</b>: {len(report.alarms) or 'none'}"))
+        # The run's number of alarms as every view counts them (app/alarm_count.py); the list also has the
+        # interruptions (a program's end, a data gap), which are not alarms.
+        alarms = int(report.summary.get("alarms") or 0)
+        lay.addWidget(QLabel(f"<b>Alarms of this run</b>: {alarms or 'none'}"
+                             + (" — listed below with the interruptions" if report.alarms else "")))
         lay.addWidget(self.alarms)
 
 
@@ -216,8 +222,9 @@ class SessionSummary(QWidget):
                 view: QWidget = QLabel("…")  # this run's tab is built on a later turn (see _build_next)
                 self._to_build.append(r)
             else:
-                view = RunSummary(r, self)
-                self.run_views[r.run.run_id] = view
+                summary = RunSummary(r, self)
+                self.run_views[r.run.run_id] = summary
+                view = _scrolled(summary)
             self.tabs.addTab(view, f"{r.number}. {_short(r.title)}")
             self.tabs.setTabToolTip(self.tabs.count() - 1, f"Run {r.number}: {r.title} — {r.run.end_text()}")
         self.tabs.setCurrentIndex(0)  # several runs: their overview first
@@ -259,8 +266,9 @@ class SessionSummary(QWidget):
             index = next(k for k, x in enumerate(self.runs) if x is r) + (1 if self.overview is not None else 0)
             shown = self.tabs.currentIndex()
             self._to_build = [x for x in self._to_build if x is not r]
-            view = RunSummary(r, self)
-            self.run_views[r.run.run_id] = view
+            summary = RunSummary(r, self)
+            self.run_views[r.run.run_id] = summary
+            view = _scrolled(summary)
             placeholder = self.tabs.widget(index)
             self.tabs.blockSignals(True)  # the tab shown stays shown while it is swapped
             self.tabs.removeTab(index)
@@ -390,4 +398,29 @@ class SessionSummaryDialog(QDialog):
         row.addStretch(1)
         row.addWidget(close)
         lay.addLayout(row)
-        self.resize(900, 700)
+        self.fit_to_screen()
+
+    # Room the window manager takes around a dialog (title bar and borders), kept free when sizing it.
+    FRAME_ROOM = (16, 48)
+
+    def fit_to_screen(self) -> None:
+        """900×700, or less on a smaller screen: the whole dialog — its Close button too — on the screen the
+        dialog opens on (1366×768: 740 px below the panel, the title bar above the dialog)."""
+        screen = self.screen()
+        area = screen.availableGeometry() if screen is not None else None
+        width, height = 900, 700
+        if area is not None:
+            width = min(width, area.width() - self.FRAME_ROOM[0])
+            height = min(height, area.height() - self.FRAME_ROOM[1])
+            self.setMaximumSize(area.width() - self.FRAME_ROOM[0], area.height() - self.FRAME_ROOM[1])
+        self.resize(width, height)
+
+
+def _scrolled(view: QWidget) -> QScrollArea:
+    """A run's summary scrolled within its tab: a run with many repetitions and alarms is taller than a 1366×768
+    screen, and the window (its Close button) must stay on the screen (#36)."""
+    scroll = QScrollArea()
+    scroll.setWidgetResizable(True)
+    scroll.setFrameShape(QFrame.Shape.NoFrame)
+    scroll.setWidget(view)
+    return scroll

@@ -4,8 +4,19 @@ from __future__ import annotations
 
 from typing import Any
 
-from PySide6.QtCore import QEvent, QSize, Qt
-from PySide6.QtWidgets import QLabel, QProxyStyle, QSizePolicy, QSlider, QStyle, QStyleOptionSlider, QWidget
+from PySide6.QtCore import QEvent, QObject, QSize, Qt
+from PySide6.QtWidgets import (
+    QAbstractSpinBox,
+    QApplication,
+    QComboBox,
+    QLabel,
+    QProxyStyle,
+    QSizePolicy,
+    QSlider,
+    QStyle,
+    QStyleOptionSlider,
+    QWidget,
+)
 
 
 def on_screen(widget: QWidget) -> bool:
@@ -188,3 +199,42 @@ class ClickToPositionStyle(QProxyStyle):
         if hint == QStyle.StyleHint.SH_Slider_AbsoluteSetButtons:
             return int(Qt.MouseButton.LeftButton.value)
         return super().styleHint(hint, option, widget, data)
+
+
+class WheelGuard(QObject):
+    """Application-wide: the mouse wheel over a number box or a drop-down list (every QSpinBox, QDoubleSpinBox,
+    QComboBox) changes its value only while it has the keyboard focus (clicked or tabbed into). Otherwise the
+    wheel scrolls the form around it, as the clinician meant (#36: scrolling a form changed the values under the
+    pointer). Such boxes also no longer take the focus from the wheel alone (StrongFocus, not WheelFocus): the
+    first notch over a box would otherwise give it the focus and change it."""
+
+    GUARDED = (QAbstractSpinBox, QComboBox)
+
+    def eventFilter(self, obj: QObject, event: QEvent) -> bool:
+        kind = event.type()
+        if kind == QEvent.Type.Polish and isinstance(obj, self.GUARDED):
+            if obj.focusPolicy() == Qt.FocusPolicy.WheelFocus:
+                obj.setFocusPolicy(Qt.FocusPolicy.StrongFocus)
+        elif kind == QEvent.Type.Wheel and isinstance(obj, QWidget):
+            box = obj if isinstance(obj, self.GUARDED) else obj.parentWidget()
+            if isinstance(box, self.GUARDED) and not _has_focus(box):
+                event.ignore()  # not handled here: Qt passes the wheel on to the parent (the form's scroll area)
+                return True
+        return False
+
+
+def _has_focus(widget: QWidget) -> bool:
+    focus = QApplication.focusWidget()
+    return widget.hasFocus() or (focus is not None and widget.isAncestorOf(focus))
+
+
+def install_wheel_guard(app: QApplication | None = None) -> WheelGuard | None:
+    """Install the application's one :class:`WheelGuard` (again: the same one). None without an application."""
+    app = app or QApplication.instance()  # type: ignore[assignment]
+    if app is None:
+        return None
+    guard = app.findChild(WheelGuard)
+    if guard is None:
+        guard = WheelGuard(app)
+        app.installEventFilter(guard)
+    return guard
