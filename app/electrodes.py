@@ -564,7 +564,7 @@ def app_ports(fes: Any, robot_command: Callable[..., Any], latest: Callable[[str
     robot = _Robot(robot_command, latest, source)
 
     def start_burst(burst: Burst) -> None:
-        fes.load_profile(burst_profile(burst, muscle))
+        fes.load_profile(burst_profile(burst, muscle), source)
         fes.start_stimulation(source)
 
     def read_arm() -> ArmReading | None:
@@ -629,7 +629,7 @@ def run_district_setup(fes: Any, robot: Any, supervisor: Any, latest: Callable[[
     finally:
         if previous is not None and not getattr(fes, "stimulating", False):
             try:
-                fes.load_profile(previous)
+                fes.load_profile(previous, source)
             except Exception as exc:
                 log.warning("electrode set-up: the previous profile could not be loaded again: %s", exc)
 

@@ -26,8 +26,9 @@ from app.devices.driver import DeviceDriver
 from app.devices.linarm_constants import PRETENSION_MOVE
 from app.devices.registry import DeviceFactory, DeviceHandle, SimulatorHosting, build_devices
 from app.fault_policy import FaultPolicy
+from app.ownership import ROBOT, RUN_SOURCES, STIMULATOR, Composition, Lease
 from app.paths import runtime_dir
-from app.safety import AlarmLevel, SafetySupervisor
+from app.safety import AlarmLevel, SafetyError, SafetySupervisor
 
 if TYPE_CHECKING:
     from app.devices.linarm import LinarmDriver
@@ -194,6 +195,8 @@ class LinarmppManager(QObject):
         self.assistance = AssistanceController(config.assistance, self._apply_robot_assistance,
                                                self._apply_fes_pulse_width, supervisor=self.supervisor)
         self._last_target: float | None = None
+        self._leased: set[str] = set()  # the runs holding their devices now (one owner during a run, #36)
+        self._vr_targets_before: tuple[float, ...] | None = None  # the VR task's own targets, during a composed run
         self.therapy = TherapyThread(self.bus, self.assistance.update_alpha, self._alpha_lost, self._follow_target)
         from app.progress import ExerciseProgress
 
@@ -252,6 +255,10 @@ class LinarmppManager(QObject):
         robot = self._robot()
         if robot is None or not robot.connected:
             raise AssistanceInactive("the LINarm is not connected")
+        try:  # a run holding the robot keeps its own gains, unless its exercise lets the assistance set them
+            self.supervisor.check_lease(ROBOT, "robot gains", "assistance")
+        except SafetyError as exc:
+            raise AssistanceInactive(exc.reason) from None
         state = self.bus.latest(streams.LINARM_STATE)
         assisted_modes = (int(ControlMode.POS_REF_BY_ADMITTANCE), int(ControlMode.POS_REF_BY_ASSISTANCE))
         if state is None or state.controlState != int(ControlState.ON_CTRL_STATE) \
@@ -268,13 +275,20 @@ class LinarmppManager(QObject):
         fes = self.driver(streams.FES)
         if not isinstance(fes, FesDriver):
             raise AssistanceInactive("no FES device")
-        fes.set_pulse_width_override(pulse_width_us)
+        if pulse_width_us is not None:
+            try:  # the run (or the electrode set-up) stimulates at the pulse width it shows, unless it composes
+                self.supervisor.check_lease(STIMULATOR, "pulse width override", "assistance")
+            except SafetyError as exc:
+                raise AssistanceInactive(exc.reason) from None
+        fes.set_pulse_width_override(pulse_width_us, "assistance")
 
     def _alpha_lost(self, _why: str) -> None:
         self.assistance.invalidate()  # no stale α is ever applied, whatever the GUI changes meanwhile
 
     def _follow_target(self, target: float) -> None:
-        """The VR task's target becomes the robot's assistance target (once per new target)."""
+        """The VR task's target becomes the robot's assistance target (once per new target) — while a run holds
+        the robot, only if its exercise composes it, clamped to the run's range and the patient's limits (the
+        supervisor refuses anything else, and records the refusal once per run)."""
         robot = self._robot()
         if target == self._last_target or robot is None or not robot.connected:
             return
@@ -282,7 +296,79 @@ class LinarmppManager(QObject):
         if state is None or not state.initialized:
             return
         self._last_target = target
-        _command(robot, ("setAssistanceTargetPos", target), "VR task")
+        applied = self.supervisor.composed_target("VR task", target)
+        if applied is None:
+            return
+        _command(robot, ("setAssistanceTargetPos", applied), "VR task")
+
+    # ------------------------------------------------------------------ one owner during a run (#36)
+    def hold_for_run(self, run: Any) -> None:
+        """The run log's listener (any thread): a run that starts holds its devices, one that ends gives them
+        back. What it holds and lets in comes from its record (``holds``, ``compose``: app/runs.py)."""
+        if run.running:
+            if run.run_id in self._leased:
+                return
+            self._leased.add(run.run_id)
+            try:
+                compose = tuple(Composition.from_dict(c) for c in run.compose)
+            except (ValueError, KeyError, TypeError) as exc:
+                log.error("run %s: its composition is not understood (%s); nothing composes", run.run_id, exc)
+                compose = ()
+            lease = Lease(key=run.run_id, holder=run.title, devices=frozenset(run.holds), sources=RUN_SOURCES,
+                          compose=compose, run_id=run.run_id)
+            try:
+                self.take_lease(lease)
+            except SafetyError as exc:  # the runner checks first (start_problem): a console entry meanwhile
+                log.warning("run %s does not hold its devices: %s", run.run_id, exc.reason)
+                self._leased.discard(run.run_id)
+        elif run.run_id in self._leased:
+            self._leased.discard(run.run_id)
+            self.release_lease(run.run_id, run.end_reason or "")
+
+    def take_lease(self, lease: Lease) -> None:
+        """``lease.holder`` holds its devices from now on (the supervisor refuses everyone else); raises
+        SafetyError when another holds them. Runs take theirs through :meth:`hold_for_run`; the electrode set-up
+        its own."""
+        self.supervisor.take_lease(lease)
+        self._lease_taken(lease)
+
+    def release_lease(self, key: str, reason: str = "") -> Lease | None:
+        held = self.supervisor.release_lease(key, reason)
+        if held is not None:
+            self._lease_released(held)
+        return held
+
+    def _lease_taken(self, lease: Lease) -> None:
+        """What the holder takes over: the assistance's pulse width off the stimulator (the run stimulates at
+        the pulse width its profile shows, unless it composes it); a VR task it composes shows its range."""
+        fes = self.driver(streams.FES)
+        if STIMULATOR in lease.devices and not lease.composition("assistance", "pulse width override") \
+                and getattr(fes, "pulse_width_override", None) is not None:
+            try:
+                fes.set_pulse_width_override(None, lease.holder)  # type: ignore[union-attr]
+            except Exception:
+                log.exception("the assistance's pulse width could not be taken off")
+            self.assistance.forget_applied(fes=True)
+        if ROBOT in lease.devices and not lease.composition("assistance", "robot gains"):
+            self.assistance.forget_applied(robot=True)  # re-applied, if still wanted, once the run ends
+        vr = self.driver(streams.VR)
+        task = getattr(vr, "task", None)
+        comp = lease.composition("VR task", "setAssistanceTargetPos")
+        if task is not None and comp is not None and comp.range_m is not None:
+            # The game shows the run's two ends, the start first (it alternates between them as the exercise
+            # does): whatever it sends is inside the range anyway (clamped and checked).
+            lo, hi = comp.range_m
+            self._vr_targets_before = tuple(task.targets)
+            task.set_targets((lo, hi) if task.subTask % 2 == 0 else (hi, lo))
+        self._last_target = None
+
+    def _lease_released(self, lease: Lease) -> None:
+        vr = self.driver(streams.VR)
+        task = getattr(vr, "task", None)
+        if task is not None and self._vr_targets_before is not None:
+            task.set_targets(self._vr_targets_before)
+        self._vr_targets_before = None
+        self._last_target = None  # the VR task's target applies again from its next frame
 
     def apply_patient_profile(self, profile: Any) -> None:
         """The patient's clinical score feeds the embedded model; their gains the assistance split."""
@@ -372,6 +458,7 @@ class LinarmppManager(QObject):
 
         runs = RunLog(record)
         self.progress.attach_runs(runs)
+        runs.subscribe(self.hold_for_run)
         return runs
 
     def record_event(self, kind: str, who: str = "", **data: Any) -> None:

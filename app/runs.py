@@ -8,7 +8,9 @@ The record is the session's event log (``events.jsonl``), written as it happens,
 readable: :func:`runs_from_events` rebuilds them from the events alone. The events (``data`` fields):
 
 ``run_start``   run_id, program {kind, ident, title, version, path, text_sha256}, parameters
-                [{name, label, value, unit}], source, operator, restart_of
+                [{name, label, value, unit}], source, operator, restart_of, continues (the interrupted run a
+                continuation carries on: its remaining repetitions), holds (the devices the run holds: "robot",
+                "stimulator"), compose (what other sources it lets set, app/ownership.py)
 ``run_state``   run_id, state (a :data:`RUN_STATES` value), detail
 ``run_end``     run_id, reason (an :data:`END_REASONS` value), detail, completed, not_started
 ``prompt``      run_id, index, cue                 the exercise's "squeeze now" cue (metrics: reaction time)
@@ -149,6 +151,9 @@ class ExerciseRun:
     started_mono: float
     started_wall: float
     restart_of: str | None = None
+    continues: str | None = None  # a continuation of this interrupted run (its remaining repetitions)
+    holds: tuple[str, ...] = ("robot", "stimulator")  # the devices it holds while it runs (one owner, #36)
+    compose: tuple[Mapping[str, Any], ...] = ()  # what it lets another source set (app.ownership.Composition)
     state: str = "starting"
     state_detail: str = ""
     ended_mono: float | None = None
@@ -244,7 +249,9 @@ class RunLog:
 
     # ------------------------------------------------------------------ writing
     def start(self, program: Program, parameters: Sequence[RunParameter], source: RunSource, operator: str,
-              restart_of: str | None = None) -> ExerciseRun:
+              restart_of: str | None = None, *, continues: str | None = None,
+              holds: Sequence[str] = ("robot", "stimulator"),
+              compose: Sequence[Mapping[str, Any]] = ()) -> ExerciseRun:
         with self._lock:
             self._n += 1
             run_id = f"run-{self._n}"
@@ -253,12 +260,14 @@ class RunLog:
                 run_id = f"run-{self._n}"
             run = ExerciseRun(run_id=run_id, program=program, parameters=tuple(parameters), source=source,
                               operator=operator, started_mono=self._clock(), started_wall=self._wall(),
-                              restart_of=restart_of)
+                              restart_of=restart_of, continues=continues, holds=tuple(holds),
+                              compose=tuple(dict(c) for c in compose))
             self._runs[run_id] = run
             self._order.append(run_id)
         self._emit(RUN_START, run_id=run_id, program=program.as_dict(with_text=program.kind != "exercise"),
                    parameters=[p.as_dict() for p in parameters], source=source, operator=operator,
-                   restart_of=restart_of)
+                   restart_of=restart_of, holds=list(holds), compose=[dict(c) for c in compose],
+                   **({"continues": continues} if continues else {}))
         self._notify(run)
         return run
 
@@ -361,7 +370,10 @@ def runs_from_events(events: Iterable[Mapping[str, Any]], t_end: float | None = 
             runs[run_id] = ExerciseRun(run_id=run_id, program=Program.from_dict(data.get("program") or {}),
                                        parameters=params, source=data.get("source", "script_tab"),
                                        operator=str(data.get("operator") or e.get("who") or ""),
-                                       started_mono=t, started_wall=0.0, restart_of=data.get("restart_of"))
+                                       started_mono=t, started_wall=0.0, restart_of=data.get("restart_of"),
+                                       continues=data.get("continues"),
+                                       holds=tuple(data.get("holds") or ("robot", "stimulator")),
+                                       compose=tuple(data.get("compose") or ()))
             order.append(run_id)
             continue
         run = runs.get(run_id) if run_id else None

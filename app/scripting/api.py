@@ -517,7 +517,7 @@ class FESUser:
         path = self._ctx.resolve_path(str(fileName), RESOURCES / "fes_profiles")
         profile = load_profile(path)  # FesProfileError names the file, line and key
         driver = self._driver()
-        self._call(f"fes.loadFile({str(fileName)!r})", driver.load_profile, profile)
+        self._call(f"fes.loadFile({str(fileName)!r})", driver.load_profile, profile, self._ctx.source)
         return profile
 
     def writeFile(self, data: Any, fileName: str) -> None:

@@ -46,8 +46,19 @@ from app.electrodes import (
     save_choice,
 )
 from app.manager import LinarmppManager
+from app.ownership import ROBOT, SETUP_SOURCES, STIMULATOR, Lease
+from app.safety import SafetyError
 
 log = logging.getLogger(__name__)
+
+SETUP_SOURCE = SETUP_SOURCES[0]
+SETUP_LEASE_KEY = "electrode-setup"
+
+
+def setup_lease() -> Lease:
+    """What the set-up holds while it runs: the robot (it holds the arm) and the stimulator (its bursts)."""
+    return Lease(key=SETUP_LEASE_KEY, holder="Electrode set-up", devices=frozenset({ROBOT, STIMULATOR}),
+                 sources=SETUP_SOURCES)
 
 COLUMNS = ("Ch", "Electrodes", "Up to mA", "Threshold mA", "Response N/mA", "Best N", "Discomfort 0–10")
 # One colour per combination, distinguishable in print and for the common colour deficiencies (Okabe–Ito).
@@ -206,10 +217,19 @@ class ElectrodeSetupDialog(QDialog):
             self._say(str(exc), "bad")
             return False
         supervisor = self.manager.supervisor
+        # One owner (#36): the set-up holds the robot and the stimulator while it runs; the assistance's pulse
+        # width is taken off, so the bursts go out at the pulse width this dialog shows.
+        take = getattr(self.manager, "take_lease", None)
+        if callable(take):
+            try:
+                take(setup_lease())
+            except SafetyError as exc:
+                self._say(f"The set-up cannot start: {exc.reason}.", "bad")
+                return False
         bus = getattr(self.manager, "bus", None)  # the data backbone (#29) when merged; the driver's latest before
         latest = bus.latest if bus is not None else robot.latest
         ports = app_ports(fes, robot.command, latest, supervisor.robot_hold_reason, self._record, district.name,
-                          "electrode set-up")
+                          SETUP_SOURCE)
         self._previous_profile = getattr(fes, "profile", None)
         self.setup = ElectrodeSetup(district, plan, limiter.limits, ports,
                                     lambda kind, payload: self._relay.progress.emit(kind, payload))
@@ -236,6 +256,9 @@ class ElectrodeSetupDialog(QDialog):
             self._relay.progress.emit("aborted", setup.result)
         finally:
             self._restore_profile()
+            release = getattr(self.manager, "release_lease", None)
+            if callable(release):
+                release(SETUP_LEASE_KEY, setup.result.aborted or "finished")
             self._relay.progress.emit("ended", None)
 
     def show_result(self, result: SetupResult) -> None:
@@ -261,7 +284,7 @@ class ElectrodeSetupDialog(QDialog):
         if fes is None or previous is None or getattr(fes, "stimulating", False):
             return
         try:
-            fes.load_profile(previous)
+            fes.load_profile(previous, SETUP_SOURCE)
         except Exception as exc:
             log.warning("electrode set-up: the previous profile could not be loaded again: %s", exc)
 

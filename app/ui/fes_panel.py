@@ -351,7 +351,7 @@ class FesPanel(RefreshWhenVisible, QWidget):
             self.show_message("FES is off in the configuration.", "bad")
             return False
         try:
-            self.driver.load_profile(profile)
+            self.driver.load_profile(profile, "FES panel")
         except (SafetyError, FesError) as exc:
             self.show_message(f"Profile not loaded: {exc.reason}", "bad")
             return False
