@@ -165,6 +165,12 @@ class AssistancePanel(QWidget):
             lf.addRow(f"{label}:", self.live[key])
 
         layout = QVBoxLayout(self)
+        supervisor = getattr(manager, "supervisor", None)
+        if supervisor is not None:  # the run holding the robot keeps its gains (one owner during a run, #36)
+            from app.ui.held_by import HeldByLabel
+
+            self.held_by = HeldByLabel(supervisor, "robot")
+            layout.addWidget(self.held_by)
         for box in (gains, model, maps, live):
             layout.addWidget(box)
         layout.addStretch(1)

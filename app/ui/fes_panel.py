@@ -236,6 +236,10 @@ class FesPanel(RefreshWhenVisible, QWidget):
         left = QVBoxLayout()
         left.setSpacing(4)
         left.addWidget(self.status_label)
+        from app.ui.held_by import HeldByLabel
+
+        self.held_by = HeldByLabel(manager.supervisor, "stimulator")  # one owner during a run (#36)
+        left.addWidget(self.held_by)
         left.addLayout(buttons)
         left.addWidget(self.profile_label)
         # Why the pulse-width knob does not turn, on screen and not only in a tooltip (issue #30).

@@ -1,0 +1,56 @@
+""""Robot held by: Trigger reaching": who owns a device now (one owner during a run, issue #36), where its
+commands are given (the Robot, Assistance and FES tabs). Follows the supervisor's ``lease_changed``."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from PySide6.QtWidgets import QLabel, QSizePolicy, QWidget
+
+from app.ownership import DEVICE_WORDS, ROBOT, STIMULATOR
+
+_WHAT = {ROBOT: "its target, mode and gains are the run's: the buttons here are refused until it ends",
+         STIMULATOR: "its profile, start and pulse width are the run's: Stop and lowering a scale still work"}
+
+
+def held_text(supervisor: Any, device: str) -> str:
+    """The sentence for ``device`` ("" when nobody holds it)."""
+    lease = supervisor.lease(device) if hasattr(supervisor, "lease") else None
+    if lease is None:
+        return ""
+    name = DEVICE_WORDS[device].removeprefix("the ").capitalize()
+    composed = [c for c in lease.compose if c.device == device]
+    extra = ""
+    if composed:
+        parts = []
+        for c in composed:
+            within = f" within {c.range_m[0]:.2f}–{c.range_m[1]:.2f} m" if c.range_m else ""
+            parts.append(f"{c.source} sets the {c.sets.replace('_', ' ')}{within}")
+        extra = " (" + "; ".join(parts) + ")"
+    return f"{name} held by: {lease.holder}{extra} — {_WHAT[device]}."
+
+
+class HeldByLabel(QLabel):
+    """One line (two at most) naming the device's holder; hidden when nobody holds it."""
+
+    def __init__(self, supervisor: Any, device: str, parent: QWidget | None = None) -> None:
+        super().__init__(parent)
+        self.supervisor = supervisor
+        self.device = device
+        self.setObjectName(f"heldBy_{device}")
+        self.setWordWrap(True)
+        self.setSizePolicy(QSizePolicy.Policy.Ignored, QSizePolicy.Policy.Fixed)
+        self.setFixedHeight(2 * self.fontMetrics().lineSpacing() + 6)
+        self.setStyleSheet("QLabel { background: #fff3cd; color: #5c4400; border: 1px solid #e0c060; "
+                           "border-radius: 3px; padding: 1px 4px; }")
+        signal = getattr(supervisor, "lease_changed", None)
+        if signal is not None:
+            signal.connect(self.refresh)
+        self.refresh()
+
+    def refresh(self) -> None:
+        text = held_text(self.supervisor, self.device)
+        self.setText(text)
+        self.setToolTip(text)
+        self.setAccessibleName(text or f"{DEVICE_WORDS[self.device]} is free")
+        self.setVisible(bool(text))
