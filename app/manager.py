@@ -169,6 +169,7 @@ class DeviceWatch:
 
 class LinarmppManager(QObject):
     session_changed = Signal(object)  # the session folder (Path) or None when no session runs
+    profile_changed = Signal(object)  # the session patient's profile, saved again during the session
 
     def __init__(self, config: AppConfig, factories: dict[str, DeviceFactory] | None = None) -> None:
         super().__init__()
@@ -416,6 +417,7 @@ class LinarmppManager(QObject):
             self.supervisor.event("patient_limits_applied", patient=patient_id)
             self._apply_robot_limits()
             self.apply_patient_profile(profile)
+            self._check_plan(profile)
         if self.config.recording.lsl and self._lsl is None:
             from app.lsl import start_lsl
 
@@ -424,6 +426,42 @@ class LinarmppManager(QObject):
                 recorder.add_event_tap(self._lsl.marker)
         self.session_changed.emit(folder)
         return folder
+
+    def update_session_profile(self, profile: Any) -> list[str]:
+        """The session patient's profile was saved again (Patients window, an electrode choice): what it
+        changes applies to the next command at once — the robot limits, the FES caps (a lowered cap below a
+        running profile stops it), the chosen electrodes, the gains — and is recorded. Returns the changes in
+        words ([] when ``profile`` is not this session's patient)."""
+        from app.patients import effective_robot_limits, profile_changes
+
+        old = self.patient_profile
+        if self.recorder is None or old is None or profile.patient_id != old.patient_id:
+            return []
+        changes = profile_changes(old, profile)
+        self.patient_profile = profile
+        self.supervisor.robot = effective_robot_limits(profile, self.config.safety.robot)
+        self._apply_robot_limits()
+        self.apply_patient_profile(profile)
+        if changes:
+            self.record_event("patient_profile_updated", patient=profile.patient_id, changes=changes)
+        self._check_plan(profile)
+        self.profile_changed.emit(profile)
+        return changes
+
+    def _check_plan(self, profile: Any) -> list[str]:
+        """The therapy plan against the patient's limits, caps and electrode choices now (at the session's start
+        and when the profile changes): what would be refused is recorded before anything moves."""
+        from app.patients import plan_problems, prescription_problems
+
+        try:
+            problems = [str(p) for p in plan_problems(profile.therapy_plan)
+                        + prescription_problems(profile.therapy_plan, profile, self.config.safety)]
+        except Exception:  # a broken library must not stop the session: the Exercises tab lists it
+            log.exception("the therapy plan could not be checked")
+            return []
+        if problems:
+            self.record_event("plan_problems", patient=profile.patient_id, problems=problems)
+        return problems
 
     def end_session(self, reason: str = "ended by the operator") -> None:
         recorder, self.recorder = self.recorder, None

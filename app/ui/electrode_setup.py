@@ -438,7 +438,9 @@ class ElectrodeSetupDialog(QDialog):
         try:
             if profile is not None:
                 profile = save_choice(result, channel, profile, operator, session, manager.config.safety)
-                manager.patient_profile = profile
+                update = getattr(manager, "update_session_profile", None)
+                if not (callable(update) and update(profile)):  # caps changed on disk since apply too (#36)
+                    manager.patient_profile = profile
                 channels = profile.fes.district_channels()
                 saved = f"saved in {profile.patient_id}'s profile"
             else:

@@ -44,8 +44,11 @@ from app.patients import (
     PatientProfile,
     PlannedExercise,
     list_patients,
+    load_patient,
     matches,
+    patient_file,
     plan_problems,
+    prescription_problems,
     save_patient,
 )
 
@@ -298,6 +301,16 @@ class PlanDialog(QDialog):
     def accept(self) -> None:
         plan = self.plan()
         problems = plan_problems(plan, self.library)
+        try:  # the patient as saved now (a cap changed since this dialog opened counts; the save keeps it)
+            current = load_patient(self.profile.patient_id, self.safety, self.folder) \
+                if patient_file(self.profile.patient_id, self.folder).exists() else self.profile
+        except (OSError, PatientError, ValueError) as exc:
+            self.error_label.setText(f"The plan is not saved: the patient's profile cannot be read ({exc})")
+            return
+        self.profile = current
+        # Checked against this patient before anything moves (#36): caps, limits and electrode choices.
+        problems += prescription_problems(plan, current, self.safety, self.library)
+        problems.sort(key=lambda p: p.step)
         if problems:
             self.error_label.setText("The plan is not saved:\n" + "\n".join(str(p) for p in problems))
             first = problems[0]
@@ -320,13 +333,16 @@ class PlanDialog(QDialog):
 
 
 class PatientsDialog(QDialog):
-    """The patients: search, a profile's details, new / edit profile, therapy plan."""
+    """The patients: search, a profile's details, new / edit profile, therapy plan. A change to the profile of
+    the patient whose session runs applies to that session at once (``manager``: the window's, by default the
+    parent's), and this window says what changed."""
 
     def __init__(self, safety: SafetyConfig | None = None, folder: Path | None = None,
-                 parent: QWidget | None = None) -> None:
+                 parent: QWidget | None = None, manager: Any = None) -> None:
         super().__init__(parent)
         self.safety = safety
         self.folder = folder
+        self.manager = manager if manager is not None else getattr(parent, "manager", None)
         self.entries: list[PatientEntry] = []
         self.shown: list[PatientEntry] = []
         self.child: QDialog | None = None  # the profile or plan dialog open on top of this one
@@ -373,8 +389,14 @@ class PatientsDialog(QDialog):
         body = QHBoxLayout()
         body.addLayout(left, 3)
         body.addWidget(self.details, 2)
+        # What a change did to the running session ("Applied to the running session at once: …").
+        self.session_note = QLabel("")
+        self.session_note.setObjectName("sessionNote")
+        self.session_note.setWordWrap(True)
+        self.session_note.setVisible(False)
         lay = QVBoxLayout(self)
         lay.addLayout(body, 1)
+        lay.addWidget(self.session_note)
         lay.addLayout(buttons)
         self.resize(1000, 560)
         self.reload()
@@ -465,10 +487,35 @@ class PatientsDialog(QDialog):
         """Open ``dialog`` on top of this one (window-modal, not a nested event loop: F12 and the alarms keep
         working), and reload the list when it closes."""
         self.child = dialog
-        dialog.finished.connect(lambda _r: self.reload(select or getattr(getattr(dialog, "profile", None),
-                                                                         "patient_id", None)))
+
+        def closed(result: int) -> None:
+            pid = select or getattr(getattr(dialog, "profile", None), "patient_id", None)
+            self.reload(pid)
+            if result == QDialog.DialogCode.Accepted and pid:
+                self.apply_to_session(pid)
+
+        dialog.finished.connect(closed)
         dialog.open()
         return dialog
+
+    def apply_to_session(self, patient_id: str) -> list[str]:
+        """The saved profile of ``patient_id`` reaches the running session at once when it is that session's
+        patient (the next command meets the new caps and limits); says so here. Returns the changes."""
+        manager = self.manager
+        current = getattr(manager, "patient_profile", None)
+        if manager is None or getattr(manager, "recorder", None) is None or current is None \
+                or current.patient_id != patient_id:
+            return []
+        entry = next((e for e in self.entries if e.patient_id == patient_id), None)
+        if entry is None or entry.profile is None:
+            return []
+        changes = manager.update_session_profile(entry.profile)
+        if changes:
+            self.session_note.setText(f"Applied to {patient_id}'s running session at once: " + "; ".join(changes)
+                                      + ". The next command meets them.")
+            self.session_note.setStyleSheet("color: #1b5e20; font-weight: bold;")
+            self.session_note.setVisible(True)
+        return changes
 
     def new_patient(self) -> QDialog:
         from app.ui.patient_dialog import PatientDialog
