@@ -352,8 +352,12 @@ class ScriptRunner:
 
         if program is None:
             path = "" if filename.startswith("<") else filename
+            try:  # the file as it is on disk now: Recover tells a file changed since from an editor's unsaved text
+                on_disk = text_hash(Path(path).read_text(encoding="utf-8")) if path else ""
+            except (OSError, UnicodeDecodeError):
+                on_disk = ""
             program = Program("script_file", path or filename, Path(filename).name if path else "the editor's script",
-                              text_hash(source), path=path, text=source)
+                              text_hash(source), path=path, text=source, file_sha256=on_disk)
         if not parameters and params:
             parameters = tuple(RunParameter(str(k), str(k), v) for k, v in params.items())
         operator = str(getattr(self.manager, "operator", "") or "")

@@ -447,7 +447,12 @@ class AlarmBanner(QFrame):
         self.dialog = dialog
 
         def accepted() -> None:
-            self.run_recovery(dialog.operator_name(), restart if dialog.choice == "restart" else None)
+            chosen = restart
+            if restart is None or dialog.choice == "recover":
+                chosen = None
+            elif dialog.choice == "continue":
+                chosen = restart.continuation()
+            self.run_recovery(dialog.operator_name(), chosen)
 
         dialog.accepted.connect(accepted)
         dialog.open()
