@@ -248,7 +248,7 @@ def fes_profile_problem(name: str, fes_limits: Any = None, district_channels: Ma
             if muscle and first.startswith(f"Channel {ch}:"):
                 first = first.replace(f"Channel {ch}:", f"channel {ch} ({muscle}):", 1)
         more = f" (and {len(problems) - 1} more)" if len(problems) > 1 else ""
-        return f"the FES profile “{profile.name}” is above this patient's caps: {first.rstrip('.')}{more}"
+        return f"“{profile.name}” goes above this patient's caps: {first.rstrip('.')}{more}"
     return ""
 
 
