@@ -79,3 +79,62 @@ def test_the_electrode_set_up_stimulates_at_the_pulse_width_its_dialog_shows(qtb
         if sub is not None:
             sub.close()
         manager.shutdown()
+
+
+def test_a_cap_raised_in_the_patients_window_applies_to_the_running_session_at_once(
+        qtbot: Any, tmp_path: Any, monkeypatch: Any) -> None:
+    """Before #36: raised from 20 to 30 mA in the Patients window, the cap stayed 20 mA for the rest of the
+    session, silently. Lowered again, it applies at once too."""
+    from PySide6.QtWidgets import QTableWidgetItem
+
+    from app.fes_profile import load_profile
+    from app.patients import ClinicalChannelCap, PatientFes, save_patient
+    from app.ui.patients_window import PatientsDialog
+
+    monkeypatch.setenv("LINARMPP_HOME", str(tmp_path / "home"))
+    cfg = AppConfig()
+    save_patient(PatientProfile("PZ-CAP", fes=PatientFes(caps={3: ClinicalChannelCap(max_current_ma=20.0)})),
+                 safety=cfg.safety)
+    manager = LinarmppManager(cfg, factories={"fes": rehastim.create})
+    manager.start()
+    try:
+        fes = manager.driver("fes")
+        qtbot.waitUntil(lambda: fes.device_ready, timeout=5000)
+        manager.start_session("PZ-CAP", "Dr Bianchi", root=tmp_path / "sessions")
+        wrist = load_profile(rehastim_profiles() / "wrist_extension_time.yaml").with_scales(current_scale=1.25)
+        with pytest.raises(Exception, match="above the cap of 20 mA"):  # 25 mA
+            fes.load_profile(wrist, "FES panel")
+        patients = PatientsDialog(cfg.safety, manager=manager)
+        qtbot.addWidget(patients)
+        patients.show()
+        patients.search.setText("PZ-CAP")
+        edit = patients.edit_profile()
+        edit.caps_table.setItem(2, 0, QTableWidgetItem("30"))
+        edit.accept()
+        qtbot.waitUntil(lambda: patients.session_note.isVisibleTo(patients), timeout=3000)
+        assert "channel 3 current cap 20 mA → 30 mA" in patients.session_note.text()
+        assert "running session at once" in patients.session_note.text()
+        fes.load_profile(wrist, "FES panel")  # the next command meets the new cap
+        assert manager.patient_profile.fes.caps[3].max_current_ma == 30.0
+        edit = patients.edit_profile()
+        edit.caps_table.setItem(2, 0, QTableWidgetItem("15"))
+        edit.accept()
+        qtbot.waitUntil(lambda: "30 mA → 15 mA" in patients.session_note.text(), timeout=3000)
+        with pytest.raises(Exception, match="above the cap of 15 mA"):
+            fes.load_profile(wrist, "FES panel")
+        patients.close()
+        folder = manager.recorder.folder
+        manager.end_session()
+        import json
+
+        kinds = [json.loads(line) for line in (folder / "events.jsonl").read_text(encoding="utf-8").splitlines()]
+        updates = [e["data"]["changes"] for e in kinds if e["kind"] == "patient_profile_updated"]
+        assert updates == [["channel 3 current cap 20 mA → 30 mA"], ["channel 3 current cap 30 mA → 15 mA"]]
+    finally:
+        manager.shutdown()
+
+
+def rehastim_profiles() -> Any:
+    from app.config import RESOURCES
+
+    return RESOURCES / "fes_profiles"
