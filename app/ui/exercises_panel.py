@@ -134,9 +134,11 @@ class ExercisesPanel(QWidget):
             bad.setStyleSheet(ERROR_STYLE)
             bad.setWordWrap(True)
             lib_lay.addWidget(bad)
+        self._build_session_box()
         left = QWidget()
         left_lay = QVBoxLayout(left)
         left_lay.setContentsMargins(0, 0, 0, 0)
+        left_lay.addWidget(self.session_box)
         left_lay.addWidget(self.plan_box)
         left_lay.addWidget(library_box, 1)
 
@@ -247,11 +249,159 @@ class ExercisesPanel(QWidget):
             self.exercise_list.setCurrentRow(0)
         self._sync_buttons()
 
+    # ------------------------------------------------------------------ a session from here (no session running)
+    def _build_session_box(self) -> None:
+        """No session runs: the patients (most recently changed first, with their names and plans), the operator
+        (typed, or the last one taken with a click: never pre-filled) and one button that starts the session and
+        the plan's first exercise. A returning patient: patient, operator, Start — three actions (#36)."""
+        self.session_box = QGroupBox("Start a session")
+        self.patient_list = QListWidget()
+        self.patient_list.setAccessibleName("Patients")
+        self.patient_list.setWordWrap(False)
+        self.patient_list.currentRowChanged.connect(lambda _r: self._sync_session_box())
+        self.patient_list.setMaximumHeight(4 * (self.patient_list.fontMetrics().lineSpacing() + 6) + 8)
+        self.new_patient_button = QPushButton("&New patient…")
+        self.new_patient_button.clicked.connect(self.new_patient)
+        self.operator_edit = QLineEdit()
+        self.operator_edit.setAccessibleName("Operator")
+        self.operator_edit.setPlaceholderText("Operator: your name or staff ID")
+        self.operator_edit.textChanged.connect(lambda _t: self._sync_session_box())
+        self.last_operator_button = QPushButton("")
+        self.last_operator_button.setToolTip("The operator of the last session on this computer: click only if that "
+                                             "is you")
+        self.last_operator_button.clicked.connect(
+            lambda: self.operator_edit.setText(self.last_operator_button.property("operator") or ""))
+        self.session_button = QPushButton("▶ Start session")
+        self.session_button.clicked.connect(lambda _checked=False: self.start_session_here())
+        self.session_problem = QLabel("")
+        self.session_problem.setWordWrap(True)
+        self.session_problem.setStyleSheet(ERROR_STYLE)
+        lay = QVBoxLayout(self.session_box)
+        lay.setContentsMargins(4, 4, 4, 4)
+        lay.setSpacing(3)
+        lay.addWidget(self.patient_list)
+        op_row = QHBoxLayout()
+        op_row.addWidget(self.operator_edit, 1)
+        op_row.addWidget(self.last_operator_button)
+        lay.addLayout(op_row)
+        row = QHBoxLayout()
+        row.addWidget(self.new_patient_button)
+        row.addWidget(self.session_button, 1)
+        lay.addLayout(row)
+        lay.addWidget(self.session_problem)
+        self.reload_patients()
+
+    def _session_possible(self) -> bool:
+        return getattr(self.manager, "recorder", None) is None and hasattr(self.manager, "start_session")
+
+    def reload_patients(self, select: str | None = None) -> None:
+        from PySide6.QtCore import QSettings
+
+        from app.patients import list_patients
+
+        possible = self._session_possible()
+        self.session_box.setVisible(possible)
+        if not possible:
+            return
+        current = select or self.selected_patient()
+        try:
+            safety = getattr(getattr(self.manager, "config", None), "safety", None)
+            entries = [e for e in list_patients(safety=safety) if e.profile is not None]
+        except OSError:
+            entries = []
+        entries.sort(key=lambda e: e.profile.updated or e.profile.created or "", reverse=True)
+        self.patient_list.blockSignals(True)
+        self.patient_list.clear()
+        for e in entries:
+            p = e.profile
+            plan = f", plan of {len(p.therapy_plan)}" if p.therapy_plan else ""
+            item = QListWidgetItem(f"{p.patient_id} — {p.full_name}{plan}" if p.full_name else f"{p.patient_id}{plan}")
+            item.setData(Qt.ItemDataRole.UserRole, p.patient_id)
+            self.patient_list.addItem(item)
+        ids = [e.patient_id for e in entries]
+        self.patient_list.setCurrentRow(ids.index(current) if current in ids else -1)
+        self.patient_list.blockSignals(False)
+        last = str(QSettings().value("session/operator", "") or "")
+        self.last_operator_button.setProperty("operator", last)
+        self.last_operator_button.setText(f"I am {last}")
+        self.last_operator_button.setVisible(bool(last))
+        self._sync_session_box()
+
+    def selected_patient(self) -> str | None:
+        item = self.patient_list.currentItem()
+        return item.data(Qt.ItemDataRole.UserRole) if item is not None else None
+
+    def _sync_session_box(self) -> None:
+        pid = self.selected_patient()
+        operator = self.operator_edit.text().strip()
+        plan = []
+        if pid:
+            try:
+                from app.patients import load_patient
+
+                plan = list(load_patient(pid).therapy_plan)
+            except Exception:
+                plan = []
+        first = next((e.title for e in self.library if plan and e.ident == plan[0].exercise), "")
+        self.session_button.setText(f"▶ Start session and 1. {first}" if first else "▶ Start session")
+        problem = "" if pid else "Choose the patient (or New patient…)."
+        if pid and not operator:
+            problem = "Enter the operator's name (it signs the session's record)."
+        self.session_button.setEnabled(not problem)
+        self.session_button.setToolTip(problem or "Starts the session's recording; with a plan, its first exercise")
+        self.session_problem.setText("" if not (pid or operator) else problem)
+
+    def start_session_here(self) -> bool:
+        """Start the session of the chosen patient with the operator given, then the plan's first exercise (the
+        button says which). False with the reason shown when nothing started."""
+        from PySide6.QtCore import QSettings
+
+        pid, operator = self.selected_patient(), self.operator_edit.text().strip()
+        if not pid or not operator or not self._session_possible():
+            self._sync_session_box()
+            return False
+        try:
+            self.manager.start_session(pid, operator)
+        except (ValueError, RuntimeError, OSError) as exc:
+            text = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
+            self.session_problem.setText(f"Session not started: {text}")
+            return False
+        QSettings().setValue("session/operator", operator)
+        self.operator_edit.clear()
+        if self.plan():  # the session's start loaded the plan: its first step is selected
+            self.plan_list.setCurrentRow(0)
+            return self.start()
+        return True
+
+    def new_patient(self) -> QWidget:
+        """A new patient's profile, then at once their therapy plan; back here with them chosen."""
+        from app.ui.patient_dialog import PatientDialog
+        from app.ui.patients_window import PlanDialog
+
+        safety = getattr(getattr(self.manager, "config", None), "safety", None)
+        dialog = PatientDialog(None, safety, None, self)
+        self.patient_dialog = dialog
+
+        def saved(result: int) -> None:
+            profile = getattr(dialog, "profile", None)
+            if result != 1 or profile is None:
+                return
+            self.reload_patients(profile.patient_id)
+            plan = PlanDialog(profile, safety, parent=self)
+            self.plan_dialog = plan
+            plan.finished.connect(lambda _r: self.reload_patients(profile.patient_id))
+            plan.open()
+
+        dialog.finished.connect(saved)
+        dialog.open()
+        return dialog
+
     def _session_changed(self, folder: Path | None) -> None:
         """At the end of a session in which exercises were run from this tab, its whole summary is shown."""
         ended, exercised = self._session_folder, self._exercised_in_session
         self._session_folder = Path(folder) if folder is not None else None
         self._exercised_in_session = False
+        self.reload_patients()
         self.load_plan()
         if folder is None and ended is not None and exercised:
             QTimer.singleShot(0, self, lambda: show_when_unblocked(

@@ -14,7 +14,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-from PySide6.QtCore import Qt
+from PySide6.QtCore import Qt, QTimer
 from PySide6.QtWidgets import (
     QAbstractItemView,
     QCheckBox,
@@ -28,6 +28,7 @@ from PySide6.QtWidgets import (
     QLabel,
     QLineEdit,
     QListWidget,
+    QListWidgetItem,
     QPushButton,
     QSplitter,
     QTableWidget,
@@ -98,12 +99,21 @@ class PlanDialog(QDialog):
         self.step_list.setAccessibleName("Plan steps")
         self.step_list.setWordWrap(True)
         self.step_list.currentRowChanged.connect(self._show_step)
-        self.exercise_box = QComboBox()
-        self.exercise_box.setAccessibleName("Exercise to add")
+        # The library, one double-click (or Enter) per step added (#36: a two-step plan in two actions).
+        self.library_list = QListWidget()
+        self.library_list.setAccessibleName("Exercises to add")
+        self.library_list.setToolTip("Double-click an exercise (or press Enter) to add it to the plan")
         for e in self.library:
-            self.exercise_box.addItem(e.title, e.ident)
+            item = QListWidgetItem(e.title)
+            item.setData(Qt.ItemDataRole.UserRole, e.ident)
+            item.setToolTip(f"{e.title}\n\n{e.description}")
+            self.library_list.addItem(item)
+        self.library_list.setCurrentRow(0)
+        rows = max(1, min(len(self.library), 5))
+        self.library_list.setMaximumHeight(rows * (self.library_list.fontMetrics().lineSpacing() + 6) + 8)
+        self.library_list.itemActivated.connect(lambda item: self.add_step(item.data(Qt.ItemDataRole.UserRole)))
         self.add_button = QPushButton("&Add to plan")
-        self.add_button.clicked.connect(lambda: self.add_step(self.exercise_box.currentData()))
+        self.add_button.clicked.connect(self._add_selected)
         self.remove_button = QPushButton("&Remove")
         self.remove_button.clicked.connect(self.remove_step)
         self.up_button = QPushButton("Move &up")
@@ -111,8 +121,8 @@ class PlanDialog(QDialog):
         self.down_button = QPushButton("Move &down")
         self.down_button.clicked.connect(lambda: self.move_step(1))
         add_row = QHBoxLayout()
-        add_row.addWidget(self.exercise_box, 1)
-        add_row.addWidget(self.add_button)
+        add_row.addWidget(self.library_list, 1)
+        add_row.addWidget(self.add_button, 0, Qt.AlignmentFlag.AlignTop)
         order_row = QHBoxLayout()
         for b in (self.up_button, self.down_button, self.remove_button):
             order_row.addWidget(b)
@@ -183,6 +193,11 @@ class PlanDialog(QDialog):
         self.remove_button.setEnabled(row >= 0)
         self.up_button.setEnabled(row > 0)
         self.down_button.setEnabled(0 <= row < len(self.steps) - 1)
+
+    def _add_selected(self) -> None:
+        item = self.library_list.currentItem()
+        if item is not None:
+            self.add_step(item.data(Qt.ItemDataRole.UserRole))
 
     def add_step(self, ident: str) -> None:
         exercise = self.exercises[ident]
@@ -518,9 +533,24 @@ class PatientsDialog(QDialog):
         return changes
 
     def new_patient(self) -> QDialog:
+        """A new patient's profile; once saved, their therapy plan opens at once (one action fewer, #36)."""
         from app.ui.patient_dialog import PatientDialog
 
-        return self._open(PatientDialog(None, self.safety, self.folder, self), None)
+        dialog = PatientDialog(None, self.safety, self.folder, self)
+
+        def saved(result: int) -> None:
+            profile = getattr(dialog, "profile", None)
+            if result == QDialog.DialogCode.Accepted and profile is not None:
+                QTimer.singleShot(0, self, lambda: self._plan_for(profile.patient_id))
+
+        dialog.finished.connect(saved)
+        return self._open(dialog, None)
+
+    def _plan_for(self, patient_id: str) -> PlanDialog | None:
+        self.refresh(patient_id)
+        if self.selected_id() != patient_id:
+            return None
+        return self.edit_plan()
 
     def edit_profile(self) -> QDialog | None:
         from app.ui.patient_dialog import PatientDialog
