@@ -109,6 +109,8 @@ class PlanDialog(QDialog):
             item.setToolTip(f"{e.title}\n\n{e.description}")
             self.library_list.addItem(item)
         self.library_list.setCurrentRow(0)
+        self.library_list.setHorizontalScrollBarPolicy(Qt.ScrollBarPolicy.ScrollBarAlwaysOff)
+        self.library_list.setTextElideMode(Qt.TextElideMode.ElideRight)  # the whole title in the tooltip
         rows = max(1, min(len(self.library), 5))
         self.library_list.setMaximumHeight(rows * (self.library_list.fontMetrics().lineSpacing() + 6) + 8)
         self.library_list.itemActivated.connect(lambda item: self.add_step(item.data(Qt.ItemDataRole.UserRole)))
