@@ -26,7 +26,7 @@ from PySide6.QtCore import QObject, Signal
 
 from app.config import RobotLimits, SafetyConfig
 from app.devices.linarm_constants import K
-from app.ownership import ROBOT, STIMULATOR, Composition, Lease, clamp_to, refusal
+from app.ownership import DEVICE_WORDS, ROBOT, STIMULATOR, Composition, Lease, clamp_to, refusal
 
 log = logging.getLogger(__name__)
 
@@ -186,13 +186,13 @@ class SafetySupervisor(QObject):
         """``lease.holder`` holds ``lease.devices`` from now on. Raises SafetyError (recorded as a refused lease)
         when another holds one of them: one owner at a time."""
         with self._lease_lock:
-            taken = {self._leases[d].holder for d in lease.devices if d in self._leases
+            taken = {d: self._leases[d].holder for d in sorted(lease.devices) if d in self._leases
                      and self._leases[d].key != lease.key}
             if taken:
-                busy = ", ".join(sorted(taken))
+                busy = "; ".join(f"{DEVICE_WORDS[d]} is held by {who}" for d, who in taken.items())
                 self.event("lease_refused", holder=lease.holder, source=lease.holder, what="the devices",
-                           reason=f"held by {busy}")
-                raise SafetyError(f"{lease.holder} cannot start: the devices are held by {busy}", lease.holder)
+                           reason=busy)
+                raise SafetyError(f"{lease.holder} cannot start: {busy}", lease.holder)
             self._leases = {**self._leases, **{d: lease for d in lease.devices}}
         self.event("lease_taken", **lease.record())
         self.lease_changed.emit()

@@ -200,7 +200,8 @@ def _session_and_first_exercise(qtbot: Any, manager: LinarmppManager,
 
     panel = window.frames["CommandsFrame"].panels["ExercisesPanel"]
     panel.operator_edit.setText(OPERATOR)
-    assert panel.session_button.text() == "▶ Start session and 1. Trigger reaching (grip-triggered passive movements)"
+    assert panel.session_button.text() == "▶ Start session and step 1"
+    assert panel.session_plan.text() == "Plan: 1. Trigger reaching (grip-triggered passive movements)"
     manager.sim_patient().squeeze_at_targets([0.15, 0.30], tolerance=0.006, duration=0.8,
                                              reaction_delay=REACTION_DELAY_S)
     qtbot.mouseClick(panel.session_button, Qt.MouseButton.LeftButton)

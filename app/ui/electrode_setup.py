@@ -161,6 +161,11 @@ class ElectrodeSetupDialog(QDialog):
         header.setSectionResizeMode(QHeaderView.ResizeMode.ResizeToContents)
         header.setSectionResizeMode(1, QHeaderView.ResizeMode.Stretch)
         self.table.verticalHeader().setDefaultSectionSize(self.table.fontMetrics().lineSpacing() + 10)
+        # Every combination of a district in view at once (four, the configured arrays): the plot gives way first.
+        rows = max((len(d.combinations) for d in self.districts.values()), default=4)
+        self.table.setMinimumHeight(self.table.horizontalHeader().sizeHint().height()
+                                    + rows * self.table.verticalHeader().defaultSectionSize()
+                                    + 2 * self.table.frameWidth() + 4)
 
         self.proposal_label = QLabel("")
         self.proposal_label.setWordWrap(True)
@@ -180,8 +185,11 @@ class ElectrodeSetupDialog(QDialog):
         top.addWidget(self.plot, 1)
         lay = QVBoxLayout(self)
         lay.addLayout(top, 5)
-        lay.addWidget(self.table, 2)
+        lay.addWidget(self.table, 0)
         lay.addLayout(choose)
+        screen = self.screen().availableGeometry() if self.screen() is not None else None
+        if screen is not None:  # as tall as the screen allows (at 1366×768 the table showed 2 of 4 rows)
+            self.resize(min(1100, screen.width() - 40), min(760, screen.height() - 60))
 
         self.start_button.clicked.connect(self.start)
         self.stop_button.clicked.connect(lambda: self.stop("Stop pressed in the electrode set-up"))
@@ -224,7 +232,7 @@ class ElectrodeSetupDialog(QDialog):
             try:
                 take(setup_lease())
             except SafetyError as exc:
-                self._say(f"The set-up cannot start: {exc.reason}.", "bad")
+                self._say(f"{exc.reason[:1].upper()}{exc.reason[1:]}.", "bad")
                 return False
         bus = getattr(self.manager, "bus", None)  # the data backbone (#29) when merged; the driver's latest before
         latest = bus.latest if bus is not None else robot.latest

@@ -257,9 +257,13 @@ class ExercisesPanel(QWidget):
         self.session_box = QGroupBox("Start a session")
         self.patient_list = QListWidget()
         self.patient_list.setAccessibleName("Patients")
-        self.patient_list.setWordWrap(False)
+        self.patient_list.setWordWrap(True)  # the id and the name, whole (the column is narrow at 1366×768)
+        self.patient_list.setHorizontalScrollBarPolicy(Qt.ScrollBarPolicy.ScrollBarAlwaysOff)
         self.patient_list.currentRowChanged.connect(lambda _r: self._sync_session_box())
         self.patient_list.setMaximumHeight(4 * (self.patient_list.fontMetrics().lineSpacing() + 6) + 8)
+        self.session_plan = QLabel("")  # what the button starts: the chosen patient's plan, in words
+        self.session_plan.setWordWrap(True)
+        self.session_plan.setObjectName("sessionPlan")
         self.new_patient_button = QPushButton("&New patient…")
         self.new_patient_button.clicked.connect(self.new_patient)
         self.operator_edit = QLineEdit()
@@ -280,6 +284,7 @@ class ExercisesPanel(QWidget):
         lay.setContentsMargins(4, 4, 4, 4)
         lay.setSpacing(3)
         lay.addWidget(self.patient_list)
+        lay.addWidget(self.session_plan)
         op_row = QHBoxLayout()
         op_row.addWidget(self.operator_edit, 1)
         op_row.addWidget(self.last_operator_button)
@@ -342,8 +347,11 @@ class ExercisesPanel(QWidget):
                 plan = list(load_patient(pid).therapy_plan)
             except Exception:
                 plan = []
-        first = next((e.title for e in self.library if plan and e.ident == plan[0].exercise), "")
-        self.session_button.setText(f"▶ Start session and 1. {first}" if first else "▶ Start session")
+        titles = [next((e.title for e in self.library if e.ident == step.exercise), step.exercise) for step in plan]
+        self.session_button.setText("▶ Start session and step 1" if titles else "▶ Start session")
+        self.session_plan.setText("Plan: " + "; ".join(f"{k + 1}. {t}" for k, t in enumerate(titles)) if titles
+                                  else ("No therapy plan: the session starts, then choose an exercise." if pid else ""))
+        self.session_plan.setVisible(bool(pid))
         problem = "" if pid else "Choose the patient (or New patient…)."
         if pid and not operator:
             problem = "Enter the operator's name (it signs the session's record)."
@@ -481,6 +489,9 @@ class ExercisesPanel(QWidget):
                 self.exercise_list.blockSignals(False)
                 self.show_exercise(e, step.params)
                 self._plan_step = row
+                problem = self.step_problem(step)
+                if problem:  # said where it is chosen, not only in the list's tooltip
+                    self._say(f"Step {row + 1} cannot start: {problem}", error=True)
                 return
         self.message.setText(f"Plan step {row + 1}: no exercise '{step.exercise}' in the library.")
         self.message.setStyleSheet(ERROR_STYLE)
@@ -753,9 +764,15 @@ class ExercisesPanel(QWidget):
         """The summary kept back after a STOP, once the recovery is done and nothing runs (Recover's continuation
         or restart takes its place: that run's summary comes at its end)."""
         pending = self._pending_summary
-        if pending is None or time.monotonic() < getattr(self, "_pending_after", 0.0):
+        if pending is None:
             return
+        now = time.monotonic()
         if self._recovery_needed() or (self._runner is not None and self._runner.running):
+            # Recover's own steps run in between (a robot error's reset is polled): its restart or continuation
+            # follows within moments, so the summary waits a while after the last sign of the recovery.
+            self._pending_after = max(getattr(self, "_pending_after", 0.0), now + SUMMARY_DELAY_MS / 1000.0)
+            return
+        if now < getattr(self, "_pending_after", 0.0):
             return
         self._pending_summary = None
         folder, since, until, name, _run_id = pending

@@ -271,6 +271,7 @@ class RecoverDialog(QDialog):
                  parent: QWidget | None = None, script_running: bool = False) -> None:
         super().__init__(parent)
         self.setWindowTitle("Recover after the stop")
+        self.setMinimumWidth(520)  # its title and the exercise's name, whole (a window manager elides them)
         self.manager = manager
         self.restart = restart
         self.choice: str | None = None  # "continue" | "restart" | "recover"
