@@ -506,7 +506,7 @@ def run_parameters(exercise: Exercise, params: Mapping[str, Any]) -> tuple[Any, 
                  if p.name in params)
 
 
-def run_problems(manager: Any, exercise: Exercise, params: Mapping[str, Any]) -> dict[str, str]:
+def run_problems(manager: EventHost, exercise: Exercise, params: Mapping[str, Any]) -> dict[str, str]:
     """:func:`prescription_problems` against what is in force now: the supervisor's robot limits (the session
     patient's), the stimulator's limits (their clinical caps as they are now) and their chosen electrodes."""
     sup = getattr(manager, "supervisor", None)

@@ -25,7 +25,7 @@ from __future__ import annotations
 import math
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Protocol
 
 ROBOT, STIMULATOR = "robot", "stimulator"
 DEVICES: tuple[str, ...] = (ROBOT, STIMULATOR)
@@ -175,7 +175,22 @@ def compositions_from(declared: Iterable[Mapping[str, Any]], params: Mapping[str
     return tuple(out)
 
 
-def start_problem(manager: Any, holds: tuple[str, ...] = ("robot",), *, stop: bool = True) -> str:
+class _Holds(Protocol):
+    """What :func:`start_problem` reads of the supervisor (app.safety.SafetySupervisor)."""
+
+    def robot_hold_reason(self) -> str: ...
+
+    def holder(self, device: str = ROBOT) -> str: ...
+
+
+class OwnershipHost(Protocol):
+    """What :func:`start_problem` reads of the manager: its supervisor."""
+
+    @property
+    def supervisor(self) -> _Holds: ...
+
+
+def start_problem(manager: OwnershipHost, holds: tuple[str, ...] = ("robot",), *, stop: bool = True) -> str:
     """Why a run cannot start now ("" when it can), in words, before anything is recorded or moves: a latched
     emergency stop or an open STOP alarm (Recover first; ``stop`` False: not asked — a script that only looks
     may run), or another holder of the devices it needs."""
