@@ -14,7 +14,7 @@ from app.config import RESOURCES, AppConfig
 from app.recording import load_session
 
 EXERCISES = RESOURCES / "exercises"
-PARAMS = {"repetitions": 4, "start_m": 0.15, "target_m": 0.35, "use_fes": False, "timeout_s": 6.0, "rest_s": 0.3}
+PARAMS = {"repetitions": 2, "start_m": 0.15, "target_m": 0.35, "use_fes": False, "timeout_s": 6.0, "rest_s": 0.3}
 
 
 def _script(tmp: Path, params: dict[str, Any]) -> Path:
@@ -73,7 +73,7 @@ def test_the_vr_task_does_not_pull_the_robot_out_of_the_exercises_range(tmp_path
     outside = [(s, v) for s, v in targets if not 0.15 - 1e-9 <= v <= 0.35 + 1e-9]
     assert outside == [], f"targets outside the exercise's range on the wire: {outside}"
     ends = [e["data"]["ok"] for e in events if e["kind"] == "repetition_end"]
-    assert ends == [True] * 4, ends
+    assert ends == [True] * 2, ends
 
 
 # ---------------------------------------------------------------------------------------------- the supervisor

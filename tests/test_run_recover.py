@@ -237,8 +237,6 @@ def test_f12_recover_continues_the_same_run_with_its_remaining_repetitions_in_tw
     first = manager.runs.current()
     _f12(window)
     qtbot.waitUntil(lambda: not runner.running, timeout=5000)
-    done = sum(1 for m in manager.runs.get(first.run_id).repetitions if m.end_mono is not None and not m.interrupted)
-    assert done >= 1
     # Start is disabled while the STOP is latched, and says why; nothing is recorded by trying.
     qtbot.waitUntil(lambda: not panel.start_button.isEnabled() and panel.hold_label.isVisible(), timeout=3000)
     assert "emergency stop" in panel.hold_label.text() and "Recover" in panel.hold_label.text()
@@ -247,6 +245,8 @@ def test_f12_recover_continues_the_same_run_with_its_remaining_repetitions_in_tw
     # The summary waits: Recover is never covered.
     qtbot.wait(SUMMARY_DELAY_MS + 400)
     assert panel.summary_dialog is None or not panel.summary_dialog.isVisible()
+    done = sum(1 for m in manager.runs.get(first.run_id).repetitions if m.end_mono is not None and not m.interrupted)
+    assert done >= 1
     dialog = _recover_dialog(qtbot, window)  # click 1
     assert dialog.continue_button is not None and dialog.continue_button.isDefault()
     assert f"remaining {4 - done} repetitions" in dialog.continue_button.text()
@@ -287,3 +287,24 @@ def test_a_run_ended_by_a_safety_stop_is_recorded_as_a_safety_stop(qtbot: Any, w
     assert runner.wait(5.0)
     ended = manager.runs.get(run.run_id)
     assert ended.end_reason == "safety_stop", (ended.end_reason, ended.end_detail)
+
+
+def test_recover_says_changed_on_disk_only_when_the_file_changed(tmp_path: Path) -> None:
+    """Before #36 a script only edited in the editor (unsaved) was "changed on disk"; now that is said only when
+    the file itself changed since the run started, and Recover restarts what ran either way."""
+    from app.runs import Program, text_hash
+    from app.ui.recovery import script_restart_words
+
+    path = tmp_path / "reach.py"
+    path.write_text("wait(1)\n", encoding="utf-8")
+    edited = "wait(2)\n"  # the editor's unsaved text, which ran
+    ran = Program("script_file", str(path), "reach.py", text_hash(edited), path=str(path), text=edited,
+                  file_sha256=text_hash("wait(1)\n"))
+    words = script_restart_words(ran, editor_text=edited)
+    assert "changed on disk" not in words and "differs from reach.py on disk (not saved)" in words
+    same = Program("script_file", str(path), "reach.py", text_hash("wait(1)\n"), path=str(path), text="wait(1)\n",
+                   file_sha256=text_hash("wait(1)\n"))
+    assert script_restart_words(same, editor_text="wait(3)\n") == \
+        "the text that ran (reach.py); the editor's text differs from it now, and is not what restarts"
+    path.write_text("wait(9)\n", encoding="utf-8")
+    assert "reach.py has changed on disk since" in script_restart_words(same, editor_text="wait(1)\n")

@@ -5,9 +5,10 @@ from __future__ import annotations
 
 from typing import Any
 
-from PySide6.QtWidgets import QLabel, QSizePolicy, QWidget
+from PySide6.QtWidgets import QWidget
 
 from app.ownership import DEVICE_WORDS, ROBOT, STIMULATOR
+from app.ui.alarms_panel import LinesLabel
 
 _WHAT = {ROBOT: "its target, mode and gains are the run's: the buttons here are refused until it ends",
          STIMULATOR: "its profile, start and pulse width are the run's: Stop and lowering a scale still work"}
@@ -30,17 +31,15 @@ def held_text(supervisor: Any, device: str) -> str:
     return f"{name} held by: {lease.holder}{extra} — {_WHAT[device]}."
 
 
-class HeldByLabel(QLabel):
-    """One line (two at most) naming the device's holder; hidden when nobody holds it."""
+class HeldByLabel(LinesLabel):
+    """Two lines at most naming the device's holder (the rest in its tooltip); hidden when nobody holds it. No
+    height-for-width: it sits in scrolling panels (app.ui.alarms_panel.LinesLabel)."""
 
     def __init__(self, supervisor: Any, device: str, parent: QWidget | None = None) -> None:
-        super().__init__(parent)
+        super().__init__(2, parent)
         self.supervisor = supervisor
         self.device = device
         self.setObjectName(f"heldBy_{device}")
-        self.setWordWrap(True)
-        self.setSizePolicy(QSizePolicy.Policy.Ignored, QSizePolicy.Policy.Fixed)
-        self.setFixedHeight(2 * self.fontMetrics().lineSpacing() + 6)
         self.setStyleSheet("QLabel { background: #fff3cd; color: #5c4400; border: 1px solid #e0c060; "
                            "border-radius: 3px; padding: 1px 4px; }")
         signal = getattr(supervisor, "lease_changed", None)
@@ -50,7 +49,6 @@ class HeldByLabel(QLabel):
 
     def refresh(self) -> None:
         text = held_text(self.supervisor, self.device)
-        self.setText(text)
-        self.setToolTip(text)
+        self.set_full_text(text, text)
         self.setAccessibleName(text or f"{DEVICE_WORDS[self.device]} is free")
         self.setVisible(bool(text))
