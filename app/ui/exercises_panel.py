@@ -315,6 +315,7 @@ class ExercisesPanel(QWidget):
         except OSError:
             entries = []
         entries.sort(key=lambda e: e.profile.updated or e.profile.created or "", reverse=True)
+        self._patient_plans = {e.patient_id: list(e.profile.therapy_plan) for e in entries}
         self.patient_list.blockSignals(True)
         self.patient_list.clear()
         for e in entries:
@@ -339,14 +340,7 @@ class ExercisesPanel(QWidget):
     def _sync_session_box(self) -> None:
         pid = self.selected_patient()
         operator = self.operator_edit.text().strip()
-        plan = []
-        if pid:
-            try:
-                from app.patients import load_patient
-
-                plan = list(load_patient(pid).therapy_plan)
-            except Exception:
-                plan = []
+        plan = getattr(self, "_patient_plans", {}).get(pid, []) if pid else []
         titles = [next((e.title for e in self.library if e.ident == step.exercise), step.exercise) for step in plan]
         self.session_button.setText("▶ Start session and step 1" if titles else "▶ Start session")
         self.session_plan.setText("Plan: " + "; ".join(f"{k + 1}. {t}" for k, t in enumerate(titles)) if titles
