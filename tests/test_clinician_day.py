@@ -465,7 +465,9 @@ def _check_reports(manager: LinarmppManager, folder: Path, tmp_path: Path, day_r
     # squeeze came where the handle already was, before its cue).
     by_run = {r["run_id"]: r for r in session_metrics(folder)["runs"]}
     rts = [r["reaction_time_s"] for r in by_run[script_run.run_id]["repetitions"][1:] if r.get("reaction_time_s")]
-    assert len(rts) >= 2 and all(abs(rt - REACTION_DELAY_S) < 0.1 for rt in rts), rts
+    reps = [(r.get("index"), r.get("reaction_time_s"), r.get("completed")) for r in
+            by_run[script_run.run_id]["repetitions"]]
+    assert len(rts) >= 2 and all(abs(rt - REACTION_DELAY_S) < 0.1 for rt in rts), reps
     folder_out = os.environ.get("LINARMPP_DAY_SHOTS")
     if folder_out:
         for pdf in (session_pdf, progress_pdf):
