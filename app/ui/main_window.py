@@ -422,7 +422,9 @@ class MainWindow(QMainWindow):
         runner = self._script_runner()
         if runner is None or not runner.running:
             return False
-        runner.stop("stopped by Recover after an emergency stop", wait_s=2.0)
+        # the STOP is why it ends (#36: recorded as "stopped by the operator" before)
+        cause = "emergency_stop" if self.manager.supervisor.estop_latched else "safety_stop"
+        runner.stop("stopped by Recover after an emergency stop", wait_s=2.0, cause=cause)
         return True
 
     def _on_estop_changed(self, latched: bool, reason: str) -> None:
