@@ -206,7 +206,7 @@ class LinarmppManager(QObject):
         # every STOP alarm -> safe state (window and headless alike)
         self.fault_policy = FaultPolicy(self.supervisor, self.bus, self.driver, lambda: self._started,
                                         config.safety.silence_stop_s)
-        self.device_watch = DeviceWatch(self.supervisor, self.fault_policy.loss_level, lambda: self._started)
+        self.device_watch = DeviceWatch(self.supervisor, self.loss_level, lambda: self._started)
         self._watching = False
 
     # ------------------------------------------------------------------ lifecycle
@@ -303,6 +303,29 @@ class LinarmppManager(QObject):
         _command(robot, ("setAssistanceTargetPos", applied), "VR task")
 
     # ------------------------------------------------------------------ one owner during a run (#36)
+    def loss_level(self, device: str) -> AlarmLevel:
+        """The level of ``device``'s connection loss: the fault policy's (a link that drives an active actuator is a
+        STOP), except that a driving link — the patient model's α, the VR task's target — drives nothing an owner
+        holds without composing it and without a program that could read it: while every active actuator is held
+        by such an owner (the electrode set-up), its loss is a warning. A script's or an exercise's run may read
+        α through the API itself: for those it stays a STOP."""
+        level = self.fault_policy.loss_level(device)
+        source = {streams.PATIENT_MODEL: "assistance", streams.VR: "VR task"}.get(device)
+        if level < AlarmLevel.STOP or source is None:
+            return level
+        from app.devices.linarm_protocol import ControlState
+
+        fes = self.driver(streams.FES)
+        state = self.bus.latest(streams.LINARM_STATE) if self.driver(streams.LINARM) is not None else None
+        active = [d for d, on in ((ROBOT, state is not None
+                                   and getattr(state, "controlState", None) == int(ControlState.ON_CTRL_STATE)),
+                                  (STIMULATOR, bool(getattr(fes, "stimulating", False)))) if on]
+        for dev in active:
+            lease = self.supervisor.lease(dev)
+            if lease is None or lease.acts_for(RUN_SOURCES[0]) or any(c.source == source for c in lease.compose):
+                return level  # it can reach this actuator, or the program holding it can read it
+        return AlarmLevel.WARNING if active else level
+
     def hold_for_run(self, run: Any) -> None:
         """The run log's listener (any thread): a run that starts holds its devices, one that ends gives them
         back. What it holds and lets in comes from its record (``holds``, ``compose``: app/runs.py)."""

@@ -170,3 +170,28 @@ def test_the_exercises_declare_what_they_hold_and_compose() -> None:
     assert (comp.source, comp.sets, comp.range_m) == ("VR task", "assistance_target", (0.15, 0.35))
     trigger = find_exercise("trigger_reaching")
     assert trigger.holds(trigger.defaults()) == ("robot",) and trigger.compositions(trigger.defaults()) == ()
+
+
+def test_losing_a_link_the_running_owner_refuses_is_a_warning_not_a_stop(qapp: Any) -> None:
+    """The patient model's α drives nothing the electrode set-up holds: its loss during the set-up no longer stops
+    it (under load it did; the set-up never used it). A program's run may read α itself: there it stays a STOP."""
+    from types import SimpleNamespace
+
+    from app.manager import LinarmppManager
+    from app.ownership import RUN_SOURCES, Composition, Lease
+    from app.safety import AlarmLevel
+
+    manager = LinarmppManager(AppConfig(), factories={})
+    manager.fault_policy.loss_level = lambda _device: AlarmLevel.STOP  # an actuator is active
+    manager.driver = lambda name: SimpleNamespace(stimulating=True) if name == "fes" else None  # type: ignore
+    assert manager.loss_level("patient_model") == AlarmLevel.STOP  # nobody holds the stimulator: α reaches it
+    sup = manager.supervisor
+    sup.take_lease(Lease("electrode-setup", "Electrode set-up", frozenset({"robot", "stimulator"}),
+                         ("electrode set-up",)))
+    assert manager.loss_level("patient_model") == AlarmLevel.WARNING
+    assert manager.loss_level("vr") == AlarmLevel.WARNING
+    sup.release_lease("electrode-setup")
+    # a program's run may read α itself (the script API's patientModel): its loss stays a STOP
+    sup.take_lease(Lease("run-2", "Assisted reaching", frozenset({"robot", "stimulator"}), RUN_SOURCES,
+                         compose=(Composition("assistance", "pulse_width"),)))
+    assert manager.loss_level("patient_model") == AlarmLevel.STOP
