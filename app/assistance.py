@@ -213,6 +213,15 @@ class AssistanceController:
                 if self._call("robot", self._apply_robot, neutral.k_m, neutral.k_a, neutral.k_t):
                     self.applied_robot = None
 
+    def forget_applied(self, robot: bool = False, fes: bool = False) -> None:
+        """Another owner has taken the robot's gains or the stimulator's pulse width (a run, #36): what this
+        controller applied last is no longer what the device has, so the next α applies it again in full."""
+        with self._lock:
+            if robot:
+                self.applied_robot = None
+            if fes:
+                self.applied_pulse_width_us = None
+
     def set_gains(self, k_r: float, k_f: float, now: float | None = None) -> None:
         for name, v in (("k_r", k_r), ("k_f", k_f)):
             if not 0.0 <= v <= 1.0:  # also refuses NaN

@@ -564,7 +564,7 @@ def app_ports(fes: Any, robot_command: Callable[..., Any], latest: Callable[[str
     robot = _Robot(robot_command, latest, source)
 
     def start_burst(burst: Burst) -> None:
-        fes.load_profile(burst_profile(burst, muscle))
+        fes.load_profile(burst_profile(burst, muscle), source)
         fes.start_stimulation(source)
 
     def read_arm() -> ArmReading | None:
@@ -598,10 +598,14 @@ def choice_event(result: SetupResult, choice: Any) -> dict[str, Any]:
 
 def save_choice(result: SetupResult, channel: int, profile: Any, operator: str, session: str = "",
                 safety: Any = None, folder: Any = None) -> Any:
-    """Choose ``channel`` for the result's district in the patient's ``profile`` (app.patients.PatientProfile),
-    save the profile file (validated, atomically) and return the new profile."""
-    from app.patients import save_patient
+    """Choose ``channel`` for the result's district in the patient's profile (app.patients.PatientProfile), save
+    the profile file (validated, atomically) and return the new profile. Only the choice is written, onto the
+    profile as it is on disk now (``profile`` stands for it when there is no file yet): a copy taken at the
+    session's start must not bring back a cap lowered since (issue #36)."""
+    from app.patients import load_patient, patient_file, save_patient
 
+    if patient_file(profile.patient_id, folder).exists():
+        profile = load_patient(profile.patient_id, safety, folder)
     new = with_choice(profile, result.district.name, choice_for(result, channel, operator, session))
     save_patient(new, folder, safety)
     return new
@@ -629,7 +633,7 @@ def run_district_setup(fes: Any, robot: Any, supervisor: Any, latest: Callable[[
     finally:
         if previous is not None and not getattr(fes, "stimulating", False):
             try:
-                fes.load_profile(previous)
+                fes.load_profile(previous, source)
             except Exception as exc:
                 log.warning("electrode set-up: the previous profile could not be loaded again: %s", exc)
 

@@ -37,6 +37,9 @@ if TYPE_CHECKING:
 
 EXERCISES_DIR = RESOURCES / "exercises"
 PARAMETER_TYPES = ("int", "float", "bool", "choice")
+# What a number parameter is checked against besides its own range (the patient's limits, when the plan is
+# saved, the session starts and the run starts): its ``limit`` key.
+PARAMETER_LIMITS = ("position", "velocity", "acceleration", "stiffness")
 
 
 class ExerciseError(ValueError):
@@ -54,6 +57,7 @@ class Parameter:
     max: float | None = None
     help: str = ""
     options: tuple[str, ...] = ()
+    limit: str = ""  # "position" | "velocity" | "acceleration" | "stiffness": also within the patient's limits
 
     def describe_range(self) -> str:
         unit = f" {self.unit}" if self.unit else ""
@@ -107,9 +111,26 @@ class Exercise:
     script: Path
     parameters: tuple[Parameter, ...]
     order: int = 100
+    fes_profile: str = ""  # the parameter naming the FES profile it stimulates with ("" = it does not stimulate)
+    fes_enabled: str = ""  # the yes/no parameter switching that stimulation on ("" = always on)
+    repetitions: str = ""  # the parameter counting its repetitions (Recover's "continue with the remaining")
+    composition: tuple[Mapping[str, Any], ...] = ()  # what it lets other sources set (app/ownership.py)
 
     def defaults(self) -> dict[str, Any]:
         return {p.name: p.default for p in self.parameters}
+
+    def stimulates(self, params: Mapping[str, Any]) -> bool:
+        return bool(self.fes_profile) and (not self.fes_enabled or bool(params.get(self.fes_enabled)))
+
+    def holds(self, params: Mapping[str, Any]) -> tuple[str, ...]:
+        """The devices a run of it holds: the robot, and the stimulator when it stimulates."""
+        return ("robot", "stimulator") if self.stimulates(params) else ("robot",)
+
+    def compositions(self, params: Mapping[str, Any]) -> tuple[Any, ...]:
+        """Its declared composition with the run's values (app.ownership.Composition)."""
+        from app.ownership import compositions_from
+
+        return compositions_from(self.composition, params)
 
     def parameter(self, name: str) -> Parameter:
         for p in self.parameters:
@@ -149,6 +170,88 @@ def validate(exercise: Exercise, values: Mapping[str, Any]) -> Validation:
     return out
 
 
+# ------------------------------------------------------------------------------------------- the patient
+FES_PROFILES_DIR = RESOURCES / "fes_profiles"
+
+
+def fes_profile_path(name: str) -> Path:
+    """A profile named by an exercise's choice: a file of the bundled profiles (or a path)."""
+    path = Path(name)
+    return path if path.is_absolute() else FES_PROFILES_DIR / name
+
+
+def prescription_problems(exercise: Exercise, params: Mapping[str, Any], *, robot: Any = None,
+                          fes_limits: Any = None, district_channels: Mapping[str, int] | None = None,
+                          patient: str = "") -> dict[str, str]:
+    """What in these (already range-checked) values the patient's *current* limits refuse, as
+    {parameter name: sentence}, empty when nothing: a position outside the patient's range, a speed,
+    acceleration or stiffness above their limit (``robot``: app.config.RobotLimits, the patient's narrowed
+    ones); the FES profile the exercise stimulates with above a cap (``fes_limits``: app.fes_limits.FesLimits
+    with the patient's clinical caps), or naming a muscle district with no chosen electrode combination
+    (``district_channels``). Checked when the plan is saved, when the session starts and when the run starts,
+    before anything moves (issue #36)."""
+    out: dict[str, str] = {}
+    if robot is not None:
+        for p in exercise.parameters:
+            if not p.limit or p.name not in params:
+                continue
+            try:
+                value = float(params[p.name])
+            except (TypeError, ValueError):
+                continue
+            unit = f" {p.unit}" if p.unit else ""
+            if p.limit == "position" and not (robot.position_min_m <= value <= robot.position_max_m):
+                out[p.name] = (f"{value:g}{unit} is outside this patient's range of movement "
+                               f"{robot.position_min_m:g} … {robot.position_max_m:g} m")
+            else:
+                limit = {"velocity": robot.max_velocity_m_s, "acceleration": robot.max_acceleration_m_s2,
+                         "stiffness": robot.max_stiffness_n_m}.get(p.limit)
+                if limit is not None and value > limit + 1e-12:
+                    out[p.name] = f"{value:g}{unit} is above this patient's limit of {limit:g}{unit}"
+    if exercise.stimulates(params) and exercise.fes_profile in params:
+        why = fes_profile_problem(str(params[exercise.fes_profile]), fes_limits, district_channels, patient)
+        if why:
+            out[exercise.fes_profile] = why
+    return out
+
+
+def fes_profile_problem(name: str, fes_limits: Any = None, district_channels: Mapping[str, int] | None = None,
+                        patient: str = "") -> str:
+    """Why the profile ``name`` cannot stimulate this patient ("" when it can), in words."""
+    from app.fes_limits import profile_limit_problems
+    from app.fes_profile import FesProfileError, load_profile
+
+    try:
+        profile = load_profile(fes_profile_path(name))
+    except FesProfileError as exc:
+        return f"the FES profile {name} cannot be read ({exc.problem})"
+    except OSError as exc:
+        return f"the FES profile {name} cannot be read ({exc.strerror or exc})"
+    if profile.districts:
+        if district_channels is None:
+            district_channels = {}
+        try:
+            profile = profile.resolve_districts(district_channels)
+        except FesProfileError:
+            missing = [d for d in profile.districts
+                       if str(d).strip().lower() not in {k.strip().lower() for k in district_channels}]
+            muscles = " and ".join(missing) if missing else "a district"
+            return (f"“{profile.name}” stimulates by muscle district, and no electrode combination is chosen for "
+                    f"the {muscles} of this patient yet: run the electrode set-up (FES tab) first")
+    if fes_limits is None:
+        return ""
+    problems = profile_limit_problems(fes_limits, profile.peaks(scaled=True), patient)
+    if problems:
+        muscles = {ch: cp.muscle for ch, cp in profile.channels.items()}
+        first = problems[0]
+        for ch, muscle in muscles.items():
+            if muscle and first.startswith(f"Channel {ch}:"):
+                first = first.replace(f"Channel {ch}:", f"channel {ch} ({muscle}):", 1)
+        more = f" (and {len(problems) - 1} more)" if len(problems) > 1 else ""
+        return f"“{profile.name}” goes above this patient's caps: {first.rstrip('.')}{more}"
+    return ""
+
+
 # ------------------------------------------------------------------------------------------- loading
 # The file format as schema classes read by app.yamlschema, the config's strict loader: file:line errors,
 # unknown keys, types and ranges, and its limits on hostile files (size, depth, anchors, tags, encoding).
@@ -167,9 +270,12 @@ class _ParameterFile:
     max: float | None = field(default=None, metadata=rng(-_MAX_BOUND, _MAX_BOUND))
     help: str = ""
     options: list[str] = field(default_factory=list)
+    limit: str = ""
 
     def validate(self) -> None:
         name = self.name
+        if self.limit and (self.limit not in PARAMETER_LIMITS or self.type not in ("int", "float")):
+            raise ValueError(f"({name}): limit must be one of {', '.join(PARAMETER_LIMITS)}, on a number")
         if not name.isidentifier():
             raise ValueError(f"'name' must be an identifier, got {name!r}")
         if self.type not in PARAMETER_TYPES:
@@ -199,11 +305,31 @@ class _ParameterFile:
 
     def parameter(self) -> Parameter:
         p = Parameter(name=self.name, label=self.label or self.name, type=self.type, default=self.default,
-                      unit=self.unit, min=self.min, max=self.max, help=self.help, options=tuple(self.options))
+                      unit=self.unit, min=self.min, max=self.max, help=self.help, options=tuple(self.options),
+                      limit=self.limit)
         value, why = p.check(p.default)
         if why:
             raise ValueError(f"({self.name}): the default is refused: {why}")
         return Parameter(**{**p.__dict__, "default": value})
+
+
+@dataclass(frozen=True)
+class _FesFile:
+    """``fes: {profile: <parameter>, enabled: <parameter>}``: the exercise stimulates with the FES profile its
+    parameter ``profile`` names (a choice), when its yes/no parameter ``enabled`` is on."""
+
+    profile: str = ""
+    enabled: str = ""
+
+
+@dataclass(frozen=True)
+class _CompositionFile:
+    """One item of ``composition``: ``source`` (VR task | assistance) may set ``sets`` (assistance_target |
+    robot_gains | pulse_width) while the run holds the device, ``within`` the range of two parameters."""
+
+    source: str = ""
+    sets: str = ""
+    within: list[str] = field(default_factory=list)
 
 
 @dataclass(frozen=True)
@@ -213,8 +339,13 @@ class _ExerciseFile:
     script: str = ""
     parameters: list[_ParameterFile] = field(default_factory=list)
     order: int = field(default=100, metadata=rng(0, 10_000))
+    fes: _FesFile | None = None
+    repetitions: str = ""
+    composition: list[_CompositionFile] = field(default_factory=list)
 
     def validate(self) -> None:
+        from app.ownership import COMPOSABLE_SOURCES, SETS
+
         if len(self.title) > 200:
             raise ValueError("the title is longer than 200 characters")
         if len(self.parameters) > 100:
@@ -223,6 +354,30 @@ class _ExerciseFile:
         repeated = sorted({n for n in names if names.count(n) > 1})
         if repeated:
             raise ValueError(f"a parameter name is repeated: {', '.join(repeated)}")
+        by_name = {p.name: p for p in self.parameters}
+
+        def needs(key: str, name: str, types: tuple[str, ...]) -> None:
+            p = by_name.get(name)
+            if p is None or p.type not in types:
+                raise ValueError(f"{key}: {name!r} is not a {' or '.join(types)} parameter of this exercise")
+
+        if self.fes is not None:
+            needs("fes.profile", self.fes.profile, ("choice",))
+            if self.fes.enabled:
+                needs("fes.enabled", self.fes.enabled, ("bool",))
+        if self.repetitions:
+            needs("repetitions", self.repetitions, ("int",))
+        for k, c in enumerate(self.composition):
+            if c.source not in COMPOSABLE_SOURCES:
+                raise ValueError(f"composition[{k}].source must be one of {', '.join(COMPOSABLE_SOURCES)}, "
+                                 f"got {c.source!r}")
+            if c.sets not in SETS:
+                raise ValueError(f"composition[{k}].sets must be one of {', '.join(SETS)}, got {c.sets!r}")
+            if c.within:
+                if len(c.within) != 2:
+                    raise ValueError(f"composition[{k}].within names two parameters (the range's ends)")
+                for w in c.within:
+                    needs(f"composition[{k}].within", w, ("float", "int"))
 
 
 def _key_line(text: str, key: str, index: int | None = None) -> int | None:
@@ -291,7 +446,11 @@ def load_exercise(path: str | Path) -> Exercise:
         except ValueError as exc:  # the default outside the declared range: the parameter's own line
             line = _key_line(text, "parameters", k)
             raise ExerciseError(f"{path}:{line}: parameters[{k}]: {exc}" if line else f"{path}: {exc}") from None
-    return Exercise(path.stem, raw.title or path.stem, raw.description.strip(), script, tuple(params), raw.order)
+    fes = raw.fes or _FesFile()
+    composition = tuple({"source": c.source, "sets": c.sets, "within": list(c.within)} for c in raw.composition)
+    return Exercise(path.stem, raw.title or path.stem, raw.description.strip(), script, tuple(params), raw.order,
+                    fes_profile=fes.profile, fes_enabled=fes.enabled, repetitions=raw.repetitions,
+                    composition=composition)
 
 
 def load_library(folder: Path | None = None) -> tuple[list[Exercise], list[str]]:
@@ -347,18 +506,44 @@ def run_parameters(exercise: Exercise, params: Mapping[str, Any]) -> tuple[Any, 
                  if p.name in params)
 
 
+def run_problems(manager: EventHost, exercise: Exercise, params: Mapping[str, Any]) -> dict[str, str]:
+    """:func:`prescription_problems` against what is in force now: the supervisor's robot limits (the session
+    patient's), the stimulator's limits (their clinical caps as they are now) and their chosen electrodes."""
+    sup = getattr(manager, "supervisor", None)
+    limiter = getattr(sup, "fes_limiter", None)
+    driver = getattr(manager, "driver", None)
+    fes = driver("fes") if callable(driver) else None
+    profile = getattr(manager, "patient_profile", None)
+    return prescription_problems(exercise, params, robot=getattr(sup, "robot", None),
+                                 fes_limits=getattr(limiter, "limits", None),
+                                 district_channels=getattr(fes, "district_channels", None),
+                                 patient=getattr(profile, "patient_id", "") or "")
+
+
 def start_exercise(runner: ExerciseRunner, manager: EventHost, exercise: Exercise, values: Mapping[str, Any], *,
-                   source: str = "exercises_tab", restart_of: str | None = None) -> Validation:
-    """Validate and, only when every value is accepted, record ``exercise_start`` and start the script on
-    ``runner`` with the values as ``exerciseParams``, as a run (app/runs.py) of kind "exercise" with the
-    parameters' labels and units, started from ``source`` (``restart_of``: the run Recover restarts).
-    Returns the validation (``ok`` False: nothing started). Raises RuntimeError when a script already runs
-    (nothing started either)."""
+                   source: str = "exercises_tab", restart_of: str | None = None,
+                   continues: str | None = None) -> Validation:
+    """Validate and, only when every value is accepted — by the exercise's ranges and by the patient's limits,
+    caps and electrode choices in force now (:func:`run_problems`) — record ``exercise_start`` and start the
+    script on ``runner`` with the values as ``exerciseParams``, as a run (app/runs.py) of kind "exercise" with
+    the parameters' labels and units, started from ``source`` (``restart_of``: the run Recover restarts;
+    ``continues``: the interrupted run whose remaining repetitions this one does). The run holds the robot (and
+    the stimulator when it stimulates) and composes what the exercise declares (app/ownership.py).
+    Returns the validation (``ok`` False: nothing started). Raises RuntimeError when a script already runs, a
+    STOP holds the robot or another holds the devices (nothing started, nothing recorded)."""
+    from app.ownership import start_problem
+
     checked = validate(exercise, values)
+    if not checked.ok:
+        return checked
+    checked.errors.update(run_problems(manager, exercise, checked.params))
     if not checked.ok:
         return checked
     if runner.running:
         raise RuntimeError("a script is running: stop it before starting an exercise")
+    problem = start_problem(manager, exercise.holds(checked.params))
+    if problem:
+        raise RuntimeError(problem)
     text = exercise.script.read_text(encoding="utf-8")
     data = {"exercise": exercise.ident, "title": exercise.title, "script": exercise.script.name,
             "params": dict(checked.params)}
@@ -369,7 +554,8 @@ def start_exercise(runner: ExerciseRunner, manager: EventHost, exercise: Exercis
     if _takes_run(runner):
         runner.start(text, str(exercise.script), dict(checked.params), program=exercise_program(exercise, text),
                      parameters=run_parameters(exercise, checked.params), run_source=source,
-                     restart_of=restart_of)
+                     restart_of=restart_of, continues=continues, holds=exercise.holds(checked.params),
+                     compose=exercise.compositions(checked.params))
     else:  # a runner without run records (a test's stand-in)
         runner.start(text, str(exercise.script), dict(checked.params))
     return checked

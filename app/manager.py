@@ -26,8 +26,9 @@ from app.devices.driver import DeviceDriver
 from app.devices.linarm_constants import PRETENSION_MOVE
 from app.devices.registry import DeviceFactory, DeviceHandle, SimulatorHosting, build_devices
 from app.fault_policy import FaultPolicy
+from app.ownership import ROBOT, RUN_SOURCES, STIMULATOR, Composition, Lease
 from app.paths import runtime_dir
-from app.safety import AlarmLevel, SafetySupervisor
+from app.safety import AlarmLevel, SafetyError, SafetySupervisor
 
 if TYPE_CHECKING:
     from app.devices.linarm import LinarmDriver
@@ -168,6 +169,7 @@ class DeviceWatch:
 
 class LinarmppManager(QObject):
     session_changed = Signal(object)  # the session folder (Path) or None when no session runs
+    profile_changed = Signal(object)  # the session patient's profile, saved again during the session
 
     def __init__(self, config: AppConfig, factories: dict[str, DeviceFactory] | None = None) -> None:
         super().__init__()
@@ -194,6 +196,8 @@ class LinarmppManager(QObject):
         self.assistance = AssistanceController(config.assistance, self._apply_robot_assistance,
                                                self._apply_fes_pulse_width, supervisor=self.supervisor)
         self._last_target: float | None = None
+        self._leased: set[str] = set()  # the runs holding their devices now (one owner during a run, #36)
+        self._vr_targets_before: tuple[float, ...] | None = None  # the VR task's own targets, during a composed run
         self.therapy = TherapyThread(self.bus, self.assistance.update_alpha, self._alpha_lost, self._follow_target)
         from app.progress import ExerciseProgress
 
@@ -202,7 +206,7 @@ class LinarmppManager(QObject):
         # every STOP alarm -> safe state (window and headless alike)
         self.fault_policy = FaultPolicy(self.supervisor, self.bus, self.driver, lambda: self._started,
                                         config.safety.silence_stop_s)
-        self.device_watch = DeviceWatch(self.supervisor, self.fault_policy.loss_level, lambda: self._started)
+        self.device_watch = DeviceWatch(self.supervisor, self.loss_level, lambda: self._started)
         self._watching = False
 
     # ------------------------------------------------------------------ lifecycle
@@ -252,6 +256,10 @@ class LinarmppManager(QObject):
         robot = self._robot()
         if robot is None or not robot.connected:
             raise AssistanceInactive("the LINarm is not connected")
+        try:  # a run holding the robot keeps its own gains, unless its exercise lets the assistance set them
+            self.supervisor.check_lease(ROBOT, "robot gains", "assistance")
+        except SafetyError as exc:
+            raise AssistanceInactive(exc.reason) from None
         state = self.bus.latest(streams.LINARM_STATE)
         assisted_modes = (int(ControlMode.POS_REF_BY_ADMITTANCE), int(ControlMode.POS_REF_BY_ASSISTANCE))
         if state is None or state.controlState != int(ControlState.ON_CTRL_STATE) \
@@ -268,13 +276,20 @@ class LinarmppManager(QObject):
         fes = self.driver(streams.FES)
         if not isinstance(fes, FesDriver):
             raise AssistanceInactive("no FES device")
-        fes.set_pulse_width_override(pulse_width_us)
+        if pulse_width_us is not None:
+            try:  # the run (or the electrode set-up) stimulates at the pulse width it shows, unless it composes
+                self.supervisor.check_lease(STIMULATOR, "pulse width override", "assistance")
+            except SafetyError as exc:
+                raise AssistanceInactive(exc.reason) from None
+        fes.set_pulse_width_override(pulse_width_us, "assistance")
 
     def _alpha_lost(self, _why: str) -> None:
         self.assistance.invalidate()  # no stale α is ever applied, whatever the GUI changes meanwhile
 
     def _follow_target(self, target: float) -> None:
-        """The VR task's target becomes the robot's assistance target (once per new target)."""
+        """The VR task's target becomes the robot's assistance target (once per new target) — while a run holds
+        the robot, only if its exercise composes it, clamped to the run's range and the patient's limits (the
+        supervisor refuses anything else, and records the refusal once per run)."""
         robot = self._robot()
         if target == self._last_target or robot is None or not robot.connected:
             return
@@ -282,7 +297,102 @@ class LinarmppManager(QObject):
         if state is None or not state.initialized:
             return
         self._last_target = target
-        _command(robot, ("setAssistanceTargetPos", target), "VR task")
+        applied = self.supervisor.composed_target("VR task", target)
+        if applied is None:
+            return
+        _command(robot, ("setAssistanceTargetPos", applied), "VR task")
+
+    # ------------------------------------------------------------------ one owner during a run (#36)
+    def loss_level(self, device: str) -> AlarmLevel:
+        """The level of ``device``'s connection loss: the fault policy's (a link that drives an active actuator is a
+        STOP), except that a driving link — the patient model's α, the VR task's target — drives nothing an owner
+        holds without composing it and without a program that could read it: while every active actuator is held
+        by such an owner (the electrode set-up), its loss is a warning. A script's or an exercise's run may read
+        α through the API itself: for those it stays a STOP."""
+        level = self.fault_policy.loss_level(device)
+        source = {streams.PATIENT_MODEL: "assistance", streams.VR: "VR task"}.get(device)
+        if level < AlarmLevel.STOP or source is None:
+            return level
+        from app.devices.linarm_protocol import ControlState
+
+        fes = self.driver(streams.FES)
+        state = self.bus.latest(streams.LINARM_STATE) if self.driver(streams.LINARM) is not None else None
+        active = [d for d, on in ((ROBOT, state is not None
+                                   and getattr(state, "controlState", None) == int(ControlState.ON_CTRL_STATE)),
+                                  (STIMULATOR, bool(getattr(fes, "stimulating", False)))) if on]
+        for dev in active:
+            lease = self.supervisor.lease(dev)
+            if lease is None or lease.acts_for(RUN_SOURCES[0]) or any(c.source == source for c in lease.compose):
+                return level  # it can reach this actuator, or the program holding it can read it
+        return AlarmLevel.WARNING if active else level
+
+    def hold_for_run(self, run: Any) -> None:
+        """The run log's listener (any thread): a run that starts holds its devices, one that ends gives them
+        back. What it holds and lets in comes from its record (``holds``, ``compose``: app/runs.py)."""
+        if run.running:
+            if run.run_id in self._leased:
+                return
+            self._leased.add(run.run_id)
+            try:
+                compose = tuple(Composition.from_dict(c) for c in run.compose)
+            except (ValueError, KeyError, TypeError) as exc:
+                log.error("run %s: its composition is not understood (%s); nothing composes", run.run_id, exc)
+                compose = ()
+            lease = Lease(key=run.run_id, holder=run.title, devices=frozenset(run.holds), sources=RUN_SOURCES,
+                          compose=compose, run_id=run.run_id)
+            try:
+                self.take_lease(lease)
+            except SafetyError as exc:  # the runner checks first (start_problem): a console entry meanwhile
+                log.warning("run %s does not hold its devices: %s", run.run_id, exc.reason)
+                self._leased.discard(run.run_id)
+        elif run.run_id in self._leased:
+            self._leased.discard(run.run_id)
+            self.release_lease(run.run_id, run.end_reason or "")
+
+    def take_lease(self, lease: Lease) -> None:
+        """``lease.holder`` holds its devices from now on (the supervisor refuses everyone else); raises
+        SafetyError when another holds them. Runs take theirs through :meth:`hold_for_run`; the electrode set-up
+        its own."""
+        self.supervisor.take_lease(lease)
+        self._lease_taken(lease)
+
+    def release_lease(self, key: str, reason: str = "") -> Lease | None:
+        held = self.supervisor.release_lease(key, reason)
+        if held is not None:
+            self._lease_released(held)
+        return held
+
+    def _lease_taken(self, lease: Lease) -> None:
+        """What the holder takes over: the assistance's pulse width off the stimulator (the run stimulates at
+        the pulse width its profile shows, unless it composes it); a VR task it composes shows its range."""
+        fes = self.driver(streams.FES)
+        if STIMULATOR in lease.devices and not lease.composition("assistance", "pulse width override") \
+                and getattr(fes, "pulse_width_override", None) is not None:
+            try:
+                fes.set_pulse_width_override(None, lease.holder)  # type: ignore[union-attr]
+            except Exception:
+                log.exception("the assistance's pulse width could not be taken off")
+            self.assistance.forget_applied(fes=True)
+        if ROBOT in lease.devices and not lease.composition("assistance", "robot gains"):
+            self.assistance.forget_applied(robot=True)  # re-applied, if still wanted, once the run ends
+        vr = self.driver(streams.VR)
+        task = getattr(vr, "task", None)
+        comp = lease.composition("VR task", "setAssistanceTargetPos")
+        if task is not None and comp is not None and comp.range_m is not None:
+            # The game shows the run's two ends, the start first (it alternates between them as the exercise
+            # does): whatever it sends is inside the range anyway (clamped and checked).
+            lo, hi = comp.range_m
+            self._vr_targets_before = tuple(task.targets)
+            task.set_targets((lo, hi) if task.subTask % 2 == 0 else (hi, lo))
+        self._last_target = None
+
+    def _lease_released(self, lease: Lease) -> None:
+        vr = self.driver(streams.VR)
+        task = getattr(vr, "task", None)
+        if task is not None and self._vr_targets_before is not None:
+            task.set_targets(self._vr_targets_before)
+        self._vr_targets_before = None
+        self._last_target = None  # the VR task's target applies again from its next frame
 
     def apply_patient_profile(self, profile: Any) -> None:
         """The patient's clinical score feeds the embedded model; their gains the assistance split."""
@@ -330,6 +440,7 @@ class LinarmppManager(QObject):
             self.supervisor.event("patient_limits_applied", patient=patient_id)
             self._apply_robot_limits()
             self.apply_patient_profile(profile)
+            self._check_plan(profile)
         lsl = self.start_lsl()
         if lsl is not None:
             recorder.add_event_tap(lsl.marker)  # every session's events, on the one event outlet
@@ -344,6 +455,42 @@ class LinarmppManager(QObject):
 
             self._lsl = start_lsl(self)
         return self._lsl
+
+    def update_session_profile(self, profile: Any) -> list[str]:
+        """The session patient's profile was saved again (Patients window, an electrode choice): what it
+        changes applies to the next command at once — the robot limits, the FES caps (a lowered cap below a
+        running profile stops it), the chosen electrodes, the gains — and is recorded. Returns the changes in
+        words ([] when ``profile`` is not this session's patient)."""
+        from app.patients import effective_robot_limits, profile_changes
+
+        old = self.patient_profile
+        if self.recorder is None or old is None or profile.patient_id != old.patient_id:
+            return []
+        changes = profile_changes(old, profile)
+        self.patient_profile = profile
+        self.supervisor.robot = effective_robot_limits(profile, self.config.safety.robot)
+        self._apply_robot_limits()
+        self.apply_patient_profile(profile)
+        if changes:
+            self.record_event("patient_profile_updated", patient=profile.patient_id, changes=changes)
+        self._check_plan(profile)
+        self.profile_changed.emit(profile)
+        return changes
+
+    def _check_plan(self, profile: Any) -> list[str]:
+        """The therapy plan against the patient's limits, caps and electrode choices now (at the session's start
+        and when the profile changes): what would be refused is recorded before anything moves."""
+        from app.patients import plan_problems, prescription_problems
+
+        try:
+            problems = [str(p) for p in plan_problems(profile.therapy_plan)
+                        + prescription_problems(profile.therapy_plan, profile, self.config.safety)]
+        except Exception:  # a broken library must not stop the session: the Exercises tab lists it
+            log.exception("the therapy plan could not be checked")
+            return []
+        if problems:
+            self.record_event("plan_problems", patient=profile.patient_id, problems=problems)
+        return problems
 
     def end_session(self, reason: str = "ended by the operator") -> None:
         recorder, self.recorder = self.recorder, None
@@ -378,6 +525,7 @@ class LinarmppManager(QObject):
 
         runs = RunLog(record)
         self.progress.attach_runs(runs)
+        runs.subscribe(self.hold_for_run)
         return runs
 
     def record_event(self, kind: str, who: str = "", **data: Any) -> None:

@@ -375,6 +375,70 @@ def plan_problems(plan: list[PlannedExercise], library: list[Any] | None = None)
     return out
 
 
+def prescription_problems(plan: list[PlannedExercise], profile: PatientProfile, safety: SafetyConfig | None = None,
+                          library: list[Any] | None = None) -> list[PlanProblem]:
+    """Every step checked against this patient as the profile says now (issue #36, checked when the plan is
+    saved and when the session starts): positions, speeds and stiffness within their robot limits, the FES
+    profile a step stimulates with within their caps, and its muscle districts with a chosen electrode
+    combination. Steps whose values their own ranges refuse are left to :func:`plan_problems`."""
+    from app.exercises import load_library, validate
+    from app.exercises import prescription_problems as step_problems
+    from app.fes_limits import FesLimits
+
+    safety = safety or SafetyConfig()
+    robot = effective_robot_limits(profile, safety.robot)
+    fes = FesLimits.from_config(safety.fes, clinical_caps(profile))
+    exercises = {e.ident: e for e in (library if library is not None else load_library()[0])}
+    out: list[PlanProblem] = []
+    for k, step in enumerate(plan, start=1):
+        exercise = exercises.get(step.exercise)
+        if exercise is None:
+            continue
+        checked = validate(exercise, step.params)
+        if not checked.ok:
+            continue
+        found = step_problems(exercise, checked.params, robot=robot, fes_limits=fes,
+                              district_channels=profile.fes.district_channels(), patient=profile.patient_id)
+        for name, why in found.items():
+            label = next((p.label for p in exercise.parameters if p.name == name), name)
+            out.append(PlanProblem(k, name, f"Step {k}, {exercise.title} — {label}: {why}"))
+    return out
+
+
+def profile_changes(old: PatientProfile | None, new: PatientProfile) -> list[str]:
+    """What changed between two versions of a profile that the running session applies, in words: the FES caps,
+    the robot limits, the assistance gains, the chosen electrodes and the plan's length."""
+    if old is None:
+        return ["the profile"]
+    out: list[str] = []
+    for ch in sorted(set(old.fes.caps) | set(new.fes.caps)):
+        a, b = old.fes.caps.get(ch), new.fes.caps.get(ch)
+        for key, unit, what in (("max_current_ma", "mA", "current cap"),
+                                ("max_pulse_width_us", "µs", "pulse-width cap")):
+            va = getattr(a, key) if a is not None else None
+            vb = getattr(b, key) if b is not None else None
+            if va != vb:
+                out.append(f"channel {ch} {what} {_or_none(va, unit)} → {_or_none(vb, unit)}")
+    for f in fields(PatientRobotLimits):
+        va, vb = getattr(old.robot, f.name), getattr(new.robot, f.name)
+        if va != vb:
+            out.append(f"robot {f.name.replace('_', ' ')} {_or_none(va)} → {_or_none(vb)}")
+    if (old.assistance.k_r, old.assistance.k_f) != (new.assistance.k_r, new.assistance.k_f):
+        out.append(f"assistance gains k_r {old.assistance.k_r:g}, k_f {old.assistance.k_f:g} → "
+                   f"k_r {new.assistance.k_r:g}, k_f {new.assistance.k_f:g}")
+    if old.fes.district_channels() != new.fes.district_channels():
+        out.append("the chosen electrodes")
+    if len(old.therapy_plan) != len(new.therapy_plan) or old.therapy_plan != new.therapy_plan:
+        out.append(f"the therapy plan ({len(new.therapy_plan)} step(s))")
+    return out
+
+
+def _or_none(value: Any, unit: str = "") -> str:
+    if value is None:
+        return "none"
+    return f"{value:g} {unit}".strip() if isinstance(value, int | float) else str(value)
+
+
 def profile_field_names() -> list[str]:
     return [f.name for f in fields(PatientProfile)]
 
@@ -384,5 +448,5 @@ __all__ = [
     "PatientFes",
     "PatientProfile", "PatientRobotLimits", "PlanProblem", "PlannedExercise", "clinical_caps",
     "effective_robot_limits", "limit_problems", "list_patients", "load_patient", "matches", "parse_profile",
-    "patient_file", "plan_problems", "profile_to_yaml", "save_patient",
+    "patient_file", "plan_problems", "prescription_problems", "profile_changes", "profile_to_yaml", "save_patient",
 ]

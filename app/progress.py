@@ -109,7 +109,7 @@ class ExerciseProgress(QObject):
             self._event("repetition_end", index=state.repetition, ok=False, status=status,
                         **self._run_field(state))
             if state.run_id and self._runs is not None:
-                self._runs.repetition_ended(state.run_id, state.repetition, False)
+                self._runs.repetition_ended(state.run_id, state.repetition, False, interrupted=True)
         now = self._clock()
         paused_s = state.paused_s + ((now - state.paused_since) if state.paused_since is not None else 0.0)
         run = self._runs.get(state.run_id) if (state.run_id and self._runs is not None) else None

@@ -8,7 +8,9 @@ The record is the session's event log (``events.jsonl``), written as it happens,
 readable: :func:`runs_from_events` rebuilds them from the events alone. The events (``data`` fields):
 
 ``run_start``   run_id, program {kind, ident, title, version, path, text_sha256}, parameters
-                [{name, label, value, unit}], source, operator, restart_of
+                [{name, label, value, unit}], source, operator, restart_of, continues (the interrupted run a
+                continuation carries on: its remaining repetitions), holds (the devices the run holds: "robot",
+                "stimulator"), compose (what other sources it lets set, app/ownership.py)
 ``run_state``   run_id, state (a :data:`RUN_STATES` value), detail
 ``run_end``     run_id, reason (an :data:`END_REASONS` value), detail, completed, not_started
 ``prompt``      run_id, index, cue                 the exercise's "squeeze now" cue (metrics: reaction time)
@@ -84,10 +86,13 @@ class Program:
     version: str = ""  # library exercises: hash of the YAML + script as loaded
     path: str = ""  # the file that was run (library script or Script-tab file)
     text: str = ""  # console code and script files: the exact text, so a restart runs what ran
+    file_sha256: str = ""  # a Script-tab file: its text on disk when the run started (the editor's may differ)
 
     def as_dict(self, with_text: bool = True) -> dict[str, Any]:
         d = {"kind": self.kind, "ident": self.ident, "title": self.title, "text_sha256": self.text_sha256,
              "version": self.version, "path": self.path}
+        if self.file_sha256:
+            d["file_sha256"] = self.file_sha256
         if with_text and self.text:
             d["text"] = self.text
         return d
@@ -96,7 +101,19 @@ class Program:
     def from_dict(cls, d: Mapping[str, Any]) -> Program:
         return cls(kind=d.get("kind", "script_file"), ident=str(d.get("ident", "")), title=str(d.get("title", "")),
                    text_sha256=str(d.get("text_sha256", "")), version=str(d.get("version", "")),
-                   path=str(d.get("path", "")), text=str(d.get("text", "")))
+                   path=str(d.get("path", "")), text=str(d.get("text", "")),
+                   file_sha256=str(d.get("file_sha256", "")))
+
+    def file_changed(self) -> bool | None:
+        """A Script-tab run's file: changed on disk since the run started (True), not (False), not known (None:
+        no file, or a record from before its hash was kept)."""
+        if self.kind != "script_file" or not self.path or not self.file_sha256:
+            return None
+        try:
+            now = Path(self.path).read_text(encoding="utf-8")
+        except (OSError, UnicodeDecodeError):
+            return True
+        return text_hash(now) != self.file_sha256
 
     def changed_on_disk(self) -> str:
         """Why this program cannot be run again exactly ("" when it can)."""
@@ -137,6 +154,7 @@ class RepetitionMark:
     end_mono: float | None = None
     ok: bool | None = None  # the exercise's own verdict; metrics decide "completed" from the handle
     prompt_mono: float | None = None
+    interrupted: bool = False  # ended by the run's end (a STOP, Stop), not by the exercise: to be done again
 
 
 @dataclass(frozen=True)
@@ -149,6 +167,9 @@ class ExerciseRun:
     started_mono: float
     started_wall: float
     restart_of: str | None = None
+    continues: str | None = None  # a continuation of this interrupted run (its remaining repetitions)
+    holds: tuple[str, ...] = ("robot", "stimulator")  # the devices it holds while it runs (one owner, #36)
+    compose: tuple[Mapping[str, Any], ...] = ()  # what it lets another source set (app.ownership.Composition)
     state: str = "starting"
     state_detail: str = ""
     ended_mono: float | None = None
@@ -244,7 +265,9 @@ class RunLog:
 
     # ------------------------------------------------------------------ writing
     def start(self, program: Program, parameters: Sequence[RunParameter], source: RunSource, operator: str,
-              restart_of: str | None = None) -> ExerciseRun:
+              restart_of: str | None = None, *, continues: str | None = None,
+              holds: Sequence[str] = ("robot", "stimulator"),
+              compose: Sequence[Mapping[str, Any]] = ()) -> ExerciseRun:
         with self._lock:
             self._n += 1
             run_id = f"run-{self._n}"
@@ -253,12 +276,14 @@ class RunLog:
                 run_id = f"run-{self._n}"
             run = ExerciseRun(run_id=run_id, program=program, parameters=tuple(parameters), source=source,
                               operator=operator, started_mono=self._clock(), started_wall=self._wall(),
-                              restart_of=restart_of)
+                              restart_of=restart_of, continues=continues, holds=tuple(holds),
+                              compose=tuple(dict(c) for c in compose))
             self._runs[run_id] = run
             self._order.append(run_id)
         self._emit(RUN_START, run_id=run_id, program=program.as_dict(with_text=program.kind != "exercise"),
                    parameters=[p.as_dict() for p in parameters], source=source, operator=operator,
-                   restart_of=restart_of)
+                   restart_of=restart_of, holds=list(holds), compose=[dict(c) for c in compose],
+                   **({"continues": continues} if continues else {}))
         self._notify(run)
         return run
 
@@ -274,14 +299,14 @@ class RunLog:
         now = self._clock()
         self._update(run_id, lambda r: replace(r, repetitions=(*r.repetitions, RepetitionMark(index, now))))
 
-    def repetition_ended(self, run_id: str, index: int, ok: bool) -> None:
+    def repetition_ended(self, run_id: str, index: int, ok: bool, interrupted: bool = False) -> None:
         now = self._clock()
 
         def close(r: ExerciseRun) -> ExerciseRun:
             reps = list(r.repetitions)
             for k in range(len(reps) - 1, -1, -1):
                 if reps[k].index == index and reps[k].end_mono is None:
-                    reps[k] = replace(reps[k], end_mono=now, ok=ok)
+                    reps[k] = replace(reps[k], end_mono=now, ok=ok, interrupted=interrupted)
                     break
             return replace(r, repetitions=tuple(reps))
         self._update(run_id, close)
@@ -329,6 +354,22 @@ class RunLog:
             fn(run)
 
 
+def repetitions_done(run: ExerciseRun) -> int:
+    """The repetitions the exercise itself ended (completed or skipped), not those its interruption cut short."""
+    return sum(1 for m in run.repetitions if m.end_mono is not None and not m.interrupted)
+
+
+def remaining_repetitions(run: ExerciseRun, parameter: str) -> int:
+    """How many of the run's planned repetitions (its parameter ``parameter``) are still to do: what Recover's
+    "continue with the remaining repetitions" runs. 0 when none (or the run does not say how many)."""
+    planned = run.params_dict().get(parameter)
+    try:
+        total = int(planned)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        return 0
+    return max(0, total - repetitions_done(run))
+
+
 def restart_candidate(runs: Sequence[ExerciseRun]) -> ExerciseRun | None:
     """The run Recover offers to start again: the running one (Recover stops it first), else the last run if a
     STOP, an error or the operator interrupted it. Console entries that finished (a value looked at after the
@@ -361,7 +402,10 @@ def runs_from_events(events: Iterable[Mapping[str, Any]], t_end: float | None = 
             runs[run_id] = ExerciseRun(run_id=run_id, program=Program.from_dict(data.get("program") or {}),
                                        parameters=params, source=data.get("source", "script_tab"),
                                        operator=str(data.get("operator") or e.get("who") or ""),
-                                       started_mono=t, started_wall=0.0, restart_of=data.get("restart_of"))
+                                       started_mono=t, started_wall=0.0, restart_of=data.get("restart_of"),
+                                       continues=data.get("continues"),
+                                       holds=tuple(data.get("holds") or ("robot", "stimulator")),
+                                       compose=tuple(data.get("compose") or ()))
             order.append(run_id)
             continue
         run = runs.get(run_id) if run_id else None
@@ -384,7 +428,8 @@ def runs_from_events(events: Iterable[Mapping[str, Any]], t_end: float | None = 
             idx = int(data.get("index", 0))
             for k in range(len(reps) - 1, -1, -1):
                 if reps[k].end_mono is None and (reps[k].index == idx or not idx):
-                    reps[k] = replace(reps[k], end_mono=t, ok=bool(data.get("ok", True)))
+                    reps[k] = replace(reps[k], end_mono=t, ok=bool(data.get("ok", True)),
+                                      interrupted="status" in data)  # closed by the run's end (progress)
                     break
             runs[run_id] = replace(run, repetitions=tuple(reps))
     end = last_t if t_end is None else t_end

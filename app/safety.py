@@ -26,6 +26,7 @@ from PySide6.QtCore import QObject, Signal
 
 from app.config import RobotLimits, SafetyConfig
 from app.devices.linarm_constants import K
+from app.ownership import DEVICE_WORDS, ROBOT, STIMULATOR, Composition, Lease, clamp_to, refusal
 
 log = logging.getLogger(__name__)
 
@@ -116,6 +117,7 @@ class SafetySupervisor(QObject):
     alarms_changed = Signal()
     estop_changed = Signal(bool, str)  # latched, reason
     command_refused = Signal(str, str)  # source, reason
+    lease_changed = Signal()  # a device's holder changed (the panels' "Robot held by: …")
 
     def __init__(self, config: SafetyConfig, event_sink: EventSink | None = None) -> None:
         super().__init__()
@@ -139,6 +141,10 @@ class SafetySupervisor(QObject):
         self.robot_homed: Callable[[], bool] = lambda: False
         self._robot_excursion = False
         self._samples_homed = 0
+        # One owner of each device during a run (app/ownership.py): device -> the lease holding it. Replaced whole
+        # (never mutated in place), so the command checks read it without a lock.
+        self._leases: dict[str, Lease] = {}
+        self._lease_lock = threading.Lock()
 
     # ------------------------------------------------------------------ events
     @property
@@ -175,6 +181,88 @@ class SafetySupervisor(QObject):
         self.command_refused.emit(source, reason)
         return SafetyError(reason, source)
 
+    # ------------------------------------------------------------------ one owner during a run (#36)
+    def take_lease(self, lease: Lease) -> None:
+        """``lease.holder`` holds ``lease.devices`` from now on. Raises SafetyError (recorded as a refused lease)
+        when another holds one of them: one owner at a time."""
+        with self._lease_lock:
+            taken = {d: self._leases[d].holder for d in sorted(lease.devices) if d in self._leases
+                     and self._leases[d].key != lease.key}
+            if taken:
+                busy = "; ".join(f"{DEVICE_WORDS[d]} is held by {who}" for d, who in taken.items())
+                self.event("lease_refused", holder=lease.holder, source=lease.holder, what="the devices",
+                           reason=busy)
+                raise SafetyError(f"{lease.holder} cannot start: {busy}", lease.holder)
+            self._leases = {**self._leases, **{d: lease for d in lease.devices}}
+        self.event("lease_taken", **lease.record())
+        self.lease_changed.emit()
+
+    def release_lease(self, key: str, reason: str = "") -> Lease | None:
+        """End the lease ``key`` (a run's id), if it is held; returns it."""
+        with self._lease_lock:
+            held = next((lease for lease in self._leases.values() if lease.key == key), None)
+            if held is None:
+                return None
+            self._leases = {d: lease for d, lease in self._leases.items() if lease.key != key}
+        self.event("lease_released", key=key, holder=held.holder, run_id=held.run_id, reason=reason,
+                   **({"refused": dict(held.refused)} if held.refused else {}))
+        self.lease_changed.emit()
+        return held
+
+    def lease(self, device: str = ROBOT) -> Lease | None:
+        return self._leases.get(device)
+
+    def holder(self, device: str = ROBOT) -> str:
+        """Who holds ``device`` in words ("" when nobody)."""
+        lease = self._leases.get(device)
+        return lease.holder if lease is not None else ""
+
+    def lease_problem(self, device: str, what: str, source: str, value: float | None = None) -> str:
+        """Why ``what`` from ``source`` may not act on ``device`` now ("" when it may); nothing recorded."""
+        return refusal(self._leases.get(device), device, source, what, value)
+
+    def check_lease(self, device: str, what: str, source: str, value: float | None = None) -> None:
+        """Raise SafetyError when another holds ``device`` and does not compose ``what`` from ``source``. The first
+        refusal of each source and action per lease is recorded (``lease_refused``); the rest are counted on the
+        lease and recorded with its release (a VR task sends a new target every few seconds)."""
+        lease = self._leases.get(device)
+        problem = refusal(lease, device, source, what, value)
+        if not problem:
+            return
+        assert lease is not None
+        key = f"{source}: {what}"
+        first = key not in lease.refused
+        lease.refused[key] = lease.refused.get(key, 0) + 1
+        if first:
+            self.event("lease_refused", holder=lease.holder, run_id=lease.run_id, source=source, what=what,
+                       reason=problem, **({"value": value} if value is not None else {}))
+            self.command_refused.emit(source, problem)
+        raise SafetyError(problem, source)
+
+    def composed_target(self, source: str, value: float) -> float | None:
+        """The assistance target ``value`` from ``source`` as the robot's holder lets it through: unchanged when
+        nobody holds the robot, clamped to the run's range and the patient's limits when the holder composes
+        it (the clamp recorded), None when refused (recorded once, see :meth:`check_lease`)."""
+        lease = self._leases.get(ROBOT)
+        if lease is None or lease.acts_for(source):
+            return value
+        comp = lease.composition(source, "setAssistanceTargetPos")
+        if comp is None:
+            try:
+                self.check_lease(ROBOT, "setAssistanceTargetPos", source, value)
+            except SafetyError:
+                return None
+            return value
+        applied = clamp_to(comp, value, (self.robot.position_min_m, self.robot.position_max_m))
+        if applied != value:
+            self.event("clamped", source=source, quantity="assistance target", requested=value, applied=applied,
+                       holder=lease.holder)
+        return applied
+
+    def composes(self, device: str, source: str, what: str) -> Composition | None:
+        lease = self._leases.get(device)
+        return lease.composition(source, what) if lease is not None else None
+
     # ------------------------------------------------------------------ robot
     def check_robot_command(self, name: str, args: dict[str, Any], source: str = "") -> None:
         """Raise SafetyError if the LINarm command ``name`` (seed API name) with ``args`` is unsafe."""
@@ -185,6 +273,9 @@ class SafetySupervisor(QObject):
             # The state monitor would send IDLE at the next state sample anyway (check_robot_state): say why now.
             raise self.refuse(source, f"{name} refused: a STOP alarm is open ({open_stop.source}: {open_stop.text}); "
                                       "acknowledge it (Recover) first")
+        if self._leases and name not in _ALWAYS_ALLOWED and not _makes_safe(name, args):
+            value = _f(args, "Apos", "targetPos") if name == "setAssistanceTargetPos" else None
+            self.check_lease(ROBOT, name, source, value)
         lim = self.robot
         if name in CALIBRATION_COMMANDS and not lim.allow_calibration:
             raise self.refuse(source, f"{name} refused: encoder calibration changes the position reference; "
@@ -289,6 +380,12 @@ class SafetySupervisor(QObject):
             self.fes_limiter.check(update, now)
         except FesLimitError as exc:
             raise self.refuse(source, f"stimulation refused: {exc.reason}") from exc
+
+    def check_fes_command(self, what: str, source: str) -> None:
+        """The stimulator's lease at a start, a profile load, a scale change or the pulse-width override (the
+        FES driver's entry points): refused while another holds the stimulator and does not compose it."""
+        if self._leases:
+            self.check_lease(STIMULATOR, what, source)
 
     def clamp_assistance(self, name: str, value: float, lo: float, hi: float, source: str = "patient model") -> float:
         """Patient-model outputs are clamped, not refused (the loop must keep running); log the clamp."""
@@ -409,6 +506,11 @@ class SafetySupervisor(QObject):
     def alarms(self) -> list[Alarm]:
         with self._lock:
             return list(self._alarms)
+
+
+def _makes_safe(name: str, args: dict[str, Any]) -> bool:
+    """The safe state: IDLE passes whoever holds the robot."""
+    return name == "setCtrlState" and int(args.get("controlState", args.get("state", -1))) == 0
 
 
 def _starts_the_robot(name: str, args: dict[str, Any]) -> bool:

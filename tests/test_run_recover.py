@@ -4,6 +4,10 @@ parameters in ≤ 2 actions after the STOP; a Script-tab run likewise restarts i
 restarted, and the dialog says why. Each run is a record of the session (``manager.runs``).
 
 Actions counted (for the lead's note), STOP → running again: Recover… (1), "Recover and restart <title>" (2).
+
+Issue #36: Recover also offers "continue with the remaining repetitions" (a run that continues the interrupted
+one), the summary of a run a STOP ended waits until the recovery is done (it took Recover's first click), Start is
+disabled while the STOP is latched (and records no refused run), and a safety stop ends a run as ``safety_stop``.
 """
 
 from __future__ import annotations
@@ -187,6 +191,10 @@ def test_f12_in_a_dialog_opens_nothing_behind_it(qtbot: Any, window: MainWindow)
     look()
     assert not any(seen_behind), "the summary opened behind the modal dialog"
     dialog.reject()
+    # Issue #36: nor over the banner's Recover — the summary waits until the recovery is done.
+    qtbot.wait(SUMMARY_DELAY_MS)
+    assert panel.summary_dialog is None or not panel.summary_dialog.isVisible()
+    _recover_dialog(qtbot, window).recover_button.click()
     qtbot.waitUntil(lambda: panel.summary_dialog is not None and panel.summary_dialog.isVisible(), timeout=5000)
     assert QApplication.activeModalWidget() is None
     panel.summary_dialog.close()  # its Close works: nothing blocks it
@@ -203,3 +211,100 @@ def test_a_new_session_brings_the_exercises_forward(qtbot: Any, window: MainWind
     assert commands.tabs.currentIndex() == 0  # the end of a session leaves the tabs alone
     window.manager.start_session("P-RUNS-2", "Dr Rossi", root=tmp_path / "second")
     assert commands.tabs.tabText(commands.tabs.currentIndex()) == "Exercises"
+
+
+def _start_trigger(qtbot: Any, window: MainWindow, form: dict[str, str]) -> Any:
+    panel = window.frames["CommandsFrame"].panels["ExercisesPanel"]
+    panel.select("trigger_reaching")
+    for name, value in form.items():
+        panel.set_value(name, value)
+    assert panel.start()
+    return panel
+
+
+def test_f12_recover_continues_the_same_run_with_its_remaining_repetitions_in_two_clicks(
+        qtbot: Any, window: MainWindow) -> None:
+    """Before #36: Recover restarted from repetition 1; the summary of the stopped run opened over the banner
+    ~1.2 s after the STOP and took the first click; Start stayed enabled and added refused runs to the record."""
+    from app.ui.exercises_panel import SUMMARY_DELAY_MS
+
+    manager = window.manager
+    panel = _start_trigger(qtbot, window, {**FORM, "movements": "4", "rest_s": "0.1"})
+    runner = panel.runner
+    qtbot.waitUntil(lambda: manager.runs.current() is not None
+                    and sum(1 for m in manager.runs.current().repetitions if m.end_mono is not None) >= 1,
+                    timeout=30000)
+    first = manager.runs.current()
+    _f12(window)
+    qtbot.waitUntil(lambda: not runner.running, timeout=5000)
+    # Start is disabled while the STOP is latched, and says why; nothing is recorded by trying.
+    qtbot.waitUntil(lambda: not panel.start_button.isEnabled() and panel.hold_label.isVisible(), timeout=3000)
+    assert "emergency stop" in panel.hold_label.text() and "Recover" in panel.hold_label.text()
+    n_runs = len(manager.runs.runs())
+    assert not panel.start() and len(manager.runs.runs()) == n_runs
+    # The summary waits: Recover is never covered.
+    qtbot.wait(SUMMARY_DELAY_MS + 400)
+    assert panel.summary_dialog is None or not panel.summary_dialog.isVisible()
+    done = sum(1 for m in manager.runs.get(first.run_id).repetitions if m.end_mono is not None and not m.interrupted)
+    assert done >= 1
+    dialog = _recover_dialog(qtbot, window)  # click 1
+    assert dialog.continue_button is not None and dialog.continue_button.isDefault()
+    assert f"remaining {4 - done} repetitions" in dialog.continue_button.text()
+    assert dialog.restart_button is not None and "from the beginning" in dialog.restart_button.text()
+    dialog.continue_button.click()  # click 2
+    qtbot.waitUntil(lambda: manager.runs.current() is not None and manager.runs.current().run_id != first.run_id,
+                    timeout=10000)
+    again = manager.runs.current()
+    assert again.continues == first.run_id and again.restart_of == first.run_id and again.source == "recover"
+    assert again.params_dict()["movements"] == 4 - done
+    assert {k: v for k, v in again.params_dict().items() if k != "movements"} == \
+        {k: v for k, v in first.params_dict().items() if k != "movements"}
+    qtbot.waitUntil(lambda: not manager.runs.get(again.run_id).running, timeout=60000)
+    assert manager.runs.get(again.run_id).end_reason == "finished"
+    assert len(manager.runs.get(again.run_id).repetitions) == 4 - done
+    # One summary at the end, of the interrupted run and its continuation.
+    qtbot.waitUntil(lambda: panel.summary_dialog is not None and panel.summary_dialog.isVisible(), timeout=10000)
+    assert [r.run.run_id for r in panel.summary_dialog.summary.runs] == [first.run_id, again.run_id]
+    import json
+
+    lines = (manager.recorder.folder / "events.jsonl").read_text(encoding="utf-8").splitlines()
+    ends = [json.loads(line)["data"] for line in lines if '"run_end"' in line]
+    assert [d["reason"] for d in ends] == ["emergency_stop", "finished"], ends  # no refused run
+
+
+def test_a_run_ended_by_a_safety_stop_is_recorded_as_a_safety_stop(qtbot: Any, window: MainWindow) -> None:
+    """A STOP alarm (not the e-stop) while a plain Stop is on its way: the run's end is the safety stop."""
+    from app.safety import AlarmLevel
+
+    manager = window.manager
+    console = window.frames["CommandsFrame"].panels["ScriptConsole"]
+    runner = console.runner
+    runner.home_first = False
+    run = runner.start("wait(30)\n", "/tmp/wait.py")
+    qtbot.waitUntil(lambda: manager.runs.get(run.run_id).state == "running", timeout=5000)
+    runner.request_stop("stopped by the operator")  # a plain Stop, then before it lands …
+    manager.supervisor.raise_alarm(AlarmLevel.STOP, "robot monitor", "Robot stopped: handle speed too high")
+    assert runner.wait(5.0)
+    ended = manager.runs.get(run.run_id)
+    assert ended.end_reason == "safety_stop", (ended.end_reason, ended.end_detail)
+
+
+def test_recover_says_changed_on_disk_only_when_the_file_changed(tmp_path: Path) -> None:
+    """Before #36 a script only edited in the editor (unsaved) was "changed on disk"; now that is said only when
+    the file itself changed since the run started, and Recover restarts what ran either way."""
+    from app.runs import Program, text_hash
+    from app.ui.recovery import script_restart_words
+
+    path = tmp_path / "reach.py"
+    path.write_text("wait(1)\n", encoding="utf-8")
+    edited = "wait(2)\n"  # the editor's unsaved text, which ran
+    ran = Program("script_file", str(path), "reach.py", text_hash(edited), path=str(path), text=edited,
+                  file_sha256=text_hash("wait(1)\n"))
+    words = script_restart_words(ran, editor_text=edited)
+    assert "changed on disk" not in words and "differs from reach.py on disk (not saved)" in words
+    same = Program("script_file", str(path), "reach.py", text_hash("wait(1)\n"), path=str(path), text="wait(1)\n",
+                   file_sha256=text_hash("wait(1)\n"))
+    assert script_restart_words(same, editor_text="wait(3)\n") == \
+        "the text that ran (reach.py); the editor's text differs from it now, and is not what restarts"
+    path.write_text("wait(9)\n", encoding="utf-8")
+    assert "reach.py has changed on disk since" in script_restart_words(same, editor_text="wait(1)\n")

@@ -73,7 +73,7 @@ class FesDriver:
         self.stimulating = False
         self.calls: list[tuple[str, tuple[Any, ...]]] = []
 
-    def load_profile(self, profile: Any) -> None:
+    def load_profile(self, profile: Any, source: str = "") -> None:
         self.calls.append(("load_profile", (profile,)))
         self.profile = profile
 

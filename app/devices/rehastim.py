@@ -301,10 +301,12 @@ class FesDriver(DeviceDriver):
         self.district_channels = dict(channels)
         self.supervisor.event("fes_district_channels", channels=dict(channels))
 
-    def load_profile(self, profile: FesProfile) -> None:
+    def load_profile(self, profile: FesProfile, source: str = "") -> None:
         """Use ``profile`` (with its own scale factors) from the next start. Refused while stimulating,
         when the channel list cannot be built at its frequency, or when its peaks exceed the limits. A profile
-        naming districts is put on their chosen channels (``set_district_channels``)."""
+        naming districts is put on their chosen channels (``set_district_channels``). ``source``: who loads it
+        (refused while another holds the stimulator, issue #36)."""
+        _check_lease(self.supervisor, "load profile", source)
         if self._stimulating:
             raise FesError("stop stimulation before loading another profile")
         if profile.districts:
@@ -361,6 +363,7 @@ class FesDriver(DeviceDriver):
         """The start's checks that need no reply from the stimulator (any thread)."""
         if self.supervisor.estop_latched:
             raise self.supervisor.refuse(source, "stimulation refused: the emergency stop is latched; reset it first")
+        _check_lease(self.supervisor, "start", source)
         profile, ccl = self._profile, self._ccl
         if profile is None or ccl is None:
             raise FesError("no stimulation profile is loaded")
@@ -465,13 +468,16 @@ class FesDriver(DeviceDriver):
         Refused (SafetyError) when it exceeds a channel's cap or, with the profile's peak currents, the
         r.m.s. limit."""
         if pulse_width_us is not None:
+            _check_lease(self.supervisor, "pulse width override", source)
             if not (isinstance(pulse_width_us, int | float) and math.isfinite(pulse_width_us)
                     and pulse_width_us >= 0):
                 raise self.supervisor.refuse(source, f"pulse width {pulse_width_us!r} µs is not a valid value")
             if self._profile is not None and self._ccl is not None:
                 self._check_within_limits(self._profile, self._ccl, float(pulse_width_us), source)
         with self._lock:
-            self._pw_override = None if pulse_width_us is None else float(pulse_width_us)
+            before, self._pw_override = self._pw_override, None if pulse_width_us is None else float(pulse_width_us)
+        if (before is None) != (pulse_width_us is None):  # the therapist's pulse width overridden, or given back
+            self.supervisor.event("fes_pulse_width_override", pulse_width_us=pulse_width_us, source=source)
 
     def set_clinical_caps(self, caps: Mapping[int, ChannelCaps]) -> None:
         """The patient's clinical caps (per channel) from now on. If the running profile exceeds them,
@@ -668,6 +674,9 @@ class FesDriver(DeviceDriver):
         if not (isinstance(factor, int | float) and math.isfinite(factor) and factor >= 0):
             raise self.supervisor.refuse(source, f"{knob.replace('_', '-')} scale {factor!r} is not a valid "
                                                  "factor (0 or more)")
+        held = self._profile
+        if held is None or factor > (held.current_scale if knob == "current" else held.pulse_width_scale):
+            _check_lease(self.supervisor, "scale", source)  # lowering is always allowed, whoever holds it
         with self._lock:
             profile, ccl = self._profile, self._ccl
             if profile is None or ccl is None:
@@ -955,6 +964,13 @@ class FesDriver(DeviceDriver):
         self.supervisor.event("fes_fault", text=text)
         self.supervisor.raise_alarm(AlarmLevel.STOP, "FES", text)
         self.fault.emit(text)
+
+
+def _check_lease(supervisor: Any, what: str, source: str) -> None:
+    """The stimulator's owner during a run (#36): SafetySupervisor.check_fes_command (a bare stand-in has none)."""
+    check = getattr(supervisor, "check_fes_command", None)
+    if check is not None:
+        check(what, source)
 
 
 def simulated_link_settings(protocol: Protocol) -> SerialSettings:

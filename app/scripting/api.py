@@ -517,7 +517,7 @@ class FESUser:
         path = self._ctx.resolve_path(str(fileName), RESOURCES / "fes_profiles")
         profile = load_profile(path)  # FesProfileError names the file, line and key
         driver = self._driver()
-        self._call(f"fes.loadFile({str(fileName)!r})", driver.load_profile, profile)
+        self._call(f"fes.loadFile({str(fileName)!r})", driver.load_profile, profile, self._ctx.source)
         return profile
 
     def writeFile(self, data: Any, fileName: str) -> None:
@@ -608,7 +608,9 @@ class FESUser:
                 raise ScriptError("the proposal cannot be saved: this session's patient has no profile")
             profile = electrodes.save_choice(result, channel, profile, manager.operator or self._ctx.source, "",
                                              manager.config.safety)
-            manager.patient_profile = profile
+            update = getattr(manager, "update_session_profile", None)
+            if not (callable(update) and update(profile)):  # what changed on disk since applies too (#36)
+                manager.patient_profile = profile
             fes.set_district_channels(profile.fes.district_channels())
             record("electrode_choice", electrodes.choice_event(result, profile.fes.electrodes[district]))
             summary["accepted"] = channel

@@ -122,7 +122,7 @@ def run_headless(config: AppConfig, script_path: str, duration_s: float | None =
                 if not safety_stop:
                     safety_stop = _safety_stop(manager, alarms_before, AlarmLevel.STOP)
                     if safety_stop:
-                        runner.request_stop(f"safety stop: {safety_stop}")
+                        runner.request_stop(f"safety stop: {safety_stop}", cause="safety_stop")
         except KeyboardInterrupt:
             runner.stop("interrupted (Ctrl-C)")
             runner.wait(5.0)

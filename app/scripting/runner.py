@@ -39,6 +39,7 @@ from typing import TYPE_CHECKING, Any
 from app import streams
 from app.devices.linarm_constants import PRETENSION_MOVE, K
 from app.devices.linarm_protocol import ControlMode, ControlState, HomeState
+from app.ownership import start_problem
 from app.resources import RESOURCES
 from app.scripting.api import CommandRefused, ScriptContext, ScriptStopped
 from app.scripting.bridge import ApiBridge, Gate, KernelProcess
@@ -280,17 +281,24 @@ class ScriptRunner:
 
     def start(self, source: str, filename: str = "<script>", params: dict[str, Any] | None = None, *,
               program: Any = None, parameters: Any = (), run_source: str = "script_tab",
-              restart_of: str | None = None) -> Any:
+              restart_of: str | None = None, continues: str | None = None,
+              holds: tuple[str, ...] = ("robot", "stimulator"), compose: tuple[Any, ...] = ()) -> Any:
         """Run ``source`` (the script's text) in a fresh kernel; ``filename`` names it in tracebacks.
         ``params`` (plain data: an exercise form's values) is the script's global ``exerciseParams``.
 
         Opens the run (app/runs.py) in the manager's run log: ``program`` (a Program; by default the script file
         with its exact text), ``parameters`` (RunParameters), ``run_source`` (who started it) and ``restart_of``
-        (the run Recover restarts). Returns the run (None without a run log); the run ends with the script."""
+        (the run Recover restarts; ``continues``: the interrupted run a continuation carries on). The run holds
+        ``holds`` (the robot, the stimulator: one owner during a run, app/ownership.py) and lets ``compose``
+        (app.ownership.Composition) in. Returns the run (None without a run log); the run ends with the script.
+        Raises RuntimeError, nothing started and no run recorded, while another holds the devices."""
         t0 = time.monotonic()
         with self._run_lock:
             if self.running:
                 raise RuntimeError("a script is already running: stop it first")
+            problem = start_problem(self.manager, holds, stop=False)  # the tabs disable Start under a STOP
+            if problem:
+                raise RuntimeError(problem)
             compile(source, filename, "exec")  # a SyntaxError reaches the caller before anything runs
             params = json.loads(json.dumps(dict(params or {})))  # plain data only
             _remember_source(filename, source)
@@ -323,7 +331,8 @@ class ScriptRunner:
             bridge = self._bridge
             assert bridge is not None
             self.stop_cause = ""
-            self.run = self._open_run(source, filename, params, program, parameters, run_source, restart_of)
+            self.run = self._open_run(source, filename, params, program, parameters, run_source, restart_of,
+                                      continues, holds, compose)
             base = Path(filename).resolve().parent if not filename.startswith("<") else None
             bridge.context.base_dir = base
             self.context.base_dir = base
@@ -334,7 +343,8 @@ class ScriptRunner:
             return self.run
 
     def _open_run(self, source: str, filename: str, params: dict[str, Any], program: Any, parameters: Any,
-                  run_source: str, restart_of: str | None) -> Any:
+                  run_source: str, restart_of: str | None, continues: str | None = None,
+                  holds: tuple[str, ...] = ("robot", "stimulator"), compose: tuple[Any, ...] = ()) -> Any:
         runs = getattr(self.manager, "runs", None)
         if runs is None:
             return None
@@ -342,13 +352,19 @@ class ScriptRunner:
 
         if program is None:
             path = "" if filename.startswith("<") else filename
+            try:  # the file as it is on disk now: Recover tells a file changed since from an editor's unsaved text
+                on_disk = text_hash(Path(path).read_text(encoding="utf-8")) if path else ""
+            except (OSError, UnicodeDecodeError):
+                on_disk = ""
             program = Program("script_file", path or filename, Path(filename).name if path else "the editor's script",
-                              text_hash(source), path=path, text=source)
+                              text_hash(source), path=path, text=source, file_sha256=on_disk)
         if not parameters and params:
             parameters = tuple(RunParameter(str(k), str(k), v) for k, v in params.items())
         operator = str(getattr(self.manager, "operator", "") or "")
         self._run_log = runs
-        return runs.start(program, tuple(parameters), run_source, operator, restart_of=restart_of)
+        return runs.start(program, tuple(parameters), run_source, operator, restart_of=restart_of,
+                          continues=continues, holds=holds,
+                          compose=[c.as_dict() if hasattr(c, "as_dict") else dict(c) for c in compose])
 
     def _end_run(self, result: ScriptResult) -> None:
         """The run's end from what happened: the script's result and the cause of a stop."""
@@ -390,6 +406,10 @@ class ScriptRunner:
         if not self.stop_reason and running:
             self.stop_reason = reason
             self.stop_cause = cause
+        elif running and self.stop_cause == "stopped_by_operator" and cause in ("emergency_stop", "safety_stop"):
+            # A STOP that comes while a plain stop is on its way is the truer cause of the run's end (#36: a run
+            # ended by a safety stop was recorded as stopped by the operator).
+            self.stop_reason, self.stop_cause = reason, cause
         if not running:
             self._end_console_run(None, cause, reason[:300])
         self.context.stop_event.set()

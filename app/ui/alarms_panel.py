@@ -13,9 +13,10 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
-from PySide6.QtCore import Qt, QTimer, Signal
-from PySide6.QtGui import QBrush, QColor, QFont
+from PySide6.QtCore import QEvent, QSize, Qt, QTimer, Signal
+from PySide6.QtGui import QBrush, QColor, QFont, QFontMetrics
 from PySide6.QtWidgets import (
     QAbstractItemView,
     QApplication,
@@ -36,6 +37,7 @@ from PySide6.QtWidgets import (
 from app.manager import LinarmppManager
 from app.safety import Alarm, AlarmLevel
 from app.ui.recovery import RecoverDialog, Recovery, Restartable, recovery_needed
+from app.ui.widgets import ElidedLabel
 
 
 @dataclass(frozen=True)
@@ -59,13 +61,66 @@ STATUS_COLUMN = COLUMNS.index("Status")
 ROW_LIMIT = 1000  # rows kept in the list; beyond it the oldest acknowledged rows go first
 
 
-def fixed_lines(label: QLabel, lines: int = 2) -> QLabel:
-    """A wrapping label of a fixed number of lines: it wraps, but gives its layout no height-for-width
-    (which would make an enclosing scroll area size the whole panel by its preferred height)."""
-    label.setWordWrap(True)
-    label.setSizePolicy(QSizePolicy.Policy.Ignored, QSizePolicy.Policy.Fixed)
-    label.setFixedHeight(lines * label.fontMetrics().lineSpacing() + 6)
-    return label
+def wrap_elided(text: str, metrics: QFontMetrics, width: int, lines: int) -> str:
+    """``text`` broken into at most ``lines`` lines of ``width`` px (at word boundaries where it can), the last
+    line elided when the rest does not fit. Lines are joined with newlines."""
+    if width <= 0 or not text:
+        return text
+    out: list[str] = []
+    rest = text
+    while rest and len(out) < lines:
+        if len(out) == lines - 1 or metrics.horizontalAdvance(rest) <= width:
+            out.append(metrics.elidedText(rest, Qt.TextElideMode.ElideRight, width))
+            break
+        # the longest prefix that fits, back to its last space
+        fit = len(rest)
+        while fit > 1 and metrics.horizontalAdvance(rest[:fit]) > width:
+            fit = fit * 3 // 4 if metrics.horizontalAdvance(rest[:fit * 3 // 4]) > width else fit - 1
+        cut = rest.rfind(" ", 0, fit + 1)
+        cut = cut if cut > 0 else fit
+        out.append(rest[:cut].rstrip())
+        rest = rest[cut:].lstrip()
+    return "\n".join(out)
+
+
+class LinesLabel(ElidedLabel):
+    """Plain text on at most ``lines`` lines, wrapped at words, the last line elided; the whole text in the
+    tooltip when anything is cut (#36: the STOP banner and the alarm texts were cut at 1366×768)."""
+
+    def __init__(self, lines: int = 2, parent: QWidget | None = None) -> None:
+        self.lines = lines
+        super().__init__("", parent)
+        self.setWordWrap(False)  # the breaks are ours: the label never lays a line out of sight
+        self.setSizePolicy(QSizePolicy.Policy.Ignored, QSizePolicy.Policy.Fixed)
+        self._fit_height()
+
+    def _fit_height(self) -> None:
+        self.setFixedHeight(self.lines * self.fontMetrics().lineSpacing() + 2 * self.margin() + 6)
+
+    def sizeHint(self) -> QSize:
+        return QSize(super().sizeHint().width(), self.height())
+
+    def changeEvent(self, event: Any) -> None:
+        if event.type() in (QEvent.Type.FontChange, QEvent.Type.StyleChange):
+            self._fit_height()
+        super().changeEvent(event)
+
+    def _elide(self) -> None:
+        full = self.full_text()
+        width = self.contentsRect().width() - 2 * self.margin()
+        shown = wrap_elided(full, self.fontMetrics(), max(width, 0), self.lines)
+        if shown != self.text():
+            QLabel.setText(self, shown)
+        cut = shown.replace("\n", " ") != full
+        tip = self._tip or (full if cut else "")
+        if tip != self.toolTip():
+            self.setToolTip(tip)
+
+    def is_elided(self) -> bool:
+        return self.text().replace("\n", " ") != self.full_text()
+
+    def setText(self, text: str) -> None:  # the panel's own calls: the same as set_full_text
+        self.set_full_text(text)
 
 
 def alarm_time(alarm: Alarm) -> str:
@@ -99,9 +154,8 @@ class AlarmsPanel(QWidget):
         lay = QVBoxLayout(self)
         lay.setContentsMargins(2, 2, 2, 2)
         lay.setSpacing(4)
-        self.summary = QLabel()
+        self.summary = LinesLabel(2)
         self.summary.setObjectName("alarmSummary")
-        fixed_lines(self.summary)
         lay.addWidget(self.summary)
 
         self.tree = QTreeWidget()
@@ -146,9 +200,9 @@ class AlarmsPanel(QWidget):
         row.addStretch(1)
         row.addWidget(self.show_acknowledged)
         lay.addLayout(row)
-        self.message = QLabel("")
+        self.message = LinesLabel(3)  # the selected alarm in full (the row elides it)
         self.message.setObjectName("alarmMessage")
-        fixed_lines(self.message)
+        self.message.setTextInteractionFlags(Qt.TextInteractionFlag.TextSelectableByMouse)
         lay.addWidget(self.message)
 
         self.repeat = QTimer(self)
@@ -375,8 +429,6 @@ class AlarmBanner(QFrame):
 
     def __init__(self, manager: LinarmppManager) -> None:
         super().__init__()
-        from app.ui.widgets import ElidedLabel
-
         self.manager = manager
         self.restart_provider: Callable[[], Restartable | None] = lambda: None
         self.operator_provider: Callable[[], str] = lambda: manager.operator
@@ -388,7 +440,7 @@ class AlarmBanner(QFrame):
         self.setFrameShape(QFrame.Shape.StyledPanel)
         row = QHBoxLayout(self)
         row.setContentsMargins(6, 2, 6, 2)
-        self.label = ElidedLabel()
+        self.label = LinesLabel(2)  # the alarm on two lines, readable at 1366×768; the whole in its tooltip
         self.label.setObjectName("alarmBannerText")
         row.addWidget(self.label, 1)
         self.recover_button = QPushButton("&Recover…")
@@ -447,7 +499,12 @@ class AlarmBanner(QFrame):
         self.dialog = dialog
 
         def accepted() -> None:
-            self.run_recovery(dialog.operator_name(), restart if dialog.choice == "restart" else None)
+            chosen = restart
+            if restart is None or dialog.choice == "recover":
+                chosen = None
+            elif dialog.choice == "continue":
+                chosen = restart.continuation()
+            self.run_recovery(dialog.operator_name(), chosen)
 
         dialog.accepted.connect(accepted)
         dialog.open()

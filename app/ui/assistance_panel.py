@@ -165,6 +165,13 @@ class AssistancePanel(QWidget):
             lf.addRow(f"{label}:", self.live[key])
 
         layout = QVBoxLayout(self)
+        supervisor = getattr(manager, "supervisor", None)
+        if supervisor is not None:  # the run holding the robot keeps its gains (one owner during a run, #36)
+            from app.ui.held_by import HeldByLabel
+
+            self.held_by = HeldByLabel(supervisor, "robot", what="it keeps its own gains: the split below does not "
+                                                                  "reach the robot until the run ends")
+            layout.addWidget(self.held_by)
         for box in (gains, model, maps, live):
             layout.addWidget(box)
         layout.addStretch(1)

@@ -46,8 +46,19 @@ from app.electrodes import (
     save_choice,
 )
 from app.manager import LinarmppManager
+from app.ownership import ROBOT, SETUP_SOURCES, STIMULATOR, Lease
+from app.safety import SafetyError
 
 log = logging.getLogger(__name__)
+
+SETUP_SOURCE = SETUP_SOURCES[0]
+SETUP_LEASE_KEY = "electrode-setup"
+
+
+def setup_lease() -> Lease:
+    """What the set-up holds while it runs: the robot (it holds the arm) and the stimulator (its bursts)."""
+    return Lease(key=SETUP_LEASE_KEY, holder="Electrode set-up", devices=frozenset({ROBOT, STIMULATOR}),
+                 sources=SETUP_SOURCES)
 
 COLUMNS = ("Ch", "Electrodes", "Up to mA", "Threshold mA", "Response N/mA", "Best N", "Discomfort 0–10")
 # One colour per combination, distinguishable in print and for the common colour deficiencies (Okabe–Ito).
@@ -150,6 +161,11 @@ class ElectrodeSetupDialog(QDialog):
         header.setSectionResizeMode(QHeaderView.ResizeMode.ResizeToContents)
         header.setSectionResizeMode(1, QHeaderView.ResizeMode.Stretch)
         self.table.verticalHeader().setDefaultSectionSize(self.table.fontMetrics().lineSpacing() + 10)
+        # Every combination of a district in view at once (four, the configured arrays): the plot gives way first.
+        rows = max((len(d.combinations) for d in self.districts.values()), default=4)
+        self.table.setMinimumHeight(self.table.horizontalHeader().sizeHint().height()
+                                    + rows * self.table.verticalHeader().defaultSectionSize()
+                                    + 2 * self.table.frameWidth() + 4)
 
         self.proposal_label = QLabel("")
         self.proposal_label.setWordWrap(True)
@@ -169,8 +185,11 @@ class ElectrodeSetupDialog(QDialog):
         top.addWidget(self.plot, 1)
         lay = QVBoxLayout(self)
         lay.addLayout(top, 5)
-        lay.addWidget(self.table, 2)
+        lay.addWidget(self.table, 0)
         lay.addLayout(choose)
+        screen = self.screen().availableGeometry() if self.screen() is not None else None
+        if screen is not None:  # as tall as the screen allows (at 1366×768 the table showed 2 of 4 rows)
+            self.resize(min(1100, screen.width() - 40), min(760, screen.height() - 60))
 
         self.start_button.clicked.connect(self.start)
         self.stop_button.clicked.connect(lambda: self.stop("Stop pressed in the electrode set-up"))
@@ -206,10 +225,19 @@ class ElectrodeSetupDialog(QDialog):
             self._say(str(exc), "bad")
             return False
         supervisor = self.manager.supervisor
+        # One owner (#36): the set-up holds the robot and the stimulator while it runs; the assistance's pulse
+        # width is taken off, so the bursts go out at the pulse width this dialog shows.
+        take = getattr(self.manager, "take_lease", None)
+        if callable(take):
+            try:
+                take(setup_lease())
+            except SafetyError as exc:
+                self._say(f"{exc.reason[:1].upper()}{exc.reason[1:]}.", "bad")
+                return False
         bus = getattr(self.manager, "bus", None)  # the data backbone (#29) when merged; the driver's latest before
         latest = bus.latest if bus is not None else robot.latest
         ports = app_ports(fes, robot.command, latest, supervisor.robot_hold_reason, self._record, district.name,
-                          "electrode set-up")
+                          SETUP_SOURCE)
         self._previous_profile = getattr(fes, "profile", None)
         self.setup = ElectrodeSetup(district, plan, limiter.limits, ports,
                                     lambda kind, payload: self._relay.progress.emit(kind, payload))
@@ -236,6 +264,9 @@ class ElectrodeSetupDialog(QDialog):
             self._relay.progress.emit("aborted", setup.result)
         finally:
             self._restore_profile()
+            release = getattr(self.manager, "release_lease", None)
+            if callable(release):
+                release(SETUP_LEASE_KEY, setup.result.aborted or "finished")
             self._relay.progress.emit("ended", None)
 
     def show_result(self, result: SetupResult) -> None:
@@ -261,7 +292,7 @@ class ElectrodeSetupDialog(QDialog):
         if fes is None or previous is None or getattr(fes, "stimulating", False):
             return
         try:
-            fes.load_profile(previous)
+            fes.load_profile(previous, SETUP_SOURCE)
         except Exception as exc:
             log.warning("electrode set-up: the previous profile could not be loaded again: %s", exc)
 
@@ -415,7 +446,9 @@ class ElectrodeSetupDialog(QDialog):
         try:
             if profile is not None:
                 profile = save_choice(result, channel, profile, operator, session, manager.config.safety)
-                manager.patient_profile = profile
+                update = getattr(manager, "update_session_profile", None)
+                if not (callable(update) and update(profile)):  # caps changed on disk since apply too (#36)
+                    manager.patient_profile = profile
                 channels = profile.fes.district_channels()
                 saved = f"saved in {profile.patient_id}'s profile"
             else:

@@ -134,9 +134,11 @@ class ExercisesPanel(QWidget):
             bad.setStyleSheet(ERROR_STYLE)
             bad.setWordWrap(True)
             lib_lay.addWidget(bad)
+        self._build_session_box()
         left = QWidget()
         left_lay = QVBoxLayout(left)
         left_lay.setContentsMargins(0, 0, 0, 0)
+        left_lay.addWidget(self.session_box)
         left_lay.addWidget(self.plan_box)
         left_lay.addWidget(library_box, 1)
 
@@ -167,6 +169,12 @@ class ExercisesPanel(QWidget):
 
         self.message = QLabel("")
         self.message.setWordWrap(True)
+        # Why Start is disabled (a STOP latched: Recover first), on screen and not only in a tooltip.
+        self.hold_label = QLabel("")
+        self.hold_label.setObjectName("startHold")
+        self.hold_label.setWordWrap(True)
+        self.hold_label.setStyleSheet(ERROR_STYLE)
+        self.hold_label.setVisible(False)
         self.repetition_label = QLabel("")
         self.repetition_label.setAccessibleName("Repetition")
         font = self.repetition_label.font()
@@ -202,6 +210,7 @@ class ExercisesPanel(QWidget):
         # Start / Pause / Stop and the progress first: at 1366×768 they stay on screen while the
         # description and the form below them scroll (issue #19: primary controls without scrolling).
         right_lay.addLayout(controls)
+        right_lay.addWidget(self.hold_label)
         right_lay.addWidget(self.message)
         right_lay.addWidget(status_box)
         right_lay.addWidget(self.description)
@@ -229,16 +238,172 @@ class ExercisesPanel(QWidget):
         self._exercised_in_session = False  # an exercise was started from here during this session
         if hasattr(manager, "session_changed"):
             manager.session_changed.connect(self._session_changed)
+        if hasattr(manager, "profile_changed"):  # the plan or the caps changed in the Patients window
+            manager.profile_changed.connect(lambda _p: self._profile_changed())
+        # The summary of a run a STOP ended waits until the recovery is done: it never covers the banner's Recover
+        # (issue #36: it opened ~2 s after each STOP and took the first click meant for Recover).
+        self._pending_summary: tuple[Path, float | None, float, str, str] | None = None
+        self._summary_since: float | None = None  # a continuation's summary starts at the interrupted run's
         self.load_plan()
         if self.library and self.exercise is None:
             self.exercise_list.setCurrentRow(0)
         self._sync_buttons()
+
+    # ------------------------------------------------------------------ a session from here (no session running)
+    def _build_session_box(self) -> None:
+        """No session runs: the patients (most recently changed first, with their names and plans), the operator
+        (typed, or the last one taken with a click: never pre-filled) and one button that starts the session and
+        the plan's first exercise. A returning patient: patient, operator, Start — three actions (#36)."""
+        self.session_box = QGroupBox("Start a session")
+        self.patient_list = QListWidget()
+        self.patient_list.setAccessibleName("Patients")
+        self.patient_list.setWordWrap(True)  # the id and the name, whole (the column is narrow at 1366×768)
+        self.patient_list.setHorizontalScrollBarPolicy(Qt.ScrollBarPolicy.ScrollBarAlwaysOff)
+        self.patient_list.currentRowChanged.connect(lambda _r: self._sync_session_box())
+        self.patient_list.setMaximumHeight(4 * (self.patient_list.fontMetrics().lineSpacing() + 6) + 8)
+        self.session_plan = QLabel("")  # what the button starts: the chosen patient's plan, in words
+        self.session_plan.setWordWrap(True)
+        self.session_plan.setObjectName("sessionPlan")
+        self.new_patient_button = QPushButton("&New patient…")
+        self.new_patient_button.clicked.connect(self.new_patient)
+        self.operator_edit = QLineEdit()
+        self.operator_edit.setAccessibleName("Operator")
+        self.operator_edit.setPlaceholderText("Operator: your name or staff ID")
+        self.operator_edit.textChanged.connect(lambda _t: self._sync_session_box())
+        self.last_operator_button = QPushButton("")
+        self.last_operator_button.setToolTip("The operator of the last session on this computer: click only if that "
+                                             "is you")
+        self.last_operator_button.clicked.connect(
+            lambda: self.operator_edit.setText(self.last_operator_button.property("operator") or ""))
+        self.session_button = QPushButton("▶ Start session")
+        self.session_button.clicked.connect(lambda _checked=False: self.start_session_here())
+        self.session_problem = QLabel("")
+        self.session_problem.setWordWrap(True)
+        self.session_problem.setStyleSheet(ERROR_STYLE)
+        lay = QVBoxLayout(self.session_box)
+        lay.setContentsMargins(4, 4, 4, 4)
+        lay.setSpacing(3)
+        lay.addWidget(self.patient_list)
+        lay.addWidget(self.session_plan)
+        op_row = QHBoxLayout()
+        op_row.addWidget(self.operator_edit, 1)
+        op_row.addWidget(self.last_operator_button)
+        lay.addLayout(op_row)
+        row = QHBoxLayout()
+        row.addWidget(self.new_patient_button)
+        row.addWidget(self.session_button, 1)
+        lay.addLayout(row)
+        lay.addWidget(self.session_problem)
+        self.reload_patients()
+
+    def _session_possible(self) -> bool:
+        return getattr(self.manager, "recorder", None) is None and hasattr(self.manager, "start_session")
+
+    def reload_patients(self, select: str | None = None) -> None:
+        from PySide6.QtCore import QSettings
+
+        from app.patients import list_patients
+
+        possible = self._session_possible()
+        self.session_box.setVisible(possible)
+        if not possible:
+            return
+        current = select or self.selected_patient()
+        try:
+            safety = getattr(getattr(self.manager, "config", None), "safety", None)
+            entries = [e for e in list_patients(safety=safety) if e.profile is not None]
+        except OSError:
+            entries = []
+        entries.sort(key=lambda e: e.profile.updated or e.profile.created or "", reverse=True)
+        self._patient_plans = {e.patient_id: list(e.profile.therapy_plan) for e in entries}
+        self.patient_list.blockSignals(True)
+        self.patient_list.clear()
+        for e in entries:
+            p = e.profile
+            plan = f", plan of {len(p.therapy_plan)}" if p.therapy_plan else ""
+            item = QListWidgetItem(f"{p.patient_id} — {p.full_name}{plan}" if p.full_name else f"{p.patient_id}{plan}")
+            item.setData(Qt.ItemDataRole.UserRole, p.patient_id)
+            self.patient_list.addItem(item)
+        ids = [e.patient_id for e in entries]
+        self.patient_list.setCurrentRow(ids.index(current) if current in ids else -1)
+        self.patient_list.blockSignals(False)
+        last = str(QSettings().value("session/operator", "") or "")
+        self.last_operator_button.setProperty("operator", last)
+        self.last_operator_button.setText(f"I am {last}")
+        self.last_operator_button.setVisible(bool(last))
+        self._sync_session_box()
+
+    def selected_patient(self) -> str | None:
+        item = self.patient_list.currentItem()
+        return item.data(Qt.ItemDataRole.UserRole) if item is not None else None
+
+    def _sync_session_box(self) -> None:
+        pid = self.selected_patient()
+        operator = self.operator_edit.text().strip()
+        plan = getattr(self, "_patient_plans", {}).get(pid, []) if pid else []
+        titles = [next((e.title for e in self.library if e.ident == step.exercise), step.exercise) for step in plan]
+        self.session_button.setText("▶ Start session and step 1" if titles else "▶ Start session")
+        self.session_plan.setText("Plan: " + "; ".join(f"{k + 1}. {t}" for k, t in enumerate(titles)) if titles
+                                  else ("No therapy plan: the session starts, then choose an exercise." if pid else ""))
+        self.session_plan.setVisible(bool(pid))
+        problem = "" if pid else "Choose the patient (or New patient…)."
+        if pid and not operator:
+            problem = "Enter the operator's name (it signs the session's record)."
+        self.session_button.setEnabled(not problem)
+        self.session_button.setToolTip(problem or "Starts the session's recording; with a plan, its first exercise")
+        self.session_problem.setText("" if not (pid or operator) else problem)
+
+    def start_session_here(self) -> bool:
+        """Start the session of the chosen patient with the operator given, then the plan's first exercise (the
+        button says which). False with the reason shown when nothing started."""
+        from PySide6.QtCore import QSettings
+
+        pid, operator = self.selected_patient(), self.operator_edit.text().strip()
+        if not pid or not operator or not self._session_possible():
+            self._sync_session_box()
+            return False
+        try:
+            self.manager.start_session(pid, operator)
+        except (ValueError, RuntimeError, OSError) as exc:
+            text = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
+            self.session_problem.setText(f"Session not started: {text}")
+            return False
+        QSettings().setValue("session/operator", operator)
+        self.operator_edit.clear()
+        if self.plan():  # the session's start loaded the plan: its first step is selected
+            self.plan_list.setCurrentRow(0)
+            return self.start()
+        return True
+
+    def new_patient(self) -> QWidget:
+        """A new patient's profile, then at once their therapy plan; back here with them chosen."""
+        from app.ui.patient_dialog import PatientDialog
+        from app.ui.patients_window import PlanDialog
+
+        safety = getattr(getattr(self.manager, "config", None), "safety", None)
+        dialog = PatientDialog(None, safety, None, self)
+        self.patient_dialog = dialog
+
+        def saved(result: int) -> None:
+            profile = getattr(dialog, "profile", None)
+            if result != 1 or profile is None:
+                return
+            self.reload_patients(profile.patient_id)
+            plan = PlanDialog(profile, safety, parent=self)
+            self.plan_dialog = plan
+            plan.finished.connect(lambda _r: self.reload_patients(profile.patient_id))
+            plan.open()
+
+        dialog.finished.connect(saved)
+        dialog.open()
+        return dialog
 
     def _session_changed(self, folder: Path | None) -> None:
         """At the end of a session in which exercises were run from this tab, its whole summary is shown."""
         ended, exercised = self._session_folder, self._exercised_in_session
         self._session_folder = Path(folder) if folder is not None else None
         self._exercised_in_session = False
+        self.reload_patients()
         self.load_plan()
         if folder is None and ended is not None and exercised:
             QTimer.singleShot(0, self, lambda: show_when_unblocked(
@@ -265,6 +430,26 @@ class ExercisesPanel(QWidget):
         profile = getattr(self.manager, "patient_profile", None)
         return list(getattr(profile, "therapy_plan", None) or [])
 
+    def _profile_changed(self) -> None:
+        if self._runner is None or not self._runner.running:
+            row = self.plan_list.currentRow()
+            self.load_plan()
+            if 0 <= row < self.plan_list.count():
+                self.plan_list.setCurrentRow(row)
+
+    def step_problem(self, step: Any) -> str:
+        """Why a plan step would not start now (the patient's limits, caps and electrodes in force): "" if it would."""
+        from app.exercises import run_problems
+
+        exercise = next((e for e in self.library if e.ident == step.exercise), None)
+        if exercise is None:
+            return f"there is no exercise '{step.exercise}' in the library"
+        checked = validate(exercise, step.params)
+        if not checked.ok:
+            return checked.message(exercise)
+        problems = run_problems(self.manager, exercise, checked.params)
+        return "; ".join(f"{exercise.parameter(n).label}: {why}" for n, why in problems.items())
+
     def load_plan(self) -> None:
         plan = self.plan()
         self.plan_list.blockSignals(True)
@@ -272,8 +457,14 @@ class ExercisesPanel(QWidget):
         for k, step in enumerate(plan):
             title = next((e.title for e in self.library if e.ident == step.exercise), f"{step.exercise} (unknown)")
             values = ", ".join(f"{n}={v}" for n, v in step.params.items())
-            item = QListWidgetItem(f"{k + 1}. {title}")
-            item.setToolTip(values + (f"\n{step.note}" if step.note else ""))
+            problem = self.step_problem(step)  # checked against the patient before anything moves (#36)
+            item = QListWidgetItem(f"{k + 1}. {title}" + (" — cannot start" if problem else ""))
+            item.setToolTip(values + (f"\n{step.note}" if step.note else "") + (f"\nCannot start: {problem}"
+                                                                                  if problem else ""))
+            if problem:
+                from PySide6.QtGui import QBrush, QColor
+
+                item.setForeground(QBrush(QColor("#c62828")))
             self.plan_list.addItem(item)
         self.plan_list.blockSignals(False)
         self.plan_box.setVisible(bool(plan))
@@ -292,6 +483,9 @@ class ExercisesPanel(QWidget):
                 self.exercise_list.blockSignals(False)
                 self.show_exercise(e, step.params)
                 self._plan_step = row
+                problem = self.step_problem(step)
+                if problem:  # said where it is chosen, not only in the list's tooltip
+                    self._say(f"Step {row + 1} cannot start: {problem}", error=True)
                 return
         self.message.setText(f"Plan step {row + 1}: no exercise '{step.exercise}' in the library.")
         self.message.setStyleSheet(ERROR_STYLE)
@@ -342,10 +536,22 @@ class ExercisesPanel(QWidget):
         self.fields[name].set(value)
 
     # ------------------------------------------------------------------ start / pause / stop
-    def start(self, source: str = "exercises_tab", restart_of: str | None = None) -> bool:
+    def hold_reason(self) -> str:
+        """Why nothing may start now ("" when it may): a latched e-stop or an open STOP alarm (Recover first)."""
+        from app.ownership import start_problem
+
+        return start_problem(self.manager, ())
+
+    def start(self, source: str = "exercises_tab", restart_of: str | None = None,
+              continues: str | None = None) -> bool:
         """Validate the form and start the exercise; False (with the reasons shown) when nothing started.
-        ``source`` and ``restart_of`` go into the run's record (Recover: "recover" and the interrupted run)."""
+        ``source`` and ``restart_of`` go into the run's record (Recover: "recover" and the interrupted run;
+        ``continues``: the interrupted run whose remaining repetitions this one does)."""
         if self.exercise is None:
+            return False
+        hold = self.hold_reason()
+        if hold:  # nothing recorded: no refused run (#36)
+            self._say(f"Not started: {hold}.", error=True)
             return False
         checked = validate(self.exercise, self.values())
         self.last_validation = checked
@@ -363,11 +569,20 @@ class ExercisesPanel(QWidget):
             return False
         started = time.monotonic()  # before exercise_start is recorded: the summary's window includes it
         try:
-            start_exercise(runner, self.manager, self.exercise, checked.params, source=source,
-                           restart_of=restart_of)
+            checked = start_exercise(runner, self.manager, self.exercise, checked.params, source=source,
+                                     restart_of=restart_of, continues=continues)
         except (RuntimeError, SyntaxError, OSError) as exc:
             self._say(f"Not started: {exc}", error=True)
             return False
+        if not checked.ok:  # the patient's limits, caps or electrodes refuse it: nothing moved
+            for name, f in self.fields.items():
+                f.show_error(checked.errors.get(name, ""))
+            self._say("Not started: " + checked.message(self.exercise), error=True)
+            return False
+        pending = self._pending_summary
+        self._pending_summary = None
+        # A continuation's summary covers the interrupted run too (one exercise, two runs).
+        self._summary_since = pending[1] if pending is not None and continues and pending[4] == continues else None
         self._started_mono = started
         self._was_running = True
         self._exercised_in_session = getattr(self.manager, "recorder", None) is not None
@@ -400,18 +615,44 @@ class ExercisesPanel(QWidget):
             return "its parameters are no longer accepted: " + checked.message(exercise)
         return ""
 
-    def restart_run(self, run: Any) -> bool:
-        """Start ``run``'s exercise again with its parameters (source "recover", linked to ``run``): the form
-        shows what runs, and this tab follows it."""
+    def remaining_repetitions(self, run: Any) -> tuple[int, int] | None:
+        """(repetitions still to do, planned) of ``run``, for Recover's "continue"; None when its exercise does
+        not count repetitions."""
+        from app.runs import remaining_repetitions
+
+        exercise = next((e for e in self.library if e.ident == run.program.ident), None)
+        if exercise is None or not exercise.repetitions:
+            return None
+        runs = getattr(self.manager, "runs", None)
+        live = runs.get(run.run_id) if runs is not None else None
+        live = live or run
+        try:
+            total = int(live.params_dict().get(exercise.repetitions))
+        except (TypeError, ValueError):
+            return None
+        return remaining_repetitions(live, exercise.repetitions), total
+
+    def restart_run(self, run: Any, continue_: bool = False) -> bool:
+        """Start ``run``'s exercise again with its parameters (source "recover", linked to ``run``), or, with
+        ``continue_``, only its remaining repetitions (a run that continues ``run``): the form shows what runs,
+        and this tab follows it."""
         if self.restart_problem(run):
             return False
         exercise = next(e for e in self.library if e.ident == run.program.ident)
+        params = run.params_dict()
+        continues = None
+        if continue_:
+            left = self.remaining_repetitions(run)
+            if left is None or left[0] <= 0:
+                return False
+            params = {**params, exercise.repetitions: left[0]}
+            continues = run.run_id
         self.exercise_list.blockSignals(True)
         self.exercise_list.setCurrentRow(self.library.index(exercise))
         self.exercise_list.blockSignals(False)
         self._plan_step = None
-        self.show_exercise(exercise, run.params_dict())
-        return self.start(source="recover", restart_of=run.run_id)
+        self.show_exercise(exercise, params)
+        return self.start(source="recover", restart_of=run.run_id, continues=continues)
 
     def toggle_pause(self) -> None:
         runner = self.runner
@@ -458,6 +699,7 @@ class ExercisesPanel(QWidget):
         return f"{state.exercise} — {text}" if text else state.exercise
 
     def _tick(self) -> None:
+        self._show_pending_summary()
         progress = getattr(self.manager, "progress", None)
         if progress is None:
             return
@@ -490,10 +732,45 @@ class ExercisesPanel(QWidget):
             self.plan_list.setCurrentRow(self._plan_step + 1)  # the plan's next exercise is offered
         recorder = getattr(self.manager, "recorder", None)
         if recorder is not None and getattr(recorder, "folder", None) is not None:
-            folder, since, until = Path(recorder.folder), self._started_mono, time.monotonic()
+            since = self._summary_since if self._summary_since is not None else self._started_mono
+            self._summary_since = None
+            folder, until = Path(recorder.folder), time.monotonic()
+            stopped = run is not None and run.end_reason in ("emergency_stop", "safety_stop")
+            if stopped or self._recovery_needed():
+                # After a STOP the banner's Recover comes first: the summary waits until the recovery is done and
+                # nothing runs (a continuation's own summary then covers this run too).
+                self._pending_summary = (folder, since, until, name, run.run_id if run is not None else "")
+                self._pending_after = time.monotonic() + SUMMARY_DELAY_MS / 1000.0
+                return
             # Never behind a modal dialog (F12 pressed in one): shown once no modal dialog blocks it.
             QTimer.singleShot(SUMMARY_DELAY_MS, self, lambda: show_when_unblocked(
                 self, lambda: self.show_summary(folder, since, until, name)))
+
+    def _recovery_needed(self) -> bool:
+        from app.ui.recovery import recovery_needed
+
+        try:
+            return recovery_needed(self.manager)
+        except Exception:  # a stand-in manager without a supervisor or a bus: nothing to wait for
+            return False
+
+    def _show_pending_summary(self) -> None:
+        """The summary kept back after a STOP, once the recovery is done and nothing runs (Recover's continuation
+        or restart takes its place: that run's summary comes at its end)."""
+        pending = self._pending_summary
+        if pending is None:
+            return
+        now = time.monotonic()
+        if self._recovery_needed() or (self._runner is not None and self._runner.running):
+            # Recover's own steps run in between (a robot error's reset is polled): its restart or continuation
+            # follows within moments, so the summary waits a while after the last sign of the recovery.
+            self._pending_after = max(getattr(self, "_pending_after", 0.0), now + SUMMARY_DELAY_MS / 1000.0)
+            return
+        if now < getattr(self, "_pending_after", 0.0):
+            return
+        self._pending_summary = None
+        folder, since, until, name, _run_id = pending
+        show_when_unblocked(self, lambda: self.show_summary(folder, since, until, name))
 
     def show_summary(self, folder: Path, since: float | None, until: float | None, title: str) -> QWidget | None:
         from app.ui.session_summary import SessionSummaryDialog
@@ -512,7 +789,13 @@ class ExercisesPanel(QWidget):
         running = self._runner is not None and self._runner.running
         progress = getattr(self.manager, "progress", None)
         paused = progress is not None and progress.state.paused_since is not None
-        self.start_button.setEnabled(not running and self.exercise is not None)
+        hold = "" if running else self.hold_reason()
+        text = f"Start is disabled: {hold}." if hold else ""
+        if self.hold_label.text() != text:
+            self.hold_label.setText(text)
+            self.hold_label.setVisible(bool(text))
+        self.start_button.setEnabled(not running and self.exercise is not None and not hold)
+        self.start_button.setToolTip(text)
         self.defaults_button.setEnabled(not running)
         self.form_box.setEnabled(not running)
         self.exercise_list.setEnabled(not running)

@@ -232,10 +232,17 @@ class FesPanel(RefreshWhenVisible, QWidget):
         buttons.setSpacing(4)
         for i, b in enumerate((self.start_button, self.stop_button, self.load_button, self.edit_button)):
             buttons.addWidget(b, i // 2, i % 2)
+        for b in (self.start_button, self.stop_button, self.load_button, self.edit_button, self.electrodes_button):
+            # A long refusal below must never squeeze them (#36: 16 px high buttons at 1366×768).
+            b.setMinimumHeight(b.sizeHint().height())
         buttons.addWidget(self.electrodes_button, 2, 0, 1, 2)
         left = QVBoxLayout()
         left.setSpacing(4)
         left.addWidget(self.status_label)
+        from app.ui.held_by import HeldByLabel
+
+        self.held_by = HeldByLabel(manager.supervisor, "stimulator")  # one owner during a run (#36)
+        left.addWidget(self.held_by)
         left.addLayout(buttons)
         left.addWidget(self.profile_label)
         # Why the pulse-width knob does not turn, on screen and not only in a tooltip (issue #30).
@@ -274,7 +281,7 @@ class FesPanel(RefreshWhenVisible, QWidget):
         if self.driver is not None:
             self.driver.fault.connect(lambda text: self.show_message(text, "bad"))
             self.driver.scale_clamped.connect(lambda _k, _a, text: self.show_message(text, "warn"))
-            self.driver.stimulation_changed.connect(lambda _on: self.refresh())
+            self.driver.stimulation_changed.connect(self._stimulation_changed)
         self.timer = QTimer(self)
         self.timer.setInterval(100)
         self.timer.timeout.connect(self._tick)
@@ -316,6 +323,18 @@ class FesPanel(RefreshWhenVisible, QWidget):
             self.show_message(f"Not started: {start_failure_text(exc)}", "bad")
         self.refresh()
 
+    def _stimulation_changed(self, on: bool) -> None:
+        """Stimulation ended by itself (a time profile's end, a fault, the run holding it): the message must not
+        go on saying "Stimulating." (#36)."""
+        d = self.driver
+        if not on and d is not None and self.message.text().startswith("Stimulating"):
+            profile = d.profile
+            if profile is not None and profile.axis == "time" and d.clock() - d.started_at >= profile.end:
+                self.show_message(f"Stimulation ended: the time profile finished ({profile.end:g} s).", "ok")
+            else:
+                self.show_message("Stimulation stopped.", "warn")
+        self.refresh()
+
     def stop(self) -> None:
         if self.driver is not None:
             self.driver.stop_stimulation("stop button", "FES panel")
@@ -351,7 +370,7 @@ class FesPanel(RefreshWhenVisible, QWidget):
             self.show_message("FES is off in the configuration.", "bad")
             return False
         try:
-            self.driver.load_profile(profile)
+            self.driver.load_profile(profile, "FES panel")
         except (SafetyError, FesError) as exc:
             self.show_message(f"Profile not loaded: {exc.reason}", "bad")
             return False
@@ -444,7 +463,13 @@ class FesPanel(RefreshWhenVisible, QWidget):
         for knob in (self.current_knob, self.width_knob):
             knob.setEnabled(profile is not None)
         override = d.pulse_width_override
-        self.width_lock_note.setVisible(profile is not None and override is not None)
+        # Delivered = shown (#36): the assistance's pulse width replaces the profile's on every channel, said here
+        # whether or not a profile is loaded yet (the next one loaded gets it too).
+        note = (f"Pulse width set by the assistance: {override:.0f} µs on every channel, instead of the "
+                "profile's. Its knob is locked until the assistance stops." if override is not None else "")
+        if self.width_lock_note.text() != note:
+            self.width_lock_note.setText(note)
+        self.width_lock_note.setVisible(override is not None)
         self.width_knob.dial.setEnabled(profile is not None and override is None)
         if profile is None:
             self.profile_label.setText("No profile loaded")

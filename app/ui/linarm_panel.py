@@ -479,6 +479,10 @@ class LinarmPanel(RefreshWhenVisible, QWidget):
         # (the commands frame's) size the panel by its preferred height and scroll it as a whole.
         self.status.setSizePolicy(QSizePolicy.Policy.Ignored, QSizePolicy.Policy.Preferred)
         lay.addWidget(self.status)
+        from app.ui.held_by import HeldByLabel
+
+        self.held_by = HeldByLabel(manager.supervisor, "robot")  # one owner during a run (#36)
+        lay.addWidget(self.held_by)
 
         self.tabs = QTabWidget()
         self.tabs.setDocumentMode(True)

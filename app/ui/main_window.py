@@ -142,23 +142,6 @@ class DeviceStatus(QLabel):
             self.setAccessibleName(f"{self.name} {state}")
 
 
-def _script_restart_words(program: Any) -> str:
-    """What a Script-tab restart runs, in words: always the text that ran (kept in the record), and whether the
-    file has changed on disk since (then the file's new text is not what restarts)."""
-    from app.runs import text_hash
-
-    where = program.path or "the editor"
-    if program.path:
-        try:
-            changed = text_hash(Path(program.path).read_text(encoding="utf-8")) != program.text_sha256
-        except (OSError, UnicodeDecodeError):
-            changed = True
-        if changed:
-            return (f"the text that ran; {Path(program.path).name} has changed on disk since, and its new text is "
-                    "not what restarts")
-    return f"the text that ran ({where})"
-
-
 def recorder_folder(manager: LinarmppManager) -> Path | None:
     recorder = manager.recorder
     return None if recorder is None else recorder.folder
@@ -458,32 +441,19 @@ class MainWindow(QMainWindow):
         return getattr(self._script_console(), "runner", None)
 
     def _interrupted_exercise(self) -> Restartable | None:
-        """The run a STOP interrupted (the session's runs, app/runs.py: the one still running — Recover stops it
-        first — or the last one, stopped), for the banner's Recover. It is started again exactly: the same
-        exercise with the same parameters from the Exercises tab, the same script text from the Script tab.
-        Console code, or a program changed on disk since, is not restarted: the reason is given instead."""
-        from app.runs import restart_candidate
+        """The run a STOP interrupted, for the banner's Recover (app.ui.recovery.interrupted_run)."""
+        from app.ui.recovery import interrupted_run
 
-        runs = getattr(self.manager, "runs", None)
-        run = restart_candidate(runs.runs()) if runs is not None else None
-        if run is None:
-            return None
-        panels = getattr(self.frames.get("CommandsFrame"), "panels", {})
-        owner = panels.get("ExercisesPanel") if run.program.kind == "exercise" else panels.get("ScriptConsole")
-        if run.program.kind == "console" or owner is None:
-            why = run.program.changed_on_disk() if run.program.kind == "console" else "its tab is not available"
-            return Restartable(run.title, lambda: False, why_not=why, run_id=run.run_id)
-        why_not = owner.restart_problem(run)
-        details = run.parameters_text() if run.program.kind == "exercise" else _script_restart_words(run.program)
-        return Restartable(run.title, lambda: owner.restart_run(run), why_not=why_not, details=details,
-                           run_id=run.run_id)
+        return interrupted_run(self.manager, getattr(self.frames.get("CommandsFrame"), "panels", {}))
 
     def _stop_script_for_recovery(self) -> bool:
         """Recover never resets the e-stop under a running script: stop it first (True if it ran)."""
         runner = self._script_runner()
         if runner is None or not runner.running:
             return False
-        runner.stop("stopped by Recover after an emergency stop", wait_s=2.0)
+        # the STOP is why it ends (#36: recorded as "stopped by the operator" before)
+        cause = "emergency_stop" if self.manager.supervisor.estop_latched else "safety_stop"
+        runner.stop("stopped by Recover after an emergency stop", wait_s=2.0, cause=cause)
         return True
 
     def _on_estop_changed(self, latched: bool, reason: str) -> None:

@@ -14,7 +14,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-from PySide6.QtCore import Qt
+from PySide6.QtCore import Qt, QTimer
 from PySide6.QtWidgets import (
     QAbstractItemView,
     QCheckBox,
@@ -28,6 +28,7 @@ from PySide6.QtWidgets import (
     QLabel,
     QLineEdit,
     QListWidget,
+    QListWidgetItem,
     QPushButton,
     QSplitter,
     QTableWidget,
@@ -44,8 +45,11 @@ from app.patients import (
     PatientProfile,
     PlannedExercise,
     list_patients,
+    load_patient,
     matches,
+    patient_file,
     plan_problems,
+    prescription_problems,
     save_patient,
 )
 
@@ -95,12 +99,23 @@ class PlanDialog(QDialog):
         self.step_list.setAccessibleName("Plan steps")
         self.step_list.setWordWrap(True)
         self.step_list.currentRowChanged.connect(self._show_step)
-        self.exercise_box = QComboBox()
-        self.exercise_box.setAccessibleName("Exercise to add")
+        # The library, one double-click (or Enter) per step added (#36: a two-step plan in two actions).
+        self.library_list = QListWidget()
+        self.library_list.setAccessibleName("Exercises to add")
+        self.library_list.setToolTip("Double-click an exercise (or press Enter) to add it to the plan")
         for e in self.library:
-            self.exercise_box.addItem(e.title, e.ident)
+            item = QListWidgetItem(e.title)
+            item.setData(Qt.ItemDataRole.UserRole, e.ident)
+            item.setToolTip(f"{e.title}\n\n{e.description}")
+            self.library_list.addItem(item)
+        self.library_list.setCurrentRow(0)
+        self.library_list.setHorizontalScrollBarPolicy(Qt.ScrollBarPolicy.ScrollBarAlwaysOff)
+        self.library_list.setTextElideMode(Qt.TextElideMode.ElideRight)  # the whole title in the tooltip
+        rows = max(1, min(len(self.library), 5))
+        self.library_list.setMaximumHeight(rows * (self.library_list.fontMetrics().lineSpacing() + 6) + 8)
+        self.library_list.itemActivated.connect(lambda item: self.add_step(item.data(Qt.ItemDataRole.UserRole)))
         self.add_button = QPushButton("&Add to plan")
-        self.add_button.clicked.connect(lambda: self.add_step(self.exercise_box.currentData()))
+        self.add_button.clicked.connect(self._add_selected)
         self.remove_button = QPushButton("&Remove")
         self.remove_button.clicked.connect(self.remove_step)
         self.up_button = QPushButton("Move &up")
@@ -108,8 +123,8 @@ class PlanDialog(QDialog):
         self.down_button = QPushButton("Move &down")
         self.down_button.clicked.connect(lambda: self.move_step(1))
         add_row = QHBoxLayout()
-        add_row.addWidget(self.exercise_box, 1)
-        add_row.addWidget(self.add_button)
+        add_row.addWidget(self.library_list, 1)
+        add_row.addWidget(self.add_button, 0, Qt.AlignmentFlag.AlignTop)
         order_row = QHBoxLayout()
         for b in (self.up_button, self.down_button, self.remove_button):
             order_row.addWidget(b)
@@ -180,6 +195,11 @@ class PlanDialog(QDialog):
         self.remove_button.setEnabled(row >= 0)
         self.up_button.setEnabled(row > 0)
         self.down_button.setEnabled(0 <= row < len(self.steps) - 1)
+
+    def _add_selected(self) -> None:
+        item = self.library_list.currentItem()
+        if item is not None:
+            self.add_step(item.data(Qt.ItemDataRole.UserRole))
 
     def add_step(self, ident: str) -> None:
         exercise = self.exercises[ident]
@@ -298,6 +318,16 @@ class PlanDialog(QDialog):
     def accept(self) -> None:
         plan = self.plan()
         problems = plan_problems(plan, self.library)
+        try:  # the patient as saved now (a cap changed since this dialog opened counts; the save keeps it)
+            current = load_patient(self.profile.patient_id, self.safety, self.folder) \
+                if patient_file(self.profile.patient_id, self.folder).exists() else self.profile
+        except (OSError, PatientError, ValueError) as exc:
+            self.error_label.setText(f"The plan is not saved: the patient's profile cannot be read ({exc})")
+            return
+        self.profile = current
+        # Checked against this patient before anything moves (#36): caps, limits and electrode choices.
+        problems += prescription_problems(plan, current, self.safety, self.library)
+        problems.sort(key=lambda p: p.step)
         if problems:
             self.error_label.setText("The plan is not saved:\n" + "\n".join(str(p) for p in problems))
             first = problems[0]
@@ -320,13 +350,16 @@ class PlanDialog(QDialog):
 
 
 class PatientsDialog(QDialog):
-    """The patients: search, a profile's details, new / edit profile, therapy plan."""
+    """The patients: search, a profile's details, new / edit profile, therapy plan. A change to the profile of
+    the patient whose session runs applies to that session at once (``manager``: the window's, by default the
+    parent's), and this window says what changed."""
 
     def __init__(self, safety: SafetyConfig | None = None, folder: Path | None = None,
-                 parent: QWidget | None = None) -> None:
+                 parent: QWidget | None = None, manager: Any = None) -> None:
         super().__init__(parent)
         self.safety = safety
         self.folder = folder
+        self.manager = manager if manager is not None else getattr(parent, "manager", None)
         self.entries: list[PatientEntry] = []
         self.shown: list[PatientEntry] = []
         self.child: QDialog | None = None  # the profile or plan dialog open on top of this one
@@ -373,8 +406,14 @@ class PatientsDialog(QDialog):
         body = QHBoxLayout()
         body.addLayout(left, 3)
         body.addWidget(self.details, 2)
+        # What a change did to the running session ("Applied to the running session at once: …").
+        self.session_note = QLabel("")
+        self.session_note.setObjectName("sessionNote")
+        self.session_note.setWordWrap(True)
+        self.session_note.setVisible(False)
         lay = QVBoxLayout(self)
         lay.addLayout(body, 1)
+        lay.addWidget(self.session_note)
         lay.addLayout(buttons)
         self.resize(1000, 560)
         self.reload()
@@ -465,15 +504,55 @@ class PatientsDialog(QDialog):
         """Open ``dialog`` on top of this one (window-modal, not a nested event loop: F12 and the alarms keep
         working), and reload the list when it closes."""
         self.child = dialog
-        dialog.finished.connect(lambda _r: self.reload(select or getattr(getattr(dialog, "profile", None),
-                                                                         "patient_id", None)))
+
+        def closed(result: int) -> None:
+            pid = select or getattr(getattr(dialog, "profile", None), "patient_id", None)
+            self.reload(pid)
+            if result == QDialog.DialogCode.Accepted and pid:
+                self.apply_to_session(pid)
+
+        dialog.finished.connect(closed)
         dialog.open()
         return dialog
 
+    def apply_to_session(self, patient_id: str) -> list[str]:
+        """The saved profile of ``patient_id`` reaches the running session at once when it is that session's
+        patient (the next command meets the new caps and limits); says so here. Returns the changes."""
+        manager = self.manager
+        current = getattr(manager, "patient_profile", None)
+        if manager is None or getattr(manager, "recorder", None) is None or current is None \
+                or current.patient_id != patient_id:
+            return []
+        entry = next((e for e in self.entries if e.patient_id == patient_id), None)
+        if entry is None or entry.profile is None:
+            return []
+        changes = manager.update_session_profile(entry.profile)
+        if changes:
+            self.session_note.setText(f"Applied to {patient_id}'s running session at once: " + "; ".join(changes)
+                                      + ". The next command meets them.")
+            self.session_note.setStyleSheet("color: #1b5e20; font-weight: bold;")
+            self.session_note.setVisible(True)
+        return changes
+
     def new_patient(self) -> QDialog:
+        """A new patient's profile; once saved, their therapy plan opens at once (one action fewer, #36)."""
         from app.ui.patient_dialog import PatientDialog
 
-        return self._open(PatientDialog(None, self.safety, self.folder, self), None)
+        dialog = PatientDialog(None, self.safety, self.folder, self)
+
+        def saved(result: int) -> None:
+            profile = getattr(dialog, "profile", None)
+            if result == QDialog.DialogCode.Accepted and profile is not None:
+                QTimer.singleShot(0, self, lambda: self._plan_for(profile.patient_id))
+
+        dialog.finished.connect(saved)
+        return self._open(dialog, None)
+
+    def _plan_for(self, patient_id: str) -> PlanDialog | None:
+        self.refresh(patient_id)
+        if self.selected_id() != patient_id:
+            return None
+        return self.edit_plan()
 
     def edit_profile(self) -> QDialog | None:
         from app.ui.patient_dialog import PatientDialog

@@ -1,7 +1,9 @@
 """Recover after a STOP from one place (the alarm banner): acknowledge the open alarms in the session
 operator's name, reset the emergency stop, reset the robot's latched error, re-home when needed and,
-if an exercise was interrupted, start it again. STOP -> running again is two actions: "Recover…" in
-the banner, then "Recover and restart" in the dialog (three when no session gives the operator's name).
+if an exercise was interrupted, start it again: continue with its remaining repetitions (a new run linked to the
+interrupted one) or restart it from the beginning. STOP -> running again is two actions: "Recover…" in the
+banner, then "Recover and continue" (or "… restart") in the dialog (three when no session gives the operator's
+name).
 
 Every step goes into the session record as a ``recovery`` event with the operator's name. The robot
 steps go through the driver (and so the safety supervisor), never around it.
@@ -12,13 +14,13 @@ from __future__ import annotations
 import logging
 from collections.abc import Callable
 from concurrent.futures import Future
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
+from pathlib import Path
 from typing import Any
 
 from PySide6.QtCore import QObject, QTimer, Signal
 from PySide6.QtWidgets import (
     QDialog,
-    QDialogButtonBox,
     QFormLayout,
     QLabel,
     QLineEdit,
@@ -51,10 +53,74 @@ class Restartable:
     why_not: str = ""
     details: str = ""
     run_id: str = ""
+    continue_start: Callable[[], bool] | None = None  # the remaining repetitions, as a run continuing this one
+    remaining: int = 0
+    total: int = 0
 
     @property
     def possible(self) -> bool:
         return not self.why_not
+
+    @property
+    def can_continue(self) -> bool:
+        return self.possible and self.continue_start is not None and 0 < self.remaining < self.total
+
+    def continuation(self) -> Restartable:
+        """The same, started as the continuation (its remaining repetitions)."""
+        assert self.continue_start is not None
+        return replace(self, start=self.continue_start,
+                       details=f"the remaining {self.remaining} of {self.total} repetitions")
+
+
+def interrupted_run(manager: LinarmppManager, panels: dict[str, Any]) -> Restartable | None:
+    """The run a STOP interrupted (the session's runs, app/runs.py: the one still running — Recover stops it first
+    — or the last one, stopped), for the banner's Recover: started again exactly (the same exercise with the same
+    parameters from the Exercises tab, the same script text from the Script tab), or, for an exercise that counts
+    its repetitions, continued with those not yet done. Console code, or an exercise changed on disk since, is not
+    restarted: the reason is given instead. ``panels``: the Commands frame's tabs by class name."""
+    from app.runs import restart_candidate
+
+    runs = getattr(manager, "runs", None)
+    run = restart_candidate(runs.runs()) if runs is not None else None
+    if run is None:
+        return None
+    owner = panels.get("ExercisesPanel") if run.program.kind == "exercise" else panels.get("ScriptConsole")
+    if run.program.kind == "console" or owner is None:
+        why = run.program.changed_on_disk() if run.program.kind == "console" else "its tab is not available"
+        return Restartable(run.title, lambda: False, why_not=why, run_id=run.run_id)
+    why_not = owner.restart_problem(run)
+    if run.program.kind == "exercise":
+        details = run.parameters_text()
+    else:
+        editor = getattr(owner, "editor_text", None)
+        details = script_restart_words(run.program, editor() if callable(editor) else None)
+    restart = Restartable(run.title, lambda: owner.restart_run(run), why_not=why_not, details=details,
+                          run_id=run.run_id)
+    remaining = getattr(owner, "remaining_repetitions", None)
+    left = remaining(run) if callable(remaining) else None
+    if left is not None:
+        restart = replace(restart, continue_start=lambda: owner.restart_run(run, continue_=True),
+                          remaining=left[0], total=left[1])
+    return restart
+
+
+def script_restart_words(program: Any, editor_text: str | None = None) -> str:
+    """What a Script-tab restart runs, in words: always the text that ran (kept in the record). Says "changed on
+    disk" only when the file itself changed since the run started; when the text that ran, or the editor's text
+    now, differs from the file, it says the editor's text differs (unsaved edits) — and still restarts what ran."""
+    from app.runs import text_hash
+
+    name = Path(program.path).name if program.path else ""
+    if not program.path:
+        return "the text that ran (the editor's)"
+    changed = program.file_changed()
+    if changed:
+        return f"the text that ran; {name} has changed on disk since, and its new text is not what restarts"
+    if program.file_sha256 and program.text_sha256 != program.file_sha256:
+        return f"the text that ran: the editor's text, which differs from {name} on disk (not saved)"
+    if editor_text is not None and text_hash(editor_text) != program.text_sha256:
+        return f"the text that ran ({name}); the editor's text differs from it now, and is not what restarts"
+    return f"the text that ran ({name})"
 
 
 def robot_state(manager: LinarmppManager) -> Any:
@@ -205,9 +271,10 @@ class RecoverDialog(QDialog):
                  parent: QWidget | None = None, script_running: bool = False) -> None:
         super().__init__(parent)
         self.setWindowTitle("Recover after the stop")
+        self.setMinimumWidth(520)  # its title and the exercise's name, whole (a window manager elides them)
         self.manager = manager
         self.restart = restart
-        self.choice: str | None = None  # "restart" | "recover"
+        self.choice: str | None = None  # "continue" | "restart" | "recover"
         lay = QVBoxLayout(self)
         steps = plan(manager, restart, script_running)
         self.steps_label = QLabel("Recover will:<ul>" + "".join(f"<li>{s}</li>" for s in steps) + "</ul>")
@@ -216,7 +283,11 @@ class RecoverDialog(QDialog):
         self.restart_note = QLabel("")
         self.restart_note.setObjectName("restartNote")
         self.restart_note.setWordWrap(True)
-        if restart is not None and restart.possible:
+        if restart is not None and restart.can_continue:
+            self.restart_note.setText(f"{restart.name}: {restart.total - restart.remaining} of {restart.total} "
+                                      f"repetitions were done. Continue runs the remaining {restart.remaining} with "
+                                      f"the same parameters ({restart.details}); restart runs all {restart.total}.")
+        elif restart is not None and restart.possible:
             self.restart_note.setText(f"Restart: {restart.name}" + (f" — {restart.details}" if restart.details else ""))
         elif restart is not None:
             self.restart_note.setText(f"{restart.name} cannot be restarted: {restart.why_not}. "
@@ -234,19 +305,30 @@ class RecoverDialog(QDialog):
         self.error = QLabel("")
         self.error.setStyleSheet("color: #c62828;")
         lay.addWidget(self.error)
-        buttons = QDialogButtonBox()
+        # One button per choice, one above the other: their texts name the exercise and are long.
+        buttons = QVBoxLayout()
+        self.continue_button: QPushButton | None = None
         self.restart_button: QPushButton | None = None
+        if restart is not None and restart.can_continue:
+            self.continue_button = QPushButton(f"Recover and &continue {restart.name} with the remaining "
+                                               f"{restart.remaining} repetitions")
+            self.continue_button.clicked.connect(lambda: self._choose("continue"))
+            buttons.addWidget(self.continue_button)
         if restart is not None and restart.possible:
-            self.restart_button = buttons.addButton(f"Recover and &restart {restart.name}",
-                                                    QDialogButtonBox.ButtonRole.AcceptRole)
+            self.restart_button = QPushButton(f"Recover and &restart {restart.name}"
+                                              + (" from the beginning" if self.continue_button else ""))
             self.restart_button.clicked.connect(lambda: self._choose("restart"))
-        self.recover_button = buttons.addButton("Recover &only" if self.restart_button else "&Recover",
-                                                QDialogButtonBox.ButtonRole.AcceptRole)
+            buttons.addWidget(self.restart_button)
+        self.recover_button = QPushButton("Recover &only" if self.restart_button else "&Recover")
         self.recover_button.clicked.connect(lambda: self._choose("recover"))
-        cancel = buttons.addButton(QDialogButtonBox.StandardButton.Cancel)
+        buttons.addWidget(self.recover_button)
+        cancel = QPushButton("Cancel")
         cancel.clicked.connect(self.reject)
-        (self.restart_button or self.recover_button).setDefault(True)
-        lay.addWidget(buttons)
+        buttons.addWidget(cancel)
+        first = self.continue_button or self.restart_button or self.recover_button
+        first.setDefault(True)
+        first.setAutoDefault(True)
+        lay.addLayout(buttons)
         if not operator:
             self.operator.setFocus()
 

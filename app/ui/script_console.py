@@ -61,6 +61,7 @@ _TRACE_LINE = re.compile(r'File "([^"]+)", line (\d+)')
 _WORD_BEFORE_CURSOR = re.compile(r"[A-Za-z_][\w.]*$")
 
 
+START_TIP = "Run the script in the editor (in the script kernel, a process of its own)"
 _SOURCE_WORDS = {"exercises_tab": "Exercises tab", "script_tab": "Script tab", "recover": "Recover",
                  "console": "console", "headless": "headless runner", "plan": "therapy plan"}
 
@@ -349,7 +350,7 @@ class ScriptConsole(QWidget):
                                    "and give it back its default stiffness, admittance and assistance")
         self.status = StatusLabel("No script running")
         self.file_label = QLabel("(unsaved script)")
-        self.start_button.setToolTip("Run the script in the editor (in the script kernel, a process of its own)")
+        self.start_button.setToolTip(START_TIP)
         self.stop_button.setToolTip("Stop the script at once; the FES stops and the robot goes to its safe state")
         self.stop_button.setEnabled(False)
         self.start_button.setStyleSheet("QPushButton { font-weight: bold; }")
@@ -458,8 +459,22 @@ class ScriptConsole(QWidget):
         return True
 
     # ------------------------------------------------------------------ running
+    def hold_reason(self) -> str:
+        """Why no script may start now ("" when it may): a latched e-stop or an open STOP alarm (Recover first)."""
+        from app.ownership import start_problem
+
+        return start_problem(self.runner.manager, ())
+
+    def editor_text(self) -> str:
+        """The editor's text now (Recover says whether it differs from what ran)."""
+        return self.editor.toPlainText()
+
     def start_script(self) -> bool:
         if self.runner.running:
+            return False
+        hold = self.hold_reason()
+        if hold:  # nothing recorded: no refused run (#36)
+            self._append("stderr", f"Not started: {hold}.\n")
             return False
         self.editor.set_error_line(None)
         filename = str(self.path) if self.path is not None else "<editor>"
@@ -487,7 +502,7 @@ class ScriptConsole(QWidget):
             return run.program.changed_on_disk() or f"{run.title} is not a script of this tab"
         return run.program.changed_on_disk()
 
-    def restart_run(self, run: Any) -> bool:
+    def restart_run(self, run: Any, continue_: bool = False) -> bool:
         """Run ``run``'s program again, exactly the text that ran (even if the file or the editor changed since),
         with its parameters; recorded as a restart ("recover") of ``run``."""
         if self.runner.running or self.restart_problem(run):
@@ -592,7 +607,15 @@ class ScriptConsole(QWidget):
 
     def _sync_buttons(self) -> None:
         running = self.runner.running
-        self.start_button.setEnabled(not running)
+        hold = "" if running else self.hold_reason()
+        self.start_button.setEnabled(not running and not hold)
+        tip = f"Start is disabled: {hold}." if hold else START_TIP
+        if self.start_button.toolTip() != tip:
+            self.start_button.setToolTip(tip)
+            if hold:
+                self.status.setText(f"Start is disabled: {hold}.")
+            elif self.status.text().startswith("Start is disabled"):
+                self.status.setText("No script running")
         self.stop_button.setEnabled(running)
         self.open_button.setEnabled(not running)
 
