@@ -92,7 +92,7 @@ def test_a_new_patients_plan_is_made_from_the_session_start(qtbot, patients: Pat
     two-step plan, without leaving it. Actions: New patient… (1), the id (2), Save (3), Therapy plan… (4), Add to
     plan (5), the second exercise (6), Add to plan (7), Save (8); then the operator (9) and Start session (10)."""
     from app.ui.patient_dialog import PatientDialog, StartSessionDialog
-    from app.ui.patients_window import PlanDialog
+    from app.ui.plan_dialog import PlanDialog
 
     dialog = StartSessionDialog(SAFETY, patients)
     qtbot.addWidget(dialog)
@@ -106,7 +106,9 @@ def test_a_new_patients_plan_is_made_from_the_session_start(qtbot, patients: Pat
     plan = dialog.edit_plan()  # 4
     assert isinstance(plan, PlanDialog) and plan.isVisible() and plan.profile.patient_id == "P-100"
     plan.add_button.click()  # 5: the library's first exercise
-    plan.exercise_box.setCurrentIndex(plan.exercise_box.findData("free_admittance"))  # 6
+    row = next(i for i in range(plan.library_list.count())
+               if plan.library_list.item(i).data(Qt.ItemDataRole.UserRole) == "free_admittance")
+    plan.library_list.setCurrentRow(row)  # 6
     plan.add_button.click()  # 7
     plan.accept()  # 8
     assert plan.saved is not None, plan.error_label.text()

@@ -76,7 +76,7 @@ def test_positions_and_speeds_are_checked_against_the_patients_robot_limits() ->
 
 
 def test_the_plan_dialog_refuses_at_save_time_with_the_sentence(qtbot: Any, tmp_path: Path) -> None:
-    from app.ui.patients_window import PlanDialog
+    from app.ui.plan_dialog import PlanDialog
 
     save_patient(_capped(), tmp_path, SAFETY)
     dialog = PlanDialog(load_patient("PZ-CAP", SAFETY, tmp_path), SAFETY, tmp_path)

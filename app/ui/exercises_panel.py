@@ -378,7 +378,7 @@ class ExercisesPanel(QWidget):
     def new_patient(self) -> QWidget:
         """A new patient's profile, then at once their therapy plan; back here with them chosen."""
         from app.ui.patient_dialog import PatientDialog
-        from app.ui.patients_window import PlanDialog
+        from app.ui.plan_dialog import PlanDialog
 
         safety = getattr(getattr(self.manager, "config", None), "safety", None)
         dialog = PatientDialog(None, safety, None, self)

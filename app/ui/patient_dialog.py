@@ -412,7 +412,7 @@ class StartSessionDialog(QDialog):
     def edit_plan(self) -> QDialog | None:
         """The chosen patient's therapy plan (the Patients window's plan form), from the session's start: a new
         patient's plan is made here, before the first session."""
-        from app.ui.patients_window import PlanDialog
+        from app.ui.plan_dialog import PlanDialog
 
         entry = self.entries.get(self.patient_box.currentData())
         if entry is None or entry.profile is None:
