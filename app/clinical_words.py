@@ -58,6 +58,28 @@ EVENT_WORDS: dict[str, str] = {
     "command_refused": "Command refused",
 }
 
+# The robot's commands (the protocol table's names, camelCase as the script API spells them) in words; a command not
+# named here is "a robot command". The table itself is the one place the names live.
+ROBOT_COMMAND_WORDS: dict[str, str] = {
+    "setAssistanceTargetPos": "a new target for the robot",
+    "setAssistanceParameter": "a new assistance gain",
+    "setAdmittanceParameter": "a new admittance gain",
+    "setStiffness": "a new stiffness",
+    "setCtrlState": "switching the robot on or off",
+    "setCtrlMode": "a new robot mode",
+    "moveCentreTo": "a robot movement",
+    "moveDeltaTo": "a change of the springs' pretension",
+    "goToHome": "homing the robot",
+}
+
+
+def _robot_command_names() -> tuple[str, ...]:
+    from app.devices.linarm_protocol import HOST_COMMANDS
+
+    # Only names that are not plain words (camelCase): "identify" or "heartbeat" in a sentence stays as it is.
+    return tuple(sorted((c.name for c in HOST_COMMANDS if re.search(r"[a-z][A-Z]", c.name)), key=len, reverse=True))
+
+
 _API_OBJECTS = ("linarm", "fes", "physiologicalSensors", "patientModel", "VRUnity", "linarmppManager")
 _API_WORDS = {"linarm": "robot", "fes": "stimulator", "physiologicalSensors": "sensor", "patientModel": "patient model",
               "VRUnity": "VR", "linarmppManager": "manager"}
@@ -77,6 +99,8 @@ _PHRASES: tuple[tuple[re.Pattern[str], Any], ...] = (
     (re.compile(r"\bthe (\w+(?: \w+)?) command was refused: (stimulation refused|command refused): "),
      lambda m: f"{m.group(2)}: "),
     (re.compile(r"^Emergency stop: emergency stop pressed"), lambda m: "Emergency stop pressed"),
+    (re.compile(r"\b(" + "|".join(_robot_command_names()) + r")\b"),
+     lambda m: ROBOT_COMMAND_WORDS.get(m.group(1), "a robot command")),
 )
 _EXCEPTION = re.compile(r"\b(?:[A-Z][a-z0-9]+){1,5}(?:Error|Refused|Exception|Stopped|Unavailable|Latched|Aborted|"
                         r"Timeout|Cancelled|Rejected)\b(?::\s*)?")
@@ -86,6 +110,7 @@ _TEMP_NAME = re.compile(r"\btmp[a-z0-9_]{6,}\b")
 _HEX = re.compile(r"\s*\b[0-9a-f]{12,}\b")
 _KEY_VALUE = re.compile(r"\b[a-z_][a-z0-9_]*=")
 _SNAKE = re.compile(r"\b[a-z][a-z0-9]*(?:_[a-z0-9]+)+\b(?!\.\w)")
+_CAMEL = re.compile(r"\b[a-z]{2,}(?:[A-Z][a-z0-9]+)+\b")  # an argument's name (targetPos, maxVel): its words
 _LITERALS = {"None": "—", "True": "yes", "False": "no"}
 _LITERAL = re.compile(r"\b(None|True|False)\b")
 
@@ -113,10 +138,12 @@ def plain(text: Any) -> str:
     out = _HEX.sub("", out)
     out = _KEY_VALUE.sub("", out)
     out = _SNAKE.sub(lambda m: m.group(0).replace("_", " "), out)
+    out = _CAMEL.sub(lambda m: re.sub(r"(?<=[a-z0-9])(?=[A-Z])", " ", m.group(0)).lower(), out)
     out = _LITERAL.sub(lambda m: _LITERALS[m.group(1)], out)
     out = re.sub(r"\s{2,}", " ", out).strip()
     out = re.sub(r"\s+([,;:.)])", r"\1", out)
-    return out[:1].upper() + out[1:] if out and out[0].islower() and str(text or "")[:1].isupper() else out
+    starts_a_sentence = str(text or "")[:1].isupper() or _CAMEL.match(str(text or "")) is not None
+    return out[:1].upper() + out[1:] if out and out[0].islower() and starts_a_sentence else out
 
 
 def is_technical(text: Any) -> bool:

@@ -296,6 +296,11 @@ class LinarmppManager(QObject):
         state = self.bus.latest(streams.LINARM_STATE)
         if state is None or not state.initialized:
             return
+        if self.supervisor.robot_hold_reason():
+            # A latched e-stop or an open STOP alarm holds the robot IDLE: the target would only be refused (and a
+            # refusal per VR frame recorded); the next target after Recover is applied.
+            self._last_target = None
+            return
         self._last_target = target
         applied = self.supervisor.composed_target("VR task", target)
         if applied is None:

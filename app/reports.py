@@ -64,7 +64,7 @@ REPETITION_COLUMNS: tuple[tuple[str, str, str], ...] = (
 )
 SOURCE_TEXT: dict[str, str] = {
     "exercises_tab": "Exercises tab", "script_tab": "Script tab", "console": "script console",
-    "headless": "headless (command line)", "recover": "Recover (restart)", "plan": "therapy plan",
+    "headless": "headless (command line)", "recover": "Recover", "plan": "therapy plan",
     "recording": "the recording (no program was run)",
 }
 # Short definitions printed at the end of the session report (docs/metrics.md has the full ones).
@@ -1206,8 +1206,20 @@ def _channels_text(channels: Mapping[int, tuple[float, float]]) -> str:
                      for ch, (ma, us) in sorted(channels.items()))
 
 
+def _restart_links(run: ExerciseRun, runs: Sequence[RunReport], numbers: Mapping[str, int]) -> list[tuple[str, Any]]:
+    """How ``run`` is linked to the runs Recover made of it, or it of them: a continuation (the remaining
+    repetitions, #36) is said as one, a restart from the beginning as a restart."""
+    links: list[tuple[str, Any]] = []
+    if run.restart_of:
+        links.append(("continues" if run.continues else "restart of", numbers.get(run.restart_of, "?")))
+    for other in runs:
+        if other.run.restart_of == run.run_id:
+            links.append(("continued as" if other.run.continues else "restarted as", other.number))
+    return links
+
+
 def _started_from(run: ExerciseRun) -> str:
-    """"Exercises tab, by Dr Rossi", "Recover (restart), by Dr Rossi"."""
+    """"Exercises tab, by Dr Rossi", "Recover, by Dr Rossi"."""
     return SOURCE_TEXT.get(run.source, run.source) + (f", by {run.operator}" if run.operator else "")
 
 
@@ -1273,16 +1285,11 @@ def render_session_report(pdf: _Pdf, data: SessionReportData) -> None:
     ])
 
     numbers = {r.run.run_id: r.number for r in runs}
-    restarts = {r.run.restart_of: r.number for r in runs if r.run.restart_of}
     pdf.heading("Session overview")
     if runs:
         rows = []
         for r in runs:
-            notes = []
-            if r.run.restart_of:
-                notes.append(f"restart of run {numbers.get(r.run.restart_of, '?')}")
-            if r.run.run_id in restarts:
-                notes.append(f"restarted as run {restarts[r.run.run_id]}")
+            notes = [f"{what} run {number}" for what, number in _restart_links(r.run, runs, numbers)]
             rows.append([str(r.number), run_heading(r), SOURCE_TEXT.get(r.run.source, r.run.source) + (
                 f", {r.run.operator}" if r.run.operator else ""), clock(r.run.started_mono),
                 _duration(r.run.elapsed_s()), r.reps_text(), "; ".join([end_words(r.run), *notes])])
@@ -1305,10 +1312,7 @@ def render_session_report(pdf: _Pdf, data: SessionReportData) -> None:
         info = [("Program", program_text(run)),
                 ("Started", f"{clock(run.started_mono)} — {_started_from(run)}"),
                 ("Ended", f"{clock(run.ended_mono)} — {end_words(run)}")]
-        if run.restart_of:
-            info.append(("Restart of", f"run {numbers.get(run.restart_of, '?')}"))
-        if run.run_id in restarts:
-            info.append(("Restarted as", f"run {restarts[run.run_id]}"))
+        info += [(what[:1].upper() + what[1:], f"run {number}") for what, number in _restart_links(run, runs, numbers)]
         pdf.fields(info, label_width=110)
         params = parameters_text(run)
         pdf.subheading("Parameters")

@@ -35,6 +35,8 @@ ENGINEERING_PATTERNS: tuple[tuple[str, str], ...] = (
     ("Python literal", r"\[\'|\{\'|\{\"|\bNone\b|\bTrue\b|\bFalse\b"),
     ("script API call", r"\b(?:linarm|fes|physiologicalSensors|patientModel|VRUnity|linarmppManager)\.\w+"),
     ("program id", r"<console>|\brun-\d+\b|\bsha256\b"),
+    # a command's or an argument's name from the script API / protocol table (setAssistanceTargetPos, maxVel)
+    ("camelCase identifier", r"\b[a-z]{2,}(?:[A-Z][a-z0-9]+)+\b"),
 )
 _COMPILED = tuple((name, re.compile(p)) for name, p in ENGINEERING_PATTERNS)
 

@@ -17,8 +17,9 @@ the patient model and the VR stand-in running (the default configuration). One h
 7. ``_script_tab_run``: the same exercise from the Script tab, its own file;
 8. the end of the session, the session and progress PDFs (``_check_reports``).
 
-The "record" engineer's checks come in at the marked places (Ctrl+Q asking, the PDFs' electrode set-up, manual
-stimulation and engineering strings). With ``LINARMPP_DAY_SHOTS=<folder>`` the screens and PDF pages are saved
+Ctrl+Q asks in the middle of the Script-tab run (step 7); the session PDF records both electrode set-ups and the
+manual stimulation, has no engineering string before its technical appendix and the sign-off with the summary
+(step 8). With ``LINARMPP_DAY_SHOTS=<folder>`` the screens and PDF pages are saved
 there to be looked at (the lead's check, not part of the assertion).
 """
 
@@ -124,8 +125,6 @@ def test_a_clinicians_day(day: tuple[LinarmppManager, MainWindow], qtbot: Any, m
     mark("assisted with the VR task")
     script_run = _script_tab_run(qtbot, manager, window)
     mark("script tab")
-    # ---- (the "record" engineer) Ctrl+Q in the middle of a session asks before quitting: here, before the end.
-
     # The end of the session, then its report and the patient's progress report.
     folder = manager.recorder.folder
     monkeypatch.setattr(QMessageBox, "question", lambda *a, **k: QMessageBox.StandardButton.Yes)
@@ -239,7 +238,8 @@ def _session_and_first_exercise(qtbot: Any, manager: LinarmppManager,
     assert again.program == first.program and again.params_dict()["movements"] == 3 - done
     _wait(qtbot, manager, window, lambda: manager.runs.get(again.run_id).end_reason is not None, 120000,
           "the continuation's end")
-    assert manager.runs.get(again.run_id).end_reason == "finished"
+    assert manager.runs.get(again.run_id).end_reason == "finished", \
+        (manager.runs.get(again.run_id).end_detail, [a.text for a in manager.supervisor.alarms()])
 
     def summary_of_both() -> bool:
         d = panel.summary_dialog
@@ -413,6 +413,12 @@ def _script_tab_run(qtbot: Any, manager: LinarmppManager, window: MainWindow) ->
     script_run = manager.runs.current()
     _wait(qtbot, manager, window, lambda: sum(1 for m in manager.runs.get(script_run.run_id).repetitions
                                               if m.end_mono is not None) >= 3, 90000, "the script's third movement")
+    # Ctrl+Q in the middle of an exercise asks first (before #36 it quit at once); answered "No", nothing stops.
+    from tests.test_window_quit_geometry import questions_on_quit
+
+    questions = questions_on_quit(window)
+    assert questions and "running" in questions[0][1], questions
+    assert window.isVisible() and manager.runs.get(script_run.run_id).end_reason is None
     console.stop_button.click()
     _wait(qtbot, manager, window, lambda: manager.runs.get(script_run.run_id).end_reason is not None, 10000,
           "the script run's end")
@@ -426,8 +432,7 @@ def _script_tab_run(qtbot: Any, manager: LinarmppManager, window: MainWindow) ->
 
 def _check_reports(manager: LinarmppManager, folder: Path, tmp_path: Path, day_runs: list[Any],
                    screen_rts: list[str]) -> None:
-    """8. The session's report and the patient's progress report, as filed. (The "record" engineer's checks of the
-    electrode set-up, the manual stimulation and the engineering strings come in here.)"""
+    """8. The session's report and the patient's progress report, as filed: what was delivered, in clinical words."""
     from app.metrics import session_metrics
     from app.reports import progress_rows, write_progress_report, write_session_report
 
@@ -439,12 +444,21 @@ def _check_reports(manager: LinarmppManager, folder: Path, tmp_path: Path, day_r
     assert text.count("Trigger reaching") >= 2 and "trigger_reaching.py" in text
     assert "Assisted reaching with FES" in text
     assert "emergency stop" in text and "finished" in text and "stopped by the operator" in text
+    flat = re.sub(r"\s+", " ", text)
+    assert "continued as run 2" in flat and "continues run 1" in flat  # Recover's continuation, said as one
     assert "Maria Esposito" in text and OPERATOR in text
     for rt in screen_rts:
         assert rt in text, f"reaction time {rt} s shown on screen is not in the PDF"
     # Repetitions numbered within each run: the run headings each followed by a repetition 1.
     assert len(re.findall(r"(?m)^1 ", text)) >= 3, text
     assert overlaps(session_pdf) == [] and overlaps(progress_pdf) == []
+    # What was delivered is in the record in the clinician's words: both districts' electrode set-up and the
+    # manual stimulation; no engineering string before the technical appendix; the sign-off with the summary.
+    from tests.pdf_text import clinical_problems, delivered_problems, sign_off_problems
+
+    assert delivered_problems(session_pdf, districts=("anterior deltoid", "triceps"), manual_stimulation=True) == []
+    assert clinical_problems(session_pdf) == [] and clinical_problems(progress_pdf) == []
+    assert sign_off_problems(session_pdf) == []
     assert "Maria Esposito" in pdf_text(progress_pdf)  # the patient identified on both reports
     # The continuation is linked to the run it continues, in the record.
     lines = (folder / "events.jsonl").read_text(encoding="utf-8").splitlines()

@@ -53,7 +53,7 @@ def test_the_session_pdf_lists_every_run_and_its_end(tmp_path: Path) -> None:
     # the overview: every run with its title, where it came from and how it ended
     overview = re.sub(r"\s+", " ", _section(text, "Session overview", r"\n\f?Run 1 — "))
     for needle in ("emergency stop: F12 pressed by the operator", "restarted as run 2", "restart of run 1",
-                   "Recover (restart)", "Script tab", "trigger_exercise.py", "not started",
+                   "Recover, ", "Script tab", "trigger_exercise.py", "not started",
                    "refused before it started: FES current 45 mA is above the patient's cap of 40 mA"):
         assert needle in overview, needle
     # per run: title, parameters in words with units, repetitions numbered within the run
