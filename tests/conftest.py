@@ -30,6 +30,7 @@ os.environ.setdefault("LINARMPP_SIM_HOST", "process")
 SIM_IN_THREAD_MODULES = {"test_device_loss", "test_device_loss_more", "test_fes_exit_paths", "test_physio_viewer"}
 
 from app.application import share_gl_contexts  # noqa: E402 - must run before pytest-qt creates the app
+from app.devices.sim.base import HOMED_ENV  # noqa: E402
 
 share_gl_contexts()
 
@@ -88,19 +89,24 @@ def pytest_collection_modifyitems(config, items) -> None:  # type: ignore[no-unt
 
 
 @pytest.fixture(autouse=True, scope="module")
-def _simulators_in_thread_for_the_module(request):  # type: ignore[no-untyped-def]
-    """Module scope, so that module-scoped rigs are built with it too."""
+def _simulators_for_the_module(request):  # type: ignore[no-untyped-def]
+    """Module scope, so that module-scoped rigs are built with it too: the simulators as threads
+    (SIM_IN_THREAD_MODULES), a homed LINarm (``pytestmark = pytest.mark.sim_homed``)."""
     module = request.module.__name__.rsplit(".", 1)[-1] if request.module is not None else ""
     with pytest.MonkeyPatch.context() as patch:
         if module in SIM_IN_THREAD_MODULES:
             patch.setenv("LINARMPP_SIM_HOST", "thread")
+        if request.node.get_closest_marker("sim_homed") is not None:
+            patch.setenv(HOMED_ENV, "1")
         yield
 
 
 @pytest.fixture(autouse=True)
-def _simulators_in_thread_for_the_test(request, monkeypatch):  # type: ignore[no-untyped-def]
+def _simulators_for_the_test(request, monkeypatch):  # type: ignore[no-untyped-def]
     if request.node.get_closest_marker("sim_in_thread") is not None:
         monkeypatch.setenv("LINARMPP_SIM_HOST", "thread")
+    if request.node.get_closest_marker("sim_homed") is not None:
+        monkeypatch.setenv(HOMED_ENV, "1")
     yield
 
 

@@ -23,6 +23,8 @@ import pytest
 from app.devices.linarm_protocol import WATCHDOG_TIMEOUT, ControlState, ErrorState
 from tests.test_architecture import QT_MODULES
 
+pytestmark = pytest.mark.sim_homed  # a homed LINarm from the start: the homing is tested on its own
+
 ROOT = Path(__file__).resolve().parent.parent
 WATCHDOG_TIMEOUT_S = WATCHDOG_TIMEOUT  # the controller's host-silence watchdog (the protocol table's, #29)
 STATE_PERIOD_S = 0.05  # the state stream (20 Hz) reports it

@@ -36,7 +36,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from app.devices.sim.base import DEVICE_CONTROLS, SerialSimulator
+from app.devices.sim.base import DEVICE_CONTROLS, SerialSimulator, linarm_starts_homed
 
 log = logging.getLogger(__name__)
 
@@ -110,7 +110,13 @@ class SilCore:
     """The firmware's SIL executable as a simulator core: host bytes to its stdin, its stdout polled."""
 
     def __init__(self, executable: Path, centre: float = 0.20) -> None:
-        self.proc = subprocess.Popen([str(executable), "--centre", repr(centre)], stdin=subprocess.PIPE,
+        args = [str(executable), "--centre", repr(centre)]
+        if linarm_starts_homed():  # as the Python model (LinarmSimAdapter): homed, IDLE at the home position
+            from app.devices.linarm_constants import K
+
+            args = [str(executable), "--centre", repr(K["HOME_CENTRE"]), "--delta", repr(K["HOME_DELTA"]),
+                    "--start-homed"]
+        self.proc = subprocess.Popen(args, stdin=subprocess.PIPE,
                                      stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, bufsize=0,
                                      preexec_fn=firmware_child_setup)
         assert self.proc.stdout is not None and self.proc.stdin is not None
