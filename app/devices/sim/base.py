@@ -98,6 +98,10 @@ class SerialSimulator:
             self._thread.join(timeout=2.0)
         self.link.close()
 
+    def clear_host_log(self) -> None:
+        """Forget the bytes logged so far (a shared test rig between tests)."""
+        self.host_bytes_log.clear()
+
     def kill(self) -> None:
         """The device vanishes mid-stream (cable pulled, board reset)."""
         self.stop()

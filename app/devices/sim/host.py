@@ -439,6 +439,8 @@ def _answer(request: dict[str, Any], sims: dict[str, Any], patient: Any) -> dict
             sim = sims[request["device"]]
             if "keep" in request:
                 sim.keep_host_log = bool(request["keep"])
+            if request.get("clear"):
+                sim.host_bytes_log.clear()
             log_now = list(sim.host_bytes_log)
             since = int(request.get("since", 0))
             since = since if 0 <= since <= len(log_now) else 0  # a restarted simulator began a new log
@@ -646,6 +648,11 @@ class RemoteSimulator:
     def keep_host_log(self, keep: bool) -> None:
         self.process.call("host_log", device=self.name, keep=bool(keep))
         self._keep_host_log = bool(keep)
+
+    def clear_host_log(self) -> None:
+        """Forget the bytes logged so far (a shared test rig between tests)."""
+        self.process.call("host_log", device=self.name, clear=True)
+        self._host_log.clear()
 
     @property
     def host_bytes_log(self) -> list[tuple[float, bytes]]:
