@@ -96,7 +96,9 @@ def names_tests(args: list[str]) -> bool:
 def run_tests(args: list[str]) -> int:
     py = ensure_venv(with_tests=True)
     if not names_tests(args):
-        args = ["-n", str(TEST_WORKERS), *args]
+        # loadgroup: the tests of a module's shared rig stay on one worker (tests/conftest.py); the order is
+        # the suite's own (long modules first), not xdist's (largest group first).
+        args = ["-n", str(TEST_WORKERS), "--dist", "loadgroup", "--no-loadscope-reorder", *args]
     cmd = [str(py), "-m", "pytest", *args]
     env = dict(os.environ)
     if os.name != "nt" and not env.get("DISPLAY") and shutil.which("xvfb-run"):

@@ -3,6 +3,7 @@ the OpenGL rule (GL tests run only on xcb, e.g. under Xvfb; offscreen GL segfaul
 
 from __future__ import annotations
 
+import gc
 import os
 import sys
 import tempfile
@@ -83,14 +84,35 @@ REALTIME_MODULES = {
 }
 
 
+# ------------------------------------------------------------------------------ order and workers
+# The modules with a test marked ``slow`` (or listed here) run first, whole, in their usual order: the long
+# tests start early on both pytest-xdist workers, and the short ones fill in at the end (no long tail of one
+# worker); a module's tests stay together, so its module-scoped fixtures are built once per worker.
+SLOW_MODULES = {"test_clinician_day"}
+
+
+def _module_name(item) -> str:  # type: ignore[no-untyped-def]
+    return item.module.__name__.rsplit(".", 1)[-1] if item.module is not None else ""
+
+
 def pytest_collection_modifyitems(config, items) -> None:  # type: ignore[no-untyped-def]
     reruns = config.pluginmanager.hasplugin("rerunfailures")
+    xdist = config.pluginmanager.hasplugin("xdist")
+    slow_modules = set(SLOW_MODULES)
     for item in items:
-        module = item.module.__name__.rsplit(".", 1)[-1] if item.module is not None else ""
+        module = _module_name(item)
         if module in REALTIME_MODULES and item.get_closest_marker("realtime") is None:
             item.add_marker(pytest.mark.realtime)
         if reruns and item.get_closest_marker("realtime") is not None and item.get_closest_marker("flaky") is None:
             item.add_marker(pytest.mark.flaky(reruns=1, reruns_delay=1))
+        if item.get_closest_marker("slow") is not None:
+            slow_modules.add(module)
+        # A module's shared rig (tests/rigs.py) is built once: its tests go to one worker (--dist loadgroup).
+        if xdist and "shared_manager" in getattr(item, "fixturenames", ()) \
+                and item.get_closest_marker("xdist_group") is None:
+            item.add_marker(pytest.mark.xdist_group(name=f"rig:{module}"))
+    order = {id(item): n for n, item in enumerate(items)}
+    items.sort(key=lambda item: (_module_name(item) not in slow_modules, order[id(item)]))
 
 
 @pytest.fixture(autouse=True, scope="module")
@@ -164,6 +186,31 @@ def fresh_manager(shared_rig_spec, qapp):  # type: ignore[no-untyped-def]
         manager.shutdown()
 
 
+# ------------------------------------------------------------------------------ the garbage collector
+# Python's cyclic garbage collector runs on whichever thread happens to allocate: on a driver's thread it freed
+# a test's Qt leftovers there (issue #38, seen in a loaded run): that thread, disconnecting a dead receiver's
+# signal, held Qt's signal-slot lock and waited for the interpreter lock, which the GUI thread held while it waited
+# for that Qt lock (building a combo box): the worker hung. Freeing a Qt object from another thread than its own,
+# with events queued for it, is also the crash kind the suite hunts. So the suite collects on the tests' own
+# (GUI) thread only: automatic collection off, the young generations after every test, all of them every
+# FULL_GC_EVERY tests.
+FULL_GC_EVERY = 40
+_tests_since_full_gc = [0]
+
+
+def pytest_configure(config) -> None:  # type: ignore[no-untyped-def]
+    gc.disable()
+
+
+def _collect_garbage_here() -> None:
+    _tests_since_full_gc[0] += 1
+    if _tests_since_full_gc[0] >= FULL_GC_EVERY:
+        _tests_since_full_gc[0] = 0
+        gc.collect()
+    else:
+        gc.collect(1)
+
+
 # ------------------------------------------------------------------------------ nothing left running
 LEFTOVER_GRACE_S = 3.0
 
@@ -174,6 +221,7 @@ def _nothing_left_running(request):  # type: ignore[no-untyped-def]
     threads0, os_threads0, children0 = _python_threads(), _os_threads(), _children()
     owned = rigs.OWNED  # a shared rig's threads and processes, built before or during the test, are not its own
     yield
+    _collect_garbage_here()  # the test's cyclic garbage (windows, connections) freed here, on this thread
     deadline = time.monotonic() + LEFTOVER_GRACE_S
     while True:
         rig_threads = owned.thread_idents()

@@ -15,7 +15,7 @@ import pytest
 
 from tests.app_process import AppProcess, burst
 
-pytestmark = pytest.mark.sim_homed  # a homed LINarm from the start: the homing is tested on its own
+pytestmark = [pytest.mark.sim_homed, pytest.mark.slow]  # homed from the start: the homing is tested on its own
 
 EXIT_WITHIN_S = 2.0
 

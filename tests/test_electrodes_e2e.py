@@ -26,7 +26,7 @@ from app.fes_profile import load_profile, parse_profile
 from app.manager import LinarmppManager
 from app.patients import PatientProfile, load_patient
 
-pytestmark = [pytest.mark.realtime, pytest.mark.sim_homed]
+pytestmark = [pytest.mark.realtime, pytest.mark.sim_homed, pytest.mark.slow]
 
 PLAN = SetupPlan(ceiling_ma=16.0, start_ma=8.0, step_ma=4.0, ramp_s=0.0, hold_s=0.5, measure_s=0.25,
                  baseline_s=0.2, rest_s=0.2)

@@ -114,6 +114,7 @@ def test_the_fes_panel_opens_the_setup(qtbot) -> None:
         manager.shutdown()
 
 
+@pytest.mark.slow
 @pytest.mark.realtime
 @pytest.mark.sim_in_thread
 def test_the_dialog_on_the_simulated_devices(qtbot) -> None:

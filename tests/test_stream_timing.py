@@ -212,6 +212,7 @@ print(f"READS {len(speeds)} PEAK {max(speeds):.4f} CLOCK_P99 {p99:.4f} CLOCK_MAX
 '''
 
 
+@pytest.mark.slow
 @pytest.mark.realtime
 @pytest.mark.sim_homed
 def test_a_script_reading_at_200_hz_sees_the_speed_of_the_move(qtbot, monkeypatch) -> None:
