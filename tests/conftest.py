@@ -3,7 +3,6 @@ the OpenGL rule (GL tests run only on xcb, e.g. under Xvfb; offscreen GL segfaul
 
 from __future__ import annotations
 
-import gc
 import os
 import sys
 import tempfile
@@ -186,31 +185,6 @@ def fresh_manager(shared_rig_spec, qapp):  # type: ignore[no-untyped-def]
         manager.shutdown()
 
 
-# ------------------------------------------------------------------------------ the garbage collector
-# Python's cyclic garbage collector runs on whichever thread happens to allocate: on a driver's thread it freed
-# a test's Qt leftovers there (issue #38, seen in a loaded run): that thread, disconnecting a dead receiver's
-# signal, held Qt's signal-slot lock and waited for the interpreter lock, which the GUI thread held while it waited
-# for that Qt lock (building a combo box): the worker hung. Freeing a Qt object from another thread than its own,
-# with events queued for it, is also the crash kind the suite hunts. So the suite collects on the tests' own
-# (GUI) thread only: automatic collection off, the young generations after every test, all of them every
-# FULL_GC_EVERY tests.
-FULL_GC_EVERY = 40
-_tests_since_full_gc = [0]
-
-
-def pytest_configure(config) -> None:  # type: ignore[no-untyped-def]
-    gc.disable()
-
-
-def _collect_garbage_here() -> None:
-    _tests_since_full_gc[0] += 1
-    if _tests_since_full_gc[0] >= FULL_GC_EVERY:
-        _tests_since_full_gc[0] = 0
-        gc.collect()
-    else:
-        gc.collect(1)
-
-
 # ------------------------------------------------------------------------------ nothing left running
 LEFTOVER_GRACE_S = 3.0
 
@@ -221,7 +195,6 @@ def _nothing_left_running(request):  # type: ignore[no-untyped-def]
     threads0, os_threads0, children0 = _python_threads(), _os_threads(), _children()
     owned = rigs.OWNED  # a shared rig's threads and processes, built before or during the test, are not its own
     yield
-    _collect_garbage_here()  # the test's cyclic garbage (windows, connections) freed here, on this thread
     deadline = time.monotonic() + LEFTOVER_GRACE_S
     while True:
         rig_threads = owned.thread_idents()
