@@ -83,6 +83,26 @@ REALTIME_MODULES = {
 }
 
 
+# ------------------------------------------------------------------------------ builds ahead
+def pytest_configure(config) -> None:  # type: ignore[no-untyped-def]
+    """The pytest-xdist controller of a whole-suite run makes the firmware's builds while its workers start
+    (tests/firmware_builds.py): not at full priority beside the real-time tests later."""
+    whole_suite = not config.args or any(Path(a).resolve() == ROOT / "tests" for a in config.args)
+    controller = getattr(config.option, "numprocesses", None) and not hasattr(config, "workerinput")
+    if controller and whole_suite:
+        from tests import firmware_builds
+
+        config._firmware_prebuild = firmware_builds.prebuild()
+
+
+def pytest_unconfigure(config) -> None:  # type: ignore[no-untyped-def]
+    thread = getattr(config, "_firmware_prebuild", None)
+    if thread is not None:  # no CMake left running after the suite
+        from tests.firmware_builds import BUILD_TIMEOUT_S
+
+        thread.join(BUILD_TIMEOUT_S)
+
+
 # ------------------------------------------------------------------------------ order and workers
 # The modules with a test marked ``slow`` (or listed here) run first, whole, in their usual order: the long
 # tests start early on both pytest-xdist workers, and the short ones fill in at the end (no long tail of one

@@ -26,6 +26,7 @@ import os
 import shutil
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -100,7 +101,9 @@ def _locked(path: Path) -> Iterator[None]:
             fcntl.flock(fh, fcntl.LOCK_UN)
 
 
-def _run(cmd: list[str]) -> None:
+def _run(cmd: list[str], niceness: int = 0) -> None:
+    if niceness:
+        cmd = ["nice", "-n", str(niceness), *cmd]
     result = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=BUILD_TIMEOUT_S)
     if result.returncode != 0:
         raise BuildFailed(f"{' '.join(cmd)} failed:\n{result.stdout[-4000:]}\n{result.stderr[-4000:]}")
@@ -134,7 +137,7 @@ def _prune(build: Build, keep: Path) -> None:
         lock.unlink(missing_ok=True)
 
 
-def ensure(build: Build, *targets: str) -> Path:
+def ensure(build: Build, *targets: str, niceness: int = 0) -> Path:
     """The folder of ``build`` for the current sources with ``targets`` built in it (all targets when none is
     named); builds what is missing, under the folder's lock. Raises BuildFailed with CMake's output."""
     folder = CACHE / f"{build.name}-{digest(build)}"
@@ -149,8 +152,8 @@ def ensure(build: Build, *targets: str) -> Path:
                        *build.cmake_args]
                 if build.toolchain is not None:
                     cmd.append(f"-DCMAKE_TOOLCHAIN_FILE={build.toolchain}")
-                _run(cmd)
-            _run(["cmake", "--build", str(folder), "-j", "2", "--target", *missing])
+                _run(cmd, niceness)
+            _run(["cmake", "--build", str(folder), "-j", "2", "--target", *missing], niceness)
             for t in missing:
                 (folder / f".built-{t}").write_text(f"{time.monotonic() - t0:.1f} s\n", encoding="utf-8")
         os.utime(folder)  # most recently used
@@ -158,3 +161,28 @@ def ensure(build: Build, *targets: str) -> Path:
             _point_link(build.link, folder)
         _prune(build, folder)
     return folder
+
+
+# What the test modules ask for (tests/test_firmware*.py, test_sim_host.py): built ahead by prebuild().
+AHEAD: tuple[tuple[Build, tuple[str, ...]], ...] = (
+    (HOST, ()),  # all: the unit tests, the SIL, the DUE sketch's check
+    (DUE, ("linarm_due.elf", "linarm_mps2.elf")),
+    (ARM, ("linarm_unit_tests", "linarm_sil")),
+)
+
+
+def prebuild() -> threading.Thread:
+    """Make the builds the suite needs in a background thread, niced (the pytest-xdist controller starts it while
+    its workers start and collect): a worker that needs one then finds it made, or waits on its lock, and no
+    build competes at full priority with the real-time tests. A build whose tools are missing or that fails is
+    left to the tests, which skip or fail with the reason."""
+
+    def run() -> None:
+        for build, targets in AHEAD:
+            if all(shutil.which(tool) for tool in build.tools):
+                with contextlib.suppress(BuildFailed, OSError, subprocess.SubprocessError):
+                    ensure(build, *targets, niceness=10)
+
+    thread = threading.Thread(target=run, name="firmware prebuild", daemon=True)
+    thread.start()
+    return thread
