@@ -3,11 +3,14 @@
 
     python3 dev.py run  [main.py arguments...]   create .venv if needed, install, start the app
     python3 dev.py test [pytest arguments...]    create .venv if needed, install, run the whole suite
+                                                 (on 2 pytest-xdist workers; 1 when tests are named)
 
 The project is installed into .venv in editable mode with its dependencies (and the `linarmpp`
 command); that is redone when pyproject.toml's project or packaging tables change (a hash stamp in .venv).
 `test` runs under Xvfb (xvfb-run) when no display is present and xvfb-run exists, so the
-OpenGL tests run too; otherwise the suite falls back to Qt's offscreen platform by itself.
+OpenGL tests run too; otherwise the suite falls back to Qt's offscreen platform by itself. It runs the suite
+on TEST_WORKERS pytest-xdist workers, unless the arguments name tests (a path, a node id, -k) or give -n
+themselves (``-n 0``: one process): a developer running one file does not pay the workers' start-up.
 Standard library only: this file runs before anything is installed.
 """
 
@@ -25,6 +28,9 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent
 VENV = ROOT / ".venv"
 STAMP = VENV / ".linarmpp-installed"
+# pytest-xdist workers for the whole suite on the 2-core machine it is measured on (docs/decisions.md, "Tests:
+# the suite in 7 minutes"): many tests wait on the wall clock, so workers overlap their waits.
+TEST_WORKERS = 2
 
 
 def venv_python() -> Path:
@@ -63,8 +69,36 @@ def run_app(args: list[str]) -> int:
     return subprocess.call([str(py), str(ROOT / "main.py"), *args], cwd=ROOT)
 
 
+# pytest options whose next argument is a value, never a test to run (e.g. ``--ignore tests/test_x.py``)
+VALUE_OPTIONS = {"-c", "-p", "-o", "-m", "-W", "--basetemp", "--rootdir", "--confcutdir", "--junitxml", "--durations",
+                 "--deselect", "--ignore", "--ignore-glob", "--timeout", "--maxfail", "--log-file", "--dist", "--tb"}
+
+
+def names_tests(args: list[str]) -> bool:
+    """Whether pytest ``args`` choose the tests to run (a file, folder or node id, or -k) or the workers (-n)."""
+    value = False
+    for arg in args:
+        if value:
+            value = False
+            if arg in ("no:xdist", "no:xdist.plugin"):
+                return True
+            continue
+        if arg in VALUE_OPTIONS:
+            value = True
+        elif arg in ("-k", "-n", "--numprocesses") or arg.startswith("--numprocesses=") \
+                or (arg[:2] in ("-k", "-n") and len(arg) > 2):  # -k EXPR, -n 0, -kEXPR, -n0
+            return True
+        elif not arg.startswith("-") and (ROOT / arg.split("::", 1)[0]).exists():
+            return True
+    return False
+
+
 def run_tests(args: list[str]) -> int:
     py = ensure_venv(with_tests=True)
+    if not names_tests(args):
+        # loadgroup: the tests of a module's shared rig stay on one worker (tests/conftest.py); the order is
+        # the suite's own (long modules first), not xdist's (largest group first).
+        args = ["-n", str(TEST_WORKERS), "--dist", "loadgroup", "--no-loadscope-reorder", *args]
     cmd = [str(py), "-m", "pytest", *args]
     env = dict(os.environ)
     if os.name != "nt" and not env.get("DISPLAY") and shutil.which("xvfb-run"):

@@ -6,7 +6,6 @@ from __future__ import annotations
 import os
 import sys
 import tempfile
-import threading
 import time
 from pathlib import Path
 
@@ -21,6 +20,10 @@ if not os.environ.get("DISPLAY") and not os.environ.get("WAYLAND_DISPLAY"):
 # Never write into the developer's real data folder or QSettings.
 os.environ["LINARMPP_HOME"] = tempfile.mkdtemp(prefix="linarmpp-test-home-")
 os.environ.setdefault("PYDEVD_DISABLE_FILE_VALIDATION", "1")
+# A crash prints every thread's stack: pytest's faulthandler does it for this process (and faulthandler_timeout
+# in pyproject.toml for a test that hangs); the Python processes the tests start (the app, the simulators, the
+# helpers) inherit this. The script kernel runs isolated (-I) and ignores it.
+os.environ.setdefault("PYTHONFAULTHANDLER", "1")
 # The simulated devices run in a process of their own, as in the app: the test's process holds only the
 # drivers, as it would with real hardware (and a loaded machine does not slow the simulators through this
 # process's interpreter lock). Tests that look at the far end of a link (the bytes a simulator received, a
@@ -30,6 +33,9 @@ os.environ.setdefault("LINARMPP_SIM_HOST", "process")
 SIM_IN_THREAD_MODULES = {"test_device_loss", "test_device_loss_more", "test_fes_exit_paths", "test_physio_viewer"}
 
 from app.application import share_gl_contexts  # noqa: E402 - must run before pytest-qt creates the app
+from app.devices.sim.base import HOMED_ENV  # noqa: E402
+from tests import rigs  # noqa: E402
+from tests.rigs import _children, _os_threads, _python_threads  # noqa: E402
 
 share_gl_contexts()
 
@@ -77,79 +83,145 @@ REALTIME_MODULES = {
 }
 
 
+# ------------------------------------------------------------------------------ builds ahead
+def pytest_configure(config) -> None:  # type: ignore[no-untyped-def]
+    """The pytest-xdist controller of a whole-suite run makes the firmware's builds while its workers start
+    (tests/firmware_builds.py): not at full priority beside the real-time tests later."""
+    whole_suite = not config.args or any(Path(a).resolve() == ROOT / "tests" for a in config.args)
+    controller = getattr(config.option, "numprocesses", None) and not hasattr(config, "workerinput")
+    if controller and whole_suite:
+        from tests import firmware_builds
+
+        config._firmware_prebuild = firmware_builds.prebuild()
+
+
+def pytest_unconfigure(config) -> None:  # type: ignore[no-untyped-def]
+    thread = getattr(config, "_firmware_prebuild", None)
+    if thread is not None:  # no CMake left running after the suite
+        from tests.firmware_builds import BUILD_TIMEOUT_S
+
+        thread.join(BUILD_TIMEOUT_S)
+
+
+# ------------------------------------------------------------------------------ order and workers
+# The modules with a test marked ``slow`` (or listed here) run first, whole, in their usual order: the long
+# tests start early on both pytest-xdist workers, and the short ones fill in at the end (no long tail of one
+# worker); a module's tests stay together, so its module-scoped fixtures are built once per worker.
+SLOW_MODULES = {"test_clinician_day"}
+
+
+def _module_name(item) -> str:  # type: ignore[no-untyped-def]
+    return item.module.__name__.rsplit(".", 1)[-1] if item.module is not None else ""
+
+
 def pytest_collection_modifyitems(config, items) -> None:  # type: ignore[no-untyped-def]
     reruns = config.pluginmanager.hasplugin("rerunfailures")
+    xdist = config.pluginmanager.hasplugin("xdist")
+    slow_modules = set(SLOW_MODULES)
     for item in items:
-        module = item.module.__name__.rsplit(".", 1)[-1] if item.module is not None else ""
+        module = _module_name(item)
         if module in REALTIME_MODULES and item.get_closest_marker("realtime") is None:
             item.add_marker(pytest.mark.realtime)
         if reruns and item.get_closest_marker("realtime") is not None and item.get_closest_marker("flaky") is None:
             item.add_marker(pytest.mark.flaky(reruns=1, reruns_delay=1))
+        if item.get_closest_marker("slow") is not None:
+            slow_modules.add(module)
+        # A module's shared rig (tests/rigs.py) is built once: its tests go to one worker (--dist loadgroup).
+        if xdist and "shared_manager" in getattr(item, "fixturenames", ()) \
+                and item.get_closest_marker("xdist_group") is None:
+            item.add_marker(pytest.mark.xdist_group(name=f"rig:{module}"))
+    order = {id(item): n for n, item in enumerate(items)}
+    items.sort(key=lambda item: (_module_name(item) not in slow_modules, order[id(item)]))
 
 
 @pytest.fixture(autouse=True, scope="module")
-def _simulators_in_thread_for_the_module(request):  # type: ignore[no-untyped-def]
-    """Module scope, so that module-scoped rigs are built with it too."""
+def _simulators_for_the_module(request):  # type: ignore[no-untyped-def]
+    """Module scope, so that module-scoped rigs are built with it too: the simulators as threads
+    (SIM_IN_THREAD_MODULES), a homed LINarm (``pytestmark = pytest.mark.sim_homed``)."""
     module = request.module.__name__.rsplit(".", 1)[-1] if request.module is not None else ""
     with pytest.MonkeyPatch.context() as patch:
         if module in SIM_IN_THREAD_MODULES:
             patch.setenv("LINARMPP_SIM_HOST", "thread")
+        if request.node.get_closest_marker("sim_homed") is not None:
+            patch.setenv(HOMED_ENV, "1")
         yield
 
 
 @pytest.fixture(autouse=True)
-def _simulators_in_thread_for_the_test(request, monkeypatch):  # type: ignore[no-untyped-def]
+def _simulators_for_the_test(request, monkeypatch):  # type: ignore[no-untyped-def]
     if request.node.get_closest_marker("sim_in_thread") is not None:
         monkeypatch.setenv("LINARMPP_SIM_HOST", "thread")
+    if request.node.get_closest_marker("sim_homed") is not None:
+        monkeypatch.setenv(HOMED_ENV, "1")
     yield
+
+
+# ------------------------------------------------------------------------------ rigs (tests/rigs.py)
+# How a test gets its devices (issue #38; docs/decisions.md "Tests: the suite in 7 minutes"):
+# * ``shared_manager``: the module's connected rig (one LinarmppManager and its simulators for the module's
+#   tests), put back in its known state before and after the test, and checked (a reset that fails, fails the
+#   test). Which rig: override the module-scoped ``shared_rig_spec`` fixture (default: LINarm + FES, homed).
+# * ``fresh_manager``, or ``shared_manager`` in a test marked ``fresh_rig``: a manager of its own from the same
+#   spec (for a test that kills, reconfigures or needs the power-up state), shut down after it.
+# * a homed LINarm without a rig: ``pytest.mark.sim_homed`` on the test or the module (LINARMPP_SIM_HOMED).
+# * anything else: build a LinarmppManager in the test as before (and shut it down).
+@pytest.fixture(scope="module")
+def shared_rig_spec():  # type: ignore[no-untyped-def]
+    from tests.rigs import RigSpec
+
+    return RigSpec()
+
+
+@pytest.fixture(scope="module")
+def _shared_rig(shared_rig_spec, qapp, _simulators_for_the_module):  # type: ignore[no-untyped-def]
+    from tests.rigs import SharedRig
+
+    rig = SharedRig(shared_rig_spec)
+    try:
+        yield rig
+    finally:
+        rig.close()
+
+
+@pytest.fixture
+def shared_manager(request):  # type: ignore[no-untyped-def]
+    if request.node.get_closest_marker("fresh_rig") is not None:
+        yield request.getfixturevalue("fresh_manager")
+        return
+    rig = request.getfixturevalue("_shared_rig")
+    rig.reset()
+    yield rig.manager
+    rig.reset()
+
+
+@pytest.fixture
+def fresh_manager(shared_rig_spec, qapp):  # type: ignore[no-untyped-def]
+    from tests.rigs import build_manager
+
+    manager = build_manager(shared_rig_spec)
+    try:
+        yield manager
+    finally:
+        manager.shutdown()
 
 
 # ------------------------------------------------------------------------------ nothing left running
 LEFTOVER_GRACE_S = 3.0
 
 
-def _children() -> dict[int, str]:
-    """Live (non-zombie) child processes of this process: pid → command."""
-    me, out = os.getpid(), {}
-    for entry in os.listdir("/proc") if os.path.isdir("/proc") else ():
-        if not entry.isdigit():
-            continue
-        try:
-            stat = Path(f"/proc/{entry}/stat").read_text()
-            fields = stat.rsplit(")", 1)[1].split()
-            if int(fields[1]) == me and fields[0] != "Z":
-                out[int(entry)] = stat[stat.index("(") + 1:stat.rindex(")")]
-        except (OSError, ValueError, IndexError):
-            continue
-    return out
-
-
-def _os_threads() -> dict[int, str]:
-    """This process's OS threads: tid → name (a QThread carries its objectName, e.g. driver:linarm)."""
-    out = {}
-    for tid in os.listdir("/proc/self/task") if os.path.isdir("/proc/self/task") else ():
-        try:
-            out[int(tid)] = Path(f"/proc/self/task/{tid}/comm").read_text().strip()
-        except OSError:
-            continue
-    return out
-
-
-def _python_threads() -> dict[int, str]:
-    return {t.ident or 0: t.name for t in threading.enumerate()
-            if t.is_alive() and not isinstance(t, threading._DummyThread)}  # type: ignore[attr-defined]
-
-
 @pytest.fixture(autouse=True)
 def _nothing_left_running(request):  # type: ignore[no-untyped-def]
     """Fail a test that leaves a thread, a QThread (driver) or a child process running after it ends."""
     threads0, os_threads0, children0 = _python_threads(), _os_threads(), _children()
+    owned = rigs.OWNED  # a shared rig's threads and processes, built before or during the test, are not its own
     yield
     deadline = time.monotonic() + LEFTOVER_GRACE_S
     while True:
-        threads = {k: v for k, v in _python_threads().items() if k not in threads0}
-        drivers = {k: v for k, v in _os_threads().items() if k not in os_threads0 and v.startswith("driver:")}
-        children = {k: v for k, v in _children().items() if k not in children0}
+        rig_threads = owned.thread_idents()
+        threads = {k: v for k, v in _python_threads().items() if k not in threads0 and k not in rig_threads}
+        drivers = {k: v for k, v in _os_threads().items()
+                   if k not in os_threads0 and k not in owned.tids and v.startswith("driver:")}
+        children = {k: v for k, v in _children().items() if k not in children0 and k not in owned.pids}
         if not (threads or drivers or children) or time.monotonic() > deadline:
             break
         time.sleep(0.05)

@@ -15,6 +15,8 @@ import pytest
 
 from tests.app_process import AppProcess, burst
 
+pytestmark = pytest.mark.slow
+
 EXIT_WITHIN_S = 2.0
 
 
@@ -46,6 +48,7 @@ def app_process(tmp_path: Path):  # type: ignore[no-untyped-def]
 
 @pytest.mark.realtime
 @pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGINT])
+@pytest.mark.sim_homed  # homed from the start: the homing is tested on its own
 def test_a_burst_of_signals_to_headless_ends_it_safely(app_process: AppProcess, signum: int) -> None:
     app_process.start_headless()
     app_process.wait_stimulating()
@@ -55,6 +58,7 @@ def test_a_burst_of_signals_to_headless_ends_it_safely(app_process: AppProcess, 
 
 @pytest.mark.realtime
 @pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGHUP])
+@pytest.mark.sim_homed  # homed from the start: the homing is tested on its own
 def test_one_signal_to_headless_ends_it_safely(app_process: AppProcess, signum: int) -> None:
     app_process.start_headless()
     app_process.wait_stimulating()

@@ -53,6 +53,7 @@ def test_device_lost_mid_session_alarms_marks_a_gap_and_reconnects(session, qtbo
     assert any(k == "gap_end" for k, _ in kinds), kinds
 
 
+@pytest.mark.sim_homed
 def test_robot_goes_idle_when_the_host_link_dies(session, qtbot) -> None:
     """The controller's watchdog (250 ms of host silence) is the safe state when the app side is gone."""
     manager, _ = session

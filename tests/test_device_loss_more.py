@@ -27,6 +27,8 @@ from app.recording import load_session
 from app.safety import AlarmLevel
 from tests.test_fes_exit_paths import PROFILE, is_stop, is_update, wire
 
+pytestmark = pytest.mark.sim_homed  # a homed LINarm from the start: the homing is tested on its own
+
 
 @dataclass
 class Running:
@@ -124,7 +126,8 @@ ASSISTANCE_COMMANDS = {"setAdmittanceParameter", "setAssistanceParameter", "setS
 def robot_on_in_assistance(manager: LinarmppManager, qtbot) -> None:
     robot = manager.driver("linarm")
     robot.command("setCtrlState", int(ControlState.HOME_CTRL_STATE), source="test")
-    qtbot.waitUntil(lambda: robot.latest("linarm.state").homeState == HomeState.HOME_DONE
+    qtbot.waitUntil(lambda: robot.latest("linarm.state").controlState == ControlState.HOME_CTRL_STATE
+                    and robot.latest("linarm.state").homeState == HomeState.HOME_DONE
                     and robot.latest("linarm.state").initialized, timeout=25000)
     robot.command("setCtrlMode", int(ControlMode.POS_REF_BY_ASSISTANCE), source="test")
     robot.command("setCtrlState", int(ControlState.ON_CTRL_STATE), source="test")

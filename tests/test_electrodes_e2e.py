@@ -26,7 +26,7 @@ from app.fes_profile import load_profile, parse_profile
 from app.manager import LinarmppManager
 from app.patients import PatientProfile, load_patient
 
-pytestmark = [pytest.mark.realtime]
+pytestmark = [pytest.mark.realtime, pytest.mark.sim_homed, pytest.mark.slow]
 
 PLAN = SetupPlan(ceiling_ma=16.0, start_ma=8.0, step_ma=4.0, ramp_s=0.0, hold_s=0.5, measure_s=0.25,
                  baseline_s=0.2, rest_s=0.2)
@@ -75,8 +75,9 @@ def rig(qtbot):
         qtbot.waitUntil(lambda: manager.all_connected() and fes.device_ready, timeout=5000)
         manager.devices["fes"].simulator.keep_host_log = True
         robot.command("goToHome", source="test", timeout_s=2.0)
+        # HOME (1) and done: the command's own move home, not a state from before it (a homed start)
         qtbot.waitUntil(lambda: (s := robot.latest("linarm.state")) is not None and s.initialized
-                        and s.homeState == 4, timeout=30000)
+                        and s.controlState == 1 and s.homeState == 4, timeout=30000)
         # the array: channel 4 is the best pair, channel 2 needs 20 % more current for the same force
         manager.patient.set_electrode_distances({2: 0.866, 4: 0.5})
         yield manager

@@ -19,7 +19,7 @@ from app.manager import LinarmppManager
 from app.ui.electrode_setup import ElectrodeSetupDialog
 from app.ui.main_window import MainWindow
 
-pytestmark = [pytest.mark.realtime, pytest.mark.sim_in_thread]
+pytestmark = [pytest.mark.realtime, pytest.mark.sim_in_thread, pytest.mark.sim_homed]
 
 
 def wire(sim) -> list[tuple[float, object]]:
@@ -49,7 +49,8 @@ def window(qtbot):
         qtbot.waitUntil(lambda: manager.all_connected() and fes.device_ready, timeout=5000)
         manager.devices["fes"].simulator.keep_host_log = True
         robot.command("goToHome", source="test", timeout_s=2.0)
-        qtbot.waitUntil(lambda: (s := robot.latest("linarm.state")) is not None and s.homeState == 4,
+        qtbot.waitUntil(lambda: (s := robot.latest("linarm.state")) is not None and s.controlState == 1
+                        and s.homeState == 4,
                         timeout=30000)
         yield manager, win
     finally:

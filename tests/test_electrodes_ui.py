@@ -18,6 +18,8 @@ from app.ui.electrode_setup import COLUMNS, ElectrodeSetupDialog
 from tests.conftest import screenshot_path
 from tests.test_electrodes import Rig
 
+pytestmark = pytest.mark.sim_homed  # a homed LINarm from the start: the homing is tested on its own
+
 DELTOID = District("anterior deltoid", tuple(Combination(ch, e) for ch, e in
                                              ((1, "1-2"), (2, "3-4"), (3, "1-3"), (4, "2-4"))), "positive")
 
@@ -112,6 +114,7 @@ def test_the_fes_panel_opens_the_setup(qtbot) -> None:
         manager.shutdown()
 
 
+@pytest.mark.slow
 @pytest.mark.realtime
 @pytest.mark.sim_in_thread
 def test_the_dialog_on_the_simulated_devices(qtbot) -> None:
@@ -121,7 +124,8 @@ def test_the_dialog_on_the_simulated_devices(qtbot) -> None:
         robot, fes = manager.driver("linarm"), manager.driver("fes")
         qtbot.waitUntil(lambda: manager.all_connected() and fes.device_ready, timeout=5000)
         robot.command("goToHome", source="test", timeout_s=2.0)
-        qtbot.waitUntil(lambda: (s := robot.latest("linarm.state")) is not None and s.homeState == 4,
+        qtbot.waitUntil(lambda: (s := robot.latest("linarm.state")) is not None and s.controlState == 1
+                        and s.homeState == 4,
                         timeout=30000)
         manager.patient.set_electrode_distances({1: 2.0, 2: 0.5, 3: 1.5, 4: 0.866})
         manager.patient_profile = PatientProfile("UI8")

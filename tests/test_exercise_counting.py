@@ -86,6 +86,7 @@ FAST = {"start_m": 0.12, "end_m": 0.17, "speed_m_s": 0.30, "acceleration_m_s2": 
         "rest_s": 0.0}
 
 
+@pytest.mark.sim_homed
 def test_a_grip_held_for_1s_starts_one_movement(tmp_path: Path) -> None:
     # a 5 cm movement takes ~0.5 s: the next repetition asks for the grip while the 1 s squeeze still holds
     session = run_trigger(tmp_path, {**FAST, "movements": 2, "trigger_timeout_s": 2.5}, {1: (0.2, 1.0)})
@@ -97,6 +98,7 @@ def test_a_grip_held_for_1s_starts_one_movement(tmp_path: Path) -> None:
     assert [e["data"]["ok"] for e in ends] == [True, False]  # the exercise's own verdict agrees
 
 
+@pytest.mark.sim_homed
 def test_a_grip_released_and_squeezed_again_starts_the_next(tmp_path: Path) -> None:
     session = run_trigger(tmp_path, {**FAST, "movements": 2, "trigger_timeout_s": 5.0},
                           {1: (0.2, 0.4), 2: (0.3, 0.4)})
@@ -106,6 +108,7 @@ def test_a_grip_released_and_squeezed_again_starts_the_next(tmp_path: Path) -> N
     assert [round(r["reaction_time_s"], 1) for r in reps] == [0.2, 0.3]
 
 
+@pytest.mark.sim_homed
 def test_a_skipped_movement_is_not_completed_and_the_next_one_moves(tmp_path: Path) -> None:
     session = run_trigger(tmp_path, {**FAST, "movements": 3, "trigger_timeout_s": 2.0, "rest_s": 0.3},
                           {2: (0.2, 0.3), 3: (0.2, 0.3)})

@@ -16,6 +16,8 @@ from app.patients import PatientProfile, PlannedExercise
 from app.progress import ExerciseProgress
 from app.ui.exercises_panel import ExercisesPanel
 
+pytestmark = pytest.mark.sim_homed  # a homed LINarm from the start: the homing is tested on its own
+
 
 class FakeRunner:
     def __init__(self) -> None:

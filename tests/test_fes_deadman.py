@@ -38,6 +38,8 @@ from app.devices.sciencemode import (
 from app.devices.sim.rehastim_core import RehaStimSimCore
 from tests.app_process import AppProcess, last_fes_update_before
 
+pytestmark = [pytest.mark.sim_homed, pytest.mark.slow]  # homed from the start: the homing is tested on its own
+
 BOUND_S = 0.5  # docs/fes.md "Dead man's switch": trips after 0.3 s without a heartbeat
 CCL = ChannelListConfig(channels=(1,), t1_ms=33.0, t2_ms=3.0)
 ON = {1: PulseSetting(10, 150)}

@@ -10,8 +10,10 @@ from __future__ import annotations
 
 import math
 import threading
+from collections.abc import Iterator
 from dataclasses import dataclass, field, replace
 
+import pytest
 from hypothesis import event, given, settings
 from hypothesis import strategies as st
 
@@ -87,7 +89,23 @@ class Session:
             self.driver.on_tick(self.clock[0])
 
 
+_OPEN: list[Session] = []  # closed by the next session and when the test ends: their command queues' threads
+                           # would idle on for 1 s each, and the leftover check would wait for them
+
+
+def _close_open_sessions() -> None:
+    while _OPEN:
+        _OPEN.pop().driver.commands.close("the session ended")
+
+
+@pytest.fixture(autouse=True)
+def _close_sessions() -> Iterator[None]:
+    yield
+    _close_open_sessions()
+
+
 def session(protocol: str, limits: FesLimits) -> Session:
+    _close_open_sessions()  # the previous example's (hypothesis draws one session per example)
     clock = [100.0]
     supervisor = SafetySupervisor(AppConfig().safety)
     supervisor.fes_limiter = FesLimiter(limits)
@@ -99,6 +117,7 @@ def session(protocol: str, limits: FesLimits) -> Session:
     driver.on_connect()
     driver._driver_thread = threading.get_ident() + 1  # the test thread plays the caller, not the loop
     s = Session(protocol, clock, link, driver, supervisor, [(0, limits)])
+    _OPEN.append(s)
     s.advance(0.6 if protocol == "sm2" else 0.01)  # SM2: the device's Init and our InitAck
     assert driver.device_ready
     return s

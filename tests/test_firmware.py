@@ -2,8 +2,9 @@
 generated from the Python table, the DUE sketch compiled against stub headers, and the shared protocol
 scenarios (tests/protocol_scenarios) run against the software-in-the-loop executable.
 
-The build happens once per session into firmware/build/pytest (ignored by git). Without cmake/g++ the tests
-skip locally and fail in CI (``CI`` set), where the toolchain is installed.
+The build is made once and shared by the test modules, the workers and later runs (tests/firmware_builds.py:
+firmware/build/cache, keyed on the sources; firmware/build/pytest points at it; ignored by git). Without
+cmake/g++ the tests skip locally and fail in CI (``CI`` set), where the toolchain is installed.
 """
 
 from __future__ import annotations
@@ -19,17 +20,18 @@ from pathlib import Path
 import pytest
 
 from app.devices.linarm_protocol import ReplyError, protocol_table
+from tests import firmware_builds
 from tests.test_protocol_scenarios import SCENARIOS, Scenario, run_scenario
 
 ROOT = Path(__file__).resolve().parent.parent
 FIRMWARE = ROOT / "firmware"
-BUILD_DIR = FIRMWARE / "build" / "pytest"
+BUILD_DIR = firmware_builds.HOST.link
 COMMITTED_HEADER = FIRMWARE / "linarm_controller" / "src" / "protocol_generated.h"
 GENERATOR = FIRMWARE / "tools" / "gen_protocol_header.py"
 BUILD_TIMEOUT_S = 300
 
 _build_lock = threading.Lock()
-_build_result: dict[str, object] = {}
+_build_result: dict[tuple[str, ...], object] = {}
 
 
 def toolchain_problem() -> str | None:
@@ -39,30 +41,28 @@ def toolchain_problem() -> str | None:
     return f"the C++ toolchain is missing ({', '.join(missing)})" if missing else None
 
 
-def build_firmware() -> Path:
-    """Configure and build firmware/host once per session; returns the build directory."""
-    with _build_lock:
-        if "error" in _build_result:
-            raise RuntimeError(str(_build_result["error"]))
-        if "dir" in _build_result:
-            return Path(str(_build_result["dir"]))
+def build_firmware(*targets: str) -> Path:
+    """The host build for the current sources, with ``targets`` (all when none is named) built in it: once
+    for every module, worker and run (tests/firmware_builds.py); returns its folder."""
+    with _build_lock:  # one thread of this process at a time; the file lock orders the processes
+        key = targets or ("all",)
+        if key in _build_result:
+            result = _build_result[key]
+            if isinstance(result, str):  # the build failed: its message
+                raise RuntimeError(result)
+            return Path(result)  # type: ignore[arg-type]
         problem = toolchain_problem()
         if problem:
             if os.environ.get("CI"):
                 pytest.fail(f"{problem}: CI must install cmake and g++ (see .ci/run)")
             pytest.skip(f"{problem}; install cmake and g++ to build the firmware's host tests")
-        steps = [
-            ["cmake", "-S", str(FIRMWARE / "host"), "-B", str(BUILD_DIR), "-DCMAKE_BUILD_TYPE=Release",
-             f"-DLINARM_PYTHON={sys.executable}"],
-            ["cmake", "--build", str(BUILD_DIR), "-j", "2"],
-        ]
-        for cmd in steps:
-            result = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=BUILD_TIMEOUT_S)
-            if result.returncode != 0:
-                _build_result["error"] = f"{' '.join(cmd)} failed:\n{result.stdout[-4000:]}\n{result.stderr[-4000:]}"
-                raise RuntimeError(str(_build_result["error"]))
-        _build_result["dir"] = str(BUILD_DIR)
-        return BUILD_DIR
+        try:
+            folder = firmware_builds.ensure(firmware_builds.HOST, *targets)
+        except firmware_builds.BuildFailed as exc:
+            _build_result[key] = str(exc)
+            raise RuntimeError(str(exc)) from None
+        _build_result[key] = folder
+        return folder
 
 
 @pytest.fixture(scope="session")

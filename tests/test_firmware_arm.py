@@ -7,7 +7,8 @@
 * the same fuzzed receive streams (overlong frames, huge ids, garbage) fed to the ARM build, the host build
   and the Python simulator: identical replies.
 
-Builds go to firmware/build/pytest-arm and pytest-due (ignored by git), once per session. Without the
+Builds go to firmware/build/cache (pytest-arm and pytest-due point there; ignored by git), made once for every
+module, worker and run (tests/firmware_builds.py), only the targets asked for. Without the
 toolchains the tests skip locally with the reason; with CI set they fail (.ci/run installs them).
 """
 
@@ -18,7 +19,6 @@ import random
 import re
 import shutil
 import subprocess
-import sys
 import threading
 from pathlib import Path
 from typing import Any
@@ -39,20 +39,18 @@ from app.devices.linarm_protocol import (
     encode_command,
 )
 from app.devices.sim.linarm_model import LinarmSimCore
-from tests.test_firmware import FIRMWARE, ROOT, FirmwareTarget, build_firmware
+from tests import firmware_builds
+from tests.test_firmware import FIRMWARE, FirmwareTarget, build_firmware
 from tests.test_protocol_scenarios import SCENARIOS, run_scenario
 
 HOST_DIR = FIRMWARE / "host"
-ARM_BUILD = FIRMWARE / "build" / "pytest-arm"
-DUE_BUILD = FIRMWARE / "build" / "pytest-due"
-ARM_TOOLCHAIN = HOST_DIR / "cmake" / "arm-linux-gnueabihf.cmake"
-DUE_TOOLCHAIN = HOST_DIR / "cmake" / "arm-none-eabi-cortex-m3.cmake"
-BUILD_TIMEOUT_S = 600
+ARM_BUILD = firmware_builds.ARM.link
+DUE_BUILD = firmware_builds.DUE.link
 DUE_FLASH, DUE_RAM = 512 * 1024, 96 * 1024
 FUZZ_STREAMS = 1500
 
 _lock = threading.Lock()
-_builds: dict[str, Any] = {}
+_builds: dict[tuple[str, ...], Any] = {}
 
 
 def _need(tools: tuple[str, ...], packages: str) -> None:
@@ -65,37 +63,31 @@ def _need(tools: tuple[str, ...], packages: str) -> None:
     pytest.skip(reason)
 
 
-def _build(key: str, source: Path, build: Path, toolchain: Path) -> Path:
+def build_cross(build: firmware_builds.Build, *targets: str) -> Path:
+    """``build`` with ``targets``, once for every module, worker and run (tests/firmware_builds.py)."""
     with _lock:
-        if key in _builds:
-            if isinstance(_builds[key], str):
-                raise RuntimeError(_builds[key])
-            return build
-        steps = [
-            ["cmake", "-S", str(source), "-B", str(build), f"-DCMAKE_TOOLCHAIN_FILE={toolchain}",
-             f"-DLINARM_PYTHON={sys.executable}"],
-            ["cmake", "--build", str(build), "-j", "2"],
-        ]
-        for cmd in steps:
-            result = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=BUILD_TIMEOUT_S)
-            if result.returncode != 0:
-                _builds[key] = f"{' '.join(cmd)} failed:\n{result.stdout[-4000:]}\n{result.stderr[-4000:]}"
-                raise RuntimeError(_builds[key])
-        _builds[key] = True
-        return build
+        key = (build.name, *targets)
+        if key not in _builds:
+            try:
+                _builds[key] = firmware_builds.ensure(build, *targets)
+            except firmware_builds.BuildFailed as exc:
+                _builds[key] = str(exc)
+        if isinstance(_builds[key], str):
+            raise RuntimeError(_builds[key])
+        return Path(_builds[key])
 
 
 @pytest.fixture(scope="session")
 def arm_build() -> Path:
     _need(("cmake", "arm-linux-gnueabihf-g++", "qemu-arm"), "g++-arm-linux-gnueabihf qemu-user")
-    return _build("arm", HOST_DIR, ARM_BUILD, ARM_TOOLCHAIN)
+    return build_cross(firmware_builds.ARM, "linarm_unit_tests", "linarm_sil")  # not the DUE sketch's check
 
 
 @pytest.fixture(scope="session")
 def due_build() -> Path:
     _need(("cmake", "arm-none-eabi-gcc", "arm-none-eabi-g++", "arm-none-eabi-size"),
           "gcc-arm-none-eabi libnewlib-arm-none-eabi")
-    return _build("due", HOST_DIR / "due", DUE_BUILD, DUE_TOOLCHAIN)
+    return build_cross(firmware_builds.DUE, "linarm_due.elf")
 
 
 def qemu(build: Path, program: str) -> list[str]:
@@ -256,7 +248,7 @@ def simulator_replies(stream: bytes) -> bytes:
 
 
 def test_fuzzed_streams_get_the_same_replies_everywhere(arm_build: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    host = Lockstep([str(build_firmware() / "linarm_sil")])
+    host = Lockstep([str(build_firmware("linarm_sil") / "linarm_sil")])
     arm = Lockstep(qemu(arm_build, "linarm_sil"))
     differences: list[str] = []
     replied = 0

@@ -250,7 +250,7 @@ def _ask(send: Any) -> None:
 
 
 def test_the_firmware_reports_the_table_defaults() -> None:
-    target = FirmwareTarget(build_firmware() / "linarm_sil")
+    target = FirmwareTarget(build_firmware("linarm_sil") / "linarm_sil")
     try:
         _ask(target.send)
     finally:

@@ -8,8 +8,8 @@ interrupt into a ring), SysTick at 1 kHz and the SIL's plant, on qemu-system-arm
 - the board console's STATUS: tick work, stack high-water mark, receive overruns;
 - the seed's Fig. 18 script headless with ``simulation: {linarm: mcu}`` (the app's LINarm driver on UART0).
 
-The image is built with the DUE image (firmware/build/pytest-due, once per session). Without qemu-system-arm
-or the cross compiler the tests skip with the apt line as the reason; with CI set they fail.
+The image is built in the DUE build (tests/firmware_builds.py: once for every module, worker and run). Without
+qemu-system-arm or the cross compiler the tests skip with the apt line as the reason; with CI set they fail.
 """
 
 from __future__ import annotations
@@ -34,22 +34,22 @@ from app.devices.linarm_protocol import (
     encode_command,
 )
 from firmware.tools.mcu_board import McuBoard
-from tests.test_firmware_arm import DUE_BUILD, DUE_TOOLCHAIN, HOST_DIR, _build, _need
+from tests import firmware_builds
+from tests.test_firmware_arm import _need, build_cross
 from tests.test_protocol_scenarios import SCENARIOS, Scenario, run_scenario
 
 pytestmark = pytest.mark.realtime
 
 APT_PACKAGES = "qemu-system-arm gcc-arm-none-eabi libnewlib-arm-none-eabi"
-IMAGE = DUE_BUILD / "linarm_mps2.elf"
 WATCHDOG_S = 0.25
 
 
 @pytest.fixture(scope="session")
 def mcu_image() -> Path:
     _need(("cmake", "arm-none-eabi-gcc", "arm-none-eabi-g++", "qemu-system-arm"), APT_PACKAGES)
-    _build("due", HOST_DIR / "due", DUE_BUILD, DUE_TOOLCHAIN)
-    assert IMAGE.is_file()
-    return IMAGE
+    image = build_cross(firmware_builds.DUE, "linarm_mps2.elf") / "linarm_mps2.elf"
+    assert image.is_file()
+    return image
 
 
 class McuLockstepTarget:

@@ -33,7 +33,7 @@ MAX_ACC = 0.150
 @pytest.fixture(scope="module")
 def sil_link() -> Iterator[str]:
     """linarm_sil on the master side of a pty; yields the slave's path for the driver."""
-    build = build_firmware()
+    build = build_firmware("linarm_sil")
     master, slave = os.openpty()
     tty.setraw(slave)  # no echo: the firmware must not read its own frames back
     proc = subprocess.Popen([str(build / "linarm_sil"), "--centre", "0.20"], stdin=master, stdout=master,

@@ -6,29 +6,29 @@ LINarm is off or disconnected."""
 
 from __future__ import annotations
 
-from collections.abc import Iterator
-
 import pytest
 from PySide6.QtCore import Qt
 from PySide6.QtWidgets import QCheckBox, QComboBox, QDoubleSpinBox, QScrollArea
 
 from app.config import AppConfig
-from app.devices import linarm
 from app.devices import linarm_protocol as proto
 from app.devices.cmdmessenger import CmdMessengerDecoder
 from app.devices.linarm_protocol import COMMANDS_BY_NAME, HomeState, ReplyError
 from app.manager import LinarmppManager
 from app.ui.linarm_panel import LinarmPanel, unit_text
+from tests.rigs import RigSpec
+
+
+@pytest.fixture(scope="module")
+def shared_rig_spec() -> RigSpec:
+    return RigSpec(devices=("linarm",), homed=False)  # the controller as it powers up: not homed
 
 
 @pytest.fixture
-def manager(qtbot) -> Iterator[LinarmppManager]:
-    m = LinarmppManager(AppConfig(), factories={"linarm": linarm.create})
-    m.start()
-    driver = m.driver("linarm")
-    qtbot.waitUntil(lambda: driver.connected and driver.latest("linarm.state") is not None, timeout=5000)
-    yield m
-    m.shutdown()
+def manager(shared_manager: LinarmppManager) -> LinarmppManager:
+    """The module's LINarm (tests/rigs.py), connected and sending its state; a test that homes it or stops its
+    driver has one of its own (``fresh_rig``)."""
+    return shared_manager
 
 
 def _panel(qtbot, manager: LinarmppManager) -> LinarmPanel:
@@ -63,6 +63,7 @@ def _wait_outcome(qtbot, panel: LinarmPanel, command: str, timeout: int = 3000):
     return panel.last_outcome
 
 
+@pytest.mark.fresh_rig
 def test_go_home_reaches_home_with_progress(qtbot, manager) -> None:
     panel = _panel(qtbot, manager)
     driver = manager.driver("linarm")
@@ -208,6 +209,7 @@ def test_read_fills_the_input_with_the_controller_value(qtbot, manager) -> None:
     assert not pid.button.isEnabled()
 
 
+@pytest.mark.fresh_rig
 def test_disabled_when_the_linarm_is_off_or_disconnected(qtbot, manager) -> None:
     panel = _panel(qtbot, manager)
     assert all(page.isEnabled() for page in panel.pages)

@@ -25,6 +25,7 @@ def start_pair(tmp_path, rate_hz: float):
     return patient, sim, driver
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(("rate_hz", "seconds"), [(100.0, 10.0), (1000.0, 5.0)])
 def test_frames_arrive_complete_at_rate(tmp_path, qtbot, rate_hz: float, seconds: float) -> None:
     _patient, sim, driver = start_pair(tmp_path, rate_hz)

@@ -140,6 +140,7 @@ def test_create_uses_the_protocols_settings_on_a_real_port(protocol: str) -> Non
 # ── acceptance 2: a profile runs for 5 s and the device delivers it ─────────────────────────────────
 
 
+@pytest.mark.slow
 def test_profile_runs_five_seconds_and_is_delivered_within_one_period(rig: Rig, qtbot) -> None:
     driver = rig.driver
     profile = time_profile()

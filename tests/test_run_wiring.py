@@ -19,6 +19,8 @@ from app.progress import ExerciseProgress
 from app.runs import Program, RunLog, runs_from_events, text_hash
 from app.scripting.runner import ScriptRunner
 
+pytestmark = pytest.mark.sim_homed  # a homed LINarm from the start: the homing is tested on its own
+
 
 @pytest.fixture
 def manager(qtbot: Any) -> Iterator[LinarmppManager]:

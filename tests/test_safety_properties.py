@@ -47,6 +47,8 @@ from app.manager import LinarmppManager
 from app.scripting.runner import ScriptRunner
 from app.ui.linarm_panel import LinarmPanel
 
+pytestmark = pytest.mark.sim_homed  # a homed LINarm from the start: the homing is tested on its own
+
 PROFILE = settings(max_examples=40, deadline=None, derandomize=True, database=None,
                    phases=(Phase.explicit, Phase.generate),  # no shrinking: each example drives a real link
                    suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])

@@ -18,6 +18,8 @@ from app.safety import SafetySupervisor
 from app.scripting.runner import ScriptRunner
 from tests.test_script_runner import FakeManager, ForceSample, Output, close_runners, started, wait_for
 
+pytestmark = pytest.mark.sim_homed  # a homed LINarm from the start: the homing is tested on its own
+
 __all__ = ["close_runners"]  # the fixture, used by every test here (autouse)
 STOP_BUDGET_S = 0.2
 

@@ -19,7 +19,7 @@ from app.config import RESOURCES, AppConfig, UdpEndpoint
 from app.recording import load_session
 from app.scripting.headless import EXIT_ERROR, EXIT_OK, HEADLESS_PATIENT, run_headless
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.sim_homed]  # the homing is tested on its own
 
 SCRIPTS = RESOURCES / "scripts"
 GRIP_THRESHOLD_N = 20.0  # Fig. 18's waitCondition("...force>20")

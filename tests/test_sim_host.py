@@ -23,6 +23,8 @@ import pytest
 from app.devices.linarm_protocol import WATCHDOG_TIMEOUT, ControlState, ErrorState
 from tests.test_architecture import QT_MODULES
 
+pytestmark = pytest.mark.sim_homed  # a homed LINarm from the start: the homing is tested on its own
+
 ROOT = Path(__file__).resolve().parent.parent
 WATCHDOG_TIMEOUT_S = WATCHDOG_TIMEOUT  # the controller's host-silence watchdog (the protocol table's, #29)
 STATE_PERIOD_S = 0.05  # the state stream (20 Hz) reports it
@@ -172,7 +174,7 @@ def test_sigkill_of_the_app_stops_the_python_controller_within_the_watchdog(tmp_
 def test_sigkill_of_the_app_stops_the_firmware_within_the_watchdog(tmp_path: Path) -> None:
     from tests.test_firmware import build_firmware
 
-    build_firmware()  # skips without cmake/g++ (fails in CI)
+    build_firmware("linarm_sil")  # skips without cmake/g++ (fails in CI)
     t_kill, events, _pid = _kill_app_while_on("firmware", tmp_path)
     _assert_safe_within_the_watchdog(t_kill, events)
 

@@ -212,7 +212,9 @@ print(f"READS {len(speeds)} PEAK {max(speeds):.4f} CLOCK_P99 {p99:.4f} CLOCK_MAX
 '''
 
 
+@pytest.mark.slow
 @pytest.mark.realtime
+@pytest.mark.sim_homed
 def test_a_script_reading_at_200_hz_sees_the_speed_of_the_move(qtbot, monkeypatch) -> None:
     """A 0.10 m/s move read from a script at 200 Hz (the simulator in its own process on the default socket link,
     as the app runs): before #27 the frames came in bunches of 8-9 and the script saw 0.78 m/s."""

@@ -12,7 +12,9 @@ from __future__ import annotations
 import time
 from typing import TYPE_CHECKING, Any
 
+from app.devices.linarm_constants import K
 from app.devices.physio_codec import Calibration
+from app.devices.sim.base import linarm_starts_homed
 from app.devices.sim.linarm_model import LinarmSimCore
 from app.devices.sim.physio_signals import PhysioSimSource
 from app.devices.sim.rehastim_core import RehaStimSimCore
@@ -36,9 +38,13 @@ class _PatientOnCoreClock:
 
 
 class LinarmSimAdapter:
-    """LinarmSimCore on the simulator thread's monotonic clock."""
+    """LinarmSimCore on the simulator thread's monotonic clock. Without an explicit ``start_homed`` it starts
+    homed at the home position when ``LINARMPP_SIM_HOMED=1`` (app.devices.sim.base.linarm_starts_homed)."""
 
     def __init__(self, patient: Any | None, **core_kwargs: Any) -> None:
+        if "start_homed" not in core_kwargs and linarm_starts_homed():
+            core_kwargs = {"initial_centre": K["HOME_CENTRE"], "initial_delta": K["HOME_DELTA"], **core_kwargs,
+                           "start_homed": True}
         self.t0 = time.monotonic()
         self.core = LinarmSimCore(patient=_PatientOnCoreClock(patient, self.t0) if patient is not None else None,
                                   **core_kwargs)

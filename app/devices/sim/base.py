@@ -20,6 +20,17 @@ from app.devices.transport import SimLink, make_sim_link
 
 log = logging.getLogger(__name__)
 
+# A simulated LINarm that powers up homed (encoders referenced, IDLE at the home position), as after a full
+# homing: for tests that only need a homed robot (tests/conftest.py, marker ``sim_homed``). An environment
+# variable, so that it reaches every hosting alike: this thread, the simulator process, an app subprocess's.
+# A real controller always powers up unhomed; the application never sets it.
+HOMED_ENV = "LINARMPP_SIM_HOMED"
+
+
+def linarm_starts_homed() -> bool:
+    """Whether simulated LINarms built now start homed (``LINARMPP_SIM_HOMED=1``)."""
+    return os.environ.get(HOMED_ENV, "") == "1"
+
 # What the Simulation panel and tests may ask of a device's simulator core, by name: one table for both
 # hostings (this thread, and the simulator process of app.devices.sim.host), so the panel works the same
 # in- and out-of-process.
@@ -86,6 +97,10 @@ class SerialSimulator:
         if self._thread is not None:
             self._thread.join(timeout=2.0)
         self.link.close()
+
+    def clear_host_log(self) -> None:
+        """Forget the bytes logged so far (a shared test rig between tests)."""
+        self.host_bytes_log.clear()
 
     def kill(self) -> None:
         """The device vanishes mid-stream (cable pulled, board reset)."""

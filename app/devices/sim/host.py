@@ -36,7 +36,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from app.devices.sim.base import DEVICE_CONTROLS, SerialSimulator
+from app.devices.sim.base import DEVICE_CONTROLS, SerialSimulator, linarm_starts_homed
 
 log = logging.getLogger(__name__)
 
@@ -110,7 +110,13 @@ class SilCore:
     """The firmware's SIL executable as a simulator core: host bytes to its stdin, its stdout polled."""
 
     def __init__(self, executable: Path, centre: float = 0.20) -> None:
-        self.proc = subprocess.Popen([str(executable), "--centre", repr(centre)], stdin=subprocess.PIPE,
+        args = [str(executable), "--centre", repr(centre)]
+        if linarm_starts_homed():  # as the Python model (LinarmSimAdapter): homed, IDLE at the home position
+            from app.devices.linarm_constants import K
+
+            args = [str(executable), "--centre", repr(K["HOME_CENTRE"]), "--delta", repr(K["HOME_DELTA"]),
+                    "--start-homed"]
+        self.proc = subprocess.Popen(args, stdin=subprocess.PIPE,
                                      stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, bufsize=0,
                                      preexec_fn=firmware_child_setup)
         assert self.proc.stdout is not None and self.proc.stdin is not None
@@ -433,6 +439,8 @@ def _answer(request: dict[str, Any], sims: dict[str, Any], patient: Any) -> dict
             sim = sims[request["device"]]
             if "keep" in request:
                 sim.keep_host_log = bool(request["keep"])
+            if request.get("clear"):
+                sim.host_bytes_log.clear()
             log_now = list(sim.host_bytes_log)
             since = int(request.get("since", 0))
             since = since if 0 <= since <= len(log_now) else 0  # a restarted simulator began a new log
@@ -640,6 +648,11 @@ class RemoteSimulator:
     def keep_host_log(self, keep: bool) -> None:
         self.process.call("host_log", device=self.name, keep=bool(keep))
         self._keep_host_log = bool(keep)
+
+    def clear_host_log(self) -> None:
+        """Forget the bytes logged so far (a shared test rig between tests)."""
+        self.process.call("host_log", device=self.name, clear=True)
+        self._host_log.clear()
 
     @property
     def host_bytes_log(self) -> list[tuple[float, bytes]]:
