@@ -195,6 +195,11 @@ class FesGuardian:
         self._last_heartbeat = 0.0
         self._last_look = 0.0
         self.armed = False
+        # Watched like every other helper (#37): the guardian's end of the socket pair closing while we did not
+        # close ours means it died (killed, crashed). ``death()`` says so once; ``restart()`` starts another.
+        self._closing = False
+        self._dead = ""
+        self._death_reported = True  # nothing to report until it has died
 
     @property
     def pid(self) -> int | None:
@@ -202,9 +207,13 @@ class FesGuardian:
 
     @property
     def alive(self) -> bool:
-        return self.proc is not None and self.proc.poll() is None and self._control is not None
+        return (self.proc is not None and not self._dead and self.proc.poll() is None
+                and self._control is not None)
 
     def start(self) -> FesGuardian:
+        self._closing = False
+        self._dead = ""
+        self._death_reported = True
         if not available():
             raise GuardianError("the FES guardian needs Unix sockets that pass descriptors (Linux, macOS)")
         ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
@@ -272,16 +281,65 @@ class FesGuardian:
         while True:
             try:
                 data = control.recv(4096)
-            except (BlockingIOError, OSError):
+            except BlockingIOError:
                 return why
-            if not data:
+            except OSError as exc:  # ECONNRESET: the guardian died with messages unread
+                self._died(f"its link to the application failed: {exc.strerror or exc}")
+                return why
+            if not data:  # its end closed: the guardian process ended
+                self._died("")
                 return why
             if data[:1] == TRIPPED:
                 why = data[1:].decode(errors="replace")
                 self.armed = False
 
+    def _died(self, detail: str) -> None:
+        """The guardian ended without being told to (``tripped`` saw its end of the socket pair close)."""
+        if self._closing or self._dead:
+            return
+        self._dead = detail or "its end of the link to the application closed"
+        self._death_reported = False
+        self.armed = False
+
+    @property
+    def dead(self) -> bool:
+        """It died (seen by :meth:`tripped`) and has not been restarted since."""
+        return bool(self._dead)
+
+    def death(self) -> str:
+        """Why the guardian died, once ('' when it is alive, or its death was already reported). :meth:`tripped`
+        is what notices the death; the driver sends Stop first and then asks this, which may wait up to 50 ms
+        for the process's exit code."""
+        if not self._dead or self._death_reported:
+            return ""
+        self._death_reported = True
+        code = self.proc.poll() if self.proc is not None else None
+        if code is None and self.proc is not None:  # its socket closes as it exits: reaped a moment later
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                code = self.proc.wait(0.05)
+        how = (f"killed by signal {-code}" if code is not None and code < 0
+               else f"exit code {code}" if code is not None else self._dead)
+        return f"the FES guardian process (pid {self.pid}) ended unexpectedly ({how})"
+
+    def restart(self) -> FesGuardian:
+        """A new guardian process in place of one that died (or never started): the old one reaped, its socket
+        closed. Raises GuardianError when the new one cannot start."""
+        with self._lock:
+            self.armed = False
+            control, self._control = self._control, None
+            if control is not None:
+                control.close()
+        old = self.proc
+        if old is not None and old.poll() is None:
+            old.kill()
+        if old is not None:
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                old.wait(1.0)
+        return self.start()
+
     def close(self, timeout_s: float = 1.0) -> None:
         """Disarm and end the guardian (the app's orderly end: stimulation was stopped before)."""
+        self._closing = True  # its end closing from now on is no death
         with self._lock:
             self.armed = False
             control, self._control = self._control, None
