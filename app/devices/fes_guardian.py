@@ -49,6 +49,9 @@ WRITE_TIMEOUT_S = 0.2
 
 # Messages on the socket pair (SOCK_SEQPACKET: one send, one message)
 ARM, HEARTBEAT, DISARM, QUIT, TRIPPED, READY = b"A", b"H", b"D", b"Q", b"T", b"R"
+# The window's heartbeat (#37, app.gui_watch): W + its bound in seconds (ASCII) watches the window from then on;
+# w stops watching it (the window closed). Armed and watching, a window silent for its bound trips the guardian.
+WINDOW_BEAT, WINDOW_OFF = b"W", b"w"
 START_TIMEOUT_S = 5.0
 
 log = logging.getLogger(__name__)
@@ -97,6 +100,8 @@ def guard(control: socket.socket, trip_after_s: float = TRIP_AFTER_S) -> int:
     link_fd: int | None = None
     stop = b""
     last_heartbeat = time.monotonic()
+    window_bound = 0.0  # 0: the window is not watched (no window, or it closed)
+    last_window = time.monotonic()
     ending = [False]
 
     def on_sigterm(*_args: object) -> None:
@@ -141,9 +146,16 @@ def guard(control: socket.socket, trip_after_s: float = TRIP_AFTER_S) -> int:
             kind, payload = data[:1], data[1:]
             if kind == HEARTBEAT:
                 last_heartbeat = time.monotonic()
+            elif kind == WINDOW_BEAT:
+                last_window = time.monotonic()
+                with contextlib.suppress(ValueError):
+                    window_bound = max(0.0, float(payload.decode("ascii", "replace")))
+            elif kind == WINDOW_OFF:
+                window_bound = 0.0
             elif kind == ARM and fds:
                 disarm()
                 link_fd, stop, last_heartbeat = fds[0], payload, time.monotonic()
+                last_window = max(last_window, last_heartbeat)  # a window frozen before the start gets its bound
                 fds = fds[1:]
             elif kind == DISARM:
                 disarm()
@@ -159,6 +171,9 @@ def guard(control: socket.socket, trip_after_s: float = TRIP_AFTER_S) -> int:
         silent = time.monotonic() - last_heartbeat
         if link_fd is not None and silent > trip_after_s:
             trip(f"no heartbeat from the application for {silent:.2f} s")
+        window_silent = time.monotonic() - last_window
+        if link_fd is not None and window_bound > 0 and window_silent > window_bound:
+            trip(f"the window did not respond for {window_silent:.2f} s")
 
 
 def main(argv: list[str]) -> int:
@@ -193,6 +208,7 @@ class FesGuardian:
         self._control: socket.socket | None = None
         self._lock = threading.Lock()  # arm/disarm/close; the heartbeat takes no lock
         self._last_heartbeat = 0.0
+        self._last_window_beat = 0.0
         self._last_look = 0.0
         self.armed = False
         # Watched like every other helper (#37): the guardian's end of the socket pair closing while we did not
@@ -260,6 +276,24 @@ class FesGuardian:
         self._last_heartbeat = now
         with contextlib.suppress(OSError):
             control.send(HEARTBEAT)
+
+    def window_beat(self, bound_s: float, now: float | None = None) -> None:
+        """The window's thread is alive (app.gui_watch, from that thread): armed, the guardian trips when these
+        stop for ``bound_s``. At most every HEARTBEAT_PERIOD_S; never blocks."""
+        now = time.monotonic() if now is None else now
+        control = self._control
+        if control is None or now - self._last_window_beat < HEARTBEAT_PERIOD_S * 0.8:
+            return
+        self._last_window_beat = now
+        with contextlib.suppress(OSError):
+            control.send(WINDOW_BEAT + f"{bound_s:.3f}".encode("ascii"))
+
+    def window_off(self) -> None:
+        """The window closed: its silence no longer trips the guardian."""
+        control = self._control
+        if control is not None:
+            with contextlib.suppress(OSError):
+                control.send(WINDOW_OFF)
 
     def disarm(self) -> None:
         with self._lock:

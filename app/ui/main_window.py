@@ -184,7 +184,22 @@ class MainWindow(QMainWindow):
         if app is not None:
             app.installEventFilter(self._estop_filter)
         manager.supervisor.estop_changed.connect(self._on_estop_changed)
+        self._install_gui_watch()
         self._restore_settings()
+
+    # ------------------------------------------------------------------ the watched window (#37)
+    def _install_gui_watch(self) -> None:
+        """This window's thread beats for the GUI watch (app.gui_watch): a stall while the robot is ON or
+        stimulation runs is an alarm, a longer one the safe state."""
+        from app.ui.gui_heartbeat import install_gui_watch
+
+        self.gui_heartbeat = install_gui_watch(self.manager, self)
+
+    def stop_gui_watch(self) -> None:
+        """No more judgement of this window's thread (it closes, or the application's loop has ended)."""
+        heartbeat = getattr(self, "gui_heartbeat", None)
+        if heartbeat is not None:
+            heartbeat.close()
 
     # ------------------------------------------------------------------ building
     def _build_toolbar(self) -> None:
@@ -577,6 +592,7 @@ class MainWindow(QMainWindow):
             if callable(save):
                 save(settings)
         super().closeEvent(event)
+        self.stop_gui_watch()
         self.qt_bus.close()  # the frames' data stops here; the bus forgets the window
         # The main window holds the e-stop: when it closes, the whole application ends (devices safe in
         # run_gui's shutdown). No other window may keep the app — and the devices — running without it.
