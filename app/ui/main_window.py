@@ -185,6 +185,7 @@ class MainWindow(QMainWindow):
             app.installEventFilter(self._estop_filter)
         manager.supervisor.estop_changed.connect(self._on_estop_changed)
         self._install_gui_watch()
+        self._offer_larger_graphs()
         self._restore_settings()
 
     # ------------------------------------------------------------------ the watched window (#37)
@@ -194,6 +195,21 @@ class MainWindow(QMainWindow):
         from app.ui.gui_heartbeat import install_gui_watch
 
         self.gui_heartbeat = install_gui_watch(self.manager, self)
+
+    def _offer_larger_graphs(self) -> None:
+        """The Graphs frame's "Larger": the Commands frame steps aside so the graphs get the whole right column
+        (#37: six graphs readable at 1366×768); any command tab opened brings it back."""
+        plots, commands = self.frames.get("PlotsFrame"), self.docks.get("CommandsFrame")
+        if plots is None or commands is None or not hasattr(plots, "enlarge_toggled"):
+            return
+        plots.set_enlarge_offered(True)
+        plots.enlarge_toggled.connect(self.set_graphs_enlarged)
+        commands.toggleViewAction().toggled.connect(lambda shown: plots.set_enlarged(not shown))
+
+    def set_graphs_enlarged(self, enlarged: bool) -> None:
+        commands = self.docks.get("CommandsFrame")
+        if commands is not None:
+            commands.setVisible(not enlarged)
 
     def stop_gui_watch(self) -> None:
         """No more judgement of this window's thread (it closes, or the application's loop has ended)."""

@@ -30,7 +30,7 @@ from typing import Any
 
 import numpy as np
 import pyqtgraph as pg
-from PySide6.QtCore import QEvent, QObject, QRectF, QSettings, Qt, QTimer
+from PySide6.QtCore import QEvent, QObject, QRectF, QSettings, Qt, QTimer, Signal
 from PySide6.QtGui import (
     QColor,
     QFont,
@@ -272,6 +272,10 @@ class _TimedGraphics(pg.GraphicsLayoutWidget):
 
 
 class PlotsFrame(QWidget):
+    # "Larger" pressed (True) or released: the window gives the graphs the whole column (#37: at 1366×768 six
+    # graphs left 1.5 readable panes beside the Commands frame). Only offered when a window listens.
+    enlarge_toggled = Signal(bool)
+
     def __init__(self, manager: LinarmppManager | None, store: SignalStore | None = None, *,
                  qt_bus: QtBus | None = None) -> None:
         """The live graphs of ``manager``'s devices, fed by ``qt_bus`` (the window's adapter; without one the
@@ -404,6 +408,13 @@ class PlotsFrame(QWidget):
         self.fit_button.setToolTip("Autoscale every axis and follow the live data (A)")
         self.fit_button.clicked.connect(self.fit)
         top.addWidget(self.fit_button)
+        self.enlarge_button = QPushButton("&Larger")
+        self.enlarge_button.setCheckable(True)
+        self.enlarge_button.setToolTip("Give the graphs the whole column: the Commands frame is hidden until you "
+                                       "press this again (or open a command tab)")
+        self.enlarge_button.toggled.connect(self.enlarge_toggled.emit)
+        self.enlarge_button.setVisible(False)  # shown by a window that can make room (set_enlarge_offered)
+        top.addWidget(self.enlarge_button)
         top.addStretch(1)
         rlay.addLayout(top)
 
@@ -554,8 +565,13 @@ class PlotsFrame(QWidget):
             self._rebuild_plots()
 
     def panes_min_height(self) -> int:
-        """The graphs' own minimum: every pane MIN_PANE_HEIGHT_PX, plus the time axis under the last."""
-        return max(120, MIN_PANE_HEIGHT_PX * len(self.plots) + BOTTOM_AXIS_PX)
+        """The graphs' own minimum: every pane MIN_PANE_HEIGHT_PX, plus the time axis under the last, plus the
+        layout's spacing between the panes and its margins."""
+        layout = self.graphics.ci.layout
+        n = len(self.plots)
+        margins = layout.getContentsMargins()
+        spacing = max(0.0, layout.verticalSpacing()) * max(0, n - 1) + margins[1] + margins[3]
+        return max(120, MIN_PANE_HEIGHT_PX * n + BOTTOM_AXIS_PX + math.ceil(spacing))
 
     @property
     def _axis_width(self) -> int:
@@ -608,6 +624,8 @@ class PlotsFrame(QWidget):
                 plot.setXLink(first)
             if row < len(by_unit) - 1:
                 plot.getAxis("bottom").setStyle(showValues=False)
+            else:  # the last pane carries the time axis: room for it besides a pane's own height
+                plot.setMinimumHeight(MIN_PANE_HEIGHT_PX + BOTTOM_AXIS_PX)
             legend = plot.addLegend(offset=(4, 2), labelTextSize="8pt")
             legend.setBrush(pg.mkBrush(c.plot_background + "c0"))
             # The axes (with their grid, which spans the plot) and the legend lie under the curves, so
@@ -770,6 +788,15 @@ class PlotsFrame(QWidget):
         del self.frame_times[:-100]
         if self.cursor_x is not None:
             self._update_readout(self.cursor_x)
+
+    def set_enlarge_offered(self, offered: bool) -> None:
+        self.enlarge_button.setVisible(offered)
+
+    def set_enlarged(self, enlarged: bool) -> None:
+        """Show the button's state without asking again (the window changed the layout itself)."""
+        self.enlarge_button.blockSignals(True)
+        self.enlarge_button.setChecked(enlarged)
+        self.enlarge_button.blockSignals(False)
 
     # ------------------------------------------------------------------ drawing off the GUI thread (#37)
     def _set_image_mode(self, on: bool) -> None:
