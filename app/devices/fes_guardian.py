@@ -17,6 +17,12 @@ happens to the PC. ScienceMode 2 has one, but it waits 1.2 s without a valid pac
   died, however) or it is told to end (SIGTERM) — then tells the driver, which raises the fault when it runs
   again.
 
+* the window's thread beats too (``WINDOW_BEAT``, app.gui_watch, #37): armed, the guardian also trips when the
+  window falls silent for the bound the beats carry (0.9 s) — a frozen window, or a GUI watch unable to act;
+* the guardian is itself watched (#37): its end of the socket pair closing while the application did not close
+  its own is its death, which the driver sees with ``tripped``/``dead``/``death`` (Stop, an alarm) and repairs
+  with ``restart``.
+
 The bound: Stop leaves the guardian at most ``TRIP_AFTER_S`` + ``POLL_S`` after the application's last
 heartbeat, i.e. 0.31 s; with the guardian's own scheduling on a loaded machine, stimulation ends within
 0.5 s (docs/fes.md, "Dead man's switch"). 0.3 s is six missed heartbeats: a normal-priority thread woken late
