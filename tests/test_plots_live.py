@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 from PySide6.QtGui import QImage, QPen
 
-from app.ui.plot_render import CurveRenderer, PaneJob
+from app.ui.plot_render import CurveRenderer, PaneJob, render_pane
 from app.ui.plots_frame import FastCurve
 from tests.test_plots_frame import make_frame, synthetic_store
 
@@ -53,9 +53,14 @@ def test_live_curves_are_drawn_off_the_gui_thread_where_the_items_draw_them(qtbo
 def test_a_pane_out_of_view_is_not_drawn(qtbot) -> None:
     store, _data = synthetic_store()
     frame = make_frame(qtbot, store)
-    frame.resize(900, 260)  # room for about one pane: the others scroll
+    frame.resize(900, 220)  # room for about one and a half panes: the third is out of view
     frame.set_selected(["linarm.vsa.handlePos", "linarm.vsa.interactionForce", "physio.main.heartRate"])
-    qtbot.wait(50)
+    qtbot.wait(300)  # laid out
+    frame.timer.stop()  # frames driven here
+    qtbot.wait(100)  # a frame still being drawn is shown
+    for image in frame.images.values():
+        image.set_image(None)
+    frame._dirty = True
     frame.redraw()
     qtbot.waitUntil(lambda: frame.images["m"].image is not None, timeout=3000)
     qtbot.wait(100)
@@ -79,7 +84,7 @@ def test_the_renderer_draws_the_newest_frame_and_rests(qtbot) -> None:
         transform = QTransform()
         transform.scale(100, 50)
         for frame in (1, 2, 3):
-            renderer.submit(frame, [PaneJob("p", 100, 50, 1.0, transform, [(pen, x, x, True)])])
+            renderer.submit(frame, [PaneJob("p", 100, 50, 1.0, transform, [(pen, x, x, True, False)])])
         qtbot.waitUntil(lambda: any(f == 3 for f, _i in got), timeout=3000)
         image = dict(got)[3]["p"]
         assert image.width() == 100 and image.height() == 50
@@ -96,3 +101,28 @@ def test_a_curve_hidden_from_its_legend_stays_hidden_when_drawn_elsewhere() -> N
     curve.set_drawn_elsewhere(True)
     curve.set_drawn_elsewhere(False)
     assert not curve.isVisible() and not curve.user_visible
+
+
+def test_pixel_column_pairs_cover_what_the_zig_zag_covers() -> None:
+    """A reduced signal ((minimum, maximum) per pixel column) is drawn as one line per column joined to the previous
+    one: every column covers the same rows as the zig-zag through the pairs does (±1 pixel), at a third of the cost."""
+    from PySide6.QtGui import QTransform
+
+    rng = np.random.default_rng(3)
+    columns = 300
+    lo = rng.uniform(5, 60, columns)
+    hi = lo + rng.uniform(0, 30, columns)
+    x = np.repeat(np.arange(columns, dtype=float) + 0.5, 2)
+    y = np.column_stack((lo, hi)).ravel()
+    pen = QPen()
+    pen.setCosmetic(True)
+
+    def covered(pairs: bool) -> np.ndarray:
+        image = render_pane(PaneJob("p", columns, 100, 1.0, QTransform(), [(pen, x, y, True, pairs)]))
+        alpha = (np.frombuffer(image.constBits(), dtype=np.uint32, count=columns * 100) >> 24).reshape(100, columns)
+        rows = np.where(alpha > 0, np.arange(100)[:, None], np.nan)
+        return np.column_stack((np.nanmin(rows, axis=0), np.nanmax(rows, axis=0)))
+
+    lines, zigzag = covered(True), covered(False)
+    assert np.isfinite(lines).all()  # every column drawn: the trace is connected
+    assert np.abs(lines[1:-1] - zigzag[1:-1]).max() <= 1.0

@@ -187,6 +187,10 @@ class _Ring:
         _lo, i0, i1 = self.held()
         return self.t[i0:i1]
 
+    def count_in(self, t_from: float | None, t_to: float | None) -> int:
+        n0, n1 = self.sample_range(t_from, t_to)
+        return n1 - n0
+
     def sample_range(self, t_from: float | None, t_to: float | None) -> tuple[int, int]:
         """Absolute sample numbers [n0, n1) with t_from <= t <= t_to."""
         lo, i0, i1 = self.held()
@@ -354,14 +358,15 @@ class SignalStore(QObject):
         """:meth:`envelope` of every key at once: the keys of one stream share their time array (one object, do
         not modify it) and are reduced together, one numpy call per step for all of them."""
         out: dict[str, tuple[np.ndarray, np.ndarray]] = {}
-        for stream_keys, t, ys in self.envelope_rows(keys, t_from, t_to, max_points):
+        for stream_keys, t, ys, _pairs in self.envelope_rows(keys, t_from, t_to, max_points):
             for k, y in zip(stream_keys, ys, strict=True):
                 out[k] = (t, y)
         return out
 
     def envelope_rows(self, keys: Iterable[str], t_from: float | None, t_to: float | None,
-                      max_points: int = 2000) -> list[tuple[list[str], np.ndarray, np.ndarray]]:
-        """The envelopes of ``keys`` grouped by stream: (the stream's keys, time, one row of values per key)."""
+                      max_points: int = 2000) -> list[tuple[list[str], np.ndarray, np.ndarray, bool]]:
+        """The envelopes of ``keys`` grouped by stream: (the stream's keys, time, one row of values per key, whether
+        they were reduced: then the points are (minimum, maximum) pairs, each pair at one time)."""
         by_stream: dict[str, list[str]] = {}
         for key in keys:
             by_stream.setdefault(self._info[key].stream, []).append(key)
@@ -370,7 +375,7 @@ class SignalStore(QObject):
             ring = self._rings[stream]
             rows = [ring.row[self._info[k].channel] for k in stream_keys]
             t, ys = _envelope_rows(ring, rows, t_from, t_to, max_points)
-            out.append((stream_keys, t, ys))
+            out.append((stream_keys, t, ys, ring.count_in(t_from, t_to) > max_points))
         return out
 
     # -------------------------------------------------------------- export
