@@ -46,8 +46,9 @@ class PaneJob:
 
 def column_lines(x: np.ndarray, y: np.ndarray) -> QPainterPath:
     """(minimum, maximum) pairs, one per pixel column, as one vertical line per column that also covers its half of
-    the way to the next column's pair (so the trace stays connected, covering what the zig-zag covers). A dense, noisy signal drawn as the zig-zag through its pairs
-    strokes every column's height twice (down, then up across to the next column): 2.6 times the time measured."""
+    the way to the next column's pair (so the trace stays connected, covering what the zig-zag covers). A dense,
+    noisy signal drawn as the zig-zag through its pairs strokes every column's height twice (down, then up across
+    to the next column): 2.6 times the time measured."""
     lo, hi = y[0::2], y[1::2]
     bottom, top = lo.copy(), hi.copy()
     # the zig-zag's connector from a column's maximum to the next one's minimum, split between the two columns
