@@ -642,6 +642,8 @@ class PlotsFrame(QWidget):
                 curve = FastCurve(pen, f"{info.device}: {self.display_label(info)}")
                 plot.addItem(curve)
                 legend.addItem(curve, curve.name())
+                for part in legend.items[-1]:  # its sample line and its label: drawn once, blitted after (#37)
+                    part.setCacheMode(QGraphicsItem.CacheMode.DeviceCoordinateCache)
                 self.curves[key] = curve
                 self._curve_plot[key] = plot
             vline = pg.InfiniteLine(angle=90, movable=False, pen=pg.mkPen(c.plot_foreground, width=1,
