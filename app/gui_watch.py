@@ -32,10 +32,12 @@ import logging
 import threading
 import time
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from app import streams
-from app.safety import Alarm, AlarmLevel, SafetySupervisor
+
+if TYPE_CHECKING:  # the supervisor is a QObject; this module imports nothing of Qt (docs/decisions.md)
+    from app.safety import Alarm, SafetySupervisor
 
 log = logging.getLogger(__name__)
 
@@ -137,6 +139,7 @@ class GuiWatch:
             return  # nothing moves or stimulates (or no longer does): a busy window harms nobody
         what = self._what = self._what or driving
         self._longest = max(self._longest, age)
+        from app.safety import AlarmLevel  # loaded with the supervisor already
         if self._warning is None:
             text = f"The window stopped responding ({age:.2f} s without its heartbeat) while {what}"
             self.supervisor.event("gui_stall", stalled_s=round(age, 3), driving=what)
