@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 from PySide6.QtGui import QImage, QPen
 
-from app.ui.plot_render import CurveRenderer, PaneJob, render_pane
+from app.ui.plot_render import CurveRenderer, PaneJob
 from app.ui.plots_frame import FastCurve
 from tests.test_plots_frame import make_frame, synthetic_store
 
@@ -84,7 +84,7 @@ def test_the_renderer_draws_the_newest_frame_and_rests(qtbot) -> None:
         transform = QTransform()
         transform.scale(100, 50)
         for frame in (1, 2, 3):
-            renderer.submit(frame, [PaneJob("p", 100, 50, 1.0, transform, [(pen, x, x, True, False)])])
+            renderer.submit(frame, [PaneJob("p", 100, 50, 1.0, transform, [(pen, x, x, True)])])
         qtbot.waitUntil(lambda: any(f == 3 for f, _i in got), timeout=3000)
         image = dict(got)[3]["p"]
         assert image.width() == 100 and image.height() == 50
@@ -102,27 +102,3 @@ def test_a_curve_hidden_from_its_legend_stays_hidden_when_drawn_elsewhere() -> N
     curve.set_drawn_elsewhere(False)
     assert not curve.isVisible() and not curve.user_visible
 
-
-def test_pixel_column_pairs_cover_what_the_zig_zag_covers() -> None:
-    """A reduced signal ((minimum, maximum) per pixel column) is drawn as one line per column joined to the previous
-    one: every column covers the same rows as the zig-zag through the pairs does (±1 pixel), at a third of the cost."""
-    from PySide6.QtGui import QTransform
-
-    rng = np.random.default_rng(3)
-    columns = 300
-    lo = rng.uniform(5, 60, columns)
-    hi = lo + rng.uniform(0, 30, columns)
-    x = np.repeat(np.arange(columns, dtype=float) + 0.5, 2)
-    y = np.column_stack((lo, hi)).ravel()
-    pen = QPen()
-    pen.setCosmetic(True)
-
-    def covered(pairs: bool) -> np.ndarray:
-        image = render_pane(PaneJob("p", columns, 100, 1.0, QTransform(), [(pen, x, y, True, pairs)]))
-        alpha = (np.frombuffer(image.constBits(), dtype=np.uint32, count=columns * 100) >> 24).reshape(100, columns)
-        rows = np.where(alpha > 0, np.arange(100)[:, None], np.nan)
-        return np.column_stack((np.nanmin(rows, axis=0), np.nanmax(rows, axis=0)))
-
-    lines, zigzag = covered(True), covered(False)
-    assert np.isfinite(lines).all()  # every column drawn: the trace is connected
-    assert np.abs(lines[1:-1] - zigzag[1:-1]).max() <= 1.0

@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 import pyqtgraph as pg
 from PySide6.QtCore import QObject, QPointF, QRectF, Qt, Signal
-from PySide6.QtGui import QImage, QPainter, QPainterPath, QPen, QTransform
+from PySide6.QtGui import QImage, QPainter, QPen, QTransform
 from PySide6.QtWidgets import QGraphicsObject
 
 log = logging.getLogger(__name__)
@@ -40,24 +40,7 @@ class PaneJob:
     height: int
     dpr: float
     transform: QTransform
-    # pen, x, y, no NaN, (min, max) pairs per pixel column
-    curves: list[tuple[QPen, np.ndarray, np.ndarray, bool, bool]] = field(default_factory=list)
-
-
-def column_lines(x: np.ndarray, y: np.ndarray) -> QPainterPath:
-    """(minimum, maximum) pairs, one per pixel column, as one vertical line per column that also covers its half of
-    the way to the next column's pair (so the trace stays connected, covering what the zig-zag covers). A dense,
-    noisy signal drawn as the zig-zag through its pairs strokes every column's height twice (down, then up across
-    to the next column): 2.6 times the time measured."""
-    lo, hi = y[0::2], y[1::2]
-    bottom, top = lo.copy(), hi.copy()
-    # the zig-zag's connector from a column's maximum to the next one's minimum, split between the two columns
-    mid = (hi[:-1] + lo[1:]) / 2
-    np.minimum(bottom[:-1], mid, out=bottom[:-1])
-    np.maximum(top[:-1], mid, out=top[:-1])
-    np.minimum(bottom[1:], mid, out=bottom[1:])
-    np.maximum(top[1:], mid, out=top[1:])
-    return pg.functions.arrayToQPath(x, np.column_stack((bottom, top)).ravel(), connect="pairs")
+    curves: list[tuple[QPen, np.ndarray, np.ndarray, bool]] = field(default_factory=list)  # pen, x, y, no NaN
 
 
 def render_pane(job: PaneJob) -> QImage:
@@ -69,13 +52,15 @@ def render_pane(job: PaneJob) -> QImage:
     painter = QPainter(image)
     try:
         painter.setTransform(job.transform)
-        for pen, x, y, finite, pairs in job.curves:
+        for pen, x, y, finite in job.curves:
             if len(x) < 2:
                 continue
             painter.setPen(pen)
-            if finite and pairs:
-                painter.drawPath(column_lines(x, y))
-            elif finite:
+            if finite:
+                # The zig-zag through the (minimum, maximum) pairs, as a polygon filled from numpy in microseconds:
+                # stroking it (C++, the interpreter lock released) costs more than a path of one line per pixel
+                # column, but building that path held the lock 1.3 ms a curve, and the lock is what the e-stop's
+                # paths and the window's thread wait for (measured: docs/decisions.md, #37).
                 painter.drawPolyline(pg.functions.arrayToQPolygonF(x, y))
             else:  # a NaN lifts the pen
                 painter.drawPath(pg.functions.arrayToQPath(x, y, connect="finite"))

@@ -174,7 +174,6 @@ class FastCurve(pg.GraphicsObject):
         self._path: QPainterPath | None = None
         self._rect = QRectF()
         self.finite = True  # no NaN in the points (else the line breaks at each)
-        self.pairs = False  # the points are (minimum, maximum) pairs of the pixel columns (SignalStore.envelope_rows)
         self.user_visible = True  # the legend's sample toggles it
         self.drawn_elsewhere = False  # the frame's renderer strokes it (the item itself stays hidden)
 
@@ -760,7 +759,7 @@ class PlotsFrame(QWidget):
         for key in self.curves.keys() - set(keys):
             self.curves[key].setData([], [])
         x_origin = self._x0()
-        for stream_keys, t, rows, pairs in store.envelope_rows(keys, t0, t1, max_points=2 * width_px):
+        for stream_keys, t, rows, _pairs in store.envelope_rows(keys, t0, t1, max_points=2 * width_px):
             x = t - x_origin
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", RuntimeWarning)  # an all-NaN row has no bounds
@@ -771,7 +770,6 @@ class PlotsFrame(QWidget):
                 finite = math.isfinite(lo)
                 self.curves[key].setData(x, rows[i], (lo, hi) if finite else None, bool(complete[i]),
                                          drawn_here=not images)
-                self.curves[key].pairs = pairs
                 if finite:
                     b = bounds[id(self._curve_plot[key])]
                     b[0], b[1] = min(b[0], lo), max(b[1], hi)
@@ -845,7 +843,7 @@ class PlotsFrame(QWidget):
             job = by_plot.get(id(self._curve_plot[key]))
             x, y = curve.getData()
             if job is not None and curve.user_visible and len(x) > 1:
-                job.curves.append((QPen(curve.pen), x, y, curve.finite, curve.pairs))
+                job.curves.append((QPen(curve.pen), x, y, curve.finite))
         self._frame_seq += 1
         self.renderer.submit(self._frame_seq, panes)
 
