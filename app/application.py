@@ -146,6 +146,7 @@ def run_gui(config: AppConfig, screenshot: str | None = None, quit_after_s: floa
         with loop:
             loop.run_forever()
     finally:
+        window.stop_gui_watch()  # the loop has ended: no beat follows, and shutting down is no stall
         manager.shutdown()
         remove_nets()
     if loop_exit.code is not None:

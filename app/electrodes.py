@@ -26,12 +26,19 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any, Literal
 
+from app.devices.sciencemode import MAX_CURRENT_MA, MAX_PULSE_WIDTH_US
 from app.fes_limits import FesLimits, rms_current_ma
 
 log = logging.getLogger(__name__)
 
 Direction = Literal["positive", "negative", "either"]
 MIN_READINGS = 3  # distinct LINarm readings a baseline or a measurement needs
+# The plan's bounds (#37: a step of 1e-12 mA looped without end, a pulse width of 1e6 µs "gave no response"):
+MIN_STEP_MA = 1.0  # the stimulator takes whole mA: a smaller step only repeats a current
+DEFAULT_STEP_MA = 2.0
+# Per combination: the stimulator's whole range in default steps (63; ~3 s a burst with its rest). The default
+# plan to 40 mA gives 18; a 1 mA step to the range's top (121) is refused: raise the step or lower the ceiling.
+MAX_BURSTS = math.ceil(MAX_CURRENT_MA / DEFAULT_STEP_MA)
 DISCOMFORT_MAX = 10  # the patient's rating: 0 = no discomfort .. 10 = the worst imaginable (numeric scale)
 
 
@@ -73,7 +80,7 @@ class SetupPlan:
 
     ceiling_ma: float  # the therapist's ceiling; the patient's caps may lower it per channel
     start_ma: float = 6.0
-    step_ma: float = 2.0
+    step_ma: float = DEFAULT_STEP_MA
     pulse_width_us: float = 250.0
     frequency_hz: float = 40.0
     ramp_s: float = 1.0  # at least; longer when the limiter's start ramp or rate of rise needs it
@@ -101,18 +108,41 @@ class SetupPlan:
             raise ValueError(f"measure_s ({self.measure_s} s) must not be longer than hold_s ({self.hold_s} s)")
         if not 0 <= self.max_discomfort <= DISCOMFORT_MAX:
             raise ValueError(f"max_discomfort must be within 0..{DISCOMFORT_MAX}")
+        # Within the stimulator's range and a bounded number of bursts, refused before anything starts (#37).
+        if self.ceiling_ma > MAX_CURRENT_MA:
+            raise ValueError(f"the ceiling of {self.ceiling_ma:g} mA is above the stimulator's range "
+                             f"(at most {MAX_CURRENT_MA} mA)")
+        if self.start_ma > self.ceiling_ma:
+            raise ValueError(f"the start current ({self.start_ma:g} mA) is above the ceiling ({self.ceiling_ma:g} mA): "
+                             "no test burst would be given")
+        if self.step_ma < MIN_STEP_MA:
+            raise ValueError(f"the step of {self.step_ma:g} mA is too small: the stimulator takes whole mA, so the "
+                             f"step must be at least {MIN_STEP_MA:g} mA")
+        if self.pulse_width_us > MAX_PULSE_WIDTH_US:
+            raise ValueError(f"the pulse width of {self.pulse_width_us:g} µs is outside the stimulator's range "
+                             f"(at most {MAX_PULSE_WIDTH_US} µs)")
+        bursts = self.burst_count(self.ceiling_ma)
+        if bursts > MAX_BURSTS:
+            raise ValueError(f"{bursts} test bursts per combination (from {self.start_ma:g} to {self.ceiling_ma:g} mA "
+                             f"in {self.step_ma:g} mA steps) is more than the {MAX_BURSTS} allowed: raise the step or "
+                             "lower the ceiling")
+
+    def burst_count(self, ceiling_ma: float) -> int:
+        """How many steps fit from start_ma up to ``ceiling_ma`` (the ladder's length at most), computed, not
+        counted."""
+        if ceiling_ma + 1e-9 < self.start_ma:
+            return 0
+        return math.floor((ceiling_ma - self.start_ma) / self.step_ma + 1e-9) + 1
 
     def ladder(self, ceiling_ma: float) -> list[int]:
         """The test currents (whole mA, as the stimulator takes them) from start_ma up to ``ceiling_ma``."""
         out: list[int] = []
-        k = 0
-        while True:
+        for k in range(min(self.burst_count(ceiling_ma), MAX_BURSTS)):
             current = math.floor(self.start_ma + k * self.step_ma + 1e-9)
             if current > ceiling_ma + 1e-9:
                 break
             if not out or current > out[-1]:
                 out.append(current)
-            k += 1
         return out
 
 

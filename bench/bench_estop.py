@@ -17,6 +17,10 @@ frontal_reaching.yaml), so Stop interrupts a running stimulation.
 The simulators run as the application runs them, in a process of their own on its default link (loopback
 sockets), and the wire stamps are taken in that process (``common.RemoteWire``); ``--host thread`` hosts them as
 threads of the benchmark's process (the layout of the figures before #27). ``--load``: two ``yes`` meanwhile.
+
+Beside the latencies (issue #37): during each GUI condition, how many graph frames a second were shown (drawn
+and on screen, whichever thread drew them; the graphs' timer ticks apart) and the GUI thread's longest stall (the
+longest gap of a 5 ms timer on it, as bench_trigger.py measures it).
 """
 
 from __future__ import annotations
@@ -103,6 +107,44 @@ def triggers(window: Any, manager: Any) -> dict[str, Callable[[], None]]:
     return {"button": click, "shortcut (" + manager.config.ui.emergency_stop_shortcut + ")": key, "API": api}
 
 
+class Gaps:
+    """A 5 ms timer on the GUI thread: the longest gap between its ticks since ``start``."""
+
+    def __init__(self) -> None:
+        from PySide6.QtCore import QTimer
+
+        self.longest = 0.0
+        self.longest_cpu = 0.0  # the most CPU time the GUI thread used within one gap (its own work)
+        self._last = time.monotonic()
+        self._last_cpu = time.thread_time()
+        self.timer = QTimer()
+        self.timer.setInterval(5)
+        self.timer.timeout.connect(self._tick)
+
+    def start(self) -> None:
+        self.longest, self.longest_cpu = 0.0, 0.0
+        self._last, self._last_cpu = time.monotonic(), time.thread_time()
+        self.timer.start()
+
+    def _tick(self) -> None:
+        now, cpu = time.monotonic(), time.thread_time()
+        self.longest = max(self.longest, now - self._last)
+        self.longest_cpu = max(self.longest_cpu, cpu - self._last_cpu)
+        self._last, self._last_cpu = now, cpu
+
+    def stop(self) -> float:
+        self.timer.stop()
+        return self.longest
+
+
+def frames_shown(window: Any) -> int:
+    """Graph frames shown so far: drawn on the GUI thread (frame_times) or shown from the renderer (#37)."""
+    plots = window.frames.get("PlotsFrame")
+    if plots is None:
+        return 0
+    return int(getattr(plots, "_shown_seq", 0)) + int(getattr(plots, "_bench_item_frames", 0))
+
+
 def start_stimulation(manager: Any) -> str:
     """Reset the e-stop and (re)start stimulation; returns '' or why stimulation is not running."""
     from app.config import RESOURCES
@@ -160,11 +202,25 @@ def run(args: argparse.Namespace) -> int:
         sources = triggers(window, manager)
         results: dict[str, list[float]] = {}
         not_stimulating: dict[str, int] = {}
+        plots = window.frames.get("PlotsFrame")
+        if plots is not None and not hasattr(plots, "_shown_seq"):  # the code before #37: every frame on the GUI
+            plots._bench_item_frames = 0
+
+            def counted(redraw: Callable[[], None] = plots.redraw) -> None:
+                before = (len(plots.frame_times), plots.frame_times[-1] if plots.frame_times else None)
+                redraw()
+                plots._bench_item_frames += before != (len(plots.frame_times), plots.frame_times[-1]
+                                                       if plots.frame_times else None)
+            plots.redraw = counted
+        gaps = Gaps()
+        rates: list[str] = []
         for load in (False, True):
             drawn = common.set_gui_load(window, load, args.refresh_hz)
             gui = f"GUI load ({drawn} signals, {args.refresh_hz:g} Hz)" if load else "GUI idle"
             common.run_qt_until(lambda: False, 1.0)
             spy = common.start_py_spy("estop_gui_load", 10.0) if load and args.profile else None
+            f0, r0, t_phase = frames_shown(window), common.redraw_count(window), time.monotonic()
+            gaps.start()
             for _ in range(args.trials):
                 for name, fire in sources.items():
                     why = start_stimulation(manager)
@@ -194,10 +250,18 @@ def run(args: argparse.Namespace) -> int:
                         continue
                     for what, t in (("FES Stop", t_fes), ("robot IDLE", t_idle), ("both", max(t_fes, t_idle))):
                         results.setdefault(f"{gui}: {name} → {what}", []).append((t - t0[0]) / 1e6)
+            longest = gaps.stop()
+            elapsed = time.monotonic() - t_phase
+            rates.append(f"  {gui}: graph frames shown {(frames_shown(window) - f0) / elapsed:.1f}/s (timer ticks "
+                         f"{(common.redraw_count(window) - r0) / elapsed:.1f}/s); the GUI thread's longest stall "
+                         f"{longest * 1000:.1f} ms (its own CPU time within one stall at most "
+                         f"{gaps.longest_cpu * 1000:.1f} ms)")
             if spy is not None:
                 spy.wait()
                 print(f"  profile: {common.summarise_py_spy('estop_gui_load')}")
         print()
+        for line in rates:
+            print(line)
         for why, count in not_stimulating.items():
             print(f"  (stimulation not running in {count} trials: {why})")
         for key, values in results.items():

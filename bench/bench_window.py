@@ -10,6 +10,11 @@ figure. "Window share" = the GUI thread + the llvmpipe threads; the X server's o
 puts on screen) is printed beside it. ``--moving`` runs bench/scripts/reach_exercise.py (0.10 <-> 0.40 m) during
 the measurement. The machine may be shared: the load average is printed with every run.
 
+``--stalls S`` measures instead the GUI thread's normal stalls during therapy (issue #37: the GUI watch's
+thresholds leave room for them): every signal in the graphs, FES stimulating, the reach exercise moving the arm,
+for S seconds; the longest gap of a 1 ms timer and the largest heartbeat age the GUI watch saw. ``--load``: two
+``yes > /dev/null`` meanwhile.
+
 ``--fes-start N`` measures instead the GUI thread's longest stall while starting FES (issue #29, acceptance 3):
 with the window open, an FES panel (app.ui.fes_panel.FesPanel, the commands frame's) loads
 frontal_reaching.yaml and its Start button is clicked N times (each followed by Stop); a 1 ms timer on the GUI
@@ -133,7 +138,9 @@ class GapMeter:
         from PySide6.QtCore import Qt, QTimer
 
         self.ticks: list[tuple[float, float]] = []
+        self.cpu: list[float] = []  # the GUI thread's CPU time within each gap (its own work, not waiting)
         self._last = time.monotonic()
+        self._last_cpu = time.thread_time()
         self.timer = QTimer()
         self.timer.setTimerType(Qt.TimerType.PreciseTimer)
         self.timer.setInterval(1)
@@ -141,9 +148,10 @@ class GapMeter:
         self.timer.start()
 
     def _tick(self) -> None:
-        now = time.monotonic()
+        now, cpu = time.monotonic(), time.thread_time()
         self.ticks.append((now, now - self._last))
-        self._last = now
+        self.cpu.append(cpu - self._last_cpu)
+        self._last, self._last_cpu = now, cpu
 
     def longest(self, t0: float, t1: float) -> float:
         """The longest gap ending in [t0, t1] (a stall that began in it ends at the first tick after it)."""
@@ -214,6 +222,108 @@ def fes_start_stall(clicks: int, no_ack: bool) -> dict[str, Any]:
         common.shutdown(manager, window)
 
 
+def normal_stalls(seconds: float, refresh_hz: float | None) -> dict[str, Any]:
+    """The GUI thread's stalls in normal use during therapy (issue #37): the window open with every signal in
+    the graphs, FES stimulating (frontal_reaching.yaml) and the reach exercise moving the arm. Two measures: the
+    longest gap of a 1 ms timer (the stall itself) and the largest age the GUI watch saw between its heartbeats
+    (what its thresholds are compared with: the stall plus up to one beat period)."""
+    from app import streams
+    from app.config import RESOURCES
+    from app.fes_profile import load_profile
+    from app.scripting.runner import ScriptRunner
+
+    manager = common.start_manager(config_at(1.0))
+    window = None
+    runner = None
+    try:
+        hz = refresh_hz or manager.config.ui.refresh_hz
+        window = common.open_window(manager, load=True, refresh_hz=hz)
+        runner = ScriptRunner(manager, lambda _s, _t: None, home_first=True)
+        runner.start(SCRIPT.read_text(encoding="utf-8"), str(SCRIPT))
+
+        def moving_now() -> bool:
+            s = manager.bus.latest(streams.LINARM_VSA)
+            return s is not None and abs(float(s.equilibriumPos) - 0.10) < 0.01
+        if not common.run_qt_until(moving_now, 60.0):
+            print("  (the reach exercise did not reach its start point within 60 s)")
+        fes = manager.driver("fes")
+        fes.load_profile(load_profile(RESOURCES / "fes_profiles" / "frontal_reaching.yaml"))
+        # As the FES panel starts it: never waiting for the stimulator's acks on the GUI thread (a start that held
+        # the GUI thread while the arm moved is a stall the GUI watch judges, and rightly so)
+        fes.submit_start("benchmark")
+        if not common.run_qt_until(lambda: fes.stimulating, 10.0):
+            print("  (stimulation did not start within 10 s)")
+        t_start = time.monotonic()
+        heartbeat = getattr(window, "gui_heartbeat", None)  # None: the code before #37 (no GUI watch)
+        ages: list[float] = []
+        last = [time.monotonic()]
+        if heartbeat is not None:
+            watch = heartbeat.watch
+            beat = watch.beat
+
+            def timed_beat(now: float | None = None) -> None:
+                t = time.monotonic()
+                ages.append(t - last[0])
+                if t - last[0] > 0.3:
+                    print(f"  (heartbeat gap {1000 * (t - last[0]):.0f} ms at +{t - t_start:.2f} s)", flush=True)
+                last[0] = t
+                beat(now)
+
+            watch.beat = timed_beat  # type: ignore[method-assign]
+        common.run_qt_until(lambda: False, 1.0)  # settle
+        meter = GapMeter()
+        t0 = time.monotonic()
+        del ages[:]
+        drives = []
+        end = t0 + seconds
+        while time.monotonic() < end:
+            common.run_qt_until(lambda: False, min(1.0, end - time.monotonic()))
+            drives.append(bool(manager.fault_policy.drives_something()))
+        meter.timer.stop()
+        gaps = [g for t, g in meter.ticks if t > t0]
+        gap_cpu = [c for (t, _g), c in zip(meter.ticks, meter.cpu, strict=True) if t > t0]
+        alarms = [a.text for a in manager.supervisor.alarms() if a.source == "window"]
+        return {"longest": max(gaps, default=0.0), "gaps": gaps, "ages": ages, "gap_cpu": gap_cpu,
+                "driving": sum(drives) / max(1, len(drives)), "redraws_hz": hz, "alarms": alarms,
+                "moving": runner.running, "load": common._read("/proc/loadavg").split()[:3]}
+    finally:
+        if runner is not None:
+            runner.stop("bench done", 5.0)
+        common.shutdown(manager, window)
+
+
+def stalls_main(args: argparse.Namespace) -> int:
+    import subprocess
+
+    common.qt_app()
+    common.print_machine("bench_window: the GUI thread's normal stalls during therapy (the GUI watch's margin)")
+    loads = [subprocess.Popen(["yes"], stdout=subprocess.DEVNULL) for _ in range(2)] if args.load else []
+    try:
+        r = normal_stalls(args.stalls, args.refresh_hz)
+    finally:
+        for proc in loads:
+            proc.kill()
+            proc.wait()
+    gaps = sorted(g * 1000 for g in r["gaps"])
+    ages = sorted(a * 1000 for a in r["ages"]) or [float("nan")]
+    print(f"  {args.stalls:g} s, every signal in the graphs at {r['redraws_hz']:g} Hz, FES stimulating, the arm "
+          f"moving (still moving at the end: {r['moving']}); something driving {r['driving'] * 100:.0f} % of the "
+          f"time{', two yes' if args.load else ''}; load average {' '.join(r['load'])}")
+    print(f"  GUI thread's longest stall (1 ms timer): {gaps[-1]:.1f} ms; p99 of gaps {common.percentile(gaps, 99):.1f}"
+          f" ms; gaps > 100 ms: {sum(g > 100 for g in gaps)}; the most CPU the GUI thread used within one gap "
+          f"{max(r['gap_cpu'], default=0.0) * 1000:.1f} ms (its own work: what a quiet machine would stall)")
+    try:
+        from app import gui_watch
+
+        bounds = (f"thresholds: alarm {gui_watch.ALARM_AFTER_S * 1000:.0f} ms, safe state "
+                  f"{gui_watch.SAFE_AFTER_S * 1000:.0f} ms")
+    except ImportError:
+        bounds = "no GUI watch in this code"
+    print(f"  GUI watch's heartbeat age: largest {ages[-1]:.1f} ms, p99 {common.percentile(ages, 99):.1f} ms "
+          f"(n={len(r['ages'])}); {bounds}; window alarms raised: {r['alarms'] or 'none'}")
+    return 0
+
+
 def fes_main(args: argparse.Namespace) -> int:
     import subprocess
 
@@ -249,10 +359,17 @@ def main() -> int:
     parser.add_argument("--fes-start", type=int, default=0, metavar="N",
                         help="measure the GUI thread's longest stall over N clicks of the FES panel's Start instead")
     parser.add_argument("--no-ack", action="store_true", help="with --fes-start: the init's ack never comes")
-    parser.add_argument("--load", action="store_true", help="with --fes-start: two `yes > /dev/null` meanwhile")
+    parser.add_argument("--load", action="store_true", help="with --fes-start / --stalls: two `yes > /dev/null` "
+                                                             "meanwhile")
+    parser.add_argument("--stalls", type=float, default=0.0, metavar="S",
+                        help="measure the GUI thread's normal stalls for S seconds during therapy instead (#37)")
+    parser.add_argument("--refresh-hz", type=float, default=None, help="with --stalls: the graphs' rate "
+                                                                       "(default: the configuration's)")
     args = parser.parse_args()
     if args.fes_start:
         return fes_main(args)
+    if args.stalls:
+        return stalls_main(args)
     app = common.qt_app()
     common.print_machine("bench_window: the window's CPU at nominal rates")
     print(f"  platform {app.platformName()}; robot {'moving (reach exercise)' if args.moving else 'idle'}")

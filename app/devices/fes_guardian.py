@@ -17,6 +17,12 @@ happens to the PC. ScienceMode 2 has one, but it waits 1.2 s without a valid pac
   died, however) or it is told to end (SIGTERM) — then tells the driver, which raises the fault when it runs
   again.
 
+* the window's thread beats too (``WINDOW_BEAT``, app.gui_watch, #37): armed, the guardian also trips when the
+  window falls silent for the bound the beats carry (0.9 s) — a frozen window, or a GUI watch unable to act;
+* the guardian is itself watched (#37): its end of the socket pair closing while the application did not close
+  its own is its death, which the driver sees with ``tripped``/``dead``/``death`` (Stop, an alarm) and repairs
+  with ``restart``.
+
 The bound: Stop leaves the guardian at most ``TRIP_AFTER_S`` + ``POLL_S`` after the application's last
 heartbeat, i.e. 0.31 s; with the guardian's own scheduling on a loaded machine, stimulation ends within
 0.5 s (docs/fes.md, "Dead man's switch"). 0.3 s is six missed heartbeats: a normal-priority thread woken late
@@ -49,6 +55,9 @@ WRITE_TIMEOUT_S = 0.2
 
 # Messages on the socket pair (SOCK_SEQPACKET: one send, one message)
 ARM, HEARTBEAT, DISARM, QUIT, TRIPPED, READY = b"A", b"H", b"D", b"Q", b"T", b"R"
+# The window's heartbeat (#37, app.gui_watch): W + its bound in seconds (ASCII) watches the window from then on;
+# w stops watching it (the window closed). Armed and watching, a window silent for its bound trips the guardian.
+WINDOW_BEAT, WINDOW_OFF = b"W", b"w"
 START_TIMEOUT_S = 5.0
 
 log = logging.getLogger(__name__)
@@ -97,6 +106,8 @@ def guard(control: socket.socket, trip_after_s: float = TRIP_AFTER_S) -> int:
     link_fd: int | None = None
     stop = b""
     last_heartbeat = time.monotonic()
+    window_bound = 0.0  # 0: the window is not watched (no window, or it closed)
+    last_window = time.monotonic()
     ending = [False]
 
     def on_sigterm(*_args: object) -> None:
@@ -141,9 +152,16 @@ def guard(control: socket.socket, trip_after_s: float = TRIP_AFTER_S) -> int:
             kind, payload = data[:1], data[1:]
             if kind == HEARTBEAT:
                 last_heartbeat = time.monotonic()
+            elif kind == WINDOW_BEAT:
+                last_window = time.monotonic()
+                with contextlib.suppress(ValueError):
+                    window_bound = max(0.0, float(payload.decode("ascii", "replace")))
+            elif kind == WINDOW_OFF:
+                window_bound = 0.0
             elif kind == ARM and fds:
                 disarm()
                 link_fd, stop, last_heartbeat = fds[0], payload, time.monotonic()
+                last_window = max(last_window, last_heartbeat)  # a window frozen before the start gets its bound
                 fds = fds[1:]
             elif kind == DISARM:
                 disarm()
@@ -159,6 +177,9 @@ def guard(control: socket.socket, trip_after_s: float = TRIP_AFTER_S) -> int:
         silent = time.monotonic() - last_heartbeat
         if link_fd is not None and silent > trip_after_s:
             trip(f"no heartbeat from the application for {silent:.2f} s")
+        window_silent = time.monotonic() - last_window
+        if link_fd is not None and window_bound > 0 and window_silent > window_bound:
+            trip(f"the window did not respond for {window_silent:.2f} s")
 
 
 def main(argv: list[str]) -> int:
@@ -193,8 +214,14 @@ class FesGuardian:
         self._control: socket.socket | None = None
         self._lock = threading.Lock()  # arm/disarm/close; the heartbeat takes no lock
         self._last_heartbeat = 0.0
+        self._last_window_beat = 0.0
         self._last_look = 0.0
         self.armed = False
+        # Watched like every other helper (#37): the guardian's end of the socket pair closing while we did not
+        # close ours means it died (killed, crashed). ``death()`` says so once; ``restart()`` starts another.
+        self._closing = False
+        self._dead = ""
+        self._death_reported = True  # nothing to report until it has died
 
     @property
     def pid(self) -> int | None:
@@ -202,9 +229,13 @@ class FesGuardian:
 
     @property
     def alive(self) -> bool:
-        return self.proc is not None and self.proc.poll() is None and self._control is not None
+        return (self.proc is not None and not self._dead and self.proc.poll() is None
+                and self._control is not None)
 
     def start(self) -> FesGuardian:
+        self._closing = False
+        self._dead = ""
+        self._death_reported = True
         if not available():
             raise GuardianError("the FES guardian needs Unix sockets that pass descriptors (Linux, macOS)")
         ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
@@ -252,6 +283,24 @@ class FesGuardian:
         with contextlib.suppress(OSError):
             control.send(HEARTBEAT)
 
+    def window_beat(self, bound_s: float, now: float | None = None) -> None:
+        """The window's thread is alive (app.gui_watch, from that thread): armed, the guardian trips when these
+        stop for ``bound_s``. At most every HEARTBEAT_PERIOD_S; never blocks."""
+        now = time.monotonic() if now is None else now
+        control = self._control
+        if control is None or now - self._last_window_beat < HEARTBEAT_PERIOD_S * 0.8:
+            return
+        self._last_window_beat = now
+        with contextlib.suppress(OSError):
+            control.send(WINDOW_BEAT + f"{bound_s:.3f}".encode("ascii"))
+
+    def window_off(self) -> None:
+        """The window closed: its silence no longer trips the guardian."""
+        control = self._control
+        if control is not None:
+            with contextlib.suppress(OSError):
+                control.send(WINDOW_OFF)
+
     def disarm(self) -> None:
         with self._lock:
             self.armed = False
@@ -272,16 +321,65 @@ class FesGuardian:
         while True:
             try:
                 data = control.recv(4096)
-            except (BlockingIOError, OSError):
+            except BlockingIOError:
                 return why
-            if not data:
+            except OSError as exc:  # ECONNRESET: the guardian died with messages unread
+                self._died(f"its link to the application failed: {exc.strerror or exc}")
+                return why
+            if not data:  # its end closed: the guardian process ended
+                self._died("")
                 return why
             if data[:1] == TRIPPED:
                 why = data[1:].decode(errors="replace")
                 self.armed = False
 
+    def _died(self, detail: str) -> None:
+        """The guardian ended without being told to (``tripped`` saw its end of the socket pair close)."""
+        if self._closing or self._dead:
+            return
+        self._dead = detail or "its end of the link to the application closed"
+        self._death_reported = False
+        self.armed = False
+
+    @property
+    def dead(self) -> bool:
+        """It died (seen by :meth:`tripped`) and has not been restarted since."""
+        return bool(self._dead)
+
+    def death(self) -> str:
+        """Why the guardian died, once ('' when it is alive, or its death was already reported). :meth:`tripped`
+        is what notices the death; the driver sends Stop first and then asks this, which may wait up to 50 ms
+        for the process's exit code."""
+        if not self._dead or self._death_reported:
+            return ""
+        self._death_reported = True
+        code = self.proc.poll() if self.proc is not None else None
+        if code is None and self.proc is not None:  # its socket closes as it exits: reaped a moment later
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                code = self.proc.wait(0.05)
+        how = (f"killed by signal {-code}" if code is not None and code < 0
+               else f"exit code {code}" if code is not None else self._dead)
+        return f"the FES guardian process (pid {self.pid}) ended unexpectedly ({how})"
+
+    def restart(self) -> FesGuardian:
+        """A new guardian process in place of one that died (or never started): the old one reaped, its socket
+        closed. Raises GuardianError when the new one cannot start."""
+        with self._lock:
+            self.armed = False
+            control, self._control = self._control, None
+            if control is not None:
+                control.close()
+        old = self.proc
+        if old is not None and old.poll() is None:
+            old.kill()
+        if old is not None:
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                old.wait(1.0)
+        return self.start()
+
     def close(self, timeout_s: float = 1.0) -> None:
         """Disarm and end the guardian (the app's orderly end: stimulation was stopped before)."""
+        self._closing = True  # its end closing from now on is no death
         with self._lock:
             self.armed = False
             control, self._control = self._control, None

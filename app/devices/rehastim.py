@@ -613,6 +613,8 @@ class FesDriver(DeviceDriver):
                     self._fault(text)
                 else:
                     self._report_fault(text)
+            if self.guardian.dead:
+                self._guardian_died()
         if self.protocol == "sm2" and self._sm2_ready and now - self._last_write >= SM2_KEEPALIVE_PERIOD_S:
             self._write_numbered(lambda pn: encode_sm2(Sm2Watchdog(pn)))
         self._check_ack_timeouts(now)
@@ -625,13 +627,56 @@ class FesDriver(DeviceDriver):
         self.read_timeout_s = min(MAX_WAKE_PERIOD_S, max(MIN_WAKE_PERIOD_S, due - self.clock()))
 
     # ================================================================== internals
+    def _guardian_died(self) -> None:
+        """The guardian process died (driver thread; seen by its ``tripped``): watched like every other helper
+        (#37). Stimulating, Stop goes out at once and a STOP alarm says why — without the guardian a frozen app
+        would leave a ScienceMode 1 stimulator running (docs/fes.md, "The guardian is watched"). Either way the
+        death is an alarm, and a new guardian is started on the command queue's thread, before any next start."""
+        guardian = self.guardian
+        if guardian is None:
+            return
+        was = self._stimulating
+        if was:
+            self.stop_stimulation("the FES guardian died", "fes driver")  # first: nothing below may delay Stop
+        why = guardian.death()
+        if not why:
+            return  # already reported
+        log.error("fes: %s", why)
+        self.supervisor.event("fes_guardian_died", reason=why, stimulating=was)
+        if was:
+            self._report_fault(f"The FES dead man's switch stopped working ({why}); stimulation stopped. It is "
+                               "restarted before stimulation can start again")
+        else:
+            self.supervisor.raise_alarm(AlarmLevel.WARNING, "FES",
+                                        f"The FES dead man's switch stopped working ({why}); it is restarted "
+                                        "before stimulation can start again")
+        self.commands.submit("restart the FES guardian", lambda _s: self._restart_guardian(), source="fes driver",
+                             exclusive=False)
+
+    def _restart_guardian(self) -> None:
+        """A new guardian in place of a dead one (the FES command queue's thread: starting it takes ~50 ms)."""
+        guardian = self.guardian
+        if guardian is None or guardian.alive:
+            return
+        try:
+            guardian.restart()
+        except GuardianError as exc:
+            log.error("fes: %s", exc)
+            self.supervisor.event("device_error", device="fes", error=str(exc))
+            raise FesError(f"{exc}; stimulation refused") from exc
+        log.info("fes: the FES guardian was restarted (pid %s)", guardian.pid)
+        self.supervisor.event("fes_guardian_restarted", pid=guardian.pid)
+
     def _arm_guardian(self) -> None:
-        """Hand the guardian this link's descriptor and this protocol's Stop; refuse to stimulate without it."""
+        """Hand the guardian this link's descriptor and this protocol's Stop; refuse to stimulate without it.
+        A guardian that died is started again first."""
         guardian = self.guardian
         if guardian is None:
             if self.require_guardian:
                 raise FesError("the FES guardian (the dead man's switch) is not running; stimulation refused")
             return
+        if not guardian.alive:
+            self._restart_guardian()
         fd = link_descriptor(self.transport)
         if fd is None:
             raise FesError("the FES guardian cannot reach this link; stimulation refused")

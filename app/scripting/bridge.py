@@ -172,6 +172,9 @@ def hello_message() -> dict[str, Any]:
 
 # ---------------------------------------------------------------------------------------------- samples
 def _plain(value: Any) -> Any:
+    """``value`` as plain data for the kernel: None, bool, str, int, float, and lists and dicts of them (keys as
+    strings); anything else as its text. Dicts inside lists stay dicts (#37: the electrode set-up's combinations
+    reached scripts as strings)."""
     if value is None or isinstance(value, bool | str):
         return value
     if isinstance(value, int):
@@ -186,6 +189,8 @@ def _plain(value: Any) -> Any:
             pass
     if isinstance(value, list | tuple):
         return [_plain(v) for v in value]
+    if isinstance(value, dict):
+        return {str(k): _plain(v) for k, v in value.items()}
     return str(value)
 
 
@@ -977,6 +982,8 @@ class ApiBridge:
                     "channels": [str(c) for c in getattr(value, "channels", {})]}
         if isinstance(value, dict):
             return {str(k): self._result(v) for k, v in value.items()}
+        if isinstance(value, list):
+            return [self._result(v) for v in value]
         return _plain(value) if not isinstance(value, tuple) else value
 
     def reply(self, rid: int, value: Any = None, error: BaseException | None = None) -> None:

@@ -172,7 +172,38 @@ class MainWindow(QMainWindow):
         install_wheel_guard()  # the wheel over a number box scrolls the form unless the box has the focus (#36)
         manager.supervisor.estop_changed.connect(self._on_estop_changed)
         self._quit_confirmed = False  # may_quit() said yes: a second close event does not ask again
+        self._install_gui_watch()
+        self._offer_larger_graphs()
         self._restore_settings()
+
+    # ------------------------------------------------------------------ the watched window (#37)
+    def _install_gui_watch(self) -> None:
+        """This window's thread beats for the GUI watch (app.gui_watch): a stall while the robot is ON or
+        stimulation runs is an alarm, a longer one the safe state."""
+        from app.ui.gui_heartbeat import install_gui_watch
+
+        self.gui_heartbeat = install_gui_watch(self.manager, self)
+
+    def _offer_larger_graphs(self) -> None:
+        """The Graphs frame's "Larger": the Commands frame steps aside so the graphs get the whole right column
+        (#37: six graphs readable at 1366×768); any command tab opened brings it back."""
+        plots, commands = self.frames.get("PlotsFrame"), self.docks.get("CommandsFrame")
+        if plots is None or commands is None or not hasattr(plots, "enlarge_toggled"):
+            return
+        plots.set_enlarge_offered(True)
+        plots.enlarge_toggled.connect(self.set_graphs_enlarged)
+        commands.toggleViewAction().toggled.connect(lambda shown: plots.set_enlarged(not shown))
+
+    def set_graphs_enlarged(self, enlarged: bool) -> None:
+        commands = self.docks.get("CommandsFrame")
+        if commands is not None:
+            commands.setVisible(not enlarged)
+
+    def stop_gui_watch(self) -> None:
+        """No more judgement of this window's thread (it closes, or the application's loop has ended)."""
+        heartbeat = getattr(self, "gui_heartbeat", None)
+        if heartbeat is not None:
+            heartbeat.close()
 
     # ------------------------------------------------------------------ building
     def _build_toolbar(self) -> None:
@@ -650,6 +681,7 @@ class MainWindow(QMainWindow):
             if callable(save):
                 save(settings)
         super().closeEvent(event)
+        self.stop_gui_watch()
         self.qt_bus.close()  # the frames' data stops here; the bus forgets the window
         self._tasks_closed = True
         if self._tasks is not None:
