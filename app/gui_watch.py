@@ -32,11 +32,12 @@ import logging
 import threading
 import time
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 from app import streams
 
 if TYPE_CHECKING:  # the supervisor is a QObject; this module imports nothing of Qt (docs/decisions.md)
+    from app.manager import LinarmppManager
     from app.safety import Alarm, SafetySupervisor
 
 log = logging.getLogger(__name__)
@@ -54,7 +55,7 @@ GUARDIAN_WINDOW_TRIP_S = 0.9
 IDLE_EXIT_S = 1.0  # nothing driving this long: the watch's thread ends (a beat starts it again)
 
 
-def what_drives(manager: Any) -> str:
+def what_drives(manager: LinarmppManager) -> str:
     """What a stall of the window would leave unattended: 'the robot is ON', 'stimulation runs', both, or ''."""
     parts = []
     state = manager.bus.latest(streams.LINARM_STATE) if manager.driver(streams.LINARM) is not None else None

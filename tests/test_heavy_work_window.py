@@ -12,6 +12,7 @@ F12 acted seconds late; the HDF5 export to a full disk killed the application.""
 from __future__ import annotations
 
 import time
+from contextlib import ExitStack
 from pathlib import Path
 
 import pytest
@@ -39,7 +40,27 @@ def _undisturbed(seen: dict) -> None:  # type: ignore[type-arg]
 
 def test_opening_a_long_session_during_an_fes_exercise(qtbot, tmp_path_factory, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
     folder = shared_long_session(tmp_path_factory)
-    therapy = start_therapy(folder.parent.parent, lambda p, ms: qtbot.waitUntil(p, timeout=ms))
+    # The test's own set-up (mounting the full and read-only disks, writing and reading a small session) is done
+    # before the exercise starts: it runs on this thread, the window's, which the GUI watch judges while the robot
+    # is ON and stimulation runs (a mount is a process: ~1 s a stall no clinician's action makes).
+    mounts = ExitStack()
+    places = [mounts.enter_context(full_disk(tmp_path / "full", size_kib=1024, leave_bytes=16 * 1024)),
+              mounts.enter_context(read_only(tmp_path / "ro"))]
+    small = write_run_session(tmp_path / "sessions" / "P1" / "20260301-100000", clinic_day_runs())
+    from app.reports import progress_rows
+    from app.ui.progress_view import ProgressView
+    from app.ui.session_summary import SessionSummaryDialog
+
+    report_dialog = SessionSummaryDialog(small)  # built here, before the exercise: the browser opens it staged
+    qtbot.addWidget(report_dialog)
+    report_view = report_dialog.summary
+    progress_view = ProgressView("P1", progress_rows("P1", tmp_path / "sessions"))
+    qtbot.addWidget(progress_view)
+    try:
+        therapy = start_therapy(folder.parent.parent, lambda p, ms: qtbot.waitUntil(p, timeout=ms))
+    except BaseException:
+        mounts.close()
+        raise
     browser = therapy.browser
     try:
         browser.set_patient(folder.parent.name)
@@ -70,38 +91,27 @@ def test_opening_a_long_session_during_an_fes_exercise(qtbot, tmp_path_factory, 
               f"{max(replay.therapy['host_silence_s'], summary.therapy['host_silence_s']) * 1e3:.0f} ms")
 
         # 3. outputs to a full disk and to a read-only folder during the exercise
-        small = write_run_session(tmp_path / "sessions" / "P1" / "20260301-100000", clinic_day_runs())
-        from app.ui.progress_view import ProgressView
-        from app.ui.session_summary import SessionSummaryDialog
-
-        report_dialog = SessionSummaryDialog(small, tasks=browser.tasks)
-        qtbot.addWidget(report_dialog)
-        report_view = report_dialog.summary
-        from app.reports import progress_rows
-
-        progress_view = ProgressView("P1", progress_rows("P1", tmp_path / "sessions"), tasks=browser.tasks)
-        qtbot.addWidget(progress_view)
+        report_view.tasks = progress_view.tasks = browser.tasks  # their PDFs drawn in the window's worker
         t0 = time.monotonic()
-        for mount in (full_disk(tmp_path / "full", size_kib=1024, leave_bytes=16 * 1024), read_only(tmp_path / "ro")):
-            with mount as place:
-                results = []
-                for kind, dest in (("hdf5", place / "s.h5"), ("csv", place / "csv")):
-                    job = browser.export(small, kind, dest)
-                    qtbot.waitUntil(lambda job=job: job not in browser.jobs, timeout=60000)  # shown on the GUI thread
-                    assert job.task.status is TaskStatus.FAILED and "\n" not in job.message
-                    assert browser.status.text() == job.message and browser.message_box.text() == job.message
-                    browser.message_box.close()
-                    results.append(job.message)
-                for view, name in ((report_view, "r.pdf"), (progress_view, "p.pdf")):
-                    task = view.save_pdf_in_worker(place / name)
-                    qtbot.waitUntil(lambda task=task, view=view: task.done and "Writing" not in view.status.text(),
-                                    timeout=60000)
-                    assert task.status is TaskStatus.FAILED and view.status.text() == task.error
-                    assert not view.status.text().startswith("Report written") and "\n" not in task.error
-                    results.append(task.error)
-                assert entries(place) == [], entries(place)  # nothing claimed, nothing left
-                word = "full" if place.name == "full" else "read-only"
-                assert all(word in r for r in results), results
+        for place in places:
+            results = []
+            for kind, dest in (("hdf5", place / "s.h5"), ("csv", place / "csv")):
+                job = browser.export(small, kind, dest)
+                qtbot.waitUntil(lambda job=job: job not in browser.jobs, timeout=60000)  # shown on the GUI thread
+                assert job.task.status is TaskStatus.FAILED and "\n" not in job.message
+                assert browser.status.text() == job.message and browser.message_box.text() == job.message
+                browser.message_box.close()
+                results.append(job.message)
+            for view, name in ((report_view, "r.pdf"), (progress_view, "p.pdf")):
+                task = view.save_pdf_in_worker(place / name)
+                qtbot.waitUntil(lambda task=task, view=view: task.done and "Writing" not in view.status.text(),
+                                timeout=60000)
+                assert task.status is TaskStatus.FAILED and view.status.text() == task.error
+                assert not view.status.text().startswith("Report written") and "\n" not in task.error
+                results.append(task.error)
+            assert entries(place) == [], entries(place)  # nothing claimed, nothing left
+            word = "full" if place.name == "full" else "read-only"
+            assert all(word in r for r in results), results
         seen = therapy.check_undisturbed(t0, time.monotonic())
         _undisturbed(seen)  # the HDF5 crash (or error) in the worker took nothing of the therapy with it
 
@@ -121,3 +131,4 @@ def test_opening_a_long_session_during_an_fes_exercise(qtbot, tmp_path_factory, 
         stop_therapy(therapy)
         for w in list(browser.windows):
             w.close()
+        mounts.close()

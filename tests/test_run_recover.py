@@ -38,8 +38,7 @@ def window(qtbot: Any, tmp_path: Path, monkeypatch: Any) -> Iterator[MainWindow]
                                        vr=UdpEndpoint(mode="off")))
     manager = LinarmppManager(cfg)
     manager.start()
-    win = MainWindow(manager)
-    qtbot.addWidget(win)
+    win = MainWindow(manager)  # closed below, not by qtbot: its teardown runs first, and Quit would ask (a run)
     win.show()
     try:
         qtbot.waitUntil(manager.all_connected, timeout=20000)

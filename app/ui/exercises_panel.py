@@ -773,17 +773,37 @@ class ExercisesPanel(QWidget):
         show_when_unblocked(self, lambda: self.show_summary(folder, since, until, name))
 
     def show_summary(self, folder: Path, since: float | None, until: float | None, title: str) -> QWidget | None:
+        """The run's summary: the session is read and its metrics computed in the window's worker process (issue
+        #37: a long session read here held the GUI thread, and the interpreter the drivers need, for seconds), then
+        the dialog is built here, a run's tab when it is first shown (``summary_dialog`` once it is shown). Without
+        a window's worker (a panel on its own) it is read here. Returns the dialog when it was built at once."""
         from app.ui.session_summary import SessionSummaryDialog
 
-        try:
-            dialog = SessionSummaryDialog(folder, since, until, title=f"{title} — summary", parent=self)
-        except Exception:  # the summary must never take the exercise's end down with it
-            log.exception("session summary failed")
-            self._say(self.message.text() + " (the summary could not be computed: see the log)", error=True)
-            return None
-        self.summary_dialog = dialog
-        dialog.show()
-        return dialog
+        provider = getattr(self.window(), "tasks", None)
+        tasks = provider() if callable(provider) else None
+        if tasks is None:
+            try:
+                dialog = SessionSummaryDialog(folder, since, until, title=f"{title} — summary", parent=self)
+            except Exception:  # the summary must never take the exercise's end down with it
+                log.exception("session summary failed")
+                self._say(self.message.text() + " (the summary could not be computed: see the log)", error=True)
+                return None
+            self.summary_dialog = dialog
+            dialog.show()
+            return dialog
+
+        def done(task: Any) -> None:
+            if not task.ok:  # cancelled, or a sentence from the worker: said beside the run's own words
+                why = task.error or "cancelled"
+                self._say(self.message.text() + f" (the summary could not be computed: {why})", error=True)
+                return
+            dialog = SessionSummaryDialog(folder, since, until, title=f"{title} — summary", parent=self,
+                                          data=task.result, tasks=tasks, staged=True)
+            self.summary_dialog = dialog
+            dialog.show()
+
+        tasks.run("session_summary", str(folder), title=f"Summary of {title}", on_done=done)
+        return None
 
     def _sync_buttons(self) -> None:
         running = self._runner is not None and self._runner.running

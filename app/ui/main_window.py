@@ -183,6 +183,17 @@ class MainWindow(QMainWindow):
         from app.ui.gui_heartbeat import install_gui_watch
 
         self.gui_heartbeat = install_gui_watch(self.manager, self)
+        # The collector's full walks kept off the therapy (app/gc_policy.py): survivors settled while driving,
+        # everything collected once at rest.
+        from app.gc_policy import TICK_S, HeapPolicy
+        from app.gui_watch import what_drives
+
+        self.heap_policy = HeapPolicy(lambda: what_drives(self.manager))
+        self._heap_timer = QTimer(self)
+        self._heap_timer.setInterval(int(TICK_S * 1000))
+        self._heap_timer.timeout.connect(self.heap_policy.tick)
+        self._heap_timer.start()
+        QTimer.singleShot(0, self.heap_policy.settle)  # the window and its frames live as long as the app
 
     def _offer_larger_graphs(self) -> None:
         """The Graphs frame's "Larger": the Commands frame steps aside so the graphs get the whole right column
@@ -267,6 +278,9 @@ class MainWindow(QMainWindow):
         # needed; a session that ends gets its columnar copy there, so opening it later is fast.
         self._tasks: QtTasks | None = None
         self._tasks_closed = False
+        from app.worker.jobs import import_result_types
+
+        import_result_types()  # at start-up, not during a therapy when the first result arrives (app/worker/jobs.py)
         self._recording: Path | None = recorder_folder(self.manager)
         self.manager.session_changed.connect(self._session_folder_changed)
         self._show_session()
@@ -449,6 +463,8 @@ class MainWindow(QMainWindow):
 
         self._browser = SessionsBrowser(sessions_root(self.manager.config), self.manager.config.ui.history_s,
                                         active=lambda: recorder_folder(self.manager), tasks=self.tasks())
+        # a replay or summary window just built lives on while it is open: out of the collector's walk at once
+        self._browser.opened.connect(lambda _widget: QTimer.singleShot(0, self.heap_policy.settle))
         self._browser.show()
 
     def show_alarms(self) -> None:

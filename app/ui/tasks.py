@@ -31,6 +31,9 @@ class QtTasks(QObject):
 
     def __init__(self, service: TaskService | None = None, parent: QObject | None = None) -> None:
         super().__init__(parent)
+        from app.worker.jobs import import_result_types
+
+        import_result_types()  # now, not while unpickling a result during a therapy (see there)
         self.service = service or TaskService()
         self._owns = service is None
         self._handlers: dict[int, tuple[Done | None, QProgressDialog | None]] = {}

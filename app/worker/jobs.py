@@ -50,6 +50,17 @@ def preload() -> None:
     import app.reports  # noqa: F401
 
 
+def import_result_types() -> None:
+    """On the app's side: the modules whose classes the results are made of (a run's report, its metrics, the
+    session's overview). Unpickling a result imports what it names, holding the interpreter lock: the first
+    summary shown during a therapy held the window's thread 70 ms (and the drivers' interpreter) importing
+    app.reports. The window calls this when it is built, before any therapy runs."""
+    import app.metrics
+    import app.reports
+    import app.runs
+    import app.worker.session_data  # noqa: F401
+
+
 # ---------------------------------------------------------------------------------------------- reading
 def _load(ctx: JobContext, folder: str | Path, share: float) -> Any:
     """The session, its side-file written first when it has none (the next load is fast); progress up to
