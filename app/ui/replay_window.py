@@ -157,8 +157,13 @@ class ReplayWindow(QWidget):
         else:
             self._first_screen()
 
-    def _stage_signals(self) -> None:
-        self.plots.set_selected(self._initial_signals)
+    def _stage_signals(self, shown: int = 0) -> None:
+        """One more signal ticked per turn of the event loop (a new pane costs 30-40 ms to build; all of them in
+        one turn held the window 0.2-0.4 s, which the GUI watch judges while a therapy runs: #37)."""
+        if shown < len(self._initial_signals):
+            self.plots.set_selected(self._initial_signals[:shown + 1])
+            QTimer.singleShot(0, self, lambda: self._stage_signals(shown + 1))
+            return
         QTimer.singleShot(0, self, self._stage_first_screen)
 
     def _stage_first_screen(self) -> None:
