@@ -621,6 +621,12 @@ class LinarmppManager(QObject):
     def all_connected(self) -> bool:
         return bool(self.devices) and all(h.driver.connected for h in self.devices.values())
 
+    def all_ready(self) -> bool:
+        """Connected, and each device that announces itself has (a ScienceMode 2 stimulator's Init): what a
+        script needs before its first command (a headless script's fes.start() came before the Init)."""
+        return self.all_connected() and all(bool(getattr(h.driver, "device_ready", True))
+                                            for h in self.devices.values())
+
 
 def _command(robot: LinarmDriver, args: tuple[Any, ...], source: str) -> None:
     """One robot command from the therapy thread; a refusal or a failed ack is logged, never raised (the next

@@ -133,25 +133,30 @@ def start_therapy(sessions_root: Path, wait: Callable[[Callable[[], bool], int],
                                                  "fes": rehastim.create})
     manager.start()
     window = MainWindow(manager)
-    window.show()
-    wait(manager.all_connected, 10000)
-    fes = manager.driver("fes")
-    wait(lambda: fes.device_ready, 5000)
-    robot = manager.driver("linarm")
-    robot.command("goToHome")
-    wait(lambda: robot.latest("linarm.state") is not None
-         and int(robot.latest("linarm.state").homeState) == int(HomeState.HOME_DONE), 15000)
-    robot.command("setCtrlState", int(ControlState.IDLE_CTRL_STATE))
-    robot.command("setCtrlMode", int(ControlMode.POS_REF_BY_TARGET_POS))
-    robot.command("setCtrlState", int(ControlState.ON_CTRL_STATE))
-    for name in ("linarm", "fes"):
-        manager.devices[name].simulator.keep_host_log = True
-    fes.load_profile(PROFILE)
-    fes.start_stimulation("exercise")
-    wait(lambda: fes.stimulating, 3000)
-    window.show_sessions_browser()
-    browser = window._browser
-    meter = GapMeter()
+    try:
+        window.show()
+        wait(manager.all_connected, 10000)
+        fes = manager.driver("fes")
+        wait(lambda: fes.device_ready, 5000)
+        robot = manager.driver("linarm")
+        robot.command("goToHome")
+        wait(lambda: robot.latest("linarm.state") is not None
+             and int(robot.latest("linarm.state").homeState) == int(HomeState.HOME_DONE), 30000)
+        robot.command("setCtrlState", int(ControlState.IDLE_CTRL_STATE))
+        robot.command("setCtrlMode", int(ControlMode.POS_REF_BY_TARGET_POS))
+        robot.command("setCtrlState", int(ControlState.ON_CTRL_STATE))
+        for name in ("linarm", "fes"):
+            manager.devices[name].simulator.keep_host_log = True
+        fes.load_profile(PROFILE)
+        fes.start_stimulation("exercise")
+        wait(lambda: fes.stimulating, 3000)
+        window.show_sessions_browser()
+        browser = window._browser
+        meter = GapMeter()
+    except BaseException:  # nothing left running for the next test (a slow homing on a loaded machine)
+        window.close()
+        manager.shutdown()
+        raise
     return Therapy(manager, window, browser, meter)
 
 

@@ -177,14 +177,15 @@ def _record_dir_problem(root: Path, config: AppConfig) -> str:
 
 def _wait_connected(manager: LinarmppManager, app: QCoreApplication, signals: SignalEvents | None = None) -> None:
     deadline = time.monotonic() + CONNECT_TIMEOUT_S
-    while not manager.all_connected() and time.monotonic() < deadline:
+    while not manager.all_ready() and time.monotonic() < deadline:
         if signals is not None and signals.received is not None:
             return
         app.processEvents()
         time.sleep(0.02)
-    missing = [name for name, h in manager.devices.items() if not h.driver.connected]
+    missing = [name for name, h in manager.devices.items()
+               if not h.driver.connected or not getattr(h.driver, "device_ready", True)]
     if missing:
-        log.warning("headless: not connected after %.0f s: %s (the script may fail on them)",
+        log.warning("headless: not connected and ready after %.0f s: %s (the script may fail on them)",
                     CONNECT_TIMEOUT_S, ", ".join(missing))
 
 
