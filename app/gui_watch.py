@@ -89,6 +89,7 @@ class GuiWatch:
         self.idle_exit_s = idle_exit_s
         self.beat_listeners: list[Callable[[float], None]] = []  # e.g. the FES guardian's window beat
         self._last_beat = clock()
+        self._window_thread: int | None = None  # the beating thread: its stack is logged with a warning
         self._lock = threading.Lock()  # the thread's start and stop
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
@@ -105,6 +106,7 @@ class GuiWatch:
         """The window's thread is alive (its timer ran). Starts the watch's thread when something drives."""
         now = self.clock() if now is None else now
         self._last_beat = now
+        self._window_thread = threading.get_ident()
         for listener in self.beat_listeners:
             try:
                 listener(now)
@@ -145,6 +147,7 @@ class GuiWatch:
             text = f"The window stopped responding ({age:.2f} s without its heartbeat) while {what}"
             self.supervisor.event("gui_stall", stalled_s=round(age, 3), driving=what)
             self._warning = self.supervisor.raise_alarm(AlarmLevel.WARNING, "window", text, key="gui stall")
+            self._log_window_stack()
         if age >= self.safe_after_s:
             self._safe_state = True
             text = (f"The window did not respond for {age:.2f} s while {what}: the robot was set to IDLE and "
@@ -153,6 +156,17 @@ class GuiWatch:
             self.supervisor.event("gui_stall_safe_state", stalled_s=round(age, 3), driving=what)
             # The fault policy, connected directly to the alarm, runs the stop actions here, on this thread.
             self.supervisor.raise_alarm(AlarmLevel.STOP, "window", text, key="gui stall safe state")
+
+    def _log_window_stack(self) -> None:
+        """Where the window's thread is now, in the log (for whoever finds the stall's cause; not in the alarm's
+        text). A thread in Qt's C++ code without the interpreter lock shows its last Python frame."""
+        import sys
+        import traceback
+
+        frame = sys._current_frames().get(self._window_thread) if self._window_thread is not None else None
+        if frame is not None:
+            stack = "".join(traceback.format_stack(frame)[-10:])
+            log.warning("gui watch: the window's thread during the stall:\n%s", stack)
 
     def _drives(self) -> str:
         try:

@@ -245,7 +245,7 @@ def _session_and_first_exercise(qtbot: Any, manager: LinarmppManager,
         d = panel.summary_dialog
         return d is not None and d.isVisible() and [r.run.run_id for r in d.summary.runs] == [first.run_id,
                                                                                                again.run_id]
-    _wait(qtbot, manager, window, summary_of_both, 15000, "the summary of the run and its continuation")
+    _wait(qtbot, manager, window, summary_of_both, 60000, "the summary of the run and its continuation")
     summary = panel.summary_dialog
     _show_every_run(qtbot, summary.summary)  # a run's tab is built when first shown (staged: #37)
     _shot(summary, "06-exercise-summary")

@@ -281,6 +281,9 @@ class MainWindow(QMainWindow):
         from app.worker.jobs import import_result_types
 
         import_result_types()  # at start-up, not during a therapy when the first result arrives (app/worker/jobs.py)
+        # The worker started when a session starts (off this thread, niced): its first start imports the
+        # scientific stack, 20 s and more on a loaded PC, and the first exercise's summary should not wait for it.
+        self.manager.session_changed.connect(lambda folder: self._warm_worker() if folder is not None else None)
         self._recording: Path | None = recorder_folder(self.manager)
         self.manager.session_changed.connect(self._session_folder_changed)
         self._show_session()
@@ -441,6 +444,10 @@ class MainWindow(QMainWindow):
 
         self._patients_window = PatientsDialog(self.manager.config.safety, parent=self)
         self._patients_window.show()
+
+    def _warm_worker(self) -> None:
+        if not self._tasks_closed:
+            self.tasks().warm()
 
     def tasks(self) -> QtTasks:
         """The window's worker process (app/ui/tasks.py), made when first needed."""

@@ -66,7 +66,9 @@ def _table(headers: Sequence[str], name: str) -> QTableWidget:
 class RunSummary(QWidget):
     """One run: what ran, how it ended, its parameters, its repetitions and their plots, its alarms."""
 
-    def __init__(self, report: RunReport, parent: QWidget | None = None) -> None:
+    def __init__(self, report: RunReport, parent: QWidget | None = None, staged: bool = False) -> None:
+        """``staged``: the plots are built one per turn of the event loop (a plot costs ~40 ms; the four at once
+        held the window 0.25 s, 0.7 s on a loaded PC: the GUI watch stopped the next exercise, #37)."""
         super().__init__(parent)
         self.report = report
         run, summary, reps = report.run, report.summary, report.repetitions
@@ -100,30 +102,18 @@ class RunSummary(QWidget):
                 self.table.setItem(row, col, item)
 
         self.plots: dict[str, pg.PlotWidget] = {}
-        grid = QGridLayout()
-        x = [r["index"] for r in reps]
-        for k, (title_, keys, unit) in enumerate(SUMMARY_PLOTS):
-            plot = pg.PlotWidget(title=title_ + (f" [{unit}]" if unit else ""))
-            plot.setBackground("w")
-            plot.showGrid(x=True, y=True, alpha=0.3)
-            plot.setLabel("bottom", f"repetition of run {report.number}")
-            plot.setMinimumHeight(110)
-            if len(keys) > 1:
-                plot.addLegend(offset=(-5, 5), colCount=len(keys))
-            values: list[float] = []
-            for j, (key, name) in enumerate(keys):
-                pts = [(a, b) for a, b in zip(x, [r.get(key) for r in reps], strict=True) if b is not None]
-                if pts:
-                    values += [b for _, b in pts]
-                    plot.plot([a for a, _ in pts], [b for _, b in pts], name=name,
-                              pen=pg.mkPen(PLOT_PENS[j % 2], width=2), symbol="o", symbolSize=6,
-                              symbolBrush=PLOT_PENS[j % 2])
-            if values:
-                plot.setYRange(*y_range(values), padding=0)
-            if x:
-                plot.getAxis("bottom").setTicks([[(i, str(i)) for i in x]] if len(x) <= 20 else None)
-            self.plots[title_] = plot
-            grid.addWidget(plot, k // 2, k % 2)
+        self._grid = grid = QGridLayout()
+        self._placeholders: list[QWidget] = []
+        for k in range(len(SUMMARY_PLOTS)):
+            if staged and reps:
+                spot = QWidget()
+                spot.setMinimumHeight(110)
+                self._placeholders.append(spot)
+                grid.addWidget(spot, k // 2, k % 2)
+            else:
+                self._add_plot(k)
+        if self._placeholders:
+            QTimer.singleShot(0, self, self._next_plot)
 
         self.alarms = _alarm_table(report.alarms, f"Alarms and interruptions of run {report.number}")
         # up to six repetitions visible without scrolling; the plots take the rest
@@ -151,6 +141,49 @@ class RunSummary(QWidget):
                              + (" — listed below with the interruptions" if report.alarms else "")))
         lay.addWidget(self.alarms)
 
+
+    @property
+    def plots_built(self) -> bool:
+        return len(self.plots) == len(SUMMARY_PLOTS)
+
+    def _next_plot(self) -> None:
+        k = len(self.plots)
+        if k < len(SUMMARY_PLOTS):
+            spot = self._placeholders[k]
+            self._grid.removeWidget(spot)
+            spot.deleteLater()
+            self._add_plot(k)
+        if not self.plots_built:
+            QTimer.singleShot(0, self, self._next_plot)
+
+    def _add_plot(self, k: int) -> None:
+        """The ``k``-th of SUMMARY_PLOTS across the run's repetitions, in its place in the grid."""
+        report, reps = self.report, self.report.repetitions
+        title_, keys, unit = SUMMARY_PLOTS[k]
+        x = [r["index"] for r in reps]
+        plot = pg.PlotWidget(title=title_ + (f" [{unit}]" if unit else ""))
+        plot.setBackground("w")
+        plot.showGrid(x=True, y=True, alpha=0.3)
+        plot.setLabel("bottom", f"repetition of run {report.number}")
+        plot.setMinimumHeight(110)
+        if len(keys) > 1:
+            plot.addLegend(offset=(-5, 5), colCount=len(keys))
+        values: list[float] = []
+        for j, (key, name) in enumerate(keys):
+            pts = [(a, b) for a, b in zip(x, [r.get(key) for r in reps], strict=True) if b is not None]
+            if pts:
+                values += [b for _, b in pts]
+                plot.plot([a for a, _ in pts], [b for _, b in pts], name=name,
+                          pen=pg.mkPen(PLOT_PENS[j % 2], width=2), symbol="o", symbolSize=6,
+                          symbolBrush=PLOT_PENS[j % 2])
+        if values:
+            plot.setYRange(*y_range(values), padding=0)
+        if x:
+            plot.getAxis("bottom").setTicks([[(i, str(i)) for i in x]] if len(x) <= 20 else None)
+        self.plots[title_] = plot
+        self._grid.addWidget(plot, k // 2, k % 2)
+        if not reps:
+            plot.hide()
 
     def showEvent(self, event: Any) -> None:
         super().showEvent(event)
@@ -250,7 +283,8 @@ class SessionSummary(QWidget):
     def is_ready(self) -> bool:
         """The tab shown is built (a staged summary builds the others when they are shown)."""
         shown = self._run_at(self.tabs.currentIndex())
-        return not any(x is shown for x in self._to_build)
+        view = self.run_views.get(shown.run.run_id) if shown is not None else None
+        return not any(x is shown for x in self._to_build) and (view is None or view.plots_built)
 
     def _run_at(self, index: int) -> RunReport | None:
         k = index - (1 if self.overview is not None else 0)
@@ -266,7 +300,7 @@ class SessionSummary(QWidget):
             index = next(k for k, x in enumerate(self.runs) if x is r) + (1 if self.overview is not None else 0)
             shown = self.tabs.currentIndex()
             self._to_build = [x for x in self._to_build if x is not r]
-            summary = RunSummary(r, self)
+            summary = RunSummary(r, self, staged=True)
             self.run_views[r.run.run_id] = summary
             view = _scrolled(summary)
             placeholder = self.tabs.widget(index)
