@@ -15,6 +15,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
@@ -24,6 +25,9 @@ os.environ.setdefault("LINARMPP_HOME", tempfile.mkdtemp(prefix="linarmpp-shots-"
 def main() -> int:
     parser = argparse.ArgumentParser()
     parser.add_argument("--out", default=str(ROOT / "docs" / "screenshots"))
+    parser.add_argument("--screen", action="store_true",
+                        help="under a window manager: the whole screen, the window maximised then not, every tab "
+                             "(<state>-tab-<name>-<screen width>.png); the screen's size is the display's")
     args = parser.parse_args()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -86,6 +90,12 @@ def main() -> int:
     pump(2.5)
     from PySide6.QtCore import Qt
 
+    if args.screen:
+        _screen_shots(app, window, commands, out, pump)
+        runner.stop("screenshots taken", wait_s=2.0)
+        window.close()
+        manager.shutdown()
+        return 0
     window.setWindowState(Qt.WindowState.WindowNoState)
     script_tab = commands.tabs.currentIndex()
     for width, height, name in ((1366, 768, "main-window.png"), (1920, 1080, "main-window-1920.png")):
@@ -118,6 +128,27 @@ def main() -> int:
     window.close()
     manager.shutdown()
     return 0
+
+
+def _screen_shots(app: Any, window: Any, commands: Any, out: Path, pump: Any) -> None:
+    """The whole screen as a person sees it (the window manager's frame included): maximised, then a normal
+    window of 80 % of the screen, each Commands tab in turn."""
+    from PySide6.QtCore import Qt
+
+    screen = app.primaryScreen()
+    width = screen.size().width()
+    for state, tag in ((Qt.WindowState.WindowMaximized, "max"), (Qt.WindowState.WindowNoState, "normal")):
+        window.setWindowState(state)
+        if tag == "normal":
+            window.resize(int(width * 0.8), int(screen.size().height() * 0.8))
+        pump(1.5)
+        for i in range(commands.tabs.count()):
+            commands.tabs.setCurrentIndex(i)
+            pump(0.8)
+            slug = commands.tabs.tabText(i).lower().replace(" ", "-").replace("&", "")
+            path = out / f"{tag}-tab-{slug}-{width}.png"
+            screen.grabWindow(0).save(str(path))
+            print("saved", path)
 
 
 if __name__ == "__main__":
