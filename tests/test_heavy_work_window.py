@@ -1,7 +1,8 @@
 """Issue #37, acceptance 1 and 3, in the window during an FES exercise (the robot ON, stimulation running):
 
 1. Replay and the summary of a 30-minute session opened from the sessions browser: no stall the GUI watch would
-   warn of (the ≤ 50 ms figure is the bench's, see below), no host silence the LINarm's watchdog would trip on, no Stop from the guardian, the exercise goes on;
+   warn of (the ≤ 50 ms figure is the bench's, see below), no host silence the LINarm's watchdog would trip on,
+   no Stop from the guardian, the exercise goes on;
    F12 pressed while a session loads puts robot IDLE and FES Stop on the wire at once (≤ 20 ms: the bench's).
 3. HDF5 and CSV exports and the session and progress reports to a full disk and to a read-only folder: the app
    keeps running, the therapy continues, one sentence, nothing claimed written that is not.
