@@ -382,3 +382,21 @@ def test_the_left_axis_has_room_for_tick_labels_beside_the_unit(qtbot) -> None:
     axis = frame.plots["m"].getAxis("left")
     fm = QFontMetrics(frame.graphics.font())
     assert axis.minimumWidth() >= fm.horizontalAdvance("-317.05") + fm.lineSpacing() + 8
+
+
+def test_a_pane_ticked_above_the_kept_ones_moves_them_down(qtbot) -> None:
+    """A signal whose unit comes first in the tree, ticked after one below it: its new pane takes the first row
+    and the kept pane moves down (the incremental build left both in row 0, one over the other; seen when the
+    replay window ticks its signals one per turn)."""
+    store, _ = synthetic_store()
+    frame = make_frame(qtbot, store)
+    frame.set_selected(["physio.main.heartRate"])
+    frame.set_selected(["linarm.vsa.handlePos", "physio.main.heartRate"])
+    assert list(frame.plots) == ["m", "bpm"]
+    layout = frame.graphics.ci
+    rows = {unit: layout.items[plot][0][0] for unit, plot in frame.plots.items()}
+    assert rows == {"m": 0, "bpm": 1}
+    qtbot.wait(50)
+    frame.redraw()
+    top = [p.sceneBoundingRect().top() for p in frame.plots.values()]
+    assert top[0] < top[1]  # drawn one above the other, not over it

@@ -598,7 +598,10 @@ class PlotsFrame(QWidget):
         for unit, plot in self.plots.items():
             if unit not in by_unit:
                 self._drop_pane(unit, plot)
-        relayout = [u for u in old_order if u in by_unit] != [u for u in by_unit if u in kept]
+        # A kept pane whose row changes (another pane dropped above it, or a new one taking a row above it) is
+        # laid out again: keeping only the kept panes' order put a new first pane over the kept one in row 0.
+        new_rows = {unit: row for row, unit in enumerate(by_unit)}
+        relayout = any(old_order.index(unit) != new_rows[unit] for unit in kept)
         if relayout:  # the kept panes change places: out of the layout, back in below in the new order
             for plot in kept.values():
                 self.graphics.ci.removeItem(plot)
