@@ -160,7 +160,7 @@ def write_verified(dest: str | Path, write: Callable[[Path], T], verify: Callabl
             remove_quietly(old)
         else:
             os.replace(tmp, dest)
-        _fsync_dir(dest.parent)
+        fsync_dir(dest.parent)
     except OutputError:
         remove_quietly(tmp)
         raise
@@ -172,7 +172,8 @@ def write_verified(dest: str | Path, write: Callable[[Path], T], verify: Callabl
     return result
 
 
-def _fsync_dir(folder: Path) -> None:
+def fsync_dir(folder: Path) -> None:
+    """Make a rename in ``folder`` durable (POSIX; Windows cannot open a directory and NTFS journals the rename)."""
     if os.name != "posix":
         return
     try:

@@ -60,6 +60,7 @@ import numpy as np
 from app import paths, streams
 from app.alarm_count import alarm_count
 from app.bus import Channel, DeviceEvent, StreamSpec, Subscription
+from app.outputs import fsync_dir
 
 if TYPE_CHECKING:
     from app.config import AppConfig
@@ -182,7 +183,7 @@ def write_json_atomic(path: Path, data: Any) -> None:
         except OSError:
             pass
         raise
-    _fsync_dir(path.parent)
+    fsync_dir(path.parent)
 
 
 def _reserve_space(path: Path, nbytes: int) -> None:
@@ -250,21 +251,6 @@ def _discard_buffer(fh: Any) -> None:
         pass
     finally:
         os.close(null)
-
-
-def _fsync_dir(folder: Path) -> None:
-    if os.name != "posix":
-        return  # Windows cannot open a directory; NTFS journals the rename itself
-    try:
-        fd = os.open(folder, os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        os.fsync(fd)
-    except OSError:
-        pass
-    finally:
-        os.close(fd)
 
 
 def _make_session_folder(root: Path, patient_id: str, now: _dt.datetime) -> Path:
