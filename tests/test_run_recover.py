@@ -271,7 +271,8 @@ def test_f12_recover_continues_the_same_run_with_its_remaining_repetitions_in_tw
     assert [d["reason"] for d in ends] == ["emergency_stop", "finished"], ends  # no refused run
 
 
-def test_a_run_ended_by_a_safety_stop_is_recorded_as_a_safety_stop(qtbot: Any, window: MainWindow) -> None:
+def test_a_run_ended_by_a_safety_stop_is_recorded_as_a_safety_stop(qtbot: Any, window: MainWindow,
+                                                                   monkeypatch: Any) -> None:
     """A STOP alarm (not the e-stop) while a plain Stop is on its way: the run's end is the safety stop."""
     from app.safety import AlarmLevel
 
@@ -280,9 +281,19 @@ def test_a_run_ended_by_a_safety_stop_is_recorded_as_a_safety_stop(qtbot: Any, w
     runner = console.runner
     runner.home_first = False
     run = runner.start("wait(30)\n", "/tmp/wait.py")
-    qtbot.waitUntil(lambda: manager.runs.get(run.run_id).state == "running", timeout=5000)
+    qtbot.waitUntil(lambda: manager.runs.get(run.run_id).state == "running" and runner._kernel is not None,
+                    timeout=5000)
+    # The plain Stop is held on its way to the kernel until the alarm has come: "before it lands" made certain
+    # (on a loaded machine the kernel sometimes ended first, and the operator's stop was then the true cause).
+    kernel = runner._kernel
+    send, held = kernel.send, []
+    monkeypatch.setattr(kernel, "send", lambda msg: held.append(msg) if msg.get("op") == "stop" else send(msg))
     runner.request_stop("stopped by the operator")  # a plain Stop, then before it lands …
     manager.supervisor.raise_alarm(AlarmLevel.STOP, "robot monitor", "Robot stopped: handle speed too high")
+    assert held and runner.running  # the script was still running when the STOP came
+    monkeypatch.undo()
+    for msg in held:
+        send(msg)
     assert runner.wait(5.0)
     ended = manager.runs.get(run.run_id)
     assert ended.end_reason == "safety_stop", (ended.end_reason, ended.end_detail)
