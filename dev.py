@@ -105,7 +105,6 @@ def run_tests(args: list[str]) -> int:
         # A real X server (Xvfb + Mesa) lets the OpenGL 3D-view tests run; offscreen Qt cannot do GL.
         cmd = ["xvfb-run", "-a", "-s", "-screen 0 1920x1080x24", *cmd]
         env["QT_QPA_PLATFORM"] = "xcb"
-        env["LINARMPP_XVFB_PER_WORKER"] = "1"  # each xdist worker starts its own Xvfb (tests/conftest.py)
     print("[dev] " + " ".join(cmd), flush=True)
     code = subprocess.call(cmd, cwd=ROOT, env=env)
     if code == 5:

@@ -15,33 +15,6 @@ ROOT = Path(__file__).resolve().parent.parent
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-
-
-def _own_x_server() -> None:
-    """Each xdist worker draws on an X server of its own (dev.py sets LINARMPP_XVFB_PER_WORKER): on one shared
-    Xvfb a worker's window waited in Qt's C++ code, without a Python frame, for 0.4-1 s while the other worker's
-    windows were drawn, and the GUI watch stopped the clinician's day."""
-    import atexit
-    import shutil
-    import subprocess
-
-    if not (os.environ.get("PYTEST_XDIST_WORKER") and os.environ.get("LINARMPP_XVFB_PER_WORKER")
-            and shutil.which("Xvfb")):
-        return
-    read_fd, write_fd = os.pipe()
-    proc = subprocess.Popen(["Xvfb", "-displayfd", str(write_fd), "-screen", "0", "1920x1080x24", "-nolisten",
-                             "tcp"], pass_fds=(write_fd,), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    os.close(write_fd)
-    with os.fdopen(read_fd) as pipe:
-        number = pipe.readline().strip()
-    if not number:
-        proc.kill()
-        return
-    os.environ["DISPLAY"] = f":{number}"
-    atexit.register(proc.terminate)
-
-
-_own_x_server()
 if not os.environ.get("DISPLAY") and not os.environ.get("WAYLAND_DISPLAY"):
     os.environ["QT_QPA_PLATFORM"] = "offscreen"
 # Never write into the developer's real data folder or QSettings.
