@@ -303,10 +303,12 @@ def _event_row(m: Mark, t0: float, shift_days: int = 0) -> list[Any]:
             data]
 
 
-def _write_motion(out: _Digest, folder: Path, name: str, s: Session, info: StreamInfo,
-                  steps: Steps) -> tuple[int, float, float]:
+def _stream_rows(out: _Digest, path: Path, gz: bool, s: Session, info: StreamInfo,
+                 steps: Steps) -> tuple[int, float, float]:
+    """Every sample of ``info``'s stream as TSV rows in ``path`` (times from the session's start), a chunk at a
+    time; the rows written and the first and last sample times (nan when the stream is empty)."""
     t0 = s.start_mono
-    tsv = out.stream(folder / f"{name}_motion.tsv", gz=False)
+    tsv = out.stream(path, gz=gz)
     first = last = math.nan
     try:
         for chunk in s.chunks(info.name, raw=True, columns=[]):
@@ -317,6 +319,12 @@ def _write_motion(out: _Digest, folder: Path, name: str, s: Session, info: Strea
             steps.advance(chunk.nbytes)
     finally:
         tsv.close()
+    return tsv.rows, first, last
+
+
+def _write_motion(out: _Digest, folder: Path, name: str, s: Session, info: StreamInfo,
+                  steps: Steps) -> tuple[int, float, float]:
+    n, first, last = _stream_rows(out, folder / f"{name}_motion.tsv", False, s, info, steps)
     ch_rows = [["latency", "n/a", "LATENCY", "n/a", "s", "time of the sample from the session's start (its recorded "
                 "time: the device's clock mapped to the host's)", "n/a"]]
     counts: dict[str, int] = {"LATENCY": 1}
@@ -330,7 +338,6 @@ def _write_motion(out: _Digest, folder: Path, name: str, s: Session, info: Strea
             points.add(k.tracked_point)
     out.write_tsv(folder / f"{name}_channels.tsv", ["name", "component", "type", "tracked_point", "units",
                                                    "description", "sampling_frequency"], ch_rows)
-    n = tsv.rows
     effective = (n - 1) / (last - first) if n > 1 and last > first else "n/a"
     sidecar: dict[str, Any] = {
         "TaskName": TASK,
@@ -378,21 +385,11 @@ def _columns_sidecar(info: StreamInfo, timestamp_text: str) -> dict[str, Any]:
 def _write_continuous(out: _Digest, folder: Path, name: str, s: Session, info: StreamInfo,
                       steps: Steps) -> tuple[int, float, float]:
     t0 = s.start_mono
-    tsv = out.stream(folder / f"{name}.tsv.gz", gz=True)
-    first = last = math.nan
-    try:
-        for chunk in s.chunks(info.name, raw=True, columns=[]):
-            tsv.write(tsv_block(chunk, t0), len(chunk))
-            if math.isnan(first):
-                first = float(chunk.t[0])
-            last = float(chunk.t[-1])
-            steps.advance(chunk.nbytes)
-    finally:
-        tsv.close()
+    rows, first, last = _stream_rows(out, folder / f"{name}.tsv.gz", True, s, info, steps)
     sidecar = {
         "TaskName": TASK,
         "SamplingFrequency": info.rate_hz or 0,
-        "StartTime": (first - t0) if tsv.rows else 0,
+        "StartTime": (first - t0) if rows else 0,
         "Columns": ["timestamp", *(c.name for c in info.channels)],
         "Description": f"{info.name} as recorded: one row per sample at its own time (column timestamp, seconds "
                        f"from the session's start); nominal rate {info.rate_hz:g} Hz, not resampled.",
@@ -402,7 +399,7 @@ def _write_continuous(out: _Digest, folder: Path, name: str, s: Session, info: S
                                  "clock mapped to the host's)"),
     }
     out.write_json(folder / f"{name}.json", sidecar)
-    return tsv.rows, first, last
+    return rows, first, last
 
 
 def _cells(row: tuple[float, ...]) -> bytes:
@@ -457,7 +454,7 @@ def _write_held(out: _Digest, folder: Path, name: str, s: Session, info: StreamI
     sidecar = {
         "TaskName": TASK,
         "SamplingFrequency": rate,
-        "StartTime": (first - t0) if tsv.rows else 0,
+        "StartTime": (first - t0) if rows else 0,
         "Columns": ["time", "timestamp", *(c.name for c in info.channels)],
         "Description": f"{info.name}: the stimulator's settings, published when they change (not at a fixed rate), "
                        f"held on a grid at {rate:g} Hz from the first update to the last (sample-and-hold: each row "
