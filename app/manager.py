@@ -28,6 +28,7 @@ from app.devices.registry import DeviceFactory, DeviceHandle, SimulatorHosting, 
 from app.fault_policy import FaultPolicy
 from app.ownership import ROBOT, RUN_SOURCES, STIMULATOR, Composition, Lease
 from app.paths import runtime_dir
+from app.priority import PriorityOutcome, raise_for_real_time
 from app.safety import AlarmLevel, SafetyError, SafetySupervisor
 
 if TYPE_CHECKING:
@@ -208,6 +209,7 @@ class LinarmppManager(QObject):
                                         config.safety.silence_stop_s)
         self.device_watch = DeviceWatch(self.supervisor, self.loss_level, lambda: self._started)
         self._watching = False
+        self.priority: PriorityOutcome | None = None  # set at start(): app/priority.py
 
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> None:
@@ -216,6 +218,9 @@ class LinarmppManager(QObject):
         if self._started:
             return
         self._started = True
+        # Driving starts: this process's threads ahead of ordinary programs where the system allows it (the
+        # simulators and drivers started below inherit it): app/priority.py.
+        self.priority = raise_for_real_time()
         self.devices = build_devices(
             self._factories, self.config, bus=self.bus, supervisor=self.supervisor,
             runtime_dir=self.runtime_dir, simulators=self.simulators, assistance=self.assistance,
