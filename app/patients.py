@@ -264,6 +264,11 @@ def parse_profile(text: str, filename: str, safety: SafetyConfig | None = None) 
 
 
 def load_patient(patient_id: str, safety: SafetyConfig | None = None, folder: Path | None = None) -> PatientProfile:
+    """The patient's profile from ``folder``'s YAML file; without a folder, from the station's archive when the
+    application has one (app.archive.station), else from the patients folder. Raises PatientError (no such
+    patient, an invalid profile, a limit looser than ``safety``, the archive cannot be reached)."""
+    if folder is None and _station_in_use():
+        return _from_station(patient_id, safety)
     path = patient_file(patient_id, folder)
     try:
         text = read_text(path)
@@ -274,6 +279,27 @@ def load_patient(patient_id: str, safety: SafetyConfig | None = None, folder: Pa
         raise PatientError(str(path), _line_of(text, "patient_id"), "patient_id",
                            f"{profile.patient_id!r} does not match the file name {path.name!r}")
     return profile
+
+
+def _station_in_use() -> bool:
+    from app.archive import station
+
+    return station.in_use()
+
+
+def _from_station(patient_id: str, safety: SafetyConfig | None) -> PatientProfile:
+    """The profile from the station's archive (app.archive.station), its problems as PatientError."""
+    from app.archive import station
+    from app.archive.api import ArchiveError
+
+    where = f"archive: patient {patient_id}"
+    try:
+        record = station.read_record(patient_id, safety)
+    except ArchiveError as exc:
+        raise PatientError(where, None, "", str(exc)) from exc
+    if record is None:
+        raise PatientError(where, None, "patient_id", f"there is no patient {patient_id} in the archive")
+    return record.profile
 
 
 def profile_to_yaml(profile: PatientProfile) -> str:
@@ -318,9 +344,23 @@ class PatientEntry:
     path: Path
     profile: PatientProfile | None
     error: str = ""
+    version: int = 0  # the archive record's version it was read at (0: a YAML file, unversioned)
 
 
 def list_patients(folder: Path | None = None, safety: SafetyConfig | None = None) -> list[PatientEntry]:
+    """Every patient of ``folder`` (a file that cannot be loaded listed with its reason); without a folder, the
+    station's archive when the application has one (empty, logged, when it cannot be reached)."""
+    if folder is None and _station_in_use():
+        from app.archive import station
+        from app.archive.api import ArchiveUnavailable
+
+        try:
+            return station.list_entries(safety)
+        except ArchiveUnavailable as exc:
+            import logging
+
+            logging.getLogger(__name__).warning("patients cannot be listed: %s", exc)
+            return []
     folder = folder or paths.patients_dir()
     out: list[PatientEntry] = []
     for path in sorted(folder.glob("*.yaml"), key=lambda p: p.stem.lower()):
