@@ -117,6 +117,8 @@ def open_station(config: Any) -> Opened:
     from app import paths
     from app.archive.store import ARCHIVE_FILE, open_archive
 
+    # Alembic says "Context impl SQLiteImpl." at each schema check: noise on a headless run's console
+    logging.getLogger("alembic.runtime.migration").setLevel(logging.WARNING)
     url = getattr(getattr(config, "archive", None), "url", "") or ""
     embedded = not url
     fresh = embedded and not (paths.data_dir() / ARCHIVE_FILE).exists()
