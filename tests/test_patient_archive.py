@@ -341,3 +341,35 @@ def _no_station_left() -> Iterator[None]:
         left = station.uninstall()
         if left is not None:
             left.close()
+
+
+def test_two_plan_dialogs_the_second_is_refused_and_reload_shows_the_saved_plan(
+        qtbot: Any, stations: Stations) -> None:
+    """The plan dialog writes the plan alone: a plan saved meanwhile by someone else refuses it (who, where, when);
+    nothing of it is written; Reload shows the saved plan. A cap saved meanwhile does not refuse it."""
+    from app.ui.plan_dialog import PlanDialog
+
+    stations.use("room-A")
+    stations.create(_profile("PZ-041"), "dr_rossi")
+    first = PlanDialog(load_patient("PZ-041"), SAFETY, operator="dr_rossi")
+    stations.use("room-B")
+    second = PlanDialog(load_patient("PZ-041"), SAFETY, operator="dr_neri")
+    for d in (first, second):
+        qtbot.addWidget(d)
+        d.show()
+    stations.use("room-A")
+    first.add_step("trigger_reaching")
+    first.accept()
+    assert first.result() == first.DialogCode.Accepted, first.error_label.text()
+    saved = load_patient("PZ-041")
+    stations.use("room-B")
+    second.remove_step()
+    second.accept()
+    text = second.error_label.text()
+    assert second.result() != second.DialogCode.Accepted
+    assert "dr_rossi" in text and "room-A" in text and saved.updated in text and "Reload" in text, text
+    assert second.reload_button.isVisible() and load_patient("PZ-041") == saved
+    assert second.reload() and len(second.steps) == 2
+    second.accept()  # as of the version it reloaded: saved
+    assert second.result() == second.DialogCode.Accepted, second.error_label.text()
+    assert len(load_patient("PZ-041").therapy_plan) == 2

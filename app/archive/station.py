@@ -100,8 +100,8 @@ class Opened:
     def message(self) -> str:
         """The sentence for the window or stderr ('' when all is well)."""
         if self.archive is None:
-            return (f"The patients' archive cannot be reached: {self.problem}. The station works, but patients "
-                    "cannot be opened or saved until it is back.")
+            return (f"{_sentence(self.problem)}. The station works, but patients cannot be opened or saved, nor "
+                    "their sessions started, until the archive is back.")
         if self.import_problems:
             return ("Some patient files of this station could not be brought into the archive: "
                     + "; ".join(self.import_problems))
@@ -162,8 +162,26 @@ def _target(archive: Archive | None, folder: Path | None) -> Archive | None:
     if _archive is not None:
         return _archive
     if _problem:
-        raise ArchiveUnavailable(f"The patients' archive cannot be reached ({_problem})")
+        raise ArchiveUnavailable(_sentence(_problem))
     return None
+
+
+def _sentence(text: str) -> str:
+    return text[:1].upper() + text[1:]
+
+
+# The field keys (app.archive.api.PATIENT_FIELDS) in the form's words, for messages.
+FIELD_WORDS = {"full_name": "name", "birth_date": "date of birth", "record_number": "medical record no.",
+               "affected_side": "affected side", "scores": "clinical scores", "assistance": "assistance gains",
+               "fes.profile": "FES profile", "fes.caps": "FES caps", "robot": "robot limits", "notes": "notes",
+               "therapy_plan": "therapy plan"}
+
+
+def field_words(key: str) -> str:
+    """``fes.caps`` -> "FES caps"; ``fes.electrodes.triceps`` -> "electrodes of the triceps"."""
+    if key.startswith("fes.electrodes."):
+        return f"electrodes of the {key[len('fes.electrodes.'):]}"
+    return FIELD_WORDS.get(key, key)
 
 
 def _check_limits(profile: PatientProfile, safety: Any, where: str) -> None:
@@ -315,5 +333,6 @@ def default_operator(operator: str = "") -> str:
         return "unknown (login)"
 
 
-__all__ = ["Opened", "choose_electrodes", "current", "default_operator", "import_yaml_patients", "in_use",
-           "install", "list_entries", "open_station", "read_record", "save_profile", "uninstall", "unreachable"]
+__all__ = ["FIELD_WORDS", "Opened", "choose_electrodes", "current", "default_operator", "field_words",
+           "import_yaml_patients", "in_use", "install", "list_entries", "open_station", "read_record", "save_profile",
+           "uninstall", "unreachable"]

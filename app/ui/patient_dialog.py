@@ -297,7 +297,7 @@ class PatientDialog(QDialog):
             return
         except StaleRecord as exc:
             self.stale = exc
-            what = f" ({', '.join(exc.fields)})" if exc.fields else ""
+            what = f" ({', '.join(station.field_words(f) for f in exc.fields)})" if exc.fields else ""
             self.error_label.setText(
                 f"Not saved: {profile.patient_id} was changed{what} by {exc.changed_by or 'someone'} on station "
                 f"{exc.changed_station or '(unknown)'} at {exc.changed_at}, after this form was opened. Reload shows "
@@ -351,10 +351,11 @@ class PatientDialog(QDialog):
         words = [f"Reloaded: the patient as saved by {record.changed_by} on {record.changed_station} at "
                  f"{record.changed_at} (version {record.version})."]
         if kept:
-            words.append(f"Your changes to {', '.join(kept)} are in the form again: Save to keep them.")
+            words.append(f"Your changes ({', '.join(station.field_words(k) for k in kept)}) are in the form "
+                         "again: Save to keep them.")
         if both:
             words.append("Changed there too, their value is shown — yours was: "
-                         + "; ".join(f"{k} = {_short(v)}" for k, v in both) + ".")
+                         + "; ".join(f"{station.field_words(k)}: {_short(v)}" for k, v in both) + ".")
         self.error_label.setText(" ".join(words))
         return [k for k, _v in both]
 

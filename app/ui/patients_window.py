@@ -129,8 +129,8 @@ class PatientsDialog(QDialog):
         except ArchiveError as exc:
             self.entries, problem = [], str(exc)
         if problem:
-            self.archive_note.setText(f"{problem}. Patients cannot be opened or saved until the archive is back; "
-                                      "a session can still be recorded.")
+            self.archive_note.setText(f"{problem}. Patients cannot be opened or saved, nor their sessions "
+                                      "started, until the archive is back.")
         self.archive_note.setVisible(bool(problem))
         self.new_button.setEnabled(not problem)
         if select and not any(e.patient_id == select and matches(e, self.search.text()) for e in self.entries):
