@@ -222,6 +222,27 @@ def list_entries(safety: Any = None, *, archive: Archive | None = None, folder: 
     target = _target(archive, folder)
     if target is None:
         return list_yaml_patients(folder, safety)
+    try:  # one transaction for the whole list
+        records: list[PatientRecord] = []
+        while page_records := target.patient_records(limit=1000, offset=len(records)):
+            records += page_records
+    except ArchiveUnavailable:
+        raise
+    except ArchiveError:  # a record that is not a valid profile: each read on its own, that one listed as such
+        return _entries_one_by_one(target, safety)
+    out: list[PatientEntry] = []
+    for record in records:
+        pid = record.profile.patient_id
+        try:
+            _check_limits(record.profile, safety, f"archive: patient {pid}")
+        except PatientError as exc:
+            out.append(PatientEntry(pid, patient_file(pid), None, str(exc), record.version))
+            continue
+        out.append(PatientEntry(pid, patient_file(pid), record.profile, "", record.version))
+    return out
+
+
+def _entries_one_by_one(target: Archive, safety: Any) -> list[PatientEntry]:
     out: list[PatientEntry] = []
     offset = 0
     while page := target.list_patients(limit=1000, offset=offset):
