@@ -127,7 +127,8 @@ def test_lowered_cap_then_a_sessions_electrode_choice_then_an_old_plan_dialog_al
         assert manager.patient_profile.fes.caps[1].max_current_ma == 25.0
         # Station A: a plan dialog opened now (its copy: 25 mA, no choice, the old plan) and left open
         st.use("room-A")
-        patients = PatientsDialog(SAFETY)
+        # one station: its Patients window is the session's window's (a change applies to the session at once)
+        patients = PatientsDialog(SAFETY, manager=None if shared else manager)
         qtbot.addWidget(patients)
         patients.search.setText("PZ-039")
         old_plan = patients.edit_plan()
@@ -137,6 +138,11 @@ def test_lowered_cap_then_a_sessions_electrode_choice_then_an_old_plan_dialog_al
         edit.caps_table.setItem(0, 0, QTableWidgetItem("15"))
         edit.accept()
         assert edit.result() == edit.DialogCode.Accepted, edit.error_label.text()
+        if not shared:  # #36 kept: the running session meets 15 mA at once, with the record's new version
+            assert manager.patient_profile.fes.caps[1].max_current_ma == 15.0
+            assert "channel 1 current cap 25 mA → 15 mA" in patients.session_note.text()
+            if station is not None:
+                assert manager.patient_version == station.read_record("PZ-039").version == 2
         # Station B: the running session's electrode set-up, its proposal accepted
         st.use("room-B")
         setup = ElectrodeSetupDialog(manager)
@@ -373,3 +379,35 @@ def test_two_plan_dialogs_the_second_is_refused_and_reload_shows_the_saved_plan(
     second.accept()  # as of the version it reloaded: saved
     assert second.result() == second.DialogCode.Accepted, second.error_label.text()
     assert len(load_patient("PZ-041").therapy_plan) == 2
+
+
+def test_a_sessions_electrode_choice_of_a_district_chosen_meanwhile_elsewhere_is_refused_in_words(
+        qtbot: Any, tmp_path: Path, stations: Stations) -> None:
+    """Two choices of one district from two copies: the second is not saved over the first; the dialog says who
+    chose it, where and when; the first choice stays."""
+    from app.electrodes import choice_for
+    from app.manager import LinarmppManager
+    from app.ui.electrode_setup import ElectrodeSetupDialog
+    from tests.fakes import counter_factory
+
+    stations.use("room-B")
+    stations.create(_profile("PZ-042"), "dr_rossi")
+    manager = LinarmppManager(CFG, factories={"alpha": counter_factory(tmp_path, "alpha")})
+    try:
+        manager.start()
+        manager.start_session("PZ-042", "dr_verdi", root=tmp_path / "sessions")
+        result = _setup_result("triceps")
+        first = result.combinations[0].combination.channel
+        stations.use("room-A")  # the same district chosen on station A meanwhile
+        station.choose_electrodes("PZ-042", "triceps", choice_for(result, first, "dr_rossi"), expected_version=1,
+                                  operator="dr_rossi")
+        stations.use("room-B")
+        setup = ElectrodeSetupDialog(manager)
+        qtbot.addWidget(setup)
+        setup.result = result
+        assert not setup.choose(result.combinations[1].combination.channel)
+        text = setup.status.text()
+        assert "could not be saved" in text and "dr_rossi" in text and "room-A" in text, text
+        assert station.read_record("PZ-042").profile.fes.electrodes["triceps"].channel == first
+    finally:
+        manager.shutdown(timeout_s=1.0)
