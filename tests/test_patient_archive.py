@@ -411,3 +411,47 @@ def test_a_sessions_electrode_choice_of_a_district_chosen_meanwhile_elsewhere_is
         assert station.read_record("PZ-042").profile.fes.electrodes["triceps"].channel == first
     finally:
         manager.shutdown(timeout_s=1.0)
+
+
+def test_the_window_refuses_an_archive_newer_than_the_app_in_a_dialog_and_opens_nothing(
+        qtbot: Any, tmp_path: Path, monkeypatch: Any) -> None:
+    """run_gui: the archive opened on its own thread while the manager starts; refused → one sentence in a
+    dialog, the devices stopped, no window, exit 2."""
+    import sqlite3
+    from types import SimpleNamespace
+
+    from PySide6.QtWidgets import QMessageBox
+
+    import app.application as application
+    from app.archive.store import open_archive
+
+    home = tmp_path / "home"
+    monkeypatch.setenv("LINARMPP_HOME", str(home))
+    open_archive(CFG).close()
+    with sqlite3.connect(home / "archive.sqlite3") as db:
+        db.execute("UPDATE alembic_version SET version_num = '9999_future'")
+    life: list[str] = []
+
+    class Manager:  # the devices' side, as far as start-up and shutdown go
+        def __init__(self, _config: Any) -> None:
+            self.supervisor = SimpleNamespace(bring_to_safe_state=lambda _why: None)
+
+        def start(self) -> None:
+            life.append("started")
+
+        def shutdown(self) -> None:
+            life.append("shut down")
+
+    shown: list[str] = []
+    monkeypatch.setattr(application, "LinarmppManager", Manager)
+    monkeypatch.setattr(QMessageBox, "critical", lambda _parent, _title, text: shown.append(text))
+    monkeypatch.setattr("app.ui.main_window.MainWindow", lambda *_a: life.append("window") or 1 / 0)
+    for name in ("configure_qt_identity", "apply_desktop_identity"):  # the suite's QApplication stays as it is
+        monkeypatch.setattr(application, name, lambda *_a: None)
+    monkeypatch.setattr("app.ui.theme.apply_palette", lambda *_a: None)
+    assert application.run_gui(CFG) == 2
+    assert life == ["started", "shut down"]
+    (text,) = shown
+    assert text.startswith("LINarm++ Manager cannot use the patients' archive, nothing was started:")
+    assert "newer version of LINarm++ Manager" in text and "\n" not in text
+    assert not station.in_use()
