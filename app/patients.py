@@ -16,7 +16,7 @@ import re
 import tempfile
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, Protocol
 
 import yaml
 from yaml.nodes import MappingNode, Node
@@ -267,8 +267,8 @@ def load_patient(patient_id: str, safety: SafetyConfig | None = None, folder: Pa
     """The patient's profile from ``folder``'s YAML file; without a folder, from the station's archive when the
     application has one (app.archive.station), else from the patients folder. Raises PatientError (no such
     patient, an invalid profile, a limit looser than ``safety``, the archive cannot be reached)."""
-    if folder is None and _station_in_use():
-        return _from_station(patient_id, safety)
+    if folder is None and _store is not None:
+        return _store.load(patient_id, safety)
     path = patient_file(patient_id, folder)
     try:
         text = read_text(path)
@@ -281,25 +281,24 @@ def load_patient(patient_id: str, safety: SafetyConfig | None = None, folder: Pa
     return profile
 
 
-def _station_in_use() -> bool:
-    from app.archive import station
+class PatientStore(Protocol):
+    """Where patients live when not in YAML files: the application's archive (app.archive.station installs it with
+    :func:`use_store`; this module never imports the archive)."""
 
-    return station.in_use()
+    def load(self, patient_id: str, safety: SafetyConfig | None) -> PatientProfile:
+        """Raises PatientError (no such patient, an invalid record, a limit looser than ``safety``, unreachable)."""
+        ...
+
+    def entries(self, safety: SafetyConfig | None) -> list[PatientEntry]: ...
 
 
-def _from_station(patient_id: str, safety: SafetyConfig | None) -> PatientProfile:
-    """The profile from the station's archive (app.archive.station), its problems as PatientError."""
-    from app.archive import station
-    from app.archive.api import ArchiveError
+_store: PatientStore | None = None
 
-    where = f"archive: patient {patient_id}"
-    try:
-        record = station.read_record(patient_id, safety)
-    except ArchiveError as exc:
-        raise PatientError(where, None, "", str(exc)) from exc
-    if record is None:
-        raise PatientError(where, None, "patient_id", f"there is no patient {patient_id} in the archive")
-    return record.profile
+
+def use_store(store: PatientStore | None) -> None:
+    """``load_patient`` and ``list_patients`` without a folder read ``store`` from now on (None: the YAML folder)."""
+    global _store
+    _store = store
 
 
 def profile_to_yaml(profile: PatientProfile) -> str:
@@ -349,18 +348,9 @@ class PatientEntry:
 
 def list_patients(folder: Path | None = None, safety: SafetyConfig | None = None) -> list[PatientEntry]:
     """Every patient of ``folder`` (a file that cannot be loaded listed with its reason); without a folder, the
-    station's archive when the application has one (empty, logged, when it cannot be reached)."""
-    if folder is None and _station_in_use():
-        from app.archive import station
-        from app.archive.api import ArchiveUnavailable
-
-        try:
-            return station.list_entries(safety)
-        except ArchiveUnavailable as exc:
-            import logging
-
-            logging.getLogger(__name__).warning("patients cannot be listed: %s", exc)
-            return []
+    station's archive when the application has one (:func:`use_store`; empty when it cannot be reached)."""
+    if folder is None and _store is not None:
+        return _store.entries(safety)
     folder = folder or paths.patients_dir()
     out: list[PatientEntry] = []
     for path in sorted(folder.glob("*.yaml"), key=lambda p: p.stem.lower()):
@@ -485,8 +475,8 @@ def profile_field_names() -> list[str]:
 
 __all__ = [
     "ClinicalChannelCap", "ClinicalScores", "ElectrodeChoice", "PatientAssistance", "PatientEntry", "PatientError",
-    "PatientFes",
-    "PatientProfile", "PatientRobotLimits", "PlanProblem", "PlannedExercise", "clinical_caps",
-    "effective_robot_limits", "limit_problems", "list_patients", "load_patient", "matches", "parse_profile",
-    "patient_file", "plan_problems", "prescription_problems", "profile_changes", "profile_to_yaml", "save_patient",
+    "PatientFes", "PatientProfile", "PatientRobotLimits", "PatientStore", "PlanProblem", "PlannedExercise",
+    "clinical_caps", "effective_robot_limits", "limit_problems", "list_patients", "load_patient", "matches",
+    "parse_profile", "patient_file", "plan_problems", "prescription_problems", "profile_changes", "profile_to_yaml",
+    "save_patient", "use_store",
 ]

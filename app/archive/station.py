@@ -45,6 +45,7 @@ from app.patients import (
     limit_problems,
     load_patient,
     patient_file,
+    use_store,
 )
 from app.patients import list_patients as list_yaml_patients
 from app.patients import save_patient as save_yaml_patient
@@ -59,10 +60,12 @@ _problem = ""  # why the archive could not be reached ('' when it is open or non
 # ---------------------------------------------------------------------------------------------- the station's archive
 def install(archive: Archive | None, problem: str = "") -> None:
     """The application's archive from now on; ``archive=None`` with ``problem``: it is in use but could not be
-    reached (the station runs; reading and saving patients say why)."""
+    reached (the station runs; reading and saving patients say why). ``app.patients.load_patient`` and
+    ``list_patients`` without a folder read it too."""
     global _archive, _problem
     with _lock:
         _archive, _problem = archive, ("" if archive is not None else problem)
+        use_store(_StationStore() if in_use() else None)
 
 
 def uninstall() -> Archive | None:
@@ -70,7 +73,29 @@ def uninstall() -> Archive | None:
     global _archive, _problem
     with _lock:
         archive, _archive, _problem = _archive, None, ""
+        use_store(None)
     return archive
+
+
+class _StationStore:
+    """app.patients.PatientStore on the station's archive: the readers that name no folder follow it."""
+
+    def load(self, patient_id: str, safety: Any) -> PatientProfile:
+        where = f"archive: patient {patient_id}"
+        try:
+            record = read_record(patient_id, safety)
+        except ArchiveError as exc:
+            raise PatientError(where, None, "", str(exc)) from exc
+        if record is None:
+            raise PatientError(where, None, "patient_id", f"there is no patient {patient_id} in the archive")
+        return record.profile
+
+    def entries(self, safety: Any) -> list[PatientEntry]:
+        try:
+            return list_entries(safety)
+        except ArchiveUnavailable as exc:
+            log.warning("patients cannot be listed: %s", exc)
+            return []
 
 
 def current() -> Archive | None:
