@@ -332,6 +332,11 @@ def test_an_unreachable_archive_lets_the_station_run_and_says_patients_cannot_be
         qtbot.addWidget(patients)
         assert patients.archive_note.isVisibleTo(patients) and not patients.new_button.isEnabled()
         assert "cannot be reached" in patients.archive_note.text()
+        from app.ui.patient_dialog import StartSessionDialog
+
+        start = StartSessionDialog(cfg.safety)
+        qtbot.addWidget(start)
+        assert "cannot be reached" in start.problem.text() and "Create a patient" not in start.problem.text()
         with pytest.raises(PatientError, match="the session is not started: the patient's profile cannot be read"):
             manager.start_session("PZ-001", "dr_verdi", root=tmp_path / "sessions")
         assert manager.recorder is None

@@ -487,6 +487,9 @@ class StartSessionDialog(QDialog):
         problem = ""
         if entry is None and self.entries and self.search_edit.text().strip():
             problem = "No patient matches the search."
+        elif entry is None and station.unreachable():  # not "create one": they exist, the archive is away
+            problem = (f"{station.unreachable()[:1].upper()}{station.unreachable()[1:]}: patients cannot be opened "
+                       "until it is back.")
         elif entry is None:
             problem = "Create a patient first (New patient…)."
         elif entry.profile is None:
