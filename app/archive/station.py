@@ -139,11 +139,12 @@ def open_station(config: Any) -> Opened:
     for a station that had YAML patients). Raises ArchiveTooNew, NeedsUpgrade and ConfigProblem (refuse to
     start); an archive that cannot be reached is returned as ``Opened(None, why)``. Slow on a server: call it off
     the GUI thread."""
+    # Alembic names its plugins when imported and says "Context impl SQLiteImpl." at each schema check: noise on
+    # the console of every start
+    logging.getLogger("alembic").setLevel(logging.WARNING)
     from app import paths
     from app.archive.store import ARCHIVE_FILE, open_archive
 
-    # Alembic says "Context impl SQLiteImpl." at each schema check: noise on a headless run's console
-    logging.getLogger("alembic.runtime.migration").setLevel(logging.WARNING)
     url = getattr(getattr(config, "archive", None), "url", "") or ""
     embedded = not url
     fresh = embedded and not (paths.data_dir() / ARCHIVE_FILE).exists()
