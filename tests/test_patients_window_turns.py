@@ -13,6 +13,7 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
+import pytest
 from PySide6.QtCore import QTimer
 
 from app.archive import station
@@ -22,7 +23,9 @@ from tests.archive_data import full_profile
 
 SAFETY = AppConfig().safety
 PATIENTS = 200
-TURN_BOUND_S = 0.100  # functional: well under the GUI watch's warning (0.35 s); quiet runs show a few ms
+# functional: well under the GUI watch's warning (0.35 s); an idle window on this shared machine alone shows gaps
+# of ~100 ms under load, quiet a few ms
+TURN_BOUND_S = 0.150
 
 
 class TurnMeter:
@@ -30,6 +33,7 @@ class TurnMeter:
 
     def __init__(self) -> None:
         self.gaps: list[float] = []
+        self.ends: list[float] = []  # when each gap ended (perf_counter)
         self._last = time.perf_counter()
         self.timer = QTimer()
         self.timer.setInterval(1)
@@ -38,6 +42,7 @@ class TurnMeter:
     def _tick(self) -> None:
         now = time.perf_counter()
         self.gaps.append(now - self._last)
+        self.ends.append(now)
         self._last = now
 
     def start(self) -> None:
@@ -61,6 +66,7 @@ def _fill(archive, n: int) -> None:  # type: ignore[no-untyped-def]
             archive.save_patient(p, expected_version=None, operator="test")
 
 
+@pytest.mark.realtime  # the wall clock of a shared machine: one rerun
 def test_opening_the_patients_window_never_holds_the_gui_thread(qtbot, tmp_path: Path) -> None:
     from app.ui.patients_window import PatientsDialog
 
@@ -86,7 +92,9 @@ def test_opening_the_patients_window_never_holds_the_gui_thread(qtbot, tmp_path:
         gaps = sorted(meter.gaps)
         print(f"\n{PATIENTS} patients listed in {listed_s:.2f} s; GUI thread turns: {len(gaps)} ticks, "
               f"median {gaps[len(gaps) // 2] * 1000:.1f} ms, p99 {gaps[int(len(gaps) * 0.99)] * 1000:.1f} ms, "
-              f"longest {longest * 1000:.1f} ms")
+              f"longest {longest * 1000:.1f} ms; above 50 ms (ms after opening: length): "
+              + ", ".join(f"{(e - g - opened) * 1000:.0f}: {g * 1000:.0f}"
+                          for g, e in zip(meter.gaps, meter.ends, strict=True) if g > 0.05))
         assert longest <= TURN_BOUND_S, (
             f"the GUI thread was held {longest * 1000:.0f} ms in one turn while the Patients window listed "
             f"{PATIENTS} patients (bound {TURN_BOUND_S * 1000:.0f} ms; the GUI watch warns at 350 ms)")

@@ -56,6 +56,7 @@ log = logging.getLogger(__name__)
 
 _COLUMNS = ("Patient ID", "Name", "Affected side", "Plan", "Updated")
 TURN_BUDGET_S = 0.006  # rows added per turn of the GUI thread: at most this long (a frame is 16 ms)
+RESIZE_PRECISION_ROWS = 100  # the rows the columns' widths are measured on
 POLL_MS = 15  # while loading: how often the window takes the blocks that came
 
 
@@ -85,6 +86,7 @@ class PatientsDialog(QDialog):
         self._stop = threading.Event()
         self._loader: threading.Thread | None = None
         self.loading = False
+        self._library: dict[str, Any] | None = None  # the exercises by id, for the plans shown in the details
         self._pump = QTimer(self)
         self._pump.setInterval(POLL_MS)
         self._pump.timeout.connect(self._take)
@@ -105,6 +107,9 @@ class PatientsDialog(QDialog):
         header = self.table.horizontalHeader()
         header.setSectionResizeMode(QHeaderView.ResizeMode.ResizeToContents)
         header.setSectionResizeMode(1, QHeaderView.ResizeMode.Stretch)
+        # Sized to the contents of the first rows only: every row added would otherwise re-measure every row
+        # (thousands of patients: a long turn at each block).
+        header.setResizeContentsPrecision(RESIZE_PRECISION_ROWS)
         self.table.itemSelectionChanged.connect(self._selected)
         self.table.cellDoubleClicked.connect(lambda _r, _c: self.edit_profile())
         self.details = QLabel("")
@@ -182,6 +187,11 @@ class PatientsDialog(QDialog):
     def _load(self, generation: int, stop: threading.Event) -> None:
         """The loader thread: blocks of entries into the queue, then (generation, None, problem)."""
         problem = ""
+        if self._library is None:  # the plans' exercise names in the details: read here, once
+            try:
+                self._library = {e.ident: e for e in load_library()[0]}
+            except Exception:
+                log.exception("reading the exercise library failed")
         try:
             for part in station.entry_blocks(self.safety, folder=self.folder):
                 if stop.is_set():
@@ -357,10 +367,12 @@ class PatientsDialog(QDialog):
         ok = entry is not None and entry.profile is not None
         self.edit_button.setEnabled(ok)
         self.plan_button.setEnabled(ok)
-        self.details.setText(self.details_html(entry))
+        self.details.setText(self.details_html(entry, self._library))
 
     @staticmethod
-    def details_html(entry: PatientEntry | None) -> str:
+    def details_html(entry: PatientEntry | None, library: dict[str, Any] | None = None) -> str:
+        """The details of ``entry``; ``library``: the exercises by id (read once, on the loader thread: reading
+        the library takes ~50 ms, too long for a click), else read here."""
         if entry is None:
             return "<i>No patient matches.</i>"
         if entry.profile is None:
@@ -378,7 +390,8 @@ class PatientsDialog(QDialog):
         lines.append("Scores: " + (esc(", ".join(scores)) + (f" ({esc(s.assessed_on)})" if s.assessed_on else "")
                                    if scores else "—"))
         if p.therapy_plan:
-            library = {e.ident: e for e in load_library()[0]}
+            if library is None:
+                library = {e.ident: e for e in load_library()[0]}
             steps = "".join(f"<li>{esc(step_text(step, library.get(step.exercise), k + 1)[len(str(k + 1)) + 2:])}</li>"
                             for k, step in enumerate(p.therapy_plan))
             lines.append(f"Therapy plan:<ol style='margin-top:0'>{steps}</ol>")
