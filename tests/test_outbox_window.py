@@ -51,10 +51,11 @@ def test_a_session_is_archived_once_at_its_end_and_waits_while_the_archive_is_aw
         manager.start_session("PZ-001", "dr_verdi")
         qtbot.wait(300)
         manager.end_session()
-        qtbot.waitUntil(lambda: _archived(url) == 1 and window._archive_task is None, timeout=60_000)
+        qtbot.waitUntil(lambda: _archived(url) == 1 and getattr(window, "_archive_task", None) is None,
+                        timeout=60_000)
         assert not window.archive_status.isVisible() and window.archive_status.text() == ""
         window.archive_pass(force=True)  # the 30 s timer's pass: nothing more
-        qtbot.waitUntil(lambda: window._archive_task is None, timeout=60_000)
+        qtbot.waitUntil(lambda: getattr(window, "_archive_task", None) is None, timeout=60_000)
         assert _archived(url) == 1
         # 2. the archive goes away during the next session: its end waits, and the status bar says so
         manager.start_session("PZ-001", "dr_verdi")
@@ -74,7 +75,7 @@ def test_a_session_is_archived_once_at_its_end_and_waits_while_the_archive_is_aw
         qtbot.waitUntil(lambda: window.archive_status.text() == "" and window._archive_task is None, timeout=60_000)
         assert _archived(url) == 2
         window.archive_pass(force=True)
-        qtbot.waitUntil(lambda: window._archive_task is None, timeout=60_000)
+        qtbot.waitUntil(lambda: getattr(window, "_archive_task", None) is None, timeout=60_000)
         assert _archived(url) == 2 and not window.archive_status.isVisible()
     finally:
         if window is not None:
