@@ -21,9 +21,13 @@ import logging
 import time
 from collections.abc import Callable, Iterable
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from app.archive.api import Archive, ArchiveError, ArchiveUnavailable, OutboxStatus, SessionConflict
 from app.archive.folders import ARCHIVED_MARKER, REFUSED_MARKER, mark, session_folders, wall_now
+
+if TYPE_CHECKING:
+    from app.worker.context import JobContext
 
 log = logging.getLogger(__name__)
 
@@ -130,7 +134,7 @@ def _connector(url: str, password_file: str, station: str) -> Callable[[], Archi
     return connect
 
 
-def station_pass(ctx: object, root: str, url: str, password_file: str, station: str, active: list[str],
+def station_pass(ctx: JobContext, root: str, url: str, password_file: str, station: str, active: list[str],
                  force: bool = False) -> OutboxStatus:
     """One pass of the station's outbox, as a job of the window's worker process (kind
     ``"app.archive.outbox:station_pass"``): the Outbox of ``root`` kept between passes in this process (its
