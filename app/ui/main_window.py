@@ -380,8 +380,11 @@ class MainWindow(QMainWindow):
         self._archive_timer = QTimer(self)
         self._archive_timer.setInterval(ARCHIVE_PASS_MS)
         self._archive_timer.timeout.connect(self.archive_pass)
-        self._archive_timer.start()
-        QTimer.singleShot(0, self, lambda: self.archive_pass(force=True))  # the sessions left over
+        from app.archive import station
+
+        if station.in_use():  # the application's archive (opened before the window); none: nothing to pass
+            self._archive_timer.start()
+            QTimer.singleShot(0, self, lambda: self.archive_pass(force=True))  # the sessions left over
 
     # ------------------------------------------------------------------ behaviour
     def emergency_stop(self, source: str) -> None:
