@@ -189,3 +189,18 @@ def test_a_device_restart_continues_its_clock_and_a_cut_line_is_dropped() -> Non
     hosts = 100.5 + np.arange(50) * 0.01
     assert np.max(np.abs(physio.to_device(hosts) - (5.5 + np.arange(50) * 0.01))) <= 1e-9
     assert math.isclose(physio.drift[0], 0.0, abs_tol=1e-9)
+
+
+def test_the_clock_fields_are_the_ones_the_drivers_samples_carry() -> None:
+    """The recorder reads each device's clock off its samples by name: the LINarm's three sample types and the
+    board's must carry it (a rename would silently leave the XDF on the host's clock)."""
+    import dataclasses
+
+    from app.devices.linarm import LinarmStateSample, MotorSample, VsaSample
+    from app.devices.physio_codec import PhysioSample
+
+    carried = {streams.LINARM: (LinarmStateSample, MotorSample, VsaSample), streams.PHYSIO: (PhysioSample,)}
+    assert set(recording.DEVICE_CLOCK_FIELDS) == set(carried)
+    for device, (name, _wrap) in recording.DEVICE_CLOCK_FIELDS.items():
+        for cls in carried[device]:
+            assert name in {f.name for f in dataclasses.fields(cls)}, (device, cls.__name__, name)
