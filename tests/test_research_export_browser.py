@@ -148,3 +148,27 @@ def test_a_cancelled_or_failed_export_leaves_nothing_and_says_so(tmp_path, qtbot
     assert task.error.startswith("The export was not written: ") and task.error.count(".") >= 1
     assert browser.status.text() == task.error and browser.message_box.text() == task.error
     assert list(out.iterdir()) == []
+
+
+def test_a_session_that_cannot_be_read_is_left_out_and_named(tmp_path) -> None:
+    """The worker's task without the worker: of a readable session and a folder that is not one, the first is
+    written and read back, the second named in the answer; nothing else is left in the folder."""
+    from app.research_export.jobs import export_sessions
+
+    clock = pytest.MonkeyPatch()
+    try:
+        rec = record_session(tmp_path / "sessions", monkeypatch=clock)
+    finally:
+        clock.undo()
+    broken = tmp_path / "sessions" / "PZ-017" / "20260301-999999"
+    broken.mkdir()
+    out = tmp_path / "out"
+    out.mkdir()
+    outcome = export_sessions("edf", [rec.folder, broken], out, "20260301-120000")
+    assert [p.name for p in outcome.written] == [f.name for f in out.iterdir()] and len(outcome.written) == 1
+    assert outcome.missing == ["PZ-017/20260301-999999: " + outcome.missing[0].split(": ", 1)[1]]
+    assert "is not a session" in outcome.missing[0]
+    sentence = outcome.sentence("edf", out)
+    assert sentence.startswith(f"Exported 1 file(s) to {out} (EDF+ files, read back)") and "20260301-999999" in sentence
+    with pyedflib.EdfReader(str(outcome.written[0])) as edf:
+        assert len(edf.readSignal(edf.getSignalLabels().index("heartRate"))) > 0

@@ -200,7 +200,7 @@ class ResearchExportDialog(QDialog):
         self.folder_edit.setAccessibleName("Folder")
         browse = QPushButton("&Browse…")
         browse.clicked.connect(self._browse)
-        self.names_box = QCheckBox("Write the patients' &full names (otherwise only their pseudonyms)")
+        self.names_box = QCheckBox("Write the patients' full &names (otherwise only their pseudonyms)")
         form = QFormLayout()
         format_label = QLabel("&Format")
         format_label.setBuddy(self.format_box)
