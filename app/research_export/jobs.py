@@ -20,10 +20,10 @@ import os
 import secrets
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 from app.research_export.common import DIR_MODE, Cancel, ExportCancelled, ExportError, Progress, remove_quietly
 from app.research_export.source import FolderSource, Session, open_session
+from app.worker.context import Cancelled, JobContext, JobError
 
 log = logging.getLogger(__name__)
 
@@ -181,12 +181,11 @@ def new_stamp() -> str:
     return _dt.datetime.now().strftime("%Y%m%d-%H%M%S")
 
 
-def research_export(ctx: Any, fmt: str, folders: list[str], destination: str, stamp: str,
+def research_export(ctx: JobContext, fmt: str, folders: list[str], destination: str, stamp: str,
                     include_names: bool = False, shift_days: int = 0) -> str:
     """The worker's task: :func:`export_sessions` with the task's progress and cancel; returns the sentence the
     window shows. A failure is a JobError (its sentence); a cancel ends the task cancelled."""
     from app.research_export.common import release_memory_promptly
-    from app.worker.context import Cancelled, JobError
 
     release_memory_promptly()
     ctx.step(0.0, "Reading the sessions")
