@@ -218,6 +218,31 @@ def fresh_manager(shared_rig_spec, qapp):  # type: ignore[no-untyped-def]
         manager.shutdown()
 
 
+# ------------------------------------------------------------------------------ logging set up by a test
+@pytest.fixture(autouse=True)
+def _logging_set_up_by_the_test():  # type: ignore[no-untyped-def]
+    """The application configures the root logger once per process (app/logging_setup.py): a test that runs an
+    entry point in-process would leave its console handler writing to that test's captured stderr, which pytest
+    then closes — and every later log record, from any thread, printed "--- Logging error ---" into whichever
+    test ran next (880 lines in a headless test's one-sentence stderr). The set-up is undone after the test."""
+    import logging
+
+    from app import logging_setup
+
+    configured = logging_setup._configured
+    root = logging.getLogger()
+    level, before = root.level, set(root.handlers)
+    yield
+    if logging_setup._configured is configured:
+        return
+    for handler in [h for h in root.handlers if h not in before]:
+        if type(handler) is logging.StreamHandler or isinstance(handler, logging_setup._PrivateRotatingFileHandler):
+            root.removeHandler(handler)
+            handler.close()
+    root.setLevel(level)
+    logging_setup._configured = configured
+
+
 # ------------------------------------------------------------------------------ nothing left running
 LEFTOVER_GRACE_S = 3.0
 
