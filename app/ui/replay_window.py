@@ -37,6 +37,7 @@ from app.recording import RecordedSession
 from app.replay import ReplaySource
 from app.ui.plots_frame import DEFAULT_SIGNALS, PlotsFrame
 from app.ui.signal_store import SignalStore, signal_key
+from app.ui.staged import Steps
 from app.ui.widgets import ClickToPositionStyle
 from app.worker.session_data import SessionData
 
@@ -157,18 +158,14 @@ class ReplayWindow(QWidget):
         self.timer.setInterval(_TICK_MS)
         self.timer.timeout.connect(self._tick)
         self.resize(1100, 650)
-        self._steps: Iterator[None] | None = None
-        self._stepping = False
-        self._step_timer = QTimer(self)
-        self._step_timer.setSingleShot(True)
-        self._step_timer.timeout.connect(self._next_step)
+        self._steps: Steps | None = None
         if staged:
             for control in (self.play_button, self.slider, self.speed_box):
                 control.setEnabled(False)  # until the first screen is drawn
-            self._steps = self._stage()
+            self._steps = Steps(self._stage(), self)
             # The first piece once the window has been drawn (paintEvent), so that the window's first paint and the
             # first pane are not one turn; by the timer alone if it is not drawn (hidden, minimised).
-            self._step_timer.start(_FIRST_STEP_LATEST_MS)
+            self._steps.start(_FIRST_STEP_LATEST_MS)
         else:
             self._first_screen()
 
@@ -196,25 +193,10 @@ class ReplayWindow(QWidget):
             yield
             self._add_events(then_next=False)
 
-    def _next_step(self) -> None:
-        """One piece of the staged build. The next comes by a timer, not a posted call: Qt holds its timers back
-        while posted calls follow one another (a timer that has fired waits for the posted events), so a chain of
-        posted steps starved the GUI watch's heartbeat, which saw two or three steps as one stall (#37)."""
-        self._stepping = True
-        if self._steps is None:
-            return
-        try:
-            next(self._steps)
-        except StopIteration:
-            self._steps = None
-            return
-        self._step_timer.start(0)
-
     def paintEvent(self, event: QPaintEvent) -> None:
         super().paintEvent(event)
-        if self._steps is not None and not self._stepping:
-            self._stepping = True
-            self._step_timer.start(0)  # drawn: the build begins at the next turn
+        if self._steps is not None and not self._steps.started:
+            self._steps.start(0)  # drawn: the build begins at the next turn
 
     def _first_screen(self) -> None:
         self.seek(min(self.source.duration, self.plots.history_s))  # open on a full first screen
@@ -296,6 +278,6 @@ class ReplayWindow(QWidget):
 
     def closeEvent(self, event: QCloseEvent) -> None:
         self.timer.stop()
-        self._step_timer.stop()  # a build not finished is not finished for nobody
-        self._steps = None
+        if self._steps is not None:
+            self._steps.stop()  # the rest of the build is for nobody
         super().closeEvent(event)
