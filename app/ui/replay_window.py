@@ -179,16 +179,18 @@ class ReplayWindow(QWidget):
         self.plots.x_origin = self.source.start  # the x-axis in session time, as the slider and events
 
     def _stage(self) -> Iterator[None]:
-        """The staged build, a piece per step: the graphs' frame, its panes one by one, their layout, the first
-        screen; the event list after it, a block per step."""
+        """The staged build, a piece per step: the graphs' frame, the first screen's data, the panes one by one,
+        their layout, the first screen drawn; the event list after it, a block per step."""
         self._make_plots(staged=True)
         if self._plots_spot is not None:
             self._split.replaceWidget(0, self.plots)
             self._plots_spot.deleteLater()
             self._plots_spot = None
         yield
+        self._feed(self._first_position())  # the first screen's data, a piece before the graphs that show them
+        yield
         yield from self.plots.selection_steps(self._initial_signals)
-        self._first_screen()  # in the step that lets the graphs be drawn: their first paint shows the data
+        self._first_screen(fed=True)  # in the step that lets the graphs be drawn: their first paint shows the data
         while self._events_left:
             yield
             self._add_events(then_next=False)
@@ -198,8 +200,16 @@ class ReplayWindow(QWidget):
         if self._steps is not None and not self._steps.started:
             self._steps.start(0)  # drawn: the build begins at the next turn
 
-    def _first_screen(self) -> None:
-        self.seek(min(self.source.duration, self.plots.history_s))  # open on a full first screen
+    def _first_position(self) -> float:
+        return min(self.source.duration, self.plots.history_s)  # open on a full first screen
+
+    def _first_screen(self, fed: bool = False) -> None:
+        """The first screen drawn (``fed``: its data are in the store already), the controls on, ``ready``."""
+        if fed:
+            self._sync_slider()
+            self._redraw()
+        else:
+            self.seek(self._first_position())
         for control in (self.play_button, self.slider, self.speed_box):
             control.setEnabled(True)
         self.is_ready = True
@@ -220,11 +230,15 @@ class ReplayWindow(QWidget):
     # ------------------------------------------------------------------ control
     def seek(self, elapsed_s: float) -> None:
         """Show the session as it looked live at ``elapsed_s`` after its start."""
+        self._feed(elapsed_s)
+        self._sync_slider()
+        self._redraw()
+
+    def _feed(self, elapsed_s: float) -> None:
+        """The store as it was live at ``elapsed_s``: the history before it."""
         self.source.seek(elapsed_s)
         self.store.clear()
         self.store.feed(self.source.history(self.store.history_s))
-        self._sync_slider()
-        self._redraw()
 
     def set_playing(self, playing: bool) -> None:
         if playing and self.source.at_end:
