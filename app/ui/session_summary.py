@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import Any
 
 import pyqtgraph as pg
+from pyqtgraph.graphicsItems.ViewBox.ViewBoxMenu import ViewBoxMenu
 from PySide6.QtCore import Qt, QTimer, Signal
 from PySide6.QtWidgets import (
     QAbstractItemView,
@@ -53,6 +54,23 @@ SUMMARY_PLOTS: tuple[tuple[str, tuple[tuple[str, str], ...], str], ...] = (
 )
 PLOT_PENS = ("#1f77b4", "#d62728")
 _ROWS_PER_STEP = 80  # repetition-table rows filled per turn of the event loop (a staged summary: ~5 ms)
+
+
+class _LazyMenuViewBox(pg.ViewBox):
+    """A plot's view whose context menu (pyqtgraph's: View All, the axes, Export) is built at its first right click,
+    not with the plot: building it was ~8 ms of the turn that makes the plot (#37)."""
+
+    def __init__(self) -> None:
+        super().__init__(enableMenu=False)
+        self.state["enableMenu"] = True  # offered, built when first asked for
+
+    def getMenu(self, ev: Any) -> Any:
+        if self.menu is None and self.menuEnabled():
+            self.menu = ViewBoxMenu(self)
+        return self.menu
+
+    def getContextMenus(self, event: Any) -> Any:
+        return self.getMenu(event).actions() if self.menuEnabled() else []
 
 
 def _table(headers: Sequence[str], name: str) -> QTableWidget:
@@ -166,8 +184,7 @@ class RunSummary(QWidget):
             spot.deleteLater()
             plot = self._new_plot(k)
             yield
-            self._plot_data(k, plot)
-            yield
+            yield from self._plot_data(k, plot)
 
     def _fill_rows(self, start: int, end: int) -> None:
         """Rows [start, end) of the repetition table."""
@@ -183,13 +200,14 @@ class RunSummary(QWidget):
 
     def _add_plot(self, k: int) -> None:
         """The ``k``-th of SUMMARY_PLOTS across the run's repetitions, in its place in the grid."""
-        self._plot_data(k, self._new_plot(k))
+        for _ in self._plot_data(k, self._new_plot(k)):
+            pass
 
     def _new_plot(self, k: int) -> pg.PlotWidget:
         """The ``k``-th plot's frame (title, axes, legend), in its place in the grid; its data: _plot_data."""
         report, reps = self.report, self.report.repetitions
         title_, keys, unit = SUMMARY_PLOTS[k]
-        plot = pg.PlotWidget(title=title_ + (f" [{unit}]" if unit else ""))
+        plot = pg.PlotWidget(title=title_ + (f" [{unit}]" if unit else ""), viewBox=_LazyMenuViewBox())
         plot.setBackground("w")
         plot.showGrid(x=True, y=True, alpha=0.3)
         plot.setLabel("bottom", f"repetition of run {report.number}")
@@ -202,7 +220,8 @@ class RunSummary(QWidget):
             plot.hide()
         return plot
 
-    def _plot_data(self, k: int, plot: pg.PlotWidget) -> None:
+    def _plot_data(self, k: int, plot: pg.PlotWidget) -> Iterator[None]:
+        """The ``k``-th plot's curves, a step each, then its ranges."""
         reps = self.report.repetitions
         _title, keys, _unit = SUMMARY_PLOTS[k]
         x = [r["index"] for r in reps]
@@ -214,10 +233,12 @@ class RunSummary(QWidget):
                 plot.plot([a for a, _ in pts], [b for _, b in pts], name=name,
                           pen=pg.mkPen(PLOT_PENS[j % 2], width=2), symbol="o", symbolSize=6,
                           symbolBrush=PLOT_PENS[j % 2])
+                yield
         if values:
             plot.setYRange(*y_range(values), padding=0)
         if x:
             plot.getAxis("bottom").setTicks([[(i, str(i)) for i in x]] if len(x) <= 20 else None)
+        yield
 
     def showEvent(self, event: Any) -> None:
         super().showEvent(event)
