@@ -70,13 +70,24 @@ def default_replay_signals(rec: RecordedSession) -> list[str]:
 
 class ReplayPlots(PlotsFrame):
     """The graphs of a replay: they open on the replay's own signals (``opening``, set just before one is made),
-    not on the live graphs' saved choice -- which would build every plot twice, once for each choice."""
+    not on the live graphs' saved choice -- which would build every plot twice, once for each choice. With
+    ``tree_later`` (set likewise: a staged window) the signal list is filled by ``fill_tree``, a piece of its own."""
 
     opening: list[str] = []
+    tree_later = False
 
     def _restore_settings(self) -> None:
         super()._restore_settings()
         self._wanted = list(type(self).opening)
+        self._tree_later = type(self).tree_later
+
+    def _rebuild_tree(self) -> None:
+        if not getattr(self, "_tree_later", False):
+            super()._rebuild_tree()
+
+    def fill_tree(self) -> None:
+        self._tree_later = False
+        self._rebuild_tree()
 
 
 class ReplayWindow(QWidget):
@@ -172,20 +183,26 @@ class ReplayWindow(QWidget):
     def _make_plots(self, staged: bool) -> None:
         """The graphs' frame; staged, without panes (selection_steps builds them) and not drawn until they are."""
         ReplayPlots.opening = [] if staged else self._initial_signals
-        self.plots = ReplayPlots(None, self.store)
+        ReplayPlots.tree_later = staged
+        try:
+            self.plots = ReplayPlots(None, self.store)
+        finally:
+            ReplayPlots.tree_later = False
         self.plots.timer.stop()  # redrawn when the replay moves, not on a free-running timer
         if staged:
             self.plots.graphics.setUpdatesEnabled(False)
         self.plots.x_origin = self.source.start  # the x-axis in session time, as the slider and events
 
     def _stage(self) -> Iterator[None]:
-        """The staged build, a piece per step: the graphs' frame, the first screen's data, the panes one by one,
-        their layout, the first screen drawn; the event list after it, a block per step."""
+        """The staged build, a piece per step: the graphs' frame, its signal list, the first screen's data, the panes
+        one by one, their layout, the first screen drawn; the event list after it, a block per step."""
         self._make_plots(staged=True)
         if self._plots_spot is not None:
             self._split.replaceWidget(0, self.plots)
             self._plots_spot.deleteLater()
             self._plots_spot = None
+        yield
+        self.plots.fill_tree()  # the signal list
         yield
         self._feed(self._first_position())  # the first screen's data, a piece before the graphs that show them
         yield
