@@ -10,6 +10,7 @@ import sys
 import threading
 from collections.abc import Callable
 from types import TracebackType
+from typing import Any
 
 from PySide6.QtCore import QCoreApplication, QObject, QSettings, QTimer, Signal
 from PySide6.QtWidgets import QApplication
@@ -90,6 +91,50 @@ def install_safety_nets(manager: LinarmppManager, on_signal: Callable[[int], Non
     return remove
 
 
+class ArchiveOpening:
+    """The station's archive opened on a thread of its own (app.archive.station.open_station: a clinic's server
+    may take seconds to answer, and the first import of the database code takes a fraction of one), started
+    before the manager and the devices so that both proceed together."""
+
+    def __init__(self, config: AppConfig) -> None:
+        from app.archive import station
+
+        self._result: station.Opened | None = None
+        self._error: BaseException | None = None
+        self._done = threading.Event()
+
+        def run() -> None:
+            try:
+                self._result = station.open_station(config)
+            except BaseException as exc:  # handed to the GUI thread: a refusal is said there
+                self._error = exc
+            finally:
+                self._done.set()
+
+        self._thread = threading.Thread(target=run, name="archive-open", daemon=True)
+        self._thread.start()
+
+    def result(self, app: QCoreApplication | None = None) -> Any:
+        """The Opened result once ready (the Qt events processed meanwhile); raises the archive's refusal
+        (ArchiveTooNew, NeedsUpgrade, ConfigProblem) as a sentence."""
+        while not self._done.wait(0.02):
+            if app is not None:
+                app.processEvents()
+        self._thread.join()
+        if self._error is not None:
+            raise self._error
+        return self._result
+
+
+def archive_refusal(exc: BaseException) -> str:
+    """The one sentence for an archive the application refuses to start with ('' when ``exc`` is not one)."""
+    from app.archive.api import ArchiveTooNew, ConfigProblem, NeedsUpgrade
+
+    if isinstance(exc, ArchiveTooNew | NeedsUpgrade | ConfigProblem):
+        return f"LINarm++ Manager cannot use the patients' archive, nothing was started: {exc}"
+    return ""
+
+
 class _LoopExit(QObject):
     """Ends the Qt event loop from the signal thread: a Qt signal emitted there is delivered in the main
     thread (queued). ``exit`` rather than ``quit``: a window may refuse a quit (a dialog), never an exit."""
@@ -119,14 +164,40 @@ def run_gui(config: AppConfig, screenshot: str | None = None, quit_after_s: floa
     from app.ui.theme import apply_palette
 
     apply_palette(app, config.ui.palette)
+    from app.archive import station
+
+    opening = ArchiveOpening(config)  # meanwhile the manager and the devices start
     manager = LinarmppManager(config)
     from app.signal_events import exit_code_for
 
     loop_exit = _LoopExit(app)
     remove_nets = install_safety_nets(manager, lambda signum: loop_exit.requested.emit(exit_code_for(signum)))
     manager.start()
+    try:
+        opened = opening.result(app)
+    except Exception as exc:
+        refusal = archive_refusal(exc)
+        if not refusal:
+            raise
+        from PySide6.QtWidgets import QMessageBox
+
+        print(refusal, file=sys.stderr)
+        log.error("%s", refusal)
+        manager.shutdown()
+        remove_nets()
+        QMessageBox.critical(None, "LINarm++ Manager", refusal)
+        return 2
+    station.install(opened.archive, opened.problem)
     window = MainWindow(manager)
     window.show()
+    archive_note = None
+    if opened.message():  # the station runs: said once, the window not held (no nested event loop)
+        from PySide6.QtWidgets import QMessageBox
+
+        log.warning("%s", opened.message())
+        archive_note = QMessageBox(QMessageBox.Icon.Warning, "Patients' archive", opened.message(),
+                                   QMessageBox.StandardButton.Ok, window)
+        archive_note.open()
     if screenshot:
         def shoot() -> None:
             if manager.all_connected():
@@ -149,6 +220,10 @@ def run_gui(config: AppConfig, screenshot: str | None = None, quit_after_s: floa
         window.stop_gui_watch()  # the loop has ended: no beat follows, and shutting down is no stall
         manager.shutdown()
         remove_nets()
+        archive = station.uninstall()
+        if archive is not None:
+            archive.close()
+        del archive_note
     if loop_exit.code is not None:
         # Ended by a signal, with the devices safe and the session closed: end now. Qt's teardown of the window
         # (the GL views) took 0.4-2 s on a loaded machine, and a process told to end must end (issue #25).

@@ -104,15 +104,44 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
         if not args.script:
             _report_error("--headless needs --script FILE")
             return 2
+        from app.archive import station
         from app.scripting.headless import run_headless
 
-        code = run_headless(config, args.script, duration_s=args.duration, record_dir=args.record)
+        opened = _open_archive_headless(config)
+        if opened is None:
+            return 2
+        try:
+            code = run_headless(config, args.script, duration_s=args.duration, record_dir=args.record)
+        finally:
+            archive = station.uninstall()
+            if archive is not None:
+                archive.close()
         if code > 128:  # ended by a signal, devices safe and session closed: no slow interpreter teardown
             _exit_now(code)
         return code
     from app.application import run_gui
 
     return run_gui(config, screenshot=args.screenshot, quit_after_s=args.quit_after)
+
+
+def _open_archive_headless(config: object) -> object:
+    """The station's archive for a headless run, installed (app.archive.station); None when it is refused (the
+    sentence on stderr; exit 2). An archive that cannot be reached: said on stderr, and the run goes on."""
+    from app.application import archive_refusal
+    from app.archive import station
+
+    try:
+        opened = station.open_station(config)
+    except Exception as exc:
+        refusal = archive_refusal(exc)
+        if not refusal:
+            raise
+        print(refusal, file=sys.stderr)
+        return None
+    station.install(opened.archive, opened.problem)
+    if opened.message():
+        print(opened.message(), file=sys.stderr)
+    return opened
 
 
 def _archive_command(argv: list[str], prog: str | None) -> int:

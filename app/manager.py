@@ -28,6 +28,7 @@ from app.devices.registry import DeviceFactory, DeviceHandle, SimulatorHosting, 
 from app.fault_policy import FaultPolicy
 from app.ownership import ROBOT, RUN_SOURCES, STIMULATOR, Composition, Lease
 from app.paths import runtime_dir
+from app.priority import PriorityOutcome, raise_for_real_time
 from app.safety import AlarmLevel, SafetyError, SafetySupervisor
 
 if TYPE_CHECKING:
@@ -189,6 +190,9 @@ class LinarmppManager(QObject):
         self._shutdown_hooks: list[Callable[[], None]] = []
         self.recorder: Any = None  # app.recording.SessionRecorder while a session runs
         self.patient_profile: Any = None
+        # The archive record's version the session's profile was read at (0: a YAML file, unversioned): a change
+        # made inside the session (an electrode choice) is saved as of it, field by field (app.archive.station).
+        self.patient_version = 0
         self.operator = ""
         self._lsl: Any = None
         # α from the patient model → split → robot (k_m, k_a, k_t) and FES (pulse width). Built before the
@@ -208,6 +212,7 @@ class LinarmppManager(QObject):
                                         config.safety.silence_stop_s)
         self.device_watch = DeviceWatch(self.supervisor, self.loss_level, lambda: self._started)
         self._watching = False
+        self.priority: PriorityOutcome | None = None  # set at start(): app/priority.py
 
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> None:
@@ -216,6 +221,9 @@ class LinarmppManager(QObject):
         if self._started:
             return
         self._started = True
+        # Driving starts: this process's threads ahead of ordinary programs where the system allows it (the
+        # simulators and drivers started below inherit it): app/priority.py.
+        self.priority = raise_for_real_time()
         self.devices = build_devices(
             self._factories, self.config, bus=self.bus, supervisor=self.supervisor,
             runtime_dir=self.runtime_dir, simulators=self.simulators, assistance=self.assistance,
@@ -423,21 +431,27 @@ class LinarmppManager(QObject):
     def start_session(self, patient_id: str, operator: str, note: str = "", root: Path | None = None) -> Path:
         """A session = a patient + an operator + a recording that starts now. The patient's profile
         narrows the safety limits for its duration. Raises ValueError/PatientError, nothing started."""
-        from app.patients import effective_robot_limits, load_patient, patient_file
+        from app.archive import station
+        from app.archive.api import ArchiveError
+        from app.patients import PatientError, effective_robot_limits
         from app.recording import SessionRecorder, sessions_root
 
         if self.recorder is not None:
             raise RuntimeError("a session is already running; end it first")
-        profile = None
-        if patient_file(patient_id).exists():
-            profile = load_patient(patient_id, self.config.safety)  # a bad profile refuses the session
-        else:
+        try:  # the archive's record (or the YAML file without one); a bad profile refuses the session
+            record = station.read_record(patient_id, self.config.safety)
+        except ArchiveError as exc:  # never a session without the caps its patient may have
+            raise PatientError(f"patient {patient_id}", None, "",
+                               f"the session is not started: the patient's profile cannot be read ({exc})") from exc
+        profile = record.profile if record is not None else None
+        if record is None:
             log.info("patient %s has no profile: the configured limits apply", patient_id)
         recorder = SessionRecorder()
         folder = recorder.start(self, patient_id, operator, note, root=root or sessions_root(self.config),
                                 profile=profile)
         self.recorder = recorder
         self.patient_profile = profile
+        self.patient_version = record.version if record is not None else 0
         self.operator = operator
         self.runs = self._new_run_log()
         if profile is not None:
@@ -461,18 +475,23 @@ class LinarmppManager(QObject):
             self._lsl = start_lsl(self)
         return self._lsl
 
-    def update_session_profile(self, profile: Any) -> list[str]:
+    def update_session_profile(self, profile: Any, version: int | None = None) -> list[str]:
         """The session patient's profile was saved again (Patients window, an electrode choice): what it
         changes applies to the next command at once — the robot limits, the FES caps (a lowered cap below a
-        running profile stops it), the chosen electrodes, the gains — and is recorded. Returns the changes in
-        words ([] when ``profile`` is not this session's patient)."""
+        running profile stops it), the chosen electrodes, the gains — and is recorded. ``version``: the archive
+        record's version of ``profile`` (kept with the session). Returns the changes in words ([] when
+        ``profile`` is not this session's patient)."""
         from app.patients import effective_robot_limits, profile_changes
 
         old = self.patient_profile
         if self.recorder is None or old is None or profile.patient_id != old.patient_id:
             return []
+        if version is not None and version < self.patient_version:
+            return []  # an older copy than the session's (a late reader): the session keeps the newer one
         changes = profile_changes(old, profile)
         self.patient_profile = profile
+        if version is not None:
+            self.patient_version = version
         self.supervisor.robot = effective_robot_limits(profile, self.config.safety.robot)
         self._apply_robot_limits()
         self.apply_patient_profile(profile)
@@ -507,6 +526,7 @@ class LinarmppManager(QObject):
         self.supervisor.robot = self.config.safety.robot
         self._apply_robot_limits()
         self.patient_profile = None
+        self.patient_version = 0
         set_districts = getattr(self.driver("fes"), "set_district_channels", None)
         if callable(set_districts):  # the next patient's district profiles must not use this one's electrodes
             set_districts({})

@@ -16,7 +16,7 @@ import re
 import tempfile
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, Protocol
 
 import yaml
 from yaml.nodes import MappingNode, Node
@@ -264,6 +264,11 @@ def parse_profile(text: str, filename: str, safety: SafetyConfig | None = None) 
 
 
 def load_patient(patient_id: str, safety: SafetyConfig | None = None, folder: Path | None = None) -> PatientProfile:
+    """The patient's profile from ``folder``'s YAML file; without a folder, from the station's archive when the
+    application has one (app.archive.station), else from the patients folder. Raises PatientError (no such
+    patient, an invalid profile, a limit looser than ``safety``, the archive cannot be reached)."""
+    if folder is None and _store is not None:
+        return _store.load(patient_id, safety)
     path = patient_file(patient_id, folder)
     try:
         text = read_text(path)
@@ -274,6 +279,26 @@ def load_patient(patient_id: str, safety: SafetyConfig | None = None, folder: Pa
         raise PatientError(str(path), _line_of(text, "patient_id"), "patient_id",
                            f"{profile.patient_id!r} does not match the file name {path.name!r}")
     return profile
+
+
+class PatientStore(Protocol):
+    """Where patients live when not in YAML files: the application's archive (app.archive.station installs it with
+    :func:`use_store`; this module never imports the archive)."""
+
+    def load(self, patient_id: str, safety: SafetyConfig | None) -> PatientProfile:
+        """Raises PatientError (no such patient, an invalid record, a limit looser than ``safety``, unreachable)."""
+        ...
+
+    def entries(self, safety: SafetyConfig | None) -> list[PatientEntry]: ...
+
+
+_store: PatientStore | None = None
+
+
+def use_store(store: PatientStore | None) -> None:
+    """``load_patient`` and ``list_patients`` without a folder read ``store`` from now on (None: the YAML folder)."""
+    global _store
+    _store = store
 
 
 def profile_to_yaml(profile: PatientProfile) -> str:
@@ -318,9 +343,14 @@ class PatientEntry:
     path: Path
     profile: PatientProfile | None
     error: str = ""
+    version: int = 0  # the archive record's version it was read at (0: a YAML file, unversioned)
 
 
 def list_patients(folder: Path | None = None, safety: SafetyConfig | None = None) -> list[PatientEntry]:
+    """Every patient of ``folder`` (a file that cannot be loaded listed with its reason); without a folder, the
+    station's archive when the application has one (:func:`use_store`; empty when it cannot be reached)."""
+    if folder is None and _store is not None:
+        return _store.entries(safety)
     folder = folder or paths.patients_dir()
     out: list[PatientEntry] = []
     for path in sorted(folder.glob("*.yaml"), key=lambda p: p.stem.lower()):
@@ -445,8 +475,8 @@ def profile_field_names() -> list[str]:
 
 __all__ = [
     "ClinicalChannelCap", "ClinicalScores", "ElectrodeChoice", "PatientAssistance", "PatientEntry", "PatientError",
-    "PatientFes",
-    "PatientProfile", "PatientRobotLimits", "PlanProblem", "PlannedExercise", "clinical_caps",
-    "effective_robot_limits", "limit_problems", "list_patients", "load_patient", "matches", "parse_profile",
-    "patient_file", "plan_problems", "prescription_problems", "profile_changes", "profile_to_yaml", "save_patient",
+    "PatientFes", "PatientProfile", "PatientRobotLimits", "PatientStore", "PlanProblem", "PlannedExercise",
+    "clinical_caps", "effective_robot_limits", "limit_problems", "list_patients", "load_patient", "matches",
+    "parse_profile", "patient_file", "plan_problems", "prescription_problems", "profile_changes", "profile_to_yaml",
+    "save_patient", "use_store",
 ]

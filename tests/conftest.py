@@ -114,6 +114,15 @@ def _module_name(item) -> str:  # type: ignore[no-untyped-def]
     return item.module.__name__.rsplit(".", 1)[-1] if item.module is not None else ""
 
 
+def _uses_its_module_fixture(item) -> bool:  # type: ignore[no-untyped-def]
+    """Whether the test uses a module- or class-scoped fixture defined in its own module (not a conftest's)."""
+    info = getattr(item, "_fixtureinfo", None)
+    module_id = item.nodeid.split("::", 1)[0]
+    return info is not None and any(
+        fixture.scope in ("module", "class") and fixture.baseid == module_id
+        for fixtures in info.name2fixturedefs.values() for fixture in fixtures)
+
+
 def pytest_collection_modifyitems(config, items) -> None:  # type: ignore[no-untyped-def]
     reruns = config.pluginmanager.hasplugin("rerunfailures")
     xdist = config.pluginmanager.hasplugin("xdist")
@@ -130,6 +139,10 @@ def pytest_collection_modifyitems(config, items) -> None:  # type: ignore[no-unt
         if xdist and "shared_manager" in getattr(item, "fixturenames", ()) \
                 and item.get_closest_marker("xdist_group") is None:
             item.add_marker(pytest.mark.xdist_group(name=f"rig:{module}"))
+        # So is any module-scoped fixture the module defines (an installed venv, a PostgreSQL server, a window):
+        # split over two workers, each built its own (test_install installed the wheel twice, ~20 s each).
+        if xdist and item.get_closest_marker("xdist_group") is None and _uses_its_module_fixture(item):
+            item.add_marker(pytest.mark.xdist_group(name=f"module:{module}"))
     order = {id(item): n for n, item in enumerate(items)}
     items.sort(key=lambda item: (_module_name(item) not in slow_modules, order[id(item)]))
 

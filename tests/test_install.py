@@ -125,7 +125,7 @@ def test_the_installed_command_runs_an_installed_example_headless_from_any_folde
 
     record = installed.elsewhere / "rec"
     shutil.rmtree(record, ignore_errors=True)  # a rerun starts clean
-    installed.run("--headless", "--script", str(example), "--duration", "10", "--record", str(record))
+    installed.run("--headless", "--script", str(example), "--duration", "3", "--record", str(record))
     manifests = list(record.rglob("manifest.json"))
     assert len(manifests) == 1, manifests
     assert json.loads(manifests[0].read_text(encoding="utf-8"))["app_version"] == VERSION

@@ -84,6 +84,9 @@ def test_an_exercises_tab_run_stopped_by_f12_restarts_the_same_exercise(qtbot: A
     _f12(window)
     qtbot.waitUntil(lambda: not runner.running, timeout=5000)
     assert "Running" not in console.status.text(), "the Script tab ran nothing"
+    # The operator looks at another exercise after the STOP: Recover still restarts the one that ran.
+    panel.select("free_admittance")
+    assert panel.exercise is not None and panel.exercise.ident == "free_admittance"
 
     dialog = _recover_dialog(qtbot, window)
     assert dialog.restart_button is not None

@@ -467,11 +467,13 @@ def literal(value: Any) -> str:
 def run_script(rig: Rig, actions: list[tuple[str, tuple]]) -> list[str]:
     listed = ", ".join(f"({n!r}, ({''.join(literal(v) + ', ' for v in vals)}))" for n, vals in actions)
     runner = ScriptRunner(rig.manager, output=lambda _s, _t: None, home_first=False)
-    runner.start(f"CALLS = [{listed}]\n" + SCRIPT, "<property>")
-    wait_for(lambda: runner.wait(0), 10.0, "the script to end")
-    assert runner.result is not None and runner.result.status == "finished", runner.result
-    results = runner.namespace_value("results", timeout=5.0)  # the script runs in the kernel process
-    runner.close()
+    try:  # closed whatever happens: a failing example must not leave the kernel process running
+        runner.start(f"CALLS = [{listed}]\n" + SCRIPT, "<property>")
+        wait_for(lambda: runner.wait(0), 10.0, "the script to end")
+        assert runner.result is not None and runner.result.status == "finished", runner.result
+        results = runner.namespace_value("results", timeout=5.0)  # the script runs in the kernel process
+    finally:
+        runner.close()
     assert len(results) == len(actions)
     wrong = []
     for (name, values), (kind, text) in zip(actions, results, strict=True):

@@ -343,6 +343,11 @@ class Archive(Protocol):
         """Raises NotFound."""
         ...
 
+    def patient_records(self, limit: int = 1000, offset: int = 0) -> list[PatientRecord]:
+        """Every patient's record, ordered as :meth:`list_patients`, read in one transaction (the Patients window).
+        Raises ArchiveError when one of them is not a valid profile (then read them one by one)."""
+        ...
+
     def save_patient(self, profile: PatientProfile, *, expected_version: int | None, operator: str,
                      fields: Iterable[str] | None = None, reason: str = "save") -> PatientRecord:
         """Validate (PatientProfile.validate) and write. ``expected_version=None``: a new patient (PatientExists if

@@ -45,17 +45,8 @@ def import_data_folder(archive: Archive, data: Path, operator: str = "import",
     if not (data / "patients").is_dir() and not (data / "sessions").is_dir():
         raise ArchiveError(f"{data} is not a LINarm++ data folder (it has neither patients/ nor sessions/)")
     report = ImportReport()
-    for entry in list_patients(data / "patients") if (data / "patients").is_dir() else []:
-        if entry.profile is None:
-            report.failed.append(entry.error)
-            continue
-        try:
-            current = archive.get_patient(entry.patient_id)
-        except NotFound:
-            archive.save_patient(entry.profile, expected_version=None, operator=operator, reason="import")
-            report.patients_added.append(entry.patient_id)
-            continue
-        (report.patients_same if current.profile == entry.profile else report.patients_kept).append(entry.patient_id)
+    if (data / "patients").is_dir():
+        import_patients(archive, data / "patients", report, operator)
     for folder in session_folders(data / "sessions"):
         try:
             result = archive.upload_session(folder)
@@ -66,6 +57,23 @@ def import_data_folder(archive: Archive, data: Path, operator: str = "import",
         if log is not None:
             log(f"{folder}: {result.outcome}")
     return report
+
+
+def import_patients(archive: Archive, folder: Path, report: ImportReport, operator: str = "import") -> None:
+    """The patient files of ``folder`` (``<data>/patients``) into the archive: a patient not archived yet is added
+    (its ``created`` and ``updated`` kept), one archived with the same profile is skipped, one archived with other
+    values is left as the archive holds it (named in ``report``)."""
+    for entry in list_patients(folder):
+        if entry.profile is None:
+            report.failed.append(entry.error)
+            continue
+        try:
+            current = archive.get_patient(entry.patient_id)
+        except NotFound:
+            archive.save_patient(entry.profile, expected_version=None, operator=operator, reason="import")
+            report.patients_added.append(entry.patient_id)
+            continue
+        (report.patients_same if current.profile == entry.profile else report.patients_kept).append(entry.patient_id)
 
 
 def export_profiles(archive: Archive, out: Path, patient_ids: Iterable[str] | None = None) -> list[Path]:

@@ -606,11 +606,16 @@ class FESUser:
             profile = manager.patient_profile
             if profile is None:
                 raise ScriptError("the proposal cannot be saved: this session's patient has no profile")
-            profile = electrodes.save_choice(result, channel, profile, manager.operator or self._ctx.source, "",
-                                             manager.config.safety)
+            # only this district's choice is written, onto the archive's record as it is now (#39): a cap lowered
+            # since the session started stays lowered, and what changed meanwhile applies here too (#36)
+            saved = electrodes.save_choice_record(result, channel, profile, manager.operator or self._ctx.source,
+                                                  "", manager.config.safety,
+                                                  expected_version=getattr(manager, "patient_version", 0))
+            profile = saved.profile
             update = getattr(manager, "update_session_profile", None)
-            if not (callable(update) and update(profile)):  # what changed on disk since applies too (#36)
+            if not (callable(update) and update(profile, saved.version)):
                 manager.patient_profile = profile
+                manager.patient_version = saved.version
             fes.set_district_channels(profile.fes.district_channels())
             record("electrode_choice", electrodes.choice_event(result, profile.fes.electrodes[district]))
             summary["accepted"] = channel

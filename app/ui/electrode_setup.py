@@ -43,7 +43,7 @@ from app.electrodes import (
     choice_event,
     choice_for,
     districts_from_config,
-    save_choice,
+    save_choice_record,
 )
 from app.manager import LinarmppManager
 from app.ownership import ROBOT, SETUP_SOURCES, STIMULATOR, Lease
@@ -445,10 +445,15 @@ class ElectrodeSetupDialog(QDialog):
         saved = ""
         try:
             if profile is not None:
-                profile = save_choice(result, channel, profile, operator, session, manager.config.safety)
+                # this district's choice only, onto the archive's record as it is now (#39); what changed since
+                # the session started (a lowered cap) applies too (#36)
+                record = save_choice_record(result, channel, profile, operator, session, manager.config.safety,
+                                            expected_version=getattr(manager, "patient_version", 0))
+                profile = record.profile
                 update = getattr(manager, "update_session_profile", None)
-                if not (callable(update) and update(profile)):  # caps changed on disk since apply too (#36)
+                if not (callable(update) and update(profile, record.version)):
                     manager.patient_profile = profile
+                    manager.patient_version = record.version
                 channels = profile.fes.district_channels()
                 saved = f"saved in {profile.patient_id}'s profile"
             else:

@@ -33,8 +33,10 @@ from PySide6.QtWidgets import (
     QWidget,
 )
 
+from app.archive import station
+from app.archive.api import ArchiveError, PatientExists, StaleRecord
 from app.config import SafetyConfig
-from app.patients import PatientEntry, PatientError, PatientProfile, list_patients, matches, parse_profile, save_patient
+from app.patients import PatientEntry, PatientError, PatientProfile, list_patients, matches, parse_profile
 
 _SCORES = (("fugl_meyer_ue", "Fugl-Meyer UE (0–66)"), ("modified_ashworth", "Modified Ashworth (0–4)"),
            ("action_research_arm_test", "ARAT (0–57)"), ("box_and_block", "Box and Block (blocks/min)"),
@@ -64,14 +66,30 @@ def _text(value: Any) -> str:
 
 
 class PatientDialog(QDialog):
-    """Edit ``profile`` (None: a new patient). On OK the profile is validated and saved."""
+    """Edit ``profile`` (None: a new patient). On OK the profile is validated and saved — through the station's
+    archive (app.archive.station) as of the record's ``version``: when anything of the patient was saved since
+    (another window, another station, an electrode choice in a session) the save is refused, saying who changed
+    it, on which station and when, and the form offers Reload (the saved values, with this form's own changes
+    put back where they do not collide; nothing typed is dropped without saying so)."""
 
     def __init__(self, profile: PatientProfile | None = None, safety: SafetyConfig | None = None,
-                 folder: Path | None = None, parent: QWidget | None = None) -> None:
+                 folder: Path | None = None, parent: QWidget | None = None, *, version: int | None = None,
+                 operator: str = "", archive: Any = None) -> None:
         super().__init__(parent)
-        self.original = profile
         self.safety = safety
         self.folder = folder
+        self.archive = archive  # None: the station's archive, or the YAML folder without one
+        self.operator = operator
+        if profile is not None and version is None:  # the record as it is now, with its version
+            try:
+                record = station.read_record(profile.patient_id, archive=archive, folder=folder)
+            except (ArchiveError, PatientError, OSError, ValueError):
+                record = None  # said when saving
+            if record is not None:
+                profile, version = record.profile, record.version
+        self.original = profile
+        self.version = version or 0  # the record's version the form shows (0: a YAML file)
+        self.stale: StaleRecord | None = None  # the last refused save's reason
         self.profile: PatientProfile | None = None  # the saved profile after accept
         self.saved_path: Path | None = None
         self.setWindowTitle("New patient" if profile is None else f"Patient {profile.patient_id}")
@@ -143,6 +161,12 @@ class PatientDialog(QDialog):
         buttons = QDialogButtonBox(QDialogButtonBox.StandardButton.Save | QDialogButtonBox.StandardButton.Cancel)
         buttons.accepted.connect(self.accept)
         buttons.rejected.connect(self.reject)
+        # Offered when the patient was saved elsewhere since this form opened (StaleRecord).
+        self.reload_button = buttons.addButton("&Reload", QDialogButtonBox.ButtonRole.ResetRole)
+        self.reload_button.setToolTip("Show the patient as saved now, with this form's changes put back where "
+                                      "they do not collide")
+        self.reload_button.clicked.connect(self.reload)
+        self.reload_button.setVisible(False)
 
         left = QVBoxLayout()
         left.addLayout(form)
@@ -264,16 +288,101 @@ class PatientDialog(QDialog):
         profile = self.validate()
         if profile is None:
             return
-        if self.original is None and any(e.patient_id == profile.patient_id for e in list_patients(self.folder)):
+        try:
+            record = station.save_profile(profile, expected_version=None if self.original is None else self.version,
+                                          operator=station.default_operator(self.operator), safety=self.safety,
+                                          archive=self.archive, folder=self.folder)
+        except PatientExists:
             self.show_error("patient_id", f"a patient {profile.patient_id!r} already exists")
             return
-        try:
-            self.saved_path = save_patient(profile, self.folder, self.safety)
-        except (OSError, PatientError) as exc:
+        except StaleRecord as exc:
+            self.stale = exc
+            what = f" ({', '.join(station.field_words(f) for f in exc.fields)})" if exc.fields else ""
+            self.error_label.setText(
+                f"Not saved: {profile.patient_id} was changed{what} by {exc.changed_by or 'someone'} on station "
+                f"{exc.changed_station or '(unknown)'} at {exc.changed_at}, after this form was opened. Reload shows "
+                "their values with your changes put back where they do not collide; then Save again.")
+            self.reload_button.setVisible(True)
+            self.reload_button.setFocus()
+            return
+        except (ArchiveError, OSError, PatientError, ValueError) as exc:
             self.error_label.setText(f"could not save: {exc}")
             return
-        self.profile = replace(profile)
+        if self.archive is None and (self.folder is not None or not station.in_use()):  # the YAML file
+            from app.patients import patient_file
+
+            self.saved_path = patient_file(profile.patient_id, self.folder)
+        self.version = record.version
+        self.profile = replace(record.profile)
         super().accept()
+
+    def reload(self) -> list[str]:
+        """After a refused save: the patient as saved now, with this form's own changes put back on every field the
+        other save did not change. Returns the fields where both changed (theirs shown; yours said in the message
+        so that nothing typed is lost unsaid)."""
+        from app.archive.store import profile_from_values, profile_values
+
+        mine = self.validate()
+        try:
+            record = station.read_record(self.original.patient_id if self.original else "", archive=self.archive,
+                                         folder=self.folder)
+        except (ArchiveError, PatientError, OSError, ValueError) as exc:
+            self.error_label.setText(f"The patient cannot be read again: {exc}")
+            return []
+        if record is None or self.original is None:
+            return []
+        base, theirs = profile_values(self.original), profile_values(record.profile)
+        merged, kept, both = dict(theirs), [], []
+        if mine is not None:
+            yours = profile_values(mine)
+            for key in sorted(set(yours) | set(base)):
+                if yours.get(key) == base.get(key):
+                    continue  # not changed in this form
+                if theirs.get(key) == base.get(key):
+                    merged[key] = yours.get(key)
+                    kept.append(key)
+                elif theirs.get(key) != yours.get(key):
+                    both.append((key, yours.get(key)))
+        merged = {k: v for k, v in merged.items() if v is not None}
+        shown = profile_from_values(record.profile.patient_id, merged, record.profile.created, record.profile.updated)
+        self.original, self.version, self.stale = record.profile, record.version, None
+        self.fill(shown)
+        self.reload_button.setVisible(False)
+        words = [f"Reloaded: the patient as saved by {record.changed_by} on {record.changed_station} at "
+                 f"{record.changed_at} (version {record.version})."]
+        if kept:
+            words.append(f"Your changes ({', '.join(station.field_words(k) for k in kept)}) are in the form "
+                         "again: Save to keep them.")
+        if both:
+            words.append("Changed there too, their value is shown — yours was: "
+                         + "; ".join(f"{station.field_words(k)}: {_short(v)}" for k, v in both) + ".")
+        self.error_label.setText(" ".join(words))
+        return [k for k, _v in both]
+
+    def fill(self, p: PatientProfile) -> None:
+        """Show ``p`` in the form (every field the form edits)."""
+        self.id_edit.setText(p.patient_id)
+        self.name_edit.setText(p.full_name)
+        self.birth_edit.setText(p.birth_date)
+        self.record_edit.setText(p.record_number)
+        self.side_box.setCurrentIndex(self.side_box.findData(p.affected_side))
+        self.k_r.setText(_text(p.assistance.k_r))
+        self.k_f.setText(_text(p.assistance.k_f))
+        self.fes_profile.setText(p.fes.profile)
+        for key, _label in _SCORES:
+            self.fields[f"scores.{key}"].setText(_text(getattr(p.scores, key)))  # type: ignore[attr-defined]
+        for key, _label in _ROBOT:
+            self.fields[f"robot.{key}"].setText(_text(getattr(p.robot, key)))  # type: ignore[attr-defined]
+        for row in range(8):
+            cap = p.fes.caps.get(row + 1)
+            for col, (key, _label) in enumerate(_CAP_COLUMNS):
+                self.caps_table.setItem(row, col, QTableWidgetItem(_text(getattr(cap, key)) if cap else ""))
+        self.notes.setPlainText(p.notes)
+
+
+def _short(value: Any) -> str:
+    text = "empty" if value in (None, "", {}, []) else str(value)
+    return text if len(text) <= 80 else text[:77] + "…"
 
 
 def patient_text(entry: PatientEntry) -> str:
@@ -378,6 +487,9 @@ class StartSessionDialog(QDialog):
         problem = ""
         if entry is None and self.entries and self.search_edit.text().strip():
             problem = "No patient matches the search."
+        elif entry is None and station.unreachable():  # not "create one": they exist, the archive is away
+            problem = (f"{station.unreachable()[:1].upper()}{station.unreachable()[1:]}: patients cannot be opened "
+                       "until it is back.")
         elif entry is None:
             problem = "Create a patient first (New patient…)."
         elif entry.profile is None:
@@ -401,13 +513,15 @@ class StartSessionDialog(QDialog):
 
     def new_patient(self) -> QDialog:
         self.search_edit.clear()  # the new patient is shown, whatever was searched
-        return self._open(PatientDialog(None, self.safety, self.folder, self), None)
+        return self._open(PatientDialog(None, self.safety, self.folder, self,
+                                        operator=self.operator_edit.text().strip()), None)
 
     def edit_patient(self) -> QDialog | None:
         entry = self.entries.get(self.patient_box.currentData())
         if entry is None or entry.profile is None:
             return None
-        return self._open(PatientDialog(entry.profile, self.safety, self.folder, self), entry.patient_id)
+        return self._open(PatientDialog(entry.profile, self.safety, self.folder, self, version=entry.version or None,
+                                        operator=self.operator_edit.text().strip()), entry.patient_id)
 
     def edit_plan(self) -> QDialog | None:
         """The chosen patient's therapy plan (the Patients window's plan form), from the session's start: a new
@@ -417,7 +531,9 @@ class StartSessionDialog(QDialog):
         entry = self.entries.get(self.patient_box.currentData())
         if entry is None or entry.profile is None:
             return None
-        return self._open(PlanDialog(entry.profile, self.safety, self.folder, parent=self), entry.patient_id)
+        return self._open(PlanDialog(entry.profile, self.safety, self.folder, parent=self,
+                                     version=entry.version or None, operator=self.operator_edit.text().strip()),
+                          entry.patient_id)
 
     def values(self) -> tuple[str, str, str]:
         """(patient_id, operator, note) as chosen."""

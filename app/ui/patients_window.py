@@ -1,7 +1,10 @@
 """Session → Patients…: the patients of this workstation, searched and edited, and each one's therapy plan.
 
-The list reads ``paths.patients_dir()`` (app.patients.list_patients: a file that cannot be loaded is listed with
-its reason, never hidden). "Edit profile…" opens the profile form (app/ui/patient_dialog.py); "Therapy plan…"
+The list reads the station's archive (app.archive.station.list_entries; without an archive, the YAML files of
+``paths.patients_dir()``: a record that cannot be loaded is listed with its reason, never hidden). Each entry
+keeps the record's version: the profile form and the plan form save as of it, and a save refused because the
+patient was changed meanwhile says by whom, where and when, and offers Reload. "Edit profile…" opens the
+profile form (app/ui/patient_dialog.py); "Therapy plan…"
 edits the ordered exercises of the plan with each exercise's own form: every value is checked against the
 exercise's declared range (app.exercises: Parameter.check / validate) as it is typed, and a plan with a value
 out of range is not saved — the reason is said in words, at the field.
@@ -28,11 +31,12 @@ from PySide6.QtWidgets import (
     QWidget,
 )
 
+from app.archive import station
+from app.archive.api import ArchiveError
 from app.config import SafetyConfig
 from app.exercises import load_library
 from app.patients import (
     PatientEntry,
-    list_patients,
     matches,
 )
 from app.ui.plan_dialog import PlanDialog, step_text
@@ -102,7 +106,14 @@ class PatientsDialog(QDialog):
         self.session_note.setObjectName("sessionNote")
         self.session_note.setWordWrap(True)
         self.session_note.setVisible(False)
+        # The archive cannot be reached: said here, once, plainly (the forms refuse to save and say why too).
+        self.archive_note = QLabel("")
+        self.archive_note.setObjectName("archiveNote")
+        self.archive_note.setWordWrap(True)
+        self.archive_note.setStyleSheet("color: #b00020; font-weight: bold;")
+        self.archive_note.setVisible(False)
         lay = QVBoxLayout(self)
+        lay.addWidget(self.archive_note)
         lay.addLayout(body, 1)
         lay.addWidget(self.session_note)
         lay.addLayout(buttons)
@@ -112,7 +123,16 @@ class PatientsDialog(QDialog):
     # ------------------------------------------------------------------ list
     def reload(self, select: str | None = None) -> None:
         select = select or self.selected_id()
-        self.entries = list_patients(self.folder, self.safety)
+        try:
+            self.entries = station.list_entries(self.safety, folder=self.folder)
+            problem = ""
+        except ArchiveError as exc:
+            self.entries, problem = [], str(exc)
+        if problem:
+            self.archive_note.setText(f"{problem}. Patients cannot be opened or saved, nor their sessions "
+                                      "started, until the archive is back.")
+        self.archive_note.setVisible(bool(problem))
+        self.new_button.setEnabled(not problem)
         if select and not any(e.patient_id == select and matches(e, self.search.text()) for e in self.entries):
             self.search.blockSignals(True)  # a patient just created must be seen, whatever the search was
             self.search.clear()
@@ -217,7 +237,7 @@ class PatientsDialog(QDialog):
         entry = next((e for e in self.entries if e.patient_id == patient_id), None)
         if entry is None or entry.profile is None:
             return []
-        changes = manager.update_session_profile(entry.profile)
+        changes = manager.update_session_profile(entry.profile, entry.version or None)
         if changes:
             self.session_note.setText(f"Applied to {patient_id}'s running session at once: " + "; ".join(changes)
                                       + ". The next command meets them.")
@@ -225,11 +245,15 @@ class PatientsDialog(QDialog):
             self.session_note.setVisible(True)
         return changes
 
+    def operator(self) -> str:
+        """Who the saves are recorded as: the running session's operator (else the computer's login)."""
+        return station.default_operator(str(getattr(self.manager, "operator", "") or ""))
+
     def new_patient(self) -> QDialog:
         """A new patient's profile; once saved, their therapy plan opens at once (one action fewer, #36)."""
         from app.ui.patient_dialog import PatientDialog
 
-        dialog = PatientDialog(None, self.safety, self.folder, self)
+        dialog = PatientDialog(None, self.safety, self.folder, self, operator=self.operator())
 
         def saved(result: int) -> None:
             profile = getattr(dialog, "profile", None)
@@ -251,12 +275,14 @@ class PatientsDialog(QDialog):
         entry = self.selected_entry()
         if entry is None or entry.profile is None:
             return None
-        return self._open(PatientDialog(entry.profile, self.safety, self.folder, self), entry.patient_id)
+        return self._open(PatientDialog(entry.profile, self.safety, self.folder, self, version=entry.version or None,
+                                        operator=self.operator()), entry.patient_id)
 
     def edit_plan(self) -> PlanDialog | None:
         entry = self.selected_entry()
         if entry is None or entry.profile is None:
             return None
-        dialog = PlanDialog(entry.profile, self.safety, self.folder, parent=self)
+        dialog = PlanDialog(entry.profile, self.safety, self.folder, parent=self, version=entry.version or None,
+                            operator=self.operator())
         self._open(dialog, entry.patient_id)
         return dialog

@@ -27,17 +27,16 @@ from PySide6.QtWidgets import (
     QWidget,
 )
 
+from app.archive import station
+from app.archive.api import ArchiveError, StaleRecord
 from app.config import SafetyConfig
 from app.exercises import Exercise, Parameter, load_library
 from app.patients import (
     PatientError,
     PatientProfile,
     PlannedExercise,
-    load_patient,
-    patient_file,
     plan_problems,
     prescription_problems,
-    save_patient,
 )
 
 _ERROR_STYLE = "background: #ffd6d6;"
@@ -66,11 +65,25 @@ class PlanDialog(QDialog):
     """Edit ``profile``'s therapy plan: ordered steps, each an exercise of the library with its values."""
 
     def __init__(self, profile: PatientProfile, safety: SafetyConfig | None = None, folder: Path | None = None,
-                 library: list[Exercise] | None = None, parent: QWidget | None = None) -> None:
+                 library: list[Exercise] | None = None, parent: QWidget | None = None, *, version: int | None = None,
+                 operator: str = "", archive: Any = None) -> None:
+        """``version``: the archive record's version ``profile`` was read at (None: read the record now, the plan
+        shown is its plan). The plan is saved as of that version and alone (``fields=["therapy_plan"]``): a cap or
+        an electrode choice saved meanwhile stays; a plan saved meanwhile by someone else refuses this one."""
         super().__init__(parent)
-        self.profile = profile
         self.safety = safety
         self.folder = folder
+        self.archive = archive  # None: the station's (app.archive.station), or the YAML folder without one
+        self.operator = operator
+        if version is None:
+            try:
+                record = station.read_record(profile.patient_id, archive=archive, folder=folder)
+            except (ArchiveError, PatientError, OSError, ValueError):
+                record = None  # said when saving
+            if record is not None:
+                profile, version = record.profile, record.version
+        self.profile = profile
+        self.version = version or 0
         self.library = library if library is not None else load_library()[0]
         self.exercises = {e.ident: e for e in self.library}
         self.saved: PatientProfile | None = None
@@ -144,6 +157,11 @@ class PlanDialog(QDialog):
         self.buttons = QDialogButtonBox(QDialogButtonBox.StandardButton.Save | QDialogButtonBox.StandardButton.Cancel)
         self.buttons.accepted.connect(self.accept)
         self.buttons.rejected.connect(self.reject)
+        # Offered when the plan was saved by someone else since this form opened (StaleRecord).
+        self.reload_button = self.buttons.addButton("&Reload", QDialogButtonBox.ButtonRole.ResetRole)
+        self.reload_button.setToolTip("Show the plan as it is saved now (the steps here are replaced)")
+        self.reload_button.clicked.connect(self.reload)
+        self.reload_button.setVisible(False)
 
         left_w, right_w = QWidget(), QWidget()
         left_w.setLayout(left)
@@ -305,12 +323,12 @@ class PlanDialog(QDialog):
         plan = self.plan()
         problems = plan_problems(plan, self.library)
         try:  # the patient as saved now (a cap changed since this dialog opened counts; the save keeps it)
-            current = load_patient(self.profile.patient_id, self.safety, self.folder) \
-                if patient_file(self.profile.patient_id, self.folder).exists() else self.profile
-        except (OSError, PatientError, ValueError) as exc:
+            record = station.read_record(self.profile.patient_id, self.safety, archive=self.archive,
+                                         folder=self.folder)
+        except (ArchiveError, OSError, PatientError, ValueError) as exc:
             self.error_label.setText(f"The plan is not saved: the patient's profile cannot be read ({exc})")
             return
-        self.profile = current
+        current = record.profile if record is not None else self.profile
         # Checked against this patient before anything moves (#36): caps, limits and electrode choices.
         problems += prescription_problems(plan, current, self.safety, self.library)
         problems.sort(key=lambda p: p.step)
@@ -325,11 +343,43 @@ class PlanDialog(QDialog):
             # _show_step cleared the message's neighbour: say it again
             self.error_label.setText("The plan is not saved:\n" + "\n".join(str(p) for p in problems))
             return
-        try:
-            self.saved = replace(self.profile, therapy_plan=plan)
-            save_patient(self.saved, self.folder, self.safety)
-        except (OSError, PatientError, ValueError) as exc:
+        try:  # the plan alone, as of the version this form showed: nothing else of the record is written
+            saved = station.save_profile(replace(current, therapy_plan=plan),
+                                         expected_version=self.version if record is not None else None,
+                                         operator=station.default_operator(self.operator),
+                                         fields=["therapy_plan"] if record is not None else None,
+                                         safety=self.safety, archive=self.archive, folder=self.folder,
+                                         reason="therapy plan")
+        except StaleRecord as exc:
+            self.error_label.setText(f"The plan is not saved: the plan was changed by {exc.changed_by or 'someone'} "
+                                     f"on station {exc.changed_station or '(unknown)'} at {exc.changed_at}. Reload "
+                                     "shows their plan (the steps here are then replaced); Cancel keeps theirs.")
+            self.reload_button.setVisible(True)
+            self.reload_button.setFocus()
+            self.saved = None
+            return
+        except (ArchiveError, OSError, PatientError, ValueError) as exc:
             self.error_label.setText(f"The plan is not saved: {exc}")
             self.saved = None
             return
+        self.profile, self.version = saved.profile, saved.version
+        self.saved = saved.profile
         super().accept()
+
+    def reload(self) -> bool:
+        """The plan as the record holds it now (after a refused save): its steps replace the form's."""
+        try:
+            record = station.read_record(self.profile.patient_id, archive=self.archive, folder=self.folder)
+        except (ArchiveError, OSError, PatientError, ValueError) as exc:
+            self.error_label.setText(f"The patient cannot be read again: {exc}")
+            return False
+        if record is None:
+            return False
+        self.profile, self.version = record.profile, record.version
+        self.steps = [{"exercise": s.exercise, "values": dict(s.params), "note": s.note}
+                      for s in record.profile.therapy_plan]
+        self._refresh_list(0 if self.steps else None)
+        self.reload_button.setVisible(False)
+        who = f" by {record.changed_by} on {record.changed_station} at {record.changed_at}" if record.changed_by else ""
+        self.error_label.setText(f"The plan as saved{who} is shown. Change it again if needed, then Save.")
+        return True

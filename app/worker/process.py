@@ -49,9 +49,9 @@ def main(fd: int) -> None:
         except OSError:
             pass
     nice = int(init.get("nice") or 0)
-    if nice and hasattr(os, "nice"):
-        try:
-            os.nice(nice)
+    if nice and hasattr(os, "setpriority"):
+        try:  # absolute: the application's real-time threads it was started from may run raised (app/priority.py)
+            os.setpriority(os.PRIO_PROCESS, 0, nice)
         except OSError:
             pass
         # The worker runs in a session of its own, which Linux schedules as a group of its own (autogroup): its

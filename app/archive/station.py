@@ -1,0 +1,385 @@
+"""The station's archive in the running application (issue #39, stage 2), and the patient's record through it.
+
+The application (the window and ``--headless``) opens the archive once at start-up with :func:`open_station`
+(off the GUI thread: a clinic's server may take seconds to answer) and installs it here (:func:`install`). From
+then on every reader and writer of patients goes through this module or through ``app.patients.load_patient`` /
+``list_patients`` called without a folder, which read the installed archive:
+
+* :func:`read_record` — the profile and the record's version (the session start, the forms);
+* :func:`save_profile` — a versioned save of the whole profile (the Patients form) or of some fields (the plan
+  dialog: ``["therapy_plan"]``); refused with :class:`~app.archive.api.StaleRecord` when a written field changed
+  since ``expected_version``;
+* :func:`choose_electrodes` — a running session's electrode choice: that district's field only, so a session's
+  copy can never bring back a cap lowered since.
+
+When the archive could not be reached at start-up, :func:`unreachable` says why and reads and saves raise
+:class:`~app.archive.api.ArchiveUnavailable` (the station runs; patients cannot be saved). With nothing installed
+(a library use of the code, most tests) the patients folder's YAML files are the store, as before the archive:
+its versions are 0 (unchecked) and a save of some fields re-reads the file and replaces only those fields.
+
+Qt-free: the window's start-up and the dialogs call these functions; nothing here imports PySide6.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from collections.abc import Iterable
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+from app.archive.api import (
+    Archive,
+    ArchiveError,
+    ArchiveUnavailable,
+    NotFound,
+    PatientExists,
+    PatientRecord,
+)
+from app.patients import (
+    ElectrodeChoice,
+    PatientEntry,
+    PatientError,
+    PatientProfile,
+    limit_problems,
+    load_patient,
+    patient_file,
+    use_store,
+)
+from app.patients import list_patients as list_yaml_patients
+from app.patients import save_patient as save_yaml_patient
+
+log = logging.getLogger(__name__)
+
+_lock = threading.Lock()
+_archive: Archive | None = None
+_problem = ""  # why the archive could not be reached ('' when it is open or none is in use)
+
+
+# ---------------------------------------------------------------------------------------------- the station's archive
+def install(archive: Archive | None, problem: str = "") -> None:
+    """The application's archive from now on; ``archive=None`` with ``problem``: it is in use but could not be
+    reached (the station runs; reading and saving patients say why). ``app.patients.load_patient`` and
+    ``list_patients`` without a folder read it too."""
+    global _archive, _problem
+    with _lock:
+        _archive, _problem = archive, ("" if archive is not None else problem)
+        use_store(_StationStore() if in_use() else None)
+
+
+def uninstall() -> Archive | None:
+    """Back to no archive (the YAML folder); returns the archive that was installed (the caller closes it)."""
+    global _archive, _problem
+    with _lock:
+        archive, _archive, _problem = _archive, None, ""
+        use_store(None)
+    return archive
+
+
+class _StationStore:
+    """app.patients.PatientStore on the station's archive: the readers that name no folder follow it."""
+
+    def load(self, patient_id: str, safety: Any) -> PatientProfile:
+        where = f"archive: patient {patient_id}"
+        try:
+            record = read_record(patient_id, safety)
+        except ArchiveError as exc:
+            raise PatientError(where, None, "", str(exc)) from exc
+        if record is None:
+            raise PatientError(where, None, "patient_id", f"there is no patient {patient_id} in the archive")
+        return record.profile
+
+    def entries(self, safety: Any) -> list[PatientEntry]:
+        try:
+            return list_entries(safety)
+        except ArchiveUnavailable as exc:
+            log.warning("patients cannot be listed: %s", exc)
+            return []
+
+
+def current() -> Archive | None:
+    return _archive
+
+
+def unreachable() -> str:
+    """Why the station's archive cannot be used ('' when it is open, or when none is in use)."""
+    return _problem
+
+
+def in_use() -> bool:
+    """Whether patients live in an archive (open or unreachable) rather than in the YAML folder."""
+    return _archive is not None or bool(_problem)
+
+
+@dataclass
+class Opened:
+    """What :func:`open_station` found: the archive (None when it cannot be reached, ``problem`` saying why) and
+    the patients imported from the data folder's YAML files when the embedded archive was made just now."""
+
+    archive: Archive | None
+    problem: str = ""
+    imported: list[str] = field(default_factory=list)
+    import_problems: list[str] = field(default_factory=list)
+
+    def message(self) -> str:
+        """The sentence for the window or stderr ('' when all is well)."""
+        if self.archive is None:
+            return (f"{_sentence(self.problem)}. The station works, but patients cannot be opened or saved, nor "
+                    "their sessions started, until the archive is back.")
+        if self.import_problems:
+            return ("Some patient files of this station could not be brought into the archive: "
+                    + "; ".join(self.import_problems))
+        return ""
+
+
+def open_station(config: Any) -> Opened:
+    """Open the configured archive (``config.archive``; nothing configured: the SQLite file in the data folder).
+    An embedded archive made just now takes the data folder's existing patient files once (so nothing is lost
+    for a station that had YAML patients). Raises ArchiveTooNew, NeedsUpgrade and ConfigProblem (refuse to
+    start); an archive that cannot be reached is returned as ``Opened(None, why)``. Slow on a server: call it off
+    the GUI thread."""
+    # Alembic names its plugins when imported and says "Context impl SQLiteImpl." at each schema check: noise on
+    # the console of every start
+    logging.getLogger("alembic").setLevel(logging.WARNING)
+    from app import paths
+    from app.archive.store import ARCHIVE_FILE, open_archive
+
+    url = getattr(getattr(config, "archive", None), "url", "") or ""
+    embedded = not url
+    fresh = embedded and not (paths.data_dir() / ARCHIVE_FILE).exists()
+    try:
+        archive = open_archive(config)
+    except ArchiveUnavailable as exc:
+        log.warning("archive: %s", exc)
+        return Opened(None, str(exc))
+    opened = Opened(archive)
+    if fresh:
+        opened.imported, opened.import_problems = import_yaml_patients(archive, paths.patients_dir())
+    return opened
+
+
+def import_yaml_patients(archive: Archive, folder: Path) -> tuple[list[str], list[str]]:
+    """The patient files of ``folder`` into ``archive`` (once, by ``linarmpp archive import``'s rule: a patient
+    already archived is left as it is). Returns (imported ids, problems in words)."""
+    from app.archive.transfer import ImportReport, import_patients
+
+    report = ImportReport()
+    if folder.is_dir():
+        import_patients(archive, folder, report)
+    if report.patients_added:
+        log.info("archive: %d patient file(s) of %s imported: %s", len(report.patients_added), folder,
+                 ", ".join(report.patients_added))
+    problems = report.failed + [f"patient {p} is archived with other values: its file was not imported"
+                                for p in report.patients_kept]
+    for p in problems:
+        log.warning("archive import: %s", p)
+    return report.patients_added, problems
+
+
+# ---------------------------------------------------------------------------------------------- the patient's record
+def _target(archive: Archive | None, folder: Path | None) -> Archive | None:
+    """The archive to use, or None for the YAML folder; raises ArchiveUnavailable when the station's archive is in
+    use but cannot be reached."""
+    if archive is not None:
+        return archive
+    if folder is not None:
+        return None
+    if _archive is not None:
+        return _archive
+    if _problem:
+        raise ArchiveUnavailable(_sentence(_problem))
+    return None
+
+
+def _sentence(text: str) -> str:
+    return text[:1].upper() + text[1:]
+
+
+# The field keys (app.archive.api.PATIENT_FIELDS) in the form's words, for messages.
+FIELD_WORDS = {"full_name": "name", "birth_date": "date of birth", "record_number": "medical record no.",
+               "affected_side": "affected side", "scores": "clinical scores", "assistance": "assistance gains",
+               "fes.profile": "FES profile", "fes.caps": "FES caps", "robot": "robot limits", "notes": "notes",
+               "therapy_plan": "therapy plan"}
+
+
+def field_words(key: str) -> str:
+    """``fes.caps`` -> "FES caps"; ``fes.electrodes.triceps`` -> "electrodes of the triceps"."""
+    if key.startswith("fes.electrodes."):
+        return f"electrodes of the {key[len('fes.electrodes.'):]}"
+    return FIELD_WORDS.get(key, key)
+
+
+def _check_limits(profile: PatientProfile, safety: Any, where: str) -> None:
+    """A profile looser than the site's limits is refused as a file would be (app.patients.parse_profile)."""
+    if safety is None:
+        return
+    problems = limit_problems(profile, safety)
+    if problems:
+        key, problem = problems[0]
+        raise PatientError(where, None, key, problem)
+
+
+def _yaml_record(profile: PatientProfile) -> PatientRecord:
+    return PatientRecord(profile, 0, profile.updated, "", "")
+
+
+def read_record(patient_id: str, safety: Any = None, *, archive: Archive | None = None,
+                folder: Path | None = None) -> PatientRecord | None:
+    """The patient's record (profile and version), or None when the patient has no profile. With ``safety`` a
+    profile looser than the configuration is refused (PatientError). Raises ArchiveUnavailable."""
+    target = _target(archive, folder)
+    if target is None:
+        if not patient_file(patient_id, folder).exists():
+            return None
+        return _yaml_record(load_patient(patient_id, safety, folder))
+    try:
+        record = target.get_patient(patient_id)
+    except NotFound:
+        return None
+    _check_limits(record.profile, safety, f"archive: patient {patient_id}")
+    return record
+
+
+def list_entries(safety: Any = None, *, archive: Archive | None = None, folder: Path | None = None
+                 ) -> list[PatientEntry]:
+    """Every patient as the Patients window lists them (with the version each was read at). A record that the
+    configuration refuses is listed with its reason, never hidden. Raises ArchiveUnavailable."""
+    target = _target(archive, folder)
+    if target is None:
+        return list_yaml_patients(folder, safety)
+    try:  # one transaction for the whole list
+        records: list[PatientRecord] = []
+        while page_records := target.patient_records(limit=1000, offset=len(records)):
+            records += page_records
+    except ArchiveUnavailable:
+        raise
+    except ArchiveError:  # a record that is not a valid profile: each read on its own, that one listed as such
+        return _entries_one_by_one(target, safety)
+    out: list[PatientEntry] = []
+    for record in records:
+        pid = record.profile.patient_id
+        try:
+            _check_limits(record.profile, safety, f"archive: patient {pid}")
+        except PatientError as exc:
+            out.append(PatientEntry(pid, patient_file(pid), None, str(exc), record.version))
+            continue
+        out.append(PatientEntry(pid, patient_file(pid), record.profile, "", record.version))
+    return out
+
+
+def _entries_one_by_one(target: Archive, safety: Any) -> list[PatientEntry]:
+    out: list[PatientEntry] = []
+    offset = 0
+    while page := target.list_patients(limit=1000, offset=offset):
+        offset += len(page)
+        for item in page:
+            where = patient_file(item.patient_id) if _safe(item.patient_id) else Path(item.patient_id)
+            try:
+                record = target.get_patient(item.patient_id)
+                _check_limits(record.profile, safety, f"archive: patient {item.patient_id}")
+            except NotFound:
+                continue  # removed between the two reads
+            except (PatientError, ArchiveError) as exc:
+                if isinstance(exc, ArchiveUnavailable):
+                    raise
+                out.append(PatientEntry(item.patient_id, where, None, str(exc), item.version))
+                continue
+            out.append(PatientEntry(item.patient_id, where, record.profile, "", record.version))
+    return out
+
+
+def _safe(patient_id: str) -> bool:
+    try:
+        patient_file(patient_id)
+    except ValueError:
+        return False
+    return True
+
+
+def save_profile(profile: PatientProfile, *, expected_version: int | None, operator: str,
+                 fields: Iterable[str] | None = None, safety: Any = None, archive: Archive | None = None,
+                 folder: Path | None = None, reason: str = "save") -> PatientRecord:
+    """Save ``profile`` as of ``expected_version`` (None: a new patient; PatientExists when the id is taken).
+    ``fields=None``: the whole profile (refused with StaleRecord when anything changed since); else only those
+    field keys (app.archive.api.PATIENT_FIELDS), the others left as the archive holds them now. Checked against
+    the configuration's limits first (PatientError), nothing written when refused."""
+    keys = None if fields is None else list(fields)
+    target = _target(archive, folder)
+    if target is None:
+        return _save_yaml(profile, expected_version, keys, safety, folder)
+    if keys is None:
+        _check_limits(profile, safety, f"patient {profile.patient_id}")
+    record = target.save_patient(profile, expected_version=expected_version, operator=operator, fields=keys,
+                                 reason=reason)
+    return record
+
+
+def _save_yaml(profile: PatientProfile, expected_version: int | None, keys: list[str] | None, safety: Any,
+               folder: Path | None) -> PatientRecord:
+    """The YAML folder (no archive): no versions; a save of some fields re-reads the file and replaces only them."""
+    exists = patient_file(profile.patient_id, folder).exists()
+    if expected_version is None and exists:
+        raise PatientExists(f"A patient {profile.patient_id!r} already exists.")
+    if keys is not None and exists:
+        current = load_patient(profile.patient_id, safety, folder)
+        for key in keys:
+            if key == "therapy_plan":
+                current = replace(current, therapy_plan=profile.therapy_plan)
+            elif key.startswith("fes.electrodes."):
+                district = key[len("fes.electrodes."):]
+                electrodes = dict(current.fes.electrodes)
+                if district in profile.fes.electrodes:
+                    electrodes[district] = profile.fes.electrodes[district]
+                else:
+                    electrodes.pop(district, None)
+                current = replace(current, fes=replace(current.fes, electrodes=electrodes))
+            else:
+                raise ValueError(f"a save of the field {key!r} alone needs the archive")
+        profile = current
+    path = save_yaml_patient(profile, folder, safety)
+    return _yaml_record(load_patient(profile.patient_id, None, path.parent))
+
+
+def choose_electrodes(patient_id: str, district: str, choice: ElectrodeChoice | None, *, expected_version: int,
+                      operator: str, archive: Archive | None = None, folder: Path | None = None,
+                      safety: Any = None, fallback: PatientProfile | None = None) -> PatientRecord:
+    """A running session's electrode choice for ``district``: only that field is written (onto the record as it is
+    now: a cap lowered since the session's start stays lowered). ``fallback``: the session's profile, written
+    whole when the YAML folder has no file for the patient yet."""
+    target = _target(archive, folder)
+    if target is not None:
+        return target.choose_electrodes(patient_id, district, choice, expected_version=expected_version,
+                                        operator=operator)
+    if patient_file(patient_id, folder).exists():
+        profile = load_patient(patient_id, safety, folder)
+    elif fallback is not None:
+        profile = fallback
+    else:
+        raise PatientError(str(patient_file(patient_id, folder)), None, "patient_id",
+                           f"patient {patient_id} has no profile")
+    electrodes = dict(profile.fes.electrodes)
+    if choice is None:
+        electrodes.pop(district, None)
+    else:
+        electrodes[district] = choice
+    profile = replace(profile, fes=replace(profile.fes, electrodes=electrodes))
+    path = save_yaml_patient(profile, folder, safety)
+    return _yaml_record(load_patient(patient_id, None, path.parent))
+
+
+def default_operator(operator: str = "") -> str:
+    """Who a save is recorded as: the operator given, else the computer's login name (said as such)."""
+    if operator.strip():
+        return operator.strip()
+    import getpass
+
+    try:
+        return f"{getpass.getuser()} (login)"
+    except Exception:
+        return "unknown (login)"
+
+
+__all__ = ["FIELD_WORDS", "Opened", "choose_electrodes", "current", "default_operator", "field_words",
+           "import_yaml_patients", "in_use", "install", "list_entries", "open_station", "read_record", "save_profile",
+           "uninstall", "unreachable"]

@@ -1,0 +1,91 @@
+"""The real-time process's CPU priority (#37, #38).
+
+The process that drives the devices — the window's GUI thread (the e-stop button, F12, the GUI watch's heartbeat),
+the drivers' threads, the bus, the therapy thread, the simulators it starts — asks Linux for a higher priority
+than an ordinary program's (nice ``REALTIME_NICE``) when it starts driving, where the system allows it: as root,
+with CAP_SYS_NICE, or with an ``RLIMIT_NICE`` the site grants (docs/decisions.md "The real-time process's
+priority": one line in ``/etc/security/limits.d/``). Why: on a busy PC (an antivirus scan, a second program
+using both cores) the window's turns and the drivers' heartbeats otherwise share the CPU equally with every busy
+thread; measured on the 2-core machine with two CPU hogs beside a second test worker, the window then missed its
+heartbeat for 0.5-1.2 s, which the GUI watch rightly answers by stopping the therapy (0.7 s). The heavy work's
+worker process sets its own, lower priority (``app/worker``: nice 10), whatever it inherits.
+
+Where the system does not allow it, nothing else changes: the process runs at its normal priority, the log says
+so once, and the GUI watch still stops the therapy safely if the window is starved. Linux's nice value is a
+per-thread attribute: every thread the process has is raised, and threads made later inherit their creator's.
+Qt-free."""
+
+from __future__ import annotations
+
+import logging
+import os
+import threading
+from dataclasses import dataclass
+from pathlib import Path
+
+log = logging.getLogger(__name__)
+
+REALTIME_NICE = -5  # a quarter of the range towards the top: ahead of ordinary programs (0), far from the kernel's own
+_TASKS = Path("/proc/self/task")
+
+
+@dataclass(frozen=True)
+class PriorityOutcome:
+    raised: bool
+    nice: int  # the calling thread's nice value after the attempt
+    sentence: str  # for the log (and whoever asks why the window was starved)
+
+
+_lock = threading.Lock()
+_outcome: PriorityOutcome | None = None
+
+
+def _thread_ids() -> list[int]:
+    try:
+        return [int(p.name) for p in _TASKS.iterdir() if p.name.isdigit()]
+    except OSError:  # not Linux: the calling thread only
+        return [0]
+
+
+def raise_for_real_time(nice: int = REALTIME_NICE) -> PriorityOutcome:
+    """Raise every thread of this process to ``nice`` (never lower one already higher). Once per process: later
+    calls return the first outcome (threads made since inherit it from their creator)."""
+    global _outcome
+    with _lock:
+        if _outcome is not None:
+            return _outcome
+        if not hasattr(os, "setpriority"):
+            _outcome = PriorityOutcome(False, 0, "the real-time process runs at normal priority (not supported here)")
+            log.info(_outcome.sentence)
+            return _outcome
+        raised = denied = 0
+        for tid in _thread_ids():
+            try:
+                if os.getpriority(os.PRIO_PROCESS, tid) > nice:
+                    os.setpriority(os.PRIO_PROCESS, tid, nice)
+                    raised += 1
+            except PermissionError:
+                denied += 1
+                break  # the same answer for every thread
+            except OSError:  # the thread ended meanwhile
+                continue
+        current = os.getpriority(os.PRIO_PROCESS, 0)
+        if denied:
+            sentence = (f"the real-time process runs at normal priority (nice {current}): this user may not raise "
+                        f"it to {nice}; on a busy PC the window may then be starved and the GUI watch stop the "
+                        "therapy (see the set-up notes: RLIMIT_NICE)")
+            _outcome = PriorityOutcome(False, current, sentence)
+        else:
+            _outcome = PriorityOutcome(current <= nice, current,
+                                       f"the real-time process runs at raised priority (nice {current})")
+        log.info(_outcome.sentence)
+        return _outcome
+
+
+def _reset_for_tests() -> None:
+    global _outcome
+    with _lock:
+        _outcome = None
+
+
+__all__ = ["REALTIME_NICE", "PriorityOutcome", "raise_for_real_time"]

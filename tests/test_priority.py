@@ -1,0 +1,95 @@
+"""The real-time process's priority (app/priority.py): raised where the system allows it, every thread of the
+process (Linux's nice is per thread), the heavy work's worker at its own lower priority whatever it inherits, and
+a plain sentence where it is not allowed."""
+
+from __future__ import annotations
+
+import os
+import threading
+from pathlib import Path
+
+import pytest
+
+from app import priority
+from app.priority import REALTIME_NICE, raise_for_real_time
+
+pytestmark = pytest.mark.skipif(not Path("/proc/self/task").is_dir(), reason="Linux's per-thread nice")
+
+
+def _nice_of(tid: int) -> int:
+    return os.getpriority(os.PRIO_PROCESS, tid)
+
+
+def _may_raise() -> bool:
+    try:
+        os.setpriority(os.PRIO_PROCESS, 0, _nice_of(0))  # no change: the call itself is allowed
+    except PermissionError:
+        return False
+    return os.geteuid() == 0 or _nice_of(0) <= REALTIME_NICE
+
+
+@pytest.fixture
+def fresh_outcome():  # type: ignore[no-untyped-def]
+    priority._reset_for_tests()
+    yield
+    priority._reset_for_tests()
+
+
+def test_every_thread_is_raised_and_later_threads_inherit(fresh_outcome) -> None:  # type: ignore[no-untyped-def]
+    if not _may_raise():
+        pytest.skip("this user may not raise a priority (the denied case is tested below)")
+    before: list[int] = []
+    started, done = threading.Event(), threading.Event()
+
+    def sleeper() -> None:
+        before.append(threading.get_native_id())
+        started.set()
+        done.wait(5)
+
+    thread = threading.Thread(target=sleeper)
+    thread.start()
+    try:
+        assert started.wait(5)
+        outcome = raise_for_real_time()
+        assert outcome.raised and outcome.nice <= REALTIME_NICE, outcome
+        assert _nice_of(0) <= REALTIME_NICE
+        assert _nice_of(before[0]) <= REALTIME_NICE  # made before the call: raised too
+        later: list[int] = []
+        child = threading.Thread(target=lambda: later.append(_nice_of(0)))
+        child.start()
+        child.join(5)
+        assert later and later[0] <= REALTIME_NICE  # made after: inherits
+        assert raise_for_real_time() is outcome  # once per process
+    finally:
+        done.set()
+        thread.join(5)
+
+
+def test_where_it_is_not_allowed_the_process_runs_on_and_says_why(fresh_outcome, monkeypatch, caplog) -> None:  # type: ignore[no-untyped-def]
+    def denied(*_args: int) -> None:
+        raise PermissionError(1, "Operation not permitted")
+
+    monkeypatch.setattr(priority.os, "getpriority", lambda *_a: 0)
+    monkeypatch.setattr(priority.os, "setpriority", denied)
+    with caplog.at_level("INFO", logger="app.priority"):
+        outcome = raise_for_real_time()
+    assert not outcome.raised and outcome.nice == 0
+    assert "normal priority" in outcome.sentence and "RLIMIT_NICE" in outcome.sentence
+    assert outcome.sentence in caplog.text
+
+
+def test_the_worker_runs_at_its_own_lower_priority_whatever_it_inherits(fresh_outcome, qtbot) -> None:  # type: ignore[no-untyped-def]
+    from app.worker import TaskService
+    from app.worker.service import WORKER_NICE
+
+    if _may_raise():
+        raise_for_real_time()  # the worker is started from a raised thread, as in the application
+    service = TaskService()
+    try:
+        service.warm()
+        # "ready" is sent once the worker has set its priority
+        qtbot.waitUntil(lambda: service._worker is not None and service._worker.ready_s is not None, timeout=20000)
+        pid = service.worker_pid
+        assert pid is not None and _nice_of(pid) == WORKER_NICE != _nice_of(0)
+    finally:
+        service.close()
