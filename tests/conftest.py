@@ -93,6 +93,26 @@ def pytest_configure(config) -> None:  # type: ignore[no-untyped-def]
         from tests import firmware_builds
 
         config._firmware_prebuild = firmware_builds.prebuild()
+    if hasattr(config, "workerinput"):
+        config.pluginmanager.register(_XdistGroupIds(), "linarmpp-xdist-group-ids")
+
+
+class _XdistGroupIds:
+    """pytest-xdist 3.8 groups a test (``--dist loadgroup``) by appending ``@group`` to ``item._nodeid``; pytest 9
+    reads a node's id from ``item._id`` instead, so no group reached the scheduler and every xdist_group was split
+    over the workers (each built the module's rig, installed venv or server again). This copies the grouped id
+    where pytest 9 reads it, after xdist's own hook."""
+
+    @pytest.hookimpl(trylast=True)
+    def pytest_collection_modifyitems(self, items) -> None:  # type: ignore[no-untyped-def]
+        try:
+            from _pytest.nodes import coerce_node_id
+        except ImportError:  # pytest 8: the id is _nodeid itself
+            return
+        for item in items:
+            grouped = getattr(item, "_nodeid", None)
+            if isinstance(grouped, str) and "@" in grouped and grouped != item.nodeid:
+                item._id = coerce_node_id(grouped)
 
 
 def pytest_unconfigure(config) -> None:  # type: ignore[no-untyped-def]
@@ -123,6 +143,7 @@ def _uses_its_module_fixture(item) -> bool:  # type: ignore[no-untyped-def]
         for fixtures in info.name2fixturedefs.values() for fixture in fixtures)
 
 
+@pytest.hookimpl(tryfirst=True)  # before pytest-xdist's worker turns the xdist_group marks into its groups
 def pytest_collection_modifyitems(config, items) -> None:  # type: ignore[no-untyped-def]
     reruns = config.pluginmanager.hasplugin("rerunfailures")
     xdist = config.pluginmanager.hasplugin("xdist")
