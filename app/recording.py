@@ -10,6 +10,8 @@ earlier session is never overwritten::
     streams/<stream>.csv   header ``t_mono_s,<channel>,...,t_arrival_s`` then one line per sample: t_mono_s
                            when the sample was taken (the device's clock mapped to the host's, #27),
                            t_arrival_s when its bytes came back from a read (a diagnostic)
+    clocks.csv             header ``t_mono_s,device,device_s,drift``: the map from each device clock to the host's
+                           clock, one line each time its estimate changed (:class:`DeviceClockLog`)
 
 Crash safety (docs/sessions.md): every file is append-only text written in whole lines, flushed to the
 OS and fsync'ed at least every ``recording.flush_interval_s`` (≤ 1 s), so after a SIGKILL or a power
@@ -45,6 +47,7 @@ import errno
 import heapq
 import json
 import logging
+import math
 import os
 import re
 import threading
@@ -60,6 +63,7 @@ import numpy as np
 from app import paths, streams
 from app.alarm_count import alarm_count
 from app.bus import Channel, DeviceEvent, StreamSpec, Subscription
+from app.devices.linarm_protocol import T_US_WRAP_S
 from app.outputs import fsync_dir
 
 if TYPE_CHECKING:
@@ -81,6 +85,8 @@ DIR_MODE = 0o700
 RESERVE_FILE = ".space-reserve"  # room held back for the failure path (docs/sessions.md); gone once stopped
 RESERVE_BYTES = 256 * 1024  # the final manifest (~10 KB) twice over (temp + old) and ~1000 kept events
 FAILED_FILE = "recording-failed.txt"  # the sidecar the loader reads when even the manifest could not be written
+CLOCK_FILE = "clocks.csv"  # the device clocks' maps to the host clock as they were estimated (DeviceClockLog)
+CLOCK_COLUMNS = ("t_mono_s", "device", "device_s", "drift")
 
 
 class RecordingError(OSError):
@@ -322,6 +328,95 @@ class _StreamOut:
     last_t: float | None = None
 
 
+# The devices whose samples carry their own clock's reading (s), the attribute holding it and where it wraps: the
+# recorder keeps how each was mapped to the host's clock (app.devices.clock), read off the samples.
+DEVICE_CLOCK_FIELDS: dict[str, tuple[str, float | None]] = {
+    streams.LINARM: ("controllerTime", T_US_WRAP_S),  # the controller's micros(), wrapping every 71.6 min
+    streams.PHYSIO: ("boardTime", None),  # the board's ms tick, unwrapped by the decoder
+}
+CLOCK_TOLERANCE_S = 1e-6  # a sample further than this from the line it follows starts a new line (a new estimate)
+CLOCK_RESTART_S = 1.0  # a device step this far from the host's elapsed time: the device restarted (DeviceClock.jump_s)
+CLOCK_REORDER_S = 0.02  # a step back this short is an older sample of another stream (DeviceClock.reorder_s)
+
+
+class DeviceClockLog:
+    """How one device's clock was mapped to the host's while recording, read off the samples (writer thread).
+
+    A sample of a device with a clock carries its device time (the LINarm's ``controllerTime``, the board's
+    ``boardTime``) and its host time, mapped by the driver's :class:`app.devices.clock.DeviceClock` on a line
+    ``host = device·(1 + drift) + offset`` that it re-estimates now and then (a refit every 0.5 s, a less delayed
+    sample). Between two estimates every sample lies on one line; :meth:`feed` returns a line for ``clocks.csv``
+    when a sample leaves it — the estimate changed: about twice a second, more while it settles — holding the new
+    line: from ``t_mono_s`` (host) and ``device_s`` on, ``host = t_mono_s + (device − device_s)·(1 + drift)``.
+    So every recorded time maps back to its device time within :data:`CLOCK_TOLERANCE_S`, and the offsets the
+    application measured are kept (the XDF export's ClockOffset chunks). The drivers' threads do nothing more.
+
+    ``device_s`` is the device's clock in seconds, unwrapped (the LINarm's µs counter wraps every 71.6 min) and,
+    across a restart of the device (its clock jumped), continued by the host's elapsed time: one monotonic clock
+    per device for the whole session."""
+
+    def __init__(self, device: str, wrap_s: float | None) -> None:
+        self.device = device
+        self.wrap_s = wrap_s
+        self._raw: float | None = None  # the last reading, as the sample had it
+        self._device_s = 0.0  # ... unwrapped and continued
+        self._host = 0.0
+        self._line: tuple[float, float, float] | None = None  # (t_mono_s, device_s, 1 + drift) being followed
+        self._start: tuple[float, float] | None = None  # a new line's first point, written with its second
+        self.lines = 0
+
+    def feed(self, host: float, reading: Any) -> str | None:
+        """The sample taken at ``host`` (its recorded time) with device clock ``reading``: a ``clocks.csv`` line
+        when the map changed, else None."""
+        try:
+            raw = float(reading)
+        except (TypeError, ValueError):
+            return None
+        if not (math.isfinite(raw) and math.isfinite(host)):
+            return None
+        if self._raw is None:
+            device_s = raw
+        else:
+            step = raw - self._raw
+            wrap = self.wrap_s
+            if wrap:
+                step %= wrap
+                if step > wrap / 2:
+                    step -= wrap  # a step back, not most of a wrap ahead
+            if step == 0.0:
+                return None  # another stream's sample of the same instant (the LINarm's VSA and motors)
+            if -CLOCK_REORDER_S <= step < 0.0:
+                return None  # an older sample of another stream: the driver stamped it on the line it follows
+            elapsed = host - self._host
+            if step < 0.0 or abs(step - elapsed) > CLOCK_RESTART_S:
+                step = max(elapsed, 1e-6)  # the device restarted (its clock jumped): continued by the host's time
+            device_s = self._device_s + step
+        self._raw, self._device_s, self._host = raw, device_s, host
+        if self._start is not None:
+            h0, d0 = self._start
+            self._start = None
+            slope = (host - h0) / (device_s - d0)
+            self._line = (h0, d0, slope)
+            return self._row(h0, d0, slope - 1.0)
+        line = self._line
+        if line is not None and abs(host - (line[0] + (device_s - line[1]) * line[2])) <= CLOCK_TOLERANCE_S:
+            return None
+        self._start = (host, device_s)  # a new estimate: its line is known at the next sample
+        return None
+
+    def finish(self) -> str | None:
+        """At the end: a line started by the last sample (with the drift of the one before)."""
+        if self._start is None:
+            return None
+        h0, d0 = self._start
+        self._start = None
+        return self._row(h0, d0, self._line[2] - 1.0 if self._line is not None else 0.0)
+
+    def _row(self, host: float, device_s: float, drift: float) -> str:
+        self.lines += 1
+        return f"{host!r},{self.device},{device_s!r},{drift!r}\n"
+
+
 # Device events the recorder's queue holds: they are rare (a few a minute), so this is a stall of hours.
 DEVICE_EVENT_QUEUE = 10_000
 
@@ -346,6 +441,8 @@ class SessionRecorder:
         self._reported_event_drops = 0
         self._outs: dict[str, _StreamOut] = {}
         self._events_fh: TextIO | None = None
+        self._clock_fh: TextIO | None = None  # clocks.csv (writer thread)
+        self._clock_logs: dict[str, DeviceClockLog] = {}  # device -> how its clock was mapped (writer thread)
         self._writer: threading.Thread | None = None
         self._stop = threading.Event()
         self._supervisor: Any = None  # the SafetySupervisor this session's recorder listens to
@@ -446,6 +543,9 @@ class SessionRecorder:
         if self._events_fh is not None:
             _close_quietly(self._events_fh)
             self._events_fh = None
+        if self._clock_fh is not None:
+            _close_quietly(self._clock_fh)
+            self._clock_fh = None
         self.folder = None
         import shutil
 
@@ -458,6 +558,7 @@ class SessionRecorder:
         config = host.config
         self._outs.clear()  # the last session's (closed) files: _abandon must see only this one's
         self._events_fh = None
+        self._clock_fh = None
         (folder / STREAMS_DIR).mkdir(mode=DIR_MODE)
         _private_dir(folder / STREAMS_DIR)
         _reserve_space(folder / RESERVE_FILE, RESERVE_BYTES)
@@ -491,6 +592,11 @@ class SessionRecorder:
             fh.write(",".join([TIME_COLUMN, *(c.name for c in spec.channels), ARRIVAL_COLUMN]) + "\n")
             fh.flush()  # the header on disk now: a stream file is never without its columns
         self._events_fh = _open_private(folder / EVENTS_FILE)
+        self._clock_logs = {device: DeviceClockLog(device, wrap) for device, (_, wrap) in DEVICE_CLOCK_FIELDS.items()
+                            if device in self._device_streams}
+        self._clock_fh = _open_private(folder / CLOCK_FILE, buffering=1 << 14)
+        self._clock_fh.write(",".join(CLOCK_COLUMNS) + "\n")
+        self._clock_fh.flush()
         if profile is None:
             profile = _try_load_profile(patient_id, config)
         from app.config import config_as_dict
@@ -675,6 +781,8 @@ class SessionRecorder:
                         self._drain_failed(now, force=stopping)
                     else:
                         self._drain()
+                        if stopping:
+                            self._finish_clocks()
                         if stopping or now >= next_flush:
                             self._flush(sync=self.fsync)
                             next_flush = now + self._flush_interval_s
@@ -688,6 +796,9 @@ class SessionRecorder:
             if self._events_fh is not None:
                 _close_quietly(self._events_fh)
                 self._events_fh = None
+            if self._clock_fh is not None:
+                _close_quietly(self._clock_fh)
+                self._clock_fh = None
 
     def _fail(self, exc: BaseException) -> None:
         error = (f"{exc.strerror} (errno {exc.errno})" if isinstance(exc, OSError) and exc.strerror
@@ -715,6 +826,15 @@ class SessionRecorder:
             out.on_disk = _lines_on_disk(out)  # counted here, on the writer thread, not at stop on the GUI's
         if self._events_fh is not None:
             _discard_buffer(self._events_fh)
+        if self._clock_fh is not None:  # the clock lines stop with the samples (a line cut short is cut off)
+            _discard_buffer(self._clock_fh)
+            _close_quietly(self._clock_fh)
+            self._clock_fh = None
+            if self.folder is not None:
+                try:
+                    _cut_to_last_line(self.folder / CLOCK_FILE)
+                except OSError:
+                    pass
         self._release_reserve()
         self._enqueue_event("recording_failed", "recorder", "recorder", {"folder": str(self.folder), "error": error})
         self._manifest.update({"status": "failed", "recording_failure": {
@@ -806,8 +926,11 @@ class SessionRecorder:
 
     def _drain(self) -> None:
         outs = self._outs
-        for sub in self._sample_subs.values():
+        clock_fh = self._clock_fh
+        for device, sub in self._sample_subs.items():
             items = sub.drain()
+            clock = self._clock_logs.get(device) if clock_fh is not None else None
+            reading = DEVICE_CLOCK_FIELDS[device][0] if clock is not None else ""
             for k, item in enumerate(items):
                 out = outs.get(item.stream)  # type: ignore[union-attr]  # a sample subscription: SampleItems
                 if out is None:
@@ -830,6 +953,8 @@ class SessionRecorder:
                 if out.first_t is None:
                     out.first_t = t
                 out.last_t = t
+                if clock is not None and (line := clock.feed(t, getattr(sample, reading, None))):
+                    clock_fh.write(line)  # type: ignore[union-attr]
         for device, dropped in self._drops().items():
             if dropped != self._reported_drops.get(device, 0):
                 self._enqueue_event("samples_dropped", "recorder", "recorder",
@@ -857,10 +982,19 @@ class SessionRecorder:
         if wrote and fh is not None:
             fh.flush()  # events (e-stop, alarms) reach the OS at once; fsync follows at the flush interval
 
+    def _finish_clocks(self) -> None:
+        if self._clock_fh is None:
+            return
+        for clock in self._clock_logs.values():
+            if line := clock.finish():
+                self._clock_fh.write(line)
+
     def _flush(self, sync: bool) -> None:
         files = [o.fh for o in self._outs.values()]
         if self._events_fh is not None:
             files.append(self._events_fh)
+        if self._clock_fh is not None:
+            files.append(self._clock_fh)
         for fh in files:
             fh.flush()
             if sync:
@@ -1050,6 +1184,48 @@ def _event_lines(path: Path) -> tuple[list[tuple[int, dict[str, Any]]], int]:
 def read_events(path: Path) -> tuple[list[dict[str, Any]], int]:
     records, dropped = _event_lines(path)
     return [r for _n, r in records], dropped
+
+
+@dataclass(frozen=True)
+class ClockLines:
+    """One device's lines of ``clocks.csv`` (DeviceClockLog): from ``host[i]`` and ``device[i]`` on,
+    ``host = host[i] + (device − device[i])·(1 + drift[i])``."""
+
+    host: np.ndarray
+    device: np.ndarray
+    drift: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.host)
+
+    def to_device(self, host: np.ndarray) -> np.ndarray:
+        """Device times of samples recorded at ``host`` (each on the line in force when it was taken)."""
+        i = np.clip(np.searchsorted(self.host, host, side="right") - 1, 0, None)
+        return self.device[i] + (host - self.host[i]) / (1.0 + self.drift[i])
+
+
+def parse_clock_lines(data: bytes) -> tuple[dict[str, ClockLines], int]:
+    """The lines of a ``clocks.csv`` by device, and how many were dropped (cut short by a crash, damaged)."""
+    lines = data.decode("utf-8", errors="replace").split("\n")
+    dropped = 1 if lines.pop() else 0  # a last line without its newline
+    rows: dict[str, list[tuple[float, float, float]]] = {}
+    for ln in lines[1:] if lines and lines[0] == ",".join(CLOCK_COLUMNS) else lines:
+        parts = ln.split(",")
+        try:
+            host, device, drift = float(parts[0]), float(parts[2]), float(parts[3])
+        except (ValueError, IndexError):
+            dropped += 1
+            continue
+        if len(parts) != len(CLOCK_COLUMNS) or not all(map(math.isfinite, (host, device, drift))):
+            dropped += 1
+            continue
+        rows.setdefault(parts[1], []).append((host, device, drift))
+    out = {}
+    for name, got in rows.items():
+        got.sort()
+        table = np.array(got, dtype=np.float64)
+        out[name] = ClockLines(table[:, 0].copy(), table[:, 1].copy(), table[:, 2].copy())
+    return out, dropped
 
 
 def read_failure_sidecar(folder: Path) -> dict[str, Any] | None:

@@ -11,7 +11,8 @@ columnar side-file written as the worker writes it at a session's end) is made i
   sessions browser on that session; Replay, then Summary, each clicked from inside the event loop as a click is.
   Figures: the GUI thread's longest stall (a 1 ms timer's longest gap) from the click until the window is ready
   -- after #37 split into the worker's load and the window's build --, the host's longest silence towards the
-  LINarm (its controller's watchdog trips at 250 ms), whether the FES guardian sent Stop, the alarms.
+  LINarm (its controller's watchdog trips at 250 ms), whether the FES guardian sent Stop, the alarms; for the
+  summary also its first run's tab clicked (built when first shown): the longest stall until it is complete.
 * ``f12``: Replay clicked, F12 posted from another thread 0.3 s later (during the load, as a key press reaches a
   busy GUI thread): its delay to FES Stop and to robot IDLE on the wire.
 
@@ -98,9 +99,23 @@ def _open_new(therapy: Any, action: str) -> dict[str, Any]:
 
     ready = (lambda w: w.is_ready and not w._events_left) if action == "replay" else (lambda d: d.summary.is_ready)
     o = open_from_browser(therapy, action, ready, _wait(None))
+    tab = {"tab_stall_s": _run_tab(therapy, o.widget.summary)} if action == "open_summary" else {}
     o.widget.close()
     return {"open_s": o.seconds, "stall_s": max(o.load_stall_s, o.build_stall_s), "load_stall_s": o.load_stall_s,
-            "build_stall_s": o.build_stall_s, **o.therapy}
+            "build_stall_s": o.build_stall_s, **tab, **o.therapy}
+
+
+def _run_tab(therapy: Any, summary: Any) -> float:
+    """The first run's tab clicked in an open summary (built when first shown): the GUI thread's longest stall until
+    it is complete (its table and plots)."""
+    from PySide6.QtCore import QTimer
+
+    t0 = time.monotonic()
+    QTimer.singleShot(0, lambda: summary.tabs.setCurrentIndex(1))  # from inside the event loop, as a click
+    common.run_qt_until(lambda: summary.tabs.currentIndex() == 1 and summary.is_ready, 60.0)
+    t1 = time.monotonic()
+    common.run_qt_until(lambda: therapy.meter.ticks[-1][0] > t1 + 0.05, 5.0)  # the tick that ends a stall at t1
+    return therapy.meter.longest(t0, t1)
 
 
 def bench_open(folder: Path, trials: int, what: str) -> None:
@@ -163,6 +178,7 @@ def _print(name: str, rows: list[dict[str, Any]]) -> None:
     print(f"  {name}: open {statistics.median(r['open_s'] for r in rows):.2f} s; GUI thread's longest stall "
           f"{ms('stall_s')}" + (f" [worker's load {ms('load_stall_s')}, window's build {ms('build_stall_s')}]"
                                 if "load_stall_s" in rows[0] else "")
+          + (f"; a run's tab shown: longest stall {ms('tab_stall_s')}" if "tab_stall_s" in rows[0] else "")
           + f"; host silence to the LINarm {ms('host_silence_s')}; watchdog tripped {tripped}/{len(rows)}, "
             f"FES stopped by the guardian {stops}/{len(rows)}; load average {loadavg()}", flush=True)
     for r in rows:

@@ -93,6 +93,26 @@ def pytest_configure(config) -> None:  # type: ignore[no-untyped-def]
         from tests import firmware_builds
 
         config._firmware_prebuild = firmware_builds.prebuild()
+    if hasattr(config, "workerinput"):
+        config.pluginmanager.register(_XdistGroupIds(), "linarmpp-xdist-group-ids")
+
+
+class _XdistGroupIds:
+    """pytest-xdist 3.8 groups a test (``--dist loadgroup``) by appending ``@group`` to ``item._nodeid``; pytest 9
+    reads a node's id from ``item._id`` instead, so no group reached the scheduler and every xdist_group was split
+    over the workers (each built the module's rig, installed venv or server again). This copies the grouped id
+    where pytest 9 reads it, after xdist's own hook."""
+
+    @pytest.hookimpl(trylast=True)
+    def pytest_collection_modifyitems(self, items) -> None:  # type: ignore[no-untyped-def]
+        try:
+            from _pytest.nodes import coerce_node_id
+        except ImportError:  # pytest 8: the id is _nodeid itself
+            return
+        for item in items:
+            grouped = getattr(item, "_nodeid", None)
+            if isinstance(grouped, str) and "@" in grouped and grouped != item.nodeid:
+                item._id = coerce_node_id(grouped)
 
 
 def pytest_unconfigure(config) -> None:  # type: ignore[no-untyped-def]
@@ -114,6 +134,16 @@ def _module_name(item) -> str:  # type: ignore[no-untyped-def]
     return item.module.__name__.rsplit(".", 1)[-1] if item.module is not None else ""
 
 
+def _uses_its_module_fixture(item) -> bool:  # type: ignore[no-untyped-def]
+    """Whether the test uses a module- or class-scoped fixture defined in its own module (not a conftest's)."""
+    info = getattr(item, "_fixtureinfo", None)
+    module_id = item.nodeid.split("::", 1)[0]
+    return info is not None and any(
+        fixture.scope in ("module", "class") and fixture.baseid == module_id
+        for fixtures in info.name2fixturedefs.values() for fixture in fixtures)
+
+
+@pytest.hookimpl(tryfirst=True)  # before pytest-xdist's worker turns the xdist_group marks into its groups
 def pytest_collection_modifyitems(config, items) -> None:  # type: ignore[no-untyped-def]
     reruns = config.pluginmanager.hasplugin("rerunfailures")
     xdist = config.pluginmanager.hasplugin("xdist")
@@ -130,6 +160,10 @@ def pytest_collection_modifyitems(config, items) -> None:  # type: ignore[no-unt
         if xdist and "shared_manager" in getattr(item, "fixturenames", ()) \
                 and item.get_closest_marker("xdist_group") is None:
             item.add_marker(pytest.mark.xdist_group(name=f"rig:{module}"))
+        # So is any module-scoped fixture the module defines (an installed venv, a PostgreSQL server, a window):
+        # split over two workers, each built its own (test_install installed the wheel twice, ~20 s each).
+        if xdist and item.get_closest_marker("xdist_group") is None and _uses_its_module_fixture(item):
+            item.add_marker(pytest.mark.xdist_group(name=f"module:{module}"))
     order = {id(item): n for n, item in enumerate(items)}
     items.sort(key=lambda item: (_module_name(item) not in slow_modules, order[id(item)]))
 
@@ -203,6 +237,31 @@ def fresh_manager(shared_rig_spec, qapp):  # type: ignore[no-untyped-def]
         yield manager
     finally:
         manager.shutdown()
+
+
+# ------------------------------------------------------------------------------ logging set up by a test
+@pytest.fixture(autouse=True)
+def _logging_set_up_by_the_test():  # type: ignore[no-untyped-def]
+    """The application configures the root logger once per process (app/logging_setup.py): a test that runs an
+    entry point in-process would leave its console handler writing to that test's captured stderr, which pytest
+    then closes — and every later log record, from any thread, printed "--- Logging error ---" into whichever
+    test ran next (880 lines in a headless test's one-sentence stderr). The set-up is undone after the test."""
+    import logging
+
+    from app import logging_setup
+
+    configured = logging_setup._configured
+    root = logging.getLogger()
+    level, before = root.level, set(root.handlers)
+    yield
+    if logging_setup._configured is configured:
+        return
+    for handler in [h for h in root.handlers if h not in before]:
+        if type(handler) is logging.StreamHandler or isinstance(handler, logging_setup._PrivateRotatingFileHandler):
+            root.removeHandler(handler)
+            handler.close()
+    root.setLevel(level)
+    logging_setup._configured = configured
 
 
 # ------------------------------------------------------------------------------ nothing left running

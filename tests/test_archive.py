@@ -256,6 +256,20 @@ def test_files_read_like_the_folder(archive, tmp_path) -> None:
     assert files.read_bytes("events.jsonl") == (folder / "events.jsonl").read_bytes()
 
 
+def test_the_device_clocks_file_is_archived_and_comes_back(archive, tmp_path) -> None:
+    """The recorder's clocks.csv (the device clocks' maps to the host clock, #41's XDF clock offsets) is part of
+    the session: archived with it and written back, so an archived session exports with its real offsets."""
+    from app.recording import CLOCK_FILE
+
+    folder = make_data_folder(tmp_path / "data")["monday"]
+    clocks = "t_mono_s,device,device_s,drift\n5000.0,linarm,12.5,1.00008\n"
+    (folder / CLOCK_FILE).write_text(clocks, encoding="utf-8")
+    uuid = archive.upload_session(folder).uuid
+    assert CLOCK_FILE in {f.name for f in archive.session_files(uuid).files()}
+    with archive.materialised(uuid) as copy:
+        assert (copy / CLOCK_FILE).read_text(encoding="utf-8") == clocks
+
+
 def test_verify_names_the_file_after_one_byte_and_the_journal_row_after_one_change(archive, tmp_path) -> None:
     sessions = make_data_folder(tmp_path / "data")
     import_data_folder(archive, tmp_path / "data")

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from app.recording import EVENTS_FILE, FAILED_FILE, FILE_MODE, MANIFEST_FILE, STREAMS_DIR
+from app.recording import CLOCK_FILE, EVENTS_FILE, FAILED_FILE, FILE_MODE, MANIFEST_FILE, STREAMS_DIR
 
 ARCHIVED_MARKER = ".archived"  # written in the session folder once the archive has committed it
 REFUSED_MARKER = ".archive-refused"  # the archive refused it (another session holds its UUID): kept, said loudly
@@ -46,7 +46,7 @@ def session_files(folder: Path) -> list[FolderFile]:
     """The files that make the session, hashed (SHA-256), in a stable order. Only regular files of the folder
     itself and of its streams folder: never a link out of it."""
     names: list[Path] = []
-    for name in (MANIFEST_FILE, EVENTS_FILE, FAILED_FILE):
+    for name in (MANIFEST_FILE, EVENTS_FILE, FAILED_FILE, CLOCK_FILE):
         if (folder / name).is_file() and not (folder / name).is_symlink():
             names.append(folder / name)
     streams = folder / STREAMS_DIR

@@ -24,10 +24,10 @@ from __future__ import annotations
 
 import datetime as _dt
 import gzip
-import hashlib
 import json
 import math
 import os
+import zlib
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -66,6 +66,24 @@ class BidsOptions:
 
 
 # ---------------------------------------------------------------------------------------------- files
+class _Check:
+    """What a file's read-back is compared with: the CRC-32 and the length of its text (the check gzip makes of
+    its members). It guards against a write that went wrong (a short or damaged file), not against tampering, and
+    costs a fifth of a cryptographic digest: BLAKE2b over a two-hour dataset's 600 MB, twice (written, read back),
+    was ~2.5 s of its 30 s budget."""
+
+    def __init__(self, data: bytes = b"") -> None:
+        self.crc = zlib.crc32(data)
+        self.size = len(data)
+
+    def update(self, data: bytes) -> None:
+        self.crc = zlib.crc32(data, self.crc)
+        self.size += len(data)
+
+    def hexdigest(self) -> str:
+        return f"{self.crc:08x}-{self.size}"
+
+
 class _Digest:
     """Every file of the dataset with the digest of what was written (read back at the end)."""
 
@@ -76,7 +94,7 @@ class _Digest:
         path.parent.mkdir(parents=True, exist_ok=True, mode=DIR_MODE)
         with open_private(path) as fh:
             fh.write(data)
-        self.files[path] = (hashlib.blake2b(data, digest_size=20).hexdigest(), False)
+        self.files[path] = (_Check(data).hexdigest(), False)
 
     def write_json(self, path: Path, data: Any) -> None:
         self.write_bytes(path, (json.dumps(data, indent=2, ensure_ascii=False) + "\n").encode("utf-8"))
@@ -93,7 +111,7 @@ class _Digest:
     def verify(self, steps: Steps) -> None:
         for path, (digest, gz) in self.files.items():
             steps.check()
-            h = hashlib.blake2b(digest_size=20)
+            h = _Check()
             try:
                 opener: Any = gzip.open if gz else open
                 with opener(path, "rb") as fh:
@@ -115,7 +133,7 @@ class _StreamOut:
         self.raw: IO[bytes] = open_private(path)
         self.fh: IO[bytes] = gzip.GzipFile(fileobj=self.raw, mode="wb", compresslevel=GZIP_LEVEL, mtime=0) \
             if gz else self.raw
-        self.hash = hashlib.blake2b(digest_size=20)
+        self.hash = _Check()
         self.rows = 0
 
     def write(self, data: bytes, rows: int) -> None:
@@ -145,10 +163,12 @@ def _cell(value: Any) -> str:
 
 # ---------------------------------------------------------------------------------------------- samples as text
 def tsv_block(chunk: Chunk, t0: float) -> bytes:
-    """A chunk's samples as TSV rows: the time from ``t0`` (s), then the values as the session's file holds
-    them (Python's shortest repr: they read back to the same doubles); missing values ``n/a``."""
+    """A chunk's samples as TSV rows: the time from ``t0`` (s, to the nanosecond), then the values as the session's
+    file holds them (Python's shortest repr: they read back to the same doubles); missing values ``n/a``."""
     times = (chunk.t - t0).tolist()
-    seconds = (("%r\n" * len(times)) % tuple(times)).encode().split(b"\n")  # repr of each, in one C loop
+    # to the nanosecond, in one C loop: half the cost of each time's shortest repr (the largest part of a BIDS
+    # export's formatting), and shorter text; it reads back within 0.5 ns of the recorded time
+    seconds = (("%.9f\n" * len(times)) % tuple(times)).encode().split(b"\n")
     seconds.pop()
     if chunk.raw is not None:  # the file's own text: only the time and the arrival column change
         rows = chunk.raw.split(b"\n")

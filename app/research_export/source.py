@@ -55,7 +55,8 @@ class FolderSource:
         return path
 
     def names(self) -> list[str]:
-        out = [n for n in (recording.MANIFEST_FILE, recording.EVENTS_FILE) if (self.folder / n).is_file()]
+        out = [n for n in (recording.MANIFEST_FILE, recording.EVENTS_FILE, recording.CLOCK_FILE)
+               if (self.folder / n).is_file()]
         streams_dir = self.folder / recording.STREAMS_DIR
         if streams_dir.is_dir():
             out += [f"{recording.STREAMS_DIR}/{p.name}" for p in sorted(streams_dir.glob("*.csv")) if p.is_file()]
@@ -161,6 +162,22 @@ class Session:
     problems: list[str] = field(default_factory=list)
     tallies: dict[str, StreamTally] = field(default_factory=dict)
     block_bytes: int = BLOCK_BYTES  # how much of a stream file one read takes (memory per stream read)
+    _clocks: dict[str, recording.ClockLines] | None = None
+
+    def device_clocks(self) -> dict[str, recording.ClockLines]:
+        """How each device's clock was mapped to the host's while recording (``clocks.csv``, by device; empty for a
+        session recorded before it was kept, or by devices without a clock). Small: a line per estimate."""
+        if self._clocks is None:
+            self._clocks = {}
+            if recording.CLOCK_FILE in self.source.names():
+                try:
+                    self._clocks, dropped = recording.parse_clock_lines(self.source.read_bytes(recording.CLOCK_FILE))
+                except OSError as exc:
+                    self.problems.append(f"{recording.CLOCK_FILE} cannot be read: {exc}")
+                    dropped = 0
+                if dropped:
+                    self.problems.append(f"{recording.CLOCK_FILE}: {dropped} incomplete line(s) dropped")
+        return self._clocks
 
     @property
     def label(self) -> str:

@@ -28,6 +28,7 @@ from typing import IO
 
 import numpy as np
 
+from app import recording
 from app.research_export import channels as kinds
 from app.research_export.common import (
     Cancel,
@@ -317,6 +318,13 @@ class _Out:
             self.count += len(t)
 
 
+HOST_CLOCK = ("time stamps: the host's monotonic clock in seconds (the recorder's); clock offsets are therefore 0")
+DEVICE_CLOCK = ("time stamps: the {device}'s own clock in seconds (unwrapped; continued across a restart of the "
+                "device); the ClockOffset chunks hold the map to the host's monotonic clock the application "
+                "estimated while recording (app/devices/clock.py): load with pyxdf's synchronize_clocks (its default) "
+                "to put the samples on the host's clock")
+
+
 def stream_descriptions(session: Session) -> list[StreamDescription]:
     """The header of every stream of the session, then the events' and the markers' (ids 1, 2, … in order)."""
     host = str((session.manifest.get("host") or {}).get("node") or "")
@@ -324,15 +332,17 @@ def stream_descriptions(session: Session) -> list[StreamDescription]:
     ns = uuid.UUID(session_uuid) if _is_uuid(session_uuid) else uuid.uuid5(
         uuid.NAMESPACE_URL, f"linarmpp:{session.patient_id}:{session.start_iso}:{session.start_mono!r}")
     out = []
-    clock = ("time stamps: the host's monotonic clock in seconds, each device's clock mapped onto it when the "
-             "session was recorded (offset and drift, app/devices/clock.py); clock offsets are therefore 0")
+    clocks = session.device_clocks()
+    clock = HOST_CLOCK
     for info in session.streams.values():
         chans = [{"label": c.name, "unit": c.unit, "type": kinds.kind(info.name, c).xdf_type, "description": c.label}
                  for c in info.channels]
         out.append(StreamDescription(
             info.name, info.device, len(info.channels), 0.0 if info.irregular else info.rate_hz, "double64",
             f"{SOURCE_PREFIX}.{info.name}", session.start_mono, str(uuid.uuid5(ns, info.name)), session_uuid or
-            "default", host, chans, {"device": info.device, "clock": clock,
+            "default", host, chans, {"device": info.device,
+                                     "clock": DEVICE_CLOCK.format(device=info.device) if clocks.get(info.device)
+                                     else clock,
                                      "rate": "irregular: published on change" if info.irregular else
                                      f"nominal {info.rate_hz:g} Hz (the device's clock)"}))
     for name, what in ((EVENTS_STREAM, "every recorded event as JSON (events.jsonl), as the live LSL outlet sends it"),
@@ -397,6 +407,11 @@ def _write_xdf(session: Session, out: HashingWriter, steps: Steps, shift_days: i
         outs[sid] = _Out(sid, d.name)
     names = list(session.streams)
     pending = {sid: _Pending(session.chunks(name)) for sid, name in enumerate(names, start=1)}
+    # A stream of a device with a clock is written on that clock, with the offsets measured (_DeviceOffsets);
+    # the others are on the host's (the recorder's) clock: offset 0.
+    clocks = session.device_clocks()
+    offsets = {sid: _DeviceOffsets(clocks[session.streams[n].device]) for sid, n in enumerate(names, start=1)
+               if len(clocks.get(session.streams[n].device, ()))}
     events_sid, markers_sid = len(names) + 1, len(names) + 2
     fes_sid = next((sid for sid, n in enumerate(names, start=1) if session.streams[n].irregular and any(
         c.name.startswith("current") for c in session.streams[n].channels)), None)
@@ -418,9 +433,10 @@ def _write_xdf(session: Session, out: HashingWriter, steps: Steps, shift_days: i
                 if got is None:
                     break
                 ts, values = got
+                stamps = offsets[sid].clock.to_device(ts) if sid in offsets else ts
                 for a in range(0, len(ts), MAX_CHUNK_SAMPLES):
-                    writer.samples(sid, ts[a:a + MAX_CHUNK_SAMPLES], values[a:a + MAX_CHUNK_SAMPLES])
-                outs[sid].wrote(ts)
+                    writer.samples(sid, stamps[a:a + MAX_CHUNK_SAMPLES], values[a:a + MAX_CHUNK_SAMPLES])
+                outs[sid].wrote(stamps)
                 if sid == fes_sid and switches is not None:
                     switches.feed(ts, values)
         ev_j = ev_i
@@ -443,9 +459,10 @@ def _write_xdf(session: Session, out: HashingWriter, steps: Steps, shift_days: i
             window_marks.sort(key=lambda m: m.t)
             writer.string_samples(markers_sid, [m.t for m in window_marks], [m.label for m in window_marks])
             outs[markers_sid].wrote([m.t for m in window_marks])
-        for sid in outs:  # the offset between each stream's clock and the file's (0: mapped when recorded)
-            writer.clock_offset(sid, t, 0.0)
-            outs[sid].offsets.append((t, 0.0))
+        for sid in outs:  # the offsets between each stream's clock and the file's (the host's)
+            for collected, value in (offsets[sid].until(t, t_end) if sid in offsets else [(t, 0.0)]):
+                writer.clock_offset(sid, collected, value)
+                outs[sid].offsets.append((collected, value))
         if t_end >= next_boundary:
             writer.boundary()
             next_boundary = t_end + BOUNDARY_S
@@ -469,6 +486,30 @@ def _write_xdf(session: Session, out: HashingWriter, steps: Steps, shift_days: i
         last = o.last if o.count else 0.0
         writer.stream_footer(sid, footer_xml(first, last, o.count, o.offsets))
     return outs
+
+
+class _DeviceOffsets:
+    """The ClockOffset chunks of a stream on a device's clock: each estimate the recorder kept (clocks.csv), as
+    LabRecorder writes a measurement — CollectionTime on the *stream's* clock (LabRecorder writes ``now − offset``;
+    pyxdf fits the offsets against it and applies the fit to the stream's time stamps, so a collection time on the
+    host's clock would misplace every sample by drift × offset: 0.1 s for 100 ppm and a device clock 1000 s from
+    the host's), OffsetValue = host − device, what to add to the stream's time stamps. A window without a new
+    estimate gets the one in force at its start, so pyxdf finds one at least every WINDOW_S as LabRecorder writes
+    them."""
+
+    def __init__(self, clock: recording.ClockLines) -> None:
+        self.clock = clock
+        self.next = 0  # the first estimate not written yet
+
+    def until(self, t: float, t_end: float) -> list[tuple[float, float]]:
+        c, i = self.clock, self.next
+        j = int(np.searchsorted(c.host, t_end, side="left"))
+        self.next = max(i, j)
+        out = [(float(c.device[k]), float(c.host[k] - c.device[k])) for k in range(i, j)]
+        if not out and c.host[0] <= t:  # no new estimate in this window: the one in force, as measured at its start
+            device = float(c.to_device(np.array([t]))[0])
+            out.append((device, t - device))
+        return out
 
 
 def _verify(path: Path, out: HashingWriter, counts: dict[int, _Out]) -> None:

@@ -24,7 +24,7 @@ import math
 import re
 import time
 import warnings
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -615,6 +615,12 @@ class PlotsFrame(QWidget):
                 self.graphics.ci.addItem(plot, row=row, col=0)
             self.plots[unit] = plot
             self._sync_curves(unit, plot, keys)
+        self._finish_panes()
+
+    def _finish_panes(self) -> None:
+        """What every pane needs once the set of panes is known: its x-axis linked to the first's, the time axis
+        under the last only, the minimum heights, the curves drawn by the items until the renderer's next frame,
+        then a frame."""
         units = list(self.plots)
         first = self._first_plot()
         for row, unit in enumerate(units):
@@ -642,9 +648,13 @@ class PlotsFrame(QWidget):
         self._dirty = True
         self.redraw()
 
-    def _new_pane(self, unit: str, row: int) -> pg.PlotItem:
+    def _new_pane(self, unit: str, row: int | None) -> pg.PlotItem:
+        """A pane for ``unit`` in ``row`` of the graphs (laid out at once), or apart from them (``row`` None: the
+        caller adds it, see selection_steps)."""
         c = colours()
-        plot = self.graphics.addPlot(row=row, col=0, viewBox=LiveViewBox())
+        plot = pg.PlotItem(viewBox=LiveViewBox())
+        if row is not None:
+            self._add_to_layout(plot, row, lay_out=True)
         plot.setMenuEnabled(False)
         plot.showGrid(x=True, y=True, alpha=c.grid_alpha)
         for axis in ("left", "bottom"):
@@ -686,6 +696,21 @@ class PlotsFrame(QWidget):
         self.images[unit] = image
         return plot
 
+    def _add_to_layout(self, plot: pg.PlotItem, row: int, lay_out: bool) -> None:
+        """``GraphicsLayout.addItem(plot, row, 0)``, which then lays out the whole layout at once (every pane resized,
+        its axes re-labelled) -- unless ``lay_out`` is False: that waits for Qt's layout request, one for all the
+        panes added in a turn."""
+        ci = self.graphics.ci
+        if lay_out:
+            ci.addItem(plot, row=row, col=0)
+            return
+        layout = ci.layout
+        layout.activate = lambda: None  # pyqtgraph's own bookkeeping of the cell, without its immediate layout
+        try:
+            ci.addItem(plot, row=row, col=0)
+        finally:
+            del layout.activate  # Qt's own again
+
     def _drop_pane(self, unit: str, plot: pg.PlotItem) -> None:
         for key in [k for k, p in self._curve_plot.items() if p is plot]:
             del self.curves[key], self._curve_plot[key]
@@ -707,12 +732,7 @@ class PlotsFrame(QWidget):
             pen.setCosmetic(True)
             curve = self.curves.get(key)
             if curve is None:
-                curve = FastCurve(pen, f"{info.device}: {self.display_label(info)}")
-                plot.addItem(curve)
-                legend.addItem(curve, curve.name())
-                for part in legend.items[-1]:  # its sample line and its label: drawn once, blitted after (#37)
-                    part.setCacheMode(QGraphicsItem.CacheMode.DeviceCoordinateCache)
-                self.curves[key] = curve
+                self.curves[key] = self._new_curve(plot, key, self.selected.index(key))
                 self._curve_plot[key] = plot
             else:
                 name = f"{info.device}: {self.display_label(info)}"  # an FES channel's muscle may have changed
@@ -724,6 +744,18 @@ class PlotsFrame(QWidget):
                             sample.update()
                             if label.text != name:
                                 label.setText(name)
+
+    def _new_curve(self, plot: pg.PlotItem, key: str, place: int) -> FastCurve:
+        """``key``'s curve in ``plot`` and its legend, in the colour of its ``place`` among the selected signals."""
+        info = self.store.info(key)
+        pen = pg.mkPen(curve_colour(place), width=1)
+        pen.setCosmetic(True)
+        curve = FastCurve(pen, f"{info.device}: {self.display_label(info)}")
+        plot.addItem(curve)
+        plot.legend.addItem(curve, curve.name())
+        for part in plot.legend.items[-1]:  # its sample line and its label: drawn once, blitted after (#37)
+            part.setCacheMode(QGraphicsItem.CacheMode.DeviceCoordinateCache)
+        return curve
 
     # ------------------------------------------------------------------ behaviour
     def _draw_store(self) -> SignalStore:
@@ -986,6 +1018,10 @@ class PlotsFrame(QWidget):
 
     def set_selected(self, keys: Sequence[str]) -> None:
         """Tick exactly ``keys`` in the tree (unknown ones are kept for when their device appears)."""
+        self._tick_keys(keys)
+        self._collect_selection()
+
+    def _tick_keys(self, keys: Sequence[str]) -> None:
         available = {i.key for i in self.store.signals()}
         self._wanted = [k for k in keys if k not in available]
         wanted = set(keys)
@@ -996,7 +1032,50 @@ class PlotsFrame(QWidget):
                 item.setCheckState(0, state)
         finally:
             self._building_tree = False
-        self._collect_selection()
+
+    def selection_steps(self, keys: Sequence[str]) -> Iterator[None]:
+        """``set_selected(keys)`` a piece per ``next()``, for a caller that runs one piece per turn of the event
+        loop (the replay window, opened during a therapy: #37). From a frame without panes: one pane (with its curves
+        and legend) built per step, apart from the graphs; then one step puts them all in the graphs, which are laid
+        out once, linked, styled and drawn. (Adding a pane to the graphs re-laid out and re-drew every pane already
+        there: a turn per pane grew with the panes.) The graphs are not drawn until then. With panes shown already:
+        ``set_selected`` in one step. A selection changed meanwhile (a box ticked) built the panes itself: the steps
+        end."""
+        if self.plots:
+            self.set_selected(keys)
+            return
+        self.graphics.setUpdatesEnabled(False)  # (a paint between two steps drew every pane built so far)
+        try:
+            yield from self._build_panes(keys)
+            yield  # laid out between this step and the next (Qt's layout request), drawn after the next
+        finally:
+            self.graphics.setUpdatesEnabled(True)
+
+    def _build_panes(self, keys: Sequence[str]) -> Iterator[None]:
+        self._tick_keys(keys)
+        selected = [it.data(0, KEY_ROLE) for it in self._leaf_items() if it.checkState(0) == Qt.CheckState.Checked]
+        self.selected = list(selected)
+        by_unit: dict[str, list[str]] = {}
+        for key in selected:
+            by_unit.setdefault(self.store.info(key).unit or NO_UNIT, []).append(key)
+        built: dict[str, tuple[pg.PlotItem, dict[str, FastCurve]]] = {}
+        for unit, unit_keys in by_unit.items():
+            plot = self._new_pane(unit, None)
+            built[unit] = plot, {key: self._new_curve(plot, key, selected.index(key)) for key in unit_keys}
+            yield
+            if self.plots or self.selected != selected:  # the panes were built meanwhile (a box ticked): those
+                for other in built:
+                    if other not in self.plots:
+                        self._vlines.pop(other, None)
+                        self.images.pop(other, None)
+                return
+        self._image_mode = False
+        for row, (unit, (plot, curves)) in enumerate(built.items()):
+            self._add_to_layout(plot, row, lay_out=False)  # one layout for them all, at Qt's next turn
+            self.plots[unit] = plot
+            self.curves.update(curves)
+            self._curve_plot.update(dict.fromkeys(curves, plot))
+        self._finish_panes()
 
     # ------------------------------------------------------------------ cursor
     def _on_mouse_moved(self, pos: Any) -> None:

@@ -7,16 +7,19 @@ if live. Seeking refills the store with the history before the new position.
 
 The sessions browser reads the session in the worker process (issue #37) and hands the window a
 :class:`~app.worker.session_data.SessionData`, whose samples are mapped, not copied: opening a 30-minute session
-costs the GUI thread milliseconds. The event list is filled a block at a time, so a long one never holds a frame.
+costs the GUI thread milliseconds. The window it opens is *staged*: built a piece per turn of the event loop (the
+graphs' frame, then each pane, then their layout, the first screen, the event list a block at a time), each piece
+well under the 50 ms the issue allows a turn, so that a therapy running meanwhile keeps its GUI thread.
 """
 
 from __future__ import annotations
 
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 from PySide6.QtCore import Qt, QTimer, Signal
-from PySide6.QtGui import QCloseEvent, QKeySequence, QShortcut
+from PySide6.QtGui import QCloseEvent, QKeySequence, QPaintEvent, QShortcut
 from PySide6.QtWidgets import (
     QComboBox,
     QHBoxLayout,
@@ -34,6 +37,7 @@ from app.recording import RecordedSession
 from app.replay import ReplaySource
 from app.ui.plots_frame import DEFAULT_SIGNALS, PlotsFrame
 from app.ui.signal_store import SignalStore, signal_key
+from app.ui.staged import Steps
 from app.ui.widgets import ClickToPositionStyle
 from app.worker.session_data import SessionData
 
@@ -43,6 +47,7 @@ _SLIDER_STEPS_PER_S = 100  # the slider moves in 10 ms steps
 _DEFAULT_PLOTTED = 6  # signals ticked when the window opens
 _EVENTS_PER_TURN = 300  # event-list rows added per turn of the event loop (a block costs well under a frame)
 _SLIDER_MAX = 2**31 - 1  # QSlider's range is a C int
+_FIRST_STEP_LATEST_MS = 200  # a staged window's build begins when it is first drawn, or after this at the latest
 
 
 def _fmt(seconds: float) -> str:
@@ -65,21 +70,34 @@ def default_replay_signals(rec: RecordedSession) -> list[str]:
 
 class ReplayPlots(PlotsFrame):
     """The graphs of a replay: they open on the replay's own signals (``opening``, set just before one is made),
-    not on the live graphs' saved choice -- which would build every plot twice, once for each choice."""
+    not on the live graphs' saved choice -- which would build every plot twice, once for each choice. With
+    ``tree_later`` (set likewise: a staged window) the signal list is filled by ``fill_tree``, a piece of its own."""
 
     opening: list[str] = []
+    tree_later = False
 
     def _restore_settings(self) -> None:
         super()._restore_settings()
         self._wanted = list(type(self).opening)
+        self._tree_later = type(self).tree_later
+
+    def _rebuild_tree(self) -> None:
+        if not getattr(self, "_tree_later", False):
+            super()._rebuild_tree()
+
+    def fill_tree(self) -> None:
+        self._tree_later = False
+        self._rebuild_tree()
 
 
 class ReplayWindow(QWidget):
-    """``staged``: the window is built a piece per turn of the event loop (the graphs' choice, the first screen,
-    the event list), so that opening it never holds the GUI thread for more than one piece; ``ready`` says when
-    the first screen is drawn. Unstaged (the default), it is complete when constructed."""
+    """``staged``: the window is built a piece per turn of the event loop, from its first paint on (the graphs'
+    frame; each pane, see PlotsFrame.selection_steps; the first screen; the event list), so that opening it never
+    holds the GUI thread for more than one piece; its controls work and ``ready`` is emitted once the first screen is
+    drawn. Unstaged (the default), it is complete when constructed."""
 
     ready = Signal()
+    plots: ReplayPlots  # staged: made by the first step
 
     def __init__(self, session: RecordedSession | SessionData | str | Path, history_s: float = 30.0,
                  parent: QWidget | None = None, *, staged: bool = False) -> None:
@@ -93,11 +111,8 @@ class ReplayWindow(QWidget):
         for spec, device in self.source.specs().values():
             self.store.add_stream(spec, device or None)
         self._initial_signals = default_replay_signals(rec)
-        # Staged: the frame and its signal list now, its plots on the next turn (the two cost about as much).
-        ReplayPlots.opening = [] if staged else self._initial_signals
-        self.plots = ReplayPlots(None, self.store)
-        self.plots.timer.stop()  # redrawn when the replay moves, not on a free-running timer
-        self.plots.x_origin = self.source.start  # the x-axis in session time, as the slider and events
+        if not staged:
+            self._make_plots(staged=False)
         self.speed = 1.0
         self._last_tick = 0.0
 
@@ -135,8 +150,10 @@ class ReplayWindow(QWidget):
         self.close_button.clicked.connect(self.close)
         bar.addWidget(self.close_button)
         QShortcut(QKeySequence(Qt.Key.Key_Escape), self, activated=self.close)
-        split = QSplitter(Qt.Orientation.Horizontal)
-        split.addWidget(self.plots)
+        self._split = split = QSplitter(Qt.Orientation.Horizontal)
+        # Staged, the graphs' frame is made by the first step: this holds its place in the window drawn first.
+        self._plots_spot: QWidget | None = QWidget() if staged else None
+        split.addWidget(self.plots if self._plots_spot is None else self._plots_spot)
         split.addWidget(self.events)
         split.setStretchFactor(0, 1)
         split.setSizes([800, 220])
@@ -152,31 +169,71 @@ class ReplayWindow(QWidget):
         self.timer.setInterval(_TICK_MS)
         self.timer.timeout.connect(self._tick)
         self.resize(1100, 650)
+        self._steps: Steps | None = None
         if staged:
-            QTimer.singleShot(0, self, self._stage_signals)
+            for control in (self.play_button, self.slider, self.speed_box):
+                control.setEnabled(False)  # until the first screen is drawn
+            self._steps = Steps(self._stage(), self)
+            # The first piece once the window has been drawn (paintEvent), so that the window's first paint and the
+            # first pane are not one turn; by the timer alone if it is not drawn (hidden, minimised).
+            self._steps.start(_FIRST_STEP_LATEST_MS)
         else:
             self._first_screen()
 
-    def _stage_signals(self, shown: int = 0) -> None:
-        """One more signal ticked per turn of the event loop (a new pane costs 30-40 ms to build; all of them in
-        one turn held the window 0.2-0.4 s, which the GUI watch judges while a therapy runs: #37)."""
-        if shown < len(self._initial_signals):
-            self.plots.set_selected(self._initial_signals[:shown + 1])
-            QTimer.singleShot(0, self, lambda: self._stage_signals(shown + 1))
-            return
-        QTimer.singleShot(0, self, self._stage_first_screen)
+    def _make_plots(self, staged: bool) -> None:
+        """The graphs' frame; staged, without panes (selection_steps builds them) and not drawn until they are."""
+        ReplayPlots.opening = [] if staged else self._initial_signals
+        ReplayPlots.tree_later = staged
+        try:
+            self.plots = ReplayPlots(None, self.store)
+        finally:
+            ReplayPlots.tree_later = False
+        self.plots.timer.stop()  # redrawn when the replay moves, not on a free-running timer
+        if staged:
+            self.plots.graphics.setUpdatesEnabled(False)
+        self.plots.x_origin = self.source.start  # the x-axis in session time, as the slider and events
 
-    def _stage_first_screen(self) -> None:
-        self._first_screen()
-        QTimer.singleShot(0, self, self._add_events)
+    def _stage(self) -> Iterator[None]:
+        """The staged build, a piece per step: the graphs' frame, its signal list, the first screen's data, the panes
+        one by one, their layout, the first screen drawn; the event list after it, a block per step."""
+        self._make_plots(staged=True)
+        if self._plots_spot is not None:
+            self._split.replaceWidget(0, self.plots)
+            self._plots_spot.deleteLater()
+            self._plots_spot = None
+        yield
+        self.plots.fill_tree()  # the signal list
+        yield
+        self._feed(self._first_position())  # the first screen's data, a piece before the graphs that show them
+        yield
+        yield from self.plots.selection_steps(self._initial_signals)
+        self._first_screen(fed=True)  # in the step that lets the graphs be drawn: their first paint shows the data
+        while self._events_left:
+            yield
+            self._add_events(then_next=False)
 
-    def _first_screen(self) -> None:
-        self.seek(min(self.source.duration, self.plots.history_s))  # open on a full first screen
+    def paintEvent(self, event: QPaintEvent) -> None:
+        super().paintEvent(event)
+        if self._steps is not None and not self._steps.started:
+            self._steps.start(0)  # drawn: the build begins at the next turn
+
+    def _first_position(self) -> float:
+        return min(self.source.duration, self.plots.history_s)  # open on a full first screen
+
+    def _first_screen(self, fed: bool = False) -> None:
+        """The first screen drawn (``fed``: its data are in the store already), the controls on, ``ready``."""
+        if fed:
+            self._sync_slider()
+            self._redraw()
+        else:
+            self.seek(self._first_position())
+        for control in (self.play_button, self.slider, self.speed_box):
+            control.setEnabled(True)
         self.is_ready = True
         self.ready.emit()
 
-    def _add_events(self) -> None:
-        """The next block of the event list; the rest on the next turn of the event loop."""
+    def _add_events(self, then_next: bool = True) -> None:
+        """The next block of the event list; the rest on the next turn of the event loop (``then_next``)."""
         block, self._events_left = self._events_left[:_EVENTS_PER_TURN], self._events_left[_EVENTS_PER_TURN:]
         for e in block:
             text = f"{_fmt(e['t_mono'] - self.source.start)}  {e.get('kind', '')}  {e.get('who', '')}"
@@ -184,17 +241,21 @@ class ReplayWindow(QWidget):
             item.setData(Qt.ItemDataRole.UserRole, float(e["t_mono"]) - self.source.start)
             item.setToolTip(f"{text}\n{e.get('data', '')}")  # the whole line, even when the list is narrow
             self.events.addItem(item)
-        if self._events_left:
+        if self._events_left and then_next:
             QTimer.singleShot(0, self, self._add_events)
 
     # ------------------------------------------------------------------ control
     def seek(self, elapsed_s: float) -> None:
         """Show the session as it looked live at ``elapsed_s`` after its start."""
+        self._feed(elapsed_s)
+        self._sync_slider()
+        self._redraw()
+
+    def _feed(self, elapsed_s: float) -> None:
+        """The store as it was live at ``elapsed_s``: the history before it."""
         self.source.seek(elapsed_s)
         self.store.clear()
         self.store.feed(self.source.history(self.store.history_s))
-        self._sync_slider()
-        self._redraw()
 
     def set_playing(self, playing: bool) -> None:
         if playing and self.source.at_end:
@@ -248,4 +309,6 @@ class ReplayWindow(QWidget):
 
     def closeEvent(self, event: QCloseEvent) -> None:
         self.timer.stop()
+        if self._steps is not None:
+            self._steps.stop()  # the rest of the build is for nobody
         super().closeEvent(event)

@@ -6,11 +6,12 @@ PDF…" writes the printable report (app/reports.py), which reads the same :func
 from __future__ import annotations
 
 import logging
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
 import pyqtgraph as pg
+from pyqtgraph.graphicsItems.ViewBox.ViewBoxMenu import ViewBoxMenu
 from PySide6.QtCore import Qt, QTimer, Signal
 from PySide6.QtWidgets import (
     QAbstractItemView,
@@ -39,6 +40,7 @@ from app.reports import (
     parameters_text,
     y_range,
 )
+from app.ui.staged import Steps
 from app.ui.tasks import QtTasks
 
 log = logging.getLogger(__name__)
@@ -51,6 +53,24 @@ SUMMARY_PLOTS: tuple[tuple[str, tuple[tuple[str, str], ...], str], ...] = (
     ("Interaction force", (("peak_force_n", "peak"), ("mean_force_n", "mean")), "N"),
 )
 PLOT_PENS = ("#1f77b4", "#d62728")
+_ROWS_PER_STEP = 80  # repetition-table rows filled per turn of the event loop (a staged summary: ~5 ms)
+
+
+class _LazyMenuViewBox(pg.ViewBox):
+    """A plot's view whose context menu (pyqtgraph's: View All, the axes, Export) is built at its first right click,
+    not with the plot: building it was ~8 ms of the turn that makes the plot (#37)."""
+
+    def __init__(self) -> None:
+        super().__init__(enableMenu=False)
+        self.state["enableMenu"] = True  # offered, built when first asked for
+
+    def getMenu(self, ev: Any) -> Any:
+        if self.menu is None and self.menuEnabled():
+            self.menu = ViewBoxMenu(self)
+        return self.menu
+
+    def getContextMenus(self, event: Any) -> Any:
+        return self.getMenu(event).actions() if self.menuEnabled() else []
 
 
 def _table(headers: Sequence[str], name: str) -> QTableWidget:
@@ -67,8 +87,10 @@ class RunSummary(QWidget):
     """One run: what ran, how it ended, its parameters, its repetitions and their plots, its alarms."""
 
     def __init__(self, report: RunReport, parent: QWidget | None = None, staged: bool = False) -> None:
-        """``staged``: the plots are built one per turn of the event loop (a plot costs ~40 ms; the four at once
-        held the window 0.25 s, 0.7 s on a loaded PC: the GUI watch stopped the next exercise, #37)."""
+        """``staged``: the repetition table is filled and the plots are built a piece per turn of the event loop
+        (app.ui.staged): a block of rows, a plot's frame, its data (a plot cost ~40 ms and a run's table 20-40 ms;
+        the four plots at once held the window 0.25 s, 0.7 s on a loaded PC: the GUI watch stopped the next
+        exercise; one per posted call still made 60-190 ms turns, #37). ``complete()`` finishes at once."""
         super().__init__(parent)
         self.report = report
         run, summary, reps = report.run, report.summary, report.repetitions
@@ -93,27 +115,25 @@ class RunSummary(QWidget):
         self.table = _table([h for _, h, _ in REPETITION_COLUMNS], f"Repetitions of run {report.number}")
         self.table.setRowCount(len(reps))
         self.table.horizontalHeader().setSectionResizeMode(QHeaderView.ResizeMode.Stretch)
-        for row, r in enumerate(reps):
-            for col, (key, _, spec) in enumerate(REPETITION_COLUMNS):
-                item = QTableWidgetItem(fmt(r.get(key), spec))
-                item.setTextAlignment(Qt.AlignmentFlag.AlignRight | Qt.AlignmentFlag.AlignVCenter)
-                if key == "completed" and not r.get("completed"):
-                    item.setForeground(pg.mkColor("#c62828"))
-                self.table.setItem(row, col, item)
+        staged = staged and bool(reps)
 
         self.plots: dict[str, pg.PlotWidget] = {}
         self._grid = grid = QGridLayout()
         self._placeholders: list[QWidget] = []
-        for k in range(len(SUMMARY_PLOTS)):
-            if staged and reps:
+        self._steps: Steps | None = None
+        if staged:
+            for k in range(len(SUMMARY_PLOTS)):
                 spot = QWidget()
                 spot.setMinimumHeight(110)
                 self._placeholders.append(spot)
                 grid.addWidget(spot, k // 2, k % 2)
-            else:
+            self._pieces_left = self._pieces(reps)
+            self._steps = Steps(self._pieces_left, self)
+            self._steps.start()
+        else:
+            self._fill_rows(0, len(reps))
+            for k in range(len(SUMMARY_PLOTS)):
                 self._add_plot(k)
-        if self._placeholders:
-            QTimer.singleShot(0, self, self._next_plot)
 
         self.alarms = _alarm_table(report.alarms, f"Alarms and interruptions of run {report.number}")
         # up to six repetitions visible without scrolling; the plots take the rest
@@ -144,30 +164,67 @@ class RunSummary(QWidget):
 
     @property
     def plots_built(self) -> bool:
-        return len(self.plots) == len(SUMMARY_PLOTS)
+        """Complete: every row in the table, every plot drawn with its data."""
+        return self._steps is None or not self._steps.running
 
-    def _next_plot(self) -> None:
-        k = len(self.plots)
-        if k < len(SUMMARY_PLOTS):
+    def complete(self) -> None:
+        """What is left of a staged build, now (a caller that reads the table or the plots)."""
+        if self._steps is not None and self._steps.running:
+            self._steps.stop()
+            for _ in self._pieces_left:
+                pass
+
+    def _pieces(self, reps: Sequence[dict[str, Any]]) -> Iterator[None]:
+        for start in range(0, len(reps), _ROWS_PER_STEP):
+            self._fill_rows(start, min(len(reps), start + _ROWS_PER_STEP))
+            yield
+        for k in range(len(SUMMARY_PLOTS)):
             spot = self._placeholders[k]
             self._grid.removeWidget(spot)
             spot.deleteLater()
-            self._add_plot(k)
-        if not self.plots_built:
-            QTimer.singleShot(0, self, self._next_plot)
+            plot = self._new_plot(k)
+            yield
+            yield from self._plot_data(k, plot)
+
+    def _fill_rows(self, start: int, end: int) -> None:
+        """Rows [start, end) of the repetition table."""
+        reps = self.report.repetitions
+        for row in range(start, end):
+            r = reps[row]
+            for col, (key, _, spec) in enumerate(REPETITION_COLUMNS):
+                item = QTableWidgetItem(fmt(r.get(key), spec))
+                item.setTextAlignment(Qt.AlignmentFlag.AlignRight | Qt.AlignmentFlag.AlignVCenter)
+                if key == "completed" and not r.get("completed"):
+                    item.setForeground(pg.mkColor("#c62828"))
+                self.table.setItem(row, col, item)
 
     def _add_plot(self, k: int) -> None:
         """The ``k``-th of SUMMARY_PLOTS across the run's repetitions, in its place in the grid."""
+        for _ in self._plot_data(k, self._new_plot(k)):
+            pass
+
+    def _new_plot(self, k: int) -> pg.PlotWidget:
+        """The ``k``-th plot's frame (title, axes, legend), in its place in the grid; its data: _plot_data."""
         report, reps = self.report, self.report.repetitions
         title_, keys, unit = SUMMARY_PLOTS[k]
-        x = [r["index"] for r in reps]
-        plot = pg.PlotWidget(title=title_ + (f" [{unit}]" if unit else ""))
+        plot = pg.PlotWidget(title=title_ + (f" [{unit}]" if unit else ""), viewBox=_LazyMenuViewBox())
         plot.setBackground("w")
         plot.showGrid(x=True, y=True, alpha=0.3)
         plot.setLabel("bottom", f"repetition of run {report.number}")
         plot.setMinimumHeight(110)
         if len(keys) > 1:
             plot.addLegend(offset=(-5, 5), colCount=len(keys))
+        self.plots[title_] = plot
+        self._grid.addWidget(plot, k // 2, k % 2)
+        if not reps:
+            plot.hide()
+        return plot
+
+    def _plot_data(self, k: int, plot: pg.PlotWidget) -> Iterator[None]:
+        """The ``k``-th plot's curves, a step each, then its ranges."""
+        reps = self.report.repetitions
+        _title, keys, _unit = SUMMARY_PLOTS[k]
+        x = [r["index"] for r in reps]
         values: list[float] = []
         for j, (key, name) in enumerate(keys):
             pts = [(a, b) for a, b in zip(x, [r.get(key) for r in reps], strict=True) if b is not None]
@@ -176,14 +233,12 @@ class RunSummary(QWidget):
                 plot.plot([a for a, _ in pts], [b for _, b in pts], name=name,
                           pen=pg.mkPen(PLOT_PENS[j % 2], width=2), symbol="o", symbolSize=6,
                           symbolBrush=PLOT_PENS[j % 2])
+                yield
         if values:
             plot.setYRange(*y_range(values), padding=0)
         if x:
             plot.getAxis("bottom").setTicks([[(i, str(i)) for i in x]] if len(x) <= 20 else None)
-        self.plots[title_] = plot
-        self._grid.addWidget(plot, k // 2, k % 2)
-        if not reps:
-            plot.hide()
+        yield
 
     def showEvent(self, event: Any) -> None:
         super().showEvent(event)
@@ -312,28 +367,31 @@ class SessionSummary(QWidget):
             self.tabs.blockSignals(False)
             placeholder.deleteLater()
 
+    def _complete(self, r: RunReport) -> RunSummary:
+        """``r``'s tab, built and complete now (a caller reads it)."""
+        self._build(r)
+        view = self.run_views[r.run.run_id]
+        view.complete()
+        return view
+
     @property
     def tables(self) -> dict[str, QTableWidget]:
         """Each run's repetition table, by run id (a tab not built yet is built now)."""
-        for r in list(self._to_build):
-            self._build(r)
-        return {r.run.run_id: self.run_views[r.run.run_id].table for r in self.runs}
+        return {r.run.run_id: self._complete(r).table for r in self.runs}
 
     @property
     def table(self) -> QTableWidget | None:
         """The last run's repetition table (the one an exercise's end shows)."""
         if not self.runs:
             return None
-        self._build(self.runs[-1])
-        return self.run_views[self.runs[-1].run.run_id].table
+        return self._complete(self.runs[-1]).table
 
     @property
     def plots(self) -> dict[str, pg.PlotWidget]:
         """The last run's plots."""
         if not self.runs:
             return {}
-        self._build(self.runs[-1])
-        return self.run_views[self.runs[-1].run.run_id].plots
+        return self._complete(self.runs[-1]).plots
 
     @property
     def metrics(self) -> dict[str, Any]:

@@ -15,17 +15,20 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from PySide6.QtCore import Qt, Signal
+from PySide6.QtCore import QStandardPaths, Qt, Signal
 from PySide6.QtGui import QCloseEvent, QColor, QKeySequence, QShortcut
 from PySide6.QtWidgets import (
     QAbstractItemView,
+    QCheckBox,
     QComboBox,
     QDialog,
     QDialogButtonBox,
     QFileDialog,
+    QFormLayout,
     QHBoxLayout,
     QHeaderView,
     QLabel,
+    QLineEdit,
     QMessageBox,
     QPlainTextEdit,
     QPushButton,
@@ -170,6 +173,78 @@ class ExportJob:
         return task.error
 
 
+RESEARCH_FORMATS = (  # (format, what the clinician reads in the list)
+    ("bids", "BIDS dataset (MNE-Python, EEGLAB's bids-matlab)"),
+    ("xdf", "XDF, one file per session (pyxdf, EEGLAB, MoBILAB)"),
+    ("edf", "EDF+, one file per session (EDFbrowser, MNE-Python)"),
+)
+
+
+def documents_folder() -> Path:
+    """The user's documents folder (where exports go by default), else the home folder."""
+    docs = QStandardPaths.writableLocation(QStandardPaths.StandardLocation.DocumentsLocation)
+    return Path(docs) if docs and Path(docs).is_dir() else Path.home()
+
+
+class ResearchExportDialog(QDialog):
+    """Export… for research tools: the format and the folder (docs/export.md says what goes where)."""
+
+    def __init__(self, count: int, folder: Path, parent: QWidget | None = None) -> None:
+        super().__init__(parent)
+        self.setWindowTitle("Export for research")
+        self.format_box = QComboBox()
+        for fmt, text in RESEARCH_FORMATS:
+            self.format_box.addItem(text, fmt)
+        self.format_box.setAccessibleName("Format")
+        self.folder_edit = QLineEdit(str(folder))
+        self.folder_edit.setAccessibleName("Folder")
+        browse = QPushButton("&Browse…")
+        browse.clicked.connect(self._browse)
+        self.names_box = QCheckBox("Write the patients' full &names (otherwise only their pseudonyms)")
+        form = QFormLayout()
+        format_label = QLabel("&Format")
+        format_label.setBuddy(self.format_box)
+        form.addRow(format_label, self.format_box)
+        row = QHBoxLayout()
+        row.addWidget(self.folder_edit, 1)
+        row.addWidget(browse)
+        folder_label = QLabel("F&older")
+        folder_label.setBuddy(self.folder_edit)
+        form.addRow(folder_label, row)
+        form.addRow("", self.names_box)
+        buttons = QDialogButtonBox(QDialogButtonBox.StandardButton.Ok | QDialogButtonBox.StandardButton.Cancel)
+        buttons.button(QDialogButtonBox.StandardButton.Ok).setText("&Export")
+        buttons.accepted.connect(self._accept)
+        buttons.rejected.connect(self.reject)
+        self.problem = QLabel("")
+        self.problem.setStyleSheet("color: #c62828;")
+        layout = QVBoxLayout(self)
+        layout.addWidget(QLabel(f"{count} session(s) selected. The files are written, read back and only then "
+                                "put in the folder; a cancelled export leaves nothing."))
+        layout.addLayout(form)
+        layout.addWidget(self.problem)
+        layout.addWidget(buttons)
+
+    @property
+    def fmt(self) -> str:
+        return str(self.format_box.currentData())
+
+    @property
+    def folder(self) -> Path:
+        return Path(self.folder_edit.text().strip()).expanduser()
+
+    def _browse(self) -> None:
+        path = QFileDialog.getExistingDirectory(self, "Export into this folder", self.folder_edit.text())
+        if path:
+            self.folder_edit.setText(path)
+
+    def _accept(self) -> None:
+        if not self.folder.is_dir():
+            self.problem.setText(f"The folder {self.folder} does not exist.")
+            return
+        self.accept()
+
+
 class SessionDetails(QDialog):
     """The manifest's essentials and every event of one session (read by the worker: a
     :class:`~app.worker.session_data.SessionOverview`; a folder is read here, for a caller without a worker)."""
@@ -258,7 +333,8 @@ class SessionsBrowser(QWidget):
         self.table = QTableWidget(0, len(COLUMNS))
         self.table.setHorizontalHeaderLabels(list(COLUMNS))
         self.table.setSelectionBehavior(QAbstractItemView.SelectionBehavior.SelectRows)
-        self.table.setSelectionMode(QAbstractItemView.SelectionMode.SingleSelection)
+        # Several sessions may be selected (Ctrl/Shift) for a research export; the other actions take the current one.
+        self.table.setSelectionMode(QAbstractItemView.SelectionMode.ExtendedSelection)
         self.table.setEditTriggers(QAbstractItemView.EditTrigger.NoEditTriggers)
         header = self.table.horizontalHeader()
         header.setSectionResizeMode(QHeaderView.ResizeMode.ResizeToContents)
@@ -273,6 +349,10 @@ class SessionsBrowser(QWidget):
         self.hdf5_button.clicked.connect(lambda: self.ask_export("hdf5"))
         self.csv_button = QPushButton("Export &CSV…")
         self.csv_button.clicked.connect(lambda: self.ask_export("csv"))
+        self.research_button = QPushButton("Research e&xport…")  # BIDS, XDF, EDF+ (app/research_export)
+        self.research_button.setToolTip("Export the selected sessions as a BIDS dataset, XDF or EDF+ files")
+        self.research_button.clicked.connect(self.ask_research_export)
+        self.research_tasks: list[Task] = []
         self.replay_button = QPushButton("&Replay")
         self.replay_button.clicked.connect(self.replay)
         self.summary_button = QPushButton("S&ummary…")  # metrics (app/ui/session_summary.py)
@@ -280,11 +360,15 @@ class SessionsBrowser(QWidget):
         self.progress_button = QPushButton("Pro&gress…")  # the patient's trends (app/ui/progress_view.py)
         self.progress_button.clicked.connect(self.open_progress)
         self.status = QLabel("")
+        # A sentence of its own under the buttons, wrapped: an export's answer names its folder and files, and on
+        # the buttons' row it widened the window past the screen.
+        self.status.setWordWrap(True)
+        self.status.setTextInteractionFlags(Qt.TextInteractionFlag.TextSelectableByMouse)
         buttons = QHBoxLayout()
-        for b in (self.open_button, self.hdf5_button, self.csv_button, self.replay_button, self.summary_button,
-                  self.progress_button):
+        for b in (self.open_button, self.hdf5_button, self.csv_button, self.research_button, self.replay_button,
+                  self.summary_button, self.progress_button):
             buttons.addWidget(b)
-        buttons.addWidget(self.status, 1)
+        buttons.addStretch(1)
         # A window of its own needs its own way out (issue #30: only the title bar's cross closed it).
         self.close_button = QPushButton("&Close")
         self.close_button.clicked.connect(self.close)
@@ -295,6 +379,7 @@ class SessionsBrowser(QWidget):
         layout.addLayout(top)
         layout.addWidget(self.table, 1)
         layout.addLayout(buttons)
+        layout.addWidget(self.status)
         self.resize(980, 420)
         self.reload_patients()
 
@@ -345,6 +430,11 @@ class SessionsBrowser(QWidget):
             return None
         return self.summaries[row].folder
 
+    def selected_folders(self) -> list[Path]:
+        """The sessions selected (in the table's order)."""
+        rows = sorted({i.row() for i in self.table.selectedIndexes()})
+        return [self.summaries[r].folder for r in rows if 0 <= r < len(self.summaries)]
+
     def select_folder(self, folder: Path) -> None:
         for row, s in enumerate(self.summaries):
             if s.folder == folder:
@@ -355,6 +445,7 @@ class SessionsBrowser(QWidget):
         ok = self.selected_folder() is not None
         for b in (self.open_button, self.hdf5_button, self.csv_button, self.replay_button, self.summary_button):
             b.setEnabled(ok)
+        self.research_button.setEnabled(bool(self.selected_folders()))
         self.progress_button.setEnabled(ok)
 
     # ------------------------------------------------------------------ actions
@@ -456,6 +547,53 @@ class SessionsBrowser(QWidget):
                                   outputs=(destination,), on_done=done)
         self.jobs.append(job)
         return job
+
+    def ask_research_export(self) -> ResearchExportDialog | None:
+        """Export… → the format and the folder (the documents folder by default) → the export, in the worker."""
+        folders = self.selected_folders()
+        if not folders:
+            return None
+        dialog = ResearchExportDialog(len(folders), documents_folder(), self)
+        dialog.setAttribute(Qt.WidgetAttribute.WA_DeleteOnClose)
+        dialog.accepted.connect(lambda: self.research_export(folders, dialog.fmt, dialog.folder,
+                                                             include_names=dialog.names_box.isChecked()))
+        dialog.open()
+        self.export_dialog = dialog
+        return dialog
+
+    def research_export(self, folders: list[Path], fmt: str, destination: Path, include_names: bool = False,
+                        on_done: Callable[[Task], Any] | None = None) -> Task:
+        """Export ``folders`` as ``fmt`` into ``destination`` in the worker, with a progress dialog (Cancel). The
+        files are made in a staging folder there and moved in only once all are written and read back: a cancel or
+        a failure leaves nothing, and says so in one sentence."""
+        from app.research_export.jobs import JOB_KIND, new_stamp, staging_target
+
+        stamp = new_stamp()
+        what = dict(RESEARCH_FORMATS)[fmt].split(" (")[0]
+        title = f"Export of {len(folders)} session(s) as {what}"
+
+        def done(task: Task) -> None:
+            if task in self.research_tasks:
+                self.research_tasks.remove(task)
+            if task.status is TaskStatus.CANCELLED:
+                self._say("Export cancelled: nothing was written.")
+            elif task.ok:
+                self._say(str(task.result))
+            else:
+                self._say(task.error, error=True)
+                box = QMessageBox(QMessageBox.Icon.Warning, "Export not written", task.error,
+                                  QMessageBox.StandardButton.Ok, self)
+                box.setAttribute(Qt.WidgetAttribute.WA_DeleteOnClose)
+                box.open()
+                self.message_box = box
+            if on_done is not None:
+                on_done(task)
+
+        task = self.tasks.run(JOB_KIND, fmt, [str(f) for f in folders], str(destination), stamp,
+                              include_names=include_names, title=title, parent=self,
+                              outputs=(staging_target(destination, stamp),), on_done=done)
+        self.research_tasks.append(task)
+        return task
 
     def closeEvent(self, event: QCloseEvent) -> None:
         if self._own_tasks:
