@@ -23,9 +23,10 @@ from tests.archive_data import full_profile
 
 SAFETY = AppConfig().safety
 PATIENTS = 200
-# functional: well under the GUI watch's warning (0.35 s); an idle window on this shared machine alone shows gaps
-# of ~100 ms under load, quiet a few ms
-TURN_BOUND_S = 0.150
+# Functional: under the GUI watch's warning (0.35 s), an order of magnitude inside the failure (3.1 s in one turn
+# for 200 patients). The loader thread shares the interpreter lock with the window: at load 2-5 its longest turn
+# was 90-183 ms (150 ms failed twice in the suite's company); the figures belong to the note, not to this bound.
+TURN_BOUND_S = 0.300
 
 
 class TurnMeter:
