@@ -320,6 +320,7 @@ def _cap_raised_mid_session(qtbot: Any, manager: LinarmppManager, window: MainWi
     assert not fes_panel.apply_profile(wrist)
     assert "above the cap of 20 mA" in fes_panel.message.text()
     patients = window._patients_window
+    qtbot.waitUntil(lambda: patients.loaded, timeout=10000)  # read on a thread of its own
     edit = patients.edit_profile()
     qtbot.waitExposed(edit)
     for row in range(8):
@@ -480,6 +481,7 @@ def _open_plan(qtbot: Any, window: MainWindow) -> Any:
     next(a for a in window.findChildren(QAction) if a.text() == "&Patients…").trigger()
     patients = window._patients_window
     qtbot.waitExposed(patients)
+    qtbot.waitUntil(lambda: patients.loaded, timeout=10000)  # read on a thread of its own
     patients.search.setText(PATIENT)
     qtbot.waitUntil(lambda: patients.selected_id() == PATIENT, timeout=3000)
     plan = patients.edit_plan()

@@ -107,6 +107,7 @@ def test_a_cap_raised_in_the_patients_window_applies_to_the_running_session_at_o
         patients = PatientsDialog(cfg.safety, manager=manager)
         qtbot.addWidget(patients)
         patients.show()
+        qtbot.waitUntil(lambda: patients.loaded, timeout=5000)  # read on a thread of its own
         patients.search.setText("PZ-CAP")
         edit = patients.edit_profile()
         edit.caps_table.setItem(2, 0, QTableWidgetItem("30"))

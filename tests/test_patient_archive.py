@@ -130,6 +130,7 @@ def test_lowered_cap_then_a_sessions_electrode_choice_then_an_old_plan_dialog_al
         # one station: its Patients window is the session's window's (a change applies to the session at once)
         patients = PatientsDialog(SAFETY, manager=None if shared else manager)
         qtbot.addWidget(patients)
+        qtbot.waitUntil(lambda: patients.loaded, timeout=5000)
         patients.search.setText("PZ-039")
         old_plan = patients.edit_plan()
         assert old_plan is not None
@@ -330,6 +331,7 @@ def test_an_unreachable_archive_lets_the_station_run_and_says_patients_cannot_be
         manager.start()
         patients = PatientsDialog(cfg.safety, manager=manager)
         qtbot.addWidget(patients)
+        qtbot.waitUntil(lambda: patients.loaded, timeout=5000)
         assert patients.archive_note.isVisibleTo(patients) and not patients.new_button.isEnabled()
         assert "cannot be reached" in patients.archive_note.text()
         from app.ui.patient_dialog import StartSessionDialog

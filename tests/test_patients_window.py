@@ -36,6 +36,7 @@ def test_the_patients_dialog_lists_and_searches(qtbot, folder: Path) -> None:
 
     dialog = PatientsDialog(SAFETY, folder)
     qtbot.addWidget(dialog)
+    qtbot.waitUntil(lambda: dialog.loaded, timeout=5000)  # read on a thread of its own
     dialog.show()
     qtbot.waitExposed(dialog)
     assert sorted(_ids(dialog)) == ["P-ANON", "PZ-017", "PZ-018", "broken"]  # a broken file is listed, not hidden
@@ -57,6 +58,7 @@ def test_a_profile_is_edited_from_the_list(qtbot, folder: Path) -> None:
 
     dialog = PatientsDialog(SAFETY, folder)
     qtbot.addWidget(dialog)
+    qtbot.waitUntil(lambda: dialog.loaded, timeout=5000)  # read on a thread of its own
     dialog.search.setText("PZ-018")
     edit = dialog.edit_profile()
     assert edit is not None and edit.isVisible() and edit.id_edit.text() == "PZ-018" and edit.id_edit.isReadOnly()
@@ -85,6 +87,7 @@ def test_the_therapy_plan_is_edited_with_the_exercises_ranges(qtbot, folder: Pat
 
     dialog = PatientsDialog(SAFETY, folder)
     qtbot.addWidget(dialog)
+    qtbot.waitUntil(lambda: dialog.loaded, timeout=5000)  # read on a thread of its own
     dialog.search.setText("PZ-017")
     plan = dialog.edit_plan()
     assert plan is not None and plan.step_list.count() == 0
@@ -174,6 +177,7 @@ def test_session_patients_opens_the_list_from_the_window(qtbot, tmp_path: Path, 
         action.trigger()
         dialog = window._patients_window
         assert isinstance(dialog, PatientsDialog) and dialog.isVisible()
+        qtbot.waitUntil(lambda: dialog.loaded, timeout=5000)
         assert _ids(dialog) == ["PZ-100"] and "Carla Neri" in dialog.details.text()
         dialog.close()
         window.close()

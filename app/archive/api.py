@@ -114,6 +114,15 @@ class PatientRecord:
 
 
 @dataclass(frozen=True)
+class PatientUnreadable:
+    """A patient's row whose values are not a valid profile (:meth:`Archive.patient_reads`): listed with why."""
+
+    patient_id: str
+    version: int
+    error: str  # a sentence
+
+
+@dataclass(frozen=True)
 class PatientListItem:
     """One row of the Patients window's list (no profile parsed: the list of 2 000 patients stays fast)."""
 
@@ -348,6 +357,15 @@ class Archive(Protocol):
         Raises ArchiveError when one of them is not a valid profile (then read them one by one)."""
         ...
 
+    def patient_reads(self, block: int = 25) -> Iterator[list[PatientRecord | PatientUnreadable]]:
+        """Every patient, ordered as :meth:`list_patients`, read in one transaction and built block by block (the
+        Patients window's loader thread: the first rows shown at once; stopping between blocks)."""
+        ...
+
+    def import_profiles(self, profiles: Iterable[PatientProfile], *, operator: str) -> int:
+        """New patients in one transaction (PatientExists: nothing written). Returns how many."""
+        ...
+
     def save_patient(self, profile: PatientProfile, *, expected_version: int | None, operator: str,
                      fields: Iterable[str] | None = None, reason: str = "save") -> PatientRecord:
         """Validate (PatientProfile.validate) and write. ``expected_version=None``: a new patient (PatientExists if
@@ -420,7 +438,8 @@ __all__ = [
     "ELECTRODES_PREFIX", "PATIENT_FIELDS", "AbstractMaterialised", "Archive", "ArchiveError", "ArchiveTooNew",
     "ArchiveUnavailable", "ConfigProblem", "FileInfo", "JournalEntry", "NeedsUpgrade", "NotFound", "OutboxStatus",
     "PatientChange",
-    "PatientExists", "PatientListItem", "PatientRecord", "Progress", "ProgressSession", "RepetitionInfo", "RunInfo",
+    "PatientExists", "PatientListItem", "PatientRecord", "PatientUnreadable", "Progress", "ProgressSession",
+    "RepetitionInfo", "RunInfo",
     "SessionConflict", "SessionDetail", "SessionFiles", "SessionInfo", "SessionStatus", "StaleRecord",
     "UploadResult", "VerifyProblem", "VerifyReport", "electrode_field",
 ]

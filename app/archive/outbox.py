@@ -9,8 +9,10 @@ waiting for the archive" and the next try is scheduled with a growing back-off. 
 archive (another session holds its UUID) is marked ``.archive-refused`` and said loudly (log and status); it
 never blocks the others.
 
-The window (stage 2) calls ``run_once`` on a worker thread at each session's end, at start-up and on a timer;
-``--headless`` calls it at the end of its run.
+The window calls :func:`station_pass` in its worker process (app/worker: an upload reads the session's files
+and computes its metrics, heavy work kept out of the real-time process, #37) at each session's end, at start-up
+and every 30 s, and shows :meth:`OutboxStatus.text` in its status bar; ``--headless`` calls
+:func:`headless_pass` at the end of its run and says the outcome on its last line.
 """
 
 from __future__ import annotations
@@ -19,9 +21,13 @@ import logging
 import time
 from collections.abc import Callable, Iterable
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from app.archive.api import Archive, ArchiveError, ArchiveUnavailable, OutboxStatus, SessionConflict
 from app.archive.folders import ARCHIVED_MARKER, REFUSED_MARKER, mark, session_folders, wall_now
+
+if TYPE_CHECKING:
+    from app.worker.context import JobContext
 
 log = logging.getLogger(__name__)
 
@@ -77,7 +83,10 @@ class Outbox:
             return self.status()
         archive: Archive | None = None
         try:
-            archive = self._connect()
+            try:
+                archive = self._connect()
+            except OSError as exc:  # the archive's folder (a share, a disk) is not there
+                raise ArchiveUnavailable(f"the archive cannot be reached ({exc})") from exc
             for folder in folders:
                 try:
                     result = archive.upload_session(folder)
@@ -111,3 +120,50 @@ class Outbox:
         if not self.refused():
             self._error = ""
         return self.status()
+
+
+# ---------------------------------------------------------------------------------------------- the station's passes
+_STATION_OUTBOXES: dict[tuple[str, str, str], Outbox] = {}
+
+
+def _connector(url: str, password_file: str, station: str) -> Callable[[], Archive]:
+    def connect() -> Archive:
+        from app.archive.store import open_archive
+
+        return open_archive(url=url, station=station, password_file=password_file)
+    return connect
+
+
+def station_pass(ctx: JobContext, root: str, url: str, password_file: str, station: str, active: list[str],
+                 force: bool = False) -> OutboxStatus:
+    """One pass of the station's outbox, as a job of the window's worker process (kind
+    ``"app.archive.outbox:station_pass"``): the Outbox of ``root`` kept between passes in this process (its
+    back-off), ``active`` (the folder being recorded) never uploaded. ``url=''``: the SQLite file in ``<data>``."""
+    key = (str(root), url, station)
+    box = _STATION_OUTBOXES.get(key)
+    if box is None:
+        box = _STATION_OUTBOXES[key] = Outbox(Path(root), _connector(url, password_file, station))
+    box.set_active(Path(a) for a in active)
+    return box.run_once(force)
+
+
+def archive_settings(config: object) -> tuple[str, str, str]:
+    """(url, password_file, station) of the configuration's archive (url '' = the SQLite file in ``<data>``)."""
+    cfg = getattr(config, "archive", None)
+    from app.archive.store import _station_name
+
+    return (getattr(cfg, "url", "") or "", getattr(cfg, "password_file", "") or "",
+            _station_name(getattr(config, "station", "") or ""))
+
+
+def headless_pass(config: object, root: Path) -> str:
+    """The sessions of ``root`` (a headless run's, and any left over) uploaded now; the run's last line:
+    "Session archived." or "1 session waiting for the archive (…)."."""
+    url, password_file, station = archive_settings(config)
+    box = Outbox(Path(root), _connector(url, password_file, station))
+    status = box.run_once(force=True)
+    if status.waiting:
+        return f"{status.text()}."
+    if box.refused():
+        return f"Not archived: {status.error}."
+    return "Session archived."

@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import logging
 import threading
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -36,6 +36,7 @@ from app.archive.api import (
     NotFound,
     PatientExists,
     PatientRecord,
+    PatientUnreadable,
 )
 from app.patients import (
     ElectrodeChoice,
@@ -47,8 +48,8 @@ from app.patients import (
     patient_file,
     use_store,
 )
-from app.patients import list_patients as list_yaml_patients
 from app.patients import save_patient as save_yaml_patient
+from app.yamlschema import ConfigError
 
 log = logging.getLogger(__name__)
 
@@ -244,48 +245,67 @@ def read_record(patient_id: str, safety: Any = None, *, archive: Archive | None 
 def list_entries(safety: Any = None, *, archive: Archive | None = None, folder: Path | None = None
                  ) -> list[PatientEntry]:
     """Every patient as the Patients window lists them (with the version each was read at). A record that the
-    configuration refuses is listed with its reason, never hidden. Raises ArchiveUnavailable."""
+    configuration refuses is listed with its reason, never hidden. Raises ArchiveUnavailable. Slow for many
+    patients (each profile is validated): a window calls :func:`entry_blocks` on a thread instead."""
+    return [e for part in entry_blocks(safety, archive=archive, folder=folder, block=1000) for e in part]
+
+
+ENTRY_BLOCK = 25  # patients per block of entry_blocks: ~0.1-0.3 s of validation, the window's rows in few turns
+
+
+def entry_blocks(safety: Any = None, *, archive: Archive | None = None, folder: Path | None = None,
+                 block: int = ENTRY_BLOCK) -> Iterator[list[PatientEntry]]:
+    """Every patient as :func:`list_entries` lists them, in blocks of ``block`` as each is read and validated: the
+    Patients window's loader thread hands each block to the window as it comes and stops between blocks when the
+    window closes. The archive's rows are one snapshot (one transaction). Raises ArchiveUnavailable (at the first
+    block: nothing was listed) and ArchiveError."""
     target = _target(archive, folder)
     if target is None:
-        return list_yaml_patients(folder, safety)
-    try:  # one transaction for the whole list
-        records: list[PatientRecord] = []
-        while page_records := target.patient_records(limit=1000, offset=len(records)):
-            records += page_records
-    except ArchiveUnavailable:
-        raise
-    except ArchiveError:  # a record that is not a valid profile: each read on its own, that one listed as such
-        return _entries_one_by_one(target, safety)
-    out: list[PatientEntry] = []
-    for record in records:
-        pid = record.profile.patient_id
-        try:
-            _check_limits(record.profile, safety, f"archive: patient {pid}")
-        except PatientError as exc:
-            out.append(PatientEntry(pid, patient_file(pid), None, str(exc), record.version))
-            continue
-        out.append(PatientEntry(pid, patient_file(pid), record.profile, "", record.version))
-    return out
-
-
-def _entries_one_by_one(target: Archive, safety: Any) -> list[PatientEntry]:
-    out: list[PatientEntry] = []
-    offset = 0
-    while page := target.list_patients(limit=1000, offset=offset):
-        offset += len(page)
-        for item in page:
-            where = patient_file(item.patient_id) if _safe(item.patient_id) else Path(item.patient_id)
-            try:
-                record = target.get_patient(item.patient_id)
-                _check_limits(record.profile, safety, f"archive: patient {item.patient_id}")
-            except NotFound:
-                continue  # removed between the two reads
-            except (PatientError, ArchiveError) as exc:
-                if isinstance(exc, ArchiveUnavailable):
-                    raise
-                out.append(PatientEntry(item.patient_id, where, None, str(exc), item.version))
+        yield from _yaml_blocks(folder, safety, block)
+        return
+    for reads in target.patient_reads(block):
+        out: list[PatientEntry] = []
+        for read in reads:
+            pid = read.patient_id if isinstance(read, PatientUnreadable) else read.profile.patient_id
+            where = patient_file(pid) if _safe(pid) else Path(pid)
+            if isinstance(read, PatientUnreadable):
+                out.append(PatientEntry(pid, where, None, read.error, read.version))
                 continue
-            out.append(PatientEntry(item.patient_id, where, record.profile, "", record.version))
+            try:
+                _check_limits(read.profile, safety, f"archive: patient {pid}")
+            except PatientError as exc:
+                out.append(PatientEntry(pid, where, None, str(exc), read.version))
+                continue
+            out.append(PatientEntry(pid, where, read.profile, "", read.version))
+        yield out
+
+
+def _yaml_blocks(folder: Path | None, safety: Any, block: int) -> Iterator[list[PatientEntry]]:
+    """The patients folder's files in blocks (as app.patients.list_patients lists them, one file at a time)."""
+    from app import paths
+
+    where = folder or paths.patients_dir()
+    files = sorted(where.glob("*.yaml"), key=lambda p: p.stem.lower()) if where.is_dir() else []
+    for k in range(0, len(files), max(1, block)):
+        out: list[PatientEntry] = []
+        for path in files[k:k + block]:
+            out += _yaml_entries([path], where, safety)
+        yield out
+
+
+def _yaml_entries(paths_: list[Path], folder: Path, safety: Any) -> list[PatientEntry]:
+    """app.patients.list_patients's entries for these files of ``folder`` only."""
+    out: list[PatientEntry] = []
+    for path in paths_:
+        if not _safe(path.stem):
+            out.append(PatientEntry(path.stem, path, None, f"{path.name}: the file name is not a valid identifier"))
+            continue
+        try:
+            out.append(PatientEntry(path.stem, path, load_patient(path.stem, safety, folder)))
+        except ConfigError as exc:
+            out.append(PatientEntry(path.stem, path, None, str(exc)))
+        except Exception as exc:  # one unreadable file must never hide the others
+            out.append(PatientEntry(path.stem, path, None, f"{path}: unreadable: {exc}"))
     return out
 
 
@@ -380,6 +400,6 @@ def default_operator(operator: str = "") -> str:
         return "unknown (login)"
 
 
-__all__ = ["FIELD_WORDS", "Opened", "choose_electrodes", "current", "default_operator", "field_words",
+__all__ = ["FIELD_WORDS", "Opened", "choose_electrodes", "current", "default_operator", "entry_blocks", "field_words",
            "import_yaml_patients", "in_use", "install", "list_entries", "open_station", "read_record", "save_profile",
            "uninstall", "unreachable"]

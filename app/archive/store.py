@@ -54,6 +54,7 @@ from app.archive.api import (
     PatientExists,
     PatientListItem,
     PatientRecord,
+    PatientUnreadable,
     Progress,
     ProgressSession,
     RepetitionInfo,
@@ -271,6 +272,9 @@ class SqlArchive:
         self.station = station
         self.url = engine.url.render_as_string(hide_password=True)
         self.dialect = engine.dialect.name
+        # Profiles built by patient_reads, by (patient, version, changed_at): a version's values never change, so the
+        # Patients window opened again validates only the records saved since (validation is ~5-15 ms a record).
+        self._built: dict[tuple[str, int, str], PatientProfile] = {}
 
     def close(self) -> None:
         self.engine.dispose()
@@ -394,6 +398,47 @@ class SqlArchive:
             out.append(PatientRecord(profile, row.version, row.changed_at, row.changed_by, row.changed_station))
         return out
 
+    def patient_reads(self, block: int = 25) -> Iterator[list[PatientRecord | PatientUnreadable]]:
+        """Every patient's record in blocks of ``block``, ordered as :meth:`list_patients`. The rows are read in
+        one transaction (a snapshot: a save meanwhile neither duplicates nor hides a patient); each profile is
+        then built and validated block by block, so the caller (the Patients window's loader thread) shows the
+        first rows at once and can stop between blocks. A record that is not a valid profile comes as
+        :class:`PatientUnreadable` in its place, never hiding the others."""
+        q = select(Patient).order_by(func.lower(Patient.patient_id), Patient.patient_id)
+        with self._read() as conn:
+            rows = conn.execute(q).all()
+            values = self._values_of(conn, rows)
+        for k in range(0, len(rows), max(1, block)):
+            out: list[PatientRecord | PatientUnreadable] = []
+            for row in rows[k:k + block]:
+                key = (row.patient_id, row.version, row.changed_at)
+                profile = self._built.get(key)
+                if profile is None:
+                    try:
+                        profile = profile_from_values(row.patient_id, values[row.patient_id], row.created,
+                                                      row.updated)
+                    except ArchiveError as exc:
+                        out.append(PatientUnreadable(row.patient_id, row.version, str(exc)))
+                        continue
+                    self._built[key] = profile
+                out.append(PatientRecord(profile, row.version, row.changed_at, row.changed_by, row.changed_station))
+            yield out
+
+    def import_profiles(self, profiles: Iterable[PatientProfile], *, operator: str) -> int:
+        """New patients written in one transaction (a bulk import, a test's archive of many patients): each as
+        :meth:`save_patient` with ``expected_version=None`` would write it, history and ledger included. Raises
+        PatientExists (nothing written) when one is already archived. Returns how many were written."""
+        if not operator:
+            raise ValueError("a patient's save needs the operator (who makes the change)")
+        n = 0
+        with self._write("import patients") as conn:
+            for profile in profiles:
+                profile.validate()
+                self._save_in(conn, profile.patient_id, profile_values(profile), None, None, operator, "import",
+                              (profile.created, profile.updated), _now(), returning=False)
+                n += 1
+        return n
+
     def get_patient(self, patient_id: str) -> PatientRecord:
         with self._read() as conn:
             row = conn.execute(select(Patient).where(Patient.patient_id == patient_id)).first()
@@ -421,59 +466,68 @@ class SqlArchive:
             raise ValueError("a patient's save needs the operator (who makes the change)")
         at = _now()
         with self._write(f"save patient {patient_id}") as conn:
-            row = conn.execute(select(Patient).where(Patient.patient_id == patient_id).with_for_update()).first()
-            if expected_version is None:
-                if row is not None:
-                    raise PatientExists(f"Patient {patient_id} is already in the archive (changed by "
-                                        f"{row.changed_by} on {row.changed_station} at {row.changed_at}); open it "
-                                        "there instead of creating it again.")
-                current: dict[str, Any] = {}
-                written = set(values) if keys is None else keys
-                version = 1
-            else:
-                if row is None:
-                    raise NotFound(f"There is no patient {patient_id} in the archive.")
-                current = self._values(conn, row)
-                written = (set(PATIENT_FIELDS) | {k for k in (*values, *current) if k.startswith(ELECTRODES_PREFIX)}
-                           if keys is None else keys)
-                if row.version != expected_version:
-                    self._refuse_if_stale(conn, row, expected_version, written)
-                version = row.version + 1
-            changed = {k: values.get(k) for k in sorted(written) if values.get(k) != current.get(k)}
-            if row is not None and not changed:
-                return self._record(conn, row)
-            merged = {**current, **changed}
-            created = (row.created if row is not None else "") or (times[0] if times else "") or at
-            updated = (times[1] if times else "") or at
-            profile = profile_from_values(patient_id, merged, created, updated)  # validates the result
-            columns = self._columns(profile, merged)
-            columns.update(version=version, created=created, updated=updated, changed_at=at, changed_by=operator,
-                           changed_station=self.station)
+            return self._save_in(conn, patient_id, values, keys, expected_version, operator, reason, times, at)
+
+    def _save_in(self, conn: Connection, patient_id: str, values: dict[str, Any], keys: set[str] | None,
+                 expected_version: int | None, operator: str, reason: str, times: tuple[str, str] | None,
+                 at: str, returning: bool = True) -> PatientRecord:
+        """One save inside the caller's transaction; ``returning=False`` (a bulk import) skips building the saved
+        record back (the caller does not use it; the values were validated before writing all the same)."""
+        row = conn.execute(select(Patient).where(Patient.patient_id == patient_id).with_for_update()).first()
+        if expected_version is None:
+            if row is not None:
+                raise PatientExists(f"Patient {patient_id} is already in the archive (changed by "
+                                    f"{row.changed_by} on {row.changed_station} at {row.changed_at}); open it "
+                                    "there instead of creating it again.")
+            current: dict[str, Any] = {}
+            written = set(values) if keys is None else keys
+            version = 1
+        else:
             if row is None:
-                conn.execute(insert(Patient).values(patient_id=patient_id, **columns))
-            else:
-                conn.execute(update(Patient).where(Patient.patient_id == patient_id).values(**columns))
-            if "therapy_plan" in changed:
-                conn.execute(delete(PlanStep).where(PlanStep.patient_id == patient_id))
-                steps = [{"patient_id": patient_id, "position": k, "exercise": s["exercise"],
-                          "params": canonical(s["params"]), "note": s["note"]}
-                         for k, s in enumerate(merged["therapy_plan"], start=1)]
-                if steps:
-                    conn.execute(insert(PlanStep), steps)
-            choices = [self._choice_row(patient_id, k[len(ELECTRODES_PREFIX):], v, version)
-                       for k, v in changed.items() if k.startswith(ELECTRODES_PREFIX)]
-            if choices:
-                conn.execute(insert(ElectrodeChoiceRow), choices)
-            last = conn.execute(select(PatientHistory.hash).where(PatientHistory.patient_id == patient_id)
-                                .order_by(PatientHistory.version.desc()).limit(1)).scalar()
-            h = {"patient_id": patient_id, "version": version, "fields": canonical(sorted(changed)),
-                 "values": canonical(changed), "changed_by": operator, "changed_station": self.station,
-                 "changed_at": at, "reason": reason, "prev_hash": last or genesis("patient", patient_id)}
-            h["hash"] = chain_hash(h["prev_hash"], history_parts(_Obj(h)))
-            conn.execute(insert(PatientHistory), [h])
-            self._append_ledger(conn, "patient", patient_id, version, h["hash"], at)
-            row = conn.execute(select(Patient).where(Patient.patient_id == patient_id)).first()
+                raise NotFound(f"There is no patient {patient_id} in the archive.")
+            current = self._values(conn, row)
+            written = (set(PATIENT_FIELDS) | {k for k in (*values, *current) if k.startswith(ELECTRODES_PREFIX)}
+                       if keys is None else keys)
+            if row.version != expected_version:
+                self._refuse_if_stale(conn, row, expected_version, written)
+            version = row.version + 1
+        changed = {k: values.get(k) for k in sorted(written) if values.get(k) != current.get(k)}
+        if row is not None and not changed:
             return self._record(conn, row)
+        merged = {**current, **changed}
+        created = (row.created if row is not None else "") or (times[0] if times else "") or at
+        updated = (times[1] if times else "") or at
+        profile = profile_from_values(patient_id, merged, created, updated)  # validates the result
+        columns = self._columns(profile, merged)
+        columns.update(version=version, created=created, updated=updated, changed_at=at, changed_by=operator,
+                       changed_station=self.station)
+        if row is None:
+            conn.execute(insert(Patient).values(patient_id=patient_id, **columns))
+        else:
+            conn.execute(update(Patient).where(Patient.patient_id == patient_id).values(**columns))
+        if "therapy_plan" in changed:
+            conn.execute(delete(PlanStep).where(PlanStep.patient_id == patient_id))
+            steps = [{"patient_id": patient_id, "position": k, "exercise": s["exercise"],
+                      "params": canonical(s["params"]), "note": s["note"]}
+                     for k, s in enumerate(merged["therapy_plan"], start=1)]
+            if steps:
+                conn.execute(insert(PlanStep), steps)
+        choices = [self._choice_row(patient_id, k[len(ELECTRODES_PREFIX):], v, version)
+                   for k, v in changed.items() if k.startswith(ELECTRODES_PREFIX)]
+        if choices:
+            conn.execute(insert(ElectrodeChoiceRow), choices)
+        last = conn.execute(select(PatientHistory.hash).where(PatientHistory.patient_id == patient_id)
+                            .order_by(PatientHistory.version.desc()).limit(1)).scalar()
+        h = {"patient_id": patient_id, "version": version, "fields": canonical(sorted(changed)),
+             "values": canonical(changed), "changed_by": operator, "changed_station": self.station,
+             "changed_at": at, "reason": reason, "prev_hash": last or genesis("patient", patient_id)}
+        h["hash"] = chain_hash(h["prev_hash"], history_parts(_Obj(h)))
+        conn.execute(insert(PatientHistory), [h])
+        self._append_ledger(conn, "patient", patient_id, version, h["hash"], at)
+        if not returning:
+            return None  # type: ignore[return-value]
+        row = conn.execute(select(Patient).where(Patient.patient_id == patient_id)).first()
+        return self._record(conn, row)
 
     def _refuse_if_stale(self, conn: Connection, row: Any, expected: int, written: set[str]) -> None:
         later = conn.execute(select(PatientHistory).where(PatientHistory.patient_id == row.patient_id,

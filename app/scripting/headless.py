@@ -151,7 +151,27 @@ def run_headless(config: AppConfig, script_path: str, duration_s: float | None =
             app.processEvents()
         finally:
             signals.remove()
+    line = _archive_line(config, Path(record_dir)) if recorder is not None and record_dir else ""
+    if line:
+        _emit(output, "stdout", line + "\n")
     return code
+
+
+def _archive_line(config: AppConfig, root: Path) -> str:
+    """The run's last line ('' without an archive): its session (and any left over under ``root``) uploaded to
+    the station's archive now — "Session archived." or "1 session waiting for the archive (…)." (issue #39: the
+    station keeps working offline; the next start or run uploads it)."""
+    from app.archive import station
+
+    if not station.in_use():  # a library use of the runner: no archive
+        return ""
+    from app.archive.outbox import headless_pass
+
+    try:
+        return headless_pass(config, root)
+    except Exception as exc:  # never a traceback at the end of a run that went well
+        log.exception("archiving the session failed")
+        return f"1 session waiting for the archive (it could not be uploaded: {exc})."
 
 
 def _record_dir_problem(root: Path, config: AppConfig) -> str:

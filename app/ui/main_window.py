@@ -40,6 +40,7 @@ from app.ui.tasks import QtTasks
 
 log = logging.getLogger(__name__)
 
+ARCHIVE_PASS_MS = 30_000  # the outbox's pass: its own back-off decides whether a try is due
 ESTOP_STYLE = (
     "QPushButton { background: #c62828; color: white; font-size: 20px; font-weight: bold;"
     " border: 3px solid #7f0000; border-radius: 8px; padding: 8px 28px; }"
@@ -369,6 +370,21 @@ class MainWindow(QMainWindow):
         self._status_timer.timeout.connect(self._refresh_status)
         self._status_timer.start()
         self._refresh_status()
+        # The station's outbox (#39): "2 sessions waiting for the archive", nothing when all are archived.
+        self.archive_status = QLabel("")
+        self.archive_status.setObjectName("archiveStatus")
+        self.archive_status.setVisible(False)
+        self.statusBar().addPermanentWidget(self.archive_status)
+        self._archive_task: Any = None
+        self._archive_again = False
+        self._archive_timer = QTimer(self)
+        self._archive_timer.setInterval(ARCHIVE_PASS_MS)
+        self._archive_timer.timeout.connect(self.archive_pass)
+        from app.archive import station
+
+        if station.in_use():  # the application's archive (opened before the window); none: nothing to pass
+            self._archive_timer.start()
+            QTimer.singleShot(0, self, lambda: self.archive_pass(force=True))  # the sessions left over
 
     # ------------------------------------------------------------------ behaviour
     def emergency_stop(self, source: str) -> None:
@@ -463,6 +479,45 @@ class MainWindow(QMainWindow):
         ended, self._recording = self._recording, folder
         if ended is not None and folder != ended and not self._tasks_closed and index_worthwhile(ended):
             self.tasks().run("index_session", str(ended), title=f"Indexing session {ended.name}")
+        if ended is not None and folder != ended:
+            self.archive_pass(force=True)
+
+    def archive_pass(self, force: bool = False) -> None:
+        """The station's outbox uploads the finished sessions (at a session's end, at start-up, every 30 s), in
+        the worker process (an upload computes the session's metrics: never in this process, #37); the status
+        bar says what waits. Nothing without an archive (a library use, most tests)."""
+        from app.archive import station
+
+        if self._tasks_closed or not station.in_use():
+            return
+        if self._archive_task is not None:  # one pass at a time; a forced one follows the running one
+            self._archive_again = self._archive_again or force
+            return
+        from app.archive.outbox import archive_settings
+        from app.recording import sessions_root
+
+        active = recorder_folder(self.manager)
+        self._archive_task = self.tasks().run(
+            "app.archive.outbox:station_pass", str(sessions_root(self.manager.config)),
+            *archive_settings(self.manager.config), [str(active)] if active is not None else [], force,
+            title="Archiving the sessions", on_done=self._archive_done)
+
+    def _archive_done(self, task: Any) -> None:
+        self._archive_task = None
+        if task.ok:
+            status = task.result
+            text = status.text()
+            if status.uploaded:
+                self.statusBar().showMessage(f"{status.uploaded} session{'s' if status.uploaded > 1 else ''} "
+                                             "archived", 5000)
+        else:
+            text = f"Sessions not archived: {task.error}"
+        self.archive_status.setText(text)
+        self.archive_status.setToolTip(text)
+        self.archive_status.setVisible(bool(text))
+        if self._archive_again:
+            self._archive_again = False
+            self.archive_pass(force=True)
 
     def show_sessions_browser(self) -> None:
         from app.recording import sessions_root

@@ -8,11 +8,22 @@ profile form (app/ui/patient_dialog.py); "Therapy plan…"
 edits the ordered exercises of the plan with each exercise's own form: every value is checked against the
 exercise's declared range (app.exercises: Parameter.check / validate) as it is typed, and a plan with a value
 out of range is not saved — the reason is said in words, at the field.
+
+Never on the GUI thread (#37): reading and validating every record takes ~5-15 ms a patient (2 000 patients: tens
+of seconds), so the list is read by a loader thread (:func:`app.archive.station.entry_blocks`: one snapshot of the
+archive, validated block by block) and handed over through a queue; the window takes what has come on a timer and
+adds rows for at most a few ms a turn ("Loading patients… 125 so far"), the search filtering what is loaded. A
+saved form updates its one row (the record it saved), never the whole list.
 """
 
 from __future__ import annotations
 
+import bisect
 import html
+import logging
+import queue
+import threading
+import time
 from pathlib import Path
 from typing import Any
 
@@ -41,7 +52,17 @@ from app.patients import (
 )
 from app.ui.plan_dialog import PlanDialog, step_text
 
+log = logging.getLogger(__name__)
+
 _COLUMNS = ("Patient ID", "Name", "Affected side", "Plan", "Updated")
+TURN_BUDGET_S = 0.006  # rows added per turn of the GUI thread: at most this long (a frame is 16 ms)
+RESIZE_PRECISION_ROWS = 100  # the rows the columns' widths are measured on
+POLL_MS = 15  # while loading: how often the window takes the blocks that came
+
+
+def _key(patient_id: str) -> tuple[str, str]:
+    """The list's order (the archive's: case-insensitive id)."""
+    return patient_id.lower(), patient_id
 
 
 class PatientsDialog(QDialog):
@@ -55,8 +76,20 @@ class PatientsDialog(QDialog):
         self.safety = safety
         self.folder = folder
         self.manager = manager if manager is not None else getattr(parent, "manager", None)
-        self.entries: list[PatientEntry] = []
-        self.shown: list[PatientEntry] = []
+        self.entries: list[PatientEntry] = []  # every patient loaded so far, in the list's order
+        self._by_id: dict[str, PatientEntry] = {}
+        self.shown: list[PatientEntry] = []  # the loaded patients the search finds; the table holds the first _filled
+        self._filled = 0
+        self._select: str | None = None  # the patient to select once their row is there
+        self._generation = 0  # the load whose blocks are taken (an older loader's are dropped)
+        self._blocks: queue.SimpleQueue[tuple[int, list[PatientEntry] | None, str]] = queue.SimpleQueue()
+        self._stop = threading.Event()
+        self._loader: threading.Thread | None = None
+        self.loading = False
+        self._library: dict[str, Any] | None = None  # the exercises by id, for the plans shown in the details
+        self._pump = QTimer(self)
+        self._pump.setInterval(POLL_MS)
+        self._pump.timeout.connect(self._take)
         self.child: QDialog | None = None  # the profile or plan dialog open on top of this one
         self.setWindowTitle("Patients")
         self.search = QLineEdit()
@@ -74,6 +107,9 @@ class PatientsDialog(QDialog):
         header = self.table.horizontalHeader()
         header.setSectionResizeMode(QHeaderView.ResizeMode.ResizeToContents)
         header.setSectionResizeMode(1, QHeaderView.ResizeMode.Stretch)
+        # Sized to the contents of the first rows only: every row added would otherwise re-measure every row
+        # (thousands of patients: a long turn at each block).
+        header.setResizeContentsPrecision(RESIZE_PRECISION_ROWS)
         self.table.itemSelectionChanged.connect(self._selected)
         self.table.cellDoubleClicked.connect(lambda _r, _c: self.edit_profile())
         self.details = QLabel("")
@@ -112,8 +148,12 @@ class PatientsDialog(QDialog):
         self.archive_note.setWordWrap(True)
         self.archive_note.setStyleSheet("color: #b00020; font-weight: bold;")
         self.archive_note.setVisible(False)
+        self.loading_note = QLabel("")
+        self.loading_note.setObjectName("loadingNote")
+        self.loading_note.setVisible(False)
         lay = QVBoxLayout(self)
         lay.addWidget(self.archive_note)
+        lay.addWidget(self.loading_note)
         lay.addLayout(body, 1)
         lay.addWidget(self.session_note)
         lay.addLayout(buttons)
@@ -121,47 +161,190 @@ class PatientsDialog(QDialog):
         self.reload()
 
     # ------------------------------------------------------------------ list
+    @property
+    def loaded(self) -> bool:
+        """Every patient read and every row the search finds in the table."""
+        return not self.loading and self._filled == len(self.shown)
+
     def reload(self, select: str | None = None) -> None:
-        select = select or self.selected_id()
+        """Read the list again, on the loader thread; ``select`` (or the patient selected now) is selected when
+        their row comes."""
+        self._select = select or self.selected_id()
+        self._stop.set()  # an older loader stops at its next block; its blocks are dropped
+        self._generation += 1
+        self._stop = threading.Event()
+        self.entries, self._by_id, self.shown, self._filled = [], {}, [], 0
+        self.table.setRowCount(0)
+        self.loading = True
+        self.loading_note.setText("Loading patients…")
+        self.loading_note.setVisible(True)
+        self._loader = threading.Thread(target=self._load, args=(self._generation, self._stop),
+                                        name="patients-loader", daemon=True)
+        self._loader.start()
+        self._pump.start()
+        self._selected()
+
+    def _load(self, generation: int, stop: threading.Event) -> None:
+        """The loader thread: blocks of entries into the queue, then (generation, None, problem)."""
+        problem = ""
+        if self._library is None:  # the plans' exercise names in the details: read here, once
+            try:
+                self._library = {e.ident: e for e in load_library()[0]}
+            except Exception:
+                log.exception("reading the exercise library failed")
         try:
-            self.entries = station.list_entries(self.safety, folder=self.folder)
-            problem = ""
+            for part in station.entry_blocks(self.safety, folder=self.folder):
+                if stop.is_set():
+                    return
+                self._blocks.put((generation, part, ""))
         except ArchiveError as exc:
-            self.entries, problem = [], str(exc)
+            problem = str(exc)
+        except Exception as exc:  # never a traceback in the window: the list says it is incomplete
+            log.exception("listing the patients failed")
+            problem = f"The patients could not all be listed: {exc}"
+        self._blocks.put((generation, None, problem))
+
+    def _take(self) -> None:
+        """A turn of the GUI thread: the blocks that came, and rows for at most TURN_BUDGET_S."""
+        deadline = time.perf_counter() + TURN_BUDGET_S
+        while time.perf_counter() < deadline:
+            try:
+                generation, part, problem = self._blocks.get_nowait()
+            except queue.Empty:
+                break
+            if generation != self._generation:
+                continue
+            if part is None:
+                self._finished(problem)
+                break
+            text = self.search.text()
+            for entry in part:
+                self._add(entry, matches(entry, text))
+            self.loading_note.setText(f"Loading patients… {len(self.entries)} so far")
+        self._fill(deadline)
+        if not self.loading and self._filled == len(self.shown):
+            self._pump.stop()
+
+    def _finished(self, problem: str) -> None:
+        self.loading = False
+        self.loading_note.setVisible(False)
         if problem:
-            self.archive_note.setText(f"{problem}. Patients cannot be opened or saved, nor their sessions "
-                                      "started, until the archive is back.")
+            self.archive_note.setText(f"{problem.rstrip('.')}. Patients cannot be opened or saved, nor their "
+                                      "sessions started, until the archive is back." if not self.entries else
+                                      f"{problem.rstrip('.')}. The list may be incomplete.")
         self.archive_note.setVisible(bool(problem))
-        self.new_button.setEnabled(not problem)
-        if select and not any(e.patient_id == select and matches(e, self.search.text()) for e in self.entries):
+        self.new_button.setEnabled(not (problem and not self.entries))
+        if self._select is not None and self._select not in self._by_id:
+            self._select = None
+
+    def _add(self, entry: PatientEntry, show: bool) -> None:
+        """A patient into the loaded list (replacing an older copy of them), and into the shown rows if ``show``."""
+        old = self._by_id.get(entry.patient_id)
+        self._by_id[entry.patient_id] = entry
+        if old is not None:
+            self.entries[self.entries.index(old)] = entry
+            if old in self.shown:
+                row = self.shown.index(old)
+                self.shown[row] = entry
+                if row < self._filled:
+                    self._set_row(row, entry)
+                    if entry.patient_id == self.selected_id():
+                        self._selected()
+            return
+        keys = [_key(e.patient_id) for e in self.entries[-1:]]
+        if not keys or keys[0] < _key(entry.patient_id):  # the loader's order: appended
+            self.entries.append(entry)
+        else:
+            bisect.insort(self.entries, entry, key=lambda e: _key(e.patient_id))
+        if show:
+            at = bisect.bisect(self.shown, _key(entry.patient_id), key=lambda e: _key(e.patient_id))
+            self.shown.insert(at, entry)
+            if at < self._filled:  # among the rows already there (a patient saved while the list loads)
+                self.table.insertRow(at)
+                self._set_row(at, entry)
+                self._filled += 1
+
+    def _fill(self, deadline: float) -> None:
+        """Rows for the shown patients not yet in the table, until ``deadline``; then the selection."""
+        if self._filled < len(self.shown):
+            self.table.setUpdatesEnabled(False)
+            while self._filled < len(self.shown):
+                row = self._filled
+                self.table.insertRow(row)
+                self._set_row(row, self.shown[row])
+                self._filled += 1
+                if self._filled % 16 == 0 and time.perf_counter() > deadline:
+                    break
+            self.table.setUpdatesEnabled(True)
+        if not self.table.selectionModel().selectedRows():
+            self._select_wanted()
+
+    def _select_wanted(self) -> None:
+        """Select the patient asked for once their row is there (else, once loaded, the first row)."""
+        want = self._select
+        row = next((k for k, e in enumerate(self.shown[:self._filled]) if e.patient_id == want), None)
+        if row is None and want is not None and self.loading:
+            return  # their row may still come
+        if row is None and self._filled:
+            row = 0
+        if row is not None:
+            self._select = None
+            self.table.selectRow(row)
+        self._selected()
+
+    def _set_row(self, row: int, e: PatientEntry) -> None:
+        p = e.profile
+        if p is None:
+            cells = (e.patient_id, "(the file cannot be loaded: see the details)", "", "", "")
+        else:
+            plan = f"{len(p.therapy_plan)} step(s)" if p.therapy_plan else "none"
+            cells = (p.patient_id, p.full_name or "—", p.affected_side, plan, p.updated[:16].replace("T", " "))
+        for col, value in enumerate(cells):
+            item = QTableWidgetItem(value)
+            item.setData(Qt.ItemDataRole.UserRole, e.patient_id)
+            self.table.setItem(row, col, item)
+
+    def refresh(self, select: str | None = None) -> None:
+        """The search applied to the patients loaded so far (the rest as they come)."""
+        self._select = select or self.selected_id()
+        text = self.search.text()
+        self.shown = [e for e in self.entries if matches(e, text)]
+        self._filled = 0
+        self.table.clearSelection()
+        self.table.setRowCount(0)
+        self._fill(time.perf_counter() + TURN_BUDGET_S)
+        if self._filled < len(self.shown):
+            self._pump.start()
+        self._selected()
+
+    def put(self, entry: PatientEntry, select: bool = True) -> None:
+        """A record just saved (or read) here: its row updated, or added; selected when ``select`` — shown even if
+        the search would hide it."""
+        if select and not matches(entry, self.search.text()):
             self.search.blockSignals(True)  # a patient just created must be seen, whatever the search was
             self.search.clear()
             self.search.blockSignals(False)
-        self.refresh(select)
+            self._add(entry, False)
+            self.refresh(entry.patient_id)
+        else:
+            self._add(entry, matches(entry, self.search.text()))
+            self._fill(time.perf_counter() + TURN_BUDGET_S)
+        if select:
+            self._select = entry.patient_id
+            self.table.clearSelection()
+            self._select_wanted()
 
-    def refresh(self, select: str | None = None) -> None:
-        select = select or self.selected_id()
-        text = self.search.text()
-        self.shown = [e for e in self.entries if matches(e, text)]
-        self.table.setRowCount(len(self.shown))
-        for row, e in enumerate(self.shown):
-            p = e.profile
-            if p is None:
-                cells = (e.patient_id, "(the file cannot be loaded: see the details)", "", "", "")
-            else:
-                plan = f"{len(p.therapy_plan)} step(s)" if p.therapy_plan else "none"
-                cells = (p.patient_id, p.full_name or "—", p.affected_side, plan, p.updated[:16].replace("T", " "))
-            for col, value in enumerate(cells):
-                item = QTableWidgetItem(value)
-                item.setData(Qt.ItemDataRole.UserRole, e.patient_id)
-                self.table.setItem(row, col, item)
-        ids = [e.patient_id for e in self.shown]
-        self.table.clearSelection()
-        if select in ids:
-            self.table.selectRow(ids.index(select))
-        elif ids:
-            self.table.selectRow(0)
-        self._selected()
+    def done(self, result: int) -> None:
+        self._stop_loading()
+        super().done(result)
+
+    def closeEvent(self, event: Any) -> None:
+        self._stop_loading()
+        super().closeEvent(event)
+
+    def _stop_loading(self) -> None:
+        self._stop.set()
+        self._pump.stop()
 
     def selected_id(self) -> str | None:
         rows = self.table.selectionModel().selectedRows() if self.table.selectionModel() else []
@@ -172,17 +355,24 @@ class PatientsDialog(QDialog):
 
     def selected_entry(self) -> PatientEntry | None:
         pid = self.selected_id()
-        return next((e for e in self.entries if e.patient_id == pid), None)
+        return None if pid is None else self._by_id.get(pid)
 
     def _selected(self) -> None:
         entry = self.selected_entry()
+        if entry is None and self.loading and not self.table.rowCount():
+            self.edit_button.setEnabled(False)
+            self.plan_button.setEnabled(False)
+            self.details.setText("<i>Loading patients…</i>")
+            return
         ok = entry is not None and entry.profile is not None
         self.edit_button.setEnabled(ok)
         self.plan_button.setEnabled(ok)
-        self.details.setText(self.details_html(entry))
+        self.details.setText(self.details_html(entry, self._library))
 
     @staticmethod
-    def details_html(entry: PatientEntry | None) -> str:
+    def details_html(entry: PatientEntry | None, library: dict[str, Any] | None = None) -> str:
+        """The details of ``entry``; ``library``: the exercises by id (read once, on the loader thread: reading
+        the library takes ~50 ms, too long for a click), else read here."""
         if entry is None:
             return "<i>No patient matches.</i>"
         if entry.profile is None:
@@ -200,7 +390,8 @@ class PatientsDialog(QDialog):
         lines.append("Scores: " + (esc(", ".join(scores)) + (f" ({esc(s.assessed_on)})" if s.assessed_on else "")
                                    if scores else "—"))
         if p.therapy_plan:
-            library = {e.ident: e for e in load_library()[0]}
+            if library is None:
+                library = {e.ident: e for e in load_library()[0]}
             steps = "".join(f"<li>{esc(step_text(step, library.get(step.exercise), k + 1)[len(str(k + 1)) + 2:])}</li>"
                             for k, step in enumerate(p.therapy_plan))
             lines.append(f"Therapy plan:<ol style='margin-top:0'>{steps}</ol>")
@@ -217,8 +408,13 @@ class PatientsDialog(QDialog):
         self.child = dialog
 
         def closed(result: int) -> None:
-            pid = select or getattr(getattr(dialog, "profile", None), "patient_id", None)
-            self.reload(pid)
+            saved = getattr(dialog, "profile", None)
+            if saved is not None:  # the record the form saved (or reloaded), with its version: its row only
+                old = self._by_id.get(saved.patient_id)
+                path = old.path if old is not None else Path(saved.patient_id)
+                self.put(PatientEntry(saved.patient_id, path, saved, "", int(getattr(dialog, "version", 0) or 0)),
+                         select=select is None or select == saved.patient_id)
+            pid = select or getattr(saved, "patient_id", None)
             if result == QDialog.DialogCode.Accepted and pid:
                 self.apply_to_session(pid)
 
@@ -234,7 +430,7 @@ class PatientsDialog(QDialog):
         if manager is None or getattr(manager, "recorder", None) is None or current is None \
                 or current.patient_id != patient_id:
             return []
-        entry = next((e for e in self.entries if e.patient_id == patient_id), None)
+        entry = self._by_id.get(patient_id)
         if entry is None or entry.profile is None:
             return []
         changes = manager.update_session_profile(entry.profile, entry.version or None)
@@ -264,7 +460,6 @@ class PatientsDialog(QDialog):
         return self._open(dialog, None)
 
     def _plan_for(self, patient_id: str) -> PlanDialog | None:
-        self.refresh(patient_id)
         if self.selected_id() != patient_id:
             return None
         return self.edit_plan()
