@@ -371,10 +371,11 @@ class MainWindow(QMainWindow):
         self._status_timer.start()
         self._refresh_status()
         # The station's outbox (#39): "2 sessions waiting for the archive", nothing when all are archived.
+        # Put in the status bar only once it has something to say: even hidden there, it made the bar 13 px
+        # taller and pushed the sixth graph out of view at 1366×768 (tests/test_graphs_1366.py).
         self.archive_status = QLabel("")
         self.archive_status.setObjectName("archiveStatus")
         self.archive_status.setVisible(False)
-        self.statusBar().addPermanentWidget(self.archive_status)
         self._archive_task: Any = None
         self._archive_again = False
         self._archive_timer = QTimer(self)
@@ -514,6 +515,8 @@ class MainWindow(QMainWindow):
             text = f"Sessions not archived: {task.error}"
         self.archive_status.setText(text)
         self.archive_status.setToolTip(text)
+        if text and self.archive_status.parent() is None:
+            self.statusBar().addPermanentWidget(self.archive_status)
         self.archive_status.setVisible(bool(text))
         if self._archive_again:
             self._archive_again = False
