@@ -14,6 +14,7 @@ import datetime as _dt
 import os
 import re
 import tempfile
+from collections.abc import Iterable
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any, Literal, Protocol
@@ -352,8 +353,13 @@ def list_patients(folder: Path | None = None, safety: SafetyConfig | None = None
     if folder is None and _store is not None:
         return _store.entries(safety)
     folder = folder or paths.patients_dir()
+    return yaml_entries(sorted(folder.glob("*.yaml"), key=lambda p: p.stem.lower()), folder, safety)
+
+
+def yaml_entries(files: Iterable[Path], folder: Path, safety: SafetyConfig | None = None) -> list[PatientEntry]:
+    """The entries of these profile files of ``folder``, a file that cannot be loaded listed with its reason."""
     out: list[PatientEntry] = []
-    for path in sorted(folder.glob("*.yaml"), key=lambda p: p.stem.lower()):
+    for path in files:
         if not _SAFE_ID.match(path.stem):
             out.append(PatientEntry(path.stem, path, None, f"{path.name}: the file name is not a valid identifier"))
             continue

@@ -47,9 +47,9 @@ from app.patients import (
     load_patient,
     patient_file,
     use_store,
+    yaml_entries,
 )
 from app.patients import save_patient as save_yaml_patient
-from app.yamlschema import ConfigError
 
 log = logging.getLogger(__name__)
 
@@ -225,6 +225,16 @@ def _yaml_record(profile: PatientProfile) -> PatientRecord:
     return PatientRecord(profile, 0, profile.updated, "", "")
 
 
+def record_or_none(patient_id: str, *, archive: Archive | None = None,
+                   folder: Path | None = None) -> PatientRecord | None:
+    """The patient's record as it is now, for a form opening on it; None when it cannot be read (the form's save
+    then says why, in its words)."""
+    try:
+        return read_record(patient_id, archive=archive, folder=folder)
+    except (ArchiveError, PatientError, OSError, ValueError):
+        return None
+
+
 def read_record(patient_id: str, safety: Any = None, *, archive: Archive | None = None,
                 folder: Path | None = None) -> PatientRecord | None:
     """The patient's record (profile and version), or None when the patient has no profile. With ``safety`` a
@@ -289,24 +299,8 @@ def _yaml_blocks(folder: Path | None, safety: Any, block: int) -> Iterator[list[
     for k in range(0, len(files), max(1, block)):
         out: list[PatientEntry] = []
         for path in files[k:k + block]:
-            out += _yaml_entries([path], where, safety)
+            out += yaml_entries([path], where, safety)
         yield out
-
-
-def _yaml_entries(paths_: list[Path], folder: Path, safety: Any) -> list[PatientEntry]:
-    """app.patients.list_patients's entries for these files of ``folder`` only."""
-    out: list[PatientEntry] = []
-    for path in paths_:
-        if not _safe(path.stem):
-            out.append(PatientEntry(path.stem, path, None, f"{path.name}: the file name is not a valid identifier"))
-            continue
-        try:
-            out.append(PatientEntry(path.stem, path, load_patient(path.stem, safety, folder)))
-        except ConfigError as exc:
-            out.append(PatientEntry(path.stem, path, None, str(exc)))
-        except Exception as exc:  # one unreadable file must never hide the others
-            out.append(PatientEntry(path.stem, path, None, f"{path}: unreadable: {exc}"))
-    return out
 
 
 def _safe(patient_id: str) -> bool:

@@ -81,10 +81,7 @@ class PatientDialog(QDialog):
         self.archive = archive  # None: the station's archive, or the YAML folder without one
         self.operator = operator
         if profile is not None and version is None:  # the record as it is now, with its version
-            try:
-                record = station.read_record(profile.patient_id, archive=archive, folder=folder)
-            except (ArchiveError, PatientError, OSError, ValueError):
-                record = None  # said when saving
+            record = station.record_or_none(profile.patient_id, archive=archive, folder=folder)
             if record is not None:
                 profile, version = record.profile, record.version
         self.original = profile

@@ -76,10 +76,7 @@ class PlanDialog(QDialog):
         self.archive = archive  # None: the station's (app.archive.station), or the YAML folder without one
         self.operator = operator
         if version is None:
-            try:
-                record = station.read_record(profile.patient_id, archive=archive, folder=folder)
-            except (ArchiveError, PatientError, OSError, ValueError):
-                record = None  # said when saving
+            record = station.record_or_none(profile.patient_id, archive=archive, folder=folder)
             if record is not None:
                 profile, version = record.profile, record.version
         self.profile = profile
