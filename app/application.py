@@ -93,8 +93,7 @@ def install_safety_nets(manager: LinarmppManager, on_signal: Callable[[int], Non
 
 class ArchiveOpening:
     """The station's archive opened on a thread of its own (app.archive.station.open_station: a clinic's server
-    may take seconds to answer, and the first import of the database code takes a fraction of one), started
-    before the manager and the devices so that both proceed together."""
+    may take seconds to answer), the Qt events processed meanwhile; waited for before the devices start."""
 
     def __init__(self, config: AppConfig) -> None:
         from app.archive import station
@@ -166,13 +165,16 @@ def run_gui(config: AppConfig, screenshot: str | None = None, quit_after_s: floa
     apply_palette(app, config.ui.palette)
     from app.archive import station
 
-    opening = ArchiveOpening(config)  # meanwhile the manager and the devices start
+    # The archive is opened before the devices start, not beside them: opening it (the database code's first
+    # import, the schema check, a new archive's tables) holds the interpreter ~1-2 s, and beside a starting LINarm
+    # it starved the driver's heartbeat until the controller's watchdog tripped during homing (seen in the suite:
+    # the window's first start in a new data folder never reached stimulation). Nothing is driven yet here.
+    opening = ArchiveOpening(config)
     manager = LinarmppManager(config)
     from app.signal_events import exit_code_for
 
     loop_exit = _LoopExit(app)
     remove_nets = install_safety_nets(manager, lambda signum: loop_exit.requested.emit(exit_code_for(signum)))
-    manager.start()
     try:
         opened = opening.result(app)
     except Exception as exc:
@@ -188,6 +190,7 @@ def run_gui(config: AppConfig, screenshot: str | None = None, quit_after_s: floa
         QMessageBox.critical(None, "LINarm++ Manager", refusal)
         return 2
     station.install(opened.archive, opened.problem)
+    manager.start()
     window = MainWindow(manager)
     window.show()
     archive_note = None

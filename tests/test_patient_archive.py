@@ -422,8 +422,8 @@ def test_a_sessions_electrode_choice_of_a_district_chosen_meanwhile_elsewhere_is
 
 def test_the_window_refuses_an_archive_newer_than_the_app_in_a_dialog_and_opens_nothing(
         qtbot: Any, tmp_path: Path, monkeypatch: Any) -> None:
-    """run_gui: the archive opened on its own thread while the manager starts; refused → one sentence in a
-    dialog, the devices stopped, no window, exit 2."""
+    """run_gui: the archive opened (on its own thread) before the devices start; refused → one sentence in a
+    dialog, the devices never started, no window, exit 2."""
     import sqlite3
     from types import SimpleNamespace
 
@@ -457,7 +457,7 @@ def test_the_window_refuses_an_archive_newer_than_the_app_in_a_dialog_and_opens_
         monkeypatch.setattr(application, name, lambda *_a: None)
     monkeypatch.setattr("app.ui.theme.apply_palette", lambda *_a: None)
     assert application.run_gui(CFG) == 2
-    assert life == ["started", "shut down"]
+    assert life == ["shut down"]  # never started: the archive is opened before anything is driven
     (text,) = shown
     assert text.startswith("LINarm++ Manager cannot use the patients' archive, nothing was started:")
     assert "newer version of LINarm++ Manager" in text and "\n" not in text
