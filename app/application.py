@@ -22,12 +22,22 @@ from app.paths import data_dir
 log = logging.getLogger(__name__)
 
 
-def share_gl_contexts() -> None:
-    """Before the QApplication exists: let every GL widget share one context group. pyqtgraph caches
-    compiled shader programs globally; without sharing, a second 3D view (a new window, a test) gets
-    'invalid value' from glUseProgram and draws nothing."""
+def prepare_qt() -> None:
+    """Before the QApplication exists, the two process-wide settings the window depends on:
+
+    * Every GL widget shares one context group. pyqtgraph caches compiled shader programs globally; without
+      sharing, a second 3D view (a new window, a test) gets 'invalid value' from glUseProgram and draws nothing.
+    * The window's thread paints by itself (``QT_NO_GUI_THREADPOOL``). Qt's raster engine otherwise hands each
+      large fill or image scale to a pool of helper threads and waits for them on a latch; those helpers are not
+      the window's thread, so on a busy 2-core machine the window waited for threads that had no CPU: a graph's
+      repaint held the window 0.4-0.9 s, and the GUI watch stopped the robot (seen in CI on a clean clone, with
+      the firmware building beside the clinician's day; py-spy showed the window's thread in QLatch::wait under
+      QRasterPaintEngine::drawImage / drawPolygon). Painting on one thread costs a few ms more per frame at most.
+    """
     from PySide6.QtCore import Qt
 
+    # Read once, by the first paint that would use the pool: must be set before anything paints.
+    os.environ.setdefault("QT_NO_GUI_THREADPOOL", "1")
     if QCoreApplication.instance() is None:
         QCoreApplication.setAttribute(Qt.ApplicationAttribute.AA_ShareOpenGLContexts)
 
@@ -156,7 +166,7 @@ def run_gui(config: AppConfig, screenshot: str | None = None, quit_after_s: floa
 
     from app.ui.main_window import MainWindow
 
-    share_gl_contexts()
+    prepare_qt()
     app = QApplication.instance() or QApplication(sys.argv)
     configure_qt_identity()
     apply_desktop_identity(app)

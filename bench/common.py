@@ -328,9 +328,9 @@ def qt_app() -> Any:
     from PySide6.QtWidgets import QApplication
 
     if QApplication.instance() is None:
-        from app.application import share_gl_contexts
+        from app.application import prepare_qt
 
-        share_gl_contexts()  # as the application does, before the QApplication exists
+        prepare_qt()  # as the application does, before the QApplication exists
     app = QApplication.instance() or QApplication([sys.argv[0]])
     from app.application import configure_qt_identity
 

@@ -32,12 +32,12 @@ os.environ.setdefault("PYTHONFAULTHANDLER", "1")
 os.environ.setdefault("LINARMPP_SIM_HOST", "process")
 SIM_IN_THREAD_MODULES = {"test_device_loss", "test_device_loss_more", "test_fes_exit_paths", "test_physio_viewer"}
 
-from app.application import share_gl_contexts  # noqa: E402 - must run before pytest-qt creates the app
+from app.application import prepare_qt  # noqa: E402 - must run before pytest-qt creates the app
 from app.devices.sim.base import HOMED_ENV  # noqa: E402
 from tests import rigs  # noqa: E402
 from tests.rigs import _children, _os_threads, _python_threads  # noqa: E402
 
-share_gl_contexts()
+prepare_qt()
 
 
 def screenshot_path(name: str) -> Path:

@@ -239,3 +239,30 @@ def test_a_burst_of_sigterms_ends_the_simulator_process(tmp_path: Path) -> None:
                 process.proc.kill()  # type: ignore[union-attr]
             process.stop()
     assert len(ends) == 5 and max(ends) < 2.0
+
+
+@pytest.mark.realtime
+def test_the_simulation_panel_says_so_when_the_simulator_process_has_died(qtbot, monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    """A simulator process that dies (a crash, a kill) must not turn the panel's refresh into an exception on
+    every tick of its timer (seen in CI: a window left by a failed test raised 'the simulator process is not
+    running' into every later test of its worker); the panel says in plain words that it has stopped."""
+    from app.config import AppConfig
+    from app.devices import linarm, physio
+    from app.manager import LinarmppManager
+    from app.ui.simulation_panel import SimulationPanel
+
+    monkeypatch.setenv("LINARMPP_SIM_HOST", "process")
+    manager = LinarmppManager(AppConfig(), factories={"linarm": linarm.create, "physio": physio.create})
+    manager.start()
+    try:
+        qtbot.waitUntil(manager.all_connected, timeout=10000)
+        sim_pid = manager.simulators.process.pid
+        os.kill(sim_pid, signal.SIGKILL)
+        qtbot.waitUntil(lambda: not manager.simulators.process.alive, timeout=5000)
+        panel = SimulationPanel(manager)  # its first refresh asks the dead process for the patient's settings
+        qtbot.addWidget(panel)
+        panel.refresh()
+        assert "simulator process has stopped" in panel.summary.text()
+    finally:
+        manager.shutdown()
+    assert not _alive(sim_pid)

@@ -33,9 +33,9 @@ def main() -> int:
     out.mkdir(parents=True, exist_ok=True)
 
     from app import streams
-    from app.application import configure_qt_identity, share_gl_contexts
+    from app.application import configure_qt_identity, prepare_qt
 
-    share_gl_contexts()
+    prepare_qt()
     from PySide6.QtCore import QEventLoop, QTimer
     from PySide6.QtWidgets import QApplication
 

@@ -361,7 +361,7 @@ _GL_SHARE_CONTEXT: Any = None
 
 def _share_context() -> Any:
     """The context every 3D view shares its GL objects with: Qt's global one when the application asked
-    for it (app.application.share_gl_contexts), else one of our own (never made current on a surface)."""
+    for it (app.application.prepare_qt), else one of our own (never made current on a surface)."""
     global _GL_SHARE_CONTEXT
     from PySide6.QtGui import QOpenGLContext
 

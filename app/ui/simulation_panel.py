@@ -35,6 +35,7 @@ from PySide6.QtWidgets import (
 from app import streams
 from app.bus import StreamBus
 from app.devices.physio_codec import FAULT_FLAGS
+from app.devices.sim.host import SimulatorProcessError
 from app.manager import LinarmppManager
 from app.ui.qt_bus import QtBus
 from app.ui.theme import colours
@@ -403,8 +404,17 @@ class SimulationPanel(QWidget):
     def refresh(self) -> None:
         c = colours()
         parts = []
+        settings = None
         if self.patient is not None:
-            s = self.patient.settings()
+            try:
+                settings = self.patient.settings()
+            except SimulatorProcessError:
+                # The process that simulates the patient ended (a crash, a kill): said here on every tick,
+                # never raised from the timer into the window's event loop.
+                parts.append("The simulated patient's simulator process has stopped: restart the application "
+                             "to simulate again.")
+        if settings is not None:
+            s = settings
             grip = {
                 "idle": "idle",
                 "squeeze": f"squeeze {s.squeezeDuration:.2f} s",
