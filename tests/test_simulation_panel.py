@@ -108,3 +108,15 @@ def test_kill_and_restart_a_simulated_device(qtbot, manager) -> None:
     qtbot.mouseClick(restart, Qt.MouseButton.LeftButton)
     assert manager.devices["physio"].simulator.running and "running" in status.text()
     qtbot.waitUntil(lambda: driver.connected and manager.bus.total("physio.main") > count + 20, timeout=10000)
+
+
+def test_the_panel_refreshes_only_while_it_is_shown(qtbot, manager) -> None:
+    """A hidden panel (another tab, a closed window) asks the simulator nothing: a window a failed test left alive
+    kept refreshing into later tests after its simulator process had ended."""
+    panel = _panel(qtbot, manager)
+    assert panel.timer.isActive()
+    panel.hide()
+    assert not panel.timer.isActive()
+    panel.show()
+    qtbot.waitExposed(panel)
+    assert panel.timer.isActive()

@@ -16,6 +16,7 @@ import logging
 from typing import Any
 
 from PySide6.QtCore import Qt, QTimer
+from PySide6.QtGui import QHideEvent, QShowEvent
 from PySide6.QtWidgets import (
     QCheckBox,
     QDoubleSpinBox,
@@ -130,11 +131,21 @@ class SimulationPanel(QWidget):
                 box.setEnabled(False)
                 box.setToolTip("No simulated patient: no device is simulated")
 
+        # Refreshed while shown only (a hidden tab, a closed window: nobody reads it, and a window a failed test
+        # left alive must not keep asking a simulator process that has ended).
         self.timer = QTimer(self)
         self.timer.setInterval(250)
         self.timer.timeout.connect(self.refresh)
-        self.timer.start()
         self.refresh()
+
+    def showEvent(self, event: QShowEvent) -> None:
+        super().showEvent(event)
+        self.refresh()
+        self.timer.start()
+
+    def hideEvent(self, event: QHideEvent) -> None:
+        self.timer.stop()
+        super().hideEvent(event)
 
     # ------------------------------------------------------------------ building
     def _grip_box(self) -> QGroupBox:
