@@ -286,8 +286,11 @@ def _report_command_run(config: object, args: argparse.Namespace, archive: objec
     try:
         code = EXIT_REPORT_OK
         if args.metrics or args.report or args.progress:
+            from app.archive.reads import progress_rows
+
             code = run_report_command(config, metrics=args.metrics, report=args.report, progress=args.progress,
-                                      out=args.out, archive=archive, report_origin=report_origin)
+                                      out=args.out, report_origin=report_origin, archive_read=archive is not None,
+                                      rows_of=lambda pid, root: progress_rows(pid, root, archive))  # type: ignore[arg-type]
         sys.stdout.flush()  # --metrics' JSON: a full disk under a redirected stdout shows here, not at exit
         if code == EXIT_REPORT_OK and args.export:
             code = _session_export_command(args.export, Path(args.out))

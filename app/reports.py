@@ -1639,11 +1639,13 @@ def _score(value: Any) -> float | None:
 
 # ------------------------------------------------------------------------------------------- command line
 def run_report_command(config: Any, *, metrics: str | None = None, report: str | None = None,
-                       progress: str | None = None, out: str | None = None, archive: Any = None,
+                       progress: str | None = None, out: str | None = None,
+                       rows_of: Callable[[str, Path], list[ProgressRow]] | None = None, archive_read: bool = False,
                        report_origin: str = "") -> int:
     """``--metrics`` prints JSON to stdout; ``--report`` / ``--progress`` write ``--out``. Exit 0, or 2 with a
-    message on stderr when the input is wrong. ``archive`` (app.archive.api.Archive): the progress report holds
-    every station's sessions from it, and this station's not yet archived from ``sessions_root(config)``;
+    message on stderr when the input is wrong. ``rows_of(patient, sessions root)``: the progress report's rows
+    (the command line's: every station's from the archive, ``archive_read``, and this station's not yet archived;
+    default: this station's folders);
     ``report_origin``: what ``report`` is when it is an archived session's copy (said in the report)."""
     from app.recording import MANIFEST_FILE, sessions_root
 
@@ -1661,12 +1663,11 @@ def run_report_command(config: Any, *, metrics: str | None = None, report: str |
         pages = save_session_report(report, out, data)  # type: ignore[arg-type]
         print(f"Session report written: {out} ({pages} page{'s' if pages > 1 else ''})", file=sys.stderr)
     if progress:
-        from app.archive.reads import progress_rows as archive_progress_rows
         from app.patients import PatientError, load_patient
 
-        rows = archive_progress_rows(progress, sessions_root(config), archive)
+        rows = (rows_of or progress_rows)(progress, sessions_root(config))
         if not rows:
-            where = f"under {sessions_root(config)}" + (" nor in the archive" if archive is not None else "")
+            where = f"under {sessions_root(config)}" + (" nor in the archive" if archive_read else "")
             print(f"no session of patient {progress} {where}", file=sys.stderr)
             return 2
         try:

@@ -1,0 +1,64 @@
+"""The sessions browser reads the archive (issue #39): on station room-B of a clinic sharing one archive it lists the
+patient's sessions of every station with the station shown, this station's own not yet uploaded as "waiting for the
+archive", each session once; the list is read off the GUI thread; a replay of a session recorded on room-A (no
+folder of it on room-B) opens, its files copied from the archive in the worker process."""
+
+from __future__ import annotations
+
+import threading
+from pathlib import Path
+from typing import Any
+
+from app.archive import reads, station
+from tests.test_archive_reads import PATIENT, Clinic, make_two_stations
+
+
+def test_the_sessions_browser_lists_every_stations_sessions_and_replays_one_from_another_station(
+        qtbot: Any, tmp_path: Path, monkeypatch: Any) -> None:
+    from app.ui.replay_window import ReplayWindow
+    from app.ui.sessions_browser import COLUMNS, SessionsBrowser
+
+    clinic = Clinic(tmp_path / "clinic", f"sqlite:///{tmp_path / 'clinic' / 'archive.sqlite3'}")
+    make_two_stations(clinic)  # Monday on room-A, Wednesday on room-B (archived), Friday on room-B (waiting)
+    monkeypatch.setenv("LINARMPP_HOME", str(clinic.home("room-B")))
+    listed_on: list[str] = []
+    real = getattr(reads, "session_listing", None)
+
+    def spy(*args: Any, **kwargs: Any) -> Any:
+        listed_on.append(threading.current_thread().name)
+        return real(*args, **kwargs)  # type: ignore[misc]
+
+    monkeypatch.setattr(reads, "session_listing", spy, raising=False)
+    archive = clinic.archive("room-B")
+    station.install(archive)
+    browser = None
+    try:
+        browser = SessionsBrowser(clinic.home("room-B") / "sessions")
+        qtbot.addWidget(browser)
+        browser.set_patient(PATIENT)
+        qtbot.waitUntil(lambda: not getattr(browser, "loading", False) and browser.table.rowCount() > 0,
+                        timeout=30_000)
+        col = COLUMNS.index("Station") if "Station" in COLUMNS else 4
+        rows = [(browser.table.item(r, 0).text()[:10], browser.table.item(r, col).text())
+                for r in range(browser.table.rowCount())]
+        assert rows == [("2026-03-06", "room-B (waiting for the archive)"), ("2026-03-04", "room-B"),
+                        ("2026-03-02", "room-A")]
+        assert listed_on and set(listed_on) == {"sessions-loader"}  # never on the GUI thread
+        assert [browser.table.item(r, 3).text() for r in range(3)] == ["0", "0", "0"]  # alarms, from the archive
+        assert [browser.table.item(r, 5).text() for r in range(3)] == ["complete"] * 3
+        browser.table.selectRow(2)  # Monday, recorded on room-A: room-B has no folder of it
+        assert browser.selected_folder() is None and browser.replay_button.isEnabled()
+        with qtbot.waitSignal(browser.opened, timeout=60_000) as opened:
+            assert browser.replay() is not None
+        replay = opened.args[0]
+        assert isinstance(replay, ReplayWindow)
+        cache = browser._cache
+        assert cache is not None and list(cache.glob(f"*/{PATIENT}/20260302-100000/manifest.json"))
+        replay.close()
+        browser.close()
+        assert not cache.exists()  # the copies go with the browser
+    finally:
+        if browser is not None:
+            browser.close()
+        station.uninstall()
+        archive.close()
