@@ -55,6 +55,19 @@ def test_the_sessions_browser_lists_every_stations_sessions_and_replays_one_from
         cache = browser._cache
         assert cache is not None and list(cache.glob(f"*/{PATIENT}/20260302-100000/manifest.json"))
         replay.close()
+        # its summary (the run's metrics) and a CSV export: from the copy made once
+        with qtbot.waitSignal(browser.opened, timeout=60_000) as opened:
+            assert browser.open_summary() is not None
+        assert [len(r.repetitions) for r in opened.args[0].summary.runs] == [3]
+        opened.args[0].close()
+        done: list[tuple[bool, str]] = []
+        listed = browser.selected_session()
+        assert listed is not None and listed.station == "room-A"
+        browser.export(listed, "csv", tmp_path / "csv", on_done=lambda ok, message: done.append((ok, message)))
+        qtbot.waitUntil(lambda: bool(done), timeout=60_000)
+        assert done[0][0], done
+        assert (tmp_path / "csv" / "manifest.json").is_file() and (tmp_path / "csv" / "events.csv").is_file()
+        assert len(list(cache.glob("*/.copied"))) == 1  # one copy, read three times
         browser.close()
         assert not cache.exists()  # the copies go with the browser
     finally:
