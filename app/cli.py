@@ -5,9 +5,9 @@ all run :func:`main`. With no arguments: the clinician window, every device simu
     linarmpp --headless --script FILE [--duration S] [--record DIR]
     linarmpp --version
     linarmpp --install-desktop-entry                       the application menu entry (Linux)
-    linarmpp --metrics SESSION_FOLDER                      per-repetition metrics as JSON (docs/metrics.md)
-    linarmpp --report SESSION_FOLDER --out FILE.pdf        the session's PDF report
-    linarmpp --progress PATIENT_ID --out FILE.pdf          the patient's progress PDF
+    linarmpp --metrics SESSION_FOLDER|UUID                 per-repetition metrics as JSON (docs/metrics.md)
+    linarmpp --report SESSION_FOLDER|UUID --out FILE.pdf   the session's PDF report (UUID: an archived session)
+    linarmpp --progress PATIENT_ID --out FILE.pdf          the patient's progress PDF (every station's sessions)
     linarmpp --export SESSION_FOLDER --out FILE.h5|FOLDER  the session as one HDF5 file, or as CSV files in a folder
     linarmpp archive {status,upgrade,import,export,upload,verify,grants} …   the archive (docs/archive.md)
     linarmpp export --format bids|xdf|edf SESSION… --out DIR   sessions for research tools (docs/export.md)
@@ -47,9 +47,12 @@ def build_parser(prog: str | None = None) -> argparse.ArgumentParser:
     parser.add_argument("--record", help="record the session into this folder")
     parser.add_argument("--screenshot", help="save the window to this PNG once every device is connected, then quit")
     parser.add_argument("--quit-after", type=float, help="close the window after this many seconds")
-    parser.add_argument("--metrics", metavar="SESSION_FOLDER", help="print the session's per-repetition metrics (JSON)")
-    parser.add_argument("--report", metavar="SESSION_FOLDER", help="write the session's PDF report to --out")
-    parser.add_argument("--progress", metavar="PATIENT_ID", help="write the patient's progress PDF to --out")
+    parser.add_argument("--metrics", metavar="SESSION", help="print the session's per-repetition metrics (JSON); "
+                        "SESSION: its folder, or an archived session's UUID")
+    parser.add_argument("--report", metavar="SESSION", help="write the session's PDF report to --out; SESSION: its "
+                        "folder, or an archived session's UUID")
+    parser.add_argument("--progress", metavar="PATIENT_ID", help="write the patient's progress PDF to --out (every "
+                        "station's sessions in the archive, and this station's not yet archived)")
     parser.add_argument("--export", metavar="SESSION_FOLDER",
                         help="export the session to --out: FILE.h5 (HDF5) or a new FOLDER (CSV files)")
     parser.add_argument("--out", metavar="FILE", help="output of --report / --progress / --export")
