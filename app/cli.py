@@ -2,7 +2,7 @@
 all run :func:`main`. With no arguments: the clinician window, every device simulated.
 
     linarmpp [--config FILE]                                the clinician window
-    linarmpp --headless --script FILE [--duration S] [--record DIR]
+    linarmpp --headless --script FILE [--duration S] [--record DIR] [--patient ID --operator NAME]
     linarmpp --version
     linarmpp --install-desktop-entry                       the application menu entry (Linux)
     linarmpp --metrics SESSION_FOLDER|UUID                 per-repetition metrics as JSON (docs/metrics.md)
@@ -45,6 +45,9 @@ def build_parser(prog: str | None = None) -> argparse.ArgumentParser:
     parser.add_argument("--script", help="exercise script to run (with --headless)")
     parser.add_argument("--duration", type=float, help="stop the script after this many seconds")
     parser.add_argument("--record", help="record the session into this folder")
+    parser.add_argument("--patient", metavar="ID", help="with --headless: the session is this patient's (their "
+                        "profile's limits apply), recorded with the station's sessions and archived")
+    parser.add_argument("--operator", metavar="NAME", help="with --patient: who runs the session")
     parser.add_argument("--screenshot", help="save the window to this PNG once every device is connected, then quit")
     parser.add_argument("--quit-after", type=float, help="close the window after this many seconds")
     parser.add_argument("--metrics", metavar="SESSION", help="print the session's per-repetition metrics (JSON); "
@@ -111,11 +114,17 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
         from app.archive import station
         from app.scripting.headless import run_headless
 
+        if bool(args.patient) != bool(args.operator and args.operator.strip()):
+            _report_error("--patient and --operator go together: a session is a patient and the person who runs it")
+            return 2
         opened = _open_archive_headless(config)
         if opened is None:
             return 2
         try:
-            code = run_headless(config, args.script, duration_s=args.duration, record_dir=args.record)
+            if args.patient and not _headless_patient_known(args.patient, config):
+                return 2
+            code = run_headless(config, args.script, duration_s=args.duration, record_dir=args.record,
+                                patient=args.patient, operator=(args.operator or "").strip())
         finally:
             archive = station.uninstall()
             if archive is not None:
@@ -146,6 +155,28 @@ def _open_archive_headless(config: object) -> object:
     if opened.message():
         print(opened.message(), file=sys.stderr)
     return opened
+
+
+def _headless_patient_known(patient_id: str, config: object) -> bool:
+    """Whether a headless session may start for ``patient_id``: their record is in the archive (or, without one,
+    their profile file). Otherwise one line on stderr (nothing is started): a mistyped identifier would record a
+    session for nobody, without the caps of the patient meant."""
+    from app.archive import station
+    from app.archive.api import ArchiveError
+    from app.patients import PatientError
+
+    try:
+        record = station.read_record(patient_id, getattr(config, "safety", None))
+    except (ArchiveError, PatientError, OSError) as exc:
+        print(f"The session was not started: the profile of patient {patient_id} cannot be read ({exc}).",
+              file=sys.stderr)
+        return False
+    if record is None:
+        where = "in the archive" if station.in_use() else "among this station's patients"
+        print(f"The session was not started: there is no patient {patient_id} {where}. Create them in the "
+              "Patients window first.", file=sys.stderr)
+        return False
+    return True
 
 
 def _archive_command(argv: list[str], prog: str | None) -> int:

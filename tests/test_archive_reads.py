@@ -204,3 +204,41 @@ def test_metrics_and_report_of_an_archived_session_by_its_uuid_are_those_of_its_
     assert len(written) == 2 and not any(p.exists() for p in written)  # the archive's copies, removed after
     code, _, err = run("room-B", "--metrics", "6a1c7f0e-0000-4000-8000-000000000000")
     assert code == 2 and "the archive has no session 6a1c7f0e-0000-4000-8000-000000000000" in err
+
+
+# ---------------------------------------------------------------------------------------------- headless
+def test_a_headless_run_for_a_patient_and_an_operator_is_their_session_and_is_archived(
+        tmp_path: Path, monkeypatch: Any, capsys: Any) -> None:
+    """``--headless --script FILE --patient ID --operator NAME``: the session is the patient's (recorded with the
+    station's sessions, the operator named), archived at the end (last line); a patient the archive does not know,
+    or a patient without an operator, is refused in one line and nothing starts."""
+    from app.cli import main
+    from app.devices import registry
+    from app.scripting import headless
+    from tests.fakes import counter_factory
+
+    clinic = Clinic(tmp_path / "clinic", f"sqlite:///{tmp_path / 'clinic' / 'archive.sqlite3'}")
+    with clinic.archive("room-A") as a:
+        a.save_patient(PatientProfile(patient_id=PATIENT, full_name="Maria Esposito"), expected_version=None,
+                       operator="dr_rossi")
+    monkeypatch.setenv("LINARMPP_HOME", str(clinic.home("room-B")))
+    monkeypatch.setattr(registry, "default_factories", lambda config: {"counter": counter_factory(tmp_path)})
+    monkeypatch.setattr(headless, "_let_the_record_show_the_safe_state", lambda manager, app: None)
+    script = tmp_path / "s.py"
+    script.write_text("x = 1\n", encoding="utf-8")
+    run = ["--config", str(clinic.config("room-B")), "--headless", "--script", str(script)]
+
+    assert main([*run, "--patient", "PZ-NOBODY", "--operator", "dr_verdi"]) == 2
+    assert "there is no patient PZ-NOBODY in the archive" in capsys.readouterr().err
+    assert main([*run, "--patient", PATIENT]) == 2
+    assert "--patient and --operator go together" in capsys.readouterr().err
+    assert main([*run, "--patient", PATIENT, "--operator", "dr_verdi"]) == 0
+    out = capsys.readouterr().out
+    assert out.rstrip().splitlines()[-1] == "Session archived.", out
+    with clinic.archive("room-A") as a:
+        sessions = a.list_sessions(PATIENT)
+        assert [(s.station, s.operator) for s in sessions] == [("room-B", "dr_verdi")]
+        manifest = a.get_session(sessions[0].uuid).manifest
+    assert (manifest["patient"] or {}).get("full_name") == "Maria Esposito"  # the patient's profile was applied
+    folders = list((clinic.home("room-B") / "sessions" / PATIENT).iterdir())
+    assert len(folders) == 1 and (folders[0] / ".archived").is_file()
