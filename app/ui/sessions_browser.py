@@ -320,6 +320,9 @@ class SessionsBrowser(QWidget):
         self.table.setEditTriggers(QAbstractItemView.EditTrigger.NoEditTriggers)
         header = self.table.horizontalHeader()
         header.setSectionResizeMode(QHeaderView.ResizeMode.ResizeToContents)
+        # Sized to the first rows' contents only: a patient's hundreds of sessions (every station's) would otherwise
+        # be measured cell by cell at each fill (500 rows: 98 ms in one turn, 33 ms so; docs/archive.md).
+        header.setResizeContentsPrecision(100)
         header.setSectionResizeMode(2, QHeaderView.ResizeMode.Stretch)  # the exercises: elided, whole in the tooltip
         self.table.setAccessibleName("Sessions")
         self.table.itemSelectionChanged.connect(self._update_buttons)
