@@ -75,3 +75,26 @@ def test_the_sessions_browser_lists_every_stations_sessions_and_replays_one_from
             browser.close()
         station.uninstall()
         archive.close()
+
+
+def test_with_the_archive_unreachable_the_browser_lists_this_stations_sessions_as_waiting_and_says_why(
+        qtbot: Any, tmp_path: Path, monkeypatch: Any) -> None:
+    from app.ui.sessions_browser import COLUMNS, SessionsBrowser
+
+    clinic = Clinic(tmp_path / "clinic", f"sqlite:///{tmp_path / 'clinic' / 'archive.sqlite3'}")
+    make_two_stations(clinic)
+    monkeypatch.setenv("LINARMPP_HOME", str(clinic.home("room-B")))
+    station.install(None, "the archive at sqlite:///share/archive.sqlite3 cannot be reached (not mounted)")
+    try:
+        browser = SessionsBrowser(clinic.home("room-B") / "sessions")
+        qtbot.addWidget(browser)
+        browser.set_patient(PATIENT)
+        qtbot.waitUntil(lambda: not browser.loading and browser.table.rowCount() > 0, timeout=30_000)
+        col = COLUMNS.index("Station")
+        assert [browser.table.item(r, col).text() for r in range(browser.table.rowCount())] == \
+            ["this station (waiting for the archive)", "this station"]  # room-B's folders (Wednesday's archived)
+        assert browser.status.text().startswith("The archive at sqlite:///share/archive.sqlite3 cannot be reached "
+                                                "(not mounted). Only this station's sessions are listed")
+        browser.close()
+    finally:
+        station.uninstall()

@@ -239,7 +239,7 @@ class ListedSession:
             return f"{here or 'this station'} (waiting for the archive)"
         if self.where == REFUSED:
             return f"{here or 'this station'} (refused by the archive)"
-        return self.station or here
+        return self.station or here or "this station"
 
 
 def _folder_row(folder: Path, uuid: str, where: str, active: Path | None) -> ListedSession:
@@ -289,15 +289,17 @@ def session_listing(patient_id: str, root: Path, archive: Archive | None, in_use
     for s in local:
         if s.uuid in known:
             continue
-        where = LOCAL if not in_use else REFUSED if (s.folder / REFUSED_MARKER).is_file() else WAITING
+        # the outbox's markers say what the archive (unreadable now, or another one) did with it
+        where = (LOCAL if not in_use else ARCHIVED if s.archived else
+                 REFUSED if (s.folder / REFUSED_MARKER).is_file() else WAITING)
         rows.append((s.start_epoch_s, _folder_row(s.folder, s.uuid, where, active)))
     rows.sort(key=lambda r: (r[0], r[1].folder_name), reverse=True)
     return [r for _, r in rows]
 
 
-def patient_ids(root: Path, archive: Archive | None) -> list[str]:
+def patient_ids(root: Path, archive: Archive | None, in_use: bool = False) -> list[str]:
     """The patients the browser offers: the archive's (no profile built) and those with folders on this station;
-    without an archive the station's patient files too."""
+    without an archive in use (``in_use``) the station's patient files too."""
     from app.recording import list_patients_with_sessions
 
     ids = set(list_patients_with_sessions(root))
@@ -306,7 +308,7 @@ def patient_ids(root: Path, archive: Archive | None) -> list[str]:
         while page := archive.list_patients(limit=1000, offset=offset):
             ids |= {p.patient_id for p in page}
             offset += len(page)
-    else:
+    elif not in_use:
         from app.patients import list_patients
 
         ids |= {e.patient_id for e in list_patients()}

@@ -419,11 +419,11 @@ class SessionsBrowser(QWidget):
             return reads.session_listing(pid, self.root, None, True, active), str(exc)
 
     def _patients(self) -> tuple[list[str], str]:
-        archive = station.current()
+        archive, in_use = station.current(), station.in_use()
         try:
-            return reads.patient_ids(self.root, archive), ""
+            return reads.patient_ids(self.root, archive, in_use), ""
         except ArchiveError as exc:
-            return reads.patient_ids(self.root, None), str(exc)
+            return reads.patient_ids(self.root, None, in_use), str(exc)
 
     def reload_patients(self, select: str | None = None) -> None:
         """The patients (the archive's and this station's folders') and the sessions of ``select`` (or of the one
@@ -485,8 +485,8 @@ class SessionsBrowser(QWidget):
         if self.summaries:
             self.table.selectRow(0)
         if problem:
-            self._say(f"{problem.rstrip('.')}. Only this station's sessions are listed; they wait for the archive.",
-                      error=True)
+            self._say(f"{problem[:1].upper()}{problem[1:].rstrip('.')}. Only this station's sessions are listed; "
+                      "they wait for the archive.", error=True)
         self._update_buttons()
 
     def selected_session(self) -> ListedSession | None:
