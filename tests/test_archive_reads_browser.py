@@ -67,7 +67,14 @@ def test_the_sessions_browser_lists_every_stations_sessions_and_replays_one_from
         qtbot.waitUntil(lambda: bool(done), timeout=60_000)
         assert done[0][0], done
         assert (tmp_path / "csv" / "manifest.json").is_file() and (tmp_path / "csv" / "events.csv").is_file()
-        assert len(list(cache.glob("*/.copied"))) == 1  # one copy, read three times
+        research: list[Any] = []  # a research export of this session and of one of room-B's own folders
+        both = [listed, browser.summaries[1].folder]
+        (tmp_path / "xdf").mkdir()
+        assert browser.research_export(both, "xdf", tmp_path / "xdf", on_done=research.append) is not None
+        qtbot.waitUntil(lambda: bool(research), timeout=60_000)
+        assert research[0].ok, research[0].error
+        assert len(list((tmp_path / "xdf").rglob("*.xdf"))) == 2
+        assert len(list(cache.glob("*/.copied"))) == 1  # one copy, read four times
         browser.close()
         assert not cache.exists()  # the copies go with the browser
     finally:
