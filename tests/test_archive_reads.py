@@ -242,3 +242,21 @@ def test_a_headless_run_for_a_patient_and_an_operator_is_their_session_and_is_ar
     assert (manifest["patient"] or {}).get("full_name") == "Maria Esposito"  # the patient's profile was applied
     folders = list((clinic.home("room-B") / "sessions" / PATIENT).iterdir())
     assert len(folders) == 1 and (folders[0] / ".archived").is_file()
+
+
+def test_progress_with_the_archive_unreachable_is_this_stations_and_says_so(
+        tmp_path: Path, monkeypatch: Any, capsys: Any) -> None:
+    """The archive's share is not mounted: the report holds this station's sessions, stderr says why, exit 3
+    (written, but incomplete)."""
+    from app.cli import main
+
+    share = tmp_path / "share"
+    share.write_text("not mounted\n", encoding="utf-8")  # a file where the archive's folder should be
+    clinic = Clinic(tmp_path / "clinic", f"sqlite:///{share / 'archive.sqlite3'}")
+    clinic.session("room-B", "20260304-100000", 4)
+    monkeypatch.setenv("LINARMPP_HOME", str(clinic.home("room-B")))
+    out = tmp_path / "progress.pdf"
+    assert main(["--config", str(clinic.config("room-B")), "--progress", PATIENT, "--out", str(out)]) == 3
+    err = capsys.readouterr().err
+    assert "the progress report holds only this station's sessions" in err and "Progress report written" in err, err
+    assert "Sessions 1 (2026-03-04 10:00" in pdf_text(out)
