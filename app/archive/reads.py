@@ -46,9 +46,12 @@ def open_for_reading(config: Any) -> tuple[Archive | None, str]:
     logging.getLogger("alembic").setLevel(logging.WARNING)
     try:
         return open_archive(config, create=False), ""
-    except (ArchiveError, OSError) as exc:
+    except ArchiveError as exc:
         log.warning("archive: %s", exc)
         return None, str(exc)
+    except OSError as exc:  # the archive's folder (a share, a disk) is not there, as the outbox says it
+        log.warning("archive: %s", exc)
+        return None, f"the archive at {url or 'the data folder'} cannot be reached ({exc})"
 
 
 def archive_args(config: Any) -> tuple[str, str, str]:
