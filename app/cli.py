@@ -2,12 +2,12 @@
 all run :func:`main`. With no arguments: the clinician window, every device simulated.
 
     linarmpp [--config FILE]                                the clinician window
-    linarmpp --headless --script FILE [--duration S] [--record DIR]
+    linarmpp --headless --script FILE [--duration S] [--record DIR] [--patient ID --operator NAME]
     linarmpp --version
     linarmpp --install-desktop-entry                       the application menu entry (Linux)
-    linarmpp --metrics SESSION_FOLDER                      per-repetition metrics as JSON (docs/metrics.md)
-    linarmpp --report SESSION_FOLDER --out FILE.pdf        the session's PDF report
-    linarmpp --progress PATIENT_ID --out FILE.pdf          the patient's progress PDF
+    linarmpp --metrics SESSION_FOLDER|UUID                 per-repetition metrics as JSON (docs/metrics.md)
+    linarmpp --report SESSION_FOLDER|UUID --out FILE.pdf   the session's PDF report (UUID: an archived session)
+    linarmpp --progress PATIENT_ID --out FILE.pdf          the patient's progress PDF (every station's sessions)
     linarmpp --export SESSION_FOLDER --out FILE.h5|FOLDER  the session as one HDF5 file, or as CSV files in a folder
     linarmpp archive {status,upgrade,import,export,upload,verify,grants} …   the archive (docs/archive.md)
     linarmpp export --format bids|xdf|edf SESSION… --out DIR   sessions for research tools (docs/export.md)
@@ -30,6 +30,7 @@ The parser is built in one place, :func:`build_parser`: a new option is one ``ad
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import sys
 
@@ -44,11 +45,17 @@ def build_parser(prog: str | None = None) -> argparse.ArgumentParser:
     parser.add_argument("--script", help="exercise script to run (with --headless)")
     parser.add_argument("--duration", type=float, help="stop the script after this many seconds")
     parser.add_argument("--record", help="record the session into this folder")
+    parser.add_argument("--patient", metavar="ID", help="with --headless: the session is this patient's (their "
+                        "profile's limits apply), recorded with the station's sessions and archived")
+    parser.add_argument("--operator", metavar="NAME", help="with --patient: who runs the session")
     parser.add_argument("--screenshot", help="save the window to this PNG once every device is connected, then quit")
     parser.add_argument("--quit-after", type=float, help="close the window after this many seconds")
-    parser.add_argument("--metrics", metavar="SESSION_FOLDER", help="print the session's per-repetition metrics (JSON)")
-    parser.add_argument("--report", metavar="SESSION_FOLDER", help="write the session's PDF report to --out")
-    parser.add_argument("--progress", metavar="PATIENT_ID", help="write the patient's progress PDF to --out")
+    parser.add_argument("--metrics", metavar="SESSION", help="print the session's per-repetition metrics (JSON); "
+                        "SESSION: its folder, or an archived session's UUID")
+    parser.add_argument("--report", metavar="SESSION", help="write the session's PDF report to --out; SESSION: its "
+                        "folder, or an archived session's UUID")
+    parser.add_argument("--progress", metavar="PATIENT_ID", help="write the patient's progress PDF to --out (every "
+                        "station's sessions in the archive, and this station's not yet archived)")
     parser.add_argument("--export", metavar="SESSION_FOLDER",
                         help="export the session to --out: FILE.h5 (HDF5) or a new FOLDER (CSV files)")
     parser.add_argument("--out", metavar="FILE", help="output of --report / --progress / --export")
@@ -107,11 +114,17 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
         from app.archive import station
         from app.scripting.headless import run_headless
 
+        if bool(args.patient) != bool(args.operator and args.operator.strip()):
+            _report_error("--patient and --operator go together: a session is a patient and the person who runs it")
+            return 2
         opened = _open_archive_headless(config)
         if opened is None:
             return 2
         try:
-            code = run_headless(config, args.script, duration_s=args.duration, record_dir=args.record)
+            if args.patient and not _headless_patient_known(args.patient, config):
+                return 2
+            code = run_headless(config, args.script, duration_s=args.duration, record_dir=args.record,
+                                patient=args.patient, operator=(args.operator or "").strip())
         finally:
             archive = station.uninstall()
             if archive is not None:
@@ -144,6 +157,28 @@ def _open_archive_headless(config: object) -> object:
     return opened
 
 
+def _headless_patient_known(patient_id: str, config: object) -> bool:
+    """Whether a headless session may start for ``patient_id``: their record is in the archive (or, without one,
+    their profile file). Otherwise one line on stderr (nothing is started): a mistyped identifier would record a
+    session for nobody, without the caps of the patient meant."""
+    from app.archive import station
+    from app.archive.api import ArchiveError
+    from app.patients import PatientError
+
+    try:
+        record = station.read_record(patient_id, getattr(config, "safety", None))
+    except (ArchiveError, PatientError, OSError) as exc:
+        print(f"The session was not started: the profile of patient {patient_id} cannot be read ({exc}).",
+              file=sys.stderr)
+        return False
+    if record is None:
+        where = "in the archive" if station.in_use() else "among this station's patients"
+        print(f"The session was not started: there is no patient {patient_id} {where}. Create them in the "
+              "Patients window first.", file=sys.stderr)
+        return False
+    return True
+
+
 def _archive_command(argv: list[str], prog: str | None) -> int:
     """``linarmpp archive …`` (app/archive/cli.py): its own parser and exit codes."""
     from app.archive.cli import archive_main
@@ -163,12 +198,9 @@ def _report_command(config: object, args: argparse.Namespace) -> int:
     0 done; 1 nothing written (the output cannot be written, the session cannot be read) with one line
     saying why; 2 wrong arguments; 3 done from what was recorded, but the session is incomplete, and
     stderr lists what is missing (a failed or crashed recording, samples or events the files lack)."""
-    import logging
     from pathlib import Path
 
-    from app.outputs import OutputError
-    from app.recording import MANIFEST_FILE, session_problems
-    from app.reports import run_report_command
+    from app.recording import MANIFEST_FILE
 
     if args.export and not args.out:
         print("--export needs --out FILE.h5 or --out FOLDER", file=sys.stderr)
@@ -181,6 +213,99 @@ def _report_command(config: object, args: argparse.Namespace) -> int:
         if problem:
             print(f"Cannot write {args.out}: {problem}; nothing was written", file=sys.stderr)
             return EXIT_REPORT_FAILED
+    with contextlib.ExitStack() as stack:
+        archive, problem = _report_archive(config, args, stack)
+        if problem and args.progress:
+            print(f"{problem[:1].upper()}{problem[1:]}: the progress report holds only this station's sessions.",
+                  file=sys.stderr)
+        origins: dict[str, str] = {}
+        try:
+            given = {"metrics": args.metrics, "report": args.report}
+            for key, value in given.items():
+                if value:
+                    folder, origins[key] = _session_folder(value, archive, problem, stack)
+                    setattr(args, key, folder)
+        except _NoSession as exc:
+            print(str(exc), file=sys.stderr)
+            return EXIT_REPORT_USAGE
+        named = {getattr(args, k): v for k, v in given.items() if v}
+        code = _report_command_run(config, args, archive, named, origins.get("report", ""))
+        if code == EXIT_REPORT_OK and problem and args.progress:
+            return EXIT_REPORT_INCOMPLETE  # written, without the other stations' sessions (said above)
+        return code
+
+
+class _NoSession(Exception):
+    """``--metrics`` / ``--report`` named neither a session folder nor a session the archive holds."""
+
+
+def _is_uuid(text: str) -> bool:
+    import uuid
+
+    try:
+        uuid.UUID(text)
+    except ValueError:
+        return False
+    return True
+
+
+def _report_archive(config: object, args: argparse.Namespace, stack: contextlib.ExitStack) -> tuple[object, str]:
+    """The station's archive for the report commands, installed for their reads of the patient (app.archive.station)
+    and closed with ``stack``: only when one reads it (``--progress``, ``--report``, an archived session's UUID);
+    (None, why) when it cannot be read; nothing is made where there is no archive yet."""
+    from pathlib import Path
+
+    from app.recording import MANIFEST_FILE
+
+    uuids = [v for v in (args.metrics, args.report) if v and not (Path(v) / MANIFEST_FILE).is_file() and _is_uuid(v)]
+    if not (args.progress or args.report or uuids):
+        return None, ""
+    from app.archive import station
+    from app.archive.reads import open_for_reading
+
+    archive, problem = open_for_reading(config)
+    if archive is not None:
+        station.install(archive)
+        stack.callback(archive.close)
+        stack.callback(station.uninstall)
+    return archive, problem
+
+
+def _session_folder(given: str, archive: object, problem: str, stack: contextlib.ExitStack) -> tuple[str, str]:
+    """(a session folder for ``given``, what it is): the folder itself (''), or an archived session's UUID
+    materialised into a private temporary folder (removed with ``stack``; "archived session <uuid> …"). Every reader
+    of a session reads a folder (app.recording), so the metrics and the report of an archived session are those of
+    its folder, computed by the same code, each file checked against its SHA-256 as it is written."""
+    from pathlib import Path
+
+    from app.recording import MANIFEST_FILE
+
+    if (Path(given) / MANIFEST_FILE).is_file() or not _is_uuid(given):
+        return given, ""  # a folder, or not a session: run_report_command says so (exit 2)
+    if archive is None:
+        why = f"the archive cannot be read ({problem})" if problem else "this station has no archive"
+        raise _NoSession(f"{given} is not a session folder, and {why}.")
+    from app.archive.api import NotFound
+
+    try:
+        info = archive.get_session(given).info  # type: ignore[attr-defined]
+        folder = stack.enter_context(archive.materialised(given))  # type: ignore[attr-defined]
+    except NotFound as exc:
+        raise _NoSession(f"{given} is not a session folder, and the archive has no session {given}.") from exc
+    return str(folder), (f"archived session {info.uuid} (recorded on station {info.station or '?'} as "
+                         f"{info.folder_name}; read from the archive at {archive.url})")  # type: ignore[attr-defined]
+
+
+def _report_command_run(config: object, args: argparse.Namespace, archive: object, named: dict[str, str],
+                        report_origin: str) -> int:
+    """The report commands once their sessions are folders (``named``: each folder -> what the user gave)."""
+    import logging
+    from pathlib import Path
+
+    from app.outputs import OutputError
+    from app.recording import MANIFEST_FILE, session_problems
+    from app.reports import run_report_command
+
     incomplete = False
     for folder in dict.fromkeys(f for f in (args.metrics, args.report, args.export) if f):
         if not (Path(folder) / MANIFEST_FILE).is_file():
@@ -188,14 +313,18 @@ def _report_command(config: object, args: argparse.Namespace) -> int:
         problems = session_problems(folder)
         if problems:
             incomplete = True
-            print(f"Incomplete session {folder}: the output covers only what was recorded.", file=sys.stderr)
+            print(f"Incomplete session {named.get(folder, folder)}: the output covers only what was recorded.",
+                  file=sys.stderr)
             for line in problems:
                 print(f"  - {line}", file=sys.stderr)
     try:
         code = EXIT_REPORT_OK
         if args.metrics or args.report or args.progress:
+            from app.archive.reads import progress_rows
+
             code = run_report_command(config, metrics=args.metrics, report=args.report, progress=args.progress,
-                                      out=args.out)
+                                      out=args.out, report_origin=report_origin, archive_read=archive is not None,
+                                      rows_of=lambda pid, root: progress_rows(pid, root, archive))  # type: ignore[arg-type]
         sys.stdout.flush()  # --metrics' JSON: a full disk under a redirected stdout shows here, not at exit
         if code == EXIT_REPORT_OK and args.export:
             code = _session_export_command(args.export, Path(args.out))

@@ -420,6 +420,7 @@ class SessionReportData:
     setups: list[ElectrodeSetupRecord] = field(default_factory=list)  # the electrode set-ups, in order
     stimulation: list[StimulationRecord] = field(default_factory=list)  # FES started outside every run
     end_mono: float = 0.0
+    origin: str = ""  # where the session was read from when not its station's folder (an archived session's copy)
 
     @property
     def patient_id(self) -> str:
@@ -434,7 +435,9 @@ class SessionReportData:
         return [r.title for r in self.runs]
 
 
-def session_report_data(folder: str | Path, profile: Any = None) -> SessionReportData:
+def session_report_data(folder: str | Path, profile: Any = None, origin: str = "") -> SessionReportData:
+    """What the session's report shows, read from ``folder``; ``origin``: what the folder is when it is not the
+    station's own (an archived session materialised into a temporary folder: "archived session <uuid> …")."""
     from app.recording import load_session
 
     session = load_session(folder)
@@ -454,7 +457,7 @@ def session_report_data(folder: str | Path, profile: Any = None) -> SessionRepor
     return SessionReportData(Path(folder), session.manifest, metrics, runs, (t, x), list(session.problems), profile,
                              events, electrode_setups(events, fes),
                              stimulation_outside_runs(events, [r.run for r in runs], session.end_mono, fes),
-                             float(session.end_mono))
+                             float(session.end_mono), origin)
 
 
 def _profile_of(patient_id: str) -> Any:
@@ -488,6 +491,8 @@ class ProgressRow:
     scores: dict[str, Any]  # the clinical scores in the profile at that session
     complete: bool
     per_exercise: dict[str, ExerciseTrend] = field(default_factory=dict)
+    uuid: str = ""  # the session's UUID when it was read from the archive (app.archive.reads)
+    station: str = ""  # the station that recorded it, when read from the archive
 
     def value(self, key: str) -> float | None:
         entry = self.summary.get(key)
@@ -531,25 +536,31 @@ def exercise_trends(reports: Iterable[RunReport]) -> dict[str, ExerciseTrend]:
 
 def progress_rows(patient_id: str, root: Path | None = None,
                   progress: Callable[[float], None] | None = None) -> list[ProgressRow]:
-    """Every session of the patient, oldest first, with its metrics summary (reads every stream)."""
-    from app.recording import list_sessions, load_session
+    """Every session of the patient in the station's folders, oldest first, with its metrics summary (reads every
+    stream). With the clinic's archive, :func:`app.archive.reads.progress_rows` adds every station's."""
+    from app.recording import list_sessions
 
     sessions = list(reversed(list_sessions(patient_id, root)))
     rows = []
     for k, s in enumerate(sessions):
         if progress is not None:
             progress(k / max(1, len(sessions)))
-        session = load_session(s.folder)
-        m = metrics_of_session(session)
-        reports = run_reports(session)
-        scores = dict(((session.manifest.get("patient") or {}).get("scores")) or {})
-        titles = tuple(dict.fromkeys(r.exercise for r in reports)) or s.exercises
-        rows.append(ProgressRow(s.folder, s.start, titles, m["summary"], scores, s.complete,
-                                exercise_trends(reports)))
+        rows.append(folder_progress_row(s))
     if progress is not None:
         progress(1.0)
     return rows
 
+
+def folder_progress_row(s: Any) -> ProgressRow:
+    """One session folder (its ``app.recording.SessionSummary``) as a row of the progress report, from its files."""
+    from app.recording import load_session
+
+    session = load_session(s.folder)
+    m = metrics_of_session(session)
+    reports = run_reports(session)
+    scores = dict(((session.manifest.get("patient") or {}).get("scores")) or {})
+    titles = tuple(dict.fromkeys(r.exercise for r in reports)) or s.exercises
+    return ProgressRow(s.folder, s.start, titles, m["summary"], scores, s.complete, exercise_trends(reports))
 
 
 def alarms_of_session(session: Any) -> list[dict[str, Any]]:
@@ -1464,7 +1475,8 @@ def _draw_technical_appendix(pdf: _Pdf, data: SessionReportData) -> None:
     pdf.heading(TECHNICAL_APPENDIX, 13)
     pdf.text("For the engineer: the record's own identifiers and messages. The clinical pages before this one say "
              "the same in words.", 8, colour="#444444")
-    fields = [("Session folder", str(data.folder)), ("Printed by", f"LINarm++ Manager {app_version()}")]
+    fields = [("Session", data.origin) if data.origin else ("Session folder", str(data.folder)),
+              ("Printed by", f"LINarm++ Manager {app_version()}")]
     recorded = data.manifest.get("app_version") or data.manifest.get("version")
     if recorded:
         fields.append(("Recorded by", str(recorded)))
@@ -1627,9 +1639,14 @@ def _score(value: Any) -> float | None:
 
 # ------------------------------------------------------------------------------------------- command line
 def run_report_command(config: Any, *, metrics: str | None = None, report: str | None = None,
-                       progress: str | None = None, out: str | None = None) -> int:
+                       progress: str | None = None, out: str | None = None,
+                       rows_of: Callable[[str, Path], list[ProgressRow]] | None = None, archive_read: bool = False,
+                       report_origin: str = "") -> int:
     """``--metrics`` prints JSON to stdout; ``--report`` / ``--progress`` write ``--out``. Exit 0, or 2 with a
-    message on stderr when the input is wrong."""
+    message on stderr when the input is wrong. ``rows_of(patient, sessions root)``: the progress report's rows
+    (the command line's: every station's from the archive, ``archive_read``, and this station's not yet archived;
+    default: this station's folders);
+    ``report_origin``: what ``report`` is when it is an archived session's copy (said in the report)."""
     from app.recording import MANIFEST_FILE, sessions_root
 
     if (report or progress) and not out:
@@ -1642,14 +1659,16 @@ def run_report_command(config: Any, *, metrics: str | None = None, report: str |
     if metrics:
         print(json.dumps(_metrics_json(metrics), indent=1, ensure_ascii=False))
     if report:
-        pages = save_session_report(report, out)  # type: ignore[arg-type]
+        data = session_report_data(report, origin=report_origin) if report_origin else None
+        pages = save_session_report(report, out, data)  # type: ignore[arg-type]
         print(f"Session report written: {out} ({pages} page{'s' if pages > 1 else ''})", file=sys.stderr)
     if progress:
         from app.patients import PatientError, load_patient
 
-        rows = progress_rows(progress, sessions_root(config))
+        rows = (rows_of or progress_rows)(progress, sessions_root(config))
         if not rows:
-            print(f"no session of patient {progress} under {sessions_root(config)}", file=sys.stderr)
+            where = f"under {sessions_root(config)}" + (" nor in the archive" if archive_read else "")
+            print(f"no session of patient {progress} {where}", file=sys.stderr)
             return 2
         try:
             profile = load_patient(progress, config.safety)

@@ -321,10 +321,10 @@ class SessionFiles(Protocol):
 
     def read_bytes(self, name: str) -> bytes: ...
 
-    def materialise(self, folder: Path) -> Path:
+    def materialise(self, folder: Path, progress: Progress | None = None) -> Path:
         """Write the session folder (the recorder's layout) into ``folder`` (made if needed; must be empty),
         each file checked against its SHA-256; returns the session folder. ``app.recording.load_session`` and
-        every exporter read it exactly as the station's own folder."""
+        every exporter read it exactly as the station's own folder. ``progress`` returning False cancels."""
         ...
 
 
@@ -403,6 +403,10 @@ class Archive(Protocol):
     def repetitions(self, uuid: str, run_id: str | None = None) -> list[RepetitionInfo]: ...
 
     def journal(self, uuid: str, kinds: Sequence[str] | None = None) -> list[JournalEntry]: ...
+
+    def journals(self, uuids: Sequence[str], kinds: Sequence[str]) -> dict[str, list[JournalEntry]]:
+        """The journal rows of ``kinds`` of several sessions, in one read (a list's statuses)."""
+        ...
 
     def progress_sessions(self, patient_id: str) -> list[ProgressSession]:
         """Everything the progress report needs of a patient's sessions, oldest first, every station's."""

@@ -228,6 +228,7 @@ def open_archive(config: Any = None, *, url: str | None = None, station: str | N
     url = url or default_url()
     engine = make_engine(url, password_file, station)
     archive = SqlArchive(engine, station)
+    archive.password_file = password_file
     try:
         with archive._errors("open"):
             schema.check(engine, archive.url, create=create)
@@ -272,6 +273,7 @@ class SqlArchive:
         self.station = station
         self.url = engine.url.render_as_string(hide_password=True)
         self.dialect = engine.dialect.name
+        self.password_file = ""  # the configuration's (open_archive): another process opens the same archive with it
         # Profiles built by patient_reads, by (patient, version, changed_at): a version's values never change, so the
         # Patients window opened again validates only the records saved since (validation is ~5-15 ms a record).
         self._built: dict[tuple[str, int, str], PatientProfile] = {}
@@ -761,6 +763,20 @@ class SqlArchive:
         return [JournalEntry(r.session_uuid, r.seq, r.t_wall, r.t_mono, r.kind, r.who, r.origin, json.loads(r.data),
                              r.prev_hash, r.hash) for r in rows]
 
+    def journals(self, uuids: Sequence[str], kinds: Sequence[str]) -> dict[str, list[JournalEntry]]:
+        """The journal rows of ``kinds`` of several sessions in one read (the sessions browser's statuses)."""
+        out: dict[str, list[JournalEntry]] = {u: [] for u in uuids}
+        uuid_list = list(uuids)
+        with self._read() as conn:
+            for k in range(0, len(uuid_list), 500):  # bounded IN lists
+                q = (select(JournalRow).where(JournalRow.session_uuid.in_(uuid_list[k:k + 500]),
+                                              JournalRow.kind.in_(list(kinds)))
+                     .order_by(JournalRow.session_uuid, JournalRow.seq))
+                for r in conn.execute(q):
+                    out[r.session_uuid].append(JournalEntry(r.session_uuid, r.seq, r.t_wall, r.t_mono, r.kind, r.who,
+                                                            r.origin, json.loads(r.data), r.prev_hash, r.hash))
+        return out
+
     def progress_sessions(self, patient_id: str) -> list[ProgressSession]:
         with self._read() as conn:
             rows = conn.execute(select(*self._INFO_COLUMNS, SessionRow.summary, SessionRow.manifest)
@@ -885,8 +901,10 @@ class ArchivedFiles:
         with self.open(name) as fh:
             return fh.read()
 
-    def materialise(self, folder: Path) -> Path:
+    def materialise(self, folder: Path, progress: Progress | None = None) -> Path:
         folder = Path(folder)
+        total = max(1, sum(f.size for f in self._files.values()))
+        done = 0
         paths.private_dir(folder)
         if any(folder.iterdir()):
             raise ArchiveError(f"{folder} is not empty: an archived session is written into an empty folder")
@@ -901,6 +919,9 @@ class ArchivedFiles:
                 for _seq, _sha, data in self._archive._chunks(info.sha256):
                     digest.update(data)
                     out.write(data)
+                    done += len(data)
+                    if progress is not None and progress(done / total) is False:
+                        raise _Cancelled("The copy of the archived session was cancelled.")
             if digest.hexdigest() != info.sha256:
                 raise ArchiveError(f"The archived file {info.name} of session {self.uuid} does not match its SHA-256: "
                                    "run `linarmpp archive verify`")

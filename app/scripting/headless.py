@@ -49,11 +49,14 @@ HEADLESS_PATIENT = "headless"
 def run_headless(config: AppConfig, script_path: str, duration_s: float | None = None,
                  record_dir: str | None = None, *, home_first: bool = True,
                  prepare: Callable[[LinarmppManager], None] | None = None,
-                 output: Callable[[str, str], None] | None = None) -> int:
+                 output: Callable[[str, str], None] | None = None, patient: str | None = None,
+                 operator: str = "") -> int:
     """Run ``script_path`` against the devices of ``config``; returns the process exit code.
 
     ``prepare(manager)`` runs once the devices are connected, before the script (tests use it to set the
-    simulated patient's behaviour); ``output(stream, text)`` replaces printing to stdout/stderr."""
+    simulated patient's behaviour); ``output(stream, text)`` replaces printing to stdout/stderr. ``patient`` and
+    ``operator``: the run is that patient's session (``LinarmppManager.start_session``, as the window starts one:
+    their profile's limits and caps apply), recorded into ``record_dir`` or the station's sessions folder."""
     from PySide6.QtCore import QCoreApplication
 
     from app.manager import LinarmppManager
@@ -68,6 +71,10 @@ def run_headless(config: AppConfig, script_path: str, duration_s: float | None =
         print(f"Cannot run {script_path}: {exc}", file=sys.stderr)
         return EXIT_ERROR
     app = QCoreApplication.instance() or QCoreApplication([sys.argv[0] if sys.argv else "linarmpp"])
+    if patient and not record_dir:  # a patient's session goes where the window's go: the station's outbox
+        from app.recording import sessions_root
+
+        record_dir = str(sessions_root(config))
     if record_dir:
         problem = _record_dir_problem(Path(record_dir), config)
         if problem:
@@ -92,12 +99,22 @@ def run_headless(config: AppConfig, script_path: str, duration_s: float | None =
         if prepare is not None:
             prepare(manager)
         if record_dir:
+            from app.patients import PatientError
             from app.recording import RecordingError, SessionRecorder
 
             recorder = SessionRecorder()
             try:
-                folder = recorder.start(manager, HEADLESS_PATIENT, "headless runner", note=f"script {path.name}",
-                                        root=Path(record_dir))
+                if patient:
+                    folder = manager.start_session(patient, operator, note=f"script {path.name}",
+                                                   root=Path(record_dir))
+                    recorder = manager.recorder
+                else:
+                    folder = recorder.start(manager, HEADLESS_PATIENT, "headless runner", note=f"script {path.name}",
+                                            root=Path(record_dir))
+            except PatientError as exc:
+                recorder = None
+                _emit(output, "stderr", f"The session was not started: {exc}\n")
+                return EXIT_ERROR
             except (RecordingError, OSError) as exc:
                 recorder = None
                 _emit(output, "stderr", f"Cannot record: {exc.strerror if isinstance(exc, RecordingError) else exc}\n")
@@ -143,7 +160,9 @@ def run_headless(config: AppConfig, script_path: str, duration_s: float | None =
         try:
             if runner is not None:
                 runner.close()  # its kernel processes end with the run
-            if recorder is not None:
+            if recorder is not None and manager.recorder is recorder:
+                manager.end_session("headless run ended")  # the patient's session, ended as the window ends one
+            elif recorder is not None:
                 recorder.stop("headless run ended")  # never raises: a write failure is in the manifest and the log
             if lsl is not None:
                 lsl.stop()

@@ -138,6 +138,19 @@ class ProgressView(QWidget):
                               title="Progress report", parent=self, outputs=(path,), on_done=done)
 
 
+def _rows(patient_id: str, root: Path | None, progress: Any) -> list[ProgressRow]:
+    """Every station's sessions from the station's archive when one is open (app.archive.reads), else the folders'."""
+    from app.archive import station
+    from app.archive.api import ArchiveError
+    from app.archive.reads import progress_rows as archive_rows
+
+    try:
+        return archive_rows(patient_id, root, station.current(), progress)
+    except ArchiveError as exc:
+        log.warning("progress of %s from the archive: %s; this station's sessions only", patient_id, exc)
+        return progress_rows(patient_id, root, progress)
+
+
 def _num(value: Any) -> float | None:
     return float(value) if isinstance(value, int | float) and not isinstance(value, bool) else None
 
@@ -161,7 +174,7 @@ class ProgressDialog(QDialog):
             wait = QProgressDialog(f"Reading the sessions of {patient_id}…", "", 0, 100, parent)
             wait.setCancelButton(None)
             wait.setMinimumDuration(400)
-            rows = progress_rows(patient_id, root, lambda f: wait.setValue(int(f * 100)))
+            rows = _rows(patient_id, root, lambda f: wait.setValue(int(f * 100)))
             wait.close()
         self.view = ProgressView(patient_id, rows, profile, self, tasks)
         close = QPushButton("&Close")

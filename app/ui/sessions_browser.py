@@ -10,12 +10,15 @@ from __future__ import annotations
 import datetime as _dt
 import json
 import logging
+import queue
+import shutil
+import tempfile
+import threading
 from collections.abc import Callable
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from PySide6.QtCore import QStandardPaths, Qt, Signal
+from PySide6.QtCore import QStandardPaths, Qt, QTimer, Signal
 from PySide6.QtGui import QCloseEvent, QColor, QKeySequence, QShortcut
 from PySide6.QtWidgets import (
     QAbstractItemView,
@@ -39,23 +42,18 @@ from PySide6.QtWidgets import (
 )
 
 from app import paths
-from app.patients import list_patients
-from app.recording import (
-    EVENTS_FILE,
-    SessionSummary,
-    list_patients_with_sessions,
-    list_sessions,
-    load_session,
-    read_events,
-)
-from app.reports import run_titles
+from app.archive import reads, station
+from app.archive.api import ArchiveError
+from app.archive.reads import STATUS_KINDS, STOP_LEVELS, ListedSession, SessionStatus, status_of
+from app.recording import EVENTS_FILE, SessionSummary, load_session, read_events
 from app.ui.tasks import QtTasks
 from app.worker import Task, TaskService, TaskStatus
 from app.worker.session_data import SessionOverview, overview_of
 
 log = logging.getLogger(__name__)
 
-COLUMNS = ("Date", "Duration", "Exercises", "Alarms", "Operator", "Status")
+COLUMNS = ("Date", "Duration", "Exercises", "Alarms", "Operator", "Status", "Station")
+STATION_COLUMN = 6
 FOLDER_ROLE = Qt.ItemDataRole.UserRole
 
 
@@ -72,42 +70,14 @@ def _duration_text(seconds: float) -> str:
     return f"{h}:{m:02d}:{s:02d}" if h else f"{m}:{s:02d}"
 
 
-@dataclass(frozen=True)
-class SessionStatus:
-    """What the Status column says, and why (its tooltip)."""
-
-    text: str
-    tooltip: str
-    ok: bool
-
-
-STOP_LEVELS = ("STOP", "FATAL")
-
-
 def session_status(summary: SessionSummary, active: Path | None = None) -> SessionStatus:
     """``in progress`` (the session being recorded now), ``interrupted`` (the app never ended it),
     else ``complete`` only when every exercise finished and no STOP alarm was raised -- otherwise
-    what went wrong (issue #19: 5 aborted exercises and 12 alarms showed as "complete")."""
+    what went wrong (app.archive.reads.status_of, which the archive's sessions are judged by too)."""
     if active is not None and summary.folder.resolve() == active.resolve():
-        return SessionStatus("in progress", "This session is being recorded now.", True)
-    if not summary.complete:
-        return SessionStatus("interrupted", "The session was not stopped normally (crash or power loss); "
-                             "its data end at the last flush.", False)
-    events, _dropped = read_events(summary.folder / EVENTS_FILE)
-    ends = [e.get("data", {}) for e in events if e.get("kind") == "script_stop"]
-    aborted = [d for d in ends if str(d.get("status", "finished")) != "finished"]
-    stops = [e for e in events if e.get("kind") == "alarm" and e.get("data", {}).get("level") in STOP_LEVELS]
-    problems = []
-    if aborted:
-        problems.append(f"{len(aborted)} of {len(ends)} exercise(s) aborted")
-    if stops:
-        problems.append(f"{len(stops)} stop alarm(s)")
-    if not problems:
-        return SessionStatus("complete", "Ended normally; every exercise finished, no stop alarm.", True)
-    reasons = "; ".join(sorted({str(d.get("reason", d.get("status", ""))) for d in aborted})[:5])
-    return SessionStatus("ended: " + ", ".join(problems),
-                         "Ended normally, but " + " and ".join(problems) + (f". Causes: {reasons}" if reasons else ""),
-                         False)
+        return reads.IN_PROGRESS
+    events, _dropped = read_events(summary.folder / EVENTS_FILE) if summary.complete else ([], 0)
+    return status_of(summary.complete, [e for e in events if e.get("kind") in STATUS_KINDS])
 
 
 EXPORT_JOBS = {"hdf5": "export_hdf5", "csv": "export_csv"}
@@ -318,7 +288,19 @@ class SessionsBrowser(QWidget):
         self.setWindowTitle("Sessions")
         self.windows: list[QWidget] = []  # replay windows and dialogs kept alive
         self.jobs: list[ExportJob] = []
-        self.summaries: list[SessionSummary] = []
+        self.summaries: list[ListedSession] = []  # the rows, in the table's order
+        # The list is read off the GUI thread whenever an archive is in use (always, in the application): a
+        # clinic's server may take a while, and the local folders' manifests and events are files too. The loader
+        # thread's result comes back through a queue, taken by a timer on the GUI thread.
+        self.loading = False
+        self.problem = ""  # why the archive's sessions are not listed ('' when they are, or no archive is in use)
+        self._generation = 0
+        self._results: queue.SimpleQueue[tuple[int, Callable[[Any, str], None], Any, str]] = queue.SimpleQueue()
+        self._loader: threading.Thread | None = None
+        self._pump = QTimer(self)
+        self._pump.setInterval(15)
+        self._pump.timeout.connect(self._take)
+        self._cache: Path | None = None  # archived sessions of other stations, copied here to be read (private)
 
         self.patient_box = QComboBox()
         self.patient_box.setAccessibleName("Patient")
@@ -338,6 +320,9 @@ class SessionsBrowser(QWidget):
         self.table.setEditTriggers(QAbstractItemView.EditTrigger.NoEditTriggers)
         header = self.table.horizontalHeader()
         header.setSectionResizeMode(QHeaderView.ResizeMode.ResizeToContents)
+        # Sized to the first rows' contents only: a patient's hundreds of sessions (every station's) would otherwise
+        # be measured cell by cell at each fill (500 rows: 98 ms in one turn, 33 ms so; docs/archive.md).
+        header.setResizeContentsPrecision(100)
         header.setSectionResizeMode(2, QHeaderView.ResizeMode.Stretch)  # the exercises: elided, whole in the tooltip
         self.table.setAccessibleName("Sessions")
         self.table.itemSelectionChanged.connect(self._update_buttons)
@@ -384,56 +369,145 @@ class SessionsBrowser(QWidget):
         self.reload_patients()
 
     # ------------------------------------------------------------------ listing
+    def _load(self, work: Callable[[], tuple[Any, str]], done: Callable[[Any, str], None]) -> None:
+        """``done(*work())`` on the GUI thread: ``work`` runs on the loader thread when an archive is in use,
+        here otherwise (a library use of the browser on a folder: the folders' files, as before the archive). A
+        newer load drops an older one's result."""
+        self._generation += 1
+        generation = self._generation
+        if not station.in_use():
+            done(*work())
+            return
+        self.loading = True
+        self._say("Loading sessions…")
+
+        def run() -> None:
+            try:
+                result, problem = work()
+            except Exception as exc:  # never a traceback in the window: the list says it could not be read
+                log.exception("listing the sessions failed")
+                result, problem = None, f"The sessions could not be listed: {exc}"
+            self._results.put((generation, done, result, problem))
+
+        self._loader = threading.Thread(target=run, name="sessions-loader", daemon=True)
+        self._loader.start()
+        self._pump.start()
+
+    def _take(self) -> None:
+        while True:
+            try:
+                generation, done, result, problem = self._results.get_nowait()
+            except queue.Empty:
+                return
+            if generation != self._generation:
+                continue
+            self.loading = False
+            self._pump.stop()
+            self._say("")
+            done(result, problem)
+
+    def _listing(self, pid: str | None, active: Path | None) -> tuple[list[ListedSession], str]:
+        """The patient's rows and why the archive's are missing ('' when they are not); on any thread."""
+        if not pid:
+            return [], ""
+        in_use, archive = station.in_use(), station.current()
+        if in_use and archive is None:
+            return reads.session_listing(pid, self.root, None, True, active), station.unreachable()
+        try:
+            return reads.session_listing(pid, self.root, archive, in_use, active), ""
+        except ArchiveError as exc:
+            return reads.session_listing(pid, self.root, None, True, active), str(exc)
+
+    def _patients(self) -> tuple[list[str], str]:
+        archive, in_use = station.current(), station.in_use()
+        try:
+            return reads.patient_ids(self.root, archive, in_use), ""
+        except ArchiveError as exc:
+            return reads.patient_ids(self.root, None, in_use), str(exc)
+
     def reload_patients(self, select: str | None = None) -> None:
+        """The patients (the archive's and this station's folders') and the sessions of ``select`` (or of the one
+        selected now), read together off the GUI thread."""
         current = select or self.patient_box.currentData()
-        ids = set(list_patients_with_sessions(self.root))
-        ids |= {e.patient_id for e in list_patients()}
+        active = self.active()
+
+        def work() -> tuple[Any, str]:
+            ids, problem = self._patients()
+            pid = current if current in ids else (ids[0] if ids else None)
+            rows, listing_problem = self._listing(pid, active)
+            return (ids, pid, rows), problem or listing_problem
+
+        self._load(work, self._patients_loaded)
+
+    def _patients_loaded(self, result: Any, problem: str) -> None:
+        ids, pid, rows = result if result is not None else ([], None, [])
         self.patient_box.blockSignals(True)
         self.patient_box.clear()
-        for pid in sorted(ids, key=str.lower):
-            self.patient_box.addItem(pid, pid)
-        idx = self.patient_box.findData(current) if current else 0
-        self.patient_box.setCurrentIndex(max(0, idx))
+        for p in ids:
+            self.patient_box.addItem(p, p)
+        self.patient_box.setCurrentIndex(max(0, self.patient_box.findData(pid)) if pid else 0)
         self.patient_box.blockSignals(False)
-        self.refresh()
+        self._show(rows, problem)
 
     def set_patient(self, patient_id: str) -> None:
         self.reload_patients(patient_id)
 
     def refresh(self) -> None:
+        """The selected patient's sessions, read again (off the GUI thread when an archive is in use)."""
         pid = self.patient_box.currentData()
-        self.summaries = list_sessions(pid, self.root) if pid else []
+        active = self.active()
+        self._load(lambda: self._listing(pid, active), self._show)
+
+    def _show(self, rows: list[ListedSession] | None, problem: str) -> None:
+        self.summaries = list(rows or [])
+        self.problem = problem
+        here = station.current().station if station.current() is not None else ""
+        self.table.setColumnHidden(STATION_COLUMN, not station.in_use())
         self.table.setRowCount(len(self.summaries))
         for row, s in enumerate(self.summaries):
-            titles = run_titles(s.folder) or s.exercises  # the runs' titles, not file names (older: scripts)
-            exercises = ", ".join(titles) if titles else "—"
-            status = session_status(s, self.active())
+            exercises = ", ".join(s.exercises) if s.exercises else "—"
             cells = (_date_text(s.start), _duration_text(s.duration_s), exercises, str(s.alarms), s.operator,
-                     status.text)
+                     s.status.text, s.station_text(here))
             for col, text in enumerate(cells):
                 item = QTableWidgetItem(text)
-                item.setData(FOLDER_ROLE, str(s.folder))
-                if col == 2 and titles:
+                item.setData(FOLDER_ROLE, str(s.folder) if s.folder is not None else s.uuid)
+                if col == 2 and s.exercises:
                     item.setToolTip(exercises)  # a long list is elided in its cell
                 if col == 5:
-                    item.setToolTip(status.tooltip)
-                    if not status.ok:
+                    item.setToolTip(s.status.tooltip)
+                    if not s.status.ok:
                         item.setForeground(QColor("#c62828"))
+                if col == STATION_COLUMN:
+                    item.setToolTip(_where_words(s))
+                    if s.where in (reads.WAITING, reads.REFUSED):
+                        item.setForeground(QColor("#8a5a00" if s.where == reads.WAITING else "#c62828"))
                 self.table.setItem(row, col, item)
         if self.summaries:
             self.table.selectRow(0)
+        if problem:
+            self._say(f"{problem[:1].upper()}{problem[1:].rstrip('.')}. Only this station's sessions are listed; "
+                      "they wait for the archive.", error=True)
         self._update_buttons()
 
-    def selected_folder(self) -> Path | None:
+    def selected_session(self) -> ListedSession | None:
         row = self.table.currentRow()
         if row < 0 or row >= len(self.summaries):
             return None
-        return self.summaries[row].folder
+        return self.summaries[row]
 
-    def selected_folders(self) -> list[Path]:
+    def selected_sessions(self) -> list[ListedSession]:
         """The sessions selected (in the table's order)."""
         rows = sorted({i.row() for i in self.table.selectedIndexes()})
-        return [self.summaries[r].folder for r in rows if 0 <= r < len(self.summaries)]
+        return [self.summaries[r] for r in rows if 0 <= r < len(self.summaries)]
+
+    def selected_folder(self) -> Path | None:
+        """The selected session's folder on this station (None: none selected, or it is only in the archive)."""
+        s = self.selected_session()
+        return s.folder if s is not None else None
+
+    def selected_folders(self) -> list[Path]:
+        """The selected sessions' folders on this station (in the table's order)."""
+        return [s.folder for s in self.selected_sessions() if s.folder is not None]
 
     def select_folder(self, folder: Path) -> None:
         for row, s in enumerate(self.summaries):
@@ -442,10 +516,10 @@ class SessionsBrowser(QWidget):
                 return
 
     def _update_buttons(self) -> None:
-        ok = self.selected_folder() is not None
+        ok = self.selected_session() is not None
         for b in (self.open_button, self.hdf5_button, self.csv_button, self.replay_button, self.summary_button):
             b.setEnabled(ok)
-        self.research_button.setEnabled(bool(self.selected_folders()))
+        self.research_button.setEnabled(bool(self.selected_sessions()))
         self.progress_button.setEnabled(ok)
 
     # ------------------------------------------------------------------ actions
@@ -473,21 +547,50 @@ class SessionsBrowser(QWidget):
         self.status.setText(text)
         self.status.setStyleSheet("color: #c62828;" if error else "")
 
+    def _cache_dir(self) -> Path:
+        """A private folder (0700) for the archived sessions of other stations copied to be read; removed when the
+        browser closes."""
+        if self._cache is None:
+            self._cache = Path(tempfile.mkdtemp(prefix="linarmpp-archived-"))
+        return self._cache
+
+    def _archive_args(self) -> tuple[str, str, str] | None:
+        archive = station.current()
+        return reads.args_of(archive) if archive is not None else None
+
+    def _read(self, listed: ListedSession, kind: str, title: str, make: Callable[[Any], QWidget | None],
+              *args: Any, outputs: tuple[Any, ...] = (), on_done: Callable[[Task], Any] | None = None) -> Task | None:
+        """The worker job ``kind`` on the session's folder: this station's, or the archive's copy made first (in
+        the worker, with progress: a 30-minute session is tens of MB)."""
+        if listed.folder is not None:
+            job, job_args = kind, (str(listed.folder), *args)
+        else:
+            archive = self._archive_args()
+            if archive is None:
+                self._say(f"{(station.unreachable() or 'The archive is not open').rstrip('.')}: the session "
+                          f"{listed.folder_name} recorded on {listed.station or 'another station'} cannot be read "
+                          "now.", error=True)
+                return None
+            job, job_args = ARCHIVED_JOB, (kind, archive, [listed.uuid], str(self._cache_dir()), *args)
+        if on_done is not None:
+            return self.tasks.run(job, *job_args, title=title, parent=self, outputs=outputs, on_done=on_done)
+        return self._open(job, job_args, title, make)
+
     def open_details(self) -> Task | None:
-        folder = self.selected_folder()
-        if folder is None:
+        s = self.selected_session()
+        if s is None:
             return None
-        return self._open("session_overview", (str(folder),), f"Reading session {folder.name}",
+        return self._read(s, "session_overview", f"Reading session {_name(s)}",
                           lambda overview: SessionDetails(overview, self))
 
     def open_summary(self) -> Task | None:
-        folder = self.selected_folder()
-        if folder is None:
+        s = self.selected_session()
+        if s is None:
             return None
         from app.ui.session_summary import SessionSummaryDialog
 
-        return self._open("session_summary", (str(folder),), f"Summary of session {folder.name}",
-                          lambda data: SessionSummaryDialog(folder, data=data, tasks=self.tasks, parent=self,
+        return self._read(s, "session_summary", f"Summary of session {_name(s)}",
+                          lambda data: SessionSummaryDialog(data.folder, data=data, tasks=self.tasks, parent=self,
                                                             staged=True))
 
     def open_progress(self) -> Task | None:
@@ -496,23 +599,24 @@ class SessionsBrowser(QWidget):
             return None
         from app.ui.progress_view import ProgressDialog
 
-        return self._open("progress_rows", (pid, str(self.root)), f"Progress of {pid}",
+        archive = self._archive_args()
+        return self._open(PROGRESS_JOB, (pid, str(self.root), archive), f"Progress of {pid}",
                           lambda rows: ProgressDialog(pid, self.root, parent=self, rows=rows, tasks=self.tasks))
 
     def replay(self) -> Task | None:
-        folder = self.selected_folder()
-        if folder is None:
+        s = self.selected_session()
+        if s is None:
             return None
         from app.ui.replay_window import ReplayWindow
 
-        return self._open("session_data", (str(folder),), f"Replay of session {folder.name}",
+        return self._read(s, "session_data", f"Replay of session {_name(s)}",
                           lambda data: ReplayWindow(data, self.history_s, staged=True))
 
     def ask_export(self, kind: str) -> None:
-        folder = self.selected_folder()
-        if folder is None:
+        listed = self.selected_session()
+        if listed is None:
             return
-        default = folder.parent.name + "_" + folder.name
+        default = listed.folder_name.replace("/", "_")
         if kind == "hdf5":
             path, _ = QFileDialog.getSaveFileName(self, "Export session to HDF5", str(Path.home() / f"{default}.h5"),
                                                   "HDF5 files (*.h5 *.hdf5)")
@@ -521,12 +625,15 @@ class SessionsBrowser(QWidget):
                                                     str(Path.home()))
             path = str(Path(path) / default) if path else ""
         if path:
-            self.export(folder, kind, Path(path))
+            self.export(listed.folder if listed.folder is not None else listed, kind, Path(path))
 
-    def export(self, folder: Path, kind: str, destination: Path,
-               on_done: Callable[[bool, str], Any] | None = None) -> ExportJob:
+    def export(self, folder: Path | ListedSession, kind: str, destination: Path,
+               on_done: Callable[[bool, str], Any] | None = None) -> ExportJob | None:
         """Export in the worker with a progress dialog (Cancel); a failure is one message (the status line and a
-        message box), and nothing is said written that was not verified. Returns the running job."""
+        message box), and nothing is said written that was not verified. Returns the running job. ``folder``: a
+        session folder, or a listed session (an archived one of another station: copied first, in the worker)."""
+        listed = folder if isinstance(folder, ListedSession) else None
+        folder = Path(listed.folder_name) if listed is not None else Path(folder)  # type: ignore[arg-type]
         job = ExportJob(folder, kind, destination, self.tasks.service)
 
         def done(task: Task) -> None:
@@ -542,15 +649,23 @@ class SessionsBrowser(QWidget):
             if on_done is not None:
                 on_done(job.ok, job.message)
 
-        job.task = self.tasks.run(EXPORT_JOBS[kind], str(folder), str(destination),
-                                  title=f"Export of {folder.name} to {kind.upper()}", parent=self,
-                                  outputs=(destination,), on_done=done)
+        title = f"Export of {folder.name} to {kind.upper()}"
+        if listed is not None:
+            task = self._read(listed, EXPORT_JOBS[kind], title, lambda _r: None, str(destination),
+                              outputs=(destination,), on_done=done)
+            if task is None:
+                return None
+            job.task = task
+        else:
+            job.task = self.tasks.run(EXPORT_JOBS[kind], str(folder), str(destination), title=title, parent=self,
+                                      outputs=(destination,), on_done=done)
         self.jobs.append(job)
         return job
 
     def ask_research_export(self) -> ResearchExportDialog | None:
         """Export… → the format and the folder (the documents folder by default) → the export, in the worker."""
-        folders = self.selected_folders()
+        folders: list[Path | ListedSession] = [s.folder if s.folder is not None else s
+                                               for s in self.selected_sessions()]
         if not folders:
             return None
         dialog = ResearchExportDialog(len(folders), documents_folder(), self)
@@ -561,8 +676,8 @@ class SessionsBrowser(QWidget):
         self.export_dialog = dialog
         return dialog
 
-    def research_export(self, folders: list[Path], fmt: str, destination: Path, include_names: bool = False,
-                        on_done: Callable[[Task], Any] | None = None) -> Task:
+    def research_export(self, folders: list[Path | ListedSession], fmt: str, destination: Path,
+                        include_names: bool = False, on_done: Callable[[Task], Any] | None = None) -> Task | None:
         """Export ``folders`` as ``fmt`` into ``destination`` in the worker, with a progress dialog (Cancel). The
         files are made in a staging folder there and moved in only once all are written and read back: a cancel or
         a failure leaves nothing, and says so in one sentence."""
@@ -589,13 +704,54 @@ class SessionsBrowser(QWidget):
             if on_done is not None:
                 on_done(task)
 
-        task = self.tasks.run(JOB_KIND, fmt, [str(f) for f in folders], str(destination), stamp,
-                              include_names=include_names, title=title, parent=self,
-                              outputs=(staging_target(destination, stamp),), on_done=done)
+        archived = [f.uuid for f in folders if isinstance(f, ListedSession)]
+        if archived:  # sessions of other stations: copied from the archive first, in the worker
+            archive = self._archive_args()
+            if archive is None:
+                self._say(f"{(station.unreachable() or 'The archive is not open').rstrip('.')}: sessions of "
+                          "other stations cannot be exported now.", error=True)
+                return None
+            local = [str(f) for f in folders if not isinstance(f, ListedSession)]
+            task = self.tasks.run(ARCHIVED_JOB, JOB_KIND, archive, archived, str(self._cache_dir()), fmt,
+                                  str(destination), stamp, many=True, also=local, at=1, include_names=include_names,
+                                  title=title, parent=self, outputs=(staging_target(destination, stamp),),
+                                  on_done=done)
+        else:
+            task = self.tasks.run(JOB_KIND, fmt, [str(f) for f in folders], str(destination), stamp,
+                                  include_names=include_names, title=title, parent=self,
+                                  outputs=(staging_target(destination, stamp),), on_done=done)
         self.research_tasks.append(task)
         return task
 
     def closeEvent(self, event: QCloseEvent) -> None:
+        self._generation += 1  # a load still running is dropped
+        self._pump.stop()
         if self._own_tasks:
             self.tasks.close()
+        if self._cache is not None:  # the copies of other stations' sessions (a replay open keeps its mapped files)
+            shutil.rmtree(self._cache, ignore_errors=True)
+            self._cache = None
         super().closeEvent(event)
+
+
+ARCHIVED_JOB = "app.archive.reads:archived_job"  # a job on archived sessions copied from the archive first
+PROGRESS_JOB = "app.archive.reads:progress_job"  # the progress rows of every station's sessions
+
+
+def _name(s: ListedSession) -> str:
+    return s.folder.name if s.folder is not None else s.folder_name.rpartition("/")[2]
+
+
+def _where_words(s: ListedSession) -> str:
+    if s.where == reads.WAITING:
+        return "Recorded on this station and not yet in the archive: it is uploaded when the archive can be reached."
+    if s.where == reads.REFUSED:
+        return "The archive refused this session (another session holds its UUID): it stays on this station."
+    if s.where == reads.ARCHIVED and s.folder is None:
+        return f"Recorded on station {s.station}: read from the archive (copied when opened)."
+    if s.where == reads.ARCHIVED:
+        return "In the archive; this station has its folder too."
+    return ""
+
+
+__all__ = ["STOP_LEVELS", "SessionStatus", "SessionsBrowser", "session_status"]
