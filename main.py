@@ -3,9 +3,9 @@
 With no arguments: every device simulated, on its real wire protocol.
 
     python main.py [--config FILE]                 the clinician window
-    python main.py --headless --script FILE [--duration S] [--record DIR]
-    python main.py --metrics SESSION_FOLDER          per-repetition metrics as JSON
-    python main.py --report SESSION_FOLDER --out FILE.pdf
+    python main.py --headless --script FILE [--duration S] [--record DIR] [--patient ID --operator NAME]
+    python main.py --metrics SESSION_FOLDER|UUID     per-repetition metrics as JSON
+    python main.py --report SESSION_FOLDER|UUID --out FILE.pdf
     python main.py --progress PATIENT_ID --out FILE.pdf
 """
 
