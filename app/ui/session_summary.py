@@ -214,6 +214,11 @@ class RunSummary(QWidget):
             plot.setUpdatesEnabled(False)
             yield
             yield from self._plot_data(k, plot)
+            # Its first paint comes with the scene's next update, a turn or two later: those turns carry no piece
+            # (a plot's frame made in the turn of the previous plot's paint held the window 40-85 ms beside a
+            # therapy).
+            yield
+            yield
 
     def _fill_rows(self, start: int, end: int) -> None:
         """Rows [start, end) of the repetition table."""
