@@ -94,20 +94,49 @@ def _open_old(therapy: Any, action: str) -> dict[str, Any]:
     return {"open_s": t1 - t0, "stall_s": therapy.meter.longest(t0, t1 + 0.2), **seen}
 
 
+def _meter_cpu() -> None:
+    """The GUI watch's stand-in (tests/heavy_rig.GapMeter) also keeps the GUI thread's CPU time of every turn: on a
+    busy PC a turn's wall time is stretched by other processes' work, its CPU time is the window's own."""
+    from tests import heavy_rig
+
+    def tick(self: Any) -> None:
+        now, cpu = time.monotonic(), time.thread_time()
+        self.ticks.append((now, now - self._last))
+        if not hasattr(self, "cpu"):
+            self.cpu, self._last_cpu = [], cpu
+        self.cpu.append(cpu - self._last_cpu)
+        self._last, self._last_cpu = now, cpu
+
+    heavy_rig.GapMeter._tick = tick
+
+
+def _turns(meter: Any, t0: float, t1: float) -> tuple[float, float]:
+    """The longest turn's CPU time between t0 and t1 and the median turn's wall time."""
+    picked = [(gap, cpu) for (t, gap), cpu in zip(meter.ticks, getattr(meter, "cpu", []), strict=False) if t0 < t <= t1]
+    if not picked:
+        return 0.0, 0.0
+    return max(cpu for _, cpu in picked), statistics.median(gap for gap, _ in picked)
+
+
 def _open_new(therapy: Any, action: str) -> dict[str, Any]:
     from tests.heavy_rig import open_from_browser
 
     ready = (lambda w: w.is_ready and not w._events_left) if action == "replay" else (lambda d: d.summary.is_ready)
     o = open_from_browser(therapy, action, ready, _wait(None))
-    tab = {"tab_stall_s": _run_tab(therapy, o.widget.summary)} if action == "open_summary" else {}
+    t1 = time.monotonic()
+    cpu, median = _turns(therapy.meter, t1 - o.seconds - 0.06, t1)
+    tab = {}
+    if action == "open_summary":
+        tab_stall, tab_cpu, tab_median = _run_tab(therapy, o.widget.summary)
+        tab = {"tab_stall_s": tab_stall, "tab_cpu_s": tab_cpu, "tab_median_s": tab_median}
     o.widget.close()
     return {"open_s": o.seconds, "stall_s": max(o.load_stall_s, o.build_stall_s), "load_stall_s": o.load_stall_s,
-            "build_stall_s": o.build_stall_s, **tab, **o.therapy}
+            "build_stall_s": o.build_stall_s, "cpu_s": cpu, "median_s": median, **tab, **o.therapy}
 
 
-def _run_tab(therapy: Any, summary: Any) -> float:
+def _run_tab(therapy: Any, summary: Any) -> tuple[float, float, float]:
     """The first run's tab clicked in an open summary (built when first shown): the GUI thread's longest stall until
-    it is complete (its table and plots)."""
+    it is complete (its table and plots), the longest turn's CPU time, the median turn."""
     from PySide6.QtCore import QTimer
 
     t0 = time.monotonic()
@@ -115,12 +144,13 @@ def _run_tab(therapy: Any, summary: Any) -> float:
     common.run_qt_until(lambda: summary.tabs.currentIndex() == 1 and summary.is_ready, 60.0)
     t1 = time.monotonic()
     common.run_qt_until(lambda: therapy.meter.ticks[-1][0] > t1 + 0.05, 5.0)  # the tick that ends a stall at t1
-    return therapy.meter.longest(t0, t1)
+    return (therapy.meter.longest(t0, t1), *_turns(therapy.meter, t0, t1 + 0.05))
 
 
 def bench_open(folder: Path, trials: int, what: str) -> None:
     from tests.heavy_rig import start_therapy, stop_therapy
 
+    _meter_cpu()
     new = _is_new()
     for action in (("replay", "open_summary") if what == "open" else ("replay",)):
         rows = []
@@ -172,13 +202,17 @@ def _print(name: str, rows: list[dict[str, Any]]) -> None:
         return
     def ms(key: str) -> str:
         values = [r[key] * 1e3 for r in rows if key in r]
-        return f"max {max(values):.0f} ms (median {statistics.median(values):.0f})" if values else "—"
+        def f(v: float) -> str:
+            return f"{v:.1f}" if v < 10 else f"{v:.0f}"
+        return f"max {f(max(values))} ms (median {f(statistics.median(values))})" if values else "—"
     tripped = sum(1 for r in rows if r.get("robot_error") not in (0, None))
     stops = sum(1 for r in rows if r["fes_stop_on_wire"])
     print(f"  {name}: open {statistics.median(r['open_s'] for r in rows):.2f} s; GUI thread's longest stall "
           f"{ms('stall_s')}" + (f" [worker's load {ms('load_stall_s')}, window's build {ms('build_stall_s')}]"
                                 if "load_stall_s" in rows[0] else "")
-          + (f"; a run's tab shown: longest stall {ms('tab_stall_s')}" if "tab_stall_s" in rows[0] else "")
+          + (f"; longest turn's CPU {ms('cpu_s')}, median turn {ms('median_s')}" if "cpu_s" in rows[0] else "")
+          + (f"; a run's tab shown: longest stall {ms('tab_stall_s')}, its CPU {ms('tab_cpu_s')}, median turn "
+             f"{ms('tab_median_s')}" if "tab_stall_s" in rows[0] else "")
           + f"; host silence to the LINarm {ms('host_silence_s')}; watchdog tripped {tripped}/{len(rows)}, "
             f"FES stopped by the guardian {stops}/{len(rows)}; load average {loadavg()}", flush=True)
     for r in rows:

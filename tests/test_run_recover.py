@@ -161,13 +161,30 @@ def test_a_console_run_is_not_restarted_and_the_dialog_says_why(qtbot: Any, wind
     assert len(manager.runs.runs()) == n, "recovery without a restart starts nothing"
 
 
-def test_f12_in_a_dialog_opens_nothing_behind_it(qtbot: Any, window: MainWindow) -> None:
+def test_f12_in_a_dialog_opens_nothing_behind_it(qtbot: Any, window: MainWindow, monkeypatch: Any) -> None:
     """Issue #26, item 7: the exercise's summary waits until the modal dialog in which F12 was pressed has
-    closed (a window opened behind a modal dialog cannot be used: its Close did nothing)."""
+    closed (a window opened behind a modal dialog cannot be used: its Close did nothing).
+
+    And it comes as soon as the recovery is done: the session is read in the worker while the operator recovers.
+    (It was read only after the recovery and a quiet 1.2 s: the worker runs at a low priority, and beside two `yes`
+    the summary came more than 5 s after Recover.)"""
+    import time
+
     from PySide6.QtWidgets import QApplication, QDialog, QLabel, QVBoxLayout
 
     from app.ui.exercises_panel import SUMMARY_DELAY_MS
+    from app.ui.tasks import QtTasks
 
+    reads: list[tuple[float, Any]] = []  # the summary's readings in the worker: when asked for, the task
+    run_task = QtTasks.run
+
+    def run(self: QtTasks, kind: str, *args: Any, **kwargs: Any) -> Any:
+        task = run_task(self, kind, *args, **kwargs)
+        if kind == "session_summary":
+            reads.append((time.monotonic(), task))
+        return task
+
+    monkeypatch.setattr(QtTasks, "run", run)
     panel = window.frames["CommandsFrame"].panels["ExercisesPanel"]
     runner = panel.runner
     panel.select("trigger_reaching")
@@ -197,7 +214,15 @@ def test_f12_in_a_dialog_opens_nothing_behind_it(qtbot: Any, window: MainWindow)
     qtbot.wait(SUMMARY_DELAY_MS)
     assert panel.summary_dialog is None or not panel.summary_dialog.isVisible()
     _recover_dialog(qtbot, window).recover_button.click()
-    qtbot.waitUntil(lambda: panel.summary_dialog is not None and panel.summary_dialog.isVisible(), timeout=5000)
+    recovered = time.monotonic()
+    assert reads and reads[0][0] < recovered, "the summary's session was not read while the operator recovered"
+    # The worker yields the CPU to the therapy (nice 10): on a loaded PC its reading legitimately takes seconds.
+    qtbot.waitUntil(lambda: panel.summary_dialog is not None and panel.summary_dialog.isVisible(), timeout=30000)
+    shown = time.monotonic()
+    read = reads[0][1]
+    assert len(reads) == 1 and read.finished is not None
+    late = shown - max(recovered, read.finished)
+    assert late < 1.0, f"the summary came {late:.1f} s after both the recovery and its reading were done"
     assert QApplication.activeModalWidget() is None
     panel.summary_dialog.close()  # its Close works: nothing blocks it
     assert not panel.summary_dialog.isVisible()

@@ -243,7 +243,13 @@ class ExercisesPanel(QWidget):
         # The summary of a run a STOP ended waits until the recovery is done: it never covers the banner's Recover
         # (issue #36: it opened ~2 s after each STOP and took the first click meant for Recover).
         self._pending_summary: tuple[Path, float | None, float, str, str] | None = None
+        # ... but it is read meanwhile: the worker runs at a low priority, and on a busy PC reading the session
+        # after the recovery made the summary come 5-10 s after it (the test's two `yes`).
+        self._prefetch: _Prefetch | None = None
         self._summary_since: float | None = None  # a continuation's summary starts at the interrupted run's
+        from app.ui.recovery import recovery_events
+
+        recovery_events().finished.connect(self._recovery_finished)
         self.load_plan()
         if self.library and self.exercise is None:
             self.exercise_list.setCurrentRow(0)
@@ -581,6 +587,7 @@ class ExercisesPanel(QWidget):
             return False
         pending = self._pending_summary
         self._pending_summary = None
+        self._drop_prefetch()  # this run's own summary comes at its end
         # A continuation's summary covers the interrupted run too (one exercise, two runs).
         self._summary_since = pending[1] if pending is not None and continues and pending[4] == continues else None
         self._started_mono = started
@@ -739,8 +746,13 @@ class ExercisesPanel(QWidget):
             if stopped or self._recovery_needed():
                 # After a STOP the banner's Recover comes first: the summary waits until the recovery is done and
                 # nothing runs (a continuation's own summary then covers this run too).
-                self._pending_summary = (folder, since, until, name, run.run_id if run is not None else "")
-                self._pending_after = time.monotonic() + SUMMARY_DELAY_MS / 1000.0
+                pending = (folder, since, until, name, run.run_id if run is not None else "")
+                self._pending_summary = pending
+                self._pending_written = self._pending_after = time.monotonic() + SUMMARY_DELAY_MS / 1000.0
+                self._drop_prefetch()
+                # Read in the worker while the operator recovers (once the recorder has written the run's last
+                # samples): shown as soon as the recovery is done.
+                QTimer.singleShot(SUMMARY_DELAY_MS, self, lambda: self._prefetch_summary(pending))
                 return
             # Never behind a modal dialog (F12 pressed in one): shown once no modal dialog blocks it.
             QTimer.singleShot(SUMMARY_DELAY_MS, self, lambda: show_when_unblocked(
@@ -760,27 +772,60 @@ class ExercisesPanel(QWidget):
         pending = self._pending_summary
         if pending is None:
             return
+        from app.ui.recovery import recovery_events
+
         now = time.monotonic()
-        if self._recovery_needed() or (self._runner is not None and self._runner.running):
-            # Recover's own steps run in between (a robot error's reset is polled): its restart or continuation
-            # follows within moments, so the summary waits a while after the last sign of the recovery.
+        if self._recovery_needed() or (self._runner is not None and self._runner.running) \
+                or recovery_events().under_way:
+            # Recover's own steps run in between (a robot error's reset is polled), then its restart or
+            # continuation. A recovery that is not Recover's (the e-stop reset by a script) says nothing when it is
+            # done: then the summary waits a while after the last sign of it.
             self._pending_after = max(getattr(self, "_pending_after", 0.0), now + SUMMARY_DELAY_MS / 1000.0)
             return
         if now < getattr(self, "_pending_after", 0.0):
             return
         self._pending_summary = None
         folder, since, until, name, _run_id = pending
-        show_when_unblocked(self, lambda: self.show_summary(folder, since, until, name))
+        prefetch, self._prefetch = self._prefetch, None
+        if prefetch is not None and prefetch.pending != pending:
+            prefetch.drop()
+            prefetch = None
+        show_when_unblocked(self, lambda: self.show_summary(folder, since, until, name, prefetch))
 
-    def show_summary(self, folder: Path, since: float | None, until: float | None, title: str) -> QWidget | None:
+    def _recovery_finished(self, _ok: bool, _text: str) -> None:
+        """Recover is done: it started the run again (the pending summary is dropped: that run's own comes at its
+        end) or it did not (the summary now, not after a quiet while)."""
+        if self._pending_summary is not None:
+            self._pending_after = getattr(self, "_pending_written", 0.0)  # the run's last samples written first
+            self._show_pending_summary()
+
+    def _summary_tasks(self) -> Any:
+        """The window's worker (app.ui.tasks.QtTasks), or None (a panel on its own: the summary is read here)."""
+        provider = getattr(self.window(), "tasks", None)
+        return provider() if callable(provider) else None
+
+    def _prefetch_summary(self, pending: tuple[Path, float | None, float, str, str]) -> None:
+        """The pending summary's session read in the worker now, while the recovery is under way."""
+        tasks = self._summary_tasks()
+        if self._pending_summary is not pending or self._prefetch is not None or tasks is None:
+            return
+        self._prefetch = _Prefetch(pending, tasks, f"Summary of {pending[3]}")
+
+    def _drop_prefetch(self) -> None:
+        if self._prefetch is not None:
+            self._prefetch.drop()
+            self._prefetch = None
+
+    def show_summary(self, folder: Path, since: float | None, until: float | None, title: str,
+                     prefetch: _Prefetch | None = None) -> QWidget | None:
         """The run's summary: the session is read and its metrics computed in the window's worker process (issue
         #37: a long session read here held the GUI thread, and the interpreter the drivers need, for seconds), then
         the dialog is built here, a run's tab when it is first shown (``summary_dialog`` once it is shown). Without
-        a window's worker (a panel on its own) it is read here. Returns the dialog when it was built at once."""
+        a window's worker (a panel on its own) it is read here. ``prefetch``: its reading, begun already. Returns the
+        dialog when it was built at once."""
         from app.ui.session_summary import SessionSummaryDialog
 
-        provider = getattr(self.window(), "tasks", None)
-        tasks = provider() if callable(provider) else None
+        tasks = prefetch.tasks if prefetch is not None else self._summary_tasks()
         if tasks is None:
             try:
                 dialog = SessionSummaryDialog(folder, since, until, title=f"{title} — summary", parent=self)
@@ -802,7 +847,10 @@ class ExercisesPanel(QWidget):
             self.summary_dialog = dialog
             dialog.show()
 
-        tasks.run("session_summary", str(folder), title=f"Summary of {title}", on_done=done)
+        if prefetch is not None:
+            prefetch.then(done)
+        else:
+            tasks.run("session_summary", str(folder), title=f"Summary of {title}", on_done=done)
         return None
 
     def _sync_buttons(self) -> None:
@@ -823,6 +871,33 @@ class ExercisesPanel(QWidget):
         self.pause_button.setEnabled(running)
         self.pause_button.setText("&Resume" if paused else "&Pause")
         self.stop_button.setEnabled(running)
+
+
+class _Prefetch:
+    """A summary's reading in the worker, begun before it is wanted; ``then(done)`` hands the task to ``done`` once
+    it has ended (at once if it has). Dropped (the run started again), its result is for nobody: cancelled."""
+
+    def __init__(self, pending: tuple[Path, float | None, float, str, str], tasks: Any, title: str) -> None:
+        self.pending = pending
+        self.tasks = tasks
+        self._ended: Any = None
+        self._done: Any = None
+        self.task = tasks.run("session_summary", str(pending[0]), title=title, on_done=self._finished)
+
+    def _finished(self, task: Any) -> None:
+        self._ended = task
+        if self._done is not None:
+            self._done(task)
+
+    def then(self, done: Any) -> None:
+        self._done = done
+        if self._ended is not None:
+            done(self._ended)
+
+    def drop(self) -> None:
+        self._done = None
+        if self._ended is None:
+            self.task.cancel()
 
 
 def show_when_unblocked(owner: QWidget, show: Any) -> None:

@@ -648,11 +648,19 @@ class PlotsFrame(QWidget):
         self._dirty = True
         self.redraw()
 
-    def _new_pane(self, unit: str, row: int | None) -> pg.PlotItem:
+    @staticmethod
+    def _pane_parts() -> tuple[LiveViewBox, dict[str, pg.AxisItem]]:
+        """A pane's view and axes, made apart from it: a pane made on them costs half of one that makes them, so a
+        staged build makes them a piece before (#37)."""
+        return LiveViewBox(), {side: pg.AxisItem(side) for side in ("left", "bottom")}  # (top, right: hidden)
+
+    def _new_pane(self, unit: str, row: int | None,
+                  parts: tuple[LiveViewBox, dict[str, pg.AxisItem]] | None = None) -> pg.PlotItem:
         """A pane for ``unit`` in ``row`` of the graphs (laid out at once), or apart from them (``row`` None: the
-        caller adds it, see selection_steps)."""
+        caller adds it, see selection_steps); on ``parts`` (_pane_parts) when given."""
         c = colours()
-        plot = pg.PlotItem(viewBox=LiveViewBox())
+        view, axes = parts if parts is not None else self._pane_parts()
+        plot = pg.PlotItem(viewBox=view, axisItems=axes)
         if row is not None:
             self._add_to_layout(plot, row, lay_out=True)
         plot.setMenuEnabled(False)
@@ -1060,14 +1068,14 @@ class PlotsFrame(QWidget):
             by_unit.setdefault(self.store.info(key).unit or NO_UNIT, []).append(key)
         built: dict[str, tuple[pg.PlotItem, dict[str, FastCurve]]] = {}
         for unit, unit_keys in by_unit.items():
-            plot = self._new_pane(unit, None)
+            parts = self._pane_parts()  # a pane in two pieces: its view and axes, then the pane on them
+            yield
+            if self._overtaken(selected, built):
+                return
+            plot = self._new_pane(unit, None, parts)
             built[unit] = plot, {key: self._new_curve(plot, key, selected.index(key)) for key in unit_keys}
             yield
-            if self.plots or self.selected != selected:  # the panes were built meanwhile (a box ticked): those
-                for other in built:
-                    if other not in self.plots:
-                        self._vlines.pop(other, None)
-                        self.images.pop(other, None)
+            if self._overtaken(selected, built):
                 return
         self._image_mode = False
         for row, (unit, (plot, curves)) in enumerate(built.items()):
@@ -1076,6 +1084,16 @@ class PlotsFrame(QWidget):
             self.curves.update(curves)
             self._curve_plot.update(dict.fromkeys(curves, plot))
         self._finish_panes()
+
+    def _overtaken(self, selected: list[str], built: dict[str, Any]) -> bool:
+        """The panes were built meanwhile (a box ticked while _build_panes ran): those it built are for nobody."""
+        if not self.plots and self.selected == selected:
+            return False
+        for other in built:
+            if other not in self.plots:
+                self._vlines.pop(other, None)
+                self.images.pop(other, None)
+        return True
 
     # ------------------------------------------------------------------ cursor
     def _on_mouse_moved(self, pos: Any) -> None:

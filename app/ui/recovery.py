@@ -12,6 +12,7 @@ steps go through the driver (and so the safety supervisor), never around it.
 from __future__ import annotations
 
 import logging
+import time
 from collections.abc import Callable
 from concurrent.futures import Future
 from dataclasses import dataclass, replace
@@ -161,9 +162,45 @@ def plan(manager: LinarmppManager, restart: Restartable | None, script_running: 
     return steps or ["nothing to recover"]
 
 
+class RecoveryEvents(QObject):
+    """Every Recover of the process, whoever started it: ``finished(ok, text)`` once one is done, ``under_way`` while
+    one is. What waits for a recovery (the summary of the run a STOP ended) knows from it when the recovery is over
+    and whether it started the run again, instead of guessing from a quiet moment after it."""
+
+    finished = Signal(bool, str)
+    STALE_S = 30.0  # a recovery that never said it finished (an exception in a step) holds nothing longer
+
+    def __init__(self) -> None:
+        super().__init__()
+        self._running: dict[int, float] = {}  # id() of each recovery under way -> when it began
+
+    @property
+    def under_way(self) -> bool:
+        now = time.monotonic()
+        return any(now - began < self.STALE_S for began in self._running.values())
+
+    def began(self, recovery: object) -> None:
+        self._running[id(recovery)] = time.monotonic()
+
+    def ended(self, recovery: object, ok: bool, text: str) -> None:
+        self._running.pop(id(recovery), None)
+        self.finished.emit(ok, text)
+
+
+_events: RecoveryEvents | None = None
+
+
+def recovery_events() -> RecoveryEvents:
+    """The process's :class:`RecoveryEvents` (made at first use, on the GUI thread)."""
+    global _events
+    if _events is None:
+        _events = RecoveryEvents()
+    return _events
+
+
 class Recovery(QObject):
     """Runs the steps one after the other on the GUI thread (the robot's replies are polled, never
-    waited for). ``finished(ok, text)`` once done."""
+    waited for). ``finished(ok, text)`` once done (also on :func:`recovery_events`)."""
 
     step_done = Signal(str)
     finished = Signal(bool, str)
@@ -193,6 +230,7 @@ class Recovery(QObject):
 
     def run(self) -> None:
         sup = self.manager.supervisor
+        recovery_events().began(self)
         self._log("start", restart=self.restart.name if self.restart else "")
         if self.stop_script():
             self._log("script_stopped")
@@ -262,6 +300,7 @@ class Recovery(QObject):
     def _finish(self, ok: bool, text: str) -> None:
         self._log("done" if ok else "failed", text=text)
         self.finished.emit(ok, text)
+        recovery_events().ended(self, ok, text)
 
 
 class RecoverDialog(QDialog):

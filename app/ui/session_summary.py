@@ -12,7 +12,7 @@ from typing import Any
 
 import pyqtgraph as pg
 from pyqtgraph.graphicsItems.ViewBox.ViewBoxMenu import ViewBoxMenu
-from PySide6.QtCore import Qt, QTimer, Signal
+from PySide6.QtCore import QSize, Qt, QTimer, Signal
 from PySide6.QtWidgets import (
     QAbstractItemView,
     QDialog,
@@ -24,6 +24,7 @@ from PySide6.QtWidgets import (
     QLabel,
     QPushButton,
     QScrollArea,
+    QSizePolicy,
     QTableWidget,
     QTableWidgetItem,
     QTabWidget,
@@ -73,6 +74,33 @@ class _LazyMenuViewBox(pg.ViewBox):
         return self.getMenu(event).actions() if self.menuEnabled() else []
 
 
+class _Cell(QWidget):
+    """A plot's place in a run's grid: the same size whether the plot is in it yet or not (a staged summary adds the
+    plots one by one: a placeholder then a plot changed every cell's size hint, and each plot added re-laid out and
+    re-drew the plots before it, #37). Its one child fills it."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.setMinimumHeight(110)
+        self.setSizePolicy(QSizePolicy.Policy.Expanding, QSizePolicy.Policy.Expanding)
+        self.child: QWidget | None = None
+
+    def sizeHint(self) -> QSize:
+        return QSize(300, 200)
+
+    def set_child(self, child: QWidget) -> None:
+        child.setParent(self)
+        child.setGeometry(self.rect())
+        self.child = child
+        if not self.isHidden():
+            child.show()
+
+    def resizeEvent(self, event: Any) -> None:
+        super().resizeEvent(event)
+        if self.child is not None:
+            self.child.setGeometry(self.rect())
+
+
 def _table(headers: Sequence[str], name: str) -> QTableWidget:
     table = QTableWidget(0, len(headers))
     table.setHorizontalHeaderLabels(list(headers))
@@ -118,15 +146,12 @@ class RunSummary(QWidget):
         staged = staged and bool(reps)
 
         self.plots: dict[str, pg.PlotWidget] = {}
-        self._grid = grid = QGridLayout()
-        self._placeholders: list[QWidget] = []
+        grid = QGridLayout()
+        self._cells = [_Cell() for _ in SUMMARY_PLOTS]
+        for k, cell in enumerate(self._cells):
+            grid.addWidget(cell, k // 2, k % 2)
         self._steps: Steps | None = None
         if staged:
-            for k in range(len(SUMMARY_PLOTS)):
-                spot = QWidget()
-                spot.setMinimumHeight(110)
-                self._placeholders.append(spot)
-                grid.addWidget(spot, k // 2, k % 2)
             self._pieces_left = self._pieces(reps)
             self._steps = Steps(self._pieces_left, self)
             self._steps.start()
@@ -147,8 +172,8 @@ class RunSummary(QWidget):
             lay.addLayout(grid, 3)
         else:  # nothing to tabulate or plot: say so instead of empty axes
             self.table.hide()
-            for plot in self.plots.values():
-                plot.hide()
+            for cell in self._cells:
+                cell.hide()
             none = QLabel("No repetition in this run" + (": it ended before its first movement."
                                                           if report.interrupted else "."))
             none.setWordWrap(True)
@@ -178,13 +203,22 @@ class RunSummary(QWidget):
         for start in range(0, len(reps), _ROWS_PER_STEP):
             self._fill_rows(start, min(len(reps), start + _ROWS_PER_STEP))
             yield
+        # A plot a few pieces at a time (a pyqtgraph plot cost 20-25 ms to make, its paint 8-12 ms): its view and
+        # axes, its frame, its widget -- not drawn until its data are in --, each curve, its ranges; drawn once.
         for k in range(len(SUMMARY_PLOTS)):
-            spot = self._placeholders[k]
-            self._grid.removeWidget(spot)
-            spot.deleteLater()
-            plot = self._new_plot(k)
+            parts = _plot_parts()
+            yield
+            item = self._plot_item(k, *parts)
+            yield
+            plot = self._new_plot(k, item)
+            plot.setUpdatesEnabled(False)
             yield
             yield from self._plot_data(k, plot)
+            # Its first paint comes with the scene's next update, a turn or two later: those turns carry no piece
+            # (a plot's frame made in the turn of the previous plot's paint held the window 40-85 ms beside a
+            # therapy).
+            yield
+            yield
 
     def _fill_rows(self, start: int, end: int) -> None:
         """Rows [start, end) of the repetition table."""
@@ -200,24 +234,24 @@ class RunSummary(QWidget):
 
     def _add_plot(self, k: int) -> None:
         """The ``k``-th of SUMMARY_PLOTS across the run's repetitions, in its place in the grid."""
-        for _ in self._plot_data(k, self._new_plot(k)):
+        for _ in self._plot_data(k, self._new_plot(k, self._plot_item(k, *_plot_parts()))):
             pass
 
-    def _new_plot(self, k: int) -> pg.PlotWidget:
-        """The ``k``-th plot's frame (title, axes, legend), in its place in the grid; its data: _plot_data."""
-        report, reps = self.report, self.report.repetitions
+    def _plot_item(self, k: int, view: pg.ViewBox, axes: dict[str, pg.AxisItem]) -> pg.PlotItem:
+        """The ``k``-th plot's frame (title, axes, grid, legend) on ``view`` and ``axes`` (_plot_parts)."""
         title_, keys, unit = SUMMARY_PLOTS[k]
-        plot = pg.PlotWidget(title=title_ + (f" [{unit}]" if unit else ""), viewBox=_LazyMenuViewBox())
-        plot.setBackground("w")
-        plot.showGrid(x=True, y=True, alpha=0.3)
-        plot.setLabel("bottom", f"repetition of run {report.number}")
-        plot.setMinimumHeight(110)
+        item = pg.PlotItem(title=title_ + (f" [{unit}]" if unit else ""), viewBox=view, axisItems=axes)
+        item.showGrid(x=True, y=True, alpha=0.3)
+        item.setLabel("bottom", f"repetition of run {self.report.number}")
         if len(keys) > 1:
-            plot.addLegend(offset=(-5, 5), colCount=len(keys))
-        self.plots[title_] = plot
-        self._grid.addWidget(plot, k // 2, k % 2)
-        if not reps:
-            plot.hide()
+            item.addLegend(offset=(-5, 5), colCount=len(keys))
+        return item
+
+    def _new_plot(self, k: int, item: pg.PlotItem) -> pg.PlotWidget:
+        """The ``k``-th plot's widget around its frame ``item``, in its place in the grid; its data: _plot_data."""
+        plot = pg.PlotWidget(plotItem=item, background="w")
+        self.plots[SUMMARY_PLOTS[k][0]] = plot
+        self._cells[k].set_child(plot)
         return plot
 
     def _plot_data(self, k: int, plot: pg.PlotWidget) -> Iterator[None]:
@@ -238,11 +272,18 @@ class RunSummary(QWidget):
             plot.setYRange(*y_range(values), padding=0)
         if x:
             plot.getAxis("bottom").setTicks([[(i, str(i)) for i in x]] if len(x) <= 20 else None)
+        plot.setUpdatesEnabled(True)  # drawn once, complete (staged)
         yield
 
     def showEvent(self, event: Any) -> None:
         super().showEvent(event)
         self.alarms.resizeRowsToContents()  # the columns have their final widths now: wrap the sentences in full
+
+
+def _plot_parts() -> tuple[pg.ViewBox, dict[str, pg.AxisItem]]:
+    """A summary plot's view (its menu made at the first right click) and axes, made apart from its frame: the frame
+    on parts made before costs half of one that makes them (#37)."""
+    return _LazyMenuViewBox(), {side: pg.AxisItem(side) for side in ("left", "bottom")}  # (top, right: hidden)
 
 
 def _alarm_table(alarms: Sequence[dict[str, Any]], name: str) -> QTableWidget:
