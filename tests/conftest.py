@@ -78,7 +78,7 @@ def _qt_identity(qapp):
 REALTIME_MODULES = {
     "test_app_real_devices", "test_device_loss", "test_device_loss_more", "test_driver_base", "test_estop_wire",
     "test_fes_exit_paths", "test_firmware_sil", "test_linarm_driver", "test_metrics_e2e", "test_patient_model_link",
-    "test_physio_driver", "test_rehastim_driver", "test_safety_properties", "test_seed_scripts",
+    "test_physio_driver", "test_rehastim_driver", "test_run_recover", "test_safety_properties", "test_seed_scripts",
     "test_sim_host",
 }
 
