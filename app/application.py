@@ -8,6 +8,7 @@ import logging
 import os
 import sys
 import threading
+import time
 from collections.abc import Callable
 from types import TracebackType
 from typing import Any
@@ -38,6 +39,11 @@ def prepare_qt() -> None:
 
     # Read once, by the first paint that would use the pool: must be set before anything paints.
     os.environ.setdefault("QT_NO_GUI_THREADPOOL", "1")
+    # No shader cache on disk (Mesa): its writer threads run at the lowest priority (nice 19, SCHED_BATCH), and the
+    # process's last thread to end unmaps all its memory at that thread's priority: beside two busy programs the
+    # window's process then ended 1.5-3 s after os._exit, past the 2 s a signal allows (issue #25). Compiling the
+    # views' few shaders at each start costs milliseconds.
+    os.environ.setdefault("MESA_SHADER_CACHE_DISABLE", "true")
     if QCoreApplication.instance() is None:
         QCoreApplication.setAttribute(Qt.ApplicationAttribute.AA_ShareOpenGLContexts)
 
@@ -144,6 +150,29 @@ def archive_refusal(exc: BaseException) -> str:
     return ""
 
 
+def no_thread_below_this_one() -> None:
+    """Every thread of this process at the calling thread's CPU priority at least, before it ends (Linux; where the
+    system allows it, as app.priority's raise does). Whichever thread ends last unmaps the process's memory, at its own
+    priority: a library's helper at nice 19 (Mesa's shader-cache writers) made the window's end take 1.5-3 s on a busy
+    2-core machine. The helpers have nothing left to do: the process is ending."""
+    if not hasattr(os, "sched_setscheduler"):
+        return
+    own = os.getpriority(os.PRIO_PROCESS, 0)
+    low_policies = {getattr(os, name) for name in ("SCHED_BATCH", "SCHED_IDLE") if hasattr(os, name)}
+    try:
+        tids = [int(name) for name in os.listdir("/proc/self/task")]
+    except OSError:
+        return
+    for tid in tids:
+        try:
+            if os.sched_getscheduler(tid) in low_policies:
+                os.sched_setscheduler(tid, os.SCHED_OTHER, os.sched_param(0))
+            if os.getpriority(os.PRIO_PROCESS, tid) > own:
+                os.setpriority(os.PRIO_PROCESS, tid, own)
+        except OSError:  # not allowed (no CAP_SYS_NICE / RLIMIT_NICE), or the thread ended meanwhile
+            continue
+
+
 class _LoopExit(QObject):
     """Ends the Qt event loop from the signal thread: a Qt signal emitted there is delivered in the main
     thread (queued). ``exit`` rather than ``quit``: a window may refuse a quit (a dialog), never an exit."""
@@ -153,8 +182,14 @@ class _LoopExit(QObject):
     def __init__(self, app: QCoreApplication) -> None:
         super().__init__()
         self.code: int | None = None
+        self.requested_at = 0.0  # time.monotonic() of the request (the devices already safe)
         self.requested.connect(self._exit)
         self._app = app
+
+    def request(self, code: int) -> None:
+        """From any thread."""
+        self.requested_at = time.monotonic()
+        self.requested.emit(code)
 
     def _exit(self, code: int) -> None:
         self.code = code
@@ -184,7 +219,7 @@ def run_gui(config: AppConfig, screenshot: str | None = None, quit_after_s: floa
     from app.signal_events import exit_code_for
 
     loop_exit = _LoopExit(app)
-    remove_nets = install_safety_nets(manager, lambda signum: loop_exit.requested.emit(exit_code_for(signum)))
+    remove_nets = install_safety_nets(manager, lambda signum: loop_exit.request(exit_code_for(signum)))
     try:
         opened = opening.result(app)
     except Exception as exc:
@@ -240,6 +275,9 @@ def run_gui(config: AppConfig, screenshot: str | None = None, quit_after_s: floa
     if loop_exit.code is not None:
         # Ended by a signal, with the devices safe and the session closed: end now. Qt's teardown of the window
         # (the GL views) took 0.4-2 s on a loaded machine, and a process told to end must end (issue #25).
+        log.info("closed %.3f s after the devices' safe state (exit code %d)",
+                 time.monotonic() - loop_exit.requested_at, loop_exit.code)
+        no_thread_below_this_one()
         logging.shutdown()
         sys.stdout.flush()
         sys.stderr.flush()
