@@ -24,7 +24,7 @@ log = logging.getLogger(__name__)
 
 
 def prepare_qt() -> None:
-    """Before the QApplication exists, the two process-wide settings the window depends on:
+    """Before the QApplication exists, the process-wide settings the window depends on:
 
     * Every GL widget shares one context group. pyqtgraph caches compiled shader programs globally; without
       sharing, a second 3D view (a new window, a test) gets 'invalid value' from glUseProgram and draws nothing.
@@ -34,6 +34,7 @@ def prepare_qt() -> None:
       repaint held the window 0.4-0.9 s, and the GUI watch stopped the robot (seen in CI on a clean clone, with
       the firmware building beside the clinician's day; py-spy showed the window's thread in QLatch::wait under
       QRasterPaintEngine::drawImage / drawPolygon). Painting on one thread costs a few ms more per frame at most.
+    * No Mesa shader cache on disk (its threads run at nice 19; see below).
     """
     from PySide6.QtCore import Qt
 
