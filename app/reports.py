@@ -1577,9 +1577,11 @@ def render_progress_report(pdf: _Pdf, patient_id: str, rows: Sequence[ProgressRo
               [[str(k + 1), r.date, "; ".join(r.exercises) or "—",
                 f"{fmt(r.summary.get('repetitions'), '{}')} ({fmt(r.summary.get('completed'), '{}')})",
                 fmt(r.value("peak_speed_m_s")), fmt(r.value("sparc")), fmt(r.value("range_m")),
-                fmt(r.value("mean_alpha")), fmt(r.summary.get("alarms"), "{}"),
+                # α to two decimals, as the window shows it (0 … 1): three significant digits of a level near 0
+                # ("-0.00501") did not fit the column and wrapped into "-0.005" over "01".
+                fmt(r.value("mean_alpha"), "{:.2f}"), fmt(r.summary.get("alarms"), "{}"),
                 "interrupted" if r.interrupted else "complete"]
-               for k, r in enumerate(rows)], [0.3, 1.45, 2.1, 0.85, 0.75, 0.65, 0.8, 0.55, 0.65, 0.95],
+               for k, r in enumerate(rows)], [0.3, 1.45, 2.0, 0.85, 0.75, 0.65, 0.8, 0.65, 0.65, 0.95],
               align_right=(3, 4, 5, 6, 7, 8))
 
     n = len(rows)

@@ -133,3 +133,18 @@ def test_summary_and_progress_views_from_the_sessions_browser(qtbot, tmp_path: P
     xs, ys = view.plots["range_m"].listDataItems()[0].getData()
     assert list(xs) == [1, 2] and list(np.round(ys, 3)) == [0.2, 0.25]
     assert view.save_pdf(tmp_path / "p.pdf")
+
+
+def test_the_progress_tables_assistance_level_is_one_unbroken_number(tmp_path: Path) -> None:
+    """α near 0 was printed to three significant digits ("-0.00501"), too wide for its column: the cell wrapped
+    into "-0.005" over "01", which a reader takes for -0.005 (seen in the clinician's day's progress report)."""
+    from tests.pdf_layout import pdf_words
+
+    root = tmp_path / "sessions"
+    write_session(root / "P1" / "20260301-100000", reps=3, distance=0.15, duration=1.2, fm=30, day=1)
+    rows = progress_rows("P1", root)
+    rows[0].summary["mean_alpha"] = {"mean": -0.00501}
+    write_progress_report("P1", tmp_path / "progress.pdf", rows)
+    words = [w.text for w in pdf_words(tmp_path / "progress.pdf")[0]]
+    assert "-0.01" in words, words
+    assert "01" not in words and "-0.005" not in words, words
