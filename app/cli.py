@@ -240,13 +240,9 @@ class _NoSession(Exception):
 
 
 def _is_uuid(text: str) -> bool:
-    import uuid
+    from app.recording import is_session_uuid
 
-    try:
-        uuid.UUID(text)
-    except ValueError:
-        return False
-    return True
+    return is_session_uuid(text)
 
 
 def _report_archive(config: object, args: argparse.Namespace, stack: contextlib.ExitStack) -> tuple[object, str]:

@@ -160,6 +160,15 @@ def sessions_root(config: AppConfig | None = None) -> Path:
     return paths.sessions_dir()
 
 
+def is_session_uuid(text: str) -> bool:
+    """Whether ``text`` is a UUID, as a session's identity is (made at its start, ``session_uuid``)."""
+    try:
+        uuid.UUID(text)
+    except ValueError:
+        return False
+    return True
+
+
 def safe_name(text: str) -> str:
     """A portable file/folder name for a stream or patient identifier (no separators, no surprises)."""
     cleaned = re.sub(r"[^A-Za-z0-9._-]", "_", text).strip(".")

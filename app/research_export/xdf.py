@@ -329,7 +329,7 @@ def stream_descriptions(session: Session) -> list[StreamDescription]:
     """The header of every stream of the session, then the events' and the markers' (ids 1, 2, … in order)."""
     host = str((session.manifest.get("host") or {}).get("node") or "")
     session_uuid = str(session.manifest.get("session_uuid") or "")
-    ns = uuid.UUID(session_uuid) if _is_uuid(session_uuid) else uuid.uuid5(
+    ns = uuid.UUID(session_uuid) if recording.is_session_uuid(session_uuid) else uuid.uuid5(
         uuid.NAMESPACE_URL, f"linarmpp:{session.patient_id}:{session.start_iso}:{session.start_mono!r}")
     out = []
     clocks = session.device_clocks()
@@ -353,14 +353,6 @@ def stream_descriptions(session: Session) -> list[StreamDescription]:
                                      [{"label": name.split(".")[-1], "unit": "", "type": "Marker"}],
                                      {"content": what, "clock": clock}))
     return out
-
-
-def _is_uuid(text: str) -> bool:
-    try:
-        uuid.UUID(text)
-    except ValueError:
-        return False
-    return True
 
 
 def marker_marks(marks: list[Mark]) -> list[Mark]:
