@@ -19,6 +19,7 @@ from PySide6.QtWidgets import QApplication
 from app.config import AppConfig
 from app.manager import LinarmppManager
 from app.paths import data_dir
+from app.priority import no_thread_below_this_one
 
 log = logging.getLogger(__name__)
 
@@ -149,29 +150,6 @@ def archive_refusal(exc: BaseException) -> str:
     if isinstance(exc, ArchiveTooNew | NeedsUpgrade | ConfigProblem):
         return f"LINarm++ Manager cannot use the patients' archive, nothing was started: {exc}"
     return ""
-
-
-def no_thread_below_this_one() -> None:
-    """Every thread of this process at the calling thread's CPU priority at least, before it ends (Linux; where the
-    system allows it, as app.priority's raise does). Whichever thread ends last unmaps the process's memory, at its own
-    priority: a library's helper at nice 19 (Mesa's shader-cache writers) made the window's end take 1.5-3 s on a busy
-    2-core machine. The helpers have nothing left to do: the process is ending."""
-    if not hasattr(os, "sched_setscheduler"):
-        return
-    own = os.getpriority(os.PRIO_PROCESS, 0)
-    low_policies = {getattr(os, name) for name in ("SCHED_BATCH", "SCHED_IDLE") if hasattr(os, name)}
-    try:
-        tids = [int(name) for name in os.listdir("/proc/self/task")]
-    except OSError:
-        return
-    for tid in tids:
-        try:
-            if os.sched_getscheduler(tid) in low_policies:
-                os.sched_setscheduler(tid, os.SCHED_OTHER, os.sched_param(0))
-            if os.getpriority(os.PRIO_PROCESS, tid) > own:
-                os.setpriority(os.PRIO_PROCESS, tid, own)
-        except OSError:  # not allowed (no CAP_SYS_NICE / RLIMIT_NICE), or the thread ended meanwhile
-            continue
 
 
 class _LoopExit(QObject):
