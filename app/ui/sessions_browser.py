@@ -641,11 +641,7 @@ class SessionsBrowser(QWidget):
                 self.jobs.remove(job)
             self._say(job.message, error=task.status is TaskStatus.FAILED)
             if task.status is TaskStatus.FAILED:
-                box = QMessageBox(QMessageBox.Icon.Warning, "Export not written", job.message,
-                                  QMessageBox.StandardButton.Ok, self)
-                box.setAttribute(Qt.WidgetAttribute.WA_DeleteOnClose)
-                box.open()
-                self.message_box = box
+                self._export_not_written(job.message)
             if on_done is not None:
                 on_done(job.ok, job.message)
 
@@ -661,6 +657,13 @@ class SessionsBrowser(QWidget):
                                       outputs=(destination,), on_done=done)
         self.jobs.append(job)
         return job
+
+    def _export_not_written(self, message: str) -> None:
+        """The one sentence of a failed export, in a window-modal box too (the status line is easy to miss)."""
+        box = QMessageBox(QMessageBox.Icon.Warning, "Export not written", message, QMessageBox.StandardButton.Ok, self)
+        box.setAttribute(Qt.WidgetAttribute.WA_DeleteOnClose)
+        box.open()
+        self.message_box = box
 
     def ask_research_export(self) -> ResearchExportDialog | None:
         """Export… → the format and the folder (the documents folder by default) → the export, in the worker."""
@@ -696,11 +699,7 @@ class SessionsBrowser(QWidget):
                 self._say(str(task.result))
             else:
                 self._say(task.error, error=True)
-                box = QMessageBox(QMessageBox.Icon.Warning, "Export not written", task.error,
-                                  QMessageBox.StandardButton.Ok, self)
-                box.setAttribute(Qt.WidgetAttribute.WA_DeleteOnClose)
-                box.open()
-                self.message_box = box
+                self._export_not_written(task.error)
             if on_done is not None:
                 on_done(task)
 
