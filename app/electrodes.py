@@ -626,29 +626,6 @@ def choice_event(result: SetupResult, choice: Any) -> dict[str, Any]:
             "discomfort": choice.discomfort, "chosen_by": choice.chosen_by, "chosen_at": choice.chosen_at}
 
 
-def save_choice(result: SetupResult, channel: int, profile: Any, operator: str, session: str = "",
-                safety: Any = None, folder: Any = None, expected_version: int = 0) -> Any:
-    """Choose ``channel`` for the result's district in the patient's profile (app.patients.PatientProfile) and
-    return the new profile (:func:`save_choice_record` without the version)."""
-    return save_choice_record(result, channel, profile, operator, session, safety, folder, expected_version).profile
-
-
-def save_choice_record(result: SetupResult, channel: int, profile: Any, operator: str, session: str = "",
-                       safety: Any = None, folder: Any = None, expected_version: int = 0) -> Any:
-    """Save the choice of ``channel`` for the result's district — that district's field only, through the station's
-    archive (app.archive.station.choose_electrodes) as of ``expected_version`` (the session's record), or into the
-    YAML file without an archive — and return the patient's record as it is now (app.archive.api.PatientRecord).
-    The rest of the record is the archive's, never ``profile``'s: a copy taken at the session's start must not
-    bring back a cap lowered since (issues #36, #39). ``profile`` stands for the record only when there is no
-    YAML file yet. A choice of the same district made meanwhile by someone else refuses it (StaleRecord)."""
-    from app.archive import station
-
-    choice = choice_for(result, channel, operator, session)
-    return station.choose_electrodes(profile.patient_id, result.district.name, choice,
-                                     expected_version=expected_version, operator=station.default_operator(operator),
-                                     folder=folder, safety=safety, fallback=profile)
-
-
 def run_district_setup(fes: Any, robot: Any, supervisor: Any, latest: Callable[[str], Any],
                        record: Callable[[str, dict[str, Any]], None], district: District, plan: SetupPlan,
                        stopped: Callable[[], bool] = lambda: False, listener: ProgressListener | None = None,

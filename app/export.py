@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from app.devices.driver import Channel
+from app.bus import Channel
 from app.outputs import NotRight, OutputError, write_verified
 from app.recording import RecordedSession, RecordedStream, safe_name, write_json_atomic
 

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from app.devices.driver import SampleBatch, StreamSpec
+from app.bus import SampleBatch, StreamSpec
 from app.recording import RecordedSession, load_session
 
 

@@ -10,8 +10,9 @@ score), ``TARGET_MISSED`` when the sub-task has run ``--time-limit`` s, and send
 second as the heartbeat.  Scoring: 100 points per target plus a speed bonus of up to 50 points
 (50 − 5 per second taken).
 
-Headless by default (the app starts it so); ``--window`` opens a small PySide6 window drawing the
-rail, the target zone and the handle.  It exits when its parent dies or when no frame has come for
+Headless by default (the app starts it so); with a window (``python -m app.ui.vr_standin_window``, the same
+options) a small PySide6 window draws the rail, the target zone and the handle — this module stays Qt-free.
+It exits when its parent dies or when no frame has come for
 ``--idle-exit`` s (default 10; 0 = never).
 """
 
@@ -23,8 +24,8 @@ import math
 import socket
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
 
 from app.devices.transport import enlarge_receive_buffer
 from app.devices.udp_frames import (
@@ -176,84 +177,12 @@ def run_headless(link: StandinLink, idle_exit_s: float, watch: ParentWatch) -> N
         link.receive(0.1)
 
 
-def run_window(link: StandinLink, idle_exit_s: float, watch: ParentWatch) -> int:
-    from PySide6.QtCore import QTimer
-    from PySide6.QtWidgets import QApplication
-
-    app = QApplication.instance() or QApplication(sys.argv[:1])
-    win = make_window(link.game)
-    win.show()
-
-    def poll() -> None:
-        for _ in range(20):  # drain what is queued without blocking the event loop
-            link.receive(0.0)
-        win.update()
-        if watch.parent_gone() or (idle_exit_s > 0 and time.monotonic() - link.last_frame_t > idle_exit_s):
-            app.quit()
-
-    timer = QTimer()
-    timer.timeout.connect(poll)
-    timer.start(10)
-    return app.exec()
+WindowRunner = Callable[["StandinLink", float, "ParentWatch"], int]
 
 
-def _window_class() -> type:
-    from PySide6.QtCore import QRectF, Qt
-    from PySide6.QtGui import QColor, QFont, QPainter, QPen
-    from PySide6.QtWidgets import QWidget
-
-    class _StandinWindow(QWidget):
-        """The rail seen from above: target zone (green when reached), handle (blue), score."""
-
-        RAIL_M = 0.5
-
-        def __init__(self, game: StandinGame) -> None:
-            super().__init__()
-            self.game = game
-            self.setWindowTitle("LINarm++ VR stand-in")
-            self.resize(520, 160)
-
-        def paintEvent(self, event: object) -> None:
-            g = self.game
-            p = QPainter(self)
-            p.setRenderHint(QPainter.RenderHint.Antialiasing)
-            p.fillRect(self.rect(), QColor("#1d2733"))
-            margin = 30.0
-            width = self.width() - 2 * margin
-            y = self.height() * 0.6
-
-            def x_of(pos: float) -> float:
-                return margin + width * min(1.0, max(0.0, pos / self.RAIL_M))
-
-            p.setPen(QPen(QColor("#8a9bb0"), 4))
-            p.drawLine(int(margin), int(y), int(margin + width), int(y))
-            f = g.last_frame
-            if f is not None and math.isfinite(f.targetPosition):
-                reached = f.task.taskState == TaskState.REACHED
-                colour = QColor("#3cb371" if reached else "#f0a030")
-                half = max(4.0, width * g.tolerance_m / self.RAIL_M)
-                xt = x_of(f.targetPosition)
-                p.fillRect(QRectF(xt - half, y - 25, 2 * half, 50), colour)
-            if f is not None and math.isfinite(f.robotPosition):
-                p.setBrush(QColor("#4aa3ff"))
-                p.setPen(Qt.PenStyle.NoPen)
-                p.drawEllipse(QRectF(x_of(f.robotPosition) - 10, y - 10, 20, 20))
-            p.setPen(QColor("white"))
-            p.setFont(QFont(p.font().family(), 12))
-            sub = "-" if g.subTask is None else str(g.subTask)
-            p.drawText(int(margin), 28, f"Score {g.score}    targets {g.reached} reached, {g.missed} missed"
-                                        f"    sub-task {sub}")
-            p.end()
-
-    return _StandinWindow
-
-
-def make_window(game: StandinGame) -> Any:
-    """The stand-in's window (a QWidget).  Qt is imported only here: the headless process never loads it."""
-    return _window_class()(game)
-
-
-def main(argv: list[str] | None = None) -> int:
+def main(argv: list[str] | None = None, run_window: WindowRunner | None = None) -> int:
+    """The stand-in's process. ``--window`` needs ``run_window`` (app.ui.vr_standin_window passes it): this
+    module stays Qt-free, so the headless process never loads Qt."""
     ap = argparse.ArgumentParser(prog="python -m app.vr_standin", description=__doc__.splitlines()[0])
     ap.add_argument("--listen", type=parse_address, required=True, help="HOST:PORT to receive frames on")
     ap.add_argument("--peer", type=parse_address, required=True, help="HOST:PORT of the manager")
@@ -276,6 +205,9 @@ def main(argv: list[str] | None = None) -> int:
     link.send([game.hello()])
     try:
         if args.window:
+            if run_window is None:
+                log.error("--window: start python -m app.ui.vr_standin_window for the window")
+                return 2
             return run_window(link, args.idle_exit, watch)
         run_headless(link, args.idle_exit, watch)
     except KeyboardInterrupt:

@@ -10,8 +10,8 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 from app import streams
-from app.bus import StreamBus, UpdateNotifier
-from app.devices.driver import Channel, DeviceDriver, StreamSpec
+from app.bus import Channel, StreamBus, StreamSpec, UpdateNotifier
+from app.devices.driver import DeviceDriver
 from app.devices.sim.base import SerialSimulator
 from app.devices.transport import SerialTransport
 

@@ -11,8 +11,8 @@ from dataclasses import dataclass
 
 import pytest
 
-from app.bus import BusItem, DeviceEvent, SampleItem, StreamBus, UpdateNotifier
-from app.devices.driver import Channel, DeviceDriver, StreamSpec
+from app.bus import BusItem, Channel, DeviceEvent, SampleItem, StreamBus, StreamSpec, UpdateNotifier
+from app.devices.driver import DeviceDriver
 from tests.memory_link import MemoryLink
 
 TICKS = "tick.main"

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 from PySide6.QtCore import QTimer
 
-from app.bus import DeviceEvent, SampleItem, StreamBus
-from app.devices.driver import Channel, DeviceDriver, StreamSpec, UpdateNotifier
+from app.bus import Channel, DeviceEvent, SampleItem, StreamBus, StreamSpec, UpdateNotifier
+from app.devices.driver import DeviceDriver
 from app.devices.sim.base import SerialSimulator
 from tests.fakes import CounterCore, CounterDriver
 from tests.memory_link import MemoryLink

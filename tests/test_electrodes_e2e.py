@@ -10,6 +10,7 @@ import time
 
 import pytest
 
+from app.archive.station import save_choice
 from app.config import RESOURCES, AppConfig
 from app.devices import linarm, rehastim
 from app.devices.sciencemode import Sm1CommandDecoder, Sm1Init, Sm1Stop, Sm1Update
@@ -19,7 +20,6 @@ from app.electrodes import (
     SetupPlan,
     choice_event,
     run_district_setup,
-    save_choice,
 )
 from app.fes_limits import ChannelCaps
 from app.fes_profile import load_profile, parse_profile

@@ -7,8 +7,8 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+from app.bus import Channel, StreamSpec
 from app.config import AppConfig
-from app.devices.driver import Channel, StreamSpec
 from app.export import (
     ExportCancelled,
     export_csv,
@@ -116,7 +116,7 @@ def test_graphs_save_and_session_export_share_the_writer(monkeypatch, session, t
     from app.ui.signal_store import SignalStore
 
     store = SignalStore(10.0)
-    from app.devices.driver import Channel, SampleBatch, StreamSpec
+    from app.bus import Channel, SampleBatch, StreamSpec
 
     spec = StreamSpec("dev.main", (Channel("x", "m", "X"),), 100.0)
     store.add_stream(spec, "dev")

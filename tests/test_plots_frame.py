@@ -12,8 +12,8 @@ from PySide6.QtGui import QImage
 from PySide6.QtTest import QTest
 from PySide6.QtWidgets import QFileDialog
 
+from app.bus import Channel, SampleBatch, StreamSpec
 from app.config import AppConfig
-from app.devices.driver import Channel, SampleBatch, StreamSpec
 from app.manager import LinarmppManager
 from app.ui.plots_frame import PlotsFrame
 from app.ui.signal_store import SignalStore, shared_store

@@ -8,8 +8,8 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+from app.bus import Channel, StreamSpec
 from app.config import AppConfig
-from app.devices.driver import Channel, StreamSpec
 from app.recording import RecordedSession, SessionRecorder, load_session
 from app.replay import ReplaySource
 from tests.fakes import ListenerDriver

@@ -16,8 +16,8 @@ import numpy as np
 import pytest
 
 from app import recording
+from app.bus import Channel, StreamSpec
 from app.config import AppConfig
-from app.devices.driver import Channel, StreamSpec
 from app.recording import SessionRecorder, columns_path, index_session, load_session
 from tests.fakes import ListenerDriver
 from tests.long_session import RATES, T0, shared_long_session

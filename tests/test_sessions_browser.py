@@ -11,8 +11,8 @@ import pytest
 from PySide6.QtCore import Qt
 from PySide6.QtWidgets import QDialogButtonBox, QTableWidgetItem
 
+from app.bus import Channel, StreamSpec
 from app.config import AppConfig
-from app.devices.driver import Channel, StreamSpec
 from app.export import load_hdf5
 from app.patients import PatientProfile, load_patient, save_patient
 from app.recording import SessionRecorder, load_session

@@ -152,8 +152,8 @@ def test_a_resumed_stream_leaves_the_banner_and_stays_in_the_history(qtbot) -> N
 
 # ---------------------------------------------------------------------------------------------- the record
 def test_the_record_keeps_the_arrival_time_beside_the_sample_time(tmp_path, qtbot) -> None:
+    from app.bus import Channel, StreamSpec
     from app.config import AppConfig
-    from app.devices.driver import Channel, StreamSpec
     from app.recording import SessionRecorder, load_session
 
     spec = StreamSpec("dev.main", (Channel("x", "", "x"),), 100.0)

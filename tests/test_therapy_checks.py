@@ -116,7 +116,8 @@ def test_an_electrode_choice_never_brings_back_a_cap_lowered_since(tmp_path: Pat
     electrode choice accepted afterwards saved the session's copy and put 30 mA back (before #36)."""
     from dataclasses import replace
 
-    from app.electrodes import districts_from_config, save_choice
+    from app.archive.station import save_choice
+    from app.electrodes import districts_from_config
 
     at_start = _capped(cap_ma=30.0)
     save_patient(at_start, tmp_path, SAFETY)

@@ -24,7 +24,8 @@ from app.devices.udp_frames import (
     encode_vr_event,
 )
 from app.devices.vr import VrDriver, VrTask, standin_process
-from app.vr_standin import StandinGame, make_window
+from app.ui.vr_standin_window import make_window
+from app.vr_standin import StandinGame
 
 HOST = "127.0.0.1"
 

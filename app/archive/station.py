@@ -38,6 +38,7 @@ from app.archive.api import (
     PatientRecord,
     PatientUnreadable,
 )
+from app.electrodes import SetupResult, choice_for
 from app.patients import (
     ElectrodeChoice,
     PatientEntry,
@@ -394,6 +395,31 @@ def default_operator(operator: str = "") -> str:
         return "unknown (login)"
 
 
+
+
+
+def save_choice(result: SetupResult, channel: int, profile: Any, operator: str, session: str = "",
+                safety: Any = None, folder: Any = None, expected_version: int = 0) -> Any:
+    """Choose ``channel`` for the result's district (an electrode set-up's result, app.electrodes) in the
+    patient's profile (app.patients.PatientProfile) and return the new profile (:func:`save_choice_record`
+    without the version)."""
+    return save_choice_record(result, channel, profile, operator, session, safety, folder, expected_version).profile
+
+
+def save_choice_record(result: SetupResult, channel: int, profile: Any, operator: str, session: str = "",
+                       safety: Any = None, folder: Any = None, expected_version: int = 0) -> Any:
+    """Save the choice of ``channel`` for the result's district — that district's field only, through the station's
+    archive (app.archive.station.choose_electrodes) as of ``expected_version`` (the session's record), or into the
+    YAML file without an archive — and return the patient's record as it is now (app.archive.api.PatientRecord).
+    The rest of the record is the archive's, never ``profile``'s: a copy taken at the session's start must not
+    bring back a cap lowered since (issues #36, #39). ``profile`` stands for the record only when there is no
+    YAML file yet. A choice of the same district made meanwhile by someone else refuses it (StaleRecord)."""
+    choice = choice_for(result, channel, operator, session)
+    return choose_electrodes(profile.patient_id, result.district.name, choice,
+                             expected_version=expected_version, operator=default_operator(operator),
+                             folder=folder, safety=safety, fallback=profile)
+
+
 __all__ = ["FIELD_WORDS", "Opened", "choose_electrodes", "current", "default_operator", "entry_blocks", "field_words",
-           "import_yaml_patients", "in_use", "install", "list_entries", "open_station", "read_record", "save_profile",
-           "uninstall", "unreachable"]
+           "import_yaml_patients", "in_use", "install", "list_entries", "open_station", "read_record", "save_choice",
+           "save_choice_record", "save_profile", "uninstall", "unreachable"]

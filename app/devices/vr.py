@@ -36,9 +36,8 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 from app import streams
-from app.bus import StreamBus
+from app.bus import Channel, StreamBus, StreamSpec
 from app.devices.clock import CountedClock
-from app.devices.driver import Channel, StreamSpec
 from app.devices.patient_model import (
     HelperProcess,
     LinkInputs,
@@ -253,7 +252,7 @@ def standin_process(host: str, standin_port: int, manager_port: int, window: boo
     args = ["--listen", f"{host}:{standin_port}", "--peer", f"{host}:{manager_port}", *(extra or [])]
     if window:
         args.append("--window")
-    return HelperProcess("app.vr_standin", args)
+    return HelperProcess("app.ui.vr_standin_window" if window else "app.vr_standin", args)
 
 
 def create(ctx: DeviceContext) -> DeviceHandle | None:

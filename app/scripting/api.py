@@ -608,9 +608,11 @@ class FESUser:
                 raise ScriptError("the proposal cannot be saved: this session's patient has no profile")
             # only this district's choice is written, onto the archive's record as it is now (#39): a cap lowered
             # since the session started stays lowered, and what changed meanwhile applies here too (#36)
-            saved = electrodes.save_choice_record(result, channel, profile, manager.operator or self._ctx.source,
-                                                  "", manager.config.safety,
-                                                  expected_version=getattr(manager, "patient_version", 0))
+            from app.archive import station
+
+            saved = station.save_choice_record(result, channel, profile, manager.operator or self._ctx.source,
+                                               "", manager.config.safety,
+                                               expected_version=getattr(manager, "patient_version", 0))
             profile = saved.profile
             update = getattr(manager, "update_session_profile", None)
             if not (callable(update) and update(profile, saved.version)):

@@ -33,6 +33,7 @@ from PySide6.QtWidgets import (
     QWidget,
 )
 
+from app.archive.station import save_choice_record
 from app.electrodes import (
     DISCOMFORT_MAX,
     BurstResult,
@@ -43,7 +44,6 @@ from app.electrodes import (
     choice_event,
     choice_for,
     districts_from_config,
-    save_choice_record,
 )
 from app.manager import LinarmppManager
 from app.ownership import ROBOT, SETUP_SOURCES, STIMULATOR, Lease
