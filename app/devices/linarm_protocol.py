@@ -455,7 +455,7 @@ def encode_command(name: str, seq: int, *args: Any) -> bytes:
     return encode_frame(cmd.id, _fields_for((SEQ, *cmd.args), (seq, *args)))
 
 
-_Step = tuple[str, Callable[[bytes], Any], int | None, int | None, dict[int, IntEnum] | None, type[IntEnum] | None]
+_Step = tuple[str, Callable[[bytes], Any], float | None, float | None, dict[int, IntEnum] | None, type[IntEnum] | None]
 _BULK_KINDS = frozenset((F32, U32))  # fixed-size binary fields without a check beyond their size
 
 

@@ -140,7 +140,7 @@ def crc16_ccitt_rows(rows: npt.NDArray[np.uint8]) -> npt.NDArray[np.uint16]:
     crc = np.full(rows.shape[0], CRC_INIT, dtype=np.uint16)
     for col in range(rows.shape[1]):
         idx = ((crc >> 8) ^ rows[:, col]).astype(np.uint8)
-        crc = (crc << 8) ^ _CRC_TABLE[idx]
+        crc = ((crc << 8) ^ _CRC_TABLE[idx]).astype(np.uint16, copy=False)  # uint16 already: typed, not copied
     return crc
 
 
