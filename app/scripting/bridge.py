@@ -41,13 +41,10 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from app import streams
 from app.bus import SampleItem, Subscription
 from app.devices import linarm_protocol as proto
-from app.scripting import api
+from app.scripting import api, api_spec
 from app.scripting.api import (
-    CommandError,
-    CommandRefused,
     DeviceUnavailable,
     ScriptContext,
     ScriptError,
@@ -90,84 +87,31 @@ READ_RATE = 8 * 1024 * 1024
 READ_BURST = 16 * 1024 * 1024
 CONTROL_TIMEOUT_S = 5.0  # the warden's answers (its first line comes ~20 ms after the start)
 
-# stream -> (device, label): the streams a script may subscribe to (one place: the kernel gets it in hello)
-STREAMS: dict[str, tuple[str, str]] = {
-    streams.LINARM_STATE: (streams.LINARM, "the LINarm"),
-    streams.LINARM_VSA: (streams.LINARM, "the LINarm"),
-    streams.LINARM_MOTOR0: (streams.LINARM, "the LINarm"),
-    streams.LINARM_MOTOR1: (streams.LINARM, "the LINarm"),
-    streams.PHYSIO_MAIN: (streams.PHYSIO, "the physiological sensors"),
-    streams.PATIENT_MODEL_MAIN: (streams.PATIENT_MODEL, "the patient model"),
-    streams.VR_MAIN: (streams.VR, "the VR renderer"),
-}
+STREAMS = api.SCRIPT_STREAMS  # stream -> (device, label): the streams a script may subscribe to
 SAMPLE_QUEUE = 65536  # samples waiting to be sent to a kernel (oldest dropped and counted beyond)
 ESTOP_CALL = ("linarmppManager", "emergencyStop")  # never queued behind a command
 
-# The proxies' shape: state properties (name -> stream, doc) and callback setters (name -> stream, list).
-OBJECT_SHAPES: dict[str, dict[str, Any]] = {
-    "linarm": {
-        "doc": "linarm: the LINarm2 robot. Commands block until the controller acknowledges them.",
-        "properties": {
-            "linarmState": (streams.LINARM_STATE, "controlState, controlMode, homeState, errorState, triggerMode, "
-                                            "initialized, trajectoryType, …"),
-            "linarmVsaState": (streams.LINARM_VSA, "equilibriumPos (m), delta (m), stiffness (N/m), handlePos (m), "
-                                             "handleVel (m/s), interactionForce (N)."),
-            "linarmMotor0State": (streams.LINARM_MOTOR0, "position (m), velocity (m/s), current (A), target (m)."),
-            "linarmMotor1State": (streams.LINARM_MOTOR1, "position (m), velocity (m/s), current (A), target (m)."),
-        },
-        "callbacks": {
-            "setLinarmDataCallbackFun": (streams.LINARM_STATE, "linarmDataCallbackList"),
-            "setLinarmMotor0DataCallbackFun": (streams.LINARM_MOTOR0, "linarmMotor0DataCallbackList"),
-            "setLinarmMotor1DataCallbackFun": (streams.LINARM_MOTOR1, "linarmMotor1DataCallbackList"),
-            "setLinarmVsaDataCallbackFun": (streams.LINARM_VSA, "linarmVsaDataCallbackList"),
-        },
-    },
-    "physiologicalSensors": {
-        "doc": "physiologicalSensors: grip force (N), skin temperature (°C), heart rate (bpm), skin conductance (µS).",
-        "properties": {"physiologicalSensorsData": (streams.PHYSIO_MAIN,
-                                                    "force (N), temperature (°C), heartRate (bpm), "
-                                                    "skinConductance (µS), boardTime (s), …")},
-        "callbacks": {"setPhysiologicalSensorsDataCallbackFun": (streams.PHYSIO_MAIN, "physiologicalDataCallbackList")},
-    },
-    "patientModel": {
-        "doc": "patientModel: the patient model's latest output (alpha, a_r, a_f, tpi, mpi, pti).",
-        "properties": {"patientModelData": (streams.PATIENT_MODEL_MAIN, "alpha, a_r, a_f, tpi, mpi, pti")},
-        "callbacks": {"setPatientModelDataCallbackFun": (streams.PATIENT_MODEL_MAIN, "patientModelDataCallbackList")},
-    },
-    "VRUnity": {
-        "doc": "VRUnity: the VR renderer's latest frame (targetPos, score, targetsReached).",
-        "properties": {"VRUnityData": (streams.VR_MAIN, "targetPos, score, targetsReached")},
-        "callbacks": {"setVRUnityDataCallbackFun": (streams.VR_MAIN, "VRUnityDataCallbackList")},
-    },
-    "fes": {"doc": "fes: the RehaStim stimulator; every change passes the FES limiter of the safety supervisor."},
-}
-
-# What a kernel may call: object -> methods of the in-app API objects (and readable attributes).
+# What a kernel may call: object -> methods of the in-app API objects (the robot's commands and the API's methods,
+# app/scripting/api_spec.py), and the attributes it may read.
 ALLOWED_CALLS: dict[str, frozenset[str]] = {
-    "linarm": frozenset({c.name for c in api.SCRIPT_COMMANDS} | {"getConfigData"}),
-    "fes": frozenset({"loadFile", "writeFile", "start", "stop", "setCurrentScaleFactor", "setPWScaleFactor",
-                      "setPhase", "getConfigData", "electrodeSetup"}),
-    "linarmppManager": frozenset({"emergencyStop", "startRepetition", "endRepetition", "reportProgress",
-                                  "prompt", "setRunState"}),
+    shape.name: frozenset(shape.methods) | (api.SCRIPT_COMMAND_NAMES if shape is api_spec.LINARM else frozenset())
+    for shape in api_spec.OBJECTS.values() if shape.methods
 }
-ALLOWED_ATTRIBUTES: dict[str, frozenset[str]] = {"fes": frozenset({"profile", "stimulating"})}
-_ERROR_NAMES: tuple[tuple[type[BaseException], str], ...] = (
-    (ScriptStopped, "ScriptStopped"), (CommandRefused, "CommandRefused"), (DeviceUnavailable, "DeviceUnavailable"),
-    (CommandError, "CommandError"), (ScriptError, "ScriptError"), (TypeError, "TypeError"),
-    (FileNotFoundError, "FileNotFoundError"), (KeyError, "KeyError"), (ValueError, "ValueError"),
-    (OSError, "OSError"),
-)
+ALLOWED_ATTRIBUTES: dict[str, frozenset[str]] = {
+    shape.name: frozenset(shape.attributes) for shape in api_spec.OBJECTS.values() if shape.attributes
+}
 
 
 def hello_message() -> dict[str, Any]:
-    """The API's shape for a new kernel: the command table, the enums, the objects' streams (data only)."""
+    """What a new kernel gets of the application before anything else (data only): the robot's command table and
+    enums, the streams' names the API's definition refers to, and the streams' labels."""
     commands = [{"name": c.name, "args": [a.name for a in c.args], "doc": api._command_doc(c)}
                 for c in api.SCRIPT_COMMANDS]
     enums = {name: {m.name: int(m.value) for m in getattr(proto, name)}
              for name in ("CONTROL_STATES", "CONTROL_MODES", "HOME_STATES", "ERROR_STATES", "TRIGGER_MODES",
                           "TRAJECTORY_TYPES")}
-    return {"op": "hello", "commands": commands, "aliases": {"moveDeltato": "moveDeltaTo"}, "enums": enums,
-            "objects": OBJECT_SHAPES, "labels": {s: label for s, (_d, label) in STREAMS.items()}}
+    return {"op": "hello", "commands": commands, "enums": enums, "streams": api.SPEC_STREAMS,
+            "labels": {s: label for s, (_d, label) in STREAMS.items()}}
 
 
 # ---------------------------------------------------------------------------------------------- samples
@@ -989,7 +933,7 @@ class ApiBridge:
     def reply(self, rid: int, value: Any = None, error: BaseException | None = None) -> None:
         msg: dict[str, Any] = {"op": "reply", "id": rid}
         if error is not None:
-            kind = next((n for t, n in _ERROR_NAMES if isinstance(error, t)), "ScriptError")
+            kind = api_spec.wire_error_name(error)
             text = str(error) if kind != "ScriptError" or isinstance(error, ScriptError) \
                 else f"{type(error).__name__}: {error}"
             if isinstance(error, KeyError) and error.args:
