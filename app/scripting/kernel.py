@@ -1,6 +1,6 @@
 """The script kernel: the child interpreter in which exercise scripts run (standard library only).
 
-Started by the application's kernel process (app/scripting/bridge.py) through the kernel's warden
+Started by the application's kernel process (app/scripting/kernel_process.py) through the kernel's warden
 (app/scripting/warden.py), which execs ``python -I kernel.py FD MEMORY_LIMIT`` with one end of a socket pair as
 ``FD``. It imports nothing of the application (``-I`` keeps the application's folder off ``sys.path``, and an
 import of ``app``, PySide6 or serial is refused): the API's one definition — its errors, the objects' shapes,

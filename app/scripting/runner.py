@@ -42,7 +42,8 @@ from app.devices.linarm_protocol import ControlMode, ControlState, HomeState
 from app.ownership import start_problem
 from app.resources import RESOURCES
 from app.scripting.api import CommandRefused, ScriptContext, ScriptStopped
-from app.scripting.bridge import ApiBridge, Gate, KernelProcess
+from app.scripting.bridge import ApiBridge, Gate, hello_message
+from app.scripting.kernel_process import KernelProcess
 
 if TYPE_CHECKING:
     from app.services import ScriptHost
@@ -181,7 +182,7 @@ class ScriptRunner:
 
     # ------------------------------------------------------------------ kernels
     def _spawn(self) -> KernelProcess:
-        kernel = KernelProcess()
+        kernel = KernelProcess(hello_message())
         self._kernels[:] = [k for k in self._kernels if not k.ended.is_set()] + [kernel]
         return kernel
 
