@@ -523,11 +523,9 @@ class FESUser(_ApiObject):
             # only this district's choice is written, onto the archive's record as it is now (#39): a cap lowered
             # since the session started stays lowered, and what changed meanwhile applies here too (#36)
             saved = electrodes.save_choice_record(result, channel, profile, manager.operator or self._ctx.source,
-                                                  "", manager.config.safety,
-                                                  expected_version=getattr(manager, "patient_version", 0))
+                                                  "", manager.config.safety, expected_version=manager.patient_version)
             profile = saved.profile
-            update = getattr(manager, "update_session_profile", None)
-            if not (callable(update) and update(profile, saved.version)):
+            if not manager.update_session_profile(profile, saved.version):
                 manager.patient_profile = profile
                 manager.patient_version = saved.version
             fes.set_district_channels(profile.fes.district_channels())
