@@ -17,7 +17,7 @@ from typing import Any, Protocol
 from app.bus import StreamBus
 from app.config import AppConfig
 from app.progress import ExerciseProgress
-from app.runs import RunLog
+from app.runs import RunLog, RunSource
 from app.safety import SafetySupervisor
 
 __all__ = ["DeviceEntry", "DeviceLink", "EventHost", "ExerciseRunner", "LslHost", "RecordingFailureHandler",
@@ -119,7 +119,7 @@ class ExerciseRunner(Protocol):
     def running(self) -> bool: ...
 
     def start(self, source: str, filename: str = "<script>", params: dict[str, Any] | None = None, *,
-              program: Any = None, parameters: Any = (), run_source: str = "script_tab",
+              program: Any = None, parameters: Any = (), run_source: RunSource = "script_tab",
               restart_of: str | None = None) -> Any: ...
 
 

@@ -287,8 +287,8 @@ def _shaped(shape: api_spec.ObjectShape) -> Callable[[type], type]:
 
 # The shapes' streams by their constant's name in app/streams.py ("LINARM_VSA" -> "linarm.vsa"): the kernel gets it
 SPEC_STREAMS: dict[str, str] = {
-    item.stream: getattr(streams, item.stream)
-    for shape in api_spec.OBJECTS.values() for item in (*shape.properties.values(), *shape.callbacks.values())
+    key: getattr(streams, key) for shape in api_spec.OBJECTS.values()
+    for key in (*(p.stream for p in shape.properties.values()), *(c.stream for c in shape.callbacks.values()))
 }
 # stream -> (device, label): the streams a script reads (the bridge serves these)
 SCRIPT_STREAMS: dict[str, tuple[str, str]] = {

@@ -269,10 +269,14 @@ def apply_shape(cls: type, shape: ObjectShape, make_property: Callable[[ObjectSh
     """Give ``cls`` the shape's class string, docstring, repr, properties and callback setters (made by the
     side's own ``make_property(shape, property)`` / ``make_setter(shape, method, setter)``), and the shape's
     docstrings on its methods. Raises TypeError when ``cls`` lacks a method or attribute of the shape."""
-    cls.classString = shape.class_string  # type: ignore[attr-defined]
+    setattr(cls, "classString", shape.class_string)  # noqa: B010 - the seed's class name, on the class
     cls.__doc__ = shape.doc
     text = f"<{shape.name}: {shape.text} ({shape.class_string})>"
-    cls.__repr__ = lambda self: text  # type: ignore[method-assign]
+
+    def shown(self: object) -> str:
+        return text
+
+    setattr(cls, "__repr__", shown)  # noqa: B010 - a method put on a class, not an attribute probed
     if (shape.properties and make_property is None) or (shape.callbacks and make_setter is None):
         raise TypeError(f"{shape.name}'s state attributes and callback setters need the side's makers")
     for name, prop in shape.properties.items():

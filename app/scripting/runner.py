@@ -41,7 +41,7 @@ from app.devices.linarm_constants import PRETENSION_MOVE, K
 from app.devices.linarm_protocol import ControlMode, ControlState, HomeState
 from app.ownership import Composition, start_problem
 from app.resources import RESOURCES
-from app.runs import ExerciseRun, Program, RunLog, RunParameter, text_hash
+from app.runs import ExerciseRun, Program, RunLog, RunParameter, RunSource, text_hash
 from app.safety import SafetyError, SafetySupervisor
 from app.scripting.api import CommandRefused, ScriptContext, ScriptStopped
 from app.scripting.bridge import ApiBridge, Gate, hello_message
@@ -206,8 +206,11 @@ class ScriptRunner:
             bridge = ApiBridge(self.manager, kernel, self.gate)
             old_bridge, self._bridge = self._bridge, bridge
             kernel.on_link_closed = self._on_link_closed
-            kernel.bind(lambda msg, k=kernel, b=bridge: self._on_message(k, b, msg), self._raw_output,
-                        self._on_kernel_exit)
+
+            def handler(msg: dict[str, Any]) -> Callable[[], None] | None:  # this kernel's, through its bridge
+                return self._on_message(kernel, bridge, msg)
+
+            kernel.bind(handler, self._raw_output, self._on_kernel_exit)
         if old_bridge is not None:
             old_bridge.close()
         if old is not None and old is not kernel:
@@ -283,7 +286,7 @@ class ScriptRunner:
         return not self._done.is_set()
 
     def start(self, source: str, filename: str = "<script>", params: dict[str, Any] | None = None, *,
-              program: Any = None, parameters: Any = (), run_source: str = "script_tab",
+              program: Any = None, parameters: Any = (), run_source: RunSource = "script_tab",
               restart_of: str | None = None, continues: str | None = None,
               holds: tuple[str, ...] = ("robot", "stimulator"), compose: tuple[Composition, ...] = ()) -> Any:
         """Run ``source`` (the script's text) in a fresh kernel; ``filename`` names it in tracebacks.
@@ -346,7 +349,7 @@ class ScriptRunner:
             return self.run
 
     def _open_run(self, source: str, filename: str, params: dict[str, Any], program: Any, parameters: Any,
-                  run_source: str, restart_of: str | None, continues: str | None = None,
+                  run_source: RunSource, restart_of: str | None, continues: str | None = None,
                   holds: tuple[str, ...] = ("robot", "stimulator"),
                   compose: tuple[Composition, ...] = ()) -> ExerciseRun:
         runs = self.manager.runs
