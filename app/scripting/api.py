@@ -1,28 +1,29 @@
-"""The objects an exercise script sees: the seed's script API (D2.2 §3.6, §4 and the Appendix).
+"""The script API in the application: the objects that do what a script asks (D2.2 §3.6, §4 and the Appendix).
 
 ``linarm`` (:class:`LinarmUser`), ``physiologicalSensors`` (:class:`PhysiologicalSensorsUser`),
 ``fes`` (:class:`FESUser`), ``patientModel`` (:class:`PatientModelUser`), ``VRUnity``
 (:class:`VRUnityUser`) and ``linarmppManager`` (:class:`LinarmppManager`), with the Appendix's
 camelCase names, so the seed's scripts run unchanged. Their shapes (state attributes, callback setters,
 methods, docstrings), the errors and ``linarmppManager`` itself are the API's one definition,
-app/scripting/api_spec.py, which the script kernel's proxies are made from too; this module implements them
-in the application.
+app/scripting/api_spec.py, from which the script kernel's proxies are made too; this module implements them
+in the application. Scripts run in the kernel (app/scripting/kernel.py): its calls reach these objects through
+the bridge (app/scripting/bridge.py), with an inline context; the runner uses a context of its own for homing.
 
 Rules every object follows:
 
 * attribute reads (``linarm.linarmVsaState``, ``physiologicalSensors.physiologicalSensorsData``…)
   return the stream's latest sample on the bus (app/bus.py); before the first sample they wait briefly for
-  it (on the bus's notifier), then raise
-  :class:`DeviceUnavailable`. Each read also releases the GIL for a moment, so a script busy-waiting
-  on a device value (the seed's own ``waitCondition``) leaves the devices and the GUI their share;
+  it (on the bus's notifier), then raise :class:`DeviceUnavailable`. Each read also releases the GIL for a
+  moment, so a caller busy-waiting on a device value leaves the devices and the GUI their share;
 * commands block until the device acknowledges them and raise a :class:`ScriptError` with a plain
   sentence on refusal, error or timeout (the driver's own ACK timeout). They run on a helper thread
-  while the script waits in short slices, so Stop interrupts a script even while it waits for an
+  while the caller waits in short slices, so Stop interrupts it even while it waits for an
   acknowledgement. They all pass through the drivers' single command path, hence through the safety
   supervisor;
-* callbacks registered with the ``set…CallbackFun`` methods never run on a driver thread: the stream's
-  samples come from a bus subscription, and ``(callbacks, sample)`` is posted to the script's callback
-  thread (``post_callback``) by a thread of the context's own.
+* callbacks registered with the ``set…CallbackFun`` methods here never run on a driver thread: the stream's
+  samples come from a bus subscription, and ``(callbacks, sample)`` is posted to ``post_callback`` by a
+  thread of the context's own. (A script's own callbacks run in the kernel, on its callback thread: the bridge
+  streams it the samples; nothing in the application sets ``post_callback`` today.)
 
 The context is handed what it uses of the application (app.services.ScriptHost), not the manager.
 """

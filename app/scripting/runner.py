@@ -4,9 +4,11 @@ stops it on request, whatever it does.
 The runner starts a kernel with itself (the console's prompt and the first script use it) and, from the
 first Start on, keeps a spare started ahead, so Start only hands the script to a warm process. A script
 runs in a fresh kernel (its own namespace); the prompt then works in that namespace until the next Start.
-The kernel reaches the devices only through :class:`app.scripting.bridge.ApiBridge`: the API's calls,
-answered on bridge threads by the in-app API objects (the safety supervisor on every command), and the
-samples of the streams it uses.
+The kernel's process and link are :class:`app.scripting.kernel_process.KernelProcess`'s; the kernel reaches the
+devices only through :class:`app.scripting.bridge.ApiBridge`: the API's calls, answered on bridge threads by the
+in-app API objects (the safety supervisor on every command), and the samples of the streams it uses. The runner
+is handed what it uses of the application, typed (app.services.ScriptHost: the supervisor, the run log, the
+progress marks, the drivers…), and uses exactly that.
 
 Stop (:meth:`request_stop`): calls from the kernel are refused from then on, FES and robot go to the safe
 state at once (on a thread of their own), the kernel is asked to stop (every wait there notices within
