@@ -65,8 +65,8 @@ __all__ = ["API_NAMES", "CommandError", "CommandRefused", "DeviceUnavailable", "
 
 log = logging.getLogger(__name__)
 
-WAIT_SLICE_S = 0.02  # longest uninterrupted wait of a script thread: bounds the Stop latency
-FIRST_SAMPLE_TIMEOUT_S = 2.0  # how long an attribute read waits for a device's first sample
+WAIT_SLICE_S = api_spec.WAIT_SLICE_S
+FIRST_SAMPLE_TIMEOUT_S = api_spec.FIRST_SAMPLE_TIMEOUT_S
 CALLBACK_QUEUE = 4096  # samples of one callback stream waiting to be posted (oldest dropped, counted)
 
 
@@ -104,16 +104,7 @@ class ScriptContext:
 
     def sleep(self, seconds: float) -> None:
         """``time.sleep`` for scripts: returns early (raising ScriptStopped) when the script is stopped."""
-        seconds = float(seconds)
-        if seconds < 0:
-            raise ValueError("sleep length must be non-negative")
-        deadline = time.monotonic() + seconds
-        while True:
-            self.check()
-            remaining = deadline - time.monotonic()
-            if remaining <= 0:
-                return
-            self.stop_event.wait(min(remaining, WAIT_SLICE_S))
+        api_spec.interruptible_sleep(seconds, self.stop_event, self.check)
 
     def wait_until(self, predicate: Callable[[], Any], timeout: float | None) -> bool:
         """Evaluate ``predicate`` now and again on every new device sample (at least every 50 ms) until it
@@ -233,13 +224,7 @@ class ScriptContext:
                 self._executor = None
 
     def resolve_path(self, file_name: str, *extra_dirs: Path) -> Path:
-        path = Path(file_name).expanduser()
-        if path.is_absolute():
-            return path
-        for folder in (self.base_dir, Path.cwd(), *extra_dirs):
-            if folder is not None and (folder / path).exists():
-                return folder / path
-        return (self.base_dir or Path.cwd()) / path
+        return api_spec.resolve_path(file_name, self.base_dir, *extra_dirs)
 
 
 def _make_property(shape: api_spec.ObjectShape, prop: api_spec.Property) -> property:

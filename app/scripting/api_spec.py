@@ -8,7 +8,9 @@ What both must agree on is written here, once:
 * the errors a script sees (:class:`ScriptError` and its kinds, :class:`ScriptStopped`), the names they travel
   under between the two processes (:data:`WIRE_ERRORS`) and the names a script's namespace gives them
   (:data:`SCRIPT_ERRORS`);
-* the callback plumbing of the ``set…CallbackFun`` methods (:func:`set_callbacks`);
+* the callback plumbing of the ``set…CallbackFun`` methods (:func:`set_callbacks`), a script's interruptible
+  sleep (:func:`interruptible_sleep`, its WAIT_SLICE_S bounding the Stop latency), how long a state attribute
+  waits for a first sample, and where a script's file names resolve (:func:`resolve_path`);
 * the objects' shapes (:data:`OBJECTS`): class names, the latest-sample properties and the callback setters
   with their streams, the methods and attributes a kernel may call beyond the robot's command table (which is
   the wire's, app/devices/linarm_protocol.py), with the docstrings a script's ``help()`` shows;
@@ -24,6 +26,8 @@ one place their names are spelled; the application resolves them and tells the k
 
 from __future__ import annotations
 
+import threading
+import time
 from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any, NamedTuple, Protocol
@@ -89,6 +93,38 @@ def refused(error: BaseException) -> bool:
             return True
         seen = seen.__cause__
     return False
+
+
+# ---------------------------------------------------------------------------------------------- waiting, files
+WAIT_SLICE_S = 0.02  # longest uninterrupted wait of a script's thread: bounds the Stop latency
+FIRST_SAMPLE_TIMEOUT_S = 2.0  # how long a state attribute waits for a device's first sample
+
+
+def interruptible_sleep(seconds: float, stop_event: threading.Event, check: Callable[[], None]) -> None:
+    """``time.sleep`` for scripts: waits in slices of WAIT_SLICE_S and ends early through ``check`` (which raises
+    ScriptStopped) once ``stop_event`` is set."""
+    seconds = float(seconds)
+    if seconds < 0:
+        raise ValueError("sleep length must be non-negative")
+    deadline = time.monotonic() + seconds
+    while True:
+        check()
+        remaining = deadline - time.monotonic()
+        if remaining <= 0:
+            return
+        stop_event.wait(min(remaining, WAIT_SLICE_S))
+
+
+def resolve_path(file_name: str, base_dir: Path | None, *extra_dirs: Path) -> Path:
+    """A file name from a script: as given when absolute; else the first of the script's folder, the working
+    folder and ``extra_dirs`` that holds it; else in the script's folder (or the working folder)."""
+    path = Path(file_name).expanduser()
+    if path.is_absolute():
+        return path
+    for folder in (base_dir, Path.cwd(), *extra_dirs):
+        if folder is not None and (folder / path).exists():
+            return folder / path
+    return (base_dir or Path.cwd()) / path
 
 
 # ---------------------------------------------------------------------------------------------- callbacks

@@ -45,9 +45,7 @@ from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
-WAIT_SLICE_S = 0.02  # longest uninterrupted wait of a script thread
 READ_WAIT_S = 0.1  # a read with no new sample since this thread's last read waits at most this long for one
-FIRST_SAMPLE_TIMEOUT_S = 2.0
 CALLBACK_QUEUE_LIMIT = 1000
 ASYNC_GRACE_S = 0.01
 ASYNC_RESEND_S = 0.02
@@ -85,6 +83,8 @@ for _error in (_api.ScriptStopped, *_api.SCRIPT_ERRORS.values()):
     # this file, the script's __main__), not by the module name they were loaded under
     _error.__module__ = "__main__"
 ScriptStopped: type[BaseException] = _api.ScriptStopped
+WAIT_SLICE_S: float = _api.WAIT_SLICE_S  # longest uninterrupted wait of a script thread
+FIRST_SAMPLE_TIMEOUT_S: float = _api.FIRST_SAMPLE_TIMEOUT_S
 DeviceUnavailable: type[Exception] = _api.DeviceUnavailable
 _OWN_FILES = frozenset({_KERNEL_FILE, os.path.abspath(API_SPEC_FILE)})  # frames a script's traceback leaves out
 
@@ -346,16 +346,7 @@ class Kernel:
 
     def sleep(self, seconds: float) -> None:
         """``time.sleep`` for scripts: returns early (raising ScriptStopped) when the script is stopped."""
-        seconds = float(seconds)
-        if seconds < 0:
-            raise ValueError("sleep length must be non-negative")
-        deadline = time.monotonic() + seconds
-        while True:
-            self.check()
-            remaining = deadline - time.monotonic()
-            if remaining <= 0:
-                return
-            self.stop_event.wait(min(remaining, WAIT_SLICE_S))
+        _api.interruptible_sleep(seconds, self.stop_event, self.check)
 
     # ------------------------------------------------------------------ samples
     def _stream(self, name: str) -> _Stream:
@@ -485,13 +476,7 @@ class Kernel:
         exec(compile(source, path, "exec"), namespace)
 
     def resolve_path(self, file_name: str) -> Path:
-        path = Path(file_name).expanduser()
-        if path.is_absolute():
-            return path
-        for folder in (self.base_dir, Path.cwd()):
-            if folder is not None and (folder / path).exists():
-                return folder / path
-        return (self.base_dir or Path.cwd()) / path
+        return _api.resolve_path(file_name, self.base_dir)
 
     # ------------------------------------------------------------------ the script (main thread)
     def main(self) -> None:
