@@ -17,7 +17,7 @@ from typing import Any, Protocol
 from app.bus import StreamBus
 from app.config import AppConfig
 from app.progress import ExerciseProgress
-from app.runs import RunLog
+from app.runs import RunLog, RunSource
 from app.safety import SafetySupervisor
 
 __all__ = ["DeviceEntry", "DeviceLink", "EventHost", "ExerciseRunner", "LslHost", "RecordingFailureHandler",
@@ -88,8 +88,10 @@ class EventHost(Protocol):
 class ScriptHost(Protocol):
     """What the script API, its bridge and the runner use: the bus (latest samples, the wake-up of a
     ``waitCondition``, the subscriptions a kernel's callbacks read), the supervisor (commands' checks, the
-    e-stop, events), the configuration, the drivers by name (their commands), the run log and the progress
-    marks, the operator's name, and a shutdown hook (no kernel outlives the devices)."""
+    e-stop and the run's stop action, events), the configuration, the drivers by name (their commands), the run
+    log and the progress marks, the operator's name, the session's patient profile (the electrode set-up saves
+    its choice on it), and a shutdown hook (no kernel outlives the devices). The runner uses exactly these
+    members, none probed."""
 
     config: AppConfig
     bus: StreamBus
@@ -99,8 +101,11 @@ class ScriptHost(Protocol):
     operator: str
     recorder: Any  # app.recording.SessionRecorder while a session runs, else None
     patient_profile: Any  # app.patients.PatientProfile of the running session, else None (the electrode set-up)
+    patient_version: int  # the archive's version of that profile (an accepted electrode choice is written on it)
 
     def driver(self, name: str) -> Any: ...  # the device's own driver class (its commands), None when absent
+
+    def update_session_profile(self, profile: Any, version: int | None = None) -> list[str]: ...
 
     def record_event(self, kind: str, who: str = "", **data: Any) -> None: ...
 
@@ -114,7 +119,7 @@ class ExerciseRunner(Protocol):
     def running(self) -> bool: ...
 
     def start(self, source: str, filename: str = "<script>", params: dict[str, Any] | None = None, *,
-              program: Any = None, parameters: Any = (), run_source: str = "script_tab",
+              program: Any = None, parameters: Any = (), run_source: RunSource = "script_tab",
               restart_of: str | None = None) -> Any: ...
 
 

@@ -31,6 +31,7 @@ import pytest
 from app import fes_profile
 from app.devices.udp_frames import LINK_KEY_ENV, PatientModelFrame
 from app.scripting import bridge as bridge_module
+from app.scripting import kernel_process
 from app.scripting.runner import ScriptRunner
 from tests.test_script_runner import FakeManager, Output, close_runners, started, wait_for
 
@@ -399,8 +400,8 @@ def test_a_print_flood_reaches_the_console_bounded(manager: FakeManager, output:
 
 
 def test_a_script_writing_megabytes_is_slowed_to_the_read_budget(manager: FakeManager, output: Output) -> None:
-    rate = getattr(bridge_module, "READ_RATE", 8 * 1024 * 1024)
-    burst = getattr(bridge_module, "READ_BURST", 16 * 1024 * 1024)
+    rate = getattr(kernel_process, "READ_RATE", 8 * 1024 * 1024)  # the kernel's link reads (bridge.py split, #40)
+    burst = getattr(kernel_process, "READ_BURST", 16 * 1024 * 1024)
     runner = ScriptRunner(manager, output, home_first=False)
     runner.start("line = 'x' * 3_000_000\nn = 0\nt0 = time.monotonic()\nwhile time.monotonic() - t0 < 2.0:\n"
                  "    print(line)\n    n += 1\nprint('wrote', n, time.monotonic() - t0)\n", "<megabytes>")

@@ -15,7 +15,7 @@ from PySide6.QtCore import QElapsedTimer, Qt, QTimer, QUrl
 from app.bus import UpdateNotifier
 from app.config import AppConfig
 from app.ui.script_console import ScriptConsole
-from tests.test_script_runner import FakeSupervisor, fake_bus
+from tests.test_script_runner import FakeSupervisor, ScriptHostParts, fake_bus
 
 
 @dataclass(frozen=True)
@@ -50,8 +50,9 @@ class Driver:
         self.commands.append("fes stop")
 
 
-class Manager:
+class Manager(ScriptHostParts):
     def __init__(self) -> None:
+        super().__init__()
         self.config = AppConfig()
         self.notifier = UpdateNotifier()
         self.bus = fake_bus(self.notifier)
@@ -138,11 +139,12 @@ def test_output_and_clickable_traceback_lines(console: ScriptConsole, qtbot: Any
     script.write_text(source)
     console.load_file(script)
     assert console.start_script()
-    qtbot.waitUntil(lambda: console.start_button.isEnabled() and "Error" in console.status.text(), timeout=3000)
+    # the status line says how the run ended, as the window's run log has it (the host has one, as the app's)
+    qtbot.waitUntil(lambda: console.start_button.isEnabled() and "error" in console.status.text(), timeout=3000)
     text = console.output_text()
     assert "hello from the script" in text
     assert "NameError" in text and f'File "{script}", line 5' in text
-    assert console.status.text().startswith("Error at line 5")
+    assert console.status.text().startswith("Script error at line 5")
     assert console.editor.error_line == 5
     html = console.output.toHtml()
     assert f"line:5:{script}" in html  # the line number is a link

@@ -406,7 +406,7 @@ class Progress:
         self.calls: list[tuple[Any, ...]] = []
 
     def __getattr__(self, name: str) -> Any:
-        return lambda *args: self.calls.append((name, *args))
+        return lambda *args, **_kwargs: self.calls.append((name, *args))  # begin(title, run_id=…): the run's
 
 
 def test_pause_holds_the_script_and_stops_the_fes_resume_lets_it_go_on(manager: FakeManager,

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -13,6 +14,8 @@ import pytest
 
 from app.bus import StreamBus, UpdateNotifier
 from app.config import AppConfig
+from app.progress import ExerciseProgress
+from app.runs import RunLog
 from app.scripting.runner import ScriptRunner
 from tests.fakes import BusSamples, fake_bus
 
@@ -74,15 +77,44 @@ class FakeDriver:
 class FakeSupervisor:
     def __init__(self) -> None:
         self.events: list[tuple[str, dict[str, Any]]] = []
+        self.estop_latched = False
+        self.estop_actions: dict[str, Callable[[str], None]] = {}
 
     def event(self, kind: str, **data: Any) -> None:
         self.events.append((kind, data))
 
+    def register_estop_action(self, name: str, action: Callable[[str], None]) -> None:
+        self.estop_actions[name] = action
 
-class FakeManager:
+
+class ScriptHostParts:
+    """The members of app.services.ScriptHost a test's host has besides its config, bus, supervisor and drivers:
+    a run log and progress of their own (the runner records its runs in them), no session, no patient."""
+
+    def __init__(self) -> None:
+        self.runs = RunLog()
+        self.progress = ExerciseProgress()
+        self.operator = ""
+        self.recorder: Any = None
+        self.patient_profile: Any = None
+        self.patient_version = 0
+        self.shutdown_hooks: list[Callable[[], None]] = []
+
+    def add_shutdown_hook(self, fn: Callable[[], None]) -> None:
+        self.shutdown_hooks.append(fn)
+
+    def record_event(self, kind: str, who: str = "", **data: Any) -> None:
+        self.supervisor.event(kind, **data)  # type: ignore[attr-defined]
+
+    def update_session_profile(self, profile: Any, version: int | None = None) -> list[str]:
+        return []
+
+
+class FakeManager(ScriptHostParts):
     def __init__(self, robot_safe_state: str = "idle") -> None:
         from dataclasses import replace
 
+        super().__init__()
         cfg = AppConfig()
         self.config = replace(cfg, safety=replace(cfg.safety, robot_safe_state=robot_safe_state))
         self.notifier = UpdateNotifier()

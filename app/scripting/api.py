@@ -1,25 +1,29 @@
-"""The objects an exercise script sees: the seed's script API (D2.2 §3.6, §4 and the Appendix).
+"""The script API in the application: the objects that do what a script asks (D2.2 §3.6, §4 and the Appendix).
 
 ``linarm`` (:class:`LinarmUser`), ``physiologicalSensors`` (:class:`PhysiologicalSensorsUser`),
 ``fes`` (:class:`FESUser`), ``patientModel`` (:class:`PatientModelUser`), ``VRUnity``
 (:class:`VRUnityUser`) and ``linarmppManager`` (:class:`LinarmppManager`), with the Appendix's
-camelCase names, so the seed's scripts run unchanged.
+camelCase names, so the seed's scripts run unchanged. Their shapes (state attributes, callback setters,
+methods, docstrings), the errors and ``linarmppManager`` itself are the API's one definition,
+app/scripting/api_spec.py, from which the script kernel's proxies are made too; this module implements them
+in the application. Scripts run in the kernel (app/scripting/kernel.py): its calls reach these objects through
+the bridge (app/scripting/bridge.py), with an inline context; the runner uses a context of its own for homing.
 
 Rules every object follows:
 
 * attribute reads (``linarm.linarmVsaState``, ``physiologicalSensors.physiologicalSensorsData``…)
   return the stream's latest sample on the bus (app/bus.py); before the first sample they wait briefly for
-  it (on the bus's notifier), then raise
-  :class:`DeviceUnavailable`. Each read also releases the GIL for a moment, so a script busy-waiting
-  on a device value (the seed's own ``waitCondition``) leaves the devices and the GUI their share;
+  it (on the bus's notifier), then raise :class:`DeviceUnavailable`. Each read also releases the GIL for a
+  moment, so a caller busy-waiting on a device value leaves the devices and the GUI their share;
 * commands block until the device acknowledges them and raise a :class:`ScriptError` with a plain
   sentence on refusal, error or timeout (the driver's own ACK timeout). They run on a helper thread
-  while the script waits in short slices, so Stop interrupts a script even while it waits for an
+  while the caller waits in short slices, so Stop interrupts it even while it waits for an
   acknowledgement. They all pass through the drivers' single command path, hence through the safety
   supervisor;
-* callbacks registered with the ``set…CallbackFun`` methods never run on a driver thread: the stream's
-  samples come from a bus subscription, and ``(callbacks, sample)`` is posted to the script's callback
-  thread (``post_callback``) by a thread of the context's own.
+* callbacks registered with the ``set…CallbackFun`` methods here never run on a driver thread: the stream's
+  samples come from a bus subscription, and ``(callbacks, sample)`` is posted to ``post_callback`` by a
+  thread of the context's own. (A script's own callbacks run in the kernel, on its callback thread: the bridge
+  streams it the samples; nothing in the application sets ``post_callback`` today.)
 
 The context is handed what it uses of the application (app.services.ScriptHost), not the manager.
 """
@@ -40,40 +44,30 @@ from app.bus import SampleItem, Subscription
 from app.devices import linarm_protocol as proto
 from app.devices.transport import TransportError
 from app.safety import SafetyError
+from app.scripting import api_spec
+from app.scripting.api_spec import (  # the one definition (re-exported: the bridge, the runner and tests use these)
+    API_NAMES,
+    CommandError,
+    CommandRefused,
+    DeviceUnavailable,
+    LinarmppManager,
+    NotInitializedError,
+    ScriptError,
+    ScriptStopped,
+)
 
 if TYPE_CHECKING:
     from app.services import ScriptHost
 
+__all__ = ["API_NAMES", "CommandError", "CommandRefused", "DeviceUnavailable", "FESUser", "LinarmUser",
+           "LinarmppManager", "NotInitializedError", "PatientModelUser", "PhysiologicalSensorsUser", "ScriptContext",
+           "ScriptError", "ScriptStopped", "VRUnityUser", "build_api", "emergency_stop"]
+
 log = logging.getLogger(__name__)
 
-WAIT_SLICE_S = 0.02  # longest uninterrupted wait of a script thread: bounds the Stop latency
-FIRST_SAMPLE_TIMEOUT_S = 2.0  # how long an attribute read waits for a device's first sample
+WAIT_SLICE_S = api_spec.WAIT_SLICE_S
+FIRST_SAMPLE_TIMEOUT_S = api_spec.FIRST_SAMPLE_TIMEOUT_S
 CALLBACK_QUEUE = 4096  # samples of one callback stream waiting to be posted (oldest dropped, counted)
-
-
-# ---------------------------------------------------------------------------------------------- errors
-class ScriptStopped(BaseException):
-    """Raised inside a script when it is stopped. A BaseException, so that a script's own
-    ``except Exception:`` cannot swallow the Stop button."""
-
-
-class ScriptError(RuntimeError):
-    """A script API call failed; the message is a sentence a therapist can read."""
-
-
-class DeviceUnavailable(ScriptError):
-    """The device is not configured, not connected, or has not sent anything yet."""
-
-
-NotInitializedError = DeviceUnavailable  # the seed's name (linarm_user.NotInitializedError)
-
-
-class CommandError(ScriptError):
-    """The device refused the command, reported an error, or did not answer in time."""
-
-
-class CommandRefused(CommandError):
-    """The safety supervisor refused the command (nothing was sent). Ends a headless run as a safety stop."""
 
 
 # ---------------------------------------------------------------------------------------------- context
@@ -110,16 +104,7 @@ class ScriptContext:
 
     def sleep(self, seconds: float) -> None:
         """``time.sleep`` for scripts: returns early (raising ScriptStopped) when the script is stopped."""
-        seconds = float(seconds)
-        if seconds < 0:
-            raise ValueError("sleep length must be non-negative")
-        deadline = time.monotonic() + seconds
-        while True:
-            self.check()
-            remaining = deadline - time.monotonic()
-            if remaining <= 0:
-                return
-            self.stop_event.wait(min(remaining, WAIT_SLICE_S))
+        api_spec.interruptible_sleep(seconds, self.stop_event, self.check)
 
     def wait_until(self, predicate: Callable[[], Any], timeout: float | None) -> bool:
         """Evaluate ``predicate`` now and again on every new device sample (at least every 50 ms) until it
@@ -239,34 +224,70 @@ class ScriptContext:
                 self._executor = None
 
     def resolve_path(self, file_name: str, *extra_dirs: Path) -> Path:
-        path = Path(file_name).expanduser()
-        if path.is_absolute():
-            return path
-        for folder in (self.base_dir, Path.cwd(), *extra_dirs):
-            if folder is not None and (folder / path).exists():
-                return folder / path
-        return (self.base_dir or Path.cwd()) / path
+        return api_spec.resolve_path(file_name, self.base_dir, *extra_dirs)
 
 
-def _set_callbacks(target: list[Callable[[Any], Any]], fun: Any, what: str) -> None:
-    """The seed's ``set…CallbackFun``: a callable is added to the list; a list replaces it; None clears it."""
-    if fun is None:
-        target.clear()
-        return
-    funs = list(fun) if isinstance(fun, list | tuple) else [fun]
-    for f in funs:
-        if not callable(f):
-            raise TypeError(f"{what} expects a function taking one argument (the new data), got {f!r}")
-    if isinstance(fun, list | tuple):
-        target[:] = funs
-    else:
-        target.append(fun)
+def _make_property(shape: api_spec.ObjectShape, prop: api_spec.Property) -> property:
+    """A state attribute of the in-app objects: the stream's latest sample on the bus."""
+    stream = getattr(streams, prop.stream)
+    device, label = streams.device_of(stream), shape.label
+
+    def get(self: _ApiObject) -> Any:
+        return self._ctx.latest(device, stream, label)
+
+    return property(get)
+
+
+def _make_setter(shape: api_spec.ObjectShape, method: str, setter: api_spec.CallbackSetter) -> Callable[..., None]:
+    """A ``set…CallbackFun`` of the in-app objects: the context posts the stream's samples to the list."""
+    stream = getattr(streams, setter.stream)
+    device, label, what = streams.device_of(stream), shape.label, f"{shape.name}.{method}"
+
+    def set_callback(self: _ApiObject, fun: Any) -> None:
+        target = getattr(self, setter.list_name)
+        api_spec.set_callbacks(target, fun, what)
+        self._ctx.subscribe(device, stream, label, target)
+
+    return set_callback
+
+
+class _ApiObject:
+    """Base of the in-app objects: the run's context and the shape's callback lists."""
+
+    _shape: api_spec.ObjectShape
+
+    def __init__(self, context: ScriptContext) -> None:
+        self._ctx = context
+        api_spec.init_callback_lists(self, self._shape)
+
+
+def _shaped(shape: api_spec.ObjectShape) -> Callable[[type], type]:
+    """Class decorator: the shape's attributes, setters and docstrings on an in-app class (api_spec.py)."""
+
+    def apply(cls: type) -> type:
+        cls._shape = shape  # type: ignore[attr-defined]
+        return api_spec.apply_shape(cls, shape, _make_property, _make_setter)
+
+    return apply
+
+
+# The shapes' streams by their constant's name in app/streams.py ("LINARM_VSA" -> "linarm.vsa"): the kernel gets it
+SPEC_STREAMS: dict[str, str] = {
+    key: getattr(streams, key) for shape in api_spec.OBJECTS.values()
+    for key in (*(p.stream for p in shape.properties.values()), *(c.stream for c in shape.callbacks.values()))
+}
+# stream -> (device, label): the streams a script reads (the bridge serves these)
+SCRIPT_STREAMS: dict[str, tuple[str, str]] = {
+    getattr(streams, p.stream): (streams.device_of(getattr(streams, p.stream)), shape.label)
+    for shape in api_spec.OBJECTS.values() for p in shape.properties.values()
+}
 
 
 # ---------------------------------------------------------------------------------------------- LINarm
 # The driver owns the data stream, the heartbeat and the identification; scripts do not get those.
 _HIDDEN_COMMANDS = frozenset({"identify", "heartbeat", "startDataStream", "stopDataStream", "getState"})
 SCRIPT_COMMANDS: tuple[proto.Command, ...] = tuple(c for c in proto.HOST_COMMANDS if c.name not in _HIDDEN_COMMANDS)
+SCRIPT_COMMAND_NAMES = frozenset(c.name for c in SCRIPT_COMMANDS)
 
 
 def _coerce(command: str, arg: proto.Arg, value: Any) -> Any:
@@ -308,11 +329,11 @@ def _make_command(spec: proto.Command) -> Callable[..., Any]:
     return command
 
 
-class LinarmUser:
-    """``linarm``: the LINarm2 robot. Commands are the controller's (docs/linarm-protocol.md); state
-    attributes are the latest samples of its streams, with the seed's field names (``equilibriumPos``…)."""
+@_shaped(api_spec.LINARM)
+class LinarmUser(_ApiObject):
+    """``linarm`` (its docstring, state attributes and callback setters: app/scripting/api_spec.py); the commands
+    are the controller's (docs/linarm-protocol.md), added below from the wire's command table."""
 
-    classString = "LinarmUser"
     CONTROL_STATES = proto.CONTROL_STATES
     CONTROL_MODES = proto.CONTROL_MODES
     HOME_STATES = proto.HOME_STATES
@@ -320,58 +341,7 @@ class LinarmUser:
     TRIGGER_MODES = proto.TRIGGER_MODES
     TRAJECTORY_TYPES = proto.TRAJECTORY_TYPES
 
-    def __init__(self, context: ScriptContext) -> None:
-        self._ctx = context
-        self.linarmDataCallbackList: list[Callable[[Any], Any]] = []
-        self.linarmMotor0DataCallbackList: list[Callable[[Any], Any]] = []
-        self.linarmMotor1DataCallbackList: list[Callable[[Any], Any]] = []
-        self.linarmVsaDataCallbackList: list[Callable[[Any], Any]] = []
-
-    def __repr__(self) -> str:
-        return "<linarm: LINarm2 robot (LinarmUser)>"
-
-    # ------------------------------------------------------------------ state (latest samples)
-    @property
-    def linarmState(self) -> Any:
-        """controlState, controlMode, homeState, errorState, triggerMode, initialized, trajectoryType, …"""
-        return self._ctx.latest(streams.LINARM, streams.LINARM_STATE, "the LINarm")
-
-    @property
-    def linarmVsaState(self) -> Any:
-        """equilibriumPos (m), delta (m), stiffness (N/m), handlePos (m), handleVel (m/s), interactionForce (N)."""
-        return self._ctx.latest(streams.LINARM, streams.LINARM_VSA, "the LINarm")
-
-    @property
-    def linarmMotor0State(self) -> Any:
-        """position (m), velocity (m/s), current (A), target (m) of motor 0."""
-        return self._ctx.latest(streams.LINARM, streams.LINARM_MOTOR0, "the LINarm")
-
-    @property
-    def linarmMotor1State(self) -> Any:
-        """position (m), velocity (m/s), current (A), target (m) of motor 1."""
-        return self._ctx.latest(streams.LINARM, streams.LINARM_MOTOR1, "the LINarm")
-
-    # ------------------------------------------------------------------ callbacks
-    def setLinarmDataCallbackFun(self, fun: Any) -> None:
-        """Call ``fun(linarmState)`` on every LINarm state sample (on the script's callback thread)."""
-        self._callbacks(streams.LINARM_STATE, self.linarmDataCallbackList, fun, "setLinarmDataCallbackFun")
-
-    def setLinarmMotor0DataCallbackFun(self, fun: Any) -> None:
-        self._callbacks(streams.LINARM_MOTOR0, self.linarmMotor0DataCallbackList, fun, "setLinarmMotor0DataCallbackFun")
-
-    def setLinarmMotor1DataCallbackFun(self, fun: Any) -> None:
-        self._callbacks(streams.LINARM_MOTOR1, self.linarmMotor1DataCallbackList, fun, "setLinarmMotor1DataCallbackFun")
-
-    def setLinarmVsaDataCallbackFun(self, fun: Any) -> None:
-        """Call ``fun(linarmVsaState)`` on every VSA sample (200 Hz: keep it short)."""
-        self._callbacks(streams.LINARM_VSA, self.linarmVsaDataCallbackList, fun, "setLinarmVsaDataCallbackFun")
-
-    def _callbacks(self, stream: str, target: list[Callable[[Any], Any]], fun: Any, what: str) -> None:
-        _set_callbacks(target, fun, f"linarm.{what}")
-        self._ctx.subscribe(streams.LINARM, stream, "the LINarm", target)
-
     def getConfigData(self) -> dict[str, Any]:
-        """The robot's configuration and safety limits as the application holds them."""
         cfg = self._ctx.host.config
         from app.yamlschema import to_plain
 
@@ -410,89 +380,31 @@ def _show(value: Any) -> str:
 
 for _spec in SCRIPT_COMMANDS:
     setattr(LinarmUser, _spec.name, _make_command(_spec))
-LinarmUser.moveDeltato = LinarmUser.moveDeltaTo  # type: ignore[attr-defined]  # the seed's service list spells it so
+for _alias, _target in api_spec.LINARM_ALIASES.items():
+    setattr(LinarmUser, _alias, getattr(LinarmUser, _target))
 
 
 # ---------------------------------------------------------------------------------------------- sensors
-class PhysiologicalSensorsUser:
-    """``physiologicalSensors``: grip force (N), skin temperature (°C), heart rate (bpm), skin conductance (µS)."""
-
-    classString = "PhysiologicalSensorsUser"
-
-    def __init__(self, context: ScriptContext) -> None:
-        self._ctx = context
-        self.physiologicalDataCallbackList: list[Callable[[Any], Any]] = []
-
-    def __repr__(self) -> str:
-        return "<physiologicalSensors: grip force, temperature, heart rate, skin conductance>"
-
-    @property
-    def physiologicalSensorsData(self) -> Any:
-        """force (N), temperature (°C), heartRate (bpm), skinConductance (µS), boardTime (s), …"""
-        return self._ctx.latest(streams.PHYSIO, streams.PHYSIO_MAIN, "the physiological sensors")
-
-    def setPhysiologicalSensorsDataCallbackFun(self, fun: Any) -> None:
-        """Call ``fun(physiologicalSensorsData)`` on every sample (100 Hz), on the script's callback thread."""
-        funs = self.physiologicalDataCallbackList
-        _set_callbacks(funs, fun, "physiologicalSensors.setPhysiologicalSensorsDataCallbackFun")
-        self._ctx.subscribe(streams.PHYSIO, streams.PHYSIO_MAIN, "the physiological sensors", funs)
+@_shaped(api_spec.PHYSIOLOGICAL_SENSORS)
+class PhysiologicalSensorsUser(_ApiObject):
+    """``physiologicalSensors`` (app/scripting/api_spec.py)."""
 
 
-class PatientModelUser:
-    """``patientModel``: the patient model's latest output (alpha, a_r, a_f, tpi, mpi, pti)."""
-
-    classString = "PatientModelUser"
-
-    def __init__(self, context: ScriptContext) -> None:
-        self._ctx = context
-        self.patientModelDataCallbackList: list[Callable[[Any], Any]] = []
-
-    def __repr__(self) -> str:
-        return "<patientModel: assistance levels and performance indices>"
-
-    @property
-    def patientModelData(self) -> Any:
-        return self._ctx.latest(streams.PATIENT_MODEL, streams.PATIENT_MODEL_MAIN, "the patient model")
-
-    def setPatientModelDataCallbackFun(self, fun: Any) -> None:
-        funs = self.patientModelDataCallbackList
-        _set_callbacks(funs, fun, "patientModel.setPatientModelDataCallbackFun")
-        self._ctx.subscribe(streams.PATIENT_MODEL, streams.PATIENT_MODEL_MAIN, "the patient model", funs)
+@_shaped(api_spec.PATIENT_MODEL)
+class PatientModelUser(_ApiObject):
+    """``patientModel`` (app/scripting/api_spec.py)."""
 
 
-class VRUnityUser:
-    """``VRUnity``: the VR renderer's latest frame (targetPos, score, targetsReached)."""
-
-    classString = "VRUnityUser"
-
-    def __init__(self, context: ScriptContext) -> None:
-        self._ctx = context
-        self.VRUnityDataCallbackList: list[Callable[[Any], Any]] = []
-
-    def __repr__(self) -> str:
-        return "<VRUnity: the virtual-reality scene>"
-
-    @property
-    def VRUnityData(self) -> Any:
-        return self._ctx.latest(streams.VR, streams.VR_MAIN, "the VR renderer")
-
-    def setVRUnityDataCallbackFun(self, fun: Any) -> None:
-        _set_callbacks(self.VRUnityDataCallbackList, fun, "VRUnity.setVRUnityDataCallbackFun")
-        self._ctx.subscribe(streams.VR, streams.VR_MAIN, "the VR renderer", self.VRUnityDataCallbackList)
+@_shaped(api_spec.VR_UNITY)
+class VRUnityUser(_ApiObject):
+    """``VRUnity`` (app/scripting/api_spec.py)."""
 
 
 # ---------------------------------------------------------------------------------------------- FES
-class FESUser:
-    """``fes``: the RehaStim stimulator. ``loadFile`` a profile (YAML, docs/fes.md), ``start``, ``stop``, and
-    the live scale factors. Every change passes the FES limiter of the safety supervisor."""
-
-    classString = "FESUser"
-
-    def __init__(self, context: ScriptContext) -> None:
-        self._ctx = context
-
-    def __repr__(self) -> str:
-        return "<fes: RehaStim stimulator (FESUser)>"
+@_shaped(api_spec.FES)
+class FESUser(_ApiObject):
+    """``fes`` (its methods' docstrings: app/scripting/api_spec.py): every change passes the FES limiter of the
+    safety supervisor."""
 
     def _driver(self) -> Any:
         return self._ctx.driver(streams.FES, "the FES stimulator")
@@ -510,7 +422,6 @@ class FESUser:
             raise CommandError(f"{what} failed: {exc}") from exc
 
     def loadFile(self, fileName: str) -> Any:
-        """Load a current + pulse-width profile (YAML) into the stimulator; returns the profile."""
         from app.config import RESOURCES
         from app.fes_profile import load_profile
 
@@ -521,7 +432,6 @@ class FESUser:
         return profile
 
     def writeFile(self, data: Any, fileName: str) -> None:
-        """Save a profile (an ``FesProfile``, e.g. ``fes.profile``) as YAML."""
         from app.fes_profile import FesProfile, save_profile
         from app.safe_files import check_writable_target
 
@@ -531,35 +441,29 @@ class FESUser:
         check_writable_target(path)  # never replace a device node, a pipe or a folder (the app may run as root)
         save_profile(data, path)
 
-    saveFile = writeFile  # the Appendix lists both names
+    saveFile = writeFile  # the Appendix lists both names (api_spec.FES_ALIASES)
 
     def start(self) -> None:
-        """Start stimulating with the loaded profile."""
         driver = self._driver()
         start = getattr(driver, "start_stimulation", None) or driver.start  # start(str) is the contract's alias
         self._call("fes.start()", start, self._ctx.source)
 
     def stop(self) -> None:
-        """Stop stimulating."""
         driver = self._driver()
         stop = getattr(driver, "stop_stimulation", None) or driver.stop  # stop(str, str) is the contract's alias
         self._call("fes.stop()", stop, "stopped by the script", self._ctx.source)
 
     def setCurrentScaleFactor(self, factor: float) -> float:
-        """Scale the current profile (0..2); returns the factor applied."""
         driver = self._driver()
         return float(self._call(f"fes.setCurrentScaleFactor({factor!r})", driver.set_current_scale,
                                 float(factor), self._ctx.source))
 
     def setPWScaleFactor(self, factor: float) -> float:
-        """Scale the pulse-width profile (0..2); returns the factor applied."""
         driver = self._driver()
         return float(self._call(f"fes.setPWScaleFactor({factor!r})", driver.set_pulse_width_scale,
                                 float(factor), self._ctx.source))
 
     def setPhase(self, phase: float | None) -> None:
-        """Not in the seed: the movement phase 0..1 that a ``phase`` profile follows (0 = start of the reach,
-        0.5 = target, 1 = back at the start); None = at rest. Cheap: call it from a LINarm callback."""
         driver = self._driver()
         set_phase = getattr(driver, "set_phase", None)
         if set_phase is None:
@@ -568,10 +472,6 @@ class FESUser:
 
     def electrodeSetup(self, district: str, ceiling_mA: float, start_mA: float = 6.0, step_mA: float = 2.0,
                        pulseWidth_us: float = 250.0, accept: bool = False) -> dict[str, Any]:
-        """Not in the seed (issue #32): test every electrode combination of ``district``'s array with ramped
-        bursts from ``start_mA`` to ``ceiling_mA`` (never above the patient's caps) while the robot holds the arm;
-        returns the responses and the proposal (the largest response per mA). ``accept``: save the proposal as the
-        patient's choice (docs/fes.md "Electrode set-up")."""
         from app import electrodes
 
         manager = self._ctx.host
@@ -611,11 +511,9 @@ class FESUser:
             from app.archive import station
 
             saved = station.save_choice_record(result, channel, profile, manager.operator or self._ctx.source,
-                                               "", manager.config.safety,
-                                               expected_version=getattr(manager, "patient_version", 0))
+                                               "", manager.config.safety, expected_version=manager.patient_version)
             profile = saved.profile
-            update = getattr(manager, "update_session_profile", None)
-            if not (callable(update) and update(profile, saved.version)):
+            if not manager.update_session_profile(profile, saved.version):
                 manager.patient_profile = profile
                 manager.patient_version = saved.version
             fes.set_district_channels(profile.fes.district_channels())
@@ -632,7 +530,6 @@ class FESUser:
         return bool(getattr(self._driver(), "stimulating", False))
 
     def getConfigData(self) -> dict[str, Any]:
-        """Device, profile, scale factors and limits."""
         driver = self._driver()
         config_data = getattr(driver, "config_data", None)
         if callable(config_data):
@@ -644,75 +541,41 @@ class FESUser:
 
 
 # ---------------------------------------------------------------------------------------------- manager
-class LinarmppManager:
-    """``linarmppManager``: every module in one object, and a program (script file) to run."""
+class _ManagerPort:
+    """``linarmppManager``'s side in the application (api_spec.ManagerPort): the run's context and its host."""
 
-    classString = "LinarmppManager"
-
-    def __init__(self, context: ScriptContext, linarm: LinarmUser, physiologicalSensors: PhysiologicalSensorsUser,
-                 fes: FESUser, patientModel: PatientModelUser, VRUnity: VRUnityUser) -> None:
+    def __init__(self, context: ScriptContext) -> None:
         self._ctx = context
-        self.linarm = linarm
-        self.physiologicalSensors = physiologicalSensors
-        self.fes = fes
-        self.patientModel = patientModel
-        self.VRUnity = VRUnity
-        self.fileName: str | None = None
 
-    def __repr__(self) -> str:
-        return "<linarmppManager: linarm, physiologicalSensors, fes, patientModel, VRUnity>"
+    def resolve_path(self, file_name: str) -> Path:
+        return self._ctx.resolve_path(file_name)
 
-    def emergencyStop(self, reason: str = "emergency stop from a script") -> None:
-        """FES Stop and robot IDLE at once, latched until an operator resets it; the script is stopped."""
-        emergency_stop(self._ctx, reason)
-
-    def setProgram(self, fileName: str) -> None:
-        """Choose the script file that ``startProgram`` runs."""
-        path = self._ctx.resolve_path(str(fileName))
-        if not path.is_file():
-            raise FileNotFoundError(f"no script file {path}")
-        self.fileName = str(path)
-
-    def startProgram(self) -> None:
-        """Run the chosen script here, to its end (it shares this run's Stop button and devices)."""
-        if self.fileName is None:
-            raise ScriptError("call linarmppManager.setProgram(fileName) first")
+    def run_program(self, path: str) -> None:
         if self._ctx.run_program is None:
             raise ScriptError("programs can only be started from a running script")
-        self._ctx.run_program(self.fileName)
+        self._ctx.run_program(path)
 
-    internalExec = startProgram
+    def emergency_stop(self, reason: str) -> None:
+        self._ctx.host.supervisor.emergency_stop(self._ctx.source, reason)
 
-    # Progress marks (an addition to the Appendix): the window shows "repetition 3 of 8", and the
-    # marks are session events from which the per-repetition metrics find the repetitions.
-    def startRepetition(self, index: int, total: int | None = None) -> None:
-        """Mark the start of repetition ``index`` (from 1), optionally of ``total``."""
+    def start_repetition(self, index: int, total: int | None) -> None:
         self._ctx.host.progress.start_repetition(index, total)
 
-    def endRepetition(self, index: int | None = None, ok: bool = True) -> None:
-        """Mark the end of repetition ``index`` (the current one when omitted); ``ok=False`` if it failed."""
+    def end_repetition(self, index: int | None, ok: bool) -> None:
         self._ctx.host.progress.end_repetition(index, ok)
 
-    def reportProgress(self, text: str) -> None:
-        """A short message for the clinician (shown beside the repetition count, recorded as an event)."""
+    def report_progress(self, text: str) -> None:
         self._ctx.host.progress.report(text)
 
-    def prompt(self, index: int | None = None, cue: str = "squeeze", threshold: float | None = None) -> None:
-        """Mark the cue to the patient, now ("squeeze" the handle, ``threshold`` N; or "move"): the patient's
-        reaction time is measured from it (docs/metrics.md)."""
+    def prompt(self, index: int | None, cue: str, threshold: float | None) -> None:
         self._ctx.host.progress.prompt(index, cue, threshold)
 
-    def setRunState(self, state: str, detail: str = "") -> None:
-        """Say what the run does now, for the progress area and the record: "waiting_for_grip", "moving",
-        "resting" or "running" (homing, paused, stopped and finished are set by the application)."""
+    def set_run_state(self, state: str, detail: str) -> None:
         self._ctx.host.progress.set_run_state(state, detail)
 
 
 # ---------------------------------------------------------------------------------------------- namespace
-API_NAMES = ("linarm", "physiologicalSensors", "fes", "patientModel", "VRUnity", "linarmppManager")
-
-
-def emergency_stop(context: ScriptContext, reason: str = "emergency stop from a script") -> None:
+def emergency_stop(context: ScriptContext, reason: str = api_spec.ESTOP_REASON) -> None:
     """The script API's e-stop: the supervisor's, then this script ends (it must not go on moving)."""
     context.host.supervisor.emergency_stop(context.source, reason)
     raise ScriptStopped(reason)
@@ -725,11 +588,10 @@ def build_api(context: ScriptContext) -> dict[str, Any]:
     fes = FESUser(context)
     patient_model = PatientModelUser(context)
     vr = VRUnityUser(context)
-    mgr = LinarmppManager(context, linarm, physio, fes, patient_model, vr)
+    mgr = LinarmppManager(_ManagerPort(context), linarm, physio, fes, patient_model, vr)
     return {
         "linarm": linarm, "physiologicalSensors": physio, "fes": fes, "patientModel": patient_model,
         "VRUnity": vr, "linarmppManager": mgr, "manager": mgr,
-        "emergencyStop": lambda reason="emergency stop from a script": emergency_stop(context, reason),
-        "ScriptError": ScriptError, "CommandError": CommandError, "CommandRefused": CommandRefused,
-        "DeviceUnavailable": DeviceUnavailable, "NotInitializedError": NotInitializedError,
+        "emergencyStop": lambda reason=api_spec.ESTOP_REASON: emergency_stop(context, reason),
+        **api_spec.SCRIPT_ERRORS,
     }

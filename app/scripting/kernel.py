@@ -1,12 +1,15 @@
 """The script kernel: the child interpreter in which exercise scripts run (standard library only).
 
-Started by :mod:`app.scripting.bridge` as ``python -I kernel.py FD MEMORY_LIMIT`` with one end of a
-socket pair as ``FD``. It imports nothing of the application (``-I`` keeps the application's folder off
-``sys.path``): the API's shape (command table, enums, streams) arrives as data in the first message,
-and the objects a script sees — ``linarm``, ``physiologicalSensors``, ``fes``, ``patientModel``,
-``VRUnity``, ``linarmppManager``, ``emergencyStop``, ``waitCondition``, ``wait`` — are proxies that send
-requests and read samples streamed by the application. Nothing here can reach a driver, a port, the
-safety supervisor or the manager: they live in another process.
+Started by the application's kernel process (app/scripting/kernel_process.py) through the kernel's warden
+(app/scripting/warden.py), which execs ``python -I kernel.py FD MEMORY_LIMIT`` with one end of a socket pair as
+``FD``. It imports nothing of the application (``-I`` keeps the application's folder off ``sys.path``, and an
+import of ``app``, PySide6 or serial is refused): the API's one definition — its errors, the objects' shapes,
+the callback plumbing, ``linarmppManager`` — is app/scripting/api_spec.py (standard library only), loaded here
+by its path under a name outside ``app``; what only the application knows (the robot's command table, its
+enums, the streams' names) arrives as data in the first message. The objects a script sees — ``linarm``,
+``physiologicalSensors``, ``fes``, ``patientModel``, ``VRUnity``, ``linarmppManager``, ``emergencyStop``,
+``waitCondition``, ``wait`` — are proxies that send requests and read samples streamed by the application.
+Nothing here can reach a driver, a port, the safety supervisor or the manager: they live in another process.
 
 Wire format, both directions: one JSON object per line (data only; the application never unpickles
 what comes from here). Threads: the main thread runs the script; a reader thread dispatches what the
@@ -42,9 +45,7 @@ from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
-WAIT_SLICE_S = 0.02  # longest uninterrupted wait of a script thread
 READ_WAIT_S = 0.1  # a read with no new sample since this thread's last read waits at most this long for one
-FIRST_SAMPLE_TIMEOUT_S = 2.0
 CALLBACK_QUEUE_LIMIT = 1000
 ASYNC_GRACE_S = 0.01
 ASYNC_RESEND_S = 0.02
@@ -56,36 +57,36 @@ _real_exit = os._exit
 _KERNEL_FILE = os.path.abspath(__file__)
 
 
-# ---------------------------------------------------------------------------------------------- errors
-class ScriptStopped(BaseException):
-    """Raised inside a script when it is stopped (a BaseException: ``except Exception`` cannot swallow it)."""
+# ---------------------------------------------------------------------------------------------- the API's definition
+API_SPEC_FILE = os.path.join(os.path.dirname(_KERNEL_FILE), "api_spec.py")
+API_SPEC_MODULE = "_linarmpp_script_api"  # outside ``app``: nothing of the application is imported here
 
 
-class ScriptError(RuntimeError):
-    """A script API call failed; the message is a sentence a therapist can read."""
+def _load_api_spec() -> Any:
+    """app/scripting/api_spec.py, the API's one definition the application shares, loaded by its path."""
+    import importlib.util
+
+    module = sys.modules.get(API_SPEC_MODULE)
+    if module is None:
+        spec = importlib.util.spec_from_file_location(API_SPEC_MODULE, API_SPEC_FILE)
+        if spec is None or spec.loader is None:
+            raise ImportError(f"the script API's definition cannot be loaded from {API_SPEC_FILE}")
+        module = importlib.util.module_from_spec(spec)
+        sys.modules[API_SPEC_MODULE] = module
+        spec.loader.exec_module(module)
+    return module
 
 
-class DeviceUnavailable(ScriptError):
-    """The device is not configured, not connected, or has not sent anything yet."""
-
-
-NotInitializedError = DeviceUnavailable
-
-
-class CommandError(ScriptError):
-    """The device refused the command, reported an error, or did not answer in time."""
-
-
-class CommandRefused(CommandError):
-    """The safety supervisor refused the command (nothing was sent)."""
-
-
-_ERRORS: dict[str, type[BaseException]] = {
-    "ScriptStopped": ScriptStopped, "ScriptError": ScriptError, "DeviceUnavailable": DeviceUnavailable,
-    "CommandError": CommandError, "CommandRefused": CommandRefused, "TypeError": TypeError,
-    "ValueError": ValueError, "FileNotFoundError": FileNotFoundError, "OSError": OSError,
-    "KeyError": KeyError, "RuntimeError": RuntimeError,
-}
+_api = _load_api_spec()
+for _error in (_api.ScriptStopped, *_api.SCRIPT_ERRORS.values()):
+    # a script's traceback names them as its namespace does ("CommandRefused: …", as when they were defined in
+    # this file, the script's __main__), not by the module name they were loaded under
+    _error.__module__ = "__main__"
+ScriptStopped: type[BaseException] = _api.ScriptStopped
+WAIT_SLICE_S: float = _api.WAIT_SLICE_S  # longest uninterrupted wait of a script thread
+FIRST_SAMPLE_TIMEOUT_S: float = _api.FIRST_SAMPLE_TIMEOUT_S
+DeviceUnavailable: type[Exception] = _api.DeviceUnavailable
+_OWN_FILES = frozenset({_KERNEL_FILE, os.path.abspath(API_SPEC_FILE)})  # frames a script's traceback leaves out
 
 
 # ---------------------------------------------------------------------------------------------- helpers
@@ -257,8 +258,7 @@ class Kernel:
         reply = slot.reply
         error = reply.get("error")
         if error is not None:
-            kind = _ERRORS.get(str(error.get("type")), ScriptError)
-            raise kind(str(error.get("message", "")))
+            raise _api.wire_error_class(error.get("type"))(str(error.get("message", "")))
         value = reply.get("value")
         if reply.get("tuple") and isinstance(value, list):
             return tuple(value)
@@ -346,16 +346,7 @@ class Kernel:
 
     def sleep(self, seconds: float) -> None:
         """``time.sleep`` for scripts: returns early (raising ScriptStopped) when the script is stopped."""
-        seconds = float(seconds)
-        if seconds < 0:
-            raise ValueError("sleep length must be non-negative")
-        deadline = time.monotonic() + seconds
-        while True:
-            self.check()
-            remaining = deadline - time.monotonic()
-            if remaining <= 0:
-                return
-            self.stop_event.wait(min(remaining, WAIT_SLICE_S))
+        _api.interruptible_sleep(seconds, self.stop_event, self.check)
 
     # ------------------------------------------------------------------ samples
     def _stream(self, name: str) -> _Stream:
@@ -485,13 +476,7 @@ class Kernel:
         exec(compile(source, path, "exec"), namespace)
 
     def resolve_path(self, file_name: str) -> Path:
-        path = Path(file_name).expanduser()
-        if path.is_absolute():
-            return path
-        for folder in (self.base_dir, Path.cwd()):
-            if folder is not None and (folder / path).exists():
-                return folder / path
-        return (self.base_dir or Path.cwd()) / path
+        return _api.resolve_path(file_name, self.base_dir)
 
     # ------------------------------------------------------------------ the script (main thread)
     def main(self) -> None:
@@ -534,7 +519,7 @@ class Kernel:
             if exc.code not in (None, 0):
                 status, message = "error", f"exit({exc.code!r})"
         except BaseException as exc:
-            status = "refused" if _refused(exc) else "error"
+            status = "refused" if _api.refused(exc) else "error"
             message, line, text = _describe(exc)
             fatal = isinstance(exc, MemoryError)
         self.stop_event.set()  # callbacks and prompt statements end with the script
@@ -674,21 +659,12 @@ def _wire_arg(obj: str, name: str, value: Any) -> Any:
     raise TypeError(f"{obj}.{name}: arguments are numbers, True/False or text, got {value!r}")
 
 
-def _refused(exc: BaseException) -> bool:
-    seen: BaseException | None = exc
-    while seen is not None:
-        if isinstance(seen, CommandRefused):
-            return True
-        seen = seen.__cause__
-    return False
-
-
 def _describe(exc: BaseException) -> tuple[str, int | None, str]:
     """(message, the user's line, a traceback without the kernel's own frames)."""
     frames = traceback.extract_tb(exc.__traceback__)
-    user = [f for f in frames if f.filename != _KERNEL_FILE]
+    user = [f for f in frames if f.filename not in _OWN_FILES]
     line = user[-1].lineno if user else None
-    if isinstance(exc, SyntaxError) and exc.filename and exc.filename != _KERNEL_FILE:
+    if isinstance(exc, SyntaxError) and exc.filename and exc.filename not in _OWN_FILES:
         line = exc.lineno
     lines = ["Traceback (most recent call last):\n", *traceback.format_list(user or frames)]
     lines += traceback.format_exception_only(type(exc), exc)
@@ -700,21 +676,6 @@ def _remember_source(filename: str, source: str) -> None:
 
 
 # ---------------------------------------------------------------------------------------------- the API
-def _set_callbacks(target: list[Callable[[Any], Any]], fun: Any, what: str) -> None:
-    """The seed's ``set…CallbackFun``: a callable is added to the list; a list replaces it; None clears it."""
-    if fun is None:
-        target.clear()
-        return
-    funs = list(fun) if isinstance(fun, list | tuple) else [fun]
-    for f in funs:
-        if not callable(f):
-            raise TypeError(f"{what} expects a function taking one argument (the new data), got {f!r}")
-    if isinstance(fun, list | tuple):
-        target[:] = funs
-    else:
-        target.append(fun)
-
-
 class FesProfileRef:
     """A stimulation profile held by the application (``fes.loadFile`` / ``fes.profile``)."""
 
@@ -733,44 +694,29 @@ def _profile(value: Any) -> Any:
 
 
 class _ApiObject:
-    """Base of the proxies: state properties and callback setters are made from the API's table."""
+    """Base of the proxies: their shape (app/scripting/api_spec.py) gives them their state properties, callback
+    setters and docstrings; every call goes to the application."""
 
-    _name = ""
-    classString = ""
+    _shape: Any = None
 
     def __init__(self, kernel: Kernel) -> None:
         self._k = kernel
-
-    def __repr__(self) -> str:
-        return f"<{self._name} ({self.classString})>"
+        _api.init_callback_lists(self, self._shape)
 
 
-def _make_property(stream: str, doc: str) -> property:
-    def get(self: _ApiObject) -> Any:
-        return self._k.latest(stream)
+def _make_call(obj: str, method: str, wrap: Callable[[Any], Any] | None = None) -> Callable[..., Any]:
+    def call(self: _ApiObject, *args: Any) -> Any:
+        value = self._k.call(obj, method, *args)
+        return wrap(value) if wrap is not None else value
 
-    get.__doc__ = doc
-    return property(get)
-
-
-def _make_setter(obj_name: str, method: str, stream: str, list_name: str) -> Callable[..., None]:
-    def setter(self: _ApiObject, fun: Any) -> None:
-        target = getattr(self, list_name)
-        _set_callbacks(target, fun, f"{obj_name}.{method}")
-        self._k.register_callbacks(stream, target)
-
-    setter.__name__ = setter.__qualname__ = method
-    setter.__doc__ = f"Call ``fun(sample)`` on every {stream} sample, on the script's callback thread."
-    return setter
+    call.__name__ = call.__qualname__ = method
+    return call
 
 
 def _make_command(spec: Mapping[str, Any]) -> Callable[..., Any]:
+    """A robot command from the wire's table (hello ``commands``), with its arguments' names."""
     name = str(spec["name"])
-
-    def command(self: _ApiObject, *args: Any) -> Any:
-        return self._k.call("linarm", name, *args)
-
-    command.__name__ = command.__qualname__ = name
+    command = _make_call("linarm", name)
     command.__doc__ = str(spec.get("doc", ""))
     params = [inspect.Parameter("self", inspect.Parameter.POSITIONAL_ONLY)]
     params += [inspect.Parameter(str(a), inspect.Parameter.POSITIONAL_ONLY) for a in spec.get("args", [])]
@@ -778,154 +724,104 @@ def _make_command(spec: Mapping[str, Any]) -> Callable[..., Any]:
     return command
 
 
-def _api_class(name: str, class_string: str, shape: Mapping[str, Any], extra: Mapping[str, Any]) -> type:
-    attrs: dict[str, Any] = {"_name": name, "classString": class_string, "__doc__": shape.get("doc", "")}
-    for prop, (stream, doc) in shape.get("properties", {}).items():
-        attrs[prop] = _make_property(stream, doc)
-    for method, (stream, list_name) in shape.get("callbacks", {}).items():
-        attrs[method] = _make_setter(name, method, stream, list_name)
-    attrs.update(extra)
-    cls = type(class_string, (_ApiObject,), attrs)
-    lists = [list_name for _stream, list_name in shape.get("callbacks", {}).values()]
+def _write_file(self: _ApiObject, data: Any, fileName: str) -> None:
+    if not isinstance(data, FesProfileRef):
+        raise TypeError(f"fes.writeFile expects a profile (e.g. fes.profile), got {type(data).__name__}")
+    self._k.call("fes", "writeFile", data, str(fileName))
 
-    def init(self: _ApiObject, kernel: Kernel) -> None:
-        _ApiObject.__init__(self, kernel)
-        for list_name in lists:
-            setattr(self, list_name, [])
 
-    cls.__init__ = init  # type: ignore[misc]
-    return cls
+class _ManagerPort:
+    """``linarmppManager``'s side in the kernel (api_spec.ManagerPort): programs run here, the rest is a call."""
+
+    def __init__(self, kernel: Kernel) -> None:
+        self._k = kernel
+
+    def resolve_path(self, file_name: str) -> Path:
+        return self._k.resolve_path(file_name)
+
+    def run_program(self, path: str) -> None:
+        self._k.run_program(path)
+
+    def emergency_stop(self, reason: str) -> None:
+        self._k.request("call", obj="linarmppManager", name="emergencyStop", args=[reason])
+
+    def start_repetition(self, index: int, total: int | None) -> None:
+        self._k.call("linarmppManager", "startRepetition", index, total)
+
+    def end_repetition(self, index: int | None, ok: bool) -> None:
+        self._k.call("linarmppManager", "endRepetition", index, ok)
+
+    def report_progress(self, text: str) -> None:
+        self._k.call("linarmppManager", "reportProgress", text)
+
+    def prompt(self, index: int | None, cue: str, threshold: float | None) -> None:
+        self._k.call("linarmppManager", "prompt", index, cue, threshold)
+
+    def set_run_state(self, state: str, detail: str) -> None:
+        self._k.call("linarmppManager", "setRunState", state, detail)
 
 
 def build_api(kernel: Kernel) -> dict[str, Any]:
+    """The proxies of one namespace, made from the API's definition and the application's hello (the robot's
+    command table, its enums, the streams' names)."""
     hello = kernel.hello
-    shapes: Mapping[str, Any] = hello.get("objects", {})
+    stream_names: Mapping[str, str] = hello.get("streams", {})
     enums = {name: enum.IntEnum(name, dict(members)) for name, members in hello.get("enums", {}).items()}
 
-    linarm_extra: dict[str, Any] = dict(enums)
+    def make_property(shape: Any, prop: Any) -> property:
+        stream = str(stream_names.get(prop.stream, prop.stream))
+
+        def get(self: _ApiObject) -> Any:
+            return self._k.latest(stream)
+
+        return property(get)
+
+    def make_setter(shape: Any, method: str, setter: Any) -> Callable[..., None]:
+        stream, what = str(stream_names.get(setter.stream, setter.stream)), f"{shape.name}.{method}"
+
+        def set_callback(self: _ApiObject, fun: Any) -> None:
+            target = getattr(self, setter.list_name)
+            _api.set_callbacks(target, fun, what)
+            self._k.register_callbacks(stream, target)
+
+        return set_callback
+
+    def proxy(shape: Any, members: Mapping[str, Any]) -> type:
+        attrs: dict[str, Any] = {"_shape": shape}
+        attrs.update({m: _make_call(shape.name, m) for m in shape.methods})
+        attrs.update(members)
+        cls = type(shape.class_string, (_ApiObject,), attrs)
+        return _api.apply_shape(cls, shape, make_property, make_setter)
+
+    linarm_members: dict[str, Any] = dict(enums)
     for spec in hello.get("commands", []):
-        linarm_extra[str(spec["name"])] = _make_command(spec)
-    for alias, target in hello.get("aliases", {}).items():
-        if target in linarm_extra:
-            linarm_extra[alias] = linarm_extra[target]
-
-    def getConfigData(self: _ApiObject) -> Any:
-        """The robot's configuration and safety limits as the application holds them."""
-        return self._k.call("linarm", "getConfigData")
-
-    linarm_extra["getConfigData"] = getConfigData
-    LinarmUser = _api_class("linarm", "LinarmUser", shapes.get("linarm", {}), linarm_extra)
-
-    def fes_method(method: str, doc: str, wrap: Callable[[Any], Any] = lambda v: v) -> Callable[..., Any]:
-        def fn(self: _ApiObject, *args: Any) -> Any:
-            return wrap(self._k.call("fes", method, *args))
-
-        fn.__name__ = fn.__qualname__ = method
-        fn.__doc__ = doc
-        return fn
-
-    def fes_get(attr: str, wrap: Callable[[Any], Any] = lambda v: v) -> property:
-        return property(lambda self: wrap(self._k.call("fes", attr)))
-
-    def write_file(self: _ApiObject, data: Any, fileName: str) -> None:
-        """Save a profile (what ``fes.loadFile`` returned, or ``fes.profile``) as YAML."""
-        if not isinstance(data, FesProfileRef):
-            raise TypeError(f"fes.writeFile expects a profile (e.g. fes.profile), got {type(data).__name__}")
-        self._k.call("fes", "writeFile", data, str(fileName))
-
-    fes_extra = {
-        "loadFile": fes_method("loadFile", "Load a current + pulse-width profile (YAML); returns it.", _profile),
-        "writeFile": write_file, "saveFile": write_file,
-        "start": fes_method("start", "Start stimulating with the loaded profile."),
-        "stop": fes_method("stop", "Stop stimulating."),
-        "setCurrentScaleFactor": fes_method("setCurrentScaleFactor", "Scale the current (0..2); returns it."),
-        "setPWScaleFactor": fes_method("setPWScaleFactor", "Scale the pulse width (0..2); returns it."),
-        "setPhase": fes_method("setPhase", "The movement phase 0..1 a phase profile follows (None: at rest)."),
-        "getConfigData": fes_method("getConfigData", "Device, profile, scale factors and limits."),
-        "electrodeSetup": fes_method("electrodeSetup", "Test a district's electrode combinations; returns the "
-                                                       "proposal (issue #32, docs/fes.md)."),
-        "profile": fes_get("profile", _profile), "stimulating": fes_get("stimulating"),
+        linarm_members[str(spec["name"])] = _make_command(spec)
+    for alias, target in _api.LINARM_ALIASES.items():
+        if target in linarm_members:
+            linarm_members[alias] = linarm_members[target]
+    fes_members: dict[str, Any] = {
+        "loadFile": _make_call("fes", "loadFile", _profile), "writeFile": _write_file,
+        "profile": property(lambda self: _profile(self._k.call("fes", "profile"))),
+        "stimulating": property(lambda self: self._k.call("fes", "stimulating")),
     }
-    FESUser = _api_class("fes", "FESUser", shapes.get("fes", {}), fes_extra)
-    Physio = _api_class("physiologicalSensors", "PhysiologicalSensorsUser",
-                        shapes.get("physiologicalSensors", {}), {})
-    PatientModel = _api_class("patientModel", "PatientModelUser", shapes.get("patientModel", {}), {})
-    VR = _api_class("VRUnity", "VRUnityUser", shapes.get("VRUnity", {}), {})
+    fes_members.update({alias: fes_members[target] for alias, target in _api.FES_ALIASES.items()})
 
-    linarm, physio, fes = LinarmUser(kernel), Physio(kernel), FESUser(kernel)
-    patient_model, vr = PatientModel(kernel), VR(kernel)
-    mgr = LinarmppManager(kernel, linarm, physio, fes, patient_model, vr)
+    linarm = proxy(_api.LINARM, linarm_members)(kernel)
+    physio = proxy(_api.PHYSIOLOGICAL_SENSORS, {})(kernel)
+    fes = proxy(_api.FES, fes_members)(kernel)
+    patient_model = proxy(_api.PATIENT_MODEL, {})(kernel)
+    vr = proxy(_api.VR_UNITY, {})(kernel)
+    mgr = _api.LinarmppManager(_ManagerPort(kernel), linarm, physio, fes, patient_model, vr)
 
-    def emergencyStop(reason: str = "emergency stop from a script") -> None:
+    def emergencyStop(reason: str = _api.ESTOP_REASON) -> None:
         """FES Stop and robot IDLE at once, latched until an operator resets it; the script is stopped."""
         mgr.emergencyStop(reason)
 
     return {
         "linarm": linarm, "physiologicalSensors": physio, "fes": fes, "patientModel": patient_model,
         "VRUnity": vr, "linarmppManager": mgr, "manager": mgr, "emergencyStop": emergencyStop,
-        "ScriptError": ScriptError, "CommandError": CommandError, "CommandRefused": CommandRefused,
-        "DeviceUnavailable": DeviceUnavailable, "NotInitializedError": NotInitializedError,
+        **_api.SCRIPT_ERRORS,
     }
-
-
-class LinarmppManager:
-    """``linarmppManager``: every module in one object, and a program (script file) to run."""
-
-    classString = "LinarmppManager"
-
-    def __init__(self, kernel: Kernel, linarm: Any, physiologicalSensors: Any, fes: Any, patientModel: Any,
-                 VRUnity: Any) -> None:
-        self._k = kernel
-        self.linarm = linarm
-        self.physiologicalSensors = physiologicalSensors
-        self.fes = fes
-        self.patientModel = patientModel
-        self.VRUnity = VRUnity
-        self.fileName: str | None = None
-
-    def __repr__(self) -> str:
-        return "<linarmppManager: linarm, physiologicalSensors, fes, patientModel, VRUnity>"
-
-    def emergencyStop(self, reason: str = "emergency stop from a script") -> None:
-        """FES Stop and robot IDLE at once, latched until an operator resets it; the script is stopped."""
-        self._k.request("call", obj="linarmppManager", name="emergencyStop", args=[str(reason)])
-        raise ScriptStopped(reason)
-
-    def setProgram(self, fileName: str) -> None:
-        """Choose the script file that ``startProgram`` runs."""
-        path = self._k.resolve_path(str(fileName))
-        if not path.is_file():
-            raise FileNotFoundError(f"no script file {path}")
-        self.fileName = str(path)
-
-    def startProgram(self) -> None:
-        """Run the chosen script here, to its end (it shares this run's Stop button and devices)."""
-        if self.fileName is None:
-            raise ScriptError("call linarmppManager.setProgram(fileName) first")
-        self._k.run_program(self.fileName)
-
-    internalExec = startProgram
-
-    def startRepetition(self, index: int, total: int | None = None) -> None:
-        """Mark the start of repetition ``index`` (from 1), optionally of ``total``."""
-        self._k.call("linarmppManager", "startRepetition", index, total)
-
-    def endRepetition(self, index: int | None = None, ok: bool = True) -> None:
-        """Mark the end of repetition ``index`` (the current one when omitted); ``ok=False`` if it failed."""
-        self._k.call("linarmppManager", "endRepetition", index, ok)
-
-    def reportProgress(self, text: str) -> None:
-        """A short message for the clinician (shown beside the repetition count, recorded as an event)."""
-        self._k.call("linarmppManager", "reportProgress", str(text))
-
-    def prompt(self, index: int | None = None, cue: str = "squeeze", threshold: float | None = None) -> None:
-        """Mark the cue to the patient, now ("squeeze" the handle, ``threshold`` N; or "move"): the patient's
-        reaction time is measured from it (docs/metrics.md)."""
-        self._k.call("linarmppManager", "prompt", index, str(cue), threshold)
-
-    def setRunState(self, state: str, detail: str = "") -> None:
-        """Say what the run does now: "waiting_for_grip", "moving", "resting" or "running"."""
-        self._k.call("linarmppManager", "setRunState", str(state), str(detail))
 
 
 def make_wait_condition(kernel: Kernel, namespace: Mapping[str, Any]) -> Callable[..., bool]:
@@ -993,7 +889,7 @@ def main(argv: list[str]) -> int:
 
     def _exit(code: int) -> None:
         """``os._exit`` from a script: say where first (the process ends without a traceback)."""
-        frames = [f for f in traceback.extract_stack()[:-1] if f.filename != _KERNEL_FILE]
+        frames = [f for f in traceback.extract_stack()[:-1] if f.filename not in _OWN_FILES]
         if frames:
             text = "Traceback (most recent call last):\n" + "".join(traceback.format_list(frames))
             kernel.send({"op": "exiting", "code": code, "line": frames[-1].lineno, "traceback": text

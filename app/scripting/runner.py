@@ -4,9 +4,11 @@ stops it on request, whatever it does.
 The runner starts a kernel with itself (the console's prompt and the first script use it) and, from the
 first Start on, keeps a spare started ahead, so Start only hands the script to a warm process. A script
 runs in a fresh kernel (its own namespace); the prompt then works in that namespace until the next Start.
-The kernel reaches the devices only through :class:`app.scripting.bridge.ApiBridge`: the API's calls,
-answered on bridge threads by the in-app API objects (the safety supervisor on every command), and the
-samples of the streams it uses.
+The kernel's process and link are :class:`app.scripting.kernel_process.KernelProcess`'s; the kernel reaches the
+devices only through :class:`app.scripting.bridge.ApiBridge`: the API's calls, answered on bridge threads by the
+in-app API objects (the safety supervisor on every command), and the samples of the streams it uses. The runner
+is handed what it uses of the application, typed (app.services.ScriptHost: the supervisor, the run log, the
+progress marks, the drivers…), and uses exactly that.
 
 Stop (:meth:`request_stop`): calls from the kernel are refused from then on, FES and robot go to the safe
 state at once (on a thread of their own), the kernel is asked to stop (every wait there notices within
@@ -39,10 +41,13 @@ from typing import TYPE_CHECKING, Any
 from app import streams
 from app.devices.linarm_constants import PRETENSION_MOVE, K
 from app.devices.linarm_protocol import ControlMode, ControlState, HomeState
-from app.ownership import start_problem
+from app.ownership import Composition, start_problem
 from app.resources import RESOURCES
+from app.runs import ExerciseRun, Program, RunLog, RunParameter, RunSource, text_hash
+from app.safety import SafetyError, SafetySupervisor
 from app.scripting.api import CommandRefused, ScriptContext, ScriptStopped
-from app.scripting.bridge import ApiBridge, Gate, KernelProcess
+from app.scripting.bridge import ApiBridge, Gate, hello_message
+from app.scripting.kernel_process import KernelProcess
 
 if TYPE_CHECKING:
     from app.services import ScriptHost
@@ -143,15 +148,15 @@ class ScriptRunner:
         self.callbacks_dropped = 0
         self._output_budget = _OutputBudget()
         self.kernel_start_s: float | None = None  # Start → the kernel has the script (the last run)
-        self.run: Any = None  # the run (app.runs.ExerciseRun) of the last Start, as it was opened
+        self.run: ExerciseRun | None = None  # the run of the last Start, as it was opened
         self.stop_cause = ""  # why the run stopped (app.runs.END_REASONS): emergency_stop, safety_stop, …
-        self._console_run: Any = None  # the console entry's run while one runs (no script running)
-        self._run_log: Any = None  # the run log the last run was opened in
+        self._console_run: ExerciseRun | None = None  # the console entry's run while one runs (no script running)
+        self._run_log: RunLog | None = None  # the run log the last run was opened in
         self.gate = Gate()
-        add_hook = getattr(manager, "add_shutdown_hook", None)
-        if callable(add_hook):  # no kernel outlives the devices it was driving
-            add_hook(self.close)
+        manager.add_shutdown_hook(self.close)  # no kernel outlives the devices it was driving
         self.paused = False
+        self._state_before_pause: tuple[str, str] = ("running", "")  # the run's state a resume goes back to
+        self._console_rid: int | None = None  # the prompt entry the console run was opened for
         self._done = threading.Event()
         self._done.set()
         self._user_ended = threading.Event()
@@ -181,7 +186,7 @@ class ScriptRunner:
 
     # ------------------------------------------------------------------ kernels
     def _spawn(self) -> KernelProcess:
-        kernel = KernelProcess()
+        kernel = KernelProcess(hello_message())
         self._kernels[:] = [k for k in self._kernels if not k.ended.is_set()] + [kernel]
         return kernel
 
@@ -203,8 +208,11 @@ class ScriptRunner:
             bridge = ApiBridge(self.manager, kernel, self.gate)
             old_bridge, self._bridge = self._bridge, bridge
             kernel.on_link_closed = self._on_link_closed
-            kernel.bind(lambda msg, k=kernel, b=bridge: self._on_message(k, b, msg), self._raw_output,
-                        self._on_kernel_exit)
+
+            def handler(msg: dict[str, Any]) -> Callable[[], None] | None:  # this kernel's, through its bridge
+                return self._on_message(kernel, bridge, msg)
+
+            kernel.bind(handler, self._raw_output, self._on_kernel_exit)
         if old_bridge is not None:
             old_bridge.close()
         if old is not None and old is not kernel:
@@ -280,9 +288,9 @@ class ScriptRunner:
         return not self._done.is_set()
 
     def start(self, source: str, filename: str = "<script>", params: dict[str, Any] | None = None, *,
-              program: Any = None, parameters: Any = (), run_source: str = "script_tab",
+              program: Any = None, parameters: Any = (), run_source: RunSource = "script_tab",
               restart_of: str | None = None, continues: str | None = None,
-              holds: tuple[str, ...] = ("robot", "stimulator"), compose: tuple[Any, ...] = ()) -> Any:
+              holds: tuple[str, ...] = ("robot", "stimulator"), compose: tuple[Composition, ...] = ()) -> Any:
         """Run ``source`` (the script's text) in a fresh kernel; ``filename`` names it in tracebacks.
         ``params`` (plain data: an exercise form's values) is the script's global ``exerciseParams``.
 
@@ -343,12 +351,10 @@ class ScriptRunner:
             return self.run
 
     def _open_run(self, source: str, filename: str, params: dict[str, Any], program: Any, parameters: Any,
-                  run_source: str, restart_of: str | None, continues: str | None = None,
-                  holds: tuple[str, ...] = ("robot", "stimulator"), compose: tuple[Any, ...] = ()) -> Any:
-        runs = getattr(self.manager, "runs", None)
-        if runs is None:
-            return None
-        from app.runs import Program, RunParameter, text_hash
+                  run_source: RunSource, restart_of: str | None, continues: str | None = None,
+                  holds: tuple[str, ...] = ("robot", "stimulator"),
+                  compose: tuple[Composition, ...] = ()) -> ExerciseRun:
+        runs = self.manager.runs
 
         if program is None:
             path = "" if filename.startswith("<") else filename
@@ -360,18 +366,18 @@ class ScriptRunner:
                               text_hash(source), path=path, text=source, file_sha256=on_disk)
         if not parameters and params:
             parameters = tuple(RunParameter(str(k), str(k), v) for k, v in params.items())
-        operator = str(getattr(self.manager, "operator", "") or "")
+        operator = str(self.manager.operator or "")
         self._run_log = runs
         return runs.start(program, tuple(parameters), run_source, operator, restart_of=restart_of,
                           continues=continues, holds=holds,
-                          compose=[c.as_dict() if hasattr(c, "as_dict") else dict(c) for c in compose])
+                          compose=[c.as_dict() for c in compose])
 
     def _end_run(self, result: ScriptResult) -> None:
         """The run's end from what happened: the script's result and the cause of a stop."""
         run = self.run
         # a run may live in an earlier log (a session started meanwhile): end it where it began
-        runs = self._run_log if self._run_log is not None else getattr(self.manager, "runs", None)
-        if run is None or runs is None:
+        runs = self._run_log if self._run_log is not None else self.manager.runs
+        if run is None:
             return
         if result.status == "finished":
             reason, detail = "finished", ""
@@ -460,9 +466,7 @@ class ScriptRunner:
         run = self._run_log.get(self.run.run_id) if (self.run is not None and self._run_log is not None) else None
         self._state_before_pause = (run.state, run.state_detail) if run is not None else ("running", "")
         self._set_run_state("paused")
-        progress = getattr(self.manager, "progress", None)
-        if progress is not None:
-            progress.pause()
+        self.manager.progress.pause()
         self.output("info", "Script paused (FES stopped).\n")
 
     def resume(self) -> None:
@@ -474,10 +478,8 @@ class ScriptRunner:
         kernel = self._kernel
         if kernel is not None:
             kernel.send({"op": "resume"})
-        self._set_run_state(*getattr(self, "_state_before_pause", ("running", "")))
-        progress = getattr(self.manager, "progress", None)
-        if progress is not None:
-            progress.resume()
+        self._set_run_state(*self._state_before_pause)
+        self.manager.progress.resume()
         self.output("info", "Script resumed.\n")
 
     def execute(self, source: str, symbol: str = "single") -> PromptRun | None:
@@ -509,19 +511,17 @@ class ScriptRunner:
         """Code typed at the prompt while no script runs is a run of its own (kind "console"): a STOP during it
         is recorded against it, and Recover says it cannot be restarted. During a script it belongs to the
         script's run."""
-        runs = getattr(self.manager, "runs", None)
-        if runs is None or self.running or self._console_run is not None:
+        runs = self.manager.runs
+        if self.running or self._console_run is not None:
             return
-        from app.runs import Program, text_hash
-
         self._run_log = runs
         program = Program("console", "<console>", "Console code", text_hash(source), text=source)
-        self._console_run = runs.start(program, (), "console", str(getattr(self.manager, "operator", "") or ""))
+        self._console_run = runs.start(program, (), "console", str(self.manager.operator or ""))
         self._console_rid = rid
 
     def _end_console_run(self, rid: int | None, reason: str, detail: str = "") -> None:
         run, runs = self._console_run, self._run_log
-        if run is None or runs is None or (rid is not None and rid != getattr(self, "_console_rid", None)):
+        if run is None or runs is None or (rid is not None and rid != self._console_rid):
             return
         self._console_run = None
         runs.end(run.run_id, reason, detail)
@@ -642,17 +642,15 @@ class ScriptRunner:
     def _control_main(self, kernel: KernelProcess, bridge: ApiBridge, source: str, filename: str,
                       params: dict[str, Any], t_start: float) -> None:
         t0 = time.monotonic()
-        sup = getattr(self.manager, "supervisor", None)
+        sup = self.manager.supervisor
         name = Path(filename).name
-        if sup is not None:
-            sup.event("script_start", name=name, text=source, kernel_pid=kernel.pid)
-        progress = getattr(self.manager, "progress", None)
+        sup.event("script_start", name=name, text=source, kernel_pid=kernel.pid)
+        progress = self.manager.progress
         run = self.run
-        if progress is not None:
-            if run is not None:
-                progress.begin(run.title, run_id=run.run_id)
-            else:
-                progress.begin(name)
+        if run is not None:
+            progress.begin(run.title, run_id=run.run_id)
+        else:
+            progress.begin(name)
         result: ScriptResult | None = None
         try:
             if self.home_first:  # "prepare the robot": homed, and the controller's default settings
@@ -690,10 +688,8 @@ class ScriptRunner:
             safe_thread.join(2.0)
         self._bring_to_safe_state(result)
         self.context.close()  # the homing helper's thread and listeners end with the run
-        if sup is not None:
-            sup.event("script_stop", name=name, reason=result.message or result.status, status=result.status)
-        if progress is not None:
-            progress.finish(result.status)  # an open repetition ends (not completed) before its run does
+        sup.event("script_stop", name=name, reason=result.message or result.status, status=result.status)
+        progress.finish(result.status)  # an open repetition ends (not completed) before its run does
         self._end_run(result)
         self.gate.set("open")
         self.paused = False
@@ -880,11 +876,7 @@ class ScriptRunner:
         if fes is None:
             return False
         try:
-            stop = getattr(fes, "stop_stimulation", None)
-            if stop is not None:
-                stop(reason, "script runner")
-            else:
-                fes.stop(reason, "script runner")  # the contract's stop(reason: str, source)
+            fes.stop_stimulation(reason, "script runner")
             return True
         except Exception as exc:
             log.warning("script: FES stop failed: %s", exc)
@@ -917,18 +909,13 @@ class ScriptRunner:
                     done.append("robot IDLE")
                 except Exception as exc2:
                     self.output("stderr", f"Could not bring the robot to IDLE: {exc2}\n")
-        sup = getattr(self.manager, "supervisor", None)
-        if sup is not None:
-            sup.event("script_safe_state", reason=reason, actions=done)
+        self.manager.supervisor.event("script_safe_state", reason=reason, actions=done)
         if done and not quiet:
             self.output("info", f"Safe state: {', '.join(done)}.\n")
 
     def _register_stop_action(self) -> None:
         """Contract 3: the supervisor's e-stop and safe state stop the running script ("script")."""
-        sup = getattr(self.manager, "supervisor", None)
-        register = getattr(sup, "register_estop_action", None)
-        if not callable(register):
-            return
+        sup = self.manager.supervisor
         ref = weakref.ref(self)
 
         def stop_script(reason: str) -> None:
@@ -942,7 +929,7 @@ class ScriptRunner:
             if runner.running:
                 runner.request_stop(reason, cause)
 
-        register("script", stop_script)
+        sup.register_estop_action("script", stop_script)
 
     # ------------------------------------------------------------------ reporting
     def _report(self, result: ScriptResult) -> None:
@@ -962,10 +949,10 @@ class ScriptRunner:
             self.output("info", f"{self._output_budget.dropped} characters of the script's output were dropped.\n")
 
 
-def _stop_cause(sup: Any, reason: str) -> str:
+def _stop_cause(sup: SafetySupervisor, reason: str) -> str:
     """The supervisor's stop, as a run's end reason: the e-stop (latched before its actions run), the end of
     the session, the application closing, or a safety stop (a fault: device lost, robot error, …)."""
-    if getattr(sup, "estop_latched", False):
+    if sup.estop_latched:
         return "emergency_stop"
     if reason == "session ended":
         return "session_ended"
@@ -980,8 +967,6 @@ def _kill_all(kernels: list[KernelProcess]) -> None:
 
 
 def _refused(exc: BaseException) -> bool:
-    from app.safety import SafetyError
-
     seen: BaseException | None = exc
     while seen is not None:
         if isinstance(seen, CommandRefused | SafetyError):

@@ -1,6 +1,7 @@
 """The script kernel's warden: a small parent that owns every process a script starts (standard library only).
 
-Started by :class:`app.scripting.bridge.KernelProcess` as ``python -I warden.py SOCK_FD MEMORY_LIMIT CONTROL_FD``
+Started by :class:`app.scripting.kernel_process.KernelProcess` as
+``python -I warden.py SOCK_FD MEMORY_LIMIT CONTROL_FD``
 in a session of its own. It makes itself a *child subreaper* (Linux ``prctl(PR_SET_CHILD_SUBREAPER)``), forks,
 and the child execs the kernel (``python -I kernel.py SOCK_FD MEMORY_LIMIT``). From then on every process the
 script starts stays below the warden, whatever it does: ``setsid``, a double fork, its parent's death — an
