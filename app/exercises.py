@@ -29,6 +29,7 @@ from typing import TYPE_CHECKING, Any
 import yaml
 from yaml.nodes import MappingNode, SequenceNode
 
+from app import streams
 from app.resources import RESOURCES
 from app.yamlschema import ConfigError, load_dataclass, read_text, rng
 
@@ -512,7 +513,7 @@ def run_problems(manager: EventHost, exercise: Exercise, params: Mapping[str, An
     sup = getattr(manager, "supervisor", None)
     limiter = getattr(sup, "fes_limiter", None)
     driver = getattr(manager, "driver", None)
-    fes = driver("fes") if callable(driver) else None
+    fes = driver(streams.FES) if callable(driver) else None
     profile = getattr(manager, "patient_profile", None)
     return prescription_problems(exercise, params, robot=getattr(sup, "robot", None),
                                  fes_limits=getattr(limiter, "limits", None),

@@ -181,7 +181,7 @@ class LinarmDriver(DeviceDriver):
         self._beating = False
         # The one command path (#29): every write to the controller — commands, limits, handshake, heartbeat (its
         # periodic), e-stop IDLE — is made by this queue's thread, real-time at the heartbeat's priority.
-        self.commands = CommandQueue("linarm", periodic=self._beat, period_s=heartbeat_period_s,
+        self.commands = CommandQueue(streams.LINARM, periodic=self._beat, period_s=heartbeat_period_s,
                                      realtime_priority=self.heartbeat_priority,
                                      on_timeout=self._on_command_timeout)
         self._envelope_locked = False  # per connection: the controller may have restarted in between
@@ -567,8 +567,8 @@ def create(ctx: DeviceContext) -> DeviceHandle | None:
     if cfg.mode == "simulated":
         link = ctx.runtime_dir / "linarm.tty"
         simulator = ctx.simulators.serial(
-            "linarm", "linarm",
-            lambda patient: SerialSimulator("linarm", lambda: LinarmSimAdapter(patient), link, tick_s=0.001))
+            streams.LINARM, streams.LINARM,
+            lambda patient: SerialSimulator(streams.LINARM, lambda: LinarmSimAdapter(patient), link, tick_s=0.001))
         url = simulator.url
     supervisor = ctx.supervisor
     link = SerialTransport(url, SerialSettings(baudrate=cfg.baudrate))
