@@ -106,8 +106,8 @@ def test_the_channels_are_typed_once() -> None:
                     found.append(_line(rel, node))
             elif isinstance(node, ast.Call) and _call_name(node) in ("range", "rng"):
                 args = [_number(a) for a in node.args[:2]]
-                if _call_name(node) == "range" and (args == [first, last + 1] or args == [last]
-                                                   and rel != "app/devices/physio_codec.py"):  # the CRC's 8 bits
+                crc_bits = rel == "app/devices/physio_codec.py"  # range(8): the 8 bits of a CRC byte
+                if _call_name(node) == "range" and (args == [first, last + 1] or (args == [last] and not crc_bits)):
                     found.append(_line(rel, node))
                 elif _call_name(node) == "rng" and args == [first, last]:
                     found.append(_line(rel, node))
