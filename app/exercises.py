@@ -31,7 +31,8 @@ from yaml.nodes import MappingNode, SequenceNode
 
 from app import streams
 from app.resources import RESOURCES
-from app.yamlschema import ConfigError, load_dataclass, read_text, rng
+from app.safe_files import UserFileError, read_user_text
+from app.yamlschema import ConfigError, load_dataclass, rng
 
 if TYPE_CHECKING:
     from app.services import EventHost, ExerciseRunner
@@ -435,8 +436,10 @@ def load_exercise(path: str | Path) -> Exercise:
     """One exercise file through the config's strict loader. Raises ExerciseError naming the file and line."""
     path = Path(path)
     try:
-        text = read_text(path)
+        text = read_user_text(path)
         raw = load_dataclass(_ExerciseFile, text, str(path))
+    except UserFileError as exc:
+        raise ExerciseError(str(ConfigError.refused(exc))) from None
     except ConfigError as exc:
         raise ExerciseError(str(exc)) from None
     script = _script_path(path, text, raw.script)

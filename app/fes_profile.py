@@ -365,10 +365,8 @@ def load_profile(path: str | Path) -> FesProfile:
     path = Path(path)
     try:
         data = read_user_file(path, MAX_PROFILE_BYTES, PROFILE_READ_TIMEOUT_S)
-    except UserFileError as exc:
-        raise FesProfileError(str(path), None, "", f"cannot read the file: {exc.problem}") from exc
-    except OSError as exc:
-        raise FesProfileError(str(path), None, "", f"cannot read the file: {exc.strerror or exc}") from exc
+    except UserFileError as exc:  # every OSError of the read comes as one
+        raise FesProfileError.refused(exc) from exc
     return parse_profile(data, str(path))  # bytes: a non-UTF-8 file is refused with its line
 
 

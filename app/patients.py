@@ -32,7 +32,8 @@ from app.config import (
     SafetyConfig,
     unknown_channel,
 )
-from app.yamlschema import ConfigError, load_dataclass, read_text, rng, to_plain
+from app.safe_files import UserFileError, read_user_text
+from app.yamlschema import ConfigError, load_dataclass, rng, to_plain
 
 PROFILE_VERSION = 1
 # Letters, digits, '-' and '_' only: the pseudonym is the file name and the sessions folder name, so it
@@ -280,9 +281,9 @@ def load_patient(patient_id: str, safety: SafetyConfig | None = None, folder: Pa
         return _store.load(patient_id, safety)
     path = patient_file(patient_id, folder)
     try:
-        text = read_text(path)
-    except ConfigError as exc:
-        raise PatientError(exc.filename, exc.line, exc.key, exc.problem) from exc
+        text = read_user_text(path)
+    except UserFileError as exc:
+        raise PatientError.refused(exc) from exc
     profile = parse_profile(text, str(path), safety)
     if profile.patient_id != path.stem:
         raise PatientError(str(path), _line_of(text, "patient_id"), "patient_id",
