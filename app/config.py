@@ -117,13 +117,16 @@ class ElectrodeDistrictConfig:
 
 
 def _default_electrodes() -> dict[str, ElectrodeDistrictConfig]:
-    """The simulated set-up's wiring: two arrays of four electrodes, four candidate pairs each."""
+    """The simulated set-up's wiring: two arrays of four electrodes, four candidate pairs each, one array on each
+    of the stimulator's current modules."""
     pairs = ("1-2", "3-4", "1-3", "2-4")
     return {
         "anterior deltoid": ElectrodeDistrictConfig(
-            [ElectrodeCombinationConfig(ch, e) for ch, e in zip((1, 2, 3, 4), pairs, strict=True)], "positive"),
+            [ElectrodeCombinationConfig(ch, e) for ch, e in zip(sciencemode.MODULE_A, pairs, strict=True)],
+            "positive"),
         "triceps": ElectrodeDistrictConfig(
-            [ElectrodeCombinationConfig(ch, e) for ch, e in zip((5, 6, 7, 8), pairs, strict=True)], "positive"),
+            [ElectrodeCombinationConfig(ch, e) for ch, e in zip(sciencemode.MODULE_B, pairs, strict=True)],
+            "positive"),
     }
 
 

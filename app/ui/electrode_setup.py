@@ -34,7 +34,7 @@ from PySide6.QtWidgets import (
 )
 
 from app import streams
-from app.devices.sciencemode import MAX_CURRENT_MA
+from app.devices.sciencemode import MAX_CURRENT_MA, MAX_PULSE_WIDTH_US
 from app.electrodes import (
     DISCOMFORT_MAX,
     BurstResult,
@@ -110,7 +110,7 @@ class ElectrodeSetupDialog(QDialog):
         self.step_ma.setSuffix(" mA")
         self.step_ma.setValue(2.0)
         self.pulse_width = QSpinBox()
-        self.pulse_width.setRange(50, 500)
+        self.pulse_width.setRange(50, MAX_PULSE_WIDTH_US)
         self.pulse_width.setSingleStep(10)
         self.pulse_width.setSuffix(" µs")
         self.pulse_width.setValue(250)
