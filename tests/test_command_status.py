@@ -8,10 +8,18 @@ from __future__ import annotations
 import random
 import threading
 from collections import Counter
+from concurrent import futures
 
 import pytest
 
+from app.config import SafetyConfig
 from app.devices.command_queue import CommandQueue, CommandStatus, Priority, StatusAlreadyDone
+from app.devices.linarm import LinarmDriver, LinarmTimeout
+from app.safety import SafetySupervisor
+from tests.test_command_queue import (
+    ScriptedController,
+    linarm,  # noqa: F401 - the fixture: a LINarm driver on a scripted controller
+)
 
 
 def _status() -> CommandStatus:
@@ -143,3 +151,70 @@ def test_the_queue_timeout_and_a_late_reply_decide_once() -> None:
     assert all(isinstance(st.exception(0), TimeoutError) for st in timed_out)
     assert [id(s) for s in resyncs] == [id(s) for s in timed_out]
     assert all(st.result(0) == {"ok": 1} for st in statuses if st not in timed_out)
+
+
+def test_the_linarm_ack_and_its_timeout_decide_once(linarm, qtbot) -> None:  # type: ignore[no-untyped-def]  # noqa: F811
+    """The LINarm driver: an ACK released about when its command times out, 30 times. Each command ends once, as
+    the ACK's values or as LinarmTimeout; the parser resync (';') is written once for each timeout the queue won
+    and never for a command whose ACK won; nothing raises on the driver's threads."""
+    driver, controller, _supervisor = linarm
+    controller.hold = {"resetError"}
+    rnd = random.Random(29)
+    errors: list[BaseException] = []
+    old_hook = threading.excepthook
+    threading.excepthook = lambda args: errors.append(args.exc_value)  # type: ignore[assignment,misc]
+    outcomes: Counter[str] = Counter()
+    resyncs_before = sum(1 for _t, n, _a in controller.log if n == ";")
+    try:
+        for _ in range(30):
+            status = driver.submit("resetError", source="test", timeout_s=0.02)
+            assert status.wait_written(2.0)  # held by the controller: its timeout runs from now
+            threading.Event().wait(rnd.uniform(0.005, 0.035))  # the controller's latency, around the 20 ms timeout
+            controller.release()
+            exc = status.exception(2.0)
+            outcomes["timeout" if isinstance(exc, LinarmTimeout) else "ack" if exc is None else repr(exc)] += 1
+    finally:
+        threading.excepthook = old_hook
+    resyncs = sum(1 for _t, n, _a in controller.log if n == ";") - resyncs_before
+    assert not errors
+    assert set(outcomes) <= {"ack", "timeout"} and sum(outcomes.values()) == 30, outcomes
+    assert resyncs == outcomes["timeout"], (resyncs, outcomes)
+
+
+class AckDuringResync(ScriptedController):
+    """A controller whose held ACK arrives exactly while the host resyncs after giving up on it: the write of the
+    timeout's ';' releases the ACK and returns only once the host has dealt with it (or after 0.3 s)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.status: CommandStatus | None = None
+        self.resyncs = 0
+
+    def write(self, data: bytes) -> None:
+        super().write(data)
+        if data == b";" and self.status is not None:
+            self.resyncs += 1
+            self.release()
+            futures.wait([self.status], 0.3)
+
+
+def test_an_ack_arriving_during_the_timeouts_resync_does_not_undo_the_timeout(qtbot) -> None:  # type: ignore[no-untyped-def]
+    """The old queue checked 'not done' and then ran the timeout's resync: an ACK read in between completed the
+    command as acknowledged, after the host had resynced the controller's parser for a command it gave up on
+    (and the timeout's failure was dropped silently). Now the timeout claims the command first: the late ACK is
+    ignored and the command ends as the timeout it was."""
+    controller = AckDuringResync()
+    driver = LinarmDriver(controller, SafetySupervisor(SafetyConfig()), command_timeout_s=1.0,  # type: ignore[arg-type]
+                          heartbeat_period_s=0.05)
+    driver.start()
+    try:
+        qtbot.waitUntil(lambda: driver.connected, timeout=3000)
+        controller.hold = {"resetError"}
+        status = driver.submit("resetError", source="test", timeout_s=0.05)
+        controller.status = status
+        exc = status.exception(3.0)
+    finally:
+        driver.stop()
+    assert controller.resyncs == 1
+    ended = exc if exc is not None else status.result(0)
+    assert isinstance(exc, LinarmTimeout), f"resynced for a timeout, but the command ended as {ended!r}"
