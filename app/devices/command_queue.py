@@ -204,8 +204,9 @@ class CommandQueue:
     def submit(self, name: str, write: Callable[[CommandStatus], None], *, source: str = "",
                priority: Priority = Priority.NORMAL, exclusive: bool = True, timeout_s: float = 1.0) -> CommandStatus:
         """Queue one command. ``write(status)`` runs on the queue's thread and writes its bytes; for an
-        ``exclusive`` command, whoever reads the reply completes ``status`` (resolve / fail), else the queue
-        fails it after ``timeout_s`` (see ``on_timeout``). A non-exclusive command is done once written."""
+        ``exclusive`` command, whoever reads the reply claims ``status`` and completes it (resolve / fail), else
+        the queue claims and fails it after ``timeout_s`` (see ``on_timeout``). A non-exclusive command is done
+        once written."""
         status = CommandStatus(name, source, priority)
         status.timeout_s = timeout_s if exclusive else None
         with self._cond:
