@@ -13,13 +13,15 @@ import re
 from collections.abc import Mapping
 from typing import Any
 
+from app import streams
+
 # Who or what raised an alarm or stopped something, as the record names them → as a clinician says it.
 SOURCE_WORDS: dict[str, str] = {
-    "linarm": "robot",
-    "physio": "physiological sensors",
-    "fes": "stimulator",
-    "patient_model": "patient model",
-    "vr": "VR",
+    streams.LINARM: "robot",
+    streams.PHYSIO: "physiological sensors",
+    streams.FES: "stimulator",
+    streams.PATIENT_MODEL: "patient model",
+    streams.VR: "VR",
     "keyboard": "F12 key",
     "button": "STOP button",
     "script": "the running program",

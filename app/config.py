@@ -9,15 +9,42 @@ key and line named (see app.yamlschema).
 from __future__ import annotations
 
 import ipaddress
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
+from app.devices import sciencemode
+from app.devices.linarm_constants import K
 from app.devices.linarm_protocol import WATCHDOG_TIMEOUT
 from app.resources import DEFAULT_CONFIG_FILE, RESOURCES  # noqa: F401 - RESOURCES re-exported for callers
 from app.yamlschema import ConfigError, load_file, rng, to_plain
 
 DeviceMode = Literal["simulated", "serial", "off"]
+
+# The ranges a robot limit may take, in the site's configuration and in a patient's profile (app.patients): the
+# controller's own, from its constants table (app/devices/linarm_constants.py), never typed here.
+ROBOT_LIMIT_RANGES: dict[str, dict[str, Any]] = {
+    "position_min_m": rng(K["RAIL_MIN"], K["RAIL_MAX"], "m"),
+    "position_max_m": rng(K["RAIL_MIN"], K["RAIL_MAX"], "m"),
+    "max_velocity_m_s": rng(0.0, K["MAX_VEL_MAX"], "m/s"),
+    "max_acceleration_m_s2": rng(0.0, K["MAX_ACC_MAX"], "m/s²"),
+    "max_interaction_force_n": rng(0.0, K["MAX_FORCE_MAX"], "N"),
+    "max_stiffness_n_m": rng(0.0, K["STIFFNESS_LIMIT_MAX"], "N/m"),
+    "max_delta_m": rng(0.0, K["DELTA_MAX"], "m"),
+}
+# An FES current or pulse-width cap: at most what the stimulator can deliver (app/devices/sciencemode.py).
+FES_CURRENT_RANGE = rng(0, sciencemode.MAX_CURRENT_MA, "mA")
+FES_PULSE_WIDTH_RANGE = rng(0, sciencemode.MAX_PULSE_WIDTH_US, "µs")
+FES_CHANNEL_RANGE = rng(sciencemode.CHANNELS[0], sciencemode.CHANNELS[-1])
+
+
+def unknown_channel(key: str, channels: Iterable[int]) -> str | None:
+    """The problem with the first of ``channels`` (a caps table's keys) the stimulator does not have; None."""
+    bad = [ch for ch in channels if ch not in sciencemode.CHANNELS]
+    if not bad:
+        return None
+    return f"{key}: channel {bad[0]} does not exist; the stimulator has channels {sciencemode.CHANNELS_TEXT}"
 
 
 @dataclass(frozen=True)
@@ -67,7 +94,7 @@ class ElectrodeCombinationConfig:
     """One candidate combination of an electrode array: the stimulator channel its electrode pair is wired to,
     and which electrodes of the array form the pair (as labelled on the garment, e.g. "1-2")."""
 
-    channel: int = field(default=1, metadata=rng(1, 8))
+    channel: int = field(default=1, metadata=FES_CHANNEL_RANGE)
     electrodes: str = ""
 
 
@@ -90,13 +117,16 @@ class ElectrodeDistrictConfig:
 
 
 def _default_electrodes() -> dict[str, ElectrodeDistrictConfig]:
-    """The simulated set-up's wiring: two arrays of four electrodes, four candidate pairs each."""
+    """The simulated set-up's wiring: two arrays of four electrodes, four candidate pairs each, one array on each
+    of the stimulator's current modules."""
     pairs = ("1-2", "3-4", "1-3", "2-4")
     return {
         "anterior deltoid": ElectrodeDistrictConfig(
-            [ElectrodeCombinationConfig(ch, e) for ch, e in zip((1, 2, 3, 4), pairs, strict=True)], "positive"),
+            [ElectrodeCombinationConfig(ch, e) for ch, e in zip(sciencemode.MODULE_A, pairs, strict=True)],
+            "positive"),
         "triceps": ElectrodeDistrictConfig(
-            [ElectrodeCombinationConfig(ch, e) for ch, e in zip((5, 6, 7, 8), pairs, strict=True)], "positive"),
+            [ElectrodeCombinationConfig(ch, e) for ch, e in zip(sciencemode.MODULE_B, pairs, strict=True)],
+            "positive"),
     }
 
 
@@ -180,13 +210,13 @@ class Devices:
 
 @dataclass(frozen=True)
 class RobotLimits:
-    position_min_m: float = field(default=0.02, metadata=rng(0.0, 0.5, "m"))
-    position_max_m: float = field(default=0.48, metadata=rng(0.0, 0.5, "m"))
-    max_velocity_m_s: float = field(default=0.30, metadata=rng(0.0, 1.0, "m/s"))
-    max_acceleration_m_s2: float = field(default=1.0, metadata=rng(0.0, 10.0, "m/s²"))
-    max_interaction_force_n: float = field(default=60.0, metadata=rng(0.0, 200.0, "N"))
-    max_stiffness_n_m: float = field(default=2000.0, metadata=rng(0.0, 10000.0, "N/m"))
-    max_delta_m: float = field(default=0.06, metadata=rng(0.0, 0.1, "m"))
+    position_min_m: float = field(default=0.02, metadata=ROBOT_LIMIT_RANGES["position_min_m"])
+    position_max_m: float = field(default=0.48, metadata=ROBOT_LIMIT_RANGES["position_max_m"])
+    max_velocity_m_s: float = field(default=0.30, metadata=ROBOT_LIMIT_RANGES["max_velocity_m_s"])
+    max_acceleration_m_s2: float = field(default=1.0, metadata=ROBOT_LIMIT_RANGES["max_acceleration_m_s2"])
+    max_interaction_force_n: float = field(default=60.0, metadata=ROBOT_LIMIT_RANGES["max_interaction_force_n"])
+    max_stiffness_n_m: float = field(default=2000.0, metadata=ROBOT_LIMIT_RANGES["max_stiffness_n_m"])
+    max_delta_m: float = field(default=0.06, metadata=ROBOT_LIMIT_RANGES["max_delta_m"])
     # Endstroke switches stop the carriage at the rail's ends; only a bench setup without a patient
     # may turn them off.
     allow_disable_endstrokes: bool = False
@@ -201,14 +231,14 @@ class RobotLimits:
 
 @dataclass(frozen=True)
 class FesChannelCaps:
-    max_current_ma: float = field(default=40.0, metadata=rng(0, 126, "mA"))
-    max_pulse_width_us: float = field(default=300.0, metadata=rng(0, 500, "µs"))
+    max_current_ma: float = field(default=40.0, metadata=FES_CURRENT_RANGE)
+    max_pulse_width_us: float = field(default=300.0, metadata=FES_PULSE_WIDTH_RANGE)
 
 
 @dataclass(frozen=True)
 class FesSafety:
-    max_current_ma: float = field(default=40.0, metadata=rng(0, 126, "mA"))
-    max_pulse_width_us: float = field(default=300.0, metadata=rng(0, 500, "µs"))
+    max_current_ma: float = field(default=40.0, metadata=FES_CURRENT_RANGE)
+    max_pulse_width_us: float = field(default=300.0, metadata=FES_PULSE_WIDTH_RANGE)
     max_current_rise_ma_s: float = field(default=40.0, metadata=rng(0.1, 1000, "mA/s"))
     max_pulse_width_rise_us_s: float = field(default=500.0, metadata=rng(1, 10000, "µs/s"))
     max_rms_current_ma: float = field(default=10.0, metadata=rng(0, 50, "mA"))
@@ -217,9 +247,9 @@ class FesSafety:
     channels: dict[int, FesChannelCaps] = field(default_factory=dict)
 
     def validate(self) -> None:
-        bad = [ch for ch in self.channels if not 1 <= ch <= 8]
-        if bad:
-            raise ValueError(f"channels: channel {bad[0]} does not exist; the stimulator has channels 1..8")
+        problem = unknown_channel("channels", self.channels)
+        if problem:
+            raise ValueError(problem)
 
 
 @dataclass(frozen=True)

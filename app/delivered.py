@@ -14,6 +14,7 @@ from typing import Any
 
 import numpy as np
 
+from app.devices.sciencemode import CHANNELS
 from app.runs import ExerciseRun
 
 SETUP_SOURCE = "electrode set-up"  # the source the electrode set-up's bursts start with (app/electrodes.py)
@@ -119,7 +120,7 @@ def sent_on_channels(fes: Any, t0: float, t1: float) -> dict[int, tuple[float, f
     if not inside.any():
         return {}
     out: dict[int, tuple[float, float]] = {}
-    for ch in range(1, 9):
+    for ch in CHANNELS:
         current = fes.data.get(f"current{ch}")
         width = fes.data.get(f"pulseWidth{ch}")
         if current is None:

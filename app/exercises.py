@@ -29,8 +29,10 @@ from typing import TYPE_CHECKING, Any
 import yaml
 from yaml.nodes import MappingNode, SequenceNode
 
+from app import streams
 from app.resources import RESOURCES
-from app.yamlschema import ConfigError, load_dataclass, read_text, rng
+from app.safe_files import UserFileError, read_user_text
+from app.yamlschema import ConfigError, load_dataclass, rng
 
 if TYPE_CHECKING:
     from app.services import EventHost, ExerciseRunner
@@ -434,8 +436,10 @@ def load_exercise(path: str | Path) -> Exercise:
     """One exercise file through the config's strict loader. Raises ExerciseError naming the file and line."""
     path = Path(path)
     try:
-        text = read_text(path)
+        text = read_user_text(path)
         raw = load_dataclass(_ExerciseFile, text, str(path))
+    except UserFileError as exc:
+        raise ExerciseError(str(ConfigError.refused(exc))) from None
     except ConfigError as exc:
         raise ExerciseError(str(exc)) from None
     script = _script_path(path, text, raw.script)
@@ -512,7 +516,7 @@ def run_problems(manager: EventHost, exercise: Exercise, params: Mapping[str, An
     sup = getattr(manager, "supervisor", None)
     limiter = getattr(sup, "fes_limiter", None)
     driver = getattr(manager, "driver", None)
-    fes = driver("fes") if callable(driver) else None
+    fes = driver(streams.FES) if callable(driver) else None
     profile = getattr(manager, "patient_profile", None)
     return prescription_problems(exercise, params, robot=getattr(sup, "robot", None),
                                  fes_limits=getattr(limiter, "limits", None),

@@ -5,7 +5,7 @@ out of limits; it never clamps a command, because a silently altered stimulation
 refused one. Only the live scale knobs are clamped (``clamp_scale``), and they report that they were.
 
 Limits applied to every channel of every update:
-- caps: the smallest of the device cap (126 mA / 500 µs), the configured cap (all channels and per
+- caps: the smallest of the device cap (MAX_CURRENT_MA / MAX_PULSE_WIDTH_US), the configured cap (all channels and per
   channel) and the per-patient clinical cap;
 - start ramp: after ``start(now)`` the caps rise linearly from 0 to their value over ``start_ramp_s``;
 - rate of increase: an increase must satisfy Δ ≤ rate · min(now − t_change, max_step_interval_s), where
@@ -24,6 +24,7 @@ from typing import Any, Literal
 
 from app.devices.sciencemode import (
     CHANNELS,
+    CHANNELS_TEXT,
     MAX_CURRENT_MA,
     MAX_PULSE_WIDTH_US,
     ChannelListConfig,
@@ -98,7 +99,7 @@ class FesLimits:
         for label, caps in (("channel_caps", self.channel_caps), ("clinical_caps", self.clinical_caps)):
             for ch, cap in caps.items():
                 if ch not in CHANNELS:
-                    raise ValueError(f"{label}: channel {ch!r} is not one of 1..8")
+                    raise ValueError(f"{label}: channel {ch!r} is not one of {CHANNELS_TEXT}")
                 _check_range(f"{label}[{ch}].max_current_ma", cap.max_current_ma, 0, MAX_CURRENT_MA, "mA")
                 _check_range(
                     f"{label}[{ch}].max_pulse_width_us", cap.max_pulse_width_us, 0, MAX_PULSE_WIDTH_US, "µs"
@@ -255,7 +256,7 @@ class FesLimiter:
                 raise FesLimitError(f"channel {ch} is not in the channel list {update.config.channels}", ch)
         for ch, s in new.items():
             if ch not in CHANNELS:
-                raise FesLimitError(f"channel {ch} does not exist (1..8)", ch)
+                raise FesLimitError(f"channel {ch} does not exist ({CHANNELS_TEXT})", ch)
             if s.current_ma < 0 or s.pulse_width_us < 0:
                 raise FesLimitError(f"channel {ch}: negative current or pulse width", ch)
             if self._started_at is None:

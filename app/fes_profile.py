@@ -27,7 +27,7 @@ from typing import Literal
 import yaml
 from yaml.nodes import MappingNode, Node
 
-from app.devices.sciencemode import CHANNELS, MAX_CURRENT_MA, MAX_PULSE_WIDTH_US, PulseMode, PulseSetting
+from app.devices.sciencemode import CHANNELS, CHANNELS_TEXT, MAX_CURRENT_MA, MAX_PULSE_WIDTH_US, PulseMode, PulseSetting
 from app.safe_files import UserFileError, read_user_file
 from app.yamlschema import ConfigError, check_yaml, decode_text, load_dataclass, rng
 
@@ -133,7 +133,7 @@ class FesProfile:
             out.append(("frequency_hz", f"{self.frequency_hz:g} Hz is outside the allowed range 1 .. 100 Hz"))
         for ch, cp in self.channels.items():
             if ch not in CHANNELS:
-                out.append((f"channels.{ch}", "channel must be one of 1..8"))
+                out.append((f"channels.{ch}", f"channel must be one of {CHANNELS_TEXT}"))
                 continue
             for key, trap, maximum, unit in (
                 ("current_ma", cp.current_ma, MAX_CURRENT_MA, "mA"),
@@ -365,10 +365,8 @@ def load_profile(path: str | Path) -> FesProfile:
     path = Path(path)
     try:
         data = read_user_file(path, MAX_PROFILE_BYTES, PROFILE_READ_TIMEOUT_S)
-    except UserFileError as exc:
-        raise FesProfileError(str(path), None, "", f"cannot read the file: {exc.problem}") from exc
-    except OSError as exc:
-        raise FesProfileError(str(path), None, "", f"cannot read the file: {exc.strerror or exc}") from exc
+    except UserFileError as exc:  # every OSError of the read comes as one
+        raise FesProfileError.refused(exc) from exc
     return parse_profile(data, str(path))  # bytes: a non-UTF-8 file is refused with its line
 
 

@@ -527,7 +527,7 @@ class LinarmppManager(QObject):
         self._apply_robot_limits()
         self.patient_profile = None
         self.patient_version = 0
-        set_districts = getattr(self.driver("fes"), "set_district_channels", None)
+        set_districts = getattr(self.driver(streams.FES), "set_district_channels", None)
         if callable(set_districts):  # the next patient's district profiles must not use this one's electrodes
             set_districts({})
         self.session_changed.emit(None)

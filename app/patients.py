@@ -23,8 +23,17 @@ import yaml
 from yaml.nodes import MappingNode, Node
 
 from app import paths
-from app.config import RobotLimits, SafetyConfig
-from app.yamlschema import ConfigError, load_dataclass, read_text, rng, to_plain
+from app.config import (
+    FES_CHANNEL_RANGE,
+    FES_CURRENT_RANGE,
+    FES_PULSE_WIDTH_RANGE,
+    ROBOT_LIMIT_RANGES,
+    RobotLimits,
+    SafetyConfig,
+    unknown_channel,
+)
+from app.safe_files import UserFileError, read_user_text
+from app.yamlschema import ConfigError, load_dataclass, rng, to_plain
 
 PROFILE_VERSION = 1
 # Letters, digits, '-' and '_' only: the pseudonym is the file name and the sessions folder name, so it
@@ -54,9 +63,9 @@ class PatientAssistance:
 
 @dataclass(frozen=True)
 class ClinicalChannelCap:
-    max_current_ma: float = field(default=40.0, metadata=rng(0, 126, "mA"))
-    max_pulse_width_us: float = field(default=300.0, metadata=rng(0, 500, "µs"))
-    max_rms_current_ma: float | None = field(default=None, metadata=rng(0, 126, "mA"))
+    max_current_ma: float = field(default=40.0, metadata=FES_CURRENT_RANGE)
+    max_pulse_width_us: float = field(default=300.0, metadata=FES_PULSE_WIDTH_RANGE)
+    max_rms_current_ma: float | None = field(default=None, metadata=FES_CURRENT_RANGE)
 
 
 @dataclass(frozen=True)
@@ -64,13 +73,13 @@ class ElectrodeChoice:
     """The electrode combination chosen for one muscular district (issue #32): its stimulator channel, which
     electrodes of the array it is, when and by whom it was chosen, and what the set-up measured for it."""
 
-    channel: int = field(default=1, metadata=rng(1, 8))
+    channel: int = field(default=1, metadata=FES_CHANNEL_RANGE)
     electrodes: str = ""
     chosen_at: str = ""  # ISO time with zone
     chosen_by: str = ""  # the therapist (the session's operator)
-    proposed_channel: int | None = field(default=None, metadata=rng(1, 8))  # what the set-up proposed
+    proposed_channel: int | None = field(default=None, metadata=FES_CHANNEL_RANGE)  # what the set-up proposed
     response_per_ma: float | None = field(default=None, metadata=rng(0, 1000, "N/mA"))
-    motor_threshold_ma: float | None = field(default=None, metadata=rng(0, 126, "mA"))
+    motor_threshold_ma: float | None = field(default=None, metadata=FES_CURRENT_RANGE)
     discomfort: int | None = field(default=None, metadata=rng(0, 10))  # the patient's rating, 0..10
     session: str = ""  # the session folder's name, when chosen during a session
 
@@ -78,17 +87,17 @@ class ElectrodeChoice:
 @dataclass(frozen=True)
 class PatientFes:
     """``profile``: an FES profile file (name in resources/fes_profiles or a path); empty = none chosen.
-    ``caps``: clinical caps per stimulator channel 1..8. ``electrodes``: the chosen combination per muscular
-    district (FES profiles that name a district stimulate its channel)."""
+    ``caps``: clinical caps per stimulator channel (sciencemode.CHANNELS). ``electrodes``: the chosen combination
+    per muscular district (FES profiles that name a district stimulate its channel)."""
 
     profile: str = ""
     caps: dict[int, ClinicalChannelCap] = field(default_factory=dict)
     electrodes: dict[str, ElectrodeChoice] = field(default_factory=dict)
 
     def validate(self) -> None:
-        bad = [ch for ch in self.caps if not 1 <= ch <= 8]
-        if bad:
-            raise ValueError(f"caps: channel {bad[0]} does not exist; the stimulator has channels 1..8")
+        problem = unknown_channel("caps", self.caps)
+        if problem:
+            raise ValueError(problem)
 
     def district_channels(self) -> dict[str, int]:
         """The chosen channel of each district (what a district-addressed FES profile stimulates)."""
@@ -99,13 +108,13 @@ class PatientFes:
 class PatientRobotLimits:
     """Per-patient robot limits; None = the configured limit. Each may only be tighter than the config."""
 
-    position_min_m: float | None = field(default=None, metadata=rng(0.0, 0.5, "m"))
-    position_max_m: float | None = field(default=None, metadata=rng(0.0, 0.5, "m"))
-    max_velocity_m_s: float | None = field(default=None, metadata=rng(0.0, 1.0, "m/s"))
-    max_acceleration_m_s2: float | None = field(default=None, metadata=rng(0.0, 10.0, "m/s²"))
-    max_interaction_force_n: float | None = field(default=None, metadata=rng(0.0, 200.0, "N"))
-    max_stiffness_n_m: float | None = field(default=None, metadata=rng(0.0, 10000.0, "N/m"))
-    max_delta_m: float | None = field(default=None, metadata=rng(0.0, 0.1, "m"))
+    position_min_m: float | None = field(default=None, metadata=ROBOT_LIMIT_RANGES["position_min_m"])
+    position_max_m: float | None = field(default=None, metadata=ROBOT_LIMIT_RANGES["position_max_m"])
+    max_velocity_m_s: float | None = field(default=None, metadata=ROBOT_LIMIT_RANGES["max_velocity_m_s"])
+    max_acceleration_m_s2: float | None = field(default=None, metadata=ROBOT_LIMIT_RANGES["max_acceleration_m_s2"])
+    max_interaction_force_n: float | None = field(default=None, metadata=ROBOT_LIMIT_RANGES["max_interaction_force_n"])
+    max_stiffness_n_m: float | None = field(default=None, metadata=ROBOT_LIMIT_RANGES["max_stiffness_n_m"])
+    max_delta_m: float | None = field(default=None, metadata=ROBOT_LIMIT_RANGES["max_delta_m"])
 
     def validate(self) -> None:
         lo, hi = self.position_min_m, self.position_max_m
@@ -272,9 +281,9 @@ def load_patient(patient_id: str, safety: SafetyConfig | None = None, folder: Pa
         return _store.load(patient_id, safety)
     path = patient_file(patient_id, folder)
     try:
-        text = read_text(path)
-    except ConfigError as exc:
-        raise PatientError(exc.filename, exc.line, exc.key, exc.problem) from exc
+        text = read_user_text(path)
+    except UserFileError as exc:
+        raise PatientError.refused(exc) from exc
     profile = parse_profile(text, str(path), safety)
     if profile.patient_id != path.stem:
         raise PatientError(str(path), _line_of(text, "patient_id"), "patient_id",

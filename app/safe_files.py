@@ -4,8 +4,11 @@ name push work onto the application.
 A script runs in its own process, but ``fes.loadFile(path)`` makes the *application* open ``path``:
 ``/dev/zero`` would be read without end (4.6 GB in 10 s was measured), a named pipe would block the reading
 thread forever, a directory or a 2 GB log would be read whole. :func:`read_user_file` opens only regular
-files, refuses any larger than the caller's limit, and gives up after a timeout; every refusal is a
-:class:`UserFileError` whose message is one plain sentence naming the file.
+files, refuses any larger than the caller's limit, and gives up after a timeout; :func:`read_user_text` also
+refuses text that is not UTF-8 (naming the line of the bad byte). Every refusal is a :class:`UserFileError`
+whose message is one plain sentence naming the file. This is the application's one reader of a file a user or
+a script names: configuration, patient profiles, exercises, FES profiles, the patient model's tree
+(app.yamlschema turns a refusal into its ConfigError, naming the file and line).
 """
 
 from __future__ import annotations
@@ -16,7 +19,7 @@ import threading
 import time
 from pathlib import Path
 
-DEFAULT_MAX_BYTES = 1024 * 1024  # profiles and exercise files are a few KB
+DEFAULT_MAX_BYTES = 1024 * 1024  # profiles and exercise files are a few KB; also the YAML loader's cap
 DEFAULT_TIMEOUT_S = 2.0
 _CHUNK = 64 * 1024
 
@@ -24,13 +27,15 @@ _CHUNK = 64 * 1024
 class UserFileError(OSError):
     """A file the application was asked to open is refused or could not be read (one plain sentence)."""
 
-    def __init__(self, path: str | Path, problem: str) -> None:
+    def __init__(self, path: str | Path, problem: str, line: int | None = None) -> None:
         self.path = str(path)
         self.problem = problem
-        super().__init__(f"{path}: {problem}")
+        self.line = line  # the line of the problem (a byte that is not UTF-8), when it has one
+        super().__init__(str(self))
 
     def __str__(self) -> str:  # OSError's own str() would show "None" fields
-        return f"{self.path}: {self.problem}"
+        where = f"line {self.line}: " if self.line is not None else ""
+        return f"{self.path}: {where}{self.problem}"
 
 
 def _kind(mode: int) -> str:
@@ -75,7 +80,8 @@ def read_user_file(path: str | Path, max_bytes: int = DEFAULT_MAX_BYTES,
     on a short-lived thread so that a read stuck in the kernel (a hung network share) costs the caller only
     ``timeout_s``."""
     name = str(path)
-    flags = os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_NOCTTY", 0) | getattr(os, "O_CLOEXEC", 0)
+    flags = (os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_NOCTTY", 0) | getattr(os, "O_CLOEXEC", 0)
+             | getattr(os, "O_BINARY", 0))  # O_BINARY: Windows would otherwise translate line ends
     try:
         fd = os.open(name, flags)
     except FileNotFoundError as exc:
@@ -126,12 +132,18 @@ def read_user_file(path: str | Path, max_bytes: int = DEFAULT_MAX_BYTES,
 def read_user_text(path: str | Path, max_bytes: int = DEFAULT_MAX_BYTES, timeout_s: float = DEFAULT_TIMEOUT_S,
                    encoding: str = "utf-8") -> str:
     """:func:`read_user_file` decoded; a file that is not valid ``encoding`` is a :class:`UserFileError`."""
-    data = read_user_file(path, max_bytes, timeout_s)
+    return decode_user_text(read_user_file(path, max_bytes, timeout_s), str(path), encoding)
+
+
+def decode_user_text(data: bytes, name: str, encoding: str = "utf-8") -> str:
+    """``data`` (a file's bytes, or what a script handed over as one) as text; UserFileError naming the line of
+    the first byte that is not ``encoding``."""
     try:
         return data.decode(encoding)
     except UnicodeDecodeError as exc:
         line = data[:exc.start].count(b"\n") + 1
-        raise UserFileError(str(path), f"line {line}: not {encoding.upper()} text (byte {exc.start})") from exc
+        raise UserFileError(name, f"not {encoding.upper()} text (byte 0x{data[exc.start]:02x} at offset "
+                                  f"{exc.start})", line) from exc
 
 
 def check_writable_target(path: str | Path) -> None:

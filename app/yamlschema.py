@@ -25,9 +25,11 @@ from typing import Any, TypeVar
 import yaml
 from yaml.nodes import MappingNode, Node, ScalarNode, SequenceNode
 
+from app.safe_files import DEFAULT_MAX_BYTES, UserFileError, decode_user_text, read_user_text
+
 T = TypeVar("T")
 
-MAX_FILE_BYTES = 1 << 20
+MAX_FILE_BYTES = DEFAULT_MAX_BYTES  # app.safe_files: what its reader accepts
 MAX_NODES = 50_000
 MAX_DEPTH = 32
 MAX_SCALAR_CHARS = 10_000
@@ -45,6 +47,11 @@ class ConfigError(ValueError):
         self.problem = problem
         where = f"{filename}:{line}" if line is not None else filename
         super().__init__(f"{where}: {key or '(top level)'}: {problem}")
+
+    @classmethod
+    def refused(cls, exc: UserFileError) -> ConfigError:
+        """The safe reader's refusal (app.safe_files) as a ConfigError: the file, the line when it has one."""
+        return cls(exc.path, exc.line, "", f"cannot read the file: {exc.problem}")
 
 
 def rng(lo: float | None = None, hi: float | None = None, unit: str = "") -> dict[str, Any]:
@@ -248,43 +255,27 @@ def load_dataclass(cls: type[T], text: str, filename: str, base: T | None = None
         raise ConfigError(filename, mark.line + 1 if mark else None, "", f"cannot read a value: {exc}") from exc
 
 
-def read_text(path: Path) -> str:
-    """A user file's text; ConfigError when it cannot be read, is not a regular file (a FIFO would block,
-    /dev/zero never ends), is above ``MAX_FILE_BYTES`` (never read whole) or is not UTF-8 (the bad byte's line)."""
-    import os
-    import stat
-
-    try:
-        # O_NONBLOCK: opening a FIFO must not wait for a writer; it is refused just below.
-        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_BINARY", 0))
-    except OSError as exc:
-        raise ConfigError(str(path), None, "", f"cannot read the file: {exc.strerror or exc}") from exc
-    with open(fd, "rb") as fh:
-        try:
-            if not stat.S_ISREG(os.fstat(fd).st_mode):
-                raise ConfigError(str(path), None, "", "not a regular file")
-            data = fh.read(MAX_FILE_BYTES + 1)
-        except OSError as exc:
-            raise ConfigError(str(path), None, "", f"cannot read the file: {exc.strerror or exc}") from exc
-    return decode_text(data, str(path))
-
-
 def decode_text(data: bytes | str, filename: str) -> str:
-    """A file's bytes as text: ConfigError above ``MAX_FILE_BYTES`` or when not UTF-8 (naming the line)."""
+    """Text handed over in memory (a script's FES profile) as a file's would be read: ConfigError above
+    ``MAX_FILE_BYTES`` or when not UTF-8 (naming the line)."""
     if len(data) > MAX_FILE_BYTES:
         raise ConfigError(filename, None, "", f"the file is larger than {MAX_FILE_BYTES // 1024} KiB")
     if isinstance(data, str):
         return data
     try:
-        return data.decode("utf-8")
-    except UnicodeDecodeError as exc:
-        line = data[: exc.start].count(b"\n") + 1
-        raise ConfigError(filename, line, "", f"not UTF-8 text (byte 0x{data[exc.start]:02x})") from None
+        return decode_user_text(data, filename)
+    except UserFileError as exc:
+        raise ConfigError(filename, exc.line, "", exc.problem) from None
 
 
 def load_file(cls: type[T], path: str | Path, base: T | None = None) -> T:
+    """A user's YAML file (read by app.safe_files, the one safe reader) into ``cls``. Raises ConfigError."""
     path = Path(path)
-    return load_dataclass(cls, read_text(path), str(path), base)
+    try:
+        text = read_user_text(path, MAX_FILE_BYTES)
+    except UserFileError as exc:
+        raise ConfigError.refused(exc) from exc
+    return load_dataclass(cls, text, str(path), base)
 
 
 def to_plain(obj: Any) -> Any:

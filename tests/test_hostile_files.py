@@ -159,7 +159,8 @@ def test_a_fifo_in_the_library_is_listed_not_waited_for(tmp_path) -> None:
     os.mkfifo(tmp_path / "pipe.yaml")
     library, problems = load_library(tmp_path)
     assert [e.ident for e in library] == ["good"]
-    assert problems == [f"{tmp_path / 'pipe.yaml'}: (top level): not a regular file"]
+    assert problems == [f"{tmp_path / 'pipe.yaml'}: (top level): cannot read the file: a named pipe, "
+                        "not a regular file (refused)"]
 
 
 @pytest.fixture

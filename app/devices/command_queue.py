@@ -13,6 +13,12 @@ A command that expects an acknowledgement is **exclusive**: one is in flight at 
 receive buffer is small, and replies are matched in order); the next exclusive one waits until the in-flight
 one is done or timed out. The e-stop and heartbeats are not exclusive: they are written between, at once.
 
+A status completes **once**, as ophyd's Status: a second ``resolve`` / ``fail`` raises :class:`StatusAlreadyDone`
+(a bug: two parts of the app both think they own the command). Where two parties race for it legitimately —
+the reply against its timeout, the link lost or the queue closing against the reply, a caller's ``cancel``
+against the reply — each first ``claim``s it (atomic: exactly one wins) and only the winner completes it;
+``settle`` is claim-then-complete in one call. The loser's outcome is dropped, never half-applied.
+
 The supervisor still sees everything: commands are checked before they are queued (a refusal fails the status
 with SafetyError and sends nothing), and the e-stop is recorded by the supervisor as it always was; the queue
 only orders the wire. Qt-free: the queue's thread is a plain thread (real-time when the driver asks).
@@ -44,8 +50,14 @@ class CommandQueueClosed(RuntimeError):
     """The device's command queue has stopped (the application is closing); nothing was sent."""
 
 
+class StatusAlreadyDone(InvalidStateError):
+    """A command's status was completed a second time, or by another thread than the one that claimed it."""
+
+
 class CommandStatus(Future):
-    """A submitted command: a Future holding the reply (or the error), plus when its bytes were written."""
+    """A submitted command: a Future holding the reply (or the error), plus when its bytes were written.
+    Completed once (see the module docstring): ``resolve``/``fail`` are strict, ``claim``/``settle`` are for the
+    paths that race."""
 
     def __init__(self, name: str, source: str, priority: Priority) -> None:
         super().__init__()
@@ -57,6 +69,8 @@ class CommandStatus(Future):
         self.timeout_s: float | None = None  # how long its reply may take once written (exclusive commands)
         self._written = threading.Event()
         self._settled = threading.Event()  # written or done: what wait_written waits for (no polling: e-stop path)
+        self._claim_lock = threading.Lock()
+        self._claimed_by: int | None = None  # the thread that owns the completion (claim, resolve, fail, cancel)
         self.add_done_callback(lambda _s: self._settled.set())
 
     @property
@@ -73,21 +87,60 @@ class CommandStatus(Future):
         self._written.set()
         self._settled.set()
 
-    def resolve(self, value: object) -> bool:
-        """set_result unless already done (a caller may have cancelled it meanwhile); True when it took."""
-        try:
-            self.set_result(value)
-        except InvalidStateError:
+    # ------------------------------------------------------------------ completion (once)
+    def claim(self) -> bool:
+        """Take the right to complete this status: True for exactly one caller (its thread must then resolve or
+        fail it), False when it is done or another thread claimed it (that outcome stands). Atomic: the reply
+        and its timeout, the link lost and the reply, a cancel and the reply, each claim before they act."""
+        me = threading.get_ident()
+        with self._claim_lock:
+            if self._claimed_by is not None or self.done():
+                return False
+            self._claimed_by = me
+            return True
+
+    def _take(self) -> None:
+        me = threading.get_ident()
+        with self._claim_lock:
+            if self.done():
+                raise StatusAlreadyDone(f"{self.name}: completed twice (it was already "
+                                        f"{'cancelled' if self.cancelled() else 'done'})")
+            if self._claimed_by not in (None, me):
+                raise StatusAlreadyDone(f"{self.name}: completed by a thread that did not claim it")
+            self._claimed_by = me
+
+    def set_result(self, result: object) -> None:
+        self._take()
+        super().set_result(result)
+
+    def set_exception(self, exception: BaseException | None) -> None:
+        self._take()
+        super().set_exception(exception)
+
+    def resolve(self, value: object) -> None:
+        """Complete with the reply's ``value``; StatusAlreadyDone when it is done or claimed by another thread."""
+        self.set_result(value)
+
+    def fail(self, exc: BaseException) -> None:
+        """Complete with ``exc``; StatusAlreadyDone when it is done or claimed by another thread."""
+        self.set_exception(exc)
+
+    def settle(self, value: object = None, exc: BaseException | None = None) -> bool:
+        """Claim, then resolve with ``value`` (or fail with ``exc``): for the paths that race for a status
+        (see :meth:`claim`). True when this call completed it; False when another party did or will."""
+        if not self.claim():
             return False
+        if exc is not None:
+            self.set_exception(exc)
+        else:
+            self.set_result(value)
         return True
 
-    def fail(self, exc: BaseException) -> bool:
-        """set_exception unless already done; True when it took."""
-        try:
-            self.set_exception(exc)
-        except InvalidStateError:
+    def cancel(self) -> bool:
+        """The caller gives up on it (e.g. its own wait timed out): False when it is done or being completed."""
+        if not self.claim():
             return False
-        return True
+        return super().cancel()
 
     @classmethod
     def failed(cls, name: str, exc: BaseException, source: str = "",
@@ -151,8 +204,9 @@ class CommandQueue:
     def submit(self, name: str, write: Callable[[CommandStatus], None], *, source: str = "",
                priority: Priority = Priority.NORMAL, exclusive: bool = True, timeout_s: float = 1.0) -> CommandStatus:
         """Queue one command. ``write(status)`` runs on the queue's thread and writes its bytes; for an
-        ``exclusive`` command, whoever reads the reply completes ``status`` (resolve / fail), else the queue
-        fails it after ``timeout_s`` (see ``on_timeout``). A non-exclusive command is done once written."""
+        ``exclusive`` command, whoever reads the reply claims ``status`` and completes it (resolve / fail), else
+        the queue claims and fails it after ``timeout_s`` (see ``on_timeout``). A non-exclusive command is done
+        once written."""
         status = CommandStatus(name, source, priority)
         status.timeout_s = timeout_s if exclusive else None
         with self._cond:
@@ -189,9 +243,9 @@ class CommandQueue:
                 pending.append(self._in_flight)
                 self._in_flight = None
             self._cond.notify()
-        for entry in pending:
-            entry.status.fail(error if error is not None
-                              else CommandQueueClosed(f"{self.name}: {entry.status.name} not sent, {reason}"))
+        for entry in pending:  # a reply may be completing the one in flight: whoever claims it first decides
+            entry.status.settle(exc=error if error is not None
+                                else CommandQueueClosed(f"{self.name}: {entry.status.name} not sent, {reason}"))
         thread = self._thread
         if thread is not None and thread is not threading.current_thread():
             thread.join(1.0)
@@ -202,7 +256,7 @@ class CommandQueue:
             entry, self._in_flight = self._in_flight, None
             self._cond.notify()
         if entry is not None:
-            entry.status.fail(exc)
+            entry.status.settle(exc=exc)  # its reply may be arriving on the reader's thread
 
     @property
     def in_flight(self) -> CommandStatus | None:
@@ -290,6 +344,8 @@ class CommandQueue:
         return None
 
     def _expire(self, entry: _Entry) -> None:
+        if not entry.status.claim():  # the reply (or the link lost, or a cancel) came first: its outcome stands
+            return
         exc: BaseException | None = None
         if self.on_timeout is not None:
             try:
@@ -306,15 +362,15 @@ class CommandQueue:
             return
         try:
             entry.write(status)
-        except Exception as exc:  # the caller learns why through its status
+        except Exception as exc:  # the caller learns why through its status (unless it cancelled meanwhile)
             self._release(entry)
-            status.fail(exc)
+            status.settle(exc=exc)
             return
         if not status.written:
             status.mark_written()
         self.written_total += 1
         if not entry.exclusive:
-            status.resolve(None)
+            status.settle(None)  # its caller may have cancelled it meanwhile
 
     def _release(self, entry: _Entry) -> None:
         with self._cond:

@@ -181,7 +181,7 @@ class LinarmDriver(DeviceDriver):
         self._beating = False
         # The one command path (#29): every write to the controller — commands, limits, handshake, heartbeat (its
         # periodic), e-stop IDLE — is made by this queue's thread, real-time at the heartbeat's priority.
-        self.commands = CommandQueue("linarm", periodic=self._beat, period_s=heartbeat_period_s,
+        self.commands = CommandQueue(streams.LINARM, periodic=self._beat, period_s=heartbeat_period_s,
                                      realtime_priority=self.heartbeat_priority,
                                      on_timeout=self._on_command_timeout)
         self._envelope_locked = False  # per connection: the controller may have restarted in between
@@ -277,13 +277,13 @@ class LinarmDriver(DeviceDriver):
             if overall.done():
                 return
             if not todo:
-                overall.resolve(self.envelope)
+                overall.settle(self.envelope)  # settle: its caller may cancel it meanwhile
                 return
             name, args = todo[0]
             try:
                 status = self.submit(name, *args, source="limits", priority=Priority.LINK)
             except Exception as exc:  # a value the wire cannot carry
-                overall.fail(exc)
+                overall.settle(exc=exc)
                 return
             status.add_done_callback(lambda st: after(name, st, todo[1:]))
 
@@ -300,7 +300,7 @@ class LinarmDriver(DeviceDriver):
                 log.warning("LINarm limits: a command timed out; trying again")
                 run(steps())
             else:
-                overall.fail(exc)
+                overall.settle(exc=exc)
 
         run(steps())
         return overall
@@ -443,9 +443,9 @@ class LinarmDriver(DeviceDriver):
         self._beating = False
         self._record_garbage(force=True)
         lost = TransportError("the LINarm link was lost")
-        self.commands.close("the LINarm link was lost", error=lost)
+        self.commands.close("the LINarm link was lost", error=lost)  # fails the one in flight (if its ACK lost)
         for pending in list(self._pending.values()):
-            pending.status.fail(lost)
+            pending.status.settle(exc=lost)  # the same status: close() or its ACK may have completed it
         self._pending.clear()
 
     def stop(self, timeout_s: float = 1.0) -> bool:
@@ -517,17 +517,17 @@ class LinarmDriver(DeviceDriver):
                 bool(msg.virtual_vsa), bool(msg.endstrokes_disabled), msg.t_us / 1e6, taken), t)
         elif isinstance(msg, proto.Ack):
             pending = self._pending.get(msg.seq)
-            if pending is not None and not pending.status.done():
+            if pending is not None and pending.status.claim():  # else its timeout (or a cancel) came first
                 # Recorded before the status completes: whoever waits on it finds the record written.
                 self.supervisor.event("robot_command", source=pending.source, command=pending.name,
                                       args=pending.args, ok=True)
                 pending.status.resolve(dict(msg.values))
         elif isinstance(msg, proto.ErrorReply):
             pending = self._pending.get(msg.seq)
-            if pending is not None and not pending.status.done():
-                pending.status.fail(LinarmCommandError(pending.name, msg.code, msg.message))
-            elif msg.seq not in self._pending:
+            if pending is None:
                 log.info("linarm: unsolicited error reply %s", msg)
+            elif pending.status.claim():  # else its timeout (or a cancel) came first
+                pending.status.fail(LinarmCommandError(pending.name, msg.code, msg.message))
         elif isinstance(msg, proto.Identify):
             if msg.protocol_version != proto.PROTOCOL_VERSION:
                 raise TransportError(f"the controller speaks protocol {msg.protocol_version}, "
@@ -567,8 +567,8 @@ def create(ctx: DeviceContext) -> DeviceHandle | None:
     if cfg.mode == "simulated":
         link = ctx.runtime_dir / "linarm.tty"
         simulator = ctx.simulators.serial(
-            "linarm", "linarm",
-            lambda patient: SerialSimulator("linarm", lambda: LinarmSimAdapter(patient), link, tick_s=0.001))
+            streams.LINARM, streams.LINARM,
+            lambda patient: SerialSimulator(streams.LINARM, lambda: LinarmSimAdapter(patient), link, tick_s=0.001))
         url = simulator.url
     supervisor = ctx.supervisor
     link = SerialTransport(url, SerialSettings(baudrate=cfg.baudrate))

@@ -118,6 +118,7 @@ CONSTANTS: tuple[Constant, ...] = (
          "maxVel of the host's pretension (delta) moves: the assistance's setStiffness, the runner's moveDeltaTo"),
         ("PRETENSION_MOVE_ACCELERATION", 0.2, "m/s^2",
          "maxAcc of the host's pretension (delta) moves: the assistance's setStiffness, the runner's moveDeltaTo"),
+        ("STIFFNESS_LIMIT_MAX", 10000.0, "N/m", "the largest stiffness limit a site or a patient may set"),
     ),
 )
 

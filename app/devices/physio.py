@@ -82,8 +82,8 @@ def create(ctx: DeviceContext) -> DeviceHandle | None:
     if cfg.mode == "simulated":
         link, rate = ctx.runtime_dir / "physio.tty", cfg.rate_hz
         simulator = ctx.simulators.serial(
-            "physio", "physio",
-            lambda patient: SerialSimulator("physio", lambda: PhysioSimCore(patient, rate, calibration), link,
+            streams.PHYSIO, streams.PHYSIO,
+            lambda patient: SerialSimulator(streams.PHYSIO, lambda: PhysioSimCore(patient, rate, calibration), link,
                                             tick_s=min(0.005, 0.5 / rate)),
             rate_hz=rate, calibration={k: [c.gain, c.offset] for k, c in (
                 ("skinConductance", calibration.skinConductance), ("temperature", calibration.temperature),

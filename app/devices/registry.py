@@ -99,13 +99,13 @@ class SimulatorHosting:
             return in_process(self.patient())
         from app.devices.sim.host import RemoteSimulator, SimulatorProcess, find_firmware_sil, free_tcp_port
 
-        if kind == "linarm" and self.linarm_kind == "firmware":
+        if kind == streams.LINARM and self.linarm_kind == "firmware":
             sil = find_firmware_sil()
             if sil is None:
                 raise RuntimeError("simulation.linarm is 'firmware' but the firmware's SIL executable is not "
                                    "built (cmake -S firmware/host -B firmware/build && cmake --build firmware/build)")
             kind, params = "linarm_firmware", {**params, "executable": str(sil)}
-        elif kind == "linarm" and self.linarm_kind == "mcu":
+        elif kind == streams.LINARM and self.linarm_kind == "mcu":
             from app.devices.sim.host import find_mcu_image
 
             image = find_mcu_image()

@@ -250,7 +250,7 @@ class FesDriver(DeviceDriver):
         # Start's path (#29): the channel list's init and start wait for the stimulator's acks on this queue's
         # thread, never on the caller's (the GUI's). Stop is written at once from any thread (stop_stimulation);
         # the channel-list updates and keep-alives stay on the driver thread's t1 grid.
-        self.commands = CommandQueue("fes", idle_exit_s=1.0)
+        self.commands = CommandQueue(streams.FES, idle_exit_s=1.0)
         self.district_channels: dict[str, int] = {}  # district -> chosen channel (set_district_channels)
 
     # ================================================================== public API (any thread)
@@ -662,7 +662,7 @@ class FesDriver(DeviceDriver):
             guardian.restart()
         except GuardianError as exc:
             log.error("fes: %s", exc)
-            self.supervisor.event("device_error", device="fes", error=str(exc))
+            self.supervisor.event("device_error", device=streams.FES, error=str(exc))
             raise FesError(f"{exc}; stimulation refused") from exc
         log.info("fes: the FES guardian was restarted (pid %s)", guardian.pid)
         self.supervisor.event("fes_guardian_restarted", pid=guardian.pid)
@@ -1073,8 +1073,8 @@ def create(ctx: DeviceContext) -> DeviceHandle | None:
     if cfg.mode == "simulated":
         link = ctx.runtime_dir / "fes.tty"
         simulator = ctx.simulators.serial(
-            "fes", "fes", lambda patient: SerialSimulator(
-                "fes", lambda: RehaStimSimAdapter(protocol, observer=patient), link, tick_s=0.002),
+            streams.FES, streams.FES, lambda patient: SerialSimulator(
+                streams.FES, lambda: RehaStimSimAdapter(protocol, observer=patient), link, tick_s=0.002),
             protocol=protocol)
         url = simulator.url
         settings = simulated_link_settings(protocol)
@@ -1091,7 +1091,7 @@ def create(ctx: DeviceContext) -> DeviceHandle | None:
             processes.append(driver.guardian)
         except GuardianError as exc:
             log.error("fes: %s; stimulation will be refused", exc)
-            supervisor.event("device_error", device="fes", error=str(exc))
+            supervisor.event("device_error", device=streams.FES, error=str(exc))
     else:  # Windows: SM2's own watchdog (1.2 s) only; SM1 stops only on Stop (docs/fes.md)
         log.warning("fes: no dead man's switch on this platform: a frozen app's stimulation is not stopped by it")
     ctx.add_stop_action("FES stop", lambda reason: driver.stop_stimulation(reason, "safety supervisor"))

@@ -26,6 +26,7 @@ Protocol = Literal["sm1", "sm2"]
 
 # ── device facts (one place) ──────────────────────────────────────────────────────────────────────
 CHANNELS: tuple[int, ...] = (1, 2, 3, 4, 5, 6, 7, 8)
+CHANNELS_TEXT = f"{CHANNELS[0]}..{CHANNELS[-1]}"  # how messages name them: "1..8"
 MODULE_A: tuple[int, ...] = (1, 2, 3, 4)  # one current source multiplexed to 4 outputs (§2.4)
 MODULE_B: tuple[int, ...] = (5, 6, 7, 8)
 CHANNEL_SLOT_MS = 1.5  # every selected channel gets a 1.5 ms slot per pass (§2.4)

@@ -253,12 +253,12 @@ def parse_tree_config(text: str, source: str = "patient_model.yaml") -> TreeConf
 
 def load_tree_config(path: str | Path = DEFAULT_CONFIG_PATH) -> TreeConfig:
     p = Path(path)
-    from app.yamlschema import ConfigError, read_text
+    from app.safe_files import UserFileError, read_user_text
 
     try:
-        text = read_text(p)
-    except ConfigError as exc:
-        raise PatientModelConfigError(str(p), exc.line or 0, exc.problem) from None
+        text = read_user_text(p)
+    except UserFileError as exc:
+        raise PatientModelConfigError(str(p), exc.line or 0, f"cannot read the file: {exc.problem}") from None
     return parse_tree_config(text, str(p))
 
 

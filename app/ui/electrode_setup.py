@@ -33,7 +33,9 @@ from PySide6.QtWidgets import (
     QWidget,
 )
 
+from app import streams
 from app.archive.station import save_choice_record
+from app.devices.sciencemode import MAX_CURRENT_MA, MAX_PULSE_WIDTH_US
 from app.electrodes import (
     DISCOMFORT_MAX,
     BurstResult,
@@ -92,7 +94,7 @@ class ElectrodeSetupDialog(QDialog):
         if district in self.districts:
             self.district_box.setCurrentText(district)
         self.ceiling = QDoubleSpinBox()
-        self.ceiling.setRange(1.0, 126.0)
+        self.ceiling.setRange(1.0, float(MAX_CURRENT_MA))
         self.ceiling.setDecimals(0)
         self.ceiling.setSuffix(" mA")
         self.ceiling.setValue(min(30.0, manager.config.safety.fes.max_current_ma))
@@ -108,7 +110,7 @@ class ElectrodeSetupDialog(QDialog):
         self.step_ma.setSuffix(" mA")
         self.step_ma.setValue(2.0)
         self.pulse_width = QSpinBox()
-        self.pulse_width.setRange(50, 500)
+        self.pulse_width.setRange(50, MAX_PULSE_WIDTH_US)
         self.pulse_width.setSingleStep(10)
         self.pulse_width.setSuffix(" µs")
         self.pulse_width.setValue(250)
@@ -210,7 +212,7 @@ class ElectrodeSetupDialog(QDialog):
         cannot start."""
         if self.running:
             return False
-        fes, robot = self.manager.driver("fes"), self.manager.driver("linarm")
+        fes, robot = self.manager.driver(streams.FES), self.manager.driver(streams.LINARM)
         district = self.districts.get(self.district_box.currentText())
         limiter = getattr(self.manager.supervisor, "fes_limiter", None)
         if fes is None or robot is None or limiter is None or district is None:
@@ -288,7 +290,7 @@ class ElectrodeSetupDialog(QDialog):
                                                                       if result.aborted else ", complete."), "")
 
     def _restore_profile(self) -> None:
-        fes, previous = self.manager.driver("fes"), self._previous_profile
+        fes, previous = self.manager.driver(streams.FES), self._previous_profile
         if fes is None or previous is None or getattr(fes, "stimulating", False):
             return
         try:
@@ -463,7 +465,7 @@ class ElectrodeSetupDialog(QDialog):
         except Exception as exc:
             self._say(f"The choice could not be saved: {exc}", "bad")
             return False
-        fes = manager.driver("fes")
+        fes = manager.driver(streams.FES)
         set_channels = getattr(fes, "set_district_channels", None)
         if callable(set_channels):
             current = dict(getattr(fes, "district_channels", {}) or {})

@@ -40,7 +40,7 @@ from PySide6.QtWidgets import (
     QWidget,
 )
 
-from app.devices.sciencemode import CHANNELS, MAX_CURRENT_MA, MAX_PULSE_WIDTH_US, PulseMode
+from app.devices.sciencemode import CHANNELS, CHANNELS_TEXT, MAX_CURRENT_MA, MAX_PULSE_WIDTH_US, PulseMode
 from app.fes_limits import FesLimits, profile_limit_problems
 from app.fes_profile import (
     ChannelProfile,
@@ -292,7 +292,7 @@ class FesProfileEditor(QDialog):
     def _make_table(self, columns: tuple[str, ...], name: str) -> QTableWidget:
         t = QTableWidget(0, len(columns))
         t.setHorizontalHeaderLabels(list(columns))
-        tips = {"Ch": "Channel 1..8", "Muscle": "The muscle this channel stimulates (free text)",
+        tips = {"Ch": f"Channel {CHANNELS_TEXT}", "Muscle": "The muscle this channel stimulates (free text)",
                 "Group": "Pulse group: single, doublet or triplet"}
         for c, title in enumerate(columns):
             first = len(columns) - len(TRAP_KEYS)
@@ -438,7 +438,7 @@ class FesProfileEditor(QDialog):
         used = {r[0][0] for r in rows}
         free = next((str(ch) for ch in CHANNELS if str(ch) not in used), None)
         if free is None:
-            self.problems_label.setText("All 8 channels are in use.")
+            self.problems_label.setText(f"All {len(CHANNELS)} channels are in use.")
             return
         new = [*rows, [[free, "", "single", "0", "0", "0", "0", "0", "0"], [free, "0", "0", "0", "0", "0", "0"]]]
         self.undo_stack.push(_RowsEdit(self, f"add channel {free}", rows, new))
@@ -539,7 +539,7 @@ class FesProfileEditor(QDialog):
             ch_text = self._text(("current", r, 0)).strip()
             ch: int | None = int(ch_text) if ch_text.isdigit() else None
             if ch is None or ch not in CHANNELS:
-                problems[("current", r, 0)] = "a channel number 1..8"
+                problems[("current", r, 0)] = f"a channel number {CHANNELS_TEXT}"
                 ch = None
             elif ch in seen:
                 problems[("current", r, 0)] = f"channel {ch} is already in row {seen[ch] + 1}"

@@ -29,6 +29,7 @@ from PySide6.QtWidgets import (
     QWidget,
 )
 
+from app import streams
 from app.config import RESOURCES
 from app.devices.command_queue import CommandQueueClosed, CommandStatus
 from app.devices.rehastim import FesDriver, FesError
@@ -177,7 +178,7 @@ class FesPanel(RefreshWhenVisible, QWidget):
     def __init__(self, manager: LinarmppManager, parent: QWidget | None = None) -> None:
         super().__init__(parent)
         self.manager = manager
-        driver = manager.driver("fes")
+        driver = manager.driver(streams.FES)
         self.driver: FesDriver | None = driver if isinstance(driver, FesDriver) else None
         self.editor: QWidget | None = None
         self.last_dir = fes_profiles_dir()  # the user's profiles; the bundled examples are a side-bar place

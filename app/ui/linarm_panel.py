@@ -47,6 +47,7 @@ from PySide6.QtWidgets import (
     QWidget,
 )
 
+from app import streams
 from app.devices import linarm_protocol as proto
 from app.devices.cmdmessenger import Kind
 from app.devices.command_queue import CommandQueueClosed, CommandStatus
@@ -744,7 +745,7 @@ class LinarmPanel(RefreshWhenVisible, QWidget):
 
     # ------------------------------------------------------------------ commands
     def driver(self) -> Any:
-        return self.manager.driver("linarm")
+        return self.manager.driver(streams.LINARM)
 
     def set_control_state(self, state: int) -> CommandStatus | None:
         return self.send("setCtrlState", int(state))

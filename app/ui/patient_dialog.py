@@ -36,6 +36,7 @@ from PySide6.QtWidgets import (
 from app.archive import station
 from app.archive.api import ArchiveError, PatientExists, StaleRecord
 from app.config import SafetyConfig
+from app.devices.sciencemode import CHANNELS
 from app.patients import PatientEntry, PatientError, PatientProfile, list_patients, matches, parse_profile
 
 _SCORES = (("fugl_meyer_ue", "Fugl-Meyer UE (0–66)"), ("modified_ashworth", "Modified Ashworth (0–4)"),
@@ -136,9 +137,9 @@ class PatientDialog(QDialog):
 
         caps = QGroupBox("FES clinical caps per channel (empty row: no patient cap)")
         clay = QVBoxLayout(caps)
-        self.caps_table = QTableWidget(8, len(_CAP_COLUMNS))
+        self.caps_table = QTableWidget(len(CHANNELS), len(_CAP_COLUMNS))
         self.caps_table.setHorizontalHeaderLabels([label for _k, label in _CAP_COLUMNS])
-        self.caps_table.setVerticalHeaderLabels([f"Ch {ch}" for ch in range(1, 9)])
+        self.caps_table.setVerticalHeaderLabels([f"Ch {ch}" for ch in CHANNELS])
         self.caps_table.setAccessibleName("FES clinical caps")
         # Headers whole (issue #19: "Max current [mA", "ax pulse width [µ"): columns fit their titles.
         self.caps_table.horizontalHeader().setSectionResizeMode(QHeaderView.ResizeMode.ResizeToContents)
@@ -214,7 +215,7 @@ class PatientDialog(QDialog):
             return out
 
         caps: dict[int, dict[str, Any]] = {}
-        for row in range(8):
+        for row, ch in enumerate(CHANNELS):
             cells = {}
             for col, (key, _label) in enumerate(_CAP_COLUMNS):
                 item = self.caps_table.item(row, col)
@@ -222,7 +223,7 @@ class PatientDialog(QDialog):
                 if value is not None:
                     cells[key] = value
             if cells:
-                caps[row + 1] = cells
+                caps[ch] = cells
         original = self.original or PatientProfile()
         scores = group("scores", _SCORES)
         if original.scores.other:
@@ -370,8 +371,8 @@ class PatientDialog(QDialog):
             self.fields[f"scores.{key}"].setText(_text(getattr(p.scores, key)))  # type: ignore[attr-defined]
         for key, _label in _ROBOT:
             self.fields[f"robot.{key}"].setText(_text(getattr(p.robot, key)))  # type: ignore[attr-defined]
-        for row in range(8):
-            cap = p.fes.caps.get(row + 1)
+        for row, ch in enumerate(CHANNELS):
+            cap = p.fes.caps.get(ch)
             for col, (key, _label) in enumerate(_CAP_COLUMNS):
                 self.caps_table.setItem(row, col, QTableWidgetItem(_text(getattr(cap, key)) if cap else ""))
         self.notes.setPlainText(p.notes)

@@ -32,13 +32,13 @@ from PySide6.QtWidgets import (
 )
 
 from app import streams
+from app.devices.sciencemode import CHANNELS
 from app.manager import LinarmppManager
 from app.ui.qt_bus import QtBus, qt_bus_for
 from app.ui.theme import colours
 from app.ui.widgets import RefreshWhenVisible
 
 DASH = "—"
-FES_CHANNELS = 8
 REFRESH_HZ = 5.0  # see the module's docstring
 VALUE_PT_STEPS = (22, 20, 18, 16, 14, 13)  # 13 pt bold still reads from 2 m
 
@@ -225,7 +225,7 @@ class ValuesFrame(RefreshWhenVisible, QWidget):
         self.fes_grid.setContentsMargins(4, 4, 4, 4)
         self.fes_none = QLabel("no channel active")
         self.fes_grid.addWidget(self.fes_none, 0, 0, 1, 2)
-        for ch in range(1, FES_CHANNELS + 1):
+        for ch in CHANNELS:
             label = QLabel("")
             f = QFont(label.font())
             f.setPointSize(16)

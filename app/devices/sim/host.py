@@ -36,6 +36,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from app import streams
 from app.devices.sim.base import DEVICE_CONTROLS, SerialSimulator, linarm_starts_homed
 
 log = logging.getLogger(__name__)
@@ -282,7 +283,7 @@ def build_simulators(spec: dict[str, Any], patient: Any, emit: Callable[[dict[st
 
             def link_factory(port: int = int(params["tcp_port"])) -> Any:
                 return SocketLink(port)
-        if kind == "linarm":
+        if kind == streams.LINARM:
             from app.devices.sim.adapters import LinarmSimAdapter
 
             def linarm_core(patient: Any = patient) -> Any:
@@ -306,7 +307,7 @@ def build_simulators(spec: dict[str, Any], patient: Any, emit: Callable[[dict[st
                 return _Watched(core, LinarmStateWatch(emit)) if emit else core
 
             sims[name] = SerialSimulator(name, mcu_core, link, tick_s=0.002, link_factory=link_factory)
-        elif kind == "physio":
+        elif kind == streams.PHYSIO:
             from app.devices.physio_codec import Calibration, ChannelCalibration
             from app.devices.sim.adapters import PhysioSimCore
 
@@ -314,7 +315,7 @@ def build_simulators(spec: dict[str, Any], patient: Any, emit: Callable[[dict[st
             rate = float(params["rate_hz"])
             sims[name] = SerialSimulator(name, lambda rate=rate, cal=cal: PhysioSimCore(patient, rate, cal), link,
                                          tick_s=min(0.005, 0.5 / rate), link_factory=link_factory)
-        elif kind == "fes":
+        elif kind == streams.FES:
             from app.devices.sim.adapters import RehaStimSimAdapter
 
             protocol = params["protocol"]

@@ -31,6 +31,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from app.devices.sciencemode import CHANNELS
+
 # Grip dynamics (one place).
 GRIP_REST_N = 1.0         # hand resting on the handle
 GRIP_PEAK_N = 38.0        # voluntary squeeze plateau
@@ -119,7 +121,7 @@ class ElectrodeSite:
         return self.direction * self.max_force_n * (1.0 - math.exp(-(ratio - 1.0) / RECRUITMENT_SPREAD))
 
 
-def random_electrode_sites(seed: int, channels: Sequence[int] = tuple(range(1, 9))) -> dict[int, ElectrodeSite]:
+def random_electrode_sites(seed: int, channels: Sequence[int] = CHANNELS) -> dict[int, ElectrodeSite]:
     """Each channel's site for a simulated patient: distances uniform in SITE_DISTANCE_RANGE_CM from a generator
     of its own (the grip and handle noise of a seed stay as they were)."""
     rng = np.random.default_rng([int(seed), 32])

@@ -23,6 +23,8 @@ from dataclasses import dataclass
 from typing import Literal, Protocol
 
 from app.devices.sciencemode import (
+    CHANNELS,
+    CHANNELS_TEXT,
     MAX_CURRENT_MA,
     MAX_PULSE_WIDTH_US,
     SM2_ACK_FOR,
@@ -246,8 +248,8 @@ class RehaStimSimCore:
 
     @staticmethod
     def _check_pulse(channel: int, s: PulseSetting, max_current: int) -> str:
-        if not 1 <= channel <= 8:
-            return f"channel {channel} outside 1..8"
+        if channel not in CHANNELS:
+            return f"channel {channel} outside {CHANNELS_TEXT}"
         if s.current_ma > max_current:
             return f"channel {channel}: {s.current_ma} mA > {max_current} mA"
         if s.pulse_width_us > MAX_PULSE_WIDTH_US:

@@ -87,6 +87,7 @@ const float KD_MAX = 10000.0f;  // N s/m: setPidTunings
 // host
 const float PRETENSION_MOVE_VELOCITY = 0.05f;  // m/s: maxVel of the host's pretension (delta) moves: the assistance's setStiffness, the runner's moveDeltaTo
 const float PRETENSION_MOVE_ACCELERATION = 0.2f;  // m/s^2: maxAcc of the host's pretension (delta) moves: the assistance's setStiffness, the runner's moveDeltaTo
+const float STIFFNESS_LIMIT_MAX = 10000.0f;  // N/m: the largest stiffness limit a site or a patient may set
 
 }  // namespace cfg
 

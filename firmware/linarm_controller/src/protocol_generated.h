@@ -9,7 +9,7 @@
 
 namespace proto {
 
-static const char TABLE_HASH[] = "03036cb2bfb61ba4";
+static const char TABLE_HASH[] = "fda83791e2d91b94";
 static const uint8_t PROTOCOL_VERSION = 1;
 static const char DEVICE_NAME[] = "LINarm2";
 static const uint8_t ARDUINO_MAX_MESSAGE = 62;
