@@ -4,7 +4,9 @@ A driver reads bytes, decodes them with its (pure) codec into typed, timestamped
 one way: on the :class:`~app.bus.StreamBus` (issue #29). The bus keeps each stream's latest sample, wakes a
 script's ``waitCondition`` once per read, runs the safety monitor inline and gives every other consumer a
 bounded, counted queue (or display-rate columns for the Qt adapter). Connection changes, silence and errors
-are bus events (``connected``, ``disconnected``, ``silent``, ``alive``, ``error``, ``controller_error``, …).
+are bus events (``connected``, ``disconnected``, ``silent``, ``alive``, ``error``, ``controller_error``, …), each
+published by one call, :meth:`DeviceDriver._fire_event`: a journal record on the bus (origin: the device), and,
+where the driver keeps a Qt signal for it (``EVENT_SIGNALS``), that signal, emitted by the same call.
 
 The loop reconnects with back-off when the transport drops, and stops within one read timeout.
 """
@@ -15,13 +17,14 @@ import logging
 import threading
 import time
 from collections.abc import Callable
-from typing import Any
+from typing import Any, ClassVar
 
 from PySide6.QtCore import QThread
 
 from app.bus import Channel, SampleBatch, StreamBus, StreamSpec, UpdateNotifier
 from app.devices.realtime import REALTIME_ENV, request_realtime
 from app.devices.transport import Transport, TransportError
+from app.journal import Record
 
 __all__ = ["REALTIME_ENV", "Channel", "DeviceDriver", "SampleBatch", "StreamSpec", "UpdateNotifier",
            "request_realtime"]
@@ -41,6 +44,9 @@ class DeviceDriver(QThread):
     # each time, and under CPU load the GUI then waits for the CPU again (measured: the window took 15-20 s
     # instead of 3-5 s to build at load 15, #16). The LINarm heartbeat has its own real-time thread instead.
     realtime_priority: int | None = None
+    # A device event's Qt face, where the driver keeps one: kind -> the signal's name, emitted with the detail by
+    # the one publishing call (_fire_event). The window takes the event from the bus through its adapter.
+    EVENT_SIGNALS: ClassVar[dict[str, str]] = {}
 
     def __init__(
         self,
@@ -257,6 +263,11 @@ class DeviceDriver(QThread):
             log.log(level, "%s: %s", self.name, reason)
             self._fire_event("connected" if connected else "disconnected", reason)  # the bus wakes the waiters
 
-    def _fire_event(self, event: str, detail: str) -> None:
-        """A device event on the bus (``bus.event`` wakes the waiters and runs the safety monitor inline)."""
-        self.bus.event(self.name, event, detail)
+    def _fire_event(self, event: str, detail: str = "") -> Record:
+        """A device event: a record on the bus (``bus.event`` wakes the waiters and runs the safety monitor inline),
+        then its Qt signal when the driver keeps one (``EVENT_SIGNALS``): one call, two faces."""
+        record = self.bus.event(self.name, event, detail)
+        signal = self.EVENT_SIGNALS.get(event)
+        if signal is not None:
+            getattr(self, signal).emit(detail)
+        return record

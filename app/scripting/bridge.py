@@ -41,7 +41,7 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from app import streams
+from app import journal, streams
 from app.bus import SampleItem, Subscription
 from app.devices import linarm_protocol as proto
 from app.scripting import api
@@ -854,7 +854,7 @@ class ApiBridge:
         self.encoder = SampleEncoder()
         self.limiter = CallLimiter()
         self.refusal_budget = CallLimiter(REFUSAL_RATE, REFUSAL_BURST, 0.0)
-        self.refusal_log = RefusalLog(kernel.warden_pid, host.supervisor.event)
+        self.refusal_log = RefusalLog(kernel.warden_pid, host.supervisor.record)
         self._sub_lock = threading.Lock()
         self._subscribed: set[str] = set()
         self._schema_sent: dict[str, type] = {}
@@ -1013,7 +1013,7 @@ class ApiBridge:
         if kind != "bad line" and self.refusal_budget.admit() is None:
             self.kernel.end_for_violation(f"a flood of requests (more than {REFUSAL_BURST} refused in a row)")
         if self.refusal_log.note(kind, reason):
-            self.host.supervisor.event("script_request_refused", reason=reason, op=str(msg.get("op"))[:40],
+            self.host.supervisor.record(journal.SCRIPT_REQUEST_REFUSED, reason=reason, op=str(msg.get("op"))[:40],
                                        kernel_pid=self.kernel.warden_pid)
 
     # ------------------------------------------------------------------ samples

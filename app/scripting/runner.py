@@ -36,7 +36,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from app import streams
+from app import journal, streams
 from app.devices.linarm_constants import PRETENSION_MOVE, K
 from app.devices.linarm_protocol import ControlMode, ControlState, HomeState
 from app.ownership import start_problem
@@ -645,7 +645,7 @@ class ScriptRunner:
         sup = getattr(self.manager, "supervisor", None)
         name = Path(filename).name
         if sup is not None:
-            sup.event("script_start", name=name, text=source, kernel_pid=kernel.pid)
+            sup.record(journal.SCRIPT_START, name=name, text=source, kernel_pid=kernel.pid)
         progress = getattr(self.manager, "progress", None)
         run = self.run
         if progress is not None:
@@ -691,7 +691,7 @@ class ScriptRunner:
         self._bring_to_safe_state(result)
         self.context.close()  # the homing helper's thread and listeners end with the run
         if sup is not None:
-            sup.event("script_stop", name=name, reason=result.message or result.status, status=result.status)
+            sup.record(journal.SCRIPT_STOP, name=name, reason=result.message or result.status, status=result.status)
         if progress is not None:
             progress.finish(result.status)  # an open repetition ends (not completed) before its run does
         self._end_run(result)
@@ -919,7 +919,7 @@ class ScriptRunner:
                     self.output("stderr", f"Could not bring the robot to IDLE: {exc2}\n")
         sup = getattr(self.manager, "supervisor", None)
         if sup is not None:
-            sup.event("script_safe_state", reason=reason, actions=done)
+            sup.record(journal.SCRIPT_SAFE_STATE, reason=reason, actions=done)
         if done and not quiet:
             self.output("info", f"Safe state: {', '.join(done)}.\n")
 
