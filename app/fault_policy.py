@@ -110,9 +110,9 @@ class FaultPolicy:
             return
         if not self._attached or not self.running():
             return
-        if item.kind == "silent" and item.device in STOP_ON_SILENCE:
+        if item.kind == journal.SILENT and item.device in STOP_ON_SILENCE:
             self._silence_check(item.device, item.detail)
-        elif item.kind == "helper_failed":
+        elif item.kind == journal.HELPER_FAILED:
             self.process_failed(item.device, item.detail)
 
     def _silence_check(self, device: str, detail: str) -> None:

@@ -114,7 +114,7 @@ class TherapyThread:
                     if value is not None and value == value:  # not NaN
                         target = float(value)
             elif isinstance(item, DeviceEvent) and item.device == streams.PATIENT_MODEL \
-                    and item.kind in ("disconnected", "silent"):
+                    and item.kind in (journal.DISCONNECTED, journal.SILENT):
                 alpha = None  # whatever came before the loss is stale
                 self.on_alpha_lost(item.kind)
         if alpha is not None:
@@ -145,16 +145,16 @@ class DeviceWatch:
         state = self._state.get(name)
         if state is None:
             return
-        if event == "connected":
+        if event == journal.CONNECTED:
             if state["was_connected"]:
                 self.supervisor.raise_alarm(AlarmLevel.INFO, name, f"{name} reconnected")
             state["was_connected"] = True
-        elif event == "disconnected" and state["was_connected"] and self.running():
+        elif event == journal.DISCONNECTED and state["was_connected"] and self.running():
             self.supervisor.raise_alarm(self.loss_level(name), name, f"{name} connection lost: {detail}")
-        elif event == "silent" and self.running():
+        elif event == journal.SILENT and self.running():
             state["silence_alarm"] = self.supervisor.raise_alarm(AlarmLevel.WARNING, name,
                                                                  f"{name} stopped sending data")
-        elif event == "alive" and state.get("silence_alarm") is not None:
+        elif event == journal.ALIVE and state.get("silence_alarm") is not None:
             # The stream resumed: the warning says so and leaves the banner; it stays in the alarm history.
             alarm, state["silence_alarm"] = state["silence_alarm"], None
             try:
@@ -164,7 +164,7 @@ class DeviceWatch:
             alarm.text = f"{alarm.text} (resumed{gap})"
             self.supervisor.record(journal.STREAM_RESUMED, device=name, silent_s=detail, ident=alarm.ident)
             self.supervisor.acknowledge(alarm.ident, operator=f"{name} resumed")
-        elif event == "controller_error":
+        elif event == journal.CONTROLLER_ERROR:
             self.supervisor.raise_alarm(AlarmLevel.STOP, name, detail)
 
 

@@ -1,5 +1,6 @@
 """"Robot held by: Trigger reaching": who owns a device now (one owner during a run, issue #36), where its
-commands are given (the Robot, Assistance and FES tabs). Follows the supervisor's ``lease_changed``."""
+commands are given (the Robot, Assistance and FES tabs).
+Follows the journal's lease records (the window's adapter's ``lease_changed``)."""
 
 from __future__ import annotations
 

@@ -46,7 +46,7 @@ DISPLAY_HZ = 30.0
 BATCHES_NAME = "qt"
 EVENTS_NAME = "qt-events"
 # Kinds that say the link is up although they are not "connected": the device sent them while connected.
-_UP_KINDS = frozenset({"connected", "silent", "alive", "controller_error"})
+_UP_KINDS = frozenset({journal.CONNECTED, journal.SILENT, journal.ALIVE, journal.CONTROLLER_ERROR})
 _SIGNALS = ("samples(PyObject)", "device_event(QString,QString,QString)",
             "connection_changed(QString,bool,QString)", "silence_changed(QString,bool)", "record(PyObject)",
             "alarm_raised(PyObject)", "alarms_changed()", "estop_changed(bool,QString)",
@@ -197,10 +197,10 @@ class QtBus(QObject):
     def _emit_event(self, event: Record) -> None:
         if event.from_device:
             self.device_event.emit(event.device, event.kind, event.detail)
-            if event.kind in ("connected", "disconnected"):
-                self.connection_changed.emit(event.device, event.kind == "connected", event.detail)
-            elif event.kind in ("silent", "alive"):
-                self.silence_changed.emit(event.device, event.kind == "silent")
+            if event.kind in (journal.CONNECTED, journal.DISCONNECTED):
+                self.connection_changed.emit(event.device, event.kind == journal.CONNECTED, event.detail)
+            elif event.kind in (journal.SILENT, journal.ALIVE):
+                self.silence_changed.emit(event.device, event.kind == journal.SILENT)
         else:
             self._emit_journal(event)
         self.record.emit(event)
@@ -275,11 +275,11 @@ class _Subscriptions:
 def _fold(link: LinkState, event: Record) -> LinkState:
     """The link after ``event``; a kind the adapter does not know (a driver's own) changes nothing."""
     kind = event.kind
-    if kind in ("connected", "disconnected"):
-        return LinkState(kind == "connected", False, event.detail)
-    if kind in ("silent", "alive"):
-        return LinkState(True, kind == "silent", link.reason)
-    if kind == "controller_error":
+    if kind in (journal.CONNECTED, journal.DISCONNECTED):
+        return LinkState(kind == journal.CONNECTED, False, event.detail)
+    if kind in (journal.SILENT, journal.ALIVE):
+        return LinkState(True, kind == journal.SILENT, link.reason)
+    if kind == journal.CONTROLLER_ERROR:
         return LinkState(True, link.silent, link.reason)
     return link
 
