@@ -584,6 +584,7 @@ class MainWindow(QMainWindow):
         if answer == QMessageBox.StandardButton.Yes:
             # The session's operator (the record must say who), "operator" only when no session runs.
             self.manager.supervisor.reset_emergency_stop(self.manager.operator or "operator")
+            self.qt_bus.tick()  # the screen follows at once
 
     def _on_device_connection(self, name: str, connected: bool, reason: str) -> None:
         label = self.device_status.get(name)
