@@ -538,15 +538,12 @@ class LinarmppManager(QObject):
             robot.apply_limits(self.supervisor.robot)
 
     def _new_run_log(self) -> Any:
-        """The runs go into the session record as they happen (record_event). Without the window's session, as
-        the supervisor's events: a recorder of its own (the headless runner's) hears those."""
+        """The runs' changes are journal records (origin ``run``) on the bus as they happen: the session's
+        recorder, or the headless runner's, hears them there like any other record."""
         from app.runs import RunLog
 
         def record(kind: str, **data: Any) -> None:
-            if self.recorder is not None:
-                self.record_event(kind, **data)
-            else:
-                self.supervisor.record(kind, **data)
+            self.bus.record(journal.RUN, kind, data)
 
         runs = RunLog(record)
         self.progress.attach_runs(runs)

@@ -62,7 +62,7 @@ from typing import TYPE_CHECKING, Any, TextIO
 
 import numpy as np
 
-from app import paths, streams
+from app import journal, paths, streams
 from app.alarm_count import alarm_count
 from app.bus import Channel, StreamSpec, Subscription
 from app.devices.linarm_protocol import T_US_WRAP_S
@@ -446,6 +446,7 @@ class SessionRecorder:
         self.folder: Path | None = None
         self._events: collections.deque[dict[str, Any]] = collections.deque()
         self._sample_subs: dict[str, Subscription] = {}  # device -> its streams' samples
+        self._operator = ""
         self._event_sub: Subscription | None = None  # the journal: the devices' events and the supervisor's records
         self._record_sub: Subscription | None = None  # the supervisor's records when it publishes on another bus
         self._in_gap: dict[str, bool] = {}  # device -> no data now (writer thread only)
@@ -527,6 +528,7 @@ class SessionRecorder:
                                          f"cannot record in {root}: {exc.strerror or exc}") from exc
                 raise
             self._stop.clear()
+            self._operator = operator  # who the session's runs are recorded for (journal records of origin run)
             self._writer = threading.Thread(target=self._run, name="session-recorder", daemon=True)
             self._writer.start()
             self.event("session_start", operator, patient_id=patient_id, note=note, folder=str(folder))
@@ -758,6 +760,9 @@ class SessionRecorder:
         if rec.from_device:
             return self._device_event_record(rec)
         data = dict(rec.data)
+        if rec.origin == journal.RUN:  # the session's runs, as the application records them: the operator's
+            return {"t_wall_epoch_s": rec.t_wall, "t_mono": rec.t_mono, "kind": rec.kind, "who": self._operator,
+                    "origin": "app", "data": data}
         who = str(data.get("operator") or data.get("source") or "safety")
         return {"t_wall_epoch_s": rec.t_wall, "t_mono": rec.t_mono, "kind": rec.kind, "who": who, "origin": "safety",
                 "data": data}
