@@ -128,7 +128,7 @@ class SafetySupervisor:
         self.bus = bus if bus is not None else StreamBus()
         self._event_sink: EventSink | None = None  # the one-slot form (set_event_sink), kept for compatibility
         self._sink_listener: RecordListener | None = None
-        self._subscribers: dict[int, tuple[EventSink, RecordListener]] = {}  # add_event_subscriber's, by id(fn)
+        self._subscribers: tuple[tuple[EventSink, RecordListener], ...] = ()  # add_event_subscriber's
         if event_sink is not None:
             self.set_event_sink(event_sink)
         self._stop_actions: list[StopAction] = []
@@ -175,13 +175,14 @@ class SafetySupervisor:
     def add_event_subscriber(self, fn: EventSink) -> None:
         """``fn(kind, data)`` for every journal record, on the thread that published it; it must be quick."""
         self.remove_event_subscriber(fn)
-        self._subscribers = {**self._subscribers, id(fn): (fn, self.bus.listen("event subscriber", _as_listener(fn)))}
+        self._subscribers = (*self._subscribers, (fn, self.bus.listen("event subscriber", _as_listener(fn))))
 
     def remove_event_subscriber(self, fn: EventSink) -> None:
-        held = self._subscribers.get(id(fn))
-        if held is not None and held[0] is fn:
-            held[1].close()
-            self._subscribers = {k: v for k, v in self._subscribers.items() if k != id(fn)}
+        """Stop ``fn`` (compared by equality: a bound method given again is the same subscriber)."""
+        for f, listener in self._subscribers:
+            if f == fn:
+                listener.close()
+        self._subscribers = tuple((f, listener) for f, listener in self._subscribers if f != fn)
 
     def set_robot_probes(self, probes: RobotProbes) -> None:
         self.latest_centre_m = probes.centre_m
