@@ -186,3 +186,33 @@ def test_a_kind_and_data_subscriber_is_a_journal_listener_and_leaves_by_equality
     supervisor.remove_event_subscriber(seen.on)  # another bound-method object, the same subscriber
     supervisor.reset_emergency_stop("tester")
     assert seen.kinds == ["emergency_stop", "alarm"] and supervisor.bus.subscriptions() == []
+
+
+def test_the_adapter_turns_the_supervisors_records_into_the_windows_signals(qtbot) -> None:
+    """An e-stop from a script's thread reaches the window's adapter as ``estop_changed`` at its next tick, with the
+    alarm (the supervisor's own object) and the lease changes beside it."""
+    import threading
+
+    from app.ownership import ROBOT, Lease
+    from app.ui.qt_bus import QtBus
+
+    bus = StreamBus()
+    supervisor = SafetySupervisor(SafetyConfig(), bus=bus)
+    adapter = QtBus(bus, alarms=supervisor.alarm)
+    alarms: list[Any] = []
+    leases: list[bool] = []
+    adapter.alarm_raised.connect(alarms.append)
+    adapter.lease_changed.connect(lambda: leases.append(True))
+    with qtbot.waitSignal(adapter.estop_changed, timeout=1000) as latched:
+        worker = threading.Thread(target=supervisor.emergency_stop, args=("api", "from a script"))
+        worker.start()
+        worker.join()
+    assert latched.args == [True, "from a script (api)"]
+    assert [a.text for a in alarms] == ["Emergency stop: from a script"] and alarms[0] is supervisor.alarms()[0]
+    supervisor.reset_emergency_stop("tester")
+    supervisor.take_lease(Lease("run-1", "the exercise", frozenset({ROBOT}), ("exercise",)))
+    with qtbot.waitSignal(adapter.estop_changed, timeout=1000) as reset:
+        pass
+    assert reset.args == [False, ""]
+    qtbot.waitUntil(lambda: leases == [True], timeout=1000)
+    adapter.close()
