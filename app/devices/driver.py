@@ -21,6 +21,7 @@ from typing import Any, ClassVar
 
 from PySide6.QtCore import QThread
 
+from app import journal
 from app.bus import Channel, SampleBatch, StreamBus, StreamSpec, UpdateNotifier
 from app.devices.realtime import REALTIME_ENV, request_realtime
 from app.devices.transport import Transport, TransportError
@@ -178,7 +179,7 @@ class DeviceDriver(QThread):
             except Exception as exc:  # a decoder bug must never take the thread down silently
                 log.exception("%s: driver failure", self.name)
                 reason = f"driver failure: {exc!r}"
-                self._fire_event("error", f"{self.name}: {reason}")
+                self._fire_event(journal.DEVICE_ERROR_EVENT, f"{self.name}: {reason}")
             finally:
                 try:
                     self.on_disconnect()
@@ -233,7 +234,7 @@ class DeviceDriver(QThread):
                     if silent:
                         self._silent_since = self._last_sample_mono
                     # "alive" carries how long the stream was silent (s), for "resumed after 0.3 s"
-                    self._fire_event("silent" if silent else "alive",
+                    self._fire_event(journal.SILENT if silent else journal.ALIVE,
                                      "" if silent else f"{self._last_sample_mono - self._silent_since:.3f}")
             if now >= next_rates:
                 self._update_rates()
@@ -261,7 +262,8 @@ class DeviceDriver(QThread):
         if changed:
             level = logging.INFO if connected else logging.WARNING
             log.log(level, "%s: %s", self.name, reason)
-            self._fire_event("connected" if connected else "disconnected", reason)  # the bus wakes the waiters
+            # the bus wakes the waiters
+            self._fire_event(journal.CONNECTED if connected else journal.DISCONNECTED, reason)
 
     def _fire_event(self, event: str, detail: str = "") -> Record:
         """A device event: a record on the bus (``bus.event`` wakes the waiters and runs the safety monitor inline),
