@@ -9,8 +9,9 @@ Qt-free. The composition root builds one :class:`StreamBus` and hands it to ever
   events (:meth:`StreamBus.event`, origin the device) and the application's records — alarms, e-stops, refusals,
   leases, faults, run changes (:meth:`StreamBus.record`, origin ``safety``/``run``/``progress``). A subscriber
   asks for the first with ``events=True``, the second with ``records=True``; both arrive in one queue, in the
-  order they were published. Journal records are never dropped from a bounded queue (they are rare and go into
-  the medical record); :meth:`StreamBus.listen` calls a quick callback on the publishing thread instead.
+  order they were published. A subscriber that writes the medical record asks ``keep_records=True``: its queue
+  then never drops a journal record (the oldest sample or device event goes instead); a display's queue drops
+  the oldest of anything. :meth:`StreamBus.listen` calls a quick callback on the publishing thread instead.
 * The bus keeps each stream's **latest** sample and the :class:`UpdateNotifier` a script's ``waitCondition``
   waits on (woken once per driver read, not once per sample).
 * A consumer **subscribes** by name to the streams (and events) it wants and gets a **bounded, counted queue**
@@ -138,14 +139,15 @@ class Subscription:
     ones pushed out because the consumer did not drain in time. Thread-safe: drivers put, the consumer drains."""
 
     def __init__(self, bus: StreamBus, name: str, streams: frozenset[str] | None, events: bool,
-                 maxlen: int, records: bool = False) -> None:
+                 maxlen: int, records: bool = False, keep_records: bool = False) -> None:
         if maxlen < 1:
             raise ValueError("a subscription holds at least one item")
         self.bus = bus
         self.name = name
         self.streams = streams  # None: every stream
         self.events = events
-        self.records = records  # the journal's records (alarms, e-stops, refusals, runs): never dropped
+        self.records = records  # the journal's records (alarms, e-stops, refusals, runs)
+        self.keep_records = keep_records  # never drop one of them (the session record's queue)
         self.maxlen = maxlen
         self.received = 0
         self.dropped = 0
@@ -165,10 +167,10 @@ class Subscription:
             self._items.append(item)
 
     def _drop_oldest(self) -> None:
-        """Make room (under the lock): the oldest sample or device event goes; a journal record never does (the
-        queue then holds more than ``maxlen``: records are rare, and what the medical record says is not lost)."""
+        """Make room (under the lock): the oldest item goes; with ``keep_records`` the oldest sample or device event,
+        never a journal record (the queue then holds more than ``maxlen``: what the medical record says is kept)."""
         items = self._items
-        if not (isinstance(items[0], Record) and not items[0].from_device):
+        if not self.keep_records or not (isinstance(items[0], Record) and not items[0].from_device):
             items.popleft()
             self.dropped += 1
             return
@@ -465,11 +467,11 @@ class StreamBus:
 
     # ------------------------------------------------------------------ subscribing (any thread)
     def subscribe(self, name: str, streams: Iterable[str] | None = None, *, events: bool = False,
-                  records: bool = False, maxlen: int = DEFAULT_MAXLEN) -> Subscription:
+                  records: bool = False, keep_records: bool = False, maxlen: int = DEFAULT_MAXLEN) -> Subscription:
         """A bounded, counted queue of ``streams``' samples (every stream when None), with ``events`` the device
-        events, with ``records`` the journal's records (never dropped). Close it (or use it as a context manager)
-        when done."""
-        sub = Subscription(self, name, self._names(streams), events, maxlen, records)
+        events, with ``records`` the journal's records (with ``keep_records`` never dropped). Close it (or use it as
+        a context manager) when done."""
+        sub = Subscription(self, name, self._names(streams), events, maxlen, records, keep_records)
         with self._lock:
             self._queued = (*self._queued, sub)
             self._reroute()

@@ -739,9 +739,10 @@ class SessionRecorder:
                              for device, names in self._device_streams.items()}
         journal_bus = getattr(host.supervisor, "bus", bus)
         self._event_sub = bus.subscribe("recorder:journal", (), events=True, records=journal_bus is bus,
-                                        maxlen=DEVICE_EVENT_QUEUE)
+                                        keep_records=True, maxlen=DEVICE_EVENT_QUEUE)
         if journal_bus is not bus:  # a supervisor publishing on a bus of its own (a test's host)
-            self._record_sub = journal_bus.subscribe("recorder:journal", (), records=True, maxlen=DEVICE_EVENT_QUEUE)
+            self._record_sub = journal_bus.subscribe("recorder:journal", (), records=True, keep_records=True,
+                                                     maxlen=DEVICE_EVENT_QUEUE)
         self._in_gap = {}
         for name, handle in host.devices.items():
             self._in_gap[name] = not handle.driver.connected

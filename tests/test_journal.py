@@ -50,9 +50,9 @@ def test_records_of_each_origin_reach_one_subscription_in_order() -> None:
     assert stopped == ["fes: stimulator lost"] and policy.last_cause == "fes: stimulator lost"
 
 
-def test_journal_records_are_never_dropped_from_a_bounded_queue() -> None:
+def test_the_session_records_queue_never_drops_a_journal_record() -> None:
     bus = StreamBus()
-    with bus.subscribe("slow", (), events=True, records=True, maxlen=3) as sub:
+    with bus.subscribe("slow", (), events=True, records=True, keep_records=True, maxlen=3) as sub:
         bus.record(journal.SAFETY, journal.ALARM, {"text": "kept"})
         for k in range(10):
             bus.event("dev", journal.SILENT, str(k))
@@ -61,6 +61,11 @@ def test_journal_records_are_never_dropped_from_a_bounded_queue() -> None:
         ("silent", "8"), ("silent", "9")]
     assert [r.data["text"] for r in items if isinstance(r, Record) and not r.from_device] == ["kept"]
     assert sub.dropped == 8
+    with bus.subscribe("display", (), events=True, records=True, maxlen=3) as display:  # a display's: bounded
+        for k in range(5):
+            bus.record(journal.SAFETY, journal.ROBOT_COMMAND, {"k": k})
+        assert [r.data["k"] for r in display.drain() if isinstance(r, Record)] == [2, 3, 4]
+        assert display.dropped == 2
 
 
 def test_the_supervisor_the_fault_policy_and_the_progress_import_no_qt() -> None:
