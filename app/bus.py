@@ -40,7 +40,7 @@ from typing import Any
 
 import numpy as np
 
-from app.journal import JOURNAL_ORIGINS, Record, RecordSink, device_event
+from app.journal import JOURNAL_ORIGINS, Record, RecordSink
 
 log = logging.getLogger(__name__)
 
@@ -419,7 +419,7 @@ class StreamBus:
         asked for events, and to waiters."""
         if device in JOURNAL_ORIGINS:
             raise ValueError(f"{device!r} is not a device: its records go through record()")
-        item = device_event(device, kind, detail, **data)
+        item = Record(device, kind, {"detail": detail, **data}, time.monotonic(), time.time())  # the bus's clock
         self._events[device] = item
         inline, queued = self._event_routes
         for sub in inline:
