@@ -5,6 +5,13 @@ Qt-free. The composition root builds one :class:`StreamBus` and hands it to ever
 
 * A driver **declares** its streams (:class:`StreamSpec`) and **publishes** typed, timestamped samples and
   device events (``connected``, ``disconnected``, ``silent``, ``alive``, ``controller_error``, …).
+* The **journal** travels here too (:mod:`app.journal`): one :class:`~app.journal.Record` type for the devices'
+  events (:meth:`StreamBus.event`, origin the device) and the application's records — alarms, e-stops, refusals,
+  leases, faults, run changes (:meth:`StreamBus.record`, origin ``safety``/``run``/``progress``). A subscriber
+  asks for the first with ``events=True``, the second with ``records=True``; both arrive in one queue, in the
+  order they were published. A subscriber that writes the medical record asks ``keep_records=True``: its queue
+  then never drops a journal record (the oldest sample or device event goes instead); a display's queue drops
+  the oldest of anything. :meth:`StreamBus.listen` calls a quick callback on the publishing thread instead.
 * The bus keeps each stream's **latest** sample and the :class:`UpdateNotifier` a script's ``waitCondition``
   waits on (woken once per driver read, not once per sample).
 * A consumer **subscribes** by name to the streams (and events) it wants and gets a **bounded, counted queue**
@@ -32,6 +39,8 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+
+from app.journal import JOURNAL_ORIGINS, Record, RecordSink
 
 log = logging.getLogger(__name__)
 
@@ -83,19 +92,11 @@ class SampleItem:
     arrival: float
 
 
-@dataclass(frozen=True, slots=True)
-class DeviceEvent:
-    """Something that happened to a device's link: ``kind`` is one of :data:`EVENT_KINDS` (drivers may add
-    their own), ``detail`` a sentence or a number as text, ``t`` host monotonic s."""
+# A device's event is a journal record whose origin is the device (``device``, ``kind``, ``detail``, ``t``): one
+# record type for everything that happens, the devices' events and the application's alike.
+DeviceEvent = Record
 
-    device: str
-    kind: str
-    detail: str
-    t: float
-
-
-BusItem = SampleItem | DeviceEvent
-EVENT_KINDS = ("connected", "disconnected", "silent", "alive", "controller_error")
+BusItem = SampleItem | Record
 
 # Who may run on the publishing driver's thread. Anything else gets a queue.
 INLINE_SUBSCRIBERS = frozenset({"safety"})
@@ -138,13 +139,15 @@ class Subscription:
     ones pushed out because the consumer did not drain in time. Thread-safe: drivers put, the consumer drains."""
 
     def __init__(self, bus: StreamBus, name: str, streams: frozenset[str] | None, events: bool,
-                 maxlen: int) -> None:
+                 maxlen: int, records: bool = False, keep_records: bool = False) -> None:
         if maxlen < 1:
             raise ValueError("a subscription holds at least one item")
         self.bus = bus
         self.name = name
         self.streams = streams  # None: every stream
         self.events = events
+        self.records = records  # the journal's records (alarms, e-stops, refusals, runs)
+        self.keep_records = keep_records  # never drop one of them (the session record's queue)
         self.maxlen = maxlen
         self.received = 0
         self.dropped = 0
@@ -160,9 +163,22 @@ class Subscription:
         with self._lock:
             self.received += 1
             if len(self._items) >= self.maxlen:
-                self._items.popleft()
-                self.dropped += 1
+                self._drop_oldest()
             self._items.append(item)
+
+    def _drop_oldest(self) -> None:
+        """Make room (under the lock): the oldest item goes; with ``keep_records`` the oldest sample or device event,
+        never a journal record (the queue then holds more than ``maxlen``: what the medical record says is kept)."""
+        items = self._items
+        if not self.keep_records or not (isinstance(items[0], Record) and not items[0].from_device):
+            items.popleft()
+            self.dropped += 1
+            return
+        for k, old in enumerate(items):
+            if not (isinstance(old, Record) and not old.from_device):
+                del items[k]
+                self.dropped += 1
+                return
 
     def pending(self) -> int:
         return len(self._items)
@@ -213,6 +229,7 @@ class InlineSubscription:
     callback: Callable[[BusItem], None]
     streams: frozenset[str] | None
     events: bool
+    records: bool = False
     failures: int = 0
     closed: bool = False
 
@@ -301,7 +318,21 @@ class BatchSubscription:
         self.bus.unsubscribe(self)
 
 
-AnySubscription = Subscription | InlineSubscription | BatchSubscription
+@dataclass
+class RecordListener:
+    """A quick callback for every journal record, on the publishing thread (:meth:`StreamBus.listen`)."""
+
+    bus: StreamBus
+    name: str
+    callback: RecordSink
+    failures: int = 0
+    closed: bool = False
+
+    def close(self) -> None:
+        self.bus.unsubscribe(self)
+
+
+AnySubscription = Subscription | InlineSubscription | BatchSubscription | RecordListener
 
 
 # ---------------------------------------------------------------------------------------------- the bus
@@ -314,7 +345,7 @@ class StreamBus:
         self._latest: dict[str, Any] = {}
         self._latest_t: dict[str, float] = {}
         self._totals: dict[str, int] = {}
-        self._events: dict[str, DeviceEvent] = {}  # each device's last event
+        self._events: dict[str, Record] = {}  # each device's last event
         self._lock = threading.Lock()  # guards the subscription lists (copy-on-write: publish reads without it)
         self._queued: tuple[Subscription, ...] = ()
         self._inline: tuple[InlineSubscription, ...] = ()
@@ -323,6 +354,8 @@ class StreamBus:
         self._routes: dict[str, tuple[tuple[InlineSubscription, ...], tuple[Subscription, ...],
                                       tuple[BatchSubscription, ...]]] = {}
         self._event_routes: tuple[tuple[InlineSubscription, ...], tuple[Subscription, ...]] = ((), ())
+        self._listeners: tuple[RecordListener, ...] = ()
+        self._record_routes: tuple[tuple[InlineSubscription, ...], tuple[Subscription, ...]] = ((), ())
 
     # ------------------------------------------------------------------ streams
     def declare(self, specs: Iterable[StreamSpec]) -> None:
@@ -352,7 +385,7 @@ class StreamBus:
     def total(self, stream: str) -> int:
         return self._totals.get(stream, 0)
 
-    def last_event(self, device: str) -> DeviceEvent | None:
+    def last_event(self, device: str) -> Record | None:
         return self._events.get(device)
 
     # ------------------------------------------------------------------ publishing (driver threads)
@@ -381,10 +414,12 @@ class StreamBus:
         if wake:
             self.wake()
 
-    def event(self, device: str, kind: str, detail: str = "") -> None:
+    def event(self, device: str, kind: str, detail: str = "", **data: Any) -> Record:
         """A device event (connected, disconnected, silent, alive, controller_error, …) to the subscribers that
         asked for events, and to waiters."""
-        item = DeviceEvent(device, kind, detail, time.monotonic())
+        if device in JOURNAL_ORIGINS:
+            raise ValueError(f"{device!r} is not a device: its records go through record()")
+        item = Record(device, kind, {"detail": detail, **data}, time.monotonic(), time.time())  # the bus's clock
         self._events[device] = item
         inline, queued = self._event_routes
         for sub in inline:
@@ -392,6 +427,30 @@ class StreamBus:
         for q in queued:
             q.put(item)
         self.wake()
+        return item
+
+    def record(self, origin: str, kind: str, data: dict[str, Any] | None = None) -> Record:
+        """A journal record (an alarm, an e-stop, a refusal, a run change: :mod:`app.journal`) to the subscribers
+        that asked for records, on the calling thread. The queues and listeners get it first, the safety monitor
+        (inline) last: what it does about the record (a fault, a safe state) follows the record in the journal."""
+        if origin not in JOURNAL_ORIGINS:
+            raise ValueError(f"{origin!r} publishes device events through event(), not journal records")
+        item = Record(origin, kind, data if data is not None else {}, time.monotonic(), time.time())
+        inline, queued = self._record_routes
+        for q in queued:
+            q.put(item)
+        for listener in self._listeners:
+            try:
+                listener.callback(item)
+            except Exception:  # a listener's bug must not stop the one who published
+                listener.failures += 1
+                log.exception("journal listener %s failed", listener.name)
+        for sub in inline:
+            self._call_inline(sub, item)
+        if queued:
+            for q in queued:
+                q._signal()
+        return item
 
     def wake(self) -> None:
         """Wake the consumers waiting on their queues, and the notifier's waiters (once per read)."""
@@ -408,22 +467,23 @@ class StreamBus:
 
     # ------------------------------------------------------------------ subscribing (any thread)
     def subscribe(self, name: str, streams: Iterable[str] | None = None, *, events: bool = False,
-                  maxlen: int = DEFAULT_MAXLEN) -> Subscription:
-        """A bounded, counted queue of ``streams``' samples (every stream when None) and, with ``events``, the
-        device events. Close it (or use it as a context manager) when done."""
-        sub = Subscription(self, name, self._names(streams), events, maxlen)
+                  records: bool = False, keep_records: bool = False, maxlen: int = DEFAULT_MAXLEN) -> Subscription:
+        """A bounded, counted queue of ``streams``' samples (every stream when None), with ``events`` the device
+        events, with ``records`` the journal's records (with ``keep_records`` never dropped). Close it (or use it as
+        a context manager) when done."""
+        sub = Subscription(self, name, self._names(streams), events, maxlen, records, keep_records)
         with self._lock:
             self._queued = (*self._queued, sub)
             self._reroute()
         return sub
 
     def subscribe_inline(self, name: str, callback: Callable[[BusItem], None], streams: Iterable[str] | None = None,
-                         *, events: bool = False) -> InlineSubscription:
+                         *, events: bool = False, records: bool = False) -> InlineSubscription:
         """``callback(item)`` on the publishing thread, before ``publish`` returns: only for the safety monitor
         (:data:`INLINE_SUBSCRIBERS`); it must be quick and must not block."""
         if name not in INLINE_SUBSCRIBERS:
             raise ValueError(f"{name!r} may not run on a driver's thread; subscribe() gives it a queue")
-        sub = InlineSubscription(self, name, callback, self._names(streams), events)
+        sub = InlineSubscription(self, name, callback, self._names(streams), events, records)
         with self._lock:
             self._inline = (*self._inline, sub)
             self._reroute()
@@ -438,6 +498,14 @@ class StreamBus:
             self._reroute()
         return sub
 
+    def listen(self, name: str, callback: RecordSink) -> RecordListener:
+        """``callback(record)`` for every journal record, on the publishing thread, before :meth:`record` returns
+        (the session record's sink, a test's log): records are rare, but the callback must still be quick."""
+        listener = RecordListener(self, name, callback)
+        with self._lock:
+            self._listeners = (*self._listeners, listener)
+        return listener
+
     def resubscribe(self, sub: Subscription, streams: Iterable[str] | None) -> None:
         """Change which streams a queued subscription receives (e.g. a script subscribing to one more): its
         queue and counts stay, so the order of what it already holds is kept."""
@@ -451,11 +519,12 @@ class StreamBus:
             self._queued = tuple(s for s in self._queued if s is not sub)
             self._inline = tuple(s for s in self._inline if s is not sub)
             self._batches = tuple(s for s in self._batches if s is not sub)
+            self._listeners = tuple(s for s in self._listeners if s is not sub)
             self._reroute()
 
     def subscriptions(self) -> list[AnySubscription]:
         """Every open subscription (diagnostics: names, received and dropped counts)."""
-        return [*self._inline, *self._queued, *self._batches]
+        return [*self._inline, *self._queued, *self._batches, *self._listeners]
 
     def _names(self, streams: Iterable[str] | None) -> frozenset[str] | None:
         if streams is None:
@@ -473,3 +542,5 @@ class StreamBus:
         self._routes = routes
         self._event_routes = (tuple(s for s in self._inline if s.events),
                               tuple(s for s in self._queued if s.events))
+        self._record_routes = (tuple(s for s in self._inline if s.records),
+                               tuple(s for s in self._queued if s.records))

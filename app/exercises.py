@@ -29,7 +29,7 @@ from typing import TYPE_CHECKING, Any
 import yaml
 from yaml.nodes import MappingNode, SequenceNode
 
-from app import streams
+from app import journal, streams
 from app.resources import RESOURCES
 from app.safe_files import UserFileError, read_user_text
 from app.yamlschema import ConfigError, load_dataclass, rng
@@ -554,7 +554,7 @@ def start_exercise(runner: ExerciseRunner, manager: EventHost, exercise: Exercis
     if manager.recorder is not None:
         manager.record_event("exercise_start", "", **data)  # the session's own record of what the clinician chose
     else:
-        manager.supervisor.event("exercise_start", **data)
+        manager.supervisor.record(journal.EXERCISE_START, **data)
     if _takes_run(runner):
         runner.start(text, str(exercise.script), dict(checked.params), program=exercise_program(exercise, text),
                      parameters=run_parameters(exercise, checked.params), run_source=source,

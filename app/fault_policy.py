@@ -20,6 +20,9 @@ Which faults stop the therapy, and what stopping means, live here and nowhere el
   found ON or homing at every state sample and at every (re)connect (``SafetySupervisor.check_robot_state``),
   and refuses homing / ON; each cause is one alarm, its repeats counted on it (``raise_alarm``'s ``key``).
 
+The policy is a safety monitor inline on the stream bus (the name ``"safety"``), from one subscription: the
+supervisor's ``alarm`` records and the devices' events, on the thread that published them. Qt-free.
+
 Each handled fault is recorded (``faults``; a ``fault`` event in the session record) with its cause,
 so the headless runner can exit with 3 and the window shows the same alarm: docs/fault-policy.md has
 the device × fault matrix that tests/test_fault_policy.py checks in both.
@@ -32,25 +35,30 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import Protocol
 
-from PySide6.QtCore import Qt
-
-from app import streams
-from app.bus import BusItem, DeviceEvent, StreamBus
-from app.safety import Alarm, AlarmLevel
-
-if TYPE_CHECKING:
-    from app.devices.driver import DeviceDriver
-    from app.safety import SafetySupervisor
+from app import journal, streams
+from app.bus import BusItem, StreamBus
+from app.journal import Record
+from app.safety import Alarm, AlarmLevel, SafetySupervisor
 
 log = logging.getLogger(__name__)
+
+
+class Driver(Protocol):
+    """What the policy asks a device's driver (app.devices.driver.DeviceDriver, a floor above)."""
+
+    @property
+    def connected(self) -> bool: ...
+
+    @property
+    def silent(self) -> bool: ...
 
 STOP_ON_SILENCE: frozenset[str] = frozenset({streams.LINARM, streams.FES})
 # a loss matters only while they drive
 DRIVING_LINKS: frozenset[str] = frozenset({streams.PATIENT_MODEL, streams.VR})
 
-DriverLookup = Callable[[str], "DeviceDriver | None"]
+DriverLookup = Callable[[str], "Driver | None"]
 
 
 @dataclass(frozen=True)
@@ -77,23 +85,34 @@ class FaultPolicy:
         self.faults: list[Fault] = []
         self._lock = threading.Lock()
         self._attached = False
-        # Direct: the safe state runs in the thread that raised the alarm, not when the GUI thread gets to it.
-        self.supervisor.alarm_raised.connect(self._on_alarm, Qt.ConnectionType.DirectConnection)
+        # Inline: the safe state runs in the thread that raised the alarm, not when the GUI thread gets to it. One
+        # subscription for the alarms and the devices' events (the latter heard once the devices are attached).
+        self._subscriptions = [self.bus.subscribe_inline("safety", self._on_item, (), events=True, records=True)]
+        if supervisor.bus is not bus:  # a supervisor publishing elsewhere (a test's): its alarms too
+            self._subscriptions.append(supervisor.bus.subscribe_inline("safety", self._on_item, (), records=True))
 
     # ------------------------------------------------------------------ inputs
     def attach_devices(self) -> None:
         """Listen to the devices' silence and helper failures: a safety monitor, inline on the bus (idempotent)."""
-        if self._attached:
-            return
         self._attached = True
-        self.bus.subscribe_inline("safety", self._on_event, (), events=True)
 
-    def _on_event(self, item: BusItem) -> None:
-        if not isinstance(item, DeviceEvent) or not self.running():
+    def close(self) -> None:
+        """Stop listening (the policy no longer acts on anything)."""
+        for sub in self._subscriptions:
+            sub.close()
+
+    def _on_item(self, item: BusItem) -> None:
+        if not isinstance(item, Record):
             return
-        if item.kind == "silent" and item.device in STOP_ON_SILENCE:
+        if not item.from_device:
+            if item.origin == journal.SAFETY and item.kind == journal.ALARM:
+                self._on_alarm_record(item)
+            return
+        if not self._attached or not self.running():
+            return
+        if item.kind == journal.SILENT and item.device in STOP_ON_SILENCE:
             self._silence_check(item.device, item.detail)
-        elif item.kind == "helper_failed":
+        elif item.kind == journal.HELPER_FAILED:
             self.process_failed(item.device, item.detail)
 
     def _silence_check(self, device: str, detail: str) -> None:
@@ -137,11 +156,20 @@ class FaultPolicy:
             return AlarmLevel.WARNING
         return AlarmLevel.STOP
 
-    def _driver(self, name: str) -> DeviceDriver | None:
+    def _driver(self, name: str) -> Driver | None:
         try:
             return self.drivers(name)
         except Exception:
             return None
+
+    def _on_alarm_record(self, rec: Record) -> None:
+        level = AlarmLevel.__members__.get(str(rec.data.get("level")))
+        if level is None or level < AlarmLevel.STOP:
+            return
+        ident = int(rec.data.get("ident", 0))
+        alarm = self.supervisor.alarm(ident) or Alarm(level, str(rec.data.get("source", "")),
+                                                      str(rec.data.get("text", "")), ident=ident)
+        self._on_alarm(alarm)
 
     def _on_alarm(self, alarm: Alarm) -> None:
         if alarm.level < AlarmLevel.STOP:
@@ -149,7 +177,7 @@ class FaultPolicy:
         cause = f"{alarm.source}: {alarm.text}" if alarm.source and alarm.source not in alarm.text else alarm.text
         with self._lock:
             self.faults.append(Fault(alarm.source, cause, time.monotonic()))
-        self.supervisor.event("fault", source=alarm.source, cause=cause)
+        self.supervisor.record(journal.FAULT, source=alarm.source, cause=cause)
         if self.supervisor.estop_latched and alarm.text.startswith("Emergency stop"):
             return  # emergency_stop has just run every stop action itself
         try:

@@ -34,7 +34,7 @@ import time
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
-from app import streams
+from app import journal, streams
 
 if TYPE_CHECKING:  # the supervisor is a QObject; this module imports nothing of Qt (docs/decisions.md)
     from app.manager import LinarmppManager
@@ -145,7 +145,7 @@ class GuiWatch:
         from app.safety import AlarmLevel  # loaded with the supervisor already
         if self._warning is None:
             text = f"The window stopped responding ({age:.2f} s without its heartbeat) while {what}"
-            self.supervisor.event("gui_stall", stalled_s=round(age, 3), driving=what)
+            self.supervisor.record(journal.GUI_STALL, stalled_s=round(age, 3), driving=what)
             self._warning = self.supervisor.raise_alarm(AlarmLevel.WARNING, "window", text, key="gui stall")
             self._log_window_stack()
         if age >= self.safe_after_s:
@@ -153,7 +153,7 @@ class GuiWatch:
             text = (f"The window did not respond for {age:.2f} s while {what}: the robot was set to IDLE and "
                     "stimulation stopped, because the emergency-stop button and F12 could not act "
                     "(the script API's emergency stop still could)")
-            self.supervisor.event("gui_stall_safe_state", stalled_s=round(age, 3), driving=what)
+            self.supervisor.record(journal.GUI_STALL_SAFE_STATE, stalled_s=round(age, 3), driving=what)
             # The fault policy, connected directly to the alarm, runs the stop actions here, on this thread.
             self.supervisor.raise_alarm(AlarmLevel.STOP, "window", text, key="gui stall safe state")
 
@@ -178,7 +178,7 @@ class GuiWatch:
     def _resumed(self) -> None:
         longest, warning = self._longest, self._warning
         self.stalls.append(longest)
-        self.supervisor.event("gui_resumed", stalled_s=round(longest, 3), safe_state=self._safe_state)
+        self.supervisor.record(journal.GUI_RESUMED, stalled_s=round(longest, 3), safe_state=self._safe_state)
         log.warning("gui watch: the window responds again after %.2f s%s", longest,
                     " (the devices were put in the safe state)" if self._safe_state else "")
         if warning is not None and not self._safe_state:

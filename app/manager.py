@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING, Any
 
 from PySide6.QtCore import QObject, Signal
 
-from app import streams
+from app import journal, streams
 from app.assistance import AssistanceController, AssistanceInactive
 from app.bus import BusItem, DeviceEvent, SampleItem, StreamBus, Subscription
 from app.config import AppConfig
@@ -114,7 +114,7 @@ class TherapyThread:
                     if value is not None and value == value:  # not NaN
                         target = float(value)
             elif isinstance(item, DeviceEvent) and item.device == streams.PATIENT_MODEL \
-                    and item.kind in ("disconnected", "silent"):
+                    and item.kind in (journal.DISCONNECTED, journal.SILENT):
                 alpha = None  # whatever came before the loss is stale
                 self.on_alpha_lost(item.kind)
         if alpha is not None:
@@ -145,16 +145,16 @@ class DeviceWatch:
         state = self._state.get(name)
         if state is None:
             return
-        if event == "connected":
+        if event == journal.CONNECTED:
             if state["was_connected"]:
                 self.supervisor.raise_alarm(AlarmLevel.INFO, name, f"{name} reconnected")
             state["was_connected"] = True
-        elif event == "disconnected" and state["was_connected"] and self.running():
+        elif event == journal.DISCONNECTED and state["was_connected"] and self.running():
             self.supervisor.raise_alarm(self.loss_level(name), name, f"{name} connection lost: {detail}")
-        elif event == "silent" and self.running():
+        elif event == journal.SILENT and self.running():
             state["silence_alarm"] = self.supervisor.raise_alarm(AlarmLevel.WARNING, name,
                                                                  f"{name} stopped sending data")
-        elif event == "alive" and state.get("silence_alarm") is not None:
+        elif event == journal.ALIVE and state.get("silence_alarm") is not None:
             # The stream resumed: the warning says so and leaves the banner; it stays in the alarm history.
             alarm, state["silence_alarm"] = state["silence_alarm"], None
             try:
@@ -162,9 +162,9 @@ class DeviceWatch:
             except ValueError:
                 gap = ""
             alarm.text = f"{alarm.text} (resumed{gap})"
-            self.supervisor.event("stream_resumed", device=name, silent_s=detail, ident=alarm.ident)
+            self.supervisor.record(journal.STREAM_RESUMED, device=name, silent_s=detail, ident=alarm.ident)
             self.supervisor.acknowledge(alarm.ident, operator=f"{name} resumed")
-        elif event == "controller_error":
+        elif event == journal.CONTROLLER_ERROR:
             self.supervisor.raise_alarm(AlarmLevel.STOP, name, detail)
 
 
@@ -177,7 +177,7 @@ class LinarmppManager(QObject):
         self.config = config
         self.bus = StreamBus()  # first: every device publishes on it, every consumer subscribes to it
         self.notifier = self.bus.notifier  # what a script's waitCondition waits on (woken once per driver read)
-        self.supervisor = SafetySupervisor(config.safety)
+        self.supervisor = SafetySupervisor(config.safety, bus=self.bus)  # its records: the journal, on the bus
         self.runtime_dir: Path = runtime_dir()
         self.devices: dict[str, DeviceHandle] = {}
         self.simulators = SimulatorHosting(config, self.runtime_dir)
@@ -205,7 +205,7 @@ class LinarmppManager(QObject):
         self.therapy = TherapyThread(self.bus, self.assistance.update_alpha, self._alpha_lost, self._follow_target)
         from app.progress import ExerciseProgress
 
-        self.progress = ExerciseProgress(self.supervisor.event)  # the running exercise's repetitions
+        self.progress = ExerciseProgress(self.supervisor.record)  # the running exercise's repetitions
         self.runs = self._new_run_log()  # the exercise runs (app/runs.py); a new log for each session
         # every STOP alarm -> safe state (window and headless alike)
         self.fault_policy = FaultPolicy(self.supervisor, self.bus, self.driver, lambda: self._started,
@@ -227,12 +227,12 @@ class LinarmppManager(QObject):
         self.devices = build_devices(
             self._factories, self.config, bus=self.bus, supervisor=self.supervisor,
             runtime_dir=self.runtime_dir, simulators=self.simulators, assistance=self.assistance,
-            on_error=lambda name, exc: self.supervisor.event("device_error", device=name, error=str(exc)))
+            on_error=lambda name, exc: self.supervisor.record(journal.DEVICE_ERROR, device=name, error=str(exc)))
         try:
             self.simulators.start()
         except Exception as exc:
             log.exception("the simulated devices could not be started")
-            self.supervisor.event("device_error", device="simulators", error=str(exc))
+            self.supervisor.record(journal.DEVICE_ERROR, device="simulators", error=str(exc))
         # The safety monitors, after the devices' own (LINarm monitor, FES link watch: subscribed by their
         # create), in the order they always ran: the device watch's alarms, then the fault policy.
         for name in self.devices:
@@ -424,7 +424,7 @@ class LinarmppManager(QObject):
             fes.set_clinical_caps(clinical_caps(profile))
             # district-addressed profiles stimulate the patient's chosen electrodes
             fes.set_district_channels(profile.fes.district_channels())
-        self.supervisor.event("patient_profile_applied", patient=profile.patient_id,
+        self.supervisor.record(journal.PATIENT_PROFILE_APPLIED, patient=profile.patient_id,
                               k_r=profile.assistance.k_r, k_f=profile.assistance.k_f, clinical_score=score)
 
     # ------------------------------------------------------------------ sessions
@@ -456,7 +456,7 @@ class LinarmppManager(QObject):
         self.runs = self._new_run_log()
         if profile is not None:
             self.supervisor.robot = effective_robot_limits(profile, self.config.safety.robot)
-            self.supervisor.event("patient_limits_applied", patient=patient_id)
+            self.supervisor.record(journal.PATIENT_LIMITS_APPLIED, patient=patient_id)
             self._apply_robot_limits()
             self.apply_patient_profile(profile)
             self._check_plan(profile)
@@ -538,15 +538,12 @@ class LinarmppManager(QObject):
             robot.apply_limits(self.supervisor.robot)
 
     def _new_run_log(self) -> Any:
-        """The runs go into the session record as they happen (record_event). Without the window's session, as
-        the supervisor's events: a recorder of its own (the headless runner's) hears those."""
+        """The runs' changes are journal records (origin ``run``) on the bus as they happen: the session's
+        recorder, or the headless runner's, hears them there like any other record."""
         from app.runs import RunLog
 
         def record(kind: str, **data: Any) -> None:
-            if self.recorder is not None:
-                self.record_event(kind, **data)
-            else:
-                self.supervisor.event(kind, **data)
+            self.bus.record(journal.RUN, kind, data)
 
         runs = RunLog(record)
         self.progress.attach_runs(runs)
@@ -620,7 +617,7 @@ class LinarmppManager(QObject):
         handle = self.devices.get(name)
         if handle is None:
             return False
-        self.supervisor.event("device_toggled", device=name, running=running)
+        self.supervisor.record(journal.DEVICE_TOGGLED, device=name, running=running)
         if running:
             handle.driver.resume()
             return True

@@ -1,23 +1,27 @@
 """An exercise's progress as the clinician sees it: which repetition of how many, since when, what it says.
 
 The script API (``linarmppManager.startRepetition / endRepetition / reportProgress``) feeds it, whoever
-runs the script (the console, the Exercises tab, the headless runner); the window listens to ``changed``;
-every mark is also a session event (``repetition_start``, ``repetition_end``, ``progress``), so the
-per-repetition metrics can find the repetitions in a recording. Thread-safe: marks arrive from the
-script bridge's thread, ``changed`` is delivered to the GUI thread by Qt's queued connections.
+runs the script (the console, the Exercises tab, the headless runner); the window listens through its adapter
+(``QtBus.watch_progress``: ``progress_changed`` on the GUI thread); every mark is also a journal record
+(``repetition_start``, ``repetition_end``, ``progress``), so the per-repetition metrics can find the repetitions in
+a recording. Qt-free and thread-safe: marks arrive from the script bridge's thread, and :meth:`subscribe`'s
+listeners are called on it (they must be quick: the adapter queues the state for its next tick).
 """
 
 from __future__ import annotations
 
+import logging
 import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 from typing import Any
 
-from PySide6.QtCore import QObject, Signal
+from app import journal
 
-EventRecorder = Callable[..., None]  # SafetySupervisor.event(kind, **data)
+EventRecorder = Callable[..., None]  # SafetySupervisor.record(kind, **data)
+Listener = Callable[["ProgressState"], None]
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -53,17 +57,24 @@ class ProgressState:
         return f"repetition {self.repetition} of {self.total}" if self.total else f"repetition {self.repetition}"
 
 
-class ExerciseProgress(QObject):
-    changed = Signal(object)  # ProgressState
-
+class ExerciseProgress:
     def __init__(self, record_event: EventRecorder | None = None, clock: Callable[[], float] = time.monotonic) -> None:
-        super().__init__()
+        self._listeners: tuple[Listener, ...] = ()
         self._record = record_event
         self._clock = clock
         self._lock = threading.Lock()
         self._state = ProgressState()
         self._runs: Any = None  # app.runs.RunLog: the session's runs (the manager attaches each new one)
         self._unsubscribe: Callable[[], None] | None = None
+
+    def subscribe(self, fn: Listener) -> Callable[[], None]:
+        """``fn(state)`` after every change, on the thread that made it; returns the unsubscribe."""
+        self._listeners = (*self._listeners, fn)
+
+        def unsubscribe() -> None:
+            self._listeners = tuple(f for f in self._listeners if f is not fn)
+
+        return unsubscribe
 
     def attach_runs(self, runs: Any) -> None:
         """Follow ``runs`` (a RunLog): the marks carry the current run's id, the state shows the run's state."""
@@ -106,7 +117,7 @@ class ExerciseProgress(QObject):
         if not state.running:
             return
         if state.in_repetition:
-            self._event("repetition_end", index=state.repetition, ok=False, status=status,
+            self._event(journal.REPETITION_END, index=state.repetition, ok=False, status=status,
                         **self._run_field(state))
             if state.run_id and self._runs is not None:
                 self._runs.repetition_ended(state.run_id, state.repetition, False, interrupted=True)
@@ -126,14 +137,14 @@ class ExerciseProgress(QObject):
         with self._lock:
             state = self._state
         if state.running and state.paused_since is None:
-            self._event("exercise_paused", exercise=state.exercise)
+            self._event(journal.EXERCISE_PAUSED, exercise=state.exercise)
             self._set(replace(state, paused_since=self._clock()))
 
     def resume(self) -> None:
         with self._lock:
             state = self._state
         if state.paused_since is not None:
-            self._event("exercise_resumed", exercise=state.exercise)
+            self._event(journal.EXERCISE_RESUMED, exercise=state.exercise)
             self._set(replace(state, paused_s=state.paused_s + self._clock() - state.paused_since, paused_since=None))
 
     # ------------------------------------------------------------------ called by the script API
@@ -145,7 +156,7 @@ class ExerciseProgress(QObject):
             state = self._state
         total = _total(total) if total is not None else state.total
         run_id = self._current_run_id(state)
-        self._event("repetition_start", index=index, total=total, **({"run_id": run_id} if run_id else {}))
+        self._event(journal.REPETITION_START, index=index, total=total, **({"run_id": run_id} if run_id else {}))
         if run_id and self._runs is not None:
             self._runs.repetition_started(run_id, index)
         started = state.started_monotonic if state.started_monotonic is not None else self._clock()
@@ -157,7 +168,7 @@ class ExerciseProgress(QObject):
             state = self._state
         index = state.repetition if index is None else int(index)
         run_id = self._current_run_id(state)
-        self._event("repetition_end", index=index, ok=bool(ok), **({"run_id": run_id} if run_id else {}))
+        self._event(journal.REPETITION_END, index=index, ok=bool(ok), **({"run_id": run_id} if run_id else {}))
         if run_id and self._runs is not None:
             self._runs.repetition_ended(run_id, index, bool(ok))
         self._set(replace(state, in_repetition=False))
@@ -174,7 +185,7 @@ class ExerciseProgress(QObject):
         run_id = self._current_run_id(state)
         if run_id:
             data["run_id"] = run_id  # the run it belongs to (app/runs.py: prompt events carry run_id)
-        self._event("prompt", **data)
+        self._event(journal.PROMPT, **data)
 
     def set_run_state(self, state: str, detail: str = "") -> None:
         """The program says what its run does now (linarmppManager.setRunState): "waiting_for_grip", "moving",
@@ -192,7 +203,7 @@ class ExerciseProgress(QObject):
 
     def report(self, text: str) -> None:
         text = str(text)[:200]
-        self._event("progress", text=text)
+        self._event(journal.PROGRESS_TEXT, text=text)
         with self._lock:
             state = self._state
         self._set(replace(state, text=text))
@@ -209,7 +220,11 @@ class ExerciseProgress(QObject):
     def _set(self, state: ProgressState) -> None:
         with self._lock:
             self._state = state
-        self.changed.emit(state)
+        for fn in self._listeners:
+            try:
+                fn(state)
+            except Exception:  # a listener's bug must not stop the exercise
+                log.exception("progress listener failed")
 
 
 def _total(total: int | None) -> int | None:

@@ -20,11 +20,13 @@ cut the files hold every line up to the last flush; at worst the last line is cu
 start version or the final one, never half of either.
 
 Threads: the recorder subscribes to the stream bus (app/bus.py): one bounded, counted queue per device for
-its samples and one for the device events, filled by the drivers' threads (no I/O, no formatting there);
+its samples and one for the journal (app/journal.py: the devices' events and the supervisor's records — alarms,
+e-stops, refusals, leases, faults — in the order they were published), filled by the publishing threads (no I/O,
+no formatting there);
 one writer thread drains them, formats and writes. If a device's queue is full (the disk stalled for
 minutes) its oldest samples are dropped, counted per device, and the drop is recorded as an event and in
-the manifest (``dropped_samples``; lost device events: ``dropped_device_events``). The supervisor's events
-come through ``SafetySupervisor.add_event_subscriber`` (the recorder no longer takes its one-slot sink).
+the manifest (``dropped_samples``; lost device events: ``dropped_device_events``; the journal's own records are
+never dropped).
 
 Write failures (docs/sessions.md, "When recording fails"): any error writing the session files (a full
 disk, a removed drive, a read-only folder) makes the writer call ``on_failure(folder, error)`` once —
@@ -60,10 +62,11 @@ from typing import TYPE_CHECKING, Any, TextIO
 
 import numpy as np
 
-from app import paths, streams
+from app import journal, paths, streams
 from app.alarm_count import alarm_count
-from app.bus import Channel, DeviceEvent, StreamSpec, Subscription
+from app.bus import Channel, StreamSpec, Subscription
 from app.devices.linarm_protocol import T_US_WRAP_S
+from app.journal import Record
 from app.outputs import fsync_dir
 
 if TYPE_CHECKING:
@@ -443,7 +446,9 @@ class SessionRecorder:
         self.folder: Path | None = None
         self._events: collections.deque[dict[str, Any]] = collections.deque()
         self._sample_subs: dict[str, Subscription] = {}  # device -> its streams' samples
-        self._event_sub: Subscription | None = None  # the devices' events (connected, silent, …)
+        self._operator = ""
+        self._event_sub: Subscription | None = None  # the journal: the devices' events and the supervisor's records
+        self._record_sub: Subscription | None = None  # the supervisor's records when it publishes on another bus
         self._in_gap: dict[str, bool] = {}  # device -> no data now (writer thread only)
         self._device_streams: dict[str, list[str]] = {}
         self._reported_drops: dict[str, int] = {}
@@ -454,8 +459,6 @@ class SessionRecorder:
         self._clock_logs: dict[str, DeviceClockLog] = {}  # device -> how its clock was mapped (writer thread)
         self._writer: threading.Thread | None = None
         self._stop = threading.Event()
-        self._supervisor: Any = None  # the SafetySupervisor this session's recorder listens to
-        self._safety_sink = self._on_safety_event  # one bound method: the supervisor removes it by identity
         self._manifest: dict[str, Any] = {}
         self._flush_interval_s = 0.5
         self._taps: list[EventTap] = []
@@ -525,6 +528,7 @@ class SessionRecorder:
                                          f"cannot record in {root}: {exc.strerror or exc}") from exc
                 raise
             self._stop.clear()
+            self._operator = operator  # who the session's runs are recorded for (journal records of origin run)
             self._writer = threading.Thread(target=self._run, name="session-recorder", daemon=True)
             self._writer.start()
             self.event("session_start", operator, patient_id=patient_id, note=note, folder=str(folder))
@@ -573,7 +577,7 @@ class SessionRecorder:
         _reserve_space(folder / RESERVE_FILE, RESERVE_BYTES)
         self.folder = folder
         self._events.clear()
-        self._sample_subs, self._event_sub = {}, None  # the last session's (closed) queues and their counts
+        self._sample_subs, self._event_sub, self._record_sub = {}, None, None  # the last session's queues, counts
         self._reported_drops.clear()
         self._reported_event_drops = 0
         self.event_count = 0
@@ -728,12 +732,17 @@ class SessionRecorder:
 
     # ------------------------------------------------------------------ producers (any thread)
     def _subscribe(self, host: SessionHost) -> None:
-        """One queue per device for its samples, one for the device events (the bus fills them on the drivers'
-        threads), and the supervisor's events (alarms, e-stop, commands refused) on the thread raising them."""
+        """One queue per device for its samples and one for the journal: the devices' events and the supervisor's
+        records (alarms, e-stop, refusals), in the order they were published on their threads."""
         bus = host.bus
         self._sample_subs = {device: bus.subscribe(f"recorder:{device}", names, maxlen=self.queue_limit)
                              for device, names in self._device_streams.items()}
-        self._event_sub = bus.subscribe("recorder:events", (), events=True, maxlen=DEVICE_EVENT_QUEUE)
+        journal_bus = getattr(host.supervisor, "bus", bus)
+        self._event_sub = bus.subscribe("recorder:journal", (), events=True, records=journal_bus is bus,
+                                        keep_records=True, maxlen=DEVICE_EVENT_QUEUE)
+        if journal_bus is not bus:  # a supervisor publishing on a bus of its own (a test's host)
+            self._record_sub = journal_bus.subscribe("recorder:journal", (), records=True, keep_records=True,
+                                                     maxlen=DEVICE_EVENT_QUEUE)
         self._in_gap = {}
         for name, handle in host.devices.items():
             self._in_gap[name] = not handle.driver.connected
@@ -741,17 +750,25 @@ class SessionRecorder:
                 self._enqueue_event("gap_start", name, "device", {
                     "device": name, "cause": "not connected", "detail": "",
                     "streams": list(self._device_streams.get(name, []))})
-        self._supervisor = host.supervisor
-        host.supervisor.add_event_subscriber(self._safety_sink)
 
     def _unsubscribe(self) -> None:
-        if self._supervisor is not None:
-            self._supervisor.remove_event_subscriber(self._safety_sink)
-            self._supervisor = None
-        for sub in (*self._sample_subs.values(), *((self._event_sub,) if self._event_sub is not None else ())):
-            sub.close()
+        for sub in (*self._sample_subs.values(), self._event_sub, self._record_sub):
+            if sub is not None:
+                sub.close()
 
-    def _device_event_record(self, ev: DeviceEvent) -> dict[str, Any]:
+    def _journal_record(self, rec: Record) -> dict[str, Any]:
+        """A journal record as a session event (writer thread): a device's, or the supervisor's (origin safety)."""
+        if rec.from_device:
+            return self._device_event_record(rec)
+        data = dict(rec.data)
+        if rec.origin == journal.RUN:  # the session's runs, as the application records them: the operator's
+            return {"t_wall_epoch_s": rec.t_wall, "t_mono": rec.t_mono, "kind": rec.kind, "who": self._operator,
+                    "origin": "app", "data": data}
+        who = str(data.get("operator") or data.get("source") or "safety")
+        return {"t_wall_epoch_s": rec.t_wall, "t_mono": rec.t_mono, "kind": rec.kind, "who": who, "origin": "safety",
+                "data": data}
+
+    def _device_event_record(self, ev: Record) -> dict[str, Any]:
         """A device event from the bus as a session event: a data gap starts when a device disconnects or
         goes silent and ends when it is back (writer thread: the only one that reads or sets ``_in_gap``)."""
         device, event = ev.device, ev.kind
@@ -768,10 +785,6 @@ class SessionRecorder:
         return {"t_wall_epoch_s": t_wall, "t_mono": ev.t, "kind": kind, "who": device, "origin": "device",
                 "data": {"device": device, "cause": event, "detail": ev.detail,
                          "streams": list(self._device_streams.get(device, []))}}
-
-    def _on_safety_event(self, kind: str, data: dict[str, Any]) -> None:
-        who = str(data.get("operator") or data.get("source") or "safety")
-        self._enqueue_event(kind, who, "safety", dict(data))
 
     def _enqueue_event(self, kind: str, who: str, origin: str, data: dict[str, Any]) -> None:
         # Events are rare and must never be dropped: their queue is unbounded.
@@ -913,15 +926,18 @@ class SessionRecorder:
                 log.exception("event tap failed")
 
     def _take_events(self) -> list[dict[str, Any]]:
-        """The events to write now, in time order: the application's, the supervisor's and the recorder's own
-        (queued by ``_enqueue_event``) merged with the device events from the bus."""
+        """The events to write now, in time order: the application's and the recorder's own (queued by
+        ``_enqueue_event``) merged with the journal from the bus (the devices' events, the supervisor's records)."""
         events = self._events
         pending = [events.popleft() for _ in range(len(events))]
         sub = self._event_sub
+        for journal_sub in (sub, self._record_sub):
+            if journal_sub is None:
+                continue
+            published = [self._journal_record(ev) for ev in journal_sub.drain() if isinstance(ev, Record)]
+            if published:
+                pending = list(heapq.merge(pending, published, key=lambda e: e["t_mono"]))
         if sub is not None:
-            device = [self._device_event_record(ev) for ev in sub.drain() if isinstance(ev, DeviceEvent)]
-            if device:
-                pending = list(heapq.merge(pending, device, key=lambda e: e["t_mono"]))
             if sub.dropped != self._reported_event_drops:
                 self._reported_event_drops = sub.dropped
                 pending.append(self._recorder_event("device_events_dropped", {

@@ -4,11 +4,17 @@ Every command that can move the robot or put current through a muscle passes thr
 whoever sends it (GUI, script, patient model, assistance split): the drivers call
 :meth:`SafetySupervisor.check_robot_command` / :meth:`check_fes_update` from their single
 command-encoding path, so there is no way around it. A command outside limits is refused with a
-plain reason (:class:`SafetyError`), logged and recorded as an event; nothing is silently changed,
+plain reason (:class:`SafetyError`), logged and recorded; nothing is silently changed,
 except the patient model's outputs, which are clamped and the clamp logged.
 
-The emergency stop runs registered stop actions (FES Stop, robot IDLE) directly in the calling
-thread — no queue in between — then latches until an operator resets it.
+Qt-free: what the supervisor decides it publishes as journal records on the stream bus (:mod:`app.journal`,
+origin ``safety``: ``alarm``, ``alarm_acknowledged``, ``emergency_stop``, ``emergency_stop_reset``,
+``command_refused``, ``lease_taken`` / ``lease_released`` / ``lease_refused``, …) through :meth:`record`, the one
+way the application writes to the journal. The window's adapter (``app/ui/qt_bus.py``) turns them into Qt
+signals on its tick; the fault policy hears them inline, on the thread that raised them.
+
+The emergency stop is a command, not an event: :meth:`emergency_stop` runs the registered stop actions (FES Stop,
+robot IDLE) directly in the calling thread, then latches until an operator resets it; its records follow.
 """
 
 from __future__ import annotations
@@ -22,8 +28,8 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-from PySide6.QtCore import QObject, Signal
-
+from app import journal
+from app.bus import RecordListener, StreamBus
 from app.config import RobotLimits, SafetyConfig
 from app.devices.linarm_constants import K
 from app.ownership import DEVICE_WORDS, ROBOT, STIMULATOR, Composition, Lease, clamp_to, refusal
@@ -112,19 +118,19 @@ _ALWAYS_ALLOWED = {
 }
 
 
-class SafetySupervisor(QObject):
-    alarm_raised = Signal(object)  # Alarm
-    alarms_changed = Signal()
-    estop_changed = Signal(bool, str)  # latched, reason
-    command_refused = Signal(str, str)  # source, reason
-    lease_changed = Signal()  # a device's holder changed (the panels' "Robot held by: …")
+class SafetySupervisor:
+    """Limits, leases, alarms and the e-stop latch (see the module docstring). ``bus``: the stream bus its records
+    go to (the manager's; a supervisor of its own, e.g. in a test, makes a bus of its own)."""
 
-    def __init__(self, config: SafetyConfig, event_sink: EventSink | None = None) -> None:
-        super().__init__()
+    def __init__(self, config: SafetyConfig, event_sink: EventSink | None = None, bus: StreamBus | None = None) -> None:
         self.config = config
         self.robot: RobotLimits = config.robot
-        self._event_sink = event_sink  # the one-slot form (set_event_sink), kept for compatibility
-        self._subscribers: list[EventSink] = []  # the recorder, LSL, the GUI: each adds itself
+        self.bus = bus if bus is not None else StreamBus()
+        self._event_sink: EventSink | None = None  # the one-slot form (set_event_sink), kept for compatibility
+        self._sink_listener: RecordListener | None = None
+        self._subscribers: tuple[tuple[EventSink, RecordListener], ...] = ()  # add_event_subscriber's
+        if event_sink is not None:
+            self.set_event_sink(event_sink)
         self._stop_actions: list[StopAction] = []
         self._estop_lock = threading.RLock()
         self._estop_latched = False
@@ -146,30 +152,37 @@ class SafetySupervisor(QObject):
         self._leases: dict[str, Lease] = {}
         self._lease_lock = threading.Lock()
 
-    # ------------------------------------------------------------------ events
+    # ------------------------------------------------------------------ the journal
+    def record(self, kind: str, **data: Any) -> None:
+        """One journal record of origin ``safety`` (``kind`` from :mod:`app.journal`) on the bus, on this thread."""
+        log.info("record %s %s", kind, data)
+        self.bus.record(journal.SAFETY, kind, data)
+
+    # The (kind, data) form of a journal listener, for code written before the journal: each is a bus listener.
     @property
     def event_sink(self) -> EventSink | None:
         return self._event_sink
 
     def set_event_sink(self, sink: EventSink | None) -> None:
-        """Compatibility: one replaceable sink beside the subscribers (prefer add_event_subscriber)."""
+        """One replaceable ``sink(kind, data)`` for every journal record (prefer ``bus.listen``)."""
+        if self._sink_listener is not None:
+            self._sink_listener.close()
+            self._sink_listener = None
         self._event_sink = sink
+        if sink is not None:
+            self._sink_listener = self.bus.listen("event sink", _as_listener(sink))
 
     def add_event_subscriber(self, fn: EventSink) -> None:
-        """``fn(kind, data)`` for every event, on the thread that raised it; it must be quick."""
-        self._subscribers = [*self._subscribers, fn]
+        """``fn(kind, data)`` for every journal record, on the thread that published it; it must be quick."""
+        self.remove_event_subscriber(fn)
+        self._subscribers = (*self._subscribers, (fn, self.bus.listen("event subscriber", _as_listener(fn))))
 
     def remove_event_subscriber(self, fn: EventSink) -> None:
-        self._subscribers = [f for f in self._subscribers if f is not fn]
-
-    def event(self, kind: str, **data: Any) -> None:
-        log.info("event %s %s", kind, data)
-        sink = self._event_sink
-        for fn in (*self._subscribers, *((sink,) if sink is not None else ())):
-            try:
-                fn(kind, data)
-            except Exception:
-                log.exception("event subscriber failed")
+        """Stop ``fn`` (compared by equality: a bound method given again is the same subscriber)."""
+        for f, listener in self._subscribers:
+            if f == fn:
+                listener.close()
+        self._subscribers = tuple((f, listener) for f, listener in self._subscribers if f != fn)
 
     def set_robot_probes(self, probes: RobotProbes) -> None:
         self.latest_centre_m = probes.centre_m
@@ -177,8 +190,7 @@ class SafetySupervisor(QObject):
         self.robot_homed = probes.homed
 
     def refuse(self, source: str, reason: str) -> SafetyError:
-        self.event("command_refused", source=source, reason=reason)
-        self.command_refused.emit(source, reason)
+        self.record(journal.COMMAND_REFUSED, source=source, reason=reason)
         return SafetyError(reason, source)
 
     # ------------------------------------------------------------------ one owner during a run (#36)
@@ -190,12 +202,11 @@ class SafetySupervisor(QObject):
                      and self._leases[d].key != lease.key}
             if taken:
                 busy = "; ".join(f"{DEVICE_WORDS[d]} is held by {who}" for d, who in taken.items())
-                self.event("lease_refused", holder=lease.holder, source=lease.holder, what="the devices",
+                self.record(journal.LEASE_REFUSED, holder=lease.holder, source=lease.holder, what="the devices",
                            reason=busy)
                 raise SafetyError(f"{lease.holder} cannot start: {busy}", lease.holder)
             self._leases = {**self._leases, **{d: lease for d in lease.devices}}
-        self.event("lease_taken", **lease.record())
-        self.lease_changed.emit()
+        self.record(journal.LEASE_TAKEN, **lease.record())
 
     def release_lease(self, key: str, reason: str = "") -> Lease | None:
         """End the lease ``key`` (a run's id), if it is held; returns it."""
@@ -204,9 +215,8 @@ class SafetySupervisor(QObject):
             if held is None:
                 return None
             self._leases = {d: lease for d, lease in self._leases.items() if lease.key != key}
-        self.event("lease_released", key=key, holder=held.holder, run_id=held.run_id, reason=reason,
-                   **({"refused": dict(held.refused)} if held.refused else {}))
-        self.lease_changed.emit()
+        self.record(journal.LEASE_RELEASED, key=key, holder=held.holder, run_id=held.run_id, reason=reason,
+                    **({"refused": dict(held.refused)} if held.refused else {}))
         return held
 
     def lease(self, device: str = ROBOT) -> Lease | None:
@@ -234,9 +244,9 @@ class SafetySupervisor(QObject):
         first = key not in lease.refused
         lease.refused[key] = lease.refused.get(key, 0) + 1
         if first:
-            self.event("lease_refused", holder=lease.holder, run_id=lease.run_id, source=source, what=what,
-                       reason=problem, **({"value": value} if value is not None else {}))
-            self.command_refused.emit(source, problem)
+            # The window shows a refusal from its source (a lease refusal, like command_refused, says who and why).
+            self.record(journal.LEASE_REFUSED, holder=lease.holder, run_id=lease.run_id, source=source, what=what,
+                        reason=problem, **({"value": value} if value is not None else {}))
         raise SafetyError(problem, source)
 
     def composed_target(self, source: str, value: float) -> float | None:
@@ -255,7 +265,7 @@ class SafetySupervisor(QObject):
             return value
         applied = clamp_to(comp, value, (self.robot.position_min_m, self.robot.position_max_m))
         if applied != value:
-            self.event("clamped", source=source, quantity="assistance target", requested=value, applied=applied,
+            self.record(journal.CLAMPED, source=source, quantity="assistance target", requested=value, applied=applied,
                        holder=lease.holder)
         return applied
 
@@ -362,7 +372,8 @@ class SafetySupervisor(QObject):
         text = f"Robot found {what} while {held_by}: " + ("sent IDLE" if ok else f"IDLE could not be sent ({error})")
         alarm = self.raise_alarm(AlarmLevel.STOP, "robot monitor", text, key=("robot held", what, held_by))
         if alarm.repeats == 0:
-            self.event("robot_held_idle", state=control, reason=reason, ok=ok, **({"error": error} if error else {}))
+            self.record(journal.ROBOT_HELD_IDLE, state=control, reason=reason, ok=ok,
+                        **({"error": error} if error else {}))
         return True
 
     # ------------------------------------------------------------------ FES
@@ -391,7 +402,7 @@ class SafetySupervisor(QObject):
         """Patient-model outputs are clamped, not refused (the loop must keep running); log the clamp."""
         clamped = min(max(value, lo), hi)
         if clamped != value:
-            self.event("clamped", source=source, quantity=name, requested=value, applied=clamped)
+            self.record(journal.CLAMPED, source=source, quantity=name, requested=value, applied=clamped)
         return clamped
 
     # ------------------------------------------------------------------ emergency stop
@@ -424,33 +435,31 @@ class SafetySupervisor(QObject):
             for action in self._stop_actions:
                 try:
                     action.run(self._estop_reason)
-                    self.event("estop_action", action=action.name, ok=True)
+                    self.record(journal.ESTOP_ACTION, action=action.name, ok=True)
                 except Exception as exc:
                     log.exception("emergency-stop action %s failed", action.name)
-                    self.event("estop_action", action=action.name, ok=False, error=str(exc))
-        self.event("emergency_stop", source=source, reason=reason)
+                    self.record(journal.ESTOP_ACTION, action=action.name, ok=False, error=str(exc))
+        self.record(journal.EMERGENCY_STOP, source=source, reason=reason)
         if first:
             self.raise_alarm(AlarmLevel.STOP, source, f"Emergency stop: {reason}")
-            self.estop_changed.emit(True, self._estop_reason)
 
     def bring_to_safe_state(self, reason: str) -> None:
         """Run the stop actions without latching: script end, app close, device loss."""
         for action in self._stop_actions:
             try:
                 action.run(reason)
-                self.event("safe_state_action", action=action.name, reason=reason, ok=True)
+                self.record(journal.SAFE_STATE_ACTION, action=action.name, reason=reason, ok=True)
             except Exception as exc:
                 log.warning("safe-state action %s failed: %s", action.name, exc)
-                self.event("safe_state_action", action=action.name, reason=reason, ok=False, error=str(exc))
+                self.record(journal.SAFE_STATE_ACTION, action=action.name, reason=reason, ok=False, error=str(exc))
 
     def reset_emergency_stop(self, operator: str) -> None:
         with self._estop_lock:
             if not self._estop_latched:
                 return
             self._estop_latched = False
-        self.event("emergency_stop_reset", operator=operator)
+        self.record(journal.EMERGENCY_STOP_RESET, operator=operator)
         self.raise_alarm(AlarmLevel.INFO, operator or "operator", "Emergency stop reset")
-        self.estop_changed.emit(False, "")
 
     # ------------------------------------------------------------------ alarms
     def raise_alarm(self, level: AlarmLevel, source: str, text: str, key: Any = None) -> Alarm:
@@ -482,14 +491,12 @@ class SafetySupervisor(QObject):
             assert previous is not None
             log.debug("alarm repeated (%d) %s: %s", previous.repeats, source, text)
             if record_repeat:
-                self.event("alarm_repeated", ident=previous.ident, level=level.name, source=source,
+                self.record(journal.ALARM_REPEATED, ident=previous.ident, level=level.name, source=source,
                            text=previous.text, repeats=previous.repeats)
             return previous
         log.log(logging.WARNING if level >= AlarmLevel.WARNING else logging.INFO, "alarm %s %s: %s",
                 level.name, source, text)
-        self.event("alarm", level=level.name, source=source, text=text, ident=alarm.ident)
-        self.alarm_raised.emit(alarm)
-        self.alarms_changed.emit()
+        self.record(journal.ALARM, level=level.name, source=source, text=text, ident=alarm.ident)
         return alarm
 
     def acknowledge(self, ident: int, operator: str = "") -> None:
@@ -500,12 +507,25 @@ class SafetySupervisor(QObject):
                     if ident in self._open_stop:
                         self._open_stop = {i: a for i, a in self._open_stop.items() if i != ident}
                     repeats = {"repeats": alarm.repeats} if alarm.repeats else {}
-                    self.event("alarm_acknowledged", ident=ident, operator=operator, **repeats)
-        self.alarms_changed.emit()
+                    self.record(journal.ALARM_ACKNOWLEDGED, ident=ident, operator=operator, **repeats)
+
+    def alarm(self, ident: int) -> Alarm | None:
+        """The alarm ``ident`` (an ``alarm`` record's ``ident``), or None."""
+        with self._lock:
+            return next((a for a in self._alarms if a.ident == ident), None)
 
     def alarms(self) -> list[Alarm]:
         with self._lock:
             return list(self._alarms)
+
+
+def _as_listener(fn: EventSink) -> Callable[[journal.Record], None]:
+    """A ``fn(kind, data)`` as a bus listener: the journal's records, without the origin."""
+
+    def listener(record: journal.Record) -> None:
+        fn(record.kind, record.data)  # type: ignore[arg-type]  # data is the publisher's dict
+
+    return listener
 
 
 def _makes_safe(name: str, args: dict[str, Any]) -> bool:

@@ -20,6 +20,7 @@ from typing import Any
 
 import numpy as np
 
+from app import bus as bus_module
 from app import recording, streams
 from app.bus import StreamSpec
 from app.config import AppConfig
@@ -93,6 +94,7 @@ def record_session(root: Path, patient_id: str = "PZ-017", seconds: float = 6.0,
     clock = VirtualClock(t0=5000.0 + seed * 1000.0)
     assert monkeypatch is not None
     monkeypatch.setattr(recording, "time", clock)
+    monkeypatch.setattr(bus_module, "time", clock)  # the journal's records are stamped where they are published
     drivers = {device: ListenerDriver(*specs) for device, specs in DEVICE_SPECS.items()}
     config = AppConfig()
     supervisor = SafetySupervisor(config.safety)

@@ -14,6 +14,12 @@ from app.config import AppConfig
 from app.manager import LinarmppManager
 from app.safety import AlarmLevel
 from app.ui.alarms_panel import LEVEL_STYLES, AlarmBanner, AlarmsPanel, highest_unacknowledged
+from app.ui.qt_bus import shared_qt_bus
+
+
+def settle(manager: LinarmppManager) -> None:
+    """The journal's records reach the panels at the adapter's tick: this one now."""
+    shared_qt_bus(manager.bus).tick()
 
 
 def _setup(qtbot, repeat_s: float = 60.0) -> tuple[LinarmppManager, AlarmsPanel, list[tuple[str, dict[str, Any]]]]:
@@ -33,10 +39,13 @@ def test_levels_are_colour_coded_and_only_stop_and_fatal_beep(qtbot) -> None:
     sup = manager.supervisor
     sup.raise_alarm(AlarmLevel.INFO, "linarm", "linarm reconnected")
     sup.raise_alarm(AlarmLevel.WARNING, "physio", "physio stopped sending data")
+    settle(manager)
     assert panel.beeps == 0
     sup.raise_alarm(AlarmLevel.STOP, "linarm", "LINarm error: TRACKING_ERROR")
+    settle(manager)
     assert panel.beeps == 1
     sup.raise_alarm(AlarmLevel.FATAL, "fes", "stimulator lost")
+    settle(manager)
     assert panel.beeps == 2
     # newest first: FATAL, STOP, WARNING, INFO
     rows = [panel.tree.topLevelItem(i) for i in range(panel.tree.topLevelItemCount())]
@@ -56,6 +65,7 @@ def test_acknowledge_needs_an_operator_and_is_recorded(qtbot) -> None:
     sup = manager.supervisor
     stop = sup.raise_alarm(AlarmLevel.STOP, "robot monitor", "Robot stopped: handle speed")
     warn = sup.raise_alarm(AlarmLevel.WARNING, "physio", "physio stopped sending data")
+    settle(manager)
     panel.tree.topLevelItem(1).setSelected(True)  # the STOP (newest first)
     qtbot.mouseClick(panel.ack_selected, Qt.MouseButton.LeftButton)
     assert "operator" in panel.message.text() and not any(a.acknowledged for a in sup.alarms())
@@ -97,6 +107,7 @@ def test_banner_shows_the_newest_open_alarm_and_follows_other_threads(qtbot) -> 
     qtbot.waitUntil(lambda: banner.current is not None and panel.tree.topLevelItemCount() == 1, timeout=2000)
     stop = sup.raise_alarm(AlarmLevel.STOP, "linarm", "LINarm error: OVER_FORCE")
     sup.raise_alarm(AlarmLevel.INFO, "operator", "note")
+    settle(manager)
     # The newest open alarm is shown (never a stale one); the count and a red list button say more are open.
     assert banner.current is not stop and banner.current.text == "note"
     assert banner.label.full_text().startswith("INFORMATION ") and banner.button.text() == "Alarms (3)…"
@@ -105,8 +116,10 @@ def test_banner_shows_the_newest_open_alarm_and_follows_other_threads(qtbot) -> 
     with qtbot.waitSignal(banner.show_alarms_requested, timeout=1000):
         banner.button.click()
     sup.acknowledge(banner.current.ident, "x")
+    settle(manager)
     assert banner.current is stop and LEVEL_STYLES[AlarmLevel.STOP].background in banner.styleSheet()
     sup.acknowledge(stop.ident, "x")
+    settle(manager)
     assert banner.current is not None and banner.current.level is AlarmLevel.WARNING
     assert banner.recover_button.isHidden()
     assert highest_unacknowledged([]) == (None, 0)
@@ -130,8 +143,10 @@ def test_the_list_updates_row_by_row_and_stays_correct(qtbot) -> None:
     manager, panel, _events = _setup(qtbot)
     sup = manager.supervisor
     first = [sup.raise_alarm(AlarmLevel.WARNING, "physio", f"w{i}") for i in range(5)]
+    settle(manager)
     rows_before = [panel.tree.topLevelItem(i) for i in range(5)]
     stop = sup.raise_alarm(AlarmLevel.STOP, "linarm", "stop")
+    settle(manager)
     # A new alarm adds one row on top; the rows already there are the same objects (no rebuild).
     assert panel.tree.topLevelItemCount() == 6
     assert [panel.tree.topLevelItem(i) for i in range(1, 6)] == rows_before
@@ -150,6 +165,7 @@ def test_the_list_updates_row_by_row_and_stays_correct(qtbot) -> None:
     assert panel.tree.topLevelItem(0).text(3) == "ACTIVE" and panel.tree.topLevelItem(0).font(1).bold()
     # An acknowledgement made elsewhere (the supervisor itself) shows too.
     sup.acknowledge(stop.ident, "script")
+    settle(manager)
     assert panel.tree.topLevelItem(0).text(3) == "ack."
     assert "4 active" in panel.summary.text() and not panel.repeat.isActive()
     # The filter still hides acknowledged alarms, and selection survives it.
@@ -192,6 +208,7 @@ def test_recover_without_a_session_asks_the_name_once(qtbot) -> None:
     sup = manager.supervisor
     sup.emergency_stop("button")
     sup.raise_alarm(AlarmLevel.WARNING, "physio", "sensor off")
+    settle(manager)
     assert not banner.recover_button.isHidden()
     banner.recover_button.click()  # 1
     dialog = banner.dialog

@@ -328,11 +328,11 @@ def _item(stream: str, **fields: float):
 
 def test_a_therapy_pass_applies_the_newest_alpha_and_target_and_never_one_from_before_a_loss() -> None:
     from app import streams
-    from app.bus import DeviceEvent
+    from app.journal import device_event
 
     therapy, calls = _therapy()
-    lost = DeviceEvent(streams.PATIENT_MODEL, "silent", "", 0.0)
-    other = DeviceEvent(streams.PHYSIO, "disconnected", "", 0.0)
+    lost = device_event(streams.PATIENT_MODEL, "silent", "", 0.0)
+    other = device_event(streams.PHYSIO, "disconnected", "", 0.0)
     therapy.handle([_item(streams.PATIENT_MODEL_MAIN, alpha=0.1), _item(streams.VR_MAIN, targetPos=0.1),
                     _item(streams.PATIENT_MODEL_MAIN, alpha=0.2), _item(streams.VR_MAIN, targetPos=0.4), other])
     assert calls == [("alpha", 0.2), ("target", 0.4)], "a backlog is not replayed: the newest of each"

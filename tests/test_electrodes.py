@@ -420,7 +420,7 @@ def test_the_stimulator_resolves_district_profiles(qtbot) -> None:
     from app.fes_profile import parse_profile
 
     events: list = []
-    supervisor = SimpleNamespace(fes_limiter=FesLimiter(FesLimits()), event=lambda kind, **d: events.append(kind),
+    supervisor = SimpleNamespace(fes_limiter=FesLimiter(FesLimits()), record=lambda kind, **d: events.append(kind),
                                  refuse=lambda source, reason: RuntimeError(reason))
     driver = FesDriver(SimpleNamespace(), supervisor)  # no link: loading needs none
     profile = parse_profile(DISTRICT_TEXT, "d.yaml")

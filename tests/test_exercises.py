@@ -53,7 +53,7 @@ class FakeSupervisor:
     def __init__(self) -> None:
         self.events: list[tuple[str, dict[str, Any]]] = []
 
-    def event(self, kind: str, **data: Any) -> None:
+    def record(self, kind: str, **data: Any) -> None:  # the supervisor's journal entry point
         self.events.append((kind, data))
 
 

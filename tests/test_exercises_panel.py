@@ -11,10 +11,12 @@ from typing import Any
 import pytest
 from PySide6.QtCore import Qt
 
+from app.bus import StreamBus
 from app.config import AppConfig, UdpEndpoint
 from app.patients import PatientProfile, PlannedExercise
 from app.progress import ExerciseProgress
 from app.ui.exercises_panel import ExercisesPanel
+from app.ui.qt_bus import shared_qt_bus
 
 pytestmark = pytest.mark.sim_homed  # a homed LINarm from the start: the homing is tested on its own
 
@@ -32,12 +34,13 @@ class FakeRunner:
 class StubManager:
     def __init__(self, profile: PatientProfile | None = None) -> None:
         self.progress = ExerciseProgress()
+        self.bus = StreamBus()  # the panel follows the progress through the adapter of this bus
         self.patient_profile = profile
         self.recorder = None
         self.events: list[tuple[str, dict[str, Any]]] = []
         self.supervisor = self
 
-    def event(self, kind: str, **data: Any) -> None:
+    def record(self, kind: str, **data: Any) -> None:  # the supervisor's journal entry point
         self.events.append((kind, data))
 
 
@@ -101,7 +104,7 @@ def test_exercise_runs_with_progress_and_its_summary_appears(qtbot, tmp_path: Pa
         panel = ExercisesPanel(manager, runner=runner)
         qtbot.addWidget(panel)
         labels: list[str] = []
-        manager.progress.changed.connect(lambda _s: labels.append(panel.repetition_label.text()))
+        shared_qt_bus(manager.bus).progress_changed.connect(lambda _s: labels.append(panel.repetition_label.text()))
         panel.select("trigger_reaching")
         for name, value in {"movements": "2", "start_m": "0.15", "end_m": "0.30", "speed_m_s": "0.2",
                             "acceleration_m_s2": "0.5", "trigger_threshold_n": "0", "rest_s": "0.3"}.items():
@@ -180,14 +183,17 @@ def test_progress_pause_resume_stop_and_the_end(qtbot) -> None:
         manager.progress.end_repetition(k)
     manager.progress.start_repetition(3)
     manager.progress.report("squeeze the handle (20 N) to move")
+    shared_qt_bus(manager.bus).tick()  # the progress reaches the panel at the adapter's tick: now
     assert panel.repetition_label.text() == "Repetition 3 of 8"
     assert panel.progress_bar.maximum() == 8 and panel.progress_bar.value() == 2
     assert panel.progress_text.text() == "squeeze the handle (20 N) to move"
     assert panel.elapsed_label.text().startswith("elapsed 0:0")
     qtbot.mouseClick(panel.pause_button, Qt.MouseButton.LeftButton)
     assert manager.progress.state.paused_since is not None
+    shared_qt_bus(manager.bus).tick()
     assert panel.pause_button.text() == "&Resume" and "(paused)" in panel.elapsed_label.text()
     qtbot.mouseClick(panel.pause_button, Qt.MouseButton.LeftButton)
+    shared_qt_bus(manager.bus).tick()
     assert manager.progress.state.paused_since is None and panel.pause_button.text() == "&Pause"
     qtbot.mouseClick(panel.stop_button, Qt.MouseButton.LeftButton)
     assert runner.stop_reasons == ["stopped by the operator (Exercises tab)"]

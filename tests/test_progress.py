@@ -20,7 +20,7 @@ def test_marks_become_state_and_events(qapp) -> None:
     clock = Clock()
     progress = ExerciseProgress(lambda kind, **data: events.append((kind, data)), clock=clock)
     seen = []
-    progress.changed.connect(seen.append)
+    progress.subscribe(seen.append)
     progress.begin("trigger_exercise.py")
     clock.t += 2.0
     progress.start_repetition(1, 8)

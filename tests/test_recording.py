@@ -136,7 +136,7 @@ def test_values_are_recorded_exactly_and_listeners_detach(tmp_path) -> None:
     driver.push(float(ts[-1] + 1), float("nan"), 0.0)
     recorder.stop()
     assert manager.bus.subscriptions() == []  # its sample and event queues are closed
-    assert manager.supervisor._event_sink is None and manager.supervisor._subscribers == []
+    assert manager.supervisor.bus.subscriptions() == []  # nor on the supervisor's journal
     stream = load_session(folder).streams["fake.main"]
     assert np.array_equal(stream.t[:-1], ts) and np.array_equal(stream.data["x"][:-1], xs)
     assert np.array_equal(stream.data["y"][:-1], ys) and np.isnan(stream.data["x"][-1])
@@ -224,6 +224,6 @@ def test_the_recorder_subscribes_to_the_supervisor_without_taking_its_sink(tmp_p
     folder = recorder.start(manager, "P007", "op", root=tmp_path)
     assert manager.supervisor.event_sink is sink
     manager.supervisor.set_event_sink(None)  # the sink's owner goes: the record still gets the events
-    manager.supervisor.event("alarm", source="test", text="after the sink changed")
+    manager.supervisor.record("alarm", source="test", text="after the sink changed")
     recorder.stop()
     assert [e["kind"] for e in load_session(folder).events if e["origin"] == "safety"] == ["alarm"]

@@ -17,6 +17,7 @@ from typing import Any
 import pytest
 from PySide6.QtCore import QCoreApplication
 
+from app import journal
 from app.config import AppConfig
 from app.devices import linarm
 from app.devices import linarm_protocol as proto
@@ -261,7 +262,7 @@ def test_repeats_of_a_cause_are_counted_on_its_open_alarm_until_acknowledged(mon
 
     sup = SafetySupervisor(AppConfig().safety)
     raised: list[Any] = []
-    sup.alarm_raised.connect(raised.append)
+    sup.bus.listen("test", lambda r: raised.append(r) if r.kind == journal.ALARM else None)
     first = sup.raise_alarm(AlarmLevel.STOP, "linarm", "LINarm error: TRACKING_ERROR (forged)")
     for _ in range(11):
         assert sup.raise_alarm(AlarmLevel.STOP, "linarm", "LINarm error: TRACKING_ERROR (forged)") is first

@@ -37,7 +37,7 @@ class Manager:
         self.recorder = None
         self.supervisor = self
 
-    def event(self, kind: str, **data: Any) -> None:
+    def record(self, kind: str, **data: Any) -> None:  # the supervisor's journal entry point
         pass
 
 

@@ -7,6 +7,7 @@ from types import SimpleNamespace
 
 import pytest
 
+from app import journal
 from app.config import SafetyConfig
 from app.safety import AlarmLevel, SafetyError, SafetySupervisor
 
@@ -31,7 +32,7 @@ def sup() -> SafetySupervisor:
 def test_out_of_limit_commands_are_refused_with_a_reason(name, args, fragment) -> None:
     s = sup()
     refused = []
-    s.command_refused.connect(lambda source, reason: refused.append(reason))
+    s.bus.listen("test", lambda r: refused.append(r.data["reason"]) if r.kind == journal.COMMAND_REFUSED else None)
     with pytest.raises(SafetyError, match=fragment):
         s.check_robot_command(name, args, "test")
     assert refused and fragment in refused[0]

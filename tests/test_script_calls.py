@@ -46,7 +46,7 @@ class EstopSupervisor(FakeSupervisor):
 
     def emergency_stop(self, source: str, reason: str = "") -> None:
         self.estop_at = time.monotonic()
-        self.event("emergency_stop", source=source, reason=reason)
+        self.record("emergency_stop", source=source, reason=reason)
 
 
 @pytest.fixture

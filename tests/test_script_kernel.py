@@ -356,13 +356,7 @@ def test_fes_stop_and_robot_idle_are_on_the_wire_within_200_ms(rig: Any, case: s
         out(stream, text)
 
     events: list[tuple[str, dict[str, Any]]] = []
-    record = manager.supervisor.event
-
-    def event(kind: str, **data: Any) -> None:
-        events.append((kind, data))
-        record(kind, **data)
-
-    manager.supervisor.event = event  # type: ignore[method-assign]
+    journal = manager.supervisor.bus.listen("test", lambda rec: events.append((rec.kind, dict(rec.data))))
     # A watchdog trip of a loaded machine in an earlier case latches an error and loses the homing: reset it,
     # and let the runner home again when needed.
     manager.driver("linarm").command("resetError", source="test")
@@ -393,7 +387,7 @@ def test_fes_stop_and_robot_idle_are_on_the_wire_within_200_ms(rig: Any, case: s
         assert result.status == "error" and crash in result.message
     stops = [data for kind, data in events if kind == "script_stop"]
     assert stops and stops[-1]["reason"] == result.message  # recorded, with the cause
-    del manager.supervisor.event
+    journal.close()
     assert runner.ready(5.0), "a fresh kernel is ready"  # after a crash the next kernel is still starting
     runner.start("print('next one runs')\n", "<next>")
     assert _pump(app, lambda: not runner.running, 3.0) and runner.result.status == "finished"

@@ -80,7 +80,7 @@ class FakeSupervisor:
         self.estop_latched = False
         self.estop_actions: dict[str, Callable[[str], None]] = {}
 
-    def event(self, kind: str, **data: Any) -> None:
+    def record(self, kind: str, **data: Any) -> None:  # the supervisor's journal entry point
         self.events.append((kind, data))
 
     def register_estop_action(self, name: str, action: Callable[[str], None]) -> None:

@@ -80,7 +80,7 @@ def test_a_reset_puts_a_rig_left_in_any_state_back(rig: SharedRig, qtbot, tmp_pa
     assert not fes.stimulating and m.recorder is None and not m.supervisor.estop_latched
     assert m.supervisor.alarms() == []  # the next test counts its own
     n = len(seen)
-    m.supervisor.event("after the reset")
+    m.supervisor.record("after the reset")
     assert len(seen) == n  # the test's event subscriber is gone
     assert "a test's subscription" not in [s.name for s in m.bus.subscriptions()]
 

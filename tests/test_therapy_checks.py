@@ -101,7 +101,7 @@ def test_a_run_is_refused_before_it_starts_when_the_caps_in_force_refuse_it() ->
     events: list[str] = []
     limits = FesLimits(clinical_caps={ch: ChannelCaps(20.0) for ch in range(1, 9)})
     supervisor = SimpleNamespace(robot=SAFETY.robot, fes_limiter=FesLimiter(limits), robot_hold_reason=lambda: "",
-                                 holder=lambda _d: "", event=lambda kind, **_d: events.append(kind))
+                                 holder=lambda _d: "", record=lambda kind, **_d: events.append(kind))
     manager = SimpleNamespace(supervisor=supervisor, recorder=None, patient_profile=None,
                               driver=lambda _name: None, record_event=lambda *a, **k: events.append(a[0]))
     runner = SimpleNamespace(running=False, started=[], start=lambda *a, **k: runner.started.append(a))

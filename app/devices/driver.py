@@ -4,7 +4,9 @@ A driver reads bytes, decodes them with its (pure) codec into typed, timestamped
 one way: on the :class:`~app.bus.StreamBus` (issue #29). The bus keeps each stream's latest sample, wakes a
 script's ``waitCondition`` once per read, runs the safety monitor inline and gives every other consumer a
 bounded, counted queue (or display-rate columns for the Qt adapter). Connection changes, silence and errors
-are bus events (``connected``, ``disconnected``, ``silent``, ``alive``, ``error``, ``controller_error``, …).
+are bus events (``connected``, ``disconnected``, ``silent``, ``alive``, ``error``, ``controller_error``, …), each
+published by one call, :meth:`DeviceDriver._fire_event`: a journal record on the bus (origin: the device), and,
+where the driver keeps a Qt signal for it (``EVENT_SIGNALS``), that signal, emitted by the same call.
 
 The loop reconnects with back-off when the transport drops, and stops within one read timeout.
 """
@@ -15,13 +17,15 @@ import logging
 import threading
 import time
 from collections.abc import Callable
-from typing import Any
+from typing import Any, ClassVar
 
 from PySide6.QtCore import QThread
 
+from app import journal
 from app.bus import Channel, SampleBatch, StreamBus, StreamSpec, UpdateNotifier
 from app.devices.realtime import REALTIME_ENV, request_realtime
 from app.devices.transport import Transport, TransportError
+from app.journal import Record
 
 __all__ = ["REALTIME_ENV", "Channel", "DeviceDriver", "SampleBatch", "StreamSpec", "UpdateNotifier",
            "request_realtime"]
@@ -41,6 +45,9 @@ class DeviceDriver(QThread):
     # each time, and under CPU load the GUI then waits for the CPU again (measured: the window took 15-20 s
     # instead of 3-5 s to build at load 15, #16). The LINarm heartbeat has its own real-time thread instead.
     realtime_priority: int | None = None
+    # A device event's Qt face, where the driver keeps one: kind -> the signal's name, emitted with the detail by
+    # the one publishing call (_fire_event). The window takes the event from the bus through its adapter.
+    EVENT_SIGNALS: ClassVar[dict[str, str]] = {}
 
     def __init__(
         self,
@@ -172,7 +179,7 @@ class DeviceDriver(QThread):
             except Exception as exc:  # a decoder bug must never take the thread down silently
                 log.exception("%s: driver failure", self.name)
                 reason = f"driver failure: {exc!r}"
-                self._fire_event("error", f"{self.name}: {reason}")
+                self._fire_event(journal.DEVICE_ERROR_EVENT, f"{self.name}: {reason}")
             finally:
                 try:
                     self.on_disconnect()
@@ -227,7 +234,7 @@ class DeviceDriver(QThread):
                     if silent:
                         self._silent_since = self._last_sample_mono
                     # "alive" carries how long the stream was silent (s), for "resumed after 0.3 s"
-                    self._fire_event("silent" if silent else "alive",
+                    self._fire_event(journal.SILENT if silent else journal.ALIVE,
                                      "" if silent else f"{self._last_sample_mono - self._silent_since:.3f}")
             if now >= next_rates:
                 self._update_rates()
@@ -255,8 +262,14 @@ class DeviceDriver(QThread):
         if changed:
             level = logging.INFO if connected else logging.WARNING
             log.log(level, "%s: %s", self.name, reason)
-            self._fire_event("connected" if connected else "disconnected", reason)  # the bus wakes the waiters
+            # the bus wakes the waiters
+            self._fire_event(journal.CONNECTED if connected else journal.DISCONNECTED, reason)
 
-    def _fire_event(self, event: str, detail: str) -> None:
-        """A device event on the bus (``bus.event`` wakes the waiters and runs the safety monitor inline)."""
-        self.bus.event(self.name, event, detail)
+    def _fire_event(self, event: str, detail: str = "") -> Record:
+        """A device event: a record on the bus (``bus.event`` wakes the waiters and runs the safety monitor inline),
+        then its Qt signal when the driver keeps one (``EVENT_SIGNALS``): one call, two faces."""
+        record = self.bus.event(self.name, event, detail)
+        signal = self.EVENT_SIGNALS.get(event)
+        if signal is not None:
+            getattr(self, signal).emit(detail)
+        return record

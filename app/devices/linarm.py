@@ -15,11 +15,11 @@ from collections.abc import Callable
 from concurrent.futures import Future
 from concurrent.futures import TimeoutError as FutureTimeout
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, ClassVar
 
 from PySide6.QtCore import Signal
 
-from app import streams
+from app import journal, streams
 from app.bus import BusItem, DeviceEvent, SampleItem, StreamBus
 from app.config import LinarmDevice
 from app.devices import linarm_protocol as proto
@@ -152,7 +152,8 @@ class LinarmDriver(DeviceDriver):
     # priority it was measured stalling 0.5-0.6 s under load (#16). The other drivers stay at normal priority.
     realtime_priority = 20
     heartbeat_priority = 21  # the command queue's thread (it beats): it feeds the controller's 250 ms host watchdog
-    controller_error = Signal(str)  # an ERROR_EVENT from the controller, as a sentence
+    controller_error = Signal(str)  # an ERROR_EVENT from the controller, as a sentence (the bus record's Qt face)
+    EVENT_SIGNALS: ClassVar[dict[str, str]] = {journal.CONTROLLER_ERROR: "controller_error"}
     identified = Signal(str)  # firmware version
 
     def __init__(self, transport: Transport, supervisor: SafetySupervisor, *,
@@ -384,7 +385,7 @@ class LinarmDriver(DeviceDriver):
         hold = getattr(self.supervisor, "robot_hold_reason", lambda: "")()
         if hold:
             self.emergency_idle(hold)
-            self.supervisor.event("robot_idle_on_connect", reason=hold, ok=True)
+            self.supervisor.record(journal.ROBOT_IDLE_ON_CONNECT, reason=hold, ok=True)
         period = float(self.stream_period_s)
         self._link_write("startDataStream", lambda seq: proto.encode_command("startDataStream", seq, period))
         self._last_heartbeat = self._reader_alive = time.monotonic()
@@ -491,7 +492,7 @@ class LinarmDriver(DeviceDriver):
         self._garbage_recorded, self._garbage_recorded_at = now_counts, now
         if first:
             log.warning("linarm: garbage on the link (%s); counted in the session record", d.last_error)
-        self.supervisor.event("link_garbage", device=self.name, new_frames=new_frames, **self.garbage,
+        self.supervisor.record(journal.LINK_GARBAGE, device=self.name, new_frames=new_frames, **self.garbage,
                               last_error=d.last_error or "")
 
     def _dispatch(self, msg: Any, t: float) -> None:
@@ -519,7 +520,7 @@ class LinarmDriver(DeviceDriver):
             pending = self._pending.get(msg.seq)
             if pending is not None and pending.status.claim():  # else its timeout (or a cancel) came first
                 # Recorded before the status completes: whoever waits on it finds the record written.
-                self.supervisor.event("robot_command", source=pending.source, command=pending.name,
+                self.supervisor.record(journal.ROBOT_COMMAND, source=pending.source, command=pending.name,
                                       args=pending.args, ok=True)
                 pending.status.resolve(dict(msg.values))
         elif isinstance(msg, proto.ErrorReply):
@@ -543,8 +544,7 @@ class LinarmDriver(DeviceDriver):
             if text != self._last_error_logged[0] or now - self._last_error_logged[1] > 1.0:
                 log.warning(text)  # the alarm is one per cause; so is the log line (not one per repeated frame)
             self._last_error_logged = (text, now)
-            self.controller_error.emit(text)
-            self._fire_event("controller_error", text)
+            self._fire_event(journal.CONTROLLER_ERROR, text)  # the bus record and the controller_error signal
 
     def _next_seq(self) -> int:
         """Sequence numbers are taken on the queue's thread only (every write is made there): no lock."""

@@ -26,12 +26,12 @@ import threading
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import asdict, dataclass, field, replace
-from typing import TYPE_CHECKING, Any, Literal
+from typing import TYPE_CHECKING, Any, ClassVar, Literal
 
 import serial
 from PySide6.QtCore import QThread, Signal
 
-from app import streams
+from app import journal, streams
 from app.bus import BusItem, DeviceEvent, StreamBus
 from app.config import FesDevice
 from app.devices.command_queue import CommandQueue, CommandQueueClosed, CommandStatus, Priority
@@ -185,6 +185,11 @@ _SM2_ERRORS = {
 }
 
 
+def scale_clamp_text(knob: str, applied: float, reason: str) -> str:
+    """What the clinician reads when a scale knob stopped at its cap (the ``fes_scale`` record's ``reason``)."""
+    return f"{knob.replace('_', '-')} scale stops at {applied:.2f}: {reason}"
+
+
 def _sm2_result_text(result: int) -> str:
     try:
         return Sm2Result(result).name.lower().replace("_", " ")
@@ -197,9 +202,14 @@ class FesDriver(DeviceDriver):
 
     streams = (FES_STREAM,)
 
+    # The Qt faces of the driver's journal records, emitted by the same call that records them (_record); the
+    # window takes the records from its adapter.
     fault = Signal(str)  # a fault stopped (or prevented) stimulation; shown to the user
     stimulation_changed = Signal(bool)
     scale_clamped = Signal(str, float, str)  # knob ("current" | "pulse_width"), applied factor, why
+    RECORD_SIGNALS: ClassVar[dict[str, str]] = {
+        journal.FES_FAULT: "fault", journal.FES_STARTED: "stimulation_changed",
+        journal.FES_STOPPED: "stimulation_changed", journal.FES_SCALE: "scale_clamped"}
 
     def __init__(
         self,
@@ -299,7 +309,7 @@ class FesDriver(DeviceDriver):
         """The patient's chosen electrode combination per muscular district (issue #32): the channel a profile
         that names a district stimulates, from the next ``load_profile``."""
         self.district_channels = dict(channels)
-        self.supervisor.event("fes_district_channels", channels=dict(channels))
+        self.supervisor.record(journal.FES_DISTRICT_CHANNELS, channels=dict(channels))
 
     def load_profile(self, profile: FesProfile, source: str = "") -> None:
         """Use ``profile`` (with its own scale factors) from the next start. Refused while stimulating,
@@ -319,7 +329,7 @@ class FesDriver(DeviceDriver):
         with self._lock:
             self._profile, self._ccl = profile, ccl
             self._targets, self._notes = {}, {}
-        self.supervisor.event("fes_profile_loaded", name=profile.name, channels=list(ccl.channels),
+        self.supervisor.record(journal.FES_PROFILE_LOADED, name=profile.name, channels=list(ccl.channels),
                               frequency_hz=ccl.frequency_hz)
 
     def submit_start(self, source: str = "") -> CommandStatus:
@@ -403,7 +413,7 @@ class FesDriver(DeviceDriver):
                 self.guardian.disarm()
             with self._lock:
                 limiter.stop()
-            self.supervisor.event("fes_start_failed", reason=reason, source=source)
+            self.supervisor.record(journal.FES_START_FAILED, reason=reason, source=source)
             raise
         with self._lock:
             if generation != self._stop_generation:
@@ -419,9 +429,8 @@ class FesDriver(DeviceDriver):
             self._stimulating = True
             self._stop_resends = 0
             self.last_fault = ""
-        self.supervisor.event("fes_started", profile=profile.name, source=source,
-                              current_scale=profile.current_scale, pulse_width_scale=profile.pulse_width_scale)
-        self.stimulation_changed.emit(True)
+        self._record(journal.FES_STARTED, (True,), profile=profile.name, source=source,
+                     current_scale=profile.current_scale, pulse_width_scale=profile.pulse_width_scale)
 
     def _queue_ident(self) -> int | None:
         thread = self.commands._thread
@@ -453,8 +462,7 @@ class FesDriver(DeviceDriver):
             if got:
                 self._lock.release()
         if was:
-            self.supervisor.event("fes_stopped", reason=reason, source=source)
-            self.stimulation_changed.emit(False)
+            self._record(journal.FES_STOPPED, (False,), reason=reason, source=source)
         return CommandStatus.done_now("stop", None, source, written=written, priority=Priority.ESTOP)
 
     def set_current_scale(self, factor: float, source: str = "") -> float:
@@ -477,7 +485,7 @@ class FesDriver(DeviceDriver):
         with self._lock:
             before, self._pw_override = self._pw_override, None if pulse_width_us is None else float(pulse_width_us)
         if (before is None) != (pulse_width_us is None):  # the therapist's pulse width overridden, or given back
-            self.supervisor.event("fes_pulse_width_override", pulse_width_us=pulse_width_us, source=source)
+            self.supervisor.record(journal.FES_PULSE_WIDTH_OVERRIDE, pulse_width_us=pulse_width_us, source=source)
 
     def set_clinical_caps(self, caps: Mapping[int, ChannelCaps]) -> None:
         """The patient's clinical caps (per channel) from now on. If the running profile exceeds them,
@@ -485,7 +493,7 @@ class FesDriver(DeviceDriver):
         lim = self.limiter
         with self._lock:
             lim.set_limits(replace(lim.limits, clinical_caps=dict(caps)))
-        self.supervisor.event("fes_clinical_caps", caps={ch: asdict(c) for ch, c in caps.items()})
+        self.supervisor.record(journal.FES_CLINICAL_CAPS, caps={ch: asdict(c) for ch, c in caps.items()})
         profile, ccl = self._profile, self._ccl
         if self._stimulating and profile is not None and ccl is not None:
             try:
@@ -642,7 +650,7 @@ class FesDriver(DeviceDriver):
         if not why:
             return  # already reported
         log.error("fes: %s", why)
-        self.supervisor.event("fes_guardian_died", reason=why, stimulating=was)
+        self.supervisor.record(journal.FES_GUARDIAN_DIED, reason=why, stimulating=was)
         if was:
             self._report_fault(f"The FES dead man's switch stopped working ({why}); stimulation stopped. It is "
                                "restarted before stimulation can start again")
@@ -662,10 +670,10 @@ class FesDriver(DeviceDriver):
             guardian.restart()
         except GuardianError as exc:
             log.error("fes: %s", exc)
-            self.supervisor.event("device_error", device=streams.FES, error=str(exc))
+            self.supervisor.record(journal.DEVICE_ERROR, device=streams.FES, error=str(exc))
             raise FesError(f"{exc}; stimulation refused") from exc
         log.info("fes: the FES guardian was restarted (pid %s)", guardian.pid)
-        self.supervisor.event("fes_guardian_restarted", pid=guardian.pid)
+        self.supervisor.record(journal.FES_GUARDIAN_RESTARTED, pid=guardian.pid)
 
     def _arm_guardian(self) -> None:
         """Hand the guardian this link's descriptor and this protocol's Stop; refuse to stimulate without it.
@@ -751,11 +759,8 @@ class FesDriver(DeviceDriver):
             applied = min(applied, MAX_SCALE)
             self._profile = (profile.with_scales(current_scale=applied) if knob == "current"
                              else profile.with_scales(pulse_width_scale=applied))
-        self.supervisor.event("fes_scale", knob=knob, requested=factor, applied=applied, reason=reason,
-                              source=source)
-        if reason:
-            self.scale_clamped.emit(knob, applied, f"{knob.replace('_', '-')} scale stops at {applied:.2f}: "
-                                                   f"{reason}")
+        self._record(journal.FES_SCALE, (knob, applied, scale_clamp_text(knob, applied, reason)) if reason else None,
+                     knob=knob, requested=factor, applied=applied, reason=reason, source=source)
         return applied
 
     def _targets_at(self, profile: FesProfile, now: float) -> dict[int, tuple[float, float]]:
@@ -1006,9 +1011,16 @@ class FesDriver(DeviceDriver):
             return
         self.last_fault = text
         log.error("fes: %s", text)
-        self.supervisor.event("fes_fault", text=text)
+        self._record(journal.FES_FAULT, (text,), text=text)
         self.supervisor.raise_alarm(AlarmLevel.STOP, "FES", text)
-        self.fault.emit(text)
+
+    def _record(self, kind: str, signal_args: tuple[Any, ...] | None = None, **data: Any) -> None:
+        """One of the stimulator's journal records (through the supervisor: origin ``safety``, as the session record
+        has always had them) and, with ``signal_args``, its Qt face (``RECORD_SIGNALS``): one call, two faces."""
+        self.supervisor.record(kind, **data)
+        signal = self.RECORD_SIGNALS.get(kind)
+        if signal is not None and signal_args is not None:
+            getattr(self, signal).emit(*signal_args)
 
 
 def _check_lease(supervisor: Any, what: str, source: str) -> None:
@@ -1091,7 +1103,7 @@ def create(ctx: DeviceContext) -> DeviceHandle | None:
             processes.append(driver.guardian)
         except GuardianError as exc:
             log.error("fes: %s; stimulation will be refused", exc)
-            supervisor.event("device_error", device=streams.FES, error=str(exc))
+            supervisor.record(journal.DEVICE_ERROR, device=streams.FES, error=str(exc))
     else:  # Windows: SM2's own watchdog (1.2 s) only; SM1 stops only on Stop (docs/fes.md)
         log.warning("fes: no dead man's switch on this platform: a frozen app's stimulation is not stopped by it")
     ctx.add_stop_action("FES stop", lambda reason: driver.stop_stimulation(reason, "safety supervisor"))

@@ -490,7 +490,7 @@ class FESUser(_ApiObject):
             if manager.recorder is not None:
                 manager.record_event(kind, **data)
             else:
-                manager.supervisor.event(kind, **data)
+                manager.supervisor.record(kind, **data)
 
         try:
             result = electrodes.run_district_setup(fes, robot, manager.supervisor,

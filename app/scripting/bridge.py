@@ -30,6 +30,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from app import journal
 from app.bus import SampleItem, Subscription
 from app.devices import linarm_protocol as proto
 from app.scripting import api, api_spec
@@ -242,7 +243,7 @@ class RefusalLog:
         log.warning("script kernel %s: %d more requests refused since the last report (%d in all: %s); "
                     "the last: %s", self.kernel_pid, self._unreported, self.total, kinds, self._last_reason)
         if self.event is not None:
-            self.event("script_requests_refused", count=self._unreported, total=self.total,
+            self.event(journal.SCRIPT_REQUESTS_REFUSED, count=self._unreported, total=self.total,
                        by_kind=dict(self.by_kind), last=self._last_reason, kernel_pid=self.kernel_pid)
         self._unreported = 0
         self._last_summary = now
@@ -262,7 +263,7 @@ class ApiBridge:
         self.encoder = SampleEncoder()
         self.limiter = CallLimiter()
         self.refusal_budget = CallLimiter(REFUSAL_RATE, REFUSAL_BURST, 0.0)
-        self.refusal_log = RefusalLog(kernel.warden_pid, host.supervisor.event)
+        self.refusal_log = RefusalLog(kernel.warden_pid, host.supervisor.record)
         self._sub_lock = threading.Lock()
         self._subscribed: set[str] = set()
         self._schema_sent: dict[str, type] = {}
@@ -421,7 +422,7 @@ class ApiBridge:
         if kind != "bad line" and self.refusal_budget.admit() is None:
             self.kernel.end_for_violation(f"a flood of requests (more than {REFUSAL_BURST} refused in a row)")
         if self.refusal_log.note(kind, reason):
-            self.host.supervisor.event("script_request_refused", reason=reason, op=str(msg.get("op"))[:40],
+            self.host.supervisor.record(journal.SCRIPT_REQUEST_REFUSED, reason=reason, op=str(msg.get("op"))[:40],
                                        kernel_pid=self.kernel.warden_pid)
 
     # ------------------------------------------------------------------ samples

@@ -38,7 +38,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from app import streams
+from app import journal, streams
 from app.devices.linarm_constants import PRETENSION_MOVE, K
 from app.devices.linarm_protocol import ControlMode, ControlState, HomeState
 from app.ownership import Composition, start_problem
@@ -644,7 +644,7 @@ class ScriptRunner:
         t0 = time.monotonic()
         sup = self.manager.supervisor
         name = Path(filename).name
-        sup.event("script_start", name=name, text=source, kernel_pid=kernel.pid)
+        sup.record(journal.SCRIPT_START, name=name, text=source, kernel_pid=kernel.pid)
         progress = self.manager.progress
         run = self.run
         if run is not None:
@@ -688,7 +688,7 @@ class ScriptRunner:
             safe_thread.join(2.0)
         self._bring_to_safe_state(result)
         self.context.close()  # the homing helper's thread and listeners end with the run
-        sup.event("script_stop", name=name, reason=result.message or result.status, status=result.status)
+        sup.record(journal.SCRIPT_STOP, name=name, reason=result.message or result.status, status=result.status)
         progress.finish(result.status)  # an open repetition ends (not completed) before its run does
         self._end_run(result)
         self.gate.set("open")
@@ -909,7 +909,7 @@ class ScriptRunner:
                     done.append("robot IDLE")
                 except Exception as exc2:
                     self.output("stderr", f"Could not bring the robot to IDLE: {exc2}\n")
-        self.manager.supervisor.event("script_safe_state", reason=reason, actions=done)
+        self.manager.supervisor.record(journal.SCRIPT_SAFE_STATE, reason=reason, actions=done)
         if done and not quiet:
             self.output("info", f"Safe state: {', '.join(done)}.\n")
 

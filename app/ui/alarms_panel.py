@@ -36,6 +36,7 @@ from PySide6.QtWidgets import (
 
 from app.manager import LinarmppManager
 from app.safety import Alarm, AlarmLevel
+from app.ui.qt_bus import shared_qt_bus
 from app.ui.recovery import RecoverDialog, Recovery, Restartable, recovery_needed
 from app.ui.widgets import ElidedLabel
 
@@ -214,9 +215,10 @@ class AlarmsPanel(QWidget):
         self._brushes = {level: (QBrush(QColor(style.background)), QBrush(QColor(style.foreground)))
                          for level, style in LEVEL_STYLES.items()}
         self._plain = (QBrush(), QBrush())  # the view's own colours (acknowledged rows, except the level)
-        self.supervisor.alarm_raised.connect(self._on_alarm)
-        # The supervisor emits alarms_changed after every alarm_raised: the list follows that one only.
-        self.supervisor.alarms_changed.connect(self.refresh)
+        adapter = shared_qt_bus(manager.bus, manager.supervisor.alarm)
+        adapter.alarm_raised.connect(self._on_alarm)
+        # The adapter emits alarms_changed after every alarm_raised: the list follows that one only.
+        adapter.alarms_changed.connect(self.refresh)
         self.refresh()
 
     def _on_session(self, _folder: object) -> None:
@@ -457,8 +459,9 @@ class AlarmBanner(QFrame):
         row.addWidget(self.button)
         self.current: Alarm | None = None
         self._shown: tuple[str, str, str] | None = None
-        manager.supervisor.alarms_changed.connect(self.refresh)
-        manager.supervisor.estop_changed.connect(lambda *_a: self.refresh())
+        adapter = shared_qt_bus(manager.bus, manager.supervisor.alarm)
+        adapter.alarms_changed.connect(self.refresh)
+        adapter.estop_changed.connect(lambda *_a: self.refresh())
         # A robot error can outlast its acknowledged alarm: look again now and then.
         self._timer = QTimer(self)
         self._timer.setInterval(500)

@@ -27,6 +27,7 @@ from PySide6.QtWidgets import (
     QWidget,
 )
 
+from app import journal
 from app.manager import LinarmppManager
 from app.ui.qt_bus import QtBus, qt_bus_for, takes_qt_bus
 from app.ui.theme import colours
@@ -202,7 +203,7 @@ class CommandsFrame(QWidget):
         ok = set_device_running(self.manager, name, running)
         if not ok:
             log.error("%s: could not %s", name, "start" if running else "stop")
-        self.manager.supervisor.event("device_toggled", device=name, running=running, ok=ok)
+        self.manager.supervisor.record(journal.DEVICE_TOGGLED, device=name, running=running, ok=ok)
         self.refresh()
         return ok
 

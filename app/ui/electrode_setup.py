@@ -315,7 +315,7 @@ class ElectrodeSetupDialog(QDialog):
         if self.manager.recorder is not None:
             self.manager.record_event(kind, **data)
         else:  # no session: the supervisor's event (the log, and a headless run's recorder)
-            self.manager.supervisor.event(kind, **data)
+            self.manager.supervisor.record(kind, **data)
 
     # ------------------------------------------------------------------ progress (GUI thread)
     def _on_progress(self, kind: str, payload: Any) -> None:

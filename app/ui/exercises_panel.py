@@ -34,6 +34,7 @@ from PySide6.QtWidgets import (
 from app.exercises import Exercise, Parameter, Validation, load_library, start_exercise, validate
 from app.progress import ProgressState
 from app.ui.fes_conflict import fes_conflict_text, resolve_fes_conflict
+from app.ui.qt_bus import shared_qt_bus
 
 log = logging.getLogger(__name__)
 
@@ -231,8 +232,11 @@ class ExercisesPanel(QWidget):
         self.timer.timeout.connect(self._tick)
         self.timer.start()
         progress = getattr(manager, "progress", None)
-        if progress is not None:
-            progress.changed.connect(self._progress_changed)
+        if progress is not None and getattr(manager, "bus", None) is not None:
+            # its changes come on the script's thread: the window's adapter brings them here
+            adapter = shared_qt_bus(manager.bus)
+            adapter.watch_progress(progress)
+            adapter.progress_changed.connect(self._progress_changed)
         recorder = getattr(manager, "recorder", None)
         self._session_folder: Path | None = Path(recorder.folder) if getattr(recorder, "folder", None) else None
         self._exercised_in_session = False  # an exercise was started from here during this session

@@ -29,16 +29,18 @@ from PySide6.QtWidgets import (
     QWidget,
 )
 
-from app import streams
+from app import journal, streams
 from app.config import RESOURCES
 from app.devices.command_queue import CommandQueueClosed, CommandStatus
-from app.devices.rehastim import FesDriver, FesError
+from app.devices.rehastim import FesDriver, FesError, scale_clamp_text
 from app.fes_limits import FesLimits
 from app.fes_profile import MAX_SCALE, FesProfile, FesProfileError, load_profile
+from app.journal import Record
 from app.manager import LinarmppManager
 from app.paths import fes_profiles_dir
 from app.safety import SafetyError
 from app.ui import file_dialogs
+from app.ui.qt_bus import shared_qt_bus
 from app.ui.theme import colours
 from app.ui.widgets import RefreshWhenVisible
 
@@ -279,10 +281,8 @@ class FesPanel(RefreshWhenVisible, QWidget):
         self.stop_button.clicked.connect(self.stop)
         self.load_button.clicked.connect(self.choose_profile_file)
         self.edit_button.clicked.connect(self.open_editor)
-        if self.driver is not None:
-            self.driver.fault.connect(lambda text: self.show_message(text, "bad"))
-            self.driver.scale_clamped.connect(lambda _k, _a, text: self.show_message(text, "warn"))
-            self.driver.stimulation_changed.connect(self._stimulation_changed)
+        if self.driver is not None:  # the stimulator's faults, clamps and stops: the journal, through the adapter
+            shared_qt_bus(manager.bus).record.connect(self._on_record)
         self.timer = QTimer(self)
         self.timer.setInterval(100)
         self.timer.timeout.connect(self._tick)
@@ -323,6 +323,18 @@ class FesPanel(RefreshWhenVisible, QWidget):
             log.error("FES start failed: %r", exc)
             self.show_message(f"Not started: {start_failure_text(exc)}", "bad")
         self.refresh()
+
+    def _on_record(self, record: Record) -> None:
+        if record.origin != journal.SAFETY:
+            return
+        data = record.data
+        if record.kind == journal.FES_FAULT:
+            self.show_message(str(data.get("text", "")), "bad")
+        elif record.kind == journal.FES_SCALE and data.get("reason"):
+            self.show_message(scale_clamp_text(str(data.get("knob")), float(data.get("applied", 0.0)),
+                                               str(data["reason"])), "warn")
+        elif record.kind in (journal.FES_STARTED, journal.FES_STOPPED):
+            self._stimulation_changed(record.kind == journal.FES_STARTED)
 
     def _stimulation_changed(self, on: bool) -> None:
         """Stimulation ended by itself (a time profile's end, a fault, the run holding it): the message must not

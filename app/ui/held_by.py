@@ -1,5 +1,6 @@
 """"Robot held by: Trigger reaching": who owns a device now (one owner during a run, issue #36), where its
-commands are given (the Robot, Assistance and FES tabs). Follows the supervisor's ``lease_changed``."""
+commands are given (the Robot, Assistance and FES tabs).
+Follows the journal's lease records (the window's adapter's ``lease_changed``)."""
 
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ from PySide6.QtWidgets import QWidget
 
 from app.ownership import DEVICE_WORDS, ROBOT, STIMULATOR
 from app.ui.alarms_panel import LinesLabel
+from app.ui.qt_bus import shared_qt_bus
 
 _WHAT = {ROBOT: "its target, mode and gains are the run's: the buttons here are refused until it ends",
          STIMULATOR: "its profile, start and pulse width are the run's: Stop and lowering a scale still work"}
@@ -43,9 +45,9 @@ class HeldByLabel(LinesLabel):
         self.setObjectName(f"heldBy_{device}")
         self.setStyleSheet("QLabel { background: #fff3cd; color: #5c4400; border: 1px solid #e0c060; "
                            "border-radius: 3px; padding: 1px 4px; }")
-        signal = getattr(supervisor, "lease_changed", None)
-        if signal is not None:
-            signal.connect(self.refresh)
+        bus = getattr(supervisor, "bus", None)
+        if bus is not None:  # the holder changes as the journal says (the window's adapter)
+            shared_qt_bus(bus).lease_changed.connect(self.refresh)
         self.refresh()
 
     def refresh(self) -> None:

@@ -47,7 +47,7 @@ from PySide6.QtWidgets import (
     QWidget,
 )
 
-from app import streams
+from app import journal, streams
 from app.devices import linarm_protocol as proto
 from app.devices.cmdmessenger import Kind
 from app.devices.command_queue import CommandQueueClosed, CommandStatus
@@ -65,6 +65,7 @@ from app.devices.linarm_protocol import (
 from app.devices.transport import TransportError
 from app.manager import LinarmppManager
 from app.safety import SafetyError
+from app.ui.qt_bus import shared_qt_bus
 from app.ui.theme import colours
 from app.ui.widgets import RefreshWhenVisible
 
@@ -467,7 +468,8 @@ class LinarmPanel(RefreshWhenVisible, QWidget):
         self.outcomes: list[Outcome] = []
         self.last_outcome: Outcome | None = None
         self._pending: list[tuple[str, CommandStatus, Callable[[dict[str, Any]], None] | None]] = []
-        self._watched_driver: Any = None
+        # The controller's errors come from the journal, through the window's adapter (never from the driver).
+        shared_qt_bus(manager.bus).device_event.connect(self._on_device_event)
         self.forms: dict[str, CommandForm] = {}
 
         lay = QVBoxLayout(self)
@@ -836,6 +838,10 @@ class LinarmPanel(RefreshWhenVisible, QWidget):
             del self.outcomes[:-500]
         self.outcome_shown.emit(outcome)
 
+    def _on_device_event(self, device: str, kind: str, detail: str) -> None:
+        if device == streams.LINARM and kind == journal.CONTROLLER_ERROR:
+            self._on_controller_error(detail)
+
     def _on_controller_error(self, text: str) -> None:
         self._show(Outcome("", "event", f"{text} — the motors are off; press Reset error."))
 
@@ -844,9 +850,6 @@ class LinarmPanel(RefreshWhenVisible, QWidget):
     def refresh(self) -> None:
         driver = self.driver()
         c = colours()
-        if driver is not None and driver is not self._watched_driver and hasattr(driver, "controller_error"):
-            driver.controller_error.connect(self._on_controller_error)
-            self._watched_driver = driver
         connected = bool(driver is not None and driver.connected)
         for page in self.pages:
             page.setEnabled(connected)

@@ -153,7 +153,9 @@ class MainWindow(QMainWindow):
         super().__init__()
         self.manager = manager
         # The window's one adapter: every frame takes its samples and device events from it.
-        self.qt_bus = QtBus(manager.bus, parent=self)
+        # The one adapter: the panels built with the manager only find it (shared_qt_bus) and take their journal
+        # signals (alarms, e-stop, leases, records, progress) from it.
+        self.qt_bus = QtBus(manager.bus, parent=self, alarms=manager.supervisor.alarm, share=True)
         self.setWindowTitle("LINarm++ Manager")
         self.setObjectName("MainWindow")
         self.setDockNestingEnabled(True)
@@ -171,7 +173,7 @@ class MainWindow(QMainWindow):
         from app.ui.widgets import install_wheel_guard
 
         install_wheel_guard()  # the wheel over a number box scrolls the form unless the box has the focus (#36)
-        manager.supervisor.estop_changed.connect(self._on_estop_changed)
+        self.qt_bus.estop_changed.connect(self._on_estop_changed)
         self._quit_confirmed = False  # may_quit() said yes: a second close event does not ask again
         self._install_gui_watch()
         self._offer_larger_graphs()
@@ -389,7 +391,8 @@ class MainWindow(QMainWindow):
 
     # ------------------------------------------------------------------ behaviour
     def emergency_stop(self, source: str) -> None:
-        self.manager.supervisor.emergency_stop(source)
+        self.manager.supervisor.emergency_stop(source)  # the stop itself: a direct call, the devices first
+        self.qt_bus.tick()  # then the screen, now rather than at the adapter's next tick
 
     def _estop_button_pressed(self) -> None:
         if self._estop_press.fired:  # the mouse press already stopped
@@ -581,6 +584,7 @@ class MainWindow(QMainWindow):
         if answer == QMessageBox.StandardButton.Yes:
             # The session's operator (the record must say who), "operator" only when no session runs.
             self.manager.supervisor.reset_emergency_stop(self.manager.operator or "operator")
+            self.qt_bus.tick()  # the screen follows at once
 
     def _on_device_connection(self, name: str, connected: bool, reason: str) -> None:
         label = self.device_status.get(name)

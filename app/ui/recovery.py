@@ -30,7 +30,7 @@ from PySide6.QtWidgets import (
     QWidget,
 )
 
-from app import streams
+from app import journal, streams
 from app.devices.linarm_protocol import ErrorState, HomeState
 from app.manager import LinarmppManager
 from app.safety import AlarmLevel
@@ -225,7 +225,7 @@ class Recovery(QObject):
 
     def _log(self, step: str, **data: Any) -> None:
         self.steps.append(step)
-        self.manager.supervisor.event("recovery", step=step, operator=self.operator, **data)
+        self.manager.supervisor.record(journal.RECOVERY, step=step, operator=self.operator, **data)
         self.step_done.emit(step)
 
     def run(self) -> None:

@@ -33,7 +33,7 @@ from PySide6.QtWidgets import (
     QWidget,
 )
 
-from app import streams
+from app import journal, streams
 from app.bus import StreamBus
 from app.devices.physio_codec import FAULT_FLAGS
 from app.devices.sim.host import SimulatorProcessError
@@ -296,7 +296,7 @@ class SimulationPanel(QWidget):
             self._say(f"Not applied: {exc}", ok=False)
             return False
         self._say(f"Simulated patient: {what}.")
-        self.manager.supervisor.event("simulation", action=what)
+        self.manager.supervisor.record(journal.SIMULATION, action=what)
         self.refresh()
         return True
 
@@ -346,7 +346,7 @@ class SimulationPanel(QWidget):
         if not self._control(sim, "phasic_event", amplitude):
             return False
         self._say("Skin-conductance response triggered" + (f" ({amp:.2f} µS)." if amplitude else "."))
-        self.manager.supervisor.event("simulation", action="phasic event", amplitude=amplitude)
+        self.manager.supervisor.record(journal.SIMULATION, action="phasic event", amplitude=amplitude)
         return True
 
     def fault_flags(self) -> int:
@@ -364,7 +364,7 @@ class SimulationPanel(QWidget):
         if not self._control(sim, "set_fault_flags", flags):
             return False
         self._say(f"Physiological board fault flags: 0x{flags:02X}.")
-        self.manager.supervisor.event("simulation", action="fault flags", flags=flags)
+        self.manager.supervisor.record(journal.SIMULATION, action="fault flags", flags=flags)
         return True
 
     def _control(self, sim: Any, name: str, *args: Any) -> bool:
@@ -386,7 +386,7 @@ class SimulationPanel(QWidget):
             self._say(f"Not applied: {exc}", ok=False)
             return
         self._say(f"Simulated {name}: cable pulled.")
-        self.manager.supervisor.event("simulation", action="kill", device=name)
+        self.manager.supervisor.record(journal.SIMULATION, action="kill", device=name)
         self.refresh()
 
     def restart(self, name: str) -> None:
@@ -402,7 +402,7 @@ class SimulationPanel(QWidget):
             for check in self.fault_checks.values():
                 check.setChecked(False)
         self._say(f"Simulated {name}: plugged back in (fresh power-up).")
-        self.manager.supervisor.event("simulation", action="restart", device=name)
+        self.manager.supervisor.record(journal.SIMULATION, action="restart", device=name)
         self.refresh()
 
     # ------------------------------------------------------------------ state
