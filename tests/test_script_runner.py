@@ -104,7 +104,7 @@ class ScriptHostParts:
         self.shutdown_hooks.append(fn)
 
     def record_event(self, kind: str, who: str = "", **data: Any) -> None:
-        self.supervisor.event(kind, **data)  # type: ignore[attr-defined]
+        self.supervisor.record(kind, **data)  # type: ignore[attr-defined]
 
     def update_session_profile(self, profile: Any, version: int | None = None) -> list[str]:
         return []
