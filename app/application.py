@@ -16,10 +16,10 @@ from typing import Any
 from PySide6.QtCore import QCoreApplication, QObject, QSettings, QTimer, Signal
 from PySide6.QtWidgets import QApplication
 
-from app.config import AppConfig
+from app.core.config import AppConfig
+from app.core.paths import data_dir
+from app.core.priority import no_thread_below_this_one
 from app.manager import LinarmppManager
-from app.paths import data_dir
-from app.priority import no_thread_below_this_one
 
 log = logging.getLogger(__name__)
 
@@ -63,7 +63,7 @@ def apply_desktop_identity(app: QApplication) -> None:
     (the Wayland app id) matches the window to linarmpp.desktop and its icon."""
     from PySide6.QtGui import QGuiApplication, QIcon
 
-    from app.resources import ICON_FILE
+    from app.core.resources import ICON_FILE
 
     app.setWindowIcon(QIcon(str(ICON_FILE)))
     QGuiApplication.setDesktopFileName("linarmpp")
@@ -72,9 +72,9 @@ def apply_desktop_identity(app: QApplication) -> None:
 def install_safety_nets(manager: LinarmppManager, on_signal: Callable[[int], None] | None = None
                         ) -> Callable[[], None]:
     """An uncaught exception anywhere brings devices to a safe state first; SIGTERM, SIGINT and SIGHUP are
-    events (app.signal_events): the first one brings the devices to a safe state once, on a thread of its
+    events (app.core.signal_events): the first one brings the devices to a safe state once, on a thread of its
     own, then ``on_signal(signum)`` (run_gui: ends the event loop). Returns a function that removes the nets."""
-    from app.signal_events import SignalEvents, signal_name
+    from app.core.signal_events import SignalEvents, signal_name
 
     previous_hook = sys.excepthook
     previous_thread_hook = threading.excepthook
@@ -195,7 +195,7 @@ def run_gui(config: AppConfig, screenshot: str | None = None, quit_after_s: floa
     # the window's first start in a new data folder never reached stimulation). Nothing is driven yet here.
     opening = ArchiveOpening(config)
     manager = LinarmppManager(config)
-    from app.signal_events import exit_code_for
+    from app.core.signal_events import exit_code_for
 
     loop_exit = _LoopExit(app)
     remove_nets = install_safety_nets(manager, lambda signum: loop_exit.request(exit_code_for(signum)))

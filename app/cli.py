@@ -14,14 +14,14 @@ all run :func:`main`. With no arguments: the clinician window, every device simu
                       (exit 0 done, 1 nothing written: why on stderr, 2 wrong arguments,
                        3 done from an incomplete session: what is missing on stderr)
 
-Every output is verified before it is said written (app/outputs.py): a full disk or a read-only folder is one
+Every output is verified before it is said written (app/core/outputs.py): a full disk or a read-only folder is one
 sentence on stderr and exit 1, and leaves nothing at the destination. Exports run in the worker process
 (app/worker): HDF5 can crash the process that writes it on a full disk, and that is then a failed export. A data
 folder that cannot be written (``LINARMPP_HOME``, a read-only disk) is one line and exit 1 (the window: a message
 box too; ``--headless``: exit 4, as for a record folder that cannot be written).
 
 SIGTERM, SIGINT (Ctrl-C) and SIGHUP end the window or a headless run the same way: the devices are brought to
-a safe state at once (FES Stop, robot IDLE; app/signal_events.py), the session is closed, and the process
+a safe state at once (FES Stop, robot IDLE; app/core/signal_events.py), the session is closed, and the process
 exits with 128 + the signal's number (143, 130, 129).
 
 The parser is built in one place, :func:`build_parser`: a new option is one ``add_argument`` line there.
@@ -76,7 +76,7 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
     if argv[:1] == ["export"]:
         return _export_command(argv[1:], prog)
     args = parse_args(argv, prog)
-    from app.paths import set_private_umask
+    from app.core.paths import set_private_umask
 
     set_private_umask()  # patient data: files 0600, folders 0700, whatever the login's umask (issue #17)
     if args.install_desktop_entry:
@@ -85,8 +85,8 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
         os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
     import logging
 
-    from app.config import ConfigError, load_config
-    from app.logging_setup import setup_logging
+    from app.core.config import ConfigError, load_config
+    from app.core.logging_setup import setup_logging
 
     report_command = bool(args.metrics or args.report or args.progress or args.export)
     try:
@@ -163,7 +163,7 @@ def _headless_patient_known(patient_id: str, config: object) -> bool:
     session for nobody, without the caps of the patient meant."""
     from app.archive import station
     from app.archive.api import ArchiveError
-    from app.patients import PatientError
+    from app.therapy.patients import PatientError
 
     try:
         record = station.read_record(patient_id, getattr(config, "safety", None))
@@ -182,8 +182,8 @@ def _headless_patient_known(patient_id: str, config: object) -> bool:
 def _archive_command(argv: list[str], prog: str | None) -> int:
     """``linarmpp archive …`` (app/archive/cli.py): its own parser and exit codes."""
     from app.archive.cli import archive_main
-    from app.logging_setup import setup_logging
-    from app.paths import set_private_umask
+    from app.core.logging_setup import setup_logging
+    from app.core.paths import set_private_umask
 
     set_private_umask()
     setup_logging(console=False)  # the command's own sentences go to stderr; details to the log
@@ -200,7 +200,7 @@ def _report_command(config: object, args: argparse.Namespace) -> int:
     stderr lists what is missing (a failed or crashed recording, samples or events the files lack)."""
     from pathlib import Path
 
-    from app.recording import MANIFEST_FILE
+    from app.session.recording import MANIFEST_FILE
 
     if args.export and not args.out:
         print("--export needs --out FILE.h5 or --out FOLDER", file=sys.stderr)
@@ -240,7 +240,7 @@ class _NoSession(Exception):
 
 
 def _is_uuid(text: str) -> bool:
-    from app.recording import is_session_uuid
+    from app.session.recording import is_session_uuid
 
     return is_session_uuid(text)
 
@@ -251,7 +251,7 @@ def _report_archive(config: object, args: argparse.Namespace, stack: contextlib.
     (None, why) when it cannot be read; nothing is made where there is no archive yet."""
     from pathlib import Path
 
-    from app.recording import MANIFEST_FILE
+    from app.session.recording import MANIFEST_FILE
 
     uuids = [v for v in (args.metrics, args.report) if v and not (Path(v) / MANIFEST_FILE).is_file() and _is_uuid(v)]
     if not (args.progress or args.report or uuids):
@@ -270,11 +270,12 @@ def _report_archive(config: object, args: argparse.Namespace, stack: contextlib.
 def _session_folder(given: str, archive: object, problem: str, stack: contextlib.ExitStack) -> tuple[str, str]:
     """(a session folder for ``given``, what it is): the folder itself (''), or an archived session's UUID
     materialised into a private temporary folder (removed with ``stack``; "archived session <uuid> …"). Every reader
-    of a session reads a folder (app.recording), so the metrics and the report of an archived session are those of
+    of a session reads a folder (app.session.recording), so the metrics and the report of an archived session are those
+    of
     its folder, computed by the same code, each file checked against its SHA-256 as it is written."""
     from pathlib import Path
 
-    from app.recording import MANIFEST_FILE
+    from app.session.recording import MANIFEST_FILE
 
     if (Path(given) / MANIFEST_FILE).is_file() or not _is_uuid(given):
         return given, ""  # a folder, or not a session: run_report_command says so (exit 2)
@@ -298,9 +299,9 @@ def _report_command_run(config: object, args: argparse.Namespace, archive: objec
     import logging
     from pathlib import Path
 
-    from app.outputs import OutputError
-    from app.recording import MANIFEST_FILE, session_problems
-    from app.reports import run_report_command
+    from app.core.outputs import OutputError
+    from app.session.recording import MANIFEST_FILE, session_problems
+    from app.session.reports import run_report_command
 
     incomplete = False
     for folder in dict.fromkeys(f for f in (args.metrics, args.report, args.export) if f):
@@ -346,8 +347,8 @@ def _export_command(argv: list[str], prog: str | None) -> int:
     """``linarmpp export --format bids|xdf|edf SESSION… --out DIR`` (issue #41; app/research_export/command.py)."""
     import logging
 
-    from app.logging_setup import setup_logging
-    from app.paths import set_private_umask
+    from app.core.logging_setup import setup_logging
+    from app.core.paths import set_private_umask
     from app.research_export.command import main as export_main
 
     set_private_umask()  # exports hold health data: files 0600, folders 0700

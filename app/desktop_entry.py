@@ -16,7 +16,7 @@ import shutil
 import sys
 from pathlib import Path
 
-from app.resources import DESKTOP_FILE, ICON_FILE
+from app.core.resources import DESKTOP_FILE, ICON_FILE
 
 COMMAND = "linarmpp"
 

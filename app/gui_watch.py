@@ -34,11 +34,11 @@ import time
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
-from app import journal, streams
+from app.core import journal, streams
 
 if TYPE_CHECKING:  # the supervisor is a QObject; this module imports nothing of Qt (docs/decisions.md)
     from app.manager import LinarmppManager
-    from app.safety import Alarm, SafetySupervisor
+    from app.safety.supervisor import Alarm, SafetySupervisor
 
 log = logging.getLogger(__name__)
 
@@ -59,7 +59,7 @@ def what_drives(manager: LinarmppManager) -> str:
     """What a stall of the window would leave unattended: 'the robot is ON', 'stimulation runs', both, or ''."""
     parts = []
     state = manager.bus.latest(streams.LINARM_STATE) if manager.driver(streams.LINARM) is not None else None
-    from app.devices.linarm_protocol import ControlState
+    from app.wire.linarm_protocol import ControlState
 
     if state is not None and getattr(state, "controlState", None) == int(ControlState.ON_CTRL_STATE):
         parts.append("the robot is ON")
@@ -142,7 +142,7 @@ class GuiWatch:
             return  # nothing moves or stimulates (or no longer does): a busy window harms nobody
         what = self._what = self._what or driving
         self._longest = max(self._longest, age)
-        from app.safety import AlarmLevel  # loaded with the supervisor already
+        from app.safety.supervisor import AlarmLevel  # loaded with the supervisor already
         if self._warning is None:
             text = f"The window stopped responding ({age:.2f} s without its heartbeat) while {what}"
             self.supervisor.record(journal.GUI_STALL, stalled_s=round(age, 3), driving=what)

@@ -18,18 +18,18 @@ from typing import TYPE_CHECKING, Any
 
 from PySide6.QtCore import QObject, Signal
 
-from app import journal, streams
-from app.assistance import AssistanceController, AssistanceInactive
-from app.bus import BusItem, DeviceEvent, SampleItem, StreamBus, Subscription
-from app.config import AppConfig
+from app.core import journal, streams
+from app.core.bus import BusItem, DeviceEvent, SampleItem, StreamBus, Subscription
+from app.core.config import AppConfig
+from app.core.ownership import ROBOT, RUN_SOURCES, STIMULATOR, Composition, Lease
+from app.core.paths import runtime_dir
+from app.core.priority import PriorityOutcome, raise_for_real_time
 from app.devices.driver import DeviceDriver
-from app.devices.linarm_constants import PRETENSION_MOVE
 from app.devices.registry import DeviceFactory, DeviceHandle, SimulatorHosting, build_devices
-from app.fault_policy import FaultPolicy
-from app.ownership import ROBOT, RUN_SOURCES, STIMULATOR, Composition, Lease
-from app.paths import runtime_dir
-from app.priority import PriorityOutcome, raise_for_real_time
-from app.safety import AlarmLevel, SafetyError, SafetySupervisor
+from app.safety.assistance import AssistanceController, AssistanceInactive
+from app.safety.fault_policy import FaultPolicy
+from app.safety.supervisor import AlarmLevel, SafetyError, SafetySupervisor
+from app.wire.linarm_constants import PRETENSION_MOVE
 
 if TYPE_CHECKING:
     from app.devices.linarm import LinarmDriver
@@ -188,7 +188,7 @@ class LinarmppManager(QObject):
         self._factories = factories
         self._started = False
         self._shutdown_hooks: list[Callable[[], None]] = []
-        self.recorder: Any = None  # app.recording.SessionRecorder while a session runs
+        self.recorder: Any = None  # app.session.recording.SessionRecorder while a session runs
         self.patient_profile: Any = None
         # The archive record's version the session's profile was read at (0: a YAML file, unversioned): a change
         # made inside the session (an electrode choice) is saved as of it, field by field (app.archive.station).
@@ -203,16 +203,16 @@ class LinarmppManager(QObject):
         self._leased: set[str] = set()  # the runs holding their devices now (one owner during a run, #36)
         self._vr_targets_before: tuple[float, ...] | None = None  # the VR task's own targets, during a composed run
         self.therapy = TherapyThread(self.bus, self.assistance.update_alpha, self._alpha_lost, self._follow_target)
-        from app.progress import ExerciseProgress
+        from app.core.progress import ExerciseProgress
 
         self.progress = ExerciseProgress(self.supervisor.record)  # the running exercise's repetitions
-        self.runs = self._new_run_log()  # the exercise runs (app/runs.py); a new log for each session
+        self.runs = self._new_run_log()  # the exercise runs (app/core/runs.py); a new log for each session
         # every STOP alarm -> safe state (window and headless alike)
         self.fault_policy = FaultPolicy(self.supervisor, self.bus, self.driver, lambda: self._started,
                                         config.safety.silence_stop_s)
         self.device_watch = DeviceWatch(self.supervisor, self.loss_level, lambda: self._started)
         self._watching = False
-        self.priority: PriorityOutcome | None = None  # set at start(): app/priority.py
+        self.priority: PriorityOutcome | None = None  # set at start(): app/core/priority.py
 
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> None:
@@ -222,7 +222,7 @@ class LinarmppManager(QObject):
             return
         self._started = True
         # Driving starts: this process's threads ahead of ordinary programs where the system allows it (the
-        # simulators and drivers started below inherit it): app/priority.py.
+        # simulators and drivers started below inherit it): app/core/priority.py.
         self.priority = raise_for_real_time()
         self.devices = build_devices(
             self._factories, self.config, bus=self.bus, supervisor=self.supervisor,
@@ -259,7 +259,7 @@ class LinarmppManager(QObject):
     def _apply_robot_assistance(self, k_m: float, k_a: float, k_t: float) -> None:
         """The robot's share of α only acts in the interaction modes it parameterises (admittance, assistance)
         while ON: a position-controlled exercise or a script's moves are never altered."""
-        from app.devices.linarm_protocol import ControlMode, ControlState
+        from app.wire.linarm_protocol import ControlMode, ControlState
 
         robot = self._robot()
         if robot is None or not robot.connected:
@@ -326,7 +326,7 @@ class LinarmppManager(QObject):
         source = {streams.PATIENT_MODEL: "assistance", streams.VR: "VR task"}.get(device)
         if level < AlarmLevel.STOP or source is None:
             return level
-        from app.devices.linarm_protocol import ControlState
+        from app.wire.linarm_protocol import ControlState
 
         fes = self.driver(streams.FES)
         state = self.bus.latest(streams.LINARM_STATE) if self.driver(streams.LINARM) is not None else None
@@ -341,7 +341,7 @@ class LinarmppManager(QObject):
 
     def hold_for_run(self, run: Any) -> None:
         """The run log's listener (any thread): a run that starts holds its devices, one that ends gives them
-        back. What it holds and lets in comes from its record (``holds``, ``compose``: app/runs.py)."""
+        back. What it holds and lets in comes from its record (``holds``, ``compose``: app/core/runs.py)."""
         if run.running:
             if run.run_id in self._leased:
                 return
@@ -419,7 +419,7 @@ class LinarmppManager(QObject):
         self.assistance.set_gains(profile.assistance.k_r, profile.assistance.k_f)
         fes = self.driver(streams.FES)
         if isinstance(fes, FesDriver):
-            from app.patients import clinical_caps
+            from app.therapy.patients import clinical_caps
 
             fes.set_clinical_caps(clinical_caps(profile))
             # district-addressed profiles stimulate the patient's chosen electrodes
@@ -433,8 +433,8 @@ class LinarmppManager(QObject):
         narrows the safety limits for its duration. Raises ValueError/PatientError, nothing started."""
         from app.archive import station
         from app.archive.api import ArchiveError
-        from app.patients import PatientError, effective_robot_limits
-        from app.recording import SessionRecorder, sessions_root
+        from app.session.recording import SessionRecorder, sessions_root
+        from app.therapy.patients import PatientError, effective_robot_limits
 
         if self.recorder is not None:
             raise RuntimeError("a session is already running; end it first")
@@ -470,7 +470,7 @@ class LinarmppManager(QObject):
         """The LSL outlets when ``recording.lsl`` is on, opened once whatever asks (a session, a headless run):
         twice would publish every stream twice with one silent event outlet (#41). None when off or unavailable."""
         if self.config.recording.lsl and self._lsl is None:
-            from app.lsl import start_lsl
+            from app.session.lsl import start_lsl
 
             self._lsl = start_lsl(self)
         return self._lsl
@@ -481,7 +481,7 @@ class LinarmppManager(QObject):
         running profile stops it), the chosen electrodes, the gains — and is recorded. ``version``: the archive
         record's version of ``profile`` (kept with the session). Returns the changes in words ([] when
         ``profile`` is not this session's patient)."""
-        from app.patients import effective_robot_limits, profile_changes
+        from app.therapy.patients import effective_robot_limits, profile_changes
 
         old = self.patient_profile
         if self.recorder is None or old is None or profile.patient_id != old.patient_id:
@@ -504,7 +504,7 @@ class LinarmppManager(QObject):
     def _check_plan(self, profile: Any) -> list[str]:
         """The therapy plan against the patient's limits, caps and electrode choices now (at the session's start
         and when the profile changes): what would be refused is recorded before anything moves."""
-        from app.patients import plan_problems, prescription_problems
+        from app.therapy.patients import plan_problems, prescription_problems
 
         try:
             problems = [str(p) for p in plan_problems(profile.therapy_plan)
@@ -540,7 +540,7 @@ class LinarmppManager(QObject):
     def _new_run_log(self) -> Any:
         """The runs' changes are journal records (origin ``run``) on the bus as they happen: the session's
         recorder, or the headless runner's, hears them there like any other record."""
-        from app.runs import RunLog
+        from app.core.runs import RunLog
 
         def record(kind: str, **data: Any) -> None:
             self.bus.record(journal.RUN, kind, data)

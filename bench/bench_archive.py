@@ -27,7 +27,7 @@ from sqlalchemy import insert
 
 from app.archive.models import Patient, RepetitionRow, RunRow, SessionRow
 from app.archive.store import SqlArchive, canonical, open_archive
-from app.config import AppConfig, config_as_dict
+from app.core.config import AppConfig, config_as_dict
 
 TARGET_LIST_MS = 200.0
 TARGET_UPLOAD_S = 5.0
@@ -128,7 +128,7 @@ def run_engine(name: str, archive: SqlArchive, args: argparse.Namespace, work: P
     rows.append((f"{name}: upload of a {args.minutes:g}-minute session ({size / 1e6:.0f} MB, "
                  f"{len(archive.journal(result.uuid))} events), end to end", f"{elapsed:.2f} s ({verdict})"))
     stored = elapsed - derive_s
-    rows.append((f"{name}: … of which reading it and its metrics (load_session + app.metrics, before the "
+    rows.append((f"{name}: … of which reading it and its metrics (load_session + app.session.metrics, before the "
                  "transaction)", f"{derive_s:.2f} s"))
     rows.append((f"{name}: … of which hashing and the one transaction (files, rows, journal, server-side check)",
                  f"{stored:.2f} s ({'ok' if stored <= TARGET_UPLOAD_S else 'MISSED'})"))

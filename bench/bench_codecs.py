@@ -27,11 +27,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import common
 
-from app.devices import linarm_protocol as lp
-from app.devices import sciencemode as sm
-from app.devices import udp_frames as uf
-from app.devices.cmdmessenger import ArduinoReceiver, CmdMessengerDecoder, read_field
-from app.devices.physio_codec import PhysioRawFrame, PhysioStreamDecoder, encode_physio_frame
+from app.wire import linarm_protocol as lp
+from app.wire import sciencemode as sm
+from app.wire import udp_frames as uf
+from app.wire.cmdmessenger import ArduinoReceiver, CmdMessengerDecoder, read_field
+from app.wire.physio_codec import PhysioRawFrame, PhysioStreamDecoder, encode_physio_frame
 
 READ_SIZE = 4096
 

@@ -61,8 +61,8 @@ class Watch:
 
 
 def idle_watch() -> Watch:
-    from app.devices import linarm_protocol as proto
-    from app.devices.cmdmessenger import CmdMessengerDecoder
+    from app.wire import linarm_protocol as proto
+    from app.wire.cmdmessenger import CmdMessengerDecoder
 
     set_state = proto.COMMANDS_BY_NAME["setCtrlState"].id
     idle = str(int(proto.ControlState.IDLE_CTRL_STATE)).encode()
@@ -70,7 +70,7 @@ def idle_watch() -> Watch:
 
 
 def fes_stop_watch(protocol: str) -> Watch:
-    from app.devices import sciencemode as sm
+    from app.wire import sciencemode as sm
 
     if protocol == "sm1":
         return Watch(sm.Sm1CommandDecoder(), lambda m: isinstance(m, sm.Sm1Stop))
@@ -147,8 +147,8 @@ def frames_shown(window: Any) -> int:
 
 def start_stimulation(manager: Any) -> str:
     """Reset the e-stop and (re)start stimulation; returns '' or why stimulation is not running."""
-    from app.config import RESOURCES
-    from app.fes_profile import load_profile
+    from app.core.config import RESOURCES
+    from app.core.fes_profile import load_profile
 
     manager.supervisor.reset_emergency_stop("benchmark")
     fes = manager.driver("fes")

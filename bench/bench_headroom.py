@@ -31,8 +31,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import common
 
-from app import streams
-from app.bus import SampleItem
+from app.core import streams
+from app.core.bus import SampleItem
 
 NOMINAL = {"physio": 100.0, "linarm": 200.0, "patient_model": 100.0, "vr": 50.0}
 LINARM_MAX_HZ = 1000.0  # startDataStream(period ≥ 0.001 s)

@@ -49,7 +49,7 @@ def loadavg() -> str:
 def bench_load(folder: Path, trials: int) -> None:
     import inspect
 
-    from app import recording
+    from app.session import recording
 
     if "columns" in inspect.signature(recording.load_session).parameters:
         rows = [("CSV parse", lambda: recording.load_session(folder, columns=False)),
@@ -246,7 +246,7 @@ def main() -> int:
     if args.session:
         folder = Path(args.session)
     else:
-        from app import recording
+        from app.session import recording
         from tests.long_session import write_long_session
 
         folder = write_long_session(Path(tempfile.mkdtemp(prefix="linarmpp-bench-long-")),

@@ -23,7 +23,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import common
 
-from app.streams import LINARM_VSA
+from app.core.streams import LINARM_VSA
 
 SAMPLE = {"op": "sample", "s": LINARM_VSA, "v": [0.25012, 0.02, 900.0, 0.2501, -0.0012, 1.234, 12.3456]}
 

@@ -41,8 +41,8 @@ LOGS = Path(os.environ.get("BENCH_LOAD_LOGS", "/tmp/bench_load_logs"))
 
 # ---------------------------------------------------------------------------------------------- one run (child)
 def child(mode: str) -> int:
-    from app.config import AppConfig
-    from app.safety import AlarmLevel
+    from app.core.config import AppConfig
+    from app.safety.supervisor import AlarmLevel
     from app.scripting.runner import ScriptRunner
 
     app = common.qt_app()

@@ -23,8 +23,9 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from app.devices.cmdmessenger import CmdMessengerDecoder  # noqa: E402
-from app.devices.linarm_protocol import (  # noqa: E402
+from app.devices.sim.host import find_mcu_image  # noqa: E402
+from app.wire.cmdmessenger import CmdMessengerDecoder  # noqa: E402
+from app.wire.linarm_protocol import (  # noqa: E402
     ControlMode,
     ControlState,
     HomeState,
@@ -32,7 +33,6 @@ from app.devices.linarm_protocol import (  # noqa: E402
     decode_controller_frame,
     encode_command,
 )
-from app.devices.sim.host import find_mcu_image  # noqa: E402
 from firmware.tools.mcu_board import McuBoard  # noqa: E402
 
 DUE_CYCLES_PER_TICK = 84_000  # 84 MHz x 1 ms

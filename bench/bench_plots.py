@@ -47,7 +47,7 @@ def run(args: argparse.Namespace, where: str) -> None:
 
     app = QApplication.instance() or QApplication(sys.argv)
     from app.application import configure_qt_identity
-    from app.bus import Channel, SampleBatch, StreamSpec
+    from app.core.bus import Channel, SampleBatch, StreamSpec
     from app.ui.plots_frame import PlotsFrame
     from app.ui.signal_store import SignalStore
 

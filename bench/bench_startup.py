@@ -34,7 +34,7 @@ def child() -> int:
 
     stamps["imported_qt"] = time.monotonic_ns()
     from app.application import configure_qt_identity, install_safety_nets
-    from app.config import load_config
+    from app.core.config import load_config
     from app.manager import LinarmppManager
     from app.ui.main_window import MainWindow
     from app.ui.theme import apply_palette

@@ -26,7 +26,7 @@ import common
 
 
 def child(hold_s: float) -> int:
-    from app.config import AppConfig
+    from app.core.config import AppConfig
     from app.manager import LinarmppManager
     from app.ui.main_window import MainWindow
 

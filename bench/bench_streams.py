@@ -38,7 +38,7 @@ import itertools
 
 import common
 
-from app.bus import SampleItem
+from app.core.bus import SampleItem
 
 CONFIGS: dict[str, dict[str, str]] = {
     "socket": {"LINARMPP_SIM_HOST": "process", "LINARMPP_SIM_LINK": "socket"},
@@ -53,7 +53,7 @@ FAST_HZ = 50.0
 def child(seconds: float) -> int:
     from dataclasses import replace
 
-    from app.config import AppConfig
+    from app.core.config import AppConfig
 
     cfg = AppConfig()
     if os.environ.get("BENCH_LINARM") == "firmware":

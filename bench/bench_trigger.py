@@ -43,8 +43,8 @@ if "--host" in sys.argv:  # before the app is imported: where the simulators run
 
 import common
 
-from app.config import RESOURCES, UdpEndpoint
-from app.streams import LINARM, PHYSIO
+from app.core.config import RESOURCES, UdpEndpoint
+from app.core.streams import LINARM, PHYSIO
 
 TRIGGER_N = 20.0  # Fig. 18's threshold
 RELAX_N = 15.0  # the script re-arms below this
@@ -78,8 +78,8 @@ for i in range({trials}):
 
 def move_times(host: list[tuple[int, bytes]], since_ns: int) -> list[int]:
     """Times (ns) at which a complete moveCentreTo frame reached the LINarm simulator."""
-    from app.devices import linarm_protocol as proto
-    from app.devices.cmdmessenger import CmdMessengerDecoder
+    from app.wire import linarm_protocol as proto
+    from app.wire.cmdmessenger import CmdMessengerDecoder
 
     move_id = proto.COMMANDS_BY_NAME["moveCentreTo"].id
     decoder = CmdMessengerDecoder()
@@ -93,7 +93,7 @@ def move_times(host: list[tuple[int, bytes]], since_ns: int) -> list[int]:
 
 def force_frames(device: list[tuple[int, bytes]], calibration: object) -> list[tuple[int, float]]:
     """(time written, grip force) of every frame the physio simulator emitted."""
-    from app.devices.physio_codec import PhysioStreamDecoder
+    from app.wire.physio_codec import PhysioStreamDecoder
 
     decoder = PhysioStreamDecoder(calibration)  # type: ignore[arg-type]
     out = []

@@ -93,7 +93,7 @@ def one_run(seconds: float, moving: bool, screenshot: str, profile: str = "") ->
         if plots is not None:
             plots.set_selected(list(DEFAULT_SIGNALS))
         if moving:
-            from app import streams
+            from app.core import streams
             from app.scripting.runner import ScriptRunner
 
             runner = ScriptRunner(manager, lambda _s, _t: None, home_first=True)
@@ -227,9 +227,9 @@ def normal_stalls(seconds: float, refresh_hz: float | None) -> dict[str, Any]:
     the graphs, FES stimulating (frontal_reaching.yaml) and the reach exercise moving the arm. Two measures: the
     longest gap of a 1 ms timer (the stall itself) and the largest age the GUI watch saw between its heartbeats
     (what its thresholds are compared with: the stall plus up to one beat period)."""
-    from app import streams
-    from app.config import RESOURCES
-    from app.fes_profile import load_profile
+    from app.core import streams
+    from app.core.config import RESOURCES
+    from app.core.fes_profile import load_profile
     from app.scripting.runner import ScriptRunner
 
     manager = common.start_manager(config_at(1.0))

@@ -316,7 +316,7 @@ def bench_config(**device_changes: Any) -> Any:
     """The default configuration (every device simulated), with ``devices`` fields replaced."""
     from dataclasses import replace
 
-    from app.config import AppConfig
+    from app.core.config import AppConfig
 
     cfg = AppConfig()
     if device_changes:

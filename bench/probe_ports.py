@@ -32,13 +32,13 @@ os.environ["LINARMPP_HOME"] = tempfile.mkdtemp(prefix="probe-ports-home-")
 
 from PySide6.QtCore import QCoreApplication  # noqa: E402
 
-from app.bus import DeviceEvent, Subscription  # noqa: E402
-from app.config import AppConfig, SimulationConfig  # noqa: E402
+from app.core.bus import DeviceEvent, Subscription  # noqa: E402
+from app.core.config import AppConfig, SimulationConfig  # noqa: E402
 from app.devices import linarm  # noqa: E402
-from app.devices import linarm_protocol as proto  # noqa: E402
 from app.devices.transport import SerialTransport, TransportError  # noqa: E402
 from app.manager import LinarmppManager  # noqa: E402
-from app.recording import load_session  # noqa: E402
+from app.session.recording import load_session  # noqa: E402
+from app.wire import linarm_protocol as proto  # noqa: E402
 
 app = QCoreApplication.instance() or QCoreApplication([])
 
@@ -67,7 +67,7 @@ HOLDER = textwrap.dedent("""
 INTRUDER = textwrap.dedent("""
     import os, sys, time
     sys.path.insert(0, sys.argv[2])
-    from app.devices import linarm_protocol as proto
+    from app.wire import linarm_protocol as proto
     fd = os.open(sys.argv[1], os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
     print("opened", flush=True)
     seq = 100

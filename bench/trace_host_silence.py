@@ -63,8 +63,8 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     os.environ["LINARMPP_SIM_HOST"] = args.host
 
-    from app.bus import DeviceEvent, Subscription
-    from app.config import AppConfig
+    from app.core.bus import DeviceEvent, Subscription
+    from app.core.config import AppConfig
     from app.scripting.headless import run_headless
 
     writes: list[tuple[float, str]] = []

@@ -16,9 +16,9 @@ import time
 from pathlib import Path
 from typing import Any
 
-from app.devices.cmdmessenger import ArduinoReceiver
-from app.devices.linarm_protocol import CommandRejected, read_host_message
-from app.devices.sciencemode import (
+from app.wire.cmdmessenger import ArduinoReceiver
+from app.wire.linarm_protocol import CommandRejected, read_host_message
+from app.wire.sciencemode import (
     Sm1CommandDecoder,
     Sm1Stop,
     Sm1Update,

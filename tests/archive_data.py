@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from app.patients import (
+from app.therapy.patients import (
     ClinicalChannelCap,
     ClinicalScores,
     ElectrodeChoice,

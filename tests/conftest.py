@@ -242,13 +242,13 @@ def fresh_manager(shared_rig_spec, qapp):  # type: ignore[no-untyped-def]
 # ------------------------------------------------------------------------------ logging set up by a test
 @pytest.fixture(autouse=True)
 def _logging_set_up_by_the_test():  # type: ignore[no-untyped-def]
-    """The application configures the root logger once per process (app/logging_setup.py): a test that runs an
+    """The application configures the root logger once per process (app/core/logging_setup.py): a test that runs an
     entry point in-process would leave its console handler writing to that test's captured stderr, which pytest
     then closes — and every later log record, from any thread, printed "--- Logging error ---" into whichever
     test ran next (880 lines in a headless test's one-sentence stderr). The set-up is undone after the test."""
     import logging
 
-    from app import logging_setup
+    from app.core import logging_setup
 
     configured = logging_setup._configured
     root = logging.getLogger()

@@ -14,9 +14,9 @@ import json
 from pathlib import Path
 from typing import Any
 
+from app.core.resources import RESOURCES
+from app.core.runs import text_hash
 from app.devices.rehastim import FES_STREAM
-from app.resources import RESOURCES
-from app.runs import text_hash
 from tests.run_sessions import T0, clinic_day_runs, write_run_session
 
 SEED_SCRIPT = RESOURCES / "scripts" / "trigger_exercise.py"
@@ -26,7 +26,8 @@ ENVELOPE = "LINarm error: ENVELOPE_BREACH (handle at 0.512 m/s, above 1.2 x the 
 DELTOID = [(1, "1-2"), (2, "3-4"), (3, "1-3"), (4, "2-4")]
 LADDER = list(range(8, 31, 2))  # 8 … 30 mA: 12 bursts per combination
 DISCOMFORT = {1: 7, 2: 3, 3: 4}  # channel 4 not rated
-# The number every view must show for this session (app/alarm_count.py): the warning, stop and fatal alarms raised:
+# The number every view must show for this session (app/session/alarm_count.py): the warning, stop and fatal alarms
+# raised:
 # 3 emergency stops, the robot's envelope breach, and 3 warnings (the refused FES run, physio, the patient model).
 EXPECTED_ALARMS = 7
 # What the sessions browser and the reports counted before: every `alarm` event (the 4 INFO messages too), and

@@ -9,8 +9,8 @@ import time
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
-from app import streams
-from app.bus import Channel, StreamBus, StreamSpec, UpdateNotifier
+from app.core import streams
+from app.core.bus import Channel, StreamBus, StreamSpec, UpdateNotifier
 from app.devices.driver import DeviceDriver
 from app.devices.sim.base import SerialSimulator
 from app.devices.transport import SerialTransport

@@ -3,7 +3,7 @@ pytest-xdist workers of one run, and by later runs.
 
 Each build goes into ``firmware/build/cache/<name>-<digest>``, the digest being a hash of what the build
 depends on: the firmware's sources (firmware/host, firmware/linarm_controller, firmware/tools), the Python
-table the protocol header is generated and checked from (app/devices/linarm_protocol.py, linarm_constants.py,
+table the protocol header is generated and checked from (app/wire/linarm_protocol.py, linarm_constants.py,
 cmdmessenger.py), the toolchain file, the tools' identity (path, size, date) and the Python that runs the
 generator. A change to any of them is a new folder; an unchanged tree reuses the old one without even running
 CMake. Workers (processes) and runs agree through a file lock per folder: the first to need a build makes it,
@@ -41,8 +41,8 @@ KEEP_PER_BUILD = 3  # older folders of the same build are removed (least recentl
 
 # What every build depends on besides its own CMake folder (the header check runs the Python generator).
 SOURCE_TREES = (FIRMWARE / "host", FIRMWARE / "linarm_controller", FIRMWARE / "tools")
-TABLE_FILES = tuple(ROOT / "app" / "devices" / f for f in ("linarm_protocol.py", "linarm_constants.py",
-                                                          "cmdmessenger.py"))
+TABLE_FILES = tuple(ROOT / "app" / "wire" / f for f in ("linarm_protocol.py", "linarm_constants.py",
+                                                       "cmdmessenger.py"))
 
 
 @dataclass(frozen=True)

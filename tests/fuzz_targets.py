@@ -11,11 +11,11 @@ import random
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from app.devices import linarm_protocol as lp
-from app.devices import sciencemode as sm
-from app.devices import udp_frames as uf
-from app.devices.cmdmessenger import ArduinoReceiver, CmdMessengerDecoder
-from app.devices.physio_codec import PhysioRawFrame, PhysioStreamDecoder, encode_physio_frame
+from app.wire import linarm_protocol as lp
+from app.wire import sciencemode as sm
+from app.wire import udp_frames as uf
+from app.wire.cmdmessenger import ArduinoReceiver, CmdMessengerDecoder
+from app.wire.physio_codec import PhysioRawFrame, PhysioStreamDecoder, encode_physio_frame
 
 
 @dataclass

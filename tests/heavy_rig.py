@@ -18,11 +18,11 @@ from typing import Any
 from PySide6.QtCore import QCoreApplication, QEvent, Qt, QTimer
 from PySide6.QtGui import QKeyEvent
 
-from app.config import AppConfig
+from app.core.config import AppConfig
+from app.core.fes_profile import ChannelProfile, FesProfile, Trapezoid
 from app.devices import linarm, physio, rehastim
-from app.devices.linarm_protocol import ControlMode, ControlState, HomeState
-from app.fes_profile import ChannelProfile, FesProfile, Trapezoid
 from app.manager import LinarmppManager
+from app.wire.linarm_protocol import ControlMode, ControlState, HomeState
 from tests.test_estop_wire import robot_idle_after
 from tests.test_fes_exit_paths import first_stop_after
 

@@ -16,13 +16,13 @@ from typing import Any
 
 import numpy as np
 
-from app import recording
-from app.bus import StreamSpec
+from app.core.bus import StreamSpec
 from app.devices.linarm import STATE_STREAM, VSA_STREAM, _motor_stream
 from app.devices.patient_model import PATIENT_MODEL_STREAM
 from app.devices.physio import PHYSIO_STREAM
 from app.devices.rehastim import FES_STREAM
 from app.devices.vr import VR_STREAM
+from app.session import recording
 
 T0 = 51234.56789012345  # the monotonic clock at the start (17 significant digits, as a real one)
 RATES: tuple[tuple[StreamSpec, float], ...] = (

@@ -58,7 +58,7 @@ def variant(case: dict[str, Any], kind: str, seed: int = 1) -> dict[str, dict[st
 
 
 def write_session(case: dict[str, Any], folder: Path, streams: dict[str, dict[str, np.ndarray]] | None = None) -> Path:
-    """A session folder app.recording.load_session reads (manifest, events.jsonl, streams/*.csv)."""
+    """A session folder app.session.recording.load_session reads (manifest, events.jsonl, streams/*.csv)."""
     streams = streams_of(case) if streams is None else streams
     (folder / "streams").mkdir(parents=True, exist_ok=True)
     spec = {}
@@ -89,7 +89,7 @@ def truth_movements(case: dict[str, Any]) -> list[dict[str, float]]:
     spring between them). Sway (the patient moves the handle, the admittance centre follows behind): labelled
     at the clean recorded handle's turns (one per push of the simulated patient the other way: a test checks
     it); range, peak speed and duration are the clean handle's within each label."""
-    from app.metrics import lowpass, regular_times, resample_uniform, turning_points
+    from app.session.metrics import lowpass, regular_times, resample_uniform, turning_points
 
     s = streams_of(case)["linarm.vsa"]
     rate = case["streams"]["linarm.vsa"]["rate_hz"]

@@ -4,7 +4,7 @@ recorded, the sign-off on the page with the summary. Reusable checks: each retur
 the report is right), so a test can assert ``== []`` and show every problem at once.
 
 The engineering strings are a fixed list of patterns (:data:`ENGINEERING_PATTERNS`), written here independently of
-the application's own translator (app/clinical_words.py), so that the check is not the code it checks."""
+the application's own translator (app/session/clinical_words.py), so that the check is not the code it checks."""
 
 from __future__ import annotations
 

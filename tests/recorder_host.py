@@ -1,4 +1,5 @@
-"""What :meth:`app.recording.SessionRecorder.start` uses of the application (app.services.SessionHost), around
+"""What :meth:`app.session.recording.SessionRecorder.start` uses of the application (app.therapy.services.SessionHost),
+around
 test drivers: a stream bus with their streams declared, the supervisor, the devices, a fault policy and a
 shutdown hook that do nothing. A :class:`tests.fakes.ListenerDriver`'s listeners publish on that bus, so a test
 that feeds samples through them (``for fn in driver.listeners: fn(stream, t, sample)``) records them."""
@@ -8,9 +9,9 @@ from __future__ import annotations
 from types import SimpleNamespace
 from typing import Any
 
-from app.bus import StreamBus
-from app.config import AppConfig
-from app.safety import SafetySupervisor
+from app.core.bus import StreamBus
+from app.core.config import AppConfig
+from app.safety.supervisor import SafetySupervisor
 
 
 def recorder_host(config: AppConfig, devices: dict[str, Any], supervisor: SafetySupervisor | None = None,

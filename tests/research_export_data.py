@@ -1,6 +1,6 @@
 """Sessions for the research-export tests (issue #41).
 
-* :func:`record_session` — a short session made by the real recorder (app.recording.SessionRecorder) on a
+* :func:`record_session` — a short session made by the real recorder (app.session.recording.SessionRecorder) on a
   virtual clock: every stream of the application with the time stamps its driver would give (the LINarm's and
   the physiological board's device clocks mapped by app.devices.clock.DeviceClock from delayed, batched
   arrivals, a crystal off by some ppm; the patient model and VR on a CountedClock; FES published on change),
@@ -20,17 +20,18 @@ from typing import Any
 
 import numpy as np
 
-from app import bus as bus_module
-from app import recording, streams
-from app.bus import StreamSpec
-from app.config import AppConfig
+from app.core import bus as bus_module
+from app.core import streams
+from app.core.bus import StreamSpec
+from app.core.config import AppConfig
 from app.devices.clock import CountedClock, DeviceClock
 from app.devices.linarm import STATE_STREAM, VSA_STREAM, _motor_stream
 from app.devices.patient_model import PATIENT_MODEL_STREAM
 from app.devices.physio import PHYSIO_STREAM
 from app.devices.rehastim import FES_STREAM
 from app.devices.vr import VR_STREAM
-from app.safety import SafetySupervisor
+from app.safety.supervisor import SafetySupervisor
+from app.session import recording
 from tests.fakes import ListenerDriver
 from tests.recorder_host import recorder_host
 

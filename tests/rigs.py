@@ -29,11 +29,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from app.config import AppConfig
-from app.devices.linarm_constants import K
-from app.devices.linarm_protocol import ControlMode, ControlState, ErrorState, HomeState
+from app.core.config import AppConfig
 from app.devices.sim.base import HOMED_ENV, SerialSimulator
 from app.manager import LinarmppManager
+from app.wire.linarm_constants import K
+from app.wire.linarm_protocol import ControlMode, ControlState, ErrorState, HomeState
 
 POSITION_TOLERANCE_M = 1e-3  # "at the home position"
 RESET_TIMEOUT_S = 10.0

@@ -1,4 +1,4 @@
-"""Synthetic session folders with the run record (app/runs.py events), as app.recording writes them: known
+"""Synthetic session folders with the run record (app/core/runs.py events), as app.session.recording writes them: known
 reaches of the handle, a grip that crosses the trigger threshold before each, runs interrupted, restarted,
 refused. Used by the report tests and the screenshots."""
 

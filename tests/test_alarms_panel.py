@@ -10,9 +10,9 @@ from typing import Any
 from PySide6.QtCore import Qt
 from PySide6.QtWidgets import QScrollArea
 
-from app.config import AppConfig
+from app.core.config import AppConfig
 from app.manager import LinarmppManager
-from app.safety import AlarmLevel
+from app.safety.supervisor import AlarmLevel
 from app.ui.alarms_panel import LEVEL_STYLES, AlarmBanner, AlarmsPanel, highest_unacknowledged
 from app.ui.qt_bus import shared_qt_bus
 

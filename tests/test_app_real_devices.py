@@ -9,7 +9,7 @@ import time
 from PySide6.QtCore import QThread
 from PySide6.QtWidgets import QApplication
 
-from app.config import AppConfig
+from app.core.config import AppConfig
 from app.manager import LinarmppManager
 from app.ui.main_window import MainWindow
 

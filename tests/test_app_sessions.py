@@ -6,9 +6,9 @@ import json
 
 from PySide6.QtWidgets import QMessageBox
 
-from app.config import AppConfig
+from app.core.config import AppConfig
 from app.manager import LinarmppManager
-from app.patients import PatientProfile, save_patient
+from app.therapy.patients import PatientProfile, save_patient
 from app.ui.main_window import MainWindow
 from tests.fakes import counter_factory
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 from PySide6.QtCore import QSize, QThread
 from PySide6.QtWidgets import QApplication, QMessageBox
 
-from app.config import AppConfig
+from app.core.config import AppConfig
 from app.manager import LinarmppManager
 from app.ui.main_window import MainWindow
 from tests.fakes import counter_factory
@@ -140,7 +140,7 @@ def test_first_run_maximised_view_toggles_enabled_end_session_states(qtbot, tmp_
     "End session" was enabled with no session; its confirmation ignored unacknowledged alarms."""
     from PySide6.QtCore import QSettings
 
-    from app.safety import AlarmLevel
+    from app.safety.supervisor import AlarmLevel
 
     settings = QSettings()
     settings.remove("main/geometry")

@@ -112,7 +112,7 @@ def test_a_burst_runs_on_signal_once_outside_the_handler() -> None:
     import os
     import threading
 
-    from app.signal_events import SignalEvents
+    from app.core.signal_events import SignalEvents
 
     write_lock = threading.Lock()  # stands in for the transport's write lock
     calls: list[tuple[int, str]] = []
@@ -140,7 +140,7 @@ def test_a_burst_runs_on_signal_once_outside_the_handler() -> None:
 
 BACKSTOP = r"""
 import os, signal, sys, time
-from app.signal_events import SignalEvents
+from app.core.signal_events import SignalEvents
 
 def on_signal(signum):
     time.sleep(60)  # a shutdown that hangs

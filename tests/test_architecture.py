@@ -5,6 +5,15 @@
 * nothing under ``app/devices/sim/``, no codec, and neither the bus nor the command queue imports Qt, directly
   or through another module of ``app/`` (the simulator process must not load PySide6);
 * no device module imports the manager, directly or through another module;
+* **the floors** (issue #40): every module sits on a floor (:data:`FLOORS`, ground first: the wire, the core,
+  safety, the devices, the therapy, the session's record, the worker, the archive and the research export, the
+  manager, the scripting, the window, the application and its command line) and imports only from its own floor
+  or those below — also under ``TYPE_CHECKING``: no arrow runs back up;
+* **Qt only where it belongs** (issue #40): PySide6/pyqtgraph are imported only by the window (``app/ui/``), the
+  drivers (``app/devices/*.py``, their threads emit Qt signals), the composition root and the programs that run
+  it (``app.manager``, ``app.application``, ``app.cli``, ``app.scripting.headless``) and the reports' PDF drawing
+  (``app.session.reports``); the wire, the core, safety, the therapy and the session's record do not reach Qt
+  through any import;
 * outside ``app/ui/``, no parameter or attribute called manager / app / context is typed ``Any`` (or left
   untyped): a device or a consumer says what it really uses.
 """
@@ -21,10 +30,32 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 APP = ROOT / "app"
 QT_MODULES = ("PySide6", "shiboken6", "pyqtgraph", "qasync", "OpenGL")
-CODECS = ("app.devices.cmdmessenger", "app.devices.sciencemode", "app.devices.physio_codec",
-          "app.devices.udp_frames", "app.devices.linarm_protocol")
-QT_FREE_CORE = ("app.bus", "app.streams", "app.devices.command_queue", "app.devices.realtime")
+CODECS = ("app.wire.cmdmessenger", "app.wire.sciencemode", "app.wire.physio_codec",
+          "app.wire.udp_frames", "app.wire.linarm_protocol")
+QT_FREE_CORE = ("app.core.bus", "app.core.streams", "app.devices.command_queue", "app.devices.realtime")
 MANAGER_NAMES = frozenset({"manager", "mgr", "app", "ctx", "context"})
+
+# The floors, ground first: a module imports only from its floor or lower ones. The longest prefix places a module.
+FLOORS: tuple[tuple[str, ...], ...] = (
+    ("app",),  # the package itself: its version
+    ("app.wire",),  # each device's protocol tables, codecs, constants
+    ("app.core",),  # the bus, the journal, stream names and ids, runs, configuration, files
+    ("app.safety",),  # the supervisor, the FES limiter, the assistance map, the fault policy
+    ("app.devices",),  # drivers, transports, command queues, simulators
+    ("app.therapy",),  # patients, plans, exercises, the electrode set-up
+    ("app.session",),  # the record: recording, replay, metrics, reports, exports, LSL
+    ("app.worker",),  # the heavy work's process
+    ("app.research_export", "app.archive"),
+    ("app.manager", "app.gui_watch"),  # the composition root
+    ("app.scripting",),
+    ("app.ui",),
+    ("app.application", "app.desktop_entry"),
+    ("app.cli",),
+)
+# Where Qt may be imported (prefixes), and the floors that must not reach it through any import.
+QT_PLACES = ("app.ui", "app.devices", "app.manager", "app.application", "app.cli", "app.scripting.headless",
+             "app.session.reports")
+QT_FREE_FLOORS = ("app.wire", "app.core", "app.safety", "app.therapy", "app.session")
 
 
 def module_name(path: Path, root: Path = ROOT) -> str:
@@ -197,7 +228,54 @@ def _is_any(annotation: ast.expr | None) -> bool:
     return text in ("Any", "Any|None", "None|Any", "Optional[Any]", "'Any'", '"Any"', "object")
 
 
+def floor_of(module: str) -> int:
+    best = (-1, -1)
+    for level, prefixes in enumerate(FLOORS):
+        for prefix in prefixes:
+            if (module == prefix or module.startswith(prefix + ".")) and len(prefix) > best[1]:
+                best = (level, len(prefix))
+    return best[0]
+
+
+def arrows_back_up(root: Path = ROOT) -> list[str]:
+    internal, _ = import_graph(root)
+    return [f"{a} (floor {floor_of(a)}) → {b} (floor {floor_of(b)})"
+            for a in sorted(internal) for b in sorted(internal[a]) if floor_of(b) > floor_of(a)]
+
+
+def _qt_place(module: str) -> bool:
+    if module.startswith("app.devices.sim"):
+        return False  # the simulators' process never loads Qt
+    return any(module == p or module.startswith(p + ".") for p in QT_PLACES)
+
+
+def qt_outside_its_places(root: Path = ROOT) -> list[str]:
+    """Modules that import Qt themselves but are not among :data:`QT_PLACES`, and modules of the Qt-free floors
+    that reach Qt through another module (with the chain)."""
+    _, external = import_graph(root)
+    found = [f"{m} imports {', '.join(sorted(external[m] & set(QT_MODULES)))}"
+             for m in sorted(external) if external[m] & set(QT_MODULES) and not _qt_place(m)]
+    for m in sorted(app_modules(root)):
+        if any(m == f or m.startswith(f + ".") for f in QT_FREE_FLOORS) and not _qt_place(m):
+            found += [line for line in qt_reach(root, m) if not line.startswith(f"{m} imports")]
+    return found
+
+
 # ---------------------------------------------------------------------------------------------- the rules
+def test_every_module_has_a_floor() -> None:
+    homeless = [m for m in app_modules(ROOT) if floor_of(m) <= 0 and m != "app"]
+    assert not homeless, f"modules on no floor (put them in a folder of FLOORS): {homeless}"
+
+
+def test_no_arrow_runs_back_up() -> None:
+    up = arrows_back_up(ROOT)
+    assert not up, "imports that run back up a floor (move the fact down, or pass it in):\n" + "\n".join(up)
+
+
+def test_qt_only_where_it_belongs() -> None:
+    found = qt_outside_its_places(ROOT)
+    assert not found, "Qt outside the window, the drivers and the composition root:\n" + "\n".join(found)
+
 def test_no_import_circle_in_app() -> None:
     internal, _ = import_graph(ROOT)
     cycles = import_cycles(internal)
@@ -258,5 +336,10 @@ def test_rules_catch_a_circle_a_qt_import_a_manager_import_and_an_any(toy: Path)
         "app.devices.sim.core → app.devices.helper imports PySide6"]
     assert "app.manager" in reachable(internal, "app.devices.clean")  # relative import resolved
     assert untyped_manager_parameters(toy) == ["app/manager.py:3 __init__(app: Any)"]
+    assert arrows_back_up(toy) == ["app.devices.helper (floor 4) → app.manager (floor 9)"]
+    # app/a.py and app/b.py sit on no floor but the package's; helper is a driver, so its Qt is allowed
+    assert qt_outside_its_places(toy) == []
+    _write(toy, "app/devices/sim/core.py", "from PySide6.QtCore import QObject\n")
+    assert qt_outside_its_places(toy) == ["app.devices.sim.core imports PySide6"]
     app_modules.cache_clear()
     import_graph.cache_clear()

@@ -24,10 +24,10 @@ from app.archive.api import (
 from app.archive.outbox import Outbox
 from app.archive.store import open_archive
 from app.archive.transfer import export_profiles, import_data_folder
-from app.config import AppConfig, ConfigError, load_config
-from app.metrics import session_metrics
-from app.patients import ClinicalChannelCap, ElectrodeChoice, PlannedExercise, load_patient
-from app.recording import SessionRecorder, load_session
+from app.core.config import AppConfig, ConfigError, load_config
+from app.session.metrics import session_metrics
+from app.session.recording import SessionRecorder, load_session
+from app.therapy.patients import ClinicalChannelCap, ElectrodeChoice, PlannedExercise, load_patient
 from tests.archive_data import full_profile, make_data_folder
 from tests.recorder_host import recorder_host
 
@@ -259,7 +259,7 @@ def test_files_read_like_the_folder(archive, tmp_path) -> None:
 def test_the_device_clocks_file_is_archived_and_comes_back(archive, tmp_path) -> None:
     """The recorder's clocks.csv (the device clocks' maps to the host clock, #41's XDF clock offsets) is part of
     the session: archived with it and written back, so an archived session exports with its real offsets."""
-    from app.recording import CLOCK_FILE
+    from app.session.recording import CLOCK_FILE
 
     folder = make_data_folder(tmp_path / "data")["monday"]
     clocks = "t_mono_s,device,device_s,drift\n5000.0,linarm,12.5,1.00008\n"

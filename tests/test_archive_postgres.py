@@ -22,7 +22,7 @@ from app.archive import folders
 from app.archive.api import StaleRecord
 from app.archive.outbox import Outbox
 from app.archive.store import SqlArchive, open_archive
-from app.patients import ClinicalChannelCap, ElectrodeChoice, PlannedExercise
+from app.therapy.patients import ClinicalChannelCap, ElectrodeChoice, PlannedExercise
 from tests.archive_data import full_profile, long_session, make_data_folder
 from tests.postgres import APP, Database, PostgresServer, server_or_skip
 

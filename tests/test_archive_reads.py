@@ -17,7 +17,7 @@ import pytest
 
 from app.archive.outbox import Outbox
 from app.archive.store import open_archive
-from app.patients import PatientProfile
+from app.therapy.patients import PatientProfile
 from tests.pdf_layout import pdf_text
 from tests.postgres import APP, PostgresServer, server_or_skip
 from tests.run_sessions import RunSpec, write_run_session
@@ -76,17 +76,17 @@ def make_two_stations(clinic: Clinic) -> None:
 
 def progress_of(clinic: Clinic, name: str, monkeypatch: Any, tmp_path: Path) -> tuple[int, list[Any], str]:
     """``--progress`` as run on station ``name``: (exit code, the rows the report was built from, its text)."""
-    import app.reports
+    import app.session.reports
     from app.cli import main
 
     built: list[Any] = []
-    real = app.reports.save_progress_report
+    real = app.session.reports.save_progress_report
 
     def spy(patient_id: str, out: Any, rows: Any, profile: Any = None) -> int:
         built[:] = list(rows)
         return real(patient_id, out, rows, profile)
 
-    monkeypatch.setattr(app.reports, "save_progress_report", spy)
+    monkeypatch.setattr(app.session.reports, "save_progress_report", spy)
     monkeypatch.setenv("LINARMPP_HOME", str(clinic.home(name)))
     out = tmp_path / f"progress-{name}.pdf"
     code = main(["--config", str(clinic.config(name)), "--progress", PATIENT, "--out", str(out)])
@@ -134,7 +134,7 @@ def test_the_progress_rows_built_from_the_archive_are_those_computed_from_the_fo
     from dataclasses import asdict
 
     from app.archive.reads import progress_rows as archive_rows
-    from app.reports import progress_rows
+    from app.session.reports import progress_rows
     from tests.archive_data import make_data_folder
 
     make_data_folder(tmp_path / "data")

@@ -8,9 +8,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from app.assistance import AssistanceController, AssistanceSplit
-from app.config import AssistanceConfig, AssistanceMap, SafetyConfig
-from app.safety import SafetySupervisor
+from app.core.config import AssistanceConfig, AssistanceMap, SafetyConfig
+from app.safety.assistance import AssistanceController, AssistanceSplit
+from app.safety.supervisor import SafetySupervisor
 
 CFG = AssistanceConfig(
     k_r=1.0, k_f=1.0,
@@ -233,7 +233,7 @@ class _PmDriver:
 
 class _Manager:
     def __init__(self, controller: AssistanceController | None) -> None:
-        from app.config import AppConfig
+        from app.core.config import AppConfig
 
         self.config = AppConfig()
         self.assistance = controller
@@ -309,7 +309,7 @@ def test_a_click_anywhere_on_a_gain_slider_changes_it_by_at_most_one_step(qtbot)
 
 # ------------------------------------------------------------------ the therapy thread (app/manager.py)
 def _therapy(bus=None):
-    from app.bus import StreamBus
+    from app.core.bus import StreamBus
     from app.manager import TherapyThread
 
     calls: list[tuple[str, object]] = []
@@ -321,14 +321,14 @@ def _therapy(bus=None):
 def _item(stream: str, **fields: float):
     from types import SimpleNamespace
 
-    from app.bus import SampleItem
+    from app.core.bus import SampleItem
 
     return SampleItem(stream, 0.0, SimpleNamespace(**fields), 0.0)
 
 
 def test_a_therapy_pass_applies_the_newest_alpha_and_target_and_never_one_from_before_a_loss() -> None:
-    from app import streams
-    from app.journal import device_event
+    from app.core import streams
+    from app.core.journal import device_event
 
     therapy, calls = _therapy()
     lost = device_event(streams.PATIENT_MODEL, "silent", "", 0.0)
@@ -347,8 +347,8 @@ def test_a_therapy_pass_applies_the_newest_alpha_and_target_and_never_one_from_b
 def test_the_therapy_thread_takes_alpha_from_the_bus_off_the_driver_thread_and_stops(qtbot) -> None:
     import threading
 
-    from app import streams
-    from app.bus import StreamBus
+    from app.core import streams
+    from app.core.bus import StreamBus
     from app.devices.patient_model import PATIENT_MODEL_STREAM
 
     bus = StreamBus()
@@ -374,8 +374,8 @@ def test_the_stiffness_move_of_the_assistance_is_the_constants_tables() -> None:
     import ast
     from pathlib import Path
 
-    from app.devices.linarm_constants import K
     from app.manager import STIFFNESS_MOVE
+    from app.wire.linarm_constants import K
 
     velocity, acceleration, exec_time = STIFFNESS_MOVE
     assert (velocity, acceleration) == (K["PRETENSION_MOVE_VELOCITY"], K["PRETENSION_MOVE_ACCELERATION"])

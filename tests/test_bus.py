@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import pytest
 
-from app.bus import BusItem, Channel, DeviceEvent, SampleItem, StreamBus, StreamSpec, UpdateNotifier
+from app.core.bus import BusItem, Channel, DeviceEvent, SampleItem, StreamBus, StreamSpec, UpdateNotifier
 from app.devices.driver import DeviceDriver
 from tests.memory_link import MemoryLink
 
@@ -223,7 +223,7 @@ def test_closing_a_subscription_wakes_its_waiter() -> None:
     import threading
     import time as _time
 
-    from app.bus import StreamBus
+    from app.core.bus import StreamBus
 
     bus = StreamBus()
     sub = bus.subscribe("waiter", [])
@@ -247,7 +247,7 @@ def test_resubscribe_changes_the_streams_and_keeps_the_queue() -> None:
     ask for never reaches it."""
     from types import SimpleNamespace
 
-    from app.bus import Channel, StreamBus, StreamSpec
+    from app.core.bus import Channel, StreamBus, StreamSpec
 
     bus = StreamBus()
     bus.declare([StreamSpec("a.main", (Channel("x", "", "x"),), 10.0),

@@ -13,7 +13,7 @@ from typing import Any
 
 import pytest
 
-from app.config import AppConfig
+from app.core.config import AppConfig
 from app.manager import LinarmppManager
 from tests.fakes import counter_factory
 

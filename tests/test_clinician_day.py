@@ -39,8 +39,8 @@ from PySide6.QtCore import Qt
 from PySide6.QtTest import QTest
 from PySide6.QtWidgets import QApplication, QMessageBox, QTableWidgetItem
 
-from app import streams
-from app.config import AppConfig
+from app.core import streams
+from app.core.config import AppConfig
 from app.manager import LinarmppManager
 from app.ui.main_window import MainWindow
 from tests.pdf_layout import overlaps, pdf_text
@@ -258,7 +258,7 @@ def _session_and_first_exercise(qtbot: Any, manager: LinarmppManager,
 def _electrode_set_up(qtbot: Any, manager: LinarmppManager, window: MainWindow) -> None:
     """3. Both districts' set-up from the FES tab, while the patient model's assistance sets the FES pulse width:
     the bursts reach the pulse width the dialog shows (before #36: 250 µs shown, ≤ 160 µs on the wire)."""
-    from app.electrodes import SetupPlan
+    from app.therapy.electrodes import SetupPlan
 
     fes = manager.driver("fes")
     qtbot.waitUntil(lambda: fes.pulse_width_override is not None, timeout=10000)  # the assistance's, from α
@@ -311,7 +311,7 @@ def _cap_raised_mid_session(qtbot: Any, manager: LinarmppManager, window: MainWi
     """5. A manual stimulation at 25 mA is refused at the 20 mA cap; the cap raised to 30 mA in the Patients window
     applies to the running session at once and the window says so (before #36: refused at 20 mA for the rest of
     the session, silently); the stimulation then runs; the plan with FES by district is saved."""
-    from app.fes_profile import load_profile
+    from app.core.fes_profile import load_profile
 
     window.show_tab("FES")
     fes_panel = window.frames["CommandsFrame"].panels["FesPanel"]
@@ -435,8 +435,8 @@ def _script_tab_run(qtbot: Any, manager: LinarmppManager, window: MainWindow) ->
 def _check_reports(manager: LinarmppManager, folder: Path, tmp_path: Path, day_runs: list[Any],
                    screen_rts: list[str]) -> None:
     """8. The session's report and the patient's progress report, as filed: what was delivered, in clinical words."""
-    from app.metrics import session_metrics
-    from app.reports import progress_rows, write_progress_report, write_session_report
+    from app.session.metrics import session_metrics
+    from app.session.reports import progress_rows, write_progress_report, write_session_report
 
     first, again, _assisted, script_run = day_runs
     session_pdf, progress_pdf = tmp_path / "session.pdf", tmp_path / "progress.pdf"

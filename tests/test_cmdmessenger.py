@@ -9,7 +9,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from app.devices.cmdmessenger import (
+from app.wire.cmdmessenger import (
     ARDUINO_MAX_MESSAGE,
     LIBRARY_2026,
     ArduinoMessage,

@@ -11,14 +11,14 @@ from collections.abc import Iterator
 
 import pytest
 
-from app.config import SafetyConfig
-from app.devices import linarm_protocol as proto
-from app.devices.cmdmessenger import ArduinoReceiver
+from app.core.config import SafetyConfig
 from app.devices.command_queue import CommandQueue, CommandQueueClosed, CommandStatus, Priority
 from app.devices.linarm import ESTOP_WRITE_BOUND_S, LinarmDriver, LinarmTimeout
-from app.devices.linarm_protocol import ControlState
 from app.devices.transport import TransportError
-from app.safety import SafetyError, SafetySupervisor
+from app.safety.supervisor import SafetyError, SafetySupervisor
+from app.wire import linarm_protocol as proto
+from app.wire.cmdmessenger import ArduinoReceiver
+from app.wire.linarm_protocol import ControlState
 
 IDLE = int(ControlState.IDLE_CTRL_STATE)
 

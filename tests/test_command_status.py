@@ -12,10 +12,10 @@ from concurrent import futures
 
 import pytest
 
-from app.config import SafetyConfig
+from app.core.config import SafetyConfig
 from app.devices.command_queue import CommandQueue, CommandStatus, Priority, StatusAlreadyDone
 from app.devices.linarm import LinarmDriver, LinarmTimeout
-from app.safety import SafetySupervisor
+from app.safety.supervisor import SafetySupervisor
 from tests.test_command_queue import (
     ScriptedController,
     linarm,  # noqa: F401 - the fixture: a LINarm driver on a scripted controller

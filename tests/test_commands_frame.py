@@ -8,7 +8,7 @@ import types
 
 from PySide6.QtWidgets import QLabel
 
-from app.config import AppConfig
+from app.core.config import AppConfig
 from app.manager import LinarmppManager
 from app.ui import commands_frame
 from app.ui.commands_frame import CommandsFrame

@@ -4,7 +4,7 @@ from pathlib import Path
 
 import pytest
 
-from app.config import DEFAULT_CONFIG_FILE, AppConfig, ConfigError, load_config
+from app.core.config import DEFAULT_CONFIG_FILE, AppConfig, ConfigError, load_config
 
 
 def write(tmp_path: Path, text: str) -> Path:

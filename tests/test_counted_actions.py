@@ -20,7 +20,7 @@ from PySide6.QtCore import QSettings, Qt
 from PySide6.QtTest import QTest
 from PySide6.QtWidgets import QDialogButtonBox, QMessageBox
 
-from app.config import AppConfig, UdpEndpoint
+from app.core.config import AppConfig, UdpEndpoint
 from app.manager import LinarmppManager
 from app.ui.main_window import MainWindow
 from tests.ui_actions import Actions

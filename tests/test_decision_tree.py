@@ -10,7 +10,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from app.patient_model.decision_tree import (
+from app.devices.sim.patient_model.decision_tree import (
     DEFAULT_CONFIG_PATH,
     GROUPS,
     DecisionTree,

@@ -9,12 +9,12 @@ from typing import Any
 
 import pytest
 
-from app import streams
-from app.config import AppConfig
+from app.core import streams
+from app.core.config import AppConfig
 from app.devices import linarm, rehastim
-from app.electrodes import SetupPlan
 from app.manager import LinarmppManager
-from app.patients import PatientProfile
+from app.therapy.electrodes import SetupPlan
+from app.therapy.patients import PatientProfile
 
 pytestmark = pytest.mark.realtime
 
@@ -87,8 +87,8 @@ def test_a_cap_raised_in_the_patients_window_applies_to_the_running_session_at_o
     session, silently. Lowered again, it applies at once too."""
     from PySide6.QtWidgets import QTableWidgetItem
 
-    from app.fes_profile import load_profile
-    from app.patients import ClinicalChannelCap, PatientFes, save_patient
+    from app.core.fes_profile import load_profile
+    from app.therapy.patients import ClinicalChannelCap, PatientFes, save_patient
     from app.ui.patients_window import PatientsDialog
 
     monkeypatch.setenv("LINARMPP_HOME", str(tmp_path / "home"))
@@ -136,6 +136,6 @@ def test_a_cap_raised_in_the_patients_window_applies_to_the_running_session_at_o
 
 
 def rehastim_profiles() -> Any:
-    from app.config import RESOURCES
+    from app.core.config import RESOURCES
 
     return RESOURCES / "fes_profiles"

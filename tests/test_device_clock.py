@@ -16,9 +16,9 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
-from app.bus import SampleItem
-from app.devices import linarm_protocol as proto
+from app.core.bus import SampleItem
 from app.devices.clock import CountedClock, DeviceClock
+from app.wire import linarm_protocol as proto
 
 PERIOD_S = 0.005
 WRAP_US = 2**32
@@ -178,9 +178,9 @@ def _motor_frame(raw_us: int, index: int) -> bytes:
 
 @pytest.mark.parametrize("ppm", [-200.0, 200.0])
 def test_linarm_samples_are_stamped_on_the_controller_clock(qtbot, ppm: float) -> None:
-    from app.config import SafetyConfig
+    from app.core.config import SafetyConfig
     from app.devices.linarm import LinarmDriver
-    from app.safety import SafetySupervisor
+    from app.safety.supervisor import SafetySupervisor
 
     driver = LinarmDriver(_NoLink(), SafetySupervisor(SafetyConfig()))  # type: ignore[arg-type]
     queue = driver.bus.subscribe("test", maxlen=1_000_000)
@@ -210,7 +210,7 @@ def test_linarm_samples_are_stamped_on_the_controller_clock(qtbot, ppm: float) -
 
 def test_physio_samples_are_stamped_on_the_board_clock(qtbot) -> None:
     from app.devices.physio import PhysioDriver
-    from app.devices.physio_codec import Calibration, PhysioRawFrame, encode_physio_frame
+    from app.wire.physio_codec import Calibration, PhysioRawFrame, encode_physio_frame
 
     driver = PhysioDriver(_NoLink(), Calibration())  # type: ignore[arg-type]
     queue = driver.bus.subscribe("test", maxlen=1_000_000)

@@ -7,11 +7,11 @@ import threading
 
 import pytest
 
-from app.config import AppConfig
+from app.core.config import AppConfig
 from app.devices import linarm, physio
 from app.manager import LinarmppManager
-from app.recording import load_session
-from app.safety import AlarmLevel
+from app.safety.supervisor import AlarmLevel
+from app.session.recording import load_session
 
 
 @pytest.fixture

@@ -17,14 +17,14 @@ from typing import Any
 
 import pytest
 
-from app.config import AppConfig
+from app.core.config import AppConfig
 from app.devices import linarm, patient_model, rehastim, vr
-from app.devices import linarm_protocol as proto
-from app.devices.cmdmessenger import ArduinoReceiver
-from app.devices.linarm_protocol import ControlMode, ControlState, HomeState
 from app.manager import LinarmppManager
-from app.recording import load_session
-from app.safety import AlarmLevel
+from app.safety.supervisor import AlarmLevel
+from app.session.recording import load_session
+from app.wire import linarm_protocol as proto
+from app.wire.cmdmessenger import ArduinoReceiver
+from app.wire.linarm_protocol import ControlMode, ControlState, HomeState
 from tests.test_fes_exit_paths import PROFILE, is_stop, is_update, wire
 
 pytestmark = pytest.mark.sim_homed  # a homed LINarm from the start: the homing is tested on its own
@@ -280,7 +280,7 @@ def test_vr_silent_alarms_marks_a_gap_and_reconnects(running: Running, qtbot) ->
     qtbot.waitUntil(lambda: driver.events_received > 0, timeout=5000)
     with hung(process):
         qtbot.waitUntil(lambda: not driver.connected, timeout=5000)  # no event for 2.5 s
-        # No FES, no robot: the VR task drives nothing, so its loss is a warning (app/fault_policy.py)
+        # No FES, no robot: the VR task drives nothing, so its loss is a warning (app/safety/fault_policy.py)
         qtbot.waitUntil(lambda: bool(running.alarms(AlarmLevel.WARNING, "vr", "lost")), timeout=3000)
     qtbot.waitUntil(lambda: driver.connected, timeout=5000)
     events, sent = driver.events_received, driver.datagrams_sent

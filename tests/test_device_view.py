@@ -100,7 +100,7 @@ def test_the_picture_is_repainted_only_when_something_moves_by_half_a_pixel(qtbo
 def test_during_an_exercise_the_target_is_where_the_robot_takes_the_handle(qtbot) -> None:
     """Issue #30: the 3D view showed the VR game's target (0.1/0.4 m) during an exercise moving the handle
     between 0.15 and 0.35 m. While a run is running, the target is the robot's last moveCentreTo."""
-    from app.runs import Program, RunLog, text_hash
+    from app.core.runs import Program, RunLog, text_hash
 
     manager, drivers = make_stub_manager()
     manager.runs = RunLog()

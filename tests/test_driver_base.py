@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from PySide6.QtCore import QTimer
 
-from app.bus import Channel, DeviceEvent, SampleItem, StreamBus, StreamSpec, UpdateNotifier
+from app.core.bus import Channel, DeviceEvent, SampleItem, StreamBus, StreamSpec, UpdateNotifier
 from app.devices.driver import DeviceDriver
 from app.devices.sim.base import SerialSimulator
 from tests.fakes import CounterCore, CounterDriver

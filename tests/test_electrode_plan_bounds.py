@@ -13,9 +13,8 @@ from typing import Any
 
 import pytest
 
-from app import electrodes
-from app.devices.sciencemode import MAX_CURRENT_MA, MAX_PULSE_WIDTH_US
-from app.electrodes import (
+from app.therapy import electrodes
+from app.therapy.electrodes import (
     MAX_BURSTS,
     BurstResult,
     Combination,
@@ -24,6 +23,7 @@ from app.electrodes import (
     SetupPlan,
     SetupResult,
 )
+from app.wire.sciencemode import MAX_CURRENT_MA, MAX_PULSE_WIDTH_US
 
 
 @pytest.mark.parametrize(("changes", "words"), [

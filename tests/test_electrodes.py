@@ -10,7 +10,8 @@ from dataclasses import dataclass, field
 import pytest
 
 from app.devices.sim.patient import ElectrodeSite, SimulatedPatient
-from app.electrodes import (
+from app.safety.fes_limits import ChannelCaps, FesLimits
+from app.therapy.electrodes import (
     ArmReading,
     Burst,
     Combination,
@@ -24,7 +25,6 @@ from app.electrodes import (
     propose,
     with_choice,
 )
-from app.fes_limits import ChannelCaps, FesLimits
 
 HOLD_STIFFNESS_N_M = 900.0  # the LINarm's springs at the default pretension: how far the handle gives
 DELTOID = District("anterior deltoid", tuple(Combination(ch, e) for ch, e in
@@ -306,7 +306,7 @@ def test_negative_direction_counts_a_pull() -> None:
 
 
 def test_the_choice_goes_into_the_patient_profile() -> None:
-    from app.patients import PatientProfile, parse_profile, profile_to_yaml
+    from app.therapy.patients import PatientProfile, parse_profile, profile_to_yaml
 
     patient = SimulatedPatient(seed=11)
     patient.set_electrode_distances({1: 2.0, 2: 0.866, 3: 1.5, 4: 0.5})
@@ -333,8 +333,8 @@ def test_plan_ladder_and_validation() -> None:
 
 # ---------------------------------------------------------------------------------------------- configuration
 def test_the_configuration_wires_districts_to_channels(tmp_path) -> None:
-    from app.config import ConfigError, load_config
-    from app.electrodes import districts_from_config
+    from app.core.config import ConfigError, load_config
+    from app.therapy.electrodes import districts_from_config
 
     districts = districts_from_config(load_config().devices.fes.electrodes)
     assert [c.channel for c in districts["anterior deltoid"].combinations] == [1, 2, 3, 4]
@@ -354,7 +354,7 @@ def test_the_configuration_wires_districts_to_channels(tmp_path) -> None:
 
 
 def test_a_channel_belongs_to_one_district() -> None:
-    from app.config import ElectrodeCombinationConfig, ElectrodeDistrictConfig, FesDevice
+    from app.core.config import ElectrodeCombinationConfig, ElectrodeDistrictConfig, FesDevice
 
     one = ElectrodeDistrictConfig([ElectrodeCombinationConfig(3)])
     with pytest.raises(ValueError, match="channel 3 is wired to both"):
@@ -379,8 +379,8 @@ districts:
 
 
 def test_a_district_profile_goes_to_the_chosen_channel() -> None:
-    from app.devices.sciencemode import PulseMode
-    from app.fes_profile import FesProfileError, parse_profile, profile_to_yaml
+    from app.core.fes_profile import FesProfileError, parse_profile, profile_to_yaml
+    from app.wire.sciencemode import PulseMode
 
     profile = parse_profile(DISTRICT_TEXT, "d.yaml")
     assert list(profile.channels) == [8] and list(profile.districts) == ["anterior deltoid"]
@@ -399,8 +399,8 @@ def test_a_district_profile_goes_to_the_chosen_channel() -> None:
 
 
 def test_channel_profiles_are_unchanged_and_empty_profiles_refused() -> None:
-    from app.config import RESOURCES
-    from app.fes_profile import FesProfileError, load_profile, parse_profile
+    from app.core.config import RESOURCES
+    from app.core.fes_profile import FesProfileError, load_profile, parse_profile
 
     for name in ("frontal_reaching.yaml", "wrist_extension_time.yaml"):
         profile = load_profile(RESOURCES / "fes_profiles" / name)
@@ -415,9 +415,9 @@ def test_the_stimulator_resolves_district_profiles(qtbot) -> None:
     """FesDriver.load_profile puts districts on the patient's chosen channels; refuses without a choice."""
     from types import SimpleNamespace
 
+    from app.core.fes_profile import parse_profile
     from app.devices.rehastim import FesDriver, FesError
-    from app.fes_limits import FesLimiter
-    from app.fes_profile import parse_profile
+    from app.safety.fes_limits import FesLimiter
 
     events: list = []
     supervisor = SimpleNamespace(fes_limiter=FesLimiter(FesLimits()), record=lambda kind, **d: events.append(kind),

@@ -1,6 +1,6 @@
 """The electrode set-up on the real simulated devices (issue #32): the LINarm and RehaStim simulators on their
 links, the real drivers, the safety supervisor. Checked on the stimulator's wire (the bytes the simulated
-RehaStim received, decoded with app/devices/sciencemode.py): the proposal, the ceiling and the patient's caps,
+RehaStim received, decoded with app/wire/sciencemode.py): the proposal, the ceiling and the patient's caps,
 the emergency stop during a burst, and a district-addressed profile on the chosen channel afterwards."""
 
 from __future__ import annotations
@@ -11,20 +11,20 @@ import time
 import pytest
 
 from app.archive.station import save_choice
-from app.config import RESOURCES, AppConfig
+from app.core.config import RESOURCES, AppConfig
+from app.core.fes_profile import load_profile, parse_profile
 from app.devices import linarm, rehastim
-from app.devices.sciencemode import Sm1CommandDecoder, Sm1Init, Sm1Stop, Sm1Update
-from app.electrodes import (
+from app.manager import LinarmppManager
+from app.safety.fes_limits import ChannelCaps
+from app.therapy.electrodes import (
     Combination,
     District,
     SetupPlan,
     choice_event,
     run_district_setup,
 )
-from app.fes_limits import ChannelCaps
-from app.fes_profile import load_profile, parse_profile
-from app.manager import LinarmppManager
-from app.patients import PatientProfile, load_patient
+from app.therapy.patients import PatientProfile, load_patient
+from app.wire.sciencemode import Sm1CommandDecoder, Sm1Init, Sm1Stop, Sm1Update
 
 pytestmark = [pytest.mark.realtime, pytest.mark.sim_homed, pytest.mark.slow]
 

@@ -11,13 +11,13 @@ import time
 import pytest
 from PySide6.QtCore import Qt
 
-from app.config import AppConfig
+from app.core.config import AppConfig
 from app.devices import linarm, physio, rehastim
-from app.devices.sciencemode import Sm1CommandDecoder, Sm1Stop, Sm1Update
-from app.electrodes import Burst, SetupPlan, app_ports
 from app.manager import LinarmppManager
+from app.therapy.electrodes import Burst, SetupPlan, app_ports
 from app.ui.electrode_setup import ElectrodeSetupDialog
 from app.ui.main_window import MainWindow
+from app.wire.sciencemode import Sm1CommandDecoder, Sm1Stop, Sm1Update
 
 pytestmark = [pytest.mark.realtime, pytest.mark.sim_in_thread, pytest.mark.sim_homed]
 

@@ -7,13 +7,13 @@ import shutil
 
 import pytest
 
-from app.config import AppConfig
+from app.core.config import AppConfig
 from app.devices import linarm, rehastim
 from app.devices.sim.patient import SimulatedPatient
-from app.electrodes import Combination, District, ElectrodeSetup, SetupPlan
-from app.fes_limits import FesLimits
 from app.manager import LinarmppManager
-from app.patients import PatientProfile, load_patient
+from app.safety.fes_limits import FesLimits
+from app.therapy.electrodes import Combination, District, ElectrodeSetup, SetupPlan
+from app.therapy.patients import PatientProfile, load_patient
 from app.ui.electrode_setup import COLUMNS, ElectrodeSetupDialog
 from tests.conftest import screenshot_path
 from tests.test_electrodes import Rig
@@ -150,7 +150,7 @@ def test_editing_the_patient_keeps_the_chosen_electrodes(qtbot) -> None:
     """The Patients dialog does not show the electrode choices; saving the form must not drop them."""
     from dataclasses import replace
 
-    from app.patients import ElectrodeChoice
+    from app.therapy.patients import ElectrodeChoice
     from app.ui.patient_dialog import PatientDialog
 
     profile = PatientProfile("PD1")
@@ -167,7 +167,7 @@ def test_editing_the_patient_keeps_the_chosen_electrodes(qtbot) -> None:
 def test_a_session_applies_the_patients_electrodes_and_its_end_forgets_them(qtbot, tmp_path) -> None:
     from dataclasses import replace
 
-    from app.patients import ElectrodeChoice, save_patient
+    from app.therapy.patients import ElectrodeChoice, save_patient
 
     profile = PatientProfile("SE1")
     save_patient(replace(profile, fes=replace(profile.fes, electrodes={"triceps": ElectrodeChoice(7, "1-3")})))

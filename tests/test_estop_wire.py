@@ -10,11 +10,12 @@ import pytest
 from PySide6.QtCore import Qt
 from PySide6.QtWidgets import QMessageBox
 
-from app.config import AppConfig
-from app.devices import linarm, linarm_protocol, physio, rehastim
-from app.devices.cmdmessenger import ArduinoReceiver
+from app.core.config import AppConfig
+from app.devices import linarm, physio, rehastim
 from app.manager import LinarmppManager
 from app.ui.main_window import MainWindow
+from app.wire import linarm_protocol
+from app.wire.cmdmessenger import ArduinoReceiver
 from tests.test_fes_exit_paths import PROFILE, first_stop_after
 
 BOUND_S = 0.1

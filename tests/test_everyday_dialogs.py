@@ -23,8 +23,8 @@ from PySide6.QtWidgets import (
     QWidget,
 )
 
-from app.config import AppConfig
-from app.patients import PatientProfile, load_patient, save_patient
+from app.core.config import AppConfig
+from app.therapy.patients import PatientProfile, load_patient, save_patient
 from tests.conftest import screenshot_path
 from tests.run_sessions import RunSpec, write_run_session
 

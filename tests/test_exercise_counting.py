@@ -25,9 +25,9 @@ from typing import Any
 
 import pytest
 
-from app.config import RESOURCES, AppConfig, UdpEndpoint
-from app.metrics import metrics_by_run, session_metrics
-from app.recording import load_session
+from app.core.config import RESOURCES, AppConfig, UdpEndpoint
+from app.session.metrics import metrics_by_run, session_metrics
+from app.session.recording import load_session
 
 pytestmark = [pytest.mark.slow, pytest.mark.realtime]
 

@@ -7,7 +7,7 @@ from typing import Any
 
 import pytest
 
-from app.exercises import ExerciseError, find_exercise, load_exercise, load_library, start_exercise, validate
+from app.therapy.exercises import ExerciseError, find_exercise, load_exercise, load_library, start_exercise, validate
 
 
 def test_library_holds_the_seed_exercises_with_valid_defaults() -> None:
@@ -92,7 +92,7 @@ def test_a_malformed_exercise_is_refused(tmp_path: Path, text: str, fragment: st
 
 
 def test_the_patient_dialog_keeps_a_therapy_plan(qtbot) -> None:
-    from app.patients import PatientProfile, PlannedExercise
+    from app.therapy.patients import PatientProfile, PlannedExercise
     from app.ui.patient_dialog import PatientDialog
 
     plan = [PlannedExercise("trigger_reaching", {"movements": 6}, "start gently")]

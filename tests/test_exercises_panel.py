@@ -11,10 +11,10 @@ from typing import Any
 import pytest
 from PySide6.QtCore import Qt
 
-from app.bus import StreamBus
-from app.config import AppConfig, UdpEndpoint
-from app.patients import PatientProfile, PlannedExercise
-from app.progress import ExerciseProgress
+from app.core.bus import StreamBus
+from app.core.config import AppConfig, UdpEndpoint
+from app.core.progress import ExerciseProgress
+from app.therapy.patients import PatientProfile, PlannedExercise
 from app.ui.exercises_panel import ExercisesPanel
 from app.ui.qt_bus import shared_qt_bus
 

@@ -7,9 +7,9 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from app.bus import Channel, StreamSpec
-from app.config import AppConfig
-from app.export import (
+from app.core.bus import Channel, StreamSpec
+from app.core.config import AppConfig
+from app.session.export import (
     ExportCancelled,
     export_csv,
     export_hdf5,
@@ -18,7 +18,7 @@ from app.export import (
     read_aligned_csv,
     write_aligned_csv,
 )
-from app.recording import RecordedSession, SessionRecorder, load_session
+from app.session.recording import RecordedSession, SessionRecorder, load_session
 from tests.fakes import ListenerDriver
 from tests.recorder_host import recorder_host
 
@@ -106,17 +106,17 @@ def test_one_writer_aligns_streams_of_different_rates(tmp_path) -> None:
 
 
 def test_graphs_save_and_session_export_share_the_writer(monkeypatch, session, tmp_path) -> None:
-    import app.export
+    import app.session.export
 
     calls: list[str] = []
-    real = app.export.write_aligned_csv
-    monkeypatch.setattr(app.export, "write_aligned_csv", lambda path, *a, **k: calls.append(str(path)) or real(
+    real = app.session.export.write_aligned_csv
+    monkeypatch.setattr(app.session.export, "write_aligned_csv", lambda path, *a, **k: calls.append(str(path)) or real(
         path, *a, **k))
     export_csv(session, tmp_path / "csv")
     from app.ui.signal_store import SignalStore
 
     store = SignalStore(10.0)
-    from app.bus import Channel, SampleBatch, StreamSpec
+    from app.core.bus import Channel, SampleBatch, StreamSpec
 
     spec = StreamSpec("dev.main", (Channel("x", "m", "X"),), 100.0)
     store.add_stream(spec, "dev")

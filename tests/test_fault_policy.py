@@ -1,4 +1,4 @@
-"""Issue #17 point 2: one fault policy (app/fault_policy.py) for the window and the headless runner.
+"""Issue #17 point 2: one fault policy (app/safety/fault_policy.py) for the window and the headless runner.
 
 The fault matrix (docs/fault-policy.md): for every device × fault, in the window (MainWindow + its script
 console's runner) and headless (run_headless), the same outcome — the running script ends "stopped"
@@ -18,7 +18,7 @@ from typing import Any
 
 import pytest
 
-from app.config import AppConfig
+from app.core.config import AppConfig
 from app.devices.registry import DeviceContext
 from app.manager import DeviceHandle, LinarmppManager
 from tests.fakes import CounterDriver, make_counter_device
@@ -179,7 +179,7 @@ def test_headless_fault(tmp_path, qtbot, monkeypatch, fast_config, device, fault
     seen: dict[str, Any] = {}
     out: list[str] = []
 
-    from app.recording import SessionRecorder
+    from app.session.recording import SessionRecorder
     started = SessionRecorder.start
 
     def remember(self, manager, *a, **kw):  # the headless runner's recorder, for the disk-full fault
@@ -236,7 +236,7 @@ def test_losing_the_model_or_vr_while_they_drive_nothing_is_a_warning(tmp_path, 
     manager.start()
     try:
         qtbot.waitUntil(manager.all_connected, timeout=10000)
-        from app.safety import AlarmLevel
+        from app.safety.supervisor import AlarmLevel
 
         policy = manager.fault_policy
         assert policy.loss_level("patient_model") == AlarmLevel.WARNING  # e.g. while the robot homes

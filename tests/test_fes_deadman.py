@@ -20,7 +20,8 @@ import pytest
 
 from app.devices import fes_guardian
 from app.devices.fes_guardian import FesGuardian
-from app.devices.sciencemode import (
+from app.devices.sim.rehastim_core import RehaStimSimCore
+from app.wire.sciencemode import (
     SM2_WATCHDOG_TIMEOUT_S,
     ChannelListConfig,
     PulseSetting,
@@ -35,7 +36,6 @@ from app.devices.sciencemode import (
     encode_sm2_init_channel_list,
     encode_sm2_start,
 )
-from app.devices.sim.rehastim_core import RehaStimSimCore
 from tests.app_process import AppProcess, last_fes_update_before
 
 pytestmark = [pytest.mark.sim_homed, pytest.mark.slow]  # homed from the start: the homing is tested on its own

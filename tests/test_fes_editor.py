@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 from PySide6.QtCore import Qt
 
-from app.fes_profile import load_profile
+from app.core.fes_profile import load_profile
 from app.ui.fes_editor import CUR_TRAP0, WID_TRAP0, FesProfileEditor
 from app.ui.fes_panel import PROFILES_DIR
 from tests.conftest import screenshot_path

@@ -12,12 +12,12 @@ from typing import Any
 
 import pytest
 
-from app.config import AppConfig
+from app.core.config import AppConfig
+from app.core.fes_profile import load_profile
+from app.core.paths import fes_profiles_dir
 from app.devices import rehastim
-from app.fes_limits import ChannelCaps, FesLimits, profile_limit_problems
-from app.fes_profile import load_profile
 from app.manager import LinarmppManager
-from app.paths import fes_profiles_dir
+from app.safety.fes_limits import ChannelCaps, FesLimits, profile_limit_problems
 from app.ui import file_dialogs
 from app.ui.fes_editor import CUR_TRAP0, FesProfileEditor
 from app.ui.fes_panel import PROFILES_DIR, FesPanel

@@ -16,10 +16,12 @@ from types import SimpleNamespace
 
 import pytest
 
-from app.bus import DeviceEvent
-from app.config import AppConfig
+from app.core.bus import DeviceEvent
+from app.core.config import AppConfig
+from app.core.fes_profile import ChannelProfile, FesProfile, Trapezoid
 from app.devices import rehastim
-from app.devices.sciencemode import (
+from app.manager import LinarmppManager
+from app.wire.sciencemode import (
     Sm1CommandDecoder,
     Sm1Stop,
     Sm1Update,
@@ -27,8 +29,6 @@ from app.devices.sciencemode import (
     Sm2StartChannelListMode,
     Sm2StopChannelListMode,
 )
-from app.fes_profile import ChannelProfile, FesProfile, Trapezoid
-from app.manager import LinarmppManager
 from tests.fakes import counter_factory
 
 WITHIN_S = 0.05

@@ -15,7 +15,7 @@ from collections.abc import Callable
 import pytest
 
 from app.devices.fes_guardian import FesGuardian
-from app.safety import Alarm, AlarmLevel
+from app.safety.supervisor import Alarm, AlarmLevel
 from tests.app_process import first_fes_stop_after
 from tests.test_rehastim_driver import make_rig, time_profile
 

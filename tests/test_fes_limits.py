@@ -8,8 +8,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from app.devices.sciencemode import ChannelListConfig, PulseMode, PulseSetting
-from app.fes_limits import ChannelCaps, FesLimiter, FesLimitError, FesLimits, FesUpdate, rms_current_ma
+from app.safety.fes_limits import ChannelCaps, FesLimiter, FesLimitError, FesLimits, FesUpdate, rms_current_ma
+from app.wire.sciencemode import ChannelListConfig, PulseMode, PulseSetting
 
 FAST = settings(max_examples=200, deadline=None)
 P = PulseSetting

@@ -11,9 +11,9 @@ from pathlib import Path
 import pytest
 from PySide6.QtCore import QPoint, Qt
 
-from app.config import AppConfig
+from app.core.config import AppConfig
+from app.core.fes_profile import load_profile
 from app.devices import rehastim
-from app.fes_profile import load_profile
 from app.manager import LinarmppManager
 from app.ui.fes_panel import MAX_RISE_PER_ACTION, PROFILES_DIR, FesPanel
 from tests.conftest import screenshot_path

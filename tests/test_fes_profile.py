@@ -9,8 +9,7 @@ import pytest
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
-from app.devices.sciencemode import PulseMode, PulseSetting
-from app.fes_profile import (
+from app.core.fes_profile import (
     ChannelProfile,
     FesProfile,
     FesProfileError,
@@ -20,6 +19,7 @@ from app.fes_profile import (
     profile_to_yaml,
     save_profile,
 )
+from app.wire.sciencemode import PulseMode, PulseSetting
 
 FAST = settings(max_examples=200, deadline=None)
 RESOURCES = Path(__file__).resolve().parents[1] / "resources" / "fes_profiles"

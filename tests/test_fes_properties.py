@@ -17,9 +17,13 @@ import pytest
 from hypothesis import event, given, settings
 from hypothesis import strategies as st
 
-from app.config import AppConfig
+from app.core.config import AppConfig
+from app.core.fes_profile import ChannelProfile, FesProfile, Trapezoid
 from app.devices.rehastim import FesDriver, FesError
-from app.devices.sciencemode import (
+from app.devices.sim.rehastim_core import RehaStimSimCore
+from app.safety.fes_limits import ChannelCaps, FesLimiter, FesLimits, rms_current_ma
+from app.safety.supervisor import SafetyError, SafetySupervisor
+from app.wire.sciencemode import (
     BadPacket,
     ChannelListConfig,
     PulseMode,
@@ -33,10 +37,6 @@ from app.devices.sciencemode import (
     Sm2StartChannelListMode,
     Sm2StopChannelListMode,
 )
-from app.devices.sim.rehastim_core import RehaStimSimCore
-from app.fes_limits import ChannelCaps, FesLimiter, FesLimits, rms_current_ma
-from app.fes_profile import ChannelProfile, FesProfile, Trapezoid
-from app.safety import SafetyError, SafetySupervisor
 
 FAST = settings(max_examples=200, deadline=None)
 TICK_S = 0.005

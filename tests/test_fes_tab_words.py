@@ -47,7 +47,7 @@ def test_a_long_refusal_does_not_squeeze_the_buttons(panel: FesPanel, qtbot: Any
 
 
 def test_a_run_holding_the_stimulator_is_named_and_the_tab_refused(panel: FesPanel, qtbot: Any) -> None:  # noqa: F811
-    from app.ownership import RUN_SOURCES, Lease
+    from app.core.ownership import RUN_SOURCES, Lease
 
     sup = panel.manager.supervisor
     assert not panel.held_by.isVisibleTo(panel)

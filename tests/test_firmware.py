@@ -19,7 +19,7 @@ from pathlib import Path
 
 import pytest
 
-from app.devices.linarm_protocol import ReplyError, protocol_table
+from app.wire.linarm_protocol import ReplyError, protocol_table
 from tests import firmware_builds
 from tests.test_protocol_scenarios import SCENARIOS, Scenario, run_scenario
 
@@ -197,8 +197,8 @@ def test_firmware_target_reports_a_wrong_expectation(firmware_build: Path) -> No
 
 def test_service_mode_is_only_chosen_at_boot(firmware_build: Path) -> None:
     """The service jumper is read once at boot: the IDENTIFY says so, and no command turns it on or off."""
-    from app.devices.cmdmessenger import CmdMessengerDecoder
-    from app.devices.linarm_protocol import Identify, decode_controller_frame, encode_command
+    from app.wire.cmdmessenger import CmdMessengerDecoder
+    from app.wire.linarm_protocol import Identify, decode_controller_frame, encode_command
 
     for service, suffix in ((False, ""), (True, "+service")):
         target = FirmwareTarget(firmware_build / "linarm_sil", service=service)

@@ -25,8 +25,9 @@ from typing import Any
 
 import pytest
 
-from app.devices.cmdmessenger import CmdMessengerDecoder
-from app.devices.linarm_protocol import (
+from app.devices.sim.linarm_model import LinarmSimCore
+from app.wire.cmdmessenger import CmdMessengerDecoder
+from app.wire.linarm_protocol import (
     COMMANDS_BY_NAME,
     HOST_COMMANDS,
     Ack,
@@ -38,7 +39,6 @@ from app.devices.linarm_protocol import (
     decode_controller_frame,
     encode_command,
 )
-from app.devices.sim.linarm_model import LinarmSimCore
 from tests import firmware_builds
 from tests.test_firmware import FIRMWARE, FirmwareTarget, build_firmware
 from tests.test_protocol_scenarios import SCENARIOS, run_scenario

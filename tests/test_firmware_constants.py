@@ -1,4 +1,4 @@
-"""One source for the controller's constants (app/devices/linarm_constants.py): the generated firmware header,
+"""One source for the controller's constants (app/wire/linarm_constants.py): the generated firmware header,
 the firmware's own defaults as it reports them, the Python simulator, the LINarm panel and the host's safety
 supervisor must all carry the table's values. Any constant that differs anywhere fails here. So does the
 host's copy of the controller's watchdog timeout (the protocol table's WATCHDOG_TIMEOUT) in the config."""
@@ -19,12 +19,12 @@ from typing import Any
 
 import pytest
 
-from app.devices import linarm_constants
-from app.devices.cmdmessenger import CmdMessengerDecoder
-from app.devices.linarm_constants import CONSTANTS, K
-from app.devices.linarm_protocol import WATCHDOG_TIMEOUT, Ack, decode_controller_frame, encode_command, protocol_table
 from app.devices.sim import linarm_model
 from app.devices.sim.linarm_model import LinarmParams, LinarmSimCore
+from app.wire import linarm_constants
+from app.wire.cmdmessenger import CmdMessengerDecoder
+from app.wire.linarm_constants import CONSTANTS, K
+from app.wire.linarm_protocol import WATCHDOG_TIMEOUT, Ack, decode_controller_frame, encode_command, protocol_table
 from tests.test_firmware import FIRMWARE, GENERATOR, ROOT, FirmwareTarget, build_firmware
 
 SRC = FIRMWARE / "linarm_controller" / "src"
@@ -67,7 +67,7 @@ def test_no_firmware_file_writes_a_table_constant_by_hand() -> None:
         text = path.read_text(encoding="utf-8")
         for name in K:
             assert not re.search(rf"\bconst\s+(?:float|double|unsigned long|int)\s+{name}\s*=", text), \
-                f"{path.relative_to(ROOT)} defines {name}: it belongs in app/devices/linarm_constants.py"
+                f"{path.relative_to(ROOT)} defines {name}: it belongs in app/wire/linarm_constants.py"
     plant = (FIRMWARE / "host" / "sim" / "sim_plant.h").read_text(encoding="utf-8")
     body = plant[plant.index("struct PlantParams {"):plant.index("};", plant.index("struct PlantParams {"))]
     assert not re.search(r"=\s*[-0-9]", body), "the C++ plant's parameters come from cfg:: (the table)"
@@ -151,12 +151,12 @@ def literal_copies(path: Path, values: dict[str, float], scope: str | None = Non
 
 
 def test_the_supervisor_writes_no_envelope_margin_by_hand() -> None:
-    """app/safety.py's robot monitor is the controller's envelope check one layer up: its margins are the
+    """app/safety/supervisor.py's robot monitor is the controller's envelope check one layer up: its margins are the
     table's, read from it, never a literal (it once held ``1.2 *`` and ``± 0.01``)."""
-    from app import safety
+    from app.safety import supervisor as safety
 
-    copies = literal_copies(ROOT / "app" / "safety.py", {name: K[name] for name in ENVELOPE})
-    assert not copies, "read these from app/devices/linarm_constants.py:\n" + "\n".join(copies)
+    copies = literal_copies(ROOT / "app" / "safety" / "supervisor.py", {name: K[name] for name in ENVELOPE})
+    assert not copies, "read these from app/wire/linarm_constants.py:\n" + "\n".join(copies)
     assert (safety.ENVELOPE_VELOCITY_FACTOR, safety.ENVELOPE_POSITION_MARGIN) == tuple(K[n] for n in ENVELOPE)
 
 
@@ -164,12 +164,12 @@ def test_the_supervisor_writes_no_envelope_margin_by_hand() -> None:
 # inside and just outside each margin, after the grace samples that follow homing.
 TRIP_PROBE = r"""
 import json, sys
-from app.devices import linarm_constants
+from app.wire import linarm_constants
 factor, margin = float(sys.argv[1]), float(sys.argv[2])
 linarm_constants.K.update(ENVELOPE_VELOCITY_FACTOR=factor, ENVELOPE_POSITION_MARGIN=margin)
 from types import SimpleNamespace
-from app.config import SafetyConfig
-from app.safety import RobotProbes, SafetySupervisor, StopAction
+from app.core.config import SafetyConfig
+from app.safety.supervisor import RobotProbes, SafetySupervisor, StopAction
 sup = SafetySupervisor(SafetyConfig())
 lim = sup.robot
 stops = []
@@ -215,14 +215,14 @@ def test_the_supervisor_trips_where_the_table_says(factor: float, margin: float)
 def test_the_config_takes_the_silence_floor_from_the_controller_watchdog() -> None:
     """safety.silence_min_s defaults to the controller's host watchdog (one value: the protocol table's, which
     the firmware header is generated from), not a literal beside it."""
-    from app.config import SafetyConfig
+    from app.core.config import SafetyConfig
 
-    config = ROOT / "app" / "config.py"
+    config = ROOT / "app" / "core" / "config.py"
     copies = literal_copies(config, {"WATCHDOG_TIMEOUT": WATCHDOG_TIMEOUT}, scope="SafetyConfig")
-    assert not copies, "read it from app/devices/linarm_protocol.py:\n" + "\n".join(copies)
+    assert not copies, "read it from app/wire/linarm_protocol.py:\n" + "\n".join(copies)
     assert SafetyConfig().silence_min_s == WATCHDOG_TIMEOUT == protocol_table()["limits"]["watchdog_timeout_s"]
-    probe = ("import sys\nfrom app.devices import linarm_protocol\nlinarm_protocol.WATCHDOG_TIMEOUT = 0.4\n"
-             "from app.config import SafetyConfig\nprint(SafetyConfig().silence_min_s)")
+    probe = ("import sys\nfrom app.wire import linarm_protocol\nlinarm_protocol.WATCHDOG_TIMEOUT = 0.4\n"
+             "from app.core.config import SafetyConfig\nprint(SafetyConfig().silence_min_s)")
     result = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=60, cwd=ROOT,
                             env={**os.environ, "PYTHONPATH": str(ROOT)})
     assert result.returncode == 0, result.stderr

@@ -23,8 +23,8 @@ from typing import Any
 
 import pytest
 
-from app.devices.cmdmessenger import CmdMessengerDecoder
-from app.devices.linarm_protocol import (
+from app.wire.cmdmessenger import CmdMessengerDecoder
+from app.wire.linarm_protocol import (
     ControlState,
     ErrorEvent,
     ErrorState,

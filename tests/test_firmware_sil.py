@@ -15,13 +15,13 @@ from collections.abc import Iterator
 
 import pytest
 
-from app import streams
-from app.bus import SampleItem, StreamBus
-from app.config import SafetyConfig
+from app.core import streams
+from app.core.bus import SampleItem, StreamBus
+from app.core.config import SafetyConfig
 from app.devices.linarm import LinarmCommandError, LinarmDriver
-from app.devices.linarm_protocol import ControlMode, ControlState, HomeState, ReplyError
 from app.devices.transport import SerialTransport
-from app.safety import SafetySupervisor
+from app.safety.supervisor import SafetySupervisor
+from app.wire.linarm_protocol import ControlMode, ControlState, HomeState, ReplyError
 from tests.test_firmware import build_firmware
 
 pytestmark = pytest.mark.slow

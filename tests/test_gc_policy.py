@@ -1,4 +1,4 @@
-"""app/gc_policy.py (issue #37): while something drives, survivors are settled out of the collector's walk; at
+"""app/core/gc_policy.py (issue #37): while something drives, survivors are settled out of the collector's walk; at
 rest, after driving, they are given back and cyclic garbage made meanwhile is freed."""
 
 from __future__ import annotations
@@ -6,7 +6,7 @@ from __future__ import annotations
 import gc
 import weakref
 
-from app.gc_policy import HeapPolicy
+from app.core.gc_policy import HeapPolicy
 
 
 class _Node:

@@ -8,8 +8,8 @@ import numpy as np
 from PySide6.QtCore import QSettings, Qt
 from PySide6.QtWidgets import QMessageBox
 
-from app.bus import Channel, SampleBatch, StreamSpec
-from app.config import AppConfig
+from app.core.bus import Channel, SampleBatch, StreamSpec
+from app.core.config import AppConfig
 from app.manager import LinarmppManager
 from app.ui.main_window import MainWindow
 from app.ui.signal_store import shared_store

@@ -10,13 +10,13 @@ from pathlib import Path
 import pytest
 
 from app import gui_watch
-from app.bus import StreamBus
-from app.config import AppConfig
+from app.core.bus import StreamBus
+from app.core.config import AppConfig
 from app.devices.fes_guardian import FesGuardian
-from app.devices.sciencemode import encode_sm1_stop
-from app.fault_policy import FaultPolicy
 from app.gui_watch import GuiWatch
-from app.safety import AlarmLevel, SafetySupervisor, StopAction
+from app.safety.fault_policy import FaultPolicy
+from app.safety.supervisor import AlarmLevel, SafetySupervisor, StopAction
+from app.wire.sciencemode import encode_sm1_stop
 
 
 class Clock:
@@ -219,7 +219,7 @@ def test_the_window_blocked_2_s_while_stimulating_is_stopped_within_the_bound(tm
         head, tail = WINDOW_LAUNCHER.rsplit("from app.cli import main", 1)
         launcher = head + BLOCK_LAUNCHER_TAIL + "from app.cli import main" + tail
         app._spawn([__import__("sys").executable, "-c", launcher, str(app.script), str(app.sessions),
-                    str(app.config)])
+                    str(app.core.config)])
         app.wait_stimulating(60.0)
         deadline = time.monotonic() + 20.0
         while not any(line.startswith("UNBLOCK") for line in app.output) and time.monotonic() < deadline:

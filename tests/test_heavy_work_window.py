@@ -51,7 +51,7 @@ def test_opening_a_long_session_during_an_fes_exercise(qtbot, tmp_path_factory, 
     places = [mounts.enter_context(full_disk(tmp_path / "full", size_kib=1024, leave_bytes=16 * 1024)),
               mounts.enter_context(read_only(tmp_path / "ro"))]
     small = write_run_session(tmp_path / "sessions" / "P1" / "20260301-100000", clinic_day_runs())
-    from app.reports import progress_rows
+    from app.session.reports import progress_rows
     from app.ui.progress_view import ProgressView
     from app.ui.session_summary import SessionSummaryDialog
 

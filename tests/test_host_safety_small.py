@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from app.devices.sciencemode import ChannelListConfig, ScienceModeRangeError, validate_channel_list
+from app.wire.sciencemode import ChannelListConfig, ScienceModeRangeError, validate_channel_list
 
 
 def test_sm2_accepts_a_third_party_default_t2_of_2_ms_with_two_channels() -> None:
@@ -33,8 +33,8 @@ def test_losing_alpha_returns_fes_and_robot_assistance_to_their_non_alpha_values
 
 
 def test_the_estop_reset_event_names_whoever_resets() -> None:
-    from app.config import SafetyConfig
-    from app.safety import SafetySupervisor
+    from app.core.config import SafetyConfig
+    from app.safety.supervisor import SafetySupervisor
 
     events: list[tuple[str, dict]] = []
     sup = SafetySupervisor(SafetyConfig(), lambda k, d: events.append((k, d)))

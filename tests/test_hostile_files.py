@@ -10,8 +10,8 @@ from pathlib import Path
 
 import pytest
 
-from app.config import ConfigError, load_config
-from app.patients import PatientProfile, list_patients, save_patient
+from app.core.config import ConfigError, load_config
+from app.therapy.patients import PatientProfile, list_patients, save_patient
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -67,7 +67,7 @@ def test_one_unreadable_patient_file_leaves_the_others_usable(tmp_path) -> None:
 @pytest.mark.parametrize(("data", "words"), [(b"version: !!python/name:os.system 1\n", "tag"),
                                              (b"version: 1\n\xff\n", "not UTF-8")])
 def test_hostile_decision_tree_file_is_refused_with_its_line(tmp_path, data: bytes, words: str) -> None:
-    from app.patient_model.decision_tree import PatientModelConfigError, load_tree_config
+    from app.devices.sim.patient_model.decision_tree import PatientModelConfigError, load_tree_config
 
     path = tmp_path / "tree.yaml"
     path.write_bytes(data)
@@ -119,7 +119,7 @@ def test_hostile_exercise_is_refused_quickly_with_file_and_line(tmp_path, name: 
                                                                   line: int | None) -> None:
     import time
 
-    from app.exercises import ExerciseError, load_exercise
+    from app.therapy.exercises import ExerciseError, load_exercise
 
     (tmp_path / "x.py").write_text("pass\n", encoding="utf-8")
     path = tmp_path / "x.yaml"
@@ -137,7 +137,7 @@ def test_hostile_exercise_is_refused_quickly_with_file_and_line(tmp_path, name: 
 
 
 def test_a_script_link_out_of_the_library_is_refused(tmp_path) -> None:
-    from app.exercises import ExerciseError, load_exercise
+    from app.therapy.exercises import ExerciseError, load_exercise
 
     outside = tmp_path / "outside.py"
     outside.write_text("import os\n", encoding="utf-8")
@@ -152,7 +152,7 @@ def test_a_script_link_out_of_the_library_is_refused(tmp_path) -> None:
 def test_a_fifo_in_the_library_is_listed_not_waited_for(tmp_path) -> None:
     import os
 
-    from app.exercises import load_library
+    from app.therapy.exercises import load_library
 
     (tmp_path / "good.py").write_text("pass\n", encoding="utf-8")
     (tmp_path / "good.yaml").write_bytes(GOOD_EXERCISE)
@@ -166,7 +166,7 @@ def test_a_fifo_in_the_library_is_listed_not_waited_for(tmp_path) -> None:
 @pytest.fixture
 def bad_library(tmp_path, monkeypatch):
     """An exercise library with one good exercise and three bad files, as the window's default library."""
-    from app import exercises
+    from app.therapy import exercises
 
     (tmp_path / "good.py").write_text("pass\n", encoding="utf-8")
     (tmp_path / "good.yaml").write_bytes(GOOD_EXERCISE)
@@ -179,7 +179,7 @@ def bad_library(tmp_path, monkeypatch):
 
 
 def test_one_bad_exercise_file_leaves_the_others_usable(bad_library) -> None:
-    from app.exercises import load_library
+    from app.therapy.exercises import load_library
 
     library, problems = load_library()
     assert [e.ident for e in library] == ["good"]
@@ -213,7 +213,7 @@ HOSTILE_PROFILES: list[tuple[str, bytes, str, int]] = [
 @pytest.mark.parametrize(("name", "data", "words", "line"), HOSTILE_PROFILES, ids=[h[0] for h in HOSTILE_PROFILES])
 def test_hostile_fes_profile_is_refused_with_file_and_line(tmp_path, name: str, data: bytes, words: str,
                                                            line: int) -> None:
-    from app.fes_profile import FesProfileError, load_profile, parse_profile
+    from app.core.fes_profile import FesProfileError, load_profile, parse_profile
 
     path = tmp_path / "p.yaml"
     path.write_bytes(data)

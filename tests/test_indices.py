@@ -9,7 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from app.patient_model.indices import (
+from app.devices.sim.patient_model.indices import (
     MotorPerformance,
     PhysiologicalTrend,
     TaskPerformance,

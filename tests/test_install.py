@@ -116,7 +116,7 @@ def test_the_installed_command_tells_its_version(installed: Installed) -> None:
 
 def test_the_installed_command_runs_an_installed_example_headless_from_any_folder(installed: Installed) -> None:
     # The example is the installed copy, found the way the application finds it: not the checkout's.
-    where = _run([str(installed.python), "-c", "import app, app.resources as r; "
+    where = _run([str(installed.python), "-c", "import app, app.core.resources as r; "
                   "print(app.__file__); print(r.resource_path('scripts', 'trigger_exercise.py'))"],
                  cwd=installed.elsewhere, env=installed.env).split()
     package_file, example = Path(where[0]), Path(where[1])

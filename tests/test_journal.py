@@ -9,16 +9,16 @@ import re
 from pathlib import Path
 from typing import Any
 
-from app import journal, streams
-from app.bus import StreamBus
-from app.config import AppConfig, SafetyConfig
-from app.fault_policy import FaultPolicy
-from app.journal import Record
-from app.progress import ExerciseProgress
-from app.safety import AlarmLevel, SafetySupervisor, StopAction
+from app.core import journal, streams
+from app.core.bus import StreamBus
+from app.core.config import AppConfig, SafetyConfig
+from app.core.journal import Record
+from app.core.progress import ExerciseProgress
+from app.safety.fault_policy import FaultPolicy
+from app.safety.supervisor import AlarmLevel, SafetySupervisor, StopAction
 from tests.test_architecture import APP, import_graph, reachable
 
-QT_FREE = ("app.journal", "app.safety", "app.fault_policy", "app.progress")
+QT_FREE = ("app.core.journal", "app.safety.supervisor", "app.safety.fault_policy", "app.core.progress")
 
 
 def test_records_of_each_origin_reach_one_subscription_in_order() -> None:
@@ -79,13 +79,13 @@ def test_the_supervisor_the_fault_policy_and_the_progress_import_no_qt() -> None
 
 
 # The wire's facts (protocol tables, codecs, constants): the ground floor, below the safety floor (layout of #40).
-WIRE = frozenset({"app.devices.cmdmessenger", "app.devices.linarm_constants", "app.devices.linarm_protocol",
-                  "app.devices.sciencemode", "app.devices.physio_codec", "app.devices.udp_frames"})
+WIRE = frozenset({"app.wire.cmdmessenger", "app.wire.linarm_constants", "app.wire.linarm_protocol",
+                  "app.wire.sciencemode", "app.wire.physio_codec", "app.wire.udp_frames"})
 
 
 def test_the_fault_policy_does_not_import_the_drivers_even_for_types() -> None:
     internal, _external = import_graph()
-    upward = {m for m in internal["app.fault_policy"] if m.startswith("app.devices") and m not in WIRE}
+    upward = {m for m in internal["app.safety.fault_policy"] if m.startswith("app.devices") and m not in WIRE}
     assert not upward, upward
 
 
@@ -198,7 +198,7 @@ def test_the_adapter_turns_the_supervisors_records_into_the_windows_signals(qtbo
     alarm (the supervisor's own object) and the lease changes beside it."""
     import threading
 
-    from app.ownership import ROBOT, Lease
+    from app.core.ownership import ROBOT, Lease
     from app.ui.qt_bus import QtBus
 
     bus = StreamBus()

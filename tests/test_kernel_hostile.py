@@ -28,11 +28,11 @@ from typing import Any
 
 import pytest
 
-from app import fes_profile
-from app.devices.udp_frames import LINK_KEY_ENV, PatientModelFrame
+from app.core import fes_profile
 from app.scripting import bridge as bridge_module
 from app.scripting import kernel_process
 from app.scripting.runner import ScriptRunner
+from app.wire.udp_frames import LINK_KEY_ENV, PatientModelFrame
 from tests.test_script_runner import FakeManager, Output, close_runners, started, wait_for
 
 __all__ = ["close_runners"]  # the fixture, used by every test here (autouse)
@@ -131,7 +131,7 @@ def test_a_file_the_app_opens_for_a_script_is_a_bounded_regular_file(manager: Fa
 
 
 def test_read_user_file_reads_regular_files_and_refuses_the_rest(tmp_path: Path) -> None:
-    from app import safe_files
+    from app.core import safe_files
 
     ok = tmp_path / "ok.yaml"
     ok.write_bytes(b"name: ok\n")

@@ -11,15 +11,15 @@ from typing import Any
 import numpy as np
 import pytest
 
-from app import streams
-from app.config import AppConfig, SafetyConfig
-from app.devices import linarm_protocol as proto
+from app.core import streams
+from app.core.config import AppConfig, SafetyConfig
 from app.devices.linarm import LinarmCommandError, LinarmDriver
-from app.devices.linarm_protocol import ControlMode, ControlState, ReplyError
 from app.devices.sim.adapters import LinarmSimAdapter
 from app.devices.sim.base import SerialSimulator
 from app.devices.transport import SerialTransport
-from app.safety import SafetySupervisor
+from app.safety.supervisor import SafetySupervisor
+from app.wire import linarm_protocol as proto
+from app.wire.linarm_protocol import ControlMode, ControlState, ReplyError
 
 IDLE, ON = int(ControlState.IDLE_CTRL_STATE), int(ControlState.ON_CTRL_STATE)
 VEL, TARGET = int(ControlMode.POS_REF_BY_VEL), int(ControlMode.POS_REF_BY_TARGET_POS)
@@ -173,7 +173,7 @@ def test_reaching_motion_profile_on_the_recorded_samples(robot: LinarmDriver, qt
 
 
 def test_commands_are_checked_by_the_supervisor_before_the_wire(robot: LinarmDriver, qtbot) -> None:
-    from app.safety import SafetyError
+    from app.safety.supervisor import SafetyError
 
     enter(robot, qtbot, "on-target")
     limits = AppConfig().safety.robot

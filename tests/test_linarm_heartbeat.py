@@ -10,9 +10,9 @@ import time
 
 import pytest
 
-from app import streams
-from app.bus import BusItem, SampleItem
-from app.config import AppConfig
+from app.core import streams
+from app.core.bus import BusItem, SampleItem
+from app.core.config import AppConfig
 from app.devices import linarm
 from app.devices.linarm import HEARTBEAT_READER_GRACE_S
 from app.manager import LinarmppManager

@@ -8,8 +8,9 @@ from dataclasses import dataclass, field
 
 import pytest
 
-from app.devices.cmdmessenger import CmdMessengerDecoder
-from app.devices.linarm_protocol import (
+from app.devices.sim.linarm_model import LinarmParams, LinarmSimCore, TrajectoryError, plan_trajectory
+from app.wire.cmdmessenger import CmdMessengerDecoder
+from app.wire.linarm_protocol import (
     Ack,
     ControlMode,
     ControlState,
@@ -26,7 +27,6 @@ from app.devices.linarm_protocol import (
     encode_command,
     next_seq,
 )
-from app.devices.sim.linarm_model import LinarmParams, LinarmSimCore, TrajectoryError, plan_trajectory
 
 
 @dataclass
@@ -508,7 +508,7 @@ def test_runs_much_faster_than_real_time() -> None:
 
 
 def test_service_mode_is_only_chosen_at_boot() -> None:
-    from app.devices.linarm_protocol import ReplyError
+    from app.wire.linarm_protocol import ReplyError
 
     for service in (False, True):
         core = LinarmSimCore(start_homed=True, service_mode=service)

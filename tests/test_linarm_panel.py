@@ -10,12 +10,12 @@ import pytest
 from PySide6.QtCore import Qt
 from PySide6.QtWidgets import QCheckBox, QComboBox, QDoubleSpinBox, QScrollArea
 
-from app.config import AppConfig
-from app.devices import linarm_protocol as proto
-from app.devices.cmdmessenger import CmdMessengerDecoder
-from app.devices.linarm_protocol import COMMANDS_BY_NAME, HomeState, ReplyError
+from app.core.config import AppConfig
 from app.manager import LinarmppManager
 from app.ui.linarm_panel import LinarmPanel, unit_text
+from app.wire import linarm_protocol as proto
+from app.wire.cmdmessenger import CmdMessengerDecoder
+from app.wire.linarm_protocol import COMMANDS_BY_NAME, HomeState, ReplyError
 from tests.rigs import RigSpec
 
 

@@ -10,7 +10,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from app.devices.cmdmessenger import (
+from app.wire.cmdmessenger import (
     ARDUINO_MAX_MESSAGE,
     MAX_CALLBACKS,
     ArduinoReceiver,
@@ -21,7 +21,7 @@ from app.devices.cmdmessenger import (
     read_field,
     to_float32,
 )
-from app.devices.linarm_protocol import (
+from app.wire.linarm_protocol import (
     COMMANDS_BY_ID,
     CONTROL_MODES,
     CONTROL_STATES,

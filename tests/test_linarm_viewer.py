@@ -6,8 +6,8 @@ from __future__ import annotations
 
 import pytest
 
-from app.bus import StreamBus
-from app.config import AppConfig
+from app.core.bus import StreamBus
+from app.core.config import AppConfig
 from app.devices import linarm
 from app.devices.linarm import LinarmDriver, LinarmStateSample, MotorSample, VsaSample
 from app.manager import DeviceHandle, LinarmppManager

@@ -13,11 +13,13 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from app.config import AppConfig, ConfigError, load_config
+from app.core.config import AppConfig, ConfigError, load_config
 from app.devices import patient_model, vr
 from app.devices.patient_model import PatientModelDriver, free_udp_port
 from app.devices.transport import UdpTransport
-from app.devices.udp_frames import (
+from app.manager import LinarmppManager
+from app.safety.supervisor import AlarmLevel
+from app.wire.udp_frames import (
     MAC_SIZE,
     FrameError,
     PatientModelFrame,
@@ -31,8 +33,6 @@ from app.devices.udp_frames import (
     seal,
     unseal,
 )
-from app.manager import LinarmppManager
-from app.safety import AlarmLevel
 
 HOST = "127.0.0.1"
 KEY = bytes(range(32))

@@ -10,9 +10,9 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from app import lsl
-from app.config import AppConfig, RecordingConfig
+from app.core.config import AppConfig, RecordingConfig
 from app.manager import LinarmppManager
+from app.session import lsl
 from tests.fakes import counter_factory
 
 AVAILABLE, STATUS = lsl.lsl_status()
@@ -26,7 +26,7 @@ def test_off_by_default_and_missing_library_is_reported(tmp_path, caplog, monkey
     manager = LinarmppManager(lsl_config(False), factories={})
     assert lsl.start_lsl(manager) is None
     monkeypatch.setattr(lsl, "lsl_status", lambda: (False, "LSL unavailable: liblsl not found"))
-    with caplog.at_level(logging.WARNING, logger="app.lsl"):
+    with caplog.at_level(logging.WARNING, logger="app.session.lsl"):
         assert lsl.start_lsl(LinarmppManager(lsl_config(True), factories={})) is None
     assert "running without LSL" in caplog.text and "liblsl not found" in caplog.text
 

@@ -9,8 +9,8 @@ from dataclasses import replace
 
 import pytest
 
-from app import lsl
-from app.config import AppConfig
+from app.core.config import AppConfig
+from app.session import lsl
 from tests.fakes import counter_factory
 
 AVAILABLE, STATUS = lsl.lsl_status()

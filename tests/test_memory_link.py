@@ -8,14 +8,14 @@ from typing import Any
 
 import pytest
 
-from app.config import SafetyConfig
+from app.core.config import SafetyConfig
 from app.devices.linarm import LinarmDriver
 from app.devices.physio import PhysioDriver
-from app.devices.physio_codec import Calibration
 from app.devices.sim.linarm_model import LinarmSimCore
 from app.devices.sim.patient import SimulatedPatient
 from app.devices.sim.physio_signals import PhysioSimSource
-from app.safety import SafetyError, SafetySupervisor
+from app.safety.supervisor import SafetyError, SafetySupervisor
+from app.wire.physio_codec import Calibration
 from tests.memory_link import MemoryLink
 
 

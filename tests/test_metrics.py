@@ -1,6 +1,6 @@
 """Per-repetition metrics on synthetic reaches whose answers are known from the definitions.
 
-The SPARC references are computed here independently of app.metrics: the continuous Fourier transform of the
+The SPARC references are computed here independently of app.session.metrics: the continuous Fourier transform of the
 analytic speed profile by quadrature on a fine frequency grid (no FFT, no padding), the adaptive cut-off where
 the normalised magnitude last reaches 0.05 below 10 Hz, and the arc length of that curve.
 """
@@ -12,7 +12,7 @@ import math
 import numpy as np
 import pytest
 
-from app.metrics import (
+from app.session.metrics import (
     Mark,
     Series,
     SessionSignals,
@@ -297,7 +297,7 @@ def test_sparc_of_mirror_image_reaches_is_the_same() -> None:
 
 @pytest.mark.parametrize("n", range(1, 13))
 def test_lowpass_keeps_a_constant_and_a_ramp_however_short(n: int) -> None:
-    from app.metrics import lowpass
+    from app.session.metrics import lowpass
 
     assert lowpass(np.full(n, 3.0), FS) == pytest.approx(np.full(n, 3.0))
     ramp = 0.1 + 0.001 * np.arange(n)
@@ -355,7 +355,7 @@ def test_speed_ratio_and_dimensionless_jerk_of_a_minimum_jerk_reach() -> None:
 
 
 def test_patient_reaction_time_from_the_prompt_to_the_grips_onset() -> None:
-    from app.metrics import Prompt
+    from app.session.metrics import Prompt
 
     t, x = reach(2.0, 1.0, 0.2, 4.0)
     # the prompt at 1.0 s; the grip starts rising at 1.5 s (τ 0.1 s towards 38 N), crosses 20 N at ~1.575 s
@@ -387,8 +387,8 @@ def test_homing_then_an_immediate_movement_is_not_clipped() -> None:
     """The first movement right after homing keeps its start (a fixed 0.2 s margin cut it)."""
     from types import SimpleNamespace
 
-    from app.devices.linarm_protocol import ControlState
-    from app.metrics import homing_intervals
+    from app.session.metrics import homing_intervals
+    from app.wire.linarm_protocol import ControlState
 
     t = np.arange(0.0, 6.0, 1 / FS)
     x = np.where(t < 1.8, 0.0, 0.25) + 0.2 * min_jerk((t - 2.0) / 1.0)  # re-referenced at 1.8 s; moves at 2.0 s
@@ -407,7 +407,7 @@ def test_homing_then_an_immediate_movement_is_not_clipped() -> None:
 
 
 def test_the_prompt_mark_is_a_session_event_with_its_cue() -> None:
-    from app.progress import ExerciseProgress
+    from app.core.progress import ExerciseProgress
 
     events: list[tuple[str, dict]] = []
     progress = ExerciseProgress(lambda kind, **data: events.append((kind, data)))

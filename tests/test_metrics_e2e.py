@@ -1,7 +1,7 @@
 """End to end: an exercise of known movements, recorded against the simulated devices, then the command line.
 
 The trigger-reaching exercise (resources/exercises) is started as the Exercises tab starts it
-(app.exercises.start_exercise on a ScriptRunner) with 4 movements of 0.24 m at 0.15 m/s, each triggered by
+(app.therapy.exercises.start_exercise on a ScriptRunner) with 4 movements of 0.24 m at 0.15 m/s, each triggered by
 the simulated patient's grip. ``main.py --metrics`` must find the 4 repetitions with range and peak speed
 within a few percent of the commanded ones, and a reaction time; ``--report`` and ``--progress`` write PDFs
 whose every page pdftoppm renders into a picture that is not blank.
@@ -20,10 +20,10 @@ from typing import Any
 
 import pytest
 
-from app.config import AppConfig, UdpEndpoint
-from app.exercises import find_exercise, start_exercise
-from app.metrics import repetitions, signals_from_session
-from app.recording import load_session
+from app.core.config import AppConfig, UdpEndpoint
+from app.session.metrics import repetitions, signals_from_session
+from app.session.recording import load_session
+from app.therapy.exercises import find_exercise, start_exercise
 
 pytestmark = pytest.mark.slow
 

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from app.metrics import session_metrics
+from app.session.metrics import session_metrics
 from tests.metrics_truth import load_case, truth_movements, variant, write_session
 
 PASSIVE = ["reaches6_v015", "reaches6_v030", "reaches12_v015", "mixed_v015", "mixed_v030"]

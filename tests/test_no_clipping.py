@@ -14,8 +14,8 @@ import pytest
 from PySide6.QtCore import Qt
 from PySide6.QtWidgets import QApplication, QMessageBox, QTabWidget, QWidget
 
-from app.config import AppConfig
-from app.fes_profile import load_profile
+from app.core.config import AppConfig
+from app.core.fes_profile import load_profile
 from app.manager import LinarmppManager
 from app.ui.main_window import MainWindow
 from tests.clipping import clipped_texts, squashed_data_widgets
@@ -47,7 +47,7 @@ def running_window(qapp) -> Iterator[tuple[LinarmppManager, MainWindow]]:
     manager.start_session("P001", "Dr Francesca Bianchi", root=Path(tempfile.mkdtemp()))
     manager.driver("fes").load_profile(load_profile(ROOT / "resources" / "fes_profiles" / "frontal_reaching.yaml"))
     manager.supervisor.raise_alarm(
-        __import__("app.safety", fromlist=["AlarmLevel"]).AlarmLevel.STOP, "linarm",
+        __import__("app.safety.supervisor", fromlist=["AlarmLevel"]).AlarmLevel.STOP, "linarm",
         "LINarm error: WATCHDOG (no host bytes for 0.25 s) — the motors are off")
     yield manager, window
     QMessageBox.question = lambda *a, **k: QMessageBox.StandardButton.Yes  # type: ignore[method-assign]
@@ -200,7 +200,7 @@ def test_primary_controls_are_on_screen_without_scrolling(running_window, qtbot,
 
 
 def _dialogs(manager: LinarmppManager, window: MainWindow) -> Iterator[tuple[str, QWidget]]:
-    from app.recording import sessions_root
+    from app.session.recording import sessions_root
     from app.ui.fes_editor import FesProfileEditor
     from app.ui.patient_dialog import PatientDialog, StartSessionDialog
     from app.ui.recovery import RecoverDialog, Restartable
@@ -231,7 +231,7 @@ def test_no_text_is_clipped_in_the_dialogs(running_window, qtbot) -> None:
     from app.ui.sessions_browser import SessionDetails, SessionsBrowser
 
     folder = manager.recorder.folder
-    manager.supervisor.raise_alarm(__import__("app.safety", fromlist=["AlarmLevel"]).AlarmLevel.WARNING,
+    manager.supervisor.raise_alarm(__import__("app.safety.supervisor", fromlist=["AlarmLevel"]).AlarmLevel.WARNING,
                                    "physio", "Skin-conductance electrodes off: check the electrodes")
     qtbot.wait(600)
     manager.end_session()

@@ -10,8 +10,8 @@ from typing import Any
 
 import pytest
 
-from app.config import RESOURCES, AppConfig
-from app.recording import load_session
+from app.core.config import RESOURCES, AppConfig
+from app.session.recording import load_session
 
 EXERCISES = RESOURCES / "exercises"
 PARAMS = {"repetitions": 2, "start_m": 0.15, "target_m": 0.35, "use_fes": False, "timeout_s": 6.0, "rest_s": 0.3}
@@ -78,8 +78,8 @@ def test_the_vr_task_does_not_pull_the_robot_out_of_the_exercises_range(tmp_path
 
 # ---------------------------------------------------------------------------------------------- the supervisor
 def _supervisor() -> Any:
-    from app.config import SafetyConfig
-    from app.safety import SafetySupervisor
+    from app.core.config import SafetyConfig
+    from app.safety.supervisor import SafetySupervisor
 
     sup = SafetySupervisor(SafetyConfig())
     events: list[tuple[str, dict[str, Any]]] = []
@@ -89,14 +89,14 @@ def _supervisor() -> Any:
 
 
 def _lease(compose: tuple[Any, ...] = (), devices: frozenset[str] = frozenset({"robot", "stimulator"})) -> Any:
-    from app.ownership import RUN_SOURCES, Lease
+    from app.core.ownership import RUN_SOURCES, Lease
 
     return Lease(key="run-1", holder="Trigger reaching", devices=devices, sources=RUN_SOURCES, compose=compose,
                  run_id="run-1")
 
 
 def test_a_run_holding_the_robot_refuses_every_other_source_with_a_sentence(qapp: Any) -> None:
-    from app.safety import SafetyError
+    from app.safety.supervisor import SafetyError
 
     sup = _supervisor()
     sup.take_lease(_lease())
@@ -130,7 +130,7 @@ def test_a_run_holding_the_robot_refuses_every_other_source_with_a_sentence(qapp
     released = next(d for k, d in sup.recorded if k == "lease_released")
     assert released["holder"] == "Trigger reaching" and released["reason"] == "finished"
     sup.check_robot_command("setAssistanceTargetPos", {"Apos": 0.1}, "VR task")  # nobody holds it now
-    from app.ownership import Lease
+    from app.core.ownership import Lease
 
     sup.take_lease(_lease())
     with pytest.raises(SafetyError, match="held by Trigger reaching"):  # one owner at a time
@@ -140,8 +140,8 @@ def test_a_run_holding_the_robot_refuses_every_other_source_with_a_sentence(qapp
 def test_a_composed_target_is_clamped_to_the_runs_range_and_the_patients_limits(qapp: Any) -> None:
     from dataclasses import replace
 
-    from app.ownership import Composition
-    from app.safety import SafetyError
+    from app.core.ownership import Composition
+    from app.safety.supervisor import SafetyError
 
     sup = _supervisor()
     sup.robot = replace(sup.robot, position_min_m=0.18, position_max_m=0.40)  # the patient's narrower range
@@ -160,7 +160,7 @@ def test_a_composed_target_is_clamped_to_the_runs_range_and_the_patients_limits(
 
 
 def test_the_exercises_declare_what_they_hold_and_compose() -> None:
-    from app.exercises import find_exercise
+    from app.therapy.exercises import find_exercise
 
     assisted = find_exercise("assisted_reaching_fes")
     params = {**assisted.defaults(), "start_m": 0.15, "target_m": 0.35}
@@ -177,9 +177,9 @@ def test_losing_a_link_the_running_owner_refuses_is_a_warning_not_a_stop(qapp: A
     it (under load it did; the set-up never used it). A program's run may read α itself: there it stays a STOP."""
     from types import SimpleNamespace
 
+    from app.core.ownership import RUN_SOURCES, Composition, Lease
     from app.manager import LinarmppManager
-    from app.ownership import RUN_SOURCES, Composition, Lease
-    from app.safety import AlarmLevel
+    from app.safety.supervisor import AlarmLevel
 
     manager = LinarmppManager(AppConfig(), factories={})
     manager.fault_policy.loss_level = lambda _device: AlarmLevel.STOP  # an actuator is active

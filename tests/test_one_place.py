@@ -2,16 +2,16 @@
 ``app/`` with ``ast`` and fails on a literal copy, naming the file and line:
 
 * the stimulator's maximum current (``sciencemode.MAX_CURRENT_MA``, 126 mA): no number 126, no "126 mA" in a
-  text, outside ``app/devices/sciencemode.py``;
+  text, outside ``app/wire/sciencemode.py``;
 * its channels (``sciencemode.CHANNELS``, 1..8): no ``1 <= ch <= 8``, ``range(1, 9)``, ``range(8)``,
   ``rng(1, 8)``, ``X_CHANNELS = 8``, and no "1..8" / "8 channels" in a message (messages are built from
   ``CHANNELS_TEXT``);
 * the robot's limit ranges (``config.ROBOT_LIMIT_RANGES``, read from the constants table
-  ``app/devices/linarm_constants.py``): a robot-limit field (position_min_m, max_velocity_m_s, ...) is never
+  ``app/wire/linarm_constants.py``): a robot-limit field (position_min_m, max_velocity_m_s, ...) is never
   given a range of typed numbers; and a pulse-width field's range never types ``MAX_PULSE_WIDTH_US``;
-* the device ids (``app/streams.py``: LINARM, PHYSIO, FES, PATIENT_MODEL, VR): no string literal "linarm",
+* the device ids (``app/core/streams.py``: LINARM, PHYSIO, FES, PATIENT_MODEL, VR): no string literal "linarm",
   "fes", "physio", "patient_model", "vr" as a call's argument, a comparison's operand or a dict's key outside
-  ``app/streams.py`` (the script API's object names in ``app/scripting/`` are the seed's public API, not ids);
+  ``app/core/streams.py`` (the script API's object names in ``app/scripting/`` are the seed's public API, not ids);
   the few literals that are not device ids are listed below with the reason.
 """
 
@@ -23,9 +23,9 @@ from collections.abc import Iterator
 from functools import cache
 from pathlib import Path
 
-from app import streams
-from app.config import ROBOT_LIMIT_RANGES
-from app.devices import sciencemode
+from app.core import streams
+from app.core.config import ROBOT_LIMIT_RANGES
+from app.wire import sciencemode
 
 ROOT = Path(__file__).resolve().parents[1]
 APP = ROOT / "app"
@@ -34,9 +34,9 @@ APP = ROOT / "app"
 NOT_DEVICE_IDS: dict[tuple[str, str], str] = {
     ("app/ui/patient_dialog.py", '"fes": {"profile"'): "the profile file's 'fes' section (its format)",
     ("app/archive/store.py", '"fes": {"profile"'): "the profile file's 'fes' section (its format)",
-    ("app/metrics.py", '.get("fes")'): "the recorded configuration's 'fes' section (its format)",
+    ("app/session/metrics.py", '.get("fes")'): "the recorded configuration's 'fes' section (its format)",
     ("app/research_export/bids.py", '"physio")'): "a BIDS data type (the BIDS specification's word)",
-    ("app/clinical_words.py", '_API_WORDS = {"linarm": "robot", "fes": "stimulator"'):
+    ("app/session/clinical_words.py", '_API_WORDS = {"linarm": "robot", "fes": "stimulator"'):
         "the script API's object names (the seed's public API)",
 }
 
@@ -80,7 +80,7 @@ def test_the_maximum_current_is_typed_once() -> None:
     assert sciencemode.MAX_CURRENT_MA == 126  # the fact this test looks for
     found = []
     for rel, (_text, tree) in _sources().items():
-        if rel == "app/devices/sciencemode.py":
+        if rel == "app/wire/sciencemode.py":
             continue
         for node in ast.walk(tree):
             if _number(node) == sciencemode.MAX_CURRENT_MA and isinstance(node, ast.Constant):
@@ -97,7 +97,7 @@ def test_the_channels_are_typed_once() -> None:
     assert (first, last, len(sciencemode.CHANNELS)) == (1, 8, 8)
     found = []
     for rel, (_text, tree) in _sources().items():
-        if rel == "app/devices/sciencemode.py":
+        if rel == "app/wire/sciencemode.py":
             continue
         for node in ast.walk(tree):
             if isinstance(node, ast.Compare) and len(node.comparators) == 2:
@@ -106,7 +106,7 @@ def test_the_channels_are_typed_once() -> None:
                     found.append(_line(rel, node))
             elif isinstance(node, ast.Call) and _call_name(node) in ("range", "rng"):
                 args = [_number(a) for a in node.args[:2]]
-                crc_bits = rel == "app/devices/physio_codec.py"  # range(8): the 8 bits of a CRC byte
+                crc_bits = rel == "app/wire/physio_codec.py"  # range(8): the 8 bits of a CRC byte
                 if _call_name(node) == "range" and (args == [first, last + 1] or (args == [last] and not crc_bits)):
                     found.append(_line(rel, node))
                 elif _call_name(node) == "rng" and args == [first, last]:
@@ -146,7 +146,7 @@ def test_device_ids_are_spelled_in_one_place() -> None:
     found = []
     used: set[tuple[str, str]] = set()
     for rel, (text, tree) in _sources().items():
-        if rel == "app/streams.py" or rel.startswith("app/scripting/"):
+        if rel == "app/core/streams.py" or rel.startswith("app/scripting/"):
             continue
         lines = text.splitlines()
         candidates: list[ast.AST] = []

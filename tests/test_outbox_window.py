@@ -14,8 +14,8 @@ from typing import Any
 
 from app.archive import station
 from app.archive.store import open_archive
-from app.config import AppConfig, ArchiveConfig
-from app.patients import PatientProfile
+from app.core.config import AppConfig, ArchiveConfig
+from app.therapy.patients import PatientProfile
 
 
 def _archived(url: str) -> int:

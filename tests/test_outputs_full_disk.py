@@ -13,9 +13,9 @@ from pathlib import Path
 
 import pytest
 
-from app.export import export_csv
-from app.outputs import OutputError, pdf_page_count
-from app.recording import load_session
+from app.core.outputs import OutputError, pdf_page_count
+from app.session.export import export_csv
+from app.session.recording import load_session
 from tests.mounts import entries, full_disk, read_only
 from tests.run_sessions import clinic_day_runs, write_run_session
 

@@ -15,7 +15,8 @@ from types import SimpleNamespace
 import pytest
 
 import app
-from app import cli, resources
+from app import cli
+from app.core import resources
 
 ROOT = Path(__file__).resolve().parent.parent
 PYPROJECT = tomllib.loads((ROOT / "pyproject.toml").read_text(encoding="utf-8"))
@@ -30,8 +31,8 @@ def test_resources_are_found_from_the_checkout() -> None:
 
 
 def test_the_lookups_of_other_modules_go_through_app_resources() -> None:
-    from app.config import DEFAULT_CONFIG_FILE, RESOURCES
-    from app.patient_model.decision_tree import DEFAULT_CONFIG_PATH
+    from app.core.config import DEFAULT_CONFIG_FILE, RESOURCES
+    from app.devices.sim.patient_model.decision_tree import DEFAULT_CONFIG_PATH
 
     assert RESOURCES == resources.RESOURCES and DEFAULT_CONFIG_FILE == resources.DEFAULT_CONFIG_FILE
     assert DEFAULT_CONFIG_PATH == resources.PATIENT_MODEL_FILE
@@ -49,7 +50,7 @@ def test_every_package_of_the_application_is_in_the_wheel_list() -> None:
 
 
 def test_the_version_is_the_projects_in_about_manifest_and_command_line(capsys, monkeypatch) -> None:
-    from app.recording import app_version
+    from app.session.recording import app_version
 
     version = PYPROJECT["project"]["version"]
     assert app.__version__ == version and app_version() == version
@@ -87,7 +88,7 @@ def test_the_windows_gui_command_without_a_console_shows_a_refused_configuration
     monkeypatch.setattr(QMessageBox, "critical", lambda _parent, _title, text: shown.append(text))
     monkeypatch.setattr(cli, "_no_console", False)
     # Logging is not under test; its console handler would keep the stand-in stream closed below.
-    monkeypatch.setattr("app.logging_setup.setup_logging", lambda *_a, **_k: tmp_path / "log")
+    monkeypatch.setattr("app.core.logging_setup.setup_logging", lambda *_a, **_k: tmp_path / "log")
     monkeypatch.setattr(sys, "argv", ["linarmpp-gui", "--config", str(bad)])
     monkeypatch.setattr(sys, "stdout", None)  # pythonw: no console streams at all
     monkeypatch.setattr(sys, "stderr", None)

@@ -25,8 +25,8 @@ from typing import Any
 import pytest
 from PySide6.QtWidgets import QTableWidgetItem
 
-from app.config import AppConfig
-from app.patients import (
+from app.core.config import AppConfig
+from app.therapy.patients import (
     ClinicalChannelCap,
     PatientFes,
     PatientProfile,
@@ -96,7 +96,7 @@ def _profile(patient_id: str) -> PatientProfile:
 def _setup_result(district_name: str) -> Any:
     """What an electrode set-up of ``district_name`` measured (every combination up to 10 mA): the dialog's
     Choose saves one of them."""
-    from app.electrodes import CombinationResult, SetupPlan, SetupResult, districts_from_config
+    from app.therapy.electrodes import CombinationResult, SetupPlan, SetupResult, districts_from_config
 
     district = districts_from_config(CFG.devices.fes.electrodes)[district_name]
     return SetupResult(district, SetupPlan(ceiling_ma=10.0),
@@ -311,9 +311,9 @@ def test_an_unreachable_archive_lets_the_station_run_and_says_patients_cannot_be
         qtbot: Any, tmp_path: Path, monkeypatch: Any) -> None:
     import socket
 
-    from app.config import ArchiveConfig
+    from app.core.config import ArchiveConfig
     from app.manager import LinarmppManager
-    from app.patients import PatientError
+    from app.therapy.patients import PatientError
     from app.ui.patients_window import PatientsDialog
     from tests.fakes import counter_factory
 
@@ -392,8 +392,8 @@ def test_a_sessions_electrode_choice_of_a_district_chosen_meanwhile_elsewhere_is
         qtbot: Any, tmp_path: Path, stations: Stations) -> None:
     """Two choices of one district from two copies: the second is not saved over the first; the dialog says who
     chose it, where and when; the first choice stays."""
-    from app.electrodes import choice_for
     from app.manager import LinarmppManager
+    from app.therapy.electrodes import choice_for
     from app.ui.electrode_setup import ElectrodeSetupDialog
     from tests.fakes import counter_factory
 

@@ -14,10 +14,9 @@ from dataclasses import dataclass
 
 import pytest
 
-from app import streams
-from app.assistance import AssistanceSplit
-from app.bus import StreamBus
-from app.config import AppConfig
+from app.core import streams
+from app.core.bus import StreamBus
+from app.core.config import AppConfig
 from app.devices.linarm import VSA_STREAM
 from app.devices.patient_model import (
     DeviceFrameSource,
@@ -28,8 +27,11 @@ from app.devices.patient_model import (
     path_text,
 )
 from app.devices.physio import PHYSIO_STREAM
+from app.devices.sim.patient_model.decision_tree import DecisionTree
+from app.devices.sim.patient_model.process import EmbeddedPatientModel, ParentWatch, SubtaskJudge, serve
 from app.devices.transport import UdpTransport
-from app.devices.udp_frames import (
+from app.safety.assistance import AssistanceSplit
+from app.wire.udp_frames import (
     PatientModelFrame,
     PatientModelReply,
     TaskData,
@@ -38,8 +40,6 @@ from app.devices.udp_frames import (
     encode_patient_model_frame,
     encode_patient_model_reply,
 )
-from app.patient_model.decision_tree import DecisionTree
-from app.patient_model.process import EmbeddedPatientModel, ParentWatch, SubtaskJudge, serve
 
 HOST = "127.0.0.1"
 
@@ -270,7 +270,8 @@ def test_the_process_exits_when_no_frame_comes() -> None:
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
 def test_the_process_exits_when_its_parent_dies() -> None:
     code = ("import os, subprocess, sys;"
-            "p = subprocess.Popen([sys.executable, '-m', 'app.patient_model.process', '--listen', sys.argv[1],"
+            "p = subprocess.Popen([sys.executable, '-m', 'app.devices.sim.patient_model.process',"
+            " '--listen', sys.argv[1],"
             " '--peer', sys.argv[2], '--idle-exit', '0', '--parent-pid', str(os.getpid())], stdout=subprocess.DEVNULL,"
             " stderr=subprocess.DEVNULL);"
             "print(p.pid, flush=True)")

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from app.devices.patient_model import PatientModelSample
-from app.patient_model.decision_tree import DecisionTree
+from app.devices.sim.patient_model.decision_tree import DecisionTree
 from app.ui.patient_model_viewer import DecisionTreeView, PatientModelViewer
 from tests.conftest import screenshot_path
 

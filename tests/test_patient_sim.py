@@ -8,9 +8,9 @@ import threading
 import numpy as np
 import pytest
 
-from app.devices.physio_codec import PhysioStreamDecoder, decode_frames
 from app.devices.sim.patient import GripMode, HandleMode, SimulatedPatient
 from app.devices.sim.physio_signals import PhysioSimSource
+from app.wire.physio_codec import PhysioStreamDecoder, decode_frames
 
 DT = 0.01
 

@@ -6,8 +6,8 @@ from dataclasses import replace
 
 import pytest
 
-from app.config import AppConfig, FesChannelCaps, FesSafety, SafetyConfig
-from app.patients import (
+from app.core.config import AppConfig, FesChannelCaps, FesSafety, SafetyConfig
+from app.therapy.patients import (
     ClinicalChannelCap,
     ClinicalScores,
     PatientAssistance,

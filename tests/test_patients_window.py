@@ -10,8 +10,8 @@ import pytest
 from PySide6.QtCore import QSettings, Qt
 from PySide6.QtWidgets import QDialogButtonBox, QLineEdit
 
-from app.config import AppConfig
-from app.patients import PatientProfile, PlannedExercise, load_patient, plan_problems, save_patient
+from app.core.config import AppConfig
+from app.therapy.patients import PatientProfile, PlannedExercise, load_patient, plan_problems, save_patient
 from tests.clipping import clipped_texts
 
 SAFETY = AppConfig().safety

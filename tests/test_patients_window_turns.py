@@ -18,7 +18,7 @@ from PySide6.QtCore import QTimer
 
 from app.archive import station
 from app.archive.store import open_archive
-from app.config import AppConfig
+from app.core.config import AppConfig
 from tests.archive_data import full_profile
 
 SAFETY = AppConfig().safety

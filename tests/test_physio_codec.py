@@ -12,7 +12,9 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from app.devices.physio_codec import (
+from app.devices.sim.patient import SimulatedPatient
+from app.devices.sim.physio_signals import PhysioSimSource
+from app.wire.physio_codec import (
     FLAG_PPG_FAULT,
     PHYSIO_FRAME_SIZE,
     PHYSIO_HEADER,
@@ -28,8 +30,6 @@ from app.devices.physio_codec import (
     decode_frames,
     encode_physio_frame,
 )
-from app.devices.sim.patient import SimulatedPatient
-from app.devices.sim.physio_signals import PhysioSimSource
 
 SETTINGS = settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 
@@ -332,7 +332,7 @@ def test_paths_agree_on_overlapping_valid_frames_and_headers_inside_frames() -> 
 
 
 def test_a_read_at_the_nominal_rate_takes_the_python_path(monkeypatch: pytest.MonkeyPatch) -> None:
-    import app.devices.physio_codec as codec
+    import app.wire.physio_codec as codec
 
     def no_numpy(*_a: object) -> None:
         raise AssertionError("numpy path used for one frame")

@@ -6,13 +6,13 @@ import time
 
 import pytest
 
-from app.config import AppConfig
+from app.core.config import AppConfig
 from app.devices.physio import PhysioDriver
-from app.devices.physio_codec import Calibration
 from app.devices.sim.adapters import PhysioSimCore
 from app.devices.sim.base import SerialSimulator
 from app.devices.sim.patient import SimulatedPatient
 from app.devices.transport import SerialTransport
+from app.wire.physio_codec import Calibration
 
 
 def start_pair(tmp_path, rate_hz: float):

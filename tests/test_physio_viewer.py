@@ -9,11 +9,15 @@ import math
 
 import pytest
 
-from app.bus import StreamBus
-from app.config import AppConfig, PhysioCalibration
+from app.core.bus import StreamBus
+from app.core.config import AppConfig, PhysioCalibration
 from app.devices import physio
 from app.devices.physio import PHYSIO_STREAM
-from app.devices.physio_codec import (
+from app.devices.sim.adapters import PhysioSimCore
+from app.manager import DeviceHandle, LinarmppManager
+from app.ui.physio_viewer import DASH, PULSE_SUBSCRIBER, TILE_ORDER, PhysioViewer, fault_words, format_value
+from app.ui.theme import colours
+from app.wire.physio_codec import (
     FLAG_ADC_OVERRUN,
     FLAG_FORCE_FAULT,
     FLAG_PPG_FAULT,
@@ -21,10 +25,6 @@ from app.devices.physio_codec import (
     Calibration,
     PhysioSample,
 )
-from app.devices.sim.adapters import PhysioSimCore
-from app.manager import DeviceHandle, LinarmppManager
-from app.ui.physio_viewer import DASH, PULSE_SUBSCRIBER, TILE_ORDER, PhysioViewer, fault_words, format_value
-from app.ui.theme import colours
 
 
 class GlitchyBoard:

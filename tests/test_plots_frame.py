@@ -12,8 +12,8 @@ from PySide6.QtGui import QImage
 from PySide6.QtTest import QTest
 from PySide6.QtWidgets import QFileDialog
 
-from app.bus import Channel, SampleBatch, StreamSpec
-from app.config import AppConfig
+from app.core.bus import Channel, SampleBatch, StreamSpec
+from app.core.config import AppConfig
 from app.manager import LinarmppManager
 from app.ui.plots_frame import PlotsFrame
 from app.ui.signal_store import SignalStore, shared_store
@@ -328,8 +328,8 @@ def test_costly_frames_slow_the_redraw_down_to_keep_the_gui_thread_free(qtbot) -
 def test_fes_channels_named_by_number_and_muscle_and_exports_carry_the_session(qtbot, tmp_path: Path) -> None:
     """Issue #19: eight identical "Current c…" rows; Save CSV as "signals.csv" in raw monotonic
     seconds; PNGs of ~640×260 without patient, date or units."""
+    from app.core.fes_profile import load_profile
     from app.devices import rehastim
-    from app.fes_profile import load_profile
     from app.ui.fes_panel import PROFILES_DIR
 
     manager = LinarmppManager(AppConfig(), factories={"fes": rehastim.create})

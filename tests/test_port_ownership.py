@@ -18,13 +18,13 @@ from pathlib import Path
 import pytest
 import serial
 
-from app.bus import DeviceEvent, Subscription
-from app.config import AppConfig, SimulationConfig
+from app.core.bus import DeviceEvent, Subscription
+from app.core.config import AppConfig, SimulationConfig
 from app.devices import linarm, transport
-from app.devices import linarm_protocol as proto
 from app.devices.transport import PtyLink, SerialTransport, SocketLink, TransportError
 from app.manager import LinarmppManager
-from app.safety import AlarmLevel
+from app.safety.supervisor import AlarmLevel
+from app.wire import linarm_protocol as proto
 
 ROOT = Path(__file__).resolve().parent.parent
 

@@ -1,4 +1,4 @@
-"""The real-time process's priority (app/priority.py): raised where the system allows it, every thread of the
+"""The real-time process's priority (app/core/priority.py): raised where the system allows it, every thread of the
 process (Linux's nice is per thread), the heavy work's worker at its own lower priority whatever it inherits, and
 a plain sentence where it is not allowed."""
 
@@ -10,8 +10,8 @@ from pathlib import Path
 
 import pytest
 
-from app import priority
-from app.priority import REALTIME_NICE, raise_for_real_time
+from app.core import priority
+from app.core.priority import REALTIME_NICE, raise_for_real_time
 
 pytestmark = pytest.mark.skipif(not Path("/proc/self/task").is_dir(), reason="Linux's per-thread nice")
 
@@ -71,7 +71,7 @@ def test_where_it_is_not_allowed_the_process_runs_on_and_says_why(fresh_outcome,
 
     monkeypatch.setattr(priority.os, "getpriority", lambda *_a: 0)
     monkeypatch.setattr(priority.os, "setpriority", denied)
-    with caplog.at_level("INFO", logger="app.priority"):
+    with caplog.at_level("INFO", logger="app.core.priority"):
         outcome = raise_for_real_time()
     assert not outcome.raised and outcome.nice == 0
     assert "normal priority" in outcome.sentence and "RLIMIT_NICE" in outcome.sentence

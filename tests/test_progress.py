@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from app.progress import ExerciseProgress
+from app.core.progress import ExerciseProgress
 
 
 class Clock:

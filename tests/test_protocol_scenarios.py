@@ -35,8 +35,9 @@ from typing import Any, Protocol
 import pytest
 import yaml
 
-from app.devices.cmdmessenger import CmdMessengerDecoder
-from app.devices.linarm_protocol import (
+from app.devices.sim.linarm_model import LinarmSimCore
+from app.wire.cmdmessenger import CmdMessengerDecoder
+from app.wire.linarm_protocol import (
     Ack,
     ErrorEvent,
     ErrorReply,
@@ -49,7 +50,6 @@ from app.devices.linarm_protocol import (
     encode_command,
     next_seq,
 )
-from app.devices.sim.linarm_model import LinarmSimCore
 
 SCENARIO_DIR = Path(__file__).resolve().parent / "protocol_scenarios"
 HEARTBEAT_PERIOD = 0.1

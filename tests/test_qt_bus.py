@@ -10,7 +10,7 @@ from types import SimpleNamespace
 import numpy as np
 from PySide6.QtCore import QObject
 
-from app.bus import Channel, StreamBus, StreamSpec
+from app.core.bus import Channel, StreamBus, StreamSpec
 from app.ui.qt_bus import BATCHES_NAME, EVENTS_NAME, QtBus, takes_qt_bus
 
 MAIN = StreamSpec("dev.main", (Channel("x", "m", "X"), Channel("f", "N", "F")), 100.0)

@@ -15,7 +15,7 @@ from PySide6.QtCore import QEvent, Qt
 from PySide6.QtGui import QKeyEvent
 from PySide6.QtWidgets import QApplication
 
-from app.config import AppConfig
+from app.core.config import AppConfig
 from app.manager import LinarmppManager
 from tests.fakes import counter_factory
 
@@ -88,7 +88,7 @@ def test_session_files_and_folders_are_private(tmp_path, qtbot, manager, monkeyp
     old = os.umask(0o022)  # a typical login umask: the app must not depend on it
     try:
         monkeypatch.setenv("LINARMPP_HOME", str(tmp_path / "home"))
-        from app import paths
+        from app.core import paths
 
         assert mode(paths.data_dir()) == 0o700 and mode(paths.sessions_dir()) == 0o700
         folder = manager.start_session("PRIV01", "tester", root=paths.sessions_dir())
@@ -97,7 +97,7 @@ def test_session_files_and_folders_are_private(tmp_path, qtbot, manager, monkeyp
             assert mode(p) == 0o700, p
         files = [p for p in folder.rglob("*") if p.is_file()]
         assert files and all(mode(p) == 0o600 for p in files), [(p.name, oct(mode(p))) for p in files]
-        from app import logging_setup
+        from app.core import logging_setup
 
         monkeypatch.setattr(logging_setup, "_configured", None)
         root = logging.getLogger()
@@ -116,7 +116,7 @@ def test_session_files_and_folders_are_private(tmp_path, qtbot, manager, monkeyp
 
 def test_manifest_rates_are_the_configured_ones(tmp_path) -> None:
     from app.devices.physio import PHYSIO_STREAM
-    from app.recording import configured_rate_hz
+    from app.session.recording import configured_rate_hz
 
     cfg = AppConfig()
     cfg = replace(cfg, devices=replace(cfg.devices, physio=replace(cfg.devices.physio, rate_hz=250.0)))
@@ -125,15 +125,15 @@ def test_manifest_rates_are_the_configured_ones(tmp_path) -> None:
 
 def test_fes_channels_declared_irregular_to_lsl() -> None:
     from app.devices.rehastim import FES_STREAM
-    from app.lsl import lsl_rate_hz
+    from app.session.lsl import lsl_rate_hz
 
     assert lsl_rate_hz(AppConfig(), "fes", FES_STREAM) == 0.0
 
 
 def test_headless_with_recording_lsl_publishes_outlets(tmp_path, qtbot, monkeypatch) -> None:
-    from app import lsl
     from app.devices import registry
     from app.scripting import headless
+    from app.session import lsl
 
     started: list[object] = []
 

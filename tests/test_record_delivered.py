@@ -15,12 +15,18 @@ from pathlib import Path
 
 import pytest
 
-from app.alarm_count import alarm_count
-from app.clinical_words import ROBOT_ERROR_WORDS, plain
-from app.devices.linarm_protocol import ErrorState
-from app.recording import load_session, read_events
-from app.reports import exercise_identity, progress_rows, run_reports, write_progress_report, write_session_report
-from app.runs import Program, text_hash
+from app.core.runs import Program, text_hash
+from app.session.alarm_count import alarm_count
+from app.session.clinical_words import ROBOT_ERROR_WORDS, plain
+from app.session.recording import load_session, read_events
+from app.session.reports import (
+    exercise_identity,
+    progress_rows,
+    run_reports,
+    write_progress_report,
+    write_session_report,
+)
+from app.wire.linarm_protocol import ErrorState
 from tests.conftest import screenshot_path
 from tests.delivered_session import EXPECTED_ALARMS, SEED_SCRIPT, write_delivered_session
 from tests.pdf_layout import overlaps, pdf_text
@@ -144,7 +150,7 @@ def test_the_sign_off_sits_on_the_page_with_the_summary(day) -> None:
 @needs_poppler
 def test_one_alarm_count_in_the_reports_the_run_summaries_and_the_sessions_browser(qtbot, day, tmp_path) -> None:
     """8 in the browser, 11 in the progress PDF (#36): the browser counted INFO messages, the reports counted each
-    STOP twice. One definition (app/alarm_count.py) now: this session has 7."""
+    STOP twice. One definition (app/session/alarm_count.py) now: this session has 7."""
     from app.ui.sessions_browser import SessionsBrowser
 
     folder, pdf = day
@@ -199,7 +205,7 @@ def _program(kind: str, ident: str, title: str, path: Path | str = "", text: str
 def test_the_progress_pdf_lists_one_exercise_under_one_name(tmp_path: Path) -> None:
     """The library's trigger reaching from the Exercises tab, its seed script from the Script tab, and the library
     exercise's own script run headless are one exercise; a clinic's own script stays its own."""
-    from app.exercises import find_exercise
+    from app.therapy.exercises import find_exercise
 
     root = tmp_path / "sessions"
     library = find_exercise("trigger_reaching")

@@ -12,12 +12,12 @@ from typing import Any
 import numpy as np
 import pytest
 
-from app.bus import Channel, StreamBus, StreamSpec
-from app.config import AppConfig, config_as_dict
+from app.core.bus import Channel, StreamBus, StreamSpec
+from app.core.config import AppConfig, config_as_dict
 from app.devices import physio
 from app.manager import LinarmppManager
-from app.recording import SessionRecorder, list_sessions, load_session, summarize_session
-from app.safety import AlarmLevel, SafetySupervisor
+from app.safety.supervisor import AlarmLevel, SafetySupervisor
+from app.session.recording import SessionRecorder, list_sessions, load_session, summarize_session
 from tests.fakes import counter_factory
 
 ISO_WITH_ZONE = re.compile(r"^\d{4}-\d\d-\d\dT\d\d:\d\d:\d\d(\.\d+)?[+-]\d\d:\d\d$")
@@ -96,7 +96,7 @@ def test_ten_second_session_is_complete(tmp_path, qtbot) -> None:
 
 # ---------------------------------------------------------------------------------------------- fakes
 class FakeDriver:
-    """A device publishing on the bus (app/bus.py), driven by the test."""
+    """A device publishing on the bus (app/core/bus.py), driven by the test."""
 
     streams = (StreamSpec("fake.main", (Channel("x", "m", "X"), Channel("y", "N", "Y")), 100.0),)
 
@@ -113,7 +113,7 @@ class FakeDriver:
 
 
 def fake_manager() -> tuple[Any, FakeDriver]:
-    """Just what the recorder uses of the application (app.services.SessionHost)."""
+    """Just what the recorder uses of the application (app.therapy.services.SessionHost)."""
     bus = StreamBus()
     driver = FakeDriver(bus)
     config = AppConfig()

@@ -11,17 +11,17 @@ import time
 import numpy as np
 import pytest
 
-from app.recording import load_session, summarize_session
+from app.session.recording import load_session, summarize_session
 from tests.conftest import ROOT
 
 CHILD = r"""
 import sys, time
 from pathlib import Path
 from PySide6.QtCore import QCoreApplication
-from app.config import AppConfig
+from app.core.config import AppConfig
 from app.devices import physio
 from app.manager import LinarmppManager
-from app.recording import SessionRecorder
+from app.session.recording import SessionRecorder
 from tests.fakes import counter_factory
 
 tmp = Path(sys.argv[1])

@@ -13,10 +13,10 @@ from dataclasses import replace
 
 import pytest
 
-from app.config import AppConfig
+from app.core.config import AppConfig
 from app.manager import LinarmppManager
-from app.recording import RecordingError, check_free_space
-from app.safety import AlarmLevel
+from app.safety.supervisor import AlarmLevel
+from app.session.recording import RecordingError, check_free_space
 from tests.fakes import counter_factory
 from tests.test_fault_policy import fill_the_disk
 
@@ -56,7 +56,7 @@ def test_disk_full_is_a_stop_alarm_within_1_s_and_events_survive(tmp_path, qtbot
 
 
 def test_free_space_thresholds(tmp_path, monkeypatch) -> None:
-    from app import recording
+    from app.session import recording
 
     monkeypatch.setattr(recording, "free_space_mib", lambda folder: 500.0)
     assert "500 MiB free" in check_free_space(tmp_path, 1024, 100)
@@ -67,7 +67,7 @@ def test_free_space_thresholds(tmp_path, monkeypatch) -> None:
 
 
 def test_low_disk_space_is_a_warning_alarm(tmp_path, qtbot, manager, monkeypatch) -> None:
-    from app import recording
+    from app.session import recording
 
     monkeypatch.setattr(recording, "free_space_mib", lambda folder: 500.0)
     manager.start_session("DISK04", "tester", root=tmp_path / "sessions")
@@ -76,7 +76,7 @@ def test_low_disk_space_is_a_warning_alarm(tmp_path, qtbot, manager, monkeypatch
 
 
 def test_a_session_is_refused_when_the_disk_is_nearly_full(tmp_path, qtbot, manager, monkeypatch) -> None:
-    from app import recording
+    from app.session import recording
 
     monkeypatch.setattr(recording, "free_space_mib", lambda folder: 10.0)
     with pytest.raises(RecordingError, match="MiB free"):
@@ -166,7 +166,7 @@ def test_a_disk_that_stays_full_says_failed_keeps_the_events_and_leaves_nothing_
     """Issue #25, "disk full mid-session": the manifest stayed ``recording``, 15 events were lost, an empty
     ``.manifest.json.tmp`` was left. Now the space reserve released at the failure holds the manifest
     (``failed``, with what was lost) and every event, with the disk still full at the stop."""
-    from app.recording import RESERVE_FILE, load_session
+    from app.session.recording import RESERVE_FILE, load_session
 
     m = full_disk_manager(tmp_path)
     m.start()
@@ -203,7 +203,7 @@ def test_a_disk_that_stays_full_says_failed_keeps_the_events_and_leaves_nothing_
 
 
 def test_the_start_on_a_full_disk_leaves_no_half_made_session(tmp_path, qtbot, small_tmpfs) -> None:
-    from app.recording import RecordingError
+    from app.session.recording import RecordingError
 
     fill(small_tmpfs)
     (small_tmpfs / "filler").write_bytes(b"")  # room for a folder and a manifest, not for the reserve
@@ -230,7 +230,7 @@ def test_when_not_even_the_manifest_fits_a_sidecar_says_failed(tmp_path, qtbot, 
     """The disk stays full for every new block (the freed reserve taken by another program): the manifest
     cannot be replaced, so ``recording-failed.txt`` says it, the loader and the session list read it, and the
     temp file of the refused manifest is gone."""
-    from app.recording import FAILED_FILE, load_session, summarize_session
+    from app.session.recording import FAILED_FILE, load_session, summarize_session
 
     real_replace = os.replace
 

@@ -10,7 +10,7 @@ from typing import Any
 
 from PySide6.QtWidgets import QMessageBox
 
-from app.config import AppConfig
+from app.core.config import AppConfig
 from app.manager import LinarmppManager
 from app.ui.main_window import MainWindow
 

@@ -6,7 +6,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from app.devices.sciencemode import (
+from app.devices.sim.rehastim_core import RehaStimSimCore, StimulationLogEntry
+from app.wire.sciencemode import (
     ChannelListConfig,
     PulseMode,
     PulseSetting,
@@ -36,7 +37,6 @@ from app.devices.sciencemode import (
     encode_sm2_frame,
     encode_sm2_start,
 )
-from app.devices.sim.rehastim_core import RehaStimSimCore, StimulationLogEntry
 
 FAST = settings(max_examples=200, deadline=None)
 P = PulseSetting

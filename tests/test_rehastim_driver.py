@@ -12,7 +12,8 @@ from types import SimpleNamespace
 import pytest
 import serial
 
-from app.config import AppConfig, FesSafety
+from app.core.config import AppConfig, FesSafety
+from app.core.fes_profile import ChannelProfile, FesProfile, Trapezoid
 from app.devices.rehastim import (
     SERIAL_SETTINGS,
     FesDriver,
@@ -20,14 +21,13 @@ from app.devices.rehastim import (
     create,
     simulated_link_settings,
 )
-from app.devices.sciencemode import PulseMode, PulseSetting, Sm2Result
 from app.devices.sim.adapters import RehaStimSimAdapter
 from app.devices.sim.base import SerialSimulator
 from app.devices.sim.rehastim_core import StimulationLogEntry
 from app.devices.transport import SerialTransport
-from app.fes_limits import FesLimiter, FesLimits
-from app.fes_profile import ChannelProfile, FesProfile, Trapezoid
-from app.safety import SafetyError, SafetySupervisor
+from app.safety.fes_limits import FesLimiter, FesLimits
+from app.safety.supervisor import SafetyError, SafetySupervisor
+from app.wire.sciencemode import PulseMode, PulseSetting, Sm2Result
 
 # Default config limits: 40 mA / 300 µs caps, 40 mA/s and 500 µs/s rise, 1 s start ramp, 10 mA r.m.s.
 DEFAULT_LIMITS = FesLimits.from_config(FesSafety())
@@ -122,7 +122,7 @@ def test_create_uses_the_protocols_settings_on_a_real_port(protocol: str) -> Non
     supervisor = SafetySupervisor(config.safety)
     from pathlib import Path
 
-    from app.bus import StreamBus
+    from app.core.bus import StreamBus
     from app.devices.registry import DeviceContext, SimulatorHosting
 
     ctx = DeviceContext("fes", config.devices.fes, config.safety, StreamBus(), supervisor, Path("/nonexistent"),

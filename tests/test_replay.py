@@ -8,10 +8,10 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from app.bus import Channel, StreamSpec
-from app.config import AppConfig
-from app.recording import RecordedSession, SessionRecorder, load_session
-from app.replay import ReplaySource
+from app.core.bus import Channel, StreamSpec
+from app.core.config import AppConfig
+from app.session.recording import RecordedSession, SessionRecorder, load_session
+from app.session.replay import ReplaySource
 from tests.fakes import ListenerDriver
 from tests.recorder_host import recorder_host
 

@@ -20,7 +20,7 @@ from pathlib import Path
 import pytest
 from PySide6.QtCore import QTimer
 
-from app.recording import load_session
+from app.session.recording import load_session
 from app.ui import replay_window
 from app.ui.plots_frame import LiveViewBox, _TimedGraphics
 from app.ui.replay_window import ReplayWindow

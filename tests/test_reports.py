@@ -15,8 +15,8 @@ import pytest
 
 from app.devices.linarm import VSA_STREAM
 from app.devices.physio import PHYSIO_STREAM
-from app.metrics import session_metrics
-from app.reports import progress_rows, write_progress_report, write_session_report
+from app.session.metrics import session_metrics
+from app.session.reports import progress_rows, write_progress_report, write_session_report
 
 FS = 200.0
 T0 = 1000.0  # the monotonic clock at the session's start
@@ -29,7 +29,7 @@ def min_jerk(tau: np.ndarray) -> np.ndarray:
 
 def write_session(folder: Path, *, reps: int, distance: float, duration: float, fm: int | None = None,
                   alarm: bool = False, day: int = 1) -> Path:
-    """A session folder as app.recording writes it: ``reps`` marked reaches out and back."""
+    """A session folder as app.session.recording writes it: ``reps`` marked reaches out and back."""
     (folder / "streams").mkdir(parents=True)
     total = 1.0 + reps * (duration + 1.0) + 1.0
     t = np.arange(0.0, total, 1 / FS)

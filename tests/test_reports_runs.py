@@ -12,8 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from app.patients import ClinicalScores, PatientProfile
-from app.reports import (
+from app.session.reports import (
     REPETITION_COLUMNS,
     charge_text,
     fmt,
@@ -23,6 +22,7 @@ from app.reports import (
     write_progress_report,
     write_session_report,
 )
+from app.therapy.patients import ClinicalScores, PatientProfile
 from tests.pdf_layout import overlaps, pdf_text
 from tests.run_sessions import LONG_ALARM, RunSpec, clinic_day_runs, write_run_session
 
@@ -89,7 +89,7 @@ def test_fes_charge_is_printed_in_mc(tmp_path: Path) -> None:
 
 def test_the_session_pdf_shows_the_reaction_times_the_screen_shows(qtbot, tmp_path: Path) -> None:
     """The on-screen summary of each run and the PDF's table of that run show the same RT cells."""
-    from app.recording import load_session
+    from app.session.recording import load_session
     from app.ui.session_summary import SessionSummaryDialog
 
     folder = write_run_session(tmp_path / "PZ-017" / "20260301-100000", clinic_day_runs())

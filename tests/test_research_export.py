@@ -12,9 +12,9 @@ import math
 import numpy as np
 import pytest
 
-from app import streams
-from app.recording import load_session
+from app.core import streams
 from app.research_export.command import main as export_main
+from app.session.recording import load_session
 from tests.research_export_data import GRIP_THRESHOLD_N, Recorded, record_session
 
 pyxdf = pytest.importorskip("pyxdf")
@@ -225,11 +225,11 @@ def test_the_known_events_agree_across_the_three_formats(exported) -> None:
 
 
 def test_the_derivatives_are_the_applications_metrics(exported) -> None:
-    """derivatives/linarmpp-metrics, computed one exercise run at a time, are app.metrics' repetitions of the
+    """derivatives/linarmpp-metrics, computed one exercise run at a time, are app.session.metrics' repetitions of the
     whole session (what ``--metrics`` prints)."""
     import pandas as pd
 
-    from app.metrics import metrics_of_session
+    from app.session.metrics import metrics_of_session
 
     expected = metrics_of_session(exported["session"])["repetitions"]
     (path,) = (exported["bids"] / "derivatives" / "linarmpp-metrics").rglob("*_desc-repetitions_metrics.tsv")

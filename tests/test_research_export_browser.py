@@ -12,8 +12,8 @@ import pytest
 from PySide6.QtCore import Qt
 from PySide6.QtWidgets import QProgressDialog, QPushButton
 
-from app import streams
-from app.recording import load_session
+from app.core import streams
+from app.session.recording import load_session
 from app.worker import TaskStatus
 from tests.research_export_data import record_session, synth_session
 

@@ -17,15 +17,15 @@ from typing import Any
 import pytest
 from PySide6.QtCore import QCoreApplication
 
-from app import journal
-from app.config import AppConfig
+from app.core import journal
+from app.core.config import AppConfig
 from app.devices import linarm
-from app.devices import linarm_protocol as proto
-from app.devices.cmdmessenger import CmdMessengerDecoder
-from app.devices.linarm_protocol import ControlState, ErrorState, HomeState
 from app.manager import LinarmppManager
-from app.recording import load_session
-from app.safety import AlarmLevel, SafetySupervisor
+from app.safety.supervisor import AlarmLevel, SafetySupervisor
+from app.session.recording import load_session
+from app.wire import linarm_protocol as proto
+from app.wire.cmdmessenger import CmdMessengerDecoder
+from app.wire.linarm_protocol import ControlState, ErrorState, HomeState
 
 pytestmark = [pytest.mark.sim_in_thread, pytest.mark.realtime]
 
@@ -258,7 +258,7 @@ def test_check_robot_state_idles_on_the_first_sample_and_raises_one_alarm_per_ca
 
 
 def test_repeats_of_a_cause_are_counted_on_its_open_alarm_until_acknowledged(monkeypatch, qtbot) -> None:
-    import app.safety as safety
+    import app.safety.supervisor as safety
 
     sup = SafetySupervisor(AppConfig().safety)
     raised: list[Any] = []

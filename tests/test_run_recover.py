@@ -22,7 +22,7 @@ from PySide6.QtCore import Qt
 from PySide6.QtTest import QTest
 from PySide6.QtWidgets import QMessageBox
 
-from app.config import AppConfig, UdpEndpoint
+from app.core.config import AppConfig, UdpEndpoint
 from app.manager import LinarmppManager
 from app.ui.main_window import MainWindow
 
@@ -302,7 +302,7 @@ def test_f12_recover_continues_the_same_run_with_its_remaining_repetitions_in_tw
 def test_a_run_ended_by_a_safety_stop_is_recorded_as_a_safety_stop(qtbot: Any, window: MainWindow,
                                                                    monkeypatch: Any) -> None:
     """A STOP alarm (not the e-stop) while a plain Stop is on its way: the run's end is the safety stop."""
-    from app.safety import AlarmLevel
+    from app.safety.supervisor import AlarmLevel
 
     manager = window.manager
     console = window.frames["CommandsFrame"].panels["ScriptConsole"]
@@ -330,7 +330,7 @@ def test_a_run_ended_by_a_safety_stop_is_recorded_as_a_safety_stop(qtbot: Any, w
 def test_recover_says_changed_on_disk_only_when_the_file_changed(tmp_path: Path) -> None:
     """Before #36 a script only edited in the editor (unsaved) was "changed on disk"; now that is said only when
     the file itself changed since the run started, and Recover restarts what ran either way."""
-    from app.runs import Program, text_hash
+    from app.core.runs import Program, text_hash
     from app.ui.recovery import script_restart_words
 
     path = tmp_path / "reach.py"

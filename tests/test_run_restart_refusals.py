@@ -9,11 +9,11 @@ import shutil
 from pathlib import Path
 from typing import Any
 
-from app.config import AppConfig
-from app.exercises import exercise_program, load_exercise, run_parameters
+from app.core.config import AppConfig
+from app.core.progress import ExerciseProgress
+from app.core.runs import Program, RunLog, restart_candidate, text_hash
 from app.manager import LinarmppManager
-from app.progress import ExerciseProgress
-from app.runs import Program, RunLog, restart_candidate, text_hash
+from app.therapy.exercises import exercise_program, load_exercise, run_parameters
 from app.ui.exercises_panel import ExercisesPanel
 from app.ui.recovery import RecoverDialog, Restartable
 

@@ -13,10 +13,10 @@ from typing import Any
 
 import pytest
 
-from app.config import AppConfig, UdpEndpoint
+from app.core.config import AppConfig, UdpEndpoint
+from app.core.progress import ExerciseProgress
+from app.core.runs import Program, RunLog, runs_from_events, text_hash
 from app.manager import LinarmppManager
-from app.progress import ExerciseProgress
-from app.runs import Program, RunLog, runs_from_events, text_hash
 from app.scripting.runner import ScriptRunner
 
 pytestmark = pytest.mark.sim_homed  # a homed LINarm from the start: the homing is tested on its own

@@ -1,4 +1,4 @@
-"""The run record (app/runs.py): what the live RunLog writes, runs_from_events reads back the same."""
+"""The run record (app/core/runs.py): what the live RunLog writes, runs_from_events reads back the same."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ from typing import Any
 
 import pytest
 
-from app.runs import Program, RunLog, RunParameter, runs_from_events, text_hash
+from app.core.runs import Program, RunLog, RunParameter, runs_from_events, text_hash
 
 
 class Clock:

@@ -1,5 +1,5 @@
 """One safe reader (issue #40): every file a user or a script names — configuration, patient profile, exercise,
-FES profile, the patient model's tree — is read by ``app.safe_files`` and refused in plain words: too big, not
+FES profile, the patient model's tree — is read by ``app.core.safe_files`` and refused in plain words: too big, not
 UTF-8 (with the line), a folder, missing. The YAML loaders show the same refusal as their ConfigError, naming
 the file (and line)."""
 
@@ -9,11 +9,11 @@ from pathlib import Path
 
 import pytest
 
-from app import safe_files, yamlschema
-from app.config import AppConfig, ConfigError
-from app.exercises import ExerciseError, load_exercise
-from app.patients import PatientError, load_patient
-from app.safe_files import UserFileError, read_user_text
+from app.core import safe_files, yamlschema
+from app.core.config import AppConfig, ConfigError
+from app.core.safe_files import UserFileError, read_user_text
+from app.therapy.exercises import ExerciseError, load_exercise
+from app.therapy.patients import PatientError, load_patient
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -62,7 +62,7 @@ def test_the_yaml_loaders_show_the_same_refusal_with_file_and_line(tmp_path: Pat
 
 
 def test_there_is_one_reader() -> None:
-    """No module but app/safe_files.py opens a user's file itself (the non-blocking open a FIFO needs is its
+    """No module but app/core/safe_files.py opens a user's file itself (the non-blocking open a FIFO needs is its
     mark), and the YAML loader's old reader is gone."""
     assert not hasattr(yamlschema, "read_text")
     assert yamlschema.MAX_FILE_BYTES == safe_files.DEFAULT_MAX_BYTES

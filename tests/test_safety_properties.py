@@ -34,18 +34,18 @@ from hypothesis import strategies as st
 from hypothesis.control import currently_in_test_context
 from PySide6.QtWidgets import QApplication
 
-from app import streams
-from app.bus import SampleItem, Subscription
-from app.config import AppConfig, AssistanceMap, RobotLimits, UdpEndpoint
+from app.core import streams
+from app.core.bus import SampleItem, Subscription
+from app.core.config import AppConfig, AssistanceMap, RobotLimits, UdpEndpoint
 from app.devices import linarm, patient_model
-from app.devices import linarm_protocol as proto
-from app.devices.cmdmessenger import ArduinoReceiver
-from app.devices.linarm_protocol import ControlMode, ControlState, HomeState
-from app.devices.physio_codec import crc16_ccitt
-from app.devices.udp_frames import PATIENT_MODEL_REPLY_LAYOUT, PatientModelReply, encode_patient_model_reply
 from app.manager import LinarmppManager
 from app.scripting.runner import ScriptRunner
 from app.ui.linarm_panel import LinarmPanel
+from app.wire import linarm_protocol as proto
+from app.wire.cmdmessenger import ArduinoReceiver
+from app.wire.linarm_protocol import ControlMode, ControlState, HomeState
+from app.wire.physio_codec import crc16_ccitt
+from app.wire.udp_frames import PATIENT_MODEL_REPLY_LAYOUT, PatientModelReply, encode_patient_model_reply
 
 pytestmark = pytest.mark.sim_homed  # a homed LINarm from the start: the homing is tested on its own
 
@@ -597,7 +597,7 @@ def test_the_properties_are_not_vacuous(rig: Rig) -> None:
     ensure_on(rig, ControlMode.POS_REF_BY_TARGET_POS)  # the controller's limit back to the configured one
 
 
-# ── timed moves and homing parameters (once gaps, closed in app/safety.py) ────────────────────────────────────────────
+# ── timed moves and homing parameters (once gaps, closed in app/safety/supervisor.py) ─────────────────────────────
 
 TIMED_MOVES = ["moveCentreTo", "moveDeltaTo", "setStiffness"]
 

@@ -7,9 +7,9 @@ from types import SimpleNamespace
 
 import pytest
 
-from app import journal
-from app.config import SafetyConfig
-from app.safety import AlarmLevel, SafetyError, SafetySupervisor
+from app.core import journal
+from app.core.config import SafetyConfig
+from app.safety.supervisor import AlarmLevel, SafetyError, SafetySupervisor
 
 
 def sup() -> SafetySupervisor:

@@ -6,7 +6,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from app.devices.sciencemode import (
+from app.wire.sciencemode import (
     MAX_CURRENT_MA,
     BadPacket,
     ChannelListConfig,

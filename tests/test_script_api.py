@@ -12,12 +12,11 @@ from typing import Any
 
 import pytest
 
-from app.bus import StreamBus, UpdateNotifier
-from app.config import RESOURCES, SafetyConfig
-from app.devices import linarm_protocol as proto
+from app.core.bus import StreamBus, UpdateNotifier
+from app.core.config import RESOURCES, SafetyConfig
 from app.devices.linarm import LinarmCommandError, LinarmDriver, LinarmTimeout
 from app.devices.transport import SerialTransport
-from app.safety import SafetySupervisor
+from app.safety.supervisor import SafetySupervisor
 from app.scripting import api
 from app.scripting.api import (
     CommandError,
@@ -27,6 +26,7 @@ from app.scripting.api import (
     ScriptStopped,
     build_api,
 )
+from app.wire import linarm_protocol as proto
 from tests.fakes import BusSamples, fake_bus
 
 # The Appendix's LinarmUser services (5.3.2.1) and members.
@@ -96,7 +96,7 @@ class FesDriver:
 
 class Manager:
     def __init__(self) -> None:
-        from app.config import AppConfig
+        from app.core.config import AppConfig
 
         self.config = AppConfig()
         self.notifier = UpdateNotifier()
@@ -258,7 +258,7 @@ def test_a_missing_sample_or_device_raises_a_clear_error(monkeypatch: pytest.Mon
 
 
 def test_a_read_waits_for_the_first_sample(manager: Manager, objects: dict[str, Any]) -> None:
-    from app.devices.physio_codec import PhysioSample
+    from app.wire.physio_codec import PhysioSample
 
     sample = PhysioSample(1, 0.0, 0.0, 21.5, 33.0, 70.0, 5.0, 0, 0, 0)
 
@@ -320,7 +320,7 @@ def test_fes_calls_reach_the_driver(manager: Manager, ctx: ScriptContext, object
     assert [c[0] for c in fes_driver.calls] == ["load_profile", "start", "current_scale", "pw_scale", "stop"]
     assert fes_driver.calls[1][1] == ("script",)
     fes.writeFile(profile, str(tmp_path / "copy.yaml"))
-    from app.fes_profile import load_profile
+    from app.core.fes_profile import load_profile
 
     assert load_profile(tmp_path / "copy.yaml").channels.keys() == profile.channels.keys()
     assert (RESOURCES / "fes_profiles" / "frontal_reaching.yaml").is_file()

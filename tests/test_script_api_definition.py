@@ -108,7 +108,7 @@ def test_the_bridge_serves_the_api_and_kernel_process_runs_the_process() -> None
 
 
 def test_the_runner_does_not_probe_its_host() -> None:
-    """The runner is typed end to end (app.services.ScriptHost): no getattr / hasattr on what it was handed."""
+    """The runner is typed end to end (app.therapy.services.ScriptHost): no getattr / hasattr on what it was handed."""
     runner = SCRIPTING / "runner.py"
     probes = [f"line {node.lineno}: {ast.unparse(node)[:60]}"
               for node in ast.walk(ast.parse(runner.read_text(encoding="utf-8")))

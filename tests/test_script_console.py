@@ -12,8 +12,8 @@ from typing import Any
 import pytest
 from PySide6.QtCore import QElapsedTimer, Qt, QTimer, QUrl
 
-from app.bus import UpdateNotifier
-from app.config import AppConfig
+from app.core.bus import UpdateNotifier
+from app.core.config import AppConfig
 from app.ui.script_console import ScriptConsole
 from tests.test_script_runner import FakeSupervisor, ScriptHostParts, fake_bus
 

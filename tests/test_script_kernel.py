@@ -14,8 +14,8 @@ from typing import Any
 
 import pytest
 
-from app.config import AppConfig, SafetyConfig
-from app.safety import SafetySupervisor
+from app.core.config import AppConfig, SafetyConfig
+from app.safety.supervisor import SafetySupervisor
 from app.scripting.runner import ScriptRunner
 from tests.test_script_runner import FakeManager, ForceSample, Output, close_runners, started, wait_for
 
@@ -168,7 +168,7 @@ while todo:
     children = list(gc.get_referents(o))
     todo.extend(children)
 imported = []
-for name in ("app.manager", "app.safety", "app.devices.linarm", "app.scripting.api"):
+for name in ("app.manager", "app.safety.supervisor", "app.devices.linarm", "app.scripting.api"):
     try:
         __import__(name)
         imported.append(name)

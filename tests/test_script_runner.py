@@ -12,10 +12,10 @@ from typing import Any
 
 import pytest
 
-from app.bus import StreamBus, UpdateNotifier
-from app.config import AppConfig
-from app.progress import ExerciseProgress
-from app.runs import RunLog
+from app.core.bus import StreamBus, UpdateNotifier
+from app.core.config import AppConfig
+from app.core.progress import ExerciseProgress
+from app.core.runs import RunLog
 from app.scripting.runner import ScriptRunner
 from tests.fakes import BusSamples, fake_bus
 
@@ -88,7 +88,7 @@ class FakeSupervisor:
 
 
 class ScriptHostParts:
-    """The members of app.services.ScriptHost a test's host has besides its config, bus, supervisor and drivers:
+    """The members of app.therapy.services.ScriptHost a test's host has besides its config, bus, supervisor and drivers:
     a run log and progress of their own (the runner records its runs in them), no session, no patient."""
 
     def __init__(self) -> None:
@@ -261,7 +261,7 @@ def test_an_error_is_reported_with_its_line(manager: FakeManager, output: Output
 
 
 def test_a_refused_command_ends_the_script_as_refused(manager: FakeManager, output: Output) -> None:
-    from app.safety import SafetyError
+    from app.safety.supervisor import SafetyError
 
     def refuse(name: str, *args: Any, **kw: Any) -> dict[str, Any]:
         if name == "moveCentreTo":

@@ -15,9 +15,9 @@ from typing import Any
 import numpy as np
 import pytest
 
-from app.config import RESOURCES, AppConfig, UdpEndpoint
-from app.recording import load_session
+from app.core.config import RESOURCES, AppConfig, UdpEndpoint
 from app.scripting.headless import EXIT_ERROR, EXIT_OK, HEADLESS_PATIENT, run_headless
+from app.session.recording import load_session
 
 pytestmark = [pytest.mark.slow, pytest.mark.sim_homed]  # the homing is tested on its own
 

@@ -15,10 +15,10 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from app import recording
-from app.bus import Channel, StreamSpec
-from app.config import AppConfig
-from app.recording import SessionRecorder, columns_path, index_session, load_session
+from app.core.bus import Channel, StreamSpec
+from app.core.config import AppConfig
+from app.session import recording
+from app.session.recording import SessionRecorder, columns_path, index_session, load_session
 from tests.fakes import ListenerDriver
 from tests.long_session import RATES, T0, shared_long_session
 from tests.recorder_host import recorder_host
@@ -98,9 +98,9 @@ def test_a_side_file_that_no_longer_matches_its_csv_is_ignored(tmp_path: Path) -
 
 
 def test_a_malformed_event_or_a_forged_time_is_listed_not_fatal(tmp_path: Path, qtbot) -> None:  # type: ignore[no-untyped-def]
-    from app.metrics import metrics_of_session
-    from app.outputs import pdf_page_count
-    from app.reports import save_session_report
+    from app.core.outputs import pdf_page_count
+    from app.session.metrics import metrics_of_session
+    from app.session.reports import save_session_report
     from app.ui.replay_window import ReplayWindow
 
     folder = write_run_session(tmp_path / "P1" / "20260301-100000", clinic_day_runs())
@@ -129,7 +129,8 @@ def test_a_malformed_event_or_a_forged_time_is_listed_not_fatal(tmp_path: Path, 
 
 
 def test_load_session_keeps_its_public_shape(tmp_path: Path) -> None:
-    """app.export, app.metrics, the archive and the BIDS/XDF export read sessions through load_session: the
+    """app.session.export, app.session.metrics, the archive and the BIDS/XDF export read sessions through load_session:
+    the
     fields they use stay (a stream's arrays, channels, device, rate; the session's manifest, events, problems)."""
     folder = write_run_session(tmp_path / "P1" / "20260301-100000", clinic_day_runs())
     session = load_session(folder)

@@ -11,12 +11,12 @@ import pytest
 from PySide6.QtCore import Qt
 from PySide6.QtWidgets import QDialogButtonBox, QTableWidgetItem
 
-from app.bus import Channel, StreamSpec
-from app.config import AppConfig
-from app.export import load_hdf5
-from app.patients import PatientProfile, load_patient, save_patient
-from app.recording import SessionRecorder, load_session
-from app.safety import AlarmLevel, SafetySupervisor
+from app.core.bus import Channel, StreamSpec
+from app.core.config import AppConfig
+from app.safety.supervisor import AlarmLevel, SafetySupervisor
+from app.session.export import load_hdf5
+from app.session.recording import SessionRecorder, load_session
+from app.therapy.patients import PatientProfile, load_patient, save_patient
 from tests.fakes import ListenerDriver
 from tests.recorder_host import recorder_host
 
@@ -172,7 +172,7 @@ def test_start_session_needs_patient_and_operator(home, qtbot) -> None:
 def test_statuses_say_what_happened(home, qtbot) -> None:
     """Issue #19: aborted exercises and stop alarms are not "complete"; the session being recorded
     is "in progress", not "interrupted"."""
-    from app.recording import list_sessions
+    from app.session.recording import list_sessions
     from app.ui.sessions_browser import SessionsBrowser, session_status
 
     root = home / "sessions"

@@ -11,7 +11,7 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from app.bus import Channel, SampleBatch, StreamBus, StreamSpec
+from app.core.bus import Channel, SampleBatch, StreamBus, StreamSpec
 from app.ui.qt_bus import QtBus
 from app.ui.signal_store import BLOCK, SignalStore
 from tests.fakes import CounterDriver, make_counter_device

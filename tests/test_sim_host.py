@@ -20,7 +20,7 @@ from pathlib import Path
 
 import pytest
 
-from app.devices.linarm_protocol import WATCHDOG_TIMEOUT, ControlState, ErrorState
+from app.wire.linarm_protocol import WATCHDOG_TIMEOUT, ControlState, ErrorState
 from tests.test_architecture import QT_MODULES
 
 pytestmark = pytest.mark.sim_homed  # a homed LINarm from the start: the homing is tested on its own
@@ -35,8 +35,8 @@ import os, sys, time
 from dataclasses import replace
 os.environ["QT_QPA_PLATFORM"] = "offscreen"
 from PySide6.QtCore import QCoreApplication
-from app.config import AppConfig
-from app.devices.linarm_protocol import ControlMode, ControlState
+from app.core.config import AppConfig
+from app.wire.linarm_protocol import ControlMode, ControlState
 from app.manager import LinarmppManager
 app = QCoreApplication([])
 config = AppConfig()
@@ -69,7 +69,7 @@ def test_the_simulator_modules_import_without_qt() -> None:
     """Every module under app/devices/sim/, imported in a fresh interpreter, loads no Qt (the ast rule of
     tests/test_architecture.py, seen at run time: a module that imports Qt by a path ast cannot see fails here)."""
     modules = sorted(".".join(p.relative_to(ROOT).with_suffix("").parts)
-                     for p in (ROOT / "app" / "devices" / "sim").glob("*.py") if p.name != "__init__.py")
+                     for p in (ROOT / "app" / "devices" / "sim").rglob("*.py") if p.name != "__init__.py")
     assert "app.devices.sim.host" in modules and "app.devices.sim.adapters" in modules
     probe = (f"import importlib, sys\nfor m in {modules!r}: importlib.import_module(m)\n"
              f"print(sorted({{n.partition('.')[0] for n in sys.modules}} & {set(QT_MODULES)!r}))")
@@ -83,7 +83,7 @@ def test_the_app_s_simulator_process_runs_every_device_without_qt(qtbot, monkeyp
     """The simulator process the app starts for its serial devices (LINarm, physiological board, FES), with
     the spec the devices' create() functions give it, reports from inside that it never loaded Qt. Before #29
     it did: it built the simulators from the driver modules (app.devices.linarm imports PySide6)."""
-    from app.config import AppConfig
+    from app.core.config import AppConfig
     from app.devices import linarm, physio, rehastim
     from app.manager import LinarmppManager
 
@@ -181,7 +181,7 @@ def test_sigkill_of_the_app_stops_the_firmware_within_the_watchdog(tmp_path: Pat
 
 @pytest.mark.realtime
 def test_simulation_panel_drives_the_simulator_process(qtbot, monkeypatch) -> None:  # type: ignore[no-untyped-def]
-    from app.config import AppConfig
+    from app.core.config import AppConfig
     from app.devices import linarm, physio
     from app.devices.sim.host import RemotePatient, RemoteSimulator
     from app.devices.sim.patient import GripMode
@@ -246,7 +246,7 @@ def test_the_simulation_panel_says_so_when_the_simulator_process_has_died(qtbot,
     """A simulator process that dies (a crash, a kill) must not turn the panel's refresh into an exception on
     every tick of its timer (seen in CI: a window left by a failed test raised 'the simulator process is not
     running' into every later test of its worker); the panel says in plain words that it has stopped."""
-    from app.config import AppConfig
+    from app.core.config import AppConfig
     from app.devices import linarm, physio
     from app.manager import LinarmppManager
     from app.ui.simulation_panel import SimulationPanel

@@ -9,12 +9,12 @@ from collections.abc import Iterator
 import pytest
 from PySide6.QtCore import Qt
 
-from app.config import AppConfig
+from app.core.config import AppConfig
 from app.devices import linarm, physio
-from app.devices.physio_codec import FLAG_PPG_FAULT
 from app.devices.sim.patient import GripMode, HandleMode
 from app.manager import LinarmppManager
 from app.ui.simulation_panel import SimulationPanel, parse_positions
+from app.wire.physio_codec import FLAG_PPG_FAULT
 
 
 @pytest.fixture

@@ -3,7 +3,7 @@ every start): a device that has not sent its first sample yet has not *stopped* 
 
 from __future__ import annotations
 
-from app.config import AppConfig
+from app.core.config import AppConfig
 from app.manager import LinarmppManager
 from app.ui.main_window import MainWindow
 

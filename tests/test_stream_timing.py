@@ -10,14 +10,14 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from app import streams
-from app.bus import DeviceEvent, SampleItem, StreamBus
-from app.config import SafetyConfig
+from app.core import streams
+from app.core.bus import DeviceEvent, SampleItem, StreamBus
+from app.core.config import SafetyConfig
 from app.devices.driver import DeviceDriver
 from app.devices.physio import PhysioDriver
-from app.devices.physio_codec import Calibration, PhysioRawFrame, encode_physio_frame
 from app.manager import DeviceWatch, LinarmppManager
-from app.safety import AlarmLevel, SafetySupervisor
+from app.safety.supervisor import AlarmLevel, SafetySupervisor
+from app.wire.physio_codec import Calibration, PhysioRawFrame, encode_physio_frame
 
 
 # ---------------------------------------------------------------------------------------------- the link
@@ -152,16 +152,16 @@ def test_a_resumed_stream_leaves_the_banner_and_stays_in_the_history(qtbot) -> N
 
 # ---------------------------------------------------------------------------------------------- the record
 def test_the_record_keeps_the_arrival_time_beside_the_sample_time(tmp_path, qtbot) -> None:
-    from app.bus import Channel, StreamSpec
-    from app.config import AppConfig
-    from app.recording import SessionRecorder, load_session
+    from app.core.bus import Channel, StreamSpec
+    from app.core.config import AppConfig
+    from app.session.recording import SessionRecorder, load_session
 
     spec = StreamSpec("dev.main", (Channel("x", "", "x"),), 100.0)
 
     class Quiet(DeviceDriver):
         streams = (spec,)
 
-    from app.bus import StreamBus
+    from app.core.bus import StreamBus
     from tests.recorder_host import recorder_host
 
     bus = StreamBus()
@@ -218,7 +218,7 @@ print(f"READS {len(speeds)} PEAK {max(speeds):.4f} CLOCK_P99 {p99:.4f} CLOCK_MAX
 def test_a_script_reading_at_200_hz_sees_the_speed_of_the_move(qtbot, monkeypatch) -> None:
     """A 0.10 m/s move read from a script at 200 Hz (the simulator in its own process on the default socket link,
     as the app runs): before #27 the frames came in bunches of 8-9 and the script saw 0.78 m/s."""
-    from app.config import AppConfig
+    from app.core.config import AppConfig
     from app.devices import linarm
     from app.scripting.runner import ScriptRunner
 

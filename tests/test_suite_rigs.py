@@ -7,11 +7,11 @@ import threading
 
 import pytest
 
-from app.devices.linarm_constants import K
-from app.devices.linarm_protocol import ControlMode, ControlState, HomeState
 from app.devices.sim.adapters import LinarmSimAdapter
 from app.devices.sim.base import HOMED_ENV
-from app.safety import AlarmLevel
+from app.safety.supervisor import AlarmLevel
+from app.wire.linarm_constants import K
+from app.wire.linarm_protocol import ControlMode, ControlState, HomeState
 from tests.rigs import OWNED, RigSpec, SharedRig
 
 
@@ -48,7 +48,7 @@ def rig(qtbot):  # type: ignore[no-untyped-def]
 
 
 def test_a_reset_puts_a_rig_left_in_any_state_back(rig: SharedRig, qtbot, tmp_path) -> None:  # type: ignore[no-untyped-def]
-    from app.fes_profile import ChannelProfile, FesProfile, Trapezoid
+    from app.core.fes_profile import ChannelProfile, FesProfile, Trapezoid
 
     m = rig.manager
     assert rig.problems() == []

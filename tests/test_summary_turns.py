@@ -16,8 +16,8 @@ from typing import Any
 import pyqtgraph as pg
 from PySide6.QtCore import QEvent, QObject
 
-from app.recording import load_session
-from app.reports import run_reports
+from app.session.recording import load_session
+from app.session.reports import run_reports
 from app.ui.session_summary import SUMMARY_PLOTS, SessionSummary
 from tests.long_session import write_long_session
 

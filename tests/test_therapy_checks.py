@@ -8,8 +8,8 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from app.config import AppConfig
-from app.patients import (
+from app.core.config import AppConfig
+from app.therapy.patients import (
     ClinicalChannelCap,
     ElectrodeChoice,
     PatientFes,
@@ -65,7 +65,7 @@ def test_a_district_profile_needs_the_patients_chosen_combinations_and_their_cap
 
 
 def test_positions_and_speeds_are_checked_against_the_patients_robot_limits() -> None:
-    from app.patients import PatientRobotLimits
+    from app.therapy.patients import PatientRobotLimits
 
     narrow = PatientProfile(patient_id="PZ-ROM", robot=PatientRobotLimits(position_max_m=0.30, max_velocity_m_s=0.1))
     plan = [PlannedExercise("trigger_reaching", {"movements": 3, "start_m": 0.15, "end_m": 0.40, "speed_m_s": 0.2})]
@@ -95,8 +95,8 @@ def test_a_run_is_refused_before_it_starts_when_the_caps_in_force_refuse_it() ->
     nothing is recorded, nothing started."""
     from types import SimpleNamespace
 
-    from app.exercises import find_exercise, start_exercise
-    from app.fes_limits import ChannelCaps, FesLimiter, FesLimits
+    from app.safety.fes_limits import ChannelCaps, FesLimiter, FesLimits
+    from app.therapy.exercises import find_exercise, start_exercise
 
     events: list[str] = []
     limits = FesLimits(clinical_caps={ch: ChannelCaps(20.0) for ch in range(1, 9)})
@@ -117,7 +117,7 @@ def test_an_electrode_choice_never_brings_back_a_cap_lowered_since(tmp_path: Pat
     from dataclasses import replace
 
     from app.archive.station import save_choice
-    from app.electrodes import districts_from_config
+    from app.therapy.electrodes import districts_from_config
 
     at_start = _capped(cap_ma=30.0)
     save_patient(at_start, tmp_path, SAFETY)
@@ -132,7 +132,7 @@ def test_an_electrode_choice_never_brings_back_a_cap_lowered_since(tmp_path: Pat
 
 
 def _result(district: Any) -> Any:
-    from app.electrodes import CombinationResult, SetupPlan, SetupResult
+    from app.therapy.electrodes import CombinationResult, SetupPlan, SetupResult
 
     plan = SetupPlan(ceiling_ma=10.0)
     return SetupResult(district, plan, [CombinationResult(c, 10, "the therapist's ceiling")

@@ -13,8 +13,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from app.devices.physio_codec import PHYSIO_LAYOUT
-from app.devices.udp_frames import (
+from app.wire.physio_codec import PHYSIO_LAYOUT
+from app.wire.udp_frames import (
     ALL_UDP_LAYOUTS,
     FORCE_SCALE,
     PATIENT_MODEL_LAYOUT,

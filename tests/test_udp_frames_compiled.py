@@ -12,8 +12,8 @@ from typing import Any
 from hypothesis import given
 from hypothesis import strategies as st
 
-from app.devices import udp_frames as uf
-from app.devices.physio_codec import Field, Layout, crc16_ccitt
+from app.wire import udp_frames as uf
+from app.wire.physio_codec import Field, Layout, crc16_ccitt
 
 
 def reference_pack(layout: Layout, values: dict[str, Any]) -> bytes:

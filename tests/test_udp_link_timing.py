@@ -10,7 +10,8 @@ import time
 import pytest
 
 from app.devices.patient_model import PatientModelDriver
-from app.devices.udp_frames import (
+from app.devices.vr import VrDriver
+from app.wire.udp_frames import (
     ACK_WINDOW_S,
     PatientModelFrame,
     PatientModelReply,
@@ -23,7 +24,6 @@ from app.devices.udp_frames import (
     seal,
     unseal,
 )
-from app.devices.vr import VrDriver
 from tests.fake_udp import FakeUdpTransport
 
 KEY = bytes(range(32))

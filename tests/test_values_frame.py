@@ -9,8 +9,8 @@ from typing import Any
 
 import numpy as np
 
-from app.bus import Channel, StreamBus, StreamSpec
-from app.config import AppConfig
+from app.core.bus import Channel, StreamBus, StreamSpec
+from app.core.config import AppConfig
 from app.manager import DeviceHandle, LinarmppManager
 from app.ui.theme import colours
 from app.ui.values_frame import DASH, ValuesFrame, enum_name

@@ -9,12 +9,15 @@ from dataclasses import dataclass
 
 import pytest
 
-from app import streams
-from app.bus import StreamBus
+from app.core import streams
+from app.core.bus import StreamBus
 from app.devices.linarm import VSA_STREAM
 from app.devices.patient_model import LinkInputs, free_udp_port
+from app.devices.sim.vr_standin import StandinGame
 from app.devices.transport import UdpTransport
-from app.devices.udp_frames import (
+from app.devices.vr import VrDriver, VrTask, standin_process
+from app.ui.vr_standin_window import make_window
+from app.wire.udp_frames import (
     TaskData,
     TaskFlag,
     TaskState,
@@ -23,9 +26,6 @@ from app.devices.udp_frames import (
     VrFrame,
     encode_vr_event,
 )
-from app.devices.vr import VrDriver, VrTask, standin_process
-from app.ui.vr_standin_window import make_window
-from app.vr_standin import StandinGame
 
 HOST = "127.0.0.1"
 

@@ -14,9 +14,9 @@ from PySide6.QtCore import QEventLoop, QRect, QSettings, Qt, QTimer
 from PySide6.QtGui import QAction, QKeySequence, QScreen
 from PySide6.QtWidgets import QApplication, QMessageBox
 
-from app.config import AppConfig
+from app.core.config import AppConfig
+from app.core.runs import Program
 from app.manager import LinarmppManager
-from app.runs import Program
 from app.ui.main_window import MainWindow
 
 TRIGGER = "Trigger reaching (grip-triggered passive movements)"

@@ -1,5 +1,6 @@
 """XDF clock offsets that mean something (issue #41, stage 2): the recorder keeps how each device's clock was mapped
-to the host's (clocks.csv, app.recording.DeviceClockLog), the XDF export writes the device streams on their device's
+to the host's (clocks.csv, app.session.recording.DeviceClockLog), the XDF export writes the device streams on their
+device's
 clock with those estimates as ClockOffset chunks, and pyxdf's clock synchronisation puts every sample back at the
 host time it was taken."""
 
@@ -12,11 +13,12 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from app import recording, streams
-from app.config import AppConfig
+from app.core import streams
+from app.core.config import AppConfig
 from app.devices.clock import DeviceClock
-from app.devices.linarm_protocol import T_US_WRAP_S
 from app.research_export.command import main as export_main
+from app.session import recording
+from app.wire.linarm_protocol import T_US_WRAP_S
 from tests.fakes import ListenerDriver
 from tests.recorder_host import recorder_host
 from tests.research_export_data import DEVICE_SPECS, VirtualClock
@@ -197,7 +199,7 @@ def test_the_clock_fields_are_the_ones_the_drivers_samples_carry() -> None:
     import dataclasses
 
     from app.devices.linarm import LinarmStateSample, MotorSample, VsaSample
-    from app.devices.physio_codec import PhysioSample
+    from app.wire.physio_codec import PhysioSample
 
     carried = {streams.LINARM: (LinarmStateSample, MotorSample, VsaSample), streams.PHYSIO: (PhysioSample,)}
     assert set(recording.DEVICE_CLOCK_FIELDS) == set(carried)

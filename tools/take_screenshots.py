@@ -32,8 +32,8 @@ def main() -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
 
-    from app import streams
     from app.application import configure_qt_identity, prepare_qt
+    from app.core import streams
 
     prepare_qt()
     from PySide6.QtCore import QEventLoop, QTimer
@@ -41,8 +41,8 @@ def main() -> int:
 
     app = QApplication(sys.argv)
     configure_qt_identity()
-    from app.config import AppConfig
-    from app.fes_profile import load_profile
+    from app.core.config import AppConfig
+    from app.core.fes_profile import load_profile
     from app.manager import LinarmppManager
     from app.ui.main_window import MainWindow
     from app.ui.theme import apply_palette

@@ -17,7 +17,7 @@ Identity and concurrency:
   a *different* session (other files) claiming the same UUID is refused with :class:`SessionConflict`.
 * The session's files (manifest, events, streams) are kept byte for byte, each by its SHA-256; an archived
   session is read exactly like a folder: :meth:`SessionFiles.materialise` writes the folder back (checked
-  against the hashes) so ``app.recording.load_session`` and every loader read it unchanged.
+  against the hashes) so ``app.session.recording.load_session`` and every loader read it unchanged.
 
 Field keys of a patient (:data:`PATIENT_FIELDS`): the profile's top-level fields, with ``fes`` split in three:
 ``fes.profile``, ``fes.caps`` and one key per muscular district's electrode choice,
@@ -31,7 +31,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any, Literal, Protocol, runtime_checkable
 
-from app.patients import ElectrodeChoice, PatientProfile
+from app.therapy.patients import ElectrodeChoice, PatientProfile
 
 # The patient's field keys a save may name (besides ``fes.electrodes.<district>``). ``patient_id``, ``version``,
 # ``created`` and ``updated`` are the record's own: set by the archive, never by a save.
@@ -191,13 +191,14 @@ class SessionDetail:
     info: SessionInfo
     manifest: dict[str, Any]  # as recorded (configuration, devices, streams, counts)
     files: tuple[FileInfo, ...]
-    summary: dict[str, Any]  # app.metrics.metrics_of_session's summary, computed at upload
-    problems: tuple[str, ...]  # app.recording.load_session's problems at upload (an interrupted session's)
+    summary: dict[str, Any]  # app.session.metrics.metrics_of_session's summary, computed at upload
+    problems: tuple[str, ...]  # app.session.recording.load_session's problems at upload (an interrupted session's)
 
 
 @dataclass(frozen=True)
 class RunInfo:
-    """An exercise run (app.runs.ExerciseRun's record) with its own summary (app.metrics.metrics_by_run)."""
+    """An exercise run (app.core.runs.ExerciseRun's record) with its own summary
+    (app.session.metrics.metrics_by_run)."""
 
     session_uuid: str
     run_id: str
@@ -220,7 +221,7 @@ class RepetitionInfo:
     session_uuid: str
     run_id: str
     index: int  # within the run, from 1
-    metrics: dict[str, Any]  # app.metrics.RepetitionMetrics.as_dict() (plus run_id)
+    metrics: dict[str, Any]  # app.session.metrics.RepetitionMetrics.as_dict() (plus run_id)
 
 
 @dataclass(frozen=True)
@@ -323,7 +324,7 @@ class SessionFiles(Protocol):
 
     def materialise(self, folder: Path, progress: Progress | None = None) -> Path:
         """Write the session folder (the recorder's layout) into ``folder`` (made if needed; must be empty),
-        each file checked against its SHA-256; returns the session folder. ``app.recording.load_session`` and
+        each file checked against its SHA-256; returns the session folder. ``app.session.recording.load_session`` and
         every exporter read it exactly as the station's own folder. ``progress`` returning False cancels."""
         ...
 
@@ -345,7 +346,7 @@ class Archive(Protocol):
     # ------------------------------------------------------------------ patients
     def list_patients(self, search: str = "", limit: int = 1000, offset: int = 0) -> list[PatientListItem]:
         """Patients by id (case-insensitive order); ``search``: every word found in the id, name, record
-        number or notes (as app.patients.matches)."""
+        number or notes (as app.therapy.patients.matches)."""
         ...
 
     def get_patient(self, patient_id: str) -> PatientRecord:

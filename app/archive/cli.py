@@ -51,7 +51,7 @@ def archive_main(argv: list[str], prog: str = "linarmpp archive") -> int:
         print(";\n".join(grant_statements(args.role)) + ";")
         return EXIT_OK
     from app.archive.api import ArchiveError
-    from app.config import ConfigError, load_config
+    from app.core.config import ConfigError, load_config
 
     try:
         config = load_config(args.config)
@@ -110,7 +110,7 @@ def _run(args: argparse.Namespace, config: object) -> int:
 def _upload(config: object) -> int:
     from app.archive.outbox import Outbox
     from app.archive.store import open_archive
-    from app.recording import sessions_root
+    from app.session.recording import sessions_root
 
     outbox = Outbox(sessions_root(config), lambda: open_archive(config))  # type: ignore[arg-type]
     status = outbox.run_once(force=True)

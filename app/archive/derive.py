@@ -1,6 +1,6 @@
 """What the archive keeps of a session besides its files, derived from the folder before the upload's
-transaction: the session row, its exercise runs (app/runs.py), their repetitions with their metrics
-(app/metrics.py) and the journal rows (events.jsonl, hash-chained). The files stay the record; these rows make
+transaction: the session row, its exercise runs (app/core/runs.py), their repetitions with their metrics
+(app/session/metrics.py) and the journal rows (events.jsonl, hash-chained). The files stay the record; these rows make
 the lists and the progress report fast, and are what ``linarmpp archive verify`` checks the chain of."""
 
 from __future__ import annotations
@@ -45,8 +45,8 @@ def _start_epoch(start: dict[str, Any]) -> float:
 
 
 def derive_session(folder: Path, manifest: dict[str, Any], uuid: str, digest: str, station: str) -> Derived:
-    from app import metrics as m
-    from app.recording import load_session
+    from app.session import metrics as m
+    from app.session.recording import load_session
 
     session = load_session(folder)
     start = manifest.get("start") if isinstance(manifest.get("start"), dict) else {}

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from app.recording import CLOCK_FILE, EVENTS_FILE, FAILED_FILE, FILE_MODE, MANIFEST_FILE, STREAMS_DIR
+from app.session.recording import CLOCK_FILE, EVENTS_FILE, FAILED_FILE, FILE_MODE, MANIFEST_FILE, STREAMS_DIR
 
 ARCHIVED_MARKER = ".archived"  # written in the session folder once the archive has committed it
 REFUSED_MARKER = ".archive-refused"  # the archive refused it (another session holds its UUID): kept, said loudly

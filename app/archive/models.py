@@ -13,7 +13,7 @@ from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
 HASH = 64  # hex SHA-256
 ISO = 40  # an ISO time with zone
 UUID_LEN = 36
-PATIENT_ID = 64  # app.patients: letters, digits, '-', '_' (at most 64)
+PATIENT_ID = 64  # app.therapy.patients: letters, digits, '-', '_' (at most 64)
 
 
 class Base(DeclarativeBase):
@@ -64,7 +64,7 @@ class ElectrodeChoiceRow(Base):
     district: Mapped[str] = mapped_column(Text)
     patient_version: Mapped[int] = mapped_column(Integer)
     cleared: Mapped[bool] = mapped_column(Boolean, default=False)
-    choice: Mapped[str] = mapped_column(Text, default="{}")  # app.patients.ElectrodeChoice as JSON text
+    choice: Mapped[str] = mapped_column(Text, default="{}")  # app.therapy.patients.ElectrodeChoice as JSON text
     channel: Mapped[int | None] = mapped_column(Integer, nullable=True)
     electrodes: Mapped[str] = mapped_column(Text, default="")
     chosen_at: Mapped[str] = mapped_column(String(ISO), default="")
@@ -110,7 +110,7 @@ class SessionRow(Base):
     manifest: Mapped[str] = mapped_column(Text)  # JSON text, as recorded
     exercises: Mapped[str] = mapped_column(Text, default="[]")  # JSON list of the runs' titles
     alarms: Mapped[int] = mapped_column(Integer, default=0)
-    summary: Mapped[str] = mapped_column(Text, default="{}")  # app.metrics summary, JSON text
+    summary: Mapped[str] = mapped_column(Text, default="{}")  # app.session.metrics summary, JSON text
     problems: Mapped[str] = mapped_column(Text, default="[]")  # load_session's problems at upload
     content_digest: Mapped[str] = mapped_column(String(HASH))  # folders.content_digest of its files
     journal_head: Mapped[str] = mapped_column(String(HASH))

@@ -2,7 +2,8 @@
 ``--metrics`` / ``--report`` commands and the sessions browser see every station's sessions, and this station's own
 that are still in its outbox, each session once (by its UUID).
 
-* :func:`progress_rows` — the progress report's rows (``app.reports.ProgressRow``): the archive's sessions of the
+* :func:`progress_rows` — the progress report's rows (``app.session.reports.ProgressRow``): the archive's sessions of
+  the
   patient built from its rows alone (the runs and repetitions with their metrics computed at upload: no stream is
   read), then this station's folders whose UUID the archive does not hold (computed from the files, as before).
 * :func:`session_listing` — the sessions browser's list: the archive's sessions (every station's) and the local
@@ -37,8 +38,8 @@ log = logging.getLogger(__name__)
 def open_for_reading(config: Any) -> tuple[Archive | None, str]:
     """(the configured archive, '') or (None, why it cannot be read). With nothing configured and no embedded
     archive file in ``<data>`` yet there is nothing archived: (None, '') and no file is made."""
-    from app import paths
     from app.archive.store import ARCHIVE_FILE, open_archive
+    from app.core import paths
 
     url = getattr(getattr(config, "archive", None), "url", "") or ""
     if not url and not (paths.data_dir() / ARCHIVE_FILE).exists():
@@ -89,7 +90,7 @@ def local_sessions(root: Path, patient_id: str | None = None) -> list[LocalSessi
     """The station's session folders (one patient's, or all), each with its UUID; reads manifests only."""
     from app.archive.derive import _start_epoch
     from app.archive.folders import is_archived, read_manifest, session_folders, session_uuid
-    from app.recording import MANIFEST_FILE, safe_name
+    from app.session.recording import MANIFEST_FILE, safe_name
 
     if patient_id is not None:
         base = Path(root) / safe_name(patient_id)
@@ -107,11 +108,12 @@ def local_sessions(root: Path, patient_id: str | None = None) -> list[LocalSessi
 
 # ---------------------------------------------------------------------------------------------- the progress report
 def progress_row(ps: ProgressSession) -> Any:
-    """An archived session as a row of the progress report (``app.reports.ProgressRow``), from its rows alone: the
-    same summary, scores and per-exercise trends as :func:`app.reports.progress_rows` computes from the folder
-    (the repetitions are the run-aware metrics stored at upload, ``app.metrics.metrics_by_run``)."""
-    from app.reports import ProgressRow, RunReport, exercise_trends
-    from app.runs import ExerciseRun, Program, RunParameter
+    """An archived session as a row of the progress report (``app.session.reports.ProgressRow``), from its rows alone:
+    the
+    same summary, scores and per-exercise trends as :func:`app.session.reports.progress_rows` computes from the folder
+    (the repetitions are the run-aware metrics stored at upload, ``app.session.metrics.metrics_by_run``)."""
+    from app.core.runs import ExerciseRun, Program, RunParameter
+    from app.session.reports import ProgressRow, RunReport, exercise_trends
 
     reps_by_run: dict[str, list[dict[str, Any]]] = {}
     for rep in ps.repetitions:
@@ -142,9 +144,9 @@ def progress_rows(patient_id: str, root: Path | None, archive: Archive | None,
                   progress: Callable[[float], None] | None = None) -> list[Any]:
     """The patient's sessions for the progress report, oldest first: every archived one (every station's), then
     this station's folders under ``root`` whose UUID the archive does not hold (not yet uploaded), read from
-    their files. ``archive=None``: the folders alone (:func:`app.reports.progress_rows`)."""
-    from app import paths
-    from app.reports import progress_rows as folder_rows
+    their files. ``archive=None``: the folders alone (:func:`app.session.reports.progress_rows`)."""
+    from app.core import paths
+    from app.session.reports import progress_rows as folder_rows
 
     if archive is None:
         return folder_rows(patient_id, root, progress)
@@ -163,9 +165,9 @@ def progress_rows(patient_id: str, root: Path | None, archive: Archive | None,
 
 
 def _folder_rows(folder_list: list[Path], progress: Callable[[float], None] | None) -> list[Any]:
-    """Rows of these folders, computed from their files (:func:`app.reports.folder_progress_row`)."""
-    from app.recording import summarize_session
-    from app.reports import folder_progress_row
+    """Rows of these folders, computed from their files (:func:`app.session.reports.folder_progress_row`)."""
+    from app.session.recording import summarize_session
+    from app.session.reports import folder_progress_row
 
     rows = []
     for k, folder in enumerate(folder_list):
@@ -247,8 +249,8 @@ class ListedSession:
 
 def _folder_row(folder: Path, uuid: str, where: str, active: Path | None) -> ListedSession:
     """A row from a folder of this station (its manifest and events: no stream read)."""
-    from app.recording import EVENTS_FILE, read_events, summarize_session
-    from app.reports import run_titles
+    from app.session.recording import EVENTS_FILE, read_events, summarize_session
+    from app.session.reports import run_titles
 
     s = summarize_session(folder)
     titles = run_titles(folder) or s.exercises  # the runs' titles, not file names (older: scripts)
@@ -303,7 +305,7 @@ def session_listing(patient_id: str, root: Path, archive: Archive | None, in_use
 def patient_ids(root: Path, archive: Archive | None, in_use: bool = False) -> list[str]:
     """The patients the browser offers: the archive's (no profile built) and those with folders on this station;
     without an archive in use (``in_use``) the station's patient files too."""
-    from app.recording import list_patients_with_sessions
+    from app.session.recording import list_patients_with_sessions
 
     ids = set(list_patients_with_sessions(root))
     if archive is not None:
@@ -312,7 +314,7 @@ def patient_ids(root: Path, archive: Archive | None, in_use: bool = False) -> li
             ids |= {p.patient_id for p in page}
             offset += len(page)
     elif not in_use:
-        from app.patients import list_patients
+        from app.therapy.patients import list_patients
 
         ids |= {e.patient_id for e in list_patients()}
     return sorted(ids, key=str.lower)

@@ -2,7 +2,7 @@
 
 The application (the window and ``--headless``) opens the archive once at start-up with :func:`open_station`
 (off the GUI thread: a clinic's server may take seconds to answer) and installs it here (:func:`install`). From
-then on every reader and writer of patients goes through this module or through ``app.patients.load_patient`` /
+then on every reader and writer of patients goes through this module or through ``app.therapy.patients.load_patient`` /
 ``list_patients`` called without a folder, which read the installed archive:
 
 * :func:`read_record` — the profile and the record's version (the session start, the forms);
@@ -38,8 +38,8 @@ from app.archive.api import (
     PatientRecord,
     PatientUnreadable,
 )
-from app.electrodes import SetupResult, choice_for
-from app.patients import (
+from app.therapy.electrodes import SetupResult, choice_for
+from app.therapy.patients import (
     ElectrodeChoice,
     PatientEntry,
     PatientError,
@@ -50,7 +50,7 @@ from app.patients import (
     use_store,
     yaml_entries,
 )
-from app.patients import save_patient as save_yaml_patient
+from app.therapy.patients import save_patient as save_yaml_patient
 
 log = logging.getLogger(__name__)
 
@@ -62,7 +62,7 @@ _problem = ""  # why the archive could not be reached ('' when it is open or non
 # ---------------------------------------------------------------------------------------------- the station's archive
 def install(archive: Archive | None, problem: str = "") -> None:
     """The application's archive from now on; ``archive=None`` with ``problem``: it is in use but could not be
-    reached (the station runs; reading and saving patients say why). ``app.patients.load_patient`` and
+    reached (the station runs; reading and saving patients say why). ``app.therapy.patients.load_patient`` and
     ``list_patients`` without a folder read it too."""
     global _archive, _problem
     with _lock:
@@ -80,7 +80,7 @@ def uninstall() -> Archive | None:
 
 
 class _StationStore:
-    """app.patients.PatientStore on the station's archive: the readers that name no folder follow it."""
+    """app.therapy.patients.PatientStore on the station's archive: the readers that name no folder follow it."""
 
     def load(self, patient_id: str, safety: Any) -> PatientProfile:
         where = f"archive: patient {patient_id}"
@@ -144,8 +144,8 @@ def open_station(config: Any) -> Opened:
     # Alembic names its plugins when imported and says "Context impl SQLiteImpl." at each schema check: noise on
     # the console of every start
     logging.getLogger("alembic").setLevel(logging.WARNING)
-    from app import paths
     from app.archive.store import ARCHIVE_FILE, open_archive
+    from app.core import paths
 
     url = getattr(getattr(config, "archive", None), "url", "") or ""
     embedded = not url
@@ -213,7 +213,7 @@ def field_words(key: str) -> str:
 
 
 def _check_limits(profile: PatientProfile, safety: Any, where: str) -> None:
-    """A profile looser than the site's limits is refused as a file would be (app.patients.parse_profile)."""
+    """A profile looser than the site's limits is refused as a file would be (app.therapy.patients.parse_profile)."""
     if safety is None:
         return
     problems = limit_problems(profile, safety)
@@ -292,8 +292,8 @@ def entry_blocks(safety: Any = None, *, archive: Archive | None = None, folder: 
 
 
 def _yaml_blocks(folder: Path | None, safety: Any, block: int) -> Iterator[list[PatientEntry]]:
-    """The patients folder's files in blocks (as app.patients.list_patients lists them, one file at a time)."""
-    from app import paths
+    """The patients folder's files in blocks (as app.therapy.patients.list_patients lists them, one file at a time)."""
+    from app.core import paths
 
     where = folder or paths.patients_dir()
     files = sorted(where.glob("*.yaml"), key=lambda p: p.stem.lower()) if where.is_dir() else []
@@ -400,8 +400,8 @@ def default_operator(operator: str = "") -> str:
 
 def save_choice(result: SetupResult, channel: int, profile: Any, operator: str, session: str = "",
                 safety: Any = None, folder: Any = None, expected_version: int = 0) -> Any:
-    """Choose ``channel`` for the result's district (an electrode set-up's result, app.electrodes) in the
-    patient's profile (app.patients.PatientProfile) and return the new profile (:func:`save_choice_record`
+    """Choose ``channel`` for the result's district (an electrode set-up's result, app.therapy.electrodes) in the
+    patient's profile (app.therapy.patients.PatientProfile) and return the new profile (:func:`save_choice_record`
     without the version)."""
     return save_choice_record(result, channel, profile, operator, session, safety, folder, expected_version).profile
 

@@ -39,7 +39,6 @@ from sqlalchemy import Connection, Engine, create_engine, delete, event, func, i
 from sqlalchemy.engine import URL, make_url
 from sqlalchemy.exc import DBAPIError, IntegrityError, InterfaceError, OperationalError, ProgrammingError
 
-from app import paths
 from app.archive import folders, schema
 from app.archive.api import (
     ELECTRODES_PREFIX,
@@ -82,8 +81,9 @@ from app.archive.models import (
     SessionFile,
     SessionRow,
 )
-from app.patients import PROFILE_VERSION, ElectrodeChoice, PatientProfile, parse_profile
-from app.yamlschema import ConfigError, to_plain
+from app.core import paths
+from app.core.yamlschema import ConfigError, to_plain
+from app.therapy.patients import PROFILE_VERSION, ElectrodeChoice, PatientProfile, parse_profile
 
 log = logging.getLogger(__name__)
 
@@ -111,7 +111,7 @@ def profile_values(profile: PatientProfile) -> dict[str, Any]:
 
 
 def profile_from_values(patient_id: str, values: dict[str, Any], created: str, updated: str) -> PatientProfile:
-    """Build the profile from field values through app.patients' own validation (a value the profile schema
+    """Build the profile from field values through app.therapy.patients' own validation (a value the profile schema
     refuses is refused here too)."""
     electrodes = {k[len(ELECTRODES_PREFIX):]: v for k, v in values.items()
                   if k.startswith(ELECTRODES_PREFIX) and v is not None}
@@ -844,7 +844,7 @@ class SqlArchive:
 
 
 def folders_safe(name: str) -> str:
-    from app.recording import safe_name
+    from app.session.recording import safe_name
 
     return safe_name(name) if name else ""
 

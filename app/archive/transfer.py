@@ -5,7 +5,7 @@ Import takes a ``<data>`` folder as today's version leaves it — ``patients/*.y
 field (``created`` and ``updated`` kept), every file of every session byte for byte. It can be run again: a
 patient already archived with the same profile and a session already archived are skipped; a patient archived
 with a different profile is not overwritten (said in the report). Export writes each profile as the YAML
-``app.patients.load_patient`` reads, so a round trip gives back the same profile.
+``app.therapy.patients.load_patient`` reads, so a round trip gives back the same profile.
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ from pathlib import Path
 
 from app.archive.api import Archive, ArchiveError, NotFound
 from app.archive.folders import session_folders
-from app.patients import list_patients, patient_file, profile_to_yaml
+from app.therapy.patients import list_patients, patient_file, profile_to_yaml
 
 
 @dataclass

@@ -1,7 +1,7 @@
 """The device-driver base: one QThread per device owning its transport.
 
 A driver reads bytes, decodes them with its (pure) codec into typed, timestamped samples and publishes them
-one way: on the :class:`~app.bus.StreamBus` (issue #29). The bus keeps each stream's latest sample, wakes a
+one way: on the :class:`~app.core.bus.StreamBus` (issue #29). The bus keeps each stream's latest sample, wakes a
 script's ``waitCondition`` once per read, runs the safety monitor inline and gives every other consumer a
 bounded, counted queue (or display-rate columns for the Qt adapter). Connection changes, silence and errors
 are bus events (``connected``, ``disconnected``, ``silent``, ``alive``, ``error``, ``controller_error``, …), each
@@ -21,11 +21,11 @@ from typing import Any, ClassVar
 
 from PySide6.QtCore import QThread
 
-from app import journal
-from app.bus import Channel, SampleBatch, StreamBus, StreamSpec, UpdateNotifier
+from app.core import journal
+from app.core.bus import Channel, SampleBatch, StreamBus, StreamSpec, UpdateNotifier
+from app.core.journal import Record
 from app.devices.realtime import REALTIME_ENV, request_realtime
 from app.devices.transport import Transport, TransportError
-from app.journal import Record
 
 __all__ = ["REALTIME_ENV", "Channel", "DeviceDriver", "SampleBatch", "StreamSpec", "UpdateNotifier",
            "request_realtime"]

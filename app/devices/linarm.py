@@ -19,22 +19,22 @@ from typing import TYPE_CHECKING, Any, ClassVar
 
 from PySide6.QtCore import Signal
 
-from app import journal, streams
-from app.bus import BusItem, DeviceEvent, SampleItem, StreamBus
-from app.config import LinarmDevice
-from app.devices import linarm_protocol as proto
+from app.core import journal, streams
+from app.core.bus import BusItem, DeviceEvent, SampleItem, StreamBus
+from app.core.config import LinarmDevice
 from app.devices.clock import DeviceClock
-from app.devices.cmdmessenger import CmdMessengerDecoder
 from app.devices.command_queue import CommandQueue, CommandQueueClosed, CommandStatus, Priority
 from app.devices.driver import Channel, DeviceDriver, StreamSpec
-from app.devices.linarm_protocol import ControlState, ReplyError
 from app.devices.sim.base import SerialSimulator
 from app.devices.transport import SerialSettings, SerialTransport, Transport, TransportError
-from app.safety import SafetyError
+from app.safety.supervisor import SafetyError
+from app.wire import linarm_protocol as proto
+from app.wire.cmdmessenger import CmdMessengerDecoder
+from app.wire.linarm_protocol import ControlState, ReplyError
 
 if TYPE_CHECKING:
     from app.devices.registry import DeviceContext, DeviceHandle
-    from app.safety import SafetySupervisor
+    from app.safety.supervisor import SafetySupervisor
 
 log = logging.getLogger(__name__)
 
@@ -416,7 +416,7 @@ class LinarmDriver(DeviceDriver):
         shared = self._shared_seen = getattr(self.transport, "shared_with", None)
         if not shared:
             return
-        from app.safety import AlarmLevel
+        from app.safety.supervisor import AlarmLevel
 
         named = ", ".join(f"pid {pid} ({cmd})" for pid, cmd in shared[:4])
         self.supervisor.raise_alarm(AlarmLevel.STOP, self.name, f"Another program has the LINarm's port open: "
@@ -557,7 +557,7 @@ def create(ctx: DeviceContext) -> DeviceHandle | None:
     probes and monitor, and the robot's stop action."""
     from app.devices.registry import DeviceHandle
     from app.devices.sim.adapters import LinarmSimAdapter
-    from app.safety import RobotProbes
+    from app.safety.supervisor import RobotProbes
 
     cfg: LinarmDevice = ctx.config
     if cfg.mode == "off":

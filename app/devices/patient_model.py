@@ -2,7 +2,7 @@
 
 Modes (``devices.patient_model.mode`` in the config):
 
-* ``embedded`` (default): our own model (app.patient_model.process) runs as a separate process on
+* ``embedded`` (default): our own model (app.devices.sim.patient_model.process) runs as a separate process on
   loopback ports chosen at start, so the real UDP link is exercised; the driver restarts it if it
   exits.  The process ends by itself when the manager dies.
 * ``external``: a model started elsewhere (e.g. the Matlab model) at ``peer_host:peer_port``; the
@@ -30,7 +30,7 @@ API's ``patientModel.patientModelData`` is this sample.
 This module also holds the small UDP-peer machinery the VR link shares (``UdpPeerDriver``,
 ``HelperProcess``, ``free_udp_port``).
 
-Link security (issue #17; codec in app.devices.udp_frames): a helper process we start gets a fresh
+Link security (issue #17; codec in app.wire.udp_frames): a helper process we start gets a fresh
 key at every start, through an inherited pipe (``key_pipe``; never its environment), and every datagram
 both ways carries a MAC; datagrams without a valid MAC, with a sequence number that does not increase (a
 replay), or — for the patient model — acknowledging no frame sent in the last 0.5 s are dropped and counted
@@ -57,12 +57,14 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
 
-from app import streams
-from app.bus import StreamBus
+from app.core import streams
+from app.core.bus import StreamBus
 from app.devices.clock import CountedClock
 from app.devices.driver import Channel, DeviceDriver, StreamSpec
+from app.devices.sim.patient_model.decision_tree import DEFAULT_CONFIG_PATH, decode_path_code
+from app.devices.sim.patient_model.process import LINK_KEY_FD_ENV, key_pipe
 from app.devices.transport import DatagramTransport, TransportError, UdpTransport
-from app.devices.udp_frames import (
+from app.wire.udp_frames import (
     ACK_WINDOW_S,
     KEY_SIZE,
     LINK_KEY_ENV,
@@ -77,14 +79,12 @@ from app.devices.udp_frames import (
     seal,
     unseal,
 )
-from app.patient_model.decision_tree import DEFAULT_CONFIG_PATH, decode_path_code
-from app.patient_model.process import LINK_KEY_FD_ENV, key_pipe
 
 if TYPE_CHECKING:
-    from app.assistance import AssistanceLevels
-    from app.config import AssistanceConfig
+    from app.core.config import AssistanceConfig
     from app.devices.registry import DeviceContext, DeviceHandle
-    from app.safety import SafetySupervisor
+    from app.safety.assistance import AssistanceLevels
+    from app.safety.supervisor import SafetySupervisor
 
 log = logging.getLogger(__name__)
 
@@ -616,8 +616,8 @@ def assistance_split(assistance: AssistanceLevels | None, config: AssistanceConf
     always hands its own in), else ``config``'s (default: the default config's)."""
     if assistance is not None:
         return assistance.levels
-    from app.assistance import AssistanceSplit
-    from app.config import AssistanceConfig
+    from app.core.config import AssistanceConfig
+    from app.safety.assistance import AssistanceSplit
 
     c = config or AssistanceConfig()
 
@@ -643,7 +643,7 @@ def link_key(cfg: Any) -> bytes | None:
 def warn_if_plain(supervisor: SafetySupervisor, name: str, cfg: Any) -> None:
     """An external peer on the plain seed layout: say so where the operator sees it (the alarms)."""
     if cfg.mode == "external" and not cfg.authenticated:
-        from app.safety import AlarmLevel
+        from app.safety.supervisor import AlarmLevel
 
         supervisor.raise_alarm(AlarmLevel.WARNING, name, f"the {name} link to {cfg.peer_host}:"
                                        f"{cfg.peer_port} is not authenticated (plain frames, external peer)")
@@ -651,7 +651,7 @@ def warn_if_plain(supervisor: SafetySupervisor, name: str, cfg: Any) -> None:
 
 def embedded_process(host: str, model_port: int, manager_port: int, config_path: Path = DEFAULT_CONFIG_PATH,
                      extra: list[str] | None = None) -> HelperProcess:
-    return HelperProcess("app.patient_model.process", [
+    return HelperProcess("app.devices.sim.patient_model.process", [
         "--listen", f"{host}:{model_port}", "--peer", f"{host}:{manager_port}", "--config", str(config_path),
         *(extra or [])])
 

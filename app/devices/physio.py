@@ -1,6 +1,6 @@
 """Physiological sensors: the driver (20-byte frames → PhysioSample) and its simulated board.
 
-The frame layout, CRC, sequence counter and beat detector live in app.devices.physio_codec; this
+The frame layout, CRC, sequence counter and beat detector live in app.wire.physio_codec; this
 module only connects them to a transport and to the manager.
 """
 
@@ -9,14 +9,14 @@ from __future__ import annotations
 import dataclasses
 from typing import TYPE_CHECKING
 
-from app import streams
-from app.bus import StreamBus
-from app.config import PhysioCalibration, PhysioDevice
+from app.core import streams
+from app.core.bus import StreamBus
+from app.core.config import PhysioCalibration, PhysioDevice
 from app.devices.clock import DeviceClock
 from app.devices.driver import Channel, DeviceDriver, StreamSpec
-from app.devices.physio_codec import Calibration, ChannelCalibration, PhysioStreamDecoder
 from app.devices.sim.base import SerialSimulator
 from app.devices.transport import SerialSettings, SerialTransport, Transport
+from app.wire.physio_codec import Calibration, ChannelCalibration, PhysioStreamDecoder
 
 if TYPE_CHECKING:
     from app.devices.registry import DeviceContext, DeviceHandle

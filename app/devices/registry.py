@@ -21,12 +21,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from app import streams
-from app.assistance import AssistanceLevels
-from app.bus import StreamBus
-from app.config import AppConfig, SafetyConfig
+from app.core import streams
+from app.core.bus import StreamBus
+from app.core.config import AppConfig, SafetyConfig
 from app.devices.driver import DeviceDriver
-from app.safety import RobotProbes, SafetySupervisor, StopAction
+from app.safety.assistance import AssistanceLevels
+from app.safety.supervisor import RobotProbes, SafetySupervisor, StopAction
 
 log = logging.getLogger(__name__)
 
@@ -135,7 +135,7 @@ class DeviceContext:
     """What a device's ``create`` may use: nothing else of the application."""
 
     name: str
-    config: Any  # the device's own config section (e.g. app.config.LinarmDevice)
+    config: Any  # the device's own config section (e.g. app.core.config.LinarmDevice)
     safety: SafetyConfig
     bus: StreamBus  # the driver publishes here; the other devices' latest samples and events are read here
     supervisor: SafetySupervisor  # the drivers' checked command paths call it

@@ -1,6 +1,6 @@
 """RehaStim FES driver (ScienceMode 1 or 2) and its simulated device.
 
-The driver runs a loaded :class:`~app.fes_profile.FesProfile` on the stimulator's Continuous Channel
+The driver runs a loaded :class:`~app.core.fes_profile.FesProfile` on the stimulator's Continuous Channel
 List: every main period t1 it computes each channel's target (profile × live scale factors, at the
 elapsed time or at the movement phase fed by :meth:`FesDriver.set_phase`), follows it within the start
 ramp and the rate of increase (decreases at once), passes the whole update through
@@ -31,14 +31,19 @@ from typing import TYPE_CHECKING, Any, ClassVar, Literal
 import serial
 from PySide6.QtCore import QThread, Signal
 
-from app import journal, streams
-from app.bus import BusItem, DeviceEvent, StreamBus
-from app.config import FesDevice
+from app.core import journal, streams
+from app.core.bus import BusItem, DeviceEvent, StreamBus
+from app.core.config import FesDevice
+from app.core.fes_profile import MAX_SCALE, FesProfile
 from app.devices.command_queue import CommandQueue, CommandQueueClosed, CommandStatus, Priority
 from app.devices.driver import Channel, DeviceDriver, StreamSpec
 from app.devices.fes_guardian import FesGuardian, GuardianError
 from app.devices.fes_guardian import available as fes_guardian_available
-from app.devices.sciencemode import (
+from app.devices.sim.base import SerialSimulator
+from app.devices.transport import SerialSettings, SerialTransport, Transport
+from app.safety.fes_limits import ChannelCaps, FesLimiter, FesLimits, FesUpdate, rms_current_ma
+from app.safety.supervisor import AlarmLevel, SafetyError
+from app.wire.sciencemode import (
     CHANNELS,
     SM2_KEEPALIVE_PERIOD_S,
     SM2_MIN_DELIVERED_PULSE_WIDTH_US,
@@ -68,15 +73,10 @@ from app.devices.sciencemode import (
     encode_sm2_init_channel_list,
     encode_sm2_start,
 )
-from app.devices.sim.base import SerialSimulator
-from app.devices.transport import SerialSettings, SerialTransport, Transport
-from app.fes_limits import ChannelCaps, FesLimiter, FesLimits, FesUpdate, rms_current_ma
-from app.fes_profile import MAX_SCALE, FesProfile
-from app.safety import AlarmLevel, SafetyError
 
 if TYPE_CHECKING:
     from app.devices.registry import DeviceContext, DeviceHandle
-    from app.safety import SafetySupervisor
+    from app.safety.supervisor import SafetySupervisor
 
 log = logging.getLogger(__name__)
 

@@ -1,6 +1,6 @@
 """The VR renderer link: 32-byte frames out at ``rate_hz`` (50 Hz), the game's events in.
 
-Who decides what (the protocol as we define it; the codec is app.devices.udp_frames):
+Who decides what (the protocol as we define it; the codec is app.wire.udp_frames):
 
 * The manager owns the exercise's target sequence (``VrTask``; default alternating 0.10 / 0.40 m):
   every frame carries the current target, the sub-task index and state, the time in the sub-task
@@ -15,7 +15,7 @@ Who decides what (the protocol as we define it; the codec is app.devices.udp_fra
 * On ``TARGET_REACHED`` / ``TARGET_MISSED`` for the current sub-task the manager shows REACHED /
   FAILED for ``rest_s`` (0.5 s), then starts the next sub-task with the next target.
 
-Modes: ``standin`` (default) runs ``python -m app.vr_standin`` as a separate process on loopback
+Modes: ``standin`` (default) runs ``python -m app.devices.sim.vr_standin`` as a separate process on loopback
 ports chosen at start — headless, so nothing pops up; set the environment variable
 ``LINARMPP_VR_WINDOW=1`` to have it open its small window showing the target and the handle.
 ``external`` talks to a renderer at ``peer_host:peer_port``; ``off`` disables the link.
@@ -35,8 +35,8 @@ import time
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
-from app import streams
-from app.bus import Channel, StreamBus, StreamSpec
+from app.core import streams
+from app.core.bus import Channel, StreamBus, StreamSpec
 from app.devices.clock import CountedClock
 from app.devices.patient_model import (
     HelperProcess,
@@ -49,7 +49,7 @@ from app.devices.patient_model import (
     warn_if_plain,
 )
 from app.devices.transport import DatagramTransport, UdpTransport
-from app.devices.udp_frames import (
+from app.wire.udp_frames import (
     TaskData,
     TaskFlag,
     TaskState,
@@ -61,8 +61,8 @@ from app.devices.udp_frames import (
 )
 
 if TYPE_CHECKING:
-    from app.assistance import AssistanceLevels
     from app.devices.registry import DeviceContext, DeviceHandle
+    from app.safety.assistance import AssistanceLevels
 
 NAN = math.nan
 
@@ -252,7 +252,7 @@ def standin_process(host: str, standin_port: int, manager_port: int, window: boo
     args = ["--listen", f"{host}:{standin_port}", "--peer", f"{host}:{manager_port}", *(extra or [])]
     if window:
         args.append("--window")
-    return HelperProcess("app.ui.vr_standin_window" if window else "app.vr_standin", args)
+    return HelperProcess("app.ui.vr_standin_window" if window else "app.devices.sim.vr_standin", args)
 
 
 def create(ctx: DeviceContext) -> DeviceHandle | None:

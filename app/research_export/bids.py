@@ -35,7 +35,7 @@ from typing import IO, Any
 
 import numpy as np
 
-from app import streams
+from app.core import streams
 from app.research_export import channels as kinds
 from app.research_export.common import (
     DIR_MODE,
@@ -491,7 +491,7 @@ def _write_held(out: _Digest, folder: Path, name: str, s: Session, info: StreamI
 # ---------------------------------------------------------------------------------------------- top level
 def _write_top(out: _Digest, root: Path, options: BidsOptions,
                per_subject: dict[str, list[tuple[_Planned, _Written]]]) -> None:
-    from app.recording import app_version
+    from app.session.recording import app_version
 
     out.write_json(root / "dataset_description.json", {
         "Name": options.name, "BIDSVersion": BIDS_VERSION, "DatasetType": "raw",
@@ -608,10 +608,10 @@ WINDOW_MARGIN_S = 1.0  # data kept either side of a run (a movement's onset just
 
 
 def _write_metrics(out: _Digest, root: Path, p: _Planned, steps: Steps, result: ExportResult) -> None:
-    """Per-repetition metrics (app.metrics), one exercise run at a time: a run's data are read, its metrics
+    """Per-repetition metrics (app.session.metrics), one exercise run at a time: a run's data are read, its metrics
     computed, then the next run's — memory holds one run, not the session."""
-    from app.metrics import SUMMARY_METRICS, _runs_of, metrics_by_run
-    from app.recording import RecordedSession
+    from app.session.metrics import SUMMARY_METRICS, _runs_of, metrics_by_run
+    from app.session.recording import RecordedSession
 
     s = p.session
     steps.advance(0, f"BIDS sub-{p.subject} ses-{p.ses}: metrics")
@@ -637,12 +637,12 @@ def _write_metrics(out: _Digest, root: Path, p: _Planned, steps: Steps, result: 
     windows.finish()
     deriv = root / "derivatives" / METRICS_PIPELINE
     if not (deriv / "dataset_description.json").exists():
-        from app.recording import app_version
+        from app.session.recording import app_version
 
         out.write_json(deriv / "dataset_description.json", {
             "Name": "LINarm++ per-repetition metrics", "BIDSVersion": BIDS_VERSION, "DatasetType": "derivative",
             "GeneratedBy": [{"Name": "LINarm++ Manager metrics", "Version": app_version(),
-                             "Description": "app.metrics (docs/metrics.md)"}]})
+                             "Description": "app.session.metrics (docs/metrics.md)"}]})
     columns = ["run_id", "index", "start_s", "end_s", "duration_s", "completed", "source",
                *[k for k in SUMMARY_METRICS if k != "duration_s"], "prompt_s", "movement_onset_s", "movement_end_s"]
     rows = [[r.get(c) for c in columns] for r in reps]
@@ -668,9 +668,9 @@ def _write_metrics(out: _Digest, root: Path, p: _Planned, steps: Steps, result: 
     out.write_json(folder / f"{_prefix(p)}_desc-summary_metrics.json", {"runs": summaries})
 
 
-# What the metrics read (app.metrics.signals_from_session), stream -> channels (None: all of them).
+# What the metrics read (app.session.metrics.signals_from_session), stream -> channels (None: all of them).
 METRIC_CHANNELS: dict[str, tuple[str, ...] | None] = {
-    streams.LINARM_STATE: ("controlState",),  # homing (app.metrics.homing_intervals)
+    streams.LINARM_STATE: ("controlState",),  # homing (app.session.metrics.homing_intervals)
     streams.LINARM_VSA: ("handlePos", "interactionForce"),
     streams.PHYSIO_MAIN: ("force", "heartRate", "skinConductance"),
     streams.PATIENT_MODEL_MAIN: ("alpha", "a_r", "a_f"),
@@ -682,7 +682,7 @@ class _RunWindows:
     """The streams the metrics read, in windows of time taken in order (one pass over each file)."""
 
     def __init__(self, s: Session, steps: Steps) -> None:
-        from app.recording import RecordedStream
+        from app.session.recording import RecordedStream
 
         self._stream_type = RecordedStream
         self.steps = steps

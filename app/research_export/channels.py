@@ -1,6 +1,6 @@
 """What each recorded channel *is*, in the words of each format: the one place the exporters look it up.
 
-The recorder knows a channel's name, unit and label (app.bus.Channel, in the manifest). A research format also
+The recorder knows a channel's name, unit and label (app.core.bus.Channel, in the manifest). A research format also
 wants its kind: BIDS motion channel types (POS, VEL, MISC, LATENCY) with a component and a tracked point, an XDF
 channel ``type`` (LabRecorder/LSL meta-data conventions: Position, Force, …), units in plain ASCII for EDF's header,
 and where a stream goes in BIDS (the LINarm's kinematics and forces as motion, the sensors as physio, the
@@ -12,8 +12,8 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass
 
-from app import streams
-from app.bus import Channel
+from app.core import streams
+from app.core.bus import Channel
 
 # Where a stream goes in a BIDS dataset: "motion" (tracksys-LINarm), "physio", "stim".
 BIDS_PLACE: dict[str, str] = {

@@ -16,9 +16,9 @@ import logging
 import sys
 from pathlib import Path
 
-from app.recording import MANIFEST_FILE, safe_name
 from app.research_export.common import ExportCancelled, ExportError, ExportResult, release_memory_promptly
 from app.research_export.source import FolderSource, Session, is_session_folder, open_session
+from app.session.recording import MANIFEST_FILE, safe_name
 
 EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_INCOMPLETE = 0, 1, 2, 3
 FORMATS = ("bids", "xdf", "edf")

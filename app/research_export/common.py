@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any
 
-from app.outputs import remove_quietly  # noqa: F401  (the export's modules import it from here)
+from app.core.outputs import remove_quietly  # noqa: F401  (the export's modules import it from here)
 
 Progress = Callable[[float, str], object]
 Cancel = Callable[[], bool]

@@ -1,7 +1,7 @@
 """The research export as one task for the worker process (the sessions browser's Export…, issue #41).
 
 ``export_sessions`` writes the chosen sessions in one format into a folder, all or nothing: every file is made in a
-staging folder beside the destination (``.<name>.part-<token>``, the name app.outputs gives temporaries, so the
+staging folder beside the destination (``.<name>.part-<token>``, the name app.core.outputs gives temporaries, so the
 task service removes it when a worker dies mid-export), read back there, and only once every session is written
 moved out into the folder; a cancel or a failure removes the staging folder, so nothing is said written that is
 not. A session that cannot be read or written is left out and said (the others are written), as the command line

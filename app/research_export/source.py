@@ -3,7 +3,7 @@ materialised or streamed session (``app.archive`` ``SessionFiles`` has the same 
 
 An export never loads a whole session: the manifest and the events are small and read at once, the stream files
 are read in blocks of whole lines (:meth:`Session.chunks`), so a two-hour session costs what one block costs.
-The parsing follows :func:`app.recording.load_session` (the same column rules, a last line cut short is dropped
+The parsing follows :func:`app.session.recording.load_session` (the same column rules, a last line cut short is dropped
 and counted, a line with the wrong number of fields is dropped and counted) and gives the same float64 values.
 """
 
@@ -19,8 +19,8 @@ from typing import IO, Any, Protocol
 
 import numpy as np
 
-from app import recording
-from app.bus import Channel
+from app.core.bus import Channel
+from app.session import recording
 
 BLOCK_BYTES = 4 << 20  # one read of a stream file: ~250 000 values, a few MB of arrays
 
@@ -122,7 +122,7 @@ class StreamInfo:
     rate_hz: float  # the nominal rate the session ran it at (manifest), 0 when unknown
     channels: tuple[Channel, ...]
     file: str  # its name in the source
-    irregular: bool  # published on change, not at its rate (app.lsl.IRREGULAR_STREAMS)
+    irregular: bool  # published on change, not at its rate (app.session.lsl.IRREGULAR_STREAMS)
     size: int = 0  # bytes of its file (progress)
 
 
@@ -336,7 +336,7 @@ def _parse_lines(data: bytes, ncols: int, usecols: list[int] | None = None) -> t
 
 
 def _irregular(stream: str) -> bool:
-    from app.lsl import IRREGULAR_STREAMS
+    from app.session.lsl import IRREGULAR_STREAMS
 
     return stream in IRREGULAR_STREAMS
 

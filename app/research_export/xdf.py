@@ -28,7 +28,6 @@ from typing import IO
 
 import numpy as np
 
-from app import recording
 from app.research_export import channels as kinds
 from app.research_export.common import (
     Cancel,
@@ -44,6 +43,7 @@ from app.research_export.common import (
 )
 from app.research_export.marks import FesSwitches, Mark, event_marks, exported, record_json
 from app.research_export.source import Chunk, Session
+from app.session import recording
 
 MAGIC = b"XDF:"
 TAG_FILE_HEADER, TAG_STREAM_HEADER, TAG_SAMPLES, TAG_CLOCK_OFFSET, TAG_BOUNDARY, TAG_STREAM_FOOTER = 1, 2, 3, 4, 5, 6
@@ -51,9 +51,9 @@ BOUNDARY_UUID = bytes([0x43, 0xA5, 0x46, 0xDC, 0xCB, 0xF5, 0x41, 0x0F, 0xB3, 0x0
 WINDOW_S = 5.0  # samples are written in windows of session time; one clock offset per stream per window
 BOUNDARY_S = 10.0  # LabRecorder writes a boundary chunk about every 10 s
 MAX_CHUNK_SAMPLES = 65536
-EVENTS_STREAM = "linarmpp.events"  # the live LSL event outlet's name (app.lsl.EVENTS_STREAM)
+EVENTS_STREAM = "linarmpp.events"  # the live LSL event outlet's name (app.session.lsl.EVENTS_STREAM)
 MARKERS_STREAM = "linarmpp.markers"
-SOURCE_PREFIX = "linarmpp"  # source ids as the live outlets have them (app.lsl.SOURCE_PREFIX)
+SOURCE_PREFIX = "linarmpp"  # source ids as the live outlets have them (app.session.lsl.SOURCE_PREFIX)
 
 
 def _varlen(n: int) -> bytes:

@@ -12,7 +12,7 @@ the bridge (app/scripting/bridge.py), with an inline context; the runner uses a 
 Rules every object follows:
 
 * attribute reads (``linarm.linarmVsaState``, ``physiologicalSensors.physiologicalSensorsData``…)
-  return the stream's latest sample on the bus (app/bus.py); before the first sample they wait briefly for
+  return the stream's latest sample on the bus (app/core/bus.py); before the first sample they wait briefly for
   it (on the bus's notifier), then raise :class:`DeviceUnavailable`. Each read also releases the GIL for a
   moment, so a caller busy-waiting on a device value leaves the devices and the GUI their share;
 * commands block until the device acknowledges them and raise a :class:`ScriptError` with a plain
@@ -25,7 +25,7 @@ Rules every object follows:
   thread of the context's own. (A script's own callbacks run in the kernel, on its callback thread: the bridge
   streams it the samples; nothing in the application sets ``post_callback`` today.)
 
-The context is handed what it uses of the application (app.services.ScriptHost), not the manager.
+The context is handed what it uses of the application (app.therapy.services.ScriptHost), not the manager.
 """
 
 from __future__ import annotations
@@ -39,11 +39,10 @@ from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from app import streams
-from app.bus import SampleItem, Subscription
-from app.devices import linarm_protocol as proto
+from app.core import streams
+from app.core.bus import SampleItem, Subscription
 from app.devices.transport import TransportError
-from app.safety import SafetyError
+from app.safety.supervisor import SafetyError
 from app.scripting import api_spec
 from app.scripting.api_spec import (  # the one definition (re-exported: the bridge, the runner and tests use these)
     API_NAMES,
@@ -55,9 +54,10 @@ from app.scripting.api_spec import (  # the one definition (re-exported: the bri
     ScriptError,
     ScriptStopped,
 )
+from app.wire import linarm_protocol as proto
 
 if TYPE_CHECKING:
-    from app.services import ScriptHost
+    from app.therapy.services import ScriptHost
 
 __all__ = ["API_NAMES", "CommandError", "CommandRefused", "DeviceUnavailable", "FESUser", "LinarmUser",
            "LinarmppManager", "NotInitializedError", "PatientModelUser", "PhysiologicalSensorsUser", "ScriptContext",
@@ -271,7 +271,7 @@ def _shaped(shape: api_spec.ObjectShape) -> Callable[[type], type]:
     return apply
 
 
-# The shapes' streams by their constant's name in app/streams.py ("LINARM_VSA" -> "linarm.vsa"): the kernel gets it
+# The shapes' streams by their constant's name in app/core/streams.py ("LINARM_VSA" -> "linarm.vsa"): the kernel gets it
 SPEC_STREAMS: dict[str, str] = {
     key: getattr(streams, key) for shape in api_spec.OBJECTS.values()
     for key in (*(p.stream for p in shape.properties.values()), *(c.stream for c in shape.callbacks.values()))
@@ -343,7 +343,7 @@ class LinarmUser(_ApiObject):
 
     def getConfigData(self) -> dict[str, Any]:
         cfg = self._ctx.host.config
-        from app.yamlschema import to_plain
+        from app.core.yamlschema import to_plain
 
         return {"device": to_plain(cfg.devices.linarm), "limits": to_plain(cfg.safety.robot)}
 
@@ -422,8 +422,8 @@ class FESUser(_ApiObject):
             raise CommandError(f"{what} failed: {exc}") from exc
 
     def loadFile(self, fileName: str) -> Any:
-        from app.config import RESOURCES
-        from app.fes_profile import load_profile
+        from app.core.config import RESOURCES
+        from app.core.fes_profile import load_profile
 
         path = self._ctx.resolve_path(str(fileName), RESOURCES / "fes_profiles")
         profile = load_profile(path)  # FesProfileError names the file, line and key
@@ -432,8 +432,8 @@ class FESUser(_ApiObject):
         return profile
 
     def writeFile(self, data: Any, fileName: str) -> None:
-        from app.fes_profile import FesProfile, save_profile
-        from app.safe_files import check_writable_target
+        from app.core.fes_profile import FesProfile, save_profile
+        from app.core.safe_files import check_writable_target
 
         if not isinstance(data, FesProfile):
             raise TypeError(f"fes.writeFile expects a profile (e.g. fes.profile), got {type(data).__name__}")
@@ -472,7 +472,7 @@ class FESUser(_ApiObject):
 
     def electrodeSetup(self, district: str, ceiling_mA: float, start_mA: float = 6.0, step_mA: float = 2.0,
                        pulseWidth_us: float = 250.0, accept: bool = False) -> dict[str, Any]:
-        from app import electrodes
+        from app.therapy import electrodes
 
         manager = self._ctx.host
         fes, robot = self._driver(), self._ctx.driver("linarm", "the LINarm")

@@ -13,14 +13,14 @@ What both must agree on is written here, once:
   waits for a first sample, and where a script's file names resolve (:func:`resolve_path`);
 * the objects' shapes (:data:`OBJECTS`): class names, the latest-sample properties and the callback setters
   with their streams, the methods and attributes a kernel may call beyond the robot's command table (which is
-  the wire's, app/devices/linarm_protocol.py), with the docstrings a script's ``help()`` shows;
+  the wire's, app/wire/linarm_protocol.py), with the docstrings a script's ``help()`` shows;
   :func:`apply_shape` puts a shape on a class and checks that the class implements it;
 * ``linarmppManager`` (:class:`LinarmppManager`), the same class on both sides: what differs — where a file
   name resolves, how a program runs, where the e-stop and the progress marks go — is its :class:`ManagerPort`.
 
 It imports nothing of the application: the kernel must not (its isolation: it reaches the devices only through
 the application), so it loads this file by its path, under a name outside ``app`` (kernel.py,
-``_load_api_spec``). Streams are named here by their constant's name in app/streams.py (``"LINARM_VSA"``), the
+``_load_api_spec``). Streams are named here by their constant's name in app/core/streams.py (``"LINARM_VSA"``), the
 one place their names are spelled; the application resolves them and tells the kernel (its hello message).
 """
 
@@ -148,7 +148,7 @@ def set_callbacks(target: list[Callback], fun: Any, what: str) -> None:
 
 # ---------------------------------------------------------------------------------------------- shapes
 class Property(NamedTuple):
-    """A state attribute: the latest sample of ``stream`` (a constant's name in app/streams.py)."""
+    """A state attribute: the latest sample of ``stream`` (a constant's name in app/core/streams.py)."""
 
     stream: str
     doc: str

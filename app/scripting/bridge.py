@@ -3,7 +3,7 @@ in-app API (app/scripting/api.py) and streams it the samples it reads.
 
 :class:`ApiBridge` serves one kernel (app/scripting/kernel_process.py runs the process and hands its messages
 over): ``subscribe`` (every sample of the stream from then on, in order: the bridge's subscription to the stream
-bus, app/bus.py, drained and sent to the kernel by a thread of the bridge's own), ``peek`` (completion), and
+bus, app/core/bus.py, drained and sent to the kernel by a thread of the bridge's own), ``peek`` (completion), and
 ``call`` — only the API's own methods (:data:`ALLOWED_CALLS`: the robot's command table and the methods of the
 API's definition, app/scripting/api_spec.py), executed by the in-app API objects, in the order the kernel sent
 them, on the bridge's call thread: never on the thread that reads the kernel's requests, so a command waiting for
@@ -30,9 +30,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from app import journal
-from app.bus import SampleItem, Subscription
-from app.devices import linarm_protocol as proto
+from app.core import journal
+from app.core.bus import SampleItem, Subscription
 from app.scripting import api, api_spec
 from app.scripting.api import (
     DeviceUnavailable,
@@ -41,9 +40,10 @@ from app.scripting.api import (
     ScriptStopped,
 )
 from app.scripting.kernel_process import KernelProcess, encode
+from app.wire import linarm_protocol as proto
 
 if TYPE_CHECKING:
-    from app.services import ScriptHost
+    from app.therapy.services import ScriptHost
 
 log = logging.getLogger(__name__)
 
@@ -382,7 +382,7 @@ class ApiBridge:
         return value
 
     def _result(self, value: Any) -> Any:
-        from app.fes_profile import FesProfile
+        from app.core.fes_profile import FesProfile
 
         if isinstance(value, FesProfile):
             token = next(self._profile_ids)

@@ -2,7 +2,7 @@
 
 Starts the configured devices (simulated by default), waits for them, homes the LINarm when the
 controller says it is not homed (as the seed's scripts assume), runs the script, prints its output,
-records the session when asked (app.recording.SessionRecorder, into ``DIR/<patient>/<date-time>/``),
+records the session when asked (app.session.recording.SessionRecorder, into ``DIR/<patient>/<date-time>/``),
 brings the devices to a safe state and exits:
 
 * 0 — the script finished, or was stopped because ``--duration`` was reached (counted from the start of
@@ -11,12 +11,12 @@ brings the devices to a safe state and exits:
   process (the script kernel) ended by itself — a segfault, ``os._exit``, out of memory;
 * 3 — a safety stop: a command refused by the safety supervisor, an emergency stop, or an alarm of
   level STOP (e.g. the LINarm latched an error, a device lost, the recording failed) during the run —
-  the fault policy (app.fault_policy, the same as the window's) has already stopped FES, the robot and
+  the fault policy (app.safety.fault_policy, the same as the window's) has already stopped FES, the robot and
   the script;
 * 4 — the session cannot be recorded (``--record`` folder unwritable, or too little free space): one line
   on stderr, nothing was started;
 * 128 + the signal's number — ended by SIGINT (130, Ctrl-C), SIGTERM (143) or SIGHUP (129): the devices were
-  brought to a safe state at once (app.signal_events: on a thread of its own, once however many signals
+  brought to a safe state at once (app.core.signal_events: on a thread of its own, once however many signals
   arrive), then the script was stopped, the recording closed and the devices shut down as on any other end.
 """
 
@@ -29,15 +29,15 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from app import streams
-from app.config import AppConfig
+from app.core import streams
+from app.core.config import AppConfig
 
 if TYPE_CHECKING:
     from PySide6.QtCore import QCoreApplication
 
+    from app.core.signal_events import SignalEvents
     from app.manager import LinarmppManager
-    from app.safety import AlarmLevel
-    from app.signal_events import SignalEvents
+    from app.safety.supervisor import AlarmLevel
 
 log = logging.getLogger(__name__)
 
@@ -60,7 +60,7 @@ def run_headless(config: AppConfig, script_path: str, duration_s: float | None =
     from PySide6.QtCore import QCoreApplication
 
     from app.manager import LinarmppManager
-    from app.safety import AlarmLevel
+    from app.safety.supervisor import AlarmLevel
     from app.scripting.runner import ScriptRunner
 
     path = Path(script_path)
@@ -72,7 +72,7 @@ def run_headless(config: AppConfig, script_path: str, duration_s: float | None =
         return EXIT_ERROR
     app = QCoreApplication.instance() or QCoreApplication([sys.argv[0] if sys.argv else "linarmpp"])
     if patient and not record_dir:  # a patient's session goes where the window's go: the station's outbox
-        from app.recording import sessions_root
+        from app.session.recording import sessions_root
 
         record_dir = str(sessions_root(config))
     if record_dir:
@@ -85,7 +85,7 @@ def run_headless(config: AppConfig, script_path: str, duration_s: float | None =
     lsl = None
     runner = None
     code = EXIT_OK
-    from app.signal_events import SignalEvents, exit_code_for, signal_name
+    from app.core.signal_events import SignalEvents, exit_code_for, signal_name
 
     def on_signal(signum: int) -> None:  # the signal thread, once: the run loops below see `signals.received`
         manager.supervisor.bring_to_safe_state(f"{signal_name(signum)} received")
@@ -99,8 +99,8 @@ def run_headless(config: AppConfig, script_path: str, duration_s: float | None =
         if prepare is not None:
             prepare(manager)
         if record_dir:
-            from app.patients import PatientError
-            from app.recording import RecordingError, SessionRecorder
+            from app.session.recording import RecordingError, SessionRecorder
+            from app.therapy.patients import PatientError
 
             recorder = SessionRecorder()
             try:
@@ -197,7 +197,7 @@ def _record_dir_problem(root: Path, config: AppConfig) -> str:
     """Why sessions cannot be recorded under ``root`` ('' when they can): checked before anything starts."""
     import os
 
-    from app.recording import RecordingError, check_free_space
+    from app.session.recording import RecordingError, check_free_space
 
     try:
         root.mkdir(parents=True, exist_ok=True, mode=0o700)

@@ -89,8 +89,8 @@ def encode(msg: dict[str, Any]) -> bytes:
 
 def _kernel_environment() -> dict[str, str]:
     """The kernel's environment: the application's, without anything meant for another helper."""
-    from app.devices.udp_frames import LINK_KEY_ENV
-    from app.patient_model.process import LINK_KEY_FD_ENV
+    from app.devices.sim.patient_model.process import LINK_KEY_FD_ENV
+    from app.wire.udp_frames import LINK_KEY_ENV
 
     env = dict(os.environ)
     for name in (LINK_KEY_ENV, LINK_KEY_FD_ENV):

@@ -7,7 +7,7 @@ runs in a fresh kernel (its own namespace); the prompt then works in that namesp
 The kernel's process and link are :class:`app.scripting.kernel_process.KernelProcess`'s; the kernel reaches the
 devices only through :class:`app.scripting.bridge.ApiBridge`: the API's calls, answered on bridge threads by the
 in-app API objects (the safety supervisor on every command), and the samples of the streams it uses. The runner
-is handed what it uses of the application, typed (app.services.ScriptHost: the supervisor, the run log, the
+is handed what it uses of the application, typed (app.therapy.services.ScriptHost: the supervisor, the run log, the
 progress marks, the drivers…), and uses exactly that.
 
 Stop (:meth:`request_stop`): calls from the kernel are refused from then on, FES and robot go to the safe
@@ -38,19 +38,19 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from app import journal, streams
-from app.devices.linarm_constants import PRETENSION_MOVE, K
-from app.devices.linarm_protocol import ControlMode, ControlState, HomeState
-from app.ownership import Composition, start_problem
-from app.resources import RESOURCES
-from app.runs import ExerciseRun, Program, RunLog, RunParameter, RunSource, text_hash
-from app.safety import SafetyError, SafetySupervisor
+from app.core import journal, streams
+from app.core.ownership import Composition, start_problem
+from app.core.resources import RESOURCES
+from app.core.runs import ExerciseRun, Program, RunLog, RunParameter, RunSource, text_hash
+from app.safety.supervisor import SafetyError, SafetySupervisor
 from app.scripting.api import CommandRefused, ScriptContext, ScriptStopped
 from app.scripting.bridge import ApiBridge, Gate, hello_message
 from app.scripting.kernel_process import KernelProcess
+from app.wire.linarm_constants import PRETENSION_MOVE, K
+from app.wire.linarm_protocol import ControlMode, ControlState, HomeState
 
 if TYPE_CHECKING:
-    from app.services import ScriptHost
+    from app.therapy.services import ScriptHost
 
 log = logging.getLogger(__name__)
 
@@ -149,7 +149,7 @@ class ScriptRunner:
         self._output_budget = _OutputBudget()
         self.kernel_start_s: float | None = None  # Start → the kernel has the script (the last run)
         self.run: ExerciseRun | None = None  # the run of the last Start, as it was opened
-        self.stop_cause = ""  # why the run stopped (app.runs.END_REASONS): emergency_stop, safety_stop, …
+        self.stop_cause = ""  # why the run stopped (app.core.runs.END_REASONS): emergency_stop, safety_stop, …
         self._console_run: ExerciseRun | None = None  # the console entry's run while one runs (no script running)
         self._run_log: RunLog | None = None  # the run log the last run was opened in
         self.gate = Gate()
@@ -294,11 +294,11 @@ class ScriptRunner:
         """Run ``source`` (the script's text) in a fresh kernel; ``filename`` names it in tracebacks.
         ``params`` (plain data: an exercise form's values) is the script's global ``exerciseParams``.
 
-        Opens the run (app/runs.py) in the manager's run log: ``program`` (a Program; by default the script file
+        Opens the run (app/core/runs.py) in the manager's run log: ``program`` (a Program; by default the script file
         with its exact text), ``parameters`` (RunParameters), ``run_source`` (who started it) and ``restart_of``
         (the run Recover restarts; ``continues``: the interrupted run a continuation carries on). The run holds
-        ``holds`` (the robot, the stimulator: one owner during a run, app/ownership.py) and lets ``compose``
-        (app.ownership.Composition) in. Returns the run (None without a run log); the run ends with the script.
+        ``holds`` (the robot, the stimulator: one owner during a run, app/core/ownership.py) and lets ``compose``
+        (app.core.ownership.Composition) in. Returns the run (None without a run log); the run ends with the script.
         Raises RuntimeError, nothing started and no run recorded, while another holds the devices."""
         t0 = time.monotonic()
         with self._run_lock:
@@ -405,7 +405,7 @@ class ScriptRunner:
     def request_stop(self, reason: str = "stopped by the operator", cause: str = "stopped_by_operator") -> None:
         """Stop the script (and prompt entries); returns at once, never blocks (the supervisor's "script"
         stop action). FES and robot go to the safe state at once; the kernel ends within 200 ms.
-        ``cause`` is the run's end reason (app.runs.END_REASONS); the first stop's reason and cause are kept."""
+        ``cause`` is the run's end reason (app.core.runs.END_REASONS); the first stop's reason and cause are kept."""
         running = self.running
         if not running and not any(p.is_alive() for p in list(self._prompts.values())):
             return

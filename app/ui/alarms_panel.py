@@ -35,7 +35,7 @@ from PySide6.QtWidgets import (
 )
 
 from app.manager import LinarmppManager
-from app.safety import Alarm, AlarmLevel
+from app.safety.supervisor import Alarm, AlarmLevel
 from app.ui.qt_bus import shared_qt_bus
 from app.ui.recovery import RecoverDialog, Recovery, Restartable, recovery_needed
 from app.ui.widgets import ElidedLabel

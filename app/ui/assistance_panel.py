@@ -3,7 +3,7 @@ patient model, the therapist's four maps, and the live α, a_r, a_f with the val
 
 Expects (all optional, so the panel also works before the lead wires them):
 
-* ``manager.assistance`` — an ``app.assistance.AssistanceController``; every edit calls its
+* ``manager.assistance`` — an ``app.safety.assistance.AssistanceController``; every edit calls its
   ``set_config`` (gains and maps together) so it takes effect at once; without it the panel only
   shows and edits and says the split is not active;
 * ``manager.driver("patient_model")`` — a ``PatientModelDriver``; the clinical score is written to
@@ -36,8 +36,8 @@ from PySide6.QtWidgets import (
     QWidget,
 )
 
-from app import streams
-from app.config import AssistanceConfig, AssistanceMap
+from app.core import streams
+from app.core.config import AssistanceConfig, AssistanceMap
 from app.ui.qt_bus import QtBus
 from app.ui.widgets import StepSlider, on_screen
 
@@ -193,7 +193,7 @@ class AssistancePanel(QWidget):
 
     def _score_range(self) -> tuple[int, int, str]:
         try:
-            from app.patient_model.decision_tree import load_tree_config
+            from app.devices.sim.patient_model.decision_tree import load_tree_config
 
             c = load_tree_config()
             return int(c.scoreMin), int(c.scoreMax), c.scoreName.split(",")[0]

@@ -27,7 +27,7 @@ from PySide6.QtWidgets import (
     QWidget,
 )
 
-from app import journal
+from app.core import journal
 from app.manager import LinarmppManager
 from app.ui.qt_bus import QtBus, qt_bus_for, takes_qt_bus
 from app.ui.theme import colours

@@ -30,7 +30,7 @@ from PySide6.QtCore import QPoint, QPointF, QRectF, QSizeF, Qt, QTimer
 from PySide6.QtGui import QColor, QFont, QGuiApplication, QPainter, QPainterPath, QPen
 from PySide6.QtWidgets import QLabel, QSizePolicy, QVBoxLayout, QWidget
 
-from app import streams
+from app.core import streams
 from app.manager import LinarmppManager
 from app.ui.qt_bus import QtBus, qt_bus_for
 from app.ui.theme import colours

@@ -2,7 +2,7 @@
 combination with ramped bursts while the robot holds the arm, plot the response against the current, propose
 the combination with the largest response per mA, and save the therapist's choice in the patient's profile.
 
-The procedure itself is app.electrodes.ElectrodeSetup (Qt-free); it runs on a worker thread and reports here
+The procedure itself is app.therapy.electrodes.ElectrodeSetup (Qt-free); it runs on a worker thread and reports here
 through a queued signal. Stop (and the emergency stop, which the procedure watches) end it at once.
 """
 
@@ -33,10 +33,12 @@ from PySide6.QtWidgets import (
     QWidget,
 )
 
-from app import streams
 from app.archive.station import save_choice_record
-from app.devices.sciencemode import MAX_CURRENT_MA, MAX_PULSE_WIDTH_US
-from app.electrodes import (
+from app.core import streams
+from app.core.ownership import ROBOT, SETUP_SOURCES, STIMULATOR, Lease
+from app.manager import LinarmppManager
+from app.safety.supervisor import SafetyError
+from app.therapy.electrodes import (
     DISCOMFORT_MAX,
     BurstResult,
     ElectrodeSetup,
@@ -47,9 +49,7 @@ from app.electrodes import (
     choice_for,
     districts_from_config,
 )
-from app.manager import LinarmppManager
-from app.ownership import ROBOT, SETUP_SOURCES, STIMULATOR, Lease
-from app.safety import SafetyError
+from app.wire.sciencemode import MAX_CURRENT_MA, MAX_PULSE_WIDTH_US
 
 log = logging.getLogger(__name__)
 

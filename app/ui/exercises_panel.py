@@ -31,8 +31,8 @@ from PySide6.QtWidgets import (
     QWidget,
 )
 
-from app.exercises import Exercise, Parameter, Validation, load_library, start_exercise, validate
-from app.progress import ProgressState
+from app.core.progress import ProgressState
+from app.therapy.exercises import Exercise, Parameter, Validation, load_library, start_exercise, validate
 from app.ui.fes_conflict import fes_conflict_text, resolve_fes_conflict
 from app.ui.qt_bus import shared_qt_bus
 
@@ -183,7 +183,7 @@ class ExercisesPanel(QWidget):
         font.setBold(True)
         self.repetition_label.setFont(font)
         # The run's state in words ("Trigger reaching — waiting for the grip", "… — stopped: emergency stop"),
-        # from the run itself (app/runs.py), whichever tab started it.
+        # from the run itself (app/core/runs.py), whichever tab started it.
         self.state_label = QLabel("")
         self.state_label.setObjectName("runState")
         self.state_label.setAccessibleName("Run state")
@@ -312,7 +312,7 @@ class ExercisesPanel(QWidget):
     def reload_patients(self, select: str | None = None) -> None:
         from PySide6.QtCore import QSettings
 
-        from app.patients import list_patients
+        from app.therapy.patients import list_patients
 
         possible = self._session_possible()
         self.session_box.setVisible(possible)
@@ -449,7 +449,7 @@ class ExercisesPanel(QWidget):
 
     def step_problem(self, step: Any) -> str:
         """Why a plan step would not start now (the patient's limits, caps and electrodes in force): "" if it would."""
-        from app.exercises import run_problems
+        from app.therapy.exercises import run_problems
 
         exercise = next((e for e in self.library if e.ident == step.exercise), None)
         if exercise is None:
@@ -548,7 +548,7 @@ class ExercisesPanel(QWidget):
     # ------------------------------------------------------------------ start / pause / stop
     def hold_reason(self) -> str:
         """Why nothing may start now ("" when it may): a latched e-stop or an open STOP alarm (Recover first)."""
-        from app.ownership import start_problem
+        from app.core.ownership import start_problem
 
         return start_problem(self.manager, ())
 
@@ -613,7 +613,7 @@ class ExercisesPanel(QWidget):
         changed = run.program.changed_on_disk()
         if changed:
             return changed
-        from app.exercises import exercise_program
+        from app.therapy.exercises import exercise_program
 
         try:
             now = exercise_program(exercise)
@@ -629,7 +629,7 @@ class ExercisesPanel(QWidget):
     def remaining_repetitions(self, run: Any) -> tuple[int, int] | None:
         """(repetitions still to do, planned) of ``run``, for Recover's "continue"; None when its exercise does
         not count repetitions."""
-        from app.runs import remaining_repetitions
+        from app.core.runs import remaining_repetitions
 
         exercise = next((e for e in self.library if e.ident == run.program.ident), None)
         if exercise is None or not exercise.repetitions:

@@ -12,7 +12,7 @@ from typing import Any
 
 from PySide6.QtWidgets import QMessageBox, QWidget
 
-from app import streams
+from app.core import streams
 
 
 def exercise_stimulates(exercise: Any, values: Mapping[str, Any]) -> bool:

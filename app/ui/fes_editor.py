@@ -4,7 +4,7 @@ and every edit can be undone.
 
 Rows are channels and match between the two tables (the channel, muscle and pulse group are edited in
 the current table; the pulse-width table shows the channel). Cells are plain text, parsed and
-validated on every change with the same checks as a profile file (``app.fes_profile``); a profile can
+validated on every change with the same checks as a profile file (``app.core.fes_profile``); a profile can
 only be saved or applied when nothing is wrong.
 """
 
@@ -40,9 +40,7 @@ from PySide6.QtWidgets import (
     QWidget,
 )
 
-from app.devices.sciencemode import CHANNELS, CHANNELS_TEXT, MAX_CURRENT_MA, MAX_PULSE_WIDTH_US, PulseMode
-from app.fes_limits import FesLimits, profile_limit_problems
-from app.fes_profile import (
+from app.core.fes_profile import (
     ChannelProfile,
     FesProfile,
     FesProfileError,
@@ -50,11 +48,13 @@ from app.fes_profile import (
     load_profile,
     save_profile,
 )
-from app.paths import fes_profiles_dir
-from app.resources import RESOURCES
+from app.core.paths import fes_profiles_dir
+from app.core.resources import RESOURCES
+from app.safety.fes_limits import FesLimits, profile_limit_problems
 from app.ui import file_dialogs
 from app.ui.file_dialogs import is_bundled
 from app.ui.theme import colours, curve_colour
+from app.wire.sciencemode import CHANNELS, CHANNELS_TEXT, MAX_CURRENT_MA, MAX_PULSE_WIDTH_US, PulseMode
 
 BUNDLED_PROFILES = RESOURCES / "fes_profiles"
 

@@ -29,16 +29,16 @@ from PySide6.QtWidgets import (
     QWidget,
 )
 
-from app import journal, streams
-from app.config import RESOURCES
+from app.core import journal, streams
+from app.core.config import RESOURCES
+from app.core.fes_profile import MAX_SCALE, FesProfile, FesProfileError, load_profile
+from app.core.journal import Record
+from app.core.paths import fes_profiles_dir
 from app.devices.command_queue import CommandQueueClosed, CommandStatus
 from app.devices.rehastim import FesDriver, FesError, scale_clamp_text
-from app.fes_limits import FesLimits
-from app.fes_profile import MAX_SCALE, FesProfile, FesProfileError, load_profile
-from app.journal import Record
 from app.manager import LinarmppManager
-from app.paths import fes_profiles_dir
-from app.safety import SafetyError
+from app.safety.fes_limits import FesLimits
+from app.safety.supervisor import SafetyError
 from app.ui import file_dialogs
 from app.ui.qt_bus import shared_qt_bus
 from app.ui.theme import colours

@@ -14,7 +14,7 @@ from pathlib import Path
 from PySide6.QtCore import QUrl
 from PySide6.QtWidgets import QFileDialog, QWidget
 
-from app.resources import RESOURCES
+from app.core.resources import RESOURCES
 
 
 def is_bundled(path: str | Path) -> bool:

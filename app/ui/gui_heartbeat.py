@@ -9,7 +9,7 @@ from typing import Any
 
 from PySide6.QtCore import QObject, QTimer
 
-from app import streams
+from app.core import streams
 from app.gui_watch import BEAT_PERIOD_S, GUARDIAN_WINDOW_TRIP_S, GuiWatch, what_drives
 
 

@@ -8,7 +8,7 @@ from typing import Any
 
 from PySide6.QtWidgets import QWidget
 
-from app.ownership import DEVICE_WORDS, ROBOT, STIMULATOR
+from app.core.ownership import DEVICE_WORDS, ROBOT, STIMULATOR
 from app.ui.alarms_panel import LinesLabel
 from app.ui.qt_bus import shared_qt_bus
 

@@ -47,13 +47,19 @@ from PySide6.QtWidgets import (
     QWidget,
 )
 
-from app import journal, streams
-from app.devices import linarm_protocol as proto
-from app.devices.cmdmessenger import Kind
+from app.core import journal, streams
 from app.devices.command_queue import CommandQueueClosed, CommandStatus
 from app.devices.linarm import LinarmCommandError, LinarmTimeout
-from app.devices.linarm_constants import K
-from app.devices.linarm_protocol import (
+from app.devices.transport import TransportError
+from app.manager import LinarmppManager
+from app.safety.supervisor import SafetyError
+from app.ui.qt_bus import shared_qt_bus
+from app.ui.theme import colours
+from app.ui.widgets import RefreshWhenVisible
+from app.wire import linarm_protocol as proto
+from app.wire.cmdmessenger import Kind
+from app.wire.linarm_constants import K
+from app.wire.linarm_protocol import (
     COMMANDS_BY_NAME,
     ENUMS,
     Arg,
@@ -62,12 +68,6 @@ from app.devices.linarm_protocol import (
     HomeState,
     ReplyError,
 )
-from app.devices.transport import TransportError
-from app.manager import LinarmppManager
-from app.safety import SafetyError
-from app.ui.qt_bus import shared_qt_bus
-from app.ui.theme import colours
-from app.ui.widgets import RefreshWhenVisible
 
 log = logging.getLogger(__name__)
 
@@ -93,7 +93,7 @@ UNIT_INPUT: dict[str, tuple[int, float, float]] = {
 }
 
 # The inputs of the controller's own settings start at its defaults, read from the one constants table
-# (app/devices/linarm_constants.py, which the firmware and the simulator use too); "Read" buttons fetch the
+# (app/wire/linarm_constants.py, which the firmware and the simulator use too); "Read" buttons fetch the
 # live values. The move inputs start at modest values of the panel's own.
 CONTROLLER_DEFAULTS: dict[str, float] = {
     "Ka": K["ADMITTANCE_KA"], "Kt": K["ASSISTANCE_KT"], "Apos": K["ASSISTANCE_TARGET"],

@@ -15,14 +15,14 @@ from PySide6.QtCore import Qt, QTimer
 from PySide6.QtGui import QFont, QFontDatabase
 from PySide6.QtWidgets import QFrame, QGridLayout, QGroupBox, QHBoxLayout, QLabel, QScrollArea, QVBoxLayout, QWidget
 
-from app import streams
-from app.devices import linarm_protocol as proto
+from app.core import streams
 from app.devices.linarm import STATE_STREAM, VSA_STREAM, LinarmDriver
-from app.devices.linarm_protocol import ControlState, ErrorState, HomeState
 from app.manager import LinarmppManager
 from app.ui.qt_bus import QtBus, qt_bus_for
 from app.ui.theme import colours
 from app.ui.widgets import LabelBoard, RefreshWhenVisible
+from app.wire import linarm_protocol as proto
+from app.wire.linarm_protocol import ControlState, ErrorState, HomeState
 
 DASH = "—"
 

@@ -30,10 +30,10 @@ from PySide6.QtWidgets import (
 )
 
 from app import __version__
-from app.logging_setup import log_file
+from app.core.logging_setup import log_file
+from app.core.paths import data_dir, sessions_dir
+from app.core.resources import RESOURCES
 from app.manager import LinarmppManager
-from app.paths import data_dir, sessions_dir
-from app.resources import RESOURCES
 from app.ui.qt_bus import QtBus, takes_qt_bus
 from app.ui.recovery import Restartable
 from app.ui.tasks import QtTasks
@@ -186,9 +186,9 @@ class MainWindow(QMainWindow):
         from app.ui.gui_heartbeat import install_gui_watch
 
         self.gui_heartbeat = install_gui_watch(self.manager, self)
-        # The collector's full walks kept off the therapy (app/gc_policy.py): survivors settled while driving,
+        # The collector's full walks kept off the therapy (app/core/gc_policy.py): survivors settled while driving,
         # everything collected once at rest.
-        from app.gc_policy import TICK_S, HeapPolicy
+        from app.core.gc_policy import TICK_S, HeapPolicy
         from app.gui_watch import what_drives
 
         self.heap_policy = HeapPolicy(lambda: what_drives(self.manager))
@@ -478,7 +478,7 @@ class MainWindow(QMainWindow):
         return self._tasks
 
     def _session_folder_changed(self, folder: Path | None) -> None:
-        from app.recording import index_worthwhile
+        from app.session.recording import index_worthwhile
 
         ended, self._recording = self._recording, folder
         if ended is not None and folder != ended and not self._tasks_closed and index_worthwhile(ended):
@@ -498,7 +498,7 @@ class MainWindow(QMainWindow):
             self._archive_again = self._archive_again or force
             return
         from app.archive.outbox import archive_settings
-        from app.recording import sessions_root
+        from app.session.recording import sessions_root
 
         active = recorder_folder(self.manager)
         self._archive_task = self.tasks().run(
@@ -526,7 +526,7 @@ class MainWindow(QMainWindow):
             self.archive_pass(force=True)
 
     def show_sessions_browser(self) -> None:
-        from app.recording import sessions_root
+        from app.session.recording import sessions_root
         from app.ui.sessions_browser import SessionsBrowser
 
         self._browser = SessionsBrowser(sessions_root(self.manager.config), self.manager.config.ui.history_s,

@@ -1,8 +1,8 @@
 """Create or edit a patient profile, and choose patient + operator to start a session (the session-start
 dialog: the operator is chosen explicitly each time; the last one is offered as a button, never pre-filled).
 
-The form is validated by the same code that loads profile files (app.patients.parse_profile →
-app.yamlschema): the form is turned into the YAML document it would save, and any problem is shown
+The form is validated by the same code that loads profile files (app.therapy.patients.parse_profile →
+app.core.yamlschema): the form is turned into the YAML document it would save, and any problem is shown
 next to the field it names, in the same words as a bad file would get.
 """
 
@@ -35,9 +35,9 @@ from PySide6.QtWidgets import (
 
 from app.archive import station
 from app.archive.api import ArchiveError, PatientExists, StaleRecord
-from app.config import SafetyConfig
-from app.devices.sciencemode import CHANNELS
-from app.patients import PatientEntry, PatientError, PatientProfile, list_patients, matches, parse_profile
+from app.core.config import SafetyConfig
+from app.therapy.patients import PatientEntry, PatientError, PatientProfile, list_patients, matches, parse_profile
+from app.wire.sciencemode import CHANNELS
 
 _SCORES = (("fugl_meyer_ue", "Fugl-Meyer UE (0–66)"), ("modified_ashworth", "Modified Ashworth (0–4)"),
            ("action_research_arm_test", "ARAT (0–57)"), ("box_and_block", "Box and Block (blocks/min)"),
@@ -307,7 +307,7 @@ class PatientDialog(QDialog):
             self.error_label.setText(f"could not save: {exc}")
             return
         if self.archive is None and (self.folder is not None or not station.in_use()):  # the YAML file
-            from app.patients import patient_file
+            from app.therapy.patients import patient_file
 
             self.saved_path = patient_file(profile.patient_id, self.folder)
         self.version = record.version

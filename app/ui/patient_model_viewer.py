@@ -23,8 +23,8 @@ from PySide6.QtCore import QPointF, QRectF, Qt, QTimer
 from PySide6.QtGui import QColor, QFont, QPainter, QPaintEvent, QPen
 from PySide6.QtWidgets import QGridLayout, QHBoxLayout, QLabel, QSplitter, QVBoxLayout, QWidget
 
-from app import streams
-from app.patient_model.decision_tree import (
+from app.core import streams
+from app.devices.sim.patient_model.decision_tree import (
     GROUPS,
     INDEX_LAYERS,
     DecisionTree,

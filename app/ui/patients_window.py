@@ -6,7 +6,7 @@ keeps the record's version: the profile form and the plan form save as of it, an
 patient was changed meanwhile says by whom, where and when, and offers Reload. "Edit profile…" opens the
 profile form (app/ui/patient_dialog.py); "Therapy plan…"
 edits the ordered exercises of the plan with each exercise's own form: every value is checked against the
-exercise's declared range (app.exercises: Parameter.check / validate) as it is typed, and a plan with a value
+exercise's declared range (app.therapy.exercises: Parameter.check / validate) as it is typed, and a plan with a value
 out of range is not saved — the reason is said in words, at the field.
 
 Never on the GUI thread (#37): reading and validating every record takes ~5-15 ms a patient (2 000 patients: tens
@@ -44,9 +44,9 @@ from PySide6.QtWidgets import (
 
 from app.archive import station
 from app.archive.api import ArchiveError
-from app.config import SafetyConfig
-from app.exercises import load_library
-from app.patients import (
+from app.core.config import SafetyConfig
+from app.therapy.exercises import load_library
+from app.therapy.patients import (
     PatientEntry,
     matches,
 )

@@ -22,15 +22,15 @@ from PySide6.QtCore import Qt, QTimer
 from PySide6.QtGui import QFont, QFontDatabase
 from PySide6.QtWidgets import QFrame, QGridLayout, QGroupBox, QHBoxLayout, QLabel, QVBoxLayout, QWidget
 
-from app import streams
-from app.bus import SampleItem, StreamBus, Subscription
+from app.core import streams
+from app.core.bus import SampleItem, StreamBus, Subscription
 from app.devices.physio import PHYSIO_STREAM
-from app.devices.physio_codec import FAULT_FLAGS
 from app.manager import LinarmppManager
 from app.ui.qt_bus import QtBus, qt_bus_for
 from app.ui.signal_store import SignalStore, shared_store, signal_key
 from app.ui.theme import colours, curve_colour
 from app.ui.widgets import LabelBoard, on_screen
+from app.wire.physio_codec import FAULT_FLAGS
 
 DASH = "—"
 STREAM = streams.PHYSIO_MAIN
@@ -42,7 +42,7 @@ TILE_ORDER = ("force", "heartRate", "skinConductance", "temperature")
 DECIMALS = {"N": 1, "bpm": 0, "µS": 2, "°C": 2}
 # A trace's vertical range is never narrower than this, so sensor noise does not fill the tile.
 MIN_SPAN = {"force": 5.0, "heartRate": 10.0, "skinConductance": 1.0, "temperature": 0.5, "ppg": 200.0}
-CALIBRATED = ("force", "skinConductance", "temperature")  # fields of app.devices.physio_codec.Calibration
+CALIBRATED = ("force", "skinConductance", "temperature")  # fields of app.wire.physio_codec.Calibration
 
 # (flag bit, words, tile it invalidates or None)
 FAULT_WORDS = FAULT_FLAGS  # the codec's table: one place for the bits and their meaning

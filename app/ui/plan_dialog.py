@@ -29,9 +29,9 @@ from PySide6.QtWidgets import (
 
 from app.archive import station
 from app.archive.api import ArchiveError, StaleRecord
-from app.config import SafetyConfig
-from app.exercises import Exercise, Parameter, load_library
-from app.patients import (
+from app.core.config import SafetyConfig
+from app.therapy.exercises import Exercise, Parameter, load_library
+from app.therapy.patients import (
     PatientError,
     PatientProfile,
     PlannedExercise,

@@ -63,9 +63,9 @@ from PySide6.QtWidgets import (
     QWidget,
 )
 
-from app import streams
+from app.core import streams
+from app.core.paths import sessions_dir
 from app.manager import LinarmppManager
-from app.paths import sessions_dir
 from app.ui.plot_render import CurveImage, CurveRenderer, PaneJob
 from app.ui.qt_bus import QtBus, qt_bus_for
 from app.ui.signal_store import SignalInfo, SignalStore, shared_store, signal_key

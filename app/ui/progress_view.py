@@ -1,6 +1,7 @@
 """Patient progress: the session metrics and the clinical scores across a patient's sessions, as trend plots
 (pyqtgraph), so a therapist sees whether speed, smoothness and range improve and assistance falls.
-"Save PDF…" writes the progress report (app/reports.py). From the sessions browser the sessions are read, and the PDF
+"Save PDF…" writes the progress report (app/session/reports.py). From the sessions browser the sessions are read, and
+the PDF
 drawn, in the worker process (issue #37)."""
 
 from __future__ import annotations
@@ -27,14 +28,14 @@ from PySide6.QtWidgets import (
     QWidget,
 )
 
-from app.reports import SCORES, TREND_METRICS, ProgressRow, fmt, progress_rows, y_range
+from app.session.reports import SCORES, TREND_METRICS, ProgressRow, fmt, progress_rows, y_range
 from app.ui.tasks import QtTasks
 
 log = logging.getLogger(__name__)
 
 
 class ProgressView(QWidget):
-    """Trends of ``rows`` (app.reports.progress_rows: one per session, oldest first)."""
+    """Trends of ``rows`` (app.session.reports.progress_rows: one per session, oldest first)."""
 
     def __init__(self, patient_id: str, rows: list[ProgressRow], profile: Any = None,
                  parent: QWidget | None = None, tasks: QtTasks | None = None) -> None:
@@ -108,8 +109,8 @@ class ProgressView(QWidget):
 
     def save_pdf(self, path: Path) -> bool:
         """Draw and write the report here (verified before "written" is said)."""
-        from app.outputs import OutputError
-        from app.reports import save_progress_report
+        from app.core.outputs import OutputError
+        from app.session.reports import save_progress_report
 
         try:
             pages = save_progress_report(self.patient_id, path, self.rows, self.profile)
@@ -164,7 +165,7 @@ class ProgressDialog(QDialog):
         super().__init__(parent)
         self.setWindowTitle(f"Progress — {patient_id}")
         if profile is None:
-            from app.patients import PatientError, load_patient
+            from app.therapy.patients import PatientError, load_patient
 
             try:
                 profile = load_patient(patient_id)

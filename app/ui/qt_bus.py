@@ -1,6 +1,6 @@
 """The one Qt adapter of the stream bus (issue #29): bus traffic in, Qt signals out, on the GUI thread.
 
-The bus (:mod:`app.bus`) knows nothing of Qt; the window's frames know nothing of drivers. A :class:`QtBus`
+The bus (:mod:`app.core.bus`) knows nothing of Qt; the window's frames know nothing of drivers. A :class:`QtBus`
 sits between them, napari style: it subscribes to the bus when built (and only while someone listens to its
 signals), and lets go of everything when closed.
 
@@ -9,7 +9,7 @@ signals), and lets go of everything when closed.
 * ``device_event(device, kind, detail)`` — every device event, from a queued ``subscribe("qt-events", [],
   events=True)`` drained on the same timer; and, folded from those, ``connection_changed(device, connected,
   reason)`` and ``silence_changed(device, silent)``.
-* The journal (:mod:`app.journal`), from the same queue (``records=True``): ``record(Record)`` for every record
+* The journal (:mod:`app.core.journal`), from the same queue (``records=True``): ``record(Record)`` for every record
   (the devices' events too), and, folded from the supervisor's, ``alarm_raised(Alarm)``, ``alarms_changed()``,
   ``estop_changed(latched, reason)``, ``command_refused(source, reason)`` and ``lease_changed()``; and
   ``progress_changed(ProgressState)`` from the exercise's progress (:meth:`watch_progress`). The panels take these
@@ -35,10 +35,10 @@ from typing import Any
 
 from PySide6.QtCore import QMetaMethod, QObject, QTimer, Signal
 
-from app import journal
-from app.bus import BatchSubscription, StreamBus, StreamSpec, Subscription
-from app.journal import Record
-from app.safety import Alarm, AlarmLevel
+from app.core import journal
+from app.core.bus import BatchSubscription, StreamBus, StreamSpec, Subscription
+from app.core.journal import Record
+from app.safety.supervisor import Alarm, AlarmLevel
 
 log = logging.getLogger(__name__)
 
@@ -65,20 +65,20 @@ class LinkState:
 
 
 class QtBus(QObject):
-    """Qt signals for a :class:`~app.bus.StreamBus` (see the module docstring). Build it and close it on the GUI
+    """Qt signals for a :class:`~app.core.bus.StreamBus` (see the module docstring). Build it and close it on the GUI
     thread; the bus may be fed from any thread. Destroying it (with its Qt parent) closes it too."""
 
     samples = Signal(object)  # dict[str, SampleBatch]
     device_event = Signal(str, str, str)  # device, kind, detail
     connection_changed = Signal(str, bool, str)  # device, connected, reason
     silence_changed = Signal(str, bool)  # device, silent
-    record = Signal(object)  # app.journal.Record: every journal record and device event, in order
-    alarm_raised = Signal(object)  # app.safety.Alarm
+    record = Signal(object)  # app.core.journal.Record: every journal record and device event, in order
+    alarm_raised = Signal(object)  # app.safety.supervisor.Alarm
     alarms_changed = Signal()  # an alarm raised or acknowledged
     estop_changed = Signal(bool, str)  # latched, reason
     command_refused = Signal(str, str)  # source, reason
     lease_changed = Signal()  # a device's holder changed (the panels' "Robot held by: …")
-    progress_changed = Signal(object)  # app.progress.ProgressState
+    progress_changed = Signal(object)  # app.core.progress.ProgressState
 
     def __init__(self, bus: StreamBus, *, display_hz: float = DISPLAY_HZ, parent: QObject | None = None,
                  alarms: AlarmLookup | None = None, share: bool = False) -> None:
@@ -235,7 +235,7 @@ class QtBus(QObject):
         return alarm
 
     def watch_progress(self, progress: Any) -> Callable[[], None]:
-        """``progress_changed`` for each state of ``progress`` (an app.progress.ExerciseProgress; its changes come
+        """``progress_changed`` for each state of ``progress`` (an app.core.progress.ExerciseProgress; its changes come
         on the script's thread), emitted at the next tick; returns the unsubscribe."""
 
         if id(progress) in self._watched:

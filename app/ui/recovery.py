@@ -30,10 +30,10 @@ from PySide6.QtWidgets import (
     QWidget,
 )
 
-from app import journal, streams
-from app.devices.linarm_protocol import ErrorState, HomeState
+from app.core import journal, streams
 from app.manager import LinarmppManager
-from app.safety import AlarmLevel
+from app.safety.supervisor import AlarmLevel
+from app.wire.linarm_protocol import ErrorState, HomeState
 
 log = logging.getLogger(__name__)
 
@@ -45,7 +45,7 @@ ROBOT_REPLY_TIMEOUT_S = 3.0
 
 @dataclass(frozen=True)
 class Restartable:
-    """The run a STOP interrupted (app/runs.py) and how to start it again. ``why_not``: why it cannot be
+    """The run a STOP interrupted (app/core/runs.py) and how to start it again. ``why_not``: why it cannot be
     started again exactly (console code, a file changed on disk since): the dialog says so and offers the
     recovery without the restart. ``details``: what the restart runs (its parameters, in words)."""
 
@@ -74,12 +74,12 @@ class Restartable:
 
 
 def interrupted_run(manager: LinarmppManager, panels: dict[str, Any]) -> Restartable | None:
-    """The run a STOP interrupted (the session's runs, app/runs.py: the one still running — Recover stops it first
+    """The run a STOP interrupted (the session's runs, app/core/runs.py: the one still running — Recover stops it first
     — or the last one, stopped), for the banner's Recover: started again exactly (the same exercise with the same
     parameters from the Exercises tab, the same script text from the Script tab), or, for an exercise that counts
     its repetitions, continued with those not yet done. Console code, or an exercise changed on disk since, is not
     restarted: the reason is given instead. ``panels``: the Commands frame's tabs by class name."""
-    from app.runs import restart_candidate
+    from app.core.runs import restart_candidate
 
     runs = getattr(manager, "runs", None)
     run = restart_candidate(runs.runs()) if runs is not None else None
@@ -109,7 +109,7 @@ def script_restart_words(program: Any, editor_text: str | None = None) -> str:
     """What a Script-tab restart runs, in words: always the text that ran (kept in the record). Says "changed on
     disk" only when the file itself changed since the run started; when the text that ran, or the editor's text
     now, differs from the file, it says the editor's text differs (unsaved edits) — and still restarts what ran."""
-    from app.runs import text_hash
+    from app.core.runs import text_hash
 
     name = Path(program.path).name if program.path else ""
     if not program.path:

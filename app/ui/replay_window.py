@@ -2,7 +2,7 @@
 
 The window owns a private :class:`~app.ui.signal_store.SignalStore` and a
 :class:`~app.ui.plots_frame.PlotsFrame` on it, and feeds the store from a
-:class:`~app.replay.ReplaySource` exactly as drivers feed the live store, so the graphs behave as
+:class:`~app.session.replay.ReplaySource` exactly as drivers feed the live store, so the graphs behave as
 if live. Seeking refills the store with the history before the new position.
 
 The sessions browser reads the session in the worker process (issue #37) and hands the window a
@@ -33,8 +33,8 @@ from PySide6.QtWidgets import (
     QWidget,
 )
 
-from app.recording import RecordedSession
-from app.replay import ReplaySource
+from app.session.recording import RecordedSession
+from app.session.replay import ReplaySource
 from app.ui.plots_frame import DEFAULT_SIGNALS, PlotsFrame
 from app.ui.signal_store import SignalStore, signal_key
 from app.ui.staged import Steps

@@ -51,7 +51,7 @@ from PySide6.QtWidgets import (
     QWidget,
 )
 
-from app.config import RESOURCES
+from app.core.config import RESOURCES
 from app.scripting.api import API_NAMES
 from app.scripting.runner import ScriptResult, ScriptRunner
 from app.ui.widgets import ElidedLabel
@@ -336,7 +336,7 @@ class ScriptConsole(QWidget):
         self.path: Path | None = None
         self._was_running = False
         self._started_at = 0.0
-        self._run: Any = None  # the run this tab started (app.runs.ExerciseRun), for its status line
+        self._run: Any = None  # the run this tab started (app.core.runs.ExerciseRun), for its status line
         self._continuation: list[str] = []
 
         self.open_button = QPushButton("Open…")
@@ -461,7 +461,7 @@ class ScriptConsole(QWidget):
     # ------------------------------------------------------------------ running
     def hold_reason(self) -> str:
         """Why no script may start now ("" when it may): a latched e-stop or an open STOP alarm (Recover first)."""
-        from app.ownership import start_problem
+        from app.core.ownership import start_problem
 
         return start_problem(self.runner.manager, ())
 

@@ -1,7 +1,8 @@
 """Session summary: what each exercise run of a session (or of one exercise's end) did — per run a table of its
 repetitions (numbered within the run), plots of the metrics across them, its alarms — so runs of different
 exercises are never drawn as one line. Shown at the end of an exercise and from the sessions browser; "Save
-PDF…" writes the printable report (app/reports.py), which reads the same :func:`app.reports.run_reports`."""
+PDF…" writes the printable report (app/session/reports.py), which reads the same
+:func:`app.session.reports.run_reports`."""
 
 from __future__ import annotations
 
@@ -32,7 +33,7 @@ from PySide6.QtWidgets import (
     QWidget,
 )
 
-from app.reports import (
+from app.session.reports import (
     REPETITION_COLUMNS,
     SOURCE_TEXT,
     RunReport,
@@ -179,7 +180,7 @@ class RunSummary(QWidget):
             none.setWordWrap(True)
             lay.addWidget(none)
             lay.addStretch(1)
-        # The run's number of alarms as every view counts them (app/alarm_count.py); the list also has the
+        # The run's number of alarms as every view counts them (app/session/alarm_count.py); the list also has the
         # interruptions (a program's end, a data gap), which are not alarms.
         alarms = int(report.summary.get("alarms") or 0)
         lay.addWidget(QLabel(f"<b>Alarms of this run</b>: {alarms or 'none'}"
@@ -304,7 +305,7 @@ def _alarm_table(alarms: Sequence[dict[str, Any]], name: str) -> QTableWidget:
 
 
 class SessionSummary(QWidget):
-    """The summary of ``runs`` (app.reports.run_reports): one tab per run, and an overview of the runs when
+    """The summary of ``runs`` (app.session.reports.run_reports): one tab per run, and an overview of the runs when
     there are several. ``staged``: a run's tab is built when it is first shown, on a turn of the event loop of its
     own (a run's plots and table cost ~120 ms on the reference machine: opening a long session's summary shows
     its overview at once and builds no run it does not show); ``ready`` once the tab shown is built."""
@@ -436,7 +437,8 @@ class SessionSummary(QWidget):
 
     @property
     def metrics(self) -> dict[str, Any]:
-        """The metrics shown, in app.metrics.metrics_of_session's shape: one run's own, or for several runs their
+        """The metrics shown, in app.session.metrics.metrics_of_session's shape: one run's own, or for several runs
+        their
         repetitions one after the other and the counts (never means pooled across different exercises)."""
         if len(self.runs) == 1:
             r = self.runs[0]
@@ -459,8 +461,8 @@ class SessionSummary(QWidget):
 
     def save_pdf(self, path: Path) -> bool:
         """Draw and write the report here (verified before "written" is said)."""
-        from app.outputs import OutputError
-        from app.reports import save_session_report
+        from app.core.outputs import OutputError
+        from app.session.reports import save_session_report
 
         try:
             pages = save_session_report(self.folder, path)  # type: ignore[arg-type]
@@ -513,8 +515,8 @@ class SessionSummaryDialog(QDialog):
         if data is not None:
             reports, patient = data.runs, data.patient_id
         else:
-            from app.recording import load_session
-            from app.reports import run_reports
+            from app.session.recording import load_session
+            from app.session.reports import run_reports
 
             session = load_session(folder)
             reports = run_reports(session)

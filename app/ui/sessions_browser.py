@@ -41,11 +41,11 @@ from PySide6.QtWidgets import (
     QWidget,
 )
 
-from app import paths
 from app.archive import reads, station
 from app.archive.api import ArchiveError
 from app.archive.reads import STATUS_KINDS, STOP_LEVELS, ListedSession, SessionStatus, status_of
-from app.recording import EVENTS_FILE, SessionSummary, load_session, read_events
+from app.core import paths
+from app.session.recording import EVENTS_FILE, SessionSummary, load_session, read_events
 from app.ui.tasks import QtTasks
 from app.worker import Task, TaskService, TaskStatus
 from app.worker.session_data import SessionOverview, overview_of

@@ -2,7 +2,7 @@
 
 One :class:`SignalStore` per manager (``shared_store(manager, qt_bus)``) keeps, for every stream declared on
 the bus, a ring of timestamps and one ring per channel, so each (stream, channel) is a signal with
-the unit and label of its :class:`~app.bus.StreamSpec`. Signals are named
+the unit and label of its :class:`~app.core.bus.StreamSpec`. Signals are named
 ``"<stream>.<channel>"``, e.g. ``"linarm.vsa.handlePos"``.
 
 Drawing long histories fast: besides the raw samples each ring keeps a min/max per block of
@@ -33,7 +33,7 @@ import numpy as np
 import shiboken6
 from PySide6.QtCore import QObject, Signal
 
-from app.bus import SampleBatch, StreamSpec
+from app.core.bus import SampleBatch, StreamSpec
 
 if TYPE_CHECKING:
     from app.manager import LinarmppManager
@@ -396,7 +396,7 @@ class SignalStore(QObject):
         seconds, and the header gives the wall-clock time of t = 0 to anchor it.
         (pandas: ``read_csv(path, comment="#", header=[0, 1])``.)
         """
-        from app.export import write_aligned_csv
+        from app.session.export import write_aligned_csv
 
         keys = list(signals)
         for k in keys:

@@ -33,13 +33,13 @@ from PySide6.QtWidgets import (
     QWidget,
 )
 
-from app import journal, streams
-from app.bus import StreamBus
-from app.devices.physio_codec import FAULT_FLAGS
+from app.core import journal, streams
+from app.core.bus import StreamBus
 from app.devices.sim.host import SimulatorProcessError
 from app.manager import LinarmppManager
 from app.ui.qt_bus import QtBus
 from app.ui.theme import colours
+from app.wire.physio_codec import FAULT_FLAGS
 
 log = logging.getLogger(__name__)
 

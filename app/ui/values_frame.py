@@ -31,12 +31,12 @@ from PySide6.QtWidgets import (
     QWidget,
 )
 
-from app import streams
-from app.devices.sciencemode import CHANNELS
+from app.core import streams
 from app.manager import LinarmppManager
 from app.ui.qt_bus import QtBus, qt_bus_for
 from app.ui.theme import colours
 from app.ui.widgets import RefreshWhenVisible
+from app.wire.sciencemode import CHANNELS
 
 DASH = "—"
 REFRESH_HZ = 5.0  # see the module's docstring
@@ -79,7 +79,7 @@ GROUPS: list[tuple[str, list[Quantity]]] = [
 
 STATE_STREAM = streams.LINARM_STATE
 FES_STREAM = streams.FES_CHANNELS
-# (title, channel, enum name in app.devices.linarm_protocol)
+# (title, channel, enum name in app.wire.linarm_protocol)
 STATE_FIELDS: list[tuple[str, str, str]] = [
     ("Control state", "controlState", "CONTROL_STATES"),
     ("Control mode", "controlMode", "CONTROL_MODES"),
@@ -105,7 +105,7 @@ def enum_name(enum_attr: str, value: Any) -> str:
     except (TypeError, ValueError):
         return DASH
     try:
-        protocol = importlib.import_module("app.devices.linarm_protocol")
+        protocol = importlib.import_module("app.wire.linarm_protocol")
         enum_cls = getattr(protocol, enum_attr)
         name = enum_cls(number).name
     except (ImportError, AttributeError, ValueError, TypeError):

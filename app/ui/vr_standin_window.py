@@ -1,4 +1,4 @@
-"""The VR stand-in's window (app.vr_standin): the rail seen from above, the target zone and the handle.
+"""The VR stand-in's window (app.devices.sim.vr_standin): the rail seen from above, the target zone and the handle.
 
     python -m app.ui.vr_standin_window --listen HOST:PORT --peer HOST:PORT [the stand-in's other options]
 
@@ -12,10 +12,10 @@ import sys
 import time
 from typing import Any
 
-from app.devices.udp_frames import TaskState
-from app.patient_model.process import ParentWatch
-from app.vr_standin import StandinGame, StandinLink
-from app.vr_standin import main as standin_main
+from app.devices.sim.patient_model.process import ParentWatch
+from app.devices.sim.vr_standin import StandinGame, StandinLink
+from app.devices.sim.vr_standin import main as standin_main
+from app.wire.udp_frames import TaskState
 
 
 def run_window(link: StandinLink, idle_exit_s: float, watch: ParentWatch) -> int:

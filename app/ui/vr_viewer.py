@@ -13,11 +13,11 @@ from PySide6.QtCore import QPointF, QRectF, QTimer
 from PySide6.QtGui import QColor, QPainter, QPaintEvent, QPen
 from PySide6.QtWidgets import QFormLayout, QLabel, QVBoxLayout, QWidget
 
-from app import streams
-from app.devices.udp_frames import TaskState
+from app.core import streams
 from app.ui.qt_bus import QtBus, qt_bus_for
 from app.ui.theme import colours
 from app.ui.widgets import RefreshWhenVisible
+from app.wire.udp_frames import TaskState
 
 RAIL_M = 0.5
 

@@ -39,7 +39,7 @@ class JobContext:
             raise Cancelled()
 
     def progress(self, fraction: float, text: str = "") -> bool:
-        """Report how far the task is (0..1); False once cancelled (app/export.py's Progress protocol)."""
+        """Report how far the task is (0..1); False once cancelled (app/session/export.py's Progress protocol)."""
         now = time.monotonic()
         if self._sender is not None and (now - self._last >= _PROGRESS_EVERY_S or fraction >= 1.0):
             self._last = now

@@ -44,20 +44,20 @@ def preload() -> None:
     """What most tasks need, imported before the worker says it is ready (a warm worker answers at once)."""
     import numpy  # noqa: F401
 
-    import app.export
-    import app.metrics
-    import app.recording
-    import app.reports  # noqa: F401
+    import app.session.export
+    import app.session.metrics
+    import app.session.recording
+    import app.session.reports  # noqa: F401
 
 
 def import_result_types() -> None:
     """On the app's side: the modules whose classes the results are made of (a run's report, its metrics, the
     session's overview). Unpickling a result imports what it names, holding the interpreter lock: the first
     summary shown during a therapy held the window's thread 70 ms (and the drivers' interpreter) importing
-    app.reports. The window calls this when it is built, before any therapy runs."""
-    import app.metrics
-    import app.reports
-    import app.runs
+    app.session.reports. The window calls this when it is built, before any therapy runs."""
+    import app.core.runs
+    import app.session.metrics
+    import app.session.reports
     import app.worker.session_data  # noqa: F401
 
 
@@ -65,7 +65,7 @@ def import_result_types() -> None:
 def _load(ctx: JobContext, folder: str | Path, share: float) -> Any:
     """The session, its side-file written first when it has none (the next load is fast); progress up to
     ``share``."""
-    from app.recording import index_session, load_session
+    from app.session.recording import index_session, load_session
 
     ctx.step(0.0, "Reading the session")
     index_session(folder, progress=lambda f: ctx.step(share * 0.9 * f, "Reading the session's files"))
@@ -78,7 +78,7 @@ def _load(ctx: JobContext, folder: str | Path, share: float) -> Any:
 @job("index_session")
 def index(ctx: JobContext, folder: str | Path) -> str:
     """Write a session's columnar side-file (at its end: the next open is fast); '' or why not."""
-    from app.recording import index_session
+    from app.session.recording import index_session
 
     return index_session(folder, progress=ctx.step)
 
@@ -97,7 +97,7 @@ def overview(ctx: JobContext, folder: str | Path) -> SessionOverview:
 
 @dataclass
 class SummaryData:
-    """What the run summary shows: every run's report (app.reports.run_reports), the patient, the problems."""
+    """What the run summary shows: every run's report (app.session.reports.run_reports), the patient, the problems."""
 
     folder: Path
     patient_id: str
@@ -107,7 +107,7 @@ class SummaryData:
 
 @job("session_summary")
 def summary(ctx: JobContext, folder: str | Path) -> SummaryData:
-    from app.reports import run_reports
+    from app.session.reports import run_reports
 
     session = _load(ctx, folder, 0.5)
     ctx.step(0.5, "Computing the metrics")
@@ -118,7 +118,7 @@ def summary(ctx: JobContext, folder: str | Path) -> SummaryData:
 
 @job("progress_rows")
 def progress(ctx: JobContext, patient_id: str, root: str | Path | None = None) -> list[Any]:
-    from app.reports import progress_rows
+    from app.session.reports import progress_rows
 
     return progress_rows(patient_id, Path(root) if root is not None else None,
                          lambda f: ctx.step(f, "Reading the patient's sessions"))
@@ -127,8 +127,8 @@ def progress(ctx: JobContext, patient_id: str, root: str | Path | None = None) -
 # ---------------------------------------------------------------------------------------------- writing
 @job("export_hdf5")
 def export_hdf5(ctx: JobContext, folder: str | Path, dest: str | Path) -> str:
-    from app import export
-    from app.outputs import OutputError
+    from app.core.outputs import OutputError
+    from app.session import export
 
     session = _load(ctx, folder, 0.3)
     try:
@@ -141,7 +141,7 @@ def export_hdf5(ctx: JobContext, folder: str | Path, dest: str | Path) -> str:
 
 @job("export_csv")
 def export_csv(ctx: JobContext, folder: str | Path, dest: str | Path) -> str:
-    from app import export
+    from app.session import export
 
     session = _load(ctx, folder, 0.3)
     export.export_csv(session, dest, lambda f: ctx.progress(0.3 + 0.7 * f, "Writing the CSV files"))
@@ -151,7 +151,7 @@ def export_csv(ctx: JobContext, folder: str | Path, dest: str | Path) -> str:
 @job("session_report")
 def session_report(ctx: JobContext, folder: str | Path, dest: str | Path) -> int:
     """The session's PDF, verified; returns its pages."""
-    from app.reports import save_session_report
+    from app.session.reports import save_session_report
 
     ctx.step(0.05, "Drawing the session report")
     return save_session_report(folder, dest)
@@ -162,7 +162,7 @@ def progress_report(ctx: JobContext, patient_id: str, dest: str | Path, root: st
                     rows: list[Any] | None = None, profile: Any = None) -> int:
     """The patient's progress PDF, verified; returns its pages (``rows`` as the progress view read them, else
     read here)."""
-    from app.reports import progress_rows, save_progress_report
+    from app.session.reports import progress_rows, save_progress_report
 
     if rows is None:
         rows = progress_rows(patient_id, Path(root) if root is not None else None,

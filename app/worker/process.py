@@ -23,7 +23,7 @@ from app.worker.protocol import LinkClosed, Sender, recv
 
 
 def _failure(exc: BaseException) -> str:
-    from app.outputs import OutputError
+    from app.core.outputs import OutputError
 
     if isinstance(exc, JobError | OutputError):
         return str(exc)
@@ -50,7 +50,7 @@ def main(fd: int) -> None:
             pass
     nice = int(init.get("nice") or 0)
     if nice and hasattr(os, "setpriority"):
-        try:  # absolute: the application's real-time threads it was started from may run raised (app/priority.py)
+        try:  # absolute: the application's real-time threads it was started from may run raised (app/core/priority.py)
             os.setpriority(os.PRIO_PROCESS, 0, nice)
         except OSError:
             pass
@@ -104,7 +104,7 @@ def main(fd: int) -> None:
         except Cancelled:
             message = ("cancelled", tid)
         except BaseException as exc:  # every failure is an answer, never a dead worker
-            from app.export import ExportCancelled
+            from app.session.export import ExportCancelled
 
             if isinstance(exc, ExportCancelled):
                 message = ("cancelled", tid)

@@ -306,7 +306,7 @@ class TaskService:
         """The worker's stderr: a file beside the application's log (its tracebacks, a crash's stack), never the
         console a command-line user reads."""
         try:
-            from app.paths import log_dir
+            from app.core.paths import log_dir
 
             path = log_dir() / "worker.log"
             if path.exists() and path.stat().st_size > _WORKER_LOG_MAX:
@@ -423,7 +423,7 @@ def _how(code: int | None) -> str:
 
 
 def _remove_temporaries(dest: Path) -> None:
-    from app.outputs import remove_quietly, temporaries_of
+    from app.core.outputs import remove_quietly, temporaries_of
 
     for tmp in temporaries_of(dest):
         remove_quietly(tmp)

@@ -1,6 +1,6 @@
 """A loaded session handed from the worker process to the window without copying its samples (issue #37).
 
-The worker reads the session (app.recording.load_session) and returns a :class:`SessionData`: the manifest, the
+The worker reads the session (app.session.recording.load_session) and returns a :class:`SessionData`: the manifest, the
 events, the problems and, for each stream, a column file -- the session's own columnar side-file when it matches
 the stream, otherwise a private temporary the worker wrote. :meth:`SessionData.open` maps those files (read-only,
 ``numpy.load(mmap_mode="r")``): a 30-minute session's 115 MB of samples cost the window's interpreter a few
@@ -19,8 +19,8 @@ from typing import Any
 
 import numpy as np
 
-from app.bus import Channel
-from app.recording import (
+from app.core.bus import Channel
+from app.session.recording import (
     STREAMS_DIR,
     RecordedSession,
     RecordedStream,

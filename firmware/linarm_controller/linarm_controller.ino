@@ -4,7 +4,7 @@
 // fixed 1 kHz scheduled from micros(), without blocking waits. The logic (FSM, homing, trajectories, PID
 // loops, VSA kinematics, limits, watchdog, protocol) lives in src/ and is also built and tested on the host
 // (firmware/host). The protocol ids and enums come from src/protocol_generated.h, generated from the
-// Python table (app/devices/linarm_protocol.py).
+// Python table (app/wire/linarm_protocol.py).
 #include <Arduino.h>
 #include <CmdMessenger.h>
 

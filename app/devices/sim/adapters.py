@@ -12,12 +12,12 @@ from __future__ import annotations
 import time
 from typing import TYPE_CHECKING, Any
 
-from app.devices.linarm_constants import K
-from app.devices.physio_codec import Calibration
 from app.devices.sim.base import linarm_starts_homed
 from app.devices.sim.linarm_model import LinarmSimCore
 from app.devices.sim.physio_signals import PhysioSimSource
 from app.devices.sim.rehastim_core import RehaStimSimCore
+from app.wire.linarm_constants import K
+from app.wire.physio_codec import Calibration
 
 if TYPE_CHECKING:
     from app.devices.sim.patient import SimulatedPatient

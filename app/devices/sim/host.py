@@ -36,7 +36,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from app import streams
+from app.core import streams
 from app.devices.sim.base import DEVICE_CONTROLS, SerialSimulator, linarm_starts_homed
 
 log = logging.getLogger(__name__)
@@ -113,7 +113,7 @@ class SilCore:
     def __init__(self, executable: Path, centre: float = 0.20) -> None:
         args = [str(executable), "--centre", repr(centre)]
         if linarm_starts_homed():  # as the Python model (LinarmSimAdapter): homed, IDLE at the home position
-            from app.devices.linarm_constants import K
+            from app.wire.linarm_constants import K
 
             args = [str(executable), "--centre", repr(K["HOME_CENTRE"]), "--delta", repr(K["HOME_DELTA"]),
                     "--start-homed"]
@@ -224,14 +224,14 @@ class LinarmStateWatch:
     the observable 'did the robot go safe' for the SIGKILL test and for the log."""
 
     def __init__(self, emit: Callable[[dict[str, Any]], None]) -> None:
-        from app.devices.cmdmessenger import CmdMessengerDecoder
+        from app.wire.cmdmessenger import CmdMessengerDecoder
 
         self.decoder = CmdMessengerDecoder()
         self.emit = emit
         self.last: tuple[int, int] | None = None
 
     def feed(self, data: bytes) -> None:
-        from app.devices import linarm_protocol as proto
+        from app.wire import linarm_protocol as proto
 
         for frame in self.decoder.feed(data):
             try:
@@ -308,8 +308,8 @@ def build_simulators(spec: dict[str, Any], patient: Any, emit: Callable[[dict[st
 
             sims[name] = SerialSimulator(name, mcu_core, link, tick_s=0.002, link_factory=link_factory)
         elif kind == streams.PHYSIO:
-            from app.devices.physio_codec import Calibration, ChannelCalibration
             from app.devices.sim.adapters import PhysioSimCore
+            from app.wire.physio_codec import Calibration, ChannelCalibration
 
             cal = Calibration(**{k: ChannelCalibration(*v) for k, v in params["calibration"].items()})
             rate = float(params["rate_hz"])

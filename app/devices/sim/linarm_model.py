@@ -32,9 +32,9 @@ import math
 from dataclasses import dataclass
 from typing import Any, Protocol
 
-from app.devices.cmdmessenger import ArduinoReceiver
-from app.devices.linarm_constants import K
-from app.devices.linarm_protocol import (
+from app.wire.cmdmessenger import ArduinoReceiver
+from app.wire.linarm_constants import K
+from app.wire.linarm_protocol import (
     DEFAULT_STREAM_PERIOD,
     LINARM_STATE_DIVIDER,
     WATCHDOG_TIMEOUT,
@@ -64,7 +64,7 @@ from app.devices.linarm_protocol import (
 FIRMWARE_VERSION = "sim-1.0"
 SERVICE_SUFFIX = "+service"  # appended to the IDENTIFY's firmware version when booted in service mode
 OUTBOX_LIMIT = 256 * 1024  # bytes kept for a host that does not read
-# The controller's constants: one table (app/devices/linarm_constants.py) for this model, the firmware and the panel.
+# The controller's constants: one table (app/wire/linarm_constants.py) for this model, the firmware and the panel.
 DT = K["DT"]  # s, the controller's loop period
 SEEK_LEAD = K["SEEK_LEAD"]  # m, how far the homing reference may lead a carriage
 HOMING_VELOCITY = K["HOMING_VELOCITY"]  # m/s, default endstroke seek speed

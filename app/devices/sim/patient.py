@@ -31,7 +31,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from app.devices.sciencemode import CHANNELS
+from app.wire.sciencemode import CHANNELS
 
 # Grip dynamics (one place).
 GRIP_REST_N = 1.0         # hand resting on the handle

@@ -22,7 +22,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from app.devices.physio_codec import (
+from app.devices.sim.patient import SimulatedPatient
+from app.wire.physio_codec import (
     ADC_MAX,
     FLAG_PPG_FAULT,
     PHYSIO_RATE_HZ,
@@ -30,7 +31,6 @@ from app.devices.physio_codec import (
     PhysioRawFrame,
     encode_physio_frame,
 )
-from app.devices.sim.patient import SimulatedPatient
 
 RESP_HZ = 0.25  # breathing, modulates heart rate and the PPG baseline
 

@@ -1,7 +1,7 @@
 """Pure simulator core of a Hasomed RehaStim (ScienceMode 1 or 2): bytes in, reply bytes out.
 
 No I/O and no clock: the owner passes the time ``t`` (s) with every call and wraps the core on a pty.
-It decodes every packet with the codecs of ``app.devices.sciencemode``, checks checksums/CRC, ranges and
+It decodes every packet with the codecs of ``app.wire.sciencemode``, checks checksums/CRC, ranges and
 the timing rules, answers with acks / error acks, and keeps a log of what was delivered.
 
 Behaviour the reference leaves open, as chosen here (docs/fes.md):
@@ -22,7 +22,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal, Protocol
 
-from app.devices.sciencemode import (
+from app.wire.sciencemode import (
     CHANNELS,
     CHANNELS_TEXT,
     MAX_CURRENT_MA,

@@ -9,7 +9,7 @@
 
 #include "linarm_config.h"
 
-// The constants of the generated table (app/devices/linarm_constants.py), as the Python simulator uses them.
+// The constants of the generated table (app/wire/linarm_constants.py), as the Python simulator uses them.
 struct PlantParams {
   double railMin = cfg::RAIL_MIN, railMax = cfg::RAIL_MAX;
   double switchMin = cfg::SWITCH_MIN_POS, switchMax = cfg::SWITCH_MAX_POS;

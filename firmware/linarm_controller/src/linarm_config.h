@@ -1,6 +1,6 @@
 // LINarm2 constants and the controller's defaults (SI units).
 // Everything the simulator, the panel and the firmware share (defaults, ranges, supervision rules,
-// mechanics, the simulated plant) is generated from app/devices/linarm_constants.py into
+// mechanics, the simulated plant) is generated from app/wire/linarm_constants.py into
 // linarm_constants_generated.h (namespace cfg); the build fails when that copy drifts. Only what is
 // particular to this firmware's implementation stays here.
 #ifndef LINARM_LINARM_CONFIG_H

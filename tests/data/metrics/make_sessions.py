@@ -96,7 +96,7 @@ CASES: dict[str, dict[str, Any]] = {
 
 
 def config() -> Any:
-    from app.config import AppConfig, UdpEndpoint
+    from app.core.config import AppConfig, UdpEndpoint
 
     cfg = AppConfig()
     return replace(cfg, devices=replace(cfg.devices, patient_model=UdpEndpoint(mode="off"),
@@ -104,8 +104,8 @@ def config() -> Any:
 
 
 def make(name: str, case: dict[str, Any]) -> Path:
-    from app.recording import load_session
     from app.scripting.headless import EXIT_OK, run_headless
+    from app.session.recording import load_session
 
     truth = dict(case["truth"])
     commands: list[tuple[float, str, Any]] = []  # what the simulated patient was told, and when (monotonic)

@@ -1,0 +1,236 @@
+"""An exercise's progress as the clinician sees it: which repetition of how many, since when, what it says.
+
+The script API (``linarmppManager.startRepetition / endRepetition / reportProgress``) feeds it, whoever
+runs the script (the console, the Exercises tab, the headless runner); the window listens through its adapter
+(``QtBus.watch_progress``: ``progress_changed`` on the GUI thread); every mark is also a journal record
+(``repetition_start``, ``repetition_end``, ``progress``), so the per-repetition metrics can find the repetitions in
+a recording. Qt-free and thread-safe: marks arrive from the script bridge's thread, and :meth:`subscribe`'s
+listeners are called on it (they must be quick: the adapter queues the state for its next tick).
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+from typing import Any
+
+from app.core import journal
+
+EventRecorder = Callable[..., None]  # SafetySupervisor.record(kind, **data)
+Listener = Callable[["ProgressState"], None]
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class ProgressState:
+    exercise: str = ""  # the exercise's (or script's) name; "" when nothing runs
+    repetition: int = 0  # the current (or last) repetition, counted from 1; 0 before the first
+    total: int | None = None  # how many repetitions the exercise plans, when it says
+    in_repetition: bool = False
+    text: str = ""  # the exercise's last progress message
+    started_monotonic: float | None = None  # when the exercise began
+    paused_s: float = 0.0  # time spent paused so far (not counted as elapsed)
+    paused_since: float | None = None
+    running: bool = False
+    run_id: str = ""  # the run (app/core/runs.py) these marks belong to
+    run_state: str = ""  # the run's state (app.core.runs.RUN_STATES), "" without a run
+    state_text: str = ""  # the run's state in words: "waiting for the grip", "stopped: emergency stop"
+    ended_monotonic: float | None = None  # when the run ended: the elapsed time stops there
+
+    def elapsed_s(self, now: float | None = None) -> float:
+        if self.started_monotonic is None:
+            return 0.0
+        now = time.monotonic() if now is None else now
+        if self.ended_monotonic is not None:
+            now = min(now, self.ended_monotonic)
+        paused = self.paused_s + ((now - self.paused_since) if self.paused_since is not None else 0.0)
+        return max(0.0, now - self.started_monotonic - paused)
+
+    def label(self) -> str:
+        if not self.exercise and not self.repetition:
+            return ""
+        if self.repetition == 0:
+            return self.state_text or ("starting" if self.running else "")
+        return f"repetition {self.repetition} of {self.total}" if self.total else f"repetition {self.repetition}"
+
+
+class ExerciseProgress:
+    def __init__(self, record_event: EventRecorder | None = None, clock: Callable[[], float] = time.monotonic) -> None:
+        self._listeners: tuple[Listener, ...] = ()
+        self._record = record_event
+        self._clock = clock
+        self._lock = threading.Lock()
+        self._state = ProgressState()
+        self._runs: Any = None  # app.core.runs.RunLog: the session's runs (the manager attaches each new one)
+        self._unsubscribe: Callable[[], None] | None = None
+
+    def subscribe(self, fn: Listener) -> Callable[[], None]:
+        """``fn(state)`` after every change, on the thread that made it; returns the unsubscribe."""
+        self._listeners = (*self._listeners, fn)
+
+        def unsubscribe() -> None:
+            self._listeners = tuple(f for f in self._listeners if f is not fn)
+
+        return unsubscribe
+
+    def attach_runs(self, runs: Any) -> None:
+        """Follow ``runs`` (a RunLog): the marks carry the current run's id, the state shows the run's state."""
+        if self._unsubscribe is not None:
+            self._unsubscribe()
+        self._runs = runs
+        self._unsubscribe = runs.subscribe(self._run_changed) if runs is not None else None
+
+    def _run_changed(self, run: Any) -> None:
+        with self._lock:
+            state = self._state
+        if run.run_id != state.run_id:
+            return
+        ended = None if run.running else run.ended_mono
+        self._set(replace(state, run_state=run.state, state_text=run.state_text(),
+                          ended_monotonic=ended if ended is not None else state.ended_monotonic))
+
+    def _current_run_id(self, state: ProgressState) -> str:
+        if state.run_id and state.running:
+            return state.run_id
+        current = self._runs.current() if self._runs is not None else None
+        return current.run_id if current is not None else ""
+
+    @property
+    def state(self) -> ProgressState:
+        with self._lock:
+            return self._state
+
+    # ------------------------------------------------------------------ called by the script host
+    def begin(self, exercise: str, total: int | None = None, run_id: str = "") -> None:
+        run = self._runs.get(run_id) if (run_id and self._runs is not None) else None
+        started = run.started_mono if run is not None else self._clock()
+        self._set(ProgressState(exercise=exercise, total=_total(total), started_monotonic=started, running=True,
+                                run_id=run_id, run_state=run.state if run is not None else "",
+                                state_text=run.state_text() if run is not None else ""))
+
+    def finish(self, status: str = "finished") -> None:
+        with self._lock:
+            state = self._state
+        if not state.running:
+            return
+        if state.in_repetition:
+            self._event(journal.REPETITION_END, index=state.repetition, ok=False, status=status,
+                        **self._run_field(state))
+            if state.run_id and self._runs is not None:
+                self._runs.repetition_ended(state.run_id, state.repetition, False, interrupted=True)
+        now = self._clock()
+        paused_s = state.paused_s + ((now - state.paused_since) if state.paused_since is not None else 0.0)
+        run = self._runs.get(state.run_id) if (state.run_id and self._runs is not None) else None
+        text = run.state_text() if run is not None and not run.running else (state.state_text or status)
+        ended = run.ended_mono if run is not None and run.ended_mono is not None else now
+        # The exercise's last message ("moving to 0.30 m") is not true after a stop: only a finished run keeps it.
+        ended_run = run is not None and not run.running
+        last_text = state.text if ((run.end_reason if ended_run else status) == "finished") else ""
+        self._set(replace(state, running=False, in_repetition=False, paused_since=None, paused_s=paused_s,
+                          ended_monotonic=ended, state_text=text, text=last_text,
+                          run_state=run.state if run is not None else state.run_state))
+
+    def pause(self) -> None:
+        with self._lock:
+            state = self._state
+        if state.running and state.paused_since is None:
+            self._event(journal.EXERCISE_PAUSED, exercise=state.exercise)
+            self._set(replace(state, paused_since=self._clock()))
+
+    def resume(self) -> None:
+        with self._lock:
+            state = self._state
+        if state.paused_since is not None:
+            self._event(journal.EXERCISE_RESUMED, exercise=state.exercise)
+            self._set(replace(state, paused_s=state.paused_s + self._clock() - state.paused_since, paused_since=None))
+
+    # ------------------------------------------------------------------ called by the script API
+    def start_repetition(self, index: int, total: int | None = None) -> None:
+        index = int(index)
+        if index < 1:
+            raise ValueError(f"repetitions are counted from 1, got {index}")
+        with self._lock:
+            state = self._state
+        total = _total(total) if total is not None else state.total
+        run_id = self._current_run_id(state)
+        self._event(journal.REPETITION_START, index=index, total=total, **({"run_id": run_id} if run_id else {}))
+        if run_id and self._runs is not None:
+            self._runs.repetition_started(run_id, index)
+        started = state.started_monotonic if state.started_monotonic is not None else self._clock()
+        self._set(replace(state, repetition=index, total=total, in_repetition=True, started_monotonic=started,
+                          running=True))
+
+    def end_repetition(self, index: int | None = None, ok: bool = True) -> None:
+        with self._lock:
+            state = self._state
+        index = state.repetition if index is None else int(index)
+        run_id = self._current_run_id(state)
+        self._event(journal.REPETITION_END, index=index, ok=bool(ok), **({"run_id": run_id} if run_id else {}))
+        if run_id and self._runs is not None:
+            self._runs.repetition_ended(run_id, index, bool(ok))
+        self._set(replace(state, in_repetition=False))
+
+    def prompt(self, index: int | None = None, cue: str = "squeeze", threshold_n: float | None = None) -> None:
+        """The exercise cues the patient now ("squeeze": the grip trigger, ``threshold_n`` its threshold;
+        "move": an active movement): the ``prompt`` event the patient's reaction time is measured from."""
+        with self._lock:
+            state = self._state
+        index = state.repetition if index is None else int(index)
+        data: dict[str, Any] = {"index": index, "cue": str(cue)[:40]}
+        if threshold_n is not None:
+            data["threshold_n"] = float(threshold_n)
+        run_id = self._current_run_id(state)
+        if run_id:
+            data["run_id"] = run_id  # the run it belongs to (app/core/runs.py: prompt events carry run_id)
+        self._event(journal.PROMPT, **data)
+
+    def set_run_state(self, state: str, detail: str = "") -> None:
+        """The program says what its run does now (linarmppManager.setRunState): "waiting_for_grip", "moving",
+        "resting" or "running". The runner owns the others (homing, paused, stopped, finished)."""
+        from app.core.runs import PROGRAM_STATES
+
+        state = str(state)
+        if state not in PROGRAM_STATES:
+            raise ValueError(f"a run state is one of {', '.join(PROGRAM_STATES)}, got {state!r}")
+        with self._lock:
+            current = self._state
+        run_id = self._current_run_id(current)
+        if run_id and self._runs is not None:
+            self._runs.set_state(run_id, state, str(detail)[:120])
+
+    def report(self, text: str) -> None:
+        text = str(text)[:200]
+        self._event(journal.PROGRESS_TEXT, text=text)
+        with self._lock:
+            state = self._state
+        self._set(replace(state, text=text))
+
+    # ------------------------------------------------------------------ internals
+    @staticmethod
+    def _run_field(state: ProgressState) -> dict[str, Any]:
+        return {"run_id": state.run_id} if state.run_id else {}
+
+    def _event(self, kind: str, **data: Any) -> None:
+        if self._record is not None:
+            self._record(kind, **data)
+
+    def _set(self, state: ProgressState) -> None:
+        with self._lock:
+            self._state = state
+        for fn in self._listeners:
+            try:
+                fn(state)
+            except Exception:  # a listener's bug must not stop the exercise
+                log.exception("progress listener failed")
+
+
+def _total(total: int | None) -> int | None:
+    if total is None:
+        return None
+    total = int(total)
+    if total < 1:
+        raise ValueError(f"an exercise has at least one repetition, got {total}")
+    return total
