@@ -379,8 +379,8 @@ def _with_source(cfg: AppConfig, source: str) -> AppConfig:
     return replace(cfg, source=source)
 
 
-def config_as_dict(cfg: AppConfig) -> dict:
-    data = to_plain(cfg)
+def config_as_dict(cfg: AppConfig) -> dict[str, Any]:
+    data: dict[str, Any] = to_plain(cfg)
     data.pop("source", None)
     return data
 

@@ -412,7 +412,7 @@ def profile_to_yaml(profile: FesProfile) -> str:
         "# LINarm++ FES profile (docs/fes.md). Points are seconds (axis: time) or movement phase 0..1\n"
         "# (axis: phase); current in mA, pulse width in µs.\n"
     )
-    return header + yaml.safe_dump(plain, sort_keys=False, allow_unicode=True)
+    return header + str(yaml.safe_dump(plain, sort_keys=False, allow_unicode=True))
 
 
 def save_profile(profile: FesProfile, path: str | Path) -> None:

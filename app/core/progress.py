@@ -127,8 +127,8 @@ class ExerciseProgress:
         text = run.state_text() if run is not None and not run.running else (state.state_text or status)
         ended = run.ended_mono if run is not None and run.ended_mono is not None else now
         # The exercise's last message ("moving to 0.30 m") is not true after a stop: only a finished run keeps it.
-        ended_run = run is not None and not run.running
-        last_text = state.text if ((run.end_reason if ended_run else status) == "finished") else ""
+        end_reason = run.end_reason if run is not None and not run.running else status
+        last_text = state.text if end_reason == "finished" else ""
         self._set(replace(state, running=False, in_repetition=False, paused_since=None, paused_s=paused_s,
                           ended_monotonic=ended, state_text=text, text=last_text,
                           run_state=run.state if run is not None else state.run_state))

@@ -394,7 +394,7 @@ def runs_from_events(events: Iterable[Mapping[str, Any]], t_end: float | None = 
         data = e.get("data") or {}
         t = float(e.get("t_mono", last_t))
         last_t = max(last_t, t)
-        run_id = data.get("run_id")
+        run_id: str = data.get("run_id") or ""
         if kind == RUN_START and run_id:
             params = tuple(RunParameter(str(p.get("name", "")), str(p.get("label", p.get("name", ""))),
                                         p.get("value"), str(p.get("unit", "")))

@@ -119,10 +119,10 @@ def read_user_file(path: str | Path, max_bytes: int = DEFAULT_MAX_BYTES,
         if reader.is_alive():  # stuck inside one read(): the thread ends when it returns; the caller goes on
             raise UserFileError(name, "reading it took too long (refused)")
         if error:
-            exc = error[0]
-            if isinstance(exc, UserFileError):
-                raise exc
-            raise UserFileError(name, f"cannot read it: {getattr(exc, 'strerror', None) or exc}") from exc
+            failure = error[0]
+            if isinstance(failure, UserFileError):
+                raise failure
+            raise UserFileError(name, f"cannot read it: {getattr(failure, 'strerror', None) or failure}") from failure
         return result[0]
     finally:
         if not handed_over:

@@ -20,7 +20,7 @@ import enum
 import types
 import typing
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any, TypeVar, cast
 
 import yaml
 from yaml.nodes import MappingNode, Node, ScalarNode, SequenceNode
@@ -60,7 +60,7 @@ def rng(lo: float | None = None, hi: float | None = None, unit: str = "") -> dic
 
 
 def _line(node: Node) -> int:
-    return node.start_mark.line + 1
+    return int(node.start_mark.line) + 1
 
 
 def _scalar_value(node: ScalarNode) -> Any:
@@ -93,7 +93,7 @@ class _Loader:
                     errors.append(exc.problem)
             self.fail(node, key, " or ".join(errors))
         if dataclasses.is_dataclass(tp):
-            return self.build_dataclass(tp, node, key)
+            return self.build_dataclass(cast("type[Any]", tp), node, key)  # a class here: a hint is never an instance
         if origin is list:
             if not isinstance(node, SequenceNode):
                 self.fail(node, key, "expected a list")
@@ -167,7 +167,7 @@ class _Loader:
                 return base if base is not None else cls()  # an empty section keeps its defaults
             self.fail(node, key, "expected a mapping of keys to values")
         hints = typing.get_type_hints(cls)
-        fields = {f.name: f for f in dataclasses.fields(cls) if f.init}
+        fields = {f.name: f for f in dataclasses.fields(cast(Any, cls)) if f.init}  # a dataclass: the caller checked
         values: dict[str, Any] = {}
         for knode, vnode in node.value:
             name = knode.value
@@ -182,7 +182,7 @@ class _Loader:
             else:
                 values[name] = self.build(hints[name], vnode, path, dict(fields[name].metadata))
         try:
-            obj = dataclasses.replace(base, **values) if base is not None else cls(**values)
+            obj = dataclasses.replace(cast(Any, base), **values) if base is not None else cls(**values)
         except TypeError as exc:
             missing = [n for n, f in fields.items() if n not in values and f.default is dataclasses.MISSING
                        and f.default_factory is dataclasses.MISSING]

@@ -206,7 +206,7 @@ class AssistanceController:
             self._targets = None
             self._pending = False
             if self.applied_pulse_width_us is not None and self._apply_fes is not None:
-                if self._call("FES", self._apply_fes, None):  # type: ignore[arg-type]
+                if self._call("FES", self._apply_fes, None):
                     self.applied_pulse_width_us = None
             if self.applied_robot is not None and self._apply_robot is not None:
                 neutral = self._split.compute(0.0, self._k_r, self._k_f)

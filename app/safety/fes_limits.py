@@ -172,9 +172,9 @@ def profile_limit_problems(limits: FesLimits, peaks: Mapping[int, tuple[float, f
             # Ties go to the most specific layer (the patient's cap over the site's equal limit): that is
             # the one a therapist can act on.
             tightest = min(reversed(layers), key=lambda layer: layer[index])
-            if value > tightest[index] + 1e-9:
-                out.append(f"Channel {ch}: peak {what} {value:g} {unit} is above {tightest[0]} "
-                           f"of {tightest[index]:g} {unit}.")
+            cap = float(tightest[index])  # index 1 or 2: a float of the layer
+            if value > cap + 1e-9:
+                out.append(f"Channel {ch}: peak {what} {value:g} {unit} is above {tightest[0]} of {cap:g} {unit}.")
     return out
 
 

@@ -58,7 +58,9 @@ class SessionHost(Protocol):
     config: AppConfig
     bus: StreamBus
     supervisor: SafetySupervisor
-    fault_policy: RecordingFailureHandler
+
+    @property
+    def fault_policy(self) -> RecordingFailureHandler: ...  # read only: the manager's FaultPolicy is one
 
     @property
     def devices(self) -> Mapping[str, DeviceEntry]: ...

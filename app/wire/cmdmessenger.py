@@ -116,9 +116,10 @@ def unescape(data: bytes) -> bytes:
     it = iter(data)
     for b in it:
         if b == ESCAPE_CHARACTER:
-            b = next(it, None)
-            if b is None:
+            escaped = next(it, None)
+            if escaped is None:
                 break
+            b = escaped
         out.append(b)
     return bytes(out)
 
@@ -542,7 +543,7 @@ def c_strtod(text: bytes) -> float:
 def to_float32(value: float) -> float:
     """Round a double to the nearest IEEE binary32, as a C cast does (overflow becomes inf)."""
     try:
-        return struct.unpack("<f", struct.pack("<f", value))[0]
+        return float(struct.unpack("<f", struct.pack("<f", value))[0])
     except OverflowError:
         return math.copysign(math.inf, value)
 
@@ -714,7 +715,8 @@ class ArduinoMessage:
             data = bytes(self._byte(pos + i) for i in range(size))
         if k is Kind.BIN_BOOL:
             return data[0] != 0
-        return struct.unpack(k.value, data)[0]
+        value: int | float = struct.unpack(k.value, data)[0]
+        return value
 
     def _unescaped_field(self, pos: int) -> bytes:
         """The field at pos, unescaped, with its true length (an escaped NUL is data)."""

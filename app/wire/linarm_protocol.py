@@ -515,7 +515,7 @@ class _FieldsReader:
             value = read(data)
         except FieldError as exc:
             raise ProtocolError(f"{self.what}.{name}: {exc}") from exc
-        if lo is not None and not lo <= value <= hi:  # type: ignore[operator]
+        if lo is not None and not lo <= value <= hi:
             raise ProtocolError(f"{self.what}.{name}={value} outside {lo}..{hi}")
         if members is not None:
             member = members.get(value)

@@ -24,7 +24,7 @@ import math
 import struct
 from collections import deque
 from dataclasses import dataclass, field
-from typing import Final
+from typing import Any, Final
 
 import numpy as np
 import numpy.typing as npt
@@ -202,7 +202,7 @@ class ChannelCalibration:
     gain: float
     offset: float = 0.0
 
-    def to_units(self, counts: float | npt.NDArray) -> float | npt.NDArray:
+    def to_units(self, counts: float | npt.NDArray[Any]) -> float | npt.NDArray[Any]:
         return self.gain * counts + self.offset
 
     def to_counts(self, value: float) -> int:
