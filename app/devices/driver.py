@@ -22,13 +22,12 @@ from typing import Any, ClassVar
 from PySide6.QtCore import QThread
 
 from app.core import journal
-from app.core.bus import Channel, SampleBatch, StreamBus, StreamSpec, UpdateNotifier
+from app.core.bus import StreamBus, StreamSpec
 from app.core.journal import Record
-from app.devices.realtime import REALTIME_ENV, request_realtime
+from app.devices.realtime import request_realtime
 from app.devices.transport import Transport, TransportError
 
-__all__ = ["REALTIME_ENV", "Channel", "DeviceDriver", "SampleBatch", "StreamSpec", "UpdateNotifier",
-           "request_realtime"]
+__all__ = ["DeviceDriver"]  # the stream types are the bus's (app.core.bus), the real-time request app.devices.realtime
 
 log = logging.getLogger(__name__)
 

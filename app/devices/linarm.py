@@ -20,11 +20,11 @@ from typing import TYPE_CHECKING, Any, ClassVar
 from PySide6.QtCore import Signal
 
 from app.core import journal, streams
-from app.core.bus import BusItem, DeviceEvent, SampleItem, StreamBus
+from app.core.bus import BusItem, Channel, DeviceEvent, SampleItem, StreamBus, StreamSpec
 from app.core.config import LinarmDevice
 from app.devices.clock import DeviceClock
 from app.devices.command_queue import CommandQueue, CommandQueueClosed, CommandStatus, Priority
-from app.devices.driver import Channel, DeviceDriver, StreamSpec
+from app.devices.driver import DeviceDriver
 from app.devices.sim.base import SerialSimulator
 from app.devices.transport import SerialSettings, SerialTransport, Transport, TransportError
 from app.safety.supervisor import SafetyError

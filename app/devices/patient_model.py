@@ -58,9 +58,9 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
 
 from app.core import streams
-from app.core.bus import StreamBus
+from app.core.bus import Channel, StreamBus, StreamSpec
 from app.devices.clock import CountedClock
-from app.devices.driver import Channel, DeviceDriver, StreamSpec
+from app.devices.driver import DeviceDriver
 from app.devices.sim.patient_model.decision_tree import DEFAULT_CONFIG_PATH, decode_path_code
 from app.devices.sim.patient_model.process import LINK_KEY_FD_ENV, key_pipe
 from app.devices.transport import DatagramTransport, TransportError, UdpTransport

@@ -10,10 +10,10 @@ import dataclasses
 from typing import TYPE_CHECKING
 
 from app.core import streams
-from app.core.bus import StreamBus
+from app.core.bus import Channel, StreamBus, StreamSpec
 from app.core.config import PhysioCalibration, PhysioDevice
 from app.devices.clock import DeviceClock
-from app.devices.driver import Channel, DeviceDriver, StreamSpec
+from app.devices.driver import DeviceDriver
 from app.devices.sim.base import SerialSimulator
 from app.devices.transport import SerialSettings, SerialTransport, Transport
 from app.wire.physio_codec import Calibration, ChannelCalibration, PhysioStreamDecoder

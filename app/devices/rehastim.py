@@ -32,11 +32,11 @@ import serial
 from PySide6.QtCore import QThread, Signal
 
 from app.core import journal, streams
-from app.core.bus import BusItem, DeviceEvent, StreamBus
+from app.core.bus import BusItem, Channel, DeviceEvent, StreamBus, StreamSpec
 from app.core.config import FesDevice
 from app.core.fes_profile import MAX_SCALE, FesProfile
 from app.devices.command_queue import CommandQueue, CommandQueueClosed, CommandStatus, Priority
-from app.devices.driver import Channel, DeviceDriver, StreamSpec
+from app.devices.driver import DeviceDriver
 from app.devices.fes_guardian import FesGuardian, GuardianError
 from app.devices.fes_guardian import available as fes_guardian_available
 from app.devices.sim.base import SerialSimulator
