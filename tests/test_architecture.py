@@ -272,6 +272,32 @@ def test_no_arrow_runs_back_up() -> None:
     assert not up, "imports that run back up a floor (move the fact down, or pass it in):\n" + "\n".join(up)
 
 
+# The one publishing call of each driver (app/devices/driver.py, rehastim.py): a device event goes on the bus and
+# out as its Qt signal from there, never from a second path.
+PUBLISHING_CALLS = frozenset({"_fire_event", "_record"})
+
+
+def driver_emits_outside_the_publishing_call(root: Path = ROOT) -> list[str]:
+    """``….emit(…)`` calls in the drivers (``app/devices/*.py``) outside their one publishing call."""
+    found = []
+    for name, path in app_modules(root).items():
+        if not name.startswith("app.devices.") or name.startswith("app.devices.sim"):
+            continue
+        tree = ast.parse(path.read_text(encoding="utf-8"), str(path))
+        for func in ast.walk(tree):
+            if isinstance(func, (ast.FunctionDef, ast.AsyncFunctionDef)) and func.name not in PUBLISHING_CALLS:
+                for node in ast.walk(func):
+                    if (isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute)
+                            and node.func.attr == "emit"):
+                        found.append(f"{path.relative_to(root)}:{node.lineno} {func.name}: {ast.unparse(node)}")
+    return sorted(set(found))
+
+
+def test_every_driver_event_leaves_by_the_one_publishing_call() -> None:
+    found = driver_emits_outside_the_publishing_call(ROOT)
+    assert not found, "a driver emits a Qt signal beside its publishing call (publish it there):\n" + "\n".join(found)
+
+
 def test_qt_only_where_it_belongs() -> None:
     found = qt_outside_its_places(ROOT)
     assert not found, "Qt outside the window, the drivers and the composition root:\n" + "\n".join(found)
@@ -341,5 +367,8 @@ def test_rules_catch_a_circle_a_qt_import_a_manager_import_and_an_any(toy: Path)
     assert qt_outside_its_places(toy) == []
     _write(toy, "app/devices/sim/core.py", "from PySide6.QtCore import QObject\n")
     assert qt_outside_its_places(toy) == ["app.devices.sim.core imports PySide6"]
+    _write(toy, "app/devices/helper.py", "class D:\n    def _fire_event(self):\n        self.a.emit(1)\n"
+                                         "    def other(self):\n        self.b.emit(2)\n")
+    assert driver_emits_outside_the_publishing_call(toy) == ["app/devices/helper.py:5 other: self.b.emit(2)"]
     app_modules.cache_clear()
     import_graph.cache_clear()

@@ -154,7 +154,6 @@ class LinarmDriver(DeviceDriver):
     heartbeat_priority = 21  # the command queue's thread (it beats): it feeds the controller's 250 ms host watchdog
     controller_error = Signal(str)  # an ERROR_EVENT from the controller, as a sentence (the bus record's Qt face)
     EVENT_SIGNALS: ClassVar[dict[str, str]] = {journal.CONTROLLER_ERROR: "controller_error"}
-    identified = Signal(str)  # firmware version
 
     def __init__(self, transport: Transport, supervisor: SafetySupervisor, *,
                  stream_period_s: float = proto.DEFAULT_STREAM_PERIOD, command_timeout_s: float = 1.0,
@@ -534,9 +533,7 @@ class LinarmDriver(DeviceDriver):
                 raise TransportError(f"the controller speaks protocol {msg.protocol_version}, "
                                      f"this application {proto.PROTOCOL_VERSION}")
             self.firmware_version = msg.firmware_version
-            if not self._identified.is_set():
-                self._identified.set()
-                self.identified.emit(msg.firmware_version)
+            self._identified.set()
         elif isinstance(msg, proto.ErrorEvent):
             detail = f" ({msg.message})" if msg.message else ""
             text = f"LINarm error: {proto.ErrorState(msg.error_state).name}{detail}"
