@@ -219,7 +219,7 @@ def test_the_window_blocked_2_s_while_stimulating_is_stopped_within_the_bound(tm
         head, tail = WINDOW_LAUNCHER.rsplit("from app.cli import main", 1)
         launcher = head + BLOCK_LAUNCHER_TAIL + "from app.cli import main" + tail
         app._spawn([__import__("sys").executable, "-c", launcher, str(app.script), str(app.sessions),
-                    str(app.core.config)])
+                    str(app.config)])
         app.wait_stimulating(60.0)
         deadline = time.monotonic() + 20.0
         while not any(line.startswith("UNBLOCK") for line in app.output) and time.monotonic() < deadline:
