@@ -551,10 +551,11 @@ class LinarmppManager(QObject):
         return runs
 
     def record_event(self, kind: str, who: str = "", **data: Any) -> None:
-        """An event for the session record (script start/stop, parameter changes); logged without one."""
-        if self.recorder is not None:
-            self.recorder.event(kind, who or self.operator, **data)
-        else:
+        """An event for the session record (the exercise chosen, parameter changes, the electrode set-up): one
+        journal record of origin ``app`` on the bus, which whatever records the session writes (and the window's
+        adapter shows); logged too when no session records."""
+        self.bus.record(journal.APP, kind, dict(data), who=who or self.operator)
+        if self.recorder is None:
             log.info("event %s by %s: %s", kind, who, data)
 
     def add_shutdown_hook(self, fn: Callable[[], None]) -> None:

@@ -45,7 +45,7 @@ class FakeRunner:
         self.started: list[tuple[str, str, dict[str, Any]]] = []
         self.running = False
 
-    def start(self, source: str, filename: str, params: dict[str, Any]) -> None:
+    def start(self, source: str, filename: str, params: dict[str, Any], **run: Any) -> None:
         self.started.append((source, filename, params))
 
 
@@ -58,7 +58,9 @@ class FakeSupervisor:
 
 
 def test_start_exercise_starts_only_valid_values_and_records_them() -> None:
-    manager = type("M", (), {"supervisor": FakeSupervisor(), "recorder": None})()  # no session: the supervisor's events
+    supervisor = FakeSupervisor()  # no session: the events the application records land here (the journal's stand-in)
+    manager = type("M", (), {"supervisor": supervisor, "recorder": None,
+                             "record_event": lambda self, kind, who="", **data: supervisor.record(kind, **data)})()
     runner = FakeRunner()
     e = find_exercise("trigger_reaching")
     refused = start_exercise(runner, manager, e, {"speed_m_s": 0.9})

@@ -27,7 +27,7 @@ class FakeRunner:
         self.running = False
         self.result = None
 
-    def start(self, source: str, filename: str, params: dict[str, Any]) -> None:
+    def start(self, source: str, filename: str, params: dict[str, Any], **run: Any) -> None:
         self.started.append((source, filename, params))
 
 
@@ -42,6 +42,9 @@ class StubManager:
 
     def record(self, kind: str, **data: Any) -> None:  # the supervisor's journal entry point
         self.events.append((kind, data))
+
+    def record_event(self, kind: str, who: str = "", **data: Any) -> None:  # the application's record (journal)
+        self.record(kind, **data)
 
 
 def test_out_of_range_is_refused_with_the_reason_and_nothing_starts(qtbot) -> None:
@@ -152,7 +155,7 @@ class HoldingRunner(FakeRunner):
         self.progress = progress
         self.stop_reasons: list[str] = []
 
-    def start(self, source: str, filename: str, params: dict[str, Any]) -> None:
+    def start(self, source: str, filename: str, params: dict[str, Any], **run: Any) -> None:
         super().start(source, filename, params)
         self.running = True
         self.progress.begin("trigger_reaching.py", int(params["movements"]))

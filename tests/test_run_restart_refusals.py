@@ -40,6 +40,9 @@ class Manager:
     def record(self, kind: str, **data: Any) -> None:  # the supervisor's journal entry point
         pass
 
+    def record_event(self, kind: str, who: str = "", **data: Any) -> None:  # the application's record (journal)
+        self.record(kind, **data)
+
 
 def _library_copy(tmp_path: Path) -> Any:
     for name in ("trigger_reaching.yaml", "trigger_reaching.py"):

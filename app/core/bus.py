@@ -430,13 +430,13 @@ class StreamBus:
         self.wake()
         return item
 
-    def record(self, origin: str, kind: str, data: dict[str, Any] | None = None) -> Record:
+    def record(self, origin: str, kind: str, data: dict[str, Any] | None = None, who: str = "") -> Record:
         """A journal record (an alarm, an e-stop, a refusal, a run change: :mod:`app.core.journal`) to the subscribers
         that asked for records, on the calling thread. The queues and listeners get it first, the safety monitor
         (inline) last: what it does about the record (a fault, a safe state) follows the record in the journal."""
         if origin not in JOURNAL_ORIGINS:
             raise ValueError(f"{origin!r} publishes device events through event(), not journal records")
-        item = Record(origin, kind, data if data is not None else {}, time.monotonic(), time.time())
+        item = Record(origin, kind, data if data is not None else {}, time.monotonic(), time.time(), who)
         inline, queued = self._record_routes
         for q in queued:
             q.put(item)

@@ -5,7 +5,8 @@ Qt-free (floor: core). Alarms, emergency stops, refusals, leases, faults, run ch
 :class:`app.core.bus.StreamBus`: the supervisor, the fault policy and the application's code through
 ``SafetySupervisor.record(kind, **data)`` (origin :data:`SAFETY`), the drivers through their one publishing call
 (``DeviceDriver._fire_event``: origin the device's id), the run log and the exercise's progress (:data:`RUN`,
-:data:`PROGRESS`). The recorder and the window's adapter (``app/ui/qt_bus.py``) subscribe to the bus once and
+:data:`PROGRESS`), and what the application records for the session (``manager.record_event``: :data:`APP`, with
+who did it). The recorder and the window's adapter (``app/ui/qt_bus.py``) subscribe to the bus once and
 get them in the order they were published; bluesky's documents are the model.
 
 The kinds are the constants below: one place, so a reader finds every kind the session record can hold, and a
@@ -23,8 +24,9 @@ from typing import Any, Final
 SAFETY: Final = "safety"  # the supervisor, the fault policy, and what the application records through them
 RUN: Final = "run"  # the run log (app/core/runs.py)
 PROGRESS: Final = "progress"  # the running exercise's repetitions (app/core/progress.py)
+APP: Final = "app"  # what the application records for the session: the exercise chosen, the electrode set-up, …
 # Every other origin is a device's id (app.core.streams.LINARM, FES, …): that record is one of the device's events.
-JOURNAL_ORIGINS: Final = frozenset({SAFETY, RUN, PROGRESS})
+JOURNAL_ORIGINS: Final = frozenset({SAFETY, RUN, PROGRESS, APP})
 
 # ---------------------------------------------------------------------------------------------- kinds
 # The devices' own events (published by the drivers; ``data["detail"]`` a sentence or a number as text).
@@ -103,15 +105,17 @@ PROGRESS_CHANGED: Final = "progress_changed"  # the exercise's progress state (n
 
 @dataclass(frozen=True, slots=True)
 class Record:
-    """One thing that happened: who published it (``origin``: :data:`SAFETY`, :data:`RUN`, :data:`PROGRESS` or a
-    device's id), what (``kind``, a constant above), its data, and when (host monotonic and wall-clock s, taken as
-    it was published). ``data`` is shared with every subscriber: read it, never change it."""
+    """One thing that happened: who published it (``origin``: :data:`SAFETY`, :data:`RUN`, :data:`PROGRESS`,
+    :data:`APP` or a device's id), what (``kind``, a constant above), its data, when (host monotonic and
+    wall-clock s, taken as it was published) and, for an application record, who did it. ``data`` is shared with
+    every subscriber: read it, never change it."""
 
     origin: str
     kind: str
     data: Mapping[str, Any] = field(default_factory=dict)
     t_mono: float = field(default_factory=time.monotonic)
     t_wall: float = field(default_factory=time.time)
+    who: str = ""  # who did it, for an application record (origin APP): the operator, a script, "keyboard", …
 
     @property
     def from_device(self) -> bool:

@@ -57,7 +57,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
 
-from app.core import streams
+from app.core import journal, streams
 from app.core.bus import Channel, StreamBus, StreamSpec
 from app.devices.clock import CountedClock
 from app.devices.driver import DeviceDriver
@@ -404,13 +404,13 @@ class UdpPeerDriver(DeviceDriver):
                 self._process_backoff_s = 1.0
             return
         log.warning("%s: helper process exited with code %s; restarting", self.name, code)
-        self._fire_event("error", f"{self.name}: helper process exited (code {code}); restarting")
+        self._fire_event(journal.DEVICE_ERROR_EVENT, f"{self.name}: helper process exited (code {code}); restarting")
         if code == HelperProcess.BIND_FAILED:
             # Someone else holds the helper's port: an alarm, never "reconnected" through their socket (its
             # datagrams carry no valid MAC), and the next start listens on a fresh port of ours.
             self.helper_failures += 1
             port = self.udp.peer[1] if self.udp.peer else "?"
-            self._fire_event("helper_failed",
+            self._fire_event(journal.HELPER_FAILED,
                              f"the {self.name} process cannot bind its port {port} (taken by another program)")
             self._move_helper_port()
         # The link is down even if the restart is quicker than the silence timeout: say so (alarm, gap).

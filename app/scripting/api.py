@@ -475,7 +475,7 @@ class FESUser(_ApiObject):
         from app.therapy import electrodes
 
         manager = self._ctx.host
-        fes, robot = self._driver(), self._ctx.driver("linarm", "the LINarm")
+        fes, robot = self._driver(), self._ctx.driver(streams.LINARM, "the LINarm")
         districts = electrodes.districts_from_config(manager.config.devices.fes.electrodes)
         if district not in districts:
             raise ScriptError(f"no district {district!r} in the configuration (devices.fes.electrodes): "
@@ -487,10 +487,7 @@ class FESUser(_ApiObject):
         source = f"{self._ctx.source}: fes.electrodeSetup"
 
         def record(kind: str, data: dict[str, Any]) -> None:
-            if manager.recorder is not None:
-                manager.record_event(kind, **data)
-            else:
-                manager.supervisor.record(kind, **data)
+            manager.record_event(kind, **data)
 
         try:
             result = electrodes.run_district_setup(fes, robot, manager.supervisor,

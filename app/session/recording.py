@@ -761,6 +761,9 @@ class SessionRecorder:
         if rec.from_device:
             return self._device_event_record(rec)
         data = dict(rec.data)
+        if rec.origin == journal.APP:  # what the application records for the session, by whom it says
+            return {"t_wall_epoch_s": rec.t_wall, "t_mono": rec.t_mono, "kind": rec.kind, "who": rec.who,
+                    "origin": "app", "data": data}
         if rec.origin == journal.RUN:  # the session's runs, as the application records them: the operator's
             return {"t_wall_epoch_s": rec.t_wall, "t_mono": rec.t_mono, "kind": rec.kind, "who": self._operator,
                     "origin": "app", "data": data}

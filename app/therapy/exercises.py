@@ -35,6 +35,7 @@ from app.core.safe_files import UserFileError, read_user_text
 from app.core.yamlschema import ConfigError, load_dataclass, rng
 
 if TYPE_CHECKING:
+    from app.core.runs import RunSource
     from app.therapy.services import EventHost, ExerciseRunner
 
 EXERCISES_DIR = RESOURCES / "exercises"
@@ -525,7 +526,7 @@ def run_problems(manager: EventHost, exercise: Exercise, params: Mapping[str, An
 
 
 def start_exercise(runner: ExerciseRunner, manager: EventHost, exercise: Exercise, values: Mapping[str, Any], *,
-                   source: str = "exercises_tab", restart_of: str | None = None,
+                   source: RunSource = "exercises_tab", restart_of: str | None = None,
                    continues: str | None = None) -> Validation:
     """Validate and, only when every value is accepted — by the exercise's ranges and by the patient's limits,
     caps and electrode choices in force now (:func:`run_problems`) — record ``exercise_start`` and start the
@@ -551,25 +552,9 @@ def start_exercise(runner: ExerciseRunner, manager: EventHost, exercise: Exercis
     text = exercise.script.read_text(encoding="utf-8")
     data = {"exercise": exercise.ident, "title": exercise.title, "script": exercise.script.name,
             "params": dict(checked.params)}
-    if manager.recorder is not None:
-        manager.record_event("exercise_start", "", **data)  # the session's own record of what the clinician chose
-    else:
-        manager.supervisor.record(journal.EXERCISE_START, **data)
-    if _takes_run(runner):
-        runner.start(text, str(exercise.script), dict(checked.params), program=exercise_program(exercise, text),
-                     parameters=run_parameters(exercise, checked.params), run_source=source,
-                     restart_of=restart_of, continues=continues, holds=exercise.holds(checked.params),
-                     compose=exercise.compositions(checked.params))
-    else:  # a runner without run records (a test's stand-in)
-        runner.start(text, str(exercise.script), dict(checked.params))
+    manager.record_event(journal.EXERCISE_START, "", **data)  # the record of what the clinician chose
+    runner.start(text, str(exercise.script), dict(checked.params), program=exercise_program(exercise, text),
+                 parameters=run_parameters(exercise, checked.params), run_source=source,
+                 restart_of=restart_of, continues=continues, holds=exercise.holds(checked.params),
+                 compose=exercise.compositions(checked.params))
     return checked
-
-
-def _takes_run(runner: ExerciseRunner) -> bool:
-    import inspect
-
-    try:
-        params = inspect.signature(runner.start).parameters
-    except (TypeError, ValueError):
-        return False
-    return "program" in params or any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values())

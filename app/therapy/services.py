@@ -16,6 +16,7 @@ from typing import Any, Protocol
 
 from app.core.bus import StreamBus
 from app.core.config import AppConfig
+from app.core.ownership import Composition
 from app.core.progress import ExerciseProgress
 from app.core.runs import RunLog, RunSource
 from app.safety.supervisor import SafetySupervisor
@@ -122,7 +123,8 @@ class ExerciseRunner(Protocol):
 
     def start(self, source: str, filename: str = "<script>", params: dict[str, Any] | None = None, *,
               program: Any = None, parameters: Any = (), run_source: RunSource = "script_tab",
-              restart_of: str | None = None) -> Any: ...
+              restart_of: str | None = None, continues: str | None = None,
+              holds: tuple[str, ...] = ("robot", "stimulator"), compose: tuple[Composition, ...] = ()) -> Any: ...
 
 
 PathLike = str | Path

@@ -312,10 +312,7 @@ class ElectrodeSetupDialog(QDialog):
         return not self.running
 
     def _record(self, kind: str, data: dict[str, Any]) -> None:
-        if self.manager.recorder is not None:
-            self.manager.record_event(kind, **data)
-        else:  # no session: the supervisor's event (the log, and a headless run's recorder)
-            self.manager.supervisor.record(kind, **data)
+        self.manager.record_event(kind, **data)  # the journal: the session's recorder, headless or not, writes it
 
     # ------------------------------------------------------------------ progress (GUI thread)
     def _on_progress(self, kind: str, payload: Any) -> None:
