@@ -148,3 +148,20 @@ def test_the_progress_tables_assistance_level_is_one_unbroken_number(tmp_path: P
     words = [w.text for w in pdf_words(tmp_path / "progress.pdf")[0]]
     assert "-0.01" in words, words
     assert "01" not in words and "-0.005" not in words, words
+
+
+def test_a_level_that_rounds_to_zero_reads_zero_not_minus_zero(tmp_path: Path) -> None:
+    """The clinician's day's progress report printed α "-0.00" (a small negative mean rounded): a reader takes a
+    sign for a meaning. Rounded to zero, it reads "0.00"."""
+    from app.session.reports import fmt
+    from tests.pdf_layout import pdf_words
+
+    assert (fmt(-0.004, "{:.2f}"), fmt(-0.0, "{:.1f}"), fmt(-0.006, "{:.2f}"), fmt(-3, "{}")) == (
+        "0.00", "0.0", "-0.01", "-3")
+    root = tmp_path / "sessions"
+    write_session(root / "P1" / "20260301-100000", reps=3, distance=0.15, duration=1.2, fm=30, day=1)
+    rows = progress_rows("P1", root)
+    rows[0].summary["mean_alpha"] = {"mean": -0.004}
+    write_progress_report("P1", tmp_path / "progress.pdf", rows)
+    words = [w.text for w in pdf_words(tmp_path / "progress.pdf")[0]]
+    assert "0.00" in words and "-0.00" not in words, words

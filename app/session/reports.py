@@ -106,7 +106,10 @@ def fmt(value: Any, spec: str | None = None) -> str:
     if spec is None:
         return number_text(value)
     try:
-        return spec.format(value)
+        text = spec.format(value)
+        if text.startswith("-") and not any(c in "123456789" for c in text):
+            return text[1:]  # a negative value that rounds to zero reads "0.00", not "-0.00"
+        return text
     except (ValueError, TypeError):
         return str(value)
 
