@@ -27,6 +27,7 @@ from typing import Literal
 import yaml
 from yaml.nodes import MappingNode, Node
 
+from app.core import yamlschema
 from app.core.safe_files import UserFileError, read_user_file
 from app.core.yamlschema import ConfigError, check_yaml, decode_text, load_dataclass, rng
 from app.wire.sciencemode import CHANNELS, CHANNELS_TEXT, MAX_CURRENT_MA, MAX_PULSE_WIDTH_US, PulseMode, PulseSetting
@@ -301,7 +302,7 @@ def parse_profile(text: str | bytes, filename: str = "<profile>") -> FesProfile:
     except ConfigError as exc:
         raise FesProfileError(exc.filename, exc.line, exc.key, exc.problem) from None
     try:
-        root = yaml.compose(text, Loader=yaml.SafeLoader)
+        root = yamlschema.compose(text)
     except yaml.MarkedYAMLError as exc:
         mark = exc.problem_mark
         raise FesProfileError(

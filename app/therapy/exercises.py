@@ -29,7 +29,7 @@ from typing import TYPE_CHECKING, Any
 import yaml
 from yaml.nodes import MappingNode, SequenceNode
 
-from app.core import journal, streams
+from app.core import journal, streams, yamlschema
 from app.core.resources import RESOURCES
 from app.core.safe_files import UserFileError, read_user_text
 from app.core.yamlschema import ConfigError, load_dataclass, rng
@@ -387,7 +387,7 @@ def _key_line(text: str, key: str, index: int | None = None) -> int | None:
     """The line of a top-level key, or of item ``index`` of its list (the text already passed check_yaml:
     composing it is safe)."""
     try:
-        root = yaml.compose(text, Loader=yaml.SafeLoader)
+        root = yamlschema.compose(text)
     except yaml.YAMLError:
         return None
     if isinstance(root, MappingNode):

@@ -22,7 +22,7 @@ from typing import Any, Literal, Protocol
 import yaml
 from yaml.nodes import MappingNode, Node
 
-from app.core import paths
+from app.core import paths, yamlschema
 from app.core.config import (
     FES_CHANNEL_RANGE,
     FES_CURRENT_RANGE,
@@ -243,7 +243,7 @@ def patient_file(patient_id: str, folder: Path | None = None) -> Path:
 def _line_of(text: str, key: str) -> int | None:
     """The line of a dotted key path in YAML text (for messages), or None."""
     try:
-        node: Node | None = yaml.compose(text, Loader=yaml.SafeLoader)
+        node: Node | None = yamlschema.compose(text)
     except yaml.YAMLError:
         return None
     line = None
