@@ -121,6 +121,11 @@ class GuiWatch:
                 self.start()
 
     @property
+    def last_beat(self) -> float:
+        """When the window's thread last beat (the watch's clock)."""
+        return self._last_beat
+
+    @property
     def running(self) -> bool:
         thread = self._thread
         return thread is not None and thread.is_alive()

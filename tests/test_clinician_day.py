@@ -340,6 +340,7 @@ def _cap_raised_mid_session(qtbot: Any, manager: LinarmppManager, window: MainWi
     _add_assisted_step(plan)
     plan.accept()
     assert plan.result() == 1, plan.error_label.text()
+    _next_action(qtbot, window)
     patients.close()
 
 
@@ -348,10 +349,13 @@ def _assisted_with_the_vr_task(qtbot: Any, manager: LinarmppManager, window: Mai
     sets the assistance target only as the exercise declares it, inside its range — every target on the wire is
     (before #36 the VR task's 0.10 and 0.40 m reached the robot, and the patient model's gains overrode the
     exercise's)."""
+    _next_action(qtbot, window)
     window.show_tab("Exercises")
     panel = window.frames["CommandsFrame"].panels["ExercisesPanel"]
     qtbot.waitUntil(lambda: panel.plan_list.count() == 2, timeout=3000)
+    _next_action(qtbot, window)
     panel.plan_list.setCurrentRow(1)
+    _next_action(qtbot, window)
     assert panel.exercise.ident == "assisted_reaching_fes" and panel.values()["fes_profile"] == BY_DISTRICT
     lo, hi = float(ASSISTED["start_m"]), float(ASSISTED["target_m"])
     patient = manager.sim_patient()
@@ -500,6 +504,16 @@ def _add_assisted_step(plan: Any) -> None:
         plan.editors[name].setText(value)
     plan.editors["use_fes"].setChecked(True)
     plan.editors["fes_profile"].setCurrentText(BY_DISTRICT)
+
+
+def _next_action(qtbot: Any, window: MainWindow) -> None:
+    """A person's next click comes after the window has drawn what the last one did: the window's event loop
+    turns (its heartbeat beats) between two actions. Without it, the test chained saving the plan, closing two
+    windows, a tab change and Start in one turn of the loop, which no clinician can, and the GUI watch measured
+    that chain as one stall of the window."""
+    watch = window.gui_heartbeat.watch
+    since = watch.clock()
+    qtbot.waitUntil(lambda: watch.last_beat > since, timeout=3000)
 
 
 def _wait(qtbot: Any, manager: LinarmppManager, window: MainWindow, cond: Any, timeout_ms: int, what: str) -> None:
