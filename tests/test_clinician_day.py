@@ -264,8 +264,10 @@ def _electrode_set_up(qtbot: Any, manager: LinarmppManager, window: MainWindow) 
     qtbot.waitUntil(lambda: fes.pulse_width_override is not None, timeout=10000)  # the assistance's, from α
     manager.sim_patient().set_electrode_distances({1: 2.0, 2: 0.5, 3: 1.5, 4: 0.866, 5: 2.0, 6: 0.5, 7: 1.5,
                                                    8: 0.866})
+    _next_action(qtbot, window)
     window.show_tab("FES")
     fes_panel = window.frames["CommandsFrame"].panels["FesPanel"]
+    _next_action(qtbot, window)
     fes_panel.electrodes_button.click()
     setup = fes_panel.electrode_dialog
     qtbot.waitExposed(setup)
@@ -321,6 +323,7 @@ def _cap_raised_mid_session(qtbot: Any, manager: LinarmppManager, window: MainWi
     assert "above the cap of 20 mA" in fes_panel.message.text()
     patients = window._patients_window
     qtbot.waitUntil(lambda: patients.loaded, timeout=10000)  # read on a thread of its own
+    _next_action(qtbot, window)
     edit = patients.edit_profile()
     qtbot.waitExposed(edit)
     for row in range(8):
@@ -331,6 +334,7 @@ def _cap_raised_mid_session(qtbot: Any, manager: LinarmppManager, window: MainWi
     assert "running session at once" in note and "channel 3 current cap 20 mA → 30 mA" in note, note
     _shot(patients, "09-cap-raised")
     assert fes_panel.apply_profile(wrist), fes_panel.message.text()
+    _next_action(qtbot, window)
     fes_panel.start_button.click()
     qtbot.waitUntil(lambda: manager.driver("fes").stimulating, timeout=5000)
     qtbot.wait(600)
@@ -482,12 +486,14 @@ def _check_reports(manager: LinarmppManager, folder: Path, tmp_path: Path, day_r
 def _open_plan(qtbot: Any, window: MainWindow) -> Any:
     from PySide6.QtGui import QAction
 
+    _next_action(qtbot, window)
     next(a for a in window.findChildren(QAction) if a.text() == "&Patients…").trigger()
     patients = window._patients_window
     qtbot.waitExposed(patients)
     qtbot.waitUntil(lambda: patients.loaded, timeout=10000)  # read on a thread of its own
     patients.search.setText(PATIENT)
     qtbot.waitUntil(lambda: patients.selected_id() == PATIENT, timeout=3000)
+    _next_action(qtbot, window)
     plan = patients.edit_plan()
     assert plan is not None
     qtbot.waitExposed(plan)
