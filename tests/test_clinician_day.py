@@ -39,7 +39,7 @@ from PySide6.QtCore import Qt
 from PySide6.QtTest import QTest
 from PySide6.QtWidgets import QApplication, QMessageBox, QTableWidgetItem
 
-from app.core import streams
+from app.core import journal, streams
 from app.core.config import AppConfig
 from app.manager import LinarmppManager
 from app.ui.main_window import MainWindow
@@ -195,14 +195,51 @@ def _session_and_first_exercise(qtbot: Any, manager: LinarmppManager,
                                 window: MainWindow) -> tuple[Any, Any, list[str]]:
     """2. The session and the plan's first exercise in one click; F12; the summary waits; Start disabled with the
     reason; Recover → continue with the remaining repetitions (two clicks); one summary of both runs."""
-    from app.ui.exercises_panel import SUMMARY_DELAY_MS
-
     panel = window.frames["CommandsFrame"].panels["ExercisesPanel"]
     panel.operator_edit.setText(OPERATOR)
     assert panel.session_button.text() == "▶ Start session and step 1"
     assert panel.session_plan.text() == "Plan: 1. Trigger reaching (grip-triggered passive movements)"
-    manager.sim_patient().squeeze_at_targets([0.15, 0.30], tolerance=0.006, duration=0.8,
-                                             reaction_delay=REACTION_DELAY_S)
+    with _SqueezeAtEachPrompt(manager):
+        first, again = _first_exercise_f12_recover(qtbot, manager, window, panel)
+    summary = _summary_of_both(qtbot, manager, window, panel, first, again)
+    screen_rts = [t for t in _column_texts(summary, "RT s") if t not in ("", "—")]  # the cut-short one has none
+    assert screen_rts, _column_texts(summary, "RT s")
+    summary.close()
+    return first, again, screen_rts
+
+
+class _SqueezeAtEachPrompt:
+    """The simulated patient squeezes REACTION_DELAY_S after each of the exercise's "squeeze" cues, as a patient
+    reacts to the prompt. (It squeezed a fixed time after the handle arrived at a target, and the script prompts
+    after its own rest there: under load the prompt came after the squeeze and no reaction time could be
+    measured, ['—', '—', '—', '—'], a test that depended on the machine's speed.)"""
+
+    def __init__(self, manager: LinarmppManager) -> None:
+        self.manager = manager
+        self.patient = manager.sim_patient()
+        self.stop = threading.Event()
+
+    def __enter__(self) -> _SqueezeAtEachPrompt:
+        self.manager.supervisor.add_event_subscriber(self._on_event)
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop.set()
+        self.manager.supervisor.remove_event_subscriber(self._on_event)
+
+    def _on_event(self, kind: str, data: dict[str, Any]) -> None:
+        if kind == journal.PROMPT and data.get("cue") == "squeeze":
+            threading.Thread(target=self._squeeze, daemon=True).start()
+
+    def _squeeze(self) -> None:
+        if not self.stop.wait(REACTION_DELAY_S):
+            self.patient.squeeze(0.8)
+
+
+def _first_exercise_f12_recover(qtbot: Any, manager: LinarmppManager, window: MainWindow,
+                                panel: Any) -> tuple[Any, Any]:
+    from app.ui.exercises_panel import SUMMARY_DELAY_MS
+
     qtbot.mouseClick(panel.session_button, Qt.MouseButton.LeftButton)
     qtbot.waitUntil(lambda: manager.recorder is not None and panel.runner.running, timeout=5000)
     assert manager.operator == OPERATOR and not panel.session_box.isVisible()
@@ -240,7 +277,11 @@ def _session_and_first_exercise(qtbot: Any, manager: LinarmppManager,
           "the continuation's end")
     assert manager.runs.get(again.run_id).end_reason == "finished", \
         (manager.runs.get(again.run_id).end_detail, [a.text for a in manager.supervisor.alarms()])
+    return first, again
 
+
+def _summary_of_both(qtbot: Any, manager: LinarmppManager, window: MainWindow, panel: Any, first: Any,
+                     again: Any) -> Any:
     def summary_of_both() -> bool:
         d = panel.summary_dialog
         return d is not None and d.isVisible() and [r.run.run_id for r in d.summary.runs] == [first.run_id,
@@ -249,10 +290,7 @@ def _session_and_first_exercise(qtbot: Any, manager: LinarmppManager,
     summary = panel.summary_dialog
     _show_every_run(qtbot, summary.summary)  # a run's tab is built when first shown (staged: #37)
     _shot(summary, "06-exercise-summary")
-    screen_rts = [t for t in _column_texts(summary, "RT s") if t not in ("", "—")]  # the cut-short one has none
-    assert screen_rts, _column_texts(summary, "RT s")
-    summary.close()
-    return first, again, screen_rts
+    return summary
 
 
 def _electrode_set_up(qtbot: Any, manager: LinarmppManager, window: MainWindow) -> None:
