@@ -117,7 +117,7 @@ class ArchivedSource:
         session = getattr(self.files, "uuid", "") or self.label
         checked = _CheckedReader(stream, f"the archived file {name} of session {session}", self._listing()[name],
                                  self._hashes.get(name, ""))
-        return io.BufferedReader(checked, 1 << 20)
+        return io.BufferedReader(checked)  # (the archive's own reader buffers a chunk)
 
     def read_bytes(self, name: str) -> bytes:
         with self.open(name) as fh:
