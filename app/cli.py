@@ -10,7 +10,8 @@ all run :func:`main`. With no arguments: the clinician window, every device simu
     linarmpp --progress PATIENT_ID --out FILE.pdf          the patient's progress PDF (every station's sessions)
     linarmpp --export SESSION_FOLDER --out FILE.h5|FOLDER  the session as one HDF5 file, or as CSV files in a folder
     linarmpp archive {status,upgrade,import,export,upload,verify,grants} …   the archive (docs/archive.md)
-    linarmpp export --format bids|xdf|edf SESSION… --out DIR   sessions for research tools (docs/export.md)
+    linarmpp export --format bids|xdf|edf SESSION_FOLDER|UUID… --out DIR [--config FILE]
+                      sessions for research tools (docs/export.md; UUID: an archived session, read from the archive)
                       (exit 0 done, 1 nothing written: why on stderr, 2 wrong arguments,
                        3 done from an incomplete session: what is missing on stderr)
 

@@ -1,24 +1,32 @@
-"""``linarmpp export --format bids|xdf|edf SESSION… --out DIR``: recorded sessions for research tools.
+"""``linarmpp export --format bids|xdf|edf SESSION… --out DIR [--config FILE]``: recorded sessions for research tools.
 
 Exit codes (as the report commands'): 0 every file written and read back; 1 nothing written (one sentence on
-stderr); 2 wrong arguments; 3 written, but something is missing (a session that could not be read, a session
-recorded incompletely, a file that could not be written): stderr lists what.
+stderr: no session could be read, the archive cannot be reached); 2 wrong arguments (a configuration refused
+among them); 3 written, but something is missing (a session that could not be read, an archived session's UUID the
+archive does not hold, a session recorded incompletely, a file that could not be written): stderr lists what.
 
 A SESSION is a session folder; a patient's folder (its sessions) or the sessions folder (every patient's) may be
-named instead. Progress goes to stderr; the written files are listed on stdout.
+named instead; or an archived session's UUID (issue #39), read from the clinic's archive as it streams (never copied
+into a folder first): the archive of ``--config FILE`` (default: the user's configuration, the embedded archive in
+``<data>``), opened only when a UUID is named and closed at the end, whatever happens. Folders and UUIDs may be
+mixed; a session named twice (its folder and its UUID) is exported once. Progress goes to stderr; the written files
+are listed on stdout.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import datetime as _dt
 import logging
 import sys
+import uuid as _uuid
 from pathlib import Path
+from typing import Any
 
 from app.research_export.common import ExportCancelled, ExportError, ExportResult, release_memory_promptly
-from app.research_export.source import FolderSource, Session, is_session_folder, open_session
-from app.session.recording import MANIFEST_FILE, safe_name
+from app.research_export.source import ArchivedSource, FolderSource, Session, is_session_folder, open_session
+from app.session.recording import MANIFEST_FILE, is_session_uuid, safe_name
 
 EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_INCOMPLETE = 0, 1, 2, 3
 FORMATS = ("bids", "xdf", "edf")
@@ -30,7 +38,8 @@ def build_parser(prog: str = "linarmpp export") -> argparse.ArgumentParser:
                                      "dataset, one XDF file or one EDF+ file per session (docs/export.md).")
     parser.add_argument("--format", required=True, choices=FORMATS, help="bids, xdf or edf")
     parser.add_argument("sessions", nargs="+", metavar="SESSION",
-                        help="session folders (or a patient's folder, or the sessions folder)")
+                        help="session folders (or a patient's folder, or the sessions folder), or archived sessions' "
+                        "UUIDs")
     parser.add_argument("--out", required=True, metavar="DIR",
                         help="bids: the dataset's folder (new or empty); xdf, edf: the folder for the files")
     parser.add_argument("--include-names", action="store_true",
@@ -39,6 +48,8 @@ def build_parser(prog: str = "linarmpp export") -> argparse.ArgumentParser:
                         help="move every date back by N days (de-identification; BIDS recommends it)")
     parser.add_argument("--name", default="LINarm++ Manager sessions", help="the BIDS dataset's name")
     parser.add_argument("--no-metrics", action="store_true", help="bids: leave out derivatives/linarmpp-metrics")
+    parser.add_argument("--config", metavar="FILE", help="the configuration naming the clinic's archive, read when a "
+                        "SESSION is a UUID (default: the user's configuration: the archive in the data folder)")
     parser.add_argument("--quiet", action="store_true", help="no progress on stderr")
     return parser
 
@@ -47,13 +58,17 @@ class _Usage(Exception):
     pass
 
 
-def _expand(paths: list[str]) -> list[Path]:
-    """Session folders named, or found one or two levels below a folder named."""
-    out: list[Path] = []
+def _expand(paths: list[str]) -> list[Path | str]:
+    """Session folders named, or found one or two levels below a folder named; and archived sessions' UUIDs (a text
+    that names nothing on disk and is a UUID, as the report commands take it), in the form the archive keys them by."""
+    out: list[Path | str] = []
     for text in paths:
         path = Path(text)
         if not path.exists():
-            raise _Usage(f"{text} does not exist")
+            if is_session_uuid(text):
+                out.append(str(_uuid.UUID(text)))
+                continue
+            raise _Usage(f"{text} does not exist (and is not an archived session's UUID)")
         if is_session_folder(path):
             out.append(path)
             continue
@@ -65,7 +80,81 @@ def _expand(paths: list[str]) -> list[Path]:
         if not found:
             raise _Usage(f"{text} is not a session folder and holds none (no {MANIFEST_FILE})")
         out += found
-    return list(dict.fromkeys(p.resolve() for p in out))
+    return list(dict.fromkeys(p.resolve() if isinstance(p, Path) else p for p in out))
+
+
+class _Unreadable(Exception):
+    """The archive cannot be read (unreachable, refused, none): one sentence, nothing written."""
+
+
+def _open_archive(config_file: str | None, uuids: list[str], stack: contextlib.ExitStack) -> Any:
+    """The archive the UUIDs are read from, closed with ``stack``; nothing is made where there is no archive yet.
+    Raises _Usage (the configuration refused) or _Unreadable."""
+    from app.archive.reads import open_for_reading
+    from app.core.config import ConfigError, load_config
+
+    try:
+        config = load_config(config_file)
+    except ConfigError as exc:
+        raise _Usage(f"the configuration was refused, nothing was exported: {' '.join(str(exc).split())}") from exc
+    archive, problem = open_for_reading(config)
+    if archive is None:
+        named = ", ".join(uuids)
+        raise _Unreadable(f"{problem}; the session{'s' if len(uuids) > 1 else ''} {named} would be read from it"
+                          if problem else f"{named} {'is' if len(uuids) == 1 else 'are'} not a session folder, and "
+                          "this station has no archive (none is configured, and its data folder holds none)")
+    stack.callback(archive.close)
+    return archive
+
+
+def archived_label(info: Any, url: str) -> str:
+    """An archived session in messages, as the report command names it (app/cli.py)."""
+    return (f"archived session {info.uuid} (recorded on station {info.station or '?'} as {info.folder_name}; "
+            f"read from the archive at {url})")
+
+
+def _open_sessions(named: list[Path | str], archive: Any) -> tuple[list[Session], list[str]]:
+    """The sessions in the order named (each once: an archived session also named by its folder is read from the
+    folder), and what could not be opened."""
+    missing: list[str] = []
+    opened: dict[int, Session] = {}
+    local: set[str] = set()
+    for k, item in enumerate(named):
+        if isinstance(item, Path):
+            try:
+                opened[k] = open_session(FolderSource(item))
+            except ValueError as exc:
+                missing.append(f"{item}: not exported: {exc}")
+                continue
+            if archive is not None:
+                from app.archive.folders import session_uuid
+
+                local.add(session_uuid(item, opened[k].manifest))
+    for k, item in enumerate(named):
+        if isinstance(item, Path) or item in local:
+            continue
+        try:
+            opened[k] = _open_archived(archive, item)
+        except _NotArchived as exc:
+            missing.append(f"{item}: not exported: {exc}")
+    return [opened[k] for k in sorted(opened)], missing
+
+
+class _NotArchived(Exception):
+    pass
+
+
+def _open_archived(archive: Any, session_uuid: str) -> Session:
+    from app.archive.api import ArchiveError, NotFound
+
+    try:
+        info = archive.get_session(session_uuid).info
+        files = archive.session_files(session_uuid)
+        return open_session(ArchivedSource(files, archived_label(info, archive.url)))
+    except NotFound as exc:
+        raise _NotArchived(f"the archive has no session {session_uuid}") from exc
+    except (ArchiveError, OSError, ValueError) as exc:  # the archive gone away meanwhile, a manifest unreadable
+        raise _NotArchived(str(exc)) from exc
 
 
 class _Terminal:
@@ -99,7 +188,7 @@ def main(argv: list[str], prog: str = "linarmpp export") -> int:
     except SystemExit as stop:
         return EXIT_USAGE if stop.code not in (0, None) else EXIT_OK
     try:
-        folders = _expand(args.sessions)
+        named = _expand(args.sessions)
         out = Path(args.out)
         _check_out(out, args.format)
         if args.shift_days < 0:
@@ -107,13 +196,23 @@ def main(argv: list[str], prog: str = "linarmpp export") -> int:
     except _Usage as exc:
         print(f"{prog}: {exc}", file=sys.stderr)
         return EXIT_USAGE
-    missing: list[str] = []
-    sessions: list[Session] = []
-    for folder in folders:
-        try:
-            sessions.append(open_session(FolderSource(folder)))
-        except ValueError as exc:
-            missing.append(f"{folder}: not exported: {exc}")
+    uuids = [item for item in named if isinstance(item, str)]
+    with contextlib.ExitStack() as stack:  # the archive stays open while its sessions stream, and is closed after
+        archive = None
+        if uuids:
+            try:
+                archive = _open_archive(args.config, uuids, stack)
+            except _Usage as exc:
+                print(f"{prog}: {exc}", file=sys.stderr)
+                return EXIT_USAGE
+            except _Unreadable as exc:
+                print(f"Nothing was written: {exc}", file=sys.stderr)
+                return EXIT_FAILED
+        return _export(named, archive, out, args)
+
+
+def _export(named: list[Path | str], archive: Any, out: Path, args: argparse.Namespace) -> int:
+    sessions, missing = _open_sessions(named, archive)
     if not sessions:
         print(f"Nothing was written: {missing[0] if len(missing) == 1 else 'no session could be read'}",
               file=sys.stderr)

@@ -1,5 +1,5 @@
-"""Where an export reads a session from: a *session source* — today a session folder, tomorrow the archive's
-materialised or streamed session (``app.archive`` ``SessionFiles`` has the same three methods).
+"""Where an export reads a session from: a *session source* — a session folder (:class:`FolderSource`), or a session
+the clinic's archive holds, streamed from it (:class:`ArchivedSource` over ``app.archive``'s ``SessionFiles``).
 
 An export never loads a whole session: the manifest and the events are small and read at once, the stream files
 are read in blocks of whole lines (:meth:`Session.chunks`), so a two-hour session costs what one block costs.
@@ -9,6 +9,8 @@ and counted, a line with the wrong number of fields is dropped and counted) and 
 
 from __future__ import annotations
 
+import contextlib
+import hashlib
 import io
 import json
 import re
@@ -77,19 +79,28 @@ class FolderSource:
 
 
 class ArchivedSource:
-    """A session the clinic's archive holds, read without materialising it: any object with the archive's
-    ``SessionFiles`` calls (``files()`` → entries with ``name`` and ``size``, ``open(name)`` streaming the bytes,
-    ``read_bytes(name)``; app/archive/api.py, issue #39). Stage 2 of #41 wires it to the command line and the
-    sessions browser; ``archive.materialised(uuid)`` + :class:`FolderSource` works as well."""
+    """A session the clinic's archive holds, read as it streams from the archive, never copied into a folder first:
+    any object with the archive's ``SessionFiles`` calls (``files()`` → entries with ``name``, ``size`` and
+    ``sha256``, ``open(name)`` streaming the bytes; app/archive/api.py, issue #39); ``linarmpp export`` names a
+    session by its UUID this way (app/research_export/command.py).
+
+    Each file read to its end is checked against its SHA-256 (as ``SessionFiles.materialise`` checks what it writes):
+    a copy changed or damaged in the database fails the read of that session, it is never exported as the session.
+    What the archive raises while reading (a server gone away) reaches the exporters as an OSError with its sentence,
+    as a folder's unreadable file does."""
 
     def __init__(self, files: Any, label: str = "") -> None:
         self.files = files
         self.label = label or f"archived session {getattr(files, 'uuid', '')}".strip()
         self._sizes: dict[str, int] | None = None
+        self._hashes: dict[str, str] = {}
 
     def _listing(self) -> dict[str, int]:
         if self._sizes is None:
-            self._sizes = {str(f.name): int(f.size) for f in self.files.files()}
+            with _archive_errors():
+                entries = list(self.files.files())
+            self._hashes = {str(f.name): str(getattr(f, "sha256", "") or "") for f in entries}
+            self._sizes = {str(f.name): int(f.size) for f in entries}
         return self._sizes
 
     def names(self) -> list[str]:
@@ -101,12 +112,72 @@ class ArchivedSource:
     def open(self, name: str) -> IO[bytes]:
         if name not in self._listing():
             raise FileNotFoundError(f"{self.label} has no file {name}")
-        return self.files.open(name)
+        with _archive_errors():
+            stream = self.files.open(name)
+        session = getattr(self.files, "uuid", "") or self.label
+        checked = _CheckedReader(stream, f"the archived file {name} of session {session}", self._listing()[name],
+                                 self._hashes.get(name, ""))
+        return io.BufferedReader(checked)  # (the archive's own reader buffers a chunk)
 
     def read_bytes(self, name: str) -> bytes:
-        if name not in self._listing():
-            raise FileNotFoundError(f"{self.label} has no file {name}")
-        return self.files.read_bytes(name)
+        with self.open(name) as fh:
+            return fh.read()
+
+
+class _CheckedReader(io.RawIOBase):
+    """An archived file's bytes as they stream, hashed on the way: at its end, its size and SHA-256 are the ones the
+    archive listed (or an OSError saying which file does not match)."""
+
+    def __init__(self, stream: IO[bytes], what: str, size: int, sha256: str) -> None:
+        self._stream = stream
+        self._what = what
+        self._size = size
+        self._sha256 = sha256
+        self._digest = hashlib.sha256()
+        self._done = 0
+        self._checked = False
+
+    def readable(self) -> bool:
+        return True
+
+    def readinto(self, b: Any) -> int:
+        if not len(b):
+            return 0
+        with _archive_errors():
+            data = self._stream.read(len(b))
+        n = len(data)
+        if n:
+            b[:n] = data
+            self._digest.update(data)
+            self._done += n
+        elif not self._checked:
+            self._checked = True
+            if self._done != self._size or (self._sha256 and self._digest.hexdigest() != self._sha256):
+                raise OSError(f"{self._what} does not match its SHA-256 (the archive's copy was changed or damaged: "
+                              "run `linarmpp archive verify`)")
+        return n
+
+    def close(self) -> None:
+        try:
+            self._stream.close()
+        finally:
+            super().close()
+
+
+@contextlib.contextmanager
+def _archive_errors() -> Iterator[None]:
+    """What the archive raises (app.archive.api.ArchiveError: unreachable, a file it does not hold) as an OSError with
+    the same sentence: every exporter says an unreadable file of a session in one line and goes on with the others."""
+    try:
+        yield
+    except OSError:
+        raise
+    except Exception as exc:
+        from app.archive.api import ArchiveError
+
+        if isinstance(exc, ArchiveError):
+            raise OSError(str(exc)) from exc
+        raise
 
 
 def is_session_folder(folder: str | Path) -> bool:
@@ -354,6 +425,12 @@ def open_session(source: SessionSource) -> Session:
         raise ValueError(f"the manifest of {source.label} is not a JSON object")
     if isinstance(source, FolderSource):
         manifest = recording._manifest_with_sidecar(source.folder, manifest)
+    elif recording.FAILED_FILE in source.names():  # the archive's copy of a failed recording's sidecar
+        try:
+            failure = recording.failure_of_sidecar(source.read_bytes(recording.FAILED_FILE))
+        except OSError as exc:
+            failure = {"error": f"(unreadable: {exc})"}
+        manifest = recording.manifest_with_failure(manifest, failure)
     problems: list[str] = []
     if problem := recording._status_problem(manifest):
         problems.append(problem)

@@ -1261,11 +1261,17 @@ def read_failure_sidecar(folder: Path) -> dict[str, Any] | None:
     ``failed``); None when there is none."""
     path = folder / FAILED_FILE
     try:
-        text = path.read_bytes()[:65536].decode("utf-8", errors="replace")
+        raw = path.read_bytes()
     except FileNotFoundError:
         return None
     except OSError as exc:
         return {"error": f"(unreadable: {exc.strerror or exc})"}
+    return failure_of_sidecar(raw)
+
+
+def failure_of_sidecar(raw: bytes) -> dict[str, Any]:
+    """What the bytes of ``recording-failed.txt`` say (a session folder's, or the archive's copy of it)."""
+    text = raw[:65536].decode("utf-8", errors="replace")
     try:
         data = json.loads(text) if text.strip() else {}
     except (json.JSONDecodeError, RecursionError):
@@ -1277,7 +1283,11 @@ def read_failure_sidecar(folder: Path) -> dict[str, Any] | None:
 
 
 def _manifest_with_sidecar(folder: Path, manifest: dict[str, Any]) -> dict[str, Any]:
-    failure = read_failure_sidecar(folder)
+    return manifest_with_failure(manifest, read_failure_sidecar(folder))
+
+
+def manifest_with_failure(manifest: dict[str, Any], failure: dict[str, Any] | None) -> dict[str, Any]:
+    """The manifest as the loader reads it: ``failed``, with the sidecar's reason, when there is a sidecar."""
     if failure is None or manifest.get("status") == "failed":
         return manifest
     return {**manifest, "status": "failed", "recording_failure": {**(manifest.get("recording_failure") or {}),
