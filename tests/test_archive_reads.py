@@ -106,6 +106,10 @@ def check_both_stations(clinic: Clinic, monkeypatch: Any, tmp_path: Path) -> Non
         assert [r.exercises for r in rows] == [("Trigger reaching (grip-triggered passive movements)",)] * len(days)
         assert f"Sessions {len(days)} (2026-03-02 10:00" in text, text[:600]
         assert f"Repetitions {reps}" in text and "Maria Esposito" in text, text[:600]
+        # each session names the station that recorded it; B's own unarchived one says it waits
+        assert [r.station for r in rows] == ["room-A", "room-B"] + (["room-B (not archived yet)"] if name == "room-B"
+                                                                    else []), name
+        assert "Station" in text and "room-A" in text and "room-B" in text, text[:1200]
 
 
 # ---------------------------------------------------------------------------------------------- --progress

@@ -157,6 +157,8 @@ def progress_rows(patient_id: str, root: Path | None, archive: Archive | None,
     local = [s for s in local_sessions(root or paths.sessions_dir(), patient_id) if s.uuid not in known]
     if local:
         rows = _folder_rows([s.folder for s in local], progress)
+        for row in rows:  # recorded here, where the report is made, and waiting in this station's outbox
+            row.station = f"{archive.station} (not archived yet)"
         keyed += [(s.start_epoch_s, row) for s, row in zip(local, rows, strict=True)]
     if progress is not None:
         progress(1.0)

@@ -1577,17 +1577,29 @@ def render_progress_report(pdf: _Pdf, patient_id: str, rows: Sequence[ProgressRo
     pdf.fields(pairs, label_width=190)
 
     pdf.heading("Sessions")
-    pdf.table(["#", "Date and time", "Exercises", "Reps (done)", "Peak m/s", "SPARC", "Range m", "α", "Alarms",
-               "Session"],
-              [[str(k + 1), r.date, "; ".join(r.exercises) or "—",
+    # Read from the clinic's archive, the sessions come from several stations: each row says which (a session
+    # still waiting in this station's outbox says so). A station's own folders alone: no column.
+    stations = any(r.station for r in rows)
+    headers = ["#", "Date and time", "Exercises", "Reps (done)", "Peak m/s", "SPARC", "Range m", "α", "Alarms",
+               "Session"]
+    widths = [0.3, 1.45, 2.0, 0.85, 0.75, 0.65, 0.8, 0.65, 0.65, 0.95]
+    if stations:
+        headers.insert(2, "Station")
+        widths[2:3] = [1.05, 1.45]
+    table = []
+    for k, r in enumerate(rows):
+        line = [str(k + 1), r.date, "; ".join(r.exercises) or "—",
                 f"{fmt(r.summary.get('repetitions'), '{}')} ({fmt(r.summary.get('completed'), '{}')})",
                 fmt(r.value("peak_speed_m_s")), fmt(r.value("sparc")), fmt(r.value("range_m")),
                 # α to two decimals, as the window shows it (0 … 1): three significant digits of a level near 0
                 # ("-0.00501") did not fit the column and wrapped into "-0.005" over "01".
                 fmt(r.value("mean_alpha"), "{:.2f}"), fmt(r.summary.get("alarms"), "{}"),
                 "interrupted" if r.interrupted else "complete"]
-               for k, r in enumerate(rows)], [0.3, 1.45, 2.0, 0.85, 0.75, 0.65, 0.8, 0.65, 0.65, 0.95],
-              align_right=(3, 4, 5, 6, 7, 8))
+        if stations:
+            line.insert(2, r.station or "—")
+        table.append(line)
+    right = (3, 4, 5, 6, 7, 8)
+    pdf.table(headers, table, widths, align_right=tuple(c + 1 for c in right) if stations else right)
 
     n = len(rows)
     ticks = [(float(i), f"#{i}") for i in range(1, n + 1)]
