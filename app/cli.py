@@ -10,7 +10,7 @@ all run :func:`main`. With no arguments: the clinician window, every device simu
     linarmpp --metrics SESSION_FOLDER|UUID                 per-repetition metrics as JSON (docs/metrics.md)
     linarmpp --report SESSION_FOLDER|UUID --out FILE.pdf   the session's PDF report (UUID: an archived session)
     linarmpp --progress PATIENT_ID --out FILE.pdf          the patient's progress PDF (every station's sessions)
-    linarmpp --export SESSION_FOLDER --out FILE.h5|FOLDER  the session as one HDF5 file, or as CSV files in a folder
+    linarmpp --export SESSION_FOLDER|UUID --out FILE.h5|FOLDER   the session as one HDF5 file, or CSV files in a folder
     linarmpp archive {status,upgrade,import,export,upload,verify,grants} …   the archive (docs/archive.md)
     linarmpp export --format bids|xdf|edf SESSION… --out DIR   sessions for research tools (docs/export.md)
                       (exit 0 done, 1 nothing written: why on stderr, 2 wrong arguments,
@@ -64,8 +64,8 @@ def build_parser(prog: str | None = None) -> argparse.ArgumentParser:
                         "folder, or an archived session's UUID")
     parser.add_argument("--progress", metavar="PATIENT_ID", help="write the patient's progress PDF to --out (every "
                         "station's sessions in the archive, and this station's not yet archived)")
-    parser.add_argument("--export", metavar="SESSION_FOLDER",
-                        help="export the session to --out: FILE.h5 (HDF5) or a new FOLDER (CSV files)")
+    parser.add_argument("--export", metavar="SESSION", help="export the session to --out: FILE.h5 (HDF5) or a new "
+                        "FOLDER (CSV files); SESSION: its folder, or an archived session's UUID")
     parser.add_argument("--out", metavar="FILE", help="output of --report / --progress / --export")
     parser.add_argument("--verbose", action="store_true")
     parser.add_argument("--install-desktop-entry", action="store_true",
@@ -246,8 +246,9 @@ def _report_command(config: object, args: argparse.Namespace) -> int:
     if args.export and not args.out:
         print("--export needs --out FILE.h5 or --out FOLDER", file=sys.stderr)
         return EXIT_REPORT_USAGE
-    if args.export and not (Path(args.export) / MANIFEST_FILE).is_file():
-        print(f"{args.export} is not a session folder (no {MANIFEST_FILE})", file=sys.stderr)
+    if args.export and not (Path(args.export) / MANIFEST_FILE).is_file() and not _is_uuid(args.export):
+        print(f"{args.export} is not a session folder (no {MANIFEST_FILE}) nor an archived session's UUID",
+              file=sys.stderr)
         return EXIT_REPORT_USAGE
     if args.out and (args.report or args.progress or args.export):
         problem = _unwritable(Path(args.out), folder_ok=bool(args.export))
@@ -261,7 +262,7 @@ def _report_command(config: object, args: argparse.Namespace) -> int:
                   file=sys.stderr)
         origins: dict[str, str] = {}
         try:
-            given = {"metrics": args.metrics, "report": args.report}
+            given = {"metrics": args.metrics, "report": args.report, "export": args.export}
             for key, value in given.items():
                 if value:
                     folder, origins[key] = _session_folder(value, archive, problem, stack)
@@ -277,7 +278,7 @@ def _report_command(config: object, args: argparse.Namespace) -> int:
 
 
 class _NoSession(Exception):
-    """``--metrics`` / ``--report`` named neither a session folder nor a session the archive holds."""
+    """``--metrics`` / ``--report`` / ``--export`` named neither a session folder nor a session the archive holds."""
 
 
 def _is_uuid(text: str) -> bool:
@@ -294,7 +295,8 @@ def _report_archive(config: object, args: argparse.Namespace, stack: contextlib.
 
     from app.session.recording import MANIFEST_FILE
 
-    uuids = [v for v in (args.metrics, args.report) if v and not (Path(v) / MANIFEST_FILE).is_file() and _is_uuid(v)]
+    uuids = [v for v in (args.metrics, args.report, args.export)
+             if v and not (Path(v) / MANIFEST_FILE).is_file() and _is_uuid(v)]
     if not (args.progress or args.report or uuids):
         return None, ""
     from app.archive import station

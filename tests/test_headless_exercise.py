@@ -1,6 +1,7 @@
 """A library exercise without the window (issue #39): ``--headless --exercise NAME --param NAME=VALUE …`` runs it as
 the Exercises tab starts it (app.therapy.exercises.start_exercise: the run's program, parameters and source in its
-record, the patient's limits applied); every wrong argument is refused in one sentence before anything starts.
+record, the patient's limits applied); every wrong argument is refused in one sentence before anything starts; and
+``--export`` takes an archived session's UUID as ``--report`` / ``--metrics`` do.
 
 The refusals call the command line's ``main`` with the devices' manager and the archive's opening replaced by a
 failure (anything started fails the test): no device is built. One real run on the simulators."""
@@ -179,3 +180,47 @@ def test_a_headless_exercise_is_the_patients_run_with_its_program_parameters_and
               if e["kind"] == "exercise_start"]
     assert starts == [{"exercise": "trigger_reaching", "title": TRIGGER, "script": "trigger_reaching.py",
                        "params": values}]
+
+
+# ---------------------------------------------------------------------------------------------- --export UUID
+def test_export_of_an_archived_sessions_uuid_writes_what_its_folder_gives(
+        tmp_path: Path, monkeypatch: Any, capsys: Any) -> None:
+    """A session recorded on room-A and uploaded to the archive; on room-B (no folder of it) ``--export UUID``
+    writes the HDF5 that ``--export FOLDER`` writes on room-A."""
+    import numpy as np
+
+    from app.archive import folders
+    from app.archive.outbox import Outbox
+    from app.cli import main
+    from app.session.export import load_hdf5
+    from tests.run_sessions import RunSpec, write_run_session
+
+    config_a, url = station(tmp_path, monkeypatch, "room-A")
+    config_b, _ = station(tmp_path, monkeypatch, "room-B")
+    folder = write_run_session(tmp_path / "room-A" / "sessions" / PATIENT / "20260302-100000",
+                               [RunSpec(TRIGGER, "trigger_reaching", reps=3)], start_iso="2026-03-02T10:00:00+01:00")
+    status = Outbox(tmp_path / "room-A" / "sessions", lambda: open_archive(url=url, station="room-A")).run_once(
+        force=True)
+    assert (status.uploaded, status.waiting) == (1, 0), status.text()
+    uuid = folders.session_uuid(folder)
+
+    def export(config: Path, home: str, session: str) -> Path:
+        monkeypatch.setenv("LINARMPP_HOME", str(tmp_path / home))
+        out = tmp_path / f"{home}.h5"
+        assert main(["--config", str(config), "--export", session, "--out", str(out)]) == 0, capsys.readouterr().err
+        assert "HDF5, verified" in capsys.readouterr().err
+        return out
+
+    by_folder = load_hdf5(export(config_a, "room-A", str(folder)))
+    by_uuid = load_hdf5(export(config_b, "room-B", uuid))
+    assert by_uuid.manifest == by_folder.manifest and by_uuid.manifest["patient_id"] == PATIENT
+    assert by_uuid.events == by_folder.events and len(by_uuid.events) > 10
+    assert set(by_uuid.streams) == set(by_folder.streams) and by_folder.streams
+    for name, stream in by_folder.streams.items():
+        other = by_uuid.streams[name]
+        assert np.array_equal(other.t, stream.t) and len(stream.t) > 0
+        assert all(np.array_equal(other.data[c.name], stream.data[c.name], equal_nan=True) for c in stream.channels)
+    unknown = "6a1c7f0e-0000-4000-8000-000000000000"
+    monkeypatch.setenv("LINARMPP_HOME", str(tmp_path / "room-B"))
+    assert main(["--config", str(config_b), "--export", unknown, "--out", str(tmp_path / "x.h5")]) == 2
+    assert f"the archive has no session {unknown}" in capsys.readouterr().err
