@@ -3,12 +3,14 @@ all run :func:`main`. With no arguments: the clinician window, every device simu
 
     linarmpp [--config FILE]                                the clinician window
     linarmpp --headless --script FILE [--duration S] [--record DIR] [--patient ID --operator NAME]
+    linarmpp --headless --exercise NAME [--param NAME=VALUE]… [--duration S] [--record DIR] [--patient … --operator …]
+                                                            a library exercise by its form's values, as its tab runs it
     linarmpp --version
     linarmpp --install-desktop-entry                       the application menu entry (Linux)
     linarmpp --metrics SESSION_FOLDER|UUID                 per-repetition metrics as JSON (docs/metrics.md)
     linarmpp --report SESSION_FOLDER|UUID --out FILE.pdf   the session's PDF report (UUID: an archived session)
     linarmpp --progress PATIENT_ID --out FILE.pdf          the patient's progress PDF (every station's sessions)
-    linarmpp --export SESSION_FOLDER --out FILE.h5|FOLDER  the session as one HDF5 file, or as CSV files in a folder
+    linarmpp --export SESSION_FOLDER|UUID --out FILE.h5|FOLDER   the session as one HDF5 file, or CSV files in a folder
     linarmpp archive {status,upgrade,import,export,upload,verify,grants} …   the archive (docs/archive.md)
     linarmpp export --format bids|xdf|edf SESSION_FOLDER|UUID… --out DIR [--config FILE]
                       sessions for research tools (docs/export.md; UUID: an archived session, read from the archive)
@@ -34,6 +36,7 @@ import argparse
 import contextlib
 import os
 import sys
+from typing import Any
 
 from app import __version__
 
@@ -42,9 +45,14 @@ def build_parser(prog: str | None = None) -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog=prog, description="LINarm++ Manager")
     parser.add_argument("--version", action="version", version=f"LINarm++ Manager {__version__}")
     parser.add_argument("--config", help="YAML configuration (defaults: every device simulated)")
-    parser.add_argument("--headless", action="store_true", help="no window: run --script and exit")
+    parser.add_argument("--headless", action="store_true", help="no window: run --script or --exercise and exit")
     parser.add_argument("--script", help="exercise script to run (with --headless)")
-    parser.add_argument("--duration", type=float, help="stop the script after this many seconds")
+    parser.add_argument("--exercise", metavar="NAME", help="with --headless: run this exercise of the library (its "
+                        "file's name, e.g. trigger_reaching, or its title) as the Exercises tab starts it")
+    parser.add_argument("--param", metavar="NAME=VALUE", action="append", default=[],
+                        help="with --exercise: a value of its form, checked against its range as the form checks it "
+                        "(repeat for each; the others keep their defaults)")
+    parser.add_argument("--duration", type=float, help="stop the script or exercise after this many seconds")
     parser.add_argument("--record", help="record the session into this folder")
     parser.add_argument("--patient", metavar="ID", help="with --headless: the session is this patient's (their "
                         "profile's limits apply), recorded with the station's sessions and archived")
@@ -57,8 +65,8 @@ def build_parser(prog: str | None = None) -> argparse.ArgumentParser:
                         "folder, or an archived session's UUID")
     parser.add_argument("--progress", metavar="PATIENT_ID", help="write the patient's progress PDF to --out (every "
                         "station's sessions in the archive, and this station's not yet archived)")
-    parser.add_argument("--export", metavar="SESSION_FOLDER",
-                        help="export the session to --out: FILE.h5 (HDF5) or a new FOLDER (CSV files)")
+    parser.add_argument("--export", metavar="SESSION", help="export the session to --out: FILE.h5 (HDF5) or a new "
+                        "FOLDER (CSV files); SESSION: its folder, or an archived session's UUID")
     parser.add_argument("--out", metavar="FILE", help="output of --report / --progress / --export")
     parser.add_argument("--verbose", action="store_true")
     parser.add_argument("--install-desktop-entry", action="store_true",
@@ -77,6 +85,10 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
     if argv[:1] == ["export"]:
         return _export_command(argv[1:], prog)
     args = parse_args(argv, prog)
+    refusal = _run_arguments_refusal(args)
+    if refusal:
+        _report_error(f"Nothing was started: {refusal}.")
+        return 2
     from app.core.paths import set_private_umask
 
     set_private_umask()  # patient data: files 0600, folders 0700, whatever the login's umask (issue #17)
@@ -109,23 +121,41 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
     if report_command:
         return _report_command(config, args)
     if args.headless:
-        if not args.script:
-            _report_error("--headless needs --script FILE")
+        if not args.script and not args.exercise:
+            _report_error("--headless needs --script FILE or --exercise NAME")
             return 2
         from app.archive import station
-        from app.scripting.headless import run_headless
+        from app.scripting import headless
 
         if bool(args.patient) != bool(args.operator and args.operator.strip()):
             _report_error("--patient and --operator go together: a session is a patient and the person who runs it")
             return 2
+        if args.exercise:  # the exercise and its values, before anything starts
+            try:
+                exercise = headless.library_exercise(args.exercise)
+                values = headless.exercise_values(exercise, args.param)
+            except headless.ExerciseRefused as exc:
+                _report_error(f"Nothing was started: {exc}.")
+                return 2
         opened = _open_archive_headless(config)
         if opened is None:
             return 2
         try:
-            if args.patient and not _headless_patient_known(args.patient, config):
+            record = _headless_patient(args.patient, config) if args.patient else None
+            if args.patient and record is None:
                 return 2
-            code = run_headless(config, args.script, duration_s=args.duration, record_dir=args.record,
-                                patient=args.patient, operator=(args.operator or "").strip())
+            operator = (args.operator or "").strip()
+            if args.exercise:
+                refused = headless.prescription_refusal(config, exercise, values, record.profile) if record else ""
+                if refused:
+                    _report_error(f"Nothing was started: the limits of patient {args.patient} refuse "
+                                  f"{exercise.title} with these values ({refused}).")
+                    return 2
+                code = headless.run_headless_exercise(config, exercise, values, duration_s=args.duration,
+                                                      record_dir=args.record, patient=args.patient, operator=operator)
+            else:
+                code = headless.run_headless(config, args.script, duration_s=args.duration, record_dir=args.record,
+                                             patient=args.patient, operator=operator)
         finally:
             archive = station.uninstall()
             if archive is not None:
@@ -158,10 +188,22 @@ def _open_archive_headless(config: object) -> object:
     return opened
 
 
-def _headless_patient_known(patient_id: str, config: object) -> bool:
-    """Whether a headless session may start for ``patient_id``: their record is in the archive (or, without one,
-    their profile file). Otherwise one line on stderr (nothing is started): a mistyped identifier would record a
-    session for nobody, without the caps of the patient meant."""
+def _run_arguments_refusal(args: argparse.Namespace) -> str:
+    """Why these options cannot go together ("" when they can), checked before anything starts."""
+    if args.param and not args.exercise:
+        return "--param sets a value of the exercise --exercise NAME runs; give --exercise"
+    if args.exercise and args.script:
+        return "--exercise and --script each say what to run; give one of them"
+    if args.exercise and not args.headless:
+        return "--exercise runs an exercise without the window; add --headless"
+    return ""
+
+
+def _headless_patient(patient_id: str, config: object) -> Any:
+    """The patient's record (app.archive.api.PatientRecord) when a headless session may start for ``patient_id``:
+    their record is in the archive (or, without one, their profile file). Otherwise None and one line on stderr
+    (nothing is started): a mistyped identifier would record a session for nobody, without the caps of the
+    patient meant."""
     from app.archive import station
     from app.archive.api import ArchiveError
     from app.therapy.patients import PatientError
@@ -171,13 +213,12 @@ def _headless_patient_known(patient_id: str, config: object) -> bool:
     except (ArchiveError, PatientError, OSError) as exc:
         print(f"The session was not started: the profile of patient {patient_id} cannot be read ({exc}).",
               file=sys.stderr)
-        return False
+        return None
     if record is None:
         where = "in the archive" if station.in_use() else "among this station's patients"
         print(f"The session was not started: there is no patient {patient_id} {where}. Create them in the "
               "Patients window first.", file=sys.stderr)
-        return False
-    return True
+    return record
 
 
 def _archive_command(argv: list[str], prog: str | None) -> int:
@@ -206,8 +247,9 @@ def _report_command(config: object, args: argparse.Namespace) -> int:
     if args.export and not args.out:
         print("--export needs --out FILE.h5 or --out FOLDER", file=sys.stderr)
         return EXIT_REPORT_USAGE
-    if args.export and not (Path(args.export) / MANIFEST_FILE).is_file():
-        print(f"{args.export} is not a session folder (no {MANIFEST_FILE})", file=sys.stderr)
+    if args.export and not (Path(args.export) / MANIFEST_FILE).is_file() and not _is_uuid(args.export):
+        print(f"{args.export} is not a session folder (no {MANIFEST_FILE}) nor an archived session's UUID",
+              file=sys.stderr)
         return EXIT_REPORT_USAGE
     if args.out and (args.report or args.progress or args.export):
         problem = _unwritable(Path(args.out), folder_ok=bool(args.export))
@@ -221,7 +263,7 @@ def _report_command(config: object, args: argparse.Namespace) -> int:
                   file=sys.stderr)
         origins: dict[str, str] = {}
         try:
-            given = {"metrics": args.metrics, "report": args.report}
+            given = {"metrics": args.metrics, "report": args.report, "export": args.export}
             for key, value in given.items():
                 if value:
                     folder, origins[key] = _session_folder(value, archive, problem, stack)
@@ -237,7 +279,7 @@ def _report_command(config: object, args: argparse.Namespace) -> int:
 
 
 class _NoSession(Exception):
-    """``--metrics`` / ``--report`` named neither a session folder nor a session the archive holds."""
+    """``--metrics`` / ``--report`` / ``--export`` named neither a session folder nor a session the archive holds."""
 
 
 def _is_uuid(text: str) -> bool:
@@ -254,7 +296,8 @@ def _report_archive(config: object, args: argparse.Namespace, stack: contextlib.
 
     from app.session.recording import MANIFEST_FILE
 
-    uuids = [v for v in (args.metrics, args.report) if v and not (Path(v) / MANIFEST_FILE).is_file() and _is_uuid(v)]
+    uuids = [v for v in (args.metrics, args.report, args.export)
+             if v and not (Path(v) / MANIFEST_FILE).is_file() and _is_uuid(v)]
     if not (args.progress or args.report or uuids):
         return None, ""
     from app.archive import station
