@@ -368,11 +368,15 @@ class LinarmDriver(DeviceDriver):
         self._identified.clear()
         self.firmware_version = ""
         self.commands.start()
+        # Another program holding the tty (found at open) is named before the handshake: it may take the
+        # controller's answer, and a link never identified must not leave it unnamed (#38's loaded runs).
+        self._check_port_shared()
         # Flush the controller's parser, then identify (command 0 is harmless by design): through the queue.
         self._link_write("identify", lambda seq: b";" + proto.encode_command("identify", seq))
         deadline = time.monotonic() + 2.0
         while not self._identified.is_set():
             if time.monotonic() > deadline:
+                self._check_port_shared()  # a holder found while reading (bytes taken) is named too
                 raise TransportError("the LINarm controller did not identify itself within 2 s")
             data = self.transport.read(0.02)
             if data:
