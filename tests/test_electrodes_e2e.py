@@ -175,7 +175,8 @@ def test_emergency_stop_during_a_burst(rig, qtbot) -> None:
     result, events = box["result"], box["events"]
     assert "emergency stop" in result.aborted
     assert events[-1][0] == "electrode_setup_aborted"  # and the robot left as the e-stop put it (IDLE)
-    assert manager.driver("linarm").latest("linarm.state").controlState == 0
+    # the robot's state as it reports it (its next sample: the latest one may predate the e-stop by a period)
+    qtbot.waitUntil(lambda: manager.driver("linarm").latest("linarm.state").controlState == 0, timeout=2000)
     # nothing stimulates after the Stop: no update with current, no new channel list
     after = [(msg, ch) for t, msg, ch in wire(sim) if t > stop_t]
     assert not any(isinstance(m, Sm1Init) for m, _ in after)
