@@ -74,6 +74,8 @@ def test_the_patient_picker_shows_names_and_is_searched(qtbot, patients: Path) -
 
     dialog = StartSessionDialog(SAFETY, patients)
     qtbot.addWidget(dialog)
+    assert "Loading patients" in dialog.problem.text()  # read off the window's thread
+    qtbot.waitUntil(lambda: dialog.loaded, timeout=5000)
     assert _items(dialog.patient_box) == ["Bianchi Maria — P-017 (record MRN-20417)",
                                           "Rossi Anna — P-018 (record MRN-31002)", "PSEUDO-9"]
     for search, found in (("rossi", ["P-018"]), ("MRN-204", ["P-017"]), ("pseudo", ["PSEUDO-9"]),
@@ -102,6 +104,7 @@ def test_a_new_patients_plan_is_made_from_the_session_start(qtbot, patients: Pat
     form.id_edit.setText("P-100")  # 2
     form.name_edit.setText("Verdi Carla")
     form.accept()  # 3
+    qtbot.waitUntil(lambda: dialog.loaded, timeout=5000)  # the list read again, the new patient chosen
     assert dialog.patient_box.currentData() == "P-100" and dialog.plan_button.isEnabled()
     plan = dialog.edit_plan()  # 4
     assert isinstance(plan, PlanDialog) and plan.isVisible() and plan.profile.patient_id == "P-100"
@@ -112,6 +115,7 @@ def test_a_new_patients_plan_is_made_from_the_session_start(qtbot, patients: Pat
     plan.add_button.click()  # 7
     plan.accept()  # 8
     assert plan.saved is not None, plan.error_label.text()
+    qtbot.waitUntil(lambda: dialog.loaded, timeout=5000)
     assert [s.exercise for s in load_patient("P-100", SAFETY, patients).therapy_plan][1] == "free_admittance"
     assert len(load_patient("P-100", SAFETY, patients).therapy_plan) == 2
     dialog.operator_edit.setText("Dr Verdi")  # 9

@@ -219,6 +219,7 @@ def test_no_text_is_clipped_in_the_dialogs(running_window, qtbot) -> None:
     for name, dialog in _dialogs(manager, window):
         dialog.show()
         qtbot.waitExposed(dialog)
+        qtbot.waitUntil(lambda d=dialog: getattr(d, "loaded", True), timeout=5000)  # what it lists, read
         settle(qtbot, 200)
         problems += [f"[{name} {dialog.width()}×{dialog.height()}] {p}" for p in clipped_texts(dialog)]
         screen = dialog.screen().availableGeometry() if dialog.screen() else None

@@ -338,6 +338,7 @@ def test_an_unreachable_archive_lets_the_station_run_and_says_patients_cannot_be
 
         start = StartSessionDialog(cfg.safety)
         qtbot.addWidget(start)
+        qtbot.waitUntil(lambda: start.loaded, timeout=5000)
         assert "cannot be reached" in start.problem.text() and "Create a patient" not in start.problem.text()
         with pytest.raises(PatientError, match="the session is not started: the patient's profile cannot be read"):
             manager.start_session("PZ-001", "dr_verdi", root=tmp_path / "sessions")

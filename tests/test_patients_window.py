@@ -142,6 +142,7 @@ def test_the_operator_is_chosen_at_each_session_start(qtbot, folder: Path) -> No
         dialog = StartSessionDialog(SAFETY, folder)
         qtbot.addWidget(dialog)
         dialog.reload("PZ-017")
+        qtbot.waitUntil(lambda: dialog.loaded, timeout=5000)
         ok = dialog.buttons.button(QDialogButtonBox.StandardButton.Ok)
         assert dialog.operator_edit.text() == "" and not ok.isEnabled()  # never kept from the last session
         assert "operator" in dialog.problem.text()

@@ -8,12 +8,14 @@ next to the field it names, in the same words as a bad file would get.
 
 from __future__ import annotations
 
+import logging
+import threading
 from dataclasses import asdict, replace
 from pathlib import Path
 from typing import Any
 
 import yaml
-from PySide6.QtCore import QSettings, Qt
+from PySide6.QtCore import QSettings, Qt, QTimer
 from PySide6.QtWidgets import (
     QComboBox,
     QDialog,
@@ -38,6 +40,8 @@ from app.archive.api import ArchiveError, PatientExists, StaleRecord
 from app.core.config import SafetyConfig
 from app.therapy.patients import PatientEntry, PatientError, PatientProfile, list_patients, matches, parse_profile
 from app.wire.sciencemode import CHANNELS
+
+log = logging.getLogger(__name__)
 
 _SCORES = (("fugl_meyer_ue", "Fugl-Meyer UE (0–66)"), ("modified_ashworth", "Modified Ashworth (0–4)"),
            ("action_research_arm_test", "ARAT (0–57)"), ("box_and_block", "Box and Block (blocks/min)"),
@@ -409,7 +413,7 @@ class StartSessionDialog(QDialog):
         self.search_edit.setAccessibleName("Search patients")
         self.search_edit.setPlaceholderText("Search by name, ID or record number")
         self.search_edit.setClearButtonEnabled(True)
-        self.search_edit.textChanged.connect(lambda _t: self.reload())
+        self.search_edit.textChanged.connect(lambda _t: self._fill())  # the list read once, searched here
         self.patient_box = QComboBox()
         self.patient_box.setAccessibleName("Patient")
         self.patient_box.setMinimumContentsLength(28)
@@ -461,13 +465,56 @@ class StartSessionDialog(QDialog):
         layout.addLayout(form)
         layout.addWidget(self.problem)
         layout.addWidget(self.buttons)
+        self.entries: dict[str, PatientEntry] = {}
+        self.loading = False
+        self._select: str | None = None
+        self._generation = 0
+        self._read: tuple[int, list[PatientEntry], str] | None = None  # the loader's result, taken by the pump
+        self._pump = QTimer(self)
+        self._pump.setInterval(30)
+        self._pump.timeout.connect(self._take)
         self.reload()
 
+    @property
+    def loaded(self) -> bool:
+        """The patients are listed (read on a thread of their own)."""
+        return not self.loading
+
     def reload(self, select: str | None = None) -> None:
+        """Read the patients again, off the window's thread (every profile is read and validated: many patients,
+        or the clinic's archive, would hold the window meanwhile), then list those the search finds with
+        ``select`` (or the one chosen) chosen again."""
+        self._select = select or self.patient_box.currentData()
+        self._generation += 1
+        self.loading = True
+        self._update()
+        threading.Thread(target=self._load, args=(self._generation,), name="session-patients", daemon=True).start()
+        self._pump.start()
+
+    def _load(self, generation: int) -> None:
+        """The loader thread: every patient, as the Patients window lists them."""
+        try:
+            entries, problem = list_patients(self.folder, self.safety), ""
+        except Exception as exc:  # never a traceback in the dialog: the list says it is incomplete
+            log.exception("listing the patients failed")
+            entries, problem = [], f"The patients could not be listed: {exc}"
+        self._read = (generation, entries, problem)
+
+    def _take(self) -> None:
+        read = self._read
+        if read is None or read[0] != self._generation:
+            return
+        self._read = None
+        self._pump.stop()
+        _generation, entries, self._load_problem = read
+        self.entries = {e.patient_id: e for e in entries}
+        self.loading = False
+        self._fill(self._select)
+
+    def _fill(self, select: str | None = None) -> None:
         """List the patients the search finds (all of them without a search), ``select`` (or the one chosen)
         chosen again. A patient chosen by ``select`` is shown even when the search would hide them."""
         current = select or self.patient_box.currentData()
-        self.entries = {e.patient_id: e for e in list_patients(self.folder, self.safety)}
         search = self.search_edit.text().strip()
         shown = [e for e in self.entries.values() if not search or matches(e, search) or e.patient_id == select]
         self.patient_box.blockSignals(True)
@@ -483,7 +530,11 @@ class StartSessionDialog(QDialog):
     def _update(self, *_args: Any) -> None:
         entry = self.entries.get(self.patient_box.currentData())
         problem = ""
-        if entry is None and self.entries and self.search_edit.text().strip():
+        if self.loading:
+            problem = "Loading patients…"
+        elif entry is None and getattr(self, "_load_problem", ""):
+            problem = self._load_problem
+        elif entry is None and self.entries and self.search_edit.text().strip():
             problem = "No patient matches the search."
         elif entry is None and station.unreachable():  # not "create one": they exist, the archive is away
             problem = (f"{station.unreachable()[:1].upper()}{station.unreachable()[1:]}: patients cannot be opened "
