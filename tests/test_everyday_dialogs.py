@@ -7,7 +7,9 @@ from __future__ import annotations
 
 import shutil
 import subprocess
+import threading
 from pathlib import Path
+from typing import Any
 
 import pytest
 from PySide6.QtCore import QPoint, QPointF, QRect, Qt
@@ -87,6 +89,36 @@ def test_the_patient_picker_shows_names_and_is_searched(qtbot, patients: Path) -
     dialog.search_edit.setText("anna")
     dialog.operator_edit.setText("Dr Verdi")
     assert dialog.values() == ("P-018", "Dr Verdi", "")
+
+
+def test_a_reload_while_the_first_read_runs_lists_what_the_last_read_found(qtbot, patients: Path,
+                                                                            monkeypatch) -> None:
+    """The patients are read on a thread; a reload (a form closed) while the first read still runs makes two
+    readers, and the first may end last: its stale list must not take the place of the second's (the dialog then
+    said "Loading patients…" for ever: a loaded run of the suite failed on it)."""
+    import app.ui.patient_dialog as patient_dialog
+
+    real = patient_dialog.list_patients
+    calls: list[int] = []
+    first_may_end, second_ended = threading.Event(), threading.Event()
+
+    def first_slow(folder: Any, safety: Any) -> Any:
+        calls.append(1)
+        if len(calls) == 1:
+            first_may_end.wait(5.0)
+            return real(folder, safety)
+        found = real(folder, safety)
+        second_ended.set()
+        return found
+
+    monkeypatch.setattr(patient_dialog, "list_patients", first_slow)
+    dialog = patient_dialog.StartSessionDialog(SAFETY, patients)
+    qtbot.addWidget(dialog)
+    dialog.reload("P-018")
+    qtbot.waitUntil(second_ended.is_set, timeout=5000)
+    first_may_end.set()
+    qtbot.waitUntil(lambda: dialog.loaded, timeout=5000)
+    assert dialog.patient_box.currentData() == "P-018" and dialog.patient_box.count() == 3
 
 
 def test_a_new_patients_plan_is_made_from_the_session_start(qtbot, patients: Path) -> None:

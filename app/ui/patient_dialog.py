@@ -9,6 +9,7 @@ next to the field it names, in the same words as a bad file would get.
 from __future__ import annotations
 
 import logging
+import queue
 import threading
 from dataclasses import asdict, replace
 from pathlib import Path
@@ -469,7 +470,9 @@ class StartSessionDialog(QDialog):
         self.loading = False
         self._select: str | None = None
         self._generation = 0
-        self._read: tuple[int, list[PatientEntry], str] | None = None  # the loader's result, taken by the pump
+        # the loaders' results, taken by the pump: a reload while an earlier read runs makes two loaders, and the
+        # earlier one may finish last — each result is queued with its generation, a stale one dropped
+        self._reads: queue.SimpleQueue[tuple[int, list[PatientEntry], str]] = queue.SimpleQueue()
         self._pump = QTimer(self)
         self._pump.setInterval(30)
         self._pump.timeout.connect(self._take)
@@ -498,15 +501,18 @@ class StartSessionDialog(QDialog):
         except Exception as exc:  # never a traceback in the dialog: the list says it is incomplete
             log.exception("listing the patients failed")
             entries, problem = [], f"The patients could not be listed: {exc}"
-        self._read = (generation, entries, problem)
+        self._reads.put((generation, entries, problem))
 
     def _take(self) -> None:
-        read = self._read
-        if read is None or read[0] != self._generation:
-            return
-        self._read = None
+        while True:
+            try:
+                generation, entries, problem = self._reads.get_nowait()
+            except queue.Empty:
+                return
+            if generation == self._generation:
+                break
         self._pump.stop()
-        _generation, entries, self._load_problem = read
+        self._load_problem = problem
         self.entries = {e.patient_id: e for e in entries}
         self.loading = False
         self._fill(self._select)
