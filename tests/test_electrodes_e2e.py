@@ -168,6 +168,8 @@ def test_emergency_stop_during_a_burst(rig, qtbot) -> None:
             manager.supervisor.emergency_stop("test", "cleanup")
             worker.join(5.0)
     assert not worker.is_alive()
+    # the tap stamps Stop when the simulator reads it: under load its thread may not have read it yet
+    qtbot.waitUntil(lambda: any(t >= t0 and isinstance(msg, Sm1Stop) for t, msg, _ch in wire(sim)), timeout=2000)
     stop_t = next(t for t, msg, _ch in wire(sim) if t >= t0 and isinstance(msg, Sm1Stop))
     delay = stop_t - t0
     print(f"e-stop during a burst: Stop on the wire after {delay * 1000:.1f} ms")
