@@ -333,8 +333,9 @@ def _session_folder(given: str, archive: object, problem: str, stack: contextlib
         folder = stack.enter_context(archive.materialised(given))  # type: ignore[attr-defined]
     except NotFound as exc:
         raise _NoSession(f"{given} is not a session folder, and the archive has no session {given}.") from exc
-    return str(folder), (f"archived session {info.uuid} (recorded on station {info.station or '?'} as "
-                         f"{info.folder_name}; read from the archive at {archive.url})")  # type: ignore[attr-defined]
+    from app.archive.reads import archived_label
+
+    return str(folder), archived_label(info, archive.url)  # type: ignore[attr-defined]
 
 
 def _report_command_run(config: object, args: argparse.Namespace, archive: object, named: dict[str, str],

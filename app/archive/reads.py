@@ -55,6 +55,13 @@ def open_for_reading(config: Any) -> tuple[Archive | None, str]:
         return None, f"the archive at {url or 'the data folder'} cannot be reached ({exc})"
 
 
+def archived_label(info: Any, url: str) -> str:
+    """An archived session in messages and reports (``info``: its SessionInfo; ``url``: the archive's, without a
+    password): the report commands and the research export name it alike."""
+    return (f"archived session {info.uuid} (recorded on station {info.station or '?'} as {info.folder_name}; "
+            f"read from the archive at {url})")
+
+
 def archive_args(config: Any) -> tuple[str, str, str]:
     """(url, password_file, station) of the configured archive, for a job of the worker process to open it."""
     from app.archive.outbox import archive_settings

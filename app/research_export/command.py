@@ -107,12 +107,6 @@ def _open_archive(config_file: str | None, uuids: list[str], stack: contextlib.E
     return archive
 
 
-def archived_label(info: Any, url: str) -> str:
-    """An archived session in messages, as the report command names it (app/cli.py)."""
-    return (f"archived session {info.uuid} (recorded on station {info.station or '?'} as {info.folder_name}; "
-            f"read from the archive at {url})")
-
-
 def _open_sessions(named: list[Path | str], archive: Any) -> tuple[list[Session], list[str]]:
     """The sessions in the order named (each once: an archived session also named by its folder is read from the
     folder), and what could not be opened."""
@@ -146,6 +140,7 @@ class _NotArchived(Exception):
 
 def _open_archived(archive: Any, session_uuid: str) -> Session:
     from app.archive.api import ArchiveError, NotFound
+    from app.archive.reads import archived_label
 
     try:
         info = archive.get_session(session_uuid).info

@@ -468,6 +468,7 @@ class StartSessionDialog(QDialog):
         layout.addWidget(self.buttons)
         self.entries: dict[str, PatientEntry] = {}
         self.loading = False
+        self._load_problem = ""  # why the last read listed nobody (the archive away, …)
         self._select: str | None = None
         self._generation = 0
         # the loaders' results, taken by the pump: a reload while an earlier read runs makes two loaders, and the
@@ -538,7 +539,7 @@ class StartSessionDialog(QDialog):
         problem = ""
         if self.loading:
             problem = "Loading patients…"
-        elif entry is None and getattr(self, "_load_problem", ""):
+        elif entry is None and self._load_problem:
             problem = self._load_problem
         elif entry is None and self.entries and self.search_edit.text().strip():
             problem = "No patient matches the search."
