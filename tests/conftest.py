@@ -83,6 +83,27 @@ REALTIME_MODULES = {
 }
 
 
+# A rerun says why: the first attempt's failure, printed at the end of the run (pytest-rerunfailures lists the
+# rerun tests only, and a flake that is not seen cannot be fixed).
+_RERUN_REASONS: list[str] = []
+
+
+def pytest_runtest_logreport(report) -> None:  # type: ignore[no-untyped-def]
+    if report.outcome != "rerun":
+        return
+    crash = getattr(report.longrepr, "reprcrash", None)
+    text = crash.message if crash is not None else str(report.longrepr)
+    where = f" ({crash.path}:{crash.lineno})" if crash is not None else ""
+    _RERUN_REASONS.append(f"{report.nodeid} [{report.when}]{where}: {' / '.join(text.splitlines()[:6])[:600]}")
+
+
+def pytest_terminal_summary(terminalreporter) -> None:  # type: ignore[no-untyped-def]
+    if _RERUN_REASONS:
+        terminalreporter.write_sep("=", "why each rerun was needed")
+        for line in _RERUN_REASONS:
+            terminalreporter.write_line(line)
+
+
 # ------------------------------------------------------------------------------ builds ahead
 def pytest_configure(config) -> None:  # type: ignore[no-untyped-def]
     """The pytest-xdist controller of a whole-suite run makes the firmware's builds while its workers start

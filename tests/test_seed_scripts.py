@@ -104,9 +104,15 @@ def test_trigger_exercise_fig18_moves_only_after_the_grip(tmp_path: Path) -> Non
     assert [a for _, a in arrivals] == [END, START] * 4
     assert abs(x.max() - END) < 5e-3 and abs(x[np.argmax(x > 0.2):].min() - START) < 6e-3
 
+    # Each movement follows a grip: the grip above the threshold within 0.25 s before the onset, to within the two
+    # device clocks' maps' agreement (50 ms). Each map is estimated from its own link's least-delayed reads, so
+    # under load one stream may sit ~10–20 ms off the other: a loaded suite run on the emulated board saw the
+    # crossing more than 10 ms after the robot's last sample at rest, where the reaction is 20–90 ms. A movement made
+    # without waiting for the grip (e.g. at once after the release) starts at another phase of the 1.3 s grip
+    # cycle and fails (seen with Fig. 18's second waitCondition taken out).
     waited = 0
     for k, i in enumerate(onsets):
-        before = force[(tf > t[i] - 0.25) & (tf <= t[i] + 0.01)]
+        before = force[(tf > t[i] - 0.25) & (tf <= t[i] + 0.05)]
         assert before.size and before.max() > GRIP_THRESHOLD_N, \
             f"movement {k + 1} started at {t[i] - t_on:.2f} s without a grip above {GRIP_THRESHOLD_N} N"
         if k:  # the dwell before it: the grip was below the threshold at arrival, and the robot waited
