@@ -122,7 +122,7 @@ class Record:
         """A device's own event (its link, its controller), not a journal entry of the application."""
         return self.origin not in JOURNAL_ORIGINS
 
-    # The device events' words (the bus called them DeviceEvent(device, kind, detail, t)).
+    # A device event's words: the device is the origin, its sentence data["detail"], its time t_mono.
     @property
     def device(self) -> str:
         return self.origin
