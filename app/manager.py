@@ -460,9 +460,7 @@ class LinarmppManager(QObject):
             self._apply_robot_limits()
             self.apply_patient_profile(profile)
             self._check_plan(profile)
-        lsl = self.start_lsl()
-        if lsl is not None:
-            recorder.add_event_tap(lsl.marker)  # every session's events, on the one event outlet
+        self.start_lsl()  # its marker outlet hears the journal on the bus, as the recorder does
         self.session_changed.emit(folder)
         return folder
 

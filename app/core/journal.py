@@ -6,8 +6,8 @@ Qt-free (floor: core). Alarms, emergency stops, refusals, leases, faults, run ch
 ``SafetySupervisor.record(kind, **data)`` (origin :data:`SAFETY`), the drivers through their one publishing call
 (``DeviceDriver._fire_event``: origin the device's id), the run log and the exercise's progress (:data:`RUN`,
 :data:`PROGRESS`), and what the application records for the session (``manager.record_event``: :data:`APP`, with
-who did it). The recorder and the window's adapter (``app/ui/qt_bus.py``) subscribe to the bus once and
-get them in the order they were published; bluesky's documents are the model.
+who did it). The recorder, the LSL marker outlet and the window's adapter (``app/ui/qt_bus.py``) subscribe
+to the bus once and get them in the order they were published; bluesky's documents are the model.
 
 The kinds are the constants below: one place, so a reader finds every kind the session record can hold, and a
 typo is a NameError rather than an event nobody listens to.
