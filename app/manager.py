@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING, Any
 from PySide6.QtCore import QObject, Signal
 
 from app.core import journal, streams
-from app.core.bus import BusItem, DeviceEvent, SampleItem, StreamBus, Subscription
+from app.core.bus import BusItem, SampleItem, StreamBus, Subscription
 from app.core.config import AppConfig
 from app.core.ownership import ROBOT, RUN_SOURCES, STIMULATOR, Composition, Lease
 from app.core.paths import runtime_dir
@@ -113,7 +113,7 @@ class TherapyThread:
                     value = getattr(item.sample, "targetPos", None)
                     if value is not None and value == value:  # not NaN
                         target = float(value)
-            elif isinstance(item, DeviceEvent) and item.device == streams.PATIENT_MODEL \
+            elif isinstance(item, journal.Record) and item.origin == streams.PATIENT_MODEL \
                     and item.kind in (journal.DISCONNECTED, journal.SILENT):
                 alpha = None  # whatever came before the loss is stale
                 self.on_alpha_lost(item.kind)
@@ -139,9 +139,9 @@ class DeviceWatch:
         self._state.setdefault(device, {"was_connected": False, "silence_alarm": None})
 
     def __call__(self, item: BusItem) -> None:
-        if not isinstance(item, DeviceEvent):
+        if not isinstance(item, journal.Record):
             return
-        name, event, detail = item.device, item.kind, item.detail
+        name, event, detail = item.origin, item.kind, item.detail
         state = self._state.get(name)
         if state is None:
             return
@@ -460,9 +460,7 @@ class LinarmppManager(QObject):
             self._apply_robot_limits()
             self.apply_patient_profile(profile)
             self._check_plan(profile)
-        lsl = self.start_lsl()
-        if lsl is not None:
-            recorder.add_event_tap(lsl.marker)  # every session's events, on the one event outlet
+        self.start_lsl()  # its marker outlet hears the journal on the bus, as the recorder does
         self.session_changed.emit(folder)
         return folder
 

@@ -32,8 +32,9 @@ os.environ["LINARMPP_HOME"] = tempfile.mkdtemp(prefix="probe-ports-home-")
 
 from PySide6.QtCore import QCoreApplication  # noqa: E402
 
-from app.core.bus import DeviceEvent, Subscription  # noqa: E402
+from app.core.bus import Subscription  # noqa: E402
 from app.core.config import AppConfig, SimulationConfig  # noqa: E402
+from app.core.journal import Record  # noqa: E402
 from app.devices import linarm  # noqa: E402
 from app.devices.transport import SerialTransport, TransportError  # noqa: E402
 from app.manager import LinarmppManager  # noqa: E402
@@ -119,7 +120,7 @@ def start(link: str, host: str = "process") -> LinarmppManager:
 def disconnects(link_events: Subscription) -> list[str]:
     """The LINarm driver's disconnections (their reasons) since the subscription began."""
     return [item.detail for item in link_events.drain()
-            if isinstance(item, DeviceEvent) and item.device == "linarm" and item.kind == "disconnected"]
+            if isinstance(item, Record) and item.origin == "linarm" and item.kind == "disconnected"]
 
 
 def out_of_idle(events: list[dict[str, Any]], t0: float, t1: float) -> tuple[float, float]:

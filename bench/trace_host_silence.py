@@ -63,8 +63,9 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     os.environ["LINARMPP_SIM_HOST"] = args.host
 
-    from app.core.bus import DeviceEvent, Subscription
+    from app.core.bus import Subscription
     from app.core.config import AppConfig
+    from app.core.journal import Record
     from app.scripting.headless import run_headless
 
     writes: list[tuple[float, str]] = []
@@ -219,8 +220,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"imports during the driver stall of {1000 * (b - a):.0f} ms at {a - ticks[0]:.1f} s: "
               f"{len(during)}: {', '.join(during[:25])}")
     for queue in event_queue:
-        silence_events.extend((item.t, item.kind, item.detail) for item in queue.drain()
-                              if isinstance(item, DeviceEvent) and item.device == "linarm"
+        silence_events.extend((item.t_mono, item.kind, item.detail) for item in queue.drain()
+                              if isinstance(item, Record) and item.origin == "linarm"
                               and item.kind in ("silent", "alive"))
     print(f"LINarm silence events: {len(silence_events)}")
     for t_event, event, detail in silence_events:

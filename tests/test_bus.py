@@ -11,7 +11,8 @@ from dataclasses import dataclass
 
 import pytest
 
-from app.core.bus import BusItem, Channel, DeviceEvent, SampleItem, StreamBus, StreamSpec, UpdateNotifier
+from app.core.bus import BusItem, Channel, SampleItem, StreamBus, StreamSpec, UpdateNotifier
+from app.core.journal import Record
 from app.devices.driver import DeviceDriver
 from tests.memory_link import MemoryLink
 
@@ -160,7 +161,7 @@ def test_a_device_event_reaches_the_subscribers_that_asked_for_events_and_wakes_
         qtbot.waitUntil(lambda: driver.connected, timeout=5000)
     finally:
         driver.stop()
-    kinds = [(item.device, item.kind) for item in events.drain() if isinstance(item, DeviceEvent)]
+    kinds = [(item.origin, item.kind) for item in events.drain() if isinstance(item, Record)]
     assert kinds == [("tick", "connected"), ("tick", "disconnected")]
     assert samples_only.received == 0
     assert notifier.calls == 2

@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 from PySide6.QtCore import QTimer
 
-from app.core.bus import Channel, DeviceEvent, SampleItem, StreamBus, StreamSpec, UpdateNotifier
+from app.core.bus import Channel, SampleItem, StreamBus, StreamSpec, UpdateNotifier
+from app.core.journal import Record
 from app.devices.driver import DeviceDriver
 from app.devices.sim.base import SerialSimulator
 from tests.fakes import CounterCore, CounterDriver
@@ -28,7 +29,7 @@ class ConnectionLog:
 
     def _take(self) -> None:
         for item in self.sub.drain():
-            if isinstance(item, DeviceEvent):
+            if isinstance(item, Record):
                 if item.kind in ("connected", "disconnected"):
                     self.items.append((item.kind == "connected", item.detail))
                 elif item.kind in ("silent", "alive"):

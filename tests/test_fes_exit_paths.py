@@ -16,9 +16,9 @@ from types import SimpleNamespace
 
 import pytest
 
-from app.core.bus import DeviceEvent
 from app.core.config import AppConfig
 from app.core.fes_profile import ChannelProfile, FesProfile, Trapezoid
+from app.core.journal import Record
 from app.devices import rehastim
 from app.manager import LinarmppManager
 from app.wire.sciencemode import (
@@ -81,13 +81,13 @@ def stimulating(tmp_path, qtbot, protocol: str = "sm1", links: bool = False) -> 
             factories[name] = factory
     factories["fes"] = rehastim.create
     manager = LinarmppManager(config, factories=factories)
-    # When each link event happened (DeviceEvent.t: stamped as the driver published it, before any consumer).
+    # When each link event happened (Record.t_mono: stamped as the driver published it, before any consumer).
     link_events = manager.bus.subscribe("test-link-events", [], events=True)
 
     def stamp(link: str, event: str) -> float | None:
         for item in link_events.drain():
-            if isinstance(item, DeviceEvent):
-                stamps.setdefault((item.device, item.kind), item.t)
+            if isinstance(item, Record):
+                stamps.setdefault((item.origin, item.kind), item.t_mono)
         return stamps.get((link, event))
 
     manager.start()

@@ -86,3 +86,41 @@ def test_outlets_resolve_and_stream_in_lsl_time(tmp_path, qtbot) -> None:
         if bridge is not None:
             bridge.stop()
         manager.shutdown()
+
+
+@pytest.mark.skipif(not AVAILABLE, reason=f"liblsl cannot be loaded on this platform: {STATUS}")
+def test_the_marker_outlet_hears_the_journal_with_or_without_a_session(tmp_path, qtbot) -> None:
+    """#40: the marker outlet subscribes to the journal on the bus, so a record reaches it whenever the outlets run
+    (it took the recorder's events, so markers flowed only while a session recorded) and reads as the session
+    record writes it; its subscription ends with the outlets."""
+    import pylsl
+
+    manager = LinarmppManager(lsl_config(True), factories={})
+    manager.start()
+    before = {id(s) for s in manager.bus.subscriptions()}
+    bridge = manager.start_lsl()  # the manager's outlets: the session below uses them too
+    try:
+        assert bridge is not None and manager.recorder is None
+        markers = pylsl.StreamInlet(_resolve(pylsl, bridge.events_outlet))
+        markers.open_stream(timeout=5)
+        manager.record_event("exercise_chosen", "tester", exercise="reach")
+        sample, _ = markers.pull_sample(timeout=5)
+        assert sample is not None, "no marker for a record published while no session records"
+        marker = json.loads(sample[0])
+        assert (marker["kind"], marker["who"], marker["origin"], marker["data"]) == (
+            "exercise_chosen", "tester", "app", {"exercise": "reach"})
+
+        folder = manager.start_session("P-LSL", "tester", root=tmp_path / "sessions")
+        manager.record_event("exercise_chosen", "tester", exercise="grip")
+        manager.end_session()
+        pushed = []
+        while (sample := markers.pull_sample(timeout=1)[0]) is not None:
+            pushed.append(json.loads(sample[0]))
+        written = [json.loads(line) for line in (folder / "events.jsonl").read_text(encoding="utf-8").splitlines()]
+        chosen = [e for e in written if e["kind"] == "exercise_chosen"]
+        assert chosen and chosen[0] in pushed, (chosen, pushed)  # the marker is the session record's line
+        assert [e for e in pushed if e["kind"] == "exercise_chosen"] == chosen, "one marker per record"
+    finally:
+        manager.shutdown()  # stops the outlets
+    assert [s.name for s in manager.bus.subscriptions() if id(s) not in before] == []
+    assert bridge._thread is None

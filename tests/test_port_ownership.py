@@ -19,8 +19,9 @@ from pathlib import Path
 import pytest
 import serial
 
-from app.core.bus import DeviceEvent, Subscription
+from app.core.bus import Subscription
 from app.core.config import AppConfig, SimulationConfig
+from app.core.journal import Record
 from app.devices import linarm, transport
 from app.devices.transport import PtyLink, SerialTransport, SocketLink, TransportError
 from app.manager import LinarmppManager
@@ -61,7 +62,7 @@ LOCKING_OPEN = textwrap.dedent("""
 def _connects(link_events: Subscription, device: str) -> list[bool]:
     """The device's connection changes (True: connected) since the subscription began."""
     return [item.kind == "connected" for item in link_events.drain()
-            if isinstance(item, DeviceEvent) and item.device == device and item.kind in ("connected", "disconnected")]
+            if isinstance(item, Record) and item.origin == device and item.kind in ("connected", "disconnected")]
 
 
 def _python(code: str, *args: str, **kwargs) -> subprocess.Popen[str]:

@@ -11,8 +11,9 @@ import numpy as np
 import pytest
 
 from app.core import streams
-from app.core.bus import DeviceEvent, SampleItem, StreamBus
+from app.core.bus import SampleItem, StreamBus
 from app.core.config import SafetyConfig
+from app.core.journal import Record
 from app.devices.driver import DeviceDriver
 from app.devices.physio import PhysioDriver
 from app.manager import DeviceWatch, LinarmppManager
@@ -113,7 +114,7 @@ def test_a_starved_reading_thread_is_not_a_silent_device(qtbot) -> None:
     finally:
         driver.stop()
         queue.close()
-    events = [item.kind for item in queue.drain() if isinstance(item, DeviceEvent)]
+    events = [item.kind for item in queue.drain() if isinstance(item, Record)]
     assert "connected" in events  # the subscription did hear the driver
     assert "silent" not in events, events
 

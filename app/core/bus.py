@@ -93,10 +93,8 @@ class SampleItem:
     arrival: float
 
 
-# A device's event is a journal record whose origin is the device (``device``, ``kind``, ``detail``, ``t``): one
-# record type for everything that happens, the devices' events and the application's alike.
-DeviceEvent = Record
-
+# A device's event is a journal Record whose origin is the device: one record type for everything that happens,
+# the devices' events and the application's alike.
 BusItem = SampleItem | Record
 
 # Who may run on the publishing driver's thread. Anything else gets a queue.

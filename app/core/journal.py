@@ -6,8 +6,8 @@ Qt-free (floor: core). Alarms, emergency stops, refusals, leases, faults, run ch
 ``SafetySupervisor.record(kind, **data)`` (origin :data:`SAFETY`), the drivers through their one publishing call
 (``DeviceDriver._fire_event``: origin the device's id), the run log and the exercise's progress (:data:`RUN`,
 :data:`PROGRESS`), and what the application records for the session (``manager.record_event``: :data:`APP`, with
-who did it). The recorder and the window's adapter (``app/ui/qt_bus.py``) subscribe to the bus once and
-get them in the order they were published; bluesky's documents are the model.
+who did it). The recorder, the LSL marker outlet and the window's adapter (``app/ui/qt_bus.py``) subscribe
+to the bus once and get them in the order they were published; bluesky's documents are the model.
 
 The kinds are the constants below: one place, so a reader finds every kind the session record can hold, and a
 typo is a NameError rather than an event nobody listens to.
@@ -122,7 +122,7 @@ class Record:
         """A device's own event (its link, its controller), not a journal entry of the application."""
         return self.origin not in JOURNAL_ORIGINS
 
-    # The device events' words (the bus called them DeviceEvent(device, kind, detail, t)).
+    # A device event's words: the device is the origin, its sentence data["detail"], its time t_mono.
     @property
     def device(self) -> str:
         return self.origin

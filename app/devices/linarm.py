@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING, Any, ClassVar
 from PySide6.QtCore import Signal
 
 from app.core import journal, streams
-from app.core.bus import BusItem, Channel, DeviceEvent, SampleItem, StreamBus, StreamSpec
+from app.core.bus import BusItem, Channel, SampleItem, StreamBus, StreamSpec
 from app.core.config import LinarmDevice
 from app.devices.clock import DeviceClock
 from app.devices.command_queue import CommandQueue, CommandQueueClosed, CommandStatus, Priority
@@ -599,7 +599,7 @@ def create(ctx: DeviceContext) -> DeviceHandle | None:
                 # ON or homing while the e-stop is latched or a STOP alarm is open: IDLE within one state
                 # period, one alarm per cause (a second controller may have switched it ON behind the app's back).
                 supervisor.check_robot_state(item.sample, driver.emergency_idle)
-        elif isinstance(item, DeviceEvent) and item.device == streams.LINARM and item.kind == journal.CONNECTED:
+        elif isinstance(item, journal.Record) and item.origin == streams.LINARM and item.kind == journal.CONNECTED:
             # The controller's safety envelope is locked at every connect (apply_limits only queues the
             # commands): a safety action, so it rides on the safety monitor's inline subscription.
             future = driver.apply_limits(supervisor.robot)

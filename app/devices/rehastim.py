@@ -32,7 +32,7 @@ import serial
 from PySide6.QtCore import QThread, Signal
 
 from app.core import journal, streams
-from app.core.bus import BusItem, Channel, DeviceEvent, StreamBus, StreamSpec
+from app.core.bus import BusItem, Channel, StreamBus, StreamSpec
 from app.core.config import FesDevice
 from app.core.fes_profile import MAX_SCALE, FesProfile
 from app.devices.command_queue import CommandQueue, CommandQueueClosed, CommandStatus, Priority
@@ -1056,7 +1056,7 @@ def watch_link(bus: StreamBus, source: str, fes: FesDriver, label: str) -> None:
     bus (it runs on the source's driver thread as the event is published, before any queued consumer)."""
 
     def on_event(item: BusItem) -> None:
-        if not isinstance(item, DeviceEvent) or item.device != source:
+        if not isinstance(item, journal.Record) or item.origin != source:
             return
         if item.kind in ("disconnected", "silent") and fes.stimulating:
             what = "was lost" if item.kind == "disconnected" else "went silent"

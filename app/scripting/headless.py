@@ -263,8 +263,6 @@ def _run(config: AppConfig, start: Callable[[ScriptRunner, LinarmppManager], Non
                 return EXIT_RECORDING
             _emit(output, "info", f"Recording the session in {folder}\n")
         lsl = manager.start_lsl()  # the manager's outlets: one set, shared with a session the run starts (#41)
-        if lsl is not None and recorder is not None:
-            recorder.add_event_tap(lsl.marker)
         alarms_before = {a.ident for a in manager.supervisor.alarms()}
         runner = ScriptRunner(manager, output or _print_sink, home_first=home_first)
         try:

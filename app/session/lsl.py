@@ -4,17 +4,21 @@ Switched on by ``recording.lsl``. Lab tools (LabRecorder → XDF) then record ou
 EEG, EMG or motion capture on one clock. One outlet per stream, named as the stream
 (``physio.main``), source id ``linarmpp.<stream>`` (so LabRecorder re-finds it after a restart),
 float64 channels with label and unit in the stream's description; plus an irregular-rate string
-outlet ``linarmpp.events`` carrying each recorded event as JSON (type ``Markers``).
+outlet ``linarmpp.events`` (type ``Markers``) carrying each journal record (app/core/journal.py: the devices'
+events, alarms, e-stops, refusals, runs, what the application records) as JSON, as the session record writes it
+(:func:`app.session.recording.journal_event`), whether or not a session records. The recorder's own events (the
+session's start and stop, its drops and failures) are the session file's, not the journal's: they are not sent.
 
 Time stamps are LSL's clock: the offset between ``time.monotonic()`` (our samples' clock) and
 ``pylsl.local_clock()`` is measured once at start, so each sample keeps the time it was taken — the
 device's clock mapped to the host's by app.devices.clock (#27), the same stamp the recorder writes —
 rather than the time it was pushed. (On Linux both are CLOCK_MONOTONIC and the offset is ~0.)
 
-Like the recorder, the bridge subscribes to the stream bus (app/core/bus.py): a bounded, counted queue the
-drivers' threads fill; a worker thread drains it and pushes chunks every 10 ms (what a stalled worker
-loses is counted in ``dropped``). If pylsl or its liblsl cannot be loaded the application runs without LSL and
-says so once in the log (:func:`lsl_status`).
+Like the recorder, the bridge subscribes once to the stream bus (app/core/bus.py): a bounded, counted queue of
+the streams' samples and the journal's records that the publishing threads fill (a record is never dropped); a
+worker thread drains it and pushes chunks and markers every 10 ms (the samples a stalled worker loses are counted
+in ``dropped``); ``stop`` closes the subscription. If pylsl or its liblsl cannot be loaded the application runs
+without LSL and says so once in the log (:func:`lsl_status`).
 """
 
 from __future__ import annotations
@@ -26,8 +30,10 @@ import threading
 import time
 from typing import TYPE_CHECKING, Any
 
-from app.core import streams
-from app.core.bus import SampleItem, StreamSpec, Subscription
+from app.core import journal, streams
+from app.core.bus import StreamSpec, Subscription
+from app.core.journal import Record
+from app.session.recording import journal_event, written_event
 
 if TYPE_CHECKING:
     from app.core.config import AppConfig
@@ -79,6 +85,8 @@ class LslBridge:
         self.outlets: dict[str, Any] = {}
         self._channels: dict[str, tuple[str, ...]] = {}
         self._markers: collections.deque[tuple[float, str]] = collections.deque()
+        self._in_gap: dict[str, bool] = {}  # the devices without data now, as the markers say it (worker thread)
+        self._device_streams: dict[str, list[str]] = {}
         self._sub: Subscription | None = None
         self._dropped_before = 0  # what earlier subscriptions (an earlier start) lost
         self._stop = threading.Event()
@@ -86,6 +94,7 @@ class LslBridge:
         for spec in host.bus.specs().values():
             self.outlets[spec.name] = self._make_outlet(spec, spec.device)
             self._channels[spec.name] = tuple(c.name for c in spec.channels)
+            self._device_streams.setdefault(spec.device, []).append(spec.name)
         info = pylsl.StreamInfo(EVENTS_STREAM, "Markers", 1, pylsl.IRREGULAR_RATE, "string",
                                 f"{SOURCE_PREFIX}.events")
         self.events_outlet = pylsl.StreamOutlet(info)
@@ -113,7 +122,12 @@ class LslBridge:
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> None:
         if self._sub is None:
-            self._sub = self.host.bus.subscribe("lsl", tuple(self._channels), maxlen=self.queue_limit)
+            bus = self.host.bus
+            # A device not connected now is in a data gap, as the recorder starts a session's record.
+            self._in_gap = {device: (last := bus.last_event(device)) is None or last.kind == journal.DISCONNECTED
+                            for device in self._device_streams}
+            self._sub = bus.subscribe("lsl", tuple(self._channels), events=True, records=True, keep_records=True,
+                                      maxlen=self.queue_limit)
         self._stop.clear()
         self._thread = threading.Thread(target=self._run, name="lsl-outlets", daemon=True)
         self._thread.start()
@@ -137,7 +151,7 @@ class LslBridge:
         return t_mono + self.offset_s
 
     def marker(self, record: dict[str, Any]) -> None:
-        """Push an event (a recorder event record) as a JSON marker; use as ``recorder.add_event_tap``."""
+        """Push an event (a session event as ``events.jsonl`` holds it) as a JSON marker."""
         t = record.get("t_mono")
         t = float(t) if isinstance(t, int | float) else time.monotonic()
         self._markers.append((t, json.dumps(record, ensure_ascii=False, default=str)))
@@ -151,10 +165,15 @@ class LslBridge:
             except Exception:
                 log.exception("LSL push failed")
 
+    def _marker_text(self, record: Record) -> str:
+        event = journal_event(record, self.host.operator, self._in_gap, self._device_streams)
+        return json.dumps(written_event(event), ensure_ascii=False, default=str)
+
     def _push(self, sub: Subscription | None) -> None:
         chunks: dict[str, tuple[list[list[float]], list[float]]] = {}
         for item in sub.drain() if sub is not None else ():
-            if not isinstance(item, SampleItem):
+            if isinstance(item, Record):
+                self._markers.append((item.t_mono, self._marker_text(item)))
                 continue
             names = self._channels.get(item.stream)
             if names is None:

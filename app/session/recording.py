@@ -55,7 +55,7 @@ import re
 import threading
 import time
 import uuid
-from collections.abc import Callable
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TextIO
@@ -135,8 +135,6 @@ def check_free_space(folder: Path, warn_mib: float, min_mib: float) -> str:
     if free < warn_mib:
         return f"only {free:.0f} MiB free in {folder} (below {warn_mib:g} MiB): the session may not fit"
     return ""
-
-EventTap = Callable[[dict[str, Any]], None]
 
 
 # ---------------------------------------------------------------------------------------------- helpers
@@ -433,6 +431,50 @@ class DeviceClockLog:
 DEVICE_EVENT_QUEUE = 10_000
 
 
+# ---------------------------------------------------------------------------------------------- journal → events
+def journal_event(rec: Record, operator: str, in_gap: dict[str, bool],
+                  device_streams: Mapping[str, Sequence[str]]) -> dict[str, Any]:
+    """How a journal record reads in the session record (and on the LSL marker outlet, :mod:`app.session.lsl`):
+    a device's event (``in_gap``, the devices now without data, is updated: a disconnect or silence starts a data
+    gap, the device's return ends it), what the application records (who did it), a run change (the session's
+    ``operator``'s), or the supervisor's (origin safety). Call it on one thread per ``in_gap``."""
+    if rec.from_device:
+        return _device_event(rec, in_gap, device_streams)
+    data = dict(rec.data)
+    if rec.origin == journal.APP:  # what the application records for the session, by whom it says
+        return {"t_wall_epoch_s": rec.t_wall, "t_mono": rec.t_mono, "kind": rec.kind, "who": rec.who,
+                "origin": "app", "data": data}
+    if rec.origin == journal.RUN:  # the session's runs, as the application records them: the operator's
+        return {"t_wall_epoch_s": rec.t_wall, "t_mono": rec.t_mono, "kind": rec.kind, "who": operator,
+                "origin": "app", "data": data}
+    who = str(data.get("operator") or data.get("source") or "safety")
+    return {"t_wall_epoch_s": rec.t_wall, "t_mono": rec.t_mono, "kind": rec.kind, "who": who, "origin": "safety",
+            "data": data}
+
+
+def _device_event(ev: Record, in_gap: dict[str, bool], device_streams: Mapping[str, Sequence[str]]) -> dict[str, Any]:
+    device, event = ev.origin, ev.kind
+    gap = in_gap.get(device, False)
+    if event in ("disconnected", "silent"):
+        kind = "device_disconnected" if gap else "gap_start"
+        in_gap[device] = True
+    elif event in ("connected", "alive"):
+        kind = "gap_end" if gap else f"device_{event}"
+        in_gap[device] = False
+    else:
+        kind = f"device_{event}"
+    t_wall = time.time() - (time.monotonic() - ev.t_mono)  # when it happened, not when the writer saw it
+    return {"t_wall_epoch_s": t_wall, "t_mono": ev.t_mono, "kind": kind, "who": device, "origin": "device",
+            "data": {"device": device, "cause": event, "detail": ev.detail,
+                     "streams": list(device_streams.get(device, []))}}
+
+
+def written_event(ev: dict[str, Any]) -> dict[str, Any]:
+    """A session event as one line of ``events.jsonl`` holds it (and the LSL marker outlet sends it)."""
+    return {"t_wall": wall_iso(ev["t_wall_epoch_s"]), "t_mono": ev["t_mono"], "kind": ev["kind"],
+            "who": ev["who"], "origin": ev["origin"], "data": ev["data"]}
+
+
 class SessionRecorder:
     """Records one session at a time. ``start`` → samples and events flow to disk → ``stop``.
 
@@ -461,7 +503,6 @@ class SessionRecorder:
         self._stop = threading.Event()
         self._manifest: dict[str, Any] = {}
         self._flush_interval_s = 0.5
-        self._taps: list[EventTap] = []
         self._lock = threading.Lock()  # start/stop only
         self._hooked: set[int] = set()
         self.event_count = 0
@@ -489,10 +530,6 @@ class SessionRecorder:
 
     def _drops(self) -> dict[str, int]:
         return {device: sub.dropped for device, sub in self._sample_subs.items()}
-
-    def add_event_tap(self, fn: EventTap) -> None:
-        """``fn(record)`` on the writer thread for every event written (e.g. LSL markers)."""
-        self._taps.append(fn)
 
     def start(self, host: SessionHost, patient_id: str, operator: str, note: str = "",
               root: Path | None = None, profile: Any = None) -> Path:
@@ -757,37 +794,8 @@ class SessionRecorder:
                 sub.close()
 
     def _journal_record(self, rec: Record) -> dict[str, Any]:
-        """A journal record as a session event (writer thread): a device's, or the supervisor's (origin safety)."""
-        if rec.from_device:
-            return self._device_event_record(rec)
-        data = dict(rec.data)
-        if rec.origin == journal.APP:  # what the application records for the session, by whom it says
-            return {"t_wall_epoch_s": rec.t_wall, "t_mono": rec.t_mono, "kind": rec.kind, "who": rec.who,
-                    "origin": "app", "data": data}
-        if rec.origin == journal.RUN:  # the session's runs, as the application records them: the operator's
-            return {"t_wall_epoch_s": rec.t_wall, "t_mono": rec.t_mono, "kind": rec.kind, "who": self._operator,
-                    "origin": "app", "data": data}
-        who = str(data.get("operator") or data.get("source") or "safety")
-        return {"t_wall_epoch_s": rec.t_wall, "t_mono": rec.t_mono, "kind": rec.kind, "who": who, "origin": "safety",
-                "data": data}
-
-    def _device_event_record(self, ev: Record) -> dict[str, Any]:
-        """A device event from the bus as a session event: a data gap starts when a device disconnects or
-        goes silent and ends when it is back (writer thread: the only one that reads or sets ``_in_gap``)."""
-        device, event = ev.device, ev.kind
-        in_gap = self._in_gap.get(device, False)
-        if event in ("disconnected", "silent"):
-            kind = "device_disconnected" if in_gap else "gap_start"
-            self._in_gap[device] = True
-        elif event in ("connected", "alive"):
-            kind = "gap_end" if in_gap else f"device_{event}"
-            self._in_gap[device] = False
-        else:
-            kind = f"device_{event}"
-        t_wall = time.time() - (time.monotonic() - ev.t)  # when it happened, not when the writer saw it
-        return {"t_wall_epoch_s": t_wall, "t_mono": ev.t, "kind": kind, "who": device, "origin": "device",
-                "data": {"device": device, "cause": event, "detail": ev.detail,
-                         "streams": list(self._device_streams.get(device, []))}}
+        """A journal record as a session event (writer thread)."""
+        return journal_event(rec, self._operator, self._in_gap, self._device_streams)
 
     def _enqueue_event(self, kind: str, who: str, origin: str, data: dict[str, Any]) -> None:
         # Events are rare and must never be dropped: their queue is unbounded.
@@ -880,10 +888,9 @@ class SessionRecorder:
         """After a write error: samples are dropped (counted); events are kept and tried again each second."""
         self.failed_samples += sum(len(sub.drain()) for sub in self._sample_subs.values())
         for ev in self._take_events():
-            record = self._event_record(ev)
+            record = written_event(ev)
             self._kept_events.append(json.dumps(record, ensure_ascii=False, default=str) + "\n")
             self.event_count += 1
-            self._tap(record)
         if not (force or now >= self._next_retry) or self.folder is None:
             return
         self._next_retry = now + _RETRY_PERIOD_S
@@ -916,17 +923,6 @@ class SessionRecorder:
         self._events_synced = synced + len(data)
         log.info("recording: %d kept events written to %s", len(self._kept_events), self.folder)
         self._kept_events.clear()
-
-    def _event_record(self, ev: dict[str, Any]) -> dict[str, Any]:
-        return {"t_wall": wall_iso(ev["t_wall_epoch_s"]), "t_mono": ev["t_mono"], "kind": ev["kind"],
-                "who": ev["who"], "origin": ev["origin"], "data": ev["data"]}
-
-    def _tap(self, record: dict[str, Any]) -> None:
-        for tap in self._taps:
-            try:
-                tap(record)
-            except Exception:
-                log.exception("event tap failed")
 
     def _take_events(self) -> list[dict[str, Any]]:
         """The events to write now, in time order: the application's and the recorder's own (queued by
@@ -993,7 +989,7 @@ class SessionRecorder:
         fh = self._events_fh
         wrote = False
         for k, ev in enumerate(pending):
-            record = self._event_record(ev)
+            record = written_event(ev)
             line = json.dumps(record, ensure_ascii=False, default=str) + "\n"
             self._unflushed.append(line)  # before the write: a failing write keeps the event
             if fh is not None:
@@ -1002,11 +998,9 @@ class SessionRecorder:
                 except BaseException:
                     self._events.extendleft(reversed(pending[k + 1:]))  # the rest: kept for the failure path
                     self.event_count += 1
-                    self._tap(record)
                     raise
                 wrote = True
             self.event_count += 1
-            self._tap(record)
         if wrote and fh is not None:
             fh.flush()  # events (e-stop, alarms) reach the OS at once; fsync follows at the flush interval
 

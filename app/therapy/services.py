@@ -70,11 +70,13 @@ class SessionHost(Protocol):
 
 
 class LslHost(Protocol):
-    """What :class:`app.session.lsl.LslBridge` uses: the configuration (``recording.lsl``, the streams' rates) and
-    the bus (the streams it declares and their samples)."""
+    """What :class:`app.session.lsl.LslBridge` uses: the configuration (``recording.lsl``, the streams' rates), the
+    bus (the streams it declares, their samples, the journal's records) and the session's operator (whose the runs'
+    records are, as the session record says)."""
 
     config: AppConfig
     bus: StreamBus
+    operator: str
 
 
 class EventHost(Protocol):
