@@ -200,7 +200,8 @@ class LinarmppManager(QObject):
         self.assistance = AssistanceController(config.assistance, self._apply_robot_assistance,
                                                self._apply_fes_pulse_width, supervisor=self.supervisor)
         self._last_target: float | None = None
-        self._leased: set[str] = set()  # the runs holding their devices now (one owner during a run, #36)
+        self._leased: set[str] = set()  # the leases of the runs holding their devices now (one owner, #36)
+        self._run_logs = 0  # run logs made so far: a lease's key names its run's log (each numbers from run-1)
         self._vr_targets_before: tuple[float, ...] | None = None  # the VR task's own targets, during a composed run
         self.therapy = TherapyThread(self.bus, self.assistance.update_alpha, self._alpha_lost, self._follow_target)
         from app.core.progress import ExerciseProgress
@@ -339,28 +340,31 @@ class LinarmppManager(QObject):
                 return level  # it can reach this actuator, or the program holding it can read it
         return AlarmLevel.WARNING if active else level
 
-    def hold_for_run(self, run: Any) -> None:
+    def hold_for_run(self, run: Any, log_name: str = "") -> None:
         """The run log's listener (any thread): a run that starts holds its devices, one that ends gives them
-        back. What it holds and lets in comes from its record (``holds``, ``compose``: app/core/runs.py)."""
+        back. What it holds and lets in comes from its record (``holds``, ``compose``: app/core/runs.py). The
+        lease's key is the run's id in its log (``log_name``): each session's log numbers from run-1, and a run of
+        an earlier log may still be running."""
+        key = f"{run.run_id}@{log_name}" if log_name else run.run_id
         if run.running:
-            if run.run_id in self._leased:
+            if key in self._leased:
                 return
-            self._leased.add(run.run_id)
+            self._leased.add(key)
             try:
                 compose = tuple(Composition.from_dict(c) for c in run.compose)
             except (ValueError, KeyError, TypeError) as exc:
                 log.error("run %s: its composition is not understood (%s); nothing composes", run.run_id, exc)
                 compose = ()
-            lease = Lease(key=run.run_id, holder=run.title, devices=frozenset(run.holds), sources=RUN_SOURCES,
+            lease = Lease(key=key, holder=run.title, devices=frozenset(run.holds), sources=RUN_SOURCES,
                           compose=compose, run_id=run.run_id)
             try:
                 self.take_lease(lease)
             except SafetyError as exc:  # the runner checks first (start_problem): a console entry meanwhile
                 log.warning("run %s does not hold its devices: %s", run.run_id, exc.reason)
-                self._leased.discard(run.run_id)
-        elif run.run_id in self._leased:
-            self._leased.discard(run.run_id)
-            self.release_lease(run.run_id, run.end_reason or "")
+                self._leased.discard(key)
+        elif key in self._leased:
+            self._leased.discard(key)
+            self.release_lease(key, run.end_reason or "")
 
     def take_lease(self, lease: Lease) -> None:
         """``lease.holder`` holds its devices from now on (the supervisor refuses everyone else); raises
@@ -545,7 +549,9 @@ class LinarmppManager(QObject):
 
         runs = RunLog(record)
         self.progress.attach_runs(runs)
-        runs.subscribe(self.hold_for_run)
+        self._run_logs += 1
+        log_name = f"log-{self._run_logs}"
+        runs.subscribe(lambda run: self.hold_for_run(run, log_name))
         return runs
 
     def record_event(self, kind: str, who: str = "", **data: Any) -> None:

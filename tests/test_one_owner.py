@@ -195,3 +195,29 @@ def test_losing_a_link_the_running_owner_refuses_is_a_warning_not_a_stop(qapp: A
     sup.take_lease(Lease("run-2", "Assisted reaching", frozenset({"robot", "stimulator"}), RUN_SOURCES,
                          compose=(Composition("assistance", "pulse_width"),)))
     assert manager.loss_level("patient_model") == AlarmLevel.STOP
+
+
+def test_a_run_of_the_next_sessions_log_holds_its_devices_though_an_earlier_log_used_its_id(qapp: Any) -> None:
+    """Each session has a run log of its own, numbered from run-1, and a run ends in the log it began in: a run
+    of the earlier log may still run when the next session's run-1 starts. The lease is the run's, not its id's:
+    before, the new run-1 was taken for the old one — it held nothing, and the old run's end released a lease by
+    that id (found reading the code; the runner's start check keeps today's entry points from reaching it)."""
+    from app.core.runs import Program
+    from app.manager import LinarmppManager
+
+    manager = LinarmppManager(AppConfig(), factories={})
+    sup = manager.supervisor
+    earlier = manager.runs
+    old = earlier.start(Program("script_file", "look.py", "look.py", ""), (), "script_tab", "t",
+                        holds=("stimulator",))
+    assert sup.holder("stimulator") == old.title and sup.holder("robot") == ""
+    later = manager._new_run_log()  # as start_session makes it
+    new = later.start(Program("exercise", "trigger_reaching", "Trigger reaching", ""), (), "exercises_tab", "t",
+                      holds=("robot",))
+    assert new.run_id == old.run_id  # the collision itself: both are run-1
+    assert sup.holder("robot") == "Trigger reaching", "the next session's run-1 does not hold the robot"
+    earlier.end(old.run_id, "finished")
+    assert sup.holder("robot") == "Trigger reaching", "the earlier run's end released the new run's lease"
+    assert sup.holder("stimulator") == ""
+    later.end(new.run_id, "finished")
+    assert sup.holder("robot") == ""
