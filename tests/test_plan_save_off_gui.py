@@ -107,3 +107,41 @@ def test_an_unexpected_failure_of_the_save_is_a_sentence_not_a_form_left_saving(
     qtbot.waitUntil(lambda: not dialog.saving, timeout=3000)
     assert dialog.error_label.text() == "The plan is not saved: the library could not be read"
     assert dialog.isVisible() and dialog.result() == 0 and len(dialog.steps) == 1
+
+
+def test_the_running_session_hears_the_saved_plan_on_the_windows_thread_after_the_form_closed(
+        qtbot: Any, tmp_path: Path) -> None:
+    """Delivered = shown: the session's patient gets the record the form saved (its plan, its version) once, on
+    the window's thread, after the form has closed as accepted (the Patients window's apply_to_session, as before:
+    the save's thread never reaches the manager, its supervisor or its devices); the window says what changed."""
+    from types import SimpleNamespace
+
+    from app.ui.patients_window import PatientsDialog
+
+    save_patient(PatientProfile(patient_id="PZ-SESSION"), tmp_path, SAFETY)
+    calls: list[tuple[Any, Any, str, bool]] = []
+    manager = SimpleNamespace(patient_profile=load_patient("PZ-SESSION", SAFETY, tmp_path), recorder=object(),
+                              operator="dr_verdi")
+
+    def update_session_profile(profile: Any, version: Any = None) -> list[str]:
+        calls.append((profile, version, threading.current_thread().name, plan.isVisible()))
+        return ["the plan's length 0 → 1"]
+
+    manager.update_session_profile = update_session_profile
+    patients = PatientsDialog(SAFETY, tmp_path, manager=manager)
+    qtbot.addWidget(patients)
+    qtbot.waitUntil(lambda: patients.loaded, timeout=5000)
+    patients.search.setText("PZ-SESSION")
+    qtbot.waitUntil(lambda: patients.selected_id() == "PZ-SESSION", timeout=3000)
+    plan = patients.edit_plan()
+    assert plan is not None
+    plan.add_step("trigger_reaching")
+    plan.accept()
+    assert calls == []  # not while it is saved
+    qtbot.waitUntil(lambda: bool(calls), timeout=5000)
+    ((profile, version, thread, form_open),) = calls
+    saved = load_patient("PZ-SESSION", SAFETY, tmp_path)
+    assert profile == saved == plan.saved and [s.exercise for s in profile.therapy_plan] == ["trigger_reaching"]
+    assert version == (plan.version or None)  # a YAML folder has no versions; an archive record has one
+    assert thread == threading.main_thread().name and not form_open
+    assert "Applied to PZ-SESSION's running session at once" in patients.session_note.text()
