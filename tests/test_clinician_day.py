@@ -185,7 +185,8 @@ def _new_patient(qtbot: Any, window: MainWindow) -> None:
         plan.editors[name].setText(value)
     assert plan.error_label.text() == ""
     _shot(plan, "01-plan-dialog")
-    plan.accept()
+    plan.accept()  # checked and written on a thread of its own (#37): its answer is waited for
+    qtbot.waitUntil(lambda: not plan.saving, timeout=5000)
     assert plan.result() == 1, plan.error_label.text()
     qtbot.waitUntil(lambda: panel.selected_patient() == PATIENT, timeout=3000)
     assert "Maria Esposito" in panel.patient_list.currentItem().text()
@@ -338,6 +339,7 @@ def _plan_with_fes_by_district(qtbot: Any, manager: LinarmppManager, window: Mai
     plan = _open_plan(qtbot, window)
     _add_assisted_step(plan)
     plan.accept()
+    qtbot.waitUntil(lambda: not plan.saving, timeout=5000)
     assert plan.result() != 1 and plan.isVisible()
     text = plan.error_label.text()
     assert "The plan is not saved" in text and "Step 2, Assisted reaching with FES — FES profile" in text
@@ -381,6 +383,7 @@ def _cap_raised_mid_session(qtbot: Any, manager: LinarmppManager, window: MainWi
     plan = _open_plan(qtbot, window)
     _add_assisted_step(plan)
     plan.accept()
+    qtbot.waitUntil(lambda: not plan.saving, timeout=5000)
     assert plan.result() == 1, plan.error_label.text()
     _next_action(qtbot, window)
     patients.close()

@@ -145,7 +145,8 @@ def test_a_new_patients_plan_is_made_from_the_session_start(qtbot, patients: Pat
                if plan.library_list.item(i).data(Qt.ItemDataRole.UserRole) == "free_admittance")
     plan.library_list.setCurrentRow(row)  # 6
     plan.add_button.click()  # 7
-    plan.accept()  # 8
+    plan.accept()  # 8 (saved on a thread of its own, #37: its answer is waited for)
+    qtbot.waitUntil(lambda: not plan.saving, timeout=5000)
     assert plan.saved is not None, plan.error_label.text()
     qtbot.waitUntil(lambda: dialog.loaded, timeout=5000)
     assert [s.exercise for s in load_patient("P-100", SAFETY, patients).therapy_plan][1] == "free_admittance"

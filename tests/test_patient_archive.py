@@ -155,7 +155,8 @@ def test_lowered_cap_then_a_sessions_electrode_choice_then_an_old_plan_dialog_al
         # Station A: the old plan dialog saved
         st.use("room-A")
         old_plan.add_step("trigger_reaching")
-        old_plan.accept()
+        old_plan.accept()  # saved on a thread of its own (#37): its answer is waited for
+        qtbot.waitUntil(lambda: not old_plan.saving, timeout=5000)
         assert old_plan.result() == old_plan.DialogCode.Accepted, old_plan.error_label.text()
         for name in ("room-A", "room-B"):  # what each station reads now
             st.use(name)
@@ -373,18 +374,21 @@ def test_two_plan_dialogs_the_second_is_refused_and_reload_shows_the_saved_plan(
         d.show()
     stations.use("room-A")
     first.add_step("trigger_reaching")
-    first.accept()
+    first.accept()  # saved on a thread of its own (#37): its answer is waited for
+    qtbot.waitUntil(lambda: not first.saving, timeout=5000)
     assert first.result() == first.DialogCode.Accepted, first.error_label.text()
     saved = load_patient("PZ-041")
     stations.use("room-B")
     second.remove_step()
     second.accept()
+    qtbot.waitUntil(lambda: not second.saving, timeout=5000)
     text = second.error_label.text()
     assert second.result() != second.DialogCode.Accepted
     assert "dr_rossi" in text and "room-A" in text and saved.updated in text and "Reload" in text, text
     assert second.reload_button.isVisible() and load_patient("PZ-041") == saved
     assert second.reload() and len(second.steps) == 2
     second.accept()  # as of the version it reloaded: saved
+    qtbot.waitUntil(lambda: not second.saving, timeout=5000)
     assert second.result() == second.DialogCode.Accepted, second.error_label.text()
     assert len(load_patient("PZ-041").therapy_plan) == 2
 

@@ -100,7 +100,8 @@ def test_the_therapy_plan_is_edited_with_the_exercises_ranges(qtbot, folder: Pat
     speed.setText("0.5")  # the exercise allows 0.02 … 0.3 m/s
     assert "Step 1, Trigger reaching" in plan.error_label.text()
     assert "Speed: 0.5 m/s is above the maximum 0.3 m/s" in plan.error_label.text() and speed.styleSheet()
-    plan.accept()
+    plan.accept()  # checked on a thread of its own (#37): its answer is waited for
+    qtbot.waitUntil(lambda: not plan.saving, timeout=5000)
     assert plan.result() == 0 and "The plan is not saved" in plan.error_label.text()
     assert load_patient("PZ-017", SAFETY, folder).therapy_plan == []  # nothing saved
     plan.editors["movements"].setText("six")
@@ -114,6 +115,7 @@ def test_the_therapy_plan_is_edited_with_the_exercises_ranges(qtbot, folder: Pat
     plan.step_list.setCurrentRow(1)
     plan.editors["__note__"].setText("start gently")
     plan.accept()
+    qtbot.waitUntil(lambda: not plan.saving, timeout=5000)
     assert plan.result() == 1, plan.error_label.text()
     steps = load_patient("PZ-017", SAFETY, folder).therapy_plan
     assert [s.exercise for s in steps] == ["free_admittance", "trigger_reaching"]

@@ -84,7 +84,8 @@ def test_the_plan_dialog_refuses_at_save_time_with_the_sentence(qtbot: Any, tmp_
     dialog.show()
     dialog.add_step("assisted_reaching_fes")
     dialog.editors["fes_profile"].setCurrentText("frontal_reaching.yaml")
-    dialog.accept()
+    dialog.accept()  # checked and written on a thread of its own (#37): its answer is waited for
+    qtbot.waitUntil(lambda: not dialog.saving, timeout=5000)
     assert dialog.result() != 1 and dialog.saved is None
     assert "The plan is not saved" in dialog.error_label.text() and "28 mA" in dialog.error_label.text()
     assert load_patient("PZ-CAP", SAFETY, tmp_path).therapy_plan == []
