@@ -506,11 +506,13 @@ class LinarmppManager(QObject):
     def _check_plan(self, profile: Any) -> list[str]:
         """The therapy plan against the patient's limits, caps and electrode choices now (at the session's start
         and when the profile changes): what would be refused is recorded before anything moves."""
+        from app.therapy.exercises import load_library
         from app.therapy.patients import plan_problems, prescription_problems
 
         try:
-            problems = [str(p) for p in plan_problems(profile.therapy_plan)
-                        + prescription_problems(profile.therapy_plan, profile, self.config.safety)]
+            library = load_library()[0]  # read once for both checks (it runs on the window's thread after a save)
+            problems = [str(p) for p in plan_problems(profile.therapy_plan, library)
+                        + prescription_problems(profile.therapy_plan, profile, self.config.safety, library)]
         except Exception:  # a broken library must not stop the session: the Exercises tab lists it
             log.exception("the therapy plan could not be checked")
             return []
