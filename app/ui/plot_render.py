@@ -109,6 +109,7 @@ class CurveRenderer(QObject):
         self._job: tuple[int, list[PaneJob]] | None = None
         self._thread: threading.Thread | None = None
         self._closed = False
+        self._park = False  # end the thread now if nothing waits (the frame was hidden), not after idle_exit_s
         self.frames = 0  # frames drawn
         self.render_cost_s = 0.0  # smoothed CPU time to draw a frame (the frame rate adapts to it)
 
@@ -123,6 +124,7 @@ class CurveRenderer(QObject):
             if self._closed:
                 return
             self._job = (frame, panes)
+            self._park = False
             self._cond.notify()
             if self._thread is None:
                 self._thread = threading.Thread(target=self._run, name="plot-render", daemon=True)
@@ -131,11 +133,12 @@ class CurveRenderer(QObject):
     def _run(self) -> None:
         while True:
             with self._cond:
-                if self._job is None and not self._closed:
+                if self._job is None and not self._closed and not self._park:
                     self._cond.wait(self.idle_exit_s)
                 job, self._job = self._job, None
                 if job is None or self._closed:
                     self._thread = None
+                    self._park = False
                     return
             frame, panes = job
             t0 = time.thread_time()  # its share of a core (RENDER_DUTY), not the time others took it away
@@ -151,6 +154,13 @@ class CurveRenderer(QObject):
                 self.rendered.emit(frame, images)
             except RuntimeError:  # the frame (and this object) is being destroyed
                 return
+
+    def park(self) -> None:
+        """The drawing thread ends as soon as it has nothing to draw (the frame is hidden: a window closed, a
+        tab changed), rather than idling ``idle_exit_s`` first; the next frame submitted starts it again."""
+        with self._cond:
+            self._park = True
+            self._cond.notify()
 
     def close(self, timeout_s: float = 1.0) -> None:
         with self._cond:

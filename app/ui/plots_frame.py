@@ -827,6 +827,10 @@ class PlotsFrame(QWidget):
         super().showEvent(event)
         self._dirty = True  # catch up at the next tick on what was skipped while hidden
 
+    def hideEvent(self, event: Any) -> None:
+        super().hideEvent(event)
+        self.renderer.park()  # a hidden frame draws nothing: its drawing thread need not wait for the next frame
+
     def redraw(self) -> None:
         """Draw the selected signals from the buffers (the timer calls this)."""
         if not self.curves:
