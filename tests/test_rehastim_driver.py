@@ -3,11 +3,13 @@ SM2 keep-alive, limits at load/start, the channel stream."""
 
 from __future__ import annotations
 
+import threading
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import replace
 from types import SimpleNamespace
+from typing import Any
 
 import pytest
 import serial
@@ -340,3 +342,49 @@ def test_channel_stream_is_what_was_sent(rig: Rig, qtbot) -> None:
     data = driver.config_data()
     assert data["protocol"] == rig.protocol and data["channels"] == [1, 5] and data["frequencyHz"] == 40.0
     assert data["caps"][1]["maxCurrent"] == 40.0
+
+
+def test_an_update_refused_because_of_a_stop_meanwhile_is_not_a_fault_and_the_next_start_works(
+        rig: Rig, qtbot, monkeypatch: pytest.MonkeyPatch) -> None:
+    """An e-stop from another thread while the driver's thread checks an update: the check refuses it (the stop is
+    latched) — the stop's own consequence, not a fault. Before, the driver then 'stopped' again with a fault
+    alarm, and that late stop could land after the operator's reset and kill the next start ("stimulation was
+    stopped while it was starting": the electrode set-up's repeated bursts, a quiet suite run)."""
+    driver, sup = rig.driver, rig.supervisor
+    driver.load_profile(time_profile())
+    driver.start_stimulation("test")
+    check, update = sup.check_fes_update, driver._update
+    refused, returned = threading.Event(), threading.Event()
+    stoppers: list[threading.Thread] = []
+
+    def check_while_stopped(*args: Any, **kwargs: Any) -> Any:
+        if refused.is_set():
+            return check(*args, **kwargs)
+        # the e-stop's Stop, from another thread, in the middle of this check (it waits a moment for the lock
+        # this thread holds, then goes anyway)
+        generation = driver._stop_generation
+        stopper = threading.Thread(target=driver.stop_stimulation, args=("emergency stop", "test"))
+        stoppers.append(stopper)
+        stopper.start()
+        deadline = time.monotonic() + 2.0
+        while driver._stop_generation == generation and time.monotonic() < deadline:
+            time.sleep(0.001)  # the driver's thread, inside the fake: no Qt loop to wait on here
+        refused.set()
+        raise SafetyError("stimulation refused: the emergency stop is latched; reset it first")
+
+    def update_once(now: float) -> None:
+        update(now)
+        if refused.is_set():
+            returned.set()
+
+    monkeypatch.setattr(sup, "check_fes_update", check_while_stopped)
+    monkeypatch.setattr(driver, "_update", update_once)
+    qtbot.waitUntil(returned.is_set, timeout=3000)  # the refused update has been handled, whatever it did
+    for stopper in stoppers:
+        stopper.join(2.0)
+    assert not driver.stimulating
+    assert rig.faults == [] and not any(a.source == "FES" for a in sup.alarms()), rig.faults
+    generation = driver._stop_generation
+    monkeypatch.setattr(sup, "check_fes_update", check)
+    driver.start_stimulation("test")  # the operator starts again: no late stop takes it back
+    assert driver.stimulating and driver._stop_generation == generation

@@ -235,6 +235,7 @@ class FesDriver(DeviceDriver):
         self._ccl: ChannelListConfig | None = None
         self._stimulating = False
         self._stop_generation = 0
+        self._generation_lock = threading.Lock()  # a stop's "has anyone stopped since?" and its count, as one step
         self._started_at = 0.0
         self._next_update = 0.0
         self._next_publish = 0.0
@@ -441,9 +442,25 @@ class FesDriver(DeviceDriver):
         stimulator's e-stop is never queued behind a start waiting for its acks. Never raises; the returned
         status is done, ``written`` when Stop left (its ack is checked by the driver loop, a missing one is a
         fault)."""
-        was = self._stimulating
-        self._stimulating = False  # the update loop sends nothing more
-        self._stop_generation += 1
+        with self._generation_lock:
+            was = self._stimulating
+            self._stimulating = False  # the update loop sends nothing more
+            self._stop_generation += 1
+        return self._send_the_stop(was, reason, source)
+
+    def _stop_unless_stopped_since(self, generation: int, reason: str, source: str) -> bool:
+        """Stop as :meth:`stop_stimulation` does — unless a stop came since ``generation`` (then a start after
+        it may be running, which this late stop must not take back). True when it stopped."""
+        with self._generation_lock:
+            if generation != self._stop_generation:
+                return False
+            was = self._stimulating
+            self._stimulating = False
+            self._stop_generation += 1
+        self._send_the_stop(was, reason, source)
+        return True
+
+    def _send_the_stop(self, was: bool, reason: str, source: str) -> CommandStatus:
         written = False
         got = self._lock.acquire(timeout=STOP_LOCK_WAIT_S)  # let an update being written finish first
         try:
@@ -813,6 +830,7 @@ class FesDriver(DeviceDriver):
             profile, ccl = self._profile, self._ccl
             if not self._stimulating or profile is None or ccl is None:
                 return
+            generation = self._stop_generation
             period = ccl.t1_ms / 1000.0
             self._next_update += period
             if self._next_update < now:  # fell behind (a stall): resume on the grid from now
@@ -854,7 +872,13 @@ class FesDriver(DeviceDriver):
             self.stop_stimulation("the time profile finished", "fes profile")
             return
         if problem:
-            self._fault(problem)
+            # Stopped meanwhile (an e-stop from another thread while this update was checked): the refusal is that
+            # stop's consequence, not a fault — and a stop from here could land after the operator's reset and
+            # take back the next start ("stimulation was stopped while it was starting").
+            if self._stop_unless_stopped_since(generation, problem, "fes driver"):
+                self._report_fault(problem)
+            else:
+                log.info("fes: an update refused as stimulation stopped (%s)", problem)
             return
         self._publish(now)
 
