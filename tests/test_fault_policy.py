@@ -161,6 +161,11 @@ def test_window_fault(tmp_path, qtbot, monkeypatch, fast_config, device, fault, 
         assert manager.fault_policy.faults and words.split(":")[0].split(" ")[0] in manager.fault_policy.last_cause
     finally:
         if window is not None:
+            # After a failure the script may still run: the window's quit question ("Stop it and quit?") is a
+            # modal box nobody answers here — it held a loaded suite's worker until the timeout killed it.
+            from PySide6.QtWidgets import QMessageBox
+
+            monkeypatch.setattr(QMessageBox, "question", lambda *_a, **_k: QMessageBox.StandardButton.Yes)
             window.close()
         manager.shutdown()
 
