@@ -388,3 +388,39 @@ def test_an_update_refused_because_of_a_stop_meanwhile_is_not_a_fault_and_the_ne
     monkeypatch.setattr(sup, "check_fes_update", check)
     driver.start_stimulation("test")  # the operator starts again: no late stop takes it back
     assert driver.stimulating and driver._stop_generation == generation
+
+
+def test_an_update_refused_because_the_estop_latched_meanwhile_stops_without_a_fault_alarm(
+        rig: Rig, qtbot, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The other order: the e-stop latched while the driver's thread checked an update, its FES stop not sent yet.
+    The driver stops (it need not wait for the e-stop's own stop) but raises no fault alarm: the alarm's safe-state
+    stop was a second, late stop that could land after the operator's reset and take back the next start (the
+    final quiet run of session 10 failed on it after the first fix)."""
+    driver, sup = rig.driver, rig.supervisor  # this rig's supervisor has no stop action: the latch alone
+    driver.load_profile(time_profile())
+    driver.start_stimulation("test")
+    check, update = sup.check_fes_update, driver._update
+    latched, returned = threading.Event(), threading.Event()
+
+    def check_after_the_latch(*args: Any, **kwargs: Any) -> Any:
+        if latched.is_set():
+            return check(*args, **kwargs)
+        sup.emergency_stop("test", "pressed while an update was checked")
+        latched.set()
+        return check(*args, **kwargs)  # refuses: the e-stop is latched
+
+    def update_once(now: float) -> None:
+        update(now)
+        if latched.is_set():
+            returned.set()
+
+    monkeypatch.setattr(sup, "check_fes_update", check_after_the_latch)
+    monkeypatch.setattr(driver, "_update", update_once)
+    qtbot.waitUntil(returned.is_set, timeout=3000)
+    qtbot.waitUntil(lambda: not driver.stimulating, timeout=1000)  # stopped all the same
+    assert rig.faults == [] and not any(a.source == "FES" for a in sup.alarms()), rig.faults
+    monkeypatch.setattr(sup, "check_fes_update", check)
+    sup.reset_emergency_stop("operator")
+    generation = driver._stop_generation
+    driver.start_stimulation("test")
+    assert driver.stimulating and driver._stop_generation == generation

@@ -875,9 +875,12 @@ class FesDriver(DeviceDriver):
             # Stopped meanwhile (an e-stop from another thread while this update was checked): the refusal is that
             # stop's consequence, not a fault — and a stop from here could land after the operator's reset and
             # take back the next start ("stimulation was stopped while it was starting").
-            if self._stop_unless_stopped_since(generation, problem, "fes driver"):
+            stopped_here = self._stop_unless_stopped_since(generation, problem, "fes driver")
+            if stopped_here and not getattr(self.supervisor, "estop_latched", False):
                 self._report_fault(problem)
             else:
+                # Refused because the e-stop latched meanwhile (its own stop action sends Stop, its alarm says why):
+                # no fault alarm of ours — its safe-state stop could land after the operator's reset.
                 log.info("fes: an update refused as stimulation stopped (%s)", problem)
             return
         self._publish(now)
