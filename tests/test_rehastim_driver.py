@@ -344,6 +344,19 @@ def test_channel_stream_is_what_was_sent(rig: Rig, qtbot) -> None:
     assert data["caps"][1]["maxCurrent"] == 40.0
 
 
+def handled_after(driver: FesDriver, event: threading.Event, monkeypatch: pytest.MonkeyPatch) -> threading.Event:
+    """Set once an update of the driver's thread that began after ``event`` has returned (whatever it did)."""
+    update, returned = driver._update, threading.Event()
+
+    def update_and_tell(now: float) -> None:
+        update(now)
+        if event.is_set():
+            returned.set()
+
+    monkeypatch.setattr(driver, "_update", update_and_tell)
+    return returned
+
+
 def test_an_update_refused_because_of_a_stop_meanwhile_is_not_a_fault_and_the_next_start_works(
         rig: Rig, qtbot, monkeypatch: pytest.MonkeyPatch) -> None:
     """An e-stop from another thread while the driver's thread checks an update: the check refuses it (the stop is
@@ -353,8 +366,8 @@ def test_an_update_refused_because_of_a_stop_meanwhile_is_not_a_fault_and_the_ne
     driver, sup = rig.driver, rig.supervisor
     driver.load_profile(time_profile())
     driver.start_stimulation("test")
-    check, update = sup.check_fes_update, driver._update
-    refused, returned = threading.Event(), threading.Event()
+    check = sup.check_fes_update
+    refused = threading.Event()
     stoppers: list[threading.Thread] = []
 
     def check_while_stopped(*args: Any, **kwargs: Any) -> Any:
@@ -372,13 +385,8 @@ def test_an_update_refused_because_of_a_stop_meanwhile_is_not_a_fault_and_the_ne
         refused.set()
         raise SafetyError("stimulation refused: the emergency stop is latched; reset it first")
 
-    def update_once(now: float) -> None:
-        update(now)
-        if refused.is_set():
-            returned.set()
-
     monkeypatch.setattr(sup, "check_fes_update", check_while_stopped)
-    monkeypatch.setattr(driver, "_update", update_once)
+    returned = handled_after(driver, refused, monkeypatch)
     qtbot.waitUntil(returned.is_set, timeout=3000)  # the refused update has been handled, whatever it did
     for stopper in stoppers:
         stopper.join(2.0)
@@ -399,8 +407,8 @@ def test_an_update_refused_because_the_estop_latched_meanwhile_stops_without_a_f
     driver, sup = rig.driver, rig.supervisor  # this rig's supervisor has no stop action: the latch alone
     driver.load_profile(time_profile())
     driver.start_stimulation("test")
-    check, update = sup.check_fes_update, driver._update
-    latched, returned = threading.Event(), threading.Event()
+    check = sup.check_fes_update
+    latched = threading.Event()
 
     def check_after_the_latch(*args: Any, **kwargs: Any) -> Any:
         if latched.is_set():
@@ -409,13 +417,8 @@ def test_an_update_refused_because_the_estop_latched_meanwhile_stops_without_a_f
         latched.set()
         return check(*args, **kwargs)  # refuses: the e-stop is latched
 
-    def update_once(now: float) -> None:
-        update(now)
-        if latched.is_set():
-            returned.set()
-
     monkeypatch.setattr(sup, "check_fes_update", check_after_the_latch)
-    monkeypatch.setattr(driver, "_update", update_once)
+    returned = handled_after(driver, latched, monkeypatch)
     qtbot.waitUntil(returned.is_set, timeout=3000)
     qtbot.waitUntil(lambda: not driver.stimulating, timeout=1000)  # stopped all the same
     assert rig.faults == [] and not any(a.source == "FES" for a in sup.alarms()), rig.faults
