@@ -14,6 +14,9 @@
   it (``app.manager``, ``app.application``, ``app.cli``, ``app.scripting.headless``) and the reports' PDF drawing
   (``app.session.reports``); the wire, the core, safety, the therapy and the session's record do not reach Qt
   through any import;
+* **the links' facts once** (issue #40): no ``"<device>.tty"`` spelled outside ``app/core/links.py`` (the one
+  function that names a simulated device's link), and each serial rate (the default, the configured range, the
+  LINarm's, ScienceMode's) typed in its one place (:data:`BAUD_FACTS`);
 * outside ``app/ui/``, no parameter or attribute called manager / app / context is typed ``Any`` (or left
   untyped): a device or a consumer says what it really uses.
 """
@@ -296,6 +299,78 @@ def driver_emits_outside_the_publishing_call(root: Path = ROOT) -> list[str]:
 def test_every_driver_event_leaves_by_the_one_publishing_call() -> None:
     found = driver_emits_outside_the_publishing_call(ROOT)
     assert not found, "a driver emits a Qt signal beside its publishing call (publish it there):\n" + "\n".join(found)
+
+
+# ---------------------------------------------------------------------------------------------- the links' facts
+# A simulated device's serial link is a file in the runtime folder whose name the driver, the simulator host and
+# the registry must agree on: one function names it (app/core/links.py); nobody spells "<device>.tty" again.
+LINK_DEFINITION = "app/core/links.py"
+LINK_SUFFIX = ".tty"
+# The serial rates a link can be opened at (and the range a configured rate must lie in): each number is one fact,
+# written in the one place listed here (file, the number, the line's text contains) -> which fact.
+BAUD_NUMBERS = frozenset({1200, 2400, 4800, 9600, 19200, 38400, 57600, 115200, 230400, 460800, 921600, 4_000_000})
+BAUD_FACTS: dict[tuple[str, int, str], str] = {
+    ("app/core/links.py", 115200, "DEFAULT_BAUDRATE: Final = 115200"): "a serial link's rate unless its device says",
+    ("app/core/links.py", 1200, "BAUDRATE_RANGE: Final = (1200, 4_000_000)"): "the lowest rate a configuration gives",
+    ("app/core/links.py", 4_000_000, "BAUDRATE_RANGE: Final = (1200, 4_000_000)"): "the highest one",
+    ("app/core/config.py", 460800, "default=460800"): "the LINarm's rate (the firmware's LINARM_BAUDRATE on its side)",
+    ("app/devices/rehastim.py", 115200, '"sm1": SerialSettings(115200'): "ScienceMode 1's fixed link settings",
+    ("app/devices/rehastim.py", 460800, '"sm2": SerialSettings(460800'): "ScienceMode 2's fixed link settings",
+}
+LINK_FACT_FLOORS = ("app/wire/", "app/core/", "app/devices/")
+
+
+def _source_tree(path: Path) -> ast.Module:
+    return ast.parse(path.read_text(encoding="utf-8"), str(path))
+
+
+def link_names_typed(root: Path = ROOT) -> list[str]:
+    """String literals (or an f-string's last text) ending in ``.tty`` anywhere in ``app/`` outside
+    :data:`LINK_DEFINITION`: a simulated device's link named again."""
+    found = []
+    for path in sorted((root / "app").rglob("*.py")):
+        rel = path.relative_to(root).as_posix()
+        if rel == LINK_DEFINITION:
+            continue
+        tree = _source_tree(path)
+        parts = {id(v) for node in ast.walk(tree) if isinstance(node, ast.JoinedStr) for v in node.values}
+        for node in ast.walk(tree):
+            text = node.values[-1] if isinstance(node, ast.JoinedStr) and node.values else node
+            if (isinstance(text, ast.Constant) and isinstance(text.value, str) and text.value.endswith(LINK_SUFFIX)
+                    and id(node) not in parts):
+                found.append(f"{rel}:{node.lineno}: {ast.unparse(node)}")  # type: ignore[attr-defined]
+    return sorted(found)
+
+
+def baud_rates_typed(root: Path = ROOT) -> tuple[list[str], set[tuple[str, int, str]]]:
+    """Baud-rate numbers in the wire, the core and the devices outside :data:`BAUD_FACTS` (and the entries used)."""
+    found, used = [], set()
+    for path in sorted((root / "app").rglob("*.py")):
+        rel = path.relative_to(root).as_posix()
+        if not rel.startswith(LINK_FACT_FLOORS):
+            continue
+        lines = path.read_text(encoding="utf-8").splitlines()
+        for node in ast.walk(_source_tree(path)):
+            if (isinstance(node, ast.Constant) and type(node.value) is int and node.value in BAUD_NUMBERS):
+                line = lines[node.lineno - 1]
+                keys = [key for key in BAUD_FACTS if (key[0], key[1]) == (rel, node.value) and key[2] in line]
+                if keys:
+                    used.update(keys)
+                else:
+                    found.append(f"{rel}:{node.lineno}: {node.value} in {line.strip()}")
+    return found, used
+
+
+def test_the_links_facts_are_written_once() -> None:
+    """Issue #40: the simulated devices' link names and the serial rates have one definition that everything
+    imports (today's code typed "linarm.tty", "physio.tty", "fes.tty" and f"{name}.tty" in five places, and the
+    default rate 115200 and the rate range twice)."""
+    names = link_names_typed(ROOT)
+    rates, used = baud_rates_typed(ROOT)
+    assert not names and not rates, (
+        "a simulated device's link named again (use app.core.links.simulator_link):\n" + "\n".join(names)
+        + "\na serial rate typed again (read app.core.links or the device's own settings):\n" + "\n".join(rates))
+    assert used == set(BAUD_FACTS), f"stale entries in BAUD_FACTS: {set(BAUD_FACTS) - used}"
 
 
 def test_qt_only_where_it_belongs() -> None:

@@ -35,6 +35,7 @@ from app.core import journal, streams
 from app.core.bus import BusItem, Channel, StreamBus, StreamSpec
 from app.core.config import FesDevice
 from app.core.fes_profile import MAX_SCALE, FesProfile
+from app.core.links import simulator_link
 from app.devices.command_queue import CommandQueue, CommandQueueClosed, CommandStatus, Priority
 from app.devices.driver import DeviceDriver
 from app.devices.fes_guardian import FesGuardian, GuardianError
@@ -1110,7 +1111,7 @@ def create(ctx: DeviceContext) -> DeviceHandle | None:
     url = cfg.port
     settings = SERIAL_SETTINGS[protocol]
     if cfg.mode == "simulated":
-        link = ctx.runtime_dir / "fes.tty"
+        link = simulator_link(ctx.runtime_dir, streams.FES)
         simulator = ctx.simulators.serial(
             streams.FES, streams.FES, lambda patient: SerialSimulator(
                 streams.FES, lambda: RehaStimSimAdapter(protocol, observer=patient), link, tick_s=0.002),

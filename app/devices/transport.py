@@ -22,6 +22,8 @@ from typing import Protocol
 
 import serial
 
+from app.core.links import DEFAULT_BAUDRATE
+
 log = logging.getLogger(__name__)
 
 try:  # pyserial applies settings with termios; its error is not an OSError
@@ -61,7 +63,7 @@ class Transport(Protocol):
 
 @dataclass(frozen=True)
 class SerialSettings:
-    baudrate: int = 115200
+    baudrate: int = DEFAULT_BAUDRATE
     bytesize: int = serial.EIGHTBITS
     parity: str = serial.PARITY_NONE
     stopbits: float = serial.STOPBITS_ONE

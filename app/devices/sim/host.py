@@ -37,6 +37,7 @@ from pathlib import Path
 from typing import Any
 
 from app.core import streams
+from app.core.links import simulator_link
 from app.devices.sim.base import DEVICE_CONTROLS, SerialSimulator, linarm_starts_homed
 
 log = logging.getLogger(__name__)
@@ -276,7 +277,7 @@ def build_simulators(spec: dict[str, Any], patient: Any, emit: Callable[[dict[st
     sims: dict[str, Any] = {}
     for name, params in spec["devices"].items():
         kind = params["kind"]
-        link = runtime / f"{name}.tty"
+        link = simulator_link(runtime, name)
         link_factory = None
         if params.get("tcp_port"):
             from app.devices.transport import SocketLink
