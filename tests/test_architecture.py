@@ -17,6 +17,8 @@
 * **the links' facts once** (issue #40): no ``"<device>.tty"`` spelled outside ``app/core/links.py`` (the one
   function that names a simulated device's link), and each serial rate (the default, the configured range, the
   LINarm's, ScienceMode's) typed in its one place (:data:`BAUD_FACTS`);
+* **the journal heard on the bus only** (issue #40): no ``add_event_subscriber`` / ``set_event_sink`` wrapper
+  defined or called anywhere (app, tests, benches, tools);
 * outside ``app/ui/``, no parameter or attribute called manager / app / context is typed ``Any`` (or left
   untyped): a device or a consumer says what it really uses.
 """
@@ -371,6 +373,31 @@ def test_the_links_facts_are_written_once() -> None:
         "a simulated device's link named again (use app.core.links.simulator_link):\n" + "\n".join(names)
         + "\na serial rate typed again (read app.core.links or the device's own settings):\n" + "\n".join(rates))
     assert used == set(BAUD_FACTS), f"stale entries in BAUD_FACTS: {set(BAUD_FACTS) - used}"
+
+
+# The supervisor's (kind, data) wrappers around the bus's listeners (issue #40): a second way to hear the journal,
+# with a subscriber list of its own. Whoever wants the records asks the bus (subscribe(records=True) or listen).
+JOURNAL_WRAPPERS = frozenset({"add_event_subscriber", "remove_event_subscriber", "set_event_sink", "event_sink"})
+
+
+def journal_wrappers_used(root: Path = ROOT) -> list[str]:
+    """Definitions, calls and keyword arguments named like the old wrappers, in ``app/``, ``tests/``, ``bench/``
+    and ``tools/``."""
+    found = []
+    for folder in ("app", "tests", "bench", "tools"):
+        for path in sorted((root / folder).rglob("*.py")):
+            for node in ast.walk(_source_tree(path)):
+                name = (node.name if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef))
+                        else node.attr if isinstance(node, ast.Attribute)
+                        else node.arg if isinstance(node, ast.keyword) else None)
+                if name in JOURNAL_WRAPPERS and path.name != "test_architecture.py":
+                    found.append(f"{path.relative_to(root).as_posix()}:{getattr(node, 'lineno', '?')}: {name}")
+    return found
+
+
+def test_the_journal_is_heard_on_the_bus_only() -> None:
+    found = journal_wrappers_used(ROOT)
+    assert not found, "the supervisor's (kind, data) wrappers (listen on the bus instead):\n" + "\n".join(found)
 
 
 def test_qt_only_where_it_belongs() -> None:
