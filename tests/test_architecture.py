@@ -322,6 +322,7 @@ BAUD_FACTS: dict[tuple[str, int, str], str] = {
 LINK_FACT_FLOORS = ("app/wire/", "app/core/", "app/devices/")
 
 
+@cache
 def _source_tree(path: Path) -> ast.Module:
     return ast.parse(path.read_text(encoding="utf-8"), str(path))
 
@@ -332,8 +333,8 @@ def link_names_typed(root: Path = ROOT) -> list[str]:
     found = []
     for path in sorted((root / "app").rglob("*.py")):
         rel = path.relative_to(root).as_posix()
-        if rel == LINK_DEFINITION:
-            continue
+        if rel == LINK_DEFINITION or LINK_SUFFIX not in path.read_text(encoding="utf-8"):
+            continue  # (only files that spell it are parsed: the suite pays for every second)
         tree = _source_tree(path)
         parts = {id(v) for node in ast.walk(tree) if isinstance(node, ast.JoinedStr) for v in node.values}
         for node in ast.walk(tree):
@@ -386,6 +387,9 @@ def journal_wrappers_used(root: Path = ROOT) -> list[str]:
     found = []
     for folder in ("app", "tests", "bench", "tools"):
         for path in sorted((root / folder).rglob("*.py")):
+            text = path.read_text(encoding="utf-8")
+            if not any(name in text for name in JOURNAL_WRAPPERS):
+                continue  # (only files that spell one are parsed)
             for node in ast.walk(_source_tree(path)):
                 name = (node.name if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef))
                         else node.attr if isinstance(node, ast.Attribute)
@@ -472,5 +476,16 @@ def test_rules_catch_a_circle_a_qt_import_a_manager_import_and_an_any(toy: Path)
     _write(toy, "app/devices/helper.py", "class D:\n    def _fire_event(self):\n        self.a.emit(1)\n"
                                          "    def other(self):\n        self.b.emit(2)\n")
     assert driver_emits_outside_the_publishing_call(toy) == ["app/devices/helper.py:5 other: self.b.emit(2)"]
+    app_modules.cache_clear()
+    import_graph.cache_clear()
+
+
+def test_rules_catch_a_link_name_a_baud_rate_and_a_journal_wrapper(toy: Path) -> None:
+    _write(toy, "app/devices/drv.py", 'from pathlib import Path\nLINK = Path("run") / "robot.tty"\n'
+                                      'def sim(name):\n    return f"{name}.tty"\nRATE = 57600\n')
+    _write(toy, "app/devices/sup.py", "class S:\n    def add_event_subscriber(self, fn): ...\n")
+    assert link_names_typed(toy) == ["app/devices/drv.py:2: 'robot.tty'", "app/devices/drv.py:4: f'{name}.tty'"]
+    assert baud_rates_typed(toy) == (["app/devices/drv.py:5: 57600 in RATE = 57600"], set())
+    assert journal_wrappers_used(toy) == ["app/devices/sup.py:2: add_event_subscriber"]
     app_modules.cache_clear()
     import_graph.cache_clear()
