@@ -14,9 +14,10 @@
   it (``app.manager``, ``app.application``, ``app.cli``, ``app.scripting.headless``) and the reports' PDF drawing
   (``app.session.reports``); the wire, the core, safety, the therapy and the session's record do not reach Qt
   through any import;
-* **the links' facts once** (issue #40): no ``"<device>.tty"`` spelled outside ``app/core/links.py`` (the one
-  function that names a simulated device's link), and each serial rate (the default, the configured range, the
-  LINarm's, ScienceMode's) typed in its one place (:data:`BAUD_FACTS`);
+* **the links' facts once** (issue #40): no ``"<device>.tty"`` and no loopback address spelled outside
+  ``app/core/links.py`` (the one function that names a simulated device's link, the one socket URL), and each
+  serial rate (the default, the configured range, the LINarm's, ScienceMode's) typed in its one place
+  (:data:`BAUD_FACTS`);
 * **the journal heard on the bus only** (issue #40): no ``add_event_subscriber`` / ``set_event_sink`` wrapper
   defined or called anywhere (app, tests, benches, tools);
 * outside ``app/ui/``, no parameter or attribute called manager / app / context is typed ``Any`` (or left
@@ -345,6 +346,23 @@ def link_names_typed(root: Path = ROOT) -> list[str]:
     return sorted(found)
 
 
+LOOPBACK = "127.0.0.1"  # the simulators' links and the UDP peers' default host: app.core.links.LOOPBACK
+
+
+def loopback_typed(root: Path = ROOT) -> list[str]:
+    """String literals (or an f-string's text) holding the loopback address in ``app/`` outside
+    :data:`LINK_DEFINITION`: the driver and the simulator host must agree on it (a socket link's URL)."""
+    found = []
+    for path in sorted((root / "app").rglob("*.py")):
+        rel = path.relative_to(root).as_posix()
+        if rel == LINK_DEFINITION or LOOPBACK not in path.read_text(encoding="utf-8"):
+            continue
+        for node in ast.walk(_source_tree(path)):
+            if isinstance(node, ast.Constant) and isinstance(node.value, str) and LOOPBACK in node.value:
+                found.append(f"{rel}:{node.lineno}: {node.value!r}")
+    return found
+
+
 def baud_rates_typed(root: Path = ROOT) -> tuple[list[str], set[tuple[str, int, str]]]:
     """Baud-rate numbers in the wire, the core and the devices outside :data:`BAUD_FACTS` (and the entries used)."""
     found, used = [], set()
@@ -365,14 +383,17 @@ def baud_rates_typed(root: Path = ROOT) -> tuple[list[str], set[tuple[str, int, 
 
 
 def test_the_links_facts_are_written_once() -> None:
-    """Issue #40: the simulated devices' link names and the serial rates have one definition that everything
-    imports (today's code typed "linarm.tty", "physio.tty", "fes.tty" and f"{name}.tty" in five places, and the
-    default rate 115200 and the rate range twice)."""
+    """Issue #40: the simulated devices' link names, the serial rates and the loopback address the simulators'
+    links use have one definition that everything imports (the code before typed "linarm.tty", "physio.tty",
+    "fes.tty" and f"{name}.tty" in five places, the default rate 115200 and the rate range twice, and "127.0.0.1"
+    in ten places of config, transport, the patient model and the simulator host)."""
     names = link_names_typed(ROOT)
     rates, used = baud_rates_typed(ROOT)
-    assert not names and not rates, (
+    hosts = loopback_typed(ROOT)
+    assert not names and not rates and not hosts, (
         "a simulated device's link named again (use app.core.links.simulator_link):\n" + "\n".join(names)
-        + "\na serial rate typed again (read app.core.links or the device's own settings):\n" + "\n".join(rates))
+        + "\na serial rate typed again (read app.core.links or the device's own settings):\n" + "\n".join(rates)
+        + "\nthe loopback address typed again (app.core.links.LOOPBACK, socket_link_url):\n" + "\n".join(hosts))
     assert used == set(BAUD_FACTS), f"stale entries in BAUD_FACTS: {set(BAUD_FACTS) - used}"
 
 
@@ -480,12 +501,14 @@ def test_rules_catch_a_circle_a_qt_import_a_manager_import_and_an_any(toy: Path)
     import_graph.cache_clear()
 
 
-def test_rules_catch_a_link_name_a_baud_rate_and_a_journal_wrapper(toy: Path) -> None:
+def test_rules_catch_a_link_name_a_baud_rate_a_loopback_and_a_journal_wrapper(toy: Path) -> None:
     _write(toy, "app/devices/drv.py", 'from pathlib import Path\nLINK = Path("run") / "robot.tty"\n'
-                                      'def sim(name):\n    return f"{name}.tty"\nRATE = 57600\n')
+                                      'def sim(name):\n    return f"{name}.tty"\nRATE = 57600\n'
+                                      'URL = f"socket://127.0.0.1:{RATE}"\n')
     _write(toy, "app/devices/sup.py", "class S:\n    def add_event_subscriber(self, fn): ...\n")
     assert link_names_typed(toy) == ["app/devices/drv.py:2: 'robot.tty'", "app/devices/drv.py:4: f'{name}.tty'"]
     assert baud_rates_typed(toy) == (["app/devices/drv.py:5: 57600 in RATE = 57600"], set())
     assert journal_wrappers_used(toy) == ["app/devices/sup.py:2: add_event_subscriber"]
+    assert loopback_typed(toy) == ["app/devices/drv.py:6: 'socket://127.0.0.1:'"]
     app_modules.cache_clear()
     import_graph.cache_clear()

@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
-from app.core.links import BAUDRATE_RANGE, DEFAULT_BAUDRATE
+from app.core.links import BAUDRATE_RANGE, DEFAULT_BAUDRATE, LOOPBACK
 from app.core.resources import DEFAULT_CONFIG_FILE, RESOURCES  # noqa: F401 - RESOURCES re-exported for callers
 from app.core.yamlschema import ConfigError, load_file, rng, to_plain
 from app.wire import sciencemode
@@ -157,9 +157,9 @@ class UdpEndpoint:
     same UDP link; `external` talks to a model or renderer started elsewhere (Matlab, Unity)."""
 
     mode: Literal["embedded", "standin", "external", "off"] = "embedded"
-    bind_host: str = "127.0.0.1"
+    bind_host: str = LOOPBACK
     listen_port: int = field(default=0, metadata=rng(0, 65535))
-    peer_host: str = "127.0.0.1"
+    peer_host: str = LOOPBACK
     peer_port: int = field(default=0, metadata=rng(0, 65535))
     rate_hz: float = field(default=100.0, metadata=rng(1, 2000, "Hz"))
     # Listening on anything but loopback exposes the link to the network: only when the site says so.
@@ -193,7 +193,7 @@ class UdpEndpoint:
 
 def _ip(key: str, text: str) -> ipaddress.IPv4Address | ipaddress.IPv6Address:
     if text == "localhost":
-        return ipaddress.ip_address("127.0.0.1")
+        return ipaddress.ip_address(LOOPBACK)
     try:
         return ipaddress.ip_address(text)
     except ValueError:

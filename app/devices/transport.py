@@ -22,7 +22,7 @@ from typing import Protocol
 
 import serial
 
-from app.core.links import DEFAULT_BAUDRATE
+from app.core.links import DEFAULT_BAUDRATE, LOOPBACK, socket_link_url
 
 log = logging.getLogger(__name__)
 
@@ -500,9 +500,9 @@ class SocketLink:
     the driver's own reconnect."""
 
     def __init__(self, port: int = 0) -> None:
-        self._server = socket.create_server(("127.0.0.1", port))
+        self._server = socket.create_server((LOOPBACK, port))
         self._server.setblocking(False)
-        self.url = f"socket://127.0.0.1:{self._server.getsockname()[1]}"
+        self.url = socket_link_url(self._server.getsockname()[1])
         self._client: socket.socket | None = None
         self._closed = False
         self.clients_accepted = 0
