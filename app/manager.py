@@ -340,12 +340,12 @@ class LinarmppManager(QObject):
                 return level  # it can reach this actuator, or the program holding it can read it
         return AlarmLevel.WARNING if active else level
 
-    def hold_for_run(self, run: Any, log_name: str = "") -> None:
+    def hold_for_run(self, run: Any, log_name: str) -> None:
         """The run log's listener (any thread): a run that starts holds its devices, one that ends gives them
         back. What it holds and lets in comes from its record (``holds``, ``compose``: app/core/runs.py). The
         lease's key is the run's id in its log (``log_name``): each session's log numbers from run-1, and a run of
         an earlier log may still be running."""
-        key = f"{run.run_id}@{log_name}" if log_name else run.run_id
+        key = f"{run.run_id}@{log_name}"
         if run.running:
             if key in self._leased:
                 return

@@ -16,6 +16,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from app.core.links import simulator_link
 from app.wire.cmdmessenger import ArduinoReceiver
 from app.wire.linarm_protocol import CommandRejected, read_host_message
 from app.wire.sciencemode import (
@@ -142,8 +143,9 @@ class AppProcess:
         (tmp_path / "sim").mkdir(exist_ok=True)
         self.sims_process = SimulatorProcess(spec)
         self.sims_process.start()
-        self.robot_sim = RemoteSimulator("linarm", self.sims_process, tmp_path / "sim" / "linarm.tty", ports["linarm"])
-        self.fes_sim = RemoteSimulator("fes", self.sims_process, tmp_path / "sim" / "fes.tty", ports["fes"])
+        links = tmp_path / "sim"
+        self.robot_sim = RemoteSimulator("linarm", self.sims_process, simulator_link(links, "linarm"), ports["linarm"])
+        self.fes_sim = RemoteSimulator("fes", self.sims_process, simulator_link(links, "fes"), ports["fes"])
         self.robot_sim.keep_host_log = True
         self.fes_sim.keep_host_log = True
         self.config = tmp_path / "config.yaml"

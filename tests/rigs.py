@@ -167,8 +167,6 @@ class SharedRig:
         self.resets = 0
         # What the rig itself holds: anything else a test opened is closed by the reset.
         self._subscriptions = set(map(id, self.manager.bus.subscriptions()))
-        self._event_subscribers = list(self.manager.supervisor._subscribers)
-        self._event_sink = self.manager.supervisor.event_sink
         self._run_listeners = list(self.manager.runs._listeners)
 
     # ------------------------------------------------------------------ the known state
@@ -180,8 +178,6 @@ class SharedRig:
         for sub in m.bus.subscriptions():
             if id(sub) not in self._subscriptions:
                 sub.close()
-        sup._subscribers = list(self._event_subscribers)
-        sup.set_event_sink(self._event_sink)
         m.runs._listeners = list(self._run_listeners)
         if m.runs.current() is not None:
             m.runs.end_current("test ended")

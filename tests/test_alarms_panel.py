@@ -25,7 +25,7 @@ def settle(manager: LinarmppManager) -> None:
 def _setup(qtbot, repeat_s: float = 60.0) -> tuple[LinarmppManager, AlarmsPanel, list[tuple[str, dict[str, Any]]]]:
     manager = LinarmppManager(AppConfig(), factories={})
     events: list[tuple[str, dict[str, Any]]] = []
-    manager.supervisor.set_event_sink(lambda kind, data: events.append((kind, data)))
+    manager.bus.listen("test", lambda r: events.append((r.kind, r.data)))
     panel = AlarmsPanel(manager, repeat_s=repeat_s)
     panel.beep = lambda: None  # counted in panel.beeps; no sound in tests
     qtbot.addWidget(panel)

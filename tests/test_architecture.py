@@ -14,6 +14,12 @@
   it (``app.manager``, ``app.application``, ``app.cli``, ``app.scripting.headless``) and the reports' PDF drawing
   (``app.session.reports``); the wire, the core, safety, the therapy and the session's record do not reach Qt
   through any import;
+* **the links' facts once** (issue #40): no ``"<device>.tty"`` and no loopback address spelled outside
+  ``app/core/links.py`` (the one function that names a simulated device's link, the one socket URL), and each
+  serial rate (the default, the configured range, the LINarm's, ScienceMode's) typed in its one place
+  (:data:`BAUD_FACTS`);
+* **the journal heard on the bus only** (issue #40): no ``add_event_subscriber`` / ``set_event_sink`` wrapper
+  defined or called anywhere (app, tests, benches, tools);
 * outside ``app/ui/``, no parameter or attribute called manager / app / context is typed ``Any`` (or left
   untyped): a device or a consumer says what it really uses.
 """
@@ -298,6 +304,127 @@ def test_every_driver_event_leaves_by_the_one_publishing_call() -> None:
     assert not found, "a driver emits a Qt signal beside its publishing call (publish it there):\n" + "\n".join(found)
 
 
+# ---------------------------------------------------------------------------------------------- the links' facts
+# A simulated device's serial link is a file in the runtime folder whose name the driver, the simulator host and
+# the registry must agree on: one function names it (app/core/links.py); nobody spells "<device>.tty" again.
+LINK_DEFINITION = "app/core/links.py"
+LINK_SUFFIX = ".tty"
+# The serial rates a link can be opened at (and the range a configured rate must lie in): each number is one fact,
+# written in the one place listed here (file, the number, the line's text contains) -> which fact.
+BAUD_NUMBERS = frozenset({1200, 2400, 4800, 9600, 19200, 38400, 57600, 115200, 230400, 460800, 921600, 4_000_000})
+BAUD_FACTS: dict[tuple[str, int, str], str] = {
+    ("app/core/links.py", 115200, "DEFAULT_BAUDRATE: Final = 115200"): "a serial link's rate unless its device says",
+    ("app/core/links.py", 1200, "BAUDRATE_RANGE: Final = (1200, 4_000_000)"): "the lowest rate a configuration gives",
+    ("app/core/links.py", 4_000_000, "BAUDRATE_RANGE: Final = (1200, 4_000_000)"): "the highest one",
+    ("app/core/config.py", 460800, "default=460800"): "the LINarm's rate (the firmware's LINARM_BAUDRATE on its side)",
+    ("app/devices/rehastim.py", 115200, '"sm1": SerialSettings(115200'): "ScienceMode 1's fixed link settings",
+    ("app/devices/rehastim.py", 460800, '"sm2": SerialSettings(460800'): "ScienceMode 2's fixed link settings",
+}
+LINK_FACT_FLOORS = ("app/wire/", "app/core/", "app/devices/")
+
+
+@cache
+def _source_tree(path: Path) -> ast.Module:
+    return ast.parse(path.read_text(encoding="utf-8"), str(path))
+
+
+def link_names_typed(root: Path = ROOT) -> list[str]:
+    """String literals (or an f-string's last text) ending in ``.tty`` anywhere in ``app/`` outside
+    :data:`LINK_DEFINITION`: a simulated device's link named again."""
+    found = []
+    for path in sorted((root / "app").rglob("*.py")):
+        rel = path.relative_to(root).as_posix()
+        if rel == LINK_DEFINITION or LINK_SUFFIX not in path.read_text(encoding="utf-8"):
+            continue  # (only files that spell it are parsed: the suite pays for every second)
+        tree = _source_tree(path)
+        parts = {id(v) for node in ast.walk(tree) if isinstance(node, ast.JoinedStr) for v in node.values}
+        for node in ast.walk(tree):
+            text = node.values[-1] if isinstance(node, ast.JoinedStr) and node.values else node
+            if (isinstance(text, ast.Constant) and isinstance(text.value, str) and text.value.endswith(LINK_SUFFIX)
+                    and id(node) not in parts):
+                found.append(f"{rel}:{node.lineno}: {ast.unparse(node)}")  # type: ignore[attr-defined]
+    return sorted(found)
+
+
+LOOPBACK = "127.0.0.1"  # the simulators' links and the UDP peers' default host: app.core.links.LOOPBACK
+
+
+def loopback_typed(root: Path = ROOT) -> list[str]:
+    """String literals (or an f-string's text) holding the loopback address in ``app/`` outside
+    :data:`LINK_DEFINITION`: the driver and the simulator host must agree on it (a socket link's URL)."""
+    found = []
+    for path in sorted((root / "app").rglob("*.py")):
+        rel = path.relative_to(root).as_posix()
+        if rel == LINK_DEFINITION or LOOPBACK not in path.read_text(encoding="utf-8"):
+            continue
+        for node in ast.walk(_source_tree(path)):
+            if isinstance(node, ast.Constant) and isinstance(node.value, str) and LOOPBACK in node.value:
+                found.append(f"{rel}:{node.lineno}: {node.value!r}")
+    return found
+
+
+def baud_rates_typed(root: Path = ROOT) -> tuple[list[str], set[tuple[str, int, str]]]:
+    """Baud-rate numbers in the wire, the core and the devices outside :data:`BAUD_FACTS` (and the entries used)."""
+    found, used = [], set()
+    for path in sorted((root / "app").rglob("*.py")):
+        rel = path.relative_to(root).as_posix()
+        if not rel.startswith(LINK_FACT_FLOORS):
+            continue
+        lines = path.read_text(encoding="utf-8").splitlines()
+        for node in ast.walk(_source_tree(path)):
+            if (isinstance(node, ast.Constant) and type(node.value) is int and node.value in BAUD_NUMBERS):
+                line = lines[node.lineno - 1]
+                keys = [key for key in BAUD_FACTS if (key[0], key[1]) == (rel, node.value) and key[2] in line]
+                if keys:
+                    used.update(keys)
+                else:
+                    found.append(f"{rel}:{node.lineno}: {node.value} in {line.strip()}")
+    return found, used
+
+
+def test_the_links_facts_are_written_once() -> None:
+    """Issue #40: the simulated devices' link names, the serial rates and the loopback address the simulators'
+    links use have one definition that everything imports (the code before typed "linarm.tty", "physio.tty",
+    "fes.tty" and f"{name}.tty" in five places, the default rate 115200 and the rate range twice, and "127.0.0.1"
+    in ten places of config, transport, the patient model and the simulator host)."""
+    names = link_names_typed(ROOT)
+    rates, used = baud_rates_typed(ROOT)
+    hosts = loopback_typed(ROOT)
+    assert not names and not rates and not hosts, (
+        "a simulated device's link named again (use app.core.links.simulator_link):\n" + "\n".join(names)
+        + "\na serial rate typed again (read app.core.links or the device's own settings):\n" + "\n".join(rates)
+        + "\nthe loopback address typed again (app.core.links.LOOPBACK, socket_link_url):\n" + "\n".join(hosts))
+    assert used == set(BAUD_FACTS), f"stale entries in BAUD_FACTS: {set(BAUD_FACTS) - used}"
+
+
+# The supervisor's (kind, data) wrappers around the bus's listeners (issue #40): a second way to hear the journal,
+# with a subscriber list of its own. Whoever wants the records asks the bus (subscribe(records=True) or listen).
+JOURNAL_WRAPPERS = frozenset({"add_event_subscriber", "remove_event_subscriber", "set_event_sink", "event_sink"})
+
+
+def journal_wrappers_used(root: Path = ROOT) -> list[str]:
+    """Definitions, calls and keyword arguments named like the old wrappers, in ``app/``, ``tests/``, ``bench/``
+    and ``tools/``."""
+    found = []
+    for folder in ("app", "tests", "bench", "tools"):
+        for path in sorted((root / folder).rglob("*.py")):
+            text = path.read_text(encoding="utf-8")
+            if not any(name in text for name in JOURNAL_WRAPPERS):
+                continue  # (only files that spell one are parsed)
+            for node in ast.walk(_source_tree(path)):
+                name = (node.name if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef))
+                        else node.attr if isinstance(node, ast.Attribute)
+                        else node.arg if isinstance(node, ast.keyword) else None)
+                if name in JOURNAL_WRAPPERS and path.name != "test_architecture.py":
+                    found.append(f"{path.relative_to(root).as_posix()}:{getattr(node, 'lineno', '?')}: {name}")
+    return found
+
+
+def test_the_journal_is_heard_on_the_bus_only() -> None:
+    found = journal_wrappers_used(ROOT)
+    assert not found, "the supervisor's (kind, data) wrappers (listen on the bus instead):\n" + "\n".join(found)
+
+
 def test_qt_only_where_it_belongs() -> None:
     found = qt_outside_its_places(ROOT)
     assert not found, "Qt outside the window, the drivers and the composition root:\n" + "\n".join(found)
@@ -370,5 +497,18 @@ def test_rules_catch_a_circle_a_qt_import_a_manager_import_and_an_any(toy: Path)
     _write(toy, "app/devices/helper.py", "class D:\n    def _fire_event(self):\n        self.a.emit(1)\n"
                                          "    def other(self):\n        self.b.emit(2)\n")
     assert driver_emits_outside_the_publishing_call(toy) == ["app/devices/helper.py:5 other: self.b.emit(2)"]
+    app_modules.cache_clear()
+    import_graph.cache_clear()
+
+
+def test_rules_catch_a_link_name_a_baud_rate_a_loopback_and_a_journal_wrapper(toy: Path) -> None:
+    _write(toy, "app/devices/drv.py", 'from pathlib import Path\nLINK = Path("run") / "robot.tty"\n'
+                                      'def sim(name):\n    return f"{name}.tty"\nRATE = 57600\n'
+                                      'URL = f"socket://127.0.0.1:{RATE}"\n')
+    _write(toy, "app/devices/sup.py", "class S:\n    def add_event_subscriber(self, fn): ...\n")
+    assert link_names_typed(toy) == ["app/devices/drv.py:2: 'robot.tty'", "app/devices/drv.py:4: f'{name}.tty'"]
+    assert baud_rates_typed(toy) == (["app/devices/drv.py:5: 57600 in RATE = 57600"], set())
+    assert journal_wrappers_used(toy) == ["app/devices/sup.py:2: add_event_subscriber"]
+    assert loopback_typed(toy) == ["app/devices/drv.py:6: 'socket://127.0.0.1:'"]
     app_modules.cache_clear()
     import_graph.cache_clear()

@@ -162,7 +162,8 @@ def test_an_unchanged_alpha_is_not_sent_again() -> None:
 
 def test_alpha_passes_through_the_supervisor_clamp() -> None:
     events: list[tuple[str, dict]] = []
-    sup = SafetySupervisor(SafetyConfig(), event_sink=lambda kind, data: events.append((kind, data)))
+    sup = SafetySupervisor(SafetyConfig())
+    sup.bus.listen("test", lambda r: events.append((r.kind, r.data)))
     ctl, rec, _clock = controller(supervisor=sup)
     ctl.update_alpha(1.7)
     assert ctl.alpha == 1.0

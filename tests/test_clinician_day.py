@@ -147,7 +147,7 @@ class _Events:
             with self._lock:
                 self.items.append((kind, dict(data), time.monotonic()))
 
-        manager.supervisor.add_event_subscriber(take)
+        manager.bus.listen("the day's log", lambda r: take(r.kind, r.data))
 
     def of(self, kind: str) -> list[dict[str, Any]]:
         with self._lock:
@@ -221,12 +221,12 @@ class _SqueezeAtEachPrompt:
         self.stop = threading.Event()
 
     def __enter__(self) -> _SqueezeAtEachPrompt:
-        self.manager.supervisor.add_event_subscriber(self._on_event)
+        self._listener = self.manager.bus.listen("squeeze at each prompt", lambda r: self._on_event(r.kind, r.data))
         return self
 
     def __exit__(self, *exc: object) -> None:
         self.stop.set()
-        self.manager.supervisor.remove_event_subscriber(self._on_event)
+        self._listener.close()
 
     def _on_event(self, kind: str, data: dict[str, Any]) -> None:
         if kind == journal.PROMPT and data.get("cue") == "squeeze":
@@ -418,7 +418,7 @@ def _assisted_with_the_vr_task(qtbot: Any, manager: LinarmppManager, window: Mai
         elif kind == "repetition_end":
             threading.Thread(target=push, args=(lo,), daemon=True).start()
 
-    manager.supervisor.add_event_subscriber(on_event)
+    listener = manager.bus.listen("push at each repetition", lambda r: on_event(r.kind, r.data))
     try:
         assert panel.start_button.isEnabled(), panel.hold_label.text()
         qtbot.mouseClick(panel.start_button, Qt.MouseButton.LeftButton)
@@ -430,7 +430,7 @@ def _assisted_with_the_vr_task(qtbot: Any, manager: LinarmppManager, window: Mai
               "the assisted exercise's end")
     finally:
         stop.set()
-        manager.supervisor.remove_event_subscriber(on_event)
+        listener.close()
     ended = manager.runs.get(run.run_id)
     assert ended.end_reason == "finished", ended.end_detail
     taken = next(d for d in events.of("lease_taken") if d["run_id"] == run.run_id)

@@ -272,7 +272,7 @@ def test_a_timed_out_command_resyncs_the_parser_and_fails_its_status(linarm, qtb
 def test_a_refusal_is_a_failed_status_and_nothing_is_sent(linarm) -> None:
     driver, controller, supervisor = linarm
     events: list[tuple[str, dict]] = []
-    supervisor.add_event_subscriber(lambda kind, data: events.append((kind, data)))
+    supervisor.bus.listen("test", lambda r: events.append((r.kind, r.data)))
     before = len(controller.names())
     status = driver.submit("moveCentreTo", 0.49, 0.1, 0.1, 0.0, False, source="test")
     assert isinstance(status.exception(0), SafetyError) and not status.written

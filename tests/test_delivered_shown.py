@@ -25,7 +25,7 @@ def test_the_electrode_set_up_stimulates_at_the_pulse_width_its_dialog_shows(qtb
 
     manager = LinarmppManager(AppConfig(), factories={"linarm": linarm.create, "fes": rehastim.create})
     events: list[tuple[str, dict[str, Any]]] = []
-    manager.supervisor.add_event_subscriber(lambda kind, data: events.append((kind, data)))
+    manager.bus.listen("test", lambda r: events.append((r.kind, r.data)))
     manager.start()
     widths: list[float] = []
     sub = None

@@ -78,7 +78,7 @@ def test_discomfort_rating_changes_the_proposal(dialog) -> None:
 
 def test_the_choice_is_saved_and_recorded(dialog) -> None:
     events: list[tuple[str, dict]] = []
-    dialog.manager.supervisor.add_event_subscriber(lambda kind, data: events.append((kind, data)))
+    dialog.manager.bus.listen("test", lambda r: events.append((r.kind, r.data)))
     dialog.manager.patient_profile = PatientProfile("UI7")
     dialog.manager.operator = "therapist U"
     dialog.show_result(a_result())

@@ -70,7 +70,7 @@ def run_trigger(tmp: Path, params: dict[str, Any], on_prompt: dict[int, tuple[fl
                 timers.append(timer)
                 timer.start()
 
-        manager.supervisor.add_event_subscriber(on_event)
+        manager.bus.listen("test", lambda r: on_event(r.kind, r.data))
 
     code = run_headless(config(), str(exercise_script(tmp, "trigger_reaching", params)), record_dir=str(tmp / "rec"),
                         prepare=prepare, output=lambda stream, text: out.append(text))
@@ -175,7 +175,7 @@ def reaching_patient(manager: Any, params: dict[str, Any], stop: threading.Event
         elif kind == "repetition_end":
             threading.Thread(target=push, args=(params["start_m"],), daemon=True).start()
 
-    manager.supervisor.add_event_subscriber(on_event)
+    manager.bus.listen("test", lambda r: on_event(r.kind, r.data))
 
 
 @pytest.mark.parametrize("exercise", sorted(COMMANDED))

@@ -35,7 +35,7 @@ def watched():  # type: ignore[no-untyped-def]
     stops: list[str] = []
     supervisor.add_stop_action(StopAction("FES stop", stops.append))
     events: list[tuple[str, dict]] = []
-    supervisor.add_event_subscriber(lambda kind, data: events.append((kind, data)))
+    supervisor.bus.listen("test", lambda r: events.append((r.kind, r.data)))
     clock = Clock()
     driving = {"what": "stimulation runs"}
     watch = GuiWatch(supervisor, lambda: driving["what"], clock=clock)

@@ -149,7 +149,7 @@ def test_a_headless_exercise_is_the_patients_run_with_its_program_parameters_and
                 timers.append(threading.Timer(0.2, patient.squeeze, (0.3,)))  # released before the next prompt
                 timers[-1].start()
 
-        manager.supervisor.add_event_subscriber(on_event)
+        manager.bus.listen("test", lambda r: on_event(r.kind, r.data))
 
     monkeypatch.setattr(headless, "run_headless_exercise",
                         functools.partial(headless.run_headless_exercise, prepare=squeeze_at_each_prompt))

@@ -37,7 +37,8 @@ def test_the_estop_reset_event_names_whoever_resets() -> None:
     from app.safety.supervisor import SafetySupervisor
 
     events: list[tuple[str, dict]] = []
-    sup = SafetySupervisor(SafetyConfig(), lambda k, d: events.append((k, d)))
+    sup = SafetySupervisor(SafetyConfig())
+    sup.bus.listen("test", lambda r: events.append((r.kind, r.data)))
     sup.emergency_stop("test")
     sup.reset_emergency_stop("Dr Rossi")
     assert ("emergency_stop_reset", {"operator": "Dr Rossi"}) in events

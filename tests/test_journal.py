@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import ast
 import re
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -174,21 +175,22 @@ def test_the_stimulators_records_and_their_qt_faces_come_from_one_call(qtbot) ->
     assert faults == ["link lost"] and changes == [False]
 
 
-def test_a_kind_and_data_subscriber_is_a_journal_listener_and_leaves_by_equality() -> None:
-    """The (kind, data) form of code written before the journal: a bus listener, removed by the same bound method."""
+def test_a_journal_listener_hears_the_supervisors_records_until_it_is_closed() -> None:
+    """The supervisor's records reach a listener on its bus (the one publishing path: it keeps no subscriber list of
+    its own), and a closed listener hears nothing more and leaves no subscription behind."""
 
     class Log:
         def __init__(self) -> None:
             self.kinds: list[str] = []
 
-        def on(self, kind: str, data: dict[str, Any]) -> None:
+        def on(self, kind: str, data: Mapping[str, Any]) -> None:
             self.kinds.append(kind)
 
     supervisor = SafetySupervisor(SafetyConfig())
     seen = Log()
-    supervisor.add_event_subscriber(seen.on)
+    listener = supervisor.bus.listen("test", lambda r: seen.on(r.kind, r.data))
     supervisor.emergency_stop("test")
-    supervisor.remove_event_subscriber(seen.on)  # another bound-method object, the same subscriber
+    listener.close()
     supervisor.reset_emergency_stop("tester")
     assert seen.kinds == ["emergency_stop", "alarm"] and supervisor.bus.subscriptions() == []
 

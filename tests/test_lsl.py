@@ -78,7 +78,7 @@ def test_outlets_resolve_and_stream_in_lsl_time(tmp_path, qtbot) -> None:
         events = _resolve(pylsl, bridge.events_outlet)
         markers = pylsl.StreamInlet(events)
         markers.open_stream(timeout=5)
-        bridge.marker({"kind": "script_start", "t_mono": time.monotonic(), "data": {"name": "reach.py"}})
+        manager.record_event("script_start", "tester", name="reach.py")  # the journal: the one way a marker goes
         sample, stamp = markers.pull_sample(timeout=5)
         assert sample is not None and json.loads(sample[0])["data"]["name"] == "reach.py"
         assert abs(stamp - pylsl.local_clock()) < 5.0

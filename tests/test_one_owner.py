@@ -40,7 +40,7 @@ def _reaching_patient(manager: Any, params: dict[str, Any], stop: threading.Even
         elif kind == "repetition_end":
             threading.Thread(target=push, args=(params["start_m"],), daemon=True).start()
 
-    manager.supervisor.add_event_subscriber(on_event)
+    manager.bus.listen("test", lambda r: on_event(r.kind, r.data))
 
 
 @pytest.mark.realtime
@@ -83,7 +83,7 @@ def _supervisor() -> Any:
 
     sup = SafetySupervisor(SafetyConfig())
     events: list[tuple[str, dict[str, Any]]] = []
-    sup.add_event_subscriber(lambda kind, data: events.append((kind, data)))
+    sup.bus.listen("test", lambda r: events.append((r.kind, r.data)))
     sup.recorded = events  # type: ignore[attr-defined]
     return sup
 

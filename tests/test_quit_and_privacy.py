@@ -77,7 +77,7 @@ def test_the_estop_reset_names_the_sessions_operator(tmp_path, qtbot, manager, m
     qtbot.addWidget(window)
     manager.start_session("OPS01", "Dr Rossi", root=tmp_path / "sessions")
     events: list[tuple[str, dict]] = []
-    manager.supervisor.set_event_sink(lambda kind, data: events.append((kind, data)))
+    manager.bus.listen("test", lambda r: events.append((r.kind, r.data)))
     manager.supervisor.emergency_stop("test")
     window._reset_estop()
     assert ("emergency_stop_reset", {"operator": "Dr Rossi"}) in events

@@ -33,7 +33,7 @@ def test_ten_second_session_is_complete(tmp_path, qtbot) -> None:
     manager = LinarmppManager(AppConfig(), factories={"physio": physio.create,
                                                      "counter": counter_factory(tmp_path)})
     previous: list[str] = []
-    manager.supervisor.set_event_sink(lambda kind, data: previous.append(kind))
+    manager.bus.listen("test", lambda r: previous.append(r.kind))
     manager.start()
     recorder = SessionRecorder()
     try:
@@ -213,17 +213,16 @@ def test_truncated_last_lines_are_dropped(tmp_path) -> None:
     assert any("incomplete" in p for p in session.problems)
 
 
-def test_the_recorder_subscribes_to_the_supervisor_without_taking_its_sink(tmp_path) -> None:
+def test_the_recorder_subscribes_to_the_journal_beside_another_listener(tmp_path) -> None:
     """#29: the recorder chained the supervisor's one-slot sink (whoever set it next cut the recorder off, and
-    a stop restored a stale one). Now it is one of the supervisor's event subscribers; the sink stays its owner's."""
+    a stop restored a stale one). Now it subscribes to the journal on the bus; another listener stays its owner's."""
     manager, _ = fake_manager()
     theirs: list[str] = []
-    sink = lambda kind, data: theirs.append(kind)  # noqa: E731
-    manager.supervisor.set_event_sink(sink)
+    listener = manager.supervisor.bus.listen("theirs", lambda r: theirs.append(r.kind))
     recorder = SessionRecorder()
     folder = recorder.start(manager, "P007", "op", root=tmp_path)
-    assert manager.supervisor.event_sink is sink
-    manager.supervisor.set_event_sink(None)  # the sink's owner goes: the record still gets the events
+    assert not listener.closed
+    listener.close()  # the other listener's owner goes: the record still gets the events
     manager.supervisor.record("alarm", source="test", text="after the sink changed")
     recorder.stop()
     assert [e["kind"] for e in load_session(folder).events if e["origin"] == "safety"] == ["alarm"]

@@ -27,9 +27,7 @@ def test_stop_to_running_again_in_two_actions(qtbot, tmp_path, monkeypatch) -> N
     try:
         qtbot.waitUntil(manager.all_connected, timeout=20000)
         manager.start_session("P-RECOVER", "Dr Rossi", root=tmp_path)
-        sink = manager.supervisor.event_sink
-        manager.supervisor.set_event_sink(lambda kind, data: (events.append((kind, data)),
-                                                               sink(kind, data) if sink else None))
+        manager.bus.listen("test", lambda r: events.append((r.kind, r.data)))
         console = window.frames["CommandsFrame"].panels["ScriptConsole"]
         console.load_file(ROOT / "resources" / "scripts" / "trigger_exercise.py")
         assert console.start_script()

@@ -101,7 +101,7 @@ class Rig:
 def rig(qtbot, tmp_path) -> Iterator[Rig]:
     manager = LinarmppManager(AppConfig(), factories={"linarm": linarm.create})
     events: list[tuple[str, dict[str, Any]]] = []
-    manager.supervisor.add_event_subscriber(lambda kind, data: events.append((kind, dict(data))))
+    manager.bus.listen("test", lambda r: events.append((r.kind, dict(r.data))))
     manager.start()
     manager.driver("linarm").reconnect_backoff_s = (0.05, 0.2)
     qtbot.waitUntil(lambda: manager.driver("linarm").connected

@@ -216,7 +216,7 @@ def test_a_repetition_open_at_the_stop_ends_before_its_run(qtbot: Any, manager: 
                                                            runner: ScriptRunner) -> None:
     """The record reads in order: the interrupted repetition's end (not completed), then the run's end."""
     events: list[tuple[str, dict[str, Any]]] = []
-    manager.supervisor.add_event_subscriber(lambda kind, data: events.append((kind, dict(data))))
+    manager.bus.listen("test", lambda r: events.append((r.kind, dict(r.data))))
     runner.home_first = False
     run = runner.start("linarmppManager.startRepetition(1, 3)\nwait(30)\n", "/tmp/rep.py")
     qtbot.waitUntil(lambda: manager.runs.get(run.run_id).repetitions != (), timeout=10000)

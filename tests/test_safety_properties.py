@@ -288,7 +288,7 @@ def rig(qapp) -> Iterator[Rig]:
     sim.keep_host_log = True
     panel = LinarmPanel(manager)
     r = Rig(manager, driver, sim, panel, model, listen)
-    manager.supervisor.set_event_sink(lambda kind, data: r.events.append((kind, data)))
+    manager.bus.listen("test", lambda record: r.events.append((record.kind, record.data)))
 
     class Warnings(logging.Handler):
         def emit(self, record: logging.LogRecord) -> None:

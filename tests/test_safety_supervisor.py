@@ -85,6 +85,6 @@ def test_measured_excursion_stops_the_robot_once_per_excursion() -> None:
 def test_patient_model_outputs_are_clamped_and_logged() -> None:
     s = sup()
     events = []
-    s.set_event_sink(lambda kind, data: events.append((kind, data)))
+    s.bus.listen("test", lambda r: events.append((r.kind, r.data)))
     assert s.clamp_assistance("alpha", 1.7, -1.0, 1.0) == 1.0
     assert events[-1][0] == "clamped" and events[-1][1]["requested"] == 1.7

@@ -213,7 +213,7 @@ def test_requests_that_are_not_api_calls_are_refused_and_recorded(qtbot: Any, ou
     manager = FakeManager()
     manager.supervisor = SafetySupervisor(SafetyConfig())
     events: list[tuple[str, dict[str, Any]]] = []
-    manager.supervisor.set_event_sink(lambda kind, data: events.append((kind, data)))
+    manager.supervisor.bus.listen("test", lambda r: events.append((r.kind, r.data)))
     runner = ScriptRunner(manager, output, home_first=False)
     runner.start(RAW, "<raw>")
     assert runner.wait(5.0)

@@ -134,7 +134,7 @@ class _Events:
 def test_a_resumed_stream_leaves_the_banner_and_stays_in_the_history(qtbot) -> None:
     supervisor = SafetySupervisor(SafetyConfig())
     recorded: list[tuple[str, dict]] = []
-    supervisor.add_event_subscriber(lambda kind, data: recorded.append((kind, data)))
+    supervisor.bus.listen("test", lambda r: recorded.append((r.kind, r.data)))
     bus = StreamBus()
     driver = _Events(bus, "linarm")
     watch = DeviceWatch(supervisor, lambda _n: AlarmLevel.STOP)

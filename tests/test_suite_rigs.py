@@ -67,7 +67,7 @@ def test_a_reset_puts_a_rig_left_in_any_state_back(rig: SharedRig, qtbot, tmp_pa
     m.supervisor.raise_alarm(AlarmLevel.WARNING, "test", "left open by a test")
     m.bus.subscribe("a test's subscription", ["linarm.vsa"])
     seen: list[str] = []
-    m.supervisor.add_event_subscriber(lambda kind, data: seen.append(kind))
+    m.bus.listen("a test's listener", lambda r: seen.append(r.kind))
     m.patient.squeeze(30.0)
     m.supervisor.emergency_stop("test", "left latched by a test")
     assert len(rig.problems()) >= 6, rig.problems()

@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
+from app.core.links import BAUDRATE_RANGE, DEFAULT_BAUDRATE, LOOPBACK
 from app.core.resources import DEFAULT_CONFIG_FILE, RESOURCES  # noqa: F401 - RESOURCES re-exported for callers
 from app.core.yamlschema import ConfigError, load_file, rng, to_plain
 from app.wire import sciencemode
@@ -55,7 +56,7 @@ class SerialDevice:
 
     mode: DeviceMode = "simulated"
     port: str = ""
-    baudrate: int = field(default=115200, metadata=rng(1200, 4_000_000, "Bd"))
+    baudrate: int = field(default=DEFAULT_BAUDRATE, metadata=rng(*BAUDRATE_RANGE, "Bd"))
 
     def validate(self) -> None:
         if self.mode == "serial" and not self.port:
@@ -64,7 +65,7 @@ class SerialDevice:
 
 @dataclass(frozen=True)
 class LinarmDevice(SerialDevice):
-    baudrate: int = field(default=460800, metadata=rng(1200, 4_000_000, "Bd"))
+    baudrate: int = field(default=460800, metadata=rng(*BAUDRATE_RANGE, "Bd"))
     state_rate_hz: float = field(default=200.0, metadata=rng(1, 1000, "Hz"))
     command_timeout_s: float = field(default=1.0, metadata=rng(0.05, 30, "s"))
     heartbeat_period_s: float = field(default=0.1, metadata=rng(0.02, 0.2, "s"))
@@ -156,9 +157,9 @@ class UdpEndpoint:
     same UDP link; `external` talks to a model or renderer started elsewhere (Matlab, Unity)."""
 
     mode: Literal["embedded", "standin", "external", "off"] = "embedded"
-    bind_host: str = "127.0.0.1"
+    bind_host: str = LOOPBACK
     listen_port: int = field(default=0, metadata=rng(0, 65535))
-    peer_host: str = "127.0.0.1"
+    peer_host: str = LOOPBACK
     peer_port: int = field(default=0, metadata=rng(0, 65535))
     rate_hz: float = field(default=100.0, metadata=rng(1, 2000, "Hz"))
     # Listening on anything but loopback exposes the link to the network: only when the site says so.
@@ -192,7 +193,7 @@ class UdpEndpoint:
 
 def _ip(key: str, text: str) -> ipaddress.IPv4Address | ipaddress.IPv6Address:
     if text == "localhost":
-        return ipaddress.ip_address("127.0.0.1")
+        return ipaddress.ip_address(LOOPBACK)
     try:
         return ipaddress.ip_address(text)
     except ValueError:

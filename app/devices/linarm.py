@@ -22,6 +22,7 @@ from PySide6.QtCore import Signal
 from app.core import journal, streams
 from app.core.bus import BusItem, Channel, SampleItem, StreamBus, StreamSpec
 from app.core.config import LinarmDevice
+from app.core.links import simulator_link
 from app.devices.clock import DeviceClock
 from app.devices.command_queue import CommandQueue, CommandQueueClosed, CommandStatus, Priority
 from app.devices.driver import DeviceDriver
@@ -566,7 +567,7 @@ def create(ctx: DeviceContext) -> DeviceHandle | None:
     simulator = None
     url = cfg.port
     if cfg.mode == "simulated":
-        link = ctx.runtime_dir / "linarm.tty"
+        link = simulator_link(ctx.runtime_dir, streams.LINARM)
         simulator = ctx.simulators.serial(
             streams.LINARM, streams.LINARM,
             lambda patient: SerialSimulator(streams.LINARM, lambda: LinarmSimAdapter(patient), link, tick_s=0.001))

@@ -59,6 +59,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 
 from app.core import journal, streams
 from app.core.bus import Channel, StreamBus, StreamSpec
+from app.core.links import LOOPBACK
 from app.devices.clock import CountedClock
 from app.devices.driver import DeviceDriver
 from app.devices.sim.patient_model.decision_tree import DEFAULT_CONFIG_PATH, decode_path_code
@@ -105,7 +106,7 @@ PATIENT_MODEL_STREAM = StreamSpec(streams.PATIENT_MODEL_MAIN, (
 # Shared UDP-peer machinery
 
 
-def free_udp_port(host: str = "127.0.0.1") -> int:
+def free_udp_port(host: str = LOOPBACK) -> int:
     """A UDP port free right now on ``host`` (the OS picks it; we release it for the real user)."""
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
         s.bind((host, 0))

@@ -12,6 +12,7 @@ from typing import TYPE_CHECKING
 from app.core import streams
 from app.core.bus import Channel, StreamBus, StreamSpec
 from app.core.config import PhysioCalibration, PhysioDevice
+from app.core.links import simulator_link
 from app.devices.clock import DeviceClock
 from app.devices.driver import DeviceDriver
 from app.devices.sim.base import SerialSimulator
@@ -80,7 +81,7 @@ def create(ctx: DeviceContext) -> DeviceHandle | None:
     simulator = None
     url = cfg.port
     if cfg.mode == "simulated":
-        link, rate = ctx.runtime_dir / "physio.tty", cfg.rate_hz
+        link, rate = simulator_link(ctx.runtime_dir, streams.PHYSIO), cfg.rate_hz
         simulator = ctx.simulators.serial(
             streams.PHYSIO, streams.PHYSIO,
             lambda patient: SerialSimulator(streams.PHYSIO, lambda: PhysioSimCore(patient, rate, calibration), link,

@@ -24,6 +24,7 @@ from typing import Any
 from app.core import streams
 from app.core.bus import StreamBus
 from app.core.config import AppConfig, SafetyConfig
+from app.core.links import simulator_link
 from app.devices.driver import DeviceDriver
 from app.safety.assistance import AssistanceLevels
 from app.safety.supervisor import RobotProbes, SafetySupervisor, StopAction
@@ -117,7 +118,7 @@ class SimulatorHosting:
         self._spec[name] = {"kind": kind, **params, **({"tcp_port": tcp_port} if tcp_port else {})}
         self.patient()
         self.process = self.process or SimulatorProcess(self._process_spec())
-        return RemoteSimulator(name, self.process, self.runtime_dir / f"{name}.tty", tcp_port)
+        return RemoteSimulator(name, self.process, simulator_link(self.runtime_dir, name), tcp_port)
 
     def start(self) -> None:
         """Start the simulator process (when any device asked for one); raises when it does not come up."""

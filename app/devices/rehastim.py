@@ -35,6 +35,7 @@ from app.core import journal, streams
 from app.core.bus import BusItem, Channel, StreamBus, StreamSpec
 from app.core.config import FesDevice
 from app.core.fes_profile import MAX_SCALE, FesProfile
+from app.core.links import simulator_link
 from app.devices.command_queue import CommandQueue, CommandQueueClosed, CommandStatus, Priority
 from app.devices.driver import DeviceDriver
 from app.devices.fes_guardian import FesGuardian, GuardianError
@@ -442,23 +443,29 @@ class FesDriver(DeviceDriver):
         stimulator's e-stop is never queued behind a start waiting for its acks. Never raises; the returned
         status is done, ``written`` when Stop left (its ack is checked by the driver loop, a missing one is a
         fault)."""
-        with self._generation_lock:
-            was = self._stimulating
-            self._stimulating = False  # the update loop sends nothing more
-            self._stop_generation += 1
-        return self._send_the_stop(was, reason, source)
+        was = self._end_generation()  # never None here: no generation to compare with
+        return self._send_the_stop(bool(was), reason, source)
 
     def _stop_unless_stopped_since(self, generation: int, reason: str, source: str) -> bool:
         """Stop as :meth:`stop_stimulation` does — unless a stop came since ``generation`` (then a start after
         it may be running, which this late stop must not take back). True when it stopped."""
+        was = self._end_generation(unless_stopped_since=generation)
+        if was is None:
+            return False
+        self._send_the_stop(was, reason, source)
+        return True
+
+    def _end_generation(self, unless_stopped_since: int | None = None) -> bool | None:
+        """End this stimulation's generation: the update loop sends nothing more, and a start queued before now
+        does not begin. Whether it was stimulating; None, and nothing ended, when ``unless_stopped_since`` is
+        given and a stop came since that generation."""
         with self._generation_lock:
-            if generation != self._stop_generation:
-                return False
+            if unless_stopped_since is not None and unless_stopped_since != self._stop_generation:
+                return None
             was = self._stimulating
             self._stimulating = False
             self._stop_generation += 1
-        self._send_the_stop(was, reason, source)
-        return True
+            return was
 
     def _send_the_stop(self, was: bool, reason: str, source: str) -> CommandStatus:
         written = False
@@ -1110,7 +1117,7 @@ def create(ctx: DeviceContext) -> DeviceHandle | None:
     url = cfg.port
     settings = SERIAL_SETTINGS[protocol]
     if cfg.mode == "simulated":
-        link = ctx.runtime_dir / "fes.tty"
+        link = simulator_link(ctx.runtime_dir, streams.FES)
         simulator = ctx.simulators.serial(
             streams.FES, streams.FES, lambda patient: SerialSimulator(
                 streams.FES, lambda: RehaStimSimAdapter(protocol, observer=patient), link, tick_s=0.002),

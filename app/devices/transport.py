@@ -22,6 +22,8 @@ from typing import Protocol
 
 import serial
 
+from app.core.links import DEFAULT_BAUDRATE, LOOPBACK, socket_link_url
+
 log = logging.getLogger(__name__)
 
 try:  # pyserial applies settings with termios; its error is not an OSError
@@ -61,7 +63,7 @@ class Transport(Protocol):
 
 @dataclass(frozen=True)
 class SerialSettings:
-    baudrate: int = 115200
+    baudrate: int = DEFAULT_BAUDRATE
     bytesize: int = serial.EIGHTBITS
     parity: str = serial.PARITY_NONE
     stopbits: float = serial.STOPBITS_ONE
@@ -498,9 +500,9 @@ class SocketLink:
     the driver's own reconnect."""
 
     def __init__(self, port: int = 0) -> None:
-        self._server = socket.create_server(("127.0.0.1", port))
+        self._server = socket.create_server((LOOPBACK, port))
         self._server.setblocking(False)
-        self.url = f"socket://127.0.0.1:{self._server.getsockname()[1]}"
+        self.url = socket_link_url(self._server.getsockname()[1])
         self._client: socket.socket | None = None
         self._closed = False
         self.clients_accepted = 0

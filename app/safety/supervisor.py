@@ -29,7 +29,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from app.core import journal
-from app.core.bus import RecordListener, StreamBus
+from app.core.bus import StreamBus
 from app.core.config import RobotLimits, SafetyConfig
 from app.core.ownership import DEVICE_WORDS, ROBOT, STIMULATOR, Composition, Lease, clamp_to, refusal
 from app.wire.linarm_constants import K
@@ -77,9 +77,6 @@ class Alarm:
     t_last_mono: float = field(default_factory=time.monotonic)  # the cause's latest occurrence
 
 
-EventSink = Callable[[str, dict[str, Any]], None]
-
-
 @dataclass(frozen=True)
 class StopAction:
     """Something that makes a device safe, run on every emergency stop and safe-state request.
@@ -122,15 +119,10 @@ class SafetySupervisor:
     """Limits, leases, alarms and the e-stop latch (see the module docstring). ``bus``: the stream bus its records
     go to (the manager's; a supervisor of its own, e.g. in a test, makes a bus of its own)."""
 
-    def __init__(self, config: SafetyConfig, event_sink: EventSink | None = None, bus: StreamBus | None = None) -> None:
+    def __init__(self, config: SafetyConfig, bus: StreamBus | None = None) -> None:
         self.config = config
         self.robot: RobotLimits = config.robot
         self.bus = bus if bus is not None else StreamBus()
-        self._event_sink: EventSink | None = None  # the one-slot form (set_event_sink), kept for compatibility
-        self._sink_listener: RecordListener | None = None
-        self._subscribers: tuple[tuple[EventSink, RecordListener], ...] = ()  # add_event_subscriber's
-        if event_sink is not None:
-            self.set_event_sink(event_sink)
         self._stop_actions: list[StopAction] = []
         self._estop_lock = threading.RLock()
         self._estop_latched = False
@@ -158,32 +150,6 @@ class SafetySupervisor:
         thread."""
         log.info("record %s %s", kind, data)
         self.bus.record(journal.SAFETY, kind, data)
-
-    # The (kind, data) form of a journal listener, for code written before the journal: each is a bus listener.
-    @property
-    def event_sink(self) -> EventSink | None:
-        return self._event_sink
-
-    def set_event_sink(self, sink: EventSink | None) -> None:
-        """One replaceable ``sink(kind, data)`` for every journal record (prefer ``bus.listen``)."""
-        if self._sink_listener is not None:
-            self._sink_listener.close()
-            self._sink_listener = None
-        self._event_sink = sink
-        if sink is not None:
-            self._sink_listener = self.bus.listen("event sink", _as_listener(sink))
-
-    def add_event_subscriber(self, fn: EventSink) -> None:
-        """``fn(kind, data)`` for every journal record, on the thread that published it; it must be quick."""
-        self.remove_event_subscriber(fn)
-        self._subscribers = (*self._subscribers, (fn, self.bus.listen("event subscriber", _as_listener(fn))))
-
-    def remove_event_subscriber(self, fn: EventSink) -> None:
-        """Stop ``fn`` (compared by equality: a bound method given again is the same subscriber)."""
-        for f, listener in self._subscribers:
-            if f == fn:
-                listener.close()
-        self._subscribers = tuple((f, listener) for f, listener in self._subscribers if f != fn)
 
     def set_robot_probes(self, probes: RobotProbes) -> None:
         self.latest_centre_m = probes.centre_m
@@ -518,15 +484,6 @@ class SafetySupervisor:
     def alarms(self) -> list[Alarm]:
         with self._lock:
             return list(self._alarms)
-
-
-def _as_listener(fn: EventSink) -> Callable[[journal.Record], None]:
-    """A ``fn(kind, data)`` as a bus listener: the journal's records, without the origin."""
-
-    def listener(record: journal.Record) -> None:
-        fn(record.kind, record.data)  # type: ignore[arg-type]  # data is the publisher's dict
-
-    return listener
 
 
 def _makes_safe(name: str, args: dict[str, Any]) -> bool:

@@ -150,12 +150,6 @@ class LslBridge:
     def lsl_time(self, t_mono: float) -> float:
         return t_mono + self.offset_s
 
-    def marker(self, record: dict[str, Any]) -> None:
-        """Push an event (a session event as ``events.jsonl`` holds it) as a JSON marker."""
-        t = record.get("t_mono")
-        t = float(t) if isinstance(t, int | float) else time.monotonic()
-        self._markers.append((t, json.dumps(record, ensure_ascii=False, default=str)))
-
     # ------------------------------------------------------------------ internals
     def _run(self) -> None:
         sub = self._sub

@@ -37,6 +37,7 @@ from pathlib import Path
 from typing import Any
 
 from app.core import streams
+from app.core.links import LOOPBACK, simulator_link, socket_link_url
 from app.devices.sim.base import DEVICE_CONTROLS, SerialSimulator, linarm_starts_homed
 
 log = logging.getLogger(__name__)
@@ -77,7 +78,7 @@ def qemu_mps2_command(image: Path, uart0_port: int, uart1: str = "null", icount:
     server; ``uart1`` (the board console) is any qemu chardev spec. ``icount``: count instructions
     (virtual time = 2^icount ns per instruction) instead of following the host's clock."""
     cmd = [QEMU_SYSTEM_ARM, "-M", "mps2-an385", "-nographic", "-monitor", "none", "-kernel", str(image),
-           "-serial", f"tcp:127.0.0.1:{uart0_port},server=on,wait=off,nodelay=on", "-serial", uart1]
+           "-serial", f"tcp:{LOOPBACK}:{uart0_port},server=on,wait=off,nodelay=on", "-serial", uart1]
     if icount is not None:
         cmd += ["-icount", f"shift={icount},sleep=on"]
     return cmd
@@ -88,7 +89,7 @@ def free_tcp_port() -> int:
     import socket
 
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
-        sock.bind(("127.0.0.1", 0))
+        sock.bind((LOOPBACK, 0))
         return int(sock.getsockname()[1])
 
 
@@ -155,7 +156,7 @@ class McuCore:
         self.sock: Any = None
         self.console: Any = None
         self.proc = subprocess.Popen(
-            qemu_mps2_command(image, port, f"tcp:127.0.0.1:{console_port},server=on,wait=off,nodelay=on"),
+            qemu_mps2_command(image, port, f"tcp:{LOOPBACK}:{console_port},server=on,wait=off,nodelay=on"),
             stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
             preexec_fn=firmware_child_setup)
         deadline = time.monotonic() + connect_timeout_s
@@ -182,7 +183,7 @@ class McuCore:
 
         while True:  # qemu listens a moment after it starts
             try:
-                sock = socket.create_connection(("127.0.0.1", port), timeout=1.0)
+                sock = socket.create_connection((LOOPBACK, port), timeout=1.0)
                 sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
                 return sock
             except OSError:
@@ -276,7 +277,7 @@ def build_simulators(spec: dict[str, Any], patient: Any, emit: Callable[[dict[st
     sims: dict[str, Any] = {}
     for name, params in spec["devices"].items():
         kind = params["kind"]
-        link = runtime / f"{name}.tty"
+        link = simulator_link(runtime, name)
         link_factory = None
         if params.get("tcp_port"):
             from app.devices.transport import SocketLink
@@ -617,7 +618,7 @@ class RemoteSimulator:
 
     @property
     def url(self) -> str:
-        return f"socket://127.0.0.1:{self.tcp_port}" if self.tcp_port else str(self.link_path)
+        return socket_link_url(self.tcp_port) if self.tcp_port else str(self.link_path)
 
     @property
     def running(self) -> bool:

@@ -152,7 +152,7 @@ def make(name: str, case: dict[str, Any]) -> Path:
                 timers.append(thread)  # type: ignore[arg-type]
                 thread.start()
 
-        manager.supervisor.add_event_subscriber(on_event)
+        manager.bus.listen("make_sessions", lambda r: on_event(r.kind, r.data))
 
     with tempfile.TemporaryDirectory() as tmp:
         script = Path(tmp) / f"{name}.py"
