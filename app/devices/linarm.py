@@ -557,7 +557,7 @@ def create(ctx: DeviceContext) -> DeviceHandle | None:
     """The LINarm from its context: driver on its serial link (or the simulator's), the supervisor's robot
     probes and monitor, and the robot's stop action."""
     from app.devices.registry import DeviceHandle
-    from app.devices.sim.adapters import LinarmSimAdapter
+    from app.devices.sim.adapters import LINARM_POLL_S, LinarmSimAdapter
     from app.safety.supervisor import RobotProbes
 
     cfg: LinarmDevice = ctx.config
@@ -569,7 +569,8 @@ def create(ctx: DeviceContext) -> DeviceHandle | None:
         link = ctx.runtime_dir / "linarm.tty"
         simulator = ctx.simulators.serial(
             streams.LINARM, streams.LINARM,
-            lambda patient: SerialSimulator(streams.LINARM, lambda: LinarmSimAdapter(patient), link, tick_s=0.001))
+            lambda patient: SerialSimulator(streams.LINARM, lambda: LinarmSimAdapter(patient), link,
+                                            tick_s=LINARM_POLL_S))
         url = simulator.url
     supervisor = ctx.supervisor
     link = SerialTransport(url, SerialSettings(baudrate=cfg.baudrate))

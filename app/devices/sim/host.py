@@ -284,13 +284,13 @@ def build_simulators(spec: dict[str, Any], patient: Any, emit: Callable[[dict[st
             def link_factory(port: int = int(params["tcp_port"])) -> Any:
                 return SocketLink(port)
         if kind == streams.LINARM:
-            from app.devices.sim.adapters import LinarmSimAdapter
+            from app.devices.sim.adapters import LINARM_POLL_S, LinarmSimAdapter
 
             def linarm_core(patient: Any = patient) -> Any:
                 core = LinarmSimAdapter(patient)
                 return _Watched(core, LinarmStateWatch(emit)) if emit else core
 
-            sims[name] = SerialSimulator(name, linarm_core, link, tick_s=0.001, link_factory=link_factory)
+            sims[name] = SerialSimulator(name, linarm_core, link, tick_s=LINARM_POLL_S, link_factory=link_factory)
         elif kind == "linarm_firmware":
             executable = Path(params["executable"])
 
