@@ -41,6 +41,9 @@ class _PatientOnCoreClock:
 # (``next_output``), the controller's 1 kHz loop is caught up at each wake (LinarmSimCore.advance_to), and host
 # bytes wake it at once. Waking every millisecond cost the simulator process ~10 % of a core for nothing.
 LINARM_POLL_S = 0.005
+# The stimulator acts on its own only at its watchdog's expiry or a repeated Init (``next_output``); the rest is
+# answers to host bytes, which wake its thread at once. Its thread woke every 2 ms before, for nothing.
+FES_POLL_S = 0.05
 
 
 class LinarmSimAdapter:
@@ -91,3 +94,6 @@ class RehaStimSimAdapter(RehaStimSimCore):
 
     def poll(self, t: float) -> bytes:
         return self.tick(t)
+
+    def next_output(self) -> float | None:
+        return self.next_event_time()
