@@ -36,13 +36,16 @@ WATCHDOG_S = 0.25  # the controller's host watchdog (firmware): a longer silence
 
 
 class GapMeter:
-    """A 1 ms timer on the GUI thread: every tick's time and the gap since the one before."""
+    """A 1 ms timer on the GUI thread: every tick's time and the gap since the one before, and the GUI thread's own
+    CPU time within that gap (what the turn cost, however long a loaded machine kept the thread waiting)."""
 
     def __init__(self) -> None:
         from PySide6.QtCore import QTimer
 
         self.ticks: list[tuple[float, float]] = []
+        self.cpu_gaps: list[float] = []  # one per tick: the GUI thread's CPU time since the tick before
         self._last = time.monotonic()
+        self._last_cpu = time.thread_time()
         self.timer = QTimer()
         self.timer.setTimerType(Qt.TimerType.PreciseTimer)
         self.timer.setInterval(1)
@@ -50,14 +53,20 @@ class GapMeter:
         self.timer.start()
 
     def _tick(self) -> None:
-        now = time.monotonic()
+        now, cpu = time.monotonic(), time.thread_time()
         self.ticks.append((now, now - self._last))
-        self._last = now
+        self.cpu_gaps.append(cpu - self._last_cpu)
+        self._last, self._last_cpu = now, cpu
 
     def longest(self, t0: float, t1: float) -> float:
         """The longest gap ending in [t0, t1] (a stall running at t1 ends at the first tick after it)."""
         end = next((t for t, _g in self.ticks if t > t1), t1)
         return max((g for t, g in self.ticks if t0 < t <= end), default=0.0)
+
+    def longest_cpu(self, t0: float, t1: float) -> float:
+        """The GUI thread's largest CPU time in one gap ending in [t0, t1]."""
+        end = next((t for t, _g in self.ticks if t > t1), t1)
+        return max((c for (t, _g), c in zip(self.ticks, self.cpu_gaps, strict=True) if t0 < t <= end), default=0.0)
 
     def stop(self) -> None:
         self.timer.stop()

@@ -60,3 +60,27 @@ def test_panels_load_when_present_and_simulation_only_when_simulated(qtbot, monk
     assert isinstance(frame.panels["FesPanel"], FakePanel) and frame.no_devices.isVisibleTo(frame)
     assert commands_frame.set_device_running(manager, "nope", True) is False
     manager.shutdown()  # ends the script console's kernel
+
+
+def test_a_viewer_is_built_when_its_tab_is_first_shown(qtbot) -> None:
+    """The viewers (BUILT_WHEN_SHOWN) cost the window's start about a second of CPU for tabs a session may never
+    open: each is built on its tab's first showing, once, in the tab, with the window's bus; the panels that act
+    are built with the frame."""
+    manager = LinarmppManager(AppConfig(), factories={})
+    frame = CommandsFrame(manager)
+    qtbot.addWidget(frame)
+    try:
+        titles = [frame.tabs.tabText(i) for i in range(frame.tabs.count())]
+        assert {"FesPanel", "ExercisesPanel", "ScriptConsole", "AlarmsPanel"} <= set(frame.panels)
+        assert not set(frame.panels) & commands_frame.BUILT_WHEN_SHOWN, sorted(frame.panels)
+        frame.tabs.setCurrentIndex(titles.index("Sensors"))
+        physio = frame.panels["PhysioViewer"]
+        assert frame.tabs.widget(titles.index("Sensors")).isAncestorOf(physio)
+        assert physio.qt_bus is frame.qt_bus
+        frame.tabs.setCurrentIndex(0)
+        frame.tabs.setCurrentIndex(titles.index("Sensors"))
+        assert frame.panels["PhysioViewer"] is physio  # once
+        frame.build_all_panels()
+        assert commands_frame.BUILT_WHEN_SHOWN <= set(frame.panels)
+    finally:
+        manager.shutdown()

@@ -493,3 +493,48 @@ def test_a_starved_measurement_is_not_taken_for_a_response() -> None:
     assert jumped
     assert "too busy to measure" in result.aborted
     assert len(result.combinations[0].bursts) == 2  # the two measured before are kept
+
+
+def test_a_starved_measurement_counts_the_readings_stamped_in_its_window() -> None:
+    """The same late wake-up with the LINarm's stream queued for the procedure (as the application's ports give it,
+    every reading stamped when it was taken): the readings of the measurement window are all there however late
+    the worker polls, so the set-up measures what an undisturbed one measures instead of giving up. On the code
+    that polled only the latest reading it ended "too few LINarm readings during the burst (0)"."""
+
+    STARVED = 8  # the eighth burst, 15 mA: a response well above the noise
+
+    def run(starve: bool) -> tuple:  # type: ignore[type-arg]
+        rig = Rig(SimulatedPatient(seed=2))
+        queued: list[ArmReading] = []
+        rig.clock.tick_hooks.append(lambda _t: queued.append(rig.read_arm()))  # the stream, as the device sends it
+        sleep = rig.clock.sleep
+        jumped: list[float] = []
+
+        def late_sleep(seconds: float) -> None:
+            if starve and not jumped and len(rig.bursts) == STARVED and rig.stimulating():
+                t0, b = rig.bursts[-1]
+                if rig.clock.t >= t0 + b.ramp_s + b.hold_s - PLAN.measure_s + 0.01:
+                    jumped.append(rig.clock.t)
+                    for _ in range(100):  # the world goes on in 5 ms steps; this thread sleeps 0.5 s
+                        sleep(0.005)
+                    return
+            sleep(seconds)
+
+        def drain() -> list[ArmReading]:
+            out = queued[:]
+            queued.clear()
+            return out
+
+        ports = SetupPorts(**{**rig.ports().__dict__, "sleep": late_sleep, "arm_readings": drain})
+        result = ElectrodeSetup(DELTOID, PLAN, LIMITS, ports).run()
+        assert jumped or not starve
+        if result.aborted:
+            return (result.aborted,)
+        third = result.combinations[0].bursts[STARVED - 1]
+        return result.aborted, len(result.combinations[0].bursts), third.current_ma, third.response_n, third.samples
+
+    undisturbed, starved = run(False), run(True)
+    assert not starved[0], starved[0]
+    assert starved[1:3] == undisturbed[1:3], (starved, undisturbed)
+    assert starved[3] == pytest.approx(undisturbed[3], rel=0.05), (starved, undisturbed)  # the same response
+    assert starved[4] >= 30, starved  # every reading of the 0.3 s window (5-10 ms apart), not the polled few

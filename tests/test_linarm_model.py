@@ -446,6 +446,23 @@ def test_demo_mode_with_virtual_vsa() -> None:
 # ---------------------------------------------------------------------------------------------
 
 
+def test_the_next_frame_is_due_when_the_core_says() -> None:
+    """The simulator's thread sleeps until ``next_output_time`` instead of waking every tick: nothing may come out
+    before it, and the frame comes out at it (a frame later than its due time would be late on the wire)."""
+    host = ready_host(at=0.20)
+    assert host.core.next_output_time() is None  # no stream: nothing scheduled
+    host.ok("startDataStream", 0.005)
+    host.drain()
+    for _ in range(40):
+        due = host.core.next_output_time()
+        assert due is not None and due > host.core.time - 1e-9
+        before = host.core.stream_bytes(due - 0.0005)
+        assert not [m for m in host._decode(before) if isinstance(m, VsaState)], (due, host.core.time)
+        frames = [m for m in host._decode(host.core.stream_bytes(due)) if isinstance(m, VsaState)]
+        assert len(frames) == 1 and frames[0].t_us == round(due * 1e6), (due, frames)
+        host.core.handle_host_bytes(encode_command("heartbeat", next_seq(host.seq)), due)
+
+
 def test_state_stream_rate_and_content() -> None:
     host = ready_host(at=0.20)
     host.received.clear()

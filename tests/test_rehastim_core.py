@@ -193,6 +193,22 @@ def test_sm2_session_and_watchdog() -> None:
     assert sim.log[-2:] == [StimulationLogEntry(6.01, 1, 0, 0), StimulationLogEntry(6.01, 2, 0, 0)]
 
 
+def test_the_simulator_thread_wakes_when_the_device_acts_on_its_own() -> None:
+    """``next_event_time``: the simulator's thread sleeps until then (at most its poll period): ScienceMode 2's
+    watchdog expires at it and not before, and its Init is repeated at it; ScienceMode 1 never acts alone."""
+    assert RehaStimSimCore("sm1").next_event_time() is None
+    sim = connected(0.0)
+    sim.handle_bytes(encode_sm2(Sm2InitChannelListMode(1, CFG)), 0.1)
+    sim.handle_bytes(encode_sm2_start(2, CFG, {1: P(20, 200), 2: P(5, 10), 5: P(0, 0)}), 0.2)
+    due = sim.next_event_time()
+    assert due is not None and due == pytest.approx(0.2 + 1.2, abs=1e-3)
+    assert sim.tick(due - 1e-3) == b"" and sim.initialised and sim.channel_state() != {}
+    out = sim.tick(due)
+    assert not sim.initialised and sim.watchdog_expiries == 1 and isinstance(sm2(out)[0], Sm2Init)
+    again = sim.next_event_time()
+    assert again is not None and sim.tick(again - 1e-3) == b"" and isinstance(sm2(sim.tick(again))[0], Sm2Init)
+
+
 def test_sm2_error_acks() -> None:
     sim = connected()
     # start before init: wrong mode

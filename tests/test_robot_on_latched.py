@@ -203,8 +203,10 @@ def test_garbage_on_the_link_is_counted_in_the_session_record(rig: Rig, qtbot) -
     junk = bytes(range(256)).replace(b";", b"").replace(b"/", b"") * 4  # no frame ends inside a chunk
     for _ in range(200):  # ~200 KB of noise between genuine frames
         rig.sim.link.write(junk + b";")
-    qtbot.waitUntil(lambda: any(k == "link_garbage" and d["bytes_discarded"] - before >= 100_000
-                                for k, d in rig.events), timeout=5000)
+    # Every chunk counted in a record (the driver records the counts at most every GARBAGE_RECORD_PERIOD_S while
+    # frames arrive): waiting for half the bytes let the session end before the last chunks' record (199 < 200).
+    qtbot.waitUntil(lambda: any(k == "link_garbage" and d["bytes_discarded"] - before >= 200 * len(junk)
+                                and d["bad_frames"] >= 200 for k, d in rig.events), timeout=10_000)
     assert driver.connected
     rig.manager.end_session()
     garbage = [e["data"] for e in load_session(rig.folder).events if e["kind"] == "link_garbage"]

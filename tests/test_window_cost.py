@@ -10,7 +10,6 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -56,25 +55,19 @@ def test_the_3d_scene_renders_only_when_something_moves_visibly(require_gl, qtbo
     qtbot.waitUntil(view.gl_view.isExposed)
     view.refresh()
     qtbot.waitUntil(lambda: view.gl_view.frames > 0)
-    # Settled: no frame for 0.2 s (a late expose of the new window draws once more; a fixed 100 ms wait missed one
-    # in a quiet suite run on three workers: "3 == 2").
-    seen = [view.gl_view.frames, time.monotonic()]
-
-    def settled() -> bool:
-        if view.gl_view.frames != seen[0]:
-            seen[:] = [view.gl_view.frames, time.monotonic()]
-        return time.monotonic() - seen[1] >= 0.2
-
-    qtbot.waitUntil(settled, timeout=5000)
-    rendered = view.gl_view.frames
+    # What the scene asks for, not the window's paints: an expose from the window system (another test's window
+    # on the same X display, in a suite run on three workers) paints a frame the scene did not ask for ("3 == 2").
+    scene = view._gl
+    requested, rendered = scene.renders_requested, view.gl_view.frames
     for i in range(5):  # the handle creeps by a tenth of a step: nothing is rendered again
         drivers["linarm"].put("linarm.vsa", 2.0 + i, equilibriumPos=0.25, delta=0.012, handlePos=0.231
                               + 0.1 * GL_STEP_M * (i + 1))
         view.refresh()
         qtbot.wait(20)
-    assert view.gl_view.frames == rendered and view.state.handle > 0.231  # the state itself is current
+    assert scene.renders_requested == requested and view.state.handle > 0.231  # the state itself is current
     drivers["linarm"].put("linarm.vsa", 9.0, equilibriumPos=0.25, delta=0.012, handlePos=0.24)  # 9 mm
     view.refresh()
+    assert scene.renders_requested == requested + 1
     qtbot.waitUntil(lambda: view.gl_view.frames > rendered)
 
 

@@ -558,7 +558,7 @@ def create(ctx: DeviceContext) -> DeviceHandle | None:
     """The LINarm from its context: driver on its serial link (or the simulator's), the supervisor's robot
     probes and monitor, and the robot's stop action."""
     from app.devices.registry import DeviceHandle
-    from app.devices.sim.adapters import LinarmSimAdapter
+    from app.devices.sim.adapters import LINARM_POLL_S, LinarmSimAdapter
     from app.safety.supervisor import RobotProbes
 
     cfg: LinarmDevice = ctx.config
@@ -570,7 +570,8 @@ def create(ctx: DeviceContext) -> DeviceHandle | None:
         link = simulator_link(ctx.runtime_dir, streams.LINARM)
         simulator = ctx.simulators.serial(
             streams.LINARM, streams.LINARM,
-            lambda patient: SerialSimulator(streams.LINARM, lambda: LinarmSimAdapter(patient), link, tick_s=0.001))
+            lambda patient: SerialSimulator(streams.LINARM, lambda: LinarmSimAdapter(patient), link,
+                                            tick_s=LINARM_POLL_S))
         url = simulator.url
     supervisor = ctx.supervisor
     link = SerialTransport(url, SerialSettings(baudrate=cfg.baudrate))

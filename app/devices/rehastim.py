@@ -1103,7 +1103,7 @@ def watch_link(bus: StreamBus, source: str, fes: FesDriver, label: str) -> None:
 
 def create(ctx: DeviceContext) -> DeviceHandle | None:
     from app.devices.registry import DeviceHandle
-    from app.devices.sim.adapters import RehaStimSimAdapter
+    from app.devices.sim.adapters import FES_POLL_S, RehaStimSimAdapter
 
     cfg: FesDevice = ctx.config
     if cfg.mode == "off":
@@ -1120,7 +1120,7 @@ def create(ctx: DeviceContext) -> DeviceHandle | None:
         link = simulator_link(ctx.runtime_dir, streams.FES)
         simulator = ctx.simulators.serial(
             streams.FES, streams.FES, lambda patient: SerialSimulator(
-                streams.FES, lambda: RehaStimSimAdapter(protocol, observer=patient), link, tick_s=0.002),
+                streams.FES, lambda: RehaStimSimAdapter(protocol, observer=patient), link, tick_s=FES_POLL_S),
             protocol=protocol)
         url = simulator.url
         settings = simulated_link_settings(protocol)

@@ -493,7 +493,7 @@ class FESUser(_ApiObject):
             result = electrodes.run_district_setup(fes, robot, manager.supervisor,
                                                    bus.latest, record,
                                                    districts[district], plan, lambda: self._ctx.stopped,
-                                                   source=source)
+                                                   source=source, bus=bus)
         except electrodes.SetupAborted as exc:
             raise CommandRefused(f"fes.electrodeSetup({district!r}) was refused: {exc.reason}") from exc
         self._ctx.check()

@@ -318,7 +318,10 @@ class SetupPorts:
     ``start_burst(burst)`` starts one test burst through the stimulator's checked path (raises with a reason
     when refused) and returns at once; ``stimulating()`` says whether it is still running; ``stop(reason)``
     stops stimulation at once and never raises. ``hold_arm()`` puts the robot in position hold where it is;
-    ``release_arm()`` puts it back as it was. ``read_arm()`` is the latest handle reading (or None).
+    ``release_arm()`` puts it back as it was. ``read_arm()`` is the latest handle reading (or None);
+    ``arm_readings()``, when given, every reading that came since its last call (the stream's queue): a
+    measurement then counts every reading stamped in its window, however late this thread polls (a busy
+    computer), instead of the latest one at each poll. ``close()`` ends what the ports hold (that queue).
     ``hold_reason()`` is the supervisor's: '' unless the e-stop is latched or a STOP alarm is open. ``now`` /
     ``sleep`` are the clock. ``record(kind, data)`` puts an event in the session record."""
 
@@ -329,6 +332,8 @@ class SetupPorts:
     release_arm: Callable[[], None]
     read_arm: Callable[[], ArmReading | None]
     hold_reason: Callable[[], str]
+    arm_readings: Callable[[], list[ArmReading]] | None = None
+    close: Callable[[], None] = lambda: None
     now: Callable[[], float] = time.monotonic
     sleep: Callable[[float], None] = time.sleep
     record: Callable[[str, dict[str, Any]], None] = lambda _kind, _data: None
@@ -424,6 +429,7 @@ class ElectrodeSetup:
                 except Exception as exc:  # the robot is still held: say so, the therapist releases it
                     log.warning("electrode set-up: the arm could not be released: %s", exc)
                     ports.record("electrode_setup_release_failed", {"district": district.name, "error": str(exc)})
+            ports.close()
         return result
 
     def _burst(self, combo: CombinationResult, current: int) -> BurstResult:
@@ -450,6 +456,7 @@ class ElectrodeSetup:
         if not ports.stimulating() and ports.now() < t0 + burst.duration_s:
             raise SetupAborted(f"stimulation on channel {channel} ended before the burst did (stopped elsewhere)")
         self._wait_until(t0 + burst.duration_s)
+        window = self._late(window, plateau_end - p.measure_s, plateau_end)
         if len(window) < MIN_READINGS:
             raise SetupAborted(f"too few LINarm readings during the burst ({len(window)}): the LINarm stopped "
                                "sending, or this computer is too busy to measure")
@@ -493,10 +500,27 @@ class ElectrodeSetup:
             reading = ports.read_arm()
             if reading is not None and start - 1e-9 <= reading.t <= end + 1e-9:
                 out[reading.t] = reading
+            self._take_queued(out, start, end)
             left = end - ports.now()
             if left <= 1e-9:
                 return list(out.values())
             ports.sleep(min(left, self.plan.sample_period_s))
+
+    def _take_queued(self, out: dict[float, ArmReading], start: float, end: float) -> None:
+        """The queued readings stamped in [start, end] into ``out`` (the rest are dropped: they are older than
+        the window, or too new for it and a later window starts after them)."""
+        if self.ports.arm_readings is None:
+            return
+        for reading in self.ports.arm_readings():
+            if start - 1e-9 <= reading.t <= end + 1e-9:
+                out[reading.t] = reading
+
+    def _late(self, window: list[ArmReading], start: float, end: float) -> list[ArmReading]:
+        """``window`` with the readings stamped in it that were read after it closed (a driver read late on a
+        busy computer; the samples carry the time they were taken)."""
+        out = {r.t: r for r in window}
+        self._take_queued(out, start, end)
+        return list(out.values())
 
     def _emit(self, kind: str, payload: Any) -> None:
         if self.listener is not None:
@@ -584,14 +608,28 @@ class _Robot:
 
 def app_ports(fes: Any, robot_command: Callable[..., Any], latest: Callable[[str], Any],
               hold_reason: Callable[[], str], record: Callable[[str, dict[str, Any]], None], muscle: str = "",
-              source: str = "electrode set-up", stopped: Callable[[], bool] = lambda: False) -> SetupPorts:
+              source: str = "electrode set-up", stopped: Callable[[], bool] = lambda: False,
+              bus: Any = None) -> SetupPorts:
     """The procedure's ports on the application's devices: ``fes`` (app.devices.rehastim.FesDriver: load_profile,
     start_stimulation, stop_stimulation, stimulating), the LINarm's checked ``command``, ``latest(stream)`` (the
     bus's or the driver's latest sample), the supervisor's ``robot_hold_reason`` and the session record.
-    ``stopped()`` true ends the procedure too (a script's Stop)."""
+    ``stopped()`` true ends the procedure too (a script's Stop). With ``bus`` (app.core.bus.StreamBus) the
+    measurements read the LINarm's stream from a queue of their own (every reading, stamped when taken), closed
+    by the ports' ``close()``."""
     from app.core import streams
+    from app.core.bus import SampleItem
 
     robot = _Robot(robot_command, latest, source)
+    queue = bus.subscribe("electrode set-up", [streams.LINARM_VSA]) if bus is not None else None
+
+    def arm_readings() -> list[ArmReading]:
+        assert queue is not None
+        return [ArmReading(item.t, float(item.sample.interactionForce), float(item.sample.handlePos))
+                for item in queue.drain() if isinstance(item, SampleItem)]
+
+    def close() -> None:
+        if queue is not None:
+            queue.close()
 
     def start_burst(burst: Burst) -> None:
         fes.load_profile(burst_profile(burst, muscle), source)
@@ -615,7 +653,8 @@ def app_ports(fes: Any, robot_command: Callable[..., Any], latest: Callable[[str
 
     return SetupPorts(start_burst=start_burst, stimulating=lambda: bool(fes.stimulating),
                       stop=lambda reason: fes.stop_stimulation(reason, source), hold_arm=robot.hold,
-                      release_arm=release_arm, read_arm=read_arm, hold_reason=why_not, record=record)
+                      release_arm=release_arm, read_arm=read_arm, hold_reason=why_not, record=record,
+                      arm_readings=arm_readings if queue is not None else None, close=close)
 
 
 def choice_event(result: SetupResult, choice: Any) -> dict[str, Any]:
@@ -629,7 +668,7 @@ def choice_event(result: SetupResult, choice: Any) -> dict[str, Any]:
 def run_district_setup(fes: Any, robot: Any, supervisor: Any, latest: Callable[[str], Any],
                        record: Callable[[str, dict[str, Any]], None], district: District, plan: SetupPlan,
                        stopped: Callable[[], bool] = lambda: False, listener: ProgressListener | None = None,
-                       source: str = "electrode set-up") -> SetupResult:
+                       source: str = "electrode set-up", bus: Any = None) -> SetupResult:
     """The set-up of ``district`` on the application's devices, blocking (the script API's form; the dialog runs
     the same on a worker thread): ``fes`` the FesDriver, ``robot`` the LinarmDriver, ``supervisor`` the
     SafetySupervisor (its FES limits and hold reason). ``stopped()`` true ends it (a script's Stop). The profile
@@ -641,7 +680,7 @@ def run_district_setup(fes: Any, robot: Any, supervisor: Any, latest: Callable[[
         raise SetupAborted("stop the running stimulation first")
 
     ports = app_ports(fes, robot.command, latest, supervisor.robot_hold_reason, record, district.name, source,
-                      stopped)
+                      stopped, bus)
     previous = getattr(fes, "profile", None)
     try:
         return ElectrodeSetup(district, plan, limiter.limits, ports, listener).run()

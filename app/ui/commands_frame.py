@@ -38,6 +38,10 @@ log = logging.getLogger(__name__)
 # Panels that lay out (and scroll) their own content: no scroll area around them -- a scroll area
 # inside a scroll area hid the primary controls below two folds (issue #19).
 SELF_SCROLLING = {"LinarmPanel", "ScriptConsole", "AlarmsPanel", "FesPanel", "LinarmViewer"}
+# The viewers only show what the devices send: each is built when its tab is first shown (their graphs are a
+# second's CPU of the window's start, spent for tabs a session may never open). The panels that act (robot, FES,
+# assistance, exercises, script, alarms) are built with the window.
+BUILT_WHEN_SHOWN = {"LinarmViewer", "PhysioViewer", "PatientModelViewer", "VrViewer"}
 
 PANELS: list[tuple[str, str, str, bool]] = [
     ("Robot", "app.ui.linarm_panel", "LinarmPanel", False),
@@ -111,6 +115,7 @@ class CommandsFrame(QWidget):
         self.qt_bus = qt_bus_for(manager, qt_bus, self)
         self.toggles: dict[str, DeviceToggle] = {}
         self.panels: dict[str, QWidget] = {}
+        self._unbuilt: dict[int, tuple[str, Callable[..., QWidget]]] = {}  # tab index -> a viewer not built yet
         # Confirmation before disconnecting a device; tests replace it.
         self.confirm: Callable[[str], bool] = self._ask_confirmation
 
@@ -158,18 +163,42 @@ class CommandsFrame(QWidget):
                     raise  # the panel exists but one of its imports is missing: a real bug
                 continue
             factory = getattr(module, class_name)
-            panel = factory(self.manager, qt_bus=self.qt_bus) if takes_qt_bus(factory) else factory(self.manager)
-            self.panels[class_name] = panel
-            if class_name in SELF_SCROLLING:
-                self.tabs.addTab(panel, title)
+            if class_name in BUILT_WHEN_SHOWN:
+                holder = QWidget()
+                holder.setLayout(QVBoxLayout())
+                holder.layout().setContentsMargins(0, 0, 0, 0)
+                self._unbuilt[self.tabs.addTab(holder, title)] = (class_name, factory)
                 continue
-            # A tall panel scrolls inside its tab instead of forcing the window taller than the screen.
-            scroll = QScrollArea()
-            scroll.setProperty("scrolls", True)
-            scroll.setWidgetResizable(True)
-            scroll.setFrameShape(QFrame.Shape.NoFrame)
-            scroll.setWidget(panel)
-            self.tabs.addTab(scroll, title)
+            self.tabs.addTab(self._build_panel(class_name, factory), title)
+        self.tabs.currentChanged.connect(self._build_shown)
+        self._build_shown(self.tabs.currentIndex())
+
+    def _build_panel(self, class_name: str, factory: Callable[..., QWidget]) -> QWidget:
+        """The panel, and what its tab holds (the panel, or a scroll area around it)."""
+        panel = factory(self.manager, qt_bus=self.qt_bus) if takes_qt_bus(factory) else factory(self.manager)
+        self.panels[class_name] = panel
+        if class_name in SELF_SCROLLING:
+            return panel
+        # A tall panel scrolls inside its tab instead of forcing the window taller than the screen.
+        scroll = QScrollArea()
+        scroll.setProperty("scrolls", True)
+        scroll.setWidgetResizable(True)
+        scroll.setFrameShape(QFrame.Shape.NoFrame)
+        scroll.setWidget(panel)
+        return scroll
+
+    def _build_shown(self, index: int) -> None:
+        """Build a viewer the first time its tab is shown (BUILT_WHEN_SHOWN)."""
+        pending = self._unbuilt.pop(index, None)
+        if pending is None:
+            return
+        holder = self.tabs.widget(index)
+        holder.layout().addWidget(self._build_panel(*pending))
+
+    def build_all_panels(self) -> None:
+        """Every panel, shown or not (a check of every panel's text, a test that reads them all)."""
+        for index in list(self._unbuilt):
+            self._build_shown(index)
 
     def _sync_devices(self) -> None:
         for name, handle in self.manager.devices.items():

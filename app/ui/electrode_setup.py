@@ -239,7 +239,7 @@ class ElectrodeSetupDialog(QDialog):
         bus = getattr(self.manager, "bus", None)  # the data backbone (#29) when merged; the driver's latest before
         latest = bus.latest if bus is not None else robot.latest
         ports = app_ports(fes, robot.command, latest, supervisor.robot_hold_reason, self._record, district.name,
-                          SETUP_SOURCE)
+                          SETUP_SOURCE, bus=bus)
         self._previous_profile = getattr(fes, "profile", None)
         self.setup = ElectrodeSetup(district, plan, limiter.limits, ports,
                                     lambda kind, payload: self._relay.progress.emit(kind, payload))
@@ -265,6 +265,7 @@ class ElectrodeSetupDialog(QDialog):
             setup.result.aborted = f"the set-up failed: {exc}"
             self._relay.progress.emit("aborted", setup.result)
         finally:
+            setup.ports.close()  # the run closes it; a run that failed before its own end may not have
             self._restore_profile()
             release = getattr(self.manager, "release_lease", None)
             if callable(release):

@@ -102,12 +102,13 @@ class Frame:
 # Escaping and encoding (PC -> Arduino, and the simulator's Arduino -> PC replies)
 # ---------------------------------------------------------------------------------------------
 
-_ESCAPE_RE = re.compile(rb"([,;/\x00])")
 
 
 def escape(data: bytes) -> bytes:
-    """Put '/' before every ',' ';' '/' and NUL (printEsc)."""
-    return _ESCAPE_RE.sub(rb"/\1", data)
+    """Put '/' before every ',' ';' '/' and NUL (printEsc). The escape itself first, so the ones put in are not
+    escaped again; four C-level replaces instead of a regular expression's template (the simulated LINarm
+    encodes some 3 000 fields a second)."""
+    return (data.replace(b"/", b"//").replace(b",", b"/,").replace(b";", b"/;").replace(b"\x00", b"/\x00"))
 
 
 def unescape(data: bytes) -> bytes:

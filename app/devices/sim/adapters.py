@@ -37,6 +37,15 @@ class _PatientOnCoreClock:
         return float(self.patient.handle_force(t_abs, handle_pos, handle_vel))
 
 
+# How often the LINarm's simulator thread wakes at most with nothing to read: its frames go out when due
+# (``next_output``), the controller's 1 kHz loop is caught up at each wake (LinarmSimCore.advance_to), and host
+# bytes wake it at once. Waking every millisecond cost the simulator process ~10 % of a core for nothing.
+LINARM_POLL_S = 0.005
+# The stimulator acts on its own only at its watchdog's expiry or a repeated Init (``next_output``); the rest is
+# answers to host bytes, which wake its thread at once. Its thread woke every 2 ms before, for nothing.
+FES_POLL_S = 0.05
+
+
 class LinarmSimAdapter:
     """LinarmSimCore on the simulator thread's monotonic clock. Without an explicit ``start_homed`` it starts
     homed at the home position when ``LINARMPP_SIM_HOMED=1`` (app.devices.sim.base.linarm_starts_homed)."""
@@ -54,6 +63,11 @@ class LinarmSimAdapter:
 
     def poll(self, t: float) -> bytes:
         return self.core.stream_bytes(t - self.t0)
+
+    def next_output(self) -> float | None:
+        """When (monotonic) the core next has a stream frame to send, or None."""
+        due = self.core.next_output_time()
+        return None if due is None else self.t0 + due
 
 
 # ---------------------------------------------------------------------------------------------- physiological board
@@ -80,3 +94,6 @@ class RehaStimSimAdapter(RehaStimSimCore):
 
     def poll(self, t: float) -> bytes:
         return self.tick(t)
+
+    def next_output(self) -> float | None:
+        return self.next_event_time()

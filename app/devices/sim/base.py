@@ -147,6 +147,8 @@ class SerialSimulator:
                 if now >= next_tick:
                     with self._lock:
                         out = self.core.poll(now)
+                        next_output = getattr(self.core, "next_output", None)
+                        due = next_output() if next_output is not None else None
                     if out:
                         if self.keep_device_log:
                             self.device_bytes_log.append((time.monotonic(), out))
@@ -154,6 +156,8 @@ class SerialSimulator:
                     next_tick += self.tick_s
                     if next_tick < now - 0.1:  # fell far behind (debugger, suspended VM): do not burst
                         next_tick = now + self.tick_s
+                    if due is not None and now < due < next_tick:  # a frame due before the next tick: wake for it
+                        next_tick = due
         except OSError as exc:
             if not self._stop.is_set():
                 log.warning("simulator %s: link failed: %s", self.name, exc)

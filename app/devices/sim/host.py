@@ -285,13 +285,13 @@ def build_simulators(spec: dict[str, Any], patient: Any, emit: Callable[[dict[st
             def link_factory(port: int = int(params["tcp_port"])) -> Any:
                 return SocketLink(port)
         if kind == streams.LINARM:
-            from app.devices.sim.adapters import LinarmSimAdapter
+            from app.devices.sim.adapters import LINARM_POLL_S, LinarmSimAdapter
 
             def linarm_core(patient: Any = patient) -> Any:
                 core = LinarmSimAdapter(patient)
                 return _Watched(core, LinarmStateWatch(emit)) if emit else core
 
-            sims[name] = SerialSimulator(name, linarm_core, link, tick_s=0.001, link_factory=link_factory)
+            sims[name] = SerialSimulator(name, linarm_core, link, tick_s=LINARM_POLL_S, link_factory=link_factory)
         elif kind == "linarm_firmware":
             executable = Path(params["executable"])
 
@@ -317,11 +317,11 @@ def build_simulators(spec: dict[str, Any], patient: Any, emit: Callable[[dict[st
             sims[name] = SerialSimulator(name, lambda rate=rate, cal=cal: PhysioSimCore(patient, rate, cal), link,
                                          tick_s=min(0.005, 0.5 / rate), link_factory=link_factory)
         elif kind == streams.FES:
-            from app.devices.sim.adapters import RehaStimSimAdapter
+            from app.devices.sim.adapters import FES_POLL_S, RehaStimSimAdapter
 
             protocol = params["protocol"]
             sims[name] = SerialSimulator(name, lambda protocol=protocol: RehaStimSimAdapter(protocol, observer=patient),
-                                         link, tick_s=0.002, link_factory=link_factory)
+                                         link, tick_s=FES_POLL_S, link_factory=link_factory)
         else:
             raise ValueError(f"unknown simulator kind {kind!r}")
     return sims

@@ -346,6 +346,18 @@ class LinarmSimCore:
         """Advance the simulation by dt seconds (in 1 ms ticks; fractions carry over)."""
         self.advance_to(self._clock + dt)
 
+    def next_output_time(self) -> float | None:
+        """The core time of the next stream frame (None while the stream is off): the simulator's thread sleeps
+        until then instead of waking every tick (events of the ticks between go out with that frame, or on the
+        next poll)."""
+        if not self.stream_enabled:
+            return None
+        k = self._ticks + 1
+        late = (k - self._stream_start) % self._stream_ticks
+        if late:
+            k += self._stream_ticks - late
+        return k * DT
+
     def advance_to(self, t: float) -> None:
         if t > self._clock:
             self._clock = t

@@ -176,6 +176,15 @@ class RehaStimSimCore:
             out += self._sm2_reply(item, t)
         return bytes(out)
 
+    def next_event_time(self) -> float | None:
+        """When the device next acts on its own (ScienceMode 2: its watchdog's expiry, a repeated Init), on the
+        clock of ``t``; None when it only answers (ScienceMode 1)."""
+        if self.protocol == "sm1":
+            return None
+        if self.initialised:
+            return self._last_valid_t + SM2_WATCHDOG_TIMEOUT_S + 1e-4  # expired strictly after the timeout
+        return self._next_init_t
+
     def tick(self, t: float) -> bytes:
         """Time passes: the SM2 watchdog may expire, and Init is repeated every 500 ms until InitAck."""
         if self.protocol == "sm1":
