@@ -338,14 +338,14 @@ class SqlArchive:
         counts = (select(SessionRow.patient_id, func.count().label("n"), func.max(SessionRow.start_iso).label("last"))
                   .group_by(SessionRow.patient_id).subquery())
         q = (select(Patient.patient_id, Patient.full_name, Patient.record_number, Patient.version, Patient.changed_at,
-                    counts.c.n, counts.c.last)
+                    counts.c.n, counts.c.last, Patient.changed_by, Patient.changed_station)
              .outerjoin(counts, counts.c.patient_id == Patient.patient_id))
         for word in search.lower().split():
             escaped = word.replace("\\", "\\\\").replace("%", "\\%").replace("_", "\\_")
             q = q.where(Patient.search_text.like(f"%{escaped}%", escape="\\"))
         q = q.order_by(func.lower(Patient.patient_id), Patient.patient_id).limit(limit).offset(offset)
         with self._read() as conn:
-            return [PatientListItem(r[0], r[1], r[2], r[3], r[4], int(r[5] or 0), r[6] or "")
+            return [PatientListItem(r[0], r[1], r[2], r[3], r[4], int(r[5] or 0), r[6] or "", r[7], r[8])
                     for r in conn.execute(q)]
 
     def _values(self, conn: Connection, row: Any) -> dict[str, Any]:
