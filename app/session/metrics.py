@@ -304,7 +304,7 @@ def turning_points(x: np.ndarray, hysteresis: float = REVERSAL_M) -> list[int]:
     """Indices where the movement's direction turns: alternate extremes of ``x``, each confirmed only once the
     signal has gone back by at least ``hysteresis`` from it (so noise and tremor smaller than that do not
     turn it; a zig-zag with hysteresis)."""
-    x = np.asarray(x, dtype=float)
+    x = np.asarray(x, dtype=float).tolist()  # Python floats: the same values, a scalar read ~4x faster in the loop
     out: list[int] = []
     if len(x) < 2:
         return out
@@ -349,6 +349,7 @@ def segment_by_speed(t: np.ndarray, speed: np.ndarray, x: np.ndarray | None = No
         smooth = lowpass(xs, 1.0 / dt) if dt > 0 else xs
         bounds = [0, *[i for i in turning_points(smooth, reversal_m) if 0 < i < len(v)], len(v)]
     out: list[tuple[float, float]] = []
+    speeds = v.tolist()  # the widening below reads sample by sample: Python floats (the same values) read faster
     for p, q in itertools.pairwise(bounds):
         if q - p < 2:
             continue
@@ -363,9 +364,9 @@ def segment_by_speed(t: np.ndarray, speed: np.ndarray, x: np.ndarray | None = No
         segs: list[list[int]] = []
         for a, b in zip(starts, ends, strict=True):
             floor = max(onset_fraction * float(v[a:b].max()), ONSET_MIN_SPEED_M_S)
-            while a > p and v[a - 1] > floor:
+            while a > p and speeds[a - 1] > floor:
                 a -= 1
-            while b < q and v[b] > floor:
+            while b < q and speeds[b] > floor:
                 b += 1
             if segs and t[a] - t[segs[-1][1] - 1] <= merge_gap_s:
                 segs[-1][1] = max(segs[-1][1], b)
