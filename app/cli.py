@@ -11,7 +11,8 @@ all run :func:`main`. With no arguments: the clinician window, every device simu
     linarmpp --report SESSION_FOLDER|UUID --out FILE.pdf   the session's PDF report (UUID: an archived session)
     linarmpp --progress PATIENT_ID --out FILE.pdf          the patient's progress PDF (every station's sessions)
     linarmpp --export SESSION_FOLDER|UUID --out FILE.h5|FOLDER   the session as one HDF5 file, or CSV files in a folder
-    linarmpp archive {status,upgrade,import,export,upload,verify,grants} …   the archive (docs/archive.md)
+    linarmpp archive {status,upgrade,import,export,upload,verify,patients,patient,grants} …   the archive
+                      (docs/archive.md)
     linarmpp export --format bids|xdf|edf SESSION_FOLDER|UUID… --out DIR [--config FILE]
                       sessions for research tools (docs/export.md; UUID: an archived session, read from the archive)
                       (exit 0 done, 1 nothing written: why on stderr, 2 wrong arguments,

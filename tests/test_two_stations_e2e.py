@@ -4,12 +4,13 @@ configuration file (``station: room-A`` / ``room-B``) and its own data folder (`
 real PostgreSQL server the tests start (tests/postgres.py; under CI=true a server that cannot start fails this
 test).
 
-* room-A creates the patient as the Patients form saves one, then the therapy plan as the plan dialog saves it
-  (``app.archive.station.save_profile``; there is no command that creates a patient), and runs the plan's exercise
-  with ``main.py --headless --exercise … --param … --patient … --operator …``;
-* room-B lists the patients as the Start-session dialog reads them (``app.therapy.patients.list_patients`` through
-  the station's installed archive; there is no command that lists them), finds the patient and the plan made on A,
-  and runs the plan's exercise the same way for the same patient;
+* room-A creates the patient with ``main.py archive patient add`` (the Patients form's fields and checks), then the
+  therapy plan as the plan dialog saves it (``app.archive.station.save_profile``, that field alone; no command
+  edits a plan), and runs the plan's exercise with ``main.py --headless --exercise … --param … --patient …
+  --operator …``;
+* room-B lists the patients with ``main.py archive patients --json`` (the patient, the station that made them) and
+  as the Start-session dialog reads them (``app.therapy.patients.list_patients`` through the station's installed
+  archive: the plan made on A), and runs the plan's exercise the same way for the same patient;
 * ``main.py --progress`` on A's and on B's configuration: each PDF lists both sessions, each with its station.
 
 Every process is waited for, and killed if the test fails before it ends."""
@@ -41,15 +42,15 @@ PLAN_PARAMS = {"duration_s": 1.0, "base_m": 0.2, "update_period_s": 0.2}  # shor
 # (base_m: where the simulated LINarm powers up homed, so the run does not first travel to its base)
 
 # The station's own patient functions in a process of their own, as the application calls them after its start-up
-# (app.cli._open_archive_headless: open_station, install): "create" saves a new patient as the Patients form does,
-# then their therapy plan as the plan dialog does (that field alone, as of the version it read); "list" reads the
-# patients as the Start-session dialog does. Prints JSON.
+# (app.cli._open_archive_headless: open_station, install): "plan" saves the patient's therapy plan as the plan
+# dialog does (that field alone, as of the version it read); "list" reads the patients as the Start-session dialog
+# does. Prints JSON.
 _STATION = r"""
 import json, sys
 from dataclasses import replace
 from app.archive import station
 from app.core.config import load_config
-from app.therapy.patients import PatientProfile, PlannedExercise, list_patients
+from app.therapy.patients import PlannedExercise, list_patients
 
 config_file, what = sys.argv[1:3]
 config = load_config(config_file)
@@ -57,10 +58,9 @@ opened = station.open_station(config)
 assert opened.archive is not None, opened.message()
 station.install(opened.archive)
 try:
-    if what == "create":
-        pid, name, exercise, params = sys.argv[3], sys.argv[4], sys.argv[5], json.loads(sys.argv[6])
-        record = station.save_profile(PatientProfile(patient_id=pid, full_name=name), expected_version=None,
-                                      operator=station.default_operator("dr_rossi"), safety=config.safety)
+    if what == "plan":
+        pid, exercise, params = sys.argv[3], sys.argv[4], json.loads(sys.argv[5])
+        record = station.read_record(pid, config.safety)
         plan = [PlannedExercise(exercise, params, "every session")]
         record = station.save_profile(replace(record.profile, therapy_plan=plan), expected_version=record.version,
                                       operator=station.default_operator("dr_rossi"), fields=["therapy_plan"],
@@ -136,6 +136,11 @@ class Clinic:
         (done,) = self.run(self.main_args(name, *args))
         return done
 
+    def archive(self, name: str, *args: str) -> subprocess.CompletedProcess[str]:
+        """``main.py archive --config <the station's> …``."""
+        (done,) = self.run((name, [str(ROOT / "main.py"), "archive", "--config", str(self.config(name)), *args]))
+        return done
+
     def main_args(self, name: str, *args: str) -> tuple[str, list[str]]:
         return name, [str(ROOT / "main.py"), "--config", str(self.config(name)), *args]
 
@@ -153,8 +158,12 @@ def test_a_patient_created_on_one_station_is_treated_on_both_and_either_progress
         pg_server: PostgresServer, tmp_path: Path) -> None:
     clinic = Clinic(tmp_path / "clinic", pg_server.new_database())
 
-    # room-A: the patient and their plan, then the plan's exercise
-    created = clinic.station("room-A", "create", PATIENT, "Maria Esposito", EXERCISE, json.dumps(PLAN_PARAMS))
+    # room-A: the patient (the command) and their plan, then the plan's exercise
+    added = clinic.archive("room-A", "patient", "add", PATIENT, "--name", "Maria Esposito", "--operator",
+                        "dr_rossi")
+    assert added.returncode == 0, added.stderr[-2000:]
+    assert added.stdout.startswith(f"Patient {PATIENT} added to the archive at "), added.stdout
+    created = clinic.station("room-A", "plan", PATIENT, EXERCISE, json.dumps(PLAN_PARAMS))
     assert created == {"version": 2}  # created (1), the plan saved (2)
     with open_archive(url=clinic.db.url(APP), password_file=clinic.db.password_file(APP), station="check") as a:
         record = a.get_patient(PATIENT)
@@ -166,7 +175,11 @@ def test_a_patient_created_on_one_station_is_treated_on_both_and_either_progress
     assert run_a.returncode == 0, run_a.stderr[-2000:]
     assert run_a.stdout.rstrip().splitlines()[-1] == "Session archived.", run_a.stdout[-2000:]
 
-    # room-B: the patient is listed with A's plan; B runs the plan's exercise for them
+    # room-B: the patient is listed (made on A, one session) and with A's plan; B runs the plan's exercise for them
+    table = clinic.archive("room-B", "patients", "--json")
+    assert table.returncode == 0, table.stderr[-2000:]
+    assert [(p["id"], p["name"], p["station"], p["sessions"]) for p in json.loads(table.stdout)] == [
+        (PATIENT, "Maria Esposito", "room-A", 1)]
     listed = clinic.station("room-B", "list")
     assert isinstance(listed, list)
     (entry,) = [e for e in listed if e["id"] == PATIENT]

@@ -133,6 +133,8 @@ class PatientListItem:
     changed_at: str
     sessions: int
     last_session: str  # ISO start of the newest session, '' if none
+    changed_by: str = ""  # the operator of the save that made this version
+    changed_station: str = ""  # the station it was saved on
 
 
 @dataclass(frozen=True)

@@ -47,6 +47,7 @@ import collections
 import datetime as _dt
 import errno
 import heapq
+import io
 import json
 import logging
 import math
@@ -1142,6 +1143,37 @@ def _read_text_lines(path: Path) -> tuple[list[str], int]:
     return lines, (1 if tail else 0)
 
 
+# The bytes of plain numbers as the recorder writes them (repr of floats: digits, sign, point, exponent, nan, inf);
+# a file holding any other (a quote pandas would unquote, a space or a carriage return float() would strip) is
+# parsed by float() field by field, as before.
+_PLAIN = b"0123456789.,-+eEnaNiIfFty\n"
+_PANDAS_MIN_BYTES = 1 << 20  # below, Python's parse takes less than importing pandas the first time (~0.3 s)
+
+
+def csv_values(body: bytes, ncols: int, usecols: list[int] | None = None) -> np.ndarray | None:
+    """Whole lines of plain comma-separated numbers (no header) as float64 [lines, ncols] (or the ``usecols``
+    columns), parsed by pandas' C parser: ~10x faster than Python's float() of each field, and bit for bit the
+    same values (the shortest repr the recorder writes reads back exactly; nan, inf and -inf as float() reads
+    them). None when the text is not plain numbers (an empty or quoted field, a blank line, a value that is not a
+    number): the caller's slower parse then decides line by line."""
+    if len(body) < _PANDAS_MIN_BYTES or body.translate(None, _PLAIN):  # (an empty field: pandas refuses it too)
+        return None
+    try:
+        import pandas as pd
+    except ImportError:  # a dependency; the slower parse stays exact without it
+        return None
+    kwargs: dict[str, Any] = {}
+    if int(pd.__version__.split(".", 1)[0]) < 3:
+        kwargs["float_precision"] = "round_trip"  # pandas 3 reads the shortest repr back exactly by default
+    try:
+        frame = pd.read_csv(io.BytesIO(body), header=None, names=range(ncols), usecols=usecols, dtype=np.float64,
+                            engine="c", na_filter=True, keep_default_na=False, na_values=["nan", "NaN", "-nan"],
+                            skip_blank_lines=False, **kwargs)
+    except (ValueError, pd.errors.ParserError):
+        return None
+    return frame.to_numpy(dtype=np.float64)
+
+
 def read_stream_csv(path: Path) -> tuple[list[str], np.ndarray, int]:
     """(column names, values [n, columns] float64, dropped line count) of a stream file.
 
@@ -1163,6 +1195,9 @@ def read_stream_csv(path: Path) -> tuple[list[str], np.ndarray, int]:
     if nlines == 0:
         return header, np.zeros((0, ncols)), dropped
     if body.count(b",") == nlines * (ncols - 1) and b"\n\n" not in body and not body.startswith(b"\n"):
+        fast = csv_values(body, ncols)
+        if fast is not None and fast.shape == (nlines, ncols):
+            return header, fast, dropped
         try:
             flat = np.array(body[:-1].replace(b"\n", b",").split(b","), dtype=np.float64)
         except ValueError:  # a field that is not a number: the slow path finds which line

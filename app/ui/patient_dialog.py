@@ -11,11 +11,10 @@ from __future__ import annotations
 import logging
 import queue
 import threading
-from dataclasses import asdict, replace
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-import yaml
 from PySide6.QtCore import QSettings, Qt, QTimer
 from PySide6.QtWidgets import (
     QComboBox,
@@ -36,10 +35,10 @@ from PySide6.QtWidgets import (
     QWidget,
 )
 
-from app.archive import station
+from app.archive import patient_form, station
 from app.archive.api import ArchiveError, PatientExists, StaleRecord
 from app.core.config import SafetyConfig
-from app.therapy.patients import PatientEntry, PatientError, PatientProfile, list_patients, matches, parse_profile
+from app.therapy.patients import PatientEntry, PatientError, PatientProfile, list_patients, matches
 from app.wire.sciencemode import CHANNELS
 
 log = logging.getLogger(__name__)
@@ -54,17 +53,6 @@ _ROBOT = (("position_min_m", "Position min [m]"), ("position_max_m", "Position m
 _CAP_COLUMNS = (("max_current_ma", "Max current [mA]"), ("max_pulse_width_us", "Max pulse width [µs]"),
                 ("max_rms_current_ma", "Max r.m.s. [mA]"))
 _ERROR_STYLE = "background: #ffd6d6;"
-
-
-def _value(text: str) -> Any:
-    """A field's text as YAML reads it (so '0.5' is a number and 'abc' stays text for the validator)."""
-    text = text.strip()
-    if not text:
-        return None
-    try:
-        return yaml.safe_load(text)
-    except yaml.YAMLError:
-        return text
 
 
 def _text(value: Any) -> str:
@@ -211,64 +199,33 @@ class PatientDialog(QDialog):
 
     # ------------------------------------------------------------------ form → profile
     def form_data(self) -> dict[str, Any]:
-        def group(prefix: str, keys: tuple[tuple[str, str], ...]) -> dict[str, Any]:
-            out = {}
-            for key, _label in keys:
-                value = _value(self.fields[f"{prefix}.{key}"].text())  # type: ignore[union-attr]
-                if value is not None:
-                    out[key] = str(value) if key == "assessed_on" else value
-            return out
-
-        caps: dict[int, dict[str, Any]] = {}
+        """The profile's data the fields make (app.archive.patient_form: the rules `linarmpp archive patient add`
+        uses too)."""
+        caps: dict[Any, dict[str, str]] = {}
         for row, ch in enumerate(CHANNELS):
             cells = {}
             for col, (key, _label) in enumerate(_CAP_COLUMNS):
                 item = self.caps_table.item(row, col)
-                value = _value(item.text()) if item is not None else None
-                if value is not None:
-                    cells[key] = value
-            if cells:
-                caps[ch] = cells
-        original = self.original or PatientProfile()
-        scores = group("scores", _SCORES)
-        if original.scores.other:
-            scores["other"] = dict(original.scores.other)
-        data: dict[str, Any] = {
-            "patient_id": self.id_edit.text().strip(),
-            # as typed (text, never a YAML date or number: "0123" stays "0123")
-            "full_name": self.name_edit.text().strip(),
-            "birth_date": self.birth_edit.text().strip(),
-            "record_number": self.record_edit.text().strip(),
-            "affected_side": self.side_box.currentData(),
-            "scores": scores,
-            "assistance": {k: v for k, v in (("k_r", _value(self.k_r.text())), ("k_f", _value(self.k_f.text())))
-                           if v is not None},
-            "fes": {"profile": self.fes_profile.text().strip(), "caps": caps},
-            "robot": group("robot", _ROBOT),
-            "notes": self.notes.toPlainText(),
-        }
-        if original.created:
-            data["created"] = original.created
-        if original.therapy_plan:  # not edited here (the profile's YAML): kept as it is
-            data["therapy_plan"] = [asdict(step) for step in original.therapy_plan]
-        if original.fes.electrodes:  # chosen by the electrode set-up (issue #32), not edited here: kept as it is
-            data["fes"]["electrodes"] = {name: asdict(choice) for name, choice in original.fes.electrodes.items()}
-        return data
+                cells[key] = item.text() if item is not None else ""
+            caps[ch] = cells
+        texts = patient_form.FormTexts(
+            patient_id=self.id_edit.text(), full_name=self.name_edit.text(), birth_date=self.birth_edit.text(),
+            record_number=self.record_edit.text(), affected_side=self.side_box.currentData(),
+            k_r=self.k_r.text(), k_f=self.k_f.text(), fes_profile=self.fes_profile.text(),
+            scores={key: self.fields[f"scores.{key}"].text() for key, _l in _SCORES},  # type: ignore[attr-defined]
+            robot={key: self.fields[f"robot.{key}"].text() for key, _l in _ROBOT},  # type: ignore[attr-defined]
+            caps=caps, notes=self.notes.toPlainText())
+        return patient_form.form_data(texts, self.original)
 
     def validate(self) -> PatientProfile | None:
         """The form as a valid profile, or None with the problem shown at its field."""
         for widget in self.fields.values():
             widget.setStyleSheet("")
         self.error_label.setText("")
-        text = yaml.safe_dump(self.form_data(), sort_keys=False, allow_unicode=True)
         try:
-            return parse_profile(text, "patient form", self.safety)
+            return patient_form.profile_of(self.form_data(), self.safety)
         except PatientError as exc:
-            key = exc.key
-            if not key or key == "(top level)":  # a whole-profile check names its field in the problem's first word
-                first = exc.problem.split(" ", 1)[0]
-                key = first if first in self.fields else key
-            self.show_error(key, exc.problem)
+            self.show_error(patient_form.error_key(exc.key, exc.problem, self.fields), exc.problem)
             return None
 
     def show_error(self, key: str, problem: str) -> None:
