@@ -526,6 +526,10 @@ class LinarmppManager(QObject):
             return
         self.runs.end_current("session_ended" if reason != "application closing" else "app_exit")  # recorded
         self.supervisor.bring_to_safe_state("session ended")
+        for handle in list(self.devices.values()):  # counts a driver records only now and then, up to now
+            record_counts = getattr(handle.driver, "record_link_counts", None)
+            if callable(record_counts):
+                record_counts()
         recorder.stop(reason)
         self.supervisor.robot = self.config.safety.robot
         self._apply_robot_limits()

@@ -214,6 +214,25 @@ def test_garbage_on_the_link_is_counted_in_the_session_record(rig: Rig, qtbot) -
     assert len(garbage) <= 10  # counted, not one record per frame
 
 
+def test_the_session_record_has_every_garbage_frame_dropped_before_its_end(rig: Rig, qtbot, monkeypatch) -> None:
+    """The driver records its garbage counts at most every GARBAGE_RECORD_PERIOD_S while garbage comes: a session
+    that ends between two records must still hold the frames dropped since the last one (the record said 199 of
+    200 once). Here the period is longer than the test, so only the end's record can hold them all."""
+    from app.devices import linarm
+
+    monkeypatch.setattr(linarm, "GARBAGE_RECORD_PERIOD_S", 3600.0)
+    driver = rig.driver
+    before = driver.garbage["bad_frames"]
+    junk = bytes(range(256)).replace(b";", b"").replace(b"/", b"") * 4
+    for _ in range(50):
+        rig.sim.link.write(junk + b";")
+    qtbot.waitUntil(lambda: driver.garbage["bad_frames"] - before >= 50, timeout=10_000)
+    dropped = driver.garbage["bad_frames"]
+    rig.manager.end_session()
+    garbage = [e["data"] for e in load_session(rig.folder).events if e["kind"] == "link_garbage"]
+    assert garbage and garbage[-1]["bad_frames"] >= dropped, (dropped, garbage)
+
+
 def test_a_forged_frame_repeated_raises_one_alarm_per_cause(rig: Rig, qtbot) -> None:
     """12 forged frames in 0.1 s between genuine ones: a controller error event and an over-speed state sample.
     Each is stopped, but each cause is one alarm (with its repeats counted), not twelve."""

@@ -481,6 +481,12 @@ class LinarmDriver(DeviceDriver):
         return {"bad_frames": d.frames_bad, "bytes_discarded": d.bytes_discarded,
                 "undecodable_frames": self.protocol_errors, "frames_ok": d.frames_ok}
 
+    def record_link_counts(self) -> None:
+        """The garbage counted since the last record, into the record now (a session's end: its record must hold
+        every frame dropped while it ran, not those up to the last periodic record). Any thread: the counts are
+        plain integers the driver's thread updates."""
+        self._record_garbage(force=True)
+
     def _record_garbage(self, force: bool = False) -> None:
         """Counts of dropped garbage to the session record (supervisor event ``link_garbage``, cumulative), at
         most every GARBAGE_RECORD_PERIOD_S while it arrives, and at disconnect if anything is unrecorded."""
