@@ -48,7 +48,7 @@ from app.research_export.common import (
     remove_quietly,
 )
 from app.research_export.marks import FesSwitches, Mark, event_marks, exported, record_json
-from app.research_export.source import Chunk, Session, StreamInfo
+from app.research_export.source import Chunk, LineLayout, Session, StreamInfo, runs_mask
 
 BIDS_VERSION = "1.11.0"
 TASK = "therapy"
@@ -165,9 +165,11 @@ def _cell(value: Any) -> str:
 def tsv_block(chunk: Chunk, t0: float) -> bytes:
     """A chunk's samples as TSV rows: the time from ``t0`` (s, to the nanosecond), then the values as the session's
     file holds them (Python's shortest repr: they read back to the same doubles); missing values ``n/a``."""
+    if chunk.raw is not None and chunk.layout is not None and len(chunk.layout.starts) == len(chunk.t):
+        return _tsv_from_layout(chunk.raw, chunk.layout, chunk.t - t0, chunk.arrival_column)
     times = (chunk.t - t0).tolist()
-    # to the nanosecond, in one C loop: half the cost of each time's shortest repr (the largest part of a BIDS
-    # export's formatting), and shorter text; it reads back within 0.5 ns of the recorded time
+    # to the nanosecond, in one C loop: half the cost of each time's shortest repr, and shorter text; it reads back
+    # within 0.5 ns of the recorded time
     seconds = (("%.9f\n" * len(times)) % tuple(times)).encode().split(b"\n")
     seconds.pop()
     if chunk.raw is not None:  # the file's own text: only the time and the arrival column change
@@ -184,6 +186,59 @@ def tsv_block(chunk: Chunk, t0: float) -> bytes:
     for s, row in zip(seconds, chunk.values.tolist(), strict=True):
         lines.append(b"\t".join([s, *(repr(v).encode() if math.isfinite(v) else b"n/a" for v in row)]))
     return b"\n".join(lines) + b"\n"
+
+
+_NS_DIGITS = 10 ** np.arange(8, -1, -1, dtype=np.int64)  # the nine decimals of a time to the nanosecond
+MAX_FIXED_S = 1e9  # times this far from the session's start (never, but) go through Python's formatting
+
+
+def seconds_text(x: np.ndarray, end: int = ord("\t")) -> tuple[np.ndarray, np.ndarray]:
+    """Times ``x`` (s) as text to the nanosecond, each followed by ``end``: the bytes (uint8) and each one's length.
+    Built with numpy from the nanosecond count round(x·1e9): the text reads back within 0.5 ns (+ 1e-15 relative,
+    the product's rounding) of ``x``, as ``%.9f`` does (the two agree but where x·1e9 falls within a rounding of
+    a half nanosecond)."""
+    n = len(x)
+    if not n or not np.all(np.isfinite(x)) or np.max(np.abs(x)) >= MAX_FIXED_S:
+        text = (("%.9f" + chr(end)) * n % tuple(x.tolist())).encode()
+        arr = np.frombuffer(text, np.uint8)
+        ends = np.flatnonzero(arr == end)
+        return arr, np.diff(ends, prepend=-1)
+    ns = np.rint(x * 1e9).astype(np.int64)
+    negative = ns < 0
+    ns = np.abs(ns)
+    whole, frac = np.divmod(ns, 1_000_000_000)
+    width = len(str(int(whole.max())))
+    powers = 10 ** np.arange(width - 1, -1, -1, dtype=np.int64)
+    digits = np.count_nonzero(whole[:, None] >= np.maximum(powers[:-1], 1)[None, :], axis=1) + 1 if width > 1 \
+        else np.ones(n, dtype=np.int64)
+    chars = np.empty((n, width + 12), dtype=np.uint8)  # sign, whole digits, point, nine decimals, end
+    chars[:, 0] = ord("-")
+    chars[:, 1:width + 1] = (whole[:, None] // powers) % 10 + ord("0")
+    chars[:, width + 1] = ord(".")
+    chars[:, width + 2:width + 11] = (frac[:, None] // _NS_DIGITS) % 10 + ord("0")
+    chars[:, width + 11] = end
+    valid = np.ones((n, width + 12), dtype=np.bool_)
+    valid[:, 0] = negative
+    valid[:, 1:width + 1] = np.arange(width, 0, -1)[None, :] <= digits[:, None]
+    return chars[valid], valid.sum(axis=1)
+
+
+def _tsv_from_layout(raw: bytes, lay: LineLayout, x: np.ndarray, arrival: bool) -> bytes:
+    """:func:`tsv_block` with numpy over the whole block: each line's time field replaced by ``x`` (s, to the
+    nanosecond), its arrival field dropped, commas made tabs, ``nan`` made ``n/a`` (the same bytes as line by
+    line)."""
+    arr = np.frombuffer(raw, np.uint8)
+    last = lay.last_comma if arrival else lay.newline
+    # each line: drop "time,", keep the values, drop ",arrival", keep the newline
+    middle = arr[runs_mask(np.column_stack([lay.first_comma - lay.starts + 1, last - lay.first_comma - 1,
+                                            lay.newline - last, np.ones_like(last)]), (False, True, False, True))]
+    times, lengths = seconds_text(x)
+    is_time = runs_mask(np.column_stack([lengths, last - lay.first_comma]), (True, False))
+    out = np.empty(len(is_time), dtype=np.uint8)
+    out[is_time] = times
+    out[~is_time] = middle
+    out[out == ord(",")] = ord("\t")
+    return out.tobytes().replace(b"nan", b"n/a")
 
 
 # ---------------------------------------------------------------------------------------------- the dataset
