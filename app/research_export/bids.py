@@ -30,6 +30,7 @@ import os
 import struct
 import zlib
 from collections.abc import Iterable
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any
@@ -93,10 +94,29 @@ class _Check:
 
 
 class _Digest:
-    """Every file of the dataset with the digest of what was written (read back at the end)."""
+    """Every file of the dataset with the digest of what was written (read back at the end). A stream's file is
+    synced to disk on a thread once written (fsync waits for the disk without the interpreter's lock), while the next
+    one is made; :meth:`verify` first waits for every sync (and raises what one raised)."""
 
     def __init__(self) -> None:
         self.files: dict[Path, tuple[str, bool]] = {}
+        self._syncer = ThreadPoolExecutor(max_workers=1, thread_name_prefix="bids-fsync")
+        self._syncs: list[Future[None]] = []
+
+    def sync_and_close(self, fh: IO[bytes]) -> None:
+        self._syncs.append(self._syncer.submit(_fsync_and_close, fh))
+
+    def abandon(self) -> None:
+        for f in self._syncs:
+            f.exception()  # waits; what it raised does not matter now
+        self._syncer.shutdown(wait=True)
+
+    def wait_for_syncs(self) -> None:
+        try:
+            for f in self._syncs:
+                f.result()
+        finally:
+            self._syncer.shutdown(wait=True)
 
     def write_bytes(self, path: Path, data: bytes) -> None:
         path.parent.mkdir(parents=True, exist_ok=True, mode=DIR_MODE)
@@ -117,6 +137,7 @@ class _Digest:
         return _StreamOut(self, path, gz, strategy)
 
     def verify(self, steps: Steps) -> None:
+        self.wait_for_syncs()
         for path, (digest, gz) in self.files.items():
             steps.check()
             h = _Check()
@@ -156,9 +177,15 @@ class _StreamOut:
             self.raw.write(self.deflate.flush())
             self.raw.write(struct.pack("<II", self.hash.crc, self.hash.size & 0xFFFFFFFF))
         self.raw.flush()
-        os.fsync(self.raw.fileno())
-        self.raw.close()
         self.owner.files[self.path] = (self.hash.hexdigest(), self.gz)
+        self.owner.sync_and_close(self.raw)
+
+
+def _fsync_and_close(fh: IO[bytes]) -> None:
+    try:
+        os.fsync(fh.fileno())
+    finally:
+        fh.close()
 
 
 def _cell(value: Any) -> str:
@@ -320,9 +347,9 @@ def export_bids(sessions: list[Session], root: str | Path, options: BidsOptions 
     steps = Steps(progress, cancel, total * (1.6 if options.metrics else 1.1) + 1)
     result = ExportResult()
     planned = plan(sessions, options.shift_days)
+    out = _Digest()
     try:
         tmp.mkdir(parents=True, mode=DIR_MODE)
-        out = _Digest()
         per_subject: dict[str, list[tuple[_Planned, _Written]]] = {}
         for p in planned:
             written = _write_session(out, tmp, p, steps)
@@ -338,6 +365,7 @@ def export_bids(sessions: list[Session], root: str | Path, options: BidsOptions 
             root.rmdir()  # empty (checked above)
         os.replace(tmp, root)
     except BaseException:
+        out.abandon()  # the syncs under way end (their files closed) before the folder goes
         remove_quietly(tmp)
         raise
     result.written.append(root)
