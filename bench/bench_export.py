@@ -102,7 +102,33 @@ def session(cache: Path, minutes: float) -> Path:
         t0 = time.perf_counter()
         synth_session(folder.parent.parent, "PB-001", minutes * 60.0)
         print(f"synthesised {minutes:g} min in {time.perf_counter() - t0:.1f} s", file=sys.stderr)
+    clock_estimates(folder)
     return folder
+
+
+def clock_estimates(folder: Path, every_s: float = 0.5) -> None:
+    """A ``clocks.csv`` as the recorder keeps it (an estimate of each device's clock about twice a second: 14 400
+    lines per device in two hours) when the synthesised session has none, so the XDF headers carry what a recorded
+    session's do (desc/device_clock) and the device-clock form has its offsets."""
+    sys.path.insert(0, str(ROOT))
+    import numpy as np
+
+    from app.session import recording
+
+    path = folder / recording.CLOCK_FILE
+    if path.exists():
+        return
+    manifest = json.loads((folder / recording.MANIFEST_FILE).read_text())
+    start = float(manifest["start"]["t_mono_s"])
+    end = float((manifest.get("end") or {}).get("t_mono_s") or start)
+    host = np.arange(start, end + every_s, every_s)
+    lines = [",".join(recording.CLOCK_COLUMNS) + "\n"]
+    for device, device0, ppm in (("linarm", 4000.0, 80.0), ("physio", 123.456, -50.0)):
+        drift = -ppm * 1e-6 + np.random.default_rng(len(device)).normal(0.0, 2e-6, len(host))
+        device_s = device0 + (host - start) * (1 + ppm * 1e-6)
+        lines += [f"{h!r},{device},{d!r},{k!r}\n" for h, d, k in zip(host.tolist(), device_s.tolist(),
+                                                                      drift.tolist(), strict=True)]
+    path.write_text("".join(lines))
 
 
 def main() -> int:

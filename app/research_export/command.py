@@ -48,6 +48,10 @@ def build_parser(prog: str = "linarmpp export") -> argparse.ArgumentParser:
                         help="move every date back by N days (de-identification; BIDS recommends it)")
     parser.add_argument("--name", default="LINarm++ Manager sessions", help="the BIDS dataset's name")
     parser.add_argument("--no-metrics", action="store_true", help="bids: leave out derivatives/linarmpp-metrics")
+    parser.add_argument("--xdf-clock", choices=("host", "device"), default="host",
+                        help="xdf: the time stamps of the devices' streams: host (default: every sample at its "
+                        "recorded time, clock offsets 0, each device's clock in the stream's header) or device "
+                        "(on the device's own clock, the measured map to the host's as clock offsets)")
     parser.add_argument("--config", metavar="FILE", help="the configuration naming the clinic's archive, read when a "
                         "SESSION is a UUID (default: the user's configuration: the archive in the data folder)")
     parser.add_argument("--quiet", action="store_true", help="no progress on stderr")
@@ -316,7 +320,8 @@ def _per_session(sessions: list[Session], out: Path, args: argparse.Namespace, t
 
         try:
             if args.format == "xdf":
-                result = export_xdf(session, out / name, progress=progress, shift_days=args.shift_days)
+                result = export_xdf(session, out / name, progress=progress, shift_days=args.shift_days,
+                                    clock=args.xdf_clock)
             else:
                 result = export_edf(session, out / name, include_names=args.include_names,
                                     shift_days=args.shift_days, progress=progress)

@@ -197,6 +197,25 @@ class StreamInfo:
     size: int = 0  # bytes of its file (progress)
 
 
+@dataclass(frozen=True)
+class LineLayout:
+    """Where each line of a block of whole lines starts, its commas and its newline (byte offsets), found once with
+    numpy for a block whose every line has the stream's number of fields: the fields are cut out of the lines, and
+    the text formats rewrite them, without a Python step per line."""
+
+    starts: np.ndarray  # (n,)
+    commas: np.ndarray  # (n, fields − 1)
+    newline: np.ndarray  # (n,)
+
+    @property
+    def first_comma(self) -> np.ndarray:
+        return self.commas[:, 0]
+
+    @property
+    def last_comma(self) -> np.ndarray:
+        return self.commas[:, -1]
+
+
 @dataclass
 class Chunk:
     """Consecutive samples of a stream: ``t`` (n,) monotonic seconds, ``values`` (n, channels) float64."""
@@ -206,6 +225,7 @@ class Chunk:
     nbytes: int  # bytes of the file this chunk consumed (progress)
     raw: bytes | None = None  # the lines as the file holds them (when every line was read), for text formats
     arrival_column: bool = False  # the raw lines end with the t_arrival_s field
+    layout: LineLayout | None = None  # of ``raw``, when the times alone were asked for (see Session.chunks)
 
     def __len__(self) -> int:
         return len(self.t)
@@ -327,7 +347,16 @@ class Session:
                 rest = data[cut:]
                 lines = data[:cut]
                 del data
-                values, dropped = _parse_lines(lines, len(names), wanted)
+                # The lines for a text format, with the times alone (BIDS): the lines' layout once, the times cut
+                # out of them (the parser never sees the values), the layout kept for rewriting the lines. (For
+                # other columns pandas' own column selection costs the same: measured.)
+                layout = _line_layout(lines, len(names)) if raw and wanted == [0] else None
+                picked = _parse_fields(lines, layout, wanted) if layout is not None and wanted is not None else None
+                if picked is not None:
+                    values, dropped = picked, 0
+                else:
+                    layout = None
+                    values, dropped = _parse_lines(lines, len(names), wanted)
                 tally.dropped_lines += dropped
                 use = wanted
                 if dropped and raw and wanted is not None:  # no raw text for this block: the caller needs values
@@ -341,7 +370,7 @@ class Session:
                         tally.first_t = float(values[0, 0])
                     tally.last_t = float(values[-1, 0])
                     chunk = Chunk(np.ascontiguousarray(values[:, 0]), np.ascontiguousarray(values[:, 1:]), cut,
-                                  lines if raw and not dropped else None, keep != len(names))
+                                  lines if raw and not dropped else None, keep != len(names), layout)
                     del values, lines
                     yield chunk
                     del chunk
@@ -381,6 +410,67 @@ def _pandas_read(data: bytes, ncols: int, usecols: list[int] | None) -> np.ndarr
 
 
 _LINE = re.compile(rb"[^\n]*\n")
+COMMA, NEWLINE = ord(","), ord("\n")
+
+
+def _line_layout(data: bytes, ncols: int) -> LineLayout | None:
+    """The layout of whole lines ``data`` when every line has ``ncols`` fields (None otherwise: the caller reads the
+    block line by line, as load_session does)."""
+    if ncols < 2 or not data:
+        return None
+    arr = np.frombuffer(data, np.uint8)
+    newline = np.flatnonzero(arr == NEWLINE)
+    commas = np.flatnonzero(arr == COMMA)
+    n = len(newline)
+    if len(commas) != n * (ncols - 1):
+        return None
+    starts = np.empty_like(newline)
+    starts[0] = 0
+    starts[1:] = newline[:-1] + 1
+    table = commas.reshape(n, ncols - 1)  # sorted: line i's commas, if each line holds ncols − 1 of them
+    if np.any(table[:, 0] < starts) or np.any(table[:, -1] > newline):
+        return None
+    return LineLayout(starts, table, newline)
+
+
+def runs_mask(lengths: np.ndarray, pattern: tuple[bool, ...]) -> np.ndarray:
+    """A boolean mask made of runs: ``lengths`` is (n, len(pattern)), row i's runs taking pattern's values in
+    turn (numpy's repeat: no step per line)."""
+    return np.repeat(np.tile(np.array(pattern, dtype=np.bool_), len(lengths)), lengths.ravel())
+
+
+def _parse_fields(data: bytes, layout: LineLayout, fields: list[int]) -> np.ndarray | None:
+    """The ``fields`` (sorted column indices, 0 the time) of whole lines as float64 [n, len(fields)], parsed as
+    load_session parses them: cut out of each line with numpy (the others are never read), so the parser sees
+    only what is asked for. None if one cannot be parsed (the caller reads the block line by line)."""
+    lay = layout
+    n = len(lay.starts)
+    if not fields or fields != sorted(set(fields)):
+        return None
+    if fields[-1] > lay.commas.shape[1]:
+        return None
+    # each field's first byte and its delimiter (the comma after it, or the newline)
+    begins = np.column_stack([lay.starts, lay.commas + 1])
+    ends = np.column_stack([lay.commas, lay.newline])
+    if np.any(ends[:, fields] == begins[:, fields]):
+        return None  # an empty field: line by line
+    # runs per line: drop up to the field, keep it and its delimiter, …, drop to the line's end (newline included)
+    keep_from = begins[:, fields]
+    keep_len = ends[:, fields] - keep_from + 1
+    drop_before = keep_from - np.column_stack([lay.starts, ends[:, fields[:-1]] + 1])
+    tail = lay.newline + 1 - (ends[:, fields[-1]] + 1)
+    runs = np.empty((n, 2 * len(fields) + 1), dtype=np.int64)
+    runs[:, 0:-1:2] = drop_before
+    runs[:, 1:-1:2] = keep_len
+    runs[:, -1] = tail
+    arr = np.frombuffer(data, np.uint8).copy()
+    arr[ends[:, fields[-1]]] = NEWLINE  # the last field asked for ends its line
+    picked = arr[runs_mask(runs, (False, True) * len(fields) + (False,))]
+    try:
+        values = _pandas_read(picked.tobytes(), len(fields), None)
+    except ValueError:
+        return None
+    return values if len(values) == n else None
 
 
 def _parse_lines(data: bytes, ncols: int, usecols: list[int] | None = None) -> tuple[np.ndarray, int]:

@@ -139,6 +139,7 @@ class StreamDescription:
     hostname: str = ""
     channels: list[dict[str, str]] = field(default_factory=list)  # label, unit, type, description
     extra: dict[str, str] = field(default_factory=dict)  # desc children (text)
+    device_clock: dict[str, str] = field(default_factory=dict)  # desc/device_clock children (text), see below
 
 
 def header_xml(d: StreamDescription) -> str:
@@ -161,6 +162,10 @@ def header_xml(d: StreamDescription) -> str:
                     ET.SubElement(c, key).text = ch[key]
     for key, value in d.extra.items():
         ET.SubElement(desc, key).text = value
+    if d.device_clock:
+        dc = ET.SubElement(desc, "device_clock")
+        for key, value in d.device_clock.items():
+            ET.SubElement(dc, key).text = value
     return '<?xml version="1.0"?>' + ET.tostring(info, encoding="unicode")
 
 
@@ -318,15 +323,43 @@ class _Out:
             self.count += len(t)
 
 
+CLOCKS = ("host", "device")  # export_xdf's ``clock``: what the device streams' time stamps are (docs/export.md)
 HOST_CLOCK = ("time stamps: the host's monotonic clock in seconds (the recorder's); clock offsets are therefore 0")
+HOST_CLOCK_OF_DEVICE = ("time stamps: the host's monotonic clock in seconds, each sample at the time the application "
+                        "recorded for it (the {device}'s own clock mapped to the host's while recording, "
+                        "app/devices/clock.py); clock offsets are therefore 0. The {device}'s own clock is in "
+                        "device_clock: each sample's device time is recoverable from its time stamp")
+DEVICE_CLOCK_LINES = ("one line per estimate of the map the application used while recording (clocks.csv), in "
+                      "force from its host_s on: device = device_s + (t - host_s) / (1 + drift) for a time stamp t "
+                      "(the {device}'s clock in seconds, unwrapped, continued across a restart of the device)")
 DEVICE_CLOCK = ("time stamps: the {device}'s own clock in seconds (unwrapped; continued across a restart of the "
                 "device); the ClockOffset chunks hold the map to the host's monotonic clock the application "
                 "estimated while recording (app/devices/clock.py): load with pyxdf's synchronize_clocks (its default) "
                 "to put the samples on the host's clock")
 
 
-def stream_descriptions(session: Session) -> list[StreamDescription]:
-    """The header of every stream of the session, then the events' and the markers' (ids 1, 2, … in order)."""
+def clock_lines_text(lines: recording.ClockLines) -> str:
+    """A device's clock estimates as the text of desc/device_clock/lines: ``host_s,device_s,drift`` per line, each
+    number as the shortest text that reads back to the same double (nothing lost)."""
+    return "".join(f"{h!r},{d!r},{k!r}\n" for h, d, k in zip(lines.host.tolist(), lines.device.tolist(),
+                                                          lines.drift.tolist(), strict=True))
+
+
+def device_times(stream: dict) -> np.ndarray:
+    """The device-clock time of every sample of a stream as pyxdf loads it (``load_xdf``'s stream dict, host-clock
+    form): its time stamps mapped back by the clock estimates in its header's desc/device_clock. The same numbers
+    the device-clock form (``clock="device"``) writes as time stamps. Raises KeyError for a stream without a device
+    clock."""
+    text = stream["info"]["desc"][0]["device_clock"][0]["lines"][0]
+    table = np.loadtxt(text.splitlines(), delimiter=",", ndmin=2, dtype=np.float64)
+    lines = recording.ClockLines(table[:, 0].copy(), table[:, 1].copy(), table[:, 2].copy())
+    return lines.to_device(np.asarray(stream["time_stamps"], dtype=np.float64))
+
+
+def stream_descriptions(session: Session, clock_form: str = "host") -> list[StreamDescription]:
+    """The header of every stream of the session, then the events' and the markers' (ids 1, 2, … in order).
+    ``clock_form`` "host": every stream on the host's clock, a device's clock estimates in desc/device_clock;
+    "device": a device's streams on its clock (ClockOffset chunks map it to the host's)."""
     host = str((session.manifest.get("host") or {}).get("node") or "")
     session_uuid = str(session.manifest.get("session_uuid") or "")
     ns = uuid.UUID(session_uuid) if recording.is_session_uuid(session_uuid) else uuid.uuid5(
@@ -337,14 +370,18 @@ def stream_descriptions(session: Session) -> list[StreamDescription]:
     for info in session.streams.values():
         chans = [{"label": c.name, "unit": c.unit, "type": kinds.kind(info.name, c).xdf_type, "description": c.label}
                  for c in info.channels]
+        lines = clocks.get(info.device)
+        has_clock = lines is not None and len(lines) > 0
+        text = clock if not has_clock else (DEVICE_CLOCK if clock_form == "device" else HOST_CLOCK_OF_DEVICE)
         out.append(StreamDescription(
             info.name, info.device, len(info.channels), 0.0 if info.irregular else info.rate_hz, "double64",
             f"{SOURCE_PREFIX}.{info.name}", session.start_mono, str(uuid.uuid5(ns, info.name)), session_uuid or
-            "default", host, chans, {"device": info.device,
-                                     "clock": DEVICE_CLOCK.format(device=info.device) if clocks.get(info.device)
-                                     else clock,
+            "default", host, chans, {"device": info.device, "clock": text.format(device=info.device),
                                      "rate": "irregular: published on change" if info.irregular else
-                                     f"nominal {info.rate_hz:g} Hz (the device's clock)"}))
+                                     f"nominal {info.rate_hz:g} Hz (the device's clock)"},
+            {"device": info.device, "columns": "host_s,device_s,drift",
+             "description": DEVICE_CLOCK_LINES.format(device=info.device),
+             "lines": clock_lines_text(lines)} if has_clock and clock_form == "host" and lines is not None else {}))
     for name, what in ((EVENTS_STREAM, "every recorded event as JSON (events.jsonl), as the live LSL outlet sends it"),
                        (MARKERS_STREAM, "the session's course as short markers (runs, repetitions, prompts, alarms, "
                                         "emergency stop, FES on/off): the BIDS events' trial_type and value")):
@@ -364,9 +401,13 @@ def marker_marks(marks: list[Mark]) -> list[Mark]:
 
 
 def export_xdf(session: Session, path: str | Path, progress: Progress | None = None,
-               cancel: Cancel | None = None, shift_days: int = 0) -> ExportResult:
+               cancel: Cancel | None = None, shift_days: int = 0, clock: str = "host") -> ExportResult:
     """Write ``session`` to one XDF file at ``path`` (a temporary name first; moved into place once read back).
-    Raises ExportCancelled (nothing left behind) or OSError."""
+    ``clock`` (:data:`CLOCKS`): "host" (every sample at its recorded time, offsets 0; the devices' clocks in the
+    headers) or "device" (LabRecorder's form for a stream from another machine: a device's streams on its clock,
+    the measured map as ClockOffset chunks). Raises ExportCancelled (nothing left behind) or OSError."""
+    if clock not in CLOCKS:
+        raise ValueError(f"clock must be one of {CLOCKS}, not {clock!r}")
     path = Path(path)
     tmp = part_path(path)
     steps = Steps(progress, cancel, session.total_bytes * 1.05 + 1)
@@ -374,7 +415,7 @@ def export_xdf(session: Session, path: str | Path, progress: Progress | None = N
     try:
         with open_private(tmp) as raw:
             out = HashingWriter(raw)
-            counts = _write_xdf(session, out, steps, shift_days)
+            counts = _write_xdf(session, out, steps, shift_days, clock)
             raw.flush()
             os.fsync(raw.fileno())
         steps.advance(0, f"{path.name}: reading back")
@@ -390,18 +431,19 @@ def export_xdf(session: Session, path: str | Path, progress: Progress | None = N
     return result
 
 
-def _write_xdf(session: Session, out: HashingWriter, steps: Steps, shift_days: int = 0) -> dict[int, _Out]:
+def _write_xdf(session: Session, out: HashingWriter, steps: Steps, shift_days: int = 0,
+               clock_form: str = "host") -> dict[int, _Out]:
     writer = XdfWriter(out)
-    descriptions = stream_descriptions(session)
+    descriptions = stream_descriptions(session, clock_form)
     outs: dict[int, _Out] = {}
     for sid, d in enumerate(descriptions, start=1):
         writer.stream_header(sid, header_xml(d))
         outs[sid] = _Out(sid, d.name)
     names = list(session.streams)
     pending = {sid: _Pending(session.chunks(name)) for sid, name in enumerate(names, start=1)}
-    # A stream of a device with a clock is written on that clock, with the offsets measured (_DeviceOffsets);
-    # the others are on the host's (the recorder's) clock: offset 0.
-    clocks = session.device_clocks()
+    # The device-clock form: a stream of a device with a clock is written on that clock, with the offsets measured
+    # (_DeviceOffsets). Otherwise (and for the others) every stream is on the host's (the recorder's) clock: offset 0.
+    clocks = session.device_clocks() if clock_form == "device" else {}
     offsets = {sid: _DeviceOffsets(clocks[session.streams[n].device]) for sid, n in enumerate(names, start=1)
                if len(clocks.get(session.streams[n].device, ()))}
     events_sid, markers_sid = len(names) + 1, len(names) + 2
