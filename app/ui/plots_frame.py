@@ -763,6 +763,9 @@ class PlotsFrame(QWidget):
         plot.legend.addItem(curve, curve.name())
         for part in plot.legend.items[-1]:  # its sample line and its label: drawn once, blitted after (#37)
             part.setCacheMode(QGraphicsItem.CacheMode.DeviceCoordinateCache)
+        # ... and the label's text, a child item of its own that the label's cache does not hold: laid out and
+        # drawn again for every entry of the legends shown, in each frame's paint (#37)
+        plot.legend.items[-1][1].item.setCacheMode(QGraphicsItem.CacheMode.DeviceCoordinateCache)
         return curve
 
     # ------------------------------------------------------------------ behaviour
