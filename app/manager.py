@@ -552,7 +552,11 @@ class LinarmppManager(QObject):
         self.plan_checks_pending += 1
 
         def check() -> None:
-            self._plan_checked.emit(generation, profile, self._plan_problems(profile))  # queued to this thread
+            problems = self._plan_problems(profile)
+            try:
+                self._plan_checked.emit(generation, profile, problems)  # queued to this thread
+            except RuntimeError:  # the manager is gone (the application closed meanwhile): nobody to tell
+                pass
 
         threading.Thread(target=check, name="plan-check", daemon=True).start()
 
