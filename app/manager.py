@@ -16,7 +16,7 @@ from concurrent.futures import Future
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from PySide6.QtCore import QObject, Signal
+from PySide6.QtCore import QCoreApplication, QObject, QThread, Signal
 
 from app.core import journal, streams
 from app.core.bus import BusItem, SampleItem, StreamBus, Subscription
@@ -171,10 +171,17 @@ class DeviceWatch:
 class LinarmppManager(QObject):
     session_changed = Signal(object)  # the session folder (Path) or None when no session runs
     profile_changed = Signal(object)  # the session patient's profile, saved again during the session
+    # A session plan check's answer (generation, the profile it read, its problems), from the check's thread to the
+    # manager's (the window's): see _check_plan_off_thread.
+    _plan_checked = Signal(int, object, object)
 
     def __init__(self, config: AppConfig, factories: dict[str, DeviceFactory] | None = None) -> None:
         super().__init__()
         self.config = config
+        self._plan_lock = threading.Lock()
+        self._plan_generation = 0  # the newest plan check's: an older check's answer is dropped
+        self.plan_checks_pending = 0  # checks on their thread whose answer has not been taken yet (tests)
+        self._plan_checked.connect(self._take_plan_check)
         self.bus = StreamBus()  # first: every device publishes on it, every consumer subscribes to it
         self.notifier = self.bus.notifier  # what a script's waitCondition waits on (woken once per driver read)
         self.supervisor = SafetySupervisor(config.safety, bus=self.bus)  # its records: the journal, on the bus
@@ -499,26 +506,66 @@ class LinarmppManager(QObject):
         self.apply_patient_profile(profile)
         if changes:
             self.record_event("patient_profile_updated", patient=profile.patient_id, changes=changes)
-        self._check_plan(profile)
+        if QThread.currentThread() is self.thread() and QCoreApplication.instance() is not None:
+            self._check_plan_off_thread(profile)  # the window's thread: it does not wait for the check
+        else:
+            self._check_plan(profile)
         self.profile_changed.emit(profile)
         return changes
+
+    def _next_plan_generation(self) -> int:
+        with self._plan_lock:
+            self._plan_generation += 1
+            return self._plan_generation
 
     def _check_plan(self, profile: Any) -> list[str]:
         """The therapy plan against the patient's limits, caps and electrode choices now (at the session's start
         and when the profile changes): what would be refused is recorded before anything moves."""
+        self._next_plan_generation()  # a check still running for an older profile is overtaken by this one
+        problems = self._plan_problems(profile)
+        if problems:
+            self.record_event("plan_problems", patient=profile.patient_id, problems=problems)
+        return problems
+
+    def _plan_problems(self, profile: Any) -> list[str]:
+        """What the plan's steps would meet as refusals (Qt-free, any thread: reads the library and the profile)."""
         from app.therapy.exercises import load_library
         from app.therapy.patients import plan_problems, prescription_problems
 
         try:
-            library = load_library()[0]  # read once for both checks (it runs on the window's thread after a save)
-            problems = [str(p) for p in plan_problems(profile.therapy_plan, library)
-                        + prescription_problems(profile.therapy_plan, profile, self.config.safety, library)]
+            library = load_library()[0]  # read once for both checks
+            return [str(p) for p in plan_problems(profile.therapy_plan, library)
+                    + prescription_problems(profile.therapy_plan, profile, self.config.safety, library)]
         except Exception:  # a broken library must not stop the session: the Exercises tab lists it
             log.exception("the therapy plan could not be checked")
             return []
-        if problems:
+
+    def _check_plan_off_thread(self, profile: Any) -> None:
+        """``_check_plan`` with the reading and checking (~25 ms: the library's YAML, every step, the FES profiles)
+        on a thread of its own, so the window's thread turns meanwhile (#37: it ran there after the plan form
+        closed). Only the record waits for it: the limits and caps were applied before (the supervisor holds them,
+        the next command meets them); the check only says what the plan would meet. Its answer comes back to this
+        thread with the generation it was started with, and is recorded only if no newer check began and the
+        session still holds that very profile: never an older plan's problems after a newer save, never after the
+        session ended."""
+        generation = self._next_plan_generation()
+        self.plan_checks_pending += 1
+
+        def check() -> None:
+            problems = self._plan_problems(profile)
+            try:
+                self._plan_checked.emit(generation, profile, problems)  # queued to this thread
+            except RuntimeError:  # the manager is gone (the application closed meanwhile): nobody to tell
+                pass
+
+        threading.Thread(target=check, name="plan-check", daemon=True).start()
+
+    def _take_plan_check(self, generation: int, profile: Any, problems: list[str]) -> None:
+        self.plan_checks_pending = max(0, self.plan_checks_pending - 1)
+        with self._plan_lock:
+            current = generation == self._plan_generation
+        if current and problems and self.recorder is not None and self.patient_profile is profile:
             self.record_event("plan_problems", patient=profile.patient_id, problems=problems)
-        return problems
 
     def end_session(self, reason: str = "ended by the operator") -> None:
         recorder, self.recorder = self.recorder, None

@@ -9,7 +9,12 @@ Three sources, each with the GUI idle and with every signal in the graphs redraw
 * shortcut: the configured e-stop key (F12) posted the same way; the application-wide key filter catches it;
 * API: ``supervisor.emergency_stop("api")`` called from a non-GUI thread (a script, a remote caller).
 
-t0 is stamped (time.monotonic_ns) just before the event is posted or the call is made. The ends are the
+t0 is stamped (time.monotonic_ns) just before the event is posted or the call is made, by an "operator" thread
+after a random 50–150 ms while the window's thread runs its event loop with nothing of the benchmark's in it; the
+wire is read once ``SETTLE_S`` later (reading it from the simulators' process is a call on the window's thread: a
+press must not wait behind it). Before session 11 the window's thread was blocked in the benchmark's join of the
+operator thread when the press was posted, and read the wire every 50 ms meanwhile (``--blocked-gui``): both
+were in the figures. The ends are the
 simulator threads receiving the bytes: the RehaStim core decodes a ScienceMode Stop, the LINarm core a
 ``setCtrlState(IDLE)``. Before every trial the e-stop is reset and stimulation restarted (profile
 frontal_reaching.yaml), so Stop interrupts a running stimulation.
@@ -20,7 +25,9 @@ threads of the benchmark's process (the layout of the figures before #27). ``--l
 
 Beside the latencies (issue #37): during each GUI condition, how many graph frames a second were shown (drawn
 and on screen, whichever thread drew them; the graphs' timer ticks apart) and the GUI thread's longest stall (the
-longest gap of a 5 ms timer on it, as bench_trigger.py measures it).
+longest gap of a 5 ms timer on it, as bench_trigger.py measures it). ``--split``: each latency cut where the
+supervisor's ``emergency_stop`` is entered: "→ handler" (the event posted → the window's thread acting on it: what
+the press waits for that thread) and "handler → both" (the stop itself, as the API's path).
 """
 
 from __future__ import annotations
@@ -40,6 +47,8 @@ if "--host" in sys.argv:  # before the app is imported: where the simulators run
     os.environ["LINARMPP_SIM_HOST"] = sys.argv[sys.argv.index("--host") + 1]
 
 import common
+
+SETTLE_S = 0.05  # after the press, before the wire is read (a stop takes a few ms; a later one is still seen)
 
 
 class Watch:
@@ -173,6 +182,11 @@ def main() -> int:
     parser.add_argument("--host", choices=("process", "thread"), default="process",
                         help="simulators in their own process (the app's default) or threads of this one")
     parser.add_argument("--load", action="store_true", help="two `yes > /dev/null` processes meanwhile")
+    parser.add_argument("--blocked-gui", action="store_true",
+                        help="post each press while the window's thread waits in the benchmark's own join (the "
+                             "trials before session 11: that wait, and reading the wire, were part of the figure)")
+    parser.add_argument("--split", action="store_true", help="also cut each latency where the supervisor's "
+                                                             "emergency_stop is entered")
     args = parser.parse_args()
     import subprocess
 
@@ -200,6 +214,15 @@ def run(args: argparse.Namespace) -> int:
         remote = any(isinstance(w, common.RemoteWire) for w in wires)
         window = common.open_window(manager, load=False)
         sources = triggers(window, manager)
+        entered: list[int] = []  # --split: when the supervisor's emergency_stop was entered (any thread)
+        if args.split:
+            supervisor = manager.supervisor
+            real_stop = supervisor.emergency_stop
+
+            def stamped(*a: Any, real_stop: Callable[..., None] = real_stop, **k: Any) -> None:
+                entered.append(time.monotonic_ns())
+                real_stop(*a, **k)
+            supervisor.emergency_stop = stamped
         results: dict[str, list[float]] = {}
         not_stimulating: dict[str, int] = {}
         plots = window.frames.get("PlotsFrame")
@@ -226,15 +249,23 @@ def run(args: argparse.Namespace) -> int:
                     why = start_stimulation(manager)
                     if why:
                         not_stimulating[why] = not_stimulating.get(why, 0) + 1
-                    common.run_qt_until(lambda: False, rng.uniform(0.05, 0.15))  # a random point in the GUI's rhythm
                     t0 = [0]
+                    delay = rng.uniform(0.05, 0.15)  # a random point in the GUI's rhythm
+                    if args.blocked_gui:
+                        common.run_qt_until(lambda: False, delay)
 
-                    def go(fire: Callable[[], None] = fire, t0: list[int] = t0) -> None:
+                    def go(fire: Callable[[], None] = fire, t0: list[int] = t0, delay: float = delay) -> None:
+                        if not args.blocked_gui:
+                            time.sleep(delay)
                         t0[0] = time.monotonic_ns()
                         fire()
+                        if not args.blocked_gui:
+                            time.sleep(SETTLE_S)
 
                     thread = threading.Thread(target=go, name="operator")
                     thread.start()
+                    if not args.blocked_gui:  # the window's thread turns as it does in use, nothing of ours in it
+                        common.run_qt_until(lambda thread=thread: not thread.is_alive(), 5.0)
                     thread.join()
                     def seen(t0: list[int] = t0) -> bool:
                         for w in wires:
@@ -250,6 +281,12 @@ def run(args: argparse.Namespace) -> int:
                         continue
                     for what, t in (("FES Stop", t_fes), ("robot IDLE", t_idle), ("both", max(t_fes, t_idle))):
                         results.setdefault(f"{gui}: {name} → {what}", []).append((t - t0[0]) / 1e6)
+                    t_in = next((t for t in entered if t >= t0[0]), None)
+                    if t_in is not None:
+                        results.setdefault(f"{gui}: {name} → handler", []).append((t_in - t0[0]) / 1e6)
+                        results.setdefault(f"{gui}: {name} handler → both", []).append(
+                            (max(t_fes, t_idle) - t_in) / 1e6)
+                    entered.clear()
             longest = gaps.stop()
             elapsed = time.monotonic() - t_phase
             rates.append(f"  {gui}: graph frames shown {(frames_shown(window) - f0) / elapsed:.1f}/s (timer ticks "

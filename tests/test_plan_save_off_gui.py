@@ -145,3 +145,95 @@ def test_the_running_session_hears_the_saved_plan_on_the_windows_thread_after_th
     assert version == (plan.version or None)  # a YAML folder has no versions; an archive record has one
     assert thread == threading.main_thread().name and not form_open
     assert "Applied to PZ-SESSION's running session at once" in patients.session_note.text()
+
+
+def _session_manager(monkeypatch: Any) -> Any:
+    """A manager without devices whose session's patient is PZ-RUN (a stand-in recorder: the check reads only the
+    profile, the configured limits and the exercise library); its records are kept with the thread they came on."""
+    from types import SimpleNamespace
+
+    from app.manager import LinarmppManager
+
+    manager = LinarmppManager(AppConfig(), factories={})
+    manager.recorder = SimpleNamespace(folder=Path("PZ-RUN"))
+    manager.patient_profile = PatientProfile(patient_id="PZ-RUN")
+    manager.operator = "dr_verdi"
+    records: list[tuple[str, dict[str, Any], str]] = []
+    real_record = manager.record_event
+
+    def record_event(kind: str, who: str = "", **data: Any) -> None:
+        records.append((kind, data, threading.current_thread().name))
+        real_record(kind, who, **data)
+
+    monkeypatch.setattr(manager, "record_event", record_event)
+    manager.records = records
+    return manager
+
+
+def _with_a_slow_plan_check(monkeypatch: Any) -> tuple[threading.Event, list[bool], list[str], threading.Event]:
+    """The session's plan check made slow: it waits (≤ 1 s) for a zero-timer armed on the window's thread; run on
+    the window's thread it waits in vain (the timer fires only once the check is over)."""
+    from app.therapy import patients
+
+    turned, release = threading.Event(), threading.Event()
+    seen: list[bool] = []
+    checked_on: list[str] = []
+    real_check = patients.prescription_problems
+
+    def slow_check(*args: Any, **kwargs: Any) -> Any:
+        checked_on.append(threading.current_thread().name)
+        seen.append(turned.wait(1.0))
+        release.wait(1.0)
+        return real_check(*args, **kwargs)
+
+    monkeypatch.setattr(patients, "prescription_problems", slow_check)
+    return turned, seen, checked_on, release
+
+
+def _plan_with_problems(**robot: float) -> PatientProfile:
+    from app.therapy.patients import PatientRobotLimits, PlannedExercise
+
+    return PatientProfile(patient_id="PZ-RUN", robot=PatientRobotLimits(**robot),
+                          therapy_plan=[PlannedExercise("trigger_reaching", {"speed_m_s": 0.2})])
+
+
+def test_the_running_sessions_plan_check_runs_off_the_windows_thread_and_the_lowered_cap_applies_at_once(
+        qtbot: Any, monkeypatch: Any) -> None:
+    """After the plan form closed, the running session applies the saved profile and checks its plan (~25 ms on the
+    window's thread before): the limits the therapist lowered reach the supervisor before the call returns; the
+    check runs on a thread of its own while the window turns; its answer (the plan's problems) is recorded on the
+    window's thread."""
+    manager = _session_manager(monkeypatch)
+    turned, seen, checked_on, release = _with_a_slow_plan_check(monkeypatch)
+    QTimer.singleShot(0, turned.set)
+    changes = manager.update_session_profile(_plan_with_problems(max_velocity_m_s=0.05))
+    assert manager.supervisor.robot.max_velocity_m_s == 0.05  # the lowered cap: at once, by the supervisor
+    assert changes and manager.records[0][0] == "patient_profile_updated"
+    qtbot.waitUntil(lambda: bool(seen), timeout=3000)
+    release.set()
+    assert seen == [True], f"the window's thread did not turn while the session's plan was checked (on {checked_on})"
+    assert checked_on != [threading.main_thread().name]
+    qtbot.waitUntil(lambda: any(kind == "plan_problems" for kind, _d, _t in manager.records), timeout=3000)
+    ((problems, thread),) = [(d["problems"], t) for kind, d, t in manager.records if kind == "plan_problems"]
+    assert thread == threading.main_thread().name
+    assert len(problems) == 1 and "0.05" in problems[0], problems  # 0.2 m/s: above the lowered cap only
+
+
+def test_a_plan_check_overtaken_by_a_newer_profile_or_the_sessions_end_records_nothing(
+        qtbot: Any, monkeypatch: Any) -> None:
+    """Each check carries the generation of the profile it read: an answer for a profile the session no longer
+    holds (saved again meanwhile, or the session ended) is dropped — only the newest profile's problems are
+    recorded, never a mix of two."""
+    manager = _session_manager(monkeypatch)
+    turned, seen, _checked_on, release = _with_a_slow_plan_check(monkeypatch)
+    turned.set()
+    manager.update_session_profile(_plan_with_problems(max_velocity_m_s=0.05))
+    qtbot.waitUntil(lambda: len(seen) == 1, timeout=3000)
+    manager.update_session_profile(PatientProfile(patient_id="PZ-RUN"))  # the plan emptied: nothing to refuse
+    release.set()
+    qtbot.waitUntil(lambda: len(seen) == 2 and not manager.plan_checks_pending, timeout=3000)
+    assert [kind for kind, _d, _t in manager.records if kind == "plan_problems"] == []
+    manager.update_session_profile(_plan_with_problems(max_velocity_m_s=0.05))
+    manager.recorder = None  # the session ended before the answer came
+    qtbot.waitUntil(lambda: len(seen) == 3 and not manager.plan_checks_pending, timeout=3000)
+    assert [kind for kind, _d, _t in manager.records if kind == "plan_problems"] == []

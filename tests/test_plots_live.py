@@ -1,6 +1,6 @@
 """The live graphs keep up (issue #37): following the live data, the curves are stroked off the GUI thread into one
 image per pane (app.ui.plot_render) — drawn exactly where the curve items draw them when paused; a pane scrolled
-out of view is not drawn; the renderer's thread rests when no frame comes."""
+out of view is neither reduced nor drawn; the renderer's thread rests when no frame comes."""
 
 from __future__ import annotations
 
@@ -67,10 +67,14 @@ def test_a_pane_out_of_view_is_not_drawn(qtbot) -> None:
     qtbot.waitUntil(lambda: frame.images["m"].image is not None, timeout=3000)
     qtbot.wait(100)
     assert frame.images["bpm"].image is None  # scrolled out of view: not drawn
+    assert len(frame.curves["physio.main.heartRate"].getData()[0]) == 0  # ... nor reduced (#37: the window's turn)
+    assert len(frame.curves["linarm.vsa.handlePos"].getData()[0]) > 100
     frame.graphs_scroll.verticalScrollBar().setValue(frame.graphs_scroll.verticalScrollBar().maximum())
+    assert frame._dirty  # scrolled: the next frame draws what came into view, new samples or not
     qtbot.wait(50)
     frame.redraw()
     qtbot.waitUntil(lambda: frame.images["bpm"].image is not None, timeout=3000)
+    assert len(frame.curves["physio.main.heartRate"].getData()[0]) > 100
 
 
 def test_the_renderer_draws_the_newest_frame_and_rests(qtbot) -> None:

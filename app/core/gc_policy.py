@@ -25,14 +25,22 @@ from collections.abc import Callable
 log = logging.getLogger(__name__)
 
 TICK_S = 2.0  # how often the window calls tick(): the age after which a survivor is settled while driving
+# The window's policy collects only once nothing has driven for this long: the full walk (50-70 ms with every graph
+# drawn) is one turn of the window's thread holding the interpreter lock, and a rest of a moment -- an e-stop,
+# reset, start again -- is when the next start and the next e-stop press come (#37: the e-stop bench's presses
+# waited behind it, 60 ms of CPU, when it ran at the first tick after a stop).
+REST_S = 6.0
 
 
 class HeapPolicy:
     """``drives()`` says what a stall would leave unattended ('' at rest; app.gui_watch.what_drives)."""
 
-    def __init__(self, drives: Callable[[], str], clock: Callable[[], float] = time.monotonic) -> None:
+    def __init__(self, drives: Callable[[], str], clock: Callable[[], float] = time.monotonic,
+                 rest_s: float = 0.0) -> None:
         self._drives = drives
         self._clock = clock
+        self.rest_s = rest_s  # the rest a full collection waits for (0: the first tick at rest)
+        self._last_drive_s: float | None = None  # when a tick last saw something drive
         self.frozen = False  # objects are out of the collector's sight
         self._drove = False  # settled while driving: given back at the next rest
         self.full_collections = 0  # the collections made at rest (tests)
@@ -44,12 +52,15 @@ class HeapPolicy:
         self.frozen = True
 
     def tick(self) -> None:
-        """While driving, settle the survivors; at rest, once after driving, give them back and collect."""
+        """While driving, settle the survivors; at rest (for ``rest_s``), once after driving, give them back and
+        collect."""
         if self._drives():
             self.settle()
             self._drove = True
+            self._last_drive_s = self._clock()
             return
-        if self._drove:
+        rested = self._last_drive_s is None or self._clock() - self._last_drive_s >= self.rest_s
+        if self._drove and rested:
             self._drove = False
             gc.unfreeze()
             self.frozen = False

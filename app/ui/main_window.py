@@ -188,10 +188,10 @@ class MainWindow(QMainWindow):
         self.gui_heartbeat = install_gui_watch(self.manager, self)
         # The collector's full walks kept off the therapy (app/core/gc_policy.py): survivors settled while driving,
         # everything collected once at rest.
-        from app.core.gc_policy import TICK_S, HeapPolicy
+        from app.core.gc_policy import REST_S, TICK_S, HeapPolicy
         from app.gui_watch import what_drives
 
-        self.heap_policy = HeapPolicy(lambda: what_drives(self.manager))
+        self.heap_policy = HeapPolicy(lambda: what_drives(self.manager), rest_s=REST_S)
         self._heap_timer = QTimer(self)
         self._heap_timer.setInterval(int(TICK_S * 1000))
         self._heap_timer.timeout.connect(self.heap_policy.tick)

@@ -441,6 +441,8 @@ class PlotsFrame(QWidget):
         self.graphs_scroll.setHorizontalScrollBarPolicy(Qt.ScrollBarPolicy.ScrollBarAlwaysOff)
         self.graphs_scroll.setWidget(self.graphics)
         self.graphs_scroll.setMinimumSize(160, 120)
+        # a pane scrolled into view is reduced and drawn by the next frame, new samples or not
+        self.graphs_scroll.verticalScrollBar().valueChanged.connect(self._mark_dirty)
         rlay.addWidget(self.graphs_scroll, 1)
 
         self.readout = QLabel(" ")
@@ -763,6 +765,9 @@ class PlotsFrame(QWidget):
         plot.legend.addItem(curve, curve.name())
         for part in plot.legend.items[-1]:  # its sample line and its label: drawn once, blitted after (#37)
             part.setCacheMode(QGraphicsItem.CacheMode.DeviceCoordinateCache)
+        # ... and the label's text, a child item of its own that the label's cache does not hold: laid out and
+        # drawn again for every entry of the legends shown, in each frame's paint (#37)
+        plot.legend.items[-1][1].item.setCacheMode(QGraphicsItem.CacheMode.DeviceCoordinateCache)
         return curve
 
     # ------------------------------------------------------------------ behaviour
@@ -861,9 +866,14 @@ class PlotsFrame(QWidget):
         images = self.render_off_thread and not self.paused and self._follow_x
         self._set_image_mode(images)
         keys = [k for k in self.curves if k in store]
-        bounds = {id(plot): [math.inf, -math.inf] for plot in self.plots.values()}
         for key in self.curves.keys() - set(keys):
             self.curves[key].setData([], [])
+        # Following the newest sample, a pane scrolled out of view is neither reduced nor drawn (scrolling marks the
+        # graphs dirty: the next frame does it); a replay's panes (x = 0 its session's start) all hold their points.
+        in_view = self._panes_in_view() if images else set()
+        reduced = in_view if images and self.x_origin is None else {id(plot) for plot in self.plots.values()}
+        keys = [k for k in keys if id(self._curve_plot[k]) in reduced]
+        bounds = {id(plot): [math.inf, -math.inf] for plot in self.plots.values() if id(plot) in reduced}
         x_origin = self._x0()
         for stream_keys, t, rows, _pairs in store.envelope_rows(keys, t0, t1, max_points=2 * width_px):
             x = t - x_origin
@@ -880,14 +890,14 @@ class PlotsFrame(QWidget):
                     b = bounds[id(self._curve_plot[key])]
                     b[0], b[1] = min(b[0], lo), max(b[1], hi)
         for plot in self.plots.values():
-            if isinstance(plot.vb, LiveViewBox):
+            if isinstance(plot.vb, LiveViewBox) and id(plot) in bounds:
                 lo, hi = bounds[id(plot)]
                 y_bounds = (lo, hi) if lo <= hi else None
                 if y_bounds != plot.vb.y_bounds:
                     plot.vb.y_bounds = y_bounds
                     plot.vb.updateAutoRange()  # the sticky range moves only when the data leave it
         if images:
-            self._submit_frame()
+            self._submit_frame(in_view)
         else:
             self.graphics.viewport().update()
         self._dirty = False
@@ -921,22 +931,27 @@ class PlotsFrame(QWidget):
         if not on:
             self._dirty = True  # the curve items need their polygons: the next frame builds them
 
-    def _submit_frame(self) -> None:
-        """Hand every pane's points to the renderer (its view transform computed here, from the view's range
-        and size as pyqtgraph maps them)."""
+    def _panes_in_view(self) -> set[int]:
+        """The panes (ids of their plots) the scroll area shows now (a pane scrolled into view is drawn by the next
+        frame; the others cost the window's thread nothing: #37)."""
+        seen = self.graphics.viewport().visibleRegion().boundingRect()
+        return {id(plot) for plot in self.plots.values()
+                if self.graphics.mapFromScene(plot.vb.sceneBoundingRect()).boundingRect().intersects(seen)}
+
+    def _submit_frame(self, in_view: set[int]) -> None:
+        """Hand the points of the panes in view to the renderer (each one's view transform computed here, from the
+        view's range and size as pyqtgraph maps them)."""
         dpr = self.graphics.devicePixelRatioF()
         panes: list[PaneJob] = []
         by_plot: dict[int, PaneJob] = {}
-        # Only the panes the scroll area shows (a pane scrolled into view is drawn by the next frame).
-        seen = self.graphics.viewport().visibleRegion().boundingRect()
         for unit, plot in self.plots.items():
+            if id(plot) not in in_view:
+                continue
             vb = plot.vb
             vb.prepareForPaint()  # a pending autorange now, not at the paint after the image is drawn
             w, h = float(vb.width()), float(vb.height())
             (x0, x1), (y0, y1) = vb.viewRange()
             if w < 2 or h < 2 or x1 <= x0 or y1 <= y0:
-                continue
-            if not self.graphics.mapFromScene(vb.sceneBoundingRect()).boundingRect().intersects(seen):
                 continue
             transform = QTransform()
             transform.translate(w / 2, h / 2)
