@@ -32,7 +32,8 @@ APP = ROOT / "app"
 
 # (file, the line's text contains) -> why this literal is not a copy of a device id.
 NOT_DEVICE_IDS: dict[tuple[str, str], str] = {
-    ("app/ui/patient_dialog.py", '"fes": {"profile"'): "the profile file's 'fes' section (its format)",
+    ("app/archive/patient_form.py", '"fes": {"profile"'): "the profile file's 'fes' section (its format)",
+    ("app/archive/cli.py", '"fes": "--cap"'): "the profile file's 'fes' section, named by the option that sets it",
     ("app/archive/store.py", '"fes": {"profile"'): "the profile file's 'fes' section (its format)",
     ("app/session/metrics.py", '.get("fes")'): "the recorded configuration's 'fes' section (its format)",
     ("app/research_export/bids.py", '"physio")'): "a BIDS data type (the BIDS specification's word)",
