@@ -89,8 +89,9 @@ def rig(qtbot):
 def run_setup(manager, plan: SetupPlan = PLAN, stopped=lambda: False):
     events: list[tuple[str, dict]] = []
     robot, fes = manager.driver("linarm"), manager.driver("fes")
-    result = run_district_setup(fes, robot, manager.supervisor, robot.latest,
-                                lambda kind, data: events.append((kind, data)), DELTOID, plan, stopped)
+    result = run_district_setup(fes, robot, manager.supervisor, robot.latest,  # the stream queued as the app does
+                                lambda kind, data: events.append((kind, data)), DELTOID, plan, stopped,
+                                bus=manager.bus)
     return result, events
 
 

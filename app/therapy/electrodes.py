@@ -33,6 +33,10 @@ log = logging.getLogger(__name__)
 
 Direction = Literal["positive", "negative", "either"]
 MIN_READINGS = 3  # distinct LINarm readings a baseline or a measurement needs
+# How long a measurement waits past its window for readings stamped in it (a driver that read late; the stream
+# is in order, so a reading stamped after the window says none is still coming): longer than any read delay a
+# working computer gives, short beside a burst's rest.
+LATE_READINGS_S = 0.5
 # The plan's bounds (#37: a step of 1e-12 mA looped without end, a pulse width of 1e6 µs "gave no response"):
 MIN_STEP_MA = 1.0  # the stimulator takes whole mA: a smaller step only repeats a current
 DEFAULT_STEP_MA = 2.0
@@ -495,25 +499,32 @@ class ElectrodeSetup:
         start = ports.now() if since is None else since
         end = start + seconds
         out: dict[float, ArmReading] = {}
+        queued = ports.arm_readings is not None
+        newest = -math.inf
         while True:
             self._check()
             reading = ports.read_arm()
             if reading is not None and start - 1e-9 <= reading.t <= end + 1e-9:
                 out[reading.t] = reading
-            self._take_queued(out, start, end)
-            left = end - ports.now()
-            if left <= 1e-9:
+            newest = max(newest, self._take_queued(out, start, end))
+            now = ports.now()
+            # With the stream queued, the window is complete once a reading stamped after it has come (the stream
+            # is in order): a driver that read late still delivers the window's readings, up to LATE_READINGS_S.
+            if now >= end - 1e-9 and (not queued or newest > end or now >= end + LATE_READINGS_S):
                 return list(out.values())
-            ports.sleep(min(left, self.plan.sample_period_s))
+            ports.sleep(min(max(end - now, 0.0) or self.plan.sample_period_s, self.plan.sample_period_s))
 
-    def _take_queued(self, out: dict[float, ArmReading], start: float, end: float) -> None:
+    def _take_queued(self, out: dict[float, ArmReading], start: float, end: float) -> float:
         """The queued readings stamped in [start, end] into ``out`` (the rest are dropped: they are older than
-        the window, or too new for it and a later window starts after them)."""
+        the window, or too new for it and a later window starts after them); returns the newest stamp seen."""
         if self.ports.arm_readings is None:
-            return
+            return -math.inf
+        newest = -math.inf
         for reading in self.ports.arm_readings():
+            newest = max(newest, reading.t)
             if start - 1e-9 <= reading.t <= end + 1e-9:
                 out[reading.t] = reading
+        return newest
 
     def _late(self, window: list[ArmReading], start: float, end: float) -> list[ArmReading]:
         """``window`` with the readings stamped in it that were read after it closed (a driver read late on a
