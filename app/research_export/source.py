@@ -398,17 +398,6 @@ class _Len:
         return self.n
 
 
-def _pandas_read(data: bytes, ncols: int, usecols: list[int] | None) -> np.ndarray:
-    import pandas as pd
-
-    kwargs: dict[str, Any] = {}
-    if int(pd.__version__.split(".", 1)[0]) < 3:
-        kwargs["float_precision"] = "round_trip"  # pandas 3 reads the shortest repr back exactly by default
-    frame = pd.read_csv(io.BytesIO(data), header=None, names=range(ncols), usecols=usecols, dtype=np.float64,
-                        engine="c", na_filter=True, keep_default_na=False, na_values=["nan", "NaN", "-nan"], **kwargs)
-    return frame.to_numpy(dtype=np.float64)
-
-
 _LINE = re.compile(rb"[^\n]*\n")
 COMMA, NEWLINE = ord(","), ord("\n")
 
@@ -467,7 +456,7 @@ def _parse_fields(data: bytes, layout: LineLayout, fields: list[int]) -> np.ndar
     arr[ends[:, fields[-1]]] = NEWLINE  # the last field asked for ends its line
     picked = arr[runs_mask(runs, (False, True) * len(fields) + (False,))]
     try:
-        values = _pandas_read(picked.tobytes(), len(fields), None)
+        values = recording.read_csv_numbers(picked.tobytes(), len(fields), None)
     except ValueError:
         return None
     return values if len(values) == n else None
@@ -479,7 +468,7 @@ def _parse_lines(data: bytes, ncols: int, usecols: list[int] | None = None) -> t
     lines = data.count(b"\n")
     if data.count(b",") == lines * (ncols - 1):
         try:
-            values = _pandas_read(data, ncols, usecols)
+            values = recording.read_csv_numbers(data, ncols, usecols)
         except ValueError:
             pass  # a garbled value: line by line below
         else:
