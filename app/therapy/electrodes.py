@@ -512,7 +512,8 @@ class ElectrodeSetup:
             # is in order): a driver that read late still delivers the window's readings, up to LATE_READINGS_S.
             if now >= end - 1e-9 and (not queued or newest > end or now >= end + LATE_READINGS_S):
                 return list(out.values())
-            ports.sleep(min(max(end - now, 0.0) or self.plan.sample_period_s, self.plan.sample_period_s))
+            period = self.plan.sample_period_s
+            ports.sleep(min(end - now, period) if now < end else period)  # past the window: late readings
 
     def _take_queued(self, out: dict[float, ArmReading], start: float, end: float) -> float:
         """The queued readings stamped in [start, end] into ``out`` (the rest are dropped: they are older than
