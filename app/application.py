@@ -182,6 +182,9 @@ def run_gui(config: AppConfig, screenshot: str | None = None, quit_after_s: floa
 
     prepare_qt()
     app = QApplication.instance() or QApplication(sys.argv)
+    from app.main_thread_gc import collect_on_the_main_thread
+
+    collect_on_the_main_thread(app)  # before any other thread exists: Qt objects destroyed on their own thread
     configure_qt_identity()
     apply_desktop_identity(app)
     from app.ui.theme import apply_palette

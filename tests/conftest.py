@@ -69,7 +69,22 @@ def _qt_identity(qapp):
     from app.application import configure_qt_identity
 
     configure_qt_identity()
+    from app.main_thread_gc import collect_on_the_main_thread
+
+    # As in the app: the collector runs on this (the main) thread only, from the application's timer during a
+    # test's waits and after each test (below) -- a widget of an earlier test caught in a cycle was destroyed on a
+    # dialog's loading thread by an automatic collection there: a segmentation fault in the suite (#38).
+    collect_on_the_main_thread(qapp)
     yield
+
+
+@pytest.hookimpl(trylast=True)
+def pytest_runtest_teardown(item, nextitem) -> None:  # type: ignore[no-untyped-def]
+    from app.main_thread_gc import collections
+
+    main_thread = collections()
+    if main_thread is not None:
+        main_thread.collect_due()
 
 
 # ------------------------------------------------------------------------------ reruns: realtime tests only

@@ -52,15 +52,15 @@ FLOORS: tuple[tuple[str, ...], ...] = (
     ("app.session",),  # the record: recording, replay, metrics, reports, exports, LSL
     ("app.worker",),  # the heavy work's process
     ("app.research_export", "app.archive"),
-    ("app.manager", "app.gui_watch"),  # the composition root
+    ("app.manager", "app.gui_watch", "app.main_thread_gc"),  # the composition root
     ("app.scripting",),
     ("app.ui",),
     ("app.application", "app.desktop_entry"),
     ("app.cli",),
 )
 # Where Qt may be imported (prefixes), and the floors that must not reach it through any import.
-QT_PLACES = ("app.ui", "app.devices", "app.manager", "app.application", "app.cli", "app.scripting.headless",
-             "app.session.reports")
+QT_PLACES = ("app.ui", "app.devices", "app.manager", "app.main_thread_gc", "app.application", "app.cli",
+             "app.scripting.headless", "app.session.reports")
 QT_FREE_FLOORS = ("app.wire", "app.core", "app.safety", "app.therapy", "app.session")
 
 

@@ -12,7 +12,17 @@ that has just been built is settled at once. At rest (nothing drives) everything
 and collected once, so cycles made during a therapy are freed after it. Objects freed by their reference count
 (nearly all) are freed at once either way; only cyclic garbage waits for the rest.
 
-No Qt here: the window calls ``tick`` from a timer and ``settle`` after building a large window.
+**Collections on the main thread only** (:class:`MainThreadCollections`, #38): an automatic collection runs on
+whichever thread happens to allocate, and what it frees is destroyed there. A Qt object freed by the collector
+(a widget or a timer caught in a reference cycle, cyclic garbage of a closed dialog) must be destroyed on its own
+thread: destroyed on a loader's or a driver's thread, a shown window's destructor waited for the window's thread
+(a hang, seen with a plot widget) or the process crashed (a segmentation fault "Garbage-collecting" on the Patients
+window's loading thread, seen in the suite with two workers on busy cores). So a process with Qt objects turns
+the automatic collections off and its main thread collects on a timer what the thresholds say is due — the same
+generations, by the same counts, on the one thread where destroying a Qt object is safe.
+
+No Qt here: the window calls ``tick`` from a timer and ``settle`` after building a large window;
+app/main_thread_gc.py runs :class:`MainThreadCollections` from a timer on the main thread.
 """
 
 from __future__ import annotations
@@ -30,6 +40,14 @@ TICK_S = 2.0  # how often the window calls tick(): the age after which a survivo
 # reset, start again -- is when the next start and the next e-stop press come (#37: the e-stop bench's presses
 # waited behind it, 60 ms of CPU, when it ran at the first tick after a stop).
 REST_S = 6.0
+# How often the main thread looks at the collector's counts (MainThreadCollections.collect_due). A generation-0
+# collection walks only the container objects made since the last one and still alive (freed ones are gone by their
+# reference count): well under a millisecond at this period with the devices streaming.
+COLLECT_EVERY_S = 0.25
+# A full walk outside a frozen heap (every object of the window: 45-75 ms) at most this often, and only when the
+# window's policy says it may (at rest): the automatic collector's own rule (a quarter of the heap new) is not
+# visible from Python, so its effect -- full walks are rare -- is kept by a gap.
+FULL_GAP_S = 60.0
 
 
 class HeapPolicy:
@@ -51,6 +69,15 @@ class HeapPolicy:
         gc.freeze()
         self.frozen = True
 
+    def full_walk_allowed(self) -> bool:
+        """Whether a full collection now keeps off the therapy: the heap frozen (the walk sees only what is new)
+        or a rest of ``rest_s`` with nothing driving (MainThreadCollections.full_allowed)."""
+        if self.frozen:
+            return True
+        if self._drives():
+            return False
+        return self._last_drive_s is None or self._clock() - self._last_drive_s >= self.rest_s
+
     def tick(self) -> None:
         """While driving, settle the survivors; at rest (for ``rest_s``), once after driving, give them back and
         collect."""
@@ -69,3 +96,65 @@ class HeapPolicy:
             self.last_full_s = self._clock() - t0
             self.full_collections += 1
             log.debug("garbage collected at rest: %d objects in %.0f ms", found, self.last_full_s * 1e3)
+
+
+class MainThreadCollections:
+    """The automatic collections, made by one thread (the main one: Qt's GUI thread) when it calls ``collect_due``.
+
+    ``take_over`` turns the interpreter's automatic collections off (process-wide); ``give_back`` turns them on
+    again. ``collect_due`` collects the oldest generation whose count passed its threshold, as the interpreter
+    would; a full collection (generation 2) only when ``full_allowed()`` (the window's policy: while the heap is
+    frozen a full walk is short; at rest, once nothing has driven for a while) and ``FULL_GAP_S`` after the last.
+    """
+
+    def __init__(self, clock: Callable[[], float] = time.monotonic, full_gap_s: float = FULL_GAP_S) -> None:
+        self._clock = clock
+        self.full_gap_s = full_gap_s
+        self.full_allowed: Callable[[], bool] = lambda: True
+        self.active = False
+        self.collections = [0, 0, 0]  # made here, per generation (tests, logs)
+        self.longest_s = 0.0  # the longest collection made here
+        self._last_full_s: float | None = None
+        self._was_enabled = True
+
+    def take_over(self) -> None:
+        if not self.active:
+            self._was_enabled = gc.isenabled()
+            gc.disable()
+            self.active = True
+            self._last_full_s = self._clock()
+
+    def give_back(self) -> None:
+        if self.active:
+            self.active = False
+            if self._was_enabled:
+                gc.enable()
+
+    def due(self) -> int | None:
+        """The generation the interpreter would collect now (None: nothing due)."""
+        counts, thresholds = gc.get_count(), gc.get_threshold()
+        if thresholds[0] == 0:  # collections switched off by gc.set_threshold(0)
+            return None
+        if counts[2] > thresholds[2] and self._full_may_run():
+            return 2
+        if counts[1] > thresholds[1]:
+            return 1
+        return 0 if counts[0] > thresholds[0] else None
+
+    def _full_may_run(self) -> bool:
+        last = self._last_full_s
+        return (last is None or self._clock() - last >= self.full_gap_s) and self.full_allowed()
+
+    def collect_due(self) -> int | None:
+        """Collect what is due on the calling thread; the generation collected (None: nothing was due)."""
+        generation = self.due()
+        if generation is None:
+            return None
+        t0 = self._clock()
+        gc.collect(generation)
+        spent = self._clock() - t0
+        self.longest_s = max(self.longest_s, spent)
+        self.collections[generation] += 1
+        if generation == 2:
+            self._last_full_s = self._clock()
+        return generation

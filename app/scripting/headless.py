@@ -214,6 +214,9 @@ def _run(config: AppConfig, start: Callable[[ScriptRunner, LinarmppManager], Non
     from app.scripting.runner import ScriptRunner
 
     app = QCoreApplication.instance() or QCoreApplication([sys.argv[0] if sys.argv else "linarmpp"])
+    from app.main_thread_gc import collect_on_the_main_thread
+
+    collect_on_the_main_thread(app)  # the drivers' QObjects destroyed on their own thread (app/core/gc_policy.py)
     if patient and not record_dir:  # a patient's session goes where the window's go: the station's outbox
         from app.session.recording import sessions_root
 

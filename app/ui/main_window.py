@@ -196,6 +196,14 @@ class MainWindow(QMainWindow):
         self._heap_timer.setInterval(int(TICK_S * 1000))
         self._heap_timer.timeout.connect(self.heap_policy.tick)
         self._heap_timer.start()
+        from app.main_thread_gc import collections
+
+        main_thread = collections()
+        if main_thread is not None:  # full walks on the main thread only when the window's policy allows them
+            import weakref
+
+            policy = weakref.ref(self.heap_policy)  # not keeping a closed window alive
+            main_thread.full_allowed = lambda: (p := policy()) is None or p.full_walk_allowed()
         QTimer.singleShot(0, self.heap_policy.settle)  # the window and its frames live as long as the app
 
     def _offer_larger_graphs(self) -> None:
