@@ -86,8 +86,8 @@ class ExerciseProgress:
         return unsubscribe
 
     def attach_runs(self, runs: Any) -> None:
-        """The session's runs (a RunLog): a run begun from now on is looked up there, and the marks of a mark
-        without a begun run go to its current run. A run already shown stays in the log it began in."""
+        """The session's runs (a RunLog): a run begun from now on is looked up there, and marks made while no run
+        has begun go to its current run. The run already shown stays in the log it began in."""
         self._runs = runs
 
     def follow_runs(self, bus: StreamBus) -> None:
