@@ -179,3 +179,24 @@ def test_another_logs_records_do_not_touch_a_run_of_the_same_id() -> None:
     (run,) = runs_from_events(events)
     assert (run.end_reason, run.ended_mono, run.repetitions) == ("stopped_by_operator", 5.0, ()), (
         f"the earlier log's run-1 records ended the session's run-1: {run.end_reason} at {run.ended_mono}")
+
+
+def test_the_exports_spans_keep_two_logs_runs_apart() -> None:
+    """The research export's run and repetition spans (BIDS, XDF, EDF+) pair a start with the end of the same run
+    in the same log; records without ``log`` pair by id as before."""
+    from app.research_export.marks import event_marks
+
+    def run(log: str | None, kind: str, t: float, **data: Any) -> dict[str, Any]:
+        return {"kind": kind, "t_mono": t, "data": {"run_id": "run-1", **({"log": log} if log else {}), **data}}
+
+    events = [run("log-2", "run_start", 1.0, program=EXERCISE.as_dict()),
+              run("log-2", "repetition_start", 1.5, index=1),
+              run("log-1", "repetition_end", 1.8, index=1, ok=False),
+              run("log-1", "run_end", 2.0, reason="session_ended"),
+              run("log-2", "repetition_end", 3.0, index=1, ok=True),
+              run("log-2", "run_end", 5.0, reason="finished")]
+    spans = {(m.kind, m.duration) for m in event_marks(events, 6.0) if m.duration}
+    assert spans == {("run", 4.0), ("repetition", 1.5)}, f"an earlier log's ends closed the session's spans: {spans}"
+    old = [{**e, "data": {k: v for k, v in e["data"].items() if k != "log"}} for e in events if e["t_mono"] != 2.0
+           and e["t_mono"] != 1.8]
+    assert {(m.kind, m.duration) for m in event_marks(old, 6.0) if m.duration} == {("run", 4.0), ("repetition", 1.5)}
