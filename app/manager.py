@@ -11,7 +11,7 @@ import logging
 import shutil
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from concurrent.futures import Future
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -208,12 +208,17 @@ class LinarmppManager(QObject):
                                                self._apply_fes_pulse_width, supervisor=self.supervisor)
         self._last_target: float | None = None
         self._leased: set[str] = set()  # the leases of the runs holding their devices now (one owner, #36)
-        self._run_logs = 0  # run logs made so far: a lease's key names its run's log (each numbers from run-1)
+        # The open runs' starts (their run_start records' data), by lease key: what a run holds, for its lease.
+        self._open_runs: dict[str, Mapping[str, Any]] = {}
+        self._earlier_runs: list[Any] = []  # run logs a session replaced while one of their runs was open
         self._vr_targets_before: tuple[float, ...] | None = None  # the VR task's own targets, during a composed run
         self.therapy = TherapyThread(self.bus, self.assistance.update_alpha, self._alpha_lost, self._follow_target)
         from app.core.progress import ExerciseProgress
 
         self.progress = ExerciseProgress(self.supervisor.record)  # the running exercise's repetitions
+        # Runs are followed through their journal records (origin "run"): the leases here, the progress its run.
+        self.bus.listen("leases", self.hold_for_run)
+        self.progress.follow_runs(self.bus)
         self.runs = self._new_run_log()  # the exercise runs (app/core/runs.py); a new log for each session
         # every STOP alarm -> safe state (window and headless alike)
         self.fault_policy = FaultPolicy(self.supervisor, self.bus, self.driver, lambda: self._started,
@@ -347,31 +352,42 @@ class LinarmppManager(QObject):
                 return level  # it can reach this actuator, or the program holding it can read it
         return AlarmLevel.WARNING if active else level
 
-    def hold_for_run(self, run: Any, log_name: str) -> None:
-        """The run log's listener (any thread): a run that starts holds its devices, one that ends gives them
-        back. What it holds and lets in comes from its record (``holds``, ``compose``: app/core/runs.py). The
-        lease's key is the run's id in its log (``log_name``): each session's log numbers from run-1, and a run of
-        an earlier log may still be running."""
-        key = f"{run.run_id}@{log_name}"
-        if run.running:
+    def hold_for_run(self, record: journal.Record) -> None:
+        """A journal listener (on the publishing thread): a run that starts holds its devices, one that ends gives
+        them back. What it holds and lets in comes from its ``run_start`` record (``holds``, ``compose``,
+        ``program.title``: app/core/runs.py). The lease's key is the run's id in its log (the records' ``log``):
+        each session's log numbers from run-1, and a run of an earlier log may still be running. A run refused its
+        devices at its start asks again at its next state."""
+        if record.origin != journal.RUN or record.kind not in (journal.RUN_START, journal.RUN_STATE, journal.RUN_END):
+            return
+        data = record.data
+        run_id = str(data.get("run_id", ""))
+        key = f"{run_id}@{data.get('log', '')}"
+        if record.kind == journal.RUN_END:
+            self._open_runs.pop(key, None)
             if key in self._leased:
-                return
-            self._leased.add(key)
-            try:
-                compose = tuple(Composition.from_dict(c) for c in run.compose)
-            except (ValueError, KeyError, TypeError) as exc:
-                log.error("run %s: its composition is not understood (%s); nothing composes", run.run_id, exc)
-                compose = ()
-            lease = Lease(key=key, holder=run.title, devices=frozenset(run.holds), sources=RUN_SOURCES,
-                          compose=compose, run_id=run.run_id)
-            try:
-                self.take_lease(lease)
-            except SafetyError as exc:  # the runner checks first (start_problem): a console entry meanwhile
-                log.warning("run %s does not hold its devices: %s", run.run_id, exc.reason)
                 self._leased.discard(key)
-        elif key in self._leased:
+                self.release_lease(key, str(data.get("reason") or ""))
+            return
+        if record.kind == journal.RUN_START:
+            self._open_runs[key] = data
+        start = self._open_runs.get(key)
+        if start is None or key in self._leased:
+            return
+        self._leased.add(key)
+        try:
+            compose = tuple(Composition.from_dict(c) for c in start.get("compose") or ())
+        except (ValueError, KeyError, TypeError) as exc:
+            log.error("run %s: its composition is not understood (%s); nothing composes", run_id, exc)
+            compose = ()
+        title = str((start.get("program") or {}).get("title", ""))
+        lease = Lease(key=key, holder=title, devices=frozenset(start.get("holds") or ()), sources=RUN_SOURCES,
+                      compose=compose, run_id=run_id)
+        try:
+            self.take_lease(lease)
+        except SafetyError as exc:  # the runner checks first (start_problem): a console entry meanwhile
+            log.warning("run %s does not hold its devices: %s", run_id, exc.reason)
             self._leased.discard(key)
-            self.release_lease(key, run.end_reason or "")
 
     def take_lease(self, lease: Lease) -> None:
         """``lease.holder`` holds its devices from now on (the supervisor refuses everyone else); raises
@@ -571,7 +587,7 @@ class LinarmppManager(QObject):
         recorder, self.recorder = self.recorder, None
         if recorder is None:
             return
-        self.runs.end_current("session_ended" if reason != "application closing" else "app_exit")  # recorded
+        self._end_open_runs("session_ended" if reason != "application closing" else "app_exit")  # recorded
         self.supervisor.bring_to_safe_state("session ended")
         for handle in list(self.devices.values()):  # counts a driver records only now and then, up to now
             record_counts = getattr(handle.driver, "record_link_counts", None)
@@ -593,19 +609,29 @@ class LinarmppManager(QObject):
             robot.apply_limits(self.supervisor.robot)
 
     def _new_run_log(self) -> Any:
-        """The runs' changes are journal records (origin ``run``) on the bus as they happen: the session's
-        recorder, or the headless runner's, hears them there like any other record."""
+        """The runs' changes are journal records (origin ``run``, naming the log) on the bus as they happen: the
+        session's recorder, or the headless runner's, hears them there like any other record, and so do the leases
+        (:meth:`hold_for_run`) and the progress. A run still open in the log this one replaces ends where it began
+        (its runner holds that log); the session's end ends it there if it has not."""
         from app.core.runs import RunLog
 
         def record(kind: str, **data: Any) -> None:
             self.bus.record(journal.RUN, kind, data)
 
+        previous = getattr(self, "runs", None)
+        self._earlier_runs = [r for r in (*self._earlier_runs, previous)
+                              if r is not None and r.current() is not None]
         runs = RunLog(record)
         self.progress.attach_runs(runs)
-        self._run_logs += 1
-        log_name = f"log-{self._run_logs}"
-        runs.subscribe(lambda run: self.hold_for_run(run, log_name))
         return runs
+
+    def _end_open_runs(self, reason: str) -> None:
+        """A session's end, the application closing: every run still open ends with ``reason`` in its own log —
+        the current log's and any an earlier log still holds open — and its record gives its devices back."""
+        self.runs.end_running(reason)
+        earlier, self._earlier_runs = self._earlier_runs, []
+        for runs in earlier:
+            runs.end_running(reason)
 
     def record_event(self, kind: str, who: str = "", **data: Any) -> None:
         """An event for the session record (the exercise chosen, parameter changes, the electrode set-up): one
@@ -634,7 +660,7 @@ class LinarmppManager(QObject):
             return
         self._started = False
         t0 = time.monotonic()
-        self.runs.end_current("app_exit")
+        self._end_open_runs("app_exit")
         self.supervisor.bring_to_safe_state("application closing")
         if self.recorder is not None:
             self.end_session("application closing")

@@ -167,7 +167,6 @@ class SharedRig:
         self.resets = 0
         # What the rig itself holds: anything else a test opened is closed by the reset.
         self._subscriptions = set(map(id, self.manager.bus.subscriptions()))
-        self._run_listeners = list(self.manager.runs._listeners)
 
     # ------------------------------------------------------------------ the known state
     def reset(self) -> None:
@@ -178,7 +177,6 @@ class SharedRig:
         for sub in m.bus.subscriptions():
             if id(sub) not in self._subscriptions:
                 sub.close()
-        m.runs._listeners = list(self._run_listeners)
         if m.runs.current() is not None:
             m.runs.end_current("test ended")
         if m.recorder is not None:

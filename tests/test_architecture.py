@@ -19,7 +19,9 @@
   serial rate (the default, the configured range, the LINarm's, ScienceMode's) typed in its one place
   (:data:`BAUD_FACTS`);
 * **the journal heard on the bus only** (issue #40): no ``add_event_subscriber`` / ``set_event_sink`` wrapper
-  defined or called anywhere (app, tests, benches, tools);
+  defined or called anywhere (app, tests, benches, tools); the run log keeps no listener list of its own (no
+  ``subscribe`` / ``_listeners`` / ``_notify`` in ``RunLog``) and nothing subscribes to a run log: its changes are
+  journal records (origin ``run``), heard on the bus;
 * outside ``app/ui/``, no parameter or attribute called manager / app / context is typed ``Any`` (or left
   untyped): a device or a consumer says what it really uses.
 """
@@ -425,6 +427,52 @@ def test_the_journal_is_heard_on_the_bus_only() -> None:
     assert not found, "the supervisor's (kind, data) wrappers (listen on the bus instead):\n" + "\n".join(found)
 
 
+# The run log's own listener list (issue #40): a second way to hear the run changes beside their journal records.
+RUN_LOG_LISTENING = frozenset({"subscribe", "_listeners", "_notify"})
+
+
+def _names_a_run_log(node: ast.expr) -> bool:
+    """``runs``, ``self.runs``, ``manager.runs``, ``self._run_log``, ``earlier``… — a run log by the name the code
+    gives it (the manager's ``runs``, the runner's ``_run_log``)."""
+    name = node.attr if isinstance(node, ast.Attribute) else node.id if isinstance(node, ast.Name) else ""
+    return name in ("runs", "run_log", "_run_log", "_runs", "live_runs")
+
+
+def run_log_listeners(root: Path = ROOT) -> list[str]:
+    """``RunLog`` defining a listener mechanism (in ``app/core/runs.py``), and any ``<run log>.subscribe(...)`` or
+    ``<run log>._listeners`` in ``app/``, ``tests/``, ``bench/`` and ``tools/``."""
+    found: list = []
+    runs = root / "app" / "core" / "runs.py"
+    if runs.exists():
+        for node in ast.walk(_source_tree(runs)):
+            if isinstance(node, ast.ClassDef) and node.name == "RunLog":
+                for inner in ast.walk(node):
+                    name = (inner.name if isinstance(inner, (ast.FunctionDef, ast.AsyncFunctionDef))
+                            else inner.attr if isinstance(inner, ast.Attribute) else None)
+                    if name in RUN_LOG_LISTENING:
+                        found.append((inner.lineno, f"app/core/runs.py:{inner.lineno}: RunLog.{name}"))
+    found = [text for _line, text in sorted(set(found))]
+    for folder in ("app", "tests", "bench", "tools"):
+        for path in sorted((root / folder).rglob("*.py")):
+            if path.name == "test_architecture.py" or path == runs:
+                continue
+            text = path.read_text(encoding="utf-8")
+            if "subscribe" not in text and "_listeners" not in text:
+                continue
+            for node in ast.walk(_source_tree(path)):
+                if (isinstance(node, ast.Attribute) and node.attr in RUN_LOG_LISTENING
+                        and _names_a_run_log(node.value)):
+                    found.append(f"{path.relative_to(root).as_posix()}:{node.lineno}: {ast.unparse(node)}")
+    return found
+
+
+def test_runs_are_heard_on_the_bus_only() -> None:
+    """Issue #40: a run's start, state and end are journal records (origin ``run``) that the leases and the
+    exercise's progress hear on the bus, not a listener list of the run log's own."""
+    found = run_log_listeners(ROOT)
+    assert not found, "a run log's own listeners (listen to its journal records on the bus):\n" + "\n".join(found)
+
+
 def test_qt_only_where_it_belongs() -> None:
     found = qt_outside_its_places(ROOT)
     assert not found, "Qt outside the window, the drivers and the composition root:\n" + "\n".join(found)
@@ -510,5 +558,16 @@ def test_rules_catch_a_link_name_a_baud_rate_a_loopback_and_a_journal_wrapper(to
     assert baud_rates_typed(toy) == (["app/devices/drv.py:5: 57600 in RATE = 57600"], set())
     assert journal_wrappers_used(toy) == ["app/devices/sup.py:2: add_event_subscriber"]
     assert loopback_typed(toy) == ["app/devices/drv.py:6: 'socket://127.0.0.1:'"]
+    app_modules.cache_clear()
+    import_graph.cache_clear()
+
+
+def test_rule_catches_a_run_log_listener(toy: Path) -> None:
+    (toy / "app" / "core").mkdir()
+    _write(toy, "app/core/runs.py", "class RunLog:\n    def subscribe(self, fn): ...\n")
+    _write(toy, "app/devices/use.py", "def f(manager, bus):\n    manager.runs.subscribe(print)\n"
+                                      "    bus.subscribe('x')\n")
+    assert run_log_listeners(toy) == ["app/core/runs.py:2: RunLog.subscribe",
+                                      "app/devices/use.py:2: manager.runs.subscribe"]
     app_modules.cache_clear()
     import_graph.cache_clear()

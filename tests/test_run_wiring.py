@@ -13,6 +13,8 @@ from typing import Any
 
 import pytest
 
+from app.core import journal
+from app.core.bus import StreamBus
 from app.core.config import AppConfig, UdpEndpoint
 from app.core.progress import ExerciseProgress
 from app.core.runs import Program, RunLog, runs_from_events, text_hash
@@ -163,7 +165,9 @@ def test_the_elapsed_time_stops_with_the_run(qapp: Any) -> None:
 
     clock = Clock()
     progress = ExerciseProgress(clock=clock)
-    runs = RunLog(clock=clock)
+    bus = StreamBus()  # the run's changes reach the progress as journal records, as in the app
+    progress.follow_runs(bus)
+    runs = RunLog(lambda kind, **data: bus.record(journal.RUN, kind, data), clock=clock)
     progress.attach_runs(runs)
     run = runs.start(Program("script_file", "/x.py", "x.py", text_hash("")), (), "script_tab", "A")
     progress.begin("x.py", run_id=run.run_id)

@@ -6,6 +6,10 @@ runs the script (the console, the Exercises tab, the headless runner); the windo
 (``repetition_start``, ``repetition_end``, ``progress``), so the per-repetition metrics can find the repetitions in
 a recording. Qt-free and thread-safe: marks arrive from the script bridge's thread, and :meth:`subscribe`'s
 listeners are called on it (they must be quick: the adapter queues the state for its next tick).
+
+The run it belongs to is followed through the journal: :meth:`follow_runs` listens on the bus for the run log's
+records (origin ``run``: its state, its end on the run log's clock) of the run it shows — that run's id in that
+run's log, since each session's log numbers its runs from run-1.
 """
 
 from __future__ import annotations
@@ -18,6 +22,9 @@ from dataclasses import dataclass, replace
 from typing import Any
 
 from app.core import journal
+from app.core.bus import RecordListener, StreamBus
+from app.core.journal import Record
+from app.core.runs import PROGRAM_STATES, run_state_text
 
 EventRecorder = Callable[..., None]  # SafetySupervisor.record(kind, **data)
 Listener = Callable[["ProgressState"], None]
@@ -36,6 +43,7 @@ class ProgressState:
     paused_since: float | None = None
     running: bool = False
     run_id: str = ""  # the run (app/core/runs.py) these marks belong to
+    run_log: str = ""  # the run log that run is in (its records' ``log``)
     run_state: str = ""  # the run's state (app.core.runs.RUN_STATES), "" without a run
     state_text: str = ""  # the run's state in words: "waiting for the grip", "stopped: emergency stop"
     ended_monotonic: float | None = None  # when the run ended: the elapsed time stops there
@@ -65,7 +73,8 @@ class ExerciseProgress:
         self._lock = threading.Lock()
         self._state = ProgressState()
         self._runs: Any = None  # app.core.runs.RunLog: the session's runs (the manager attaches each new one)
-        self._unsubscribe: Callable[[], None] | None = None
+        self._run_log: Any = None  # the RunLog of the run the state shows (it stays there when a session starts)
+        self._listener: RecordListener | None = None
 
     def subscribe(self, fn: Listener) -> Callable[[], None]:
         """``fn(state)`` after every change, on the thread that made it; returns the unsubscribe."""
@@ -77,26 +86,53 @@ class ExerciseProgress:
         return unsubscribe
 
     def attach_runs(self, runs: Any) -> None:
-        """Follow ``runs`` (a RunLog): the marks carry the current run's id, the state shows the run's state."""
-        if self._unsubscribe is not None:
-            self._unsubscribe()
+        """The session's runs (a RunLog): a run begun from now on is looked up there, and marks made while no run
+        has begun go to its current run. The run already shown stays in the log it began in."""
         self._runs = runs
-        self._unsubscribe = runs.subscribe(self._run_changed) if runs is not None else None
 
-    def _run_changed(self, run: Any) -> None:
+    def follow_runs(self, bus: StreamBus) -> None:
+        """Hear the run log's records on ``bus`` (the run shown: its state, its end)."""
+        self.stop_following_runs()
+        self._listener = bus.listen("progress", self.run_record)
+
+    def stop_following_runs(self) -> None:
+        listener, self._listener = self._listener, None
+        if listener is not None:
+            listener.close()
+
+    def run_record(self, record: Record) -> None:
+        """A journal record (on the publishing thread): the run shown changed state or ended."""
+        if record.origin != journal.RUN or record.kind not in (journal.RUN_STATE, journal.RUN_END):
+            return
+        data = record.data
         with self._lock:
             state = self._state
-        if run.run_id != state.run_id:
+        if not state.run_id or data.get("run_id") != state.run_id or data.get("log") != state.run_log:
             return
-        ended = None if run.running else run.ended_mono
-        self._set(replace(state, run_state=run.state, state_text=run.state_text(),
-                          ended_monotonic=ended if ended is not None else state.ended_monotonic))
+        if record.kind == journal.RUN_STATE:
+            run_state = str(data.get("state", state.run_state))
+            self._set(replace(state, run_state=run_state,
+                              state_text=run_state_text(run_state, str(data.get("detail", "")))))
+            return
+        reason = str(data.get("reason", ""))
+        ended = data.get("ended_mono")
+        self._set(replace(state, run_state="finished" if reason == "finished" else "stopped",
+                          state_text=run_state_text("", "", reason),
+                          ended_monotonic=float(ended) if ended is not None else state.ended_monotonic))
 
-    def _current_run_id(self, state: ProgressState) -> str:
+    def _current_run(self, state: ProgressState) -> tuple[str, Any]:
+        """The run the marks belong to: its id and its RunLog (("", None) without one)."""
         if state.run_id and state.running:
-            return state.run_id
+            return state.run_id, self._run_log
         current = self._runs.current() if self._runs is not None else None
-        return current.run_id if current is not None else ""
+        return (current.run_id, self._runs) if current is not None else ("", None)
+
+    @staticmethod
+    def _run_fields(run_id: str, runs: Any) -> dict[str, Any]:
+        """The fields naming a mark's run in its record: its id and its log."""
+        if not run_id:
+            return {}
+        return {"run_id": run_id, "log": runs.log_id} if runs is not None else {"run_id": run_id}
 
     @property
     def state(self) -> ProgressState:
@@ -105,10 +141,13 @@ class ExerciseProgress:
 
     # ------------------------------------------------------------------ called by the script host
     def begin(self, exercise: str, total: int | None = None, run_id: str = "") -> None:
-        run = self._runs.get(run_id) if (run_id and self._runs is not None) else None
+        runs = self._runs if run_id else None
+        self._run_log = runs
+        run = runs.get(run_id) if runs is not None else None
         started = run.started_mono if run is not None else self._clock()
         self._set(ProgressState(exercise=exercise, total=_total(total), started_monotonic=started, running=True,
-                                run_id=run_id, run_state=run.state if run is not None else "",
+                                run_id=run_id, run_log=runs.log_id if runs is not None else "",
+                                run_state=run.state if run is not None else "",
                                 state_text=run.state_text() if run is not None else ""))
 
     def finish(self, status: str = "finished") -> None:
@@ -116,14 +155,15 @@ class ExerciseProgress:
             state = self._state
         if not state.running:
             return
+        runs = self._run_log
         if state.in_repetition:
             self._event(journal.REPETITION_END, index=state.repetition, ok=False, status=status,
-                        **self._run_field(state))
-            if state.run_id and self._runs is not None:
-                self._runs.repetition_ended(state.run_id, state.repetition, False, interrupted=True)
+                        **self._run_fields(state.run_id, runs))
+            if state.run_id and runs is not None:
+                runs.repetition_ended(state.run_id, state.repetition, False, interrupted=True)
         now = self._clock()
         paused_s = state.paused_s + ((now - state.paused_since) if state.paused_since is not None else 0.0)
-        run = self._runs.get(state.run_id) if (state.run_id and self._runs is not None) else None
+        run = runs.get(state.run_id) if (state.run_id and runs is not None) else None
         text = run.state_text() if run is not None and not run.running else (state.state_text or status)
         ended = run.ended_mono if run is not None and run.ended_mono is not None else now
         # The exercise's last message ("moving to 0.30 m") is not true after a stop: only a finished run keeps it.
@@ -155,10 +195,10 @@ class ExerciseProgress:
         with self._lock:
             state = self._state
         total = _total(total) if total is not None else state.total
-        run_id = self._current_run_id(state)
-        self._event(journal.REPETITION_START, index=index, total=total, **({"run_id": run_id} if run_id else {}))
-        if run_id and self._runs is not None:
-            self._runs.repetition_started(run_id, index)
+        run_id, runs = self._current_run(state)
+        self._event(journal.REPETITION_START, index=index, total=total, **self._run_fields(run_id, runs))
+        if run_id and runs is not None:
+            runs.repetition_started(run_id, index)
         started = state.started_monotonic if state.started_monotonic is not None else self._clock()
         self._set(replace(state, repetition=index, total=total, in_repetition=True, started_monotonic=started,
                           running=True))
@@ -167,10 +207,10 @@ class ExerciseProgress:
         with self._lock:
             state = self._state
         index = state.repetition if index is None else int(index)
-        run_id = self._current_run_id(state)
-        self._event(journal.REPETITION_END, index=index, ok=bool(ok), **({"run_id": run_id} if run_id else {}))
-        if run_id and self._runs is not None:
-            self._runs.repetition_ended(run_id, index, bool(ok))
+        run_id, runs = self._current_run(state)
+        self._event(journal.REPETITION_END, index=index, ok=bool(ok), **self._run_fields(run_id, runs))
+        if run_id and runs is not None:
+            runs.repetition_ended(run_id, index, bool(ok))
         self._set(replace(state, in_repetition=False))
 
     def prompt(self, index: int | None = None, cue: str = "squeeze", threshold_n: float | None = None) -> None:
@@ -182,24 +222,21 @@ class ExerciseProgress:
         data: dict[str, Any] = {"index": index, "cue": str(cue)[:40]}
         if threshold_n is not None:
             data["threshold_n"] = float(threshold_n)
-        run_id = self._current_run_id(state)
-        if run_id:
-            data["run_id"] = run_id  # the run it belongs to (app/core/runs.py: prompt events carry run_id)
+        run_id, runs = self._current_run(state)
+        data.update(self._run_fields(run_id, runs))  # the run it belongs to (app/core/runs.py: prompt events)
         self._event(journal.PROMPT, **data)
 
     def set_run_state(self, state: str, detail: str = "") -> None:
         """The program says what its run does now (linarmppManager.setRunState): "waiting_for_grip", "moving",
         "resting" or "running". The runner owns the others (homing, paused, stopped, finished)."""
-        from app.core.runs import PROGRAM_STATES
-
         state = str(state)
         if state not in PROGRAM_STATES:
             raise ValueError(f"a run state is one of {', '.join(PROGRAM_STATES)}, got {state!r}")
         with self._lock:
             current = self._state
-        run_id = self._current_run_id(current)
-        if run_id and self._runs is not None:
-            self._runs.set_state(run_id, state, str(detail)[:120])
+        run_id, runs = self._current_run(current)
+        if run_id and runs is not None:
+            runs.set_state(run_id, state, str(detail)[:120])
 
     def report(self, text: str) -> None:
         text = str(text)[:200]
@@ -209,10 +246,6 @@ class ExerciseProgress:
         self._set(replace(state, text=text))
 
     # ------------------------------------------------------------------ internals
-    @staticmethod
-    def _run_field(state: ProgressState) -> dict[str, Any]:
-        return {"run_id": state.run_id} if state.run_id else {}
-
     def _event(self, kind: str, **data: Any) -> None:
         if self._record is not None:
             self._record(kind, **data)

@@ -4,18 +4,26 @@ Everything that starts an exercise (the Exercises tab, the Script tab, the conso
 one :class:`ExerciseRun` in the session's :class:`RunLog`; everything that ends it closes it with a reason.
 The Exercises panel, the Script tab, Recover, the metrics and the reports all read runs, never file names.
 
+Each change is a journal record (origin ``run``, :mod:`app.core.journal`) on the stream bus, published through
+the log's one ``record`` call as it happens; whoever follows runs — the devices' leases (the manager), the
+exercise's progress, the session's recorder — hears them on the bus. The log keeps no listener list of its own.
 The record is the session's event log (``events.jsonl``), written as it happens, so a crash leaves the runs
 readable: :func:`runs_from_events` rebuilds them from the events alone. The events (``data`` fields):
 
-``run_start``   run_id, program {kind, ident, title, version, path, text_sha256}, parameters
+``run_start``   run_id, log, program {kind, ident, title, version, path, text_sha256}, parameters
                 [{name, label, value, unit}], source, operator, restart_of, continues (the interrupted run a
                 continuation carries on: its remaining repetitions), holds (the devices the run holds: "robot",
-                "stimulator"), compose (what other sources it lets set, app/core/ownership.py)
-``run_state``   run_id, state (a :data:`RUN_STATES` value), detail
-``run_end``     run_id, reason (an :data:`END_REASONS` value), detail, completed, not_started
-``prompt``      run_id, index, cue                 the exercise's "squeeze now" cue (metrics: reaction time)
-``repetition_start`` / ``repetition_end``          as before, plus ``run_id`` (repetitions numbered within
-                                                   the run, from 1)
+                "stimulator"), compose (what other sources it lets set, app/core/ownership.py), started_mono
+``run_state``   run_id, log, state (a :data:`RUN_STATES` value), detail
+``run_end``     run_id, log, reason (an :data:`END_REASONS` value), detail, completed, not_started, ended_mono
+``prompt``      run_id, log, index, cue            the exercise's "squeeze now" cue (metrics: reaction time)
+``repetition_start`` / ``repetition_end``          as before, plus ``run_id`` and ``log`` (repetitions numbered
+                                                   within the run, from 1)
+
+``log`` names the run log (:attr:`RunLog.log_id`, unique in the process): each session makes a log of its own
+whose ids start again at run-1, and a run ends in the log it began in, so a run is its (log, run_id). Sessions
+recorded before the field have one log: a record without it belongs to the run of its id. ``started_mono`` and
+``ended_mono`` are the run log's clock (the record's own ``t_mono`` is the time it was published).
 
 The program text itself is kept in ``run_start``'s ``program.text`` only for console code and scripts (so a
 restart can run exactly what ran, and a changed file on disk is detected by its hash); library exercises
@@ -25,6 +33,7 @@ are identified by id, version (hash of their YAML + script) and text hash.
 from __future__ import annotations
 
 import hashlib
+import itertools
 import threading
 import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
@@ -203,44 +212,42 @@ class ExerciseRun:
 
     def state_text(self) -> str:
         """The run's state in words: "waiting for the grip", "stopped: emergency stop", "finished"."""
-        if not self.running:
-            if self.end_reason == "finished":
-                return "finished"
-            return f"stopped: {END_REASON_TEXT.get(self.end_reason or '', self.end_reason or '')}"
-        text = STATE_TEXT.get(self.state, self.state)
-        return f"{text} ({self.state_detail})" if self.state_detail else text
+        return run_state_text(self.state, self.state_detail, None if self.running else (self.end_reason or ""))
 
     def parameters_text(self) -> str:
         return ", ".join(p.text() for p in self.parameters)
 
 
-Listener = Callable[[ExerciseRun], None]
-EventRecorder = Callable[..., None]  # (kind, **data) -> None: the session record
+EventRecorder = Callable[..., None]  # (kind, **data) -> None: the journal (the manager: bus.record, origin "run")
+_LOG_NUMBERS = itertools.count(1)  # next() is atomic: each run log of the process gets its own number
+
+
+def run_state_text(state: str, detail: str = "", end_reason: str | None = None) -> str:
+    """A run's state in words: "waiting for the grip", "stopped: emergency stop", "finished" (``end_reason`` once
+    it ended). The one reading of a state for :meth:`ExerciseRun.state_text` and a run record's follower."""
+    if end_reason is not None:
+        if end_reason == "finished":
+            return "finished"
+        return f"stopped: {END_REASON_TEXT.get(end_reason, end_reason)}"
+    text = STATE_TEXT.get(state, state)
+    return f"{text} ({detail})" if detail else text
 
 
 class RunLog:
-    """The session's runs, live. Thread-safe; listeners are called on the caller's thread (the UI adapts them to
-    Qt with a queued signal). Each change is written to the session record at once through ``record``."""
+    """The session's runs, live. Thread-safe. Each change is a record published at once through ``record``
+    (the journal, on the bus: see the module docstring), on the caller's thread; its followers hear it there.
+    ``log_id`` names this log in its records (unique in the process; "log-1", "log-2", … when not given)."""
 
     def __init__(self, record: EventRecorder | None = None, clock: Callable[[], float] = time.monotonic,
-                 wall_clock: Callable[[], float] = time.time) -> None:
+                 wall_clock: Callable[[], float] = time.time, *, log_id: str = "") -> None:
         self._record = record
         self._clock = clock
         self._wall = wall_clock
+        self.log_id = log_id or f"log-{next(_LOG_NUMBERS)}"
         self._lock = threading.Lock()
         self._runs: dict[str, ExerciseRun] = {}
         self._order: list[str] = []
-        self._listeners: list[Listener] = []
         self._n = 0
-
-    def subscribe(self, fn: Listener) -> Callable[[], None]:
-        with self._lock:
-            self._listeners = [*self._listeners, fn]
-
-        def unsubscribe() -> None:
-            with self._lock:
-                self._listeners = [f for f in self._listeners if f is not fn]
-        return unsubscribe
 
     # ------------------------------------------------------------------ reading
     def runs(self) -> list[ExerciseRun]:
@@ -283,8 +290,7 @@ class RunLog:
         self._emit(RUN_START, run_id=run_id, program=program.as_dict(with_text=program.kind != "exercise"),
                    parameters=[p.as_dict() for p in parameters], source=source, operator=operator,
                    restart_of=restart_of, holds=list(holds), compose=[dict(c) for c in compose],
-                   **({"continues": continues} if continues else {}))
-        self._notify(run)
+                   started_mono=run.started_mono, **({"continues": continues} if continues else {}))
         return run
 
     def set_state(self, run_id: str, state: str, detail: str = "") -> None:
@@ -293,7 +299,6 @@ class RunLog:
         run = self._update(run_id, lambda r: replace(r, state=state, state_detail=detail) if r.running else r)
         if run is not None and run.running:
             self._emit(RUN_STATE, run_id=run_id, state=state, detail=detail)
-            self._notify(run)
 
     def repetition_started(self, run_id: str, index: int) -> None:
         now = self._clock()
@@ -327,13 +332,17 @@ class RunLog:
         # "Not started" only for a run refused before its first movement: a script that marks no repetitions
         # (the seed's Fig. 18) still moved the patient; its movements are counted from the handle (metrics).
         self._emit(RUN_END, run_id=run_id, reason=reason, detail=detail, completed=completed,
-                   not_started=reason == "refused" and not run.repetitions)
-        self._notify(run)
+                   not_started=reason == "refused" and not run.repetitions, ended_mono=now)
         return run
 
     def end_current(self, reason: str, detail: str = "") -> ExerciseRun | None:
         run = self.current()
         return self.end(run.run_id, reason, detail) if run is not None else None
+
+    def end_running(self, reason: str, detail: str = "") -> list[ExerciseRun]:
+        """End every run still running (a session's end, the application closing), each with its record."""
+        ended = [self.end(run.run_id, reason, detail) for run in self.runs() if run.running]
+        return [run for run in ended if run is not None]
 
     # ------------------------------------------------------------------ internals
     def _update(self, run_id: str, fn: Callable[[ExerciseRun], ExerciseRun]) -> ExerciseRun | None:
@@ -347,11 +356,7 @@ class RunLog:
 
     def _emit(self, kind: str, **data: Any) -> None:
         if self._record is not None:
-            self._record(kind, **data)
-
-    def _notify(self, run: ExerciseRun) -> None:
-        for fn in list(self._listeners):
-            fn(run)
+            self._record(kind, log=self.log_id, **data)
 
 
 def repetitions_done(run: ExerciseRun) -> int:
@@ -387,6 +392,7 @@ def runs_from_events(events: Iterable[Mapping[str, Any]], t_end: float | None = 
     """Rebuild the runs from a session's events (``t_mono`` times). A run without ``run_end`` (the app crashed)
     ends at ``t_end`` (the record's last time) with reason ``crashed``."""
     runs: dict[str, ExerciseRun] = {}
+    logs: dict[str, str] = {}  # run id -> the log its run_start named ("" in a record from before the field)
     order: list[str] = []
     last_t = 0.0
     for e in events:
@@ -406,11 +412,14 @@ def runs_from_events(events: Iterable[Mapping[str, Any]], t_end: float | None = 
                                        continues=data.get("continues"),
                                        holds=tuple(data.get("holds") or ("robot", "stimulator")),
                                        compose=tuple(data.get("compose") or ()))
+            logs[run_id] = str(data.get("log") or "")
             order.append(run_id)
             continue
         run = runs.get(run_id) if run_id else None
         if run is None:
             continue
+        if data.get("log") and logs[run_id] and data["log"] != logs[run_id]:
+            continue  # the same id in another run log (a run still open when the session began): not this run
         if kind == RUN_STATE and run.running:
             runs[run_id] = replace(run, state=str(data.get("state", run.state)),
                                    state_detail=str(data.get("detail", "")))

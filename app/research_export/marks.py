@@ -105,10 +105,12 @@ def event_marks(events: list[dict[str, Any]], t_end: float) -> list[Mark]:
 
 
 def _span_key(span: str, event: dict[str, Any], d: dict[str, Any]) -> str:
+    # A run is its id in its run log (app/core/runs.py: each session's log numbers from run-1, and an earlier
+    # log's run may end inside this session); records from before the ``log`` field have one log.
     if span == "repetition":
-        return f"{d.get('run_id', '')}/{d.get('index', '')}"
+        return f"{d.get('log', '')}/{d.get('run_id', '')}/{d.get('index', '')}"
     if span == "run":
-        return str(d.get("run_id", ""))
+        return f"{d.get('log', '')}/{d.get('run_id', '')}"
     return str(d.get("device") or event.get("who") or "")
 
 
