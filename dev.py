@@ -132,12 +132,19 @@ def names_tests(args: list[str]) -> bool:
     return False
 
 
+def distribution(workers: int) -> list[str]:
+    """How the whole suite is spread over ``workers`` pytest-xdist workers."""
+    # loadgroup: the tests of a module's shared rig stay on one worker (tests/conftest.py); the order is the suite's
+    # own (long modules first), not xdist's (largest group first). A worker that crashes ends the run, failed and
+    # saying so: replaced, the crashed worker's group was never handed on and the run waited for it without end
+    # (seen after a segmentation fault; tests/test_dev_workers.py).
+    return ["-n", str(workers), "--dist", "loadgroup", "--no-loadscope-reorder", "--max-worker-restart", "0"]
+
+
 def run_tests(args: list[str]) -> int:
     py = ensure_venv(with_tests=True)
     if not names_tests(args):
-        # loadgroup: the tests of a module's shared rig stay on one worker (tests/conftest.py); the order is
-        # the suite's own (long modules first), not xdist's (largest group first).
-        args = ["-n", str(test_workers()), "--dist", "loadgroup", "--no-loadscope-reorder", *args]
+        args = [*distribution(test_workers()), *args]
     cmd = [str(py), "-m", "pytest", *args]
     env = dict(os.environ)
     # The suite starts hundreds of Python processes (workers, simulators, script kernels, the command line):
