@@ -36,7 +36,20 @@ from pathlib import Path
 from typing import IO, Any, NamedTuple
 
 import yaml
-from sqlalchemy import Connection, Engine, create_engine, delete, event, func, insert, select, text, update
+from sqlalchemy import (
+    Connection,
+    Engine,
+    and_,
+    create_engine,
+    delete,
+    event,
+    func,
+    insert,
+    or_,
+    select,
+    text,
+    update,
+)
 from sqlalchemy.engine import URL, make_url
 from sqlalchemy.exc import DBAPIError, IntegrityError, InterfaceError, OperationalError, ProgrammingError
 
@@ -770,13 +783,28 @@ class SqlArchive:
 
     _INFO_NAMES = tuple(f.name for f in dataclasses.fields(SessionInfo))
 
-    def list_sessions(self, patient_id: str | None = None, *, limit: int = 200, offset: int = 0) -> list[SessionInfo]:
+    def held_sessions(self, uuids: Sequence[str]) -> set[str]:
+        found: set[str] = set()
+        uuid_list = list(uuids)
+        with self._read() as conn:
+            for k in range(0, len(uuid_list), 500):  # bounded IN lists
+                q = select(SessionRow.uuid).where(SessionRow.uuid.in_(uuid_list[k:k + 500]))
+                found.update(conn.execute(q).scalars())
+        return found
+
+    def list_sessions(self, patient_id: str | None = None, *, limit: int = 200, offset: int = 0,
+                      after: tuple[float, str] | None = None) -> list[SessionInfo]:
         """One query of plain columns; the records are made without SessionInfo's frozen ``__init__`` (15 guarded
         attribute sets a row: most of listing 10 000 sessions) and each distinct list of run titles is parsed
-        once (a patient's sessions repeat their exercises)."""
+        once (a patient's sessions repeat their exercises). ``after`` continues past a page's last session (keyset:
+        the index on (patient, start) reads only the page, where an offset reads every row before it)."""
         q = select(*self._INFO_COLUMNS)
         if patient_id is not None:
             q = q.where(SessionRow.patient_id == patient_id)
+        if after is not None:
+            start, uuid = after
+            q = q.where(or_(SessionRow.start_epoch_s < start,
+                            and_(SessionRow.start_epoch_s == start, SessionRow.uuid > uuid)))
         q = q.order_by(SessionRow.start_epoch_s.desc(), SessionRow.uuid).limit(limit).offset(offset)
         with self._read() as conn:
             rows = conn.execute(q).all()
