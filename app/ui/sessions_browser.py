@@ -56,6 +56,7 @@ log = logging.getLogger(__name__)
 COLUMNS = ("Date", "Duration", "Exercises", "Alarms", "Operator", "Status", "Station")
 STATION_COLUMN = 6
 FOLDER_ROLE = Qt.ItemDataRole.UserRole
+SIZED_ON_ROWS = 100  # the columns fit the first rows' contents (the header's precision below)
 
 
 def _date_text(iso: str) -> str:
@@ -328,7 +329,7 @@ class SessionsBrowser(QWidget):
         header.setSectionResizeMode(QHeaderView.ResizeMode.ResizeToContents)
         # Sized to the first rows' contents only: a patient's hundreds of sessions (every station's) would otherwise
         # be measured cell by cell at each fill (500 rows: 98 ms in one turn, 33 ms so; docs/archive.md).
-        header.setResizeContentsPrecision(100)
+        header.setResizeContentsPrecision(SIZED_ON_ROWS)
         header.setSectionResizeMode(2, QHeaderView.ResizeMode.Stretch)  # the exercises: elided, whole in the tooltip
         self.table.setAccessibleName("Sessions")
         self.table.itemSelectionChanged.connect(self._update_buttons)
@@ -530,12 +531,13 @@ class SessionsBrowser(QWidget):
         self._row_cost_s = max(1e-5, (time.thread_time() - started) / len(batch))
         if first and table.rowCount():
             table.selectRow(0)
+        if table.rowCount() >= SIZED_ON_ROWS or (not self._pending and (self._listed or budget_s is None)):
             self._size_columns()
 
     def _size_columns(self) -> None:
-        """The columns sized once, to the first rows put in, then kept: left to size themselves to their contents
-        (ResizeToContents), Qt measured the rows again after every turn that added some (25-35 ms of the window's
-        CPU a turn with 10 000 sessions coming)."""
+        """The columns sized once, to the first rows put in (SIZED_ON_ROWS), then kept: left to size themselves to
+        their contents (ResizeToContents), Qt measured the rows again after every turn that added some (25-35 ms of
+        the window's CPU a turn with 10 000 sessions coming)."""
         header = self.table.horizontalHeader()
         for col in range(self.table.columnCount()):
             if header.sectionResizeMode(col) == QHeaderView.ResizeMode.ResizeToContents:
