@@ -793,21 +793,17 @@ class SessionsBrowser(QWidget):
                 on_done(task)
 
         archived = [f.uuid for f in folders if isinstance(f, ListedSession)]
-        if archived:  # sessions of other stations: copied from the archive first, in the worker
+        extra: dict[str, Any] = {}
+        if archived:  # sessions of other stations: read by the worker as they stream from the archive (no copy)
             archive = self._archive_args()
             if archive is None:
                 self._say(f"{(station.unreachable() or 'The archive is not open').rstrip('.')}: sessions of "
                           "other stations cannot be exported now.", error=True)
                 return None
-            local = [str(f) for f in folders if not isinstance(f, ListedSession)]
-            task = self.tasks.run(ARCHIVED_JOB, JOB_KIND, archive, archived, str(self._cache_dir()), fmt,
-                                  str(destination), stamp, many=True, also=local, at=1, include_names=include_names,
-                                  title=title, parent=self, outputs=(staging_target(destination, stamp),),
-                                  on_done=done)
-        else:
-            task = self.tasks.run(JOB_KIND, fmt, [str(f) for f in folders], str(destination), stamp,
-                                  include_names=include_names, title=title, parent=self,
-                                  outputs=(staging_target(destination, stamp),), on_done=done)
+            extra = {"archived": archived, "archive": archive}
+        named = [f.uuid if isinstance(f, ListedSession) else str(f) for f in folders]  # in the table's order
+        task = self.tasks.run(JOB_KIND, fmt, named, str(destination), stamp, include_names=include_names, **extra,
+                              title=title, parent=self, outputs=(staging_target(destination, stamp),), on_done=done)
         self.research_tasks.append(task)
         return task
 
