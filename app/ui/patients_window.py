@@ -65,6 +65,15 @@ def _key(patient_id: str) -> tuple[str, str]:
     return patient_id.lower(), patient_id
 
 
+def _local_time(iso: str) -> str:
+    import datetime as _dt
+
+    try:
+        return _dt.datetime.fromisoformat(iso).astimezone().strftime("%Y-%m-%d %H:%M")
+    except ValueError:
+        return iso or "?"
+
+
 class PatientsDialog(QDialog):
     """The patients: search, a profile's details, new / edit profile, therapy plan. A change to the profile of
     the patient whose session runs applies to that session at once (``manager``: the window's, by default the
@@ -378,9 +387,9 @@ class PatientsDialog(QDialog):
         self.plan_button.setEnabled(ok and not self.read_only)
         text = self.details_html(entry, self._library)
         if self.read_only and entry is not None:
-            seen = station.copy_seen_at(entry.patient_id)[:16].replace("T", " ")
-            text = (f"<p style='color:#b00020'>This station's copy, read from the archive at {html.escape(seen)} "
-                    "UTC: read-only.</p>" + text)
+            seen = _local_time(station.copy_seen_at(entry.patient_id))  # as the red line's "since" (local time)
+            text = (f"<p style='color:#b00020'>This station's copy, read from the archive at {html.escape(seen)}: "
+                    "read-only.</p>" + text)
         self.details.setText(text)
 
     @staticmethod
