@@ -142,3 +142,29 @@ def test_with_the_server_down_the_patients_seen_are_listed_read_only_and_a_sessi
         assert session.station == "room-A" and session.operator == "dr_verdi"
         assert Path(folder).name in session.folder_name
     assert os.listdir(copies) == [f"{SEEN}.json"]
+
+
+def test_the_server_going_down_while_the_station_runs_the_copy_stands_in_until_it_is_back(
+        own_server: PostgresServer, tmp_path: Path, monkeypatch: Any) -> None:
+    db = own_server.new_database()
+    monkeypatch.setenv("LINARMPP_HOME", str(tmp_path / "home"))
+    cfg = replace(AppConfig(), archive=ArchiveConfig(url=db.url(APP), password_file=db.password_file(APP)),
+                  station="room-A")
+    opened = station.open_station(cfg)
+    assert opened.archive is not None, opened.message()
+    station.install(opened.archive)
+    station.save_profile(PatientProfile(patient_id=SEEN, full_name="Maria Esposito"), expected_version=None,
+                         operator="dr_rossi")
+    read = station.read_record(SEEN, cfg.safety)
+    assert read is not None and read.version == 1 and station.offline_since() == ""
+    own_server.stop()
+    try:
+        copy = station.read_record(SEEN, cfg.safety)  # the open archive fails: this station's copy, said so
+        assert copy is not None and copy.version == 1 and copy.profile.full_name == "Maria Esposito"
+        assert station.offline_since() and "cannot be reached" in station.offline_sentence()
+        with pytest.raises(ArchiveUnavailable):  # nothing is saved from a copy
+            station.save_profile(replace(copy.profile, notes="offline"), expected_version=1, operator="dr_verdi")
+    finally:
+        own_server.start()
+    again = station.read_record(SEEN, cfg.safety)  # the archive back: its record, and the window's line goes
+    assert again is not None and again.profile.notes == "" and station.offline_since() == ""
