@@ -22,13 +22,13 @@ def test_the_sessions_browser_lists_every_stations_sessions_and_replays_one_from
     make_two_stations(clinic)  # Monday on room-A, Wednesday on room-B (archived), Friday on room-B (waiting)
     monkeypatch.setenv("LINARMPP_HOME", str(clinic.home("room-B")))
     listed_on: list[str] = []
-    real = getattr(reads, "session_listing", None)
+    real = getattr(reads, "session_blocks", None)
 
     def spy(*args: Any, **kwargs: Any) -> Any:
         listed_on.append(threading.current_thread().name)
         return real(*args, **kwargs)  # type: ignore[misc]
 
-    monkeypatch.setattr(reads, "session_listing", spy, raising=False)
+    monkeypatch.setattr(reads, "session_blocks", spy, raising=False)
     archive = clinic.archive("room-B")
     station.install(archive)
     browser = None

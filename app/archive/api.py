@@ -393,8 +393,15 @@ class Archive(Protocol):
 
     def has_session(self, uuid: str) -> bool: ...
 
-    def list_sessions(self, patient_id: str | None = None, *, limit: int = 200, offset: int = 0) -> list[SessionInfo]:
-        """Newest first; one patient's or everyone's (the sessions browser pages with limit/offset)."""
+    def held_sessions(self, uuids: Sequence[str]) -> set[str]:
+        """Which of ``uuids`` the archive holds, in one read (a station's folders against the archive)."""
+        ...
+
+    def list_sessions(self, patient_id: str | None = None, *, limit: int = 200, offset: int = 0,
+                      after: tuple[float, str] | None = None) -> list[SessionInfo]:
+        """Newest first (start time, then UUID); one patient's or everyone's. ``after``: the (start_epoch_s, uuid)
+        of the last session of the previous page — the sessions browser's blocks, each one indexed read, none
+        repeated or skipped when a session is uploaded meanwhile."""
         ...
 
     def count_sessions(self, patient_id: str | None = None) -> int: ...

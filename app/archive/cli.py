@@ -104,9 +104,11 @@ def _run(args: argparse.Namespace, config: object) -> int:
     from app.archive.store import open_archive, upgrade_archive
 
     if args.command == "upgrade":
-        before, after = upgrade_archive(config)
+        before, after, copy = upgrade_archive(config)
         print(f"archive schema {before or '(new)'} -> {after}" if before != after else f"archive schema {after}: "
               "already up to date")
+        if copy is not None:
+            print(f"the archive as it was is kept in {copy}")
         return EXIT_OK
     if args.command == "upload":
         return _upload(config)

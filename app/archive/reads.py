@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import datetime as _dt
 import logging
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -272,25 +272,53 @@ def _folder_row(folder: Path, uuid: str, where: str, active: Path | None) -> Lis
                          tuple(titles), s.alarms, s.operator, "", status, where)
 
 
+BLOCK = 200  # sessions per block of the sessions browser's list (one page of the archive)
+
+
 def session_listing(patient_id: str, root: Path, archive: Archive | None, in_use: bool = False,
                     active: Path | None = None) -> list[ListedSession]:
-    """The sessions browser's rows for ``patient_id``, newest first: every archived session (every station's; the
-    folder of this station attached when it has one, so reading it needs no copy), then this station's folders
-    the archive does not hold ("waiting for the archive", or refused). ``in_use``: an archive is in use (even if
-    it cannot be reached now: the local folders are then all "waiting"); without one the folders are listed as
-    before (LOCAL). ``active``: the folder being recorded now ("in progress"). Raises ArchiveError (the caller
-    lists the folders alone and says why). Slow on a server or with many sessions: call it off the GUI thread."""
+    """The sessions browser's rows for ``patient_id``, newest first, all at once (:func:`session_blocks`)."""
+    return [row for block in session_blocks(patient_id, root, archive, in_use, active) for row in block]
+
+
+def session_blocks(patient_id: str, root: Path, archive: Archive | None, in_use: bool = False,
+                   active: Path | None = None, block: int = BLOCK) -> Iterator[list[ListedSession]]:
+    """The sessions browser's rows for ``patient_id``, newest first, in blocks of about ``block``: every archived
+    session (every station's; the folder of this station attached when it has one, so reading it needs no copy)
+    and this station's folders the archive does not hold ("waiting for the archive", or refused), each in its
+    place by start time. The first block comes after one page of the archive (and this station's manifests), so a
+    patient's newest sessions are listed before the thousands behind them are read. ``in_use``: an archive is in
+    use (even if it cannot be reached now: the local folders are then all "waiting"); without one the folders are
+    listed as before (LOCAL). ``active``: the folder being recorded now ("in progress"). Raises ArchiveError
+    (the caller lists the folders alone and says why). Slow on a server or with many sessions: call it off the
+    GUI thread."""
     from app.archive.folders import REFUSED_MARKER
 
     local = local_sessions(root, patient_id)
-    rows: list[tuple[float, ListedSession]] = []
-    known: set[str] = set()
-    if archive is not None:
-        infos = archive.list_sessions(patient_id, limit=100_000)
+    here = {s.uuid: s.folder for s in local}
+    held = archive.held_sessions(list(here)) if archive is not None and here else set()
+    # this station's folders the archive does not hold, newest first; each is read when its place comes
+    waiting = sorted((s for s in local if s.uuid not in held), key=lambda s: (s.start_epoch_s, str(s.folder)),
+                     reverse=True)
+
+    def folder_row(s: LocalSession) -> tuple[float, ListedSession]:
+        # the outbox's markers say what the archive (unreadable now, or another one) did with it
+        where = (LOCAL if not in_use else ARCHIVED if s.archived else
+                 REFUSED if (s.folder / REFUSED_MARKER).is_file() else WAITING)
+        return s.start_epoch_s, _folder_row(s.folder, s.uuid, where, active)
+
+    def ordered(rows: list[tuple[float, ListedSession]]) -> list[ListedSession]:
+        rows.sort(key=lambda r: (r[0], r[1].folder_name), reverse=True)
+        return [r for _, r in rows]
+
+    after: tuple[float, str] | None = None
+    while archive is not None:
+        infos = archive.list_sessions(patient_id, limit=block, after=after)
+        if not infos:
+            break
         journals = archive.journals([i.uuid for i in infos], STATUS_KINDS)
-        here = {s.uuid: s.folder for s in local}
+        rows: list[tuple[float, ListedSession]] = []
         for info in infos:
-            known.add(info.uuid)
             folder = here.get(info.uuid)
             if folder is not None and active is not None and folder.resolve() == active.resolve():
                 status = IN_PROGRESS
@@ -300,15 +328,17 @@ def session_listing(patient_id: str, root: Path, archive: Archive | None, in_use
             rows.append((info.start_epoch_s or _epoch(info.start), ListedSession(
                 info.uuid, info.patient_id, folder, info.folder_name, info.start, info.duration_s,
                 tuple(info.exercises), info.alarms, info.operator, info.station, status, ARCHIVED)))
-    for s in local:
-        if s.uuid in known:
-            continue
-        # the outbox's markers say what the archive (unreadable now, or another one) did with it
-        where = (LOCAL if not in_use else ARCHIVED if s.archived else
-                 REFUSED if (s.folder / REFUSED_MARKER).is_file() else WAITING)
-        rows.append((s.start_epoch_s, _folder_row(s.folder, s.uuid, where, active)))
-    rows.sort(key=lambda r: (r[0], r[1].folder_name), reverse=True)
-    return [r for _, r in rows]
+        last = infos[-1]
+        after = (last.start_epoch_s, last.uuid)
+        full = len(infos) == block
+        # this station's waiting folders that belong in this page: newer than its last session (all, at the end)
+        while waiting and (not full or waiting[0].start_epoch_s >= last.start_epoch_s):
+            rows.append(folder_row(waiting.pop(0)))
+        yield ordered(rows)
+        if not full:
+            break
+    for k in range(0, len(waiting), block):
+        yield ordered([folder_row(s) for s in waiting[k:k + block]])
 
 
 def patient_ids(root: Path, archive: Archive | None, in_use: bool = False) -> list[str]:

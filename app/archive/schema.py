@@ -11,6 +11,7 @@ The migration scripts ship inside the package (``app/archive/migrations/versions
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 
 from alembic import command
@@ -19,7 +20,7 @@ from alembic.migration import MigrationContext
 from alembic.script import ScriptDirectory
 from sqlalchemy import Connection, Engine, inspect
 
-from app.archive.api import ArchiveTooNew, NeedsUpgrade
+from app.archive.api import ArchiveError, ArchiveTooNew, NeedsUpgrade
 from app.archive.models import APPEND_ONLY, Base
 
 MIGRATIONS = Path(__file__).resolve().parent / "migrations"
@@ -46,15 +47,48 @@ def current_revision(connection: Connection) -> str | None:
     return MigrationContext.configure(connection).get_current_revision()
 
 
-def upgrade(engine: Engine, revision: str = "head") -> tuple[str | None, str]:
-    """Migrate to ``revision``; returns (before, after). Refuses an archive newer than this application."""
-    with engine.begin() as connection:
-        before = current_revision(connection)
-        _refuse_unknown(before, str(engine.url.render_as_string(hide_password=True)))
-        command.upgrade(_config(connection), revision)
-        after = current_revision(connection)
+def upgrade(engine: Engine, revision: str = "head",
+            before_change: Callable[[str], None] | None = None) -> tuple[str | None, str]:
+    """Migrate to ``revision`` in one transaction; returns (before, after). Refuses an archive newer than this
+    application. ``before_change(revision)`` is called before an existing archive's schema is changed (the
+    embedded archive's copy: store.upgrade_archive); an exception from it changes nothing.
+
+    SQLite: a batch migration copies a table, drops the old one and renames the copy; with the archive's foreign
+    keys on, dropping a table others refer to (blobs, sessions, patients) is refused ("FOREIGN KEY constraint
+    failed") and the upgrade could never run. So, as SQLite's own procedure for a changed table says, foreign keys
+    are off while the migration runs (the pragma only takes effect outside a transaction), every reference is
+    checked with ``PRAGMA foreign_key_check`` before the commit (a violation rolls everything back), and they are
+    on again after."""
+    where = str(engine.url.render_as_string(hide_password=True))
+    with engine.connect() as connection:
+        sqlite = connection.dialect.name == "sqlite"
+        driver = connection.connection.driver_connection
+        if sqlite:
+            driver.execute("PRAGMA foreign_keys=OFF")  # before SQLAlchemy's BEGIN: inside one it is ignored
+        try:
+            with connection.begin():
+                before = current_revision(connection)
+                _refuse_unknown(before, where)
+                if before is not None and before_change is not None and before != _target(revision):
+                    before_change(before)
+                command.upgrade(_config(connection), revision)
+                if sqlite:
+                    broken = connection.exec_driver_sql("PRAGMA foreign_key_check").fetchall()
+                    if broken:
+                        table, rowid, parent, _ = broken[0]
+                        raise ArchiveError(f"The archive at {where} was not upgraded: the migration left "
+                                           f"{len(broken)} row(s) referring to nothing (first: {table} row {rowid} "
+                                           f"refers to a missing {parent} row); nothing was changed.")
+                after = current_revision(connection)
+        finally:
+            if sqlite:
+                driver.execute("PRAGMA foreign_keys=ON")
     assert after is not None
     return before, after
+
+
+def _target(revision: str) -> str:
+    return head_revision() if revision == "head" else revision
 
 
 def _refuse_unknown(revision: str | None, where: str) -> None:

@@ -38,6 +38,7 @@ from app.archive.api import (
     PatientRecord,
     PatientUnreadable,
 )
+from app.archive.cache import PatientCache
 from app.therapy.electrodes import SetupResult, choice_for
 from app.therapy.patients import (
     ElectrodeChoice,
@@ -57,6 +58,21 @@ log = logging.getLogger(__name__)
 _lock = threading.Lock()
 _archive: Archive | None = None
 _problem = ""  # why the archive could not be reached ('' when it is open or none is in use)
+_down = ""  # why the open archive stopped answering, since the last read it failed ('' when it answers)
+_since = ""  # when the archive was found unreachable (local ISO time; '' when it answers)
+_cache: PatientCache | None = None  # the station's copies of the patients it read (app.archive.cache)
+_opened_url = ""  # the archive open_station last tried (passwords hidden): whose copies stand in when it fails
+
+
+def _cache_for(url: str) -> PatientCache | None:
+    """The station's copies of ``url``'s records; none for the embedded archive (it lives in the same data folder
+    as the copies would: when it cannot be read, neither can they) or when no archive is known."""
+    from app.archive.cache import same_archive
+    from app.archive.store import default_url
+
+    if not url or same_archive(url, default_url()):
+        return None
+    return PatientCache(url)
 
 
 # ---------------------------------------------------------------------------------------------- the station's archive
@@ -64,19 +80,70 @@ def install(archive: Archive | None, problem: str = "") -> None:
     """The application's archive from now on; ``archive=None`` with ``problem``: it is in use but could not be
     reached (the station runs; reading and saving patients say why). ``app.therapy.patients.load_patient`` and
     ``list_patients`` without a folder read it too."""
-    global _archive, _problem
+    global _archive, _problem, _down, _since, _cache
     with _lock:
         _archive, _problem = archive, ("" if archive is not None else problem)
+        _down, _since = "", (_now() if _problem else "")
+        _cache = _cache_for(archive.url if archive is not None else _opened_url if _problem else "")
         use_store(_StationStore() if in_use() else None)
 
 
 def uninstall() -> Archive | None:
     """Back to no archive (the YAML folder); returns the archive that was installed (the caller closes it)."""
-    global _archive, _problem
+    global _archive, _problem, _down, _since, _cache, _opened_url
     with _lock:
-        archive, _archive, _problem = _archive, None, ""
+        archive, _archive, _problem, _down, _since, _cache, _opened_url = _archive, None, "", "", "", None, ""
         use_store(None)
     return archive
+
+
+def _now() -> str:
+    import datetime as _dt
+
+    return _dt.datetime.now().astimezone().isoformat(timespec="seconds")
+
+
+def offline_since() -> str:
+    """When the station's archive was found unreachable (ISO time), '' when it answers or none is in use."""
+    return _since if (_problem or _down) else ""
+
+
+def offline_sentence() -> str:
+    """The window's sentence while the archive cannot be reached and the station's copies stand in ('' else)."""
+    why = _problem or _down
+    if not why:
+        return ""
+    since = _since[:16].replace("T", " ")
+    return (f"{_sentence(why).rstrip('.')}, since {since}. The patients are shown as this station last read them, "
+            "read-only: nothing can be saved until the archive is back; a session can be run, and waits for the "
+            "archive.")
+
+
+def _remember(record: PatientRecord) -> None:
+    """Keep the station's copy of a record read from (or saved to) the station's archive; the archive answered."""
+    global _down, _since
+    cache, archive = _cache, _archive
+    if _down:
+        _down, _since = "", ""
+    if cache is not None and archive is not None:
+        cache.put(record)
+
+
+def _went_down(exc: ArchiveUnavailable) -> None:
+    global _down, _since
+    if not _down:
+        _down, _since = str(exc), _now()
+
+
+def _copy(patient_id: str) -> PatientRecord | None:
+    cached = _cache.get(patient_id) if _cache is not None else None
+    return cached.record if cached is not None else None
+
+
+def copy_seen_at(patient_id: str) -> str:
+    """When this station read its copy of the patient ('' when it holds none)."""
+    cached = _cache.get(patient_id) if _cache is not None else None
+    return cached.seen_at if cached is not None else ""
 
 
 class _StationStore:
@@ -95,9 +162,9 @@ class _StationStore:
     def entries(self, safety: Any) -> list[PatientEntry]:
         try:
             return list_entries(safety)
-        except ArchiveUnavailable as exc:
+        except ArchiveUnavailable as exc:  # the station's copies stand in (the Start-session dialog lists them)
             log.warning("patients cannot be listed: %s", exc)
-            return []
+            return [e for part in _copy_blocks(safety, 1000) for e in part]
 
 
 def current() -> Archive | None:
@@ -147,8 +214,15 @@ def open_station(config: Any) -> Opened:
     from app.archive.store import ARCHIVE_FILE, open_archive
     from app.core import paths
 
+    global _opened_url
     url = getattr(getattr(config, "archive", None), "url", "") or ""
     embedded = not url
+    try:
+        from sqlalchemy.engine import make_url
+
+        _opened_url = make_url(url).render_as_string(hide_password=True) if url else ""
+    except Exception:  # open_archive says what is wrong with it
+        _opened_url = ""
     fresh = embedded and not (paths.data_dir() / ARCHIVE_FILE).exists()
     try:
         archive = open_archive(config)
@@ -240,16 +314,28 @@ def read_record(patient_id: str, safety: Any = None, *, archive: Archive | None 
                 folder: Path | None = None) -> PatientRecord | None:
     """The patient's record (profile and version), or None when the patient has no profile. With ``safety`` a
     profile looser than the configuration is refused (PatientError). Raises ArchiveUnavailable."""
-    target = _target(archive, folder)
-    if target is None:
-        if not patient_file(patient_id, folder).exists():
-            return None
-        return _yaml_record(load_patient(patient_id, safety, folder))
+    own = archive is None and folder is None  # the station's archive: its copies stand in while it is unreachable
     try:
+        target = _target(archive, folder)
+        if target is None:
+            if not patient_file(patient_id, folder).exists():
+                return None
+            return _yaml_record(load_patient(patient_id, safety, folder))
         record = target.get_patient(patient_id)
     except NotFound:
         return None
+    except ArchiveUnavailable as exc:
+        copy = _copy(patient_id) if own else None
+        if copy is None:
+            raise
+        if _archive is not None:
+            _went_down(exc)
+        log.warning("patient %s: the station's copy of %s (%s)", patient_id, copy_seen_at(patient_id), exc)
+        _check_limits(copy.profile, safety, f"this station's copy of patient {patient_id}")
+        return copy
     _check_limits(record.profile, safety, f"archive: patient {patient_id}")
+    if own:
+        _remember(record)
     return record
 
 
@@ -270,11 +356,22 @@ def entry_blocks(safety: Any = None, *, archive: Archive | None = None, folder: 
     Patients window's loader thread hands each block to the window as it comes and stops between blocks when the
     window closes. The archive's rows are one snapshot (one transaction). Raises ArchiveUnavailable (at the first
     block: nothing was listed) and ArchiveError."""
-    target = _target(archive, folder)
-    if target is None:
-        yield from _yaml_blocks(folder, safety, block)
-        return
-    for reads in target.patient_reads(block):
+    own = archive is None and folder is None
+    try:
+        target = _target(archive, folder)
+        if target is None:
+            yield from _yaml_blocks(folder, safety, block)
+            return
+        blocks = iter(target.patient_reads(block))
+        first = next(blocks, None)  # the archive's snapshot is read here: unreachable raises before any block
+    except ArchiveUnavailable as exc:
+        if not own or _cache is None:
+            raise
+        if _archive is not None:
+            _went_down(exc)
+        yield from _copy_blocks(safety, block)
+        raise ArchiveUnavailable(offline_sentence()) from exc
+    for reads in _chain(first, blocks):
         out: list[PatientEntry] = []
         for read in reads:
             pid = read.patient_id if isinstance(read, PatientUnreadable) else read.profile.patient_id
@@ -288,6 +385,31 @@ def entry_blocks(safety: Any = None, *, archive: Archive | None = None, folder: 
                 out.append(PatientEntry(pid, where, None, str(exc), read.version))
                 continue
             out.append(PatientEntry(pid, where, read.profile, "", read.version))
+            if own:
+                _remember(read)
+        yield out
+
+
+def _chain(first: Any, rest: Iterator[Any]) -> Iterator[Any]:
+    if first is not None:
+        yield first
+        yield from rest
+
+
+def _copy_blocks(safety: Any, block: int) -> Iterator[list[PatientEntry]]:
+    """The station's copies as the Patients window's entries (checked against the site's limits as records are)."""
+    copies = _cache.records() if _cache is not None else []
+    for k in range(0, len(copies), max(1, block)):
+        out: list[PatientEntry] = []
+        for cached in copies[k:k + block]:
+            r = cached.record
+            pid = r.profile.patient_id
+            try:
+                _check_limits(r.profile, safety, f"this station's copy of patient {pid}")
+            except PatientError as exc:
+                out.append(PatientEntry(pid, patient_file(pid), None, str(exc), r.version))
+                continue
+            out.append(PatientEntry(pid, patient_file(pid), r.profile, "", r.version))
         yield out
 
 
@@ -327,6 +449,8 @@ def save_profile(profile: PatientProfile, *, expected_version: int | None, opera
         _check_limits(profile, safety, f"patient {profile.patient_id}")
     record = target.save_patient(profile, expected_version=expected_version, operator=operator, fields=keys,
                                  reason=reason)
+    if archive is None and folder is None:
+        _remember(record)
     return record
 
 
@@ -364,8 +488,11 @@ def choose_electrodes(patient_id: str, district: str, choice: ElectrodeChoice | 
     whole when the YAML folder has no file for the patient yet."""
     target = _target(archive, folder)
     if target is not None:
-        return target.choose_electrodes(patient_id, district, choice, expected_version=expected_version,
-                                        operator=operator)
+        record = target.choose_electrodes(patient_id, district, choice, expected_version=expected_version,
+                                          operator=operator)
+        if archive is None and folder is None:
+            _remember(record)
+        return record
     if patient_file(patient_id, folder).exists():
         profile = load_patient(patient_id, safety, folder)
     elif fallback is not None:
@@ -420,6 +547,26 @@ def save_choice_record(result: SetupResult, channel: int, profile: Any, operator
                              folder=folder, safety=safety, fallback=profile)
 
 
-__all__ = ["FIELD_WORDS", "Opened", "choose_electrodes", "current", "default_operator", "entry_blocks", "field_words",
-           "import_yaml_patients", "in_use", "install", "list_entries", "open_station", "read_record", "save_choice",
-           "save_choice_record", "save_profile", "uninstall", "unreachable"]
+__all__ = [
+    "FIELD_WORDS",
+    "Opened",
+    "choose_electrodes",
+    "copy_seen_at",
+    "current",
+    "default_operator",
+    "entry_blocks",
+    "field_words",
+    "import_yaml_patients",
+    "in_use",
+    "install",
+    "list_entries",
+    "offline_sentence",
+    "offline_since",
+    "open_station",
+    "read_record",
+    "save_choice",
+    "save_choice_record",
+    "save_profile",
+    "uninstall",
+    "unreachable",
+]

@@ -33,10 +33,23 @@ import tempfile
 import time
 from collections.abc import Iterable, Iterator, Sequence
 from pathlib import Path
-from typing import IO, Any
+from typing import IO, Any, NamedTuple
 
 import yaml
-from sqlalchemy import Connection, Engine, create_engine, delete, event, func, insert, select, text, update
+from sqlalchemy import (
+    Connection,
+    Engine,
+    and_,
+    create_engine,
+    delete,
+    event,
+    func,
+    insert,
+    or_,
+    select,
+    text,
+    update,
+)
 from sqlalchemy.engine import URL, make_url
 from sqlalchemy.exc import DBAPIError, IntegrityError, InterfaceError, OperationalError, ProgrammingError
 
@@ -239,20 +252,61 @@ def open_archive(config: Any = None, *, url: str | None = None, station: str | N
     return archive
 
 
-def upgrade_archive(config: Any = None, *, url: str | None = None, password_file: str | None = None
-                    ) -> tuple[str | None, str]:
-    """``linarmpp archive upgrade``: migrate to this application's schema; (before, after)."""
+class Upgraded(NamedTuple):
+    """What ``linarmpp archive upgrade`` did: the schema revisions and the embedded archive's copy made first."""
+
+    before: str | None
+    after: str
+    copy: Path | None  # the SQLite file as it was, when its schema was changed (None: nothing to change, or a server)
+
+
+def upgrade_archive(config: Any = None, *, url: str | None = None, password_file: str | None = None) -> Upgraded:
+    """``linarmpp archive upgrade``: migrate to this application's schema, in one transaction. The embedded
+    (SQLite) archive is first copied beside itself (``backup_sqlite``): a clinic's server has its own backups, a
+    single PC has only this file."""
     cfg_archive = getattr(config, "archive", None)
     url = (url if url is not None else getattr(cfg_archive, "url", "")) or default_url()
     pw = password_file if password_file is not None else (getattr(cfg_archive, "password_file", "") or "")
     engine = make_engine(url, pw)
+    copies: list[Path] = []
+    database = engine.url.database if engine.url.get_backend_name() == "sqlite" else None
+
+    def copy_first(revision: str) -> None:
+        if database and database != ":memory:":
+            copies.append(backup_sqlite(Path(database).expanduser(), revision))
+
     try:
         try:
-            return schema.upgrade(engine)
+            before, after = schema.upgrade(engine, before_change=copy_first)
         except (OperationalError, InterfaceError) as exc:
             raise ArchiveUnavailable(_unreachable(engine, exc)) from exc
     finally:
         engine.dispose()
+    return Upgraded(before, after, copies[0] if copies else None)
+
+
+def backup_sqlite(path: Path, revision: str) -> Path:
+    """A copy of the SQLite archive ``path`` (at schema ``revision``) beside it, made with SQLite's backup API (a
+    consistent copy even while another connection reads), private (0600), and read back: its integrity check
+    passes and it holds ``revision``. Raises ArchiveError (nothing is migrated then)."""
+    import sqlite3
+
+    stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
+    copy = path.with_name(f"{path.stem}.before-upgrade-{revision}-{stamp}{path.suffix}")
+    try:
+        os.close(os.open(copy, os.O_WRONLY | os.O_CREAT | os.O_EXCL, paths.PRIVATE_FILE_MODE))
+        with contextlib.closing(sqlite3.connect(path)) as src, contextlib.closing(sqlite3.connect(copy)) as dst:
+            src.backup(dst)
+        with contextlib.closing(sqlite3.connect(f"file:{copy}?mode=ro", uri=True)) as check:
+            ok = check.execute("PRAGMA integrity_check").fetchone()
+            held = check.execute("SELECT version_num FROM alembic_version").fetchone()
+    except (OSError, sqlite3.Error) as exc:
+        raise ArchiveError(f"The archive {path} was not upgraded: its copy {copy} could not be made ({exc}); "
+                           "nothing was changed.") from exc
+    if ok != ("ok",) or held != (revision,):
+        raise ArchiveError(f"The archive {path} was not upgraded: its copy {copy} does not read back as the archive "
+                           f"(integrity {ok}, schema {held}); nothing was changed.")
+    return copy
 
 
 def _unreachable(engine: Engine, exc: BaseException) -> str:
@@ -729,13 +783,28 @@ class SqlArchive:
 
     _INFO_NAMES = tuple(f.name for f in dataclasses.fields(SessionInfo))
 
-    def list_sessions(self, patient_id: str | None = None, *, limit: int = 200, offset: int = 0) -> list[SessionInfo]:
+    def held_sessions(self, uuids: Sequence[str]) -> set[str]:
+        found: set[str] = set()
+        uuid_list = list(uuids)
+        with self._read() as conn:
+            for k in range(0, len(uuid_list), 500):  # bounded IN lists
+                q = select(SessionRow.uuid).where(SessionRow.uuid.in_(uuid_list[k:k + 500]))
+                found.update(conn.execute(q).scalars())
+        return found
+
+    def list_sessions(self, patient_id: str | None = None, *, limit: int = 200, offset: int = 0,
+                      after: tuple[float, str] | None = None) -> list[SessionInfo]:
         """One query of plain columns; the records are made without SessionInfo's frozen ``__init__`` (15 guarded
         attribute sets a row: most of listing 10 000 sessions) and each distinct list of run titles is parsed
-        once (a patient's sessions repeat their exercises)."""
+        once (a patient's sessions repeat their exercises). ``after`` continues past a page's last session (keyset:
+        the index on (patient, start) reads only the page, where an offset reads every row before it)."""
         q = select(*self._INFO_COLUMNS)
         if patient_id is not None:
             q = q.where(SessionRow.patient_id == patient_id)
+        if after is not None:
+            start, uuid = after
+            q = q.where(or_(SessionRow.start_epoch_s < start,
+                            and_(SessionRow.start_epoch_s == start, SessionRow.uuid > uuid)))
         q = q.order_by(SessionRow.start_epoch_s.desc(), SessionRow.uuid).limit(limit).offset(offset)
         with self._read() as conn:
             rows = conn.execute(q).all()
@@ -963,5 +1032,6 @@ class ArchivedFiles:
         return folder
 
 
-__all__ = ["ARCHIVE_FILE", "ArchivedFiles", "SqlArchive", "canonical", "chain_hash", "default_url", "genesis",
-           "make_engine", "open_archive", "profile_from_values", "profile_values", "upgrade_archive"]
+__all__ = ["ARCHIVE_FILE", "ArchivedFiles", "SqlArchive", "Upgraded", "backup_sqlite", "canonical", "chain_hash",
+           "default_url", "genesis", "make_engine", "open_archive", "profile_from_values", "profile_values",
+           "upgrade_archive"]

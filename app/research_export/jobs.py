@@ -14,15 +14,18 @@ folder. Qt-free.
 
 from __future__ import annotations
 
+import contextlib
 import datetime as _dt
 import logging
 import os
 import secrets
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from app.archive.api import Archive, ArchiveError
 from app.research_export.common import DIR_MODE, Cancel, ExportCancelled, ExportError, Progress, remove_quietly
-from app.research_export.source import FolderSource, Session, open_session
+from app.research_export.source import ArchivedSource, FolderSource, Session, SessionSource, open_session
 from app.worker.context import Cancelled, JobContext, JobError
 
 log = logging.getLogger(__name__)
@@ -56,10 +59,12 @@ def staging_target(folder: Path, stamp: str) -> Path:
     return folder / f"{STAGING_STEM}-{stamp}"
 
 
-def export_sessions(fmt: str, folders: list[Path], destination: Path, stamp: str, *, include_names: bool = False,
-                    shift_days: int = 0, progress: Progress | None = None, cancel: Cancel | None = None) -> Outcome:
-    """Export ``folders`` (session folders) as ``fmt`` into the folder ``destination``: a BIDS dataset
-    ``linarmpp-bids-<stamp>``, or a file per session. Raises ExportCancelled or ExportError (nothing written)."""
+def export_sessions(fmt: str, folders: Sequence[Path | SessionSource], destination: Path, stamp: str, *,
+                    include_names: bool = False, shift_days: int = 0, progress: Progress | None = None,
+                    cancel: Cancel | None = None) -> Outcome:
+    """Export ``folders`` (session folders, or sources such as an archived session's ``ArchivedSource``) as ``fmt``
+    into the folder ``destination``: a BIDS dataset ``linarmpp-bids-<stamp>``, or a file per session. Raises
+    ExportCancelled or ExportError (nothing written)."""
     if fmt not in FORMAT_TITLES:
         raise ExportError(f"there is no export format called {fmt!r}")
     destination = Path(destination)
@@ -69,9 +74,9 @@ def export_sessions(fmt: str, folders: list[Path], destination: Path, stamp: str
     sessions: list[Session] = []
     for folder in folders:
         try:
-            sessions.append(open_session(FolderSource(folder)))
+            sessions.append(open_session(FolderSource(folder) if isinstance(folder, str | Path) else folder))
         except ValueError as exc:
-            outcome.missing.append(f"{_label(Path(folder))}: {exc}")
+            outcome.missing.append(f"{_label(folder if isinstance(folder, str | Path) else folder.label)}: {exc}")
     if not sessions:
         raise ExportError(outcome.missing[0] if len(outcome.missing) == 1 else "no session could be read")
     target = staging_target(destination, stamp)
@@ -93,7 +98,7 @@ def export_sessions(fmt: str, folders: list[Path], destination: Path, stamp: str
     remove_quietly(staging)
     for session in sessions:
         for problem in session.problems + session.read_problems():
-            outcome.missing.append(f"{_label(Path(session.label))}: {problem}")
+            outcome.missing.append(f"{_label(session.label)}: {problem}")
     outcome.missing = list(dict.fromkeys(outcome.missing))
     return outcome
 
@@ -132,7 +137,7 @@ def _write(fmt: str, sessions: list[Session], staging: Path, stamp: str, include
                                     progress=step, cancel=cancel)
         except (ExportError, OSError, ValueError) as exc:
             log.exception("exporting %s failed", session.label)
-            outcome.missing.append(f"{_label(Path(session.label))}: not written ({_sentence(exc)})")
+            outcome.missing.append(f"{_label(session.label)}: not written ({_sentence(exc)})")
             continue
         made += result.written
     return made
@@ -166,9 +171,11 @@ def _move_out(made: list[Path], destination: Path) -> list[Path]:
     return [final for _, final in moved]
 
 
-def _label(folder: Path) -> str:
-    """A session as the browser names it: its patient's folder and its own (``PZ-017/20260301-100000``)."""
-    return f"{folder.parent.name}/{folder.name}"
+def _label(folder: str | Path) -> str:
+    """A session as the browser names it: its patient's folder and its own (``PZ-017/20260301-100000``); an archived
+    session by its source's label (app.archive.reads.archived_label)."""
+    path = Path(folder)
+    return f"{path.parent.name}/{path.name}" if path.is_absolute() else str(folder)
 
 
 def _sentence(exc: BaseException) -> str:
@@ -182,19 +189,62 @@ def new_stamp() -> str:
 
 
 def research_export(ctx: JobContext, fmt: str, folders: list[str], destination: str, stamp: str,
-                    include_names: bool = False, shift_days: int = 0) -> str:
+                    include_names: bool = False, shift_days: int = 0, archived: list[str] | None = None,
+                    archive: tuple[str, str, str] | None = None) -> str:
     """The worker's task: :func:`export_sessions` with the task's progress and cancel; returns the sentence the
-    window shows. A failure is a JobError (its sentence); a cancel ends the task cancelled."""
+    window shows. A failure is a JobError (its sentence); a cancel ends the task cancelled.
+
+    ``folders`` are session folders, and the UUIDs among them named in ``archived`` sessions the clinic's archive
+    holds (another station's: no folder here), read as they stream from the archive ``archive`` (its (url,
+    password_file, station): app.archive.reads.args_of) — never copied into a folder first, each file checked
+    against its SHA-256 as it is read (``ArchivedSource``), as ``linarmpp export UUID`` reads them. The archive is
+    opened in this process and closed at the end."""
     from app.research_export.common import release_memory_promptly
 
     release_memory_promptly()
     ctx.step(0.0, "Reading the sessions")
-    try:
-        outcome = export_sessions(fmt, [Path(f) for f in folders], Path(destination), stamp,
-                                  include_names=include_names, shift_days=shift_days,
-                                  progress=lambda f, text: ctx.progress(f, text), cancel=lambda: ctx.cancelled)
-    except ExportCancelled as exc:
-        raise Cancelled() from exc
-    except (ExportError, OSError) as exc:
-        raise JobError(f"The export was not written: {_sentence(exc)}.") from exc
+    with contextlib.ExitStack() as stack:
+        sources: list[Path | SessionSource] = []
+        unread: list[str] = []
+        uuids = set(archived or ())
+        opened = _open_archive(archive, stack) if uuids else None
+        for item in folders:
+            if item not in uuids:
+                sources.append(Path(item))
+                continue
+            try:
+                sources.append(_archived_source(opened, item))
+            except (ArchiveError, OSError) as exc:
+                unread.append(f"archived session {item}: not exported ({_sentence(exc)})")
+        try:
+            if not sources:
+                raise ExportError(unread[0] if len(unread) == 1 else "no session could be read")
+            outcome = export_sessions(fmt, sources, Path(destination), stamp, include_names=include_names,
+                                      shift_days=shift_days, progress=lambda f, text: ctx.progress(f, text),
+                                      cancel=lambda: ctx.cancelled)
+        except ExportCancelled as exc:
+            raise Cancelled() from exc
+        except (ExportError, OSError) as exc:
+            raise JobError(f"The export was not written: {_sentence(exc)}.") from exc
+    outcome.missing = unread + outcome.missing
     return outcome.sentence(fmt, Path(destination))
+
+
+def _open_archive(args: tuple[str, str, str] | None, stack: contextlib.ExitStack) -> Archive:
+    from app.archive.reads import open_by_args
+
+    archive, problem = open_by_args(*args) if args is not None else (None, "")
+    if archive is None:
+        raise JobError(f"The export was not written: {problem[:1].upper()}{problem[1:].rstrip('.')}; the sessions of "
+                       "other stations are read from it." if problem else
+                       "The export was not written: this station has no archive to read other stations' sessions "
+                       "from.")
+    stack.callback(archive.close)
+    return archive
+
+
+def _archived_source(archive: Archive, session_uuid: str) -> ArchivedSource:
+    from app.archive.reads import archived_label
+
+    info = archive.get_session(session_uuid).info
+    return ArchivedSource(archive.session_files(session_uuid), archived_label(info, archive.url))

@@ -518,6 +518,13 @@ class ProgressRow:
                                      and all(e.interrupted for e in self.per_exercise.values()))
 
 
+def shows_stations(rows: Iterable[ProgressRow]) -> bool:
+    """Whether a progress table has a Station column (the report's and the window's). Read from the clinic's
+    archive, the sessions come from several stations: each row says which (a session still waiting in this
+    station's outbox says so). A station's own folders alone: no column."""
+    return any(r.station for r in rows)
+
+
 def exercise_trends(reports: Iterable[RunReport]) -> dict[str, ExerciseTrend]:
     """Per exercise (:func:`exercise_identity`: its runs from any tab under one name), its runs pooled."""
     groups: dict[str, list[RunReport]] = {}
@@ -1577,9 +1584,7 @@ def render_progress_report(pdf: _Pdf, patient_id: str, rows: Sequence[ProgressRo
     pdf.fields(pairs, label_width=190)
 
     pdf.heading("Sessions")
-    # Read from the clinic's archive, the sessions come from several stations: each row says which (a session
-    # still waiting in this station's outbox says so). A station's own folders alone: no column.
-    stations = any(r.station for r in rows)
+    stations = shows_stations(rows)
     headers = ["#", "Date and time", "Exercises", "Reps (done)", "Peak m/s", "SPARC", "Range m", "α", "Alarms",
                "Session"]
     widths = [0.3, 1.45, 2.0, 0.85, 0.75, 0.65, 0.8, 0.65, 0.65, 0.95]

@@ -65,6 +65,15 @@ def _key(patient_id: str) -> tuple[str, str]:
     return patient_id.lower(), patient_id
 
 
+def _local_time(iso: str) -> str:
+    import datetime as _dt
+
+    try:
+        return _dt.datetime.fromisoformat(iso).astimezone().strftime("%Y-%m-%d %H:%M")
+    except ValueError:
+        return iso or "?"
+
+
 class PatientsDialog(QDialog):
     """The patients: search, a profile's details, new / edit profile, therapy plan. A change to the profile of
     the patient whose session runs applies to that session at once (``manager``: the window's, by default the
@@ -148,6 +157,7 @@ class PatientsDialog(QDialog):
         self.archive_note.setWordWrap(True)
         self.archive_note.setStyleSheet("color: #b00020; font-weight: bold;")
         self.archive_note.setVisible(False)
+        self.read_only = False  # the archive unreachable: the station's copies shown, nothing saved (_finished)
         self.loading_note = QLabel("")
         self.loading_note.setObjectName("loadingNote")
         self.loading_note.setVisible(False)
@@ -228,12 +238,20 @@ class PatientsDialog(QDialog):
     def _finished(self, problem: str) -> None:
         self.loading = False
         self.loading_note.setVisible(False)
-        if problem:
+        # The archive cannot be reached and the station's copies of the patients it read stand in (app.archive.cache):
+        # listed and shown, read-only; the sentence says since when. A session can still be started for them.
+        self.read_only = bool(problem) and self.folder is None and bool(station.offline_since())
+        if self.read_only:
+            self.archive_note.setText(station.offline_sentence() if self.entries else
+                                      f"{problem.rstrip('.')}. Patients cannot be opened or saved, nor their sessions "
+                                      "started, until the archive is back (this station holds no copy of any).")
+        elif problem:
             self.archive_note.setText(f"{problem.rstrip('.')}. Patients cannot be opened or saved, nor their "
                                       "sessions started, until the archive is back." if not self.entries else
                                       f"{problem.rstrip('.')}. The list may be incomplete.")
         self.archive_note.setVisible(bool(problem))
-        self.new_button.setEnabled(not (problem and not self.entries))
+        self.new_button.setEnabled(not (problem and not self.entries) and not self.read_only)
+        self._selected()
         if self._select is not None and self._select not in self._by_id:
             self._select = None
 
@@ -365,9 +383,14 @@ class PatientsDialog(QDialog):
             self.details.setText("<i>Loading patients…</i>")
             return
         ok = entry is not None and entry.profile is not None
-        self.edit_button.setEnabled(ok)
-        self.plan_button.setEnabled(ok)
-        self.details.setText(self.details_html(entry, self._library))
+        self.edit_button.setEnabled(ok and not self.read_only)
+        self.plan_button.setEnabled(ok and not self.read_only)
+        text = self.details_html(entry, self._library)
+        if self.read_only and entry is not None:
+            seen = _local_time(station.copy_seen_at(entry.patient_id))  # as the red line's "since" (local time)
+            text = (f"<p style='color:#b00020'>This station's copy, read from the archive at {html.escape(seen)}: "
+                    "read-only.</p>" + text)
+        self.details.setText(text)
 
     @staticmethod
     def details_html(entry: PatientEntry | None, library: dict[str, Any] | None = None) -> str:
@@ -468,14 +491,14 @@ class PatientsDialog(QDialog):
         from app.ui.patient_dialog import PatientDialog
 
         entry = self.selected_entry()
-        if entry is None or entry.profile is None:
+        if entry is None or entry.profile is None or self.read_only:
             return None
         return self._open(PatientDialog(entry.profile, self.safety, self.folder, self, version=entry.version or None,
                                         operator=self.operator()), entry.patient_id)
 
     def edit_plan(self) -> PlanDialog | None:
         entry = self.selected_entry()
-        if entry is None or entry.profile is None:
+        if entry is None or entry.profile is None or self.read_only:
             return None
         dialog = PlanDialog(entry.profile, self.safety, self.folder, parent=self, version=entry.version or None,
                             operator=self.operator())

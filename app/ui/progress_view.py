@@ -28,7 +28,7 @@ from PySide6.QtWidgets import (
     QWidget,
 )
 
-from app.session.reports import SCORES, TREND_METRICS, ProgressRow, fmt, progress_rows, y_range
+from app.session.reports import SCORES, TREND_METRICS, ProgressRow, fmt, progress_rows, shows_stations, y_range
 from app.ui.tasks import QtTasks
 
 log = logging.getLogger(__name__)
@@ -46,18 +46,26 @@ class ProgressView(QWidget):
                         + (f", {rows[0].date} … {rows[-1].date}" if rows else ""))
         header.setTextFormat(Qt.TextFormat.RichText)
 
-        self.table = QTableWidget(len(rows), 7)
-        self.table.setHorizontalHeaderLabels(["Date", "Exercises", "Reps", "Peak m/s", "SPARC", "Range m", "α"])
+        # A patient treated on several stations (read from the clinic's archive): each session names its station,
+        # as the progress report does (the same rule: app.session.reports.shows_stations).
+        stations = shows_stations(rows)
+        headers = ["Date", *(["Station"] if stations else []), "Exercises", "Reps", "Peak m/s", "SPARC", "Range m",
+                   "α"]
+        self.table = QTableWidget(len(rows), len(headers))
+        self.table.setHorizontalHeaderLabels(headers)
         self.table.setEditTriggers(QAbstractItemView.EditTrigger.NoEditTriggers)
         self.table.verticalHeader().setVisible(False)
-        self.table.horizontalHeader().setSectionResizeMode(1, QHeaderView.ResizeMode.Stretch)
+        self.table.horizontalHeader().setSectionResizeMode(headers.index("Exercises"),
+                                                           QHeaderView.ResizeMode.Stretch)
         self.table.setAccessibleName("Sessions")
         for row, r in enumerate(rows):
-            cells = (r.date, ", ".join(r.exercises) or "—", fmt(r.summary.get("repetitions"), "{}"),
-                     fmt(r.value("peak_speed_m_s")), fmt(r.value("sparc")), fmt(r.value("range_m")),
-                     fmt(r.value("mean_alpha")))
+            cells = (r.date, *([r.station or "—"] if stations else []), ", ".join(r.exercises) or "—",
+                     fmt(r.summary.get("repetitions"), "{}"), fmt(r.value("peak_speed_m_s")), fmt(r.value("sparc")),
+                     fmt(r.value("range_m")), fmt(r.value("mean_alpha")))
             for col, text in enumerate(cells):
                 self.table.setItem(row, col, QTableWidgetItem(text))
+        if stations:
+            self.table.resizeColumnToContents(headers.index("Station"))
         self.table.setMaximumHeight(70 + 24 * min(len(rows), 5))
 
         self.plots: dict[str, pg.PlotWidget] = {}

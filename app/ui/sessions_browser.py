@@ -14,6 +14,7 @@ import queue
 import shutil
 import tempfile
 import threading
+import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -55,6 +56,7 @@ log = logging.getLogger(__name__)
 COLUMNS = ("Date", "Duration", "Exercises", "Alarms", "Operator", "Status", "Station")
 STATION_COLUMN = 6
 FOLDER_ROLE = Qt.ItemDataRole.UserRole
+SIZED_ON_ROWS = 100  # the columns fit the first rows' contents (the header's precision below)
 
 
 def _date_text(iso: str) -> str:
@@ -295,7 +297,12 @@ class SessionsBrowser(QWidget):
         self.loading = False
         self.problem = ""  # why the archive's sessions are not listed ('' when they are, or no archive is in use)
         self._generation = 0
-        self._results: queue.SimpleQueue[tuple[int, Callable[[Any, str], None], Any, str]] = queue.SimpleQueue()
+        self._results: queue.SimpleQueue[tuple[int, Callable[[Any, str], None], Any, str, bool]] = queue.SimpleQueue()
+        self._pending: list[ListedSession] = []  # listed, not yet in the table (put in a few each turn: _fill)
+        self._listed = False  # the loader's last block came
+        self._here = ""  # this station's name, for the Station column
+        self._row_cost_s = 0.0004  # the GUI thread's CPU to put in one row, as last measured (_fill)
+        self._said_at = 0.0  # when the status line last counted the rows listed
         self._loader: threading.Thread | None = None
         self._pump = QTimer(self)
         self._pump.setInterval(15)
@@ -322,7 +329,7 @@ class SessionsBrowser(QWidget):
         header.setSectionResizeMode(QHeaderView.ResizeMode.ResizeToContents)
         # Sized to the first rows' contents only: a patient's hundreds of sessions (every station's) would otherwise
         # be measured cell by cell at each fill (500 rows: 98 ms in one turn, 33 ms so; docs/archive.md).
-        header.setResizeContentsPrecision(100)
+        header.setResizeContentsPrecision(SIZED_ON_ROWS)
         header.setSectionResizeMode(2, QHeaderView.ResizeMode.Stretch)  # the exercises: elided, whole in the tooltip
         self.table.setAccessibleName("Sessions")
         self.table.itemSelectionChanged.connect(self._update_buttons)
@@ -369,54 +376,84 @@ class SessionsBrowser(QWidget):
         self.reload_patients()
 
     # ------------------------------------------------------------------ listing
-    def _load(self, work: Callable[[], tuple[Any, str]], done: Callable[[Any, str], None]) -> None:
-        """``done(*work())`` on the GUI thread: ``work`` runs on the loader thread when an archive is in use,
-        here otherwise (a library use of the browser on a folder: the folders' files, as before the archive). A
-        newer load drops an older one's result."""
+    # The list is read in blocks (app.archive.reads.session_blocks: one page of the archive each) on the loader
+    # thread, and the rows are put in the table a few at a time on the GUI thread, at most FILL_BUDGET_S of its CPU a
+    # turn: a patient's newest sessions are listed at once and the thousands behind them follow without a long turn
+    # (10 000 rows in one turn held the window ~0.7 s; 2 000, 145 ms: docs/archive.md).
+    FILL_BUDGET_S = 0.004
+
+    def _load(self, work: Callable[[Callable[..., None]], None]) -> None:
+        """``work(post)`` reads; each ``post(done, result, problem, last=False)`` has ``done(result, problem)`` called
+        on the GUI thread, in order. ``work`` runs on the loader thread when an archive is in use, here otherwise (a
+        library use of the browser on a folder: the folders' files, as before the archive; the rows all put in
+        before this returns). A newer load drops an older one's results."""
         self._generation += 1
         generation = self._generation
+        self._pending.clear()
+        self._listed = False
         if not station.in_use():
-            done(*work())
+            work(lambda done, result, problem, last=False: done(result, problem))
+            self._fill(None)
+            self._listing_shown()
             return
         self.loading = True
         self._say("Loading sessions…")
 
+        def post(done: Callable[[Any, str], None], result: Any, problem: str, last: bool = False) -> None:
+            self._results.put((generation, done, result, problem, last))
+
         def run() -> None:
             try:
-                result, problem = work()
+                work(post)
             except Exception as exc:  # never a traceback in the window: the list says it could not be read
                 log.exception("listing the sessions failed")
-                result, problem = None, f"The sessions could not be listed: {exc}"
-            self._results.put((generation, done, result, problem))
+                post(self._listing_begun, None, "")
+                post(self._listing_done, None, f"The sessions could not be listed: {exc}", True)
 
         self._loader = threading.Thread(target=run, name="sessions-loader", daemon=True)
         self._loader.start()
         self._pump.start()
 
     def _take(self) -> None:
+        """The loader's news, then rows into the table within the turn's budget; the pump stops when all are in."""
         while True:
             try:
-                generation, done, result, problem = self._results.get_nowait()
+                generation, done, result, problem, last = self._results.get_nowait()
             except queue.Empty:
-                return
+                break
             if generation != self._generation:
                 continue
+            done(result, problem)
+            if last:
+                self._listed = True
+        self._fill(self.FILL_BUDGET_S)
+        if self._listed and not self._pending:
             self.loading = False
             self._pump.stop()
-            self._say("")
-            done(result, problem)
+            self._listing_shown()
+        elif self.summaries and time.monotonic() >= self._said_at + 0.5:
+            # twice a second: a wrapped label's new text lays the window out again (~3 ms a turn)
+            self._said_at = time.monotonic()
+            self._say(f"Loading sessions… {self.table.rowCount()} listed so far")
 
-    def _listing(self, pid: str | None, active: Path | None) -> tuple[list[ListedSession], str]:
-        """The patient's rows and why the archive's are missing ('' when they are not); on any thread."""
-        if not pid:
-            return [], ""
-        in_use, archive = station.in_use(), station.current()
-        if in_use and archive is None:
-            return reads.session_listing(pid, self.root, None, True, active), station.unreachable()
-        try:
-            return reads.session_listing(pid, self.root, archive, in_use, active), ""
-        except ArchiveError as exc:
-            return reads.session_listing(pid, self.root, None, True, active), str(exc)
+    def _listing_blocks(self, pid: str | None, active: Path | None, post: Callable[..., None],
+                        problem: str = "") -> None:
+        """The patient's rows, block by block, to ``post`` (on any thread); the last post says why the archive's are
+        missing ('' when they are not)."""
+        post(self._listing_begun, None, "")
+        if pid:
+            in_use, archive = station.in_use(), station.current()
+            if in_use and archive is None:
+                problem = problem or station.unreachable()
+            try:
+                for block in reads.session_blocks(pid, self.root, archive, in_use, active):
+                    post(self._listing_block, block, "")
+            except ArchiveError as exc:  # what came from the archive goes: this station's folders alone, from the top
+                problem = problem or str(exc)
+                post(self._listing_begun, None, "")
+                for block in reads.session_blocks(pid, self.root, None, True, active):
+                    post(self._listing_block, block, "")
+        post(self._listing_done, None, problem, True)
 
     def _patients(self) -> tuple[list[str], str]:
         archive, in_use = station.current(), station.in_use()
@@ -431,23 +468,22 @@ class SessionsBrowser(QWidget):
         current = select or self.patient_box.currentData()
         active = self.active()
 
-        def work() -> tuple[Any, str]:
+        def work(post: Callable[..., None]) -> None:
             ids, problem = self._patients()
             pid = current if current in ids else (ids[0] if ids else None)
-            rows, listing_problem = self._listing(pid, active)
-            return (ids, pid, rows), problem or listing_problem
+            post(self._patients_loaded, (ids, pid), "")
+            self._listing_blocks(pid, active, post, problem)
 
-        self._load(work, self._patients_loaded)
+        self._load(work)
 
-    def _patients_loaded(self, result: Any, problem: str) -> None:
-        ids, pid, rows = result if result is not None else ([], None, [])
+    def _patients_loaded(self, result: Any, _problem: str) -> None:
+        ids, pid = result
         self.patient_box.blockSignals(True)
         self.patient_box.clear()
         for p in ids:
             self.patient_box.addItem(p, p)
         self.patient_box.setCurrentIndex(max(0, self.patient_box.findData(pid)) if pid else 0)
         self.patient_box.blockSignals(False)
-        self._show(rows, problem)
 
     def set_patient(self, patient_id: str) -> None:
         self.reload_patients(patient_id)
@@ -456,34 +492,87 @@ class SessionsBrowser(QWidget):
         """The selected patient's sessions, read again (off the GUI thread when an archive is in use)."""
         pid = self.patient_box.currentData()
         active = self.active()
-        self._load(lambda: self._listing(pid, active), self._show)
+        self._load(lambda post: self._listing_blocks(pid, active, post))
 
-    def _show(self, rows: list[ListedSession] | None, problem: str) -> None:
-        self.summaries = list(rows or [])
-        self.problem = problem
-        here = station.current().station if station.current() is not None else ""
+    def _listing_begun(self, _result: Any, _problem: str) -> None:
+        self.summaries = []
+        self._pending.clear()
+        self.table.setRowCount(0)
+        header = self.table.horizontalHeader()
+        for col in range(self.table.columnCount()):  # sized again to the new list's first rows (_size_columns)
+            if header.sectionResizeMode(col) == QHeaderView.ResizeMode.Interactive:
+                header.setSectionResizeMode(col, QHeaderView.ResizeMode.ResizeToContents)
         self.table.setColumnHidden(STATION_COLUMN, not station.in_use())
-        self.table.setRowCount(len(self.summaries))
-        for row, s in enumerate(self.summaries):
-            exercises = ", ".join(s.exercises) if s.exercises else "—"
-            cells = (_date_text(s.start), _duration_text(s.duration_s), exercises, str(s.alarms), s.operator,
-                     s.status.text, s.station_text(here))
-            for col, text in enumerate(cells):
-                item = QTableWidgetItem(text)
-                item.setData(FOLDER_ROLE, str(s.folder) if s.folder is not None else s.uuid)
-                if col == 2 and s.exercises:
-                    item.setToolTip(exercises)  # a long list is elided in its cell
-                if col == 5:
-                    item.setToolTip(s.status.tooltip)
-                    if not s.status.ok:
-                        item.setForeground(QColor("#c62828"))
-                if col == STATION_COLUMN:
-                    item.setToolTip(_where_words(s))
-                    if s.where in (reads.WAITING, reads.REFUSED):
-                        item.setForeground(QColor("#8a5a00" if s.where == reads.WAITING else "#c62828"))
-                self.table.setItem(row, col, item)
-        if self.summaries:
-            self.table.selectRow(0)
+        self._here = station.current().station if station.current() is not None else ""
+        self._update_buttons()
+
+    def _listing_block(self, rows: list[ListedSession], _problem: str) -> None:
+        self.summaries.extend(rows)
+        self._pending.extend(rows)
+
+    def _listing_done(self, _result: Any, problem: str) -> None:
+        self.problem = problem
+
+    def _fill(self, budget_s: float | None) -> None:
+        """Rows of ``_pending`` into the table, as many as ``budget_s`` of this thread's CPU takes by the last turn's
+        cost a row (None: all), added in one step: each step of adding rows costs the view and its row header a
+        walk of their own."""
+        if not self._pending:
+            return
+        started = time.thread_time()
+        table = self.table
+        first = table.rowCount() == 0
+        count = len(self._pending) if budget_s is None else max(10, int(budget_s / self._row_cost_s))
+        batch, self._pending[:count] = self._pending[:count], []
+        row = table.rowCount()
+        table.setRowCount(row + len(batch))
+        for k, s in enumerate(batch):
+            self._set_row(row + k, s)
+        self._row_cost_s = max(1e-5, (time.thread_time() - started) / len(batch))
+        if first and table.rowCount():
+            table.selectRow(0)
+        if table.rowCount() >= SIZED_ON_ROWS or (not self._pending and (self._listed or budget_s is None)):
+            self._size_columns()
+
+    def _size_columns(self) -> None:
+        """The columns sized once, to the first rows put in (SIZED_ON_ROWS), then kept: left to size themselves to
+        their contents (ResizeToContents), Qt measured the rows again after every turn that added some (25-35 ms of
+        the window's CPU a turn with 10 000 sessions coming)."""
+        header = self.table.horizontalHeader()
+        for col in range(self.table.columnCount()):
+            if header.sectionResizeMode(col) == QHeaderView.ResizeMode.ResizeToContents:
+                self.table.resizeColumnToContents(col)
+                header.setSectionResizeMode(col, QHeaderView.ResizeMode.Interactive)
+
+    def _set_row(self, row: int, s: ListedSession) -> None:
+        """One row's cells, through the table's model: a QTableWidgetItem made in Python keeps a Python object per
+        cell for the table's life (70 000 for 10 000 sessions), and the collector's full walks over them held the
+        window 120-170 ms at a time; the model makes the items in C++ (``table.item`` still answers)."""
+        exercises = ", ".join(s.exercises) if s.exercises else "—"
+        cells = (_date_text(s.start), _duration_text(s.duration_s), exercises, str(s.alarms), s.operator,
+                 s.status.text, s.station_text(self._here))
+        model = self.table.model()
+        key = str(s.folder) if s.folder is not None else s.uuid
+        display, tooltip, foreground = (Qt.ItemDataRole.DisplayRole, Qt.ItemDataRole.ToolTipRole,
+                                        Qt.ItemDataRole.ForegroundRole)
+        for col, text in enumerate(cells):
+            data: dict[Qt.ItemDataRole, Any] = {display: text, FOLDER_ROLE: key}
+            if col == 2 and s.exercises:
+                data[tooltip] = exercises  # a long list is elided in its cell
+            if col == 5:
+                data[tooltip] = s.status.tooltip
+                if not s.status.ok:
+                    data[foreground] = QColor("#c62828")
+            if col == STATION_COLUMN:
+                data[tooltip] = _where_words(s)
+                if s.where in (reads.WAITING, reads.REFUSED):
+                    data[foreground] = QColor("#8a5a00" if s.where == reads.WAITING else "#c62828")
+            model.setItemData(model.index(row, col), data)
+
+    def _listing_shown(self) -> None:
+        """Every row is in: the status line says why the archive's are missing, if they are."""
+        self._say("")
+        problem = self.problem
         if problem:
             self._say(f"{problem[:1].upper()}{problem[1:].rstrip('.')}. Only this station's sessions are listed; "
                       "they wait for the archive.", error=True)
@@ -704,21 +793,17 @@ class SessionsBrowser(QWidget):
                 on_done(task)
 
         archived = [f.uuid for f in folders if isinstance(f, ListedSession)]
-        if archived:  # sessions of other stations: copied from the archive first, in the worker
+        extra: dict[str, Any] = {}
+        if archived:  # sessions of other stations: read by the worker as they stream from the archive (no copy)
             archive = self._archive_args()
             if archive is None:
                 self._say(f"{(station.unreachable() or 'The archive is not open').rstrip('.')}: sessions of "
                           "other stations cannot be exported now.", error=True)
                 return None
-            local = [str(f) for f in folders if not isinstance(f, ListedSession)]
-            task = self.tasks.run(ARCHIVED_JOB, JOB_KIND, archive, archived, str(self._cache_dir()), fmt,
-                                  str(destination), stamp, many=True, also=local, at=1, include_names=include_names,
-                                  title=title, parent=self, outputs=(staging_target(destination, stamp),),
-                                  on_done=done)
-        else:
-            task = self.tasks.run(JOB_KIND, fmt, [str(f) for f in folders], str(destination), stamp,
-                                  include_names=include_names, title=title, parent=self,
-                                  outputs=(staging_target(destination, stamp),), on_done=done)
+            extra = {"archived": archived, "archive": archive}
+        named = [f.uuid if isinstance(f, ListedSession) else str(f) for f in folders]  # in the table's order
+        task = self.tasks.run(JOB_KIND, fmt, named, str(destination), stamp, include_names=include_names, **extra,
+                              title=title, parent=self, outputs=(staging_target(destination, stamp),), on_done=done)
         self.research_tasks.append(task)
         return task
 
