@@ -247,13 +247,26 @@ def normal_stalls(seconds: float, refresh_hz: float | None) -> dict[str, Any]:
         if not common.run_qt_until(moving_now, 60.0):
             print("  (the reach exercise did not reach its start point within 60 s)")
         fes = manager.driver("fes")
-        fes.load_profile(load_profile(RESOURCES / "fes_profiles" / "frontal_reaching.yaml"))
-        # As the FES panel starts it: never waiting for the stimulator's acks on the GUI thread (a start that held
-        # the GUI thread while the arm moved is a stall the GUI watch judges, and rightly so)
-        fes.submit_start("benchmark")
+        # The running exercise holds the stimulator too (one owner, #36): the profile is loaded and started in the
+        # run's name, as its script would. As the FES panel starts it: never waiting for the stimulator's acks on the
+        # GUI thread (a start that held the GUI thread while the arm moved is a stall the GUI watch judges)
+        try:
+            from app.core.ownership import RUN_SOURCES
+            source = RUN_SOURCES[0]
+        except ImportError:  # the code before #36
+            source = "benchmark"
+        fes.load_profile(load_profile(RESOURCES / "fes_profiles" / "frontal_reaching.yaml"), source=source)
+        fes.submit_start(source)
         if not common.run_qt_until(lambda: fes.stimulating, 10.0):
             print("  (stimulation did not start within 10 s)")
         t_start = time.monotonic()
+        try:  # the collections made during the measurement only (not the window's build)
+            from app.main_thread_gc import collections as main_thread_collections
+        except ImportError:
+            main_thread_collections = None  # type: ignore[assignment]
+        made = main_thread_collections() if main_thread_collections is not None else None
+        if made is not None:
+            made.collections, made.longest_s = [0, 0, 0], 0.0
         heartbeat = getattr(window, "gui_heartbeat", None)  # None: the code before #37 (no GUI watch)
         ages: list[float] = []
         last = [time.monotonic()]
@@ -321,6 +334,14 @@ def stalls_main(args: argparse.Namespace) -> int:
         bounds = "no GUI watch in this code"
     print(f"  GUI watch's heartbeat age: largest {ages[-1]:.1f} ms, p99 {common.percentile(ages, 99):.1f} ms "
           f"(n={len(r['ages'])}); {bounds}; window alarms raised: {r['alarms'] or 'none'}")
+    try:
+        from app.main_thread_gc import collections
+    except ImportError:
+        collections = None  # type: ignore[assignment]
+    made = collections() if collections is not None else None
+    if made is not None:
+        print(f"  collections on the main thread during it: {made.collections} (generations 0, 1, 2), the "
+              f"longest {made.longest_s * 1000:.1f} ms of wall")
     return 0
 
 

@@ -335,6 +335,12 @@ def qt_app() -> Any:
     from app.application import configure_qt_identity
 
     configure_qt_identity()
+    try:  # as the application does: the collector on the main thread only (#38)
+        from app.main_thread_gc import collect_on_the_main_thread
+    except ImportError:  # the code before it
+        pass
+    else:
+        collect_on_the_main_thread(app)
     return app
 
 

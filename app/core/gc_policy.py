@@ -42,8 +42,10 @@ TICK_S = 2.0  # how often the window calls tick(): the age after which a survivo
 REST_S = 6.0
 # How often the main thread looks at the collector's counts (MainThreadCollections.collect_due). A generation-0
 # collection walks only the container objects made since the last one and still alive (freed ones are gone by their
-# reference count): well under a millisecond at this period with the devices streaming.
-COLLECT_EVERY_S = 0.25
+# reference count), so often enough that each stays small: with the window, every graph, FES stimulating and the arm
+# moving, 21 of generation 0 and 1 of generation 1 in 20 s, the longest 1.2 ms (bench/bench_window.py --stalls, load
+# 11); at 0.25 s, one after the window's build walked its young objects at once (64 ms).
+COLLECT_EVERY_S = 0.05
 # A full walk outside a frozen heap (every object of the window: 45-75 ms) at most this often, and only when the
 # window's policy says it may (at rest): the automatic collector's own rule (a quarter of the heap new) is not
 # visible from Python, so its effect -- full walks are rare -- is kept by a gap.
