@@ -13,6 +13,8 @@ quietly with a therapy running."""
 
 from __future__ import annotations
 
+import gc
+import threading
 import time
 from collections import Counter
 from pathlib import Path
@@ -28,7 +30,17 @@ from app.worker.session_data import session_data
 from tests.heavy_rig import GapMeter
 from tests.long_session import write_long_session
 
-TURN_BOUND_S = 0.150
+# The GUI thread's own CPU time in one turn of its event loop while a past session's replay or summary opens (#37,
+# acceptance 1: the window's longest stall <= 50 ms during a therapy). Its CPU, not the wall clock: on this shared
+# 2-core machine a turn's wall time is its CPU time stretched by whatever else runs (the therapy's threads, other
+# programs); with the drivers' threads and the renderer sharing the cores, a turn of 25 ms of CPU is the most that
+# leaves the 50 ms with a margin. Measured (load 6-8, a 30-minute session, the replay's six default graphs): the
+# longest turn 11-17 ms of CPU after the staged build was cut finer, 20-43 ms before (one plot's widgets, the panes'
+# links and layout, an 80-row block of the run's table, the first paint of every pane in one turn).
+TURN_CPU_BOUND_S = 0.025
+# Eleven graphs (a clinician's choice of many): the graphs' one layout pass (every pane resized) grows with the
+# panes; twice the bound (91-112 ms of CPU before, 25-39 ms after at load 8-9).
+MANY_GRAPHS_TURN_CPU_BOUND_S = 2 * TURN_CPU_BOUND_S
 # Layouts of a pane (its view resized) while the window opens, whatever the number of panes: two of its own while it
 # is built, one in the graphs once they are all there, one to spare. Before, a pane was laid out again for every
 # pane added after it: 13 times for the first of eleven.
@@ -105,5 +117,96 @@ def test_opening_a_replay_on_many_graphs_holds_no_turn_long(qtbot, tmp_path: Pat
         f"while the replay opened, its graphs were drawn with {painted} panes"
     # The turn's own CPU time: what opening the replay costs the GUI thread, not how long a loaded machine kept it
     # waiting (the wall clock's turn failed at load 13); the wall-clock figures, quiet and loaded, are the bench's.
-    assert longest_cpu <= TURN_BOUND_S, (f"opening the replay held the GUI thread {longest_cpu * 1e3:.0f} ms of CPU "
-                                         f"in one turn ({longest * 1e3:.0f} ms of wall clock)")
+    assert longest_cpu <= MANY_GRAPHS_TURN_CPU_BOUND_S, (
+        f"opening the replay held the GUI thread {longest_cpu * 1e3:.0f} ms of CPU in one turn "
+        f"({longest * 1e3:.0f} ms of wall clock)")
+
+
+def _loadavg() -> str:
+    return " ".join(Path("/proc/loadavg").read_text().split()[:3])
+
+
+def test_opening_a_long_sessions_replay_and_summary_holds_no_turn_long(qtbot, tmp_path_factory) -> None:  # type: ignore[no-untyped-def]
+    """Acceptance 1's GUI-thread part: a 30-minute session's replay (its default graphs, its thousand events), then
+    its summary and its first run's tab, opened as the sessions browser opens them once the worker has read the session
+    (the window made and shown in the turn the result comes, then built a piece per turn): no turn of the GUI thread
+    takes more than TURN_CPU_BOUND_S of its CPU. Before the build was cut finer this failed at 20-43 ms."""
+    from app.session.reports import run_reports
+    from app.ui.session_summary import SessionSummaryDialog
+    from app.worker.jobs import SummaryData
+    from tests.long_session import shared_long_session
+
+    folder = shared_long_session(tmp_path_factory)
+    session = load_session(folder)
+    data = session_data(session)  # what the worker hands over (its samples mapped, not copied)
+    summary = SummaryData(folder, str(session.manifest.get("patient_id")), run_reports(session), [])
+    del session
+    assert len(summary.runs) == 2 and len(summary.runs[0].repetitions) > 100
+
+    def replay() -> ReplayWindow:
+        window = ReplayWindow(data, 30.0, staged=True)
+        qtbot.addWidget(window)
+        window.show()
+        return window
+
+    def summary_dialog() -> SessionSummaryDialog:
+        dialog = SessionSummaryDialog(folder, data=summary, staged=True)
+        qtbot.addWidget(dialog)
+        dialog.show()
+        return dialog
+
+    def first_run(dialog: SessionSummaryDialog) -> SessionSummaryDialog:
+        dialog.summary.tabs.setCurrentIndex(1)  # built when first shown
+        return dialog
+
+    def opening(make, ready) -> tuple[object, float, float]:  # type: ignore[no-untyped-def]
+        """``make()`` from inside the event loop, as a click or the worker's answer; the GUI thread's longest turn
+        and its most CPU in one turn until ``ready(widget)``."""
+        made: list[object] = []
+        t0 = time.monotonic()
+        QTimer.singleShot(0, lambda: made.append(make()))
+        qtbot.waitUntil(lambda: bool(made) and ready(made[0]), timeout=60000)
+        t1 = time.monotonic()
+        qtbot.waitUntil(lambda: meter.ticks[-1][0] > t1 + 0.05, timeout=5000)  # the tick that ends a turn at t1
+        return made[0], meter.longest(t0, t1), meter.longest_cpu(t0, t1)
+
+    def replay_ready(w) -> bool:  # type: ignore[no-untyped-def]
+        return bool(w.is_ready and not w._events_left and not w._steps.running)
+
+    collections: list[tuple[int, float]] = []  # the garbage collector's passes meanwhile: (generation, CPU s)
+    started: list[float] = []
+
+    def collector(phase: str, info: dict) -> None:  # type: ignore[type-arg]
+        if phase == "start":
+            started[:] = [time.thread_time()]
+        elif started and threading.current_thread() is threading.main_thread():
+            collections.append((info["generation"], time.thread_time() - started[0]))
+
+    # As the window does while a therapy runs (app.core.gc_policy.HeapPolicy.settle): what lives now (the test
+    # runner's own objects, the session read) is out of the collector's walk; given back after.
+    gc.freeze()
+    gc.callbacks.append(collector)
+    meter = GapMeter()
+    try:
+        for _warm in range(2):  # the first of each in the process pays its imports and fonts; measured: the second
+            window, replay_wall, replay_cpu = opening(replay, replay_ready)
+            window.close()  # type: ignore[attr-defined]
+            dialog, summary_wall, summary_cpu = opening(summary_dialog, lambda d: d.summary.is_ready)
+            _, tab_wall, tab_cpu = opening(lambda d=dialog: first_run(d), lambda d: d.summary.is_ready)
+            dialog.close()  # type: ignore[attr-defined]
+    finally:
+        meter.stop()
+        gc.callbacks.remove(collector)
+        gc.unfreeze()
+    assert window.events.count() == len([e for e in data.events if isinstance(e.get("t_mono"), int | float)])
+    # its default graphs, each drawn
+    assert sorted(window.plots.selected) == sorted(replay_window.default_replay_signals(window.source.session))  # type: ignore[attr-defined]
+    assert all(len(c.getData()[0]) > 1 for c in window.plots.curves.values())  # type: ignore[attr-defined]
+    assert dialog.summary.run_views[summary.runs[0].run.run_id].plots_built
+    figures = (f"replay {replay_cpu * 1e3:.1f} ms of CPU ({replay_wall * 1e3:.0f} ms wall), summary "
+               f"{summary_cpu * 1e3:.1f} ({summary_wall * 1e3:.0f}), its first run's tab {tab_cpu * 1e3:.1f} "
+               f"({tab_wall * 1e3:.0f}); the collector's longest pass "
+               f"{max((c for _g, c in collections), default=0.0) * 1e3:.1f} ms; load average {_loadavg()}")
+    print(f"\n30-minute session, the GUI thread's longest turn: {figures}")
+    assert max(replay_cpu, summary_cpu, tab_cpu) <= TURN_CPU_BOUND_S, \
+        f"opening a 30-minute session held the GUI thread too long in one turn: {figures}"

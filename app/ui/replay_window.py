@@ -135,6 +135,10 @@ class ReplayWindow(QWidget):
 
         self.events = QListWidget()
         self.events.setAccessibleName("Session events")
+        # Laid out a batch of rows per turn of the event loop: laid out all at once (Qt's default), every block of
+        # rows added re-laid out the whole list, 10-14 ms a turn once it held a thousand events (#37).
+        self.events.setLayoutMode(QListWidget.LayoutMode.Batched)
+        self.events.setBatchSize(_EVENTS_PER_TURN)
         self._events_left = [e for e in rec.events if isinstance(e.get("t_mono"), int | float)]
         if not staged:
             self._add_events()

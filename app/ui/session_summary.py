@@ -42,6 +42,7 @@ from app.session.reports import (
     parameters_text,
     y_range,
 )
+from app.ui.plots_frame import prepare_axis
 from app.ui.staged import Steps
 from app.ui.tasks import QtTasks
 
@@ -55,7 +56,8 @@ SUMMARY_PLOTS: tuple[tuple[str, tuple[tuple[str, str], ...], str], ...] = (
     ("Interaction force", (("peak_force_n", "peak"), ("mean_force_n", "mean")), "N"),
 )
 PLOT_PENS = ("#1f77b4", "#d62728")
-_ROWS_PER_STEP = 80  # repetition-table rows filled per turn of the event loop (a staged summary: ~5 ms)
+_ROWS_PER_STEP = 25  # repetition-table rows filled per turn of the event loop (a staged summary: ~4 ms; 80 took 15)
+_NUMBER_ALIGNMENT = Qt.AlignmentFlag.AlignRight | Qt.AlignmentFlag.AlignVCenter  # (once: an enum's | is slow)
 
 
 class _LazyMenuViewBox(pg.ViewBox):
@@ -209,12 +211,14 @@ class RunSummary(QWidget):
         for k in range(len(SUMMARY_PLOTS)):
             parts = _plot_parts()
             yield
-            item = self._plot_item(k, *parts)
+            bare = _bare_plot(*parts)  # pyqtgraph's plot (its options menu's widgets: ~half its cost)
+            yield
+            item = self._plot_item(k, *parts, bare=bare)
             yield
             plot = self._new_plot(k, item)
             plot.setUpdatesEnabled(False)
             yield
-            yield from self._plot_data(k, plot)
+            yield from self._plot_data(k, plot, staged=True)
             # Its first paint comes with the scene's next update, a turn or two later: those turns carry no piece
             # (a plot's frame made in the turn of the previous plot's paint held the window 40-85 ms beside a
             # therapy).
@@ -228,7 +232,7 @@ class RunSummary(QWidget):
             r = reps[row]
             for col, (key, _, spec) in enumerate(REPETITION_COLUMNS):
                 item = QTableWidgetItem(fmt(r.get(key), spec))
-                item.setTextAlignment(Qt.AlignmentFlag.AlignRight | Qt.AlignmentFlag.AlignVCenter)
+                item.setTextAlignment(_NUMBER_ALIGNMENT)
                 if key == "completed" and not r.get("completed"):
                     item.setForeground(pg.mkColor("#c62828"))
                 self.table.setItem(row, col, item)
@@ -238,10 +242,13 @@ class RunSummary(QWidget):
         for _ in self._plot_data(k, self._new_plot(k, self._plot_item(k, *_plot_parts()))):
             pass
 
-    def _plot_item(self, k: int, view: pg.ViewBox, axes: dict[str, pg.AxisItem]) -> pg.PlotItem:
-        """The ``k``-th plot's frame (title, axes, grid, legend) on ``view`` and ``axes`` (_plot_parts)."""
+    def _plot_item(self, k: int, view: pg.ViewBox, axes: dict[str, pg.AxisItem],
+                   bare: pg.PlotItem | None = None) -> pg.PlotItem:
+        """The ``k``-th plot's frame (title, axes, grid, legend) on ``view`` and ``axes`` (_plot_parts), or on
+        ``bare`` (_bare_plot of them)."""
         title_, keys, unit = SUMMARY_PLOTS[k]
-        item = pg.PlotItem(title=title_ + (f" [{unit}]" if unit else ""), viewBox=view, axisItems=axes)
+        item = bare if bare is not None else _bare_plot(view, axes)
+        item.setTitle(title_ + (f" [{unit}]" if unit else ""))
         item.showGrid(x=True, y=True, alpha=0.3)
         item.setLabel("bottom", f"repetition of run {self.report.number}")
         if len(keys) > 1:
@@ -255,8 +262,9 @@ class RunSummary(QWidget):
         self._cells[k].set_child(plot)
         return plot
 
-    def _plot_data(self, k: int, plot: pg.PlotWidget) -> Iterator[None]:
-        """The ``k``-th plot's curves, a step each, then its ranges."""
+    def _plot_data(self, k: int, plot: pg.PlotWidget, staged: bool = False) -> Iterator[None]:
+        """The ``k``-th plot's curves, a step each, then its ranges (``staged``: then its axes' pictures, a step of
+        their own before it is drawn)."""
         reps = self.report.repetitions
         _title, keys, _unit = SUMMARY_PLOTS[k]
         x = [r["index"] for r in reps]
@@ -273,12 +281,22 @@ class RunSummary(QWidget):
             plot.setYRange(*y_range(values), padding=0)
         if x:
             plot.getAxis("bottom").setTicks([[(i, str(i)) for i in x]] if len(x) <= 20 else None)
+        if staged:
+            yield
+            plot.getPlotItem().vb.prepareForPaint()  # its range now (a pending autorange), then its axes for it
+            for side in ("left", "bottom"):
+                prepare_axis(plot.getAxis(side))
         plot.setUpdatesEnabled(True)  # drawn once, complete (staged)
         yield
 
     def showEvent(self, event: Any) -> None:
         super().showEvent(event)
         self.alarms.resizeRowsToContents()  # the columns have their final widths now: wrap the sentences in full
+
+
+def _bare_plot(view: pg.ViewBox, axes: dict[str, pg.AxisItem]) -> pg.PlotItem:
+    """pyqtgraph's PlotItem on ``view`` and ``axes``, before its title, grid and legend (_plot_item)."""
+    return pg.PlotItem(viewBox=view, axisItems=axes)
 
 
 def _plot_parts() -> tuple[pg.ViewBox, dict[str, pg.AxisItem]]:
