@@ -1132,6 +1132,9 @@ class PlotsFrame(QWidget):
             yield  # laid out between this step and the next (Qt's layout request), drawn after the last
             for plot in list(self.plots.values()):  # the axes' pictures a pane per step, for the first paint
                 for axis in (plot.getAxis("left"), plot.getAxis("bottom")):
+                    # Its label placed again: the first screen's range, given after the layout, may have changed its
+                    # text ("(m)" -> "(mm)"), which pyqtgraph centres only when the axis is resized.
+                    axis.resizeEvent()
                     prepare_axis(axis)
                 yield
         finally:
