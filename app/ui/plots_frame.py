@@ -514,6 +514,12 @@ class PlotsFrame(QWidget):
 
     def _rebuild_tree(self) -> None:
         """(Re)list every signal of the store: device → stream → channel, checked when selected."""
+        for _ in self.tree_steps():
+            pass
+
+    def tree_steps(self) -> Iterator[None]:
+        """_rebuild_tree a device per ``next()`` (a replay's staged build: the whole list took ~9 ms, #37); the
+        list's layout and width once complete."""
         self._building_tree = True
         try:
             self.tree.clear()
@@ -525,6 +531,8 @@ class PlotsFrame(QWidget):
             for info in self.store.signals():
                 dev = devices.get(info.device)
                 if dev is None:
+                    if devices:
+                        yield
                     dev = QTreeWidgetItem(self.tree, [info.device, ""])
                     dev.setFlags(flags_parent)
                     dev.setCheckState(0, Qt.CheckState.Unchecked)

@@ -117,11 +117,13 @@ def _table(headers: Sequence[str], name: str) -> QTableWidget:
 class RunSummary(QWidget):
     """One run: what ran, how it ended, its parameters, its repetitions and their plots, its alarms."""
 
-    def __init__(self, report: RunReport, parent: QWidget | None = None, staged: bool = False) -> None:
+    def __init__(self, report: RunReport, parent: QWidget | None = None, staged: bool = False,
+                 start: bool = True) -> None:
         """``staged``: the repetition table is filled and the plots are built a piece per turn of the event loop
         (app.ui.staged): a block of rows, a plot's frame, its data (a plot cost ~40 ms and a run's table 20-40 ms;
         the four plots at once held the window 0.25 s, 0.7 s on a loaded PC: the GUI watch stopped the next
-        exercise; one per posted call still made 60-190 ms turns, #37). ``complete()`` finishes at once."""
+        exercise; one per posted call still made 60-190 ms turns, #37). ``complete()`` finishes at once. Staged
+        and not ``start``: the pieces begin with ``start_build()`` (once the run's tab shows it)."""
         super().__init__(parent)
         self.report = report
         run, summary, reps = report.run, report.summary, report.repetitions
@@ -157,7 +159,8 @@ class RunSummary(QWidget):
         if staged:
             self._pieces_left = self._pieces(reps)
             self._steps = Steps(self._pieces_left, self)
-            self._steps.start()
+            if start:
+                self._steps.start()
         else:
             self._fill_rows(0, len(reps))
             for k in range(len(SUMMARY_PLOTS)):
@@ -189,6 +192,11 @@ class RunSummary(QWidget):
                              + (" — listed below with the interruptions" if report.alarms else "")))
         lay.addWidget(self.alarms)
 
+
+    def start_build(self) -> None:
+        """The staged pieces from the next turn of the event loop on (made with ``start=False``)."""
+        if self._steps is not None:
+            self._steps.start()
 
     @property
     def plots_built(self) -> bool:
@@ -264,7 +272,7 @@ class RunSummary(QWidget):
 
     def _plot_data(self, k: int, plot: pg.PlotWidget, staged: bool = False) -> Iterator[None]:
         """The ``k``-th plot's curves, a step each, then its ranges (``staged``: then its axes' pictures, a step of
-        their own before it is drawn)."""
+        their own, and its first paint in the turn after)."""
         reps = self.report.repetitions
         _title, keys, _unit = SUMMARY_PLOTS[k]
         x = [r["index"] for r in reps]
@@ -286,6 +294,7 @@ class RunSummary(QWidget):
             plot.getPlotItem().vb.prepareForPaint()  # its range now (a pending autorange), then its axes for it
             for side in ("left", "bottom"):
                 prepare_axis(plot.getAxis(side))
+            yield  # drawn in a turn of its own (~5 ms: its symbols)
         plot.setUpdatesEnabled(True)  # drawn once, complete (staged)
         yield
 
@@ -334,6 +343,7 @@ class SessionSummary(QWidget):
                  parent: QWidget | None = None, tasks: QtTasks | None = None, staged: bool = False) -> None:
         super().__init__(parent)
         self._to_build: list[RunReport] = []
+        self._made: dict[str, tuple[RunSummary, QScrollArea]] = {}  # a run's tab made, not in its place yet
         self.runs = list(runs)
         self.folder = folder
         self.tasks = tasks  # the worker process that draws the PDF (issue #37); None: drawn here
@@ -406,7 +416,15 @@ class SessionSummary(QWidget):
         return self.runs[k] if 0 <= k < len(self.runs) else None
 
     def _build_shown(self) -> None:
-        self._build(self._run_at(self.tabs.currentIndex()))
+        """The run's tab shown, in two turns of the event loop: its widgets made, then put in the tab (drawn and
+        laid out) -- the two in one turn took ~15 ms, #37; then its pieces (RunSummary)."""
+        r = self._run_at(self.tabs.currentIndex())
+        if r is not None and any(x is r for x in self._to_build) and r.run.run_id not in self._made:
+            summary = RunSummary(r, self, staged=True, start=False)
+            self._made[r.run.run_id] = summary, _scrolled(summary)
+            QTimer.singleShot(0, self, self._build_shown)
+            return
+        self._build(r)
         self.ready.emit()
 
     def _build(self, r: RunReport | None) -> None:
@@ -415,9 +433,13 @@ class SessionSummary(QWidget):
             index = next(k for k, x in enumerate(self.runs) if x is r) + (1 if self.overview is not None else 0)
             shown = self.tabs.currentIndex()
             self._to_build = [x for x in self._to_build if x is not r]
-            summary = RunSummary(r, self, staged=True)
+            made = self._made.pop(r.run.run_id, None)
+            if made is None:
+                summary = RunSummary(r, self, staged=True, start=False)
+                made = summary, _scrolled(summary)
+            summary, view = made
             self.run_views[r.run.run_id] = summary
-            view = _scrolled(summary)
+            summary.start_build()
             placeholder = self.tabs.widget(index)
             self.tabs.blockSignals(True)  # the tab shown stays shown while it is swapped
             self.tabs.removeTab(index)
