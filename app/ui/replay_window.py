@@ -72,7 +72,7 @@ def default_replay_signals(rec: RecordedSession) -> list[str]:
 class ReplayPlots(PlotsFrame):
     """The graphs of a replay: they open on the replay's own signals (``opening``, set just before one is made),
     not on the live graphs' saved choice -- which would build every plot twice, once for each choice. With
-    ``tree_later`` (set likewise: a staged window) the signal list is filled by ``fill_tree``, a piece of its own."""
+    ``tree_later`` (set likewise: a staged window) the signal list is filled by ``fill_tree``, a device per piece."""
 
     opening: list[str] = []
     tree_later = False
