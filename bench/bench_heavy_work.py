@@ -1,6 +1,6 @@
 """Heavy work out of the real-time process (issue #37): the figures of bench/README.md's "Session 6 (#37a)".
 
-    .venv/bin/python bench/bench_heavy_work.py [--trials 3] [--load] [--source DIR] [--only load|open|f12]
+    .venv/bin/python bench/bench_heavy_work.py [--trials 3] [--load] [--source DIR] [--only load|open|f12|turns]
 
 A 30-minute session with every stream at its rate (tests/long_session.py, the recorder's on-disk format, its
 columnar side-file written as the worker writes it at a session's end) is made in a temporary folder, then:
@@ -13,6 +13,10 @@ columnar side-file written as the worker writes it at a session's end) is made i
   -- after #37 split into the worker's load and the window's build --, the host's longest silence towards the
   LINarm (its controller's watchdog trips at 250 ms), whether the FES guardian sent Stop, the alarms; for the
   summary also its first run's tab clicked (built when first shown): the longest stall until it is complete.
+* ``turns`` (not in the default run): the window's own turns alone, without a therapy (the machine's load does not
+  stop it): the session read in this process as the worker reads it, then its replay opened, closed, its summary
+  opened and its first run's tab clicked, each from inside the event loop; per trial the GUI thread's longest turn
+  (its CPU and its wall time) in each; median and p99 over ``--trials``.
 * ``f12``: Replay clicked, F12 posted from another thread 0.3 s later (during the load, as a key press reaches a
   busy GUI thread): its delay to FES Stop and to robot IDLE on the wire.
 
@@ -147,6 +151,67 @@ def _run_tab(therapy: Any, summary: Any) -> tuple[float, float, float]:
     return (therapy.meter.longest(t0, t1), *_turns(therapy.meter, t0, t1 + 0.05))
 
 
+def bench_turns(folder: Path, trials: int) -> None:
+    """The GUI thread's longest turn (CPU and wall) while a replay, a summary and its first run's tab open."""
+    from PySide6.QtCore import QTimer
+
+    from app.worker import jobs
+    from app.worker.context import JobContext
+    from tests.heavy_rig import GapMeter
+
+    ctx = JobContext(0, None)
+    data, summary = jobs.load_data(ctx, folder), jobs.summary(ctx, folder)
+    jobs.import_result_types()
+    from app.ui.replay_window import ReplayWindow
+    from app.ui.session_summary import SessionSummaryDialog
+
+    meter = GapMeter()
+
+    def opening(make: Any, ready: Any) -> tuple[Any, float, float]:
+        made: list[Any] = []
+        t0 = time.monotonic()
+        QTimer.singleShot(0, lambda: made.append(make()))
+        if not common.run_qt_until(lambda: bool(made) and ready(made[0]), 60.0):
+            raise TimeoutError("the window was not ready within 60 s")
+        t1 = time.monotonic()
+        common.run_qt_until(lambda: meter.ticks[-1][0] > t1 + 0.05, 5.0)
+        return made[0], meter.longest(t0, t1), meter.longest_cpu(t0, t1)
+
+    def replay() -> Any:
+        w = ReplayWindow(data, 30.0, staged=True)
+        w.show()
+        return w
+
+    def summary_dialog() -> Any:
+        d = SessionSummaryDialog(folder, data=summary, staged=True)
+        d.show()
+        return d
+
+    def first_run(d: Any) -> Any:
+        d.summary.tabs.setCurrentIndex(1)
+        return d
+
+    rows: dict[str, list[tuple[float, float]]] = {"replay": [], "summary": [], "its first run's tab": []}
+    for trial in range(trials + 1):  # the first pays the imports and fonts: not counted
+        w, wall, cpu = opening(replay, lambda w: w.is_ready and not w._events_left and not w._steps.running)
+        w.close()
+        common.run_qt_until(lambda: False, 0.2)
+        d, wall2, cpu2 = opening(summary_dialog, lambda d: d.summary.is_ready)
+        _, wall3, cpu3 = opening(lambda d=d: first_run(d), lambda d: d.summary.is_ready)
+        d.close()
+        common.run_qt_until(lambda: False, 0.2)
+        if trial:
+            rows["replay"].append((cpu, wall))
+            rows["summary"].append((cpu2, wall2))
+            rows["its first run's tab"].append((cpu3, wall3))
+    meter.stop()
+    for name, values in rows.items():
+        cpus, walls = [c * 1e3 for c, _ in values], [w * 1e3 for _, w in values]
+        print(f"  {name}: the GUI thread's longest turn, its CPU median {statistics.median(cpus):.1f} ms, p99 "
+              f"{common.percentile(cpus, 99):.1f} ms; wall median {statistics.median(walls):.1f} ms, p99 "
+              f"{common.percentile(walls, 99):.1f} ms ({len(values)} trials; load average {loadavg()})", flush=True)
+
+
 def bench_open(folder: Path, trials: int, what: str) -> None:
     from tests.heavy_rig import start_therapy, stop_therapy
 
@@ -231,7 +296,7 @@ def main() -> int:
     parser.add_argument("--trials", type=int, default=3)
     parser.add_argument("--load", action="store_true", help="two `yes > /dev/null` meanwhile")
     parser.add_argument("--source", default="", help="measure the application in this folder")
-    parser.add_argument("--only", choices=("load", "open", "f12"), default=None)
+    parser.add_argument("--only", choices=("load", "open", "f12", "turns"), default=None)
     parser.add_argument("--session", default="", help="an existing long session folder (else one is made)")
     args = parser.parse_args()
     common.qt_app()
@@ -261,6 +326,8 @@ def main() -> int:
             bench_open(folder, args.trials, "open")
         if args.only in (None, "f12"):
             bench_open(folder, args.trials, "f12")
+        if args.only == "turns":
+            bench_turns(folder, args.trials)
     finally:
         for proc in loads:
             proc.kill()

@@ -13,10 +13,15 @@ quietly with a therapy running."""
 
 from __future__ import annotations
 
+import contextlib
+import gc
+import threading
 import time
 from collections import Counter
+from collections.abc import Iterator
 from pathlib import Path
 
+import pyqtgraph as pg
 from PySide6.QtCore import QTimer
 
 from app.session.recording import load_session
@@ -28,12 +33,72 @@ from app.worker.session_data import session_data
 from tests.heavy_rig import GapMeter
 from tests.long_session import write_long_session
 
-TURN_BOUND_S = 0.150
+# The GUI thread's own CPU time in one turn of its event loop while a past session's replay or summary opens (#37,
+# acceptance 1: the window's longest stall <= 50 ms during a therapy). Its CPU, not the wall clock: on this shared
+# 2-core machine a turn's wall time is its CPU time stretched by whatever else runs (the therapy's threads, other
+# programs); a turn of 25 ms of CPU is the most that leaves the 50 ms with a margin. It is a guard, not the proof of
+# the change: a turn's CPU time itself grows with the machine's load (a 30-minute session, the replay's default
+# graphs: 9-11 ms quiet and up to 18 ms beside two CPU hogs now; 17-19 ms quiet and 22-38 ms loaded before), so the
+# tests also count what made the long turns (the axes drawn in one paint, the layouts).
+TURN_CPU_BOUND_S = 0.025
+# Eleven graphs (a clinician's choice of many): the graphs' one layout pass (every pane resized) grows with the
+# panes; twice the bound (20-33 ms of CPU now; 46 ms quiet, 91 ms at load 9 before).
+MANY_GRAPHS_TURN_CPU_BOUND_S = 2 * TURN_CPU_BOUND_S
 # Layouts of a pane (its view resized) while the window opens, whatever the number of panes: two of its own while it
 # is built, one in the graphs once they are all there, one to spare. Before, a pane was laid out again for every
 # pane added after it: 13 times for the first of eleven.
 MAX_LAYOUTS = 4
 SESSION_S = 120.0  # the turns do not depend on the length (the first screen is 30 s); a short one is quick to write
+
+
+@contextlib.contextmanager
+def settled_heap() -> Iterator[list[float]]:
+    """As the window's heap policy does while a therapy runs (app.core.gc_policy.HeapPolicy.settle): what lives now
+    (the test runner's objects, earlier tests' windows, the session read) is out of the garbage collector's walk,
+    given back after -- otherwise a full collection's walk over them lands in one of the turns measured (99 ms of CPU
+    in a suite's process). Yields the CPU time of each collection the GUI thread made meanwhile."""
+    passes: list[float] = []
+    started: list[float] = []
+
+    def collector(phase: str, _info: dict) -> None:  # type: ignore[type-arg]
+        if threading.current_thread() is not threading.main_thread():
+            return
+        if phase == "start":
+            started[:] = [time.thread_time()]
+        elif started:
+            passes.append(time.thread_time() - started[0])
+
+    gc.freeze()
+    gc.callbacks.append(collector)
+    try:
+        yield passes
+    finally:
+        gc.callbacks.remove(collector)
+        gc.unfreeze()
+
+
+def count_axes_per_paint(monkeypatch) -> list[int]:  # type: ignore[no-untyped-def]
+    """From now on, for each paint of a pyqtgraph view (the replay's graphs, a summary plot), how many axes it drew
+    (generated their ticks, labels and grid) within that paint: the list returned grows a number per paint."""
+    axes_per_paint: list[int] = []
+    painting: list[int] = []
+    original_specs, original_paint = pg.AxisItem.generateDrawSpecs, pg.GraphicsView.paintEvent
+
+    def specs(axis, painter):  # type: ignore[no-untyped-def]
+        if painting:
+            painting[-1] += 1
+        return original_specs(axis, painter)
+
+    def paint(view, event) -> None:  # type: ignore[no-untyped-def]
+        painting.append(0)
+        try:
+            original_paint(view, event)
+        finally:
+            axes_per_paint.append(painting.pop())
+
+    monkeypatch.setattr(pg.AxisItem, "generateDrawSpecs", specs)
+    monkeypatch.setattr(pg.GraphicsView, "paintEvent", paint)
+    return axes_per_paint
 
 
 def _one_signal_per_unit(rec) -> list[str]:  # type: ignore[no-untyped-def]
@@ -70,32 +135,35 @@ def test_opening_a_replay_on_many_graphs_holds_no_turn_long(qtbot, tmp_path: Pat
     assert len(wanted) >= 10
     monkeypatch.setattr(replay_window, "default_replay_signals", lambda _rec: list(wanted))
     meter = GapMeter()
-    try:
-        warm, _, _ = _open(data, qtbot, meter)  # the first window of the process pays its imports and fonts
-        warm.close()
-        resized: Counter[int] = Counter()  # ViewBox -> times laid out (resized) while the window opens
-        painted: list[int] = []  # the graphs' paints, with the number of panes then
-        original_resize, original_paint = LiveViewBox.resizeEvent, _TimedGraphics.paintEvent
+    with settled_heap() as collections:
+        try:
+            warm, _, _ = _open(data, qtbot, meter)  # the first window of the process pays its imports and fonts
+            warm.close()
+            resized: Counter[int] = Counter()  # ViewBox -> times laid out (resized) while the window opens
+            painted: list[int] = []  # the graphs' paints, with the number of panes then
+            original_resize, original_paint = LiveViewBox.resizeEvent, _TimedGraphics.paintEvent
 
-        def resize(vb, event) -> None:  # type: ignore[no-untyped-def]
-            resized[id(vb)] += 1
-            original_resize(vb, event)
+            def resize(vb, event) -> None:  # type: ignore[no-untyped-def]
+                resized[id(vb)] += 1
+                original_resize(vb, event)
 
-        def paint(view, event) -> None:  # type: ignore[no-untyped-def]
-            painted.append(len(view.ci.items))
-            original_paint(view, event)
+            def paint(view, event) -> None:  # type: ignore[no-untyped-def]
+                painted.append(len(view.ci.items))
+                original_paint(view, event)
 
-        monkeypatch.setattr(LiveViewBox, "resizeEvent", resize)
-        monkeypatch.setattr(_TimedGraphics, "paintEvent", paint)
-        window, longest, longest_cpu = _open(data, qtbot, meter)
-    finally:
-        meter.stop()
+            monkeypatch.setattr(LiveViewBox, "resizeEvent", resize)
+            monkeypatch.setattr(_TimedGraphics, "paintEvent", paint)
+            axes_per_paint = count_axes_per_paint(monkeypatch)
+            window, longest, longest_cpu = _open(data, qtbot, meter)
+        finally:
+            meter.stop()
     assert len(window.plots.plots) == len(wanted) and sorted(window.plots.selected) == sorted(wanted)
     assert all(len(c.getData()[0]) > 1 for c in window.plots.curves.values())  # the first screen is drawn
     assert window.events.count() == len([e for e in data.events if isinstance(e.get("t_mono"), int | float)])
     print(f"\nreplay on {len(wanted)} graphs: the GUI thread's longest turn {longest * 1e3:.0f} ms "
           f"({longest_cpu * 1e3:.0f} ms of its CPU); panes laid out "
-          f"{sorted(resized.values())} times; the graphs drawn with {painted} panes")
+          f"{sorted(resized.values())} times; the graphs drawn with {painted} panes; the collector's longest pass "
+          f"{max(collections, default=0.0) * 1e3:.1f} ms")
     # The graphs are laid out once they are all there, not again for every pane added to them (a turn per pane grew
     # with the panes) ...
     assert len(resized) == len(wanted) and max(resized.values()) <= MAX_LAYOUTS, \
@@ -103,7 +171,95 @@ def test_opening_a_replay_on_many_graphs_holds_no_turn_long(qtbot, tmp_path: Pat
     # ... and drawn once complete, not each time one more was added.
     assert painted and all(n == len(wanted) for n in painted), \
         f"while the replay opened, its graphs were drawn with {painted} panes"
+    # ... and that first paint does not draw every pane's axes (ticks, labels, grid; ~2 ms a pane): they are
+    # prepared a pane per turn before it (the panes in view, 12 axes, were drawn in one turn before).
+    assert axes_per_paint and max(axes_per_paint) <= 2, \
+        f"a paint of the {len(wanted)} graphs drew {max(axes_per_paint)} axes in one turn: {axes_per_paint}"
     # The turn's own CPU time: what opening the replay costs the GUI thread, not how long a loaded machine kept it
     # waiting (the wall clock's turn failed at load 13); the wall-clock figures, quiet and loaded, are the bench's.
-    assert longest_cpu <= TURN_BOUND_S, (f"opening the replay held the GUI thread {longest_cpu * 1e3:.0f} ms of CPU "
-                                         f"in one turn ({longest * 1e3:.0f} ms of wall clock)")
+    assert longest_cpu <= MANY_GRAPHS_TURN_CPU_BOUND_S, (
+        f"opening the replay held the GUI thread {longest_cpu * 1e3:.0f} ms of CPU in one turn "
+        f"({longest * 1e3:.0f} ms of wall clock)")
+
+
+def _loadavg() -> str:
+    return " ".join(Path("/proc/loadavg").read_text().split()[:3])
+
+
+def test_opening_a_long_sessions_replay_and_summary_holds_no_turn_long(qtbot, tmp_path_factory,  # type: ignore[no-untyped-def]
+                                                                      monkeypatch) -> None:
+    """Acceptance 1's GUI-thread part: a 30-minute session's replay (its default graphs, its thousand events), then
+    its summary and its first run's tab, opened as the sessions browser opens them once the worker has read the session
+    (the window made and shown in the turn the result comes, then built a piece per turn): no turn of the GUI thread
+    takes more than TURN_CPU_BOUND_S of its CPU (see there why it is a guard); what made the difference is counted:
+    the first paint of the replay's graphs drew every pane's axes (ticks, labels, grid: ~2 ms a pane) in that one
+    turn ("a paint of the graphs drew 8 axes in one turn" before); they are prepared a pane per turn before it now."""
+    from app.session.reports import run_reports
+    from app.ui.session_summary import SessionSummaryDialog
+    from app.worker.jobs import SummaryData
+    from tests.long_session import shared_long_session
+
+    folder = shared_long_session(tmp_path_factory)
+    session = load_session(folder)
+    data = session_data(session)  # what the worker hands over (its samples mapped, not copied)
+    summary = SummaryData(folder, str(session.manifest.get("patient_id")), run_reports(session), [])
+    del session
+    assert len(summary.runs) == 2 and len(summary.runs[0].repetitions) > 100
+
+    def replay() -> ReplayWindow:
+        window = ReplayWindow(data, 30.0, staged=True)
+        qtbot.addWidget(window)
+        window.show()
+        return window
+
+    def summary_dialog() -> SessionSummaryDialog:
+        dialog = SessionSummaryDialog(folder, data=summary, staged=True)
+        qtbot.addWidget(dialog)
+        dialog.show()
+        return dialog
+
+    def first_run(dialog: SessionSummaryDialog) -> SessionSummaryDialog:
+        dialog.summary.tabs.setCurrentIndex(1)  # built when first shown
+        return dialog
+
+    def opening(make, ready) -> tuple[object, float, float]:  # type: ignore[no-untyped-def]
+        """``make()`` from inside the event loop, as a click or the worker's answer; the GUI thread's longest turn
+        and its most CPU in one turn until ``ready(widget)``."""
+        made: list[object] = []
+        t0 = time.monotonic()
+        QTimer.singleShot(0, lambda: made.append(make()))
+        qtbot.waitUntil(lambda: bool(made) and ready(made[0]), timeout=60000)
+        t1 = time.monotonic()
+        qtbot.waitUntil(lambda: meter.ticks[-1][0] > t1 + 0.05, timeout=5000)  # the tick that ends a turn at t1
+        return made[0], meter.longest(t0, t1), meter.longest_cpu(t0, t1)
+
+    def replay_ready(w) -> bool:  # type: ignore[no-untyped-def]
+        return bool(w.is_ready and not w._events_left and not w._steps.running)
+
+    axes_per_paint = count_axes_per_paint(monkeypatch)
+    meter = GapMeter()
+    with settled_heap() as collections:
+        try:
+            for _warm in range(2):  # the first of each in the process pays its imports and fonts; measured: the second
+                axes_per_paint.clear()
+                window, replay_wall, replay_cpu = opening(replay, replay_ready)
+                window.close()  # type: ignore[attr-defined]
+                dialog, summary_wall, summary_cpu = opening(summary_dialog, lambda d: d.summary.is_ready)
+                _, tab_wall, tab_cpu = opening(lambda d=dialog: first_run(d), lambda d: d.summary.is_ready)
+                dialog.close()  # type: ignore[attr-defined]
+        finally:
+            meter.stop()
+    assert window.events.count() == len([e for e in data.events if isinstance(e.get("t_mono"), int | float)])
+    # its default graphs, each drawn
+    assert sorted(window.plots.selected) == sorted(replay_window.default_replay_signals(window.source.session))  # type: ignore[attr-defined]
+    assert all(len(c.getData()[0]) > 1 for c in window.plots.curves.values())  # type: ignore[attr-defined]
+    assert dialog.summary.run_views[summary.runs[0].run.run_id].plots_built
+    assert axes_per_paint and max(axes_per_paint) <= 2, \
+        f"a paint of the graphs drew {max(axes_per_paint)} axes in one turn (one pane has two): {axes_per_paint}"
+    figures = (f"replay {replay_cpu * 1e3:.1f} ms of CPU ({replay_wall * 1e3:.0f} ms wall), summary "
+               f"{summary_cpu * 1e3:.1f} ({summary_wall * 1e3:.0f}), its first run's tab {tab_cpu * 1e3:.1f} "
+               f"({tab_wall * 1e3:.0f}); the collector's longest pass "
+               f"{max(collections, default=0.0) * 1e3:.1f} ms; load average {_loadavg()}")
+    print(f"\n30-minute session, the GUI thread's longest turn: {figures}")
+    assert max(replay_cpu, summary_cpu, tab_cpu) <= TURN_CPU_BOUND_S, \
+        f"opening a 30-minute session held the GUI thread too long in one turn: {figures}"

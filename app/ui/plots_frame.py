@@ -40,6 +40,7 @@ from PySide6.QtGui import (
     QPainter,
     QPainterPath,
     QPen,
+    QPicture,
     QPolygonF,
     QTransform,
 )
@@ -276,6 +277,30 @@ class _TimedGraphics(pg.GraphicsLayoutWidget):
         self.last_paint_s = time.perf_counter() - t0
 
 
+def _pane_min_height(last: bool) -> int:
+    """A pane's minimum height: the last pane carries the time axis, room for it besides a pane's own height."""
+    return MIN_PANE_HEIGHT_PX + (BOTTOM_AXIS_PX if last else 0)
+
+
+def prepare_axis(axis: pg.AxisItem) -> None:
+    """What ``axis`` draws (its ticks, labels and grid lines), now, as its first paint would (pyqtgraph's
+    AxisItem.paint keeps it as a picture until its range or size changes): the first paint of many panes at once
+    spent most of its ~2 ms a pane there, so a staged build prepares it a pane per turn (#37)."""
+    if axis.picture is not None or not axis.isVisible():
+        return
+    picture = QPicture()
+    painter = QPainter(picture)
+    try:
+        if axis.style["tickFont"]:
+            painter.setFont(axis.style["tickFont"])
+        specs = axis.generateDrawSpecs(painter)
+        if specs is not None:
+            axis.drawPicture(painter, *specs)
+    finally:
+        painter.end()
+    axis.picture = picture
+
+
 class PlotsFrame(QWidget):
     # "Larger" pressed (True) or released: the window gives the graphs the whole column (#37: at 1366×768 six
     # graphs left 1.5 readable panes beside the Commands frame). Only offered when a window listens.
@@ -307,6 +332,7 @@ class PlotsFrame(QWidget):
         self.curves: dict[str, FastCurve] = {}
         self._curve_plot: dict[str, pg.PlotItem] = {}  # key -> the plot its curve is in
         self._vlines: dict[str, pg.InfiniteLine] = {}  # unit -> its pane's crosshair line
+        self._styled: dict[int, bool] = {}  # id of a pane's plot -> styled as the last pane (_style_pane)
         self.vlines: list[pg.InfiniteLine] = []
         self._dirty = True
         self._building_tree = False
@@ -488,6 +514,12 @@ class PlotsFrame(QWidget):
 
     def _rebuild_tree(self) -> None:
         """(Re)list every signal of the store: device → stream → channel, checked when selected."""
+        for _ in self.tree_steps():
+            pass
+
+    def tree_steps(self) -> Iterator[None]:
+        """_rebuild_tree a device per ``next()`` (a replay's staged build: the whole list took ~9 ms, #37); the
+        list's layout and width once complete."""
         self._building_tree = True
         try:
             self.tree.clear()
@@ -499,6 +531,8 @@ class PlotsFrame(QWidget):
             for info in self.store.signals():
                 dev = devices.get(info.device)
                 if dev is None:
+                    if devices:
+                        yield
                     dev = QTreeWidgetItem(self.tree, [info.device, ""])
                     dev.setFlags(flags_parent)
                     dev.setCheckState(0, Qt.CheckState.Unchecked)
@@ -628,14 +662,30 @@ class PlotsFrame(QWidget):
         for row, unit in enumerate(units):
             plot = self.plots[unit]
             plot.setXLink(None if plot is first else first)
-            last = row == len(units) - 1
-            plot.getAxis("bottom").setStyle(showValues=last)
-            if last:  # the last pane carries the time axis: room for it besides a pane's own height
-                plot.setLabel("bottom", "time" if self.x_origin is None else "session time", "s")
-                plot.setMinimumHeight(MIN_PANE_HEIGHT_PX + BOTTOM_AXIS_PX)
-            else:
-                plot.showLabel("bottom", False)
-                plot.setMinimumHeight(MIN_PANE_HEIGHT_PX)
+            self._style_pane(plot, last=row == len(units) - 1)
+        self._link_panes()
+
+    def _style_pane(self, plot: pg.PlotItem, last: bool) -> None:
+        """The time axis's values and label under the last pane only, and each pane's minimum height (not again
+        when unchanged: a staged build styles a pane when it makes it, before the graphs are laid out)."""
+        if self._styled.get(id(plot)) == last:
+            return
+        self._styled[id(plot)] = last
+        self._style_time_axis(plot.getAxis("bottom"), last)
+        plot.setMinimumHeight(_pane_min_height(last))
+
+    def _style_time_axis(self, axis: pg.AxisItem, last: bool) -> None:
+        """A pane's bottom axis: the time's values and label under the last pane only."""
+        axis.setStyle(showValues=last)
+        if last:
+            axis.setLabel("time" if self.x_origin is None else "session time", "s")
+        else:
+            axis.showLabel(False)
+
+    def _link_panes(self) -> None:
+        """The rest of _finish_panes once the panes are linked and styled."""
+        units = list(self.plots)
+        first = self._first_plot()
         self.vlines = [self._vlines[unit] for unit in units]
         for image in self.images.values():
             image.setVisible(False)
@@ -656,13 +706,23 @@ class PlotsFrame(QWidget):
         staged build makes them a piece before (#37)."""
         return LiveViewBox(), {side: pg.AxisItem(side) for side in ("left", "bottom")}  # (top, right: hidden)
 
+    @staticmethod
+    def _bare_pane(parts: tuple[LiveViewBox, dict[str, pg.AxisItem]]) -> pg.PlotItem:
+        """pyqtgraph's PlotItem on ``parts``, not styled yet (_new_pane): ~10 ms, most of it its options menu's
+        widgets, which pyqtgraph builds in the constructor and keeps as the plot's state -- so a staged build makes
+        it a piece of its own (#37)."""
+        view, axes = parts
+        return pg.PlotItem(viewBox=view, axisItems=axes)
+
     def _new_pane(self, unit: str, row: int | None,
-                  parts: tuple[LiveViewBox, dict[str, pg.AxisItem]] | None = None) -> pg.PlotItem:
+                  parts: tuple[LiveViewBox, dict[str, pg.AxisItem]] | None = None,
+                  plot: pg.PlotItem | None = None, last: bool | None = None) -> pg.PlotItem:
         """A pane for ``unit`` in ``row`` of the graphs (laid out at once), or apart from them (``row`` None: the
-        caller adds it, see selection_steps); on ``parts`` (_pane_parts) when given."""
+        caller adds it, see selection_steps); on ``parts`` (_pane_parts) or on ``plot`` (_bare_pane) when given.
+        ``last``: the pane's place is known (the last or not) and its time axis styled already (_style_time_axis)."""
         c = colours()
-        view, axes = parts if parts is not None else self._pane_parts()
-        plot = pg.PlotItem(viewBox=view, axisItems=axes)
+        if plot is None:
+            plot = self._bare_pane(parts if parts is not None else self._pane_parts())
         if row is not None:
             self._add_to_layout(plot, row, lay_out=True)
         plot.setMenuEnabled(False)
@@ -681,7 +741,9 @@ class PlotsFrame(QWidget):
         plot.getAxis("left").setWidth(self._axis_width)
         # SI prefixes only where the unit is an SI base unit: α (no unit) read "551 (×0.001)".
         plot.getAxis("left").enableAutoSIPrefix(unit in SI_BASE_UNITS)
-        plot.setMinimumHeight(MIN_PANE_HEIGHT_PX)
+        plot.setMinimumHeight(_pane_min_height(bool(last)))
+        if last is not None:
+            self._styled[id(plot)] = last
         plot.enableAutoRange(axis="y", enable=self.autoscale_box.isChecked())
         plot.enableAutoRange(axis="x", enable=False)
         plot.vb.sigRangeChangedManually.connect(self._on_manual_range)
@@ -726,6 +788,7 @@ class PlotsFrame(QWidget):
             del self.curves[key], self._curve_plot[key]
         self._vlines.pop(unit, None)
         self.images.pop(unit, None)
+        self._styled.pop(id(plot), None)
         self.graphics.ci.removeItem(plot)
 
     def _sync_curves(self, unit: str, plot: pg.PlotItem, keys: list[str]) -> None:
@@ -1074,7 +1137,14 @@ class PlotsFrame(QWidget):
         self.graphics.setUpdatesEnabled(False)  # (a paint between two steps drew every pane built so far)
         try:
             yield from self._build_panes(keys)
-            yield  # laid out between this step and the next (Qt's layout request), drawn after the next
+            yield  # laid out between this step and the next (Qt's layout request), drawn after the last
+            for plot in list(self.plots.values()):  # the axes' pictures a pane per step, for the first paint
+                for axis in (plot.getAxis("left"), plot.getAxis("bottom")):
+                    # Its label placed again: the first screen's range, given after the layout, may have changed its
+                    # text ("(m)" -> "(mm)"), which pyqtgraph centres only when the axis is resized.
+                    axis.resizeEvent()
+                    prepare_axis(axis)
+                yield
         finally:
             self.graphics.setUpdatesEnabled(True)
 
@@ -1086,12 +1156,20 @@ class PlotsFrame(QWidget):
         for key in selected:
             by_unit.setdefault(self.store.info(key).unit or NO_UNIT, []).append(key)
         built: dict[str, tuple[pg.PlotItem, dict[str, FastCurve]]] = {}
+        last_unit = next(reversed(by_unit), None)
         for unit, unit_keys in by_unit.items():
-            parts = self._pane_parts()  # a pane in two pieces: its view and axes, then the pane on them
+            # A pane in three pieces: its view and axes; pyqtgraph's plot on them; its style, legend and curves (in
+            # one piece: the pane lays itself out once after it, not once per piece).
+            parts = self._pane_parts()
+            self._style_time_axis(parts[1]["bottom"], last=unit == last_unit)  # styled before the pane lays it out
             yield
             if self._overtaken(selected, built):
                 return
-            plot = self._new_pane(unit, None, parts)
+            bare = self._bare_pane(parts)
+            yield
+            if self._overtaken(selected, built):
+                return
+            plot = self._new_pane(unit, None, parts, bare, last=unit == last_unit)
             built[unit] = plot, {key: self._new_curve(plot, key, selected.index(key)) for key in unit_keys}
             yield
             if self._overtaken(selected, built):
@@ -1102,7 +1180,14 @@ class PlotsFrame(QWidget):
             self.plots[unit] = plot
             self.curves.update(curves)
             self._curve_plot.update(dict.fromkeys(curves, plot))
-        self._finish_panes()
+        self.graphics.setMinimumHeight(self.panes_min_height())  # (its final height before that layout)
+        # Laid out alone in the turn after this step (every pane resized: the longest piece, it grows with the
+        # panes); linked and given the first screen's range and data in the step after it.
+        yield
+        first = self._first_plot()
+        for plot in self.plots.values():
+            plot.setXLink(None if plot is first else first)
+        self._link_panes()
 
     def _overtaken(self, selected: list[str], built: dict[str, Any]) -> bool:
         """The panes were built meanwhile (a box ticked while _build_panes ran): those it built are for nobody."""

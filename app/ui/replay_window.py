@@ -33,6 +33,7 @@ from PySide6.QtWidgets import (
     QWidget,
 )
 
+from app.core.bus import SampleBatch
 from app.session.recording import RecordedSession
 from app.session.replay import ReplaySource
 from app.ui.plots_frame import DEFAULT_SIGNALS, PlotsFrame
@@ -45,7 +46,7 @@ SPEEDS = (0.25, 0.5, 1.0, 2.0, 5.0, 10.0)
 _TICK_MS = 33
 _SLIDER_STEPS_PER_S = 100  # the slider moves in 10 ms steps
 _DEFAULT_PLOTTED = 6  # signals ticked when the window opens
-_EVENTS_PER_TURN = 300  # event-list rows added per turn of the event loop (a block costs well under a frame)
+_EVENTS_PER_TURN = 150  # event-list rows added per turn of the event loop (a block and its layout: ~5 ms; 300 took 12)
 _SLIDER_MAX = 2**31 - 1  # QSlider's range is a C int
 _FIRST_STEP_LATEST_MS = 200  # a staged window's build begins when it is first drawn, or after this at the latest
 
@@ -71,7 +72,7 @@ def default_replay_signals(rec: RecordedSession) -> list[str]:
 class ReplayPlots(PlotsFrame):
     """The graphs of a replay: they open on the replay's own signals (``opening``, set just before one is made),
     not on the live graphs' saved choice -- which would build every plot twice, once for each choice. With
-    ``tree_later`` (set likewise: a staged window) the signal list is filled by ``fill_tree``, a piece of its own."""
+    ``tree_later`` (set likewise: a staged window) the signal list is filled by ``fill_tree``, a device per piece."""
 
     opening: list[str] = []
     tree_later = False
@@ -85,9 +86,10 @@ class ReplayPlots(PlotsFrame):
         if not getattr(self, "_tree_later", False):
             super()._rebuild_tree()
 
-    def fill_tree(self) -> None:
+    def fill_tree(self) -> Iterator[None]:
+        """The signal list, a device per step."""
         self._tree_later = False
-        self._rebuild_tree()
+        yield from self.tree_steps()
 
 
 class ReplayWindow(QWidget):
@@ -135,6 +137,10 @@ class ReplayWindow(QWidget):
 
         self.events = QListWidget()
         self.events.setAccessibleName("Session events")
+        # Laid out a batch of rows per turn of the event loop: laid out all at once (Qt's default), every block of
+        # rows added re-laid out the whole list, 10-14 ms a turn once it held a thousand events (#37).
+        self.events.setLayoutMode(QListWidget.LayoutMode.Batched)
+        self.events.setBatchSize(_EVENTS_PER_TURN)
         self._events_left = [e for e in rec.events if isinstance(e.get("t_mono"), int | float)]
         if not staged:
             self._add_events()
@@ -202,9 +208,12 @@ class ReplayWindow(QWidget):
             self._plots_spot.deleteLater()
             self._plots_spot = None
         yield
-        self.plots.fill_tree()  # the signal list
+        yield from self.plots.fill_tree()  # the signal list
         yield
-        self._feed(self._first_position())  # the first screen's data, a piece before the graphs that show them
+        # The first screen's data, a piece before the graphs that show them: its samples, then in the store.
+        first_screen = self._history_at(self._first_position())
+        yield
+        self._fill_store(first_screen)
         yield
         yield from self.plots.selection_steps(self._initial_signals)
         self._first_screen(fed=True)  # in the step that lets the graphs be drawn: their first paint shows the data
@@ -253,9 +262,16 @@ class ReplayWindow(QWidget):
 
     def _feed(self, elapsed_s: float) -> None:
         """The store as it was live at ``elapsed_s``: the history before it."""
+        self._fill_store(self._history_at(elapsed_s))
+
+    def _history_at(self, elapsed_s: float) -> dict[str, SampleBatch]:
+        """The replay moved to ``elapsed_s``; the samples a live view would hold there."""
         self.source.seek(elapsed_s)
+        return self.source.history(self.store.history_s)
+
+    def _fill_store(self, batches: dict[str, SampleBatch]) -> None:
         self.store.clear()
-        self.store.feed(self.source.history(self.store.history_s))
+        self.store.feed(batches)
 
     def set_playing(self, playing: bool) -> None:
         if playing and self.source.at_end:

@@ -42,6 +42,7 @@ from app.session.reports import (
     parameters_text,
     y_range,
 )
+from app.ui.plots_frame import prepare_axis
 from app.ui.staged import Steps
 from app.ui.tasks import QtTasks
 
@@ -55,7 +56,8 @@ SUMMARY_PLOTS: tuple[tuple[str, tuple[tuple[str, str], ...], str], ...] = (
     ("Interaction force", (("peak_force_n", "peak"), ("mean_force_n", "mean")), "N"),
 )
 PLOT_PENS = ("#1f77b4", "#d62728")
-_ROWS_PER_STEP = 80  # repetition-table rows filled per turn of the event loop (a staged summary: ~5 ms)
+_ROWS_PER_STEP = 25  # repetition-table rows filled per turn of the event loop (a staged summary: ~4 ms; 80 took 15)
+_NUMBER_ALIGNMENT = Qt.AlignmentFlag.AlignRight | Qt.AlignmentFlag.AlignVCenter  # (once: an enum's | is slow)
 
 
 class _LazyMenuViewBox(pg.ViewBox):
@@ -115,11 +117,13 @@ def _table(headers: Sequence[str], name: str) -> QTableWidget:
 class RunSummary(QWidget):
     """One run: what ran, how it ended, its parameters, its repetitions and their plots, its alarms."""
 
-    def __init__(self, report: RunReport, parent: QWidget | None = None, staged: bool = False) -> None:
+    def __init__(self, report: RunReport, parent: QWidget | None = None, staged: bool = False,
+                 start: bool = True) -> None:
         """``staged``: the repetition table is filled and the plots are built a piece per turn of the event loop
         (app.ui.staged): a block of rows, a plot's frame, its data (a plot cost ~40 ms and a run's table 20-40 ms;
         the four plots at once held the window 0.25 s, 0.7 s on a loaded PC: the GUI watch stopped the next
-        exercise; one per posted call still made 60-190 ms turns, #37). ``complete()`` finishes at once."""
+        exercise; one per posted call still made 60-190 ms turns, #37). ``complete()`` finishes at once. Staged
+        and not ``start``: the pieces begin with ``start_build()`` (once the run's tab shows it)."""
         super().__init__(parent)
         self.report = report
         run, summary, reps = report.run, report.summary, report.repetitions
@@ -155,7 +159,8 @@ class RunSummary(QWidget):
         if staged:
             self._pieces_left = self._pieces(reps)
             self._steps = Steps(self._pieces_left, self)
-            self._steps.start()
+            if start:
+                self._steps.start()
         else:
             self._fill_rows(0, len(reps))
             for k in range(len(SUMMARY_PLOTS)):
@@ -188,6 +193,11 @@ class RunSummary(QWidget):
         lay.addWidget(self.alarms)
 
 
+    def start_build(self) -> None:
+        """The staged pieces from the next turn of the event loop on (made with ``start=False``)."""
+        if self._steps is not None:
+            self._steps.start()
+
     @property
     def plots_built(self) -> bool:
         """Complete: every row in the table, every plot drawn with its data."""
@@ -209,12 +219,14 @@ class RunSummary(QWidget):
         for k in range(len(SUMMARY_PLOTS)):
             parts = _plot_parts()
             yield
-            item = self._plot_item(k, *parts)
+            bare = _bare_plot(*parts)  # pyqtgraph's plot (its options menu's widgets: ~half its cost)
+            yield
+            item = self._plot_item(k, *parts, bare=bare)
             yield
             plot = self._new_plot(k, item)
             plot.setUpdatesEnabled(False)
             yield
-            yield from self._plot_data(k, plot)
+            yield from self._plot_data(k, plot, staged=True)
             # Its first paint comes with the scene's next update, a turn or two later: those turns carry no piece
             # (a plot's frame made in the turn of the previous plot's paint held the window 40-85 ms beside a
             # therapy).
@@ -228,7 +240,7 @@ class RunSummary(QWidget):
             r = reps[row]
             for col, (key, _, spec) in enumerate(REPETITION_COLUMNS):
                 item = QTableWidgetItem(fmt(r.get(key), spec))
-                item.setTextAlignment(Qt.AlignmentFlag.AlignRight | Qt.AlignmentFlag.AlignVCenter)
+                item.setTextAlignment(_NUMBER_ALIGNMENT)
                 if key == "completed" and not r.get("completed"):
                     item.setForeground(pg.mkColor("#c62828"))
                 self.table.setItem(row, col, item)
@@ -238,10 +250,13 @@ class RunSummary(QWidget):
         for _ in self._plot_data(k, self._new_plot(k, self._plot_item(k, *_plot_parts()))):
             pass
 
-    def _plot_item(self, k: int, view: pg.ViewBox, axes: dict[str, pg.AxisItem]) -> pg.PlotItem:
-        """The ``k``-th plot's frame (title, axes, grid, legend) on ``view`` and ``axes`` (_plot_parts)."""
+    def _plot_item(self, k: int, view: pg.ViewBox, axes: dict[str, pg.AxisItem],
+                   bare: pg.PlotItem | None = None) -> pg.PlotItem:
+        """The ``k``-th plot's frame (title, axes, grid, legend) on ``view`` and ``axes`` (_plot_parts), or on
+        ``bare`` (_bare_plot of them)."""
         title_, keys, unit = SUMMARY_PLOTS[k]
-        item = pg.PlotItem(title=title_ + (f" [{unit}]" if unit else ""), viewBox=view, axisItems=axes)
+        item = bare if bare is not None else _bare_plot(view, axes)
+        item.setTitle(title_ + (f" [{unit}]" if unit else ""))
         item.showGrid(x=True, y=True, alpha=0.3)
         item.setLabel("bottom", f"repetition of run {self.report.number}")
         if len(keys) > 1:
@@ -255,8 +270,9 @@ class RunSummary(QWidget):
         self._cells[k].set_child(plot)
         return plot
 
-    def _plot_data(self, k: int, plot: pg.PlotWidget) -> Iterator[None]:
-        """The ``k``-th plot's curves, a step each, then its ranges."""
+    def _plot_data(self, k: int, plot: pg.PlotWidget, staged: bool = False) -> Iterator[None]:
+        """The ``k``-th plot's curves, a step each, then its ranges (``staged``: then its axes' pictures, a step of
+        their own, and its first paint in the turn after)."""
         reps = self.report.repetitions
         _title, keys, _unit = SUMMARY_PLOTS[k]
         x = [r["index"] for r in reps]
@@ -273,12 +289,23 @@ class RunSummary(QWidget):
             plot.setYRange(*y_range(values), padding=0)
         if x:
             plot.getAxis("bottom").setTicks([[(i, str(i)) for i in x]] if len(x) <= 20 else None)
+        if staged:
+            yield
+            plot.getPlotItem().vb.prepareForPaint()  # its range now (a pending autorange), then its axes for it
+            for side in ("left", "bottom"):
+                prepare_axis(plot.getAxis(side))
+            yield  # drawn in a turn of its own (~5 ms: its symbols)
         plot.setUpdatesEnabled(True)  # drawn once, complete (staged)
         yield
 
     def showEvent(self, event: Any) -> None:
         super().showEvent(event)
         self.alarms.resizeRowsToContents()  # the columns have their final widths now: wrap the sentences in full
+
+
+def _bare_plot(view: pg.ViewBox, axes: dict[str, pg.AxisItem]) -> pg.PlotItem:
+    """pyqtgraph's PlotItem on ``view`` and ``axes``, before its title, grid and legend (_plot_item)."""
+    return pg.PlotItem(viewBox=view, axisItems=axes)
 
 
 def _plot_parts() -> tuple[pg.ViewBox, dict[str, pg.AxisItem]]:
@@ -316,6 +343,7 @@ class SessionSummary(QWidget):
                  parent: QWidget | None = None, tasks: QtTasks | None = None, staged: bool = False) -> None:
         super().__init__(parent)
         self._to_build: list[RunReport] = []
+        self._made: dict[str, tuple[RunSummary, QScrollArea]] = {}  # a run's tab made, not in its place yet
         self.runs = list(runs)
         self.folder = folder
         self.tasks = tasks  # the worker process that draws the PDF (issue #37); None: drawn here
@@ -388,7 +416,15 @@ class SessionSummary(QWidget):
         return self.runs[k] if 0 <= k < len(self.runs) else None
 
     def _build_shown(self) -> None:
-        self._build(self._run_at(self.tabs.currentIndex()))
+        """The run's tab shown, in two turns of the event loop: its widgets made, then put in the tab (drawn and
+        laid out) -- the two in one turn took ~15 ms, #37; then its pieces (RunSummary)."""
+        r = self._run_at(self.tabs.currentIndex())
+        if r is not None and any(x is r for x in self._to_build) and r.run.run_id not in self._made:
+            summary = RunSummary(r, self, staged=True, start=False)
+            self._made[r.run.run_id] = summary, _scrolled(summary)
+            QTimer.singleShot(0, self, self._build_shown)
+            return
+        self._build(r)
         self.ready.emit()
 
     def _build(self, r: RunReport | None) -> None:
@@ -397,9 +433,13 @@ class SessionSummary(QWidget):
             index = next(k for k, x in enumerate(self.runs) if x is r) + (1 if self.overview is not None else 0)
             shown = self.tabs.currentIndex()
             self._to_build = [x for x in self._to_build if x is not r]
-            summary = RunSummary(r, self, staged=True)
+            made = self._made.pop(r.run.run_id, None)
+            if made is None:
+                summary = RunSummary(r, self, staged=True, start=False)
+                made = summary, _scrolled(summary)
+            summary, view = made
             self.run_views[r.run.run_id] = summary
-            view = _scrolled(summary)
+            summary.start_build()
             placeholder = self.tabs.widget(index)
             self.tabs.blockSignals(True)  # the tab shown stays shown while it is swapped
             self.tabs.removeTab(index)
