@@ -8,7 +8,7 @@ The manager is built as the suite's tests build theirs (tests/rigs.py: the defau
 unless ``--unhomed``), started, every device connected; then nothing is asked of it while the Qt event loop runs
 (no timer of the benchmark's own). Each run takes every thread's user + system time from /proc over
 ``--seconds``: the application's threads are named by their Python names (QThreads by their object name), a
-helper's by py-spy's dump when bench/.venv or /tmp/spyvenv has py-spy, else by the OS's name. Prints the share
+helper's by py-spy's dump when py-spy is there ($PY_SPY, bench/.venv, the PATH), else by the OS's name. Prints the share
 of one core per thread (≥ 0.2 %), per process and in all, with the load average: the machine is shared, so
 compare figures taken the same way at the same load.
 """
@@ -87,10 +87,12 @@ def thread_times(pid: int) -> dict[int, tuple[str, float, float, int]]:
 
 
 def py_spy() -> str | None:
-    for candidate in (Path(__file__).resolve().parent / ".venv/bin/py-spy", Path("/tmp/spyvenv/bin/py-spy")):
-        if candidate.exists():
-            return str(candidate)
-    return shutil.which("py-spy")
+    """py-spy from $PY_SPY, bench/.venv or the PATH (only to name the helpers' threads)."""
+    named = os.environ.get("PY_SPY")
+    if named:
+        return named
+    candidate = Path(__file__).resolve().parent / ".venv/bin/py-spy"
+    return str(candidate) if candidate.exists() else shutil.which("py-spy")
 
 
 def python_thread_names(pid: int, spy: str | None) -> dict[int, str]:
@@ -101,15 +103,10 @@ def python_thread_names(pid: int, spy: str | None) -> dict[int, str]:
         text = subprocess.run([spy, "dump", "--pid", str(pid)], capture_output=True, text=True, timeout=20).stdout
     except (OSError, subprocess.TimeoutExpired):
         return {}
-    names = {}
-    for m in re.finditer(r'Thread (0x[0-9A-Fa-f]+|\d+) \((?:idle|active)[^)]*\): "([^"]*)"', text):
-        names[m.group(0)] = m.group(2)
+    # py-spy dump names each thread as: Thread <OS thread id> (idle|active…): "<name>"
     out = {}
-    # py-spy prints the OS thread id only with --native on some versions: map by the "Thread N" when it is a tid
-    for key, name in names.items():
-        tid = re.search(r"Thread (\d+) ", key)
-        if tid:
-            out[int(tid.group(1))] = name
+    for m in re.finditer(r'Thread (\d+) \((?:idle|active)[^)]*\): "([^"]*)"', text):
+        out[int(m.group(1))] = m.group(2)
     return out
 
 
