@@ -46,15 +46,19 @@ def watch_grip(sample):  # every grip sample, in order: a release re-arms the tr
             squeezed = True
 
 
+def squeeze_judged():
+    grip()  # paces the wait on the grip stream: each read waits for the next sample (none yet: "no data received")
+    return squeezed
+
+
 def wait_for_squeeze(timeout_s):
     """One squeeze = one trigger: a grip still held since the last trigger must be released first (re-armed
     only below the threshold), then squeezed through it again. A new squeeze begun before the prompt (after a
     release) triggers at once."""
     global waiting, squeezed
-    grip()  # the board has sent a grip sample (else: "no data received yet", as any read of it says)
     with trigger:
         squeezed, waiting = False, True
-    waitCondition(lambda: squeezed, timeout_s)
+    waitCondition(squeeze_judged, timeout_s)
     with trigger:  # a squeeze judged at the timeout's instant counts: the trigger is spent either way
         waiting = False
         return squeezed
