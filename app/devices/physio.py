@@ -72,7 +72,7 @@ class PhysioDriver(DeviceDriver):
 
 def create(ctx: DeviceContext) -> DeviceHandle | None:
     from app.devices.registry import DeviceHandle
-    from app.devices.sim.adapters import PhysioSimCore
+    from app.devices.sim.adapters import PHYSIO_POLL_S, PhysioSimCore
 
     cfg: PhysioDevice = ctx.config
     if cfg.mode == "off":
@@ -85,7 +85,7 @@ def create(ctx: DeviceContext) -> DeviceHandle | None:
         simulator = ctx.simulators.serial(
             streams.PHYSIO, streams.PHYSIO,
             lambda patient: SerialSimulator(streams.PHYSIO, lambda: PhysioSimCore(patient, rate, calibration), link,
-                                            tick_s=min(0.005, 0.5 / rate)),
+                                            tick_s=PHYSIO_POLL_S),
             rate_hz=rate, calibration={k: [c.gain, c.offset] for k, c in (
                 ("skinConductance", calibration.skinConductance), ("temperature", calibration.temperature),
                 ("force", calibration.force))})

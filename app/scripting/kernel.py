@@ -14,7 +14,10 @@ Nothing here can reach a driver, a port, the safety supervisor or the manager: t
 Wire format, both directions: one JSON object per line (data only; the application never unpickles
 what comes from here). Threads: the main thread runs the script; a reader thread dispatches what the
 application sends; a callback thread runs the script's callbacks in arrival order; each prompt entry
-and each completion runs on a thread of its own.
+and each completion runs on a thread of its own. A state attribute is the latest sample as soon as it arrives,
+while its callbacks wait their turn: on a busy computer a callback runs with a sample older than the one the
+script's main thread already read. A script that judges on both must not mix them (resources/exercises/
+trigger_reaching.py judges its trigger in the callback alone, on the samples in the order they were taken).
 
 Stop: the application sends ``stop``; every wait here (``time.sleep``, ``wait``, ``waitCondition``,
 a request, a repeated read) notices it within 20 ms, and a pure-Python busy loop gets ScriptStopped

@@ -32,7 +32,9 @@ from app.wire.cmdmessenger import (
     FieldError,
     Frame,
     Kind,
+    encode_field,
     encode_frame,
+    escape,
     to_float32,
 )
 from app.wire.linarm_constants import constants_table
@@ -683,12 +685,68 @@ def _safe_text(text: str) -> str:
 
 
 def _encode_state(name: str, state: Any) -> bytes:
+    fast = _STREAM_ENCODERS.get(name)
+    if fast is not None:
+        return fast.encode(state)
     _, names = _STATE_FIELDS[name]
     values = [getattr(state, n) for n in names]
     values = [int(v) if isinstance(v, IntEnum) else v for v in values]
     if name == "errorEvent":
         values[-1] = _safe_text(values[-1])
     return encode_message(name, *values)
+
+
+_FLOAT32_LIMIT = float(FLOAT32_MAX)
+
+
+class _StreamEncoder:
+    """``encode_message(name, *values)`` of one stream message (the controller's 200 Hz state frames), worked out
+    once: the id's text, each field's packer. Byte for byte the same frame, and the same errors: a value the fast
+    checks do not pass (another type, out of range, not finite) goes through ``_check_value`` and
+    ``encode_field`` as before. The simulated LINarm encodes ~600 of these a second (#38: 37-45 µs each the
+    generic way, ~7 µs here)."""
+
+    def __init__(self, name: str) -> None:
+        msg = MESSAGES_BY_NAME[name]
+        _, names = _STATE_FIELDS[name]
+        if len(names) != len(msg.fields) or any(a.optional for a in msg.fields):
+            raise ValueError(f"{name}: not a plain stream message")
+        self.prefix = str(msg.id).encode("ascii")
+        self.get = operator.attrgetter(*names)
+        self.fields = tuple((arg, struct.Struct(arg.kind.value).pack if arg.kind in (F32, U32) else None)
+                            for arg in msg.fields)
+
+    def encode(self, state: Any) -> bytes:
+        parts = [self.prefix]
+        append = parts.append
+        for (arg, pack), v in zip(self.fields, self.get(state), strict=True):
+            kind = arg.kind
+            if kind is F32:
+                if type(v) is float and -_FLOAT32_LIMIT <= v <= _FLOAT32_LIMIT:  # NaN fails both comparisons
+                    append(escape(pack(v)))  # type: ignore[misc]
+                    continue
+            elif kind is U32:
+                if type(v) is int and 0 <= v <= 0xFFFFFFFF:
+                    append(escape(pack(v)))  # type: ignore[misc]
+                    continue
+            elif kind is INT:
+                if isinstance(v, int) and not isinstance(v, bool):
+                    v = int(v)  # an IntEnum member: its number
+                    if arg.min is None or arg.min <= v <= arg.max:  # type: ignore[operator]
+                        append(str(v).encode("ascii"))  # digits and '-': nothing to escape
+                        continue
+            elif kind is BOOL:
+                if v is True or v is False:
+                    append(b"1" if v else b"0")
+                    continue
+            if isinstance(v, IntEnum):
+                v = int(v)
+            append(encode_field(kind, _check_value(arg, v)))  # the general way: its errors
+        return b",".join(parts) + b";"
+
+
+_STREAM_ENCODERS: dict[str, _StreamEncoder] = {name: _StreamEncoder(name)
+                                               for name in ("linarmState", "motorState", "vsaState")}
 
 
 def encode_linarm_state(state: LinarmState) -> bytes:

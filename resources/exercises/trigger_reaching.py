@@ -4,7 +4,7 @@
 # movement starts only when the grip force exceeds the trigger threshold (0 N: no trigger, the next movement
 # starts after the rest). Each movement is one repetition; a movement whose trigger did not come within the
 # timeout is skipped (marked as not completed). Parameters come from the Exercises form as exerciseParams.
-import time
+import threading
 
 P = exerciseParams
 MOVEMENTS = int(P.get("movements", 8))
@@ -22,32 +22,46 @@ SETTLE_TIMEOUT_S = 2.0   # how long the handle may lag the centre at the end of 
 MOVE_TIMEOUT_S = 30.0
 
 
-released = True  # re-armed: the grip has been below the threshold since the last trigger
+# The trigger is judged on the grip samples in the order they were taken, all on the callback thread. Not on the
+# latest sample (the main thread's read) mixed with the callbacks' samples: the callbacks may run late (a busy
+# computer) with samples older than the one the main thread already read, and an old sample from before the
+# squeeze would re-arm the trigger while the grip is still held (a 1 s squeeze starting two movements).
+trigger = threading.Lock()  # the callback's judgement and the main thread's wait start and end, one at a time
+released = True   # re-armed: the grip has been below the threshold since the last trigger
+waiting = False   # a movement waits for its squeeze
+squeezed = False  # the squeeze it waited for came (set by watch_grip)
 
 
 def grip():
     return physiologicalSensors.physiologicalSensorsData.force
 
 
-def watch_grip(sample):  # every grip sample, in order: a release re-arms the trigger
-    global released
-    if sample.force < THRESHOLD:
-        released = True
+def watch_grip(sample):  # every grip sample, in order: a release re-arms the trigger, a squeeze fires it
+    global released, squeezed
+    with trigger:
+        if sample.force < THRESHOLD:
+            released = True
+        elif sample.force > THRESHOLD and released and waiting:
+            released = False
+            squeezed = True
+
+
+def squeeze_judged():
+    grip()  # paces the wait on the grip stream: each read waits for the next sample (none yet: "no data received")
+    return squeezed
 
 
 def wait_for_squeeze(timeout_s):
     """One squeeze = one trigger: a grip still held since the last trigger must be released first (re-armed
     only below the threshold), then squeezed through it again. A new squeeze begun before the prompt (after a
     release) triggers at once."""
-    global released
-    started = time.monotonic()
-    if not released and not waitCondition(lambda: released, timeout_s):
-        return False
-    left = timeout_s - (time.monotonic() - started)
-    if left > 0 and waitCondition(lambda: grip() > THRESHOLD, left):
-        released = False
-        return True
-    return False
+    global waiting, squeezed
+    with trigger:
+        squeezed, waiting = False, True
+    waitCondition(squeeze_judged, timeout_s)
+    with trigger:  # a squeeze judged at the timeout's instant counts: the trigger is spent either way
+        waiting = False
+        return squeezed
 
 
 if THRESHOLD > 0:

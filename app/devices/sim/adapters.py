@@ -41,6 +41,10 @@ class _PatientOnCoreClock:
 # (``next_output``), the controller's 1 kHz loop is caught up at each wake (LinarmSimCore.advance_to), and host
 # bytes wake it at once. Waking every millisecond cost the simulator process ~10 % of a core for nothing.
 LINARM_POLL_S = 0.005
+# The physiological board's frames go out at their sample instants (``next_output``), nothing else: its thread wakes
+# for each frame (100 a second at 100 Hz), not on a 5 ms grid as well (200 wake-ups a second, half of them for
+# nothing, and each frame up to 5 ms after its instant).
+PHYSIO_POLL_S = 0.05
 # The stimulator acts on its own only at its watchdog's expiry or a repeated Init (``next_output``); the rest is
 # answers to host bytes, which wake its thread at once. Its thread woke every 2 ms before, for nothing.
 FES_POLL_S = 0.05
@@ -83,6 +87,10 @@ class PhysioSimCore:
 
     def poll(self, t: float) -> bytes:
         return self.source.frames_until(t)
+
+    def next_output(self) -> float | None:
+        """When (monotonic) the next frame is due."""
+        return self.source.next_frame_time()
 
 
 # ---------------------------------------------------------------------------------------------- FES stimulator

@@ -793,6 +793,12 @@ class LinarmSimCore:
         out += encode_vsa_state(self.vsa_state())
         return bytes(out)
 
+    def sent_control_and_error(self) -> tuple[int, int] | None:
+        """(control state, error state) of the last linarmState frame sent (None before the first): what the
+        host was last told, without decoding the stream (the simulator process's state watch)."""
+        key = self._last_sent_linarm  # LinarmState's fields after t_us: controlState first, errorState fourth
+        return None if key is None else (int(key[0]), int(key[3]))
+
     def _trim_outbox(self) -> None:
         if len(self._outbox) > OUTBOX_LIMIT:
             del self._outbox[: len(self._outbox) - OUTBOX_LIMIT]

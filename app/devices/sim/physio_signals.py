@@ -168,6 +168,11 @@ class PhysioSimSource:
     def frames_sent(self) -> int:
         return self._k
 
+    def next_frame_time(self) -> float:
+        """When the next sample is taken (the clock of ``frames_until``): its frame goes out then."""
+        with self._lock:
+            return self._start + self._k / self.rate_hz
+
     def frames_until(self, t: float) -> bytes:
         """Encoded frames for every sample instant not yet produced and not later than ``t``."""
         out: list[bytes] = []

@@ -228,6 +228,9 @@ class PhysiologicalTrend:
         self._bin_start: float | None = None
         self._sums = [0.0, 0.0, 0.0]
         self._counts = [0, 0, 0]
+        # The slopes change only when the bins do (a bin closed or left the window, every binWidth at most); the
+        # model asks for them three times per frame at 100 Hz (#38: the helper's main cost).
+        self._slopes: dict[str, float] | None = None
 
     def add_sample(self, t: float, heartRate: float, skinConductance: float, temperature: float) -> None:
         """One physiological sample; NaN values (e.g. heart rate not locked) are skipped."""
@@ -243,6 +246,7 @@ class PhysiologicalTrend:
                 self._counts[i] += 1
         while self._bins and self._bins[0][0] < t - n.window:
             self._bins.popleft()
+            self._slopes = None
 
     def _close_bin(self) -> None:
         assert self._bin_start is not None
@@ -250,9 +254,15 @@ class PhysiologicalTrend:
         self._bins.append((self._bin_start + self.norms.binWidth / 2, (m[0], m[1], m[2])))
         self._sums = [0.0, 0.0, 0.0]
         self._counts = [0, 0, 0]
+        self._slopes = None
 
     def slopes(self) -> dict[str, float]:
         """Least-squares slope per minute of each channel over the window (NaN if too little data)."""
+        if self._slopes is None:
+            self._slopes = self._fit()
+        return dict(self._slopes)
+
+    def _fit(self) -> dict[str, float]:
         out = {c: math.nan for c in CHANNELS}
         if not self._bins:
             return out
