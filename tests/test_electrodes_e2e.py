@@ -23,6 +23,7 @@ from app.therapy.electrodes import (
     Combination,
     District,
     SetupPlan,
+    app_ports,
     choice_event,
     run_district_setup,
 )
@@ -220,10 +221,37 @@ def test_script_api_with_the_simulators_in_their_own_process(rig, qtbot) -> None
         summary = FESUser(context).electrodeSetup("anterior deltoid", 12, 12, 4, 250, True)
     finally:
         context.close()
-    assert summary["proposedChannel"] == 3 and summary["accepted"] == 3 and not summary["aborted"]
+    assert not summary["aborted"], summary["aborted"]
+    assert summary["proposedChannel"] == 3 and summary["accepted"] == 3, summary
     assert [c["channel"] for c in summary["combinations"]] == [1, 2, 3, 4]
     assert all(len(c["bursts"]) == 1 for c in summary["combinations"])
     assert load_patient("API1").fes.electrodes["anterior deltoid"].chosen_by == "therapist S"
     assert manager.driver("fes").district_channels == {"anterior deltoid": 3}
     on_wire = currents_on_the_wire(manager.devices["fes"].simulator)
     assert set(on_wire) == {1, 2, 3, 4} and max(max(v) for v in on_wire.values()) == 12
+
+
+def test_the_rigs_reset_undoes_a_setup_left_half_way(_shared_rig, qtbot) -> None:
+    """What a set-up that failed half-way leaves on the shared rig -- its lease, the patient's caps, a district's
+    channel, its queue of the LINarm's stream, the arm held -- is named by the rig's check and undone by its reset,
+    so the next test starts from the known state."""
+    from app.ui.electrode_setup import setup_lease
+
+    rig = _shared_rig
+    rig.reset()
+    m = rig.manager
+    fes, robot = m.driver("fes"), m.driver("linarm")
+    m.take_lease(setup_lease())
+    fes.set_clinical_caps({2: ChannelCaps(max_current_ma=14.0)})
+    fes.set_district_channels({"anterior deltoid": 4})
+    ports = app_ports(fes, robot.command, m.bus.latest, m.supervisor.robot_hold_reason, lambda _k, _d: None,
+                      DELTOID.name, "electrode set-up", bus=m.bus)
+    ports.hold_arm()
+    qtbot.waitUntil(lambda: robot.latest("linarm.state").controlState == 2, timeout=3000)
+    problems = " / ".join(rig.problems())
+    for left in ("devices are leased", "the patient's FES caps are set", "district channels are set",
+                 "'electrode set-up'", "the robot is not IDLE"):
+        assert left in problems, problems
+    rig.reset()
+    assert rig.problems() == []
+    assert m.supervisor.lease("robot") is None and fes.district_channels == {}
