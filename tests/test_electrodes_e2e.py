@@ -231,15 +231,14 @@ def test_script_api_with_the_simulators_in_their_own_process(rig, qtbot) -> None
     assert set(on_wire) == {1, 2, 3, 4} and max(max(v) for v in on_wire.values()) == 12
 
 
-def test_the_rigs_reset_undoes_a_setup_left_half_way(_shared_rig, qtbot) -> None:
+def test_the_rigs_reset_undoes_a_setup_left_half_way(shared_manager, _shared_rig, qtbot) -> None:
     """What a set-up that failed half-way leaves on the shared rig -- its lease, the patient's caps, a district's
     channel, its queue of the LINarm's stream, the arm held -- is named by the rig's check and undone by its reset,
     so the next test starts from the known state."""
     from app.ui.electrode_setup import setup_lease
 
-    rig = _shared_rig
-    rig.reset()
-    m = rig.manager
+    rig, m = _shared_rig, shared_manager  # (shared_manager: the module's xdist group, and the reset before)
+    assert rig.problems() == []
     fes, robot = m.driver("fes"), m.driver("linarm")
     m.take_lease(setup_lease())
     fes.set_clinical_caps({2: ChannelCaps(max_current_ma=14.0)})
