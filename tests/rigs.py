@@ -12,11 +12,12 @@ How a test module uses it (tests/conftest.py has the fixtures)::
     def test_from_power_up(fresh_manager): ...  # a manager of its own, built from the same spec
 
 The known state (``SharedRig.reset``, checked by ``SharedRig.problems``): the e-stop not latched, every alarm
-acknowledged and the alarm history empty, no session, no exercise run, stimulation stopped (no profile, no
-caps, no district channels), the robot connected, homed, IDLE with no error at the home position in the default
-control mode, the simulated patient idle and passive, and only the rig's own bus and event subscriptions (the
-ones a test opened are closed). What a test changes beyond that (e.g. the controller's limits, the FES
-scales) it must put back itself, or ask for ``fresh_manager``.
+acknowledged and the alarm history empty, no session, no exercise run, no device leased (e.g. the electrode
+set-up's lease), stimulation stopped (no caps, no district channels; the loaded profile stays), the robot
+connected, homed, IDLE with no error at the home position in the default control mode, the simulated patient idle
+and passive, and only the rig's own bus and event subscriptions (the ones a test opened are closed). What a test
+changes beyond that (e.g. the controller's limits, the FES scales) it must put back itself, or ask for
+``fresh_manager``.
 """
 
 from __future__ import annotations
@@ -181,7 +182,9 @@ class SharedRig:
             m.runs.end_current("test ended")
         if m.recorder is not None:
             m.end_session("test ended")
-        m.patient_profile, m.operator = None, ""
+        for key in {lease.key for lease in sup._leases.values()}:  # e.g. the electrode set-up's, left by a failure
+            m.release_lease(key, "rig reset")
+        m.patient_profile, m.operator, m.patient_version = None, "", 0
         fes = m.driver("fes")
         if fes is not None:
             if fes.stimulating:
@@ -265,9 +268,16 @@ class SharedRig:
         extra = [s.name for s in m.bus.subscriptions() if id(s) not in self._subscriptions]
         if extra:
             out.append(f"bus subscriptions left open: {extra}")
+        if sup._leases:
+            out.append("devices are leased: " + ", ".join(f"{d} by {lease.holder}" for d, lease in sup._leases.items()))
         fes = m.driver("fes")
         if fes is not None and fes.stimulating:
             out.append("the FES is stimulating")
+        if fes is not None and fes.district_channels:
+            out.append(f"district channels are set: {fes.district_channels}")
+        limiter = sup.fes_limiter
+        if fes is not None and limiter is not None and limiter.limits.clinical_caps:
+            out.append(f"the patient's FES caps are set: {limiter.limits.clinical_caps}")
         robot = m.driver("linarm")
         if robot is not None:
             s = robot.latest("linarm.state")

@@ -1,7 +1,12 @@
 """The electrode set-up on the real simulated devices (issue #32): the LINarm and RehaStim simulators on their
 links, the real drivers, the safety supervisor. Checked on the stimulator's wire (the bytes the simulated
 RehaStim received, decoded with app/wire/sciencemode.py): the proposal, the ceiling and the patient's caps,
-the emergency stop during a burst, and a district-addressed profile on the chosen channel afterwards."""
+the emergency stop during a burst, and a district-addressed profile on the chosen channel afterwards.
+
+One rig for the module (tests/rigs.py, #38): the simulators in their own process, as the app runs them, put back
+in the known state between the tests (the reset checks the set-up's leftovers: stimulation, caps, district
+channels, its lease and bus queue, the robot's hold). The plans test the procedure, not a count of steps: the
+fewest bursts that still show the ladder, the cap and the proposal."""
 
 from __future__ import annotations
 
@@ -11,24 +16,26 @@ import time
 import pytest
 
 from app.archive.station import save_choice
-from app.core.config import RESOURCES, AppConfig
+from app.core.config import RESOURCES
 from app.core.fes_profile import load_profile, parse_profile
-from app.devices import linarm, rehastim
-from app.manager import LinarmppManager
 from app.safety.fes_limits import ChannelCaps
 from app.therapy.electrodes import (
     Combination,
     District,
     SetupPlan,
+    app_ports,
     choice_event,
     run_district_setup,
 )
 from app.therapy.patients import PatientProfile, load_patient
 from app.wire.sciencemode import Sm1CommandDecoder, Sm1Init, Sm1Stop, Sm1Update
+from tests.rigs import RigSpec
 
-pytestmark = [pytest.mark.realtime, pytest.mark.sim_homed, pytest.mark.slow]
+pytestmark = [pytest.mark.realtime, pytest.mark.slow]
 
-PLAN = SetupPlan(ceiling_ma=16.0, start_ma=8.0, step_ma=4.0, ramp_s=0.0, hold_s=0.5, measure_s=0.25,
+# Channel 4: 12 and 16 mA; channel 2 (capped at 14 mA): 12 mA only -- the ladder, the ceiling and the cap in three
+# bursts (8 mA, below both sites' motor threshold, measured nothing).
+PLAN = SetupPlan(ceiling_ma=16.0, start_ma=12.0, step_ma=4.0, ramp_s=0.0, hold_s=0.5, measure_s=0.25,
                  baseline_s=0.2, rest_s=0.2)
 DELTOID = District("anterior deltoid", (Combination(2, "3-4"), Combination(4, "2-4")), "positive")
 DISTRICT_PROFILE = """
@@ -65,25 +72,20 @@ def currents_on_the_wire(sim, since: float = 0.0) -> dict[int, list[int]]:
     return out
 
 
+@pytest.fixture(scope="module")
+def shared_rig_spec() -> RigSpec:
+    return RigSpec(devices=("linarm", "fes"), host="process")  # homed at power-up: the homing has its own tests
+
+
 @pytest.fixture
-def rig(qtbot):
-    config = AppConfig()
-    manager = LinarmppManager(config, factories={"linarm": linarm.create, "fes": rehastim.create})
-    manager.start()
-    robot, fes = manager.driver("linarm"), manager.driver("fes")
-    try:
-        qtbot.waitUntil(lambda: manager.all_connected() and fes.device_ready, timeout=5000)
-        manager.devices["fes"].simulator.keep_host_log = True
-        robot.command("goToHome", source="test", timeout_s=2.0)
-        # HOME (1) and done: the command's own move home, not a state from before it (a homed start)
-        qtbot.waitUntil(lambda: (s := robot.latest("linarm.state")) is not None and s.initialized
-                        and s.controlState == 1 and s.homeState == 4, timeout=30000)
-        # the array: channel 4 is the best pair, channel 2 needs 20 % more current for the same force
-        manager.patient.set_electrode_distances({2: 0.866, 4: 0.5})
-        yield manager
-    finally:
-        manager.supervisor.reset_emergency_stop("test")
-        manager.shutdown()
+def rig(shared_manager):
+    """The module's rig, in its known state (the robot homed, IDLE at the home position), the stimulator's wire
+    logged from now on."""
+    manager = shared_manager
+    manager.devices["fes"].simulator.keep_host_log = True
+    # the array: channel 4 is the best pair, channel 2 needs 20 % more current for the same force
+    manager.patient.set_electrode_distances({2: 0.866, 4: 0.5})
+    return manager
 
 
 def run_setup(manager, plan: SetupPlan = PLAN, stopped=lambda: False):
@@ -95,7 +97,6 @@ def run_setup(manager, plan: SetupPlan = PLAN, stopped=lambda: False):
     return result, events
 
 
-@pytest.mark.sim_in_thread
 def test_setup_on_the_simulated_devices(rig, qtbot, tmp_path) -> None:
     manager = rig
     fes, robot = manager.driver("fes"), manager.driver("linarm")
@@ -116,7 +117,7 @@ def test_setup_on_the_simulated_devices(rig, qtbot, tmp_path) -> None:
     assert all(ma <= 16 for values in on_wire.values() for ma in values)
     assert set(on_wire) == {2, 4}
     # every burst in the record, and the result
-    assert [k for k, _ in events].count("electrode_burst") == 5 and events[-1][0] == "electrode_setup_result"
+    assert [k for k, _ in events].count("electrode_burst") == 3 and events[-1][0] == "electrode_setup_result"
     # the robot held the arm (ON, position hold) and was given back as found
     state = robot.latest("linarm.state")
     assert state.controlState in (0, 2)
@@ -151,7 +152,6 @@ def test_setup_on_the_simulated_devices(rig, qtbot, tmp_path) -> None:
         assert set(currents_on_the_wire(sim, t_mark)) == set(channels)
 
 
-@pytest.mark.sim_in_thread
 def test_emergency_stop_during_a_burst(rig, qtbot) -> None:
     manager = rig
     fes, sim = manager.driver("fes"), manager.devices["fes"].simulator
@@ -187,7 +187,6 @@ def test_emergency_stop_during_a_burst(rig, qtbot) -> None:
     assert not fes.stimulating
 
 
-@pytest.mark.sim_in_thread
 def test_script_stop_ends_the_setup(rig, qtbot) -> None:
     manager = rig
     sim = manager.devices["fes"].simulator
@@ -206,8 +205,6 @@ def test_script_stop_ends_the_setup(rig, qtbot) -> None:
 
 
 
-
-
 def test_script_api_with_the_simulators_in_their_own_process(rig, qtbot) -> None:
     """As the app runs by default: the simulators (and the patient) in the simulator process, which hears the
     stimulator through its hook; the script API's fes.electrodeSetup runs the set-up and accepts the proposal."""
@@ -220,14 +217,40 @@ def test_script_api_with_the_simulators_in_their_own_process(rig, qtbot) -> None
     manager.operator = "therapist S"
     context = ScriptContext(manager, source="test script")
     try:
-        # two currents per combination (8 and 12 mA) at the API's clinical timing (1 s ramps, 1 s rests)
-        summary = FESUser(context).electrodeSetup("anterior deltoid", 12, 8, 4, 250, True)
+        # one current per combination (12 mA: the ladder is the other tests') at the API's clinical timing
+        summary = FESUser(context).electrodeSetup("anterior deltoid", 12, 12, 4, 250, True)
     finally:
         context.close()
-    assert summary["proposedChannel"] == 3 and summary["accepted"] == 3 and not summary["aborted"]
+    assert not summary["aborted"], summary["aborted"]
+    assert summary["proposedChannel"] == 3 and summary["accepted"] == 3, summary
     assert [c["channel"] for c in summary["combinations"]] == [1, 2, 3, 4]
-    assert all(len(c["bursts"]) == 2 for c in summary["combinations"])
+    assert all(len(c["bursts"]) == 1 for c in summary["combinations"])
     assert load_patient("API1").fes.electrodes["anterior deltoid"].chosen_by == "therapist S"
     assert manager.driver("fes").district_channels == {"anterior deltoid": 3}
     on_wire = currents_on_the_wire(manager.devices["fes"].simulator)
     assert set(on_wire) == {1, 2, 3, 4} and max(max(v) for v in on_wire.values()) == 12
+
+
+def test_the_rigs_reset_undoes_a_setup_left_half_way(shared_manager, _shared_rig, qtbot) -> None:
+    """What a set-up that failed half-way leaves on the shared rig -- its lease, the patient's caps, a district's
+    channel, its queue of the LINarm's stream, the arm held -- is named by the rig's check and undone by its reset,
+    so the next test starts from the known state."""
+    from app.ui.electrode_setup import setup_lease
+
+    rig, m = _shared_rig, shared_manager  # (shared_manager: the module's xdist group, and the reset before)
+    assert rig.problems() == []
+    fes, robot = m.driver("fes"), m.driver("linarm")
+    m.take_lease(setup_lease())
+    fes.set_clinical_caps({2: ChannelCaps(max_current_ma=14.0)})
+    fes.set_district_channels({"anterior deltoid": 4})
+    ports = app_ports(fes, robot.command, m.bus.latest, m.supervisor.robot_hold_reason, lambda _k, _d: None,
+                      DELTOID.name, "electrode set-up", bus=m.bus)
+    ports.hold_arm()
+    qtbot.waitUntil(lambda: robot.latest("linarm.state").controlState == 2, timeout=3000)
+    problems = " / ".join(rig.problems())
+    for left in ("devices are leased", "the patient's FES caps are set", "district channels are set",
+                 "'electrode set-up'", "the robot is not IDLE"):
+        assert left in problems, problems
+    rig.reset()
+    assert rig.problems() == []
+    assert m.supervisor.lease("robot") is None and fes.district_channels == {}

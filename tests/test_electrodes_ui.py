@@ -1,5 +1,9 @@
 """The electrode set-up dialog (issue #32): its plot and table from a set-up, the discomfort ratings, the
-choice saved in the patient's profile, the FES panel's button, and one run on the simulated devices."""
+choice saved in the patient's profile, the FES panel's button, and one run on the simulated devices.
+
+The tests that need devices share the module's rig (tests/rigs.py, #38: the simulators in their own process, as the
+app runs them), put back in the known state between them; the reset checks what a set-up leaves (stimulation, caps,
+district channels, its lease and bus queue, the robot's hold)."""
 
 from __future__ import annotations
 
@@ -8,7 +12,6 @@ import shutil
 import pytest
 
 from app.core.config import AppConfig
-from app.devices import linarm, rehastim
 from app.devices.sim.patient import SimulatedPatient
 from app.manager import LinarmppManager
 from app.safety.fes_limits import FesLimits
@@ -16,12 +19,16 @@ from app.therapy.electrodes import Combination, District, ElectrodeSetup, SetupP
 from app.therapy.patients import PatientProfile, load_patient
 from app.ui.electrode_setup import COLUMNS, ElectrodeSetupDialog
 from tests.conftest import screenshot_path
+from tests.rigs import RigSpec
 from tests.test_electrodes import Rig
-
-pytestmark = pytest.mark.sim_homed  # a homed LINarm from the start: the homing is tested on its own
 
 DELTOID = District("anterior deltoid", tuple(Combination(ch, e) for ch, e in
                                              ((1, "1-2"), (2, "3-4"), (3, "1-3"), (4, "2-4"))), "positive")
+
+
+@pytest.fixture(scope="module")
+def shared_rig_spec() -> RigSpec:
+    return RigSpec(devices=("linarm", "fes"), host="process")  # homed at power-up: the homing has its own tests
 
 
 def a_result():
@@ -98,52 +105,39 @@ def test_without_devices_the_setup_does_not_start(dialog) -> None:
     assert "needs the stimulator" in dialog.status.text()
 
 
-def test_the_fes_panel_opens_the_setup(qtbot) -> None:
+def test_the_fes_panel_opens_the_setup(shared_manager, qtbot) -> None:
     from app.ui.fes_panel import FesPanel
 
-    manager = LinarmppManager(AppConfig(), factories={"fes": rehastim.create})
-    manager.start()
-    try:
-        panel = FesPanel(manager)
-        qtbot.addWidget(panel)
-        panel.electrodes_button.click()
-        assert isinstance(panel.electrode_dialog, ElectrodeSetupDialog) and panel.electrode_dialog.isVisible()
-        assert panel.electrode_dialog.district_box.currentText() == "anterior deltoid"
-        panel.electrode_dialog.close()
-    finally:
-        manager.shutdown()
+    panel = FesPanel(shared_manager)
+    qtbot.addWidget(panel)
+    panel.electrodes_button.click()
+    assert isinstance(panel.electrode_dialog, ElectrodeSetupDialog) and panel.electrode_dialog.isVisible()
+    assert panel.electrode_dialog.district_box.currentText() == "anterior deltoid"
+    panel.electrode_dialog.close()
 
 
 @pytest.mark.slow
 @pytest.mark.realtime
-@pytest.mark.sim_in_thread
-def test_the_dialog_on_the_simulated_devices(qtbot) -> None:
-    manager = LinarmppManager(AppConfig(), factories={"linarm": linarm.create, "fes": rehastim.create})
-    manager.start()
-    try:
-        robot, fes = manager.driver("linarm"), manager.driver("fes")
-        qtbot.waitUntil(lambda: manager.all_connected() and fes.device_ready, timeout=5000)
-        robot.command("goToHome", source="test", timeout_s=2.0)
-        qtbot.waitUntil(lambda: (s := robot.latest("linarm.state")) is not None and s.controlState == 1
-                        and s.homeState == 4,
-                        timeout=30000)
-        manager.patient.set_electrode_distances({1: 2.0, 2: 0.5, 3: 1.5, 4: 0.866})
-        manager.patient_profile = PatientProfile("UI8")
-        d = ElectrodeSetupDialog(manager)
-        qtbot.addWidget(d)
-        d.show()
-        assert d.start(SetupPlan(ceiling_ma=12.0, start_ma=8.0, step_ma=4.0, ramp_s=0.0, hold_s=0.4,
-                                 measure_s=0.2, baseline_s=0.15, rest_s=0.1))
-        assert not d.start_button.isEnabled() and d.stop_button.isEnabled()
-        qtbot.waitUntil(lambda: not d.running and d.start_button.isEnabled(), timeout=60000)
-        assert d.progress.value() == 8, (d.status.text(), d.result.aborted)  # 4 combinations x (8, 12 mA)
-        assert d.result.proposal.channel == 2, d.result.proposal
-        assert d.accept_proposal()
-        assert fes.district_channels == {"anterior deltoid": 2}
-        assert load_patient("UI8").fes.electrodes["anterior deltoid"].channel == 2
-        d.close()
-    finally:
-        manager.shutdown()
+def test_the_dialog_on_the_simulated_devices(shared_manager, qtbot) -> None:
+    manager = shared_manager  # the robot homed, IDLE at the home position
+    fes = manager.driver("fes")
+    manager.patient.set_electrode_distances({1: 2.0, 2: 0.5, 3: 1.5, 4: 0.866})
+    manager.patient_profile = PatientProfile("UI8")
+    d = ElectrodeSetupDialog(manager)
+    qtbot.addWidget(d)
+    d.show()
+    # one burst per combination (12 mA: above the best sites' motor threshold; the ladder is test_electrodes')
+    assert d.start(SetupPlan(ceiling_ma=12.0, start_ma=12.0, step_ma=4.0, ramp_s=0.0, hold_s=0.4,
+                             measure_s=0.2, baseline_s=0.15, rest_s=0.1))
+    assert not d.start_button.isEnabled() and d.stop_button.isEnabled()
+    qtbot.waitUntil(lambda: not d.running and d.start_button.isEnabled(), timeout=60000)
+    assert d.progress.value() == 4, (d.status.text(), d.result.aborted)  # 4 combinations x 12 mA
+    assert [len(r.bursts) for r in d.result.combinations] == [1, 1, 1, 1]
+    assert d.result.proposal.channel == 2, d.result.proposal
+    assert d.accept_proposal()
+    assert fes.district_channels == {"anterior deltoid": 2}
+    assert load_patient("UI8").fes.electrodes["anterior deltoid"].channel == 2
+    d.close()
 
 
 def test_editing_the_patient_keeps_the_chosen_electrodes(qtbot) -> None:
@@ -164,20 +158,16 @@ def test_editing_the_patient_keeps_the_chosen_electrodes(qtbot) -> None:
     assert edited.fes.electrodes == profile.fes.electrodes
 
 
-def test_a_session_applies_the_patients_electrodes_and_its_end_forgets_them(qtbot, tmp_path) -> None:
+def test_a_session_applies_the_patients_electrodes_and_its_end_forgets_them(shared_manager, tmp_path) -> None:
     from dataclasses import replace
 
     from app.therapy.patients import ElectrodeChoice, save_patient
 
     profile = PatientProfile("SE1")
     save_patient(replace(profile, fes=replace(profile.fes, electrodes={"triceps": ElectrodeChoice(7, "1-3")})))
-    manager = LinarmppManager(AppConfig(), factories={"fes": rehastim.create})
-    manager.start()
-    try:
-        fes = manager.driver("fes")
-        manager.start_session("SE1", "therapist", root=tmp_path)
-        assert fes.district_channels == {"triceps": 7}
-        manager.end_session()
-        assert fes.district_channels == {}
-    finally:
-        manager.shutdown()
+    manager = shared_manager
+    fes = manager.driver("fes")
+    manager.start_session("SE1", "therapist", root=tmp_path)
+    assert fes.district_channels == {"triceps": 7}
+    manager.end_session()
+    assert fes.district_channels == {}
