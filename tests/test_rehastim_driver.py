@@ -3,6 +3,7 @@ SM2 keep-alive, limits at load/start, the channel stream."""
 
 from __future__ import annotations
 
+import os
 import threading
 import time
 from collections.abc import Iterator
@@ -427,3 +428,37 @@ def test_an_update_refused_because_the_estop_latched_meanwhile_stops_without_a_f
     generation = driver._stop_generation
     driver.start_stimulation("test")
     assert driver.stimulating and driver._stop_generation == generation
+
+
+# ── scheduling ─────────────────────────────────────────────────────────────────────────────────────
+def _os_grants_round_robin() -> bool:
+    """Whether this process may make a thread round-robin real-time (root, CAP_SYS_NICE, an RLIMIT_RTPRIO)."""
+    granted: list[bool] = []
+
+    def attempt() -> None:
+        try:
+            os.sched_setscheduler(0, os.SCHED_RR, os.sched_param(1))
+            granted.append(True)
+        except (OSError, AttributeError):
+            granted.append(False)
+    thread = threading.Thread(target=attempt)
+    thread.start()
+    thread.join()
+    return granted[0]
+
+
+def test_the_drivers_loop_runs_real_time_just_below_the_linarms(tmp_path, qtbot) -> None:
+    """Its passes are the FES guardian's heartbeats (0.3 s): at normal priority on busy cores the thread waited
+    155-511 ms for a CPU and the guardian stopped the therapy (#38, session 12)."""
+    from app.devices.linarm import LinarmDriver
+
+    assert FesDriver.realtime_priority is not None
+    assert FesDriver.realtime_priority < LinarmDriver.realtime_priority < LinarmDriver.heartbeat_priority
+    with make_rig("sm2", tmp_path, qtbot) as r:
+        granted = _os_grants_round_robin()
+        assert r.driver.realtime == granted, "the driver's loop did not ask for the real-time priority it may have"
+        tid = r.driver.native_thread_id
+        assert tid is not None
+        if granted:
+            assert os.sched_getscheduler(tid) & ~getattr(os, "SCHED_RESET_ON_FORK", 0) == os.SCHED_RR
+            assert os.sched_getparam(tid).sched_priority == FesDriver.realtime_priority

@@ -82,6 +82,7 @@ class DeviceDriver(QThread):
         self.reconnect_backoff_s = (0.1, 2.0)
         self.connected_since: float | None = None
         self.realtime = False  # whether the OS granted realtime_priority to the loop
+        self.native_thread_id: int | None = None
 
     # ------------------------------------------------------------------ public, any thread
     @property
@@ -154,6 +155,7 @@ class DeviceDriver(QThread):
 
     # ------------------------------------------------------------------ the loop
     def run(self) -> None:
+        self.native_thread_id = threading.get_native_id()  # the OS's id of the loop's thread (its scheduling, tests)
         if self.realtime_priority is not None:
             self.realtime = request_realtime(self.realtime_priority)
         lo, hi = self.reconnect_backoff_s

@@ -25,8 +25,10 @@ happens to the PC. ScienceMode 2 has one, but it waits 1.2 s without a valid pac
 
 The bound: Stop leaves the guardian at most ``TRIP_AFTER_S`` + ``POLL_S`` after the application's last
 heartbeat, i.e. 0.31 s; with the guardian's own scheduling on a loaded machine, stimulation ends within
-0.5 s (docs/fes.md, "Dead man's switch"). 0.3 s is six missed heartbeats: a normal-priority thread woken late
-on a saturated machine (170 ms measured, #16) does not trip it.
+0.5 s (docs/fes.md, "Dead man's switch"). 0.3 s is six missed heartbeats. The driver's thread runs real-time
+(``FesDriver.realtime_priority``, where the OS grants it): at normal priority, with the cores busy, it was measured
+runnable and not run for 155-511 ms, which tripped the guardian (#38, session 12); real-time, its longest gap was
+97 ms.
 
 This file runs as a script (``python -I -S fes_guardian.py FD PARENT_PID TRIP_AFTER_S``) and imports only the
 standard library, so it starts in a few milliseconds and depends on nothing of the application.

@@ -150,7 +150,8 @@ class _Pending:
 class LinarmDriver(DeviceDriver):
     streams = (STATE_STREAM, VSA_STREAM, _motor_stream(0), _motor_stream(1))
     # The reading loop runs real-time too: the heartbeat beats only while it passes (0.5 s), and at normal
-    # priority it was measured stalling 0.5-0.6 s under load (#16). The other drivers stay at normal priority.
+    # priority it was measured stalling 0.5-0.6 s under load (#16). The FES driver runs just below (19: its
+    # passes are the FES guardian's heartbeats); the other drivers stay at normal priority.
     realtime_priority = 20
     heartbeat_priority = 21  # the command queue's thread (it beats): it feeds the controller's 250 ms host watchdog
     controller_error = Signal(str)  # an ERROR_EVENT from the controller, as a sentence (the bus record's Qt face)

@@ -202,6 +202,12 @@ class FesDriver(DeviceDriver):
     """The RehaStim driver. Public methods are thread-safe."""
 
     streams = (FES_STREAM,)
+    # The loop runs real-time, just below the LINarm's (20, its heartbeat 21): its passes are the FES guardian's
+    # heartbeats (app/devices/fes_guardian.py, 0.3 s), and at normal priority, with the cores busy, the thread was
+    # measured runnable and not run for 155-511 ms (the guardian stopped the therapy; the interpreter lock was not
+    # the cause); at 19, the longest gap was 97 ms at load 13-17 (docs/decisions.md, #38 session 12). It wakes at
+    # most every MAX_WAKE_PERIOD_S and holds the lock briefly each time.
+    realtime_priority = 19
 
     # The Qt faces of the driver's journal records, emitted by the same call that records them (_record); the
     # window takes the records from its adapter.
