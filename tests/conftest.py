@@ -74,8 +74,13 @@ def _qt_identity(qapp):
     # As in the app: the collector runs on this (the main) thread only, from the application's timer during a
     # test's waits and after each test (below) -- a widget of an earlier test caught in a cycle was destroyed on a
     # dialog's loading thread by an automatic collection there: a segmentation fault in the suite (#38).
-    collect_on_the_main_thread(qapp)
+    # A full walk of a worker's heap (every earlier test's objects: 100-300 ms) only between tests, never inside a
+    # turn a test measures (the window's heap policy plays this part in the app).
+    collect_on_the_main_thread(qapp).full_allowed = lambda: _BETWEEN_TESTS[0]
     yield
+
+
+_BETWEEN_TESTS = [False]
 
 
 @pytest.hookimpl(trylast=True)
@@ -84,7 +89,11 @@ def pytest_runtest_teardown(item, nextitem) -> None:  # type: ignore[no-untyped-
 
     main_thread = collections()
     if main_thread is not None:
-        main_thread.collect_due()
+        _BETWEEN_TESTS[0] = True
+        try:
+            main_thread.collect_due()
+        finally:
+            _BETWEEN_TESTS[0] = False
 
 
 # ------------------------------------------------------------------------------ reruns: realtime tests only

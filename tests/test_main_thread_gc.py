@@ -33,18 +33,23 @@ class _Cycle:
         self.freed_on.append(threading.current_thread().name)
 
 
-def _allocate_on_a_thread() -> str:
-    """Allocate like a driver's thread does (many short-lived containers, some kept a while)."""
+def _allocate_on_a_thread(kept: list[Any]) -> str:
+    """Allocate like a driver's thread does (many short-lived containers), and keep more than the collector's first
+    threshold alive in ``kept``: an automatic collection is then due (the count is of live objects made since the
+    last collection), on this thread before the change, on the main thread's next tick after it."""
+    threshold = gc.get_threshold()[0]
+
     def work() -> None:
-        kept: list[Any] = []
-        for n in range(200_000):
-            kept.append((n, [n]))
-            if len(kept) > 5_000:
-                kept.clear()
+        for n in range(100_000):
+            item = (n, [n])
+            if n % 20 == 0:
+                kept.append(item)
+            if len(kept) > 3 * threshold:
+                break
     thread = threading.Thread(target=work, name="allocating-thread")
     thread.start()
     thread.join(30)
-    assert not thread.is_alive()
+    assert not thread.is_alive() and len(kept) > 3 * threshold
     return thread.name
 
 
@@ -54,8 +59,10 @@ def test_cyclic_garbage_with_a_qt_object_is_freed_on_the_main_thread(qtbot: Any)
         "the suite's process collects on its main thread (tests/conftest.py), as the app's does"
     freed_on: list[str] = []
     _Cycle(freed_on)  # garbage at once: only the collector frees it
-    _allocate_on_a_thread()  # before: an automatic collection on this thread freed the cycle there
+    kept: list[Any] = []
+    _allocate_on_a_thread(kept)  # before: an automatic collection on that thread freed the cycle there
     qtbot.waitUntil(lambda: len(freed_on) == 2, timeout=5000)  # the application's timer collects
+    kept.clear()
     assert sorted(freed_on) == ["MainThread", "qt:MainThread"], \
         f"cyclic garbage was freed on {freed_on}, not the main thread"
 
