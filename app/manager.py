@@ -473,6 +473,7 @@ class LinarmppManager(QObject):
         profile = record.profile if record is not None else None
         if record is None:
             log.info("patient %s has no profile: the configured limits apply", patient_id)
+        copy_read_at = station.copy_in_use(patient_id) if record is not None else ""
         recorder = SessionRecorder()
         folder = recorder.start(self, patient_id, operator, note, root=root or sessions_root(self.config),
                                 profile=profile)
@@ -481,6 +482,7 @@ class LinarmppManager(QObject):
         self.patient_version = record.version if record is not None else 0
         self.operator = operator
         self.runs = self._new_run_log()
+        self._withhold_stimulation_for_a_copy(patient_id, copy_read_at)
         if profile is not None:
             self.supervisor.robot = effective_robot_limits(profile, self.config.safety.robot)
             self.supervisor.record(journal.PATIENT_LIMITS_APPLIED, patient=patient_id)
@@ -490,6 +492,20 @@ class LinarmppManager(QObject):
         self.start_lsl()  # its marker outlet hears the journal on the bus, as the recorder does
         self.session_changed.emit(folder)
         return folder
+
+    def _withhold_stimulation_for_a_copy(self, patient_id: str, read_at: str) -> None:
+        """A session whose patient record is this station's copy (the archive unreachable, #39) runs without
+        stimulation: a cap lowered on another station since the copy was read would not be known, and a lowered cap
+        is never raised again by a stale copy. Said on screen (a warning alarm) and in the record; lifted when the
+        archive's own record reaches the session (``update_session_profile`` with its version)."""
+        if not read_at:
+            self.supervisor.stimulation_withheld = ""
+            return
+        why = (f"this session uses this station's copy of patient {patient_id}'s record, read at {read_at[:16]} "
+               "(the archive cannot be reached): FES caps lowered on another station since would not be known")
+        self.supervisor.stimulation_withheld = why
+        self.supervisor.record(journal.STIMULATION_WITHHELD, patient=patient_id, copy_read_at=read_at)
+        self.supervisor.raise_alarm(AlarmLevel.WARNING, "archive", f"Stimulation withheld: {why}.")
 
     def start_lsl(self) -> Any:
         """The LSL outlets when ``recording.lsl`` is on, opened once whatever asks (a session, a headless run):
@@ -517,6 +533,12 @@ class LinarmppManager(QObject):
         self.patient_profile = profile
         if version is not None:
             self.patient_version = version
+            if self.supervisor.stimulation_withheld:
+                from app.archive import station
+
+                if not station.copy_in_use(profile.patient_id):  # the archive's own record reached the session
+                    self.supervisor.stimulation_withheld = ""
+                    changes = [*changes, "stimulation no longer withheld (the archive's record)"]
         self.supervisor.robot = effective_robot_limits(profile, self.config.safety.robot)
         self._apply_robot_limits()
         self.apply_patient_profile(profile)
@@ -588,6 +610,7 @@ class LinarmppManager(QObject):
         if recorder is None:
             return
         self._end_open_runs("session_ended" if reason != "application closing" else "app_exit")  # recorded
+        self.supervisor.stimulation_withheld = ""  # the session's copy goes with it
         self.supervisor.bring_to_safe_state("session ended")
         for handle in list(self.devices.values()):  # counts a driver records only now and then, up to now
             record_counts = getattr(handle.driver, "record_link_counts", None)

@@ -113,7 +113,17 @@ def test_with_the_server_down_the_patients_seen_are_listed_read_only_and_a_sessi
             assert manager.recorder is not None
             assert manager.patient_profile is not None and \
                 manager.patient_profile.fes.caps[1].max_current_ma == 15.0
+            # ... without stimulation: a cap lowered on another station since the copy would not be known (a stale
+            # copy never raises a lowered cap); said on screen and in the record
+            from app.safety.supervisor import SafetyError
+
+            with pytest.raises(SafetyError, match="stimulation is withheld: this session uses this station's copy "
+                                                  f"of patient {SEEN}'s record"):
+                manager.supervisor.check_fes_command("load profile", "script")  # every FES entry point's check
+            assert [a.text for a in manager.supervisor.alarms() if "Stimulation withheld" in a.text], \
+                "the window's alarms do not say why stimulation is withheld"
             manager.end_session()
+            assert manager.supervisor.stimulation_withheld == ""
         finally:
             manager.shutdown(timeout_s=1.0)
         outbox = Outbox(tmp_path / "home" / "sessions", lambda: open_archive(cfg))

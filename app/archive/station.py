@@ -140,6 +140,14 @@ def _copy(patient_id: str) -> PatientRecord | None:
     return cached.record if cached is not None else None
 
 
+def copy_in_use(patient_id: str) -> str:
+    """When this station read the copy that stands in for the patient's record now (the station's archive
+    unreachable), '' when the archive's own record is read (or no copy is held)."""
+    if not (_problem or _down):
+        return ""
+    return copy_seen_at(patient_id)
+
+
 def copy_seen_at(patient_id: str) -> str:
     """When this station read its copy of the patient ('' when it holds none)."""
     cached = _cache.get(patient_id) if _cache is not None else None

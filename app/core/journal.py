@@ -82,6 +82,8 @@ GUI_RESUMED: Final = "gui_resumed"
 # The patient and the session.
 PATIENT_PROFILE_APPLIED: Final = "patient_profile_applied"
 PATIENT_LIMITS_APPLIED: Final = "patient_limits_applied"
+# The session's patient record is the station's offline copy: stimulation withheld (app.manager, #39).
+STIMULATION_WITHHELD: Final = "stimulation_withheld"
 RECOVERY: Final = "recovery"
 SIMULATION: Final = "simulation"
 # Scripts and exercises.

@@ -142,6 +142,9 @@ class SafetySupervisor:
         # One owner of each device during a run (app/core/ownership.py): device -> the lease holding it. Replaced whole
         # (never mutated in place), so the command checks read it without a lock.
         self._leases: dict[str, Lease] = {}
+        # Why stimulation is withheld for now ('' when it is not): the session's patient record is this station's
+        # copy, read while the archive answered (#39): a cap lowered on another station since would not be known.
+        self.stimulation_withheld = ""
         self._lease_lock = threading.Lock()
 
     # ------------------------------------------------------------------ the journal
@@ -361,7 +364,11 @@ class SafetySupervisor:
 
     def check_fes_command(self, what: str, source: str) -> None:
         """The stimulator's lease at a start, a profile load, a scale change or the pulse-width override (the
-        FES driver's entry points): refused while another holds the stimulator and does not compose it."""
+        FES driver's entry points): refused while another holds the stimulator and does not compose it, and while
+        stimulation is withheld (``stimulation_withheld``)."""
+        withheld = self.stimulation_withheld
+        if withheld:
+            raise SafetyError(f"{what} refused: stimulation is withheld: {withheld}", source)
         if self._leases:
             self.check_lease(STIMULATOR, what, source)
 
