@@ -83,8 +83,58 @@ def _qt_identity(qapp):
 _BETWEEN_TESTS = [False]
 
 
-@pytest.hookimpl(trylast=True)
-def pytest_runtest_teardown(item, nextitem) -> None:  # type: ignore[no-untyped-def]
+# A modal question nobody answers in a test's teardown (a window closed after a failure asks "Stop it and quit?")
+# held the worker until the timeout, and pytest-timeout could not end a nested Qt event loop: the run hung. It is
+# answered here after MODAL_TEARDOWN_S, with the button that lets the teardown go on, and the test fails saying so.
+MODAL_TEARDOWN_S = 5.0
+
+
+def _answer_modal_questions(started: float, answered: list[str]) -> None:
+    from PySide6.QtWidgets import QApplication, QDialog, QMessageBox
+
+    modal = QApplication.activeModalWidget()
+    if modal is None or time.monotonic() - started < MODAL_TEARDOWN_S:
+        return
+    answered.append(f"{type(modal).__name__} {modal.windowTitle()!r}: "
+                    f"{modal.text() if isinstance(modal, QMessageBox) else ''}")
+    if isinstance(modal, QMessageBox):
+        for button in modal.buttons():
+            if modal.buttonRole(button) in (QMessageBox.ButtonRole.YesRole, QMessageBox.ButtonRole.AcceptRole,
+                                            QMessageBox.ButtonRole.DestructiveRole):
+                button.click()
+                return
+    if isinstance(modal, QDialog):
+        modal.reject()
+    else:
+        modal.close()
+
+
+@pytest.hookimpl(wrapper=True)
+def pytest_runtest_teardown(item, nextitem):  # type: ignore[no-untyped-def]
+    from PySide6.QtCore import QCoreApplication, QTimer
+
+    answered: list[str] = []
+    timer = None
+    if QCoreApplication.instance() is not None:
+        started = time.monotonic()
+        timer = QTimer()
+        timer.setInterval(250)
+        timer.timeout.connect(lambda: _answer_modal_questions(started, answered))
+        timer.start()
+    try:
+        result = yield
+    finally:
+        if timer is not None:
+            timer.stop()
+            timer.deleteLater()
+    if answered:
+        raise AssertionError(f"a modal dialog waited in the teardown, answered after {MODAL_TEARDOWN_S:g} s: "
+                             + "; ".join(answered))
+    return result
+
+
+@pytest.hookimpl(trylast=True, specname="pytest_runtest_teardown")
+def pytest_runtest_teardown_collect(item, nextitem) -> None:  # type: ignore[no-untyped-def]
     from app.main_thread_gc import collections
 
     main_thread = collections()
