@@ -118,3 +118,26 @@ def test_every_process_with_a_qt_application_collects_on_its_main_thread() -> No
             following = text[at:at + 400]
             assert "collect_on_the_main_thread(app)" in following, \
                 f"{path}: a Qt application made without the collections on its main thread"
+
+
+def test_a_windows_policy_is_asked_too_and_its_end_leaves_the_rule_before_it() -> None:
+    """The suite's rule (a full walk only between tests) held after a window had come and gone: the window replaced
+    it and left "always" behind (a 143 ms full walk landed in a later test's measured turn)."""
+    from app.core.gc_policy import HeapPolicy
+
+    collector = MainThreadCollections()
+    between_tests = [False]
+    collector.full_allowed = lambda: between_tests[0]
+    drives = ["the robot is ON"]
+    policy = HeapPolicy(lambda: drives[0])  # a window's, not frozen, something driving: no full walk
+    collector.also_ask(policy)
+    between_tests[0] = True
+    assert collector.full_allowed() is False
+    drives[0] = ""
+    assert collector.full_allowed() is True  # at rest, between tests
+    between_tests[0] = False
+    assert collector.full_allowed() is False  # the rule before it still holds
+    del policy  # the window closed
+    assert collector.full_allowed() is False, "a closed window's rule allowed a full walk inside a test"
+    between_tests[0] = True
+    assert collector.full_allowed() is True

@@ -199,11 +199,8 @@ class MainWindow(QMainWindow):
         from app.main_thread_gc import collections
 
         main_thread = collections()
-        if main_thread is not None:  # full walks on the main thread only when the window's policy allows them
-            import weakref
-
-            policy = weakref.ref(self.heap_policy)  # not keeping a closed window alive
-            main_thread.full_allowed = lambda: (p := policy()) is None or p.full_walk_allowed()
+        if main_thread is not None:  # full walks on the main thread only when the window's policy allows them too
+            main_thread.also_ask(self.heap_policy)
         QTimer.singleShot(0, self.heap_policy.settle)  # the window and its frames live as long as the app
 
     def _offer_larger_graphs(self) -> None:
