@@ -19,10 +19,11 @@ def test_a_waiting_question_is_answered_with_the_button_that_lets_the_teardown_g
     timer.setInterval(50)
     timer.timeout.connect(lambda: _answer_modal_questions(started, answered))
     timer.start()
-    try:
-        answer = QMessageBox.question(None, "Quit", "The exercise is running. Stop it and quit?",
-                                      QMessageBox.StandardButton.Yes | QMessageBox.StandardButton.No,
-                                      QMessageBox.StandardButton.No)
+    box = QMessageBox(QMessageBox.Icon.Question, "Quit", "The exercise is running. Stop it and quit?",
+                      QMessageBox.StandardButton.Yes | QMessageBox.StandardButton.No)
+    box.setDefaultButton(QMessageBox.StandardButton.No)
+    try:  # an instance's exec, as QMessageBox.question runs it (a test elsewhere may have replaced that function)
+        answer = box.exec()
     finally:
         timer.stop()
     assert answer == QMessageBox.StandardButton.Yes
