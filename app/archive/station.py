@@ -115,8 +115,8 @@ def offline_sentence() -> str:
         return ""
     since = _since[:16].replace("T", " ")
     return (f"{_sentence(why).rstrip('.')}, since {since}. The patients are shown as this station last read them, "
-            "read-only: nothing can be saved until the archive is back; a session can be run, and waits for the "
-            "archive.")
+            "read-only: nothing can be saved until the archive is back; a session can be run, without stimulation, and "
+            "waits for the archive.")
 
 
 def _remember(record: PatientRecord) -> None:

@@ -30,6 +30,7 @@ from __future__ import annotations
 import gc
 import logging
 import time
+import weakref
 from collections.abc import Callable
 
 log = logging.getLogger(__name__)
@@ -122,8 +123,6 @@ class MainThreadCollections:
     def also_ask(self, policy: HeapPolicy) -> None:
         """A full walk also needs ``policy``'s consent (``full_walk_allowed``) while ``policy`` lives; the rule held
         before stays (the suite's: between tests only) -- a window gone leaves it as it was, not "always"."""
-        import weakref
-
         window = weakref.ref(policy)  # not keeping a closed window's policy (and its window) alive
         before = self.full_allowed
 
