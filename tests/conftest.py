@@ -171,7 +171,35 @@ def pytest_runtest_logreport(report) -> None:  # type: ignore[no-untyped-def]
     _RERUN_REASONS.append(f"{report.nodeid} [{report.when}]{where}: {' / '.join(text.splitlines()[:6])[:600]}")
 
 
+def _scheduling_granted() -> str:
+    """What the OS grants the suite's processes (CI's container may refuse both): real-time scheduling for the
+    device links' threads (app/devices/realtime.py) and a raised nice for the real-time process
+    (app/core/priority.py). Asked from a throwaway thread, so nothing of this process changes."""
+    import threading
+
+    answers: list[str] = []
+
+    def probe() -> None:
+        try:
+            os.sched_setscheduler(0, os.SCHED_RR, os.sched_param(1))
+            answers.append("real-time scheduling granted")
+        except (OSError, AttributeError):
+            answers.append("real-time scheduling refused")
+        try:
+            os.setpriority(os.PRIO_PROCESS, 0, os.getpriority(os.PRIO_PROCESS, 0) - 1)
+            answers.append("raised priority granted")
+        except (OSError, AttributeError):
+            answers.append("raised priority refused")
+
+    thread = threading.Thread(target=probe, name="scheduling probe")
+    thread.start()
+    thread.join()
+    return ", ".join(answers)
+
+
 def pytest_terminal_summary(terminalreporter) -> None:  # type: ignore[no-untyped-def]
+    if not hasattr(terminalreporter.config, "workerinput"):  # timing tests read differently without them
+        terminalreporter.write_line(f"[suite] {_scheduling_granted()}")
     if _RERUN_REASONS:
         terminalreporter.write_sep("=", "why each rerun was needed")
         for line in _RERUN_REASONS:

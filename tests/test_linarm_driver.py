@@ -193,3 +193,47 @@ def test_apply_limits_locks_the_site_envelope_then_narrows_it_through_the_queue(
     narrower = dataclasses.replace(site, max_velocity_m_s=site.max_velocity_m_s / 2)
     assert robot.apply_limits(narrower).result(5.0) == envelope
     assert robot.apply_limits(site).result(5.0) == envelope
+
+
+def test_a_late_or_withheld_heartbeat_is_said_in_the_log(caplog) -> None:
+    """The controller stops the motors after WATCHDOG_TIMEOUT without a heartbeat; when the app's heartbeat came
+    late (a busy machine, no real-time scheduling) or was withheld (a wedged reading loop), the log says so before
+    the controller's WATCHDOG does, so that stop does not read as a fault of the robot. Driven by hand: the queue's
+    periodic called directly, the clocks set, no thread started."""
+    import logging
+    import time as _time
+
+    from app.devices import linarm as linarm_module
+
+    class RecordingLink:
+        def __init__(self) -> None:
+            self.written: list[bytes] = []
+
+        def write(self, data: bytes) -> None:
+            self.written.append(data)
+
+    link = RecordingLink()
+    driver = LinarmDriver(link, SafetySupervisor(SafetyConfig()))  # type: ignore[arg-type]
+    driver._beating = True
+    caplog.set_level(logging.WARNING, logger=linarm_module.__name__)
+    now = _time.monotonic()
+    driver._reader_alive = now
+    driver._last_heartbeat = now - 0.05  # on time: written, nothing said
+    driver._beat()
+    assert len(link.written) == 1 and not caplog.records
+
+    driver._last_heartbeat = _time.monotonic() - 0.2  # late: written, and said with its gap
+    driver._beat()
+    assert len(link.written) == 2
+    (late,) = [r.getMessage() for r in caplog.records]
+    assert "LINarm heartbeat late: 0.2" in late and "the OS refused real-time scheduling" in late
+    driver._last_heartbeat = _time.monotonic() - 0.2  # late again within the second: counted, not said again
+    driver._beat()
+    assert len(link.written) == 3 and len(caplog.records) == 1 and driver._late_beats == 1
+
+    driver._reader_alive = _time.monotonic() - 0.6  # the reading loop wedged: withheld, said once an episode
+    driver._beat()
+    driver._beat()
+    assert len(link.written) == 3
+    withheld = [r.getMessage() for r in caplog.records if "withheld" in r.getMessage()]
+    assert len(withheld) == 1 and "the reading loop has not run for 0.6" in withheld[0]
