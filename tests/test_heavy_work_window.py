@@ -23,6 +23,7 @@ from tests.heavy_rig import WATCHDOG_S, open_from_browser, start_therapy, stop_t
 from tests.long_session import shared_long_session
 from tests.mounts import entries, full_disk, read_only
 from tests.run_sessions import clinic_day_runs, write_run_session
+from tests.waits import WORKER_TASK_MS
 
 # What this test holds is functional: the therapy undisturbed (no alarm at all, so no GUI-watch warning at
 # 0.35 s, no watchdog or guardian trip) and F12 not queued behind the load. Its bounds are regression guards an
@@ -101,7 +102,8 @@ def test_opening_a_long_session_during_an_fes_exercise(qtbot, tmp_path_factory, 
             results = []
             for kind, dest in (("hdf5", place / "s.h5"), ("csv", place / "csv")):
                 job = browser.export(small, kind, dest)
-                qtbot.waitUntil(lambda job=job: job not in browser.jobs, timeout=60000)  # shown on the GUI thread
+                # shown on the GUI thread
+                qtbot.waitUntil(lambda job=job: job not in browser.jobs, timeout=WORKER_TASK_MS)
                 assert job.task.status is TaskStatus.FAILED and "\n" not in job.message
                 assert browser.status.text() == job.message and browser.message_box.text() == job.message
                 browser.message_box.close()
@@ -109,7 +111,7 @@ def test_opening_a_long_session_during_an_fes_exercise(qtbot, tmp_path_factory, 
             for view, name in ((report_view, "r.pdf"), (progress_view, "p.pdf")):
                 task = view.save_pdf_in_worker(place / name)
                 qtbot.waitUntil(lambda task=task, view=view: task.done and "Writing" not in view.status.text(),
-                                timeout=60000)
+                                timeout=WORKER_TASK_MS)
                 assert task.status is TaskStatus.FAILED and view.status.text() == task.error
                 assert not view.status.text().startswith("Report written") and "\n" not in task.error
                 results.append(task.error)
@@ -128,7 +130,7 @@ def test_opening_a_long_session_during_an_fes_exercise(qtbot, tmp_path_factory, 
         fes_delay, robot_delay = therapy.stop_delays(pressed["t"])
         assert fes_delay <= ESTOP_BOUND_S and robot_delay <= ESTOP_BOUND_S, (fes_delay, robot_delay)
         assert therapy.manager.supervisor.estop_latched
-        qtbot.waitUntil(lambda: task.done, timeout=60000)
+        qtbot.waitUntil(lambda: task.done, timeout=WORKER_TASK_MS)
         assert task.ok  # the load finishes anyway; its window opens
         print(f"F12 during the load: FES Stop {fes_delay * 1e3:.1f} ms, robot IDLE {robot_delay * 1e3:.1f} ms")
     finally:

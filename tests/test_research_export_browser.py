@@ -16,6 +16,7 @@ from app.core import streams
 from app.session.recording import load_session
 from app.worker import TaskStatus
 from tests.research_export_data import record_session, synth_session
+from tests.waits import WORKER_TASK_MS
 
 pyxdf = pytest.importorskip("pyxdf")
 pyedflib = pytest.importorskip("pyedflib")
@@ -51,7 +52,7 @@ def _select_all(browser) -> list[Path]:
 def _run(qtbot, browser, folders, fmt, out) -> object:
     ended = []
     task = browser.research_export(folders, fmt, out, on_done=ended.append)
-    qtbot.waitUntil(lambda: bool(ended), timeout=60000)
+    qtbot.waitUntil(lambda: bool(ended), timeout=WORKER_TASK_MS)
     return task
 
 
@@ -133,10 +134,10 @@ def test_a_cancelled_or_failed_export_leaves_nothing_and_says_so(tmp_path, qtbot
     ended = []
     task = browser.research_export(folders, "xdf", out, on_done=ended.append)
     # the user presses Cancel in the progress dialog once the second session is being written
-    qtbot.waitUntil(lambda: task.fraction > 0.6 or task.done, timeout=60000)
+    qtbot.waitUntil(lambda: task.fraction > 0.6 or task.done, timeout=WORKER_TASK_MS)
     *_, dialog = browser.findChildren(QProgressDialog)
     qtbot.mouseClick(dialog.findChild(QPushButton), Qt.MouseButton.LeftButton)
-    qtbot.waitUntil(lambda: bool(ended), timeout=30000)
+    qtbot.waitUntil(lambda: bool(ended), timeout=WORKER_TASK_MS)
     assert task.status is TaskStatus.CANCELLED, (task.status, task.result)
     assert browser.status.text() == "Export cancelled: nothing was written."
     assert list(out.iterdir()) == []

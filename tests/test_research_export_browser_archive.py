@@ -16,6 +16,7 @@ import pytest
 from app.archive import station
 from tests.postgres import APP, PostgresServer, server_or_skip
 from tests.test_archive_reads import PATIENT, Clinic, make_two_stations
+from tests.waits import WORKER_TASK_MS
 
 MONDAY = "20260302-100000"  # recorded on room-A
 
@@ -60,7 +61,7 @@ def test_a_session_of_another_station_is_exported_from_the_archive_without_a_cop
             out.mkdir()
             done: list[Any] = []
             assert browser.research_export([monday], fmt, out, on_done=done.append) is not None
-            qtbot.waitUntil(lambda done=done: bool(done), timeout=120_000)
+            qtbot.waitUntil(lambda done=done: bool(done), timeout=WORKER_TASK_MS)
             assert done[0].ok, done[0].error
             assert "Left out" not in str(done[0].result), done[0].result
             # what an export of room-A's own folder writes, byte for byte (the dataset folder's stamp aside)

@@ -19,6 +19,7 @@ from app.session.recording import SessionRecorder, load_session
 from app.therapy.patients import PatientProfile, load_patient, save_patient
 from tests.fakes import ListenerDriver
 from tests.recorder_host import recorder_host
+from tests.waits import WORKER_TASK_MS
 
 
 def _Driver() -> ListenerDriver:
@@ -73,7 +74,7 @@ def test_browser_lists_opens_exports_and_replays(home, qtbot) -> None:
     assert rows[str(second)][1] == "0:10", "interrupted: duration up to the last sample written"
 
     browser.select_folder(first)
-    with qtbot.waitSignal(browser.opened, timeout=20000) as opened:  # read in the worker process (#37)
+    with qtbot.waitSignal(browser.opened, timeout=WORKER_TASK_MS) as opened:  # read in the worker process (#37)
         browser.open_details()
     details = opened.args[0]
     assert details.events.rowCount() == len(load_session(first).events)
@@ -81,13 +82,13 @@ def test_browser_lists_opens_exports_and_replays(home, qtbot) -> None:
 
     done: list[tuple[bool, str]] = []
     job = browser.export(first, "hdf5", home / "out.h5", on_done=lambda ok, msg: done.append((ok, msg)))
-    qtbot.waitUntil(lambda: bool(done), timeout=20000)
+    qtbot.waitUntil(lambda: bool(done), timeout=WORKER_TASK_MS)
     assert done[0][0] and "Exported" in browser.status.text() and "verified" in browser.status.text()
     assert job.fraction == 1.0
     exported = load_hdf5(home / "out.h5").streams["fake.main"]
     assert np.array_equal(exported.data["x"], load_session(first).streams["fake.main"].data["x"])
 
-    with qtbot.waitSignal(browser.opened, timeout=20000) as opened:
+    with qtbot.waitSignal(browser.opened, timeout=WORKER_TASK_MS) as opened:
         browser.replay()
     window = opened.args[0]
     qtbot.addWidget(window)
@@ -103,7 +104,7 @@ def test_cancelled_export_reports_and_leaves_nothing(home, qtbot) -> None:
     job = ExportJob(folder, "csv", home / "csv_out")
     job.cancel()
     job.start()
-    qtbot.waitUntil(lambda: job.done, timeout=10000)
+    qtbot.waitUntil(lambda: job.done, timeout=WORKER_TASK_MS)
     assert not job.ok and job.message == "export cancelled"
     assert not (home / "csv_out").exists() and not list(home.glob(".csv_out*"))
 
