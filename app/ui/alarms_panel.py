@@ -461,12 +461,16 @@ class AlarmBanner(QFrame):
         self._shown: tuple[str, str, str] | None = None
         adapter = shared_qt_bus(manager.bus, manager.supervisor.alarm)
         adapter.alarms_changed.connect(self.refresh)
-        adapter.estop_changed.connect(lambda *_a: self.refresh())
+        # A method, not a lambda: the connection ends with this banner (the window's adapter outlives it).
+        adapter.estop_changed.connect(self._estop_changed)
         # A robot error can outlast its acknowledged alarm: look again now and then.
         self._timer = QTimer(self)
         self._timer.setInterval(500)
         self._timer.timeout.connect(self._refresh_recover)
         self._timer.start()
+        self.refresh()
+
+    def _estop_changed(self, _latched: bool, _reason: str) -> None:
         self.refresh()
 
     def refresh(self) -> None:

@@ -144,7 +144,8 @@ class CommandsFrame(QWidget):
             self.tabs.addTab(empty, "Panels")
 
         self._sync_devices()
-        self.qt_bus.connection_changed.connect(lambda *_a: self.refresh())
+        # A method, not a lambda: the connection ends with this frame (the window's adapter outlives it).
+        self.qt_bus.connection_changed.connect(self._connection_changed)
         self.timer = QTimer(self)
         self.timer.setInterval(500)
         self.timer.timeout.connect(self.refresh)
@@ -210,6 +211,9 @@ class CommandsFrame(QWidget):
             self.devices_grid.addWidget(toggle, 0, n)
             self.toggles[name] = toggle
         self.no_devices.setVisible(not self.toggles)
+
+    def _connection_changed(self, _device: str, _connected: bool, _reason: str) -> None:
+        self.refresh()
 
     def refresh(self) -> None:
         self._sync_devices()
