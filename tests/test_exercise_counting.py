@@ -214,6 +214,11 @@ def reaching_patient(manager: Any, params: dict[str, Any], stop: threading.Event
     manager.bus.listen("test", lambda r: on_event(r.kind, r.data))
 
 
+# Every run starts homed (LINARMPP_SIM_HOMED): the real-time homing (~4 s a run) proved nothing about counting, and
+# that the runner's homing is positioning, once, never a repetition, is test_metrics_e2e's recording (the same
+# ScriptRunner homing first; its positioning is exactly ["homing", "outside_repetitions"]). A recording without
+# a homing holds none in its metrics.
+@pytest.mark.sim_homed
 @pytest.mark.parametrize("exercise", sorted(COMMANDED))
 def test_metrics_of_a_headless_recording_give_the_commanded_counts(exercise: str, tmp_path: Path) -> None:
     """Recorded by the headless runner (``main.py --headless``'s code, in this process so that the simulated
@@ -242,5 +247,5 @@ def test_metrics_of_a_headless_recording_give_the_commanded_counts(exercise: str
     summary = result["summary"]
     assert (summary["repetitions"], summary["completed"]) == (reps, completed), result["repetitions"]
     assert sum(1 for p in result["positioning"] if p["kind"] != "homing") >= positioning, result["positioning"]
-    assert sum(1 for p in result["positioning"] if p["kind"] == "homing") == 1
+    assert sum(1 for p in result["positioning"] if p["kind"] == "homing") == 0
     assert len(result["runs"]) == 1 and result["runs"][0]["summary"]["repetitions"] == reps
