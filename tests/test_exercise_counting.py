@@ -6,9 +6,8 @@ control channel, answering the exercise's prompts; then the metrics of the recor
 
 * a grip held for 1 s starts one movement (the trigger re-arms only below the threshold), also when the
   script's callbacks run late (a starved computer: they lag the samples the script already read);
-* a grip released and squeezed again starts the next;
 * a movement skipped after a timeout is not completed, and the next one really moves (not "from start to
-  start" with range 0);
+  start" with range 0); a grip released and squeezed again starts the next (one recording for both);
 * a run refused before its first movement is "not started" (metrics_by_run, from the run record);
 * ``main.py --headless`` + ``main.py --metrics`` on each exercise gives the counts its script commanded.
 """
@@ -135,25 +134,22 @@ def test_a_grip_held_for_1s_starts_one_movement_when_the_callbacks_run_late(tmp_
 
 
 @pytest.mark.sim_homed
-def test_a_grip_released_and_squeezed_again_starts_the_next(tmp_path: Path) -> None:
-    session = run_trigger(tmp_path, {**FAST, "movements": 2, "trigger_timeout_s": 5.0},
-                          {1: (0.2, 0.4), 2: (0.3, 0.4)})
-    reps = session_metrics(session.folder)["repetitions"]
-    assert [r["completed"] for r in reps] == [True, True]
-    assert all(r["range_m"] == pytest.approx(0.05, abs=0.003) for r in reps)
-    assert [round(r["reaction_time_s"], 1) for r in reps] == [0.2, 0.3]
-
-
-@pytest.mark.sim_homed
-def test_a_skipped_movement_is_not_completed_and_the_next_one_moves(tmp_path: Path) -> None:
-    session = run_trigger(tmp_path, {**FAST, "movements": 3, "trigger_timeout_s": 2.0, "rest_s": 0.3},
-                          {2: (0.2, 0.3), 3: (0.2, 0.3)})
+def test_a_skipped_movement_is_not_completed_and_a_grip_released_and_squeezed_again_starts_each_next(
+        tmp_path: Path) -> None:
+    """One recording for what were two (a grip released and squeezed again starts the next; a movement skipped
+    after a timeout is not completed and the next one really moves): no squeeze for the first movement, then a
+    0.4 s squeeze for each of the next two, released in between — without a rest (as the first of the two had
+    it), so the next prompt comes soon after the release."""
+    session = run_trigger(tmp_path, {**FAST, "movements": 3, "trigger_timeout_s": 2.0},
+                          {2: (0.2, 0.4), 3: (0.3, 0.4)})
     reps = session_metrics(session.folder)["repetitions"]
     assert [r["completed"] for r in reps] == [False, True, True]
     # after the skip the arm is still at the start: the next movement goes out (it "moved" start to start,
     # 0.000 m, and was marked done), and the one after comes back
     assert reps[1]["range_m"] == pytest.approx(0.05, abs=0.003)
     assert reps[2]["range_m"] == pytest.approx(0.05, abs=0.003)
+    # each started by its own squeeze, from the prompt: the grip released after the first counts again
+    assert [round(r["reaction_time_s"], 1) for r in reps[1:]] == [0.2, 0.3]
 
 
 def test_a_run_refused_before_its_first_movement_is_not_started(tmp_path: Path) -> None:
@@ -214,6 +210,11 @@ def reaching_patient(manager: Any, params: dict[str, Any], stop: threading.Event
     manager.bus.listen("test", lambda r: on_event(r.kind, r.data))
 
 
+# Every run starts homed (LINARMPP_SIM_HOMED): the real-time homing (~4 s a run) proved nothing about counting, and
+# that the runner's homing is positioning, once, never a repetition, is test_metrics_e2e's recording (the same
+# ScriptRunner homing first; its positioning is exactly ["homing", "outside_repetitions"]). A recording without
+# a homing holds none in its metrics.
+@pytest.mark.sim_homed
 @pytest.mark.parametrize("exercise", sorted(COMMANDED))
 def test_metrics_of_a_headless_recording_give_the_commanded_counts(exercise: str, tmp_path: Path) -> None:
     """Recorded by the headless runner (``main.py --headless``'s code, in this process so that the simulated
@@ -242,5 +243,5 @@ def test_metrics_of_a_headless_recording_give_the_commanded_counts(exercise: str
     summary = result["summary"]
     assert (summary["repetitions"], summary["completed"]) == (reps, completed), result["repetitions"]
     assert sum(1 for p in result["positioning"] if p["kind"] != "homing") >= positioning, result["positioning"]
-    assert sum(1 for p in result["positioning"] if p["kind"] == "homing") == 1
+    assert sum(1 for p in result["positioning"] if p["kind"] == "homing") == 0
     assert len(result["runs"]) == 1 and result["runs"][0]["summary"]["repetitions"] == reps

@@ -7,6 +7,7 @@ the normalised magnitude last reaches 0.05 below 10 Hz, and the arc length of th
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -65,6 +66,19 @@ def sparc_reference(speed_fn, duration: float, f_max: float = 10.0, threshold: f
     return -float(np.sum(np.sqrt((np.diff(f) / (f[-1] - f[0])) ** 2 + np.diff(spectrum) ** 2)))
 
 
+@functools.cache
+def min_jerk_sparc_reference() -> float:
+    """SPARC of the minimum-jerk speed profile, from its definition: one quadrature (~1.5 s of CPU) for the seven
+    tests that compare with it — the same number each time, so computed once per process."""
+    return sparc_reference(min_jerk_speed, 1.0)
+
+
+@functools.cache
+def trapezoid_sparc_reference(distance: float, v_max: float, acc: float) -> float:
+    """SPARC of a trapezoidal speed profile, from its definition (computed once per profile, as above)."""
+    return sparc_reference(lambda tt: trapezoid(tt, distance, v_max, acc)[1], distance / v_max + v_max / acc)
+
+
 def signals(t: np.ndarray, x: np.ndarray, marks: list[Mark] | None = None, **kw) -> SessionSignals:
     return SessionSignals(position=Series(t, x), rate_hz=FS, marks=marks or [], **kw)
 
@@ -80,7 +94,7 @@ def reach(start: float, duration: float, distance: float, total: float, x0: floa
 
 # ------------------------------------------------------------------------------------------- SPARC itself
 def test_sparc_of_a_minimum_jerk_speed_matches_the_definition_whatever_the_duration() -> None:
-    reference = sparc_reference(min_jerk_speed, 1.0)
+    reference = min_jerk_sparc_reference()
     assert reference == pytest.approx(-1.40, abs=0.01)  # the value the 2015 paper's figures show
     for duration in (0.6, 1.0, 2.5):
         t = np.arange(0.0, duration + 1e-9, 1 / FS)
@@ -91,11 +105,11 @@ def test_sparc_of_a_trapezoid_matches_the_definition() -> None:
     t = np.arange(0.0, 3.0, 1 / FS)
     _, v = trapezoid(t, 0.3, 0.15, 0.5)
     duration = 0.3 / 0.15 + 0.15 / 0.5
-    reference = sparc_reference(lambda tt: trapezoid(tt, 0.3, 0.15, 0.5)[1], duration)
+    reference = trapezoid_sparc_reference(0.3, 0.15, 0.5)
     # the trapezoid's spectrum has side lobes near 0.05: on the FFT's 0.024 Hz grid the cut-off lands a
     # little apart from the continuous one
     assert sparc(v[t <= duration], FS) == pytest.approx(reference, abs=0.06)
-    assert reference < sparc_reference(min_jerk_speed, 1.0)  # corners make it less smooth than minimum jerk
+    assert reference < min_jerk_sparc_reference()  # corners make it less smooth than minimum jerk
 
 
 def test_speed_peaks_counts_submovements_not_noise() -> None:
@@ -124,7 +138,7 @@ def test_minimum_jerk_reach(duration: float, distance: float) -> None:
     assert m.movement_time_s == pytest.approx((1 - 2 * tau0) * duration, abs=0.011)
     covered = float(min_jerk(np.array(1 - tau0)) - min_jerk(np.array(tau0)))
     assert m.mean_speed_m_s == pytest.approx(covered * distance / ((1 - 2 * tau0) * duration), rel=0.02)
-    assert m.sparc == pytest.approx(sparc_reference(min_jerk_speed, 1.0), abs=0.05)
+    assert m.sparc == pytest.approx(min_jerk_sparc_reference(), abs=0.05)
     assert m.speed_peaks == 1
 
 
@@ -137,7 +151,7 @@ def test_trapezoidal_reach() -> None:
     assert m.range_m == pytest.approx(distance, rel=2e-3)
     assert m.peak_speed_m_s == pytest.approx(v_max, rel=0.01)
     assert m.mean_speed_m_s == pytest.approx(distance / duration, rel=0.05)  # the 5 % onset trims little
-    reference = sparc_reference(lambda tt: trapezoid(tt, distance, v_max, acc)[1], duration)
+    reference = trapezoid_sparc_reference(distance, v_max, acc)
     assert m.sparc == pytest.approx(reference, abs=0.1)  # the 10 Hz low-pass rounds the corners a little
     assert m.speed_peaks == 1
 
@@ -148,7 +162,7 @@ def test_noisy_reach_keeps_range_speed_and_smoothness() -> None:
     (m,) = repetitions(signals(t, x, [Mark(0.5, 1.7, 1)]))
     assert m.range_m == pytest.approx(0.25, rel=0.01)
     assert m.peak_speed_m_s == pytest.approx(1.875 * 0.25 / 1.2, rel=0.05)
-    assert m.sparc == pytest.approx(sparc_reference(min_jerk_speed, 1.0), abs=0.15)
+    assert m.sparc == pytest.approx(min_jerk_sparc_reference(), abs=0.15)
     assert m.speed_peaks == 1
 
 
@@ -292,7 +306,7 @@ def test_sparc_of_mirror_image_reaches_is_the_same() -> None:
     x = 0.1 + 0.05 * min_jerk((t - 1.0) / 0.6) - 0.05 * min_jerk((t - 2.6) / 0.6)
     out, back = repetitions(signals(t, x, [Mark(0.95, 1.65, 1), Mark(2.5, 3.3, 2)]))
     assert out.sparc == pytest.approx(back.sparc, abs=0.01)
-    assert out.sparc == pytest.approx(sparc_reference(min_jerk_speed, 1.0), abs=0.05)
+    assert out.sparc == pytest.approx(min_jerk_sparc_reference(), abs=0.05)
 
 
 @pytest.mark.parametrize("n", range(1, 13))

@@ -1,8 +1,8 @@
 """End to end: an exercise of known movements, recorded against the simulated devices, then the command line.
 
 The trigger-reaching exercise (resources/exercises) is started as the Exercises tab starts it
-(app.therapy.exercises.start_exercise on a ScriptRunner) with 4 movements of 0.24 m at 0.15 m/s, each triggered by
-the simulated patient's grip. ``main.py --metrics`` must find the 4 repetitions with range and peak speed
+(app.therapy.exercises.start_exercise on a ScriptRunner) with 3 movements of 0.24 m at 0.15 m/s, each triggered by
+the simulated patient's grip. ``main.py --metrics`` must find the 3 repetitions with range and peak speed
 within a few percent of the commanded ones, and a reaction time; ``--report`` and ``--progress`` write PDFs
 whose every page pdftoppm renders into a picture that is not blank.
 """
@@ -29,7 +29,9 @@ pytestmark = pytest.mark.slow
 
 ROOT = Path(__file__).resolve().parents[1]
 PATIENT = "PZ-E2E"
-PARAMS = {"movements": 4, "start_m": 0.12, "end_m": 0.36, "speed_m_s": 0.15, "acceleration_m_s2": 0.3,
+# 3 movements (4 before, ~4 s more of real time): the count, each movement's range, speed and smoothness and the
+# segmentation without the marks are checked against the commanded ones either way.
+PARAMS = {"movements": 3, "start_m": 0.12, "end_m": 0.36, "speed_m_s": 0.15, "acceleration_m_s2": 0.3,
           "trigger_threshold_n": 20.0, "trigger_timeout_s": 10.0, "rest_s": 0.5}
 RANGE_M = 0.24
 SPEED_M_S = 0.15
@@ -106,18 +108,18 @@ def test_recorded_exercise_metrics_report_and_progress(tmp_path: Path, qtbot: An
         assert r["robot_latency_s"] is not None and 0.0 <= r["robot_latency_s"] < 0.5, r
         assert r["reaction_time_s"] is None or 0.0 <= r["reaction_time_s"] < 1.3, r
     summary = result["summary"]
-    assert summary["repetitions"] == 4 and summary["completed"] == 4 and summary["alarms"] == 0
+    assert summary["repetitions"] == summary["completed"] == PARAMS["movements"] and summary["alarms"] == 0
     assert summary["exercise_params"]["speed_m_s"] == SPEED_M_S
     assert summary["range_m"]["mean"] == pytest.approx(RANGE_M, rel=0.03)
 
     assert [p["kind"] for p in result["positioning"]] == ["homing", "outside_repetitions"]  # to the start, apart
 
-    # the same recording without the marks: segmentation finds the 4 movements; the move to the start began
+    # the same recording without the marks: segmentation finds the 3 movements; the move to the start began
     # before the exercise's first prompt: positioning, apart
     sig = signals_from_session(load_session(folder))
     sig.marks = []
     segmented = repetitions(sig)
-    assert len(segmented) == 4
+    assert len(segmented) == PARAMS["movements"]
     for r in segmented:
         assert r.range_m == pytest.approx(RANGE_M, rel=0.03) and r.peak_speed_m_s == pytest.approx(SPEED_M_S, rel=0.05)
 

@@ -25,9 +25,28 @@ def start_pair(tmp_path, rate_hz: float):
     return patient, sim, driver
 
 
+def stop_streaming(sim: SerialSimulator) -> None:
+    """The board stops making frames, every one it made written, its end of the pty left open (closing it
+    discards what the driver has not read yet)."""
+    sim._stop.set()
+    if sim._thread is not None:
+        sim._thread.join(timeout=2.0)
+
+
+# How far behind the board the driver may be when looked at: at 100 Hz the 10 frames the 1 % of a 10 s window
+# allowed before (now measured as a lag, not as the difference of two lags), at 1000 Hz 100 frames.
+KEEP_UP_S = 0.1
+
+
 @pytest.mark.slow
-@pytest.mark.parametrize(("rate_hz", "seconds"), [(100.0, 10.0), (1000.0, 5.0)])
-def test_frames_arrive_complete_at_rate(tmp_path, qtbot, rate_hz: float, seconds: float) -> None:
+@pytest.mark.parametrize("rate_hz", [100.0, 1000.0])
+def test_frames_arrive_complete_at_rate(tmp_path, qtbot, rate_hz: float) -> None:
+    """For 3 s at the board's rate: the driver keeps up (at the window's end it is within KEEP_UP_S of the frames
+    the board has sent), and every frame the board sent arrives — counted exactly against the board's own count
+    once it stops, none lost, none damaged. (Before: 10 s and 5 s windows whose received count had to be within
+    1 % of rate × time; the board makes its frames on the wall clock, so that count only measured the driver's lag
+    at both ends — asserted directly now, and completeness exactly instead of within 1 %.)"""
+    seconds = 3.0
     _patient, sim, driver = start_pair(tmp_path, rate_hz)
     try:
         qtbot.waitUntil(lambda: driver.connected, timeout=3000)
@@ -36,9 +55,15 @@ def test_frames_arrive_complete_at_rate(tmp_path, qtbot, rate_hz: float, seconds
         first = driver.decoder.framesDecoded
         t0 = time.monotonic()
         qtbot.waitUntil(lambda: time.monotonic() - t0 >= seconds, timeout=int(seconds * 1000) + 2000)
-        received = driver.decoder.framesDecoded - first
-        expected = rate_hz * seconds
-        assert abs(received - expected) <= max(2, 0.01 * expected), (received, expected)
+        sent = sim.with_core(lambda core: core.source._k)  # frames the board has made by now (on the wall clock)
+        decoded = driver.decoder.framesDecoded
+        assert sent - decoded <= max(2, KEEP_UP_S * rate_hz), (sent, decoded)
+        assert decoded - first >= rate_hz * seconds * 0.9, (first, decoded)  # it streamed all along
+        stop_streaming(sim)
+        sent = sim.with_core(lambda core: core.source._k)
+        drained = time.monotonic() + 3.0
+        qtbot.waitUntil(lambda: driver.decoder.framesDecoded >= sent or time.monotonic() > drained, timeout=5000)
+        assert driver.decoder.framesDecoded == sent, (driver.decoder.framesDecoded, sent)
         assert driver.frames_lost == 0
         assert driver.bad_frames == 0
     finally:
