@@ -173,6 +173,19 @@ class Rig:
     cursor: int = 0
     wire_frames: dict[str, int] = field(default_factory=dict)
     reply_seq: int = 0
+    runner: ScriptRunner | None = None  # the test's script runner (see ``script_runner``), closed after the test
+
+    def script_runner(self) -> ScriptRunner:
+        """One runner for all of a test's examples, as the Script tab has one: each script still runs in a fresh
+        kernel (the spare the runner keeps started ahead), so an example no longer waits for a cold kernel."""
+        if self.runner is None:
+            self.runner = ScriptRunner(self.manager, output=lambda _s, _t: None, home_first=False)
+        return self.runner
+
+    def close_runner(self) -> None:
+        runner, self.runner = self.runner, None
+        if runner is not None:
+            runner.close()
 
     def __repr__(self) -> str:  # hypothesis prints the arguments of a failing example
         return f"<Rig: {len(self.sim.host_bytes_log)} host writes, {len(self.events)} events>"
@@ -309,6 +322,13 @@ def rig(qapp) -> Iterator[Rig]:
         panel.deleteLater()
         manager.shutdown()
         model.close()
+
+
+@pytest.fixture(autouse=True)
+def _runner_closed_after_the_test(rig: Rig) -> Iterator[None]:
+    """No kernel process outlives its test (the spare included)."""
+    yield
+    rig.close_runner()
 
 
 # ── strategies: values inside and outside the limits ─────────────────────────────────────────────────
@@ -466,14 +486,15 @@ def literal(value: Any) -> str:
 
 def run_script(rig: Rig, actions: list[tuple[str, tuple]]) -> list[str]:
     listed = ", ".join(f"({n!r}, ({''.join(literal(v) + ', ' for v in vals)}))" for n, vals in actions)
-    runner = ScriptRunner(rig.manager, output=lambda _s, _t: None, home_first=False)
-    try:  # closed whatever happens: a failing example must not leave the kernel process running
+    runner = rig.script_runner()
+    try:
         runner.start(f"CALLS = [{listed}]\n" + SCRIPT, "<property>")
         wait_for(lambda: runner.wait(0), 10.0, "the script to end")
         assert runner.result is not None and runner.result.status == "finished", runner.result
         results = runner.namespace_value("results", timeout=5.0)  # the script runs in the kernel process
-    finally:
-        runner.close()
+    except BaseException:  # a failing example leaves no kernel running, and the next one starts afresh
+        rig.close_runner()
+        raise
     assert len(results) == len(actions)
     wrong = []
     for (name, values), (kind, text) in zip(actions, results, strict=True):
