@@ -371,6 +371,18 @@ def fresh_manager(shared_rig_spec, qapp):  # type: ignore[no-untyped-def]
         manager.shutdown()
 
 
+# ------------------------------------------------------------------------------ the station's archive
+@pytest.fixture
+def no_station_left():  # type: ignore[no-untyped-def]
+    """A test that installs a station archive (app.archive.station) leaves none installed, and closes it."""
+    yield
+    from app.archive import station
+
+    left = station.uninstall()
+    if left is not None:
+        left.close()
+
+
 # ------------------------------------------------------------------------------ logging set up by a test
 @pytest.fixture(autouse=True)
 def _logging_set_up_by_the_test():  # type: ignore[no-untyped-def]

@@ -34,12 +34,7 @@ def own_server() -> Iterator[PostgresServer]:
         yield server
 
 
-@pytest.fixture(autouse=True)
-def _no_station_left() -> Iterator[None]:
-    yield
-    left = station.uninstall()
-    if left is not None:
-        left.close()
+pytestmark = pytest.mark.usefixtures("no_station_left")
 
 
 def test_with_the_server_down_the_patients_seen_are_listed_read_only_and_a_session_runs_and_waits(

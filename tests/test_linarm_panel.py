@@ -63,9 +63,10 @@ def _wait_outcome(qtbot, panel: LinarmPanel, command: str, timeout: int = 3000):
     return panel.last_outcome
 
 
-# Homing on the wall clock (the simulated controller's, behind its pty): a real-time test. Where the OS refuses the
-# heartbeat's thread real-time scheduling (CI's container), a busy machine can delay a heartbeat past the
-# controller's 250 ms watchdog, which stops the motors as it should (test_linarm_driver: the log says so).
+# Homing on the wall clock (the simulated controller's, behind its pty): a real-time test. On a busy machine a
+# heartbeat can come later than the controller's 250 ms watchdog allows (without real-time scheduling, or with it
+# while a preempted thread holds the interpreter lock: docs/decisions.md #38, session 13), which stops the motors as
+# it should (test_linarm_driver: the log says so). CI failed on it once (bda0e0d).
 @pytest.mark.realtime
 @pytest.mark.fresh_rig
 def test_go_home_reaches_home_with_progress(qtbot, manager) -> None:

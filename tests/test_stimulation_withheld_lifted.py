@@ -7,7 +7,6 @@ and installed as the application does at its start."""
 
 from __future__ import annotations
 
-from collections.abc import Iterator
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -22,12 +21,7 @@ from app.therapy.patients import ClinicalChannelCap, PatientFes, PatientProfile
 PATIENT = "PZ-070"
 
 
-@pytest.fixture(autouse=True)
-def _no_station_left() -> Iterator[None]:
-    yield
-    left = station.uninstall()
-    if left is not None:
-        left.close()
+pytestmark = pytest.mark.usefixtures("no_station_left")
 
 
 def test_stimulation_withheld_for_a_copy_is_lifted_only_by_the_archives_own_record(
