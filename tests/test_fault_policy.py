@@ -22,6 +22,7 @@ from app.core.config import AppConfig
 from app.devices.registry import DeviceContext
 from app.manager import DeviceHandle, LinarmppManager
 from tests.fakes import CounterDriver, make_counter_device
+from tests.waits import KERNEL_START_MS
 
 DEVICES = ("linarm", "fes", "physio", "patient_model", "vr")
 
@@ -153,7 +154,7 @@ def test_window_fault(tmp_path, qtbot, monkeypatch, fast_config, device, fault, 
         if device == "recording":
             manager.start_session("FAULT01", "tester", root=tmp_path / "sessions")
         runner.start(SCRIPT, "<fault matrix>")
-        qtbot.waitUntil(lambda: runner.body_started_at is not None, timeout=3000)
+        qtbot.waitUntil(lambda: runner.body_started_at is not None, timeout=KERNEL_START_MS)  # tests/waits.py
         t0 = inject(manager, device, event, detail)
         qtbot.waitUntil(lambda: runner.wait(0), timeout=3000)
         outcome = check_outcome(safe, t0, runner.result, words)

@@ -16,6 +16,7 @@ from app.archive import station
 from app.archive.store import open_archive
 from app.core.config import AppConfig, ArchiveConfig
 from app.therapy.patients import PatientProfile
+from tests.waits import WORKER_TASK_MS
 
 
 def _archived(url: str) -> int:
@@ -52,7 +53,7 @@ def test_a_session_is_archived_once_at_its_end_and_waits_while_the_archive_is_aw
         qtbot.wait(300)
         manager.end_session()
         qtbot.waitUntil(lambda: _archived(url) == 1 and getattr(window, "_archive_task", None) is None,
-                        timeout=60_000)
+                        timeout=WORKER_TASK_MS)  # the upload is a task of the worker process
         assert not window.archive_status.isVisible() and window.archive_status.text() == ""
         window.archive_pass(force=True)  # the 30 s timer's pass: nothing more
         qtbot.waitUntil(lambda: getattr(window, "_archive_task", None) is None, timeout=60_000)

@@ -18,6 +18,7 @@ from app.core.progress import ExerciseProgress
 from app.core.runs import RunLog
 from app.scripting.runner import ScriptRunner
 from tests.fakes import BusSamples, fake_bus
+from tests.waits import KERNEL_START_S
 
 STOP_BUDGET_S = 0.2
 
@@ -180,7 +181,8 @@ def wait_for(predicate: Any, timeout: float = 3.0) -> bool:
 
 
 def started(runner: ScriptRunner, output: Output, marker: str = "started") -> None:
-    assert wait_for(lambda: marker in output.text()), output.text()
+    """The script's first output seen: its kernel process started (a loaded machine's time, tests/waits.py)."""
+    assert wait_for(lambda: marker in output.text(), KERNEL_START_S), output.text()
 
 
 # ---------------------------------------------------------------------------------------------- stop
