@@ -19,6 +19,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+import pytest
 from PySide6.QtCore import QTimer
 from sqlalchemy import insert
 
@@ -70,6 +71,10 @@ def populate(archive: Any) -> None:
             "hash": "0" * 64}])
 
 
+# Its CPU bound is a measurement on the GUI thread of a suite worker: a quiet suite (7cf965f) still saw one turn of
+# 253 ms (the listing's own turns: at most 64 rows, 13-16 ms) after the teardown's deferred deletions: a cause not
+# found yet (docs/decisions.md #38, session 13). Until it is, the one rerun a timing test gets.
+@pytest.mark.realtime
 def test_ten_thousand_sessions_are_listed_newest_first_in_blocks_without_a_long_turn(
         qtbot: Any, tmp_path: Path, monkeypatch: Any) -> None:
     from app.ui.sessions_browser import COLUMNS, SessionsBrowser

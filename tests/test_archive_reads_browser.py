@@ -11,6 +11,7 @@ from typing import Any
 
 from app.archive import reads, station
 from tests.test_archive_reads import PATIENT, Clinic, make_two_stations
+from tests.waits import WORKER_TASK_MS
 
 
 def test_the_sessions_browser_lists_every_stations_sessions_and_replays_one_from_another_station(
@@ -48,7 +49,7 @@ def test_the_sessions_browser_lists_every_stations_sessions_and_replays_one_from
         assert [browser.table.item(r, 5).text() for r in range(3)] == ["complete"] * 3
         browser.table.selectRow(2)  # Monday, recorded on room-A: room-B has no folder of it
         assert browser.selected_folder() is None and browser.replay_button.isEnabled()
-        with qtbot.waitSignal(browser.opened, timeout=60_000) as opened:
+        with qtbot.waitSignal(browser.opened, timeout=WORKER_TASK_MS) as opened:
             assert browser.replay() is not None
         replay = opened.args[0]
         assert isinstance(replay, ReplayWindow)
@@ -56,7 +57,7 @@ def test_the_sessions_browser_lists_every_stations_sessions_and_replays_one_from
         assert cache is not None and list(cache.glob(f"*/{PATIENT}/20260302-100000/manifest.json"))
         replay.close()
         # its summary (the run's metrics) and a CSV export: from the copy made once
-        with qtbot.waitSignal(browser.opened, timeout=60_000) as opened:
+        with qtbot.waitSignal(browser.opened, timeout=WORKER_TASK_MS) as opened:
             assert browser.open_summary() is not None
         assert [len(r.repetitions) for r in opened.args[0].summary.runs] == [3]
         opened.args[0].close()
@@ -64,14 +65,14 @@ def test_the_sessions_browser_lists_every_stations_sessions_and_replays_one_from
         listed = browser.selected_session()
         assert listed is not None and listed.station == "room-A"
         browser.export(listed, "csv", tmp_path / "csv", on_done=lambda ok, message: done.append((ok, message)))
-        qtbot.waitUntil(lambda: bool(done), timeout=60_000)
+        qtbot.waitUntil(lambda: bool(done), timeout=WORKER_TASK_MS)
         assert done[0][0], done
         assert (tmp_path / "csv" / "manifest.json").is_file() and (tmp_path / "csv" / "events.csv").is_file()
         research: list[Any] = []  # a research export of this session and of one of room-B's own folders
         both = [listed, browser.summaries[1].folder]
         (tmp_path / "xdf").mkdir()
         assert browser.research_export(both, "xdf", tmp_path / "xdf", on_done=research.append) is not None
-        qtbot.waitUntil(lambda: bool(research), timeout=60_000)
+        qtbot.waitUntil(lambda: bool(research), timeout=WORKER_TASK_MS)
         assert research[0].ok, research[0].error
         assert len(list((tmp_path / "xdf").rglob("*.xdf"))) == 2
         assert len(list(cache.glob("*/.copied"))) == 1  # one copy, read four times

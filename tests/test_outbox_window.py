@@ -56,7 +56,7 @@ def test_a_session_is_archived_once_at_its_end_and_waits_while_the_archive_is_aw
                         timeout=WORKER_TASK_MS)  # the upload is a task of the worker process
         assert not window.archive_status.isVisible() and window.archive_status.text() == ""
         window.archive_pass(force=True)  # the 30 s timer's pass: nothing more
-        qtbot.waitUntil(lambda: getattr(window, "_archive_task", None) is None, timeout=60_000)
+        qtbot.waitUntil(lambda: getattr(window, "_archive_task", None) is None, timeout=WORKER_TASK_MS)
         assert _archived(url) == 1
         # 2. the archive goes away during the next session: its end waits, and the status bar says so
         manager.start_session("PZ-001", "dr_verdi")
@@ -65,7 +65,7 @@ def test_a_session_is_archived_once_at_its_end_and_waits_while_the_archive_is_aw
         share.write_text("not mounted\n", encoding="utf-8")
         qtbot.wait(300)
         manager.end_session()
-        qtbot.waitUntil(lambda: "waiting for the archive" in window.archive_status.text(), timeout=60_000)
+        qtbot.waitUntil(lambda: "waiting for the archive" in window.archive_status.text(), timeout=WORKER_TASK_MS)
         text = window.archive_status.text()
         assert text.startswith("1 session waiting for the archive (") and "cannot be reached" in text, text
         assert window.archive_status.isVisible()
@@ -73,10 +73,11 @@ def test_a_session_is_archived_once_at_its_end_and_waits_while_the_archive_is_aw
         share.unlink()
         away.rename(share)
         window.archive_pass(force=True)
-        qtbot.waitUntil(lambda: window.archive_status.text() == "" and window._archive_task is None, timeout=60_000)
+        qtbot.waitUntil(lambda: window.archive_status.text() == "" and window._archive_task is None,
+                        timeout=WORKER_TASK_MS)
         assert _archived(url) == 2
         window.archive_pass(force=True)
-        qtbot.waitUntil(lambda: getattr(window, "_archive_task", None) is None, timeout=60_000)
+        qtbot.waitUntil(lambda: getattr(window, "_archive_task", None) is None, timeout=WORKER_TASK_MS)
         assert _archived(url) == 2 and not window.archive_status.isVisible()
     finally:
         if window is not None:
