@@ -46,6 +46,7 @@ from app.wire.cmdmessenger import ArduinoReceiver
 from app.wire.linarm_protocol import ControlMode, ControlState, HomeState
 from app.wire.physio_codec import crc16_ccitt
 from app.wire.udp_frames import PATIENT_MODEL_REPLY_LAYOUT, PatientModelReply, encode_patient_model_reply
+from tests.waits import KERNEL_START_S
 
 pytestmark = pytest.mark.sim_homed  # a homed LINarm from the start: the homing is tested on its own
 
@@ -491,10 +492,12 @@ def run_script(rig: Rig, actions: list[tuple[str, tuple]]) -> list[str]:
         runner.start(f"CALLS = [{listed}]\n" + SCRIPT, "<property>")
         wait_for(lambda: runner.wait(0), 10.0, "the script to end")
         assert runner.result is not None and runner.result.status == "finished", runner.result
-        results = runner.namespace_value("results", timeout=5.0)  # the script runs in the kernel process
+        # The script runs in the kernel process; its answer comes from there (5 s was once not enough in CI).
+        results = runner.namespace_value("results", timeout=KERNEL_START_S)
     except BaseException:  # a failing example leaves no kernel running, and the next one starts afresh
         rig.close_runner()
         raise
+    assert results is not None, "the kernel did not answer the read of the script's results"
     assert len(results) == len(actions)
     wrong = []
     for (name, values), (kind, text) in zip(actions, results, strict=True):

@@ -15,9 +15,11 @@ from typing import Any
 import pytest
 
 from app.core.config import AppConfig, SafetyConfig
+from app.core.priority import REALTIME_NICE, SCRIPT_NICE
 from app.safety.supervisor import SafetySupervisor
 from app.scripting.runner import ScriptRunner
 from tests.test_script_runner import FakeManager, ForceSample, Output, close_runners, started, wait_for
+from tests.waits import KERNEL_START_S
 
 pytestmark = pytest.mark.sim_homed  # a homed LINarm from the start: the homing is tested on its own
 
@@ -73,6 +75,41 @@ def test_the_script_runs_in_another_process_started_ahead(manager: FakeManager, 
     assert time.monotonic() - t0 < 0.5
     assert runner.wait(3.0)
     assert output.text("stdout").split("started again")[1].split()[0] != str(pid)
+
+
+def test_a_script_runs_at_an_ordinary_priority_whatever_thread_started_it(manager: FakeManager,
+                                                                         output: Output) -> None:
+    """The real-time process's threads run raised (nice -5, a device link's SCHED_RR) and Linux hands a thread's
+    priority to the processes it starts: a busy-waiting script must not share the CPU equally with the window."""
+    made: list[ScriptRunner] = []
+    raised: list[bool] = []
+
+    def start_raised() -> None:
+        try:  # this thread only: 0 is the calling thread on Linux; no SCHED_RESET_ON_FORK, as a careless caller
+            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), REALTIME_NICE)
+            os.sched_setscheduler(0, os.SCHED_RR, os.sched_param(1))
+            raised.append(True)
+        except PermissionError:
+            raised.append(False)
+        made.append(ScriptRunner(manager, output, home_first=False))  # its first kernel starts here
+
+    thread = threading.Thread(target=start_raised)
+    thread.start()
+    thread.join(10.0)
+    if not raised[0]:
+        pytest.skip("this user may not raise a thread's priority: nothing to inherit")
+    runner = made[0]
+    assert runner.ready(KERNEL_START_S)
+    runner.start("import os, subprocess, sys\n"
+                 "print('kernel', os.getpriority(os.PRIO_PROCESS, 0), os.sched_getscheduler(0))\n"
+                 "child = subprocess.run([sys.executable, '-c', 'import os; print(os.getpriority(os.PRIO_PROCESS, 0),"
+                 " os.sched_getscheduler(0))'], capture_output=True, text=True)\n"
+                 "print('child', child.stdout.strip())\n", "<test>")
+    assert runner.wait(KERNEL_START_S) and runner.result is not None and runner.result.status == "finished", \
+        output.text()
+    lines = dict(line.split(" ", 1) for line in output.text("stdout").splitlines())
+    assert lines["kernel"] == f"{SCRIPT_NICE} {os.SCHED_OTHER}", "the kernel inherited the raised thread's priority"
+    assert lines["child"] == f"{SCRIPT_NICE} {os.SCHED_OTHER}", "what the script starts runs as the kernel"
 
 
 def test_every_sample_reaches_the_callbacks_in_order(manager: FakeManager, output: Output) -> None:

@@ -26,6 +26,7 @@ from pathlib import Path
 log = logging.getLogger(__name__)
 
 REALTIME_NICE = -5  # a quarter of the range towards the top: ahead of ordinary programs (0), far from the kernel's own
+SCRIPT_NICE = 0  # a script's processes: an ordinary program's, below the real-time process (app/scripting/warden.py)
 _TASKS = Path("/proc/self/task")
 
 
@@ -107,4 +108,4 @@ def _reset_for_tests() -> None:
         _outcome = None
 
 
-__all__ = ["REALTIME_NICE", "PriorityOutcome", "no_thread_below_this_one", "raise_for_real_time"]
+__all__ = ["REALTIME_NICE", "SCRIPT_NICE", "PriorityOutcome", "no_thread_below_this_one", "raise_for_real_time"]

@@ -31,6 +31,8 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
+from app.core.priority import SCRIPT_NICE
+
 log = logging.getLogger(__name__)
 
 WARDEN_FILE = Path(__file__).resolve().parent / "warden.py"  # the kernel's parent: owns whatever a script starts
@@ -157,7 +159,7 @@ class KernelProcess:
             # application goes (its control link closes). Its exit status is the kernel's.
             self.proc = subprocess.Popen(
                 [sys.executable, "-I", str(WARDEN_FILE), str(child.fileno()), str(int(memory_limit)),
-                 str(control_child.fileno())],
+                 str(control_child.fileno()), str(SCRIPT_NICE)],
                 pass_fds=(child.fileno(), control_child.fileno()), stdin=subprocess.DEVNULL,
                 stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True, cwd=os.getcwd(),
                 env=_kernel_environment())

@@ -1,7 +1,7 @@
 """The script kernel's warden: a small parent that owns every process a script starts (standard library only).
 
 Started by :class:`app.scripting.kernel_process.KernelProcess` as
-``python -I warden.py SOCK_FD MEMORY_LIMIT CONTROL_FD``
+``python -I warden.py SOCK_FD MEMORY_LIMIT CONTROL_FD NICE``
 in a session of its own. It makes itself a *child subreaper* (Linux ``prctl(PR_SET_CHILD_SUBREAPER)``), forks,
 and the child execs the kernel (``python -I kernel.py SOCK_FD MEMORY_LIMIT``). From then on every process the
 script starts stays below the warden, whatever it does: ``setsid``, a double fork, its parent's death — an
@@ -233,8 +233,27 @@ def _mirror(status: int) -> None:
     os._exit(os.WEXITSTATUS(status) if os.WIFEXITED(status) else 1)
 
 
+def _ordinary_priority(nice: int) -> None:
+    """The script's processes run as an ordinary program: the normal policy at ``nice`` (absolute), whatever the
+    application thread that started the warden runs at. That thread may run raised (nice -5, or a device link's
+    SCHED_RR: app/core/priority.py, app/devices/realtime.py), and Linux hands a thread's nice value and policy to
+    the processes it starts; a busy-waiting script (the seeds' ``waitCondition``) would then share the CPU equally
+    with the window and the drivers instead of yielding to them. Lowering is always allowed."""
+    if hasattr(os, "sched_setscheduler"):
+        try:
+            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+        except OSError:
+            pass
+    if hasattr(os, "setpriority"):
+        try:
+            os.setpriority(os.PRIO_PROCESS, 0, nice)
+        except OSError:  # raising back to ``nice`` from a lower priority needs CAP_SYS_NICE: stays lower
+            pass
+
+
 def main(argv: list[str]) -> None:
     sock_fd, memory_limit, control_fd = argv[1], argv[2], int(argv[3])
+    _ordinary_priority(int(argv[4]) if len(argv) > 4 else 0)  # before the fork: the kernel inherits it
     _prctl(PR_SET_CHILD_SUBREAPER, 1)  # Linux; elsewhere orphans go to init and only direct children are ended
     warden_pid = os.getpid()
     pid = os.fork()
