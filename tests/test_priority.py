@@ -103,3 +103,44 @@ def test_the_worker_runs_at_its_own_lower_priority_whatever_it_inherits(fresh_ou
         assert pid is not None and _nice_of(pid) == WORKER_NICE != _nice_of(0)
     finally:
         service.close()
+
+
+def test_the_process_s_scheduling_group_is_raised_with_it() -> None:
+    """Linux's autogroup: a thread's nice counts only inside its session's group; against a program of another session
+    the group's nice decides. Run in a session of its own, so the suite's own group is left as it is."""
+    import subprocess
+    import sys
+
+    if priority.group_nice() is None:
+        pytest.skip("no scheduling groups (autogroup) on this system")
+    code = ("from app.core import priority\n"
+            "outcome = priority.raise_for_real_time()\n"
+            "print(outcome.raised, priority.group_nice(), outcome.sentence)\n")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60,
+                          start_new_session=True, cwd=Path(__file__).resolve().parent.parent)
+    raised, group, sentence = done.stdout.split(" ", 2)
+    if raised == "True":
+        assert int(group) == REALTIME_NICE, sentence
+        assert "its scheduling group too" in sentence
+    else:
+        assert _may_raise() is False, sentence  # refused only where this user may not raise at all
+        assert "normal priority" in sentence
+
+
+def test_the_worker_s_group_sits_below_the_application_s(fresh_outcome, qtbot) -> None:  # type: ignore[no-untyped-def]
+    from app.worker import TaskService
+    from app.worker.service import WORKER_NICE
+
+    ours = priority.group_nice()
+    if ours is None:
+        pytest.skip("no scheduling groups (autogroup) on this system")
+    service = TaskService()
+    try:
+        service.warm()
+        qtbot.waitUntil(lambda: service._worker is not None and service._worker.ready_s is not None, timeout=20000)
+        pid = service.worker_pid
+        assert pid is not None
+        words = Path(f"/proc/{pid}/autogroup").read_text().split()
+        assert int(words[words.index("nice") + 1]) == min(19, ours + WORKER_NICE)
+    finally:
+        service.close()

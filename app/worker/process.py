@@ -58,7 +58,7 @@ def main(fd: int) -> None:
         # nice value alone would not yield the CPU to the application's group. The group's nice does.
         try:
             with open("/proc/self/autogroup", "w", encoding="ascii") as fh:
-                fh.write(str(nice))
+                fh.write(str(int(init.get("group_nice", nice))))
         except OSError:
             pass
     faulthandler.enable()  # a crash's stack into the worker's log (its stderr)

@@ -47,6 +47,7 @@ from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 from typing import IO, Any
 
+from app.core.priority import group_nice
 from app.worker.protocol import LinkClosed, Sender, recv
 
 log = logging.getLogger(__name__)
@@ -289,7 +290,11 @@ class TaskService:
         worker = _Worker(parent)
         self.spawns += 1
         # Queued in the socket before the process exists; it reads them once it runs.
-        worker.sender.send("init", {"sys_path": list(sys.path), "nice": self.nice})
+        # Its scheduling group (a session of its own) sits as far below the application's group as its nice says:
+        # the application's group may be raised (app/core/priority.py).
+        app_group = group_nice() or 0
+        worker.sender.send("init", {"sys_path": list(sys.path), "nice": self.nice,
+                                    "group_nice": max(-20, min(19, app_group + self.nice))})
         worker.thread = threading.Thread(target=self._link, args=(worker, child), name="task-worker-link",
                                          daemon=True)
         worker.thread.start()
