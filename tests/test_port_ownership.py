@@ -106,6 +106,29 @@ def test_a_second_open_of_a_held_tty_fails_and_names_the_holder(tmp_path) -> Non
     assert holder.returncode == 0
 
 
+def test_a_tty_that_goes_away_while_it_is_opened_is_a_transport_error(monkeypatch) -> None:
+    """The simulator killed while the driver reconnects: tcflush raised termios.error (EIO), which is not an
+    OSError, out of the driver's thread (a teardown error in a quiet suite). It is a failed open, retried."""
+    import termios
+
+    master, slave = os.openpty()
+    try:
+        def gone(self: serial.Serial) -> None:
+            raise termios.error(errno.EIO, "Input/output error")
+
+        monkeypatch.setattr(serial.Serial, "reset_input_buffer", gone)
+        link = SerialTransport(os.ttyname(slave))
+        with pytest.raises(TransportError, match="went away"):
+            link.open()
+        assert link._port is None
+        monkeypatch.undo()
+        link.open()  # the tty is free again: the failed open left no exclusive flag behind
+        link.close()
+    finally:
+        os.close(slave)
+        os.close(master)
+
+
 def test_a_plain_open_is_refused_while_the_app_holds_the_tty_and_allowed_after(tmp_path) -> None:
     """TIOCEXCL: a program that asks for no lock gets EBUSY (unless it has CAP_SYS_ADMIN); our close clears it,
     so our own reconnect (and anyone after us) can open the port again."""

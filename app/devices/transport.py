@@ -110,8 +110,15 @@ class SerialTransport:
             self.shared_with = port_holders(self.url)
             if self.shared_with:
                 log.warning("%s is also open in %s", self.url, ", ".join(f"pid {p} ({c})" for p, c in self.shared_with))
-        with contextlib.suppress(serial.SerialException, OSError):
+        try:
             port.reset_input_buffer()  # stale bytes from before we connected are not trustworthy
+        except termios_error as exc:  # tcflush on a tty whose far end has just gone (EIO): not an OSError
+            _set_tty_exclusive(port, False)
+            with contextlib.suppress(Exception):
+                port.close()
+            raise TransportError(f"cannot open {self.url}: the link went away while it was opened ({exc})") from exc
+        except (serial.SerialException, OSError):
+            pass
         self._port = port
 
     def close(self) -> None:
