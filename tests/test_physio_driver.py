@@ -26,11 +26,9 @@ def start_pair(tmp_path, rate_hz: float):
 
 
 def stop_streaming(sim: SerialSimulator) -> None:
-    """The board stops making frames, every one it made written, its end of the pty left open (closing it
-    discards what the driver has not read yet)."""
-    sim._stop.set()
-    if sim._thread is not None:
-        sim._thread.join(timeout=2.0)
+    """The board stops making frames, every one it made written, its end of the pty left open."""
+    sim.halt()
+    assert not sim.running
 
 
 # How far behind the board the driver may be when looked at: at 100 Hz the 10 frames the 1 % of a 10 s window

@@ -92,10 +92,15 @@ class SerialSimulator:
         self._thread = threading.Thread(target=self._run, name=f"sim:{self.name}", daemon=True)
         self._thread.start()
 
-    def stop(self) -> None:
+    def halt(self) -> None:
+        """The board stops making frames, every one it made written, its end of the link left open (closing it
+        discards what the host has not read yet): a board that goes silent, not a pulled cable."""
         self._stop.set()
         if self._thread is not None:
             self._thread.join(timeout=2.0)
+
+    def stop(self) -> None:
+        self.halt()
         self.link.close()
 
     def clear_host_log(self) -> None:
