@@ -1,16 +1,46 @@
-"""Python logging to the console and to a rotating file in the user's data folder."""
+"""Python logging to the console and to a rotating file in the user's data folder.
+
+Every thread's log call only queues its line; one writer thread writes them to the file and the console. The
+drivers' real-time threads log too (the LINarm heartbeat's late and withheld beats, a link's loss): a write to a
+slow or full disk, or to a console pipe nobody reads, must not hold them. The queue is drained when logging shuts
+down (``logging.shutdown``: at exit, and before each forced ``os._exit``), within ``DRAIN_S``."""
 
 from __future__ import annotations
 
 import logging
 import logging.handlers
 import os
+import queue
+from collections.abc import Sequence
 from pathlib import Path
 
 from app.core.paths import DataFolderError, log_dir
 
 LOG_FORMAT = "%(asctime)s %(levelname)-7s %(threadName)s %(name)s: %(message)s"
+DRAIN_S = 2.0  # the most a shutdown waits for the writer to write what is queued (a stuck disk: lines are lost)
 _configured: Path | None = None
+
+
+class BackgroundHandler(logging.handlers.QueueHandler):
+    """Queues each record (formatted on the caller's thread: no I/O there) for ``handlers``, written by one writer
+    thread. ``close`` drains the queue (within ``DRAIN_S``) and ends the writer."""
+
+    def __init__(self, handlers: Sequence[logging.Handler]) -> None:
+        super().__init__(queue.SimpleQueue())
+        self.listener: logging.handlers.QueueListener | None = logging.handlers.QueueListener(
+            self.queue, *handlers, respect_handler_level=True)
+        self.listener.start()
+
+    def close(self) -> None:
+        listener, self.listener = self.listener, None
+        writer = getattr(listener, "_thread", None)
+        if listener is not None and writer is not None:
+            listener.enqueue_sentinel()
+            writer.join(DRAIN_S)
+            listener._thread = None  # type: ignore[attr-defined]
+        for handler in listener.handlers if listener is not None else ():
+            handler.close()  # its own: written by the writer only
+        super().close()
 
 
 class _PrivateRotatingFileHandler(logging.handlers.RotatingFileHandler):
@@ -52,11 +82,12 @@ def setup_logging(level: int = logging.INFO, console: bool = True) -> Path:
     except OSError as exc:
         raise DataFolderError(folder, exc) from exc
     file_handler.setFormatter(logging.Formatter(LOG_FORMAT))
-    root.addHandler(file_handler)
+    handlers: list[logging.Handler] = [file_handler]
     if console:
         stream = logging.StreamHandler()
         stream.setFormatter(logging.Formatter(LOG_FORMAT))
-        root.addHandler(stream)
+        handlers.append(stream)
+    root.addHandler(BackgroundHandler(handlers))
     _configured = path
     return path
 
