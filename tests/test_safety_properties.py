@@ -493,11 +493,19 @@ def run_script(rig: Rig, actions: list[tuple[str, tuple]]) -> list[str]:
         wait_for(lambda: runner.wait(0), 10.0, "the script to end")
         assert runner.result is not None and runner.result.status == "finished", runner.result
         # The script runs in the kernel process; its answer comes from there (5 s was once not enough in CI).
+        run_kernel = runner._kernel
+        t_read = time.monotonic()
         results = runner.namespace_value("results", timeout=KERNEL_START_S)
+        t_read = time.monotonic() - t_read
     except BaseException:  # a failing example leaves no kernel running, and the next one starts afresh
         rig.close_runner()
         raise
-    assert results is not None, "the kernel did not answer the read of the script's results"
+    assert results is not None, (
+        f"the kernel did not answer the read of the script's results ({t_read:.2f} s; the run's kernel "
+        f"{getattr(run_kernel, 'pid', None)}: alive {getattr(run_kernel, 'alive', None)}, ended "
+        f"{run_kernel.ended.is_set() if run_kernel is not None else None}, returncode "
+        f"{getattr(run_kernel, 'returncode', None)}, cause {run_kernel.cause() if run_kernel is not None else None}; "
+        f"the prompt's kernel now {runner.kernel_pid})")
     assert len(results) == len(actions)
     wrong = []
     for (name, values), (kind, text) in zip(actions, results, strict=True):
