@@ -463,6 +463,10 @@ def _nothing_left_running(request):  # type: ignore[no-untyped-def]
     threads0, os_threads0, children0 = _python_threads(), _os_threads(), _children()
     owned = rigs.OWNED  # a shared rig's threads and processes, built before or during the test, are not its own
     yield
+    from app.core import logging_setup
+
+    if logging_setup.log_file() is not None:  # an entry point run in-process configured the application's log
+        logging_setup.shutdown()  # its writer thread ends with the test
     deadline = time.monotonic() + LEFTOVER_GRACE_S
     while True:
         rig_threads = owned.thread_idents()

@@ -30,6 +30,9 @@ class BackgroundHandler(logging.handlers.QueueHandler):
         self.listener: logging.handlers.QueueListener | None = logging.handlers.QueueListener(
             self.queue, *handlers, respect_handler_level=True)
         self.listener.start()
+        writer = getattr(self.listener, "_thread", None)
+        if writer is not None:
+            writer.name = "log-writer"
 
     def close(self) -> None:
         listener, self.listener = self.listener, None
@@ -94,3 +97,15 @@ def setup_logging(level: int = logging.INFO, console: bool = True) -> Path:
 
 def log_file() -> Path | None:
     return _configured
+
+
+def shutdown() -> None:
+    """End the configured logging, its queue drained and its writer thread ended; ``setup_logging`` may then
+    configure it again (a test that ran an entry point in-process)."""
+    global _configured
+    root = logging.getLogger()
+    for handler in root.handlers[:]:
+        if isinstance(handler, BackgroundHandler):
+            root.removeHandler(handler)
+            handler.close()
+    _configured = None
