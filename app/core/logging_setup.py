@@ -40,7 +40,7 @@ class BackgroundHandler(logging.handlers.QueueHandler):
         if listener is not None and writer is not None:
             listener.enqueue_sentinel()
             writer.join(DRAIN_S)
-            listener._thread = None  # type: ignore[attr-defined]
+            listener._thread = None
         for handler in listener.handlers if listener is not None else ():
             handler.close()  # its own: written by the writer only
         super().close()
