@@ -10,7 +10,7 @@ import subprocess
 import time
 from pathlib import Path
 
-from app.devices.sim.host import emulator_child_setup, free_tcp_port, qemu_mps2_command
+from app.devices.sim.host import free_tcp_port, qemu_mps2_command
 
 
 class McuBoard:
@@ -21,8 +21,7 @@ class McuBoard:
         self.proc = subprocess.Popen(
             qemu_mps2_command(image, self.uart0_port,
                               f"tcp:127.0.0.1:{console_port},server=on,wait=off,nodelay=on", icount),
-            stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
-            preexec_fn=emulator_child_setup)  # an ordinary program, as the simulator host starts it
+            stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
         try:
             self.uart0 = self._connect(self.uart0_port)
             self.console = self._connect(console_port)

@@ -100,24 +100,11 @@ def die_with_parent() -> None:
 
 
 def firmware_child_setup() -> None:
-    """The SIL firmware: dies with the simulator process, and runs its 1 kHz loop real-time when allowed (it sleeps
-    between ticks: a few per cent of a core)."""
+    """The SIL firmware: dies with the simulator process, and runs its 1 kHz loop real-time when allowed."""
     die_with_parent()
     if os.environ.get("LINARMPP_REALTIME") != "0":
         with contextlib.suppress(Exception):
             os.sched_setscheduler(0, os.SCHED_RR, os.sched_param(SIMULATOR_RT_PRIORITY))
-
-
-def emulator_child_setup() -> None:
-    """The emulated board (qemu-system-arm): dies with the simulator process and runs under the normal policy, at
-    the nice value it inherits (the application's, raised or not: beside the window, never ahead of it), never with
-    the simulator process's real-time policy. The emulator keeps its threads busy (35-55 % of a core each,
-    measured): at SCHED_RR it took the CPU from every normally scheduled thread of the machine, the window's
-    included; beside it the clinician's day saw its window stall for 0.71 s and the GUI watch stop the therapy
-    (tests/test_firmware_mcu.py and tests/test_clinician_day.py run together on 2 cores; after: no stall)."""
-    die_with_parent()
-    with contextlib.suppress(Exception):
-        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
 
 
 # ============================================================================================ the child process
@@ -171,7 +158,7 @@ class McuCore:
         self.proc = subprocess.Popen(
             qemu_mps2_command(image, port, f"tcp:{LOOPBACK}:{console_port},server=on,wait=off,nodelay=on"),
             stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-            preexec_fn=emulator_child_setup)
+            preexec_fn=firmware_child_setup)
         deadline = time.monotonic() + connect_timeout_s
         try:
             self.sock = self._connect(port, deadline)
