@@ -490,10 +490,10 @@ def run_script(rig: Rig, actions: list[tuple[str, tuple]]) -> list[str]:
     runner = rig.script_runner()
     try:
         runner.start(f"CALLS = [{listed}]\n" + SCRIPT, "<property>")
+        run_kernel = runner._kernel  # the kernel that runs it: its fate is in the message if the read fails
         wait_for(lambda: runner.wait(0), 10.0, "the script to end")
         assert runner.result is not None and runner.result.status == "finished", runner.result
         # The script runs in the kernel process; its answer comes from there (5 s was once not enough in CI).
-        run_kernel = runner._kernel
         t_read = time.monotonic()
         results = runner.namespace_value("results", timeout=KERNEL_START_S)
         t_read = time.monotonic() - t_read
