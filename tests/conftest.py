@@ -177,19 +177,12 @@ REALTIME_MODULES = {
 REALTIME_TEST_NICE = -10
 
 
-def _thread_nices() -> dict[int, int]:
-    out: dict[int, int] = {}
-    for name in os.listdir("/proc/self/task"):
-        try:
-            out[int(name)] = os.getpriority(os.PRIO_PROCESS, int(name))
-        except OSError:  # ended meanwhile
-            continue
-    return out
-
-
 def _set_thread_nices(nice: int) -> bool:
+    """Every thread of this worker at ``nice``; False where the system refuses (no CAP_SYS_NICE / RLIMIT_NICE)."""
+    from app.core.priority import _thread_ids
+
     try:
-        for tid in _thread_nices():
+        for tid in _thread_ids():
             with contextlib.suppress(ProcessLookupError):
                 os.setpriority(os.PRIO_PROCESS, tid, nice)
     except (PermissionError, AttributeError):

@@ -8,27 +8,24 @@ import threading
 
 import pytest
 
-from tests.conftest import REALTIME_TEST_NICE, _set_thread_nices
+from tests.conftest import REALTIME_TEST_NICE
 
 
 def _may_raise_to(nice: int) -> bool:
+    """Tried on a throwaway thread, so nothing of the worker changes."""
     allowed: list[bool] = []
 
     def probe() -> None:
-        allowed.append(_set_thread_nices_probe(nice))
+        try:
+            os.setpriority(os.PRIO_PROCESS, 0, nice)
+            allowed.append(True)
+        except PermissionError:
+            allowed.append(False)
 
     thread = threading.Thread(target=probe)
     thread.start()
     thread.join()
     return allowed[0]
-
-
-def _set_thread_nices_probe(nice: int) -> bool:
-    try:
-        os.setpriority(os.PRIO_PROCESS, 0, nice)
-        return True
-    except PermissionError:
-        return False
 
 
 @pytest.mark.realtime
@@ -45,4 +42,3 @@ def test_a_realtime_test_runs_ahead_with_every_thread() -> None:
 
 def test_a_logic_test_runs_at_the_workers_own_priority() -> None:
     assert os.getpriority(os.PRIO_PROCESS, 0) > REALTIME_TEST_NICE
-    assert _set_thread_nices is not None
