@@ -491,6 +491,7 @@ def run_script(rig: Rig, actions: list[tuple[str, tuple]]) -> list[str]:
     try:
         runner.start(f"CALLS = [{listed}]\n" + SCRIPT, "<property>")
         run_kernel = runner._kernel  # the kernel that runs it: its fate is in the message if the read fails
+        assert run_kernel is not None
         wait_for(lambda: runner.wait(0), 10.0, "the script to end")
         assert runner.result is not None and runner.result.status == "finished", runner.result
         # The script runs in the kernel process; its answer comes from there (5 s was once not enough in CI).
@@ -502,10 +503,8 @@ def run_script(rig: Rig, actions: list[tuple[str, tuple]]) -> list[str]:
         raise
     assert results is not None, (
         f"the kernel did not answer the read of the script's results ({t_read:.2f} s; the run's kernel "
-        f"{getattr(run_kernel, 'pid', None)}: alive {getattr(run_kernel, 'alive', None)}, ended "
-        f"{run_kernel.ended.is_set() if run_kernel is not None else None}, returncode "
-        f"{getattr(run_kernel, 'returncode', None)}, cause {run_kernel.cause() if run_kernel is not None else None}; "
-        f"the prompt's kernel now {runner.kernel_pid})")
+        f"{run_kernel.pid}: {'alive' if run_kernel.alive else run_kernel.cause()}; the prompt's kernel now "
+        f"{runner.kernel_pid})")
     assert len(results) == len(actions)
     wrong = []
     for (name, values), (kind, text) in zip(actions, results, strict=True):
