@@ -378,3 +378,36 @@ def test_only_one_script_at_a_time(manager: FakeManager, output: Output) -> None
     assert runner.wait(2.0)
     with pytest.raises(SyntaxError):
         runner.start("def broken(:\n", "<test>")
+
+
+def test_a_read_of_the_namespace_waits_for_its_own_kernel_when_another_ends(manager: FakeManager,
+                                                                            output: Output) -> None:
+    """A read of the prompt's namespace is answered by the kernel it asked, even when an earlier kernel — retired
+    when the next run took a fresh one — ends meanwhile: that end released every pending read with nothing (the
+    safety property test's results read `None`, in CI and in loaded suites, #38)."""
+    import os
+    import signal
+
+    runner = ScriptRunner(manager, output, home_first=False)
+    runner.start("first = 1\n", "<first>")
+    assert runner.wait(KERNEL_START_S) and runner.result is not None and runner.result.status == "finished"
+    earlier = runner._kernel
+    assert earlier is not None
+    os.kill(earlier.pid, signal.SIGSTOP)  # its retirement then ends it only when the runner kills it (~1 s)
+    runner.start("answer = 42\n", "<second>")
+    assert runner.wait(KERNEL_START_S) and runner.result is not None and runner.result.status == "finished"
+    current = runner._kernel
+    assert current is not None and current is not earlier
+    os.kill(current.pid, signal.SIGSTOP)  # the read waits for this kernel's answer
+    try:
+        read: list[Any] = []
+        reader = threading.Thread(target=lambda: read.append(runner.namespace_value("answer",
+                                                                                    timeout=KERNEL_START_S)))
+        reader.start()
+        assert earlier.ended.wait(KERNEL_START_S), "the retired kernel was ended"
+        reader.join(1.0)  # the earlier kernel's end has been handled by now; the read must still be waiting
+        assert read == [], f"the read ended when another kernel did: {read}"
+    finally:
+        os.kill(current.pid, signal.SIGCONT)
+    reader.join(KERNEL_START_S)
+    assert read == [42]

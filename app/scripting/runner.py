@@ -117,7 +117,10 @@ class PromptRun:
 
 
 class _Answer:
-    def __init__(self) -> None:
+    """A read of one kernel's namespace: released by that kernel's answer, or by that kernel's end."""
+
+    def __init__(self, kernel: KernelProcess) -> None:
+        self.kernel = kernel
         self.event = threading.Event()
         self.value: Any = None
 
@@ -546,7 +549,7 @@ class ScriptRunner:
 
     def _ask(self, kernel: KernelProcess, msg: dict[str, Any], timeout: float = ANSWER_TIMEOUT_S) -> Any:
         rid = next(self._ids)
-        answer = _Answer()
+        answer = _Answer(kernel)
         self._answers[rid] = answer
         try:
             if kernel.send({**msg, "id": rid}):
@@ -630,7 +633,8 @@ class ScriptRunner:
         if kernel is self._kernel:
             self._end_console_run(None, "script_error", f"the script's process ended: {kernel.cause()}")
         for answer in list(self._answers.values()):
-            answer.event.set()
+            if answer.kernel is kernel:  # not a read of the prompt's kernel when a retired one ends (#38)
+                answer.event.set()
         if kernel is self._kernel:
             self._wake.set()
             if not self.running and kernel.used and not self._closed:
