@@ -411,3 +411,32 @@ def test_a_read_of_the_namespace_waits_for_its_own_kernel_when_another_ends(mana
         os.kill(current.pid, signal.SIGCONT)
     reader.join(KERNEL_START_S)
     assert read == [42]
+
+
+def test_a_prompt_entry_runs_on_when_a_retired_kernel_ends(manager: FakeManager, output: Output) -> None:
+    """A prompt entry is done when its own kernel says so (or ends), not when an earlier, retired kernel ends
+    meanwhile (the console would take the next entry while this one still runs)."""
+    import os
+    import signal
+
+    runner = ScriptRunner(manager, output, home_first=False)
+    runner.start("first = 1\n", "<first>")
+    assert runner.wait(KERNEL_START_S) and runner.result is not None and runner.result.status == "finished"
+    earlier = runner._kernel
+    assert earlier is not None
+    os.kill(earlier.pid, signal.SIGSTOP)
+    runner.start("second = 2\n", "<second>")
+    assert runner.wait(KERNEL_START_S) and runner.result is not None and runner.result.status == "finished"
+    current = runner._kernel
+    assert current is not None and current is not earlier
+    os.kill(current.pid, signal.SIGSTOP)
+    try:
+        entry = runner.execute("third = 3")
+        assert entry is not None
+        assert earlier.ended.wait(KERNEL_START_S), "the retired kernel was ended"
+        entry.join(1.0)
+        assert entry.is_alive(), "the entry was ended by another kernel's end"
+    finally:
+        os.kill(current.pid, signal.SIGCONT)
+    entry.join(KERNEL_START_S)
+    assert not entry.is_alive() and runner.namespace_value("third", timeout=KERNEL_START_S) == 3

@@ -106,7 +106,8 @@ class ScriptResult:
 class PromptRun:
     """One prompt entry running in the kernel (what :meth:`ScriptRunner.execute` returns)."""
 
-    def __init__(self) -> None:
+    def __init__(self, kernel: KernelProcess | None = None) -> None:
+        self.kernel = kernel  # the kernel it runs in: its end (not another's) ends the entry
         self._done = threading.Event()
 
     def join(self, timeout: float | None = None) -> None:
@@ -493,7 +494,7 @@ class ScriptRunner:
         if codeop.compile_command(source, "<console>", symbol) is None:
             return None
         kernel = self._prompt_kernel()
-        run = PromptRun()
+        run = PromptRun(kernel)
         if kernel is None:
             self.output("stderr", "The script kernel could not be started: see the log.\n")
             run._done.set()
@@ -629,7 +630,8 @@ class ScriptRunner:
 
     def _on_kernel_exit(self, kernel: KernelProcess) -> None:
         for run in list(self._prompts.values()):
-            run._done.set()
+            if run.kernel is kernel:
+                run._done.set()
         if kernel is self._kernel:
             self._end_console_run(None, "script_error", f"the script's process ended: {kernel.cause()}")
         for answer in list(self._answers.values()):
