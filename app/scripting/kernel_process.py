@@ -47,6 +47,15 @@ PROBLEMS_LOGGED = 5  # handler failures logged with a traceback per kernel; the 
 READ_RATE = 8 * 1024 * 1024
 READ_BURST = 16 * 1024 * 1024
 CONTROL_TIMEOUT_S = 5.0  # the warden's answers (its first line comes ~20 ms after the start)
+# Ending: a retired kernel is asked to exit, killed (through its warden) after RETIRE_WAIT_S, given RETIRE_WAIT_S
+# more; once its link has closed, the warden gets FINISH_WAIT_S to end by itself, SWEEP_WAIT_S after a kill (it ends
+# what the script started within 2 s), KILLED_WAIT_S after a kill of its own. END_BOUND_S: the most all of it takes.
+RETIRE_WAIT_S = 1.0
+FINISH_WAIT_S = 0.5
+SWEEP_WAIT_S = 3.0
+KILLED_WAIT_S = 1.0
+END_BOUND_S = 2 * RETIRE_WAIT_S + FINISH_WAIT_S + SWEEP_WAIT_S + KILLED_WAIT_S
+THREAD_PREFIX = "kernel-"  # the names of a kernel's threads here: kernel-<warden pid>-writer, -reader0, …
 
 
 _LONE_SURROGATE = re.compile(rb"\\u[dD][89a-fA-F]", re.ASCII)
@@ -192,10 +201,11 @@ class KernelProcess:
         for pipe, name in ((self.proc.stdout, "stdout"), (self.proc.stderr, "stderr")):
             os.set_blocking(pipe.fileno(), False)
             self._sel.register(pipe, selectors.EVENT_READ, name)
-        self._writer = threading.Thread(target=self._write_main, name=f"kernel-{self.warden_pid}-writer", daemon=True)
+        named = f"{THREAD_PREFIX}{self.warden_pid}"
+        self._writer = threading.Thread(target=self._write_main, name=f"{named}-writer", daemon=True)
         self._writer.start()
         for i in range(READERS):
-            threading.Thread(target=self._reader_main, name=f"kernel-{self.warden_pid}-reader{i}", daemon=True).start()
+            threading.Thread(target=self._reader_main, name=f"{named}-reader{i}", daemon=True).start()
         self.send(hello)  # the kernel's first message: it builds its namespace from it while it waits for a script
 
     # ------------------------------------------------------------------ state
@@ -370,7 +380,8 @@ class KernelProcess:
 
     def _overflow(self) -> ThreadPoolExecutor:
         if self._overflow_pool is None:
-            self._overflow_pool = ThreadPoolExecutor(max_workers=4, thread_name_prefix=f"kernel-{self.warden_pid}-call")
+            self._overflow_pool = ThreadPoolExecutor(max_workers=4,
+                                                     thread_name_prefix=f"{THREAD_PREFIX}{self.warden_pid}-call")
         return self._overflow_pool
 
     def _problem(self, what: str, exc_info: bool = False) -> None:
@@ -464,14 +475,14 @@ class KernelProcess:
         """The socket closed: the kernel ended (or is about to). Collect what it wrote last and its code."""
         self._finished = True
         try:
-            self.returncode = self.proc.wait(0.5)
+            self.returncode = self.proc.wait(FINISH_WAIT_S)
         except subprocess.TimeoutExpired:
             self.kill()
             try:  # the warden ends its sweep within 2 s
-                self.returncode = self.proc.wait(3.0)
+                self.returncode = self.proc.wait(SWEEP_WAIT_S)
             except subprocess.TimeoutExpired:
                 self.proc.kill()
-                self.returncode = self.proc.wait(1.0)
+                self.returncode = self.proc.wait(KILLED_WAIT_S)
         try:
             self._control.close()
         except OSError:
@@ -545,11 +556,11 @@ class KernelProcess:
             pass
 
         def reap() -> None:
-            if not self.ended.wait(1.0):
+            if not self.ended.wait(RETIRE_WAIT_S):
                 self.kill()
-                self.ended.wait(1.0)
+                self.ended.wait(RETIRE_WAIT_S)
 
-        threading.Thread(target=reap, name=f"kernel-{self.warden_pid}-reaper", daemon=True).start()
+        threading.Thread(target=reap, name=f"{THREAD_PREFIX}{self.warden_pid}-reaper", daemon=True).start()
 
     def end_now(self, polite_s: float, term_s: float) -> bool:
         """TERM after ``polite_s`` without an end, KILL ``term_s`` later; True once it has ended."""
