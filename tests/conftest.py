@@ -298,6 +298,12 @@ def pytest_unconfigure(config) -> None:  # type: ignore[no-untyped-def]
 # tests start early on both pytest-xdist workers, and the short ones fill in at the end (no long tail of one
 # worker); a module's tests stay together, so its module-scoped fixtures are built once per worker.
 SLOW_MODULES = {"test_clinician_day"}
+# Modules that share one worker, one after the other (one xdist group). The emulated board's qemu runs at SCHED_RR
+# (app/devices/sim/host.py: its timing needs it) and keeps up to a core busy per thread: beside it on the 2-core
+# machine the clinician's day's window was starved for 0.7 s, and its GUI watch stopped the therapy as it must
+# (quiet suites of session 14; the day beside test_firmware_mcu alone: 3 stall warnings, 0 with qemu not RR).
+ONE_WORKER = {"test_clinician_day": "the emulated board and the clinician's day",
+              "test_firmware_mcu": "the emulated board and the clinician's day"}
 
 
 def _module_name(item) -> str:  # type: ignore[no-untyped-def]
@@ -326,6 +332,8 @@ def pytest_collection_modifyitems(config, items) -> None:  # type: ignore[no-unt
             item.add_marker(pytest.mark.flaky(reruns=1, reruns_delay=1))
         if item.get_closest_marker("slow") is not None:
             slow_modules.add(module)
+        if xdist and module in ONE_WORKER and item.get_closest_marker("xdist_group") is None:
+            item.add_marker(pytest.mark.xdist_group(name=ONE_WORKER[module]))
         # A module's shared rig (tests/rigs.py) is built once: its tests go to one worker (--dist loadgroup).
         if xdist and "shared_manager" in getattr(item, "fixturenames", ()) \
                 and item.get_closest_marker("xdist_group") is None:
