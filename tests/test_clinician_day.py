@@ -44,6 +44,7 @@ from app.core.config import AppConfig
 from app.manager import LinarmppManager
 from app.ui.main_window import MainWindow
 from tests.pdf_layout import overlaps, pdf_text
+from tests.reaching import reach_at_each_prompt
 from tests.ui_actions import Actions
 
 pytestmark = pytest.mark.realtime
@@ -403,22 +404,7 @@ def _assisted_with_the_vr_task(qtbot: Any, manager: LinarmppManager, window: Mai
     _next_action(qtbot, window)
     assert panel.exercise.ident == "assisted_reaching_fes" and panel.values()["fes_profile"] == BY_DISTRICT
     lo, hi = float(ASSISTED["start_m"]), float(ASSISTED["target_m"])
-    patient = manager.sim_patient()
-    stop = threading.Event()
-
-    def push(target: float) -> None:  # the patient reaches at each prompt, and back after each repetition
-        for k in range(1, 6):
-            patient.push_to(target, 10.0 * k / 5)
-            if stop.wait(0.04):
-                return
-
-    def on_event(kind: str, data: dict[str, Any]) -> None:
-        if kind == "prompt":
-            threading.Thread(target=push, args=(hi,), daemon=True).start()
-        elif kind == "repetition_end":
-            threading.Thread(target=push, args=(lo,), daemon=True).start()
-
-    listener = manager.bus.listen("push at each repetition", lambda r: on_event(r.kind, r.data))
+    listener = reach_at_each_prompt(manager, lo, hi, force_n=10.0)  # the patient reaches at each prompt
     try:
         assert panel.start_button.isEnabled(), panel.hold_label.text()
         qtbot.mouseClick(panel.start_button, Qt.MouseButton.LeftButton)
@@ -429,7 +415,6 @@ def _assisted_with_the_vr_task(qtbot: Any, manager: LinarmppManager, window: Mai
         _wait(qtbot, manager, window, lambda: manager.runs.get(run.run_id).end_reason is not None, 90000,
               "the assisted exercise's end")
     finally:
-        stop.set()
         listener.close()
     ended = manager.runs.get(run.run_id)
     assert ended.end_reason == "finished", ended.end_detail

@@ -28,6 +28,7 @@ import pytest
 from app.core.config import RESOURCES, AppConfig, UdpEndpoint
 from app.session.metrics import metrics_by_run, session_metrics
 from app.session.recording import load_session
+from tests.reaching import reach_at_each_prompt
 
 pytestmark = [pytest.mark.slow, pytest.mark.realtime]
 
@@ -194,26 +195,6 @@ COMMANDED: dict[str, tuple[dict[str, Any], int, int, int]] = {
 }
 
 
-def reaching_patient(manager: Any, params: dict[str, Any], stop: threading.Event) -> None:
-    """Assisted reaching's patient: reaches for the target at each prompt, back to the start after each
-    repetition (the push ramped over 0.2 s: a step of force would shake the handle past the speed envelope)."""
-    patient = manager.sim_patient()
-
-    def push(target: float) -> None:
-        for k in range(1, 6):
-            patient.push_to(target, 15.0 * k / 5)
-            if stop.wait(0.04):
-                return
-
-    def on_event(kind: str, data: dict[str, Any]) -> None:
-        if kind == "prompt":
-            threading.Thread(target=push, args=(params["target_m"],), daemon=True).start()
-        elif kind == "repetition_end":
-            threading.Thread(target=push, args=(params["start_m"],), daemon=True).start()
-
-    manager.bus.listen("test", lambda r: on_event(r.kind, r.data))
-
-
 # Every run starts homed (LINARMPP_SIM_HOMED): the real-time homing (~4 s a run) proved nothing about counting, and
 # that the runner's homing is positioning, once, never a repetition, is test_metrics_e2e's recording (the same
 # ScriptRunner homing first; its positioning is exactly ["homing", "outside_repetitions"]). A recording without
@@ -227,18 +208,16 @@ def test_metrics_of_a_headless_recording_give_the_commanded_counts(exercise: str
 
     assert {p.stem for p in EXERCISES.glob("*.yaml")} == set(COMMANDED)  # every exercise of the library
     params, reps, completed, positioning = COMMANDED[exercise]
-    stop = threading.Event()
     out: list[str] = []
 
     def prepare(manager: Any) -> None:
         manager.sim_patient().idle()
         manager.sim_patient().passive()
         if exercise == "assisted_reaching_fes":
-            reaching_patient(manager, params, stop)
+            reach_at_each_prompt(manager, params["start_m"], params["target_m"])
 
     code = run_headless(config(), str(exercise_script(tmp_path, exercise, params)), record_dir=str(tmp_path / "rec"),
                         prepare=prepare, output=lambda stream, text: out.append(text))
-    stop.set()
     assert code == EXIT_OK, "".join(out)
     folder = next((tmp_path / "rec").rglob("manifest.json")).parent
     done = cli("--metrics", str(folder))

@@ -4,7 +4,6 @@ range — seen on the wire (the robot's acknowledged commands in the session rec
 
 from __future__ import annotations
 
-import threading
 from pathlib import Path
 from typing import Any
 
@@ -12,6 +11,7 @@ import pytest
 
 from app.core.config import RESOURCES, AppConfig
 from app.session.recording import load_session
+from tests.reaching import reach_at_each_prompt
 
 EXERCISES = RESOURCES / "exercises"
 PARAMS = {"repetitions": 2, "start_m": 0.15, "target_m": 0.35, "use_fes": False, "timeout_s": 6.0, "rest_s": 0.3}
@@ -24,25 +24,6 @@ def _script(tmp: Path, params: dict[str, Any]) -> Path:
     return path
 
 
-def _reaching_patient(manager: Any, params: dict[str, Any], stop: threading.Event) -> None:
-    """Reaches for the target at each prompt, back to the start after each repetition (ramped pushes)."""
-    patient = manager.sim_patient()
-
-    def push(target: float) -> None:
-        for k in range(1, 6):
-            patient.push_to(target, 15.0 * k / 5)
-            if stop.wait(0.04):
-                return
-
-    def on_event(kind: str, data: dict[str, Any]) -> None:
-        if kind == "prompt":
-            threading.Thread(target=push, args=(params["target_m"],), daemon=True).start()
-        elif kind == "repetition_end":
-            threading.Thread(target=push, args=(params["start_m"],), daemon=True).start()
-
-    manager.bus.listen("test", lambda r: on_event(r.kind, r.data))
-
-
 @pytest.mark.realtime
 def test_the_vr_task_does_not_pull_the_robot_out_of_the_exercises_range(tmp_path: Path) -> None:
     """The default configuration (the VR stand-in and the embedded patient model running), headless: the
@@ -50,17 +31,15 @@ def test_the_vr_task_does_not_pull_the_robot_out_of_the_exercises_range(tmp_path
     0.40 m) to the robot during the run and every repetition was "not reached"."""
     from app.scripting.headless import EXIT_OK, run_headless
 
-    stop = threading.Event()
     out: list[str] = []
 
     def prepare(manager: Any) -> None:
         manager.sim_patient().idle()
         manager.sim_patient().passive()
-        _reaching_patient(manager, PARAMS, stop)
+        reach_at_each_prompt(manager, PARAMS["start_m"], PARAMS["target_m"])
 
     code = run_headless(AppConfig(), str(_script(tmp_path, PARAMS)), record_dir=str(tmp_path / "rec"),
                         prepare=prepare, output=lambda stream, text: out.append(text))
-    stop.set()
     assert code == EXIT_OK, "".join(out)
     folder = next((tmp_path / "rec").rglob("manifest.json")).parent
     events = load_session(folder).events

@@ -200,3 +200,21 @@ def test_phasic_event_raises_skin_conductance() -> None:
     assert np.all(diff > -0.015)
     assert 0.75 < diff.max() < 0.85
     assert 11.0 < 10.0 + np.argmax(diff) * DT < 16.0
+
+
+def test_a_push_builds_up_over_its_rise_time_on_the_patients_clock() -> None:
+    """The force of ``push_to(..., rise_s=)`` rises on the patient's own clock, whoever calls when: a test's thread
+    stepping the force from outside was starved on a busy machine and its steps arrived together (#38)."""
+    p = SimulatedPatient(seed=7)
+    p.handle_force(0.0, 0.0, 0.0)  # the patient's clock starts
+    p.push_to(0.30, force=15.0, rise_s=0.2)
+
+    def force_at(t: float) -> float:  # the handle held still, far from the target: the push alone (and noise)
+        return float(np.mean([p.handle_force(t + i * 1e-4, 0.0, 0.0) for i in range(20)]))
+
+    first, half, full = force_at(0.001), force_at(0.101), force_at(0.301)
+    assert first == pytest.approx(0.0, abs=1.0)
+    assert half == pytest.approx(7.5, abs=1.0)
+    assert full == pytest.approx(15.0, abs=1.0)
+    p.push_to(0.30, force=15.0)  # without a rise time: at once, as before
+    assert force_at(0.5) == pytest.approx(15.0, abs=1.0)

@@ -156,6 +156,8 @@ class SimulatedPatient:
         self._weak_fraction = 0.2
         self._stop_fraction = 0.5
         self._push_start: float | None = None  # handle position when the push began
+        self._push_rise_s = 0.0  # the push's force builds up over this long (0: at once)
+        self._push_t0: float | None = None  # the patient's time when the push began (taken with _push_start)
         self._gave_up = False
         # evoked response to stimulation
         self._sites = random_electrode_sites(seed)
@@ -202,9 +204,13 @@ class SimulatedPatient:
         with self._lock:
             self._handle_mode = HandleMode.PASSIVE
 
-    def push_to(self, target: float, force: float = 15.0) -> None:
+    def push_to(self, target: float, force: float = 15.0, rise_s: float = 0.0) -> None:
+        """Push the handle toward ``target`` with ``force`` newtons, built up linearly over ``rise_s`` seconds of the
+        patient's own clock (an arm's force rises; a caller that stepped it from a thread of its own had its steps
+        arrive together on a busy machine — a step of 9 N shook the handle past the speed envelope)."""
         with self._lock:
             self._start_push(HandleMode.PUSH, target, force)
+            self._push_rise_s = max(0.0, rise_s)
 
     def fail_weak(self, target: float, force: float = 15.0, fraction: float = 0.2) -> None:
         """Push toward ``target`` with only ``fraction`` of ``force``."""
@@ -286,7 +292,7 @@ class SimulatedPatient:
             if mode is HandleMode.PASSIVE or (mode is HandleMode.STOP_EARLY and self._gave_up):
                 return damping + noise
             if self._push_start is None:
-                self._push_start = handle_pos
+                self._push_start, self._push_t0 = handle_pos, self._t
             error = self._handle_target - handle_pos
             if mode is HandleMode.STOP_EARLY:
                 total = self._handle_target - self._push_start
@@ -296,6 +302,8 @@ class SimulatedPatient:
                     return damping + noise
             gain = self._weak_fraction if mode is HandleMode.WEAK else 1.0
             push = gain * self._push_force * max(-1.0, min(1.0, error / HANDLE_PUSH_RAMP_M))
+            if self._push_rise_s > 0.0 and self._push_t0 is not None and self._t is not None:
+                push *= min(1.0, (self._t - self._push_t0) / self._push_rise_s)
             return push + damping + noise
 
     # -- internals (lock held) -----------------------------------------------------------------
@@ -309,6 +317,7 @@ class SimulatedPatient:
         self._handle_target = target
         self._push_force = abs(force)
         self._push_start = None  # taken at the next handle_force call
+        self._push_rise_s = 0.0
         self._gave_up = False
 
     def _track_arrival(self) -> None:
