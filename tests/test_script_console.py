@@ -19,6 +19,7 @@ from app.core.priority import SCRIPT_NICE
 from app.gui_watch import ALARM_AFTER_S
 from app.ui.script_console import ScriptConsole
 from tests.test_script_runner import FakeSupervisor, ScriptHostParts, fake_bus
+from tests.waits import KERNEL_START_MS
 
 
 @dataclass(frozen=True)
@@ -156,7 +157,8 @@ def test_output_and_clickable_traceback_lines(console: ScriptConsole, qtbot: Any
     console.load_file(script)
     assert console.start_script()
     # the status line says how the run ended, as the window's run log has it (the host has one, as the app's)
-    qtbot.waitUntil(lambda: console.start_button.isEnabled() and "error" in console.status.text(), timeout=3000)
+    qtbot.waitUntil(lambda: console.start_button.isEnabled() and "error" in console.status.text(),
+                    timeout=KERNEL_START_MS)
     text = console.output_text()
     assert "hello from the script" in text
     assert "NameError" in text and f'File "{script}", line 5' in text
@@ -171,11 +173,11 @@ def test_output_and_clickable_traceback_lines(console: ScriptConsole, qtbot: Any
 
 def test_the_prompt_runs_in_the_script_namespace_with_history(console: ScriptConsole, qtbot: Any) -> None:
     run(console, qtbot, "target = 0.3\n")
-    qtbot.waitUntil(lambda: not console.runner.running, timeout=3000)
+    qtbot.waitUntil(lambda: not console.runner.running, timeout=KERNEL_START_MS)
     for line in ("target * 2", "physiologicalSensors.physiologicalSensorsData.force"):
         qtbot.keyClicks(console.prompt, line)
         qtbot.keyClick(console.prompt, Qt.Key.Key_Return)
-    qtbot.waitUntil(lambda: "3.0" in console.output_text(), timeout=3000)
+    qtbot.waitUntil(lambda: "3.0" in console.output_text(), timeout=KERNEL_START_MS)
     assert "0.6" in console.output_text()
     qtbot.keyClicks(console.prompt, "for i in range(2):")
     qtbot.keyClick(console.prompt, Qt.Key.Key_Return)
@@ -183,7 +185,7 @@ def test_the_prompt_runs_in_the_script_namespace_with_history(console: ScriptCon
     qtbot.keyClicks(console.prompt, "    print('loop', i)")
     qtbot.keyClick(console.prompt, Qt.Key.Key_Return)
     qtbot.keyClick(console.prompt, Qt.Key.Key_Return)
-    qtbot.waitUntil(lambda: "loop 1" in console.output_text(), timeout=3000)
+    qtbot.waitUntil(lambda: "loop 1" in console.output_text(), timeout=KERNEL_START_MS)
     assert console.prompt_label.text() == ">>>"
     qtbot.keyClick(console.prompt, Qt.Key.Key_Up)
     assert console.prompt.text() == "    print('loop', i)"
