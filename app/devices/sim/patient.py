@@ -207,7 +207,7 @@ class SimulatedPatient:
     def push_to(self, target: float, force: float = 15.0, rise_s: float = 0.0) -> None:
         """Push the handle toward ``target`` with ``force`` newtons, built up linearly over ``rise_s`` seconds of the
         patient's own clock (an arm's force rises; a caller that stepped it from a thread of its own had its steps
-        arrive together on a busy machine — a step of 9 N shook the handle past the speed envelope)."""
+        arrive together on a busy machine — a step of 15 N shook the handle past the speed envelope)."""
         with self._lock:
             self._start_push(HandleMode.PUSH, target, force)
             self._push_rise_s = max(0.0, rise_s)
