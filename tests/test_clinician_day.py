@@ -44,7 +44,7 @@ from app.core.config import AppConfig
 from app.manager import LinarmppManager
 from app.ui.main_window import MainWindow
 from tests.pdf_layout import overlaps, pdf_text
-from tests.reaching import reach_at_each_prompt
+from tests.reaching import ReachingPatient
 from tests.ui_actions import Actions
 
 pytestmark = pytest.mark.realtime
@@ -404,7 +404,7 @@ def _assisted_with_the_vr_task(qtbot: Any, manager: LinarmppManager, window: Mai
     _next_action(qtbot, window)
     assert panel.exercise.ident == "assisted_reaching_fes" and panel.values()["fes_profile"] == BY_DISTRICT
     lo, hi = float(ASSISTED["start_m"]), float(ASSISTED["target_m"])
-    listener = reach_at_each_prompt(manager, lo, hi, force_n=10.0)  # the patient reaches at each prompt
+    reaching = ReachingPatient(manager, lo, hi, force_n=10.0)  # the patient reaches at each prompt
     try:
         assert panel.start_button.isEnabled(), panel.hold_label.text()
         qtbot.mouseClick(panel.start_button, Qt.MouseButton.LeftButton)
@@ -415,7 +415,7 @@ def _assisted_with_the_vr_task(qtbot: Any, manager: LinarmppManager, window: Mai
         _wait(qtbot, manager, window, lambda: manager.runs.get(run.run_id).end_reason is not None, 90000,
               "the assisted exercise's end")
     finally:
-        listener.close()
+        reaching.close()
     ended = manager.runs.get(run.run_id)
     assert ended.end_reason == "finished", ended.end_detail
     taken = next(d for d in events.of("lease_taken") if d["run_id"] == run.run_id)

@@ -28,7 +28,7 @@ import pytest
 from app.core.config import RESOURCES, AppConfig, UdpEndpoint
 from app.session.metrics import metrics_by_run, session_metrics
 from app.session.recording import load_session
-from tests.reaching import reach_at_each_prompt
+from tests.reaching import ReachingPatient
 
 pytestmark = [pytest.mark.slow, pytest.mark.realtime]
 
@@ -209,15 +209,21 @@ def test_metrics_of_a_headless_recording_give_the_commanded_counts(exercise: str
     assert {p.stem for p in EXERCISES.glob("*.yaml")} == set(COMMANDED)  # every exercise of the library
     params, reps, completed, positioning = COMMANDED[exercise]
     out: list[str] = []
+    reaching: list[ReachingPatient] = []
 
     def prepare(manager: Any) -> None:
         manager.sim_patient().idle()
         manager.sim_patient().passive()
         if exercise == "assisted_reaching_fes":
-            reach_at_each_prompt(manager, params["start_m"], params["target_m"])
+            reaching.append(ReachingPatient(manager, params["start_m"], params["target_m"]))
 
-    code = run_headless(config(), str(exercise_script(tmp_path, exercise, params)), record_dir=str(tmp_path / "rec"),
-                        prepare=prepare, output=lambda stream, text: out.append(text))
+    try:
+        code = run_headless(config(), str(exercise_script(tmp_path, exercise, params)),
+                            record_dir=str(tmp_path / "rec"), prepare=prepare,
+                            output=lambda stream, text: out.append(text))
+    finally:
+        for patient in reaching:
+            patient.close()
     assert code == EXIT_OK, "".join(out)
     folder = next((tmp_path / "rec").rglob("manifest.json")).parent
     done = cli("--metrics", str(folder))

@@ -11,7 +11,7 @@ import pytest
 
 from app.core.config import RESOURCES, AppConfig
 from app.session.recording import load_session
-from tests.reaching import reach_at_each_prompt
+from tests.reaching import ReachingPatient
 
 EXERCISES = RESOURCES / "exercises"
 PARAMS = {"repetitions": 2, "start_m": 0.15, "target_m": 0.35, "use_fes": False, "timeout_s": 6.0, "rest_s": 0.3}
@@ -32,14 +32,19 @@ def test_the_vr_task_does_not_pull_the_robot_out_of_the_exercises_range(tmp_path
     from app.scripting.headless import EXIT_OK, run_headless
 
     out: list[str] = []
+    reaching: list[ReachingPatient] = []
 
     def prepare(manager: Any) -> None:
         manager.sim_patient().idle()
         manager.sim_patient().passive()
-        reach_at_each_prompt(manager, PARAMS["start_m"], PARAMS["target_m"])
+        reaching.append(ReachingPatient(manager, PARAMS["start_m"], PARAMS["target_m"]))
 
-    code = run_headless(AppConfig(), str(_script(tmp_path, PARAMS)), record_dir=str(tmp_path / "rec"),
-                        prepare=prepare, output=lambda stream, text: out.append(text))
+    try:
+        code = run_headless(AppConfig(), str(_script(tmp_path, PARAMS)), record_dir=str(tmp_path / "rec"),
+                            prepare=prepare, output=lambda stream, text: out.append(text))
+    finally:
+        for patient in reaching:
+            patient.close()
     assert code == EXIT_OK, "".join(out)
     folder = next((tmp_path / "rec").rglob("manifest.json")).parent
     events = load_session(folder).events
