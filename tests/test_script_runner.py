@@ -213,6 +213,7 @@ def test_stop_interrupts_within_200_ms_and_stops_fes(manager: FakeManager, outpu
     assert ("setCtrlState", (0,), "script runner") in manager.linarm.commands  # robot IDLE
 
 
+@pytest.mark.realtime  # a wall-clock budget (Stop within 200 ms)
 def test_stop_interrupts_a_sleep_inside_a_callback(manager: FakeManager, output: Output) -> None:
     runner = ScriptRunner(manager, output, home_first=False)
     runner.start("def cb(data):\n    import time\n    print('in callback')\n    time.sleep(100)\n"
