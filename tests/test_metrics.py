@@ -17,6 +17,7 @@ from app.session.metrics import (
     Mark,
     Series,
     SessionSignals,
+    analyse,
     fes_charge_uc,
     marks_from_events,
     regular_times,
@@ -395,6 +396,26 @@ def test_a_skipped_marked_repetition_is_not_completed() -> None:
     assert not skipped.completed and done.completed
     sig.movement_distance_m = 0.3  # commanded 0.3 m, the handle covered 0.2
     assert not repetitions(sig)[1].completed
+
+
+def test_a_reach_whose_onset_falls_just_before_its_mark_is_that_repetitions() -> None:
+    """The clinician's day's assisted reaching (session report: "1 of 2 completed" for a run whose script and
+    handle reached the target twice): the handle came back to the start, and the second reach's onset — widened
+    back to 5 mm/s — lay 23 ms before the second mark's start. The reach was filed as "outside the repetitions" and
+    the repetition kept only its 1.6 cm tail: not completed. An onset within the smear before a mark is that
+    mark's movement (a movement inside an earlier mark stays that mark's)."""
+    t = np.arange(0.0, 12.0, 1 / FS)
+    out = 0.15 * min_jerk((t - 1.0) / 1.5)           # rep 1: 0.15 -> 0.30 m from 1.0 s
+    back = -0.15 * min_jerk((t - 3.5) / 1.5)         # back to the start from 3.5 s, settled by 5.0 s
+    again = 0.15 * min_jerk((t - 5.03) / 1.5)        # rep 2's reach: its onset 30 ms before its mark at 5.15 s
+    x = 0.15 + out + back + again
+    marks = [Mark(0.95, 3.0, 1, ok=True), Mark(5.15, 7.0, 2, ok=True)]
+    sig = signals(t, x, marks, movement_distance_m=0.15)
+    first, second = repetitions(sig)
+    assert first.completed and second.completed, (first, second)
+    assert second.movement_onset_s == pytest.approx(5.12, abs=0.01)  # before the mark: the case
+    assert second.range_m == pytest.approx(0.15, abs=0.01)
+    assert [p for p in analyse(sig).positioning if p["start_s"] > 4.95] == []  # not "outside the repetitions"
 
 
 def test_homing_then_an_immediate_movement_is_not_clipped() -> None:

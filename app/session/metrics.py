@@ -48,6 +48,11 @@ GRIP_ONSET_MARGIN_N = 2.0  # a squeeze's onset: the grip rises ≥ 2 N above its
 GRIP_ONSET_FRACTION = 0.10  # ... or 10 % of the way from the baseline to the trigger threshold, if more
 BASELINE_WINDOW_S = 0.5  # the resting grip: median of the 0.5 s before the prompt
 PROMPT_SLACK_S = 0.15  # a movement that began this much before the exercise's first prompt was positioning
+# A movement whose onset lies this much before a mark's start (and inside no earlier mark) is that mark's: the
+# low-pass and the widening to 5 mm/s smear an onset back, and a patient may set off on the cue's heels. Without it
+# the clinician's day's second assisted reach (onset 23 ms before its mark) was "outside the repetitions" and the
+# repetition "not completed" while the script and the handle said it was reached.
+MARK_SLACK_S = PROMPT_SLACK_S
 COVERED_FRACTION = 0.9  # completed: the handle covered ≥ 90 % of the commanded distance (docs/metrics.md)
 
 
@@ -681,15 +686,21 @@ def analyse(sig: SessionSignals, lo: float = -math.inf, hi: float = math.inf) ->
     reps: list[RepetitionMetrics] = []
     if marks:
         owner: list[int | None] = []
+        onsets: list[float] = []
         for a, b in movements:
             onset = _onset_of(sig, a, b)
             k = next((i for i, mk in enumerate(marks) if mk.start - 1e-6 <= onset <= mk.end), None)
+            if k is None:  # just before a mark (inside none): that mark's (MARK_SLACK_S)
+                k = next((i for i, mk in enumerate(marks) if mk.start - MARK_SLACK_S <= onset < mk.start), None)
             owner.append(k)
+            onsets.append(onset)
         for i, mk in enumerate(marks):
             mine = [movements[j] for j, o in enumerate(owner) if o == i]
             others = [movements[j] for j, o in enumerate(owner) if o != i]
             # the window: the mark, less the tail of an earlier movement, plus this movement's own tail
             w0 = max([mk.start, *[b for a, b in others if a < mk.start < b]])
+            early = [onsets[j] for j, o in enumerate(owner) if o == i and onsets[j] < w0]
+            w0 = min([w0, *early])  # a movement set off just before the mark: from its onset
             w1 = max([mk.end, *[b for _, b in mine]])
             w1 = min([w1, *[a for a, _ in others if w0 < a < w1 and not (mine and a < mine[-1][1])]])
             nxt = marks[i + 1].start if i + 1 < len(marks) else math.inf
