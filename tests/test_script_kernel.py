@@ -375,6 +375,7 @@ WIRE_CASES = {
 
 
 @pytest.mark.slow
+@pytest.mark.realtime  # a wall-clock budget (Stop on the wire within 200 ms)
 @pytest.mark.parametrize("case", list(WIRE_CASES))
 def test_fes_stop_and_robot_idle_are_on_the_wire_within_200_ms(rig: Any, case: str) -> None:
     from tests.test_estop_wire import robot_idle_after
