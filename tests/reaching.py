@@ -2,8 +2,8 @@
 after each repetition. The push's force rises over PUSH_RISE_S on the patient's own clock (``push_to(rise_s=)``):
 stepped from a thread of the test (five steps 40 ms apart), a busy machine delayed the steps and the simulator took
 them together — a step of force shook the handle past the speed envelope (ENVELOPE_BREACH, #38). The pushes are
-handed to the simulator in the order of the records, by one thread: a thread per push let a late "back to the start"
-overtake the next prompt's reach on a loaded machine (a repetition "not completed")."""
+handed to the simulator in the order of the records, by one thread (a thread per push could reorder them; not seen
+to: the "(2, 1)" count once blamed on it was the metrics' attribution, docs/metrics.md)."""
 
 from __future__ import annotations
 
